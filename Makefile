@@ -1,0 +1,31 @@
+# Two set-up commands on a fresh machine: `make sim` and `make test`.
+# Each creates .venv (if missing) and installs what it needs.
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: test sim bench venv clean regen-messages
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[test,sim]'
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+test: $(STAMP)
+	$(PY) -m pytest $(PYTEST_ARGS)
+
+sim: $(STAMP)
+	$(VENV)/bin/u2sa sim --vehicle examples/ground_vehicle/vehicle.toml --out sim-out
+
+bench: $(STAMP)
+	$(PY) bench/transport.py
+
+regen-messages: $(STAMP)
+	$(PY) -m u2sa_hw.message_codegen
+
+clean:
+	rm -rf $(VENV) build *.egg-info sim-out

@@ -1,0 +1,85 @@
+"""Regenerate ``u2sa_hw/lcmtypes`` from the ``.lcm`` files with ``lcm-gen -p``.
+
+Run ``python -m u2sa_hw.message_codegen`` after editing a ``.lcm`` file, and commit
+the result. ``python -m u2sa_hw.message_codegen --check`` exits 1 when the committed
+code differs from what lcm-gen makes now (the test suite runs this check).
+"""
+
+from __future__ import annotations
+
+import argparse
+import filecmp
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+MESSAGES_DIR = Path(__file__).resolve().parent / "messages"
+GENERATED_DIR = MESSAGES_DIR.parent / "lcmtypes"
+LCM_PACKAGE = "u2sa_hw.lcmtypes"
+# lcm-gen stamps its own version into __init__.py; the version is not part of the types.
+_VERSION_LINE = re.compile(r"^lcm-gen \S+$", re.MULTILINE)
+
+
+def find_lcm_gen() -> str:
+    """Return the path of ``lcm-gen``: beside this Python (the ``lcm`` wheel ships it), else on PATH."""
+    beside = Path(sys.executable).with_name("lcm-gen")
+    if beside.exists():
+        return str(beside)
+    found = shutil.which("lcm-gen")
+    if not found:
+        raise FileNotFoundError(
+            "lcm-gen not found: install the 'lcm' package into this environment (pip install lcm)"
+        )
+    return found
+
+
+def generate(out_dir: Path) -> Path:
+    """Run lcm-gen on every ``.lcm`` file into *out_dir*; return the generated package dir."""
+    sources = sorted(str(p) for p in MESSAGES_DIR.glob("*.lcm"))
+    subprocess.run([find_lcm_gen(), "-p", "--ppath", str(out_dir), *sources], check=True)
+    return out_dir.joinpath(*LCM_PACKAGE.split("."))
+
+
+def _normalised(path: Path) -> str:
+    return _VERSION_LINE.sub("lcm-gen", path.read_text())
+
+
+def differences(generated: Path, committed: Path = GENERATED_DIR) -> list[str]:
+    """Names of files that differ between a fresh generation and the committed package."""
+    fresh = {p.name for p in generated.glob("*.py")}
+    have = {p.name for p in committed.glob("*.py")} if committed.exists() else set()
+    diffs = sorted(fresh ^ have)
+    for name in sorted(fresh & have):
+        if _normalised(generated / name) != _normalised(committed / name):
+            diffs.append(name)
+    return diffs
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Regenerate (default) or check (``--check``) the committed LCM Python code."""
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--check", action="store_true", help="compare only; exit 1 on any difference")
+    args = parser.parse_args(argv)
+    with tempfile.TemporaryDirectory() as tmp:
+        generated = generate(Path(tmp))
+        if args.check:
+            diffs = differences(generated)
+            if diffs:
+                print("generated LCM code is stale: " + ", ".join(diffs)
+                      + "\nfix: python -m u2sa_hw.message_codegen, then commit u2sa_hw/lcmtypes", file=sys.stderr)
+                return 1
+            print(f"{LCM_PACKAGE} matches the .lcm files")
+            return 0
+        if GENERATED_DIR.exists():
+            shutil.rmtree(GENERATED_DIR)
+        shutil.copytree(generated, GENERATED_DIR)
+        print(f"wrote {len(list(GENERATED_DIR.glob('*.py')))} files to {os.path.relpath(GENERATED_DIR)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,140 @@
+"""Fingerprint registry and extension-aware decoding (DESIGN.md section 2, requirement M6).
+
+Every LCM type carries an 8-byte fingerprint. A child type's first field is its parent
+(``base``); LCM encodes nested structs without their fingerprint, so the bytes after a
+child's fingerprint begin with an encoding of its parent. A receiver that subscribed
+with a base type therefore decodes a child it has never heard of as that base type.
+"""
+
+from __future__ import annotations
+
+import inspect
+import struct
+from typing import Any
+
+from u2sa_hw import lcmtypes
+
+
+class MalformedMessage(ValueError):
+    """Bytes on a channel that do not decode as the channel's type (or any descendant)."""
+
+
+def fingerprint_of(cls: type) -> bytes:
+    """The 8-byte packed fingerprint of an LCM type."""
+    return cls._get_packed_fingerprint()
+
+
+def type_name(cls_or_msg: Any) -> str:
+    """The short type name of an LCM class or message (``StateInformation``)."""
+    cls = cls_or_msg if isinstance(cls_or_msg, type) else type(cls_or_msg)
+    return cls.__name__
+
+
+class TypeRegistry:
+    """Maps fingerprints and names to LCM classes and knows each class's parent."""
+
+    def __init__(self) -> None:
+        self._by_fp: dict[bytes, type] = {}
+        self._by_name: dict[str, type] = {}
+
+    def register(self, cls: type) -> type:
+        """Add an LCM class (its parent is found through its ``base`` field); returns it."""
+        fp = fingerprint_of(cls)
+        other = self._by_fp.get(fp)
+        if other is not None and other is not cls:
+            raise ValueError(
+                f"{cls.__name__} has the same LCM fingerprint as {other.__name__}: LCM hashes field "
+                "names and types, not struct names, so give one of them a distinct field"
+            )
+        self._by_fp[fp] = cls
+        self._by_name[cls.__name__] = cls
+        self._by_name[f"{cls.__module__.rsplit('.', 1)[0]}.{cls.__name__}"] = cls
+        return cls
+
+    def by_fingerprint(self, fp: bytes) -> type | None:
+        """The class whose fingerprint is *fp*, or None."""
+        return self._by_fp.get(fp)
+
+    def by_name(self, name: str) -> type:
+        """The class called *name* (short or package-qualified); KeyError lists the known ones."""
+        try:
+            return self._by_name[name]
+        except KeyError:
+            known = ", ".join(sorted(n for n in self._by_name if "." not in n))
+            raise KeyError(f"unknown message type {name!r}; known types: {known}") from None
+
+    def names(self) -> list[str]:
+        """Short names of every registered type."""
+        return sorted(n for n in self._by_name if "." not in n)
+
+    @staticmethod
+    def parent_of(cls: type) -> type | None:
+        """The parent type of an extension (its first field, named ``base``), or None."""
+        slots = getattr(cls, "__slots__", [])
+        if not slots or slots[0] != "base":
+            return None
+        return type(cls().base)
+
+    def ancestry(self, cls: type) -> list[type]:
+        """*cls* followed by its parents up to the root type."""
+        chain = [cls]
+        while (parent := self.parent_of(chain[-1])) is not None:
+            chain.append(parent)
+        return chain
+
+    def is_a(self, cls: type, base: type) -> bool:
+        """True when *cls* is *base* or extends it (at any depth)."""
+        return base in self.ancestry(cls)
+
+    def decode(self, data: bytes, base: type | None = None) -> tuple[Any, bool]:
+        """Decode *data*; return ``(message, known)``.
+
+        A known fingerprint decodes to its concrete type (which must extend *base* when
+        given). An unknown fingerprint decodes as *base* (``known`` is False). Anything
+        else raises :class:`MalformedMessage` with the reason.
+        """
+        if len(data) < 8:
+            raise MalformedMessage(f"truncated: {len(data)} bytes, shorter than a fingerprint")
+        cls = self._by_fp.get(data[:8])
+        if cls is not None:
+            if base is not None and not self.is_a(cls, base):
+                raise MalformedMessage(f"wrong type: {cls.__name__} is not a {base.__name__}")
+            return _decode_body(cls, data), True
+        if base is None:
+            raise MalformedMessage(f"unknown fingerprint {data[:8].hex()}")
+        return _decode_body(base, data), False
+
+
+def _decode_body(cls: type, data: bytes) -> Any:
+    from io import BytesIO
+
+    buf = BytesIO(data)
+    buf.seek(8)
+    try:
+        msg = cls._decode_one(buf)
+    except (struct.error, ValueError, UnicodeDecodeError, OverflowError, MemoryError, IndexError) as exc:
+        raise MalformedMessage(f"truncated or garbage {cls.__name__}: {exc}") from None
+    if buf.tell() > len(data):
+        raise MalformedMessage(f"truncated {cls.__name__}")
+    return msg
+
+
+def as_type(msg: Any, cls: type) -> Any:
+    """View *msg* as its ancestor *cls* (following ``base`` fields); TypeError if it is not one."""
+    cur = msg
+    while not isinstance(cur, cls):
+        if not hasattr(cur, "base") or not hasattr(type(cur), "_get_packed_fingerprint"):
+            raise TypeError(f"{type(msg).__name__} is not a {cls.__name__}")
+        cur = cur.base
+    return cur
+
+
+def _build_default() -> TypeRegistry:
+    reg = TypeRegistry()
+    for _, cls in inspect.getmembers(lcmtypes, inspect.isclass):
+        if hasattr(cls, "_get_packed_fingerprint"):
+            reg.register(cls)
+    return reg
+
+
+REGISTRY = _build_default()
