@@ -1,0 +1,124 @@
+"""A client of the service contract over the bus: discovery, config, stop, listening.
+
+Used by the ``u2sa`` command, the HSM and the tests. It is a plain transport user, not a
+service: it answers no discovery and publishes no health.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+import uuid
+from typing import Any
+
+from u2sa_hw import channels as ch
+from u2sa_hw import lcmtypes as t
+from u2sa_hw.transport import Transport
+
+
+class BusClient:
+    """Request/response helpers on top of one :class:`Transport`."""
+
+    def __init__(self, url: str | None = None, *, name: str | None = None, system_id: int = 0) -> None:
+        self.name = name or f"u2sa-cli-{os.getpid()}"
+        self.system_id = system_id
+        self.transport = Transport(url, name=self.name)
+        self.transport.start()
+        self._seq = 0
+
+    def close(self) -> None:
+        """Release the transport."""
+        self.transport.stop()
+
+    def __enter__(self) -> "BusClient":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _stamp(self, msg: Any) -> Any:
+        self._seq += 1
+        msg.header.system_id = self.system_id
+        msg.header.timestamp_us = time.time_ns() // 1000
+        msg.header.source = self.name
+        msg.header.sequence = self._seq
+        return msg
+
+    def publish(self, channel: str, msg: Any) -> bool:
+        """Publish *msg* with a stamped root header (for types with ``header`` or ``base``)."""
+        from u2sa_hw.service import _root_header
+
+        header = _root_header(msg)
+        if header is not None:
+            self._seq += 1
+            header.system_id = header.system_id or self.system_id
+            header.timestamp_us = time.time_ns() // 1000
+            header.source = header.source or self.name
+            header.sequence = self._seq
+        return self.transport.publish(channel, msg)
+
+    def _collect(self, reply_channel: str, reply_type: type, request_channel: str, request: Any, *,
+                 timeout: float, want: int | None = None, match: Any = None) -> list[Any]:
+        replies: list[Any] = []
+        done = threading.Event()
+
+        def on_reply(_c: str, msg: Any) -> None:
+            if msg.request_id != request.request_id or (match is not None and not match(msg)):
+                return
+            replies.append(msg)
+            if want is not None and len(replies) >= want:
+                done.set()
+
+        sub = self.transport.subscribe(reply_channel, reply_type, on_reply)
+        try:
+            self.transport.publish(request_channel, self._stamp(request))
+            done.wait(timeout)
+        finally:
+            self.transport.unsubscribe(sub)
+        return replies
+
+    def discover(self, *, timeout: float = 1.0, name: str = "") -> list[t.DiscoveryResponse]:
+        """Every service that answers a discovery request within *timeout* (one answer per name)."""
+        req = t.DiscoveryRequest()
+        req.request_id = uuid.uuid4().hex
+        req.name_filter = name
+        replies = self._collect(ch.DISCOVERY_RESPONSE, t.DiscoveryResponse, ch.DISCOVERY_REQUEST, req,
+                                timeout=timeout, want=1 if name else None)
+        by_name: dict[str, t.DiscoveryResponse] = {}
+        for r in replies:
+            by_name[r.name] = r
+        return [by_name[n] for n in sorted(by_name)]
+
+    def get_config(self, service: str, *, timeout: float = 2.0) -> t.ConfigResponse | None:
+        """The config of *service*, or None when it does not answer."""
+        req = t.ConfigRequest()
+        req.request_id = uuid.uuid4().hex
+        req.target = service
+        replies = self._collect(ch.CONFIG_RESPONSE, t.ConfigResponse, ch.CONFIG_REQUEST, req,
+                                timeout=timeout, want=1, match=lambda m: m.name == service)
+        return replies[0] if replies else None
+
+    def set_config(self, service: str, field_name: str, value: str, *, timeout: float = 2.0) -> t.ConfigResponse | None:
+        """Change one field of *service*; the response says ok or why not; None when no answer."""
+        req = t.ConfigChange()
+        req.request_id = uuid.uuid4().hex
+        req.target, req.field, req.value = service, field_name, value
+        replies = self._collect(ch.CONFIG_RESPONSE, t.ConfigResponse, ch.CONFIG_CHANGE, req,
+                                timeout=timeout, want=1, match=lambda m: m.name == service)
+        return replies[0] if replies else None
+
+    def stop(self, *, name: str = "", all_services: bool = False) -> None:
+        """Send a stop command for one service or all."""
+        cmd = t.StopCommand()
+        cmd.all, cmd.name = all_services, name
+        self.transport.publish(ch.STOP, self._stamp(cmd))
+
+    def wait_for(self, predicate: Any, *, timeout: float, interval: float = 0.05) -> bool:
+        """Poll *predicate* until true or *timeout*; True if it became true."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if predicate():
+                return True
+            time.sleep(interval)
+        return bool(predicate())

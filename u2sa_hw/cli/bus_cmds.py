@@ -1,0 +1,228 @@
+"""Bus commands: ``services``, ``topics``, ``echo``, ``pub`` and ``stop``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import threading
+import time
+from collections import defaultdict
+from typing import Any
+
+from u2sa_hw.cli.common import add_timeout_option, add_vehicle_option, bus_client
+
+
+def register(sub: Any) -> None:
+    """Add the bus subcommands."""
+    p = sub.add_parser("services", help="list live services (discovery)",
+                       description="Ask every service on the bus to identify itself and list the answers.")
+    add_vehicle_option(p)
+    add_timeout_option(p)
+    p.add_argument("--json", action="store_true", help="print a JSON list of objects (name, type, status, "
+                   "host, pid, publishes, subscribes)")
+    p.set_defaults(func=cmd_services)
+
+    p = sub.add_parser("topics", help="channels seen on the bus: rate, bandwidth, type",
+                       description="Listen to every channel for --duration seconds and summarise the traffic.")
+    add_vehicle_option(p)
+    p.add_argument("--duration", type=float, default=2.0, metavar="S", help="seconds to listen (default 2)")
+    p.add_argument("--json", action="store_true", help="print a JSON list")
+    p.set_defaults(func=cmd_topics)
+
+    p = sub.add_parser("echo", help="print messages of a channel",
+                       description="Print the decoded messages of CHANNEL (a name or a regex such as 'RAW\\..*').")
+    p.add_argument("channel")
+    add_vehicle_option(p)
+    p.add_argument("--count", type=int, default=0, metavar="N", help="exit after N messages (default: run until Ctrl-C)")
+    p.add_argument("--timeout", type=float, default=0.0, metavar="S",
+                   help="exit 1 if no message arrives within S seconds (default: wait forever)")
+    p.add_argument("--json", action="store_true", help="one JSON object per line with the fields by name")
+    p.set_defaults(func=cmd_echo)
+
+    p = sub.add_parser("pub", help="publish a message built from FIELD=VALUE pairs",
+                       formatter_class=argparse.RawDescriptionHelpFormatter,
+                       description="Publish a TYPE message on CHANNEL. Fields are dotted paths "
+                       "(base.actuator_name=left); arrays take comma lists. Presence-vector fields "
+                       "(StateInformation x, psi, ...) are marked present.",
+                       epilog="example:\n  u2sa pub ACTUATOR_CMD PercentageCommand base.actuator_name=left percentage=20 --rate 10")
+    p.add_argument("channel")
+    p.add_argument("type", help="message type, e.g. StateInformation, PercentageCommand")
+    p.add_argument("fields", nargs="*", metavar="FIELD=VALUE")
+    add_vehicle_option(p)
+    p.add_argument("--rate", type=float, default=0.0, metavar="HZ", help="publish repeatedly at HZ until Ctrl-C")
+    p.add_argument("--count", type=int, default=0, metavar="N", help="with --rate, stop after N messages")
+    p.set_defaults(func=cmd_pub)
+
+    p = sub.add_parser("stop", help="stop a service by name, or all services",
+                       description="Send the contract's stop command and wait until the service(s) are gone.")
+    p.add_argument("name", nargs="?", help="service to stop")
+    p.add_argument("--all", action="store_true", help="stop every service on the bus")
+    add_vehicle_option(p)
+    add_timeout_option(p, 3.0)
+    p.set_defaults(func=cmd_stop)
+
+
+def _channel_list(infos: Any) -> list[dict[str, str]]:
+    return [{"channel": i.channel, "type": i.type_name} for i in infos]
+
+
+def cmd_services(args: Any) -> int:
+    """``u2sa services``."""
+    from u2sa_hw.cli import CliError
+
+    with bus_client(args) as bus:
+        found = bus.discover(timeout=args.timeout)
+    if args.json:
+        print(json.dumps([{"name": r.name, "type": r.service_type, "status": r.status, "host": r.host,
+                           "pid": r.pid, "publishes": _channel_list(r.publishes),
+                           "subscribes": _channel_list(r.subscribes)} for r in found], indent=2))
+    else:
+        if found:
+            print(f"{'NAME':22} {'TYPE':18} {'STATUS':9} {'HOST':14} {'PID':>7}  PUBLISHES")
+        for r in found:
+            pubs = ", ".join(i.channel for i in r.publishes)
+            print(f"{r.name:22} {r.service_type:18} {r.status:9} {r.host:14} {r.pid:>7}  {pubs}")
+    if not found:
+        raise CliError(f"no service answered discovery within {args.timeout:g} s "
+                       "(are services running, and on the same LCM URL?)")
+    return 0
+
+
+def cmd_topics(args: Any) -> int:
+    """``u2sa topics``."""
+    from u2sa_hw.messages import REGISTRY
+
+    stats: dict[str, list[Any]] = defaultdict(lambda: [0, 0, ""])
+    lock = threading.Lock()
+
+    def on_raw(channel: str, data: bytes) -> None:
+        cls = REGISTRY.by_fingerprint(data[:8])
+        with lock:
+            s = stats[channel]
+            s[0] += 1
+            s[1] += len(data)
+            s[2] = cls.__name__ if cls else "?"
+
+    with bus_client(args) as bus:
+        bus.transport.subscribe(".*", None, on_raw, raw=True)
+        start = time.monotonic()
+        time.sleep(args.duration)  # listening window, not synchronisation
+        elapsed = time.monotonic() - start
+    rows = [{"channel": c, "type": s[2], "messages": s[0], "rate_hz": s[0] / elapsed,
+             "bandwidth_Bps": s[1] / elapsed} for c, s in sorted(stats.items())]
+    if args.json:
+        print(json.dumps(rows, indent=2))
+        return 0
+    if not rows:
+        print(f"no traffic in {elapsed:.1f} s")
+        return 0
+    print(f"{'CHANNEL':28} {'TYPE':22} {'RATE Hz':>9} {'BANDWIDTH':>12}")
+    for r in rows:
+        print(f"{r['channel']:28} {r['type']:22} {r['rate_hz']:9.1f} {_human_rate(r['bandwidth_Bps']):>12}")
+    return 0
+
+
+def _human_rate(bps: float) -> str:
+    for unit in ("B/s", "kB/s", "MB/s"):
+        if bps < 1000:
+            return f"{bps:.1f} {unit}"
+        bps /= 1000
+    return f"{bps:.1f} GB/s"
+
+
+def cmd_echo(args: Any) -> int:
+    """``u2sa echo CHANNEL``."""
+    from u2sa_hw.channels import base_type
+    from u2sa_hw.cli import CliError
+    from u2sa_hw.messages import REGISTRY, MalformedMessage, enumerate_fields, to_dict
+
+    printed = 0
+    done = threading.Event()
+    lock = threading.Lock()
+
+    def on_raw(channel: str, data: bytes) -> None:
+        nonlocal printed
+        try:
+            msg, _ = REGISTRY.decode(data, base_type(channel))
+        except MalformedMessage as exc:
+            print(f"{channel}: malformed message ({exc})", file=sys.stderr)
+            return
+        with lock:
+            if done.is_set():
+                return
+            if args.json:
+                print(json.dumps({"channel": channel, **to_dict(msg)}), flush=True)
+            else:
+                print(f"--- {channel} {type(msg).__name__}")
+                for name, value in enumerate_fields(msg):
+                    print(f"  {name}: {value}")
+                sys.stdout.flush()
+            printed += 1
+            if args.count and printed >= args.count:
+                done.set()
+
+    with bus_client(args) as bus:
+        bus.transport.subscribe(args.channel, None, on_raw, raw=True)
+        done.wait(args.timeout if args.timeout > 0 else None)
+    if printed == 0 and args.timeout > 0:
+        raise CliError(f"no message on {args.channel} within {args.timeout:g} s")
+    return 0
+
+
+def cmd_pub(args: Any) -> int:
+    """``u2sa pub CHANNEL TYPE FIELD=VALUE...``."""
+    from u2sa_hw.cli import CliError
+    from u2sa_hw.messages import REGISTRY, set_field
+
+    try:
+        cls = REGISTRY.by_name(args.type)
+    except KeyError as exc:
+        raise CliError(str(exc.args[0])) from None
+    msg = cls()
+    for item in args.fields:
+        path, sep, text = item.partition("=")
+        if not sep:
+            raise CliError(f"'{item}' is not FIELD=VALUE", 2)
+        try:
+            set_field(msg, path, text)
+        except (KeyError, ValueError) as exc:
+            raise CliError(str(exc.args[0] if exc.args else exc), 2) from None
+    with bus_client(args) as bus:
+        if args.rate <= 0:
+            if not bus.publish(args.channel, msg):
+                raise CliError(f"publishing on {args.channel} failed: {bus.transport.last_error}")
+            return 0
+        period, sent, next_t = 1.0 / args.rate, 0, time.monotonic()
+        while not args.count or sent < args.count:
+            bus.publish(args.channel, msg)
+            sent += 1
+            next_t += period
+            time.sleep(max(0.0, next_t - time.monotonic()))
+    return 0
+
+
+def cmd_stop(args: Any) -> int:
+    """``u2sa stop NAME`` / ``u2sa stop --all``."""
+    from u2sa_hw.cli import CliError
+
+    if not args.all and not args.name:
+        raise CliError("stop: give a service NAME or --all", 2)
+    with bus_client(args) as bus:
+        before = bus.discover(timeout=min(1.0, args.timeout), name="" if args.all else args.name)
+        if not before:
+            target = "no service" if args.all else f"service '{args.name}'"
+            raise CliError(f"{target} answered discovery within {min(1.0, args.timeout):g} s; nothing to stop")
+        names = {r.name for r in before}
+        bus.stop(name=args.name or "", all_services=args.all)
+        deadline = time.monotonic() + args.timeout
+        remaining = names
+        while remaining and time.monotonic() < deadline:
+            live = {r.name for r in bus.discover(timeout=0.3)}
+            remaining = names & live
+            if remaining:
+                bus.stop(name=args.name or "", all_services=args.all)
+    if remaining:
+        raise CliError(f"still running after {args.timeout:g} s: {', '.join(sorted(remaining))}")
+    print(f"stopped {', '.join(sorted(names))}")
+    return 0

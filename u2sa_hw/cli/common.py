@@ -1,0 +1,43 @@
+"""Options and helpers shared by the subcommands."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from u2sa_hw.transport import TransportError
+from u2sa_hw.vehicle import ProfileError, VehicleProfile, load_profile
+
+
+def add_vehicle_option(parser: argparse.ArgumentParser) -> None:
+    """``--vehicle PATH`` (default: $U2SA_VEHICLE, then /etc/u2sa/vehicle.toml)."""
+    parser.add_argument("--vehicle", metavar="PATH",
+                        help="vehicle profile (default: $U2SA_VEHICLE, then /etc/u2sa/vehicle.toml)")
+
+
+def add_timeout_option(parser: argparse.ArgumentParser, default: float = 1.0) -> None:
+    """``--timeout S`` for bus requests."""
+    parser.add_argument("--timeout", type=float, default=default, metavar="S",
+                        help=f"seconds to wait for answers (default {default:g})")
+
+
+def profile_from(args: Any) -> VehicleProfile:
+    """The vehicle profile named by ``--vehicle`` (or the default), CliError on a bad one."""
+    from u2sa_hw.cli import CliError
+
+    try:
+        return load_profile(getattr(args, "vehicle", None))
+    except ProfileError as exc:
+        raise CliError(str(exc)) from None
+
+
+def bus_client(args: Any) -> Any:
+    """A BusClient on the profile's LCM URL; CliError with the multicast fix if it cannot open."""
+    from u2sa_hw.bus_client import BusClient
+    from u2sa_hw.cli import CliError
+
+    profile = profile_from(args)
+    try:
+        return BusClient(profile.lcm_url, system_id=profile.system_id)
+    except TransportError as exc:
+        raise CliError(str(exc)) from None

@@ -1,0 +1,197 @@
+"""Configurator (requirement C1, C7): a per-service TOML file of typed variables.
+
+A service declares its fields with defaults (the default's type is the field's type:
+int, float, bool or str). A missing file means defaults; the file is created, with every
+field, on the first change. A change is checked against the declared type; a wrong type is refused with
+a message naming the field, the expected and the given type. Writes are atomic (temp
+file in the same directory, fsync, rename), so a crash or a full disk never leaves a
+half-written file; an unwritable file makes ``set`` return False and logs why.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+import threading
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable
+
+import tomli_w
+
+TYPE_NAMES = {int: "int", float: "float", bool: "bool", str: "str"}
+
+
+class ConfigError(ValueError):
+    """A config file or value is invalid; the message names the file/field and the fix."""
+
+
+@dataclass(frozen=True)
+class ConfigField:
+    """One declared variable: its name, default (whose type is the field's type) and help."""
+
+    name: str
+    default: Any
+    help: str = ""
+
+    @property
+    def type(self) -> type:
+        """The Python type of the field."""
+        return type(self.default)
+
+    @property
+    def type_name(self) -> str:
+        """``int``, ``float``, ``bool`` or ``str``."""
+        return TYPE_NAMES.get(self.type, self.type.__name__)
+
+
+def field(name: str, default: Any, help: str = "") -> ConfigField:  # noqa: A002 - reads well at call sites
+    """Declare a config variable (shorthand for :class:`ConfigField`)."""
+    if type(default) not in TYPE_NAMES and not isinstance(default, list):
+        raise TypeError(f"config field {name}: default must be int, float, bool, str or list, not {type(default).__name__}")
+    return ConfigField(name, default, help)
+
+
+def coerce(f: ConfigField, value: Any) -> Any:
+    """*value* as *f*'s type, or ConfigError naming the field, the expected and the given type.
+
+    An int is accepted for a float field; nothing else is converted (a bool is not an int).
+    """
+    expected = f.type
+    given = type(value)
+    if given is expected:
+        return value
+    if expected is float and given is int:
+        return float(value)
+    raise ConfigError(f"field '{f.name}' expects {f.type_name}, got {TYPE_NAMES.get(given, given.__name__)} {value!r}")
+
+
+def parse_text(f: ConfigField, text: str) -> Any:
+    """Parse *text* (a TOML literal, or a bare word for a str field) as *f*'s value."""
+    try:
+        value = tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        if f.type is str:
+            return text
+        raise ConfigError(f"field '{f.name}' expects {f.type_name}, got unparseable text {text!r}") from None
+    if f.type is str and not isinstance(value, str):
+        return text  # `name = 42` for a string field means the string "42"
+    return coerce(f, value)
+
+
+def to_text(value: Any) -> str:
+    """The TOML literal of a value (as sent over the bus)."""
+    return tomli_w.dumps({"v": value}).split("=", 1)[1].strip()
+
+
+class Configurator:
+    """Typed get/set/enumerate over one service's TOML file."""
+
+    def __init__(self, path: Path | str | None, fields: Iterable[ConfigField], *,
+                 logger: logging.Logger | None = None, initial: dict[str, Any] | None = None) -> None:
+        self.path = Path(path) if path else None
+        self.fields: dict[str, ConfigField] = {f.name: f for f in fields}
+        self._log = logger or logging.getLogger("u2sa_hw.config")
+        self._lock = threading.Lock()
+        self._values: dict[str, Any] = {n: f.default for n, f in self.fields.items()}
+        self._extra: dict[str, Any] = {}
+        for name, value in (initial or {}).items():
+            self._load_value(name, value, source="the vehicle profile")
+        if self.path is not None and self.path.exists():
+            self._load_file()
+
+    def _load_file(self) -> None:
+        assert self.path is not None
+        try:
+            data = tomllib.loads(self.path.read_text())
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{self.path}: not valid TOML ({exc}); fix the file or delete it to use defaults") from None
+        except OSError as exc:
+            raise ConfigError(f"{self.path}: cannot read ({exc.strerror})") from None
+        for name, value in data.items():
+            self._load_value(name, value, source=str(self.path))
+
+    def _load_value(self, name: str, value: Any, *, source: str) -> None:
+        f = self.fields.get(name)
+        if f is None:
+            # Kept and written back unchanged: a field of a newer version, or a typo we report.
+            self._extra[name] = value
+            self._log.warning("%s: unknown config field '%s' ignored (known: %s)", source, name,
+                              ", ".join(sorted(self.fields)))
+            return
+        try:
+            self._values[name] = coerce(f, value) if not isinstance(f.default, list) else list(value)
+        except ConfigError as exc:
+            raise ConfigError(f"{source}: {exc}") from None
+
+    def get(self, name: str) -> Any:
+        """The current value of *name* (KeyError names the known fields)."""
+        try:
+            return self._values[name]
+        except KeyError:
+            raise KeyError(f"no config field '{name}' (known: {', '.join(sorted(self.fields))})") from None
+
+    def __getitem__(self, name: str) -> Any:
+        return self.get(name)
+
+    def enumerate(self) -> list[tuple[str, str, Any]]:
+        """``(name, type name, value)`` for every declared field."""
+        return [(n, f.type_name, self._values[n]) for n, f in self.fields.items()]
+
+    def check(self, name: str, value: Any) -> Any:
+        """The coerced value, or ConfigError (unknown field, wrong type)."""
+        f = self.fields.get(name)
+        if f is None:
+            raise ConfigError(f"no config field '{name}' (known: {', '.join(sorted(self.fields))})")
+        return parse_text(f, value) if isinstance(value, str) and f.type is not str else coerce(f, value)
+
+    def set(self, name: str, value: Any) -> bool:
+        """Change *name* and persist the file; False (and a logged error) when refused or unwritable."""
+        ok, _ = self.try_set(name, value)
+        return ok
+
+    def try_set(self, name: str, value: Any) -> tuple[bool, str]:
+        """Like :meth:`set`, returning ``(ok, reason)`` so the bus can send the reason back."""
+        try:
+            coerced = self.check(name, value)
+        except ConfigError as exc:
+            self._log.error("config change refused: %s", exc)
+            return False, str(exc)
+        with self._lock:
+            old = self._values[name]
+            self._values[name] = coerced
+            try:
+                self._write()
+            except OSError as exc:
+                self._values[name] = old
+                reason = f"cannot write {self.path}: {exc.strerror or exc}; the file is unchanged"
+                self._log.error("config change of '%s' not saved: %s", name, reason)
+                return False, reason
+        self._log.info("config '%s' changed from %r to %r", name, old, coerced)
+        return True, ""
+
+    def _write(self) -> None:
+        if self.path is None:
+            return
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        data = {**self._extra, **self._values}
+        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                tomli_w.dump(data, fh)
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, self.path)
+            dir_fd = os.open(self.path.parent, os.O_RDONLY)
+            try:
+                os.fsync(dir_fd)
+            finally:
+                os.close(dir_fd)
+        except BaseException:
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
+            raise

@@ -1,0 +1,35 @@
+"""Service registry: kind name -> ``"module:Class"``, imported only when used.
+
+This is python-can's ``BACKENDS`` pattern: ``u2sa_hw`` never imports drivers at import
+time; a service kind is resolved when a service of that kind is started. Packages may
+add kinds through the ``u2sa_hw.services`` entry-point group.
+"""
+
+from __future__ import annotations
+
+import importlib
+from importlib.metadata import entry_points
+
+SERVICE_KINDS: dict[str, str] = {
+    # core services
+    "state_estimator": "u2sa_hw.services.estimator.service:StateEstimator",
+}
+
+
+def known_kinds() -> dict[str, str]:
+    """Every registered kind, built-in ones and those from entry points."""
+    kinds = dict(SERVICE_KINDS)
+    for ep in entry_points(group="u2sa_hw.services"):
+        kinds.setdefault(ep.name, ep.value)
+    return kinds
+
+
+def resolve_kind(kind: str) -> type:
+    """Import and return the service class of *kind*; LookupError lists the known kinds."""
+    kinds = known_kinds()
+    target = kinds.get(kind)
+    if target is None:
+        raise LookupError(f"unknown service kind '{kind}'; known kinds: {', '.join(sorted(kinds))}")
+    module_name, _, class_name = target.partition(":")
+    module = importlib.import_module(module_name)  # a real ImportError is not hidden
+    return getattr(module, class_name)

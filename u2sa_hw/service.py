@@ -1,0 +1,314 @@
+"""The U2SA service contract (requirements C1-C9, thesis 8.2.3-8.2.4).
+
+A service subclasses :class:`U2SAService`, declares its config fields in ``CONFIG``,
+and writes ``setup()``, ``run()`` and ``callback()``. Everything else comes free:
+configurator, logger, typed publish/subscribe, discovery, functionality discovery,
+stop (all or by name), config enumeration and change over the bus, periodic health,
+systemd notification (READY, WATCHDOG from the service's own loop, STATUS, STOPPING)
+and clean exit on SIGTERM/SIGINT.
+
+A run loop is written as ``while self.wait(period): ...``: ``wait`` returns False once
+the service is stopping and pings systemd's watchdog, so a hung loop is a dead service.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable, ClassVar
+
+from u2sa_hw import channels as ch
+from u2sa_hw import lcmtypes as t
+from u2sa_hw.config import ConfigField, Configurator, field, to_text
+from u2sa_hw.health import HOSTNAME, ProcessStats, build_health
+from u2sa_hw.messages import type_name
+from u2sa_hw.sdnotify import SystemdNotifier, watchdog_interval
+from u2sa_hw.transport import Transport
+from u2sa_hw.vehicle import VehicleProfile
+
+BASE_CONFIG: tuple[ConfigField, ...] = (
+    field("health_interval_s", 1.0, "seconds between health messages"),
+    field("log_level", "info", "debug, info, warn or error"),
+)
+
+
+class U2SAService:
+    """Base of every service: the contract; subclasses write setup/run/callback."""
+
+    SERVICE_TYPE: ClassVar[str] = "service"
+    CONFIG: ClassVar[tuple[ConfigField, ...]] = ()
+
+    def __init__(self, name: str, *, profile: VehicleProfile | None = None, config_path: Path | str | None = None,
+                 settings: dict[str, Any] | None = None, transport: Transport | None = None,
+                 logger: logging.Logger | None = None) -> None:
+        self.name = name
+        self.profile = profile or VehicleProfile(path=None)
+        self.logger = logger or logging.getLogger(f"u2sa.{name}")
+        path = config_path if config_path is not None else self.profile.config_path_for(name)
+        self.config = Configurator(path, (*BASE_CONFIG, *self.config_fields()), logger=self.logger, initial=settings)
+        self.transport = transport or Transport(self.profile.lcm_url, name=name)
+        self.running = False
+        self.status = "starting"
+        self.last_error = ""
+        self.thread_id = threading.get_ident()
+        self._stop_event = threading.Event()
+        self._publishers: dict[str, str] = {}
+        self._subscribers: dict[str, str] = {}
+        self._sequence: dict[str, int] = {}
+        self._stats = ProcessStats()
+        self._notifier = SystemdNotifier()
+        self._watchdog_period = watchdog_interval()
+        self._last_watchdog = 0.0
+        self._last_loop = time.monotonic()
+        self._health_thread: threading.Thread | None = None
+        self._contract_subscriptions()
+
+    @classmethod
+    def config_fields(cls) -> list[ConfigField]:
+        """Every declared field: each class's own ``CONFIG`` along the MRO, base classes first."""
+        seen: dict[str, ConfigField] = {}
+        for klass in reversed(cls.__mro__):
+            for f in klass.__dict__.get("CONFIG", ()):
+                seen[f.name] = f
+        return list(seen.values())
+
+    # -- thesis contract: implementation provided ----------------------------------------
+    def get_service_name(self) -> str:
+        """The service's unique name."""
+        return self.name
+
+    def is_running(self) -> bool:
+        """True while the service loops."""
+        return self.running
+
+    def get_thread_id(self) -> int:
+        """The id of the thread that runs the service."""
+        return self.thread_id
+
+    def log(self, message: str, level: str = "info") -> None:
+        """Write *message* to the service's log at *level* (debug, info, warn, error)."""
+        self.logger.log({"warn": logging.WARNING}.get(level, logging.getLevelName(level.upper())), message)
+
+    def register_publisher(self, channel: str, msg_type: type) -> None:
+        """Declare that this service publishes *msg_type* on *channel* (for discovery)."""
+        self._publishers[channel] = type_name(msg_type)
+
+    def register_subscriber(self, channel: str, msg_type: type,
+                            callback: Callable[[Any], None] | None = None) -> None:
+        """Subscribe to *channel* as *msg_type* (its base type); messages go to *callback* or ``callback()``."""
+        self._subscribers[channel] = type_name(msg_type)
+        target = callback or self.callback
+        self.transport.subscribe(channel, msg_type, lambda _ch, msg: target(msg))
+
+    def unregister_subscriber(self, channel: str) -> None:
+        """Forget *channel* in discovery (the transport keeps no handler for it after stop)."""
+        self._subscribers.pop(channel, None)
+
+    def publish(self, channel: str, msg: Any) -> bool:
+        """Stamp *msg*'s header (system id, time, source, sequence) and publish it; True on success."""
+        header = _root_header(msg)
+        if header is not None:
+            seq = self._sequence.get(channel, 0) + 1
+            self._sequence[channel] = seq
+            header.system_id = self.profile.system_id
+            if not header.timestamp_us:
+                header.timestamp_us = time.time_ns() // 1000
+            header.source = self.name
+            header.sequence = seq
+        if channel not in self._publishers:
+            self._publishers[channel] = type_name(msg)
+        return self.transport.publish(channel, msg)
+
+    # -- thesis contract: for subclasses --------------------------------------------------
+    def setup(self) -> None:
+        """Open resources and register publishers/subscribers (before READY)."""
+
+    def run(self) -> None:
+        """Continuous work; loops while running. The default only waits for a stop."""
+        while self.wait(1.0):
+            pass
+
+    def callback(self, data: Any) -> None:
+        """Handle a message from a subscription; the default logs it as unhandled."""
+        self.logger.debug("unhandled message %s", type(data).__name__)
+
+    def kill(self) -> None:
+        """Stop looping and release resources (subclasses close theirs, then call this)."""
+        self.running = False
+        self._stop_event.set()
+
+    def health_details(self) -> dict[str, Any]:
+        """Service-specific key/values for the health message (override)."""
+        return {}
+
+    def on_config_change(self, name: str, value: Any) -> None:
+        """Called after a config field changed over the bus (override to apply it live)."""
+
+    # -- loop helpers ---------------------------------------------------------------------
+    def wait(self, timeout: float) -> bool:
+        """Sleep up to *timeout* s (less if stopped); ping the watchdog; False once stopping."""
+        self._last_loop = time.monotonic()
+        self._ping_watchdog()
+        if self._stop_event.wait(timeout):
+            return False
+        self._ping_watchdog()
+        return self.running
+
+    def _ping_watchdog(self) -> None:
+        if self._watchdog_period is None:
+            return
+        now = time.monotonic()
+        if now - self._last_watchdog >= self._watchdog_period:
+            self._last_watchdog = now
+            self._notifier.notify("WATCHDOG=1")
+
+    def notify_status(self, text: str) -> None:
+        """Set systemd's STATUS= line for this unit."""
+        self._notifier.notify(f"STATUS={text}")
+
+    def error(self, text: str) -> None:
+        """Record *text* as the last error (shown in health) and log it."""
+        self.last_error = text
+        self.logger.error(text)
+
+    # -- contract messages over the bus -----------------------------------------------------
+    def _contract_subscriptions(self) -> None:
+        tr = self.transport
+        tr.subscribe(ch.DISCOVERY_REQUEST, t.DiscoveryRequest, lambda _c, m: self._on_discovery(m))
+        tr.subscribe(ch.STOP, t.StopCommand, lambda _c, m: self._on_stop(m))
+        tr.subscribe(ch.CONFIG_REQUEST, t.ConfigRequest, lambda _c, m: self._on_config_request(m))
+        tr.subscribe(ch.CONFIG_CHANGE, t.ConfigChange, lambda _c, m: self._on_config_change(m))
+        self._publishers[ch.HEALTH] = "Health"
+
+    def _on_discovery(self, req: t.DiscoveryRequest) -> None:
+        if req.name_filter and req.name_filter != self.name:
+            return
+        resp = t.DiscoveryResponse()
+        resp.request_id = req.request_id
+        resp.name, resp.service_type, resp.status = self.name, self.SERVICE_TYPE, self.status
+        resp.host, resp.pid = HOSTNAME, os.getpid()
+        resp.publishes = [_channel_info(c, ty) for c, ty in sorted(self._publishers.items())]
+        resp.num_publishes = len(resp.publishes)
+        resp.subscribes = [_channel_info(c, ty) for c, ty in sorted(self._subscribers.items())]
+        resp.num_subscribes = len(resp.subscribes)
+        self.publish(ch.DISCOVERY_RESPONSE, resp)
+
+    def _on_stop(self, cmd: t.StopCommand) -> None:
+        if cmd.all or cmd.name == self.name:
+            self.logger.info("stop requested over the bus by %s", cmd.header.source or "?")
+            self.stop()
+
+    def _config_response(self, request_id: str, ok: bool, error: str, names: list[str]) -> t.ConfigResponse:
+        resp = t.ConfigResponse()
+        resp.request_id, resp.name, resp.ok, resp.error = request_id, self.name, ok, error
+        fields = []
+        for name, tname, value in self.config.enumerate():
+            if name in names:
+                f = t.ConfigField()
+                f.name, f.type_name, f.value = name, tname, to_text(value)
+                fields.append(f)
+        resp.fields, resp.num_fields = fields, len(fields)
+        return resp
+
+    def _on_config_request(self, req: t.ConfigRequest) -> None:
+        if req.target != self.name:
+            return
+        names = [n for n, _, _ in self.config.enumerate()]
+        self.publish(ch.CONFIG_RESPONSE, self._config_response(req.request_id, True, "", names))
+
+    def _on_config_change(self, req: t.ConfigChange) -> None:
+        if req.target != self.name:
+            return
+        ok, reason = self.config.try_set(req.field, req.value)
+        self.publish(ch.CONFIG_RESPONSE, self._config_response(req.request_id, ok, reason, [req.field]))
+        if ok:
+            if req.field == "log_level":
+                logging.getLogger().setLevel(req.value.strip('"').upper().replace("WARN", "WARNING"))
+            try:
+                self.on_config_change(req.field, self.config.get(req.field))
+            except Exception as exc:  # noqa: BLE001 - a bad live change must not kill the service
+                self.error(f"applying config change {req.field} failed: {exc}")
+
+    # -- health ----------------------------------------------------------------------------
+    def _health_loop(self) -> None:
+        while not self._stop_event.wait(max(0.05, float(self.config.get("health_interval_s")))):
+            self.publish_health()
+
+    def publish_health(self) -> None:
+        """Publish one Health message now."""
+        try:
+            details = {"loop_age_s": f"{time.monotonic() - self._last_loop:.2f}", **self.health_details()}
+        except Exception as exc:  # noqa: BLE001 - health must still go out
+            details = {"health_details_error": str(exc)}
+        last_error = self.last_error or self.transport.last_error
+        msg = build_health(name=self.name, service_type=self.SERVICE_TYPE, status=self.status, stats=self._stats,
+                           transport=self.transport, last_error=last_error, details=details)
+        self.publish(ch.HEALTH, msg)
+
+    # -- lifecycle -------------------------------------------------------------------------
+    def start(self) -> None:
+        """Set up, start the transport and health, mark running, tell systemd READY."""
+        self.running = True
+        self.setup()
+        self.transport.start()
+        self.status = "ok" if self.status == "starting" else self.status
+        self._health_thread = threading.Thread(target=self._health_loop, name=f"health-{self.name}", daemon=True)
+        self._health_thread.start()
+        self.publish_health()
+        self._notifier.notify("READY=1")
+        self.notify_status(f"{self.name} ({self.SERVICE_TYPE}) running")
+        self.logger.info("%s (%s) started, pid %d, LCM %s", self.name, self.SERVICE_TYPE, os.getpid(), self.transport.url)
+
+    def stop(self) -> None:
+        """Ask the service to stop (from any thread or a signal handler)."""
+        self.running = False
+        self._stop_event.set()
+
+    def main(self) -> int:
+        """Run the service in the foreground until stopped; return the exit status (0 when clean)."""
+        self.thread_id = threading.get_ident()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: self.stop())
+        code = 0
+        try:
+            self.start()
+            self.run()
+        except Exception as exc:  # noqa: BLE001 - log the reason before dying with non-zero
+            self.logger.exception("%s failed: %s", self.name, exc)
+            code = 1
+        finally:
+            self.status = "stopping"
+            self._notifier.notify("STOPPING=1")
+            try:
+                self.publish_health()
+            except Exception:  # noqa: BLE001 - best effort on the way out
+                pass
+            try:
+                self.kill()
+            except Exception as exc:  # noqa: BLE001
+                self.logger.error("kill() of %s failed: %s", self.name, exc)
+                code = code or 1
+            self.transport.stop()
+            self._notifier.close()
+            self.logger.info("%s stopped", self.name)
+        return code
+
+
+def _root_header(msg: Any) -> t.Header | None:
+    cur = msg
+    while cur is not None:
+        header = getattr(cur, "header", None)
+        if isinstance(header, t.Header):
+            return header
+        cur = getattr(cur, "base", None)
+    return None
+
+
+def _channel_info(channel: str, type_name_: str) -> t.ChannelInfo:
+    info = t.ChannelInfo()
+    info.channel, info.type_name = channel, type_name_
+    return info

@@ -1,0 +1,248 @@
+"""LCM transport: one LCM instance per process, one thread handling, publishing from any thread.
+
+LCM's Python binding allows one thread in ``handle``; publishing from several Python
+threads at once is known to corrupt data, so every publish takes a lock. Subscriptions
+are typed: a callback gets a decoded message of the channel's base type or of a known
+extension of it. Malformed packets (wrong type, truncated, garbage) are counted per
+channel and logged once per channel; they never reach or break the service.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import select
+import threading
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import lcm
+
+from u2sa_hw.messages import REGISTRY, MalformedMessage
+
+DEFAULT_LCM_URL = "udpm://239.255.76.67:7667?ttl=0"
+LCM_URL_ENV = "U2SA_LCM_URL"
+
+Callback = Callable[[str, Any], None]
+log = logging.getLogger("u2sa_hw.transport")
+
+
+class TransportError(RuntimeError):
+    """The LCM transport cannot start; the message says why and how to fix it."""
+
+
+MULTICAST_FIX = (
+    "multicast does not work on this machine. If it has no network (a vehicle on the bench), "
+    "enable multicast on loopback: 'sudo ip link set lo multicast on && "
+    "sudo ip route add 224.0.0.0/4 dev lo' (u2sa install adds a oneshot unit that does this), "
+    "or set U2SA_LCM_URL / lcm_url in the vehicle profile to another provider"
+)
+
+
+def resolve_url(profile_url: str | None = None) -> str:
+    """The LCM URL: the vehicle profile's, else ``$U2SA_LCM_URL``, else the default (ttl=0)."""
+    return profile_url or os.environ.get(LCM_URL_ENV) or DEFAULT_LCM_URL
+
+
+@dataclass
+class ChannelCounters:
+    """Traffic counters of one channel in one direction."""
+
+    messages: int = 0
+    malformed: int = 0
+    dropped: int = 0
+    bytes: int = 0
+    type_name: str = ""
+
+
+@dataclass
+class _Subscription:
+    channel: str
+    base: type | None
+    callback: Callback
+    raw: bool
+    handle: Any = None
+    unknown_logged: set[bytes] = field(default_factory=set)
+
+
+class Transport:
+    """One LCM instance with a handler thread, a publish lock and per-channel counters."""
+
+    def __init__(self, url: str | None = None, *, name: str = "u2sa") -> None:
+        self.url = resolve_url(url)
+        self.name = name
+        try:
+            self._lc = lcm.LCM(self.url)
+        except (RuntimeError, OSError) as exc:
+            raise TransportError(f"cannot open LCM at {self.url}: {exc}; {MULTICAST_FIX}") from None
+        self._publish_lock = threading.Lock()
+        self._subs: list[_Subscription] = []
+        self._subs_lock = threading.Lock()
+        self.rx: dict[str, ChannelCounters] = defaultdict(ChannelCounters)
+        self.tx: dict[str, ChannelCounters] = defaultdict(ChannelCounters)
+        self._malformed_logged: set[str] = set()
+        self.last_error = ""
+        self._thread: threading.Thread | None = None
+        self._running = False
+        self._stop_r, self._stop_w = os.pipe()
+
+    # -- publishing ---------------------------------------------------------------
+    def publish(self, channel: str, msg: Any) -> bool:
+        """Encode and publish *msg* on *channel*; True on success (thesis ``publish``)."""
+        try:
+            data = msg.encode()
+        except Exception as exc:  # noqa: BLE001 - a bad field value is the caller's error, reported
+            self._error(f"cannot encode {type(msg).__name__} for {channel}: {exc}")
+            self.tx[channel].dropped += 1
+            return False
+        return self.publish_bytes(channel, data, type_name=type(msg).__name__)
+
+    def publish_bytes(self, channel: str, data: bytes, *, type_name: str = "") -> bool:
+        """Publish already-encoded bytes; True on success."""
+        try:
+            with self._publish_lock:
+                self._lc.publish(channel, data)
+        except (OSError, IOError) as exc:
+            self._error(f"publish on {channel} failed: {exc}")
+            self.tx[channel].dropped += 1
+            return False
+        c = self.tx[channel]
+        c.messages += 1
+        c.bytes += len(data)
+        if type_name:
+            c.type_name = type_name
+        return True
+
+    # -- subscribing --------------------------------------------------------------
+    def subscribe(self, channel: str, base: type | None, callback: Callback, *, raw: bool = False) -> _Subscription:
+        """Deliver messages on *channel* (an exact name, or a regex) to ``callback(channel, msg)``.
+
+        *base* is the channel's base type: known extensions decode to their own type, unknown
+        ones as *base*. With ``raw=True`` the callback gets the bytes undecoded. Callbacks run
+        on the handler thread; an exception in one is logged and counted, never raised.
+        """
+        sub = _Subscription(channel, base, callback, raw)
+        sub.handle = self._lc.subscribe(channel if _is_regex(channel) else re.escape(channel),
+                                        lambda ch, data, s=sub: self._dispatch(s, ch, data))
+        with self._subs_lock:
+            self._subs.append(sub)
+        return sub
+
+    def unsubscribe(self, sub: _Subscription) -> None:
+        """Stop delivering to *sub*."""
+        with self._subs_lock:
+            if sub in self._subs:
+                self._subs.remove(sub)
+                self._lc.unsubscribe(sub.handle)
+
+    def _dispatch(self, sub: _Subscription, channel: str, data: bytes) -> None:
+        counters = self.rx[channel]
+        counters.bytes += len(data)
+        if sub.raw:
+            counters.messages += 1
+            self._call(sub, channel, data)
+            return
+        try:
+            msg, known = REGISTRY.decode(data, sub.base)
+        except MalformedMessage as exc:
+            counters.malformed += 1
+            if channel not in self._malformed_logged:
+                self._malformed_logged.add(channel)
+                log.warning("%s: dropping malformed message on %s (%s); further ones are only counted",
+                            self.name, channel, exc)
+            self.last_error = f"malformed message on {channel}: {exc}"
+            return
+        if not known and data[:8] not in sub.unknown_logged:
+            sub.unknown_logged.add(data[:8])
+            log.info("%s: unknown type %s on %s decoded as its base %s",
+                     self.name, data[:8].hex(), channel, sub.base.__name__)
+        counters.messages += 1
+        counters.type_name = type(msg).__name__
+        self._call(sub, channel, msg)
+
+    def _call(self, sub: _Subscription, channel: str, payload: Any) -> None:
+        try:
+            sub.callback(channel, payload)
+        except Exception as exc:  # noqa: BLE001 - a failing callback must not kill the handler thread
+            self.rx[channel].dropped += 1
+            self._error(f"callback for {channel} failed: {type(exc).__name__}: {exc}", exc_info=True)
+
+    def _error(self, text: str, *, exc_info: bool = False) -> None:
+        self.last_error = text
+        log.error("%s: %s", self.name, text, exc_info=exc_info)
+
+    # -- handling -----------------------------------------------------------------
+    def handle_once(self, timeout: float) -> bool:
+        """Handle at most one message, waiting up to *timeout* s; True if one was handled."""
+        return self._lc.handle_timeout(max(0, int(timeout * 1000))) > 0
+
+    def start(self) -> None:
+        """Start the one handler thread (idempotent)."""
+        if self._thread is not None:
+            return
+        self._running = True
+        self._thread = threading.Thread(target=self._loop, name=f"lcm-{self.name}", daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        fd = self._lc.fileno()
+        while self._running:
+            ready, _, _ = select.select([fd, self._stop_r], [], [], 0.5)
+            if fd in ready:
+                try:
+                    self._lc.handle()
+                except Exception as exc:  # noqa: BLE001 - keep handling; LCM reports socket trouble here
+                    self._error(f"LCM handle failed: {exc}")
+                    time.sleep(0.01)
+
+    def stop(self) -> None:
+        """Stop the handler thread and release the LCM instance."""
+        self._running = False
+        os.write(self._stop_w, b"x")
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=2.0)
+        self._thread = None
+        with self._subs_lock:
+            for sub in self._subs:
+                try:
+                    self._lc.unsubscribe(sub.handle)
+                except Exception:  # noqa: BLE001 - tearing down
+                    pass
+            self._subs.clear()
+        for fd in (self._stop_r, self._stop_w):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+    def __enter__(self) -> "Transport":
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def _is_regex(channel: str) -> bool:
+    return any(ch in channel for ch in "*+?[]()|\\^$")
+
+
+def check_multicast(url: str | None = None, *, timeout: float = 1.0) -> None:
+    """Send one packet to ourselves; raise TransportError with the fix if it never arrives."""
+    probe = f"U2SA_PROBE_{os.getpid()}_{time.monotonic_ns()}"
+    t = Transport(url, name="probe")
+    got = threading.Event()
+    t.subscribe(probe, None, lambda ch, data: got.set(), raw=True)
+    try:
+        t.start()
+        deadline = time.monotonic() + timeout
+        while not got.is_set() and time.monotonic() < deadline:
+            t.publish_bytes(probe, b"probe")
+            got.wait(0.1)
+    finally:
+        t.stop()
+    if not got.is_set():
+        raise TransportError(f"no LCM packet came back on {t.url} within {timeout:.1f} s: {MULTICAST_FIX}")

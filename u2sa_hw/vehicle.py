@@ -1,0 +1,164 @@
+"""The vehicle profile (``vehicle.toml``): one file says what runs on this vehicle.
+
+```toml
+[vehicle]
+name = "rover"
+system_id = 1
+lcm_url = "udpm://239.255.76.67:7667?ttl=0"   # optional; else $U2SA_LCM_URL, else this default
+config_dir = "config"    # per-service TOML files: <config_dir>/<service>.toml
+log_dir = "logs"         # one log file per service
+data_dir = "data"        # recordings, state
+log_level = "info"
+origin = { lat = 29.1895, lon = -81.0483, alt = 10.0 }   # local NED frame origin
+
+[services.gps]           # one table per service; the table name is the service name
+kind = "gps_nmea"        # the service registry name (u2sa service --list-kinds)
+config = "config/gps.toml"   # optional; default <config_dir>/<name>.toml
+settings = { port = "/dev/u2sa/gps", baudrate = 9600 }   # optional initial values
+
+[devices.gps]            # optional: what stands in for each device in simulation/replay
+mock = "nmea_gps"
+```
+
+Relative paths are relative to the profile's directory.
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+VEHICLE_ENV = "U2SA_VEHICLE"
+SYSTEM_PROFILE = Path("/etc/u2sa/vehicle.toml")
+
+
+class ProfileError(ValueError):
+    """The vehicle profile is missing or invalid; the message names the file, the key and the fix."""
+
+
+@dataclass(frozen=True)
+class ServiceSpec:
+    """One service of the profile."""
+
+    name: str
+    kind: str
+    config_path: Path
+    settings: dict[str, Any] = field(default_factory=dict)
+    enabled: bool = True
+    required: bool = True
+
+
+@dataclass(frozen=True)
+class Origin:
+    """The local frame's origin (degrees, metres)."""
+
+    lat: float = 0.0
+    lon: float = 0.0
+    alt: float = 0.0
+
+
+@dataclass(frozen=True)
+class VehicleProfile:
+    """A parsed vehicle profile."""
+
+    path: Path | None
+    name: str = "vehicle"
+    system_id: int = 1
+    lcm_url: str | None = None
+    config_dir: Path = Path(".u2sa/config")
+    log_dir: Path = Path(".u2sa/logs")
+    data_dir: Path = Path(".u2sa/data")
+    log_level: str = "info"
+    origin: Origin = Origin()
+    services: dict[str, ServiceSpec] = field(default_factory=dict)
+    devices: dict[str, dict[str, Any]] = field(default_factory=dict)
+    raw: dict[str, Any] = field(default_factory=dict)
+
+    def service(self, name: str) -> ServiceSpec:
+        """The service called *name*; ProfileError lists the profile's services."""
+        try:
+            return self.services[name]
+        except KeyError:
+            where = self.path or "the default profile"
+            known = ", ".join(self.services) or "none"
+            raise ProfileError(f"{where}: no service '{name}' (services: {known})") from None
+
+    def config_path_for(self, name: str) -> Path:
+        """Where the config file of service *name* lives."""
+        spec = self.services.get(name)
+        return spec.config_path if spec else self.config_dir / f"{name}.toml"
+
+
+def _typed(table: dict[str, Any], key: str, kind: type, default: Any, where: str) -> Any:
+    value = table.get(key, default)
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if value is not None and not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+        raise ProfileError(f"{where}: '{key}' must be {kind.__name__}, got {type(value).__name__} {value!r}")
+    return value
+
+
+def load_profile(path: Path | str | None) -> VehicleProfile:
+    """Parse the profile at *path* (None: ``$U2SA_VEHICLE``, then /etc/u2sa/vehicle.toml, else defaults)."""
+    if path is None:
+        env = os.environ.get(VEHICLE_ENV)
+        if env:
+            path = env
+        elif SYSTEM_PROFILE.exists():
+            path = SYSTEM_PROFILE
+        else:
+            return VehicleProfile(path=None)
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise ProfileError(f"{path}: vehicle profile not found; pass --vehicle with the path of your vehicle.toml "
+                           "(examples/ has complete ones)") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ProfileError(f"{path}: not valid TOML: {exc}") from None
+    base = path.resolve().parent
+    v = data.get("vehicle", {})
+    where = f"{path} [vehicle]"
+    if not isinstance(v, dict):
+        raise ProfileError(f"{path}: [vehicle] must be a table")
+
+    def rel(key: str, default: str) -> Path:
+        p = Path(_typed(v, key, str, default, where))
+        return p if p.is_absolute() else base / p
+
+    o = v.get("origin", {})
+    if not isinstance(o, dict):
+        raise ProfileError(f"{where}: 'origin' must be a table like {{ lat = 29.19, lon = -81.05, alt = 10.0 }}")
+    origin = Origin(*(_typed(o, k, float, 0.0, f"{where} origin") for k in ("lat", "lon", "alt")))
+    config_dir = rel("config_dir", "config")
+    services: dict[str, ServiceSpec] = {}
+    for name, s in data.get("services", {}).items():
+        w = f"{path} [services.{name}]"
+        if not isinstance(s, dict):
+            raise ProfileError(f"{w}: must be a table with at least kind = \"...\"")
+        kind = _typed(s, "kind", str, None, w)
+        if not kind:
+            raise ProfileError(f"{w}: missing 'kind' (the service type, e.g. kind = \"state_estimator\")")
+        cfg = s.get("config")
+        cfg_path = (base / cfg) if isinstance(cfg, str) else config_dir / f"{name}.toml"
+        settings = _typed(s, "settings", dict, {}, w)
+        services[name] = ServiceSpec(name=name, kind=kind, config_path=cfg_path, settings=settings,
+                                     enabled=_typed(s, "enabled", bool, True, w),
+                                     required=_typed(s, "required", bool, True, w))
+    return VehicleProfile(
+        path=path,
+        name=_typed(v, "name", str, path.stem, where),
+        system_id=_typed(v, "system_id", int, 1, where),
+        lcm_url=_typed(v, "lcm_url", str, None, where),
+        config_dir=config_dir,
+        log_dir=rel("log_dir", "logs"),
+        data_dir=rel("data_dir", "data"),
+        log_level=_typed(v, "log_level", str, "info", where),
+        origin=origin,
+        services=services,
+        devices={k: d for k, d in data.get("devices", {}).items() if isinstance(d, dict)},
+        raw=data,
+    )
