@@ -1,0 +1,91 @@
+"""Shared fixtures: a private LCM URL per test and real service processes."""
+
+from __future__ import annotations
+
+import os
+import random
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Callable, Iterator
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+U2SA = [sys.executable, "-m", "u2sa_hw.cli"]
+
+
+def wait_until(predicate: Callable[[], object], *, timeout: float = 10.0, interval: float = 0.02,
+               message: str = "condition") -> object:
+    """Poll *predicate* until it returns something truthy; fail the test after *timeout*."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout:g} s waiting for {message}")
+        time.sleep(interval)
+
+
+@pytest.fixture
+def lcm_url(monkeypatch: pytest.MonkeyPatch) -> str:
+    """A multicast URL on a port of this test's own, exported as $U2SA_LCM_URL."""
+    url = f"udpm://239.255.76.67:{random.randint(20000, 60000)}?ttl=0"
+    monkeypatch.setenv("U2SA_LCM_URL", url)
+    return url
+
+
+class ServiceProcesses:
+    """Starts ``u2sa service`` processes in a working directory and cleans them up."""
+
+    def __init__(self, workdir: Path, url: str) -> None:
+        self.workdir = workdir
+        self.url = url
+        self.procs: list[subprocess.Popen] = []
+
+    def env(self, **extra: str) -> dict[str, str]:
+        env = dict(os.environ, U2SA_LCM_URL=self.url, PYTHONUNBUFFERED="1")
+        env.update(extra)
+        return env
+
+    def start(self, name: str, *args: str, **env: str) -> subprocess.Popen:
+        log = open(self.workdir / f"{name}.stderr", "wb")
+        proc = subprocess.Popen([*U2SA, "service", name, *args], cwd=self.workdir, env=self.env(**env),
+                                stdout=log, stderr=subprocess.STDOUT)
+        self.procs.append(proc)
+        return proc
+
+    def cli(self, *args: str, timeout: float = 30.0) -> subprocess.CompletedProcess:
+        return subprocess.run([*U2SA, *args], cwd=self.workdir, env=self.env(), capture_output=True,
+                              text=True, timeout=timeout)
+
+    def stop_all(self) -> None:
+        for p in self.procs:
+            if p.poll() is None:
+                p.terminate()
+        for p in self.procs:
+            try:
+                p.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+
+@pytest.fixture
+def services(tmp_path: Path, lcm_url: str) -> Iterator[ServiceProcesses]:
+    """Real service processes on this test's LCM URL, stopped at the end."""
+    sp = ServiceProcesses(tmp_path, lcm_url)
+    yield sp
+    sp.stop_all()
+
+
+@pytest.fixture
+def bus(lcm_url: str) -> Iterator[object]:
+    """A BusClient on this test's LCM URL."""
+    from u2sa_hw.bus_client import BusClient
+
+    client = BusClient(lcm_url)
+    yield client
+    client.close()

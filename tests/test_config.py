@@ -1,0 +1,115 @@
+"""The configurator: typed fields, refusals that leave the file intact, atomic writes."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import textwrap
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from u2sa_hw.config import ConfigError, Configurator, field
+
+FIELDS = (field("rate_hz", 50.0), field("retries", 3), field("enabled", True), field("port", "/dev/ttyUSB0"))
+
+
+def test_missing_file_means_defaults_and_is_created_on_first_change(tmp_path: Path) -> None:
+    path = tmp_path / "sub" / "svc.toml"
+    cfg = Configurator(path, FIELDS)
+    assert cfg.get("rate_hz") == 50.0 and not path.exists()
+    assert cfg.set("retries", 5)
+    assert tomllib.loads(path.read_text()) == {"rate_hz": 50.0, "retries": 5, "enabled": True, "port": "/dev/ttyUSB0"}
+    assert Configurator(path, FIELDS).get("retries") == 5
+
+
+def test_int_accepted_for_float_text_parsed_by_type(tmp_path: Path) -> None:
+    cfg = Configurator(tmp_path / "c.toml", FIELDS)
+    assert cfg.set("rate_hz", 20) and cfg.get("rate_hz") == 20.0
+    assert cfg.set("rate_hz", "12.5") and cfg.get("rate_hz") == 12.5
+    assert cfg.set("enabled", "false") and cfg.get("enabled") is False
+    assert cfg.set("port", "/dev/ttyACM0") and cfg.get("port") == "/dev/ttyACM0"
+
+
+@pytest.mark.parametrize("name,value,expected", [
+    ("retries", 2.5, "field 'retries' expects int, got float 2.5"),
+    ("retries", "2.5", "field 'retries' expects int, got float 2.5"),
+    ("enabled", 1, "field 'enabled' expects bool, got int 1"),
+    ("rate_hz", "fast", "field 'rate_hz' expects float, got unparseable text 'fast'"),
+    ("nope", 1, "no config field 'nope'"),
+])
+def test_wrong_type_refused_with_message_and_file_intact(tmp_path: Path, name: str, value: object,
+                                                         expected: str) -> None:
+    path = tmp_path / "c.toml"
+    cfg = Configurator(path, FIELDS)
+    assert cfg.set("retries", 4)
+    before = path.read_bytes()
+    ok, reason = cfg.try_set(name, value)
+    assert not ok and expected in reason
+    assert path.read_bytes() == before
+    assert cfg.get("retries") == 4
+
+
+def test_wrong_type_in_file_is_an_error_naming_file_and_field(tmp_path: Path) -> None:
+    path = tmp_path / "c.toml"
+    path.write_text('retries = "three"\n')
+    with pytest.raises(ConfigError, match=r"c\.toml: field 'retries' expects int, got str"):
+        Configurator(path, FIELDS)
+
+
+def test_broken_toml_names_the_file(tmp_path: Path) -> None:
+    path = tmp_path / "c.toml"
+    path.write_text("retries = = 3\n")
+    with pytest.raises(ConfigError, match="c.toml: not valid TOML"):
+        Configurator(path, FIELDS)
+
+
+def test_unknown_fields_in_the_file_are_kept_on_write(tmp_path: Path) -> None:
+    path = tmp_path / "c.toml"
+    path.write_text("future_field = 1\n")
+    cfg = Configurator(path, FIELDS)
+    assert cfg.set("retries", 9)
+    assert tomllib.loads(path.read_text())["future_field"] == 1
+
+
+def test_unwritable_file_set_returns_false_and_file_intact() -> None:
+    """Run as an unprivileged user (root ignores permissions) against a read-only directory."""
+    workdir = Path(tempfile.mkdtemp(prefix="u2sa-ro-"))
+    try:
+        cfg_dir = workdir / "cfg"
+        cfg_dir.mkdir()
+        path = cfg_dir / "svc.toml"
+        path.write_text("retries = 4\n")
+        os.chmod(workdir, 0o755)
+        os.chmod(cfg_dir, 0o555)
+        os.chmod(path, 0o444)
+        code = textwrap.dedent(f"""\
+            import logging, sys
+            from u2sa_hw.config import Configurator, field
+            logging.basicConfig(level=logging.ERROR, stream=sys.stdout, format="%(message)s")
+            cfg = Configurator({str(path)!r}, (field("retries", 3),))
+            ok, reason = cfg.try_set("retries", 7)
+            print("RESULT", ok, cfg.get("retries"))
+            print("REASON", reason)
+            """)
+        cmd = [sys.executable, "-c", code]
+        if os.geteuid() == 0:
+            setpriv = shutil.which("setpriv")
+            if setpriv is None:
+                pytest.skip("running as root without setpriv: cannot make a file unwritable")
+            cmd = [setpriv, "--reuid=65534", "--regid=65534", "--clear-groups", *cmd]
+        src = str(Path(__file__).resolve().parent.parent)
+        out = subprocess.run(cmd, capture_output=True, text=True, timeout=30,
+                             env=dict(os.environ, PYTHONPATH=src), cwd="/").stdout
+        assert "RESULT False 4" in out, out
+        assert f"cannot write {path}" in out and "file is unchanged" in out
+        assert "config change of 'retries' not saved" in out  # logged
+        assert path.read_text() == "retries = 4\n"
+        assert sorted(p.name for p in cfg_dir.iterdir()) == ["svc.toml"]  # no temp file left
+    finally:
+        os.chmod(workdir / "cfg", 0o755)
+        shutil.rmtree(workdir)
