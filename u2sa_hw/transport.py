@@ -12,7 +12,6 @@ from __future__ import annotations
 import logging
 import os
 import re
-import select
 import threading
 import time
 from collections import defaultdict
@@ -87,7 +86,6 @@ class Transport:
         self.last_error = ""
         self._thread: threading.Thread | None = None
         self._running = False
-        self._stop_r, self._stop_w = os.pipe()
 
     # -- publishing ---------------------------------------------------------------
     def publish(self, channel: str, msg: Any) -> bool:
@@ -188,20 +186,17 @@ class Transport:
         self._thread.start()
 
     def _loop(self) -> None:
-        fd = self._lc.fileno()
+        # handle_timeout releases the GIL while it waits in C; a short timeout bounds stop().
         while self._running:
-            ready, _, _ = select.select([fd, self._stop_r], [], [], 0.5)
-            if fd in ready:
-                try:
-                    self._lc.handle()
-                except Exception as exc:  # noqa: BLE001 - keep handling; LCM reports socket trouble here
-                    self._error(f"LCM handle failed: {exc}")
-                    time.sleep(0.01)
+            try:
+                self._lc.handle_timeout(200)
+            except Exception as exc:  # noqa: BLE001 - keep handling; LCM reports socket trouble here
+                self._error(f"LCM handle failed: {exc}")
+                time.sleep(0.01)
 
     def stop(self) -> None:
         """Stop the handler thread and release the LCM instance."""
         self._running = False
-        os.write(self._stop_w, b"x")
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=2.0)
         self._thread = None
@@ -212,11 +207,6 @@ class Transport:
                 except Exception:  # noqa: BLE001 - tearing down
                     pass
             self._subs.clear()
-        for fd in (self._stop_r, self._stop_w):
-            try:
-                os.close(fd)
-            except OSError:
-                pass
 
     def __enter__(self) -> "Transport":
         self.start()

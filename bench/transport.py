@@ -1,0 +1,166 @@
+#!/usr/bin/env python3
+"""Transport benchmark: publish -> callback latency and zero-loss rate across two processes.
+
+Compares (a) the raw ``lcm`` package publishing the encoded bytes of a full State
+Information to a raw byte callback, with (b) u2sa's Transport publishing the message to a
+typed callback that decodes it. Prints p50/p99 latency of each, their ratio, and the
+highest rate each sustains with zero loss. Usage: ``python bench/transport.py [--quick]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import struct
+import subprocess
+import sys
+import threading
+import time
+
+import lcm
+
+from u2sa_hw import lcmtypes as t
+from u2sa_hw.transport import Transport
+
+CHANNEL = "BENCH_STATE"
+
+
+def full_state() -> t.StateInformation:
+    """A State Information with all 48 fields present."""
+    from u2sa_hw.messages import STATE_FIELDS
+
+    msg = t.StateInformation()
+    msg.sensor_name = "bench"
+    msg.set(**{name: float(i) for i, name in enumerate(STATE_FIELDS)})
+    return msg
+
+
+# -- receiver (child process) ------------------------------------------------------------
+def receiver(url: str, mode: str, count: int, timeout: float) -> None:
+    """Receive *count* messages (or until *timeout* of silence) and print latencies as JSON."""
+    latencies: list[int] = []
+    done = threading.Event()
+    last = [time.monotonic()]
+
+    def note(sent_ns: int) -> None:
+        latencies.append(time.monotonic_ns() - sent_ns)
+        last[0] = time.monotonic()
+        if len(latencies) >= count:
+            done.set()
+
+    if mode == "raw":
+        lc = lcm.LCM(url)
+        # The send time travels in the header's timestamp_us slot (bytes 12..20 after the fingerprint+system id).
+        lc.subscribe(CHANNEL, lambda _c, data: note(struct.unpack_from(">q", data, 12)[0]))
+        print("READY", flush=True)
+        while not done.is_set() and time.monotonic() - last[0] < timeout:
+            lc.handle_timeout(100)
+    else:
+        tr = Transport(url, name="bench-rx")
+        tr.subscribe(CHANNEL, t.StateInformation, lambda _c, msg: note(msg.header.timestamp_us))
+        tr.start()
+        print("READY", flush=True)
+        while not done.is_set() and time.monotonic() - last[0] < timeout:
+            done.wait(0.1)
+        tr.stop()
+    print(json.dumps({"received": len(latencies), "latencies_ns": latencies}), flush=True)
+
+
+# -- sender (this process) ---------------------------------------------------------------
+def run_case(url: str, mode: str, *, rate: float, count: int) -> tuple[int, list[int]]:
+    """Start a receiver, send *count* messages at *rate* Hz; return (received, latencies)."""
+    child = subprocess.Popen([sys.executable, __file__, "--role", "recv", "--url", url, "--mode", mode,
+                              "--count", str(count)], stdout=subprocess.PIPE, text=True)
+    assert child.stdout is not None
+    if child.stdout.readline().strip() != "READY":
+        raise RuntimeError("receiver did not start")
+    time.sleep(0.3)  # let the receiver's socket join the group before the first packet
+    msg = full_state()
+    if mode == "raw":
+        lc = lcm.LCM(url)
+        publish = lambda: lc.publish(CHANNEL, stamp_and_encode(msg))  # noqa: E731
+    else:
+        tr = Transport(url, name="bench-tx")
+        publish = lambda: (setattr(msg.header, "timestamp_us", time.monotonic_ns()), tr.publish(CHANNEL, msg))  # noqa: E731
+    period = 1.0 / rate
+    next_t = time.monotonic()
+    for _ in range(count):
+        publish()
+        next_t += period
+        delay = next_t - time.monotonic()
+        if delay > 0.0005:
+            time.sleep(delay)
+        elif delay > 0:
+            while time.monotonic() < next_t:
+                pass
+    out, _ = child.communicate(timeout=60)
+    result = json.loads(out.strip().splitlines()[-1])
+    if mode != "raw":
+        tr.stop()
+    return result["received"], result["latencies_ns"]
+
+
+def stamp_and_encode(msg: t.StateInformation) -> bytes:
+    """Encode with the send time in the header (the raw case decodes only that)."""
+    msg.header.timestamp_us = time.monotonic_ns()
+    return msg.encode()
+
+
+def percentile(values: list[int], p: float) -> float:
+    """The p-th percentile of *values* in microseconds."""
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, int(p / 100 * len(ordered)))] / 1000
+
+
+def max_rate(url: str, mode: str, rates: list[int], seconds: float) -> int:
+    """The highest rate in *rates* delivering every message."""
+    best = 0
+    for rate in rates:
+        count = int(rate * seconds)
+        received, _ = run_case(url, mode, rate=rate, count=count)
+        lossless = received == count
+        print(f"  {mode:5} {rate:>6} msg/s for {seconds:g} s: {received}/{count} received"
+              f"{'' if lossless else '  (loss)'}", flush=True)
+        if not lossless:
+            break
+        best = rate
+    return best
+
+
+def main() -> int:
+    """Run both cases and print the figures."""
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--role", default="send", choices=["send", "recv"], help=argparse.SUPPRESS)
+    parser.add_argument("--url", default=None, help="LCM URL (default: a random port on 239.255.76.67, ttl=0)")
+    parser.add_argument("--mode", default="u2sa", help=argparse.SUPPRESS)
+    parser.add_argument("--count", type=int, default=0, help=argparse.SUPPRESS)
+    parser.add_argument("--quick", action="store_true", help="fewer samples and rates (about 20 s)")
+    args = parser.parse_args()
+    if args.role == "recv":
+        receiver(args.url, args.mode, args.count, timeout=2.0)
+        return 0
+    url = args.url or f"udpm://239.255.76.67:{random.randint(20000, 60000)}?ttl=0"
+    n_lat = 1000 if args.quick else 5000
+    print(f"u2sa transport benchmark on {url}, {os.cpu_count()} cores, State Information "
+          f"{len(full_state().encode())} bytes")
+    lat = {}
+    for mode in ("raw", "u2sa"):
+        received, values = run_case(url, mode, rate=1000, count=n_lat)
+        lat[mode] = (percentile(values, 50), percentile(values, 99))
+        print(f"latency {mode:5} at 1000 msg/s: p50 {lat[mode][0]:7.1f} us  p99 {lat[mode][1]:7.1f} us  "
+              f"({received}/{n_lat} received)", flush=True)
+    rates = [5000, 10000, 20000, 30000] if args.quick else [5000, 10000, 15000, 20000, 25000, 30000, 40000, 50000]
+    best = {mode: max_rate(url, mode, rates, 1.0 if args.quick else 2.0) for mode in ("raw", "u2sa")}
+    ratio = lat["u2sa"][0] / lat["raw"][0]
+    print()
+    print(f"{'':6} {'p50 us':>8} {'p99 us':>8} {'zero-loss msg/s':>16}")
+    for mode in ("raw", "u2sa"):
+        print(f"{mode:6} {lat[mode][0]:8.1f} {lat[mode][1]:8.1f} {best[mode]:>16}")
+    print(f"u2sa/raw p50 latency ratio: {ratio:.2f} (aim <= 1.3); u2sa zero-loss rate {best['u2sa']} msg/s (aim >= 20000)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
