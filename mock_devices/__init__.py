@@ -1,0 +1,12 @@
+"""Mock devices: test doubles that speak the real device protocols byte for byte.
+
+They stand in for hardware in CI, simulation and replay, and meet the drivers only at a
+device address (a pty symlink, a CAN channel, a Unix socket, a sysfs-shaped directory),
+exactly as real hardware does: this package never imports ``drivers``. Every mock sensor
+samples one :class:`~mock_devices.vehicle_sim.SimVehicle` so the sensors agree, and every
+mock actuator drives it. Each device is built with keyword options, has ``start()``,
+``stop()``, an ``address``, a ``history`` and fault-scripting methods.
+
+Serial mocks: ``pty_serial`` (the pty link), ``nmea_gps``, ``serial_compass``; see
+docs/mock-devices-serial.md.
+"""
