@@ -1,0 +1,244 @@
+"""Serial ports: a device path (``/dev/u2sa/gps``, a symlink to a pty) or a pyserial URL.
+
+``open_serial`` opens paths with ``serial.Serial`` (exclusively locked, so two services
+cannot read the same GPS) and URLs (``loop://``, ``socket://host:port``, ``spy://...``,
+``rfc2217://...``) with ``serial.serial_for_url``. pyserial's exceptions are mapped to the
+port error hierarchy: failing to open is ``PortUnavailable`` (with the group to join, the
+udev rule to check or the process holding the port), and any failure of an open port
+(pty master closed, USB adapter unplugged, socket dropped) is ``PortClosed``.
+
+Every chunk read from the device is tapped as a ``RawSerial`` RX record, every write as TX.
+"""
+
+from __future__ import annotations
+
+import errno
+import grp
+import logging
+import os
+import threading
+
+import serial
+
+from u2sa_hw.messages import RawSerial
+from u2sa_hw.ports.errors import PortClosed, PortTimeout, PortUnavailable, fix_for_errno
+from u2sa_hw.ports.tap import RX, TX, Tap, call_tap
+
+log = logging.getLogger(__name__)
+
+MAX_LINE = 4096  # readline() gives up waiting for b"\n" after this many bytes (garbage)
+
+_BUSY_ERRNOS = {errno.EBUSY, errno.EAGAIN, errno.EWOULDBLOCK}
+
+
+def is_serial_url(address: str) -> bool:
+    """True if *address* is a pyserial URL (``scheme://...``) rather than a device path."""
+    return "://" in address
+
+
+def _os_errno(exc: BaseException) -> int | None:
+    """The errno behind a pyserial exception (pyserial often keeps it only in the context)."""
+    seen: set[int] = set()
+    current: BaseException | None = exc
+    while current is not None and id(current) not in seen:
+        seen.add(id(current))
+        if isinstance(current, OSError) and isinstance(current.errno, int):
+            return current.errno
+        current = current.__cause__ or current.__context__
+    return None
+
+
+def _group_fix(path: str) -> str:
+    """Advice for EACCES on *path*, naming the device node's group when it can be read."""
+    try:
+        group = grp.getgrgid(os.stat(path).st_gid).gr_name
+    except (OSError, KeyError):
+        return fix_for_errno(errno.EACCES, path)
+    if group == "root":
+        return (f"{path} belongs to group root: install the u2sa udev rule that gives it group "
+                "'dialout' (udev/), and add the service user to that group")
+    return (f"no permission on {path}: add the service user to group '{group}' "
+            f"(usermod -aG {group} <user>; u2sa install does this)")
+
+
+def _open_fix(address: str, exc: BaseException) -> str:
+    """The advice for an open failure of *address*."""
+    code = _os_errno(exc)
+    if is_serial_url(address):
+        if isinstance(exc, ValueError):
+            return ("the URL scheme or its options are not known to pyserial: use a device path "
+                    "or loop://, socket://host:port, rfc2217://host:port, spy://<path>")
+        if code == errno.ECONNREFUSED:
+            return f"nothing listens at {address}: start the serial server (e.g. ser2net) or fix the URL"
+        return f"check that {address} is reachable and the URL is right"
+    if code in (errno.EACCES, errno.EPERM):
+        return _group_fix(address)
+    if code in _BUSY_ERRNOS:
+        return f"{address} is in use by another process: stop it (fuser -v {address})"
+    if code == errno.ENOENT and os.path.islink(address):
+        return (f"{address} is a dangling symlink: the device (or the mock device's pty) is gone; "
+                "plug it in / start the mock device, or fix the udev rule")
+    return fix_for_errno(code, address)
+
+
+class SerialPort:
+    """An open serial port; reads and writes bytes, taps them, and maps errors.
+
+    ``read`` and ``readline`` return ``b""`` when nothing arrives within the timeout.
+    ``readline`` returns only complete lines: a partial line stays buffered for the next
+    call (and for ``read``), so a driver never sees half an NMEA sentence as a line.
+    """
+
+    def __init__(self, handle: serial.SerialBase, *, device: str, address: str, tap: Tap | None = None) -> None:
+        self.device = device
+        self.address = address
+        self._serial = handle
+        self._tap = tap
+        self._buffer = bytearray()
+        self._read_lock = threading.Lock()
+        self._closed = False
+
+    @property
+    def is_open(self) -> bool:
+        """True until the port is closed or the device is lost."""
+        return not self._closed and bool(self._serial.is_open)
+
+    def _lost(self, exc: BaseException, action: str) -> PortClosed:
+        """Close the dead handle and build the PortClosed to raise."""
+        self._closed = True
+        try:
+            self._serial.close()
+        except Exception:  # noqa: BLE001 - the device is already gone; closing is best effort
+            pass
+        if is_serial_url(self.address):
+            fix = f"restore the connection to {self.address}; ReconnectingPort reopens it"
+        else:
+            fix = "plug the device back in (for a pty: restart the mock device); ReconnectingPort reopens it"
+        return PortClosed(self.device, f"{action} failed, device lost ({exc})", address=self.address, fix=fix)
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise PortClosed(self.device, "port is closed", address=self.address,
+                             fix="open the port again (ReconnectingPort does this)")
+
+    def _read_raw(self, size: int) -> bytes:
+        """Read up to *size* bytes from the device, waiting up to the timeout."""
+        self._check_open()
+        try:
+            return self._serial.read(size)
+        except (serial.SerialException, OSError, TypeError, ValueError) as exc:
+            # TypeError/ValueError: pyserial's select() on a handle closed underneath it.
+            raise self._lost(exc, "read") from exc
+
+    def _tapped(self, data: bytes) -> bytes:
+        if data:
+            call_tap(self._tap, _record(self.device, RX, data))
+        return data
+
+    def _read_available(self) -> bytes:
+        """Wait up to the timeout for one byte, then take whatever else is waiting."""
+        data = self._read_raw(1)
+        if data:
+            try:
+                waiting = self._serial.in_waiting
+            except (serial.SerialException, OSError) as exc:
+                raise self._lost(exc, "read") from exc
+            if waiting:
+                data += self._read_raw(waiting)
+        return self._tapped(data)
+
+    def read(self, size: int = 1) -> bytes:
+        """Up to *size* bytes, buffered ones first; like pyserial it waits up to the timeout
+        for the rest (``b""`` if nothing came)."""
+        with self._read_lock:
+            data = bytes(self._buffer[:size])
+            del self._buffer[:size]
+            if len(data) < size:
+                data += self._tapped(self._read_raw(size - len(data)))
+            return data
+
+    def readline(self) -> bytes:
+        """One line ending in ``b"\\n"``, or ``b""`` if none completes before the device falls
+        silent for a timeout. A run of MAX_LINE bytes without a newline is returned as is."""
+        with self._read_lock:
+            while b"\n" not in self._buffer and len(self._buffer) < MAX_LINE:
+                chunk = self._read_available()
+                if not chunk:
+                    return b""
+                self._buffer += chunk
+            end = self._buffer.find(b"\n")
+            end = end + 1 if end >= 0 else MAX_LINE
+            line = bytes(self._buffer[:end])
+            del self._buffer[:end]
+            return line
+
+    def write(self, data: bytes) -> int:
+        """Write *data*; returns the number of bytes written (tapped as TX)."""
+        self._check_open()
+        data = bytes(data)
+        try:
+            written = self._serial.write(data)
+        except serial.SerialTimeoutException as exc:
+            raise PortTimeout(self.device, f"write timed out ({exc})", address=self.address,
+                              fix="the device does not accept data: check flow control and the cable") from exc
+        except (serial.SerialException, OSError, TypeError, ValueError) as exc:
+            raise self._lost(exc, "write") from exc
+        written = len(data) if written is None else written
+        if written:
+            call_tap(self._tap, _record(self.device, TX, data[:written]))
+        return written
+
+    def close(self) -> None:
+        """Close the port (idempotent)."""
+        self._closed = True
+        try:
+            self._serial.close()
+        except (serial.SerialException, OSError) as exc:
+            log.debug("%s: closing %s: %s", self.device, self.address, exc)
+
+    def __enter__(self) -> SerialPort:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        state = "open" if self.is_open else "closed"
+        return f"<SerialPort {self.device} {self.address} {state}>"
+
+
+def _record(device: str, direction: int, data: bytes) -> RawSerial:
+    record = RawSerial()
+    record.device = device
+    record.direction = direction
+    record.length = len(data)
+    record.data = data
+    return record
+
+
+def open_serial(address: str, *, device: str, baudrate: int = 9600, bytesize: int = 8, parity: str = "N",
+                stopbits: float = 1, timeout: float = 0.1, tap: Tap | None = None) -> SerialPort:
+    """Open the serial device at *address* (a path or a pyserial URL) as *device*.
+
+    Raises PortUnavailable naming the device, the address and the fix when it cannot be
+    opened (missing, no permission, busy, unknown URL scheme).
+    """
+    options = dict(baudrate=baudrate, bytesize=bytesize, parity=parity, stopbits=stopbits, timeout=timeout)
+    try:
+        if is_serial_url(address):
+            handle = serial.serial_for_url(address, **options)
+        else:
+            handle = serial.Serial(address, exclusive=True, **options)
+    except (serial.SerialException, OSError, ValueError) as exc:
+        code = _os_errno(exc)
+        if isinstance(exc, ValueError) and not is_serial_url(address):
+            reason = f"bad serial settings ({exc})"
+            fix = "check baudrate, bytesize, parity and stopbits in the service config"
+        else:
+            reason = f"cannot open ({exc})"
+            fix = _open_fix(address, exc)
+        if code in _BUSY_ERRNOS:
+            reason = f"busy: another process holds it ({exc})"
+        raise PortUnavailable(device, reason, address=address, fix=fix) from exc
+    log.debug("%s: opened %s", device, address)
+    return SerialPort(handle, device=device, address=address, tap=tap)
