@@ -1,0 +1,189 @@
+"""CAN port contract: one suite over python-can's virtual and udp_multicast buses, plus
+udp_multicast across processes, bad datagrams, and the SocketCAN open hints."""
+
+from __future__ import annotations
+
+import random
+import socket
+import subprocess
+import sys
+import uuid
+from typing import Iterator
+
+import can
+import pytest
+
+from u2sa_hw.ports import PortClosed, PortIOError, PortUnavailable, open_can
+from u2sa_hw.ports.can_port import CanPort
+from u2sa_hw.ports.tap import RX, TX
+
+GROUP = "239.74.163.2"  # python-can's default IPv4 group
+
+
+class CanBackend:
+    """How to reach one python-can interface from a test: options, and a missing device."""
+
+    def __init__(self, interface: str) -> None:
+        self.interface = interface
+        if interface == "virtual":
+            self.channel = f"u2sa-test-{uuid.uuid4().hex[:8]}"
+            self.options: dict = {}
+            self.missing: dict | None = None  # a virtual channel always exists
+        else:
+            self.channel = GROUP
+            self.options = {"port": random.randint(20000, 60000)}
+            self.missing = {"channel": "no-such-group.invalid"}
+
+    def open(self, device: str, **kwargs) -> CanPort:
+        return open_can(device=device, interface=self.interface, channel=self.channel, **self.options, **kwargs)
+
+
+@pytest.fixture(params=["virtual", "udp_multicast"])
+def backend(request: pytest.FixtureRequest) -> CanBackend:
+    """Each CAN test double python-can ships."""
+    return CanBackend(request.param)
+
+
+@pytest.fixture
+def pair(backend: CanBackend) -> Iterator[tuple[CanPort, CanPort, list, list]]:
+    """A driver port and a device port on one bus, each with its tap records."""
+    driver_taps: list = []
+    device_taps: list = []
+    driver = backend.open("motor", tap=driver_taps.append)
+    device = backend.open("odrive-mock", tap=device_taps.append)
+    yield driver, device, driver_taps, device_taps
+    driver.close()
+    device.close()
+
+
+def recv_id(port: CanPort, arbitration_id: int, timeout: float = 5.0) -> can.Message:
+    """The next frame with *arbitration_id* (udp_multicast also hands a port its own frames)."""
+    for _ in range(1000):
+        msg = port.recv(timeout)
+        assert msg is not None, f"no frame 0x{arbitration_id:x} within {timeout} s"
+        if msg.arbitration_id == arbitration_id:
+            return msg
+    pytest.fail(f"frame 0x{arbitration_id:x} never came")
+
+
+class TestCanContract:
+    """What every CAN backend must do."""
+
+    def test_frames_cross_both_ways_and_are_tapped(self, pair) -> None:
+        driver, device, driver_taps, _ = pair
+        driver.send(can.Message(arbitration_id=0x00C, data=b"\x01\x02\x03\x04", is_extended_id=False))
+        got = recv_id(device, 0x00C)
+        assert bytes(got.data) == b"\x01\x02\x03\x04" and not got.is_extended_id
+        device.send(can.Message(arbitration_id=0x1ABCDE0, data=b"\xff" * 8, is_extended_id=True))
+        reply = recv_id(driver, 0x1ABCDE0)
+        assert reply.is_extended_id and bytes(reply.data) == b"\xff" * 8
+
+        tx = [r for r in driver_taps if r.direction == TX]
+        rx = [r for r in driver_taps if r.direction == RX and r.arbitration_id == 0x1ABCDE0]
+        assert len(tx) == 1 and tx[0].device == "motor"
+        assert (tx[0].arbitration_id, tx[0].is_extended_id, tx[0].dlc, tx[0].data) == (0x00C, False, 4, b"\x01\x02\x03\x04")
+        assert len(rx) == 1
+        assert (rx[0].is_extended_id, rx[0].dlc, rx[0].length, rx[0].data) == (True, 8, 8, b"\xff" * 8)
+        assert rx[0].bus_timestamp > 0
+
+    def test_remote_frames_are_tapped_as_remote(self, pair) -> None:
+        driver, device, driver_taps, device_taps = pair
+        driver.send(can.Message(arbitration_id=0x009, is_remote_frame=True, dlc=8, is_extended_id=False))
+        got = recv_id(device, 0x009)
+        assert got.is_remote_frame
+        assert driver_taps[-1].is_remote_frame and driver_taps[-1].dlc == 8 and driver_taps[-1].length == 0
+        assert device_taps[-1].is_remote_frame and device_taps[-1].direction == RX
+
+    def test_recv_timeout_returns_none(self, backend: CanBackend) -> None:
+        port = backend.open("motor")
+        try:
+            assert port.recv(0.05) is None
+        finally:
+            port.close()
+
+    def test_losing_the_bus_raises_port_closed(self, pair) -> None:
+        driver, _, _, _ = pair
+        # A python-can double cannot be unplugged; its bus shut down underneath the port is
+        # what a vanished interface looks like from above.
+        driver._bus.shutdown()
+        with pytest.raises(PortClosed) as info:
+            driver.recv(0.05)
+        assert info.value.device == "motor" and info.value.fix
+        assert not driver.is_open
+        with pytest.raises(PortClosed):
+            driver.send(can.Message(arbitration_id=1, data=b"\x00", is_extended_id=False))
+
+    def test_missing_device_is_unavailable_with_a_fix(self, backend: CanBackend) -> None:
+        if backend.missing is None:
+            pytest.skip("a virtual channel cannot be missing: python-can creates it on first use")
+        with pytest.raises(PortUnavailable) as info:
+            open_can(device="motor", interface=backend.interface, **backend.missing)
+        assert info.value.device == "motor" and "motor" in str(info.value) and info.value.fix
+
+    def test_closed_port_refuses_io(self, backend: CanBackend) -> None:
+        port = backend.open("motor")
+        port.close()
+        port.close()
+        with pytest.raises(PortClosed):
+            port.recv(0.01)
+
+
+class TestUdpMulticastSpecifics:
+    """The cross-process bus: real datagrams from other processes, good and bad."""
+
+    def test_frames_from_another_process_arrive(self) -> None:
+        backend = CanBackend("udp_multicast")
+        port = backend.open("motor")
+        code = ("import can\n"
+                f"bus = can.Bus(interface='udp_multicast', channel={GROUP!r}, port={backend.options['port']})\n"
+                "bus.send(can.Message(arbitration_id=0x321, data=b'\\x05\\x06', is_extended_id=False))\n"
+                "bus.shutdown()\n")
+        try:
+            subprocess.run([sys.executable, "-c", code], check=True, timeout=30)
+            got = recv_id(port, 0x321)
+            assert bytes(got.data) == b"\x05\x06"
+        finally:
+            port.close()
+
+    def test_undecodable_datagram_is_an_io_error_and_the_port_lives_on(self) -> None:
+        backend = CanBackend("udp_multicast")
+        port = backend.open("motor")
+        sender = backend.open("peer")
+        raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            raw.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
+            raw.sendto(b"\x00garbage\xff", (GROUP, backend.options["port"]))
+            with pytest.raises(PortIOError) as info:
+                port.recv(5.0)
+            assert "motor" in str(info.value)
+            sender.send(can.Message(arbitration_id=0x42, data=b"\x01", is_extended_id=False))
+            assert recv_id(port, 0x42).data == bytearray(b"\x01")
+        finally:
+            raw.close()
+            port.close()
+            sender.close()
+
+    def test_fd_frame_on_a_classic_bus_is_an_io_error(self) -> None:
+        backend = CanBackend("udp_multicast")
+        port = backend.open("motor", fd=False)
+        try:
+            with pytest.raises(PortIOError):
+                port.send(can.Message(arbitration_id=0x42, data=bytes(12), is_fd=True, is_extended_id=False))
+            assert port.is_open
+        finally:
+            port.close()
+
+
+def test_socketcan_without_the_interface_says_how_to_bring_it_up() -> None:
+    with pytest.raises(PortUnavailable) as info:
+        open_can(device="motor", interface="socketcan", channel="u2sa-none0", bitrate=250000)
+    fix = info.value.fix
+    # This machine has no SocketCAN module (EAFNOSUPPORT); a vehicle without the adapter has ENODEV.
+    assert "modprobe can" in fix or "ip link set u2sa-none0 up type can bitrate 250000" in fix
+    assert info.value.address == "socketcan:u2sa-none0"
+
+
+def test_unknown_interface_is_unavailable() -> None:
+    with pytest.raises(PortUnavailable) as info:
+        open_can(device="motor", interface="no-such-interface", channel="can0")
+    assert "socketcan" in info.value.fix
