@@ -1,0 +1,202 @@
+"""The local launcher with real `u2sa run` processes, real children and real LCM multicast."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+import pytest
+from conftest import wait_until
+
+from u2sa_hw import channels as ch
+from u2sa_hw import lcmtypes as t
+from u2sa_hw.bus_client import BusClient
+from u2sa_hw.launcher import Launcher, LauncherBusy, LauncherClient, LauncherError, RestartPolicy
+from u2sa_hw.launcher.launcher import u2sa_command
+from u2sa_hw.vehicle import load_profile
+
+
+def write_profile(tmp: Path, url: str, services: dict[str, str], *, health_interval: float = 0.2) -> Path:
+    """A vehicle profile with one service per name -> kind, fast health."""
+    lines = ["[vehicle]", 'name = "bench"', f'lcm_url = "{url}"', ""]
+    for name, kind in services.items():
+        lines += [f"[services.{name}]", f'kind = "{kind}"',
+                  f"settings = {{ health_interval_s = {health_interval} }}", ""]
+    path = tmp / "vehicle.toml"
+    path.write_text("\n".join(lines))
+    return path
+
+
+class LauncherProcess:
+    """`u2sa run` as a real process with its output in a file."""
+
+    def __init__(self, profile: Path, *args: str) -> None:
+        self.out_path = profile.parent / "launcher.out"
+        self._out = open(self.out_path, "wb")
+        self.proc = subprocess.Popen([*u2sa_command(), "run", "--vehicle", str(profile), "--no-color", *args],
+                                     stdout=self._out, stderr=subprocess.STDOUT, cwd=profile.parent,
+                                     env=dict(os.environ, PYTHONUNBUFFERED="1"))
+        self.client = LauncherClient(profile.parent / "data" / "launcher.sock", timeout=5.0)
+
+    @property
+    def output(self) -> str:
+        return self.out_path.read_text(errors="replace")
+
+    def status(self) -> dict[str, dict[str, Any]]:
+        try:
+            return {s["name"]: s for s in self.client.status()}
+        except LauncherError:
+            return {}
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._out.close()
+
+
+@pytest.fixture
+def launch(tmp_path: Path) -> Any:
+    started: list[LauncherProcess] = []
+
+    def start(profile: Path, *args: str) -> LauncherProcess:
+        lp = LauncherProcess(profile, *args)
+        started.append(lp)
+        return lp
+
+    yield start
+    for lp in started:
+        lp.close()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def _health_pids(bus: BusClient) -> dict[str, set[int]]:
+    seen: dict[str, set[int]] = {}
+    lock = threading.Lock()
+
+    def on_health(_c: str, msg: t.Health) -> None:
+        with lock:
+            seen.setdefault(msg.name, set()).add(msg.pid)
+
+    bus.transport.subscribe(ch.HEALTH, t.Health, on_health)
+    return seen
+
+
+def test_killed_child_restarts_with_new_run_id_and_sigint_stops_all(tmp_path: Path, lcm_url: str, bus: BusClient,
+                                                                     launch: Any) -> None:
+    health = _health_pids(bus)
+    lp = launch(write_profile(tmp_path, lcm_url, {"est_a": "state_estimator", "est_b": "state_estimator"}),
+                "--grace", "5")
+    status = wait_until(lambda: (s := lp.status()) and all(v["state"] == "running" for v in s.values()) and s,
+                        timeout=20, message="both services running under the launcher")
+    pid_a, pid_b = status["est_a"]["pid"], status["est_b"]["pid"]
+    assert status["est_a"]["run_id"] == 1 and status["est_b"]["run_id"] == 1
+    wait_until(lambda: pid_a in health.get("est_a", ()) and pid_b in health.get("est_b", ()), timeout=20,
+               message="health from both children")
+
+    os.kill(pid_a, signal.SIGKILL)
+    after = wait_until(lambda: (s := lp.status()) and s["est_a"]["run_id"] == 2 and s["est_a"]["state"] == "running"
+                       and s, timeout=20, message="est_a restarted with run id 2")
+    new_pid = after["est_a"]["pid"]
+    assert new_pid != pid_a and after["est_a"]["restarts"] == 1
+    assert after["est_b"]["run_id"] == 1 and after["est_b"]["pid"] == pid_b
+    wait_until(lambda: new_pid in health.get("est_a", ()), timeout=20, message="health from the restarted est_a")
+    out = lp.output
+    assert "est_a killed by SIGKILL" in out and "restarting in" in out
+    assert re.search(r"^est_a +\| .*est_a \(state_estimator\) started", out, re.MULTILINE)
+
+    lp.proc.send_signal(signal.SIGINT)
+    assert lp.proc.wait(timeout=20) == 0
+    assert not _alive(new_pid) and not _alive(pid_b)
+    out = lp.output
+    assert re.search(r"est_a exited with status 0 .*\(stopped\)", out)
+    assert re.search(r"est_b exited with status 0 .*\(stopped\)", out)
+    assert not (tmp_path / "data" / "launcher.sock").exists()
+
+
+def test_crash_looping_service_backs_off_then_launcher_gives_up(tmp_path: Path, lcm_url: str, launch: Any) -> None:
+    profile = write_profile(tmp_path, lcm_url, {"est": "state_estimator", "broken": "no_such_kind"})
+    lp = launch(profile, "--backoff", "0.05", "--give-up-after", "4", "--grace", "5")
+    assert lp.proc.wait(timeout=60) == 1
+    out = lp.output
+    delays = [float(d) for d in re.findall(r"broken exited with status 1 .*restarting in ([0-9.]+) s", out)]
+    assert delays == [0.05, 0.1, 0.2], out
+    assert "broken exited with status 1" in out and "giving up after 4 quick deaths in a row" in out
+    assert "unknown service kind 'no_such_kind'" in out          # the child's own error, prefixed
+    assert "exit 1: given up on broken" in out
+    # the healthy service was stopped cleanly, not left behind
+    assert re.search(r"^launcher +\| est (exited with status 0|killed by SIGTERM) .*\(stopped\)", out, re.MULTILINE), out
+
+
+def test_restart_policy_doubles_caps_decays_and_gives_up() -> None:
+    policy = RestartPolicy(initial_backoff_s=0.5, max_backoff_s=3.0, quick_death_s=10.0, give_up_after=5)
+    quick, delays = 0, []
+    for _ in range(4):
+        quick, delay = policy.after_death(quick, uptime_s=1.0)
+        delays.append(delay)
+    assert delays == [0.5, 1.0, 2.0, 3.0] and quick == 4
+    assert not policy.gives_up(quick)
+    # 25 s of healthy uptime forgives two quick deaths: the delay halves twice
+    quick, delay = policy.after_death(quick, uptime_s=25.0)
+    assert (quick, delay) == (2, 1.0)
+    quick, _ = policy.after_death(quick, uptime_s=100.0)
+    assert quick == 0
+    for _ in range(5):
+        quick, _ = policy.after_death(quick, uptime_s=0.1)
+    assert policy.gives_up(quick)
+    assert not RestartPolicy(give_up_after=0).gives_up(1000)
+    with pytest.raises(ValueError, match="initial_backoff_s"):
+        RestartPolicy(initial_backoff_s=5.0, max_backoff_s=1.0)
+
+
+STUBBORN = ("import signal, sys, time\n"
+            "signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
+            "print('ignoring SIGTERM', flush=True)\n"
+            "time.sleep(120)\n")
+
+
+def test_library_sigkill_after_grace_control_socket_and_single_owner(tmp_path: Path, lcm_url: str) -> None:
+    profile = load_profile(write_profile(tmp_path, lcm_url, {"stubborn": "state_estimator"}))
+    lines: list[tuple[str, str]] = []
+    deaths: list[str] = []
+    launcher = Launcher(profile, grace_s=0.5, output=lambda n, line: lines.append((n, line)),
+                        on_death=lambda status, account: deaths.append(f"{status.name}:{status.state}:{account}"),
+                        command=lambda spec: [sys.executable, "-c", STUBBORN])
+    launcher.start()
+    try:
+        wait_until(lambda: ("stubborn", "ignoring SIGTERM") in lines, timeout=10, message="the child's output")
+        with pytest.raises(LauncherBusy, match="already running this vehicle"):
+            Launcher(profile, output=lambda n, line: None).start()
+
+        client = LauncherClient(tmp_path / "data" / "launcher.sock")
+        first = client.status()[0]
+        assert first["run_id"] == 1 and first["state"] == "running"
+        with pytest.raises(LauncherError, match="no service 'nope'"):
+            client.restart("nope")
+        client.restart("stubborn", reason="test asked")
+        wait_until(lambda: client.status()[0]["run_id"] == 2, timeout=10, message="run 2 after a restart request")
+        assert any("stubborn did not stop within 0.5 s: SIGKILL" in line for _, line in lines)
+        assert deaths and deaths[0].startswith("stubborn:backoff:killed by SIGKILL; restarting now")
+        assert client.status()[0]["quick_deaths"] == 0     # a requested restart is no quick death
+        wait_until(lambda: lines.count(("stubborn", "ignoring SIGTERM")) == 2, timeout=10, message="run 2 ready")
+    finally:
+        assert launcher.stop(timeout=10) == 0
+    assert launcher.finished.is_set()
+    assert sum("did not stop within" in line for _, line in lines) == 2

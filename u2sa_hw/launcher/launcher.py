@@ -1,0 +1,349 @@
+"""The local launcher: every service of a vehicle profile as its own supervised process.
+
+For a bench or a laptop without systemd (``u2sa run``) and as a library for ``u2sa sim``.
+One event-loop thread starts the children (``u2sa service NAME --vehicle FILE``), reads
+their output and prefixes it with the service name, restarts crashed ones with the
+backoff of :class:`RestartPolicy`, answers the control socket (so the HSM can ask for a
+restart), and on stop sends SIGTERM, then SIGKILL after the grace period.
+"""
+
+from __future__ import annotations
+
+import os
+import selectors
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+from u2sa_hw.launcher.control import SOCKET_ENV, ControlServer, LauncherError, default_socket_path
+from u2sa_hw.launcher.output import LineSink, LineSplitter, PrefixedOutput
+from u2sa_hw.launcher.process import BACKOFF, FAILED, RUNNING, RestartPolicy, ProcessStatus, SupervisedProcess
+from u2sa_hw.vehicle import ServiceSpec, VehicleProfile
+
+DeathCallback = Callable[[ProcessStatus, str], None]
+"""``on_death(status, account)``: a child died; *status* says what happens next (backoff, failed...)."""
+
+LAUNCHER_NAME = "launcher"
+_MAX_WAIT = 0.1   # loop wake-up at least this often to notice deaths and deadlines
+
+
+def u2sa_command() -> list[str]:
+    """The argv prefix that runs the ``u2sa`` command with this very interpreter."""
+    return [sys.executable, "-m", "u2sa_hw.cli"]
+
+
+def select_services(profile: VehicleProfile, only: list[str] | None = None) -> list[ServiceSpec]:
+    """The services to start: those named in *only* (even if disabled), else every enabled one."""
+    if only:
+        unknown = [n for n in only if n not in profile.services]
+        if unknown:
+            raise ValueError(f"{profile.path}: no service {', '.join(unknown)} "
+                             f"(services: {', '.join(profile.services) or 'none'})")
+        return [profile.services[n] for n in only]
+    specs = [s for s in profile.services.values() if s.enabled]
+    if not specs:
+        raise ValueError(f"{profile.path or 'the vehicle profile'}: no enabled services to run; "
+                         "add [services.NAME] tables with kind = \"...\"")
+    return specs
+
+
+class Launcher:
+    """Starts, watches, restarts and stops the services of a profile (see the module docstring)."""
+
+    def __init__(self, profile: VehicleProfile, *, only: list[str] | None = None, grace_s: float = 5.0,
+                 policy: RestartPolicy = RestartPolicy(), keep_going: bool = False,
+                 output: LineSink | None = None, on_death: DeathCallback | None = None,
+                 control: bool = True, socket_path: Path | None = None,
+                 command: Callable[[ServiceSpec], list[str]] | None = None,
+                 env: dict[str, str] | None = None) -> None:
+        if profile.path is None:
+            raise ValueError("the launcher needs a vehicle profile file (--vehicle PATH)")
+        specs = select_services(profile, only)
+        self.profile = profile
+        self.grace_s = grace_s
+        self.keep_going = keep_going
+        self.output = output or PrefixedOutput(names=[s.name for s in specs])
+        self.on_death = on_death
+        self.socket_path = (socket_path or default_socket_path(profile.data_dir)) if control else None
+        child_env = dict(os.environ, PYTHONUNBUFFERED="1", **(env or {}))
+        if self.socket_path is not None:
+            child_env[SOCKET_ENV] = str(self.socket_path)
+        vehicle = str(profile.path.resolve())
+        build = command or (lambda spec: [*u2sa_command(), "service", spec.name, "--vehicle", vehicle])
+        self.processes: dict[str, SupervisedProcess] = {
+            s.name: SupervisedProcess(s.name, build(s), policy=policy, env=child_env) for s in specs}
+        self._lock = threading.RLock()
+        self._wake_r, self._wake_w = os.pipe2(os.O_CLOEXEC | os.O_NONBLOCK)
+        self._stop_reason: str | None = None
+        self._force = False
+        self._stopping = False
+        self._failed: list[str] = []
+        self._thread: threading.Thread | None = None
+        self._server: ControlServer | None = None
+        self._outputs: dict[int, tuple[Any, LineSplitter]] = {}
+        self.finished = threading.Event()
+
+    # -- public API ----------------------------------------------------------------------
+    def start(self) -> None:
+        """Open the control socket and start the loop thread (which starts the children).
+
+        Raises LauncherBusy when another launcher runs this vehicle.
+        """
+        if self._thread is not None:
+            return
+        if self.socket_path is not None:
+            self._server = ControlServer(self.socket_path, self._handle_request)
+            self.say(f"control socket {self.socket_path}")
+        self._thread = threading.Thread(target=self._loop, name="u2sa-launcher", daemon=True)
+        self._thread.start()
+
+    def request_stop(self, reason: str = "stop requested", *, force: bool = False) -> None:
+        """Ask the loop to stop every service (safe from a signal handler); *force*: SIGKILL now."""
+        self._stop_reason = self._stop_reason or reason
+        self._force = self._force or force
+        self._wake()
+
+    def stop(self, *, timeout: float | None = None) -> int:
+        """Stop every service (SIGTERM, SIGKILL after the grace period), wait, return the exit code."""
+        self.request_stop()
+        self.wait(timeout)
+        return self.exit_code
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Wait until every service is down and the loop ended; True if it did within *timeout*."""
+        return self.finished.wait(timeout)
+
+    @property
+    def exit_code(self) -> int:
+        """1 when some service was given up, else 0."""
+        return 1 if self._failed else 0
+
+    @property
+    def failed(self) -> list[str]:
+        """Names of the services given up on."""
+        return list(self._failed)
+
+    def status(self) -> list[ProcessStatus]:
+        """A snapshot of every supervised process."""
+        with self._lock:
+            return [p.status() for p in self.processes.values()]
+
+    def restart(self, name: str, *, reason: str = "requested") -> ProcessStatus:
+        """Restart service *name* now (a failed one gets a fresh start); LauncherError if impossible."""
+        with self._lock:
+            proc = self._process(name)
+            if self._stopping or self._stop_reason:
+                raise LauncherError(f"cannot restart {name}: the launcher is stopping")
+            self.say(f"restart of {name} requested: {reason}")
+            proc.restart(reason, self.grace_s)
+            if name in self._failed:
+                self._failed.remove(name)
+            self._wake()
+            return proc.status()
+
+    def stop_service(self, name: str) -> ProcessStatus:
+        """Stop service *name* and keep it stopped."""
+        with self._lock:
+            proc = self._process(name)
+            proc.stop(self.grace_s)
+            self._wake()
+            return proc.status()
+
+    def say(self, text: str) -> None:
+        """Write a line of the launcher's own."""
+        self.output(LAUNCHER_NAME, text)
+
+    def run(self) -> int:
+        """Foreground use (``u2sa run``): start, stop on SIGINT/SIGTERM (twice: kill now), return the exit code."""
+        def on_signal(signum: int, _frame: Any) -> None:
+            name = signal.Signals(signum).name
+            if self._stop_reason:
+                self.request_stop(force=True)
+            else:
+                self.request_stop(f"{name} received")
+
+        previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            self.start()
+            while not self.finished.wait(0.5):
+                pass
+        finally:
+            for s, handler in previous.items():
+                signal.signal(s, handler)
+        return self.exit_code
+
+    def __del__(self) -> None:
+        # The wake pipe outlives the loop: other threads may still call _wake() after it ended.
+        for fd in (getattr(self, "_wake_r", -1), getattr(self, "_wake_w", -1)):
+            if fd >= 0:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+
+    # -- internals -------------------------------------------------------------------------
+    def _process(self, name: str) -> SupervisedProcess:
+        try:
+            return self.processes[name]
+        except KeyError:
+            raise LauncherError(f"no service '{name}' under this launcher "
+                                f"(it runs: {', '.join(self.processes)})") from None
+
+    def _wake(self) -> None:
+        try:
+            os.write(self._wake_w, b"x")
+        except (BlockingIOError, OSError):
+            pass   # the pipe is full (a wake-up is pending anyway) or closed (finished)
+
+    def _handle_request(self, request: dict[str, Any]) -> dict[str, Any]:
+        op = request["op"]
+        if op == "status":
+            return {"ok": True, "services": [s.as_dict() for s in self.status()]}
+        name = request.get("service")
+        if not isinstance(name, str):
+            return {"ok": False, "error": f'"{op}" needs "service": NAME'}
+        if op == "restart":
+            reason = str(request.get("reason") or "requested over the control socket")
+            return {"ok": True, "service": self.restart(name, reason=reason).as_dict()}
+        if op == "stop":
+            return {"ok": True, "service": self.stop_service(name).as_dict()}
+        if op == "start":
+            with self._lock:
+                proc = self._process(name)
+                if proc.proc is None:
+                    return {"ok": True, "service": self.restart(name, reason="start requested").as_dict()}
+                return {"ok": True, "service": proc.status().as_dict()}
+        return {"ok": False, "error": f"unknown op '{op}' (status, restart, stop, start)"}
+
+    def _loop(self) -> None:
+        sel = selectors.DefaultSelector()
+        sel.register(self._wake_r, selectors.EVENT_READ, "wake")
+        if self._server is not None:
+            sel.register(self._server.sock, selectors.EVENT_READ, "accept")
+        try:
+            while True:
+                with self._lock:
+                    self._tick(sel)
+                    if self._done():
+                        break
+                    timeout = self._next_timeout()
+                for key, _ in sel.select(timeout):
+                    self._on_ready(sel, key)
+            self._drain(sel)
+        finally:
+            if self._server is not None:
+                self._server.close()
+            sel.close()
+            self.finished.set()
+
+    def _on_ready(self, sel: selectors.BaseSelector, key: selectors.SelectorKey) -> None:
+        kind = key.data
+        if kind == "wake":
+            try:
+                os.read(self._wake_r, 4096)
+            except BlockingIOError:
+                pass
+        elif kind == "accept":
+            conn = self._server.accept() if self._server else None
+            if conn is not None:
+                sel.register(conn, selectors.EVENT_READ, ("conn", conn))
+        elif kind[0] == "conn":
+            if self._server is not None and self._server.readable(kind[1]):
+                sel.unregister(kind[1])
+                self._server.drop(kind[1])
+        elif kind[0] == "out":
+            self._read_output(sel, key.fd)
+
+    def _read_output(self, sel: selectors.BaseSelector, fd: int) -> None:
+        pipe, splitter = self._outputs[fd]
+        try:
+            chunk = os.read(fd, 65536)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            chunk = b""
+        if chunk:
+            splitter.feed(chunk)
+            return
+        sel.unregister(fd)
+        del self._outputs[fd]
+        splitter.close()
+        pipe.close()
+
+    def _drain(self, sel: selectors.BaseSelector) -> None:
+        """Read what the dead children left in their pipes (bounded, in case a grandchild holds one)."""
+        deadline = time.monotonic() + 1.0
+        while self._outputs and time.monotonic() < deadline:
+            for key, _ in sel.select(0.1):
+                if isinstance(key.data, tuple) and key.data[0] == "out":
+                    self._read_output(sel, key.fd)
+        for fd, (pipe, splitter) in list(self._outputs.items()):
+            sel.unregister(fd)
+            splitter.close()
+            pipe.close()
+        self._outputs.clear()
+
+    def _tick(self, sel: selectors.BaseSelector) -> None:
+        if self._stop_reason and not self._stopping:
+            self._stopping = True
+            self.say(f"{self._stop_reason}: stopping {len(self.processes)} services "
+                     f"(SIGTERM, SIGKILL after {self.grace_s:g} s)")
+            for p in self.processes.values():
+                p.stop(self.grace_s)
+        if self._force:
+            self._force = False
+            self.say("stopping now: SIGKILL")
+            for p in self.processes.values():
+                p.signal(signal.SIGKILL)
+        for p in self.processes.values():
+            account = p.poll()
+            if account is not None:
+                self._on_death(p, account)
+            if p.enforce_grace():
+                self.say(f"{p.name} did not stop within {self.grace_s:g} s: SIGKILL")
+        if self._stopping:
+            return
+        for p in self.processes.values():
+            if p.due():
+                self._spawn(sel, p)
+
+    def _spawn(self, sel: selectors.BaseSelector, p: SupervisedProcess) -> None:
+        try:
+            child = p.spawn()
+        except OSError as exc:
+            self._on_death(p, p.failed_to_spawn(f"{p.argv[0]}: {exc.strerror or exc}"))
+            return
+        assert child.stdout is not None
+        os.set_blocking(child.stdout.fileno(), False)
+        self._outputs[child.stdout.fileno()] = (child.stdout, LineSplitter(p.name, self.output))
+        sel.register(child.stdout.fileno(), selectors.EVENT_READ, ("out", p.name))
+        self.say(f"{p.name} started, pid {child.pid}, run {p.run_id}")
+
+    def _on_death(self, p: SupervisedProcess, account: str) -> None:
+        self.say(f"{p.name} {account}")
+        if p.state == FAILED and p.name not in self._failed:
+            self._failed.append(p.name)
+            if not self.keep_going and not self._stop_reason:
+                self._stop_reason = f"{p.name} keeps failing ({p.reason})"
+        if self.on_death is not None:
+            try:
+                self.on_death(p.status(), account)
+            except Exception as exc:  # noqa: BLE001 - a faulty callback must not stop supervision
+                self.say(f"on_death callback failed: {type(exc).__name__}: {exc}")
+        if self._stop_reason and not self._stopping:
+            self._wake()
+
+    def _done(self) -> bool:
+        if self._stopping:
+            return all(p.proc is None for p in self.processes.values())
+        return all(p.settled for p in self.processes.values())
+
+    def _next_timeout(self) -> float:
+        now = time.monotonic()
+        deadlines = [p.next_start for p in self.processes.values() if p.state == BACKOFF and p.desired == RUNNING]
+        deadlines += [p.kill_at for p in self.processes.values() if p.kill_at is not None]
+        soonest = min(deadlines, default=now + _MAX_WAIT)
+        return max(0.0, min(_MAX_WAIT, soonest - now))

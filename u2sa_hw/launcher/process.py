@@ -1,0 +1,269 @@
+"""One supervised child process, libbot2-procman style.
+
+A :class:`SupervisedProcess` keeps the *desired* state (running or stopped) apart from
+the *observed* one (running, stopping, backoff, exited, stopped, failed). Every start is
+an edge with a new run id. A death is judged by :class:`RestartPolicy`: a quick death
+(uptime below ``quick_death_s``) doubles the respawn delay, healthy uptime makes it decay,
+and too many quick deaths in a row mean the process is given up (state ``failed``).
+
+The launcher's event loop drives it: ``spawn`` and ``poll`` run on the loop thread only
+(the child's parent-death signal is tied to the thread that forked it).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import signal
+import subprocess
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+RUNNING = "running"
+STOPPING = "stopping"
+BACKOFF = "backoff"
+EXITED = "exited"      # exited with status 0 on its own: not restarted (like systemd's on-failure)
+STOPPED = "stopped"    # stopped because we asked
+FAILED = "failed"      # given up after too many quick deaths
+DEAD_STATES = (BACKOFF, EXITED, STOPPED, FAILED)
+
+_PR_SET_PDEATHSIG = 1
+try:
+    _LIBC: ctypes.CDLL | None = ctypes.CDLL(None, use_errno=True)
+    _PRCTL = _LIBC.prctl
+except (OSError, AttributeError):  # not Linux: children simply outlive a killed launcher
+    _LIBC, _PRCTL = None, None
+
+
+def _die_with_parent() -> None:
+    # Runs in the child between fork and exec: a SIGKILLed launcher must not leave orphans.
+    if _PRCTL is not None:
+        _PRCTL(_PR_SET_PDEATHSIG, int(signal.SIGTERM))
+
+
+@dataclass(frozen=True)
+class RestartPolicy:
+    """Respawn rules: backoff that doubles on quick deaths and decays after healthy uptime."""
+
+    initial_backoff_s: float = 0.5
+    max_backoff_s: float = 30.0
+    quick_death_s: float = 5.0
+    give_up_after: int = 5
+
+    def __post_init__(self) -> None:
+        if self.initial_backoff_s < 0 or self.max_backoff_s < self.initial_backoff_s:
+            raise ValueError(f"restart policy: need 0 <= initial_backoff_s ({self.initial_backoff_s}) "
+                             f"<= max_backoff_s ({self.max_backoff_s})")
+        if self.quick_death_s <= 0 or self.give_up_after < 0:
+            raise ValueError("restart policy: quick_death_s must be > 0 and give_up_after >= 0 (0 = never give up)")
+
+    def after_death(self, quick_deaths: int, uptime_s: float) -> tuple[int, float]:
+        """``(quick deaths now, respawn delay)`` after a death following *uptime_s* of running.
+
+        A quick death adds one; each full ``quick_death_s`` of uptime forgives one (so the
+        delay halves per healthy period). The delay is ``initial * 2**(quick deaths - 1)``,
+        capped at ``max_backoff_s``.
+        """
+        if uptime_s < self.quick_death_s:
+            quick = quick_deaths + 1
+        else:
+            quick = max(0, quick_deaths - int(uptime_s // self.quick_death_s))
+        delay = self.initial_backoff_s * 2 ** max(0, quick - 1)
+        return quick, min(self.max_backoff_s, delay)
+
+    def gives_up(self, quick_deaths: int) -> bool:
+        """True when *quick_deaths* in a row mean the process keeps failing."""
+        return self.give_up_after > 0 and quick_deaths >= self.give_up_after
+
+
+@dataclass(frozen=True)
+class ProcessStatus:
+    """A snapshot of one supervised process (what ``status`` and the control socket report)."""
+
+    name: str
+    desired: str
+    state: str
+    pid: int | None
+    run_id: int
+    restarts: int
+    quick_deaths: int
+    backoff_s: float
+    uptime_s: float
+    last_exit: str
+    reason: str
+
+    def as_dict(self) -> dict[str, object]:
+        """JSON-ready form."""
+        return dict(self.__dict__)
+
+
+def describe_exit(returncode: int) -> str:
+    """``exited with status 1`` / ``killed by SIGKILL``."""
+    if returncode < 0:
+        try:
+            return f"killed by {signal.Signals(-returncode).name}"
+        except ValueError:
+            return f"killed by signal {-returncode}"
+    return f"exited with status {returncode}"
+
+
+class SupervisedProcess:
+    """Desired vs observed state of one child, its run id and its respawn backoff."""
+
+    def __init__(self, name: str, argv: list[str], *, policy: RestartPolicy, env: dict[str, str] | None = None,
+                 cwd: str | None = None, clock: Callable[[], float] = time.monotonic) -> None:
+        self.name = name
+        self.argv = argv
+        self.policy = policy
+        self.env = env
+        self.cwd = cwd
+        self.clock = clock
+        self.desired = RUNNING
+        self.state = BACKOFF          # not yet started: due at once
+        self.proc: subprocess.Popen[bytes] | None = None
+        self.run_id = 0
+        self.restarts = 0
+        self.quick_deaths = 0
+        self.backoff_s = 0.0
+        self.next_start = clock()
+        self.started_at = 0.0
+        self.kill_at: float | None = None
+        self.restart_pending = False
+        self.last_exit = ""
+        self.reason = ""
+
+    # -- observing -----------------------------------------------------------------
+    @property
+    def pid(self) -> int | None:
+        """The live child's pid, or None."""
+        return self.proc.pid if self.proc is not None else None
+
+    def status(self) -> ProcessStatus:
+        """A snapshot for reports."""
+        now = self.clock()
+        return ProcessStatus(name=self.name, desired=self.desired, state=self.state, pid=self.pid,
+                             run_id=self.run_id, restarts=self.restarts, quick_deaths=self.quick_deaths,
+                             backoff_s=self.backoff_s, uptime_s=now - self.started_at if self.proc else 0.0,
+                             last_exit=self.last_exit, reason=self.reason)
+
+    def due(self) -> bool:
+        """True when the child should be (re)started now."""
+        return self.desired == RUNNING and self.state == BACKOFF and self.clock() >= self.next_start
+
+    # -- acting (loop thread) ----------------------------------------------------------
+    def spawn(self) -> subprocess.Popen[bytes]:
+        """Start the child with its output on a pipe; a new run id. OSError when it cannot start."""
+        self.run_id += 1
+        if self.run_id > 1:
+            self.restarts += 1
+        env = dict(self.env if self.env is not None else os.environ)
+        env["U2SA_RUN_ID"] = str(self.run_id)
+        try:
+            self.proc = subprocess.Popen(self.argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                         stderr=subprocess.STDOUT, env=env, cwd=self.cwd, process_group=0,
+                                         preexec_fn=_die_with_parent)
+        except OSError:
+            self.proc = None
+            raise
+        self.started_at = self.clock()
+        self.state = RUNNING
+        self.kill_at = None
+        self.reason = ""
+        return self.proc
+
+    def failed_to_spawn(self, error: str) -> str:
+        """Count a start that could not even exec as a quick death; return what happens next."""
+        self.last_exit = f"could not start: {error}"
+        return self._judge_death(uptime=0.0)
+
+    def poll(self) -> str | None:
+        """If the child died: update the state and return a one-line account of it, else None."""
+        if self.proc is None or self.proc.poll() is None:
+            return None
+        code = self.proc.returncode
+        uptime = self.clock() - self.started_at
+        self.proc = None
+        self.kill_at = None
+        self.last_exit = describe_exit(code)
+        if self.desired != RUNNING:
+            self.state = STOPPED
+            return f"{self.last_exit} after {uptime:.1f} s (stopped)"
+        if self.restart_pending:
+            self.restart_pending = False
+            self.state, self.next_start, self.backoff_s = BACKOFF, self.clock(), 0.0
+            return f"{self.last_exit}; restarting now (requested: {self.reason})"
+        if code == 0:
+            self.state = EXITED
+            return f"{self.last_exit} after {uptime:.1f} s; not restarted (a clean exit is deliberate)"
+        return self._judge_death(uptime=uptime, prefix=f"{self.last_exit} after {uptime:.1f} s")
+
+    def _judge_death(self, *, uptime: float, prefix: str = "") -> str:
+        self.quick_deaths, self.backoff_s = self.policy.after_death(self.quick_deaths, uptime)
+        prefix = prefix or self.last_exit
+        if self.policy.gives_up(self.quick_deaths):
+            self.state = FAILED
+            self.reason = f"{self.quick_deaths} quick deaths in a row, last {self.last_exit}"
+            return f"{prefix}; giving up after {self.quick_deaths} quick deaths in a row"
+        self.state = BACKOFF
+        self.next_start = self.clock() + self.backoff_s
+        return f"{prefix}; restarting in {self.backoff_s:.2f} s (quick deaths: {self.quick_deaths})"
+
+    def signal(self, sig: int) -> None:
+        """Send *sig* to the child's process group (it is its own group leader)."""
+        if self.proc is None:
+            return
+        try:
+            os.killpg(self.proc.pid, sig)
+        except ProcessLookupError:
+            pass
+
+    def request_stop(self, grace_s: float) -> None:
+        """SIGTERM now (and SIGCONT, so a stopped child can act on it), SIGKILL after *grace_s*."""
+        if self.proc is None:
+            if self.state in (BACKOFF, RUNNING) and self.desired != RUNNING:
+                self.state = STOPPED
+            return
+        if self.state != STOPPING:
+            self.state = STOPPING
+            self.kill_at = self.clock() + grace_s
+            self.signal(signal.SIGTERM)
+            self.signal(signal.SIGCONT)
+
+    def stop(self, grace_s: float) -> None:
+        """Desired: stopped. A child in backoff is simply not restarted."""
+        self.desired = STOPPED
+        self.restart_pending = False
+        if self.proc is None:
+            if self.state == BACKOFF:
+                self.state = STOPPED
+            return
+        self.request_stop(grace_s)
+
+    def restart(self, reason: str, grace_s: float) -> None:
+        """Restart as an edge: stop a live child then start at once; start a dead one now.
+
+        Deaths caused by this are not quick deaths; a failed process gets a fresh start.
+        """
+        self.desired = RUNNING
+        self.reason = reason
+        if self.proc is not None:
+            self.restart_pending = True
+            self.request_stop(grace_s)
+            return
+        if self.state == FAILED:
+            self.quick_deaths = 0
+        self.state, self.next_start, self.backoff_s = BACKOFF, self.clock(), 0.0
+
+    def enforce_grace(self) -> bool:
+        """SIGKILL a child whose grace period ran out; True if it was killed now."""
+        if self.proc is not None and self.kill_at is not None and self.clock() >= self.kill_at:
+            self.kill_at = None
+            self.signal(signal.SIGKILL)
+            return True
+        return False
+
+    @property
+    def settled(self) -> bool:
+        """True when nothing more will happen without a request (dead and not due to restart)."""
+        return self.proc is None and (self.state in (EXITED, STOPPED, FAILED) or self.desired != RUNNING)
