@@ -1,0 +1,182 @@
+"""PWM port contract over a sysfs-shaped directory (the mock the simulation reads), the
+kernel's ordering rules, and the dispatch of pca9685: addresses."""
+
+from __future__ import annotations
+
+import shutil
+import sys
+import threading
+import types
+from pathlib import Path
+
+import pytest
+
+from u2sa_hw.ports import PortClosed, PortIOError, PortUnavailable, open_pwm
+from u2sa_hw.ports.pwm_port import PwmChannel, SysfsPwmChannel, is_real_sysfs, make_sysfs_pwm_tree
+
+SERVO_PERIOD = 20_000_000
+
+
+class SysfsBackend:
+    """A temp sysfs-shaped chip; the test observes the output through its files."""
+
+    def __init__(self, root: Path) -> None:
+        self.chip = make_sysfs_pwm_tree(root / "pwmchip0", npwm=4)
+        self.address = str(self.chip)
+        self.missing = str(root / "pwmchip9")
+
+    def observe(self, channel: int) -> tuple[int, int, bool] | None:
+        path = self.chip / f"pwm{channel}"
+        if not path.is_dir():
+            return None
+        read = lambda name: (path / name).read_text().strip()  # noqa: E731
+        return int(read("period")), int(read("duty_cycle")), read("enable") == "1"
+
+    def lose(self) -> None:
+        shutil.rmtree(self.chip)
+
+
+@pytest.fixture(params=["sysfs"])
+def backend(request: pytest.FixtureRequest, tmp_path: Path) -> SysfsBackend:
+    """Each PWM backend that runs on this machine."""
+    return {"sysfs": SysfsBackend}[request.param](tmp_path)
+
+
+class TestPwmContract:
+    """What every PWM backend must do."""
+
+    def test_open_sets_the_period_and_leaves_the_output_off(self, backend) -> None:
+        pwm = open_pwm(device="rudder", address=backend.address, channel=2)
+        assert isinstance(pwm, PwmChannel)
+        assert backend.observe(2) == (SERVO_PERIOD, 0, False)
+        pwm.close()
+
+    def test_pulses_reach_the_output_and_are_tapped(self, backend) -> None:
+        records: list = []
+        pwm = open_pwm(device="rudder", address=backend.address, channel=1, tap=records.append)
+        pwm.set_pulse_us(1500)
+        pwm.enable(True)
+        assert backend.observe(1) == (SERVO_PERIOD, 1_500_000, True)
+        pwm.set_pulse_ns(1_100_000)
+        assert backend.observe(1) == (SERVO_PERIOD, 1_100_000, True)
+        pwm.close()
+        states = [(r.device, r.channel, r.period_ns, r.duty_ns, r.enabled) for r in records]
+        assert states == [
+            ("rudder", 1, SERVO_PERIOD, 0, False),
+            ("rudder", 1, SERVO_PERIOD, 1_500_000, False),
+            ("rudder", 1, SERVO_PERIOD, 1_500_000, True),
+            ("rudder", 1, SERVO_PERIOD, 1_100_000, True),
+            ("rudder", 1, SERVO_PERIOD, 1_100_000, False),  # close() stops the output
+        ]
+
+    def test_a_pulse_longer_than_the_period_is_refused(self, backend) -> None:
+        records: list = []
+        pwm = open_pwm(device="rudder", address=backend.address, channel=0, tap=records.append)
+        with pytest.raises(ValueError, match="rudder"):
+            pwm.set_pulse_ns(SERVO_PERIOD + 1)
+        with pytest.raises(ValueError):
+            pwm.set_pulse_us(-1)
+        assert backend.observe(0) == (SERVO_PERIOD, 0, False) and len(records) == 1
+        pwm.close()
+
+    def test_losing_the_chip_raises_port_closed(self, backend) -> None:
+        pwm = open_pwm(device="rudder", address=backend.address, channel=0)
+        backend.lose()
+        with pytest.raises(PortClosed) as info:
+            pwm.set_pulse_us(1200)
+        assert info.value.device == "rudder" and info.value.fix
+        with pytest.raises(PortClosed):
+            pwm.enable(True)
+        pwm.close()  # closing a lost channel is fine
+
+    def test_missing_chip_is_unavailable_with_a_fix(self, backend) -> None:
+        with pytest.raises(PortUnavailable) as info:
+            open_pwm(device="rudder", address=backend.missing, channel=0)
+        assert info.value.device == "rudder" and info.value.address == backend.missing and info.value.fix
+
+    def test_close_releases_the_channel_for_the_next_open(self, backend) -> None:
+        pwm = open_pwm(device="rudder", address=backend.address, channel=3)
+        pwm.set_pulse_us(1800)
+        pwm.enable(True)
+        pwm.close()
+        assert backend.observe(3) is None
+        again = open_pwm(device="rudder", address=backend.address, channel=3)
+        assert backend.observe(3) == (SERVO_PERIOD, 0, False)
+        again.close()
+
+
+class TestSysfsSemantics:
+    """The kernel's rules, which the mock enforces as the kernel would."""
+
+    def test_export_creates_the_channel_files(self, tmp_path: Path) -> None:
+        chip = make_sysfs_pwm_tree(tmp_path / "pwmchip0", npwm=8)
+        assert (chip / "npwm").read_text().strip() == "8"
+        pwm = open_pwm(device="esc", address=str(chip), channel=5)
+        assert (chip / "export").read_text() == "5"
+        assert sorted(p.name for p in (chip / "pwm5").iterdir()) == ["duty_cycle", "enable", "period", "polarity"]
+        assert (chip / "pwm5" / "polarity").read_text().strip() == "normal"
+        pwm.close()
+        assert (chip / "unexport").read_text() == "5" and not (chip / "pwm5").exists()
+
+    def test_period_changes_keep_duty_within_period(self, tmp_path: Path) -> None:
+        chip = make_sysfs_pwm_tree(tmp_path / "pwmchip0")
+        pwm = open_pwm(device="esc", address=str(chip), channel=0)
+        assert isinstance(pwm, SysfsPwmChannel)
+        pwm.set_pulse_us(1500)
+        # shrinking below the old duty: the duty must be written first, or EINVAL
+        pwm.configure(period_ns=1_000_000, duty_ns=900_000)
+        assert (chip / "pwm0" / "period").read_text().strip() == "1000000"
+        # growing with a duty above the old period: the period must be written first
+        pwm.configure(period_ns=20_000_000, duty_ns=15_000_000)
+        assert (chip / "pwm0" / "duty_cycle").read_text().strip() == "15000000"
+        pwm.set_period_ns(10_000_000)
+        assert (pwm.period_ns, pwm.duty_ns) == (10_000_000, 10_000_000)
+        pwm.close()
+
+    def test_channel_beyond_npwm_is_unavailable(self, tmp_path: Path) -> None:
+        chip = make_sysfs_pwm_tree(tmp_path / "pwmchip0", npwm=2)
+        with pytest.raises(PortUnavailable, match="channel 2 does not exist"):
+            open_pwm(device="esc", address=str(chip), channel=2)
+
+    def test_garbage_in_an_attribute_is_a_clear_error(self, tmp_path: Path) -> None:
+        chip = make_sysfs_pwm_tree(tmp_path / "pwmchip0")
+        open_pwm(device="esc", address=str(chip), channel=0)  # exported, left in place
+        (chip / "pwm0" / "duty_cycle").write_text("garbage\n")
+        with pytest.raises(PortIOError, match="not a number") as info:
+            open_pwm(device="esc", address=str(chip), channel=0)
+        assert "esc" in str(info.value)
+
+    def test_a_concurrent_reader_never_sees_a_half_written_file(self, tmp_path: Path) -> None:
+        chip = make_sysfs_pwm_tree(tmp_path / "pwmchip0")
+        pwm = open_pwm(device="esc", address=str(chip), channel=0)
+        bad: list[str] = []
+        done = threading.Event()
+
+        def simulation_reads() -> None:
+            while not done.is_set():
+                text = (chip / "pwm0" / "duty_cycle").read_text()
+                if not text.strip().isdigit():
+                    bad.append(text)
+
+        reader = threading.Thread(target=simulation_reads)
+        reader.start()
+        for us in range(1000, 2000, 5):
+            pwm.set_pulse_us(us)
+        done.set()
+        reader.join()
+        pwm.close()
+        assert bad == []
+
+    def test_only_paths_in_sys_are_real_sysfs(self, tmp_path: Path) -> None:
+        assert is_real_sysfs("/sys/class/pwm/pwmchip0")
+        assert not is_real_sysfs(tmp_path / "pwmchip0")
+
+
+def test_pca9685_addresses_go_to_the_pca9685_backend(monkeypatch: pytest.MonkeyPatch) -> None:
+    calls: list[dict] = []
+    backend = types.ModuleType("u2sa_hw.ports.pca9685_pwm")
+    backend.open_pca9685_pwm = lambda **kwargs: calls.append(kwargs) or "pca-channel"  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, "u2sa_hw.ports.pca9685_pwm", backend)
+    got = open_pwm(device="rudder", address="pca9685:1:0x40", channel=7, period_ns=3_000_000)
+    assert got == "pca-channel"
+    assert calls == [dict(device="rudder", address="pca9685:1:0x40", channel=7, period_ns=3_000_000, tap=None)]
