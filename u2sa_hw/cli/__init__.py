@@ -18,6 +18,7 @@ COMMAND_MODULES = [
     "u2sa_hw.cli.service_cmd",
     "u2sa_hw.cli.bus_cmds",
     "u2sa_hw.cli.param_cmd",
+    "u2sa_hw.cli.record_cmd",
     "u2sa_hw.cli.run_cmd",
 ]
 

@@ -1,0 +1,186 @@
+"""``u2sa record`` and ``u2sa log info|echo|recover``: MCAP logs of the bus."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from u2sa_hw.cli.common import add_vehicle_option, profile_from
+
+RECORD_HELP = """\
+Record the bus into an MCAP log until Ctrl-C (or --duration). The LCM bytes are stored
+unchanged with each type's .lcm definition as its schema, plus the vehicle profile and
+service configs, so the log says everything about the run. Chunks are closed every
+second: a kill or power cut loses at most the last second (u2sa log recover repairs it).
+"""
+
+
+def register(sub: Any) -> None:
+    """Add ``record`` and ``log``."""
+    p = sub.add_parser("record", help="record the bus to an MCAP file", description=RECORD_HELP,
+                       formatter_class=argparse.RawDescriptionHelpFormatter,
+                       epilog="examples:\n  u2sa record -o run1.mcap --duration 60\n"
+                       "  u2sa record --exclude 'RAW\\..*'          (everything but raw device I/O)")
+    p.add_argument("-o", "--output", metavar="FILE", help="log file (default: u2sa-<date>-<time>.mcap here)")
+    p.add_argument("--include", default=".*", metavar="RE", help="record channels fully matching RE (default all)")
+    p.add_argument("--exclude", default="", metavar="RE", help="skip channels fully matching RE")
+    p.add_argument("--duration", type=float, default=0.0, metavar="S", help="stop after S seconds")
+    p.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd")
+    p.add_argument("--rotate-size-mb", type=float, default=0.0, metavar="MB", help="start a new file past MB")
+    p.add_argument("--rotate-duration", type=float, default=0.0, metavar="S", help="start a new file every S seconds")
+    add_vehicle_option(p)
+    p.set_defaults(func=cmd_record)
+
+    lp = sub.add_parser("log", help="inspect, print, repair and export MCAP logs",
+                        description="Work with MCAP logs written by u2sa record or the recorder service.")
+    lsub = lp.add_subparsers(dest="log_command", metavar="ACTION", required=True)
+    ip = lsub.add_parser("info", help="duration, channels, types, counts, rates, devices, vehicle")
+    ip.add_argument("file")
+    ip.add_argument("--json", action="store_true")
+    ip.set_defaults(func=cmd_info)
+    ep = lsub.add_parser("echo", help="print the decoded messages of a channel")
+    ep.add_argument("file")
+    ep.add_argument("channel", help="channel name or regex (RAW\\..*)")
+    ep.add_argument("--json", action="store_true", help="one JSON object per line")
+    ep.add_argument("--count", type=int, default=0, metavar="N", help="stop after N messages")
+    ep.set_defaults(func=cmd_echo)
+    rp = lsub.add_parser("recover", help="rewrite a truncated log (killed recorder) as a valid indexed one")
+    rp.add_argument("file")
+    rp.add_argument("-o", "--output", metavar="FILE", help="output (default: <file>.recovered.mcap)")
+    rp.set_defaults(func=cmd_recover)
+
+
+def cmd_record(args: Any) -> int:
+    """Record until Ctrl-C or --duration."""
+    from u2sa_hw.cli import CliError
+    from u2sa_hw.recording.mcap_log import McapLogWriter
+    from u2sa_hw.services.recorder.capture import BusCapture
+    from u2sa_hw.services.recorder.service import run_info
+    from u2sa_hw.transport import Transport, TransportError
+
+    profile = profile_from(args)
+    out = Path(args.output) if args.output else None
+    try:
+        transport = Transport(profile.lcm_url, name="u2sa-record")
+    except TransportError as exc:
+        raise CliError(str(exc)) from None
+    writer = McapLogWriter(out.parent if out else Path("."), compression=args.compression,
+                           rotate_size_mb=args.rotate_size_mb, rotate_duration_s=args.rotate_duration,
+                           run=run_info(profile, transport.url), path=out)
+    try:
+        capture = BusCapture(transport, writer, include=args.include, exclude=args.exclude, min_free_mb=50)
+    except ValueError as exc:
+        raise CliError(str(exc), 2) from None
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    capture.start()
+    transport.start()
+    start = time.monotonic()
+    tty = sys.stderr.isatty()
+    try:
+        while not stop.wait(0.5):
+            elapsed = time.monotonic() - start
+            s = capture.stats
+            line = f"recording {elapsed:6.1f} s  {s.written} messages  {len(s.per_channel)} channels  {s.dropped} dropped"
+            if tty:
+                print("\r" + line, end="", file=sys.stderr, flush=True)
+            if s.stopped_reason or (args.duration and elapsed >= args.duration):
+                break
+    finally:
+        capture.stop()
+        transport.stop()
+    if tty:
+        print(file=sys.stderr)
+    s = capture.stats
+    files = ", ".join(str(p) for p in writer.files) or "nothing (no traffic)"
+    print(f"wrote {s.written} messages on {len(s.per_channel)} channels to {files}; {s.dropped} dropped")
+    if s.stopped_reason:
+        raise CliError(s.stopped_reason)
+    return 0
+
+
+def _open(path: str) -> Any:
+    from u2sa_hw.cli import CliError
+    from u2sa_hw.recording.log_reader import LogError, LogFile
+
+    try:
+        return LogFile(path)
+    except LogError as exc:
+        raise CliError(str(exc)) from None
+
+
+def cmd_info(args: Any) -> int:
+    """``u2sa log info``."""
+    log = _open(args.file)
+    summary = log.scan()
+    c = summary.contents
+    meta = c.metadata.get("u2sa", {})
+    rows = [{"channel": s.channel, "type": s.type_name, "count": s.count,
+             "rate_hz": s.count / summary.duration_s if summary.duration_s else 0.0} for s in summary.channels]
+    if args.json:
+        print(json.dumps({"file": str(log.path), "complete": c.complete, "problem": c.problem,
+                          "duration_s": summary.duration_s, "messages": summary.messages, "vehicle": meta,
+                          "devices": summary.devices, "attachments": sorted(c.attachments), "channels": rows},
+                         indent=2))
+        return 0
+    print(f"file:        {log.path}")
+    print(f"vehicle:     {meta.get('vehicle', '?')} (system id {meta.get('system_id', '?')}) on "
+          f"{meta.get('host', '?')}, started {meta.get('started', '?')}")
+    print(f"duration:    {summary.duration_s:.1f} s, {summary.messages} messages")
+    print(f"state:       {'complete' if c.complete else 'NOT COMPLETE: ' + (c.problem or 'no summary')}"
+          + ("" if c.complete else f" (u2sa log recover {log.path})"))
+    print(f"devices:     {', '.join(summary.devices) or 'none (no RAW.* channels)'}")
+    print(f"attachments: {', '.join(sorted(c.attachments)) or 'none'}")
+    print(f"{'CHANNEL':28} {'TYPE':22} {'COUNT':>8} {'RATE Hz':>9}")
+    for r in rows:
+        print(f"{r['channel']:28} {r['type']:22} {r['count']:>8} {r['rate_hz']:9.1f}")
+    return 0
+
+
+def cmd_echo(args: Any) -> int:
+    """``u2sa log echo``."""
+    from u2sa_hw.channels import base_type
+    from u2sa_hw.messages import REGISTRY, MalformedMessage, enumerate_fields, to_dict
+
+    log = _open(args.file)
+    n = 0
+    for msg in log.messages(args.channel):
+        try:
+            decoded, _ = REGISTRY.decode(msg.data, base_type(msg.channel))
+        except MalformedMessage as exc:
+            print(f"{msg.channel} @{msg.log_time_ns}: undecodable ({exc})", file=sys.stderr)
+            continue
+        if args.json:
+            print(json.dumps({"channel": msg.channel, "log_time_ns": msg.log_time_ns, **to_dict(decoded)}))
+        else:
+            print(f"--- {msg.channel} {type(decoded).__name__} @ {msg.log_time_ns / 1e9:.6f}")
+            for name, value in enumerate_fields(decoded):
+                print(f"  {name}: {value}")
+        n += 1
+        if args.count and n >= args.count:
+            break
+    if log.contents.problem:
+        print(f"u2sa: warning: {log.path}: {log.contents.problem}", file=sys.stderr)
+    return 0
+
+
+def cmd_recover(args: Any) -> int:
+    """``u2sa log recover``."""
+    from u2sa_hw.cli import CliError
+    from u2sa_hw.recording.log_reader import LogError, recover
+
+    src = Path(args.file)
+    dst = Path(args.output) if args.output else src.with_suffix(".recovered.mcap")
+    try:
+        count, problem = recover(src, dst)
+    except LogError as exc:
+        raise CliError(str(exc)) from None
+    print(f"wrote {count} messages to {dst}" + (f" ({src}: {problem})" if problem else f" ({src} was complete)"))
+    return 0

@@ -1,0 +1,198 @@
+"""Reading U2SA MCAP logs sequentially, complete or truncated, and recovering them.
+
+A log cut short by SIGKILL or a power cut has no summary; reading it record by record
+yields everything up to the last complete chunk (the recorder closes a chunk every
+second). :func:`recover` rewrites such a file as a valid, indexed log.
+"""
+
+from __future__ import annotations
+
+import re
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+from mcap.records import Attachment, Channel, Footer, Header, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+
+MAGIC = b"\x89MCAP0\r\n"
+
+
+class LogError(ValueError):
+    """A log cannot be read; the message names the file and what to do."""
+
+
+@dataclass(frozen=True)
+class LogMessage:
+    """One recorded LCM message."""
+
+    channel: str
+    log_time_ns: int
+    data: bytes
+    type_name: str
+
+
+@dataclass
+class ChannelSummary:
+    """Counts and times of one channel (and type) in a log."""
+
+    channel: str
+    type_name: str
+    count: int = 0
+    first_ns: int = 0
+    last_ns: int = 0
+
+
+@dataclass
+class LogContents:
+    """Everything in a log except the messages (filled while scanning)."""
+
+    path: Path
+    profile: str = ""
+    library: str = ""
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    attachments: dict[str, bytes] = field(default_factory=dict)
+    schemas: dict[int, Schema] = field(default_factory=dict)
+    channels: dict[int, Channel] = field(default_factory=dict)
+    complete: bool = False
+    problem: str = ""
+
+
+class LogFile:
+    """A log on disk, read record by record."""
+
+    def __init__(self, path: Path | str) -> None:
+        self.path = Path(path)
+        try:
+            with open(self.path, "rb") as fh:
+                head = fh.read(len(MAGIC))
+        except FileNotFoundError:
+            raise LogError(f"{self.path}: no such file") from None
+        except IsADirectoryError:
+            raise LogError(f"{self.path}: is a directory; give a .mcap file") from None
+        if head != MAGIC:
+            what = "empty" if not head else "not an MCAP file (wrong magic bytes)"
+            raise LogError(f"{self.path}: {what}; u2sa logs are MCAP files written by u2sa record or the recorder")
+        self.contents = LogContents(self.path)
+
+    def records(self) -> Iterator[Message]:
+        """Every Message record in file order; fills :attr:`contents` on the way.
+
+        A truncated or corrupt tail ends the scan and is described in ``contents.problem``.
+        """
+        c = self.contents
+        with open(self.path, "rb") as fh:
+            try:
+                for record in StreamReader(fh, record_size_limit=1 << 30).records:
+                    if isinstance(record, Message):
+                        if record.channel_id in c.channels:
+                            yield record
+                    elif isinstance(record, Schema):
+                        c.schemas[record.id] = record
+                    elif isinstance(record, Channel):
+                        c.channels[record.id] = record
+                    elif isinstance(record, Metadata):
+                        c.metadata[record.name] = dict(record.metadata)
+                    elif isinstance(record, Attachment):
+                        c.attachments[record.name] = bytes(record.data)
+                    elif isinstance(record, Header):
+                        c.profile, c.library = record.profile, record.library
+                    elif isinstance(record, Footer):
+                        c.complete = True
+            except Exception as exc:  # noqa: BLE001 - any failure here is a damaged tail; report, keep what was read
+                c.problem = _describe(exc)
+
+    def messages(self, channel: str | None = None) -> Iterator[LogMessage]:
+        """Every message in file order, optionally only channels fully matching the regex *channel*."""
+        pattern = re.compile(channel) if channel else None
+        c = self.contents
+        for record in self.records():
+            ch = c.channels[record.channel_id]
+            if pattern is None or pattern.fullmatch(ch.topic):
+                schema = c.schemas.get(ch.schema_id)
+                yield LogMessage(ch.topic, record.log_time, record.data, schema.name if schema else "?")
+
+    def scan(self) -> "LogSummary":
+        """Read the whole log once and summarise it."""
+        per: dict[tuple[str, str], ChannelSummary] = {}
+        first = last = 0
+        total = 0
+        for msg in self.messages():
+            key = (msg.channel, msg.type_name)
+            s = per.get(key)
+            if s is None:
+                s = per[key] = ChannelSummary(msg.channel, msg.type_name, first_ns=msg.log_time_ns)
+            s.count += 1
+            s.last_ns = msg.log_time_ns
+            first = msg.log_time_ns if not first else min(first, msg.log_time_ns)
+            last = max(last, msg.log_time_ns)
+            total += 1
+        return LogSummary(self.contents, sorted(per.values(), key=lambda s: s.channel), first, last, total)
+
+
+@dataclass
+class LogSummary:
+    """What ``u2sa log info`` shows."""
+
+    contents: LogContents
+    channels: list[ChannelSummary]
+    start_ns: int
+    end_ns: int
+    messages: int
+
+    @property
+    def duration_s(self) -> float:
+        """Seconds between the first and the last message."""
+        return (self.end_ns - self.start_ns) / 1e9 if self.messages else 0.0
+
+    @property
+    def devices(self) -> list[str]:
+        """Devices with raw I/O in the log (``RAW.<device>`` channels)."""
+        return sorted({c.channel[4:] for c in self.channels if c.channel.startswith("RAW.")})
+
+
+def _describe(exc: Exception) -> str:
+    name = type(exc).__name__
+    if isinstance(exc, (EOFError, struct.error)) or name in ("EndOfFile",):
+        return "truncated: the file ends inside a record (the recorder was killed or lost power)"
+    return f"corrupt data after the last readable record ({name}: {exc})"
+
+
+def recover(src: Path | str, dst: Path | str) -> tuple[int, str]:
+    """Rewrite *src* (possibly truncated) as a valid indexed log at *dst*; return (messages, problem)."""
+    from mcap.writer import CompressionType, Writer
+
+    log = LogFile(src)
+    dst = Path(dst)
+    if dst.resolve() == log.path.resolve():
+        raise LogError(f"{dst}: recover writes a new file; give an output path other than the input")
+    count = 0
+    with open(dst, "wb") as out:
+        writer = Writer(out, compression=CompressionType.ZSTD)
+        started = False
+        schema_ids: dict[int, int] = {}
+        channel_ids: dict[int, int] = {}
+        for msg_rec in log.records():
+            c = log.contents
+            if not started:
+                writer.start(profile=c.profile, library=c.library or "u2sa-hw recover")
+                for name, meta in c.metadata.items():
+                    writer.add_metadata(name, {**meta, "recovered_from": str(log.path)})
+                for name, data in c.attachments.items():
+                    writer.add_attachment(create_time=0, log_time=0, name=name, media_type="application/toml",
+                                          data=data)
+                started = True
+            ch = c.channels[msg_rec.channel_id]
+            if ch.schema_id not in schema_ids:
+                s = c.schemas[ch.schema_id]
+                schema_ids[ch.schema_id] = writer.register_schema(s.name, s.encoding, s.data)
+            if ch.id not in channel_ids:
+                channel_ids[ch.id] = writer.register_channel(ch.topic, ch.message_encoding,
+                                                             schema_ids[ch.schema_id], dict(ch.metadata))
+            writer.add_message(channel_ids[ch.id], msg_rec.log_time, msg_rec.data, msg_rec.publish_time)
+            count += 1
+        if not started:
+            writer.start(profile=log.contents.profile, library="u2sa-hw recover")
+        writer.finish()
+    return count, log.contents.problem

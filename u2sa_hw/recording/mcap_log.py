@@ -1,0 +1,173 @@
+"""Writing LCM traffic into MCAP logs: chunked (zstd or lz4), indexed, with statistics.
+
+LCM bytes are stored unchanged (message encoding ``lcm``), each type's ``.lcm``
+definition is its schema, and the vehicle profile and configs travel as attachments
+and metadata. :meth:`McapLogWriter.flush` closes the chunk in progress and fsyncs, so
+calling it every second bounds what a SIGKILL or power cut can lose to that second.
+Files rotate by size and duration with timestamped names.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+from mcap.writer import CompressionType, Writer
+
+from u2sa_hw import __version__
+from u2sa_hw.messages import REGISTRY
+from u2sa_hw.recording.schemas import MESSAGE_ENCODING, SCHEMA_ENCODING, schema_text
+
+PROFILE = "u2sa"
+COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+
+
+@dataclass
+class RunInfo:
+    """What a log says about the run: stored as metadata ``u2sa`` and attachments."""
+
+    vehicle: str = ""
+    system_id: int = 0
+    lcm_url: str = ""
+    attachments: dict[str, bytes] = field(default_factory=dict)  # name -> file contents
+
+    def metadata(self) -> dict[str, str]:
+        """The ``u2sa`` metadata record."""
+        return {"vehicle": self.vehicle, "system_id": str(self.system_id), "lcm_url": self.lcm_url,
+                "host": socket.gethostname(), "u2sa_hw_version": __version__,
+                "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+
+
+def timestamped_name(prefix: str, *, when: float | None = None) -> str:
+    """``<prefix>-YYYYmmdd-HHMMSS.mcap`` in local time."""
+    return f"{prefix}-{time.strftime('%Y%m%d-%H%M%S', time.localtime(when))}.mcap"
+
+
+class McapFile:
+    """One open MCAP file with schema/channel ids per (channel, type)."""
+
+    def __init__(self, path: Path, *, compression: str, chunk_size: int, run: RunInfo) -> None:
+        self.path = path
+        self._fh: IO[bytes] = open(path, "wb")
+        self._writer = Writer(self._fh, chunk_size=chunk_size, compression=COMPRESSION[compression])
+        self._writer.start(profile=PROFILE, library=f"u2sa-hw {__version__}")
+        self._schemas: dict[bytes, int] = {}
+        self._channels: dict[tuple[str, int], int] = {}
+        self.messages = 0
+        self.opened = time.monotonic()
+        self._writer.add_metadata("u2sa", run.metadata())
+        now = time.time_ns()
+        for name, data in run.attachments.items():
+            self._writer.add_attachment(create_time=now, log_time=now, name=name,
+                                        media_type="application/toml", data=data)
+        self._fh.flush()  # a reader sees a valid (if empty) log from the first moment
+
+    def _schema_id(self, fingerprint: bytes) -> int:
+        sid = self._schemas.get(fingerprint)
+        if sid is None:
+            cls = REGISTRY.by_fingerprint(fingerprint)
+            if cls is not None:
+                sid = self._writer.register_schema(cls.__name__, SCHEMA_ENCODING, schema_text(cls).encode())
+            else:  # a type this build does not know: keep the bytes, name the fingerprint
+                sid = self._writer.register_schema(f"unknown_{fingerprint.hex()}", SCHEMA_ENCODING, b"")
+            self._schemas[fingerprint] = sid
+        return sid
+
+    def write(self, channel: str, data: bytes, log_time_ns: int) -> None:
+        """Append one LCM message."""
+        sid = self._schema_id(data[:8]) if len(data) >= 8 else self._schema_id(b"")
+        key = (channel, sid)
+        cid = self._channels.get(key)
+        if cid is None:
+            cid = self._writer.register_channel(topic=channel, message_encoding=MESSAGE_ENCODING, schema_id=sid)
+            self._channels[key] = cid
+        self._writer.add_message(channel_id=cid, log_time=log_time_ns, data=data, publish_time=log_time_ns)
+        self.messages += 1
+
+    def flush(self) -> None:
+        """Close the chunk in progress, write it out and fsync."""
+        self._writer.flush()
+        self._fh.flush()
+        os.fsync(self._fh.fileno())
+
+    def close(self) -> None:
+        """Write the summary (indexes, statistics) and close."""
+        self._writer.finish()
+        self._fh.flush()
+        os.fsync(self._fh.fileno())
+        self._fh.close()
+
+    @property
+    def size(self) -> int:
+        """Bytes written so far."""
+        return self._fh.tell()
+
+
+class McapLogWriter:
+    """Writes a sequence of rotated MCAP files into a directory."""
+
+    def __init__(self, directory: Path | str, *, prefix: str = "u2sa", compression: str = "zstd",
+                 chunk_size: int = 1 << 20, rotate_size_mb: float = 0.0, rotate_duration_s: float = 0.0,
+                 run: RunInfo | None = None, path: Path | str | None = None) -> None:
+        if compression not in COMPRESSION:
+            raise ValueError(f"compression must be one of {', '.join(COMPRESSION)}, not {compression!r}")
+        self.directory = Path(directory)
+        self.prefix = prefix
+        self.compression = compression
+        self.chunk_size = chunk_size
+        self.rotate_size = int(rotate_size_mb * 1e6)
+        self.rotate_duration = rotate_duration_s
+        self.run = run or RunInfo()
+        self._fixed_path = Path(path) if path else None
+        self.files: list[Path] = []
+        self.current: McapFile | None = None
+        self.messages = 0
+
+    def _open(self) -> McapFile:
+        self.directory.mkdir(parents=True, exist_ok=True)
+        if self._fixed_path is not None and not self.files:
+            path = self._fixed_path
+        else:
+            base = self._fixed_path.stem if self._fixed_path else self.prefix
+            path = self.directory / timestamped_name(base)
+            n = 1
+            while path.exists() or path in self.files:
+                path = self.directory / f"{path.stem.rsplit('.', 1)[0]}.{n}.mcap"
+                n += 1
+        self.files.append(path)
+        return McapFile(path, compression=self.compression, chunk_size=self.chunk_size, run=self.run)
+
+    def write(self, channel: str, data: bytes, log_time_ns: int) -> None:
+        """Append one message, rotating first when the current file is full or old."""
+        if self.current is None:
+            self.current = self._open()
+        elif self._due_for_rotation(self.current):
+            self.current.close()
+            self.current = self._open()
+        self.current.write(channel, data, log_time_ns)
+        self.messages += 1
+
+    def _due_for_rotation(self, f: McapFile) -> bool:
+        if self.rotate_size and f.size >= self.rotate_size:
+            return True
+        return bool(self.rotate_duration and time.monotonic() - f.opened >= self.rotate_duration)
+
+    def flush(self) -> None:
+        """Flush the current file (chunk closed, fsynced)."""
+        if self.current is not None:
+            self.current.flush()
+
+    def close(self) -> None:
+        """Finish the current file."""
+        if self.current is not None:
+            self.current.close()
+            self.current = None
+
+    def describe(self) -> dict[str, Any]:
+        """Figures for health."""
+        return {"file": str(self.current.path) if self.current else "", "files": len(self.files),
+                "messages": self.messages}

@@ -1,0 +1,1 @@
+"""The recorder service: every LCM channel into rotated, crash-safe MCAP logs."""
