@@ -1,0 +1,329 @@
+"""VESC CAN (VESC mode): packet ids, command scales and STATUS 1-6 codecs.
+
+Shared by the VESC motor driver and the mock node (mock_devices/vesc_node.py). Facts come
+from /work/shared/spec/devices/VESC_CAN.md (vedderb/bldc ``documentation/comm_can.md``,
+``datatypes.h`` and ``comm/comm_can.c``). Frames use 29-bit extended ids
+``packet_id << 8 | controller_id`` (controller id 255 addresses every VESC); payload integers
+are big-endian, signed and scaled.
+
+The firmware truncates ``value * scale`` to an integer; these encoders round to the nearest
+integer instead, so a decimal value such as duty 0.29 arrives as 29000 rather than 28999.
+The two agree whenever the product is within float rounding of an integer (every worked frame
+in the spec) and never differ by more than one count.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from enum import IntEnum
+
+import can
+
+BROADCAST_ID = 255
+MAX_CONTROLLER_ID = 255
+STATUS_DLC = 8
+
+
+class VescCanError(ValueError):
+    """A VESC CAN payload or id that cannot be decoded/encoded (says which packet and why)."""
+
+
+class PacketId(IntEnum):
+    """CAN_PACKET_ID (bits 15..8 of the extended id)."""
+
+    SET_DUTY = 0
+    SET_CURRENT = 1
+    SET_CURRENT_BRAKE = 2
+    SET_RPM = 3
+    SET_POS = 4
+    FILL_RX_BUFFER = 5
+    FILL_RX_BUFFER_LONG = 6
+    PROCESS_RX_BUFFER = 7
+    PROCESS_SHORT_BUFFER = 8
+    STATUS = 9
+    SET_CURRENT_REL = 10
+    SET_CURRENT_BRAKE_REL = 11
+    SET_CURRENT_HANDBRAKE = 12
+    SET_CURRENT_HANDBRAKE_REL = 13
+    STATUS_2 = 14
+    STATUS_3 = 15
+    STATUS_4 = 16
+    PING = 17
+    PONG = 18
+    DETECT_APPLY_ALL_FOC = 19
+    DETECT_APPLY_ALL_FOC_RES = 20
+    CONF_CURRENT_LIMITS = 21
+    CONF_STORE_CURRENT_LIMITS = 22
+    CONF_CURRENT_LIMITS_IN = 23
+    CONF_STORE_CURRENT_LIMITS_IN = 24
+    CONF_FOC_ERPMS = 25
+    CONF_STORE_FOC_ERPMS = 26
+    STATUS_5 = 27
+    POLL_TS5700N8501_STATUS = 28
+    CONF_BATTERY_CUT = 29
+    CONF_STORE_BATTERY_CUT = 30
+    SHUTDOWN = 31
+    IO_BOARD_ADC_1_TO_4 = 32
+    IO_BOARD_ADC_5_TO_8 = 33
+    IO_BOARD_ADC_9_TO_12 = 34
+    IO_BOARD_DIGITAL_IN = 35
+    IO_BOARD_SET_OUTPUT_DIGITAL = 36
+    IO_BOARD_SET_OUTPUT_PWM = 37
+    BMS_V_TOT = 38
+    BMS_I = 39
+    BMS_AH_WH = 40
+    BMS_V_CELL = 41
+    BMS_BAL = 42
+    BMS_TEMPS = 43
+    BMS_HUM = 44
+    BMS_SOC_SOH_TEMP_STAT = 45
+    PSW_STAT = 46
+    PSW_SWITCH = 47
+    BMS_HW_DATA_1 = 48
+    BMS_HW_DATA_2 = 49
+    BMS_HW_DATA_3 = 50
+    BMS_HW_DATA_4 = 51
+    BMS_HW_DATA_5 = 52
+    BMS_AH_WH_CHG_TOTAL = 53
+    BMS_AH_WH_DIS_TOTAL = 54
+    UPDATE_PID_POS_OFFSET = 55
+    POLL_ROTOR_POS = 56
+    NOTIFY_BOOT = 57
+    STATUS_6 = 58
+    GNSS_TIME = 59
+    GNSS_LAT = 60
+    GNSS_LON = 61
+    GNSS_ALT_SPEED_HDOP = 62
+    UPDATE_BAUD = 63
+    BMS_STATUS_1 = 64
+    BMS_STATUS_2 = 65
+    BMS_STATUS_3 = 66
+    BMS_STATUS_4 = 67
+    BMS_STATUS_5 = 68
+
+
+class FaultCode(IntEnum):
+    """mc_fault_code (datatypes.h); reported over COMM_GET_VALUES, not in the STATUS frames."""
+
+    NONE = 0
+    OVER_VOLTAGE = 1
+    UNDER_VOLTAGE = 2
+    DRV = 3
+    ABS_OVER_CURRENT = 4
+    OVER_TEMP_FET = 5
+    OVER_TEMP_MOTOR = 6
+    GATE_DRIVER_OVER_VOLTAGE = 7
+    GATE_DRIVER_UNDER_VOLTAGE = 8
+    MCU_UNDER_VOLTAGE = 9
+    BOOTING_FROM_WATCHDOG_RESET = 10
+    ENCODER_SPI = 11
+    ENCODER_SINCOS_BELOW_MIN_AMPLITUDE = 12
+    ENCODER_SINCOS_ABOVE_MAX_AMPLITUDE = 13
+    FLASH_CORRUPTION = 14
+    HIGH_OFFSET_CURRENT_SENSOR_1 = 15
+    HIGH_OFFSET_CURRENT_SENSOR_2 = 16
+    HIGH_OFFSET_CURRENT_SENSOR_3 = 17
+    UNBALANCED_CURRENTS = 18
+    BRK = 19
+    RESOLVER_LOT = 20
+    RESOLVER_DOS = 21
+    RESOLVER_LOS = 22
+
+
+# Simple commands: one int32 big-endian = value * scale. Units: duty and *_REL fractions -1..1,
+# currents A, ERPM, degrees.
+COMMAND_SCALES: dict[PacketId, float] = {
+    PacketId.SET_DUTY: 100_000.0,
+    PacketId.SET_CURRENT: 1_000.0,
+    PacketId.SET_CURRENT_BRAKE: 1_000.0,
+    PacketId.SET_RPM: 1.0,
+    PacketId.SET_POS: 1_000_000.0,
+    PacketId.SET_CURRENT_REL: 100_000.0,
+    PacketId.SET_CURRENT_BRAKE_REL: 100_000.0,
+    PacketId.SET_CURRENT_HANDBRAKE: 1_000.0,
+    PacketId.SET_CURRENT_HANDBRAKE_REL: 100_000.0,
+}
+
+STATUS_PACKETS = (PacketId.STATUS, PacketId.STATUS_2, PacketId.STATUS_3, PacketId.STATUS_4,
+                  PacketId.STATUS_5, PacketId.STATUS_6)
+STATUS_NUMBER = {packet: number for number, packet in enumerate(STATUS_PACKETS, start=1)}
+
+
+def ext_id(packet_id: int, controller_id: int) -> int:
+    """The 29-bit id of *packet_id* for *controller_id*: ``packet_id << 8 | controller_id``."""
+    if not 0 <= controller_id <= MAX_CONTROLLER_ID:
+        raise VescCanError(f"VESC controller_id must be 0..255 (255 = broadcast), got {controller_id}")
+    if not 0 <= packet_id <= 0xFF:
+        raise VescCanError(f"VESC packet id must be 0..255, got {packet_id}")
+    return packet_id << 8 | controller_id
+
+
+def split_ext_id(arb_id: int) -> tuple[int, int]:
+    """(packet_id, controller_id) of a VESC extended id; the unused bits 28..16 must be 0."""
+    if not 0 <= arb_id <= 0xFFFF:
+        raise VescCanError(f"VESC ids use bits 15..0 only (bits 28..16 are 0), got {arb_id:#x}")
+    return arb_id >> 8, arb_id & 0xFF
+
+
+def make_frame(controller_id: int, packet_id: int, data: bytes) -> can.Message:
+    """An extended-id data frame carrying *data* for *packet_id* of *controller_id*."""
+    return can.Message(arbitration_id=ext_id(packet_id, controller_id), data=data, is_extended_id=True)
+
+
+def _need(data: bytes, length: int, what: str) -> bytes:
+    if len(data) < length:
+        raise VescCanError(f"VESC {what}: needs {length} data bytes, got {len(data)} ({bytes(data).hex()})")
+    return bytes(data)
+
+
+def _scaled(value: float, scale: float, bits: int, what: str) -> int:
+    scaled = round(value * scale)
+    limit = 1 << (bits - 1)
+    if not -limit <= scaled < limit:
+        raise VescCanError(f"VESC {what} {value} does not fit int{bits} x {scale:g}")
+    return scaled
+
+
+def encode_command(packet_id: int, value: float) -> bytes:
+    """The 4-byte payload of a simple command (SET_DUTY, SET_CURRENT, SET_RPM, SET_POS, ...)."""
+    scale = _command_scale(packet_id)
+    return struct.pack(">i", _scaled(value, scale, 32, PacketId(packet_id).name))
+
+
+def decode_command(packet_id: int, data: bytes) -> float:
+    """The value of a simple command payload (bytes 0-3; a trailing off-delay is not read)."""
+    scale = _command_scale(packet_id)
+    return struct.unpack_from(">i", _need(data, 4, PacketId(packet_id).name))[0] / scale
+
+
+def _command_scale(packet_id: int) -> float:
+    try:
+        return COMMAND_SCALES[PacketId(packet_id)]
+    except (ValueError, KeyError):
+        raise VescCanError(f"VESC packet {packet_id} is not a simple command; "
+                           f"use one of {', '.join(p.name for p in COMMAND_SCALES)}") from None
+
+
+def encode_set_duty(duty: float) -> bytes:
+    """SET_DUTY payload: duty cycle -1..1 x 100000."""
+    return encode_command(PacketId.SET_DUTY, duty)
+
+
+def encode_set_current(current_a: float) -> bytes:
+    """SET_CURRENT payload: motor current [A] x 1000 (4-byte form)."""
+    return encode_command(PacketId.SET_CURRENT, current_a)
+
+
+def encode_set_current_brake(current_a: float) -> bytes:
+    """SET_CURRENT_BRAKE payload: brake current [A] x 1000."""
+    return encode_command(PacketId.SET_CURRENT_BRAKE, current_a)
+
+
+def encode_set_rpm(erpm: float) -> bytes:
+    """SET_RPM payload: electrical RPM x 1."""
+    return encode_command(PacketId.SET_RPM, erpm)
+
+
+def encode_set_pos(degrees: float) -> bytes:
+    """SET_POS payload: position [deg] x 1000000."""
+    return encode_command(PacketId.SET_POS, degrees)
+
+
+@dataclass(frozen=True)
+class Status1:
+    """STATUS: ERPM, total motor current [A], duty cycle (-1..1)."""
+
+    erpm: float
+    current_a: float
+    duty: float
+
+
+@dataclass(frozen=True)
+class Status2:
+    """STATUS_2: amp-hours used and charged."""
+
+    amp_hours: float
+    amp_hours_charged: float
+
+
+@dataclass(frozen=True)
+class Status3:
+    """STATUS_3: watt-hours used and charged."""
+
+    watt_hours: float
+    watt_hours_charged: float
+
+
+@dataclass(frozen=True)
+class Status4:
+    """STATUS_4: FET and motor temperature [degC], input current [A], PID position [deg]."""
+
+    temp_fet_c: float
+    temp_motor_c: float
+    current_in_a: float
+    pid_pos_deg: float
+
+
+@dataclass(frozen=True)
+class Status5:
+    """STATUS_5: tachometer (6 counts per electrical revolution) and input voltage [V]."""
+
+    tachometer: int
+    voltage_in_v: float
+
+
+@dataclass(frozen=True)
+class Status6:
+    """STATUS_6: ADC1..3 [V] and the PPM input (-1..1)."""
+
+    adc1_v: float
+    adc2_v: float
+    adc3_v: float
+    ppm: float
+
+
+# packet -> (dataclass, struct format, scales per field); all big-endian, 8 bytes
+_STATUS_LAYOUTS: dict[PacketId, tuple[type, str, tuple[float, ...]]] = {
+    PacketId.STATUS: (Status1, ">ihh", (1.0, 10.0, 1000.0)),
+    PacketId.STATUS_2: (Status2, ">ii", (10000.0, 10000.0)),
+    PacketId.STATUS_3: (Status3, ">ii", (10000.0, 10000.0)),
+    PacketId.STATUS_4: (Status4, ">hhhh", (10.0, 10.0, 10.0, 50.0)),
+    PacketId.STATUS_5: (Status5, ">ihxx", (1.0, 10.0)),
+    PacketId.STATUS_6: (Status6, ">hhhh", (1000.0, 1000.0, 1000.0, 1000.0)),
+}
+
+StatusMessage = Status1 | Status2 | Status3 | Status4 | Status5 | Status6
+
+
+def status_packet_id(status: StatusMessage) -> PacketId:
+    """The packet id that carries *status*."""
+    for packet, (cls, _, _) in _STATUS_LAYOUTS.items():
+        if isinstance(status, cls):
+            return packet
+    raise VescCanError(f"not a VESC status message: {status!r}")
+
+
+def encode_status(status: StatusMessage) -> bytes:
+    """The 8-byte payload of any STATUS_n message."""
+    packet = status_packet_id(status)
+    cls, fmt, scales = _STATUS_LAYOUTS[packet]
+    values = [getattr(status, name) for name in cls.__dataclass_fields__]
+    sizes = {"i": 32, "h": 16}
+    fields = [c for c in fmt[1:] if c in sizes]
+    ints = [_scaled(v, s, sizes[c], f"{packet.name}.{n}")
+            for v, s, c, n in zip(values, scales, fields, cls.__dataclass_fields__)]
+    return struct.pack(fmt, *ints)
+
+
+def decode_status(packet_id: int, data: bytes) -> StatusMessage:
+    """The STATUS_n dataclass of a status payload (packet 9, 14, 15, 16, 27 or 58)."""
+    try:
+        cls, fmt, scales = _STATUS_LAYOUTS[PacketId(packet_id)]
+    except (ValueError, KeyError):
+        raise VescCanError(f"VESC packet {packet_id} is not a STATUS message") from None
+    ints = struct.unpack_from(fmt, _need(data, STATUS_DLC, PacketId(packet_id).name))
+    values = [i / s for i, s in zip(ints, scales)]
+    if cls is Status5:
+        values[0] = ints[0]  # the tachometer is a raw count
+    return cls(*values)
