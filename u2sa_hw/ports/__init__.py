@@ -3,8 +3,39 @@
 Drivers never open ``/dev/...`` themselves; they ask this package for a port by the
 device address in their config, real or mock. See ``errors`` for the one error
 hierarchy and ``tap`` for how raw I/O is published for recording and replay.
+
+The openers are imported on first use (``from u2sa_hw.ports import open_serial``), so a
+service pays for pyserial or python-can only when it opens such a port.
 """
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
 
 from u2sa_hw.ports.errors import PortClosed, PortError, PortIOError, PortTimeout, PortUnavailable
 
-__all__ = ["PortError", "PortUnavailable", "PortClosed", "PortTimeout", "PortIOError"]
+# public name -> module that defines it, imported lazily by __getattr__
+_LAZY = {
+    "open_serial": "u2sa_hw.ports.serial_port",
+    "SerialPort": "u2sa_hw.ports.serial_port",
+    "open_can": "u2sa_hw.ports.can_port",
+    "CanPort": "u2sa_hw.ports.can_port",
+    "open_pwm": "u2sa_hw.ports.pwm_port",
+    "PwmChannel": "u2sa_hw.ports.pwm_port",
+    "SysfsPwmChannel": "u2sa_hw.ports.pwm_port",
+    "make_sysfs_pwm_tree": "u2sa_hw.ports.pwm_port",
+    "ReconnectingPort": "u2sa_hw.ports.reconnect",
+}
+
+__all__ = ["PortError", "PortUnavailable", "PortClosed", "PortTimeout", "PortIOError", *_LAZY]
+
+
+def __getattr__(name: str) -> Any:
+    """Import the module behind a lazily exported name on first access."""
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
