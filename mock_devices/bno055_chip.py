@@ -43,8 +43,9 @@ _UNIQUE_ID = range(0x50, 0x60)  # page 1
 class Bno055Chip(RegisterChip):
     """A BNO055 at 0x28 (or 0x29) sampling *vehicle*."""
 
-    read_only = frozenset({*range(bno.CHIP_ID, bno.BL_REV_ID + 1), *bno.DATA_REGISTERS, bno.CALIB_STAT,
-                           bno.ST_RESULT, bno.INT_STA, bno.SYS_CLK_STATUS, bno.SYS_STATUS, bno.SYS_ERR})
+    # Page 0 read-only registers; checked in write_register because page 1 reuses the numbers.
+    page0_read_only = frozenset({*range(bno.CHIP_ID, bno.BL_REV_ID + 1), *bno.DATA_REGISTERS, bno.CALIB_STAT,
+                                 bno.ST_RESULT, bno.INT_STA, bno.SYS_CLK_STATUS, bno.SYS_STATUS, bno.SYS_ERR})
     reset_values = {
         bno.CHIP_ID: bno.CHIP_ID_VALUE, bno.ACC_ID: bno.ACC_ID_VALUE, bno.MAG_ID: bno.MAG_ID_VALUE,
         bno.GYR_ID: bno.GYR_ID_VALUE, bno.SW_REV_ID_LSB: 0x11, bno.SW_REV_ID_MSB: 0x03, bno.BL_REV_ID: 0x15,
@@ -131,6 +132,8 @@ class Bno055Chip(RegisterChip):
         elif self.page == 1:
             if self.mode == bno.MODE_CONFIG and register not in _UNIQUE_ID:
                 self._page1[register] = value
+        elif register in self.page0_read_only:
+            pass
         elif register in _CONFIG_ONLY:
             if self.mode == bno.MODE_CONFIG:
                 self._regs[register] = value
