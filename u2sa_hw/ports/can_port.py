@@ -30,7 +30,7 @@ _LOST_ERRNOS = {errno.ENETDOWN, errno.ENODEV, errno.ENXIO, errno.EBADF, errno.EN
 
 
 def bring_up_hint(channel: str, bitrate: int | None) -> str:
-    """The command that brings a SocketCAN interface up (what the u2sa udev rule runs)."""
+    """The command that brings a SocketCAN interface up (what udev/70-u2sa-can.rules runs)."""
     return f"ip link set {channel} up type can bitrate {bitrate or 500000}"
 
 
@@ -58,7 +58,7 @@ def _open_fix(interface: str, channel: str, bitrate: int | None, exc: BaseExcept
             return "this kernel has no SocketCAN loaded: modprobe can can_raw (and the adapter's driver)"
         if code in (errno.ENODEV, errno.ENXIO):
             return (f"no CAN interface '{channel}': plug in the adapter, then `{bring_up_hint(channel, bitrate)}` "
-                    "(the u2sa udev rule does this when the adapter appears)")
+                    "(udev/70-u2sa-can.rules, installed by u2sa install, does this when the adapter appears)")
         if code in (errno.EACCES, errno.EPERM):
             return "no permission to open a CAN socket: run the service with CAP_NET_RAW or as root"
     if interface == "udp_multicast":

@@ -36,6 +36,8 @@ log = logging.getLogger(__name__)
 
 PCA9685_PREFIX = "pca9685:"
 EXPORT_WAIT = 2.0  # s; udev may still be chgrp-ing a freshly exported channel's files
+PWM_PERMISSION_FIX = ("give group 'gpio' write access to the chip with udev/60-u2sa-permissions.rules "
+                      "(u2sa install) and run the service in that group, or run it as root")
 
 
 @runtime_checkable
@@ -140,8 +142,7 @@ class SysfsPwmChannel:
                               fix="check the PWM chip driver / overlay (or restart the mock); ReconnectingPort reopens it")
         if exc.errno in (errno.EACCES, errno.EPERM):
             return PortUnavailable(self.device, f"{action}: no permission ({exc})", address=self.address,
-                                   fix="install the u2sa udev rule that gives group 'gpio' write access to "
-                                       "/sys/class/pwm, or run the service as root")
+                                   fix=PWM_PERMISSION_FIX)
         return PortIOError(self.device, f"{action} failed ({exc})", address=self.address,
                            fix="period must be > 0 and duty_cycle <= period; check the chip supports the period")
 
@@ -244,7 +245,7 @@ def _export(*, device: str, chip: Path, channel: int) -> Path:
     try:
         _write_control(chip / "export", channel)
     except OSError as exc:
-        fix = ("no permission: install the u2sa udev rule for /sys/class/pwm or run as root"
+        fix = (PWM_PERMISSION_FIX
                if exc.errno in (errno.EACCES, errno.EPERM) else "check the channel number and that nothing else uses it")
         raise PortUnavailable(device, f"cannot export channel {channel} ({exc})", address=str(chip), fix=fix) from exc
     if not is_real_sysfs(chip):
@@ -256,7 +257,7 @@ def _export(*, device: str, chip: Path, channel: int) -> Path:
     while not os.access(path / "duty_cycle", os.W_OK):
         if time.monotonic() > deadline:
             raise PortUnavailable(device, f"exported channel {channel} but {path} is not writable",
-                                  address=str(chip), fix="install the u2sa udev rule for /sys/class/pwm or run as root")
+                                  address=str(chip), fix=PWM_PERMISSION_FIX)
         time.sleep(0.01)  # the kernel (and udev's chgrp) finish asynchronously
     return path
 

@@ -55,8 +55,9 @@ def _group_fix(path: str) -> str:
     except (OSError, KeyError):
         return fix_for_errno(errno.EACCES, path)
     if group == "root":
-        return (f"{path} belongs to group root: install the u2sa udev rule that gives it group "
-                "'dialout' (udev/), and add the service user to that group")
+        return (f"{path} belongs to group root: give it group 'dialout' with a udev rule "
+                "(like udev/60-u2sa-permissions.rules, installed by u2sa install) and add the "
+                "service user to that group")
     return (f"no permission on {path}: add the service user to group '{group}' "
             f"(usermod -aG {group} <user>; u2sa install does this)")
 
