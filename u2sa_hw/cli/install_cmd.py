@@ -1,0 +1,114 @@
+"""``u2sa install``, ``u2sa uninstall`` and ``u2sa status``: deployment under systemd."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+from u2sa_hw.cli.common import add_timeout_option, add_vehicle_option, profile_from
+
+INSTALL_HELP = """\
+Deploy the vehicle profile FILE on this SBC: the user u2sa and the device groups, a
+venv under /opt/u2sa, the profile and configs under /etc/u2sa (a config you changed is
+never overwritten; a newer default goes beside it as .new), the systemd units and udev
+rules, then enable u2sa.target and one u2sa@NAME.service per service of the profile.
+Running it again changes only what differs, and says so. Needs root, unless --root DIR
+stages everything into DIR instead (for packages, images and tests).
+"""
+
+VENV_HELP = ("how to make /opt/u2sa/venv: build (venv + pip install of the project; the default on a "
+             "vehicle), shared (a venv using this environment's packages, seconds; the default with "
+             "--root), none (leave it to the package)")
+
+
+def register(sub: Any) -> None:
+    """Add the ``install``, ``uninstall`` and ``status`` subcommands."""
+    p = sub.add_parser("install", help="install the vehicle's services under systemd", description=INSTALL_HELP,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--vehicle", metavar="FILE", required=True, help="the vehicle profile to deploy")
+    p.add_argument("--root", metavar="DIR", default="/", help="stage into DIR instead of this system")
+    p.add_argument("--venv", choices=["build", "shared", "none"], help=VENV_HELP)
+    p.add_argument("--python", metavar="PATH", help="interpreter for the venv (default: this one's, or "
+                   "/usr/bin/python3.X when this one lives under /root or /home)")
+    p.add_argument("--source", metavar="DIR", help="the u2sa-hw checkout to deploy (default: the one this "
+                   "u2sa runs from)")
+    p.add_argument("-v", "--verbose", action="store_true", help="also list what was already up to date")
+    p.set_defaults(func=cmd_install)
+
+    p = sub.add_parser("uninstall", help="remove what u2sa install added",
+                       description="Stop the services and remove the units, rules, venv and links that "
+                       "u2sa install recorded in /opt/u2sa/install-manifest.json. Configs (/etc/u2sa), logs "
+                       "(/var/log/u2sa) and recordings (/var/lib/u2sa) stay, unless --purge.")
+    p.add_argument("--root", metavar="DIR", default="/", help="the staging directory install used")
+    p.add_argument("--purge", action="store_true", help="also delete configs, logs, recordings, and the user "
+                   "and groups that install created")
+    p.add_argument("-v", "--verbose", action="store_true", help="also list what was kept")
+    p.set_defaults(func=cmd_uninstall)
+
+    p = sub.add_parser("status", help="each unit's systemd state next to the HSM's view",
+                       description="Show every U2SA unit as systemd sees it (systemctl show) next to what "
+                       "the HSM reports for the same service (its SystemHealth message).")
+    add_vehicle_option(p)
+    add_timeout_option(p, default=2.5)
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.set_defaults(func=cmd_status)
+
+
+def _print_changes(tree: Any, *, verbose: bool, done: str) -> None:
+    shown = 0
+    for change in tree.changes:
+        if verbose or change.action not in ("unchanged",):
+            print(change)
+            shown += 1
+    if not tree.changed:
+        print(f"nothing to do: {done}")
+
+
+def cmd_install(args: Any) -> int:
+    """Run install and print what changed."""
+    from u2sa_hw.cli import CliError
+    from u2sa_hw.install import install
+    from u2sa_hw.install_system import InstallError
+    from u2sa_hw.vehicle import ProfileError
+
+    try:
+        tree = install(vehicle=args.vehicle, root=Path(args.root), venv=args.venv, python=args.python,
+                       source=args.source)
+    except (InstallError, ProfileError) as exc:
+        raise CliError(str(exc)) from None
+    _print_changes(tree, verbose=args.verbose, done="everything is already installed as this profile wants")
+    if tree.changed and tree.root == Path("/"):
+        print("start the services with: systemctl start u2sa.target   (they start at boot from now on)")
+    return 0
+
+
+def cmd_uninstall(args: Any) -> int:
+    """Run uninstall and print what was removed."""
+    from u2sa_hw.cli import CliError
+    from u2sa_hw.install import uninstall
+    from u2sa_hw.install_system import InstallError
+
+    try:
+        tree = uninstall(root=Path(args.root), purge=args.purge)
+    except InstallError as exc:
+        raise CliError(str(exc)) from None
+    _print_changes(tree, verbose=args.verbose, done="nothing was installed")
+    return 0
+
+
+def cmd_status(args: Any) -> int:
+    """Print the status table (or JSON); exit 1 when a unit of the profile is not active."""
+    from u2sa_hw.cli import CliError
+    from u2sa_hw.install_status import collect_status, format_status
+    from u2sa_hw.install_system import InstallError
+
+    profile = profile_from(args)
+    try:
+        report = collect_status(profile, timeout=args.timeout)
+    except InstallError as exc:
+        raise CliError(str(exc)) from None
+    print(json.dumps(report, indent=2) if args.json else format_status(report))
+    down = [u for u in report["units"] if u["service"] and u["active"] != "active"]
+    return 1 if down or report["systemd_error"] else 0

@@ -1,0 +1,133 @@
+"""``u2sa install`` / ``u2sa uninstall``: put a vehicle profile's services under systemd.
+
+Install, on the SBC as root (or staged into ``--root DIR`` for packaging and tests):
+
+1. creates the group u2sa and the device groups dialout, i2c, gpio where missing, and
+   the system user u2sa (no login, home /var/lib/u2sa);
+2. makes the venv under /opt/u2sa/venv (see :mod:`u2sa_hw.install_system`);
+3. installs the profile and service configs under /etc/u2sa (never overwriting one the
+   user changed: the new default goes beside it as ``.new``);
+4. installs the units and udev rules, enables ``u2sa.target`` and one
+   ``u2sa@NAME.service`` per enabled service (the wants symlinks, made directly);
+5. reloads systemd and udev (not with ``--root``);
+6. records all of it in /opt/u2sa/install-manifest.json.
+
+Every step compares with what is there, so a second run changes nothing and says so.
+Uninstall removes what the manifest lists; configs, logs and recordings stay unless
+``--purge``, which also deletes the user and the groups that install created.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+from u2sa_hw.install_files import InstallTree
+from u2sa_hw.install_manifest import MANIFEST_PATH, host_path, load_manifest, save_manifest
+from u2sa_hw.install_system import (VENV_MODES, InstallError, ensure_users, ensure_venv, owner_ids,
+                                    project_source, reload_systemd, reload_udev, remove_users)
+from u2sa_hw.install_units import (CONFIG_DIR, DOC, ETC_DIR, LOG_DIR, PROFILE, STATE_DIR, SYSUSERS, TARGET,
+                                   UDEV_DIR, UNIT_DIR, VEHICLE_RULES, render_profile, render_vehicle_rules,
+                                   service_configs, service_units, sysusers_conf, udev_sources, unit_sources,
+                                   wants_links)
+from u2sa_hw.vehicle import load_profile
+
+OPT_DIR = "/opt/u2sa"
+
+
+def _check_root(root: Path) -> Path:
+    root = root.resolve()
+    if root == Path("/") and os.geteuid() != 0:
+        raise InstallError("installing on this system needs root: run `sudo u2sa install ...`, "
+                           "or stage into a directory with --root DIR")
+    return root
+
+
+def install(*, vehicle: Path | str, root: Path | str = "/", venv: str | None = None,
+            python: str | None = None, source: str | None = None) -> InstallTree:
+    """Install (or update) the deployment of the profile *vehicle* under *root*; the tree lists the changes."""
+    root = _check_root(Path(root))
+    profile = load_profile(vehicle)
+    if profile.path is None:
+        raise InstallError("install needs a vehicle profile: pass --vehicle FILE")
+    mode = venv or ("build" if root == Path("/") else "shared")
+    if mode not in VENV_MODES:
+        raise InstallError(f"--venv {mode}: use one of {', '.join(VENV_MODES)}")
+    src = project_source(source)
+    # Everything that can be refused is checked before anything is written.
+    units = service_units(profile)
+    profile_text = render_profile(profile)
+    configs = service_configs(profile)
+    vehicle_rules = render_vehicle_rules(profile)
+
+    tree = InstallTree(root=root, old=load_manifest(root))
+    ensure_users(tree)
+    owner = owner_ids(root)
+    ensure_venv(tree, mode=mode, source=src, python=python)
+
+    unit_actions = [tree.put_managed(dest, data) for dest, data in unit_sources(src).items()]
+    unit_actions += [tree.link(dest, target) for dest, target in wants_links(units).items()]
+    rule_actions = [tree.put_managed(dest, data) for dest, data in udev_sources(src).items()]
+    rule_actions.append(tree.put_managed(f"{UDEV_DIR}/{VEHICLE_RULES}", vehicle_rules))
+    tree.put_managed(SYSUSERS, sysusers_conf())
+    doc = src / "docs" / "deployment.md"
+    if doc.is_file():
+        tree.put_managed(DOC, doc.read_bytes())
+
+    tree.make_dir(ETC_DIR, mode=0o755)
+    # Services write their configs back (atomically, by rename) into this directory.
+    tree.make_dir(CONFIG_DIR, mode=0o2770, owner=owner)
+    tree.put_config(PROFILE, profile_text, mode=0o644)
+    for dest, data in configs.items():
+        tree.put_config(dest, data, mode=0o660, owner=owner)
+
+    before = len(tree.changes)
+    tree.prune()
+    pruned = any(c.path.startswith(UNIT_DIR) for c in tree.changes[before:])
+    tree.new.units_enabled = [TARGET, *(u.unit for u in units)]
+    tree.new.profile_source = str(profile.path.resolve())
+    reload_systemd(tree, units_changed=pruned or any(a != "unchanged" for a in unit_actions))
+    reload_udev(tree, rules_changed=any(a != "unchanged" for a in rule_actions))
+    if save_manifest(root, tree.new) and tree.old.files == {}:
+        tree.note("created", MANIFEST_PATH)
+    return tree
+
+
+def _stop_units(tree: InstallTree) -> None:
+    if tree.root != Path("/") or not Path("/run/systemd/system").is_dir():
+        return
+    units = [u for u in tree.old.units_enabled if u != TARGET]
+    done = subprocess.run(["systemctl", "stop", TARGET, *units], capture_output=True, text=True, timeout=120)
+    if done.returncode != 0:
+        raise InstallError(f"systemctl stop {TARGET} failed: {done.stderr.strip()}; stop the services, then "
+                           "uninstall again")
+    tree.note("updated", TARGET, "stopped with its services")
+
+
+def uninstall(*, root: Path | str = "/", purge: bool = False) -> InstallTree:
+    """Remove what install put under *root* (configs, logs and data too when *purge*)."""
+    root = _check_root(Path(root))
+    old = load_manifest(root)
+    if old is None:
+        raise InstallError(f"nothing to uninstall: {host_path(root, MANIFEST_PATH)} does not exist "
+                           "(u2sa install writes it)")
+    tree = InstallTree(root=root, old=old)
+    _stop_units(tree)
+    if old.venv.get("path"):
+        tree.remove_tree(old.venv["path"])
+    tree.remove_installed(purge=purge)
+    host_path(root, MANIFEST_PATH).unlink(missing_ok=True)
+    tree.note("removed", MANIFEST_PATH)
+    if purge:
+        for directory in (ETC_DIR, LOG_DIR, STATE_DIR):
+            tree.remove_tree(directory)
+        remove_users(tree)
+    opt = host_path(root, OPT_DIR)
+    if opt.is_dir() and not any(opt.iterdir()):
+        shutil.rmtree(opt)
+        tree.note("removed", OPT_DIR)
+    reload_systemd(tree, units_changed=True)
+    reload_udev(tree, rules_changed=True)
+    return tree

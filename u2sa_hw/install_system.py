@@ -1,0 +1,222 @@
+"""The system side of ``u2sa install``: users and groups, the venv, systemd and udev reloads.
+
+Users and groups are made with ``groupadd``/``useradd --system`` (``--prefix ROOT`` when
+staging into a tree that has an ``etc/passwd``; a tree without one gets only the
+sysusers.d file (/etc/sysusers.d/u2sa.conf), from which ``systemd-sysusers`` creates them on the target's first boot).
+
+The venv under ``/opt/u2sa/venv`` is made one of two ways:
+
+- ``build``: ``python -m venv`` and ``pip install`` of the project (the vehicle; slow).
+- ``shared``: a venv without pip whose site-packages point at the environment ``u2sa``
+  runs from (a ``.pth`` file). Seconds, not minutes: for staging, tests and development
+  boards. Its interpreter must be reachable by the user u2sa under ``ProtectHome=`` (so
+  not under /root or /home) and of the same Python version as the environment.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import shutil
+import subprocess
+import sys
+import sysconfig
+from pathlib import Path
+
+from u2sa_hw import __version__
+from u2sa_hw.install_files import InstallTree
+
+SERVICE_USER = "u2sa"
+DEVICE_GROUPS = ("dialout", "i2c", "gpio")
+VENV = "/opt/u2sa/venv"
+VENV_MODES = ("build", "shared", "none")
+HIDDEN_PREFIXES = ("/root", "/home", "/run/user")
+
+
+class InstallError(RuntimeError):
+    """Install cannot go on; the message names what failed and the fix."""
+
+
+def _run(cmd: list[str], *, what: str) -> str:
+    try:
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    except FileNotFoundError:
+        raise InstallError(f"{what}: {cmd[0]} not found; install it (Debian: apt-get install "
+                           f"{'passwd' if 'add' in cmd[0] else cmd[0]})") from None
+    if done.returncode != 0:
+        raise InstallError(f"{what}: {' '.join(cmd)} failed ({done.returncode}): "
+                           f"{(done.stderr or done.stdout).strip()[-800:]}")
+    return done.stdout
+
+
+def _names(path: Path) -> dict[str, list[str]]:
+    try:
+        return {line.split(":")[0]: line.split(":") for line in path.read_text().splitlines() if ":" in line}
+    except FileNotFoundError:
+        return {}
+
+
+def user_database(root: Path) -> Path | None:
+    """The etc directory whose passwd/group install manages, or None when *root* has none."""
+    etc = root / "etc"
+    return etc if (etc / "passwd").is_file() and (etc / "group").is_file() else None
+
+
+def ensure_users(tree: InstallTree) -> None:
+    """Create the groups u2sa, dialout, i2c, gpio and the system user u2sa where missing."""
+    etc = user_database(tree.root)
+    if etc is None:
+        tree.note("skipped", "users and groups",
+                  f"{tree.root}/etc has no passwd/group; systemd-sysusers creates them from "
+                  "/etc/sysusers.d/u2sa.conf on first boot")
+        return
+    prefix = [] if tree.root == Path("/") else ["--prefix", str(tree.root)]
+    groups = _names(etc / "group")
+    for group in (SERVICE_USER, *DEVICE_GROUPS):
+        if group in groups:
+            if group in tree.old.groups:
+                tree.new.groups.append(group)
+            continue
+        _run(["groupadd", "--system", *prefix, group], what=f"creating group {group}")
+        tree.new.groups.append(group)
+        tree.note("created", f"group {group}")
+    if SERVICE_USER in _names(etc / "passwd"):
+        if SERVICE_USER in tree.old.users:
+            tree.new.users.append(SERVICE_USER)
+        return
+    _run(["useradd", "--system", *prefix, "--gid", SERVICE_USER, "--groups", ",".join(DEVICE_GROUPS),
+          "--home-dir", "/var/lib/u2sa", "--no-create-home", "--shell", "/usr/sbin/nologin",
+          "--comment", "U2SA vehicle services", SERVICE_USER], what=f"creating user {SERVICE_USER}")
+    tree.new.users.append(SERVICE_USER)
+    tree.note("created", f"user {SERVICE_USER}", f"groups {SERVICE_USER}, {', '.join(DEVICE_GROUPS)}")
+
+
+def remove_users(tree: InstallTree) -> None:
+    """Delete the user and the groups that install created (uninstall --purge)."""
+    etc = user_database(tree.root)
+    if etc is None:
+        return
+    prefix = [] if tree.root == Path("/") else ["--prefix", str(tree.root)]
+    for user in tree.old.users:
+        if user in _names(etc / "passwd"):
+            _run(["userdel", *prefix, user], what=f"removing user {user}")
+            tree.note("removed", f"user {user}")
+    for group in tree.old.groups:
+        if group in _names(etc / "group"):
+            _run(["groupdel", *prefix, group], what=f"removing group {group}")
+            tree.note("removed", f"group {group}")
+
+
+def owner_ids(root: Path, group: str = SERVICE_USER) -> tuple[int, int] | None:
+    """``(0, gid of group)`` from the tree's group file, for root:u2sa files; None if unknown."""
+    etc = user_database(root)
+    if etc is None:
+        return None
+    entry = _names(etc / "group").get(group)
+    return (0, int(entry[2])) if entry and len(entry) > 2 and entry[2].isdigit() else None
+
+
+def project_source(explicit: str | None) -> Path:
+    """The project checkout (with systemd/, udev/, pyproject.toml) that install deploys."""
+    candidates = [Path(explicit)] if explicit else [Path(__file__).resolve().parent.parent]
+    for cand in candidates:
+        if (cand / "pyproject.toml").is_file() and (cand / "systemd" / "u2sa@.service").is_file():
+            return cand.resolve()
+    where = explicit or candidates[0]
+    raise InstallError(f"{where} is not a u2sa-hw checkout (no pyproject.toml and systemd/u2sa@.service); "
+                       "run install from the source tree or pass --source DIR")
+
+
+def _python_version(python: str) -> str:
+    return _run([python, "-c", "import sys; print('%d.%d' % sys.version_info[:2])"],
+                what=f"asking {python} its version").strip()
+
+
+def choose_python(explicit: str | None) -> str:
+    """The interpreter for the venv: *explicit*, else this one's base if the services can reach it."""
+    want = f"{sys.version_info[0]}.{sys.version_info[1]}"
+    if explicit:
+        python = explicit
+    else:
+        base = str(Path(getattr(sys, "_base_executable", sys.executable)).resolve())
+        system = shutil.which(f"python{want}", path="/usr/bin:/usr/local/bin")
+        python = system if base.startswith(HIDDEN_PREFIXES) and system else base
+    if python.startswith(HIDDEN_PREFIXES):
+        raise InstallError(f"{python} lies under {', '.join(HIDDEN_PREFIXES)}, which ProtectHome= hides from the "
+                           f"services; pass --python /usr/bin/python{want} (or another interpreter outside them)")
+    if not Path(python).is_file():
+        raise InstallError(f"--python {python}: no such interpreter")
+    return python
+
+
+def _source_fingerprint(source: Path) -> str:
+    digest = hashlib.sha256()
+    for pattern in ("pyproject.toml", "u2sa_hw/**/*.py", "drivers/**/*.py", "mock_devices/**/*.py", "hil/**/*.py"):
+        for path in sorted(source.glob(pattern)):
+            digest.update(str(path.relative_to(source)).encode())
+            digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def ensure_venv(tree: InstallTree, *, mode: str, source: Path, python: str | None) -> None:
+    """Make the venv under /opt/u2sa/venv the *mode* way; nothing when it is already as wanted."""
+    if mode == "none":
+        tree.note("skipped", VENV, "--venv none: the package provides the venv")
+        return
+    interpreter = choose_python(python)
+    if mode == "shared":
+        site = sysconfig.get_paths()["purelib"]
+        if site.startswith(HIDDEN_PREFIXES):
+            raise InstallError(f"--venv shared: this environment's site-packages {site} is hidden by ProtectHome=; "
+                               "use --venv build")
+        fingerprint = f"shared:{interpreter}:{site}"
+    else:
+        fingerprint = f"build:{__version__}:{_source_fingerprint(source)}:{interpreter}"
+    venv = tree.path(VENV)
+    tree.new.venv = {"path": VENV, "mode": mode, "fingerprint": fingerprint}
+    if tree.old.venv.get("fingerprint") == fingerprint and (venv / "bin" / "u2sa").exists():
+        tree.note("unchanged", VENV, f"{mode} venv")
+        return
+    version = _python_version(interpreter)
+    if mode == "shared" and version != f"{sys.version_info[0]}.{sys.version_info[1]}":
+        raise InstallError(f"--python {interpreter} is Python {version} but this environment is "
+                           f"{sys.version_info[0]}.{sys.version_info[1]}; a shared venv needs the same version")
+    tree.remove_tree(VENV)
+    tree.ensure_parents(VENV)
+    if mode == "shared":
+        _run([interpreter, "-m", "venv", "--without-pip", str(venv)], what="creating the venv")
+        pth = venv / "lib" / f"python{version}" / "site-packages" / "u2sa-shared-env.pth"
+        pth.write_text(f"import site; site.addsitedir({site!r})\n")
+        script = venv / "bin" / "u2sa"
+        script.write_text(f"#!{VENV}/bin/python\nimport sys\nfrom u2sa_hw.cli import main\nsys.exit(main())\n")
+        script.chmod(0o755)
+    else:
+        if tree.root != Path("/"):
+            raise InstallError("--venv build makes a venv that works only where it was built; with --root use "
+                               "--venv shared or --venv none (and build the venv on the target)")
+        _run([interpreter, "-m", "venv", str(venv)], what="creating the venv")
+        _run([str(venv / "bin" / "pip"), "install", "--quiet", str(source)], what="pip install of the project")
+    tree.note("created", VENV, f"{mode} venv, {interpreter}")
+
+
+def reload_systemd(tree: InstallTree, *, units_changed: bool) -> None:
+    """``systemctl daemon-reload`` when units changed and systemd runs here (never with --root)."""
+    if tree.root != Path("/") or not units_changed:
+        return
+    if not Path("/run/systemd/system").is_dir():
+        tree.note("skipped", "systemctl daemon-reload", "systemd is not running")
+        return
+    _run(["systemctl", "daemon-reload"], what="reloading systemd")
+    tree.note("updated", "systemd", "daemon-reload")
+
+
+def reload_udev(tree: InstallTree, *, rules_changed: bool) -> None:
+    """``udevadm control --reload`` and a change trigger for the device classes the rules cover."""
+    if tree.root != Path("/") or not rules_changed:
+        return
+    if shutil.which("udevadm") is None or not Path("/run/udev/control").exists():
+        tree.note("skipped", "udevadm control --reload", "udevd is not running; the rules apply from next boot")
+        return
+    _run(["udevadm", "control", "--reload"], what="reloading udev rules")
+    _run(["udevadm", "trigger", "--action=change", "--subsystem-match=tty", "--subsystem-match=i2c-dev",
+          "--subsystem-match=gpio", "--subsystem-match=pwm"], what="applying udev rules to present devices")
+    tree.note("updated", "udev", "rules reloaded and triggered")

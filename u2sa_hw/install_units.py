@@ -1,0 +1,181 @@
+"""What ``u2sa install`` deploys from the project and the profile: units, rules, configs.
+
+- The unit files of ``systemd/`` (template, target, HSM, multicast oneshot, recorder
+  drop-in) go to ``/etc/systemd/system``; the rules of ``udev/`` to ``/etc/udev/rules.d``.
+- Each enabled service of the profile becomes ``u2sa@NAME.service``, wanted by
+  ``u2sa.target``; the service of kind ``hsm`` (it must be called ``hsm``) becomes
+  ``u2sa-hsm.service``, which may restart the others.
+- The profile is installed as ``/etc/u2sa/vehicle.toml`` with its directories pointed at
+  the vehicle's (``/etc/u2sa/config``, ``/var/log/u2sa``, ``/var/lib/u2sa``) and every
+  service config as ``/etc/u2sa/config/NAME.toml``.
+- ``65-u2sa-vehicle.rules`` is generated from the profile's ``[devices.NAME]`` tables:
+  ``usb = { vendor = "1546", product = "01a7", serial = "...", interface = "00" }``
+  makes ``/dev/u2sa/NAME``; ``can = { channel = "can0", bitrate = 500000 }`` sets the
+  bitrate that ``70-u2sa-can.rules`` brings the interface up at.
+"""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import tomli_w
+
+from u2sa_hw.install_system import DEVICE_GROUPS, SERVICE_USER, InstallError
+from u2sa_hw.vehicle import ServiceSpec, VehicleProfile
+
+UNIT_DIR = "/etc/systemd/system"
+UDEV_DIR = "/etc/udev/rules.d"
+ETC_DIR = "/etc/u2sa"
+CONFIG_DIR = "/etc/u2sa/config"
+PROFILE = "/etc/u2sa/vehicle.toml"
+LOG_DIR = "/var/log/u2sa"
+STATE_DIR = "/var/lib/u2sa"
+DOC = "/opt/u2sa/doc/deployment.md"
+SYSUSERS = "/etc/sysusers.d/u2sa.conf"
+VEHICLE_RULES = "65-u2sa-vehicle.rules"
+TARGET = "u2sa.target"
+TEMPLATE = "u2sa@.service"
+HSM_UNIT = "u2sa-hsm.service"
+HSM_KIND = "hsm"
+HSM_NAME = "hsm"
+
+_NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
+_HEX4 = re.compile(r"^[0-9a-fA-F]{4}$")
+_CAN = re.compile(r"^can[0-9]+$")
+_RULE_VALUE = re.compile(r'^[^"\n\\]*$')
+
+
+@dataclass(frozen=True)
+class ServiceUnit:
+    """A profile service and the unit that runs it."""
+
+    name: str
+    unit: str
+    template: str  # the unit file the wants symlink points at
+
+
+def service_units(profile: VehicleProfile) -> list[ServiceUnit]:
+    """The unit of each enabled service of *profile*; InstallError on a name systemd cannot take."""
+    units = []
+    for spec in profile.services.values():
+        if not spec.enabled:
+            continue
+        units.append(_unit_for(spec, profile))
+    return units
+
+
+def _unit_for(spec: ServiceSpec, profile: VehicleProfile) -> ServiceUnit:
+    where = f"{profile.path} [services.{spec.name}]"
+    if spec.kind == HSM_KIND:
+        if spec.name != HSM_NAME:
+            raise InstallError(f"{where}: the HSM runs as u2sa-hsm.service under the name '{HSM_NAME}'; "
+                               f"rename the table to [services.{HSM_NAME}]")
+        return ServiceUnit(spec.name, HSM_UNIT, HSM_UNIT)
+    if not _NAME.match(spec.name):
+        raise InstallError(f"{where}: service name '{spec.name}' cannot be a unit instance; use letters, "
+                           "digits, '_', '.' and '-' only")
+    return ServiceUnit(spec.name, f"u2sa@{spec.name}.service", TEMPLATE)
+
+
+def unit_sources(source: Path) -> dict[str, bytes]:
+    """Every file under the project's ``systemd/``, keyed by its path in /etc/systemd/system."""
+    base = source / "systemd"
+    return {f"{UNIT_DIR}/{p.relative_to(base)}": p.read_bytes()
+            for p in sorted(base.rglob("*")) if p.is_file()}
+
+
+def udev_sources(source: Path) -> dict[str, bytes]:
+    """The project's ``udev/*.rules``, keyed by their path in /etc/udev/rules.d."""
+    return {f"{UDEV_DIR}/{p.name}": p.read_bytes() for p in sorted((source / "udev").glob("*.rules"))}
+
+
+def wants_links(units: list[ServiceUnit]) -> dict[str, str]:
+    """The enable symlinks (what ``systemctl enable`` would make): path -> target."""
+    links = {f"{UNIT_DIR}/multi-user.target.wants/{TARGET}": f"{UNIT_DIR}/{TARGET}"}
+    for u in units:
+        links[f"{UNIT_DIR}/{TARGET}.wants/{u.unit}"] = f"{UNIT_DIR}/{u.template}"
+    return links
+
+
+def render_profile(profile: VehicleProfile) -> bytes:
+    """The profile as installed: same content, directories pointed at the vehicle's."""
+    assert profile.path is not None
+    data: dict[str, Any] = tomllib.loads(profile.path.read_text())
+    vehicle = data.setdefault("vehicle", {})
+    vehicle.update(config_dir=CONFIG_DIR, log_dir=LOG_DIR, data_dir=STATE_DIR)
+    for table in data.get("services", {}).values():
+        if isinstance(table, dict):
+            table.pop("config", None)  # every config is <config_dir>/<name>.toml on the vehicle
+    header = (f"# Vehicle profile installed by `u2sa install` from {profile.path.resolve()}.\n"
+              "# Edit it here if you like: install never overwrites a profile or config you changed\n"
+              "# (a newer default lands beside it as vehicle.toml.new). Directories point at the\n"
+              f"# vehicle's: configs {CONFIG_DIR}, logs {LOG_DIR}, data {STATE_DIR}.\n\n")
+    return (header + tomli_w.dumps(data)).encode()
+
+
+def service_configs(profile: VehicleProfile) -> dict[str, bytes]:
+    """Each service config file that exists next to the profile, keyed by its vehicle path."""
+    configs = {}
+    for spec in profile.services.values():
+        if spec.config_path.is_file():
+            data = spec.config_path.read_bytes()
+            try:
+                tomllib.loads(data.decode())
+            except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+                raise InstallError(f"{spec.config_path}: config of service '{spec.name}' is not valid TOML "
+                                   f"({exc}); fix it before installing") from None
+            configs[f"{CONFIG_DIR}/{spec.name}.toml"] = data
+    return configs
+
+
+def sysusers_conf() -> bytes:
+    """systemd-sysusers declaration of the service user and device groups (for images and packages)."""
+    lines = ["# u2sa-hw: the service user and the device groups (written by u2sa install).",
+             *(f"g {g} -" for g in DEVICE_GROUPS),
+             f'u {SERVICE_USER} - "U2SA vehicle services" {STATE_DIR} /usr/sbin/nologin',
+             *(f"m {SERVICE_USER} {g}" for g in DEVICE_GROUPS)]
+    return ("\n".join(lines) + "\n").encode()
+
+
+def _rule_value(value: Any, where: str, *, pattern: re.Pattern[str] = _RULE_VALUE, hint: str = "") -> str:
+    if not isinstance(value, (str, int)) or isinstance(value, bool) or not pattern.match(str(value)):
+        raise InstallError(f"{where}: {value!r} is not usable in a udev rule{hint}")
+    return str(value)
+
+
+def render_vehicle_rules(profile: VehicleProfile) -> bytes:
+    """``65-u2sa-vehicle.rules`` from the profile's ``[devices.NAME]`` usb/can tables."""
+    lines = [f"# Generated by `u2sa install` from {PROFILE}: do not edit, edit the profile's",
+             "# [devices.NAME] tables and install again (or write your own rules in another file,",
+             "# e.g. 66-u2sa-local.rules, which install never touches). See docs/deployment.md."]
+    for name, table in sorted(profile.devices.items()):
+        where = f"{profile.path} [devices.{name}]"
+        usb, can = table.get("usb"), table.get("can")
+        if usb is not None:
+            if not isinstance(usb, dict):
+                raise InstallError(f"{where}: usb must be a table like usb = {{ vendor = \"1546\", product = \"01a7\" }}")
+            _rule_value(name, where, pattern=_NAME, hint=" as /dev/u2sa/NAME; use letters, digits, '_', '.', '-'")
+            vendor = _rule_value(usb.get("vendor"), f"{where} usb.vendor", pattern=_HEX4,
+                                 hint=' (4 hex digits, e.g. "1546")')
+            product = _rule_value(usb.get("product"), f"{where} usb.product", pattern=_HEX4,
+                                  hint=' (4 hex digits, e.g. "01a7")')
+            match = ['SUBSYSTEM=="tty"', f'ATTRS{{idVendor}}=="{vendor.lower()}"',
+                     f'ATTRS{{idProduct}}=="{product.lower()}"']
+            if "serial" in usb:
+                match.append(f'ATTRS{{serial}}=="{_rule_value(usb["serial"], f"{where} usb.serial")}"')
+            if "interface" in usb:
+                match.append(f'ATTRS{{bInterfaceNumber}}=="{_rule_value(usb["interface"], f"{where} usb.interface")}"')
+            lines.append(", ".join(match) + f', SYMLINK+="u2sa/{name}", GROUP="dialout", MODE="0660"')
+        if can is not None:
+            if not isinstance(can, dict):
+                raise InstallError(f"{where}: can must be a table like can = {{ channel = \"can0\", bitrate = 500000 }}")
+            channel = _rule_value(can.get("channel"), f"{where} can.channel", pattern=_CAN, hint=" (canN)")
+            bitrate = can.get("bitrate")
+            if not isinstance(bitrate, int) or isinstance(bitrate, bool) or not 0 < bitrate <= 8_000_000:
+                raise InstallError(f"{where}: can.bitrate must be an integer in bit/s, e.g. 500000; got {bitrate!r}")
+            lines.append(f'SUBSYSTEM=="net", KERNEL=="{channel}", ENV{{U2SA_CAN_BITRATE}}="{bitrate}"')
+    return ("\n".join(lines) + "\n").encode()
