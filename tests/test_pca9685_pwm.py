@@ -72,17 +72,19 @@ def test_enable_tap_and_close(bus: MockI2cBus) -> None:
     assert chip.pulse_width_us(0) == 0.0  # set while disabled: stored, not output
     pwm.enable(True)
     assert abs(chip.pulse_width_us(0) - 1500) < 5
+    pwm.set_pulse_us(1500)  # unchanged: no write, no record
     pwm.enable(False)
     assert chip.pulse_width_us(0) == 0.0
     pwm.enable(True)
-    assert [(r.device, r.channel, r.enabled) for r in records] == [("rudder", 0, False), ("rudder", 0, True),
-                                                                   ("rudder", 0, False), ("rudder", 0, True)]
-    assert records[1].period_ns == pwm.period_ns and abs(records[1].duty_ns - 1_500_000) < 5000
-    assert records[2].duty_ns == 0
+    period = pwm.period_ns
     pwm.close()
     assert chip.pulse_width_us(0) == 0.0  # close stops the output, like the sysfs backend
+    states = [(r.device, r.channel, r.period_ns, r.duty_ns, r.enabled) for r in records]
+    assert states == [("rudder", 0, period, 0, False), ("rudder", 0, period, 1_500_000, False),
+                      ("rudder", 0, period, 1_500_000, True), ("rudder", 0, period, 1_500_000, False),
+                      ("rudder", 0, period, 1_500_000, True), ("rudder", 0, period, 1_500_000, False)]
     with pytest.raises(PortClosed):
-        pwm.set_pulse_us(1500)
+        pwm.set_pulse_us(1600)
     pwm.close()  # idempotent
 
 
@@ -140,8 +142,10 @@ def test_chip_faults_surface_and_bus_restart_recovers(bus: MockI2cBus) -> None:
     pwm = open_pca9685_pwm(device="rudder", address=address_of(bus), channel=2)
     pwm.enable(True)
     chip.nack(True)
-    with pytest.raises(PortIOError, match="no ACK from 0x40"):
+    with pytest.raises(PortIOError, match="no ACK from 0x40") as info:
         pwm.set_pulse_us(1500)
+    assert info.value.device == "rudder" and info.value.address == address_of(bus) and info.value.fix
+    assert str(info.value).count("fix:") == 1
     chip.nack(False)
     pwm.set_pulse_us(1500)
     bus.disconnect_clients()
@@ -153,8 +157,10 @@ def test_chip_faults_surface_and_bus_restart_recovers(bus: MockI2cBus) -> None:
 
 
 def test_missing_bus_is_unavailable(tmp_path: Path) -> None:
-    with pytest.raises(PortUnavailable, match="start the mock I2C bus server"):
-        open_pca9685_pwm(device="rudder", address=f"pca9685:mock:{tmp_path}/none.sock:0x40", channel=0)
+    address = f"pca9685:mock:{tmp_path}/none.sock:0x40"
+    with pytest.raises(PortUnavailable, match="start the mock I2C bus server") as info:
+        open_pca9685_pwm(device="rudder", address=address, channel=0)
+    assert info.value.device == "rudder" and info.value.address == address
     with pytest.raises(PortUnavailable, match="dtparam=i2c_arm=on"):
         open_pca9685_pwm(device="rudder", address="pca9685:250:0x40", channel=0)
 

@@ -16,9 +16,11 @@ position rather than jumping), and ``close()`` stops the output like the sysfs b
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
+from typing import Iterator
 
 from u2sa_hw.messages import RawPwmWrite
 from u2sa_hw.ports.errors import PortClosed, PortError, PortUnavailable
@@ -50,7 +52,7 @@ class Pca9685Controller:
     """One PCA9685 as this process sees it: its I2C port, frame period and open channels."""
 
     def __init__(self, *, bus: int | str, i2c_address: int, period_ns: int) -> None:
-        self.device = f"pca9685@{bus}:0x{i2c_address:02x}"  # the name its I2C errors carry
+        self.device = "pca9685"  # channels re-raise the port's errors under their own names
         self.bus = bus
         self.i2c_address = i2c_address
         self.prescale = pca.prescale_for_period(period_ns)
@@ -143,8 +145,9 @@ def _detach(chip: Pca9685Controller, channel: int) -> None:
 class Pca9685PwmChannel:
     """One PWM output of a PCA9685, with the PwmChannel methods of the sysfs backend.
 
-    ``duty_ns`` is the pulse last set, ``enabled`` whether the output runs, ``period_ns``
-    the frame the chip actually runs (the PRE_SCALE step nearest the request).
+    ``duty_ns`` is the pulse last set (the chip makes the nearest of its 4096 counts),
+    ``enabled`` whether the output runs, ``period_ns`` the frame the chip actually runs
+    (the PRE_SCALE step nearest the request). Port errors name this channel's device.
     """
 
     def __init__(self, *, device: str, address: str, channel: int, chip: Pca9685Controller, tap: Tap | None) -> None:
@@ -154,9 +157,11 @@ class Pca9685PwmChannel:
         self._chip = chip
         self._tap = tap
         self._open = True
-        counts = chip.read_counts(channel)
+        with self._errors_named():
+            counts = chip.read_counts(channel)
         self.enabled = counts > 0
         self.duty_ns = round(counts * pca.count_ns(chip.prescale))
+        self._tap_state()
 
     @property
     def period_ns(self) -> int:
@@ -170,11 +175,11 @@ class Pca9685PwmChannel:
 
     def set_pulse_ns(self, ns: int) -> None:
         """Set the high time per frame in ns (0..period); takes effect now if enabled."""
+        ns = int(ns)
         if not 0 <= ns <= self.period_ns:
             raise ValueError(f"{self.device}: pulse {ns} ns is outside 0..{self.period_ns} ns "
                              f"(the frame of {self.address})")
-        self.duty_ns = int(ns)
-        self._apply()
+        self._apply(duty_ns=ns, enabled=self.enabled)
 
     def set_pulse_us(self, us: float) -> None:
         """Set the high time per frame in µs."""
@@ -182,8 +187,7 @@ class Pca9685PwmChannel:
 
     def enable(self, on: bool) -> None:
         """Turn the output on (at the set pulse) or fully off."""
-        self.enabled = bool(on)
-        self._apply()
+        self._apply(duty_ns=self.duty_ns, enabled=bool(on))
 
     def close(self) -> None:
         """Stop the output and release the channel (idempotent; a vanished bus is fine)."""
@@ -202,19 +206,49 @@ class Pca9685PwmChannel:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _apply(self) -> None:
+    def __repr__(self) -> str:
+        return (f"<Pca9685PwmChannel {self.device} {self.address} ch{self.channel} period={self.period_ns} "
+                f"duty={self.duty_ns} enabled={self.enabled}>")
+
+    def _apply(self, *, duty_ns: int, enabled: bool) -> None:
+        """Write the chip when the output changes; tap every change of state."""
         if not self._open:
             raise PortClosed(self.device, f"PCA9685 channel {self.channel} is closed", address=self.address,
                              fix="open the channel again")
-        counts = pca.counts_for_pulse(self.duty_ns, self._chip.prescale) if self.enabled else 0
-        self._chip.write_counts(self.channel, counts)
+        if (duty_ns, enabled) == (self.duty_ns, self.enabled):
+            return
+        if enabled or self.enabled:  # a disabled output is already full-off: nothing to write
+            counts = pca.counts_for_pulse(duty_ns, self._chip.prescale) if enabled else 0
+            with self._errors_named():
+                self._chip.write_counts(self.channel, counts)
+        self.duty_ns, self.enabled = duty_ns, enabled
+        self._tap_state()
+
+    def _tap_state(self) -> None:
         rec = RawPwmWrite()
         rec.device = self.device
         rec.channel = self.channel
         rec.period_ns = self.period_ns
-        rec.duty_ns = round(counts * pca.count_ns(self._chip.prescale))
+        rec.duty_ns = self.duty_ns
         rec.enabled = self.enabled
         call_tap(self._tap, rec)
+
+    @contextlib.contextmanager
+    def _errors_named(self) -> Iterator[None]:
+        """Re-raise the shared I2C port's errors as this channel's, same kind and fix."""
+        try:
+            yield
+        except PortError as exc:
+            raise renamed_error(exc, device=self.device, address=self.address) from exc
+
+
+def renamed_error(exc: PortError, *, device: str, address: str) -> PortError:
+    """*exc* (same class, message and fix) attributed to *device* at *address*."""
+    text = str(exc)
+    reason = text.split(": ", 1)[1] if ": " in text else text
+    if exc.fix:
+        reason = reason.removesuffix(f"; fix: {exc.fix}")
+    return type(exc)(device, reason, address=address, fix=exc.fix)
 
 
 def open_pca9685_pwm(*, device: str, address: str, channel: int, period_ns: int = 20_000_000,
@@ -231,6 +265,6 @@ def open_pca9685_pwm(*, device: str, address: str, channel: int, period_ns: int 
     chip = _attach(device=device, bus=bus, i2c_address=i2c_address, channel=channel, period_ns=period_ns)
     try:
         return Pca9685PwmChannel(device=device, address=address, channel=channel, chip=chip, tap=tap)
-    except Exception:
+    except BaseException:
         _detach(chip, channel)
         raise
