@@ -30,7 +30,7 @@ from typing import Protocol, runtime_checkable
 
 from u2sa_hw.messages import RawPwmWrite
 from u2sa_hw.ports.errors import PortClosed, PortIOError, PortUnavailable
-from u2sa_hw.ports.tap import TX, Tap, call_tap
+from u2sa_hw.ports.tap import Tap, call_tap
 
 log = logging.getLogger(__name__)
 
