@@ -187,7 +187,8 @@ class Ak8963Chip(RegisterChip):
 
 def ned_to_body(v: tuple[float, float, float], roll: float, pitch: float, yaw: float) -> tuple[float, float, float]:
     """Rotate an NED vector into the FRD body frame (yaw-pitch-roll, aerospace order)."""
-    cr, sr, cp, sp, cy, sy = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)
+    cr, sr, cp, sp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
     n, e, d = v
     x = cp * cy * n + cp * sy * e - sp * d
     y = (sr * sp * cy - cr * sy) * n + (sr * sp * sy + cr * cy) * e + sr * cp * d

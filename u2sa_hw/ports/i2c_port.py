@@ -220,7 +220,8 @@ def open_error(device: str, address: str, bus: int, exc: OSError) -> PortUnavail
                                fix="enable I2C (raspi-config / dtparam=i2c_arm=on) or check the bus number")
     if exc.errno in (errno.EACCES, errno.EPERM):
         return PortUnavailable(device, f"no permission to open {path}", address=address,
-                               fix="add the service user to group i2c (u2sa install does this)")
+                               fix="add the service user to group i2c and install the udev rule that makes "
+                                   "/dev/i2c-* group i2c (u2sa install does both)")
     return PortUnavailable(device, f"cannot open {path}: {exc.strerror or exc}", address=address,
                            fix="check that the bus number names an I2C adapter (ls /dev/i2c-*)")
 
@@ -239,7 +240,8 @@ class MockI2cPort(I2cPort):
             self._sock.connect(socket_path)
         except OSError as exc:
             self._sock.close()
-            raise PortUnavailable(device, f"cannot connect to the mock I2C bus at {socket_path} ({exc.strerror or exc})",
+            why = exc.strerror or exc
+            raise PortUnavailable(device, f"cannot connect to the mock I2C bus at {socket_path} ({why})",
                                   address=self.address,
                                   fix="start the mock I2C bus server (python -m mock_devices.i2c_bus) "
                                       "or check the socket path in the service config") from exc

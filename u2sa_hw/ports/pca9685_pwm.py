@@ -121,7 +121,8 @@ def _attach(*, device: str, bus: int | str, i2c_address: int, channel: int, peri
             raise PortUnavailable(device, f"the PCA9685 at 0x{i2c_address:02x} runs a {chip.period_ns} ns frame for "
                                   f"channels {sorted(chip.channels)}; channel {channel} asks {period_ns} ns",
                                   address=f"{SCHEME}{bus}:0x{i2c_address:02x}",
-                                  fix=f"all channels of one PCA9685 share one period: use period_ns={chip.requested_period_ns}")
+                                  fix="all channels of one PCA9685 share one period: "
+                                      f"use period_ns={chip.requested_period_ns}")
         if chip is not None and channel in chip.channels:
             raise PortUnavailable(device, f"PCA9685 channel {channel} at 0x{i2c_address:02x} is already open",
                                   address=f"{SCHEME}{bus}:0x{i2c_address:02x}",
@@ -261,7 +262,8 @@ def open_pca9685_pwm(*, device: str, address: str, channel: int, period_ns: int 
     try:
         pca.prescale_for_period(period_ns)
     except ValueError as exc:
-        raise PortUnavailable(device, str(exc), address=address, fix="servos and ESCs use 20_000_000 ns (50 Hz)") from None
+        raise PortUnavailable(device, str(exc), address=address,
+                              fix="servos and ESCs use 20_000_000 ns (50 Hz)") from None
     chip = _attach(device=device, bus=bus, i2c_address=i2c_address, channel=channel, period_ns=period_ns)
     try:
         return Pca9685PwmChannel(device=device, address=address, channel=channel, chip=chip, tap=tap)
