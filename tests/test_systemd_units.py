@@ -1,0 +1,188 @@
+"""The units under a real systemd: booted as PID 1 of a private namespace (tests/systemd_ns.py).
+
+`u2sa install --root` stages a vehicle with three state estimators and one service that
+cannot start; systemd boots straight into u2sa.target. Checked: every unit reaches
+active through READY (Type=notify) as the user u2sa with the device groups; SIGKILL ->
+restarted and publishing health again; SIGSTOP (a hang) -> the watchdog kills it and it
+is restarted; a crash loop ends at the start limit (failed); stopping u2sa.target stops
+every service cleanly; poweroff ends the namespace. `systemd-analyze verify` passes on
+every unit file.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from systemd_ns import SystemdNamespace, cannot_boot_reason, stage_root, wait_until  # noqa: E402
+
+from u2sa_hw import channels as ch  # noqa: E402
+from u2sa_hw import lcmtypes as t  # noqa: E402
+from u2sa_hw.bus_client import BusClient  # noqa: E402
+
+REASON = cannot_boot_reason()
+pytestmark = pytest.mark.skipif(REASON is not None, reason=f"systemd cannot boot here: {REASON}")
+
+U2SA = Path(sys.executable).with_name("u2sa")
+SERVICES = ("est_a", "est_b", "est_c")
+UNIT_FILES = ("u2sa@.service", "u2sa.target", "u2sa-hsm.service", "u2sa-multicast-lo.service")
+
+
+def write_profile(path: Path, port: int) -> Path:
+    """A vehicle of three estimators and one service whose kind does not exist (not enabled)."""
+    lines = ["[vehicle]", 'name = "systemd-test"', "system_id = 9",
+             f'lcm_url = "udpm://239.255.76.67:{port}?ttl=0"', ""]
+    for name in SERVICES:
+        lines += [f"[services.{name}]", 'kind = "state_estimator"', ""]
+    lines += ["[services.broken]", 'kind = "no_such_kind"', "enabled = false", ""]
+    path.write_text("\n".join(lines))
+    return path
+
+
+class HealthWatch:
+    """The latest Health message of each service, from real LCM."""
+
+    def __init__(self, url: str) -> None:
+        self.client = BusClient(url)
+        self.latest: dict[str, Any] = {}
+        self.lock = threading.Lock()
+        self.client.transport.subscribe(ch.HEALTH, t.Health, self._on_health)
+
+    def _on_health(self, _channel: str, msg: Any) -> None:
+        with self.lock:
+            self.latest[msg.name] = msg
+
+    def pid_of(self, name: str) -> int:
+        """The PID in the latest health of *name* (0 before any)."""
+        with self.lock:
+            msg = self.latest.get(name)
+        return msg.pid if msg is not None else 0
+
+    def forget(self, name: str) -> None:
+        """Drop what was seen of *name*, to wait for fresh messages."""
+        with self.lock:
+            self.latest.pop(name, None)
+
+
+@pytest.fixture(scope="module")
+def staged(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    base = tmp_path_factory.mktemp("systemd")
+    port = random.randint(20000, 60000)
+    profile = write_profile(base / "vehicle.toml", port)
+    root = stage_root(base / "root")
+    done = subprocess.run([str(U2SA), "install", "--vehicle", str(profile), "--root", str(root)],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    return {"root": root, "url": f"udpm://239.255.76.67:{port}?ttl=0"}
+
+
+@pytest.fixture(scope="module")
+def ns(staged: dict[str, Any]) -> Any:
+    namespace = SystemdNamespace(staged["root"], unit="u2sa.target")
+    namespace.boot()
+    yield namespace
+    namespace.poweroff()
+
+
+@pytest.fixture(scope="module")
+def health(staged: dict[str, Any]) -> Any:
+    watch = HealthWatch(staged["url"])
+    yield watch
+    watch.client.close()
+
+
+def test_systemd_analyze_verify_passes_on_every_unit(staged: dict[str, Any]) -> None:
+    root = staged["root"]
+    units = root / "etc/systemd/system"
+    # The units name /opt/u2sa/venv/bin/u2sa: verify in a mount namespace where the staged /opt is /opt.
+    script = (f'mount --make-rprivate / && mount --bind "{root}/opt" /opt && cd "{units}" && '
+              "systemd-analyze verify --man=no ./u2sa@est_a.service ./u2sa@recorder.service "
+              + " ".join(f"./{u}" for u in UNIT_FILES if u != "u2sa@.service"))
+    done = subprocess.run(["unshare", "--mount", "sh", "-c", script], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert "u2sa" not in done.stderr, done.stderr  # warnings about our units are failures too
+
+
+def test_every_unit_reaches_active_through_ready_as_u2sa(ns: SystemdNamespace, staged: dict[str, Any],
+                                                         health: HealthWatch) -> None:
+    for name in SERVICES:
+        ns.wait_active(f"u2sa@{name}.service")
+        props = ns.show(f"u2sa@{name}.service", "Type", "StatusText", "User", "WatchdogUSec")
+        # Type=notify is only active after READY=1; STATUS= is the service's own line.
+        assert props["Type"] == "notify"
+        assert props["StatusText"] == f"{name} (state_estimator) running"
+        assert props["WatchdogUSec"] == "2s"
+    assert ns.state("u2sa.target") == "active/active"
+    assert ns.state("u2sa-multicast-lo.service") == "active/exited"
+    assert ns.state("u2sa@broken.service").startswith("inactive")
+    passwd = {line.split(":")[0]: line.split(":") for line in (staged["root"] / "etc/passwd").read_text().splitlines()}
+    groups = {line.split(":")[0]: line.split(":")[2] for line in (staged["root"] / "etc/group").read_text().splitlines()}
+    status = Path(f"/proc/{ns.host_pid(ns.main_pid('u2sa@est_a.service'))}/status").read_text()
+    uid = next(line.split()[1] for line in status.splitlines() if line.startswith("Uid:"))
+    sup = next(line.split()[1:] for line in status.splitlines() if line.startswith("Groups:"))
+    assert uid == passwd["u2sa"][2]
+    assert {groups["dialout"], groups["i2c"], groups["gpio"]} <= set(sup)
+    assert wait_until(lambda: all(health.pid_of(n) for n in SERVICES), timeout=10), health.latest.keys()
+
+
+def test_sigkill_is_restarted_and_publishes_again(ns: SystemdNamespace, health: HealthWatch) -> None:
+    unit = "u2sa@est_a.service"
+    old = ns.wait_active(unit)
+    restarts = int(ns.show(unit, "NRestarts")["NRestarts"])
+    os.kill(ns.host_pid(old), signal.SIGKILL)
+    new = ns.wait_active(unit, not_pid=old, timeout=20)
+    assert int(ns.show(unit, "NRestarts")["NRestarts"]) == restarts + 1
+    assert wait_until(lambda: health.pid_of("est_a") == new, timeout=10), \
+        f"no health from the restarted est_a (pid {new}); last pid {health.pid_of('est_a')}"
+
+
+def test_sigstop_hang_is_killed_by_the_watchdog_and_restarted(ns: SystemdNamespace, health: HealthWatch) -> None:
+    unit = "u2sa@est_b.service"
+    old = ns.wait_active(unit)
+    host_old = ns.host_pid(old)
+    os.kill(host_old, signal.SIGSTOP)
+    new = ns.wait_active(unit, not_pid=old, timeout=30)
+    assert not Path(f"/proc/{host_old}").exists() or "zombie" in Path(f"/proc/{host_old}/status").read_text()
+    assert wait_until(lambda: health.pid_of("est_b") == new, timeout=10)
+    # systemd's record of why: the watchdog, not an exit of the service.
+    log = ns.run("sh", "-c", "cat /var/log/u2sa/est_b.log", check=False).stdout
+    assert log.count("started, pid") >= 2, log
+
+
+def test_crash_loop_ends_at_the_start_limit(ns: SystemdNamespace) -> None:
+    unit = "u2sa@broken.service"
+    ns.systemctl("start", "--no-block", unit)
+    # Failed, not "activating (auto-restart)": systemd gave up after StartLimitBurst starts.
+    assert wait_until(lambda: ns.state(unit) == "failed/failed", timeout=40), ns.journal_hint(unit)
+    props = ns.show(unit, "NRestarts", "StartLimitBurst", "Result", "ExecMainStatus")
+    assert int(props["NRestarts"]) == int(props["StartLimitBurst"]) == 5, props
+    assert props["Result"] == "exit-code" and props["ExecMainStatus"] == "1", props
+
+
+def test_stopping_the_target_stops_every_service_cleanly(ns: SystemdNamespace) -> None:
+    pids = {name: ns.host_pid(ns.wait_active(f"u2sa@{name}.service")) for name in SERVICES}
+    ns.systemctl("stop", "u2sa.target", timeout=60)
+    for name in SERVICES:
+        # PartOf= propagates the stop; systemctl waits for the target's own job only.
+        assert wait_until(lambda: ns.state(f"u2sa@{name}.service") == "inactive/dead", timeout=20)
+        props = ns.show(f"u2sa@{name}.service", "ActiveState", "Result", "ExecMainStatus")
+        assert props["ActiveState"] == "inactive", props
+        assert props["Result"] == "success" and props["ExecMainStatus"] == "0", props
+        assert not Path(f"/proc/{pids[name]}").exists()
+
+
+def test_poweroff_ends_the_namespace(ns: SystemdNamespace) -> None:
+    pid = ns.pid
+    ns.poweroff()
+    assert not ns.alive
+    assert not Path(f"/proc/{pid}").exists()
+    assert not ns.cgroup.exists()
