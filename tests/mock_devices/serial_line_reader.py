@@ -51,6 +51,18 @@ class SerialLineReader:
         line = self.next_matching(lambda l: l[3:7] == f"{msg_id},".encode() and l.startswith(b"$"), timeout=timeout)
         return parse_nmea(line)
 
+    def skip_past(self, data: bytes, *, timeout: float = 5.0) -> bytes:
+        """Read until *data* has arrived, drop everything up to its end and return what was dropped."""
+        deadline = time.monotonic() + timeout
+        while data not in self._buf:
+            if time.monotonic() > deadline:
+                pytest.fail(f"{data[:16]!r}... did not arrive from {self.port.port} within {timeout:g} s")
+            self._buf.extend(self.port.read(512))
+        end = self._buf.index(data) + len(data)
+        dropped = bytes(self._buf[:end])
+        del self._buf[:end]
+        return dropped
+
     def drain(self) -> None:
         """Drop everything received so far (kernel buffer and partial line)."""
         self.port.reset_input_buffer()

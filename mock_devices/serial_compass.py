@@ -1,0 +1,131 @@
+"""Serial compasses on a pty: an NMEA 0183 heading sensor and an OceanServer OS5000.
+
+Both take the heading from the SimVehicle's yaw (true, clockwise from north) with seeded
+Gaussian noise. Sign convention (as on charts and in NMEA): declination/variation and
+deviation are east positive, and
+
+    true heading     = magnetic heading + declination
+    magnetic heading = compass (sensor) heading + deviation
+
+so a compass in a place with 10 deg E declination reads 350 deg when the vehicle points
+true north.
+
+``NmeaCompassDevice`` sends any of HDG (sensor heading with deviation and variation
+fields), HDM (magnetic), HDT (true) and XDR (pitch and roll as angle transducers
+"PITCH"/"ROLL", degrees), talker "HC" by default, built and checksummed by pynmeagps.
+
+``Os5000CompassDevice`` sends the OS5000's default ASCII output
+``$C<heading>P<pitch>R<roll>T<temp>*<checksum>`` CR LF: magnetic heading, pitch and roll in
+degrees with one decimal, board temperature in degrees C, and the NMEA-style checksum (XOR
+of the characters between ``$`` and ``*``, two hex digits). Its configuration commands
+(ESC sequences) are not modelled; what a driver writes is kept in ``link.history``.
+
+Pitch is positive nose up and roll positive right side down; the SimVehicle is level, so
+both are 0 plus noise.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+from pynmeagps.nmeahelpers import calc_checksum
+
+from mock_devices.nmea_gps import heading_360, nmea_sentence
+from mock_devices.pty_serial import PeriodicSerialDevice
+from mock_devices.vehicle_sim import SimVehicle, VehicleTruth
+
+COMPASS_SENTENCES = ("HDG", "HDM", "HDT", "XDR")
+
+
+def one_decimal(value: float) -> str:
+    """*value* with one decimal, never "-0.0" (a small negative noise rounds to "0.0")."""
+    return f"{round(value, 1) + 0.0:.1f}"
+
+
+class _CompassBase(PeriodicSerialDevice):
+    """Shared noise model: true heading, magnetic heading, pitch and roll for one epoch."""
+
+    def __init__(self, vehicle: SimVehicle, *, link_path: str | os.PathLike[str], rate_hz: float, name: str,
+                 declination_deg: float, heading_sigma_deg: float, attitude_sigma_deg: float, seed: int) -> None:
+        for label, value in (("heading_sigma_deg", heading_sigma_deg), ("attitude_sigma_deg", attitude_sigma_deg)):
+            if not value >= 0:
+                raise ValueError(f"{name}: {label} must be >= 0, got {value!r}")
+        if not math.isfinite(declination_deg):
+            raise ValueError(f"{name}: declination_deg must be a finite number (east positive), "
+                             f"got {declination_deg!r}")
+        super().__init__(vehicle, link_path=link_path, rate_hz=rate_hz, name=name, seed=seed)
+        self.declination_deg = float(declination_deg)
+        self.heading_sigma_deg = float(heading_sigma_deg)
+        self.attitude_sigma_deg = float(attitude_sigma_deg)
+
+    def measure(self, truth: VehicleTruth) -> tuple[float, float, float]:
+        """This epoch's (magnetic heading, pitch, roll) in degrees, noise drawn once."""
+        g = self.rng.gauss
+        true_heading = math.degrees(truth.yaw) + g(0.0, self.heading_sigma_deg)
+        magnetic = heading_360(true_heading - self.declination_deg, decimals=1)
+        pitch = math.degrees(truth.pitch) + g(0.0, self.attitude_sigma_deg)
+        roll = math.degrees(truth.roll) + g(0.0, self.attitude_sigma_deg)
+        return magnetic, pitch, roll
+
+
+class NmeaCompassDevice(_CompassBase):
+    """A mock NMEA 0183 heading sensor at *link_path* (HDG/HDM/HDT, optional XDR pitch/roll)."""
+
+    def __init__(self, vehicle: SimVehicle, *, link_path: str | os.PathLike[str], rate_hz: float = 10.0,
+                 talker: str = "HC", sentences: tuple[str, ...] = ("HDG",), declination_deg: float = 0.0,
+                 deviation_deg: float = 0.0, heading_sigma_deg: float = 0.5, attitude_sigma_deg: float = 0.2,
+                 seed: int = 0, name: str = "compass") -> None:
+        unknown = [s for s in sentences if s not in COMPASS_SENTENCES]
+        if unknown:
+            raise ValueError(f"{name}: unsupported sentence(s) {unknown}; choose from {', '.join(COMPASS_SENTENCES)}")
+        if len(talker) != 2 or not talker.isalpha():
+            raise ValueError(f"{name}: talker must be two letters like 'HC' or 'II', got {talker!r}")
+        if not math.isfinite(deviation_deg):
+            raise ValueError(f"{name}: deviation_deg must be a finite number (east positive), got {deviation_deg!r}")
+        super().__init__(vehicle, link_path=link_path, rate_hz=rate_hz, name=name, declination_deg=declination_deg,
+                         heading_sigma_deg=heading_sigma_deg, attitude_sigma_deg=attitude_sigma_deg, seed=seed)
+        self.talker = talker.upper()
+        self.sentences = tuple(sentences)
+        self.deviation_deg = float(deviation_deg)
+
+    def epoch_lines(self, truth: VehicleTruth) -> list[bytes]:
+        """Every configured sentence for one epoch, in the configured order."""
+        magnetic, pitch, roll = self.measure(truth)
+        lines = []
+        for s in self.sentences:
+            if s == "HDG":
+                sensor = heading_360(magnetic - self.deviation_deg, decimals=1)
+                dev, var = self.deviation_deg, self.declination_deg
+                fields = [f"{sensor:.1f}", f"{abs(dev):.1f}", "E" if dev >= 0 else "W",
+                          f"{abs(var):.1f}", "E" if var >= 0 else "W"]
+            elif s == "HDM":
+                fields = [f"{magnetic:.1f}", "M"]
+            elif s == "HDT":
+                fields = [f"{heading_360(magnetic + self.declination_deg, decimals=1):.1f}", "T"]
+            else:
+                fields = ["A", one_decimal(pitch), "D", "PITCH", "A", one_decimal(roll), "D", "ROLL"]
+            lines.append(nmea_sentence(self.talker, s, fields))
+        return lines
+
+
+def os5000_line(heading: float, pitch: float, roll: float, temperature: float) -> bytes:
+    """One OS5000 output line ``$C<h>P<p>R<r>T<t>*HH`` CR LF (degrees, degrees C, one decimal)."""
+    body = f"C{one_decimal(heading)}P{one_decimal(pitch)}R{one_decimal(roll)}T{one_decimal(temperature)}"
+    return f"${body}*{calc_checksum(body)}\r\n".encode("ascii")
+
+
+class Os5000CompassDevice(_CompassBase):
+    """A mock OceanServer OS5000 tilt-compensated compass at *link_path* (its "$C" ASCII output)."""
+
+    def __init__(self, vehicle: SimVehicle, *, link_path: str | os.PathLike[str], rate_hz: float = 10.0,
+                 declination_deg: float = 0.0, heading_sigma_deg: float = 0.5, attitude_sigma_deg: float = 0.2,
+                 temperature_c: float = 25.0, seed: int = 0, name: str = "compass") -> None:
+        super().__init__(vehicle, link_path=link_path, rate_hz=rate_hz, name=name, declination_deg=declination_deg,
+                         heading_sigma_deg=heading_sigma_deg, attitude_sigma_deg=attitude_sigma_deg, seed=seed)
+        self.temperature_c = float(temperature_c)
+
+    def epoch_lines(self, truth: VehicleTruth) -> list[bytes]:
+        """One ``$C...`` line for this epoch."""
+        magnetic, pitch, roll = self.measure(truth)
+        return [os5000_line(magnetic, pitch, roll, self.temperature_c)]
