@@ -33,7 +33,7 @@ def test_discover_param_estimate_and_stop_by_name(services: ServiceProcesses, bu
     assert {"channel": "STATE_INFO", "type": "StateInformation"} in est["subscribes"]
 
     params = json.loads(services.cli("param", "list", "state_estimator", "--json").stdout)
-    assert params["sensor_timeout_s"] == 2.0 and params["mode"] == "passthrough"
+    assert params["sensor_timeout_s"] == 2.0 and params["mode"] == "ekf"
     cfg_file = services.workdir / ".u2sa" / "config" / "state_estimator.toml"
     assert not cfg_file.exists()
     r = services.cli("param", "set", "state_estimator", "sensor_timeout_s", "4.5")
@@ -52,7 +52,8 @@ def test_discover_param_estimate_and_stop_by_name(services: ServiceProcesses, bu
     bus.publish(ch.STATE_INFO, info)
     wait_until(lambda: estimates, message="a STATE_ESTIMATE")
     est_msg = estimates[-1]
-    assert est_msg.present_fields() == ["x", "psi"] and est_msg.x == 3.0 and est_msg.psi == 1.25
+    assert {"x", "psi"} <= set(est_msg.present_fields()) and not est_msg.has("y")  # the EKF adds rates, sigmas
+    assert est_msg.x == 3.0 and est_msg.psi == 1.25
     assert est_msg.header.source == "state_estimator" and est_msg.header.sequence >= 1
 
     r = services.cli("stop", "state_estimator")

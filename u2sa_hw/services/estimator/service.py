@@ -1,55 +1,103 @@
 """State Estimator (requirement S1; thesis 3.2.3.1, 4.5.2.2).
 
-In pass-through mode each State Information received on ``STATE_INFO`` has its present
-fields copied into the running estimate, which is published on ``STATE_ESTIMATE`` (the
-thesis's FlightGear and UGV estimators). Sensors are registered by name on their first
-message and reported in health.
+Two modes, chosen by the config field ``mode``:
+
+``ekf`` (default)
+    An extended Kalman filter (:mod:`.ekf`) fed by every sensor on ``STATE_INFO``
+    (:mod:`.fusion` says how each field and frame is read). The run loop predicts and
+    publishes ``STATE_ESTIMATE`` (NED, with sigmas) at ``publish_rate_hz``; nothing is
+    published before the first usable measurement.
+``passthrough``
+    The thesis's FlightGear estimator: each State Information has its present fields
+    copied into the running estimate, which is published at once.
+
+Sensors are registered by name on their first message; a sensor silent for longer than
+``sensor_timeout_s`` is listed in health (status ``degraded``), as are the outliers the
+gate rejected per sensor. Changing a filter field over the bus restarts the filter.
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from typing import Any, ClassVar
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config import field
+from u2sa_hw.config import ConfigError, field
 from u2sa_hw.messages import STATE_FIELDS
 from u2sa_hw.service import U2SAService
+from u2sa_hw.services.estimator.fusion import FusionSettings, StateFusion
+
+MODES = ("ekf", "passthrough")
+_FILTER_FIELDS = tuple(FusionSettings.__dataclass_fields__)
 
 
 class StateEstimator(U2SAService):
     """Fuses State Information from any number of sensors into STATE_ESTIMATE."""
 
     SERVICE_TYPE: ClassVar[str] = "state_estimator"
+    _D = FusionSettings()
     CONFIG = (
-        field("mode", "passthrough", "passthrough: copy present fields of each message into the estimate"),
+        field("mode", "ekf", "ekf: extended Kalman filter; passthrough: copy present fields of each message"),
         field("sensor_timeout_s", 2.0, "a sensor silent for this long is reported in health"),
+        field("publish_rate_hz", 50.0, "ekf: STATE_ESTIMATE publications per second"),
+        field("default_position_sigma", _D.default_position_sigma, "m, for a position without x_sigma/y_sigma"),
+        field("default_altitude_sigma", _D.default_altitude_sigma, "m, for a z without z_sigma"),
+        field("default_velocity_sigma", _D.default_velocity_sigma, "m/s, for a velocity without its sigma"),
+        field("default_heading_sigma", _D.default_heading_sigma, "rad, for a psi without psi_sigma"),
+        field("default_yaw_rate_sigma", _D.default_yaw_rate_sigma, "rad/s, for a psi_dot without its sigma"),
+        field("accel_noise", _D.accel_noise, "process noise, horizontal acceleration m/s^2/sqrt(Hz)"),
+        field("vertical_accel_noise", _D.vertical_accel_noise, "process noise, vertical acceleration"),
+        field("yaw_accel_noise", _D.yaw_accel_noise, "process noise, yaw acceleration rad/s^2/sqrt(Hz)"),
+        field("gate_probability", _D.gate_probability, "chi-square probability of the outlier gate (1 disables)"),
+        field("reinit_after", _D.reinit_after, "consecutive rejections of one sensor before it is trusted again"),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
+        self._lock = threading.Lock()
+        self.mode = self._checked_mode(self.config.get("mode"))
         self.estimate = t.StateInformation()
         self.estimate.sensor_name = name
         self.estimate.reference_frame = "NED"
         self.sensors: dict[str, float] = {}
+        self.fusion = self._new_fusion()
         self.register_subscriber(ch.STATE_INFO, t.StateInformation)
         self.register_publisher(ch.STATE_ESTIMATE, t.StateInformation)
 
+    def _checked_mode(self, mode: str) -> str:
+        if mode not in MODES:
+            raise ConfigError(f"{self.config.path or 'state_estimator config'}: mode must be one of "
+                              f"{', '.join(MODES)}, got {mode!r}")
+        return mode
+
+    def _new_fusion(self) -> StateFusion:
+        settings = FusionSettings(**{k: self.config.get(k) for k in _FILTER_FIELDS})
+        return StateFusion(origin=self.profile.origin, settings=settings, logger=self.logger)
+
+    # -- input ------------------------------------------------------------------------------
     def callback(self, data: Any) -> None:
-        """Fold a State Information into the estimate and publish it (pass-through)."""
+        """Register the sensor and fold its State Information into the estimate."""
         if not isinstance(data, t.StateInformation):
             super().callback(data)
             return
-        if data.sensor_name not in self.sensors:
-            self.logger.info("new sensor '%s' (fields: %s)", data.sensor_name, ", ".join(data.present_fields()))
-        self.sensors[data.sensor_name] = time.monotonic()
-        self.copy_present(data, self.estimate)
-        self.estimate.header.timestamp_us = data.header.timestamp_us
-        if data.reference_frame:
-            self.estimate.reference_frame = data.reference_frame
-        self.publish(ch.STATE_ESTIMATE, self.estimate)
-        self.estimate.header.timestamp_us = 0
+        now = time.monotonic()
+        name = data.sensor_name
+        with self._lock:
+            if name not in self.sensors:
+                self.logger.info("new sensor '%s' (frame %s, fields: %s)", name, data.reference_frame or "NED",
+                                 ", ".join(data.present_fields()))
+            self.sensors[name] = now
+            if self.mode == "ekf":
+                self.fusion.ingest(data, now=now)
+                return
+            self.copy_present(data, self.estimate)
+            self.estimate.header.timestamp_us = data.header.timestamp_us
+            if data.reference_frame:
+                self.estimate.reference_frame = data.reference_frame
+            self.publish(ch.STATE_ESTIMATE, self.estimate)
+            self.estimate.header.timestamp_us = 0
 
     @staticmethod
     def copy_present(src: t.StateInformation, dst: t.StateInformation) -> None:
@@ -60,14 +108,49 @@ class StateEstimator(U2SAService):
                 setattr(dst, name, getattr(src, name))
         dst.presence_vector |= pv
 
+    # -- output -----------------------------------------------------------------------------
+    def run(self) -> None:
+        """In ekf mode: predict and publish the estimate at ``publish_rate_hz``."""
+        while self.wait(1.0 / max(0.1, float(self.config.get("publish_rate_hz")))):
+            if self.mode != "ekf":
+                continue
+            with self._lock:
+                self.fusion.predict_to(time.monotonic())
+                msg = self.fusion.estimate(name=self.name)
+            if msg is not None:
+                self.publish(ch.STATE_ESTIMATE, msg)
+
+    def on_config_change(self, name: str, value: Any) -> None:
+        """Apply a new mode or filter setting live (a filter setting restarts the filter)."""
+        if name == "mode":
+            try:
+                mode = self._checked_mode(value)
+            except ConfigError as exc:
+                self.error(f"{exc}; staying in {self.mode} mode")
+                return
+            with self._lock:
+                self.mode = mode
+                self.fusion = self._new_fusion()
+            self.logger.info("mode is now %s", mode)
+        elif name in _FILTER_FIELDS:
+            with self._lock:
+                self.fusion = self._new_fusion()
+            self.logger.info("%s changed to %s: filter restarted", name, value)
+
     def health_details(self) -> dict[str, Any]:
-        """Known sensors and the silent ones."""
+        """Mode, known and silent sensors, and per-sensor outliers (ekf)."""
         now = time.monotonic()
         timeout = float(self.config.get("sensor_timeout_s"))
-        silent = [n for n, seen in self.sensors.items() if now - seen > timeout]
+        with self._lock:
+            silent = sorted(n for n, seen in self.sensors.items() if now - seen > timeout)
+            records = list(self.fusion.sensors.values())
         if silent and self.status == "ok":
             self.status = "degraded"
         elif not silent and self.status == "degraded":
             self.status = "ok"
-        return {"mode": self.config.get("mode"), "sensors": ",".join(sorted(self.sensors)),
-                "silent_sensors": ",".join(sorted(silent))}
+        details: dict[str, Any] = {"mode": self.mode, "sensors": ",".join(sorted(self.sensors)),
+                                   "silent_sensors": ",".join(silent)}
+        if self.mode == "ekf":
+            details["outliers"] = ",".join(f"{r.name}:{r.outliers}" for r in records)
+            details["unusable_fields"] = ",".join(f"{r.name}:{r.unusable}" for r in records if r.unusable)
+        return details
