@@ -1,0 +1,391 @@
+"""A mock GPIO character device behind a Unix socket, with timestamped edge events.
+
+``MockGpioChip`` models what a driver sees of ``/dev/gpiochipN`` through libgpiod v2:
+a client connection is one line request (like the kernel's request fd); lines are
+requested as inputs (edge detection rising/falling/both/none, bias) or outputs (initial
+value); a line already requested is refused with EBUSY naming its consumer; values are
+read and written; edges on an input are delivered only to the client that requested it,
+as gpiod ``EdgeEvent``s (type, timestamp_ns, line_offset, global_seqno, line_seqno)
+with per-request sequence numbers. Closing the connection releases the lines.
+
+The chip side is for simulations and tests: ``drive_input`` sets an input level (the
+edge timestamp is the one given, else CLOCK_MONOTONIC now), ``read_output``,
+``history`` (timestamped level changes), ``on_output`` callbacks, and faults:
+``disconnect`` and ``stop_edges``. The wire protocol lives in
+``u2sa_hw.ports.gpio_port`` (driver and mock share it) and is documented in
+``docs/gpio-and-rc.md``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import queue
+import socket
+import stat
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from u2sa_hw.ports.gpio_port import (BIASES, EDGE_FALLING, EDGE_RISING, EDGES, MOCK_EDGE, MOCK_EDGE_RECORD, MOCK_JSON,
+                                     MOCK_PREFIX, MockFrameReader, MockProtocolError, encode_mock_frame,
+                                     encode_mock_json)
+
+log = logging.getLogger("mock_devices.gpio_chip")
+
+OutputCallback = Callable[[int, int, int], None]
+
+
+@dataclass(frozen=True)
+class GpioChipRecord:
+    """A level change: ``kind`` "output" (a client set it) or "input" (the chip side drove it)."""
+
+    timestamp_ns: int
+    line: int
+    value: int
+    kind: str
+
+
+@dataclass
+class _Client:
+    sock: socket.socket
+    consumer: str = ""
+    lines: dict[int, dict[str, Any]] = field(default_factory=dict)  # offset -> settings
+    outbox: queue.Queue = field(default_factory=lambda: queue.Queue(maxsize=4096))
+    global_seqno: int = 0
+    line_seqno: dict[int, int] = field(default_factory=dict)
+    closed: bool = False
+
+
+class ChipRefusal(Exception):
+    """A request refused with a kernel-like errno name."""
+
+    def __init__(self, errno_name: str, message: str, **extra: Any) -> None:
+        super().__init__(message)
+        self.reply = {"ok": False, "error": errno_name, "message": message, **extra}
+
+
+class MockGpioChip:
+    """A GPIO chip with *num_lines* lines served at *socket_path* (address ``mock:<path>``).
+
+    *release_level* is the level an output falls to when its client releases it or goes
+    away (the board's pull resistor); None keeps the last value as many SoCs do.
+    """
+
+    def __init__(self, *, socket_path: str, num_lines: int = 32, label: str = "mock-gpiochip",
+                 release_level: int | None = 0, history_size: int = 100_000) -> None:
+        self.socket_path = str(socket_path)
+        self.num_lines = num_lines
+        self.label = label
+        self.release_level = release_level
+        self.history: deque[GpioChipRecord] = deque(maxlen=history_size)
+        self.dropped_edges = 0
+        self.protocol_errors = 0
+        self._lock = threading.RLock()
+        self._levels = [0] * num_lines
+        self._driven: dict[int, int] = {}  # input levels set by drive_input
+        self._owners: dict[int, _Client] = {}
+        self._clients: list[_Client] = []
+        self._callbacks: list[OutputCallback] = []
+        self._edges_stopped = False
+        self._stop = threading.Event()
+        self._server: socket.socket | None = None
+        self._acceptor: threading.Thread | None = None
+
+    @property
+    def address(self) -> str:
+        """What a driver config names: ``mock:<socket path>``."""
+        return MOCK_PREFIX + self.socket_path
+
+    def start(self) -> MockGpioChip:
+        """Listen on the socket (replacing a stale one) and serve clients on threads."""
+        if os.path.exists(self.socket_path) and stat.S_ISSOCK(os.stat(self.socket_path).st_mode):
+            os.unlink(self.socket_path)
+        server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        server.bind(self.socket_path)
+        server.listen(16)
+        server.settimeout(0.25)
+        self._server = server
+        self._stop.clear()
+        self._acceptor = threading.Thread(target=self._accept_loop, name=f"{self.label}-accept", daemon=True)
+        self._acceptor.start()
+        return self
+
+    def stop(self) -> None:
+        """Disconnect every client, stop listening and remove the socket file."""
+        self._stop.set()
+        if self._acceptor is not None:
+            self._acceptor.join(timeout=2.0)
+        self.disconnect()
+        if self._server is not None:
+            self._server.close()
+            self._server = None
+        if os.path.exists(self.socket_path):
+            os.unlink(self.socket_path)
+
+    def __enter__(self) -> MockGpioChip:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # ---- chip side -------------------------------------------------------------------
+    def drive_input(self, line: int, value: int, timestamp_ns: int | None = None) -> bool:
+        """Set input *line* to *value*; a change is an edge stamped *timestamp_ns* (default now).
+
+        Returns True when the level changed. Driving a line a client holds as an output
+        raises ValueError (two drivers on one wire).
+        """
+        self._check_line(line)
+        value = 1 if value else 0
+        stamp = time.monotonic_ns() if timestamp_ns is None else int(timestamp_ns)
+        with self._lock:
+            owner = self._owners.get(line)
+            if owner is not None and owner.lines[line]["direction"] == "output":
+                raise ValueError(f"{self.label}: line {line} is an output of '{owner.consumer}'; "
+                                 "the chip side can only drive inputs")
+            previous = self._input_level(line)
+            self._driven[line] = self._levels[line] = value
+            if previous == value:
+                return False
+            self.history.append(GpioChipRecord(stamp, line, value, "input"))
+            if owner is not None:
+                self._deliver_edge(owner, line, value, stamp)
+            return True
+
+    def read_output(self, line: int) -> int:
+        """The level of *line* as the chip drives it (the last value a client set)."""
+        self._check_line(line)
+        with self._lock:
+            return self._levels[line]
+
+    def on_output(self, callback: OutputCallback) -> None:
+        """Call ``callback(line, value, timestamp_ns)`` on every output level change."""
+        with self._lock:
+            self._callbacks.append(callback)
+
+    def consumers(self) -> dict[int, str]:
+        """Lines in use and the consumer name of each (what ``gpioinfo`` shows)."""
+        with self._lock:
+            return {line: client.consumer for line, client in sorted(self._owners.items())}
+
+    def disconnect(self, consumer: str | None = None) -> int:
+        """Fault: drop the client(s) of *consumer* (all when None); returns how many."""
+        with self._lock:
+            victims = [c for c in self._clients if consumer is None or c.consumer == consumer]
+        for client in victims:
+            self._drop(client)
+        return len(victims)
+
+    def stop_edges(self, on: bool) -> None:
+        """Fault: while on, levels still change but no edge events reach clients."""
+        self._edges_stopped = on
+
+    # ---- internals ---------------------------------------------------------------------
+    def _check_line(self, line: int) -> None:
+        if not 0 <= line < self.num_lines:
+            raise ValueError(f"{self.label}: line {line} out of range 0..{self.num_lines - 1}")
+
+    def _input_level(self, line: int) -> int:
+        if line in self._driven:
+            return self._driven[line]
+        owner = self._owners.get(line)
+        return 1 if owner is not None and owner.lines[line].get("bias") == "pull-up" else 0
+
+    def _deliver_edge(self, client: _Client, line: int, value: int, stamp: int) -> None:
+        edge = client.lines[line]["edge"]
+        if edge == "none" or (edge == "rising" and not value) or (edge == "falling" and value):
+            return
+        if self._edges_stopped:
+            self.dropped_edges += 1
+            return
+        client.global_seqno += 1
+        client.line_seqno[line] = client.line_seqno.get(line, 0) + 1
+        record = MOCK_EDGE_RECORD.pack(EDGE_RISING if value else EDGE_FALLING, line, stamp,
+                                       client.global_seqno, client.line_seqno[line])
+        try:
+            client.outbox.put_nowait(encode_mock_frame(MOCK_EDGE, record))
+        except queue.Full:
+            self.dropped_edges += 1  # the client stopped reading; the kernel drops too
+
+    def _set_output(self, line: int, value: int, fired: list[tuple[int, int, int]]) -> None:
+        if self._levels[line] != value:
+            stamp = time.monotonic_ns()
+            self._levels[line] = value
+            self.history.append(GpioChipRecord(stamp, line, value, "output"))
+            fired.append((line, value, stamp))
+
+    def _fire(self, fired: list[tuple[int, int, int]]) -> None:
+        # outside the lock: a callback may drive inputs (the mux read-back line)
+        for line, value, stamp in fired:
+            for callback in list(self._callbacks):
+                try:
+                    callback(line, value, stamp)
+                except Exception:  # noqa: BLE001 - a broken simulation hook must not kill the chip
+                    log.exception("%s: on_output callback failed", self.label)
+
+    def _accept_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                sock, _ = self._server.accept()  # type: ignore[union-attr]
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            sock.settimeout(None)
+            client = _Client(sock=sock)
+            with self._lock:
+                self._clients.append(client)
+            threading.Thread(target=self._client_reader, args=(client,), daemon=True,
+                             name=f"{self.label}-client").start()
+            threading.Thread(target=self._client_writer, args=(client,), daemon=True,
+                             name=f"{self.label}-writer").start()
+
+    def _client_writer(self, client: _Client) -> None:
+        while True:
+            frame = client.outbox.get()
+            if frame is None:
+                return
+            try:
+                client.sock.sendall(frame)
+            except OSError:
+                return
+
+    def _client_reader(self, client: _Client) -> None:
+        frames = MockFrameReader()
+        try:
+            while True:
+                data = client.sock.recv(65536)
+                if not data:
+                    break
+                for kind, payload in frames.feed(data):
+                    if kind != MOCK_JSON:
+                        raise MockProtocolError(f"client sent frame kind {kind!r}")
+                    self._answer(client, json.loads(payload))
+        except OSError:
+            pass
+        except (MockProtocolError, ValueError, TypeError, AttributeError) as exc:
+            self.protocol_errors += 1
+            log.warning("%s: dropping client '%s' after a protocol error: %s", self.label, client.consumer, exc)
+        self._drop(client)
+
+    def _answer(self, client: _Client, request: Any) -> None:
+        if not isinstance(request, dict):
+            raise MockProtocolError("request is not a JSON object")
+        handler = {"request": self._op_request, "get": self._op_get, "set": self._op_set,
+                   "release": self._op_release, "info": self._op_info}.get(request.get("op"))
+        fired: list[tuple[int, int, int]] = []
+        try:
+            if handler is None:
+                raise ChipRefusal("EINVAL", f"unknown op {request.get('op')!r}")
+            with self._lock:
+                reply = {"ok": True, **handler(client, request, fired)}
+        except ChipRefusal as exc:
+            reply = exc.reply
+        reply["id"] = request.get("id")
+        self._fire(fired)
+        try:
+            client.outbox.put_nowait(encode_mock_json(reply))
+        except queue.Full:
+            self._drop(client)
+
+    def _offset(self, key: Any) -> int:
+        try:
+            line = int(key)
+        except (TypeError, ValueError):
+            raise ChipRefusal("EINVAL", f"bad line offset {key!r}") from None
+        if not 0 <= line < self.num_lines:
+            raise ChipRefusal("EINVAL", f"line {line} out of range 0..{self.num_lines - 1}")
+        return line
+
+    def _op_request(self, client: _Client, req: dict, fired: list) -> dict:
+        lines: dict[int, dict[str, Any]] = {}
+        for key, settings in dict(req.get("lines") or {}).items():
+            line = self._offset(key)
+            direction, edge = settings.get("direction"), settings.get("edge", "none")
+            bias, value = settings.get("bias", "as-is"), settings.get("value", 0)
+            if direction not in ("input", "output") or edge not in EDGES or bias not in BIASES or value not in (0, 1):
+                raise ChipRefusal("EINVAL", f"bad settings for line {line}: {settings}")
+            lines[line] = {"direction": direction, "edge": edge if direction == "input" else "none",
+                           "bias": bias, "value": value}
+        if not lines:
+            raise ChipRefusal("EINVAL", "a request needs at least one line")
+        busy = {str(n): self._owners[n].consumer for n in lines if n in self._owners}
+        if busy:
+            raise ChipRefusal("EBUSY", "lines in use: " + ", ".join(f"{n} by '{c}'" for n, c in busy.items()),
+                              consumers=busy)
+        client.consumer = str(req.get("consumer") or client.consumer)
+        for line, settings in lines.items():
+            client.lines[line] = settings
+            self._owners[line] = client
+            if settings["direction"] == "output":
+                self._driven.pop(line, None)
+                self._set_output(line, settings["value"], fired)
+            else:
+                self._levels[line] = self._input_level(line)
+        return {}
+
+    def _op_get(self, client: _Client, req: dict, fired: list) -> dict:
+        values = []
+        for key in req.get("lines") or []:
+            line = self._offset(key)
+            if line not in client.lines:
+                raise ChipRefusal("EINVAL", f"line {line} is not part of this request")
+            values.append(self._levels[line])
+        return {"values": values}
+
+    def _op_set(self, client: _Client, req: dict, fired: list) -> dict:
+        updates = {self._offset(k): v for k, v in dict(req.get("values") or {}).items()}
+        for line, value in updates.items():
+            if line not in client.lines:
+                raise ChipRefusal("EINVAL", f"line {line} is not part of this request")
+            if client.lines[line]["direction"] != "output":
+                raise ChipRefusal("EPERM", f"line {line} is an input")
+            if value not in (0, 1):
+                raise ChipRefusal("EINVAL", f"bad value {value!r} for line {line}")
+        for line, value in updates.items():
+            self._set_output(line, value, fired)
+        return {}
+
+    def _op_release(self, client: _Client, req: dict, fired: list) -> dict:
+        self._release_lines(client, fired)
+        return {}
+
+    def _op_info(self, client: _Client, req: dict, fired: list) -> dict:
+        used = {str(n): {"consumer": c.consumer, **c.lines[n]} for n, c in self._owners.items()}
+        return {"label": self.label, "num_lines": self.num_lines, "lines": used}
+
+    def _release_lines(self, client: _Client, fired: list) -> None:
+        for line, settings in client.lines.items():
+            self._owners.pop(line, None)
+            if settings["direction"] == "output" and self.release_level is not None:
+                self._set_output(line, self.release_level, fired)
+        client.lines.clear()
+        client.line_seqno.clear()
+
+    def _drop(self, client: _Client) -> None:
+        fired: list[tuple[int, int, int]] = []
+        with self._lock:
+            if client.closed:
+                return
+            client.closed = True
+            self._release_lines(client, fired)
+            self._clients.remove(client)
+        try:
+            client.sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        client.sock.close()
+        while True:  # make room for the writer's stop sentinel
+            try:
+                client.outbox.put_nowait(None)
+                break
+            except queue.Full:
+                try:
+                    client.outbox.get_nowait()
+                except queue.Empty:
+                    pass
+        self._fire(fired)

@@ -1,0 +1,401 @@
+"""GPIO port: input lines with timestamped edge events and output lines, real or mock.
+
+``open_gpio(device=..., chip="/dev/gpiochip0", ...)`` requests the lines from the kernel
+through libgpiod v2 (``gpiod`` is imported only then, never at import time);
+``chip="mock:/path/to.sock"`` requests them from ``mock_devices.gpio_chip.MockGpioChip``
+over a Unix socket. Both hand out the same ``GpioPort``: ``get``, ``set``,
+``read_edges`` and ``close``. Edge events carry the timestamp the kernel (or the mock
+chip) took when the edge happened, never a time taken when the event was read, because
+an RC pulse width is the difference of two such timestamps.
+
+Mock chip wire protocol: frames ``kind:u8 length:u32be payload``; kind ``J`` is a JSON
+request or reply, kind ``E`` a binary edge event (``MOCK_EDGE_RECORD``). The codec is here
+because driver and mock share it; docs/gpio-and-rc.md documents the requests.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import socket
+import struct
+import threading
+from collections import deque
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any, Iterator, Mapping, Sequence
+
+from u2sa_hw import messages as m
+from u2sa_hw.ports.errors import PortClosed, PortIOError, PortTimeout, PortUnavailable
+from u2sa_hw.ports.tap import Tap, call_tap
+
+MOCK_PREFIX = "mock:"
+EDGES = ("both", "rising", "falling", "none")
+BIASES = ("as-is", "pull-up", "pull-down", "disabled")
+MOCK_JSON, MOCK_EDGE = b"J", b"E"  # frame kinds: a JSON request/reply, a binary edge event
+MOCK_FRAME_HEADER = struct.Struct(">cI")
+MOCK_EDGE_RECORD = struct.Struct(">BIQQQ")
+MOCK_MAX_FRAME = 1 << 20
+EDGE_RISING, EDGE_FALLING = 1, 2  # gpiod EdgeEvent.Type values
+EVENT_BUFFER = 1024  # edges kept unread per port; the oldest is dropped first, as the kernel does
+
+
+@dataclass(frozen=True)
+class EdgeEvent:
+    """One edge on an input line; ``timestamp_ns`` is CLOCK_MONOTONIC from the kernel/mock."""
+
+    line: int
+    rising: bool
+    timestamp_ns: int
+
+
+class MockProtocolError(ValueError):
+    """The mock chip wire protocol was violated (bad kind, oversized frame, bad JSON)."""
+
+
+def encode_mock_frame(kind: bytes, payload: bytes) -> bytes:
+    """One protocol frame: kind byte, big-endian payload length, payload."""
+    return MOCK_FRAME_HEADER.pack(kind, len(payload)) + payload
+
+
+def encode_mock_json(obj: Mapping[str, Any]) -> bytes:
+    """A ``J`` frame holding *obj*."""
+    return encode_mock_frame(MOCK_JSON, json.dumps(obj, separators=(",", ":")).encode())
+
+
+class MockFrameReader:
+    """Splits a byte stream into ``(kind, payload)`` frames; raises MockProtocolError on garbage."""
+
+    def __init__(self) -> None:
+        self._buffer = bytearray()
+
+    def feed(self, data: bytes) -> list[tuple[bytes, bytes]]:
+        """Add received bytes; return the frames completed by them."""
+        self._buffer += data
+        frames = []
+        while len(self._buffer) >= MOCK_FRAME_HEADER.size:
+            kind, length = MOCK_FRAME_HEADER.unpack_from(self._buffer)
+            if kind not in (MOCK_JSON, MOCK_EDGE) or length > MOCK_MAX_FRAME:
+                raise MockProtocolError(f"bad frame header kind={kind!r} length={length}")
+            end = MOCK_FRAME_HEADER.size + length
+            if len(self._buffer) < end:
+                break
+            frames.append((kind, bytes(self._buffer[MOCK_FRAME_HEADER.size:end])))
+            del self._buffer[:end]
+        return frames
+
+
+class GpioPort:
+    """Requested GPIO lines of one chip; subclasses talk to gpiod or to the mock chip."""
+
+    def __init__(self, *, device: str, address: str, inputs: Sequence[int], outputs: Mapping[int, int],
+                 tap: Tap | None) -> None:
+        self.device, self.address = device, address
+        self.inputs, self.outputs = tuple(inputs), dict(outputs)  # outputs: line -> last value set
+        self._tap, self._closed = tap, False
+
+    is_open = property(lambda self: not self._closed, doc="False after close().")
+
+    def get(self, line: int) -> int:
+        """The current level (0/1) of a requested input or output line."""
+        self._check(line, self.inputs + tuple(self.outputs), "a requested line")
+        return self._get(line)
+
+    def set(self, line: int, value: int) -> None:
+        """Drive a requested output line to *value* (0/1) and tap the write."""
+        self._check(line, tuple(self.outputs), "an output line")
+        if value not in (0, 1):
+            raise ValueError(f"{self.device}: GPIO value must be 0 or 1, not {value!r}")
+        self._set(line, int(value))
+        self.outputs[line] = int(value)
+        self._tap_write(line, int(value))
+
+    def read_edges(self, timeout: float) -> list[EdgeEvent]:
+        """Edges that happened since the last call; waits up to *timeout* s for the first one."""
+        self._check_open()
+        events = self._read_edges(timeout)
+        if self._tap is not None:
+            for event in events:
+                record = m.RawGpioEdge()
+                record.device, record.line = self.device, event.line
+                record.edge, record.kernel_timestamp_ns = int(event.rising), event.timestamp_ns
+                call_tap(self._tap, record)
+        return events
+
+    def close(self) -> None:
+        """Release the lines; further calls raise PortClosed."""
+        if not self._closed:
+            self._closed = True
+            self._release()
+
+    def _tap_write(self, line: int, value: int) -> None:
+        if self._tap is not None:
+            record = m.RawGpioWrite()
+            record.device, record.line, record.value = self.device, line, value
+            call_tap(self._tap, record)
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise PortClosed(self.device, "GPIO port is closed", address=self.address, fix="open the port again")
+
+    def _check(self, line: int, allowed: Sequence[int], what: str) -> None:
+        self._check_open()
+        if line not in allowed:
+            raise ValueError(f"{self.device}: line {line} is not {what} of this port "
+                             f"(inputs {list(self.inputs)}, outputs {sorted(self.outputs)})")
+
+    # backend hooks
+    def _get(self, line: int) -> int: raise NotImplementedError  # noqa: E704
+    def _set(self, line: int, value: int) -> None: raise NotImplementedError  # noqa: E704
+    def _read_edges(self, timeout: float) -> list[EdgeEvent]: raise NotImplementedError  # noqa: E704
+    def _release(self) -> None: raise NotImplementedError  # noqa: E704
+
+
+class MockGpioPort(GpioPort):
+    """Client of a MockGpioChip: one connection is one line request, like a kernel request fd."""
+
+    REPLY_TIMEOUT = 5.0
+
+    def __init__(self, *, device: str, socket_path: str, inputs: Sequence[int], outputs: Mapping[int, int],
+                 edge: str, bias: str, tap: Tap | None) -> None:
+        super().__init__(device=device, address=MOCK_PREFIX + socket_path, inputs=inputs, outputs=outputs, tap=tap)
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            self._sock.connect(socket_path)
+        except OSError as exc:
+            self._sock.close()
+            raise PortUnavailable(device, f"no mock GPIO chip is listening at {socket_path} ({exc.strerror})",
+                                  address=self.address, fix="start the mock chip (mock_devices.gpio_chip."
+                                                            "MockGpioChip) or correct the address") from exc
+        self._cond, self._send_lock = threading.Condition(), threading.Lock()
+        self._edges: deque[EdgeEvent] = deque(maxlen=EVENT_BUFFER)
+        self._replies: dict[int, dict[str, Any]] = {}
+        self._next_id, self._lost = 0, ""  # _lost: why the connection is gone, once it is
+        self._reader = threading.Thread(target=self._read_loop, name=f"gpio-mock-{device}", daemon=True)
+        self._reader.start()
+        lines: dict[str, dict[str, Any]] = {str(n): {"direction": "input", "edge": edge, "bias": bias} for n in inputs}
+        for n, value in outputs.items():
+            lines[str(n)] = {"direction": "output", "value": value, "bias": bias}
+        try:
+            reply = self._call({"op": "request", "consumer": f"u2sa:{device}", "lines": lines})
+        except (PortClosed, PortTimeout) as exc:
+            reply = {"ok": False, "message": f"no answer ({exc})"}
+        if not reply.get("ok"):
+            self.close()
+            if reply.get("error") == "EBUSY":
+                users = ", ".join(f"line {n} by '{c}'" for n, c in sorted(reply.get("consumers", {}).items()))
+                message, fix = f"GPIO lines in use: {users}", "stop the process holding the line or change the line"
+            else:
+                message, fix = f"mock chip refused the request: {reply.get('message')}", "check lines and settings"
+            raise PortUnavailable(device, message, address=self.address, fix=fix + " in this service's config")
+        for n, value in outputs.items():
+            self._tap_write(n, value)
+
+    def _read_loop(self) -> None:
+        frames = MockFrameReader()
+        reason = "the mock chip closed the connection"
+        try:
+            while True:
+                data = self._sock.recv(65536)
+                if not data:
+                    break
+                for kind, payload in frames.feed(data):
+                    self._dispatch(kind, payload)
+        except OSError as exc:
+            reason = f"connection to the mock chip failed ({exc})"
+        except (ValueError, TypeError, AttributeError, struct.error) as exc:
+            reason = f"mock chip sent garbage ({exc})"
+        with self._cond:
+            self._lost = reason
+            self._cond.notify_all()
+
+    def _dispatch(self, kind: bytes, payload: bytes) -> None:
+        if kind == MOCK_EDGE:
+            event_type, line, timestamp_ns, _global, _line_seq = MOCK_EDGE_RECORD.unpack(payload)
+            event = EdgeEvent(line=line, rising=event_type == EDGE_RISING, timestamp_ns=timestamp_ns)
+            with self._cond:
+                self._edges.append(event)
+                self._cond.notify_all()
+        else:
+            reply = json.loads(payload)
+            with self._cond:
+                self._replies[int(reply.get("id", -1))] = reply
+                self._cond.notify_all()
+
+    def _lost_error(self, reason: str) -> PortClosed:
+        return PortClosed(self.device, reason, address=self.address, fix="restart the mock chip; the driver reconnects")
+
+    def _call(self, request: dict[str, Any]) -> dict[str, Any]:
+        """Send *request* and wait for its reply (``ok`` true or an ``error`` errno name)."""
+        with self._cond:
+            self._next_id += 1
+            request["id"] = request_id = self._next_id
+        try:
+            with self._send_lock:
+                self._sock.sendall(encode_mock_json(request))
+        except OSError as exc:
+            raise self._lost_error(f"mock chip connection lost ({exc})") from exc
+        with self._cond:
+            self._cond.wait_for(lambda: request_id in self._replies or self._lost, self.REPLY_TIMEOUT)
+            reply = self._replies.pop(request_id, None)
+            if reply is None and self._lost:
+                raise self._lost_error(self._lost)
+        if reply is None:
+            raise PortTimeout(self.device, f"mock chip did not answer '{request['op']}' within {self.REPLY_TIMEOUT:g} s",
+                              address=self.address, fix="check the mock chip process")
+        return reply
+
+    def _transaction(self, request: dict[str, Any]) -> dict[str, Any]:
+        reply = self._call(request)
+        if not reply.get("ok"):
+            raise PortIOError(self.device, f"{request['op']} failed: {reply.get('error')}: {reply.get('message')}",
+                              address=self.address)
+        return reply
+
+    def _get(self, line: int) -> int:
+        return int(self._transaction({"op": "get", "lines": [line]})["values"][0])
+
+    def _set(self, line: int, value: int) -> None:
+        self._transaction({"op": "set", "values": {str(line): value}})
+
+    def _read_edges(self, timeout: float) -> list[EdgeEvent]:
+        with self._cond:
+            self._cond.wait_for(lambda: self._edges or self._lost or self._closed, timeout)
+            events = list(self._edges)
+            self._edges.clear()
+            if not events and self._lost:
+                raise self._lost_error(self._lost)
+        return events
+
+    def _release(self) -> None:
+        if not self._lost:  # release before hanging up so the lines are free when close() returns, as in the kernel
+            try:
+                self._call({"op": "release"})
+            except (PortClosed, PortTimeout):
+                pass
+        try:
+            self._sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        self._sock.close()
+        with self._cond:
+            self._cond.notify_all()
+        if threading.current_thread() is not self._reader:
+            self._reader.join(timeout=2.0)
+
+
+
+class GpiodGpioPort(GpioPort):
+    """Lines of a kernel GPIO character device, through libgpiod v2."""
+
+    def __init__(self, *, device: str, chip_path: str, inputs: Sequence[int], outputs: Mapping[int, int],
+                 edge: str, bias: str, tap: Tap | None) -> None:
+        super().__init__(device=device, address=chip_path, inputs=inputs, outputs=outputs, tap=tap)
+        try:
+            import gpiod
+            from gpiod.line import Bias, Direction, Edge, Value
+        except ImportError as exc:
+            raise PortUnavailable(device, f"cannot use {chip_path}: the gpiod (libgpiod v2) bindings are missing",
+                                  address=chip_path, fix="pip install 'gpiod>=2.1' into the u2sa venv") from exc
+        self._gpiod = gpiod
+        bias_setting, edge_setting = Bias[bias.replace("-", "_").upper()], Edge[edge.upper()]
+        config: dict[int, Any] = {n: gpiod.LineSettings(direction=Direction.INPUT, edge_detection=edge_setting,
+                                                        bias=bias_setting) for n in inputs}
+        for n, value in outputs.items():
+            config[n] = gpiod.LineSettings(direction=Direction.OUTPUT, bias=bias_setting,
+                                           output_value=Value.ACTIVE if value else Value.INACTIVE)
+        self._lock = threading.Lock()
+        try:
+            self._request = gpiod.request_lines(chip_path, config=config, consumer=f"u2sa:{device}")
+        except OSError as exc:
+            raise self._open_error(exc, list(config)) from exc
+        except ValueError as exc:
+            raise PortUnavailable(device, f"cannot request lines {sorted(config)}: {exc}", address=chip_path,
+                                  fix="use line offsets the chip has (gpioinfo lists them)") from exc
+        for n, value in outputs.items():
+            self._tap_write(n, value)
+
+    def _open_error(self, exc: OSError, offsets: list[int]) -> PortUnavailable:
+        path, code = self.address, exc.errno
+        if code == errno.ENOENT:
+            message, fix = f"GPIO chip {path} does not exist", ("list the chips with `gpiodetect` and put the right "
+                                                                "/dev/gpiochipN in the service config, or use a mock "
+                                                                "chip address mock:/path.sock")
+        elif code in (errno.EACCES, errno.EPERM):
+            message, fix = f"no permission to open {path}", (f"add the service user to group gpio (usermod -aG gpio "
+                                                             f"<user>) and give {path} to group gpio with a udev rule "
+                                                             "(u2sa install does both)")
+        elif code == errno.EBUSY:
+            message, fix = f"GPIO lines in use: {self._line_users(offsets)}", (
+                "stop the process holding the line (gpioinfo shows the consumer) or change the line in this "
+                "service's config")
+        elif code in (errno.ENODEV, errno.ENOTTY):
+            message, fix = f"{path} is not a GPIO character device", "point the config at a /dev/gpiochipN (gpiodetect)"
+        else:
+            message, fix = f"cannot request GPIO lines {offsets}: {exc.strerror}", "check the lines against `gpioinfo`"
+        return PortUnavailable(self.device, message, address=path, fix=fix)
+
+    def _line_users(self, offsets: list[int]) -> str:
+        try:
+            with self._gpiod.Chip(self.address) as chip:
+                infos = [chip.get_line_info(n) for n in offsets]
+        except (OSError, ValueError):
+            return f"one of lines {offsets} (consumer unknown)"
+        return ", ".join(f"line {i.offset} by '{i.consumer or 'unnamed'}'" for i in infos if i.used) or str(offsets)
+
+    @contextmanager
+    def _request_failures(self) -> Iterator[None]:
+        try:
+            yield
+        except (OSError, self._gpiod.RequestReleasedError) as exc:
+            raise PortClosed(self.device, f"GPIO request failed ({exc})", address=self.address,
+                             fix="check the chip; the driver re-requests the lines") from exc
+
+    def _get(self, line: int) -> int:
+        with self._request_failures(), self._lock:
+            return 1 if self._request.get_value(line) else 0
+
+    def _set(self, line: int, value: int) -> None:
+        level = self._gpiod.line.Value.ACTIVE if value else self._gpiod.line.Value.INACTIVE
+        with self._request_failures(), self._lock:
+            self._request.set_value(line, level)
+
+    def _read_edges(self, timeout: float) -> list[EdgeEvent]:
+        rising = self._gpiod.EdgeEvent.Type.RISING_EDGE
+        with self._request_failures():
+            # the wait is a poll() on the request fd; only the read needs the lock
+            if not self._request.wait_edge_events(timeout):
+                return []
+            with self._lock:
+                events = self._request.read_edge_events()
+        return [EdgeEvent(line=e.line_offset, rising=e.event_type is rising, timestamp_ns=e.timestamp_ns)
+                for e in events]
+
+    def _release(self) -> None:
+        with self._lock:
+            self._request.release()
+
+
+def open_gpio(*, device: str, chip: str, inputs: Sequence[int] = (), outputs: Mapping[int, int] | None = None,
+              edge: str = "both", bias: str = "as-is", tap: Tap | None = None) -> GpioPort:
+    """Request *inputs* (with *edge* detection) and *outputs* (line -> initial value) on *chip*.
+
+    *chip* is a kernel GPIO chip (``/dev/gpiochip0``) or ``mock:/path/to.sock``.
+    *bias* is one of ``as-is``, ``pull-up``, ``pull-down``, ``disabled`` for every line.
+    Raises PortUnavailable (naming the chip and the fix) when the lines cannot be had.
+    """
+    inputs, outputs = list(inputs), dict(outputs or {})
+    if edge not in EDGES or bias not in BIASES:
+        raise ValueError(f"{device}: edge must be one of {EDGES} and bias one of {BIASES}, not {edge!r}, {bias!r}")
+    lines = inputs + list(outputs)
+    if not lines:
+        raise ValueError(f"{device}: a GPIO port needs at least one input or output line")
+    if any(not isinstance(n, int) or isinstance(n, bool) or n < 0 for n in lines) or len(set(lines)) != len(lines):
+        raise ValueError(f"{device}: line offsets must be distinct non-negative integers, got inputs {inputs} "
+                         f"and outputs {sorted(outputs)}")
+    if any(v not in (0, 1) for v in outputs.values()):
+        raise ValueError(f"{device}: initial output values must be 0 or 1, got {outputs}")
+    if chip.startswith(MOCK_PREFIX):
+        return MockGpioPort(device=device, socket_path=chip[len(MOCK_PREFIX):], inputs=inputs, outputs=outputs,
+                            edge=edge, bias=bias, tap=tap)
+    return GpiodGpioPort(device=device, chip_path=chip, inputs=inputs, outputs=outputs, edge=edge, bias=bias, tap=tap)
