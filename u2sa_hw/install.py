@@ -25,7 +25,7 @@ import subprocess
 from pathlib import Path
 
 from u2sa_hw.install_files import InstallTree
-from u2sa_hw.install_manifest import MANIFEST_PATH, host_path, load_manifest, save_manifest
+from u2sa_hw.install_manifest import MANAGED, MANIFEST_PATH, Manifest, host_path, load_manifest, save_manifest
 from u2sa_hw.install_system import (VENV_MODES, InstallError, ensure_users, ensure_venv, owner_ids,
                                     project_source, reload_systemd, reload_udev, remove_users)
 from u2sa_hw.install_units import (CONFIG_DIR, DOC, ETC_DIR, LOG_DIR, PROFILE, STATE_DIR, SYSUSERS, TARGET,
@@ -110,24 +110,30 @@ def uninstall(*, root: Path | str = "/", purge: bool = False) -> InstallTree:
     """Remove what install put under *root* (configs, logs and data too when *purge*)."""
     root = _check_root(Path(root))
     old = load_manifest(root)
-    if old is None:
-        raise InstallError(f"nothing to uninstall: {host_path(root, MANIFEST_PATH)} does not exist "
-                           "(u2sa install writes it)")
+    if old is None or (not purge and not any(r.kind == MANAGED for r in old.files.values())
+                       and not old.symlinks and not old.venv):
+        raise InstallError(f"nothing to uninstall under {root}: no install recorded in "
+                           f"{host_path(root, MANIFEST_PATH)} (what an earlier uninstall kept goes with --purge)")
     tree = InstallTree(root=root, old=old)
     _stop_units(tree)
     if old.venv.get("path"):
         tree.remove_tree(old.venv["path"])
     tree.remove_installed(purge=purge)
-    host_path(root, MANIFEST_PATH).unlink(missing_ok=True)
-    tree.note("removed", MANIFEST_PATH)
     if purge:
+        host_path(root, MANIFEST_PATH).unlink(missing_ok=True)
+        tree.note("removed", MANIFEST_PATH)
         for directory in (ETC_DIR, LOG_DIR, STATE_DIR):
             tree.remove_tree(directory)
         remove_users(tree)
-    opt = host_path(root, OPT_DIR)
-    if opt.is_dir() and not any(opt.iterdir()):
-        shutil.rmtree(opt)
-        tree.note("removed", OPT_DIR)
+        tree.remove_empty_dirs()
+    else:
+        # What stays (configs, the user and groups) stays on record: a later install still
+        # knows which configs the user changed, and a later --purge what install created.
+        kept = Manifest(files={p: r for p, r in old.files.items() if r.kind != MANAGED},
+                        users=old.users, groups=old.groups, profile_source=old.profile_source,
+                        dirs=[d for d in old.dirs if d in (ETC_DIR, CONFIG_DIR, OPT_DIR) or OPT_DIR.startswith(d + "/")])
+        if save_manifest(root, kept):
+            tree.note("updated", MANIFEST_PATH, "now lists only what uninstall kept")
     reload_systemd(tree, units_changed=True)
     reload_udev(tree, rules_changed=True)
     return tree

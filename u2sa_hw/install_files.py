@@ -197,6 +197,10 @@ class InstallTree:
                 self.changes.append(Change("kept", dest, "config (u2sa uninstall --purge removes it)"))
         for dest in sorted(self.old.symlinks):
             self._remove_file(dest)
+        self.remove_empty_dirs()
+
+    def remove_empty_dirs(self) -> None:
+        """Remove the directories install created (old manifest) that are now empty, deepest first."""
         for dest in sorted(self.old.dirs, key=len, reverse=True):
             path = self.path(dest)
             if path.is_dir() and not path.is_symlink() and not any(path.iterdir()):

@@ -172,6 +172,7 @@ def ensure_venv(tree: InstallTree, *, mode: str, source: Path, python: str | Non
     else:
         fingerprint = f"build:{__version__}:{_source_fingerprint(source)}:{interpreter}"
     venv = tree.path(VENV)
+    tree.ensure_parents(VENV)
     tree.new.venv = {"path": VENV, "mode": mode, "fingerprint": fingerprint}
     if tree.old.venv.get("fingerprint") == fingerprint and (venv / "bin" / "u2sa").exists():
         tree.note("unchanged", VENV, f"{mode} venv")
@@ -181,7 +182,6 @@ def ensure_venv(tree: InstallTree, *, mode: str, source: Path, python: str | Non
         raise InstallError(f"--python {interpreter} is Python {version} but this environment is "
                            f"{sys.version_info[0]}.{sys.version_info[1]}; a shared venv needs the same version")
     tree.remove_tree(VENV)
-    tree.ensure_parents(VENV)
     if mode == "shared":
         _run([interpreter, "-m", "venv", "--without-pip", str(venv)], what="creating the venv")
         pth = venv / "lib" / f"python{version}" / "site-packages" / "u2sa-shared-env.pth"

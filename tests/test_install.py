@@ -1,0 +1,231 @@
+"""`u2sa install --root` / `u2sa uninstall`: the staged tree, idempotence, user changes, removal."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from u2sa_hw.install import install, uninstall
+from u2sa_hw.install_manifest import MANIFEST_PATH, load_manifest
+from u2sa_hw.install_system import InstallError
+
+U2SA = Path(sys.executable).with_name("u2sa")
+PROFILE = """\
+# a comment that the installed profile does not keep
+[vehicle]
+name = "rover"
+system_id = 3
+lcm_url = "udpm://239.255.76.67:7667?ttl=0"
+config_dir = "params"
+log_dir = "logs"
+
+[services.estimator]
+kind = "state_estimator"
+
+[services.gps]
+kind = "gps_nmea"
+config = "elsewhere/gps.toml"
+settings = { port = "/dev/u2sa/gps" }
+
+[services.hsm]
+kind = "hsm"
+
+[services.spare]
+kind = "state_estimator"
+enabled = false
+
+[devices.gps]
+usb = { vendor = "1546", product = "01A7", serial = "A1B2" }
+
+[devices.motors]
+can = { channel = "can0", bitrate = 1000000 }
+"""
+
+
+@pytest.fixture()
+def vehicle(tmp_path: Path) -> Path:
+    src = tmp_path / "src"
+    (src / "params").mkdir(parents=True)
+    (src / "elsewhere").mkdir()
+    (src / "params" / "estimator.toml").write_text("sensor_timeout_s = 3.0\n")
+    (src / "elsewhere" / "gps.toml").write_text("baudrate = 9600\n")
+    path = src / "vehicle.toml"
+    path.write_text(PROFILE)
+    return path
+
+
+@pytest.fixture()
+def root(tmp_path: Path) -> Path:
+    """A staging root with the host's users (so useradd --prefix has something to add to)."""
+    r = tmp_path / "root"
+    (r / "etc").mkdir(parents=True)
+    for name in ("passwd", "group", "shadow", "gshadow", "login.defs"):
+        if Path("/etc", name).exists():
+            shutil.copy2(Path("/etc", name), r / "etc" / name)
+    return r
+
+
+def entries(path: Path) -> dict[str, list[str]]:
+    return {line.split(":")[0]: line.split(":") for line in path.read_text().splitlines() if line}
+
+
+def snapshot(root: Path) -> dict[str, tuple[float, int]]:
+    return {str(p): (p.lstat().st_mtime_ns, p.lstat().st_mode) for p in root.rglob("*") if "venv" not in p.parts}
+
+
+def test_install_stages_units_configs_rules_users_and_links(vehicle: Path, root: Path) -> None:
+    tree = install(vehicle=vehicle, root=root)
+    assert tree.changed
+    units = root / "etc/systemd/system"
+    for name in ("u2sa@.service", "u2sa.target", "u2sa-hsm.service", "u2sa-multicast-lo.service",
+                 "u2sa@recorder.service.d/10-recorder.conf"):
+        assert (units / name).is_file(), name
+    wants = units / "u2sa.target.wants"
+    assert sorted(os.listdir(wants)) == ["u2sa-hsm.service", "u2sa@estimator.service", "u2sa@gps.service"]
+    assert os.readlink(wants / "u2sa@gps.service") == "/etc/systemd/system/u2sa@.service"
+    assert os.readlink(units / "multi-user.target.wants/u2sa.target") == "/etc/systemd/system/u2sa.target"
+    # Profile: directories pointed at the vehicle's, service configs all in /etc/u2sa/config.
+    from u2sa_hw.vehicle import load_profile
+
+    installed = root / "etc/u2sa/vehicle.toml"
+    text = installed.read_text()
+    assert "a comment that" not in text and "installed by `u2sa install`" in text
+    prof = load_profile(installed)
+    assert (prof.config_dir, prof.log_dir, prof.data_dir) == (Path("/etc/u2sa/config"), Path("/var/log/u2sa"),
+                                                             Path("/var/lib/u2sa"))
+    assert prof.config_path_for("gps") == Path("/etc/u2sa/config/gps.toml")
+    assert prof.services["gps"].settings == {"port": "/dev/u2sa/gps"} and prof.system_id == 3
+    cfg = root / "etc/u2sa/config"
+    assert (cfg / "estimator.toml").read_text() == "sensor_timeout_s = 3.0\n"
+    assert (cfg / "gps.toml").read_text() == "baudrate = 9600\n"
+    # Users and groups in the staged tree; the config dir belongs to group u2sa, setgid, group-writable.
+    passwd, group = entries(root / "etc/passwd"), entries(root / "etc/group")
+    assert passwd["u2sa"][5:] == ["/var/lib/u2sa", "/usr/sbin/nologin"]
+    for g in ("i2c", "gpio", "dialout"):
+        assert "u2sa" in group[g][3].split(","), g
+    st = cfg.stat()
+    assert st.st_gid == int(group["u2sa"][2]) and st.st_mode & 0o7777 == 0o2770
+    # udev rules: static ones and the profile's devices.
+    rules = (root / "etc/udev/rules.d/65-u2sa-vehicle.rules").read_text()
+    assert ('SUBSYSTEM=="tty", ATTRS{idVendor}=="1546", ATTRS{idProduct}=="01a7", ATTRS{serial}=="A1B2", '
+            'SYMLINK+="u2sa/gps"') in rules
+    assert 'KERNEL=="can0", ENV{U2SA_CAN_BITRATE}="1000000"' in rules
+    assert (root / "etc/udev/rules.d/60-u2sa-permissions.rules").is_file()
+    # The shared venv runs this project with an interpreter the services can reach.
+    py = root / "opt/u2sa/venv/bin/python"
+    done = subprocess.run([str(py), "-c", "import u2sa_hw.cli, lcm; print(u2sa_hw.__version__)"],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert not os.path.realpath(py).startswith(("/root", "/home"))
+    manifest = load_manifest(root)
+    assert manifest is not None and "u2sa" in manifest.users
+    assert manifest.units_enabled == sorted(["u2sa.target", "u2sa@estimator.service", "u2sa@gps.service",
+                                             "u2sa-hsm.service"])
+
+
+def test_second_install_changes_nothing_and_says_so(vehicle: Path, root: Path) -> None:
+    first = subprocess.run([str(U2SA), "install", "--vehicle", str(vehicle), "--root", str(root)],
+                           capture_output=True, text=True, timeout=120)
+    assert first.returncode == 0, first.stderr
+    before = snapshot(root)
+    manifest = (root / MANIFEST_PATH.lstrip("/")).read_bytes()
+    second = subprocess.run([str(U2SA), "install", "--vehicle", str(vehicle), "--root", str(root)],
+                            capture_output=True, text=True, timeout=120)
+    assert second.returncode == 0, second.stderr
+    assert second.stdout.strip() == "nothing to do: everything is already installed as this profile wants"
+    assert snapshot(root) == before
+    assert (root / MANIFEST_PATH.lstrip("/")).read_bytes() == manifest
+
+
+def test_a_config_the_user_changed_is_kept_and_the_new_default_goes_beside_it(vehicle: Path, root: Path) -> None:
+    install(vehicle=vehicle, root=root)
+    cfg = root / "etc/u2sa/config"
+    (cfg / "gps.toml").write_text("baudrate = 38400\n")  # the user's change (e.g. u2sa param set)
+    (vehicle.parent / "elsewhere/gps.toml").write_text("baudrate = 4800\n")  # a new default
+    (vehicle.parent / "params/estimator.toml").write_text("sensor_timeout_s = 5.0\n")  # untouched by the user
+    tree = install(vehicle=vehicle, root=root)
+    assert (cfg / "gps.toml").read_text() == "baudrate = 38400\n"
+    assert (cfg / "gps.toml.new").read_text() == "baudrate = 4800\n"
+    assert (cfg / "estimator.toml").read_text() == "sensor_timeout_s = 5.0\n"
+    assert not (cfg / "estimator.toml.new").exists()
+    assert any(c.action == "kept" and c.path == "/etc/u2sa/config/gps.toml" for c in tree.changes)
+    # Again: nothing changes; the user's file still wins.
+    assert not install(vehicle=vehicle, root=root).changed
+    # The user adopts the default: the .new file goes away and the config is install's again.
+    (cfg / "gps.toml").write_text("baudrate = 4800\n")
+    install(vehicle=vehicle, root=root)
+    assert not (cfg / "gps.toml.new").exists()
+    (vehicle.parent / "elsewhere/gps.toml").write_text("baudrate = 115200\n")
+    install(vehicle=vehicle, root=root)
+    assert (cfg / "gps.toml").read_text() == "baudrate = 115200\n"
+
+
+def test_a_service_dropped_from_the_profile_is_disabled(vehicle: Path, root: Path) -> None:
+    install(vehicle=vehicle, root=root)
+    vehicle.write_text(PROFILE.replace('[services.gps]\nkind = "gps_nmea"', '[services.gps]\nkind = "gps_nmea"\n'
+                                       "enabled = false"))
+    tree = install(vehicle=vehicle, root=root)
+    assert not (root / "etc/systemd/system/u2sa.target.wants/u2sa@gps.service").exists()
+    assert any(c.action == "removed" and c.path.endswith("u2sa@gps.service") for c in tree.changes)
+
+
+def test_uninstall_keeps_configs_and_purge_removes_everything(vehicle: Path, root: Path) -> None:
+    install(vehicle=vehicle, root=root)
+    (root / "var/log/u2sa").mkdir(parents=True)
+    (root / "var/log/u2sa/gps.log").write_text("a log line\n")
+    uninstall(root=root)
+    assert not (root / "etc/systemd/system/u2sa@.service").exists()
+    assert not (root / "etc/systemd/system/u2sa.target.wants").exists()
+    assert not (root / "etc/udev/rules.d/60-u2sa-permissions.rules").exists()
+    assert os.listdir(root / "opt/u2sa") == ["install-manifest.json"]  # now listing only what was kept
+    assert (root / "etc/u2sa/vehicle.toml").is_file() and (root / "etc/u2sa/config/gps.toml").is_file()
+    assert (root / "var/log/u2sa/gps.log").is_file()
+    assert "u2sa" in entries(root / "etc/passwd")
+    with pytest.raises(InstallError, match="nothing to uninstall"):
+        uninstall(root=root)
+    (root / "etc/u2sa/config/gps.toml").write_text("baudrate = 57600\n")
+    install(vehicle=vehicle, root=root)  # still knows the config was changed by the user
+    assert (root / "etc/u2sa/config/gps.toml").read_text() == "baudrate = 57600\n"
+    uninstall(root=root, purge=True)
+    assert not (root / "etc/u2sa").exists() and not (root / "var/log/u2sa").exists()
+    assert "u2sa" not in entries(root / "etc/passwd")
+    assert "i2c" not in entries(root / "etc/group") and "dialout" in entries(root / "etc/group")
+    left = [p for p in root.rglob("*") if p not in (root / "etc", root / "var", root / "var/log")
+            and not (p.parent == root / "etc" and p.is_file())]
+    assert left == [], left  # only the user database files the fixture put there (and their backups)
+
+
+@pytest.mark.parametrize("change, message", [
+    ('[services.hsm]\nkind = "hsm"', "[services.monitor]\nkind = \"hsm\"", ),
+    ('vendor = "1546"', 'vendor = "15x6"'),
+    ("bitrate = 1000000", 'bitrate = "fast"'),
+    ("[services.spare]", "[services.'bad name']"),
+])
+def test_a_bad_profile_is_refused_before_anything_is_written(vehicle: Path, root: Path, change: str,
+                                                            message: str) -> None:
+    old, new = change, message
+    vehicle.write_text(PROFILE.replace(old, new).replace("enabled = false", "enabled = true"))
+    with pytest.raises(InstallError) as err:
+        install(vehicle=vehicle, root=root)
+    assert str(vehicle) in str(err.value)
+    assert sorted(p.name for p in (root / "etc").iterdir()) == sorted(
+        n for n in ("passwd", "group", "shadow", "gshadow", "login.defs") if Path("/etc", n).exists())
+
+
+def test_sysusers_declaration_creates_the_user_and_groups(tmp_path: Path, vehicle: Path, root: Path) -> None:
+    if shutil.which("systemd-sysusers") is None:
+        pytest.skip("systemd-sysusers is not installed")
+    install(vehicle=vehicle, root=root)
+    image = tmp_path / "image"
+    (image / "etc").mkdir(parents=True)
+    done = subprocess.run(["systemd-sysusers", f"--root={image}", str(root / "etc/sysusers.d/u2sa.conf")],
+                          capture_output=True, text=True, timeout=30)
+    assert done.returncode == 0, done.stderr
+    passwd, group = entries(image / "etc/passwd"), entries(image / "etc/group")
+    assert passwd["u2sa"][6] == "/usr/sbin/nologin"
+    assert all("u2sa" in group[g][3].split(",") for g in ("dialout", "i2c", "gpio"))
