@@ -1,0 +1,379 @@
+"""A mock ODrive axis on CAN (CANSimple, firmware 0.5.x or 0.6.x) driving one SimVehicle wheel.
+
+Behaves like the firmware as far as a driver can tell from the bus: it boots IDLE in
+POSITION_CONTROL / PASSTHROUGH (the firmware defaults); Set_Axis_State CLOSED_LOOP_CONTROL
+arms it unless an error is active; in VELOCITY_CONTROL, Set_Input_Vel (rev/s, limited to
+vel_limit, ramped in VEL_RAMP) drives the wheel at ``vel * 2 pi r * direction`` m/s; in
+POSITION_CONTROL a P loop (pos_gain) moves the wheel to Set_Input_Pos. Torque and voltage
+control are not modelled: the wheel stays still. Heartbeat and encoder estimates are sent
+cyclically; ``Get_*`` values are answered to an RTR (or empty) frame on their id.
+
+As in the firmware (can_simple.cpp calls ``axis.watchdog_feed()`` for every frame on the
+axis's id), any frame addressed to the node feeds the watchdog, RTR requests included. With
+``watchdog_timeout_s`` set, a closed-loop axis not fed for that long raises
+WATCHDOG_TIMER_EXPIRED and disarms. Any axis error (watchdog, Estop, ``inject_error``)
+disarms to IDLE and stops the wheel; Clear_Errors clears, Set_Axis_State re-arms.
+
+Position estimates come from the vehicle's wheel odometer, velocity estimates from its rate
+(see WheelOdometer), so the node agrees with every other sensor on the same SimVehicle.
+``python -m mock_devices.odrive_node --help`` runs one node with its own vehicle.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+from typing import Any, Callable, Mapping
+
+import can
+
+from mock_devices.can_node import MockCanNode, PeriodicSchedule, WheelOdometer, add_bus_arguments, bus_options, serve
+from mock_devices.vehicle_sim import SimVehicle
+from u2sa_hw.protocols import odrive_cansimple as cs
+from u2sa_hw.protocols.odrive_cansimple import AxisState, Cmd, ControlMode, InputMode, ProcedureResult
+
+CALIBRATION_STATES = frozenset({AxisState.STARTUP_SEQUENCE, AxisState.FULL_CALIBRATION_SEQUENCE,
+                                AxisState.MOTOR_CALIBRATION, AxisState.ENCODER_INDEX_SEARCH,
+                                AxisState.ENCODER_OFFSET_CALIBRATION, AxisState.LOCKIN_SPIN,
+                                AxisState.ENCODER_DIR_FIND, AxisState.HOMING,
+                                AxisState.ENCODER_HALL_POLARITY_CALIBRATION,
+                                AxisState.ENCODER_HALL_PHASE_CALIBRATION, AxisState.ANTICOGGING_CALIBRATION})
+VERSION_06 = cs.Version(protocol=2, hw_major=3, hw_minor=6, hw_variant=56, fw_major=0, fw_minor=6,
+                        fw_revision=10, fw_unreleased=0)
+
+
+@dataclasses.dataclass
+class OdriveConfig:
+    """The axis configuration a reboot restores (what save_configuration would have stored)."""
+
+    node_id: int
+    control_mode: int = ControlMode.POSITION_CONTROL
+    input_mode: int = InputMode.PASSTHROUGH
+    vel_limit: float = 2.0  # rev/s
+    current_limit: float = 10.0  # A
+    vel_ramp_rate: float = 1.0  # rev/s^2
+    pos_gain: float = 20.0  # (rev/s)/rev
+    vel_gain: float = 0.1667
+    vel_integrator_gain: float = 0.3333
+    traj_vel_limit: float = 2.0
+    traj_accel_limit: float = 0.5
+    traj_decel_limit: float = 0.5
+    traj_inertia: float = 0.0
+    watchdog_timeout_s: float | None = None  # None: enable_watchdog = False
+
+
+class OdriveCanNode(MockCanNode):
+    """One ODrive axis with CANSimple on *interface*/*channel*, driving *side* of a differential vehicle."""
+
+    def __init__(self, vehicle: SimVehicle, *, side: str, node_id: int, interface: str, channel: str,
+                 bus_options: Mapping[str, Any] | None = None, firmware: str = "0.6",
+                 wheel_radius_m: float = 0.1, direction: int = 1, heartbeat_hz: float = 10.0,
+                 encoder_hz: float = 50.0, vel_limit: float = 2.0, current_limit: float = 10.0,
+                 vel_ramp_rate: float = 1.0, pos_gain: float = 20.0,
+                 control_mode: int = ControlMode.POSITION_CONTROL, input_mode: int = InputMode.PASSTHROUGH,
+                 watchdog_timeout_s: float | None = None, bus_voltage_v: float = 24.0, encoder_cpr: int = 8192,
+                 fet_temp_c: float = 30.0, motor_temp_c: float = 30.0, tick_hz: float = 100.0,
+                 history_size: int = 10_000) -> None:
+        name = f"odrive-{side}-{node_id}"
+        super().__init__(name=name, interface=interface, channel=channel, bus_options=bus_options,
+                         tick_hz=tick_hz, history_size=history_size)
+        if getattr(vehicle, "model", "differential") != "differential":
+            raise ValueError(f"{name}: an ODrive wheel needs a 'differential' vehicle, not {vehicle.model!r}")
+        if direction not in (1, -1):
+            raise ValueError(f"{name}: direction must be 1 or -1, got {direction!r}")
+        if not wheel_radius_m > 0:
+            raise ValueError(f"{name}: wheel_radius_m must be > 0, got {wheel_radius_m!r}")
+        cs.arbitration_id(node_id, 0)  # validates node_id
+        self.vehicle = vehicle
+        self.side = side
+        self.firmware = cs.check_firmware(firmware)
+        self.direction = direction
+        self.circumference_m = 2.0 * math.pi * wheel_radius_m
+        self.encoder_cpr = encoder_cpr
+        self.bus_voltage_v = bus_voltage_v
+        self.bus_current_a = 0.0
+        self.fet_temp_c = fet_temp_c
+        self.motor_temp_c = motor_temp_c
+        self._heartbeat_hz = heartbeat_hz
+        self._encoder_hz = encoder_hz
+        self._factory = OdriveConfig(node_id=node_id, control_mode=control_mode, input_mode=input_mode,
+                                     vel_limit=vel_limit, current_limit=current_limit, vel_ramp_rate=vel_ramp_rate,
+                                     pos_gain=pos_gain, watchdog_timeout_s=watchdog_timeout_s)
+        self._saved = dataclasses.replace(self._factory)
+        self._odometer = WheelOdometer(vehicle, side)
+        self._wheel_speed = 0.0
+        self._setters: dict[int, Callable[[bytes, float], None]] = self._setter_table()
+        self._getters: dict[int, Callable[[], bytes]] = self._getter_table()
+        self._boot()
+
+    # ---- state -----------------------------------------------------------------------
+    def _boot(self) -> None:
+        """Power-on state: IDLE, no errors, saved configuration, encoder position 0."""
+        self.config = dataclasses.replace(self._saved)
+        self.axis_state = AxisState.IDLE
+        self.axis_error = 0
+        self.motor_error = self.encoder_error = self.controller_error = 0  # 0.5.x sub-errors
+        self.disarm_reason = 0
+        self.procedure_result = ProcedureResult.SUCCESS
+        self.identify = False
+        self.input_vel = self.input_torque = self.input_pos = self.vel_ff = 0.0
+        self.vel_setpoint = 0.0
+        self._pos_offset = 0.0
+        self._traj_done = True
+        self._last_feed = self._last_tick = 0.0
+        self._odometer.rebase()
+        self._heartbeat = PeriodicSchedule(self._heartbeat_hz)
+        self._encoder = PeriodicSchedule(self._encoder_hz)
+        self._drive(0.0)
+
+    @property
+    def node_id(self) -> int:
+        """The CAN node id in force (0.5.x Set_Axis_Node_ID changes it)."""
+        return self.config.node_id
+
+    @property
+    def wheel_speed_mps(self) -> float:
+        """The surface speed the node last commanded to the vehicle (m/s)."""
+        return self._wheel_speed
+
+    def _drive(self, vel_rev_s: float) -> None:
+        speed = vel_rev_s * self.circumference_m * self.direction
+        if speed != self._wheel_speed:
+            self.vehicle.set_wheel_speed(self.side, speed)
+            self._wheel_speed = speed
+
+    def _estimates(self) -> tuple[float, float]:
+        distance, speed = self._odometer.sample()
+        k = self.direction / self.circumference_m
+        return self._pos_offset + distance * k, speed * k
+
+    def _error_bit(self, name: str) -> int:
+        table = cs.OdriveError if self.firmware == "0.6" else cs.AxisError05
+        return int(table[name])
+
+    def _raise_error(self, bits: int) -> None:
+        self.axis_error |= bits
+        if self.axis_state == AxisState.CLOSED_LOOP_CONTROL:
+            self.disarm_reason = self.axis_error
+            self.axis_state = AxisState.IDLE
+            self.vel_setpoint = 0.0
+            self._drive(0.0)
+
+    # ---- faults ----------------------------------------------------------------------
+    def inject_error(self, code: int, *, kind: str = "axis") -> None:
+        """Raise an error as the firmware would and disarm: *kind* "axis" sets Axis_Error bits;
+        with firmware 0.5 "motor", "encoder" or "controller" set that sub-error and its axis bit."""
+        with self._lock:
+            if kind == "axis":
+                self._raise_error(code)
+                return
+            if self.firmware != "0.5" or kind not in ("motor", "encoder", "controller"):
+                raise ValueError(f"{self.name}: error kind {kind!r} needs firmware 0.5 and one of "
+                                 f"motor/encoder/controller (0.6 has only axis errors)")
+            setattr(self, f"{kind}_error", getattr(self, f"{kind}_error") | code)
+            self._raise_error(int(cs.AxisError05[f"{kind.upper()}_FAILED"]))
+
+    def set_bus(self, *, voltage_v: float, current_a: float) -> None:
+        """What Get_Bus_Voltage_Current reports from now on (battery sag, an over-current)."""
+        with self._lock:
+            self.bus_voltage_v, self.bus_current_a = voltage_v, current_a
+
+    def _garbage_frame(self) -> can.Message:
+        return cs.make_frame(self.node_id, Cmd.HEARTBEAT, b"\x00\x00\x00")
+
+    def _on_stop(self) -> None:
+        self._drive(0.0)
+
+    # ---- the bus ---------------------------------------------------------------------
+    def _handle(self, msg: can.Message, now: float) -> bool:
+        if msg.is_extended_id or msg.arbitration_id > 0x7FF:
+            return False
+        node, cmd = cs.split_arbitration_id(msg.arbitration_id)
+        if node != self.node_id:
+            return False
+        self._last_feed = now
+        data = bytes(msg.data)
+        if msg.is_remote_frame or (not data and cmd in self._getters):
+            getter = self._getters.get(cmd)
+            if getter is not None:
+                self._send(cs.make_frame(self.node_id, cmd, getter()))
+            return True
+        setter = self._setters.get(cmd)
+        if setter is not None:
+            setter(data, now)
+        return True
+
+    def _getter_table(self) -> dict[int, Callable[[], bytes]]:
+        table: dict[int, Callable[[], bytes]] = {
+            Cmd.GET_ENCODER_ESTIMATES: lambda: cs.encode_encoder_estimates(*self._estimates()),
+            Cmd.GET_IQ: lambda: cs.encode_floats(0.0, 0.0),  # no current model
+            Cmd.GET_BUS_VOLTAGE_CURRENT: lambda: cs.encode_bus_voltage_current(self.bus_voltage_v,
+                                                                                 self.bus_current_a),
+        }
+        if self.firmware == "0.6":
+            table.update({
+                Cmd.GET_VERSION: lambda: cs.encode_version(VERSION_06),
+                Cmd.GET_ERROR: lambda: cs.encode_get_error(self.axis_error, self.disarm_reason),
+                Cmd.GET_TEMPERATURE: lambda: cs.encode_floats(self.fet_temp_c, self.motor_temp_c),
+                Cmd.GET_TORQUES: lambda: cs.encode_floats(0.0, 0.0),
+                Cmd.GET_POWERS: lambda: cs.encode_floats(0.0, 0.0),
+            })
+        else:
+            table.update({
+                Cmd.GET_MOTOR_ERROR: lambda: cs.encode_motor_error(self.motor_error),
+                Cmd.GET_ENCODER_ERROR: lambda: cs.encode_u32(self.encoder_error),
+                Cmd.GET_SENSORLESS_ERROR: lambda: cs.encode_u32(0),
+                Cmd.GET_CONTROLLER_ERROR: lambda: cs.encode_u32(self.controller_error),
+                Cmd.GET_SENSORLESS_ESTIMATES: lambda: cs.encode_encoder_estimates(*self._estimates()),
+                Cmd.GET_ENCODER_COUNT: self._encoder_count,
+            })
+        return table
+
+    def _encoder_count(self) -> bytes:
+        shadow = round(self._estimates()[0] * self.encoder_cpr)
+        return cs.encode_encoder_count(shadow, shadow % self.encoder_cpr)
+
+    def _setter_table(self) -> dict[int, Callable[[bytes, float], None]]:
+        cfg = self._config_floats
+        table: dict[int, Callable[[bytes, float], None]] = {
+            Cmd.ESTOP: lambda data, now: self._raise_error(self._error_bit("ESTOP_REQUESTED")),
+            Cmd.SET_AXIS_STATE: lambda data, now: self._request_state(cs.decode_set_axis_state(data)),
+            Cmd.SET_CONTROLLER_MODE: self._set_controller_mode,
+            Cmd.SET_INPUT_POS: self._set_input_pos,
+            Cmd.SET_INPUT_VEL: self._set_input_vel,
+            Cmd.SET_INPUT_TORQUE: lambda data, now: setattr(self, "input_torque", cs.decode_floats(data, 1)[0]),
+            Cmd.SET_LIMITS: cfg("vel_limit", "current_limit"),
+            Cmd.SET_TRAJ_VEL_LIMIT: cfg("traj_vel_limit"),
+            Cmd.SET_TRAJ_ACCEL_LIMITS: cfg("traj_accel_limit", "traj_decel_limit"),
+            Cmd.SET_TRAJ_INERTIA: cfg("traj_inertia"),
+            Cmd.SET_POS_GAIN: cfg("pos_gain"),
+            Cmd.SET_VEL_GAINS: cfg("vel_gain", "vel_integrator_gain"),
+            Cmd.REBOOT: self._reboot,
+            Cmd.CLEAR_ERRORS: self._clear_errors,
+        }
+        if self.firmware == "0.6":
+            table[Cmd.SET_ABSOLUTE_POSITION] = lambda data, now: self._set_position(cs.decode_floats(data, 1)[0])
+            table[Cmd.ENTER_DFU_MODE] = lambda data, now: self.stop_answering(True)
+        else:
+            table[Cmd.SET_LINEAR_COUNT] = lambda data, now: self._set_position(
+                cs.decode_i32(data, what="Set_Linear_Count") / self.encoder_cpr)
+            table[Cmd.SET_AXIS_NODE_ID] = self._set_node_id
+        return table
+
+    def _request_state(self, state: int) -> None:
+        if state == AxisState.CLOSED_LOOP_CONTROL:
+            if self.axis_error:
+                self.procedure_result = ProcedureResult.DISARMED
+                return
+            if self.axis_state != AxisState.CLOSED_LOOP_CONTROL:
+                self.vel_setpoint = 0.0
+                self.input_pos = self._estimates()[0]  # the firmware holds position on arming
+            self.axis_state = AxisState.CLOSED_LOOP_CONTROL
+            self.procedure_result = ProcedureResult.SUCCESS
+        elif state == AxisState.IDLE or state in CALIBRATION_STATES:
+            # the mock is calibrated: a calibration request completes at once and leaves the axis IDLE
+            self.axis_state = AxisState.IDLE
+            self.procedure_result = ProcedureResult.SUCCESS
+            self._drive(0.0)
+        elif state != AxisState.UNDEFINED:
+            if self.firmware == "0.5":
+                self._raise_error(int(cs.AxisError05.INVALID_STATE))
+            self.procedure_result = ProcedureResult.INVALID_STATE
+
+    def _set_controller_mode(self, data: bytes, now: float) -> None:
+        self.config.control_mode, self.config.input_mode = cs.decode_set_controller_mode(data)
+
+    def _set_input_vel(self, data: bytes, now: float) -> None:
+        self.input_vel, self.input_torque = cs.decode_set_input_vel(data)
+
+    def _set_input_pos(self, data: bytes, now: float) -> None:
+        self.input_pos, self.vel_ff, self.input_torque = cs.decode_set_input_pos(data)
+        if self.config.input_mode == InputMode.TRAP_TRAJ:  # the only mode that plans a trajectory
+            self._traj_done = False
+
+    def _config_floats(self, *fields: str) -> Callable[[bytes, float], None]:
+        """A setter storing a payload's float32 fields, in order, in the named config fields."""
+        def setter(data: bytes, now: float) -> None:
+            for field, value in zip(fields, cs.decode_floats(data, len(fields))):
+                setattr(self.config, field, value)
+        return setter
+
+    def _set_position(self, pos_rev: float) -> None:
+        self._pos_offset += pos_rev - self._estimates()[0]
+
+    def _set_node_id(self, data: bytes, now: float) -> None:
+        node_id = cs.decode_u32(data, what="Set_Axis_Node_ID")
+        cs.arbitration_id(node_id, 0)
+        self.config.node_id = node_id
+
+    def _clear_errors(self, data: bytes, now: float) -> None:
+        self.axis_error = self.motor_error = self.encoder_error = self.controller_error = 0
+        self.identify = bool(data[:1] == b"\x01")
+
+    def _reboot(self, data: bytes, now: float) -> None:
+        action = cs.decode_reboot(data) if self.firmware == "0.6" else cs.RebootAction.REBOOT
+        if action == cs.RebootAction.SAVE_CONFIGURATION:
+            self._saved = dataclasses.replace(self.config)
+            return
+        if action == cs.RebootAction.ERASE_CONFIGURATION:
+            self._saved = dataclasses.replace(self._factory)
+        elif action == cs.RebootAction.ENTER_DFU:
+            self.stop_answering(True)
+            return
+        self._boot()
+
+    # ---- control loop ----------------------------------------------------------------
+    def _tick(self, now: float) -> None:
+        dt = min(now - self._last_tick, 0.1) if self._last_tick else 0.0
+        self._last_tick = now
+        pos, vel = self._estimates()
+        wd = self.config.watchdog_timeout_s
+        if self.axis_state == AxisState.CLOSED_LOOP_CONTROL and wd and now - self._last_feed > wd:
+            self._raise_error(self._error_bit("WATCHDOG_TIMER_EXPIRED"))
+        self._drive(self._setpoint(pos, dt) if self.axis_state == AxisState.CLOSED_LOOP_CONTROL else 0.0)
+        if self._heartbeat.due(now):
+            self._send(cs.make_frame(self.node_id, Cmd.HEARTBEAT, cs.encode_heartbeat(cs.Heartbeat(
+                self.axis_error, self.axis_state, self.procedure_result, self._traj_done,
+                motor_error_flag=bool(self.motor_error), encoder_error_flag=bool(self.encoder_error),
+                controller_error_flag=bool(self.controller_error)), firmware=self.firmware)))
+        if self._encoder.due(now):
+            self._send(cs.make_frame(self.node_id, Cmd.GET_ENCODER_ESTIMATES, cs.encode_encoder_estimates(pos, vel)))
+
+    def _setpoint(self, pos: float, dt: float) -> float:
+        """The velocity setpoint (rev/s) the controller tracks this tick."""
+        cfg = self.config
+        if cfg.control_mode == ControlMode.VELOCITY_CONTROL:
+            target = max(-cfg.vel_limit, min(cfg.vel_limit, self.input_vel))
+            if cfg.input_mode == InputMode.VEL_RAMP:
+                step = cfg.vel_ramp_rate * dt
+                self.vel_setpoint += max(-step, min(step, target - self.vel_setpoint))
+            else:
+                self.vel_setpoint = target
+        elif cfg.control_mode == ControlMode.POSITION_CONTROL:
+            limit = cfg.traj_vel_limit if cfg.input_mode == InputMode.TRAP_TRAJ else cfg.vel_limit
+            error = self.input_pos - pos
+            self.vel_setpoint = max(-limit, min(limit, cfg.pos_gain * error + self.vel_ff))
+            self._traj_done = self._traj_done or abs(error) < 1e-3
+        else:
+            self.vel_setpoint = 0.0  # torque and voltage control are not modelled
+        return self.vel_setpoint
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Run one node with its own SimVehicle until SIGTERM/SIGINT (for tests across processes)."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_bus_arguments(parser)
+    parser.add_argument("--node-id", type=int, required=True)
+    parser.add_argument("--firmware", choices=cs.FIRMWARES, default="0.6")
+    parser.add_argument("--watchdog", type=float, default=None, help="watchdog timeout in s (default off)")
+    args = parser.parse_args(argv)
+    vehicle = SimVehicle(origin_lat=0.0, origin_lon=0.0)
+    node = OdriveCanNode(vehicle, side=args.side, node_id=args.node_id, interface=args.interface,
+                         channel=args.channel, bus_options=bus_options(args), firmware=args.firmware,
+                         watchdog_timeout_s=args.watchdog)
+    serve(node, vehicle)
+
+
+if __name__ == "__main__":
+    main()
