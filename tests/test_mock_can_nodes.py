@@ -218,11 +218,11 @@ def test_odrive_position_control_reaches_the_target(vehicle, channel, client, st
 
 
 def test_odrive_watchdog_is_fed_by_any_frame_and_disarms_when_starved(vehicle, channel, client, start_node) -> None:
-    node = start_node(odrive(vehicle, channel, watchdog_timeout_s=0.3))
+    node = start_node(odrive(vehicle, channel, watchdog_timeout_s=0.4))
     client.arm_velocity(1, 1.0)
     client.heartbeat(1, until=lambda hb: hb.axis_state == AxisState.CLOSED_LOOP_CONTROL)
     # as in can_simple.cpp, RTR requests feed it too: poll for over twice the timeout, still armed
-    while vehicle.snapshot().wheel_left_m < 0.5:
+    while vehicle.snapshot().wheel_left_m < 0.9:
         client.send(cs.make_request(1, Cmd.GET_ENCODER_ESTIMATES))
         time.sleep(0.05)
         assert node.axis_state == AxisState.CLOSED_LOOP_CONTROL and node.axis_error == 0
@@ -363,8 +363,8 @@ def test_vesc_duty_and_rpm_drive_the_wheel_and_status_follows_the_odometer(vehic
 
 
 def test_vesc_command_timeout_releases_the_motor(vehicle, channel, client, start_node) -> None:
-    node = start_node(vesc(vehicle, channel, timeout_s=0.3))
-    while vehicle.snapshot().wheel_left_m < 0.6:  # over twice the timeout while commanding
+    node = start_node(vesc(vehicle, channel, timeout_s=0.4))
+    while vehicle.snapshot().wheel_left_m < 1.2:  # over twice the timeout while commanding
         client.vesc(5, PacketId.SET_DUTY, 0.1)
         time.sleep(0.05)
         assert node.mode == "duty"
