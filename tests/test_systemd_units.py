@@ -11,6 +11,7 @@ every unit file.
 
 from __future__ import annotations
 
+import json
 import os
 import random
 import signal
@@ -156,6 +157,44 @@ def test_sigstop_hang_is_killed_by_the_watchdog_and_restarted(ns: SystemdNamespa
     # systemd's record of why: the watchdog, not an exit of the service.
     log = ns.run("sh", "-c", "cat /var/log/u2sa/est_b.log", check=False).stdout
     assert log.count("started, pid") >= 2, log
+
+
+def test_status_shows_each_unit_next_to_the_hsm_view(ns: SystemdNamespace, staged: dict[str, Any]) -> None:
+    status = ["/opt/u2sa/venv/bin/u2sa", "status", "--vehicle", "/etc/u2sa/vehicle.toml", "--json"]
+    alone = ns.run(*status, "--timeout", "0.5", check=False)
+    report = json.loads(alone.stdout)
+    assert alone.returncode == 0, alone.stderr
+    assert report["hsm"] is None and "no SystemHealth on U2SA_SYSTEM_HEALTH" in report["hsm_note"]
+    # A stand-in for the HSM (its own task's service) publishes the system view.
+    client = BusClient(staged["url"])
+    stop = threading.Event()
+
+    def publish() -> None:
+        msg = t.SystemHealth()
+        msg.summary = "3 services ok"
+        state = t.ServiceState()
+        state.name, state.state, state.restarts, state.last_error = "est_a", "ok", 1, "killed by SIGKILL"
+        msg.services, msg.num_services = [state], 1
+        while not stop.is_set():
+            client.publish(ch.SYSTEM_HEALTH, msg)
+            stop.wait(0.2)
+
+    thread = threading.Thread(target=publish, daemon=True)
+    thread.start()
+    try:
+        done = ns.run(*status, "--timeout", "5", check=False)
+    finally:
+        stop.set()
+        thread.join()
+        client.close()
+    report = json.loads(done.stdout)
+    units = {u["unit"]: u for u in report["units"]}
+    assert units["u2sa@est_a.service"]["active"] == "active"
+    assert units["u2sa@est_a.service"]["restarts"] == "1"  # systemd's count, from the SIGKILL test
+    assert units["u2sa@est_a.service"]["hsm"] == {"state": "ok", "restarts": 1, "last_error": "killed by SIGKILL",
+                                                   "heartbeat_age_s": 0.0, "data_age_s": 0.0}
+    assert units["u2sa@est_b.service"]["hsm"] == {}
+    assert report["hsm"] == {"failsafe": False, "summary": "3 services ok"}
 
 
 def test_crash_loop_ends_at_the_start_limit(ns: SystemdNamespace) -> None:
