@@ -13,6 +13,7 @@ from importlib.metadata import entry_points
 SERVICE_KINDS: dict[str, str] = {
     # core services
     "state_estimator": "u2sa_hw.services.estimator.service:StateEstimator",
+    "mission_manager": "u2sa_hw.services.mission.service:MissionManagerService",
     "recorder": "u2sa_hw.services.recorder.service:Recorder",
 }
 
