@@ -14,6 +14,7 @@ SERVICE_KINDS: dict[str, str] = {
     # core services
     "state_estimator": "u2sa_hw.services.estimator.service:StateEstimator",
     "mission_manager": "u2sa_hw.services.mission.service:MissionManagerService",
+    "world_modeler": "u2sa_hw.services.world.service:WorldModeler",
     "recorder": "u2sa_hw.services.recorder.service:Recorder",
 }
 
