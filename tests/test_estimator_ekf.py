@@ -197,3 +197,22 @@ def test_service_fuses_gps_publishes_at_its_rate_and_reports_outliers_and_silenc
     assert abs(estimates[-1].x - 25.0) < 1.0
     wait_until(lambda: _details(health[-1]).get("silent_sensors") == "gps" and health[-1].status == "degraded",
                timeout=10, message="the silent GPS in health")
+
+
+def test_passthrough_mode_stays_selectable_and_a_bad_mode_is_one_clear_error(
+        services: ServiceProcesses, bus: BusClient, tmp_path: Path) -> None:
+    vehicle = tmp_path / "vehicle.toml"
+    vehicle.write_text('[services.est]\nkind = "state_estimator"\nsettings = { mode = "passthrough" }\n'
+                       '[services.bad]\nkind = "state_estimator"\nsettings = { mode = "kalman" }\n')
+    bad = services.cli("service", "bad", "--vehicle", str(vehicle))
+    assert bad.returncode != 0 and "'mode' must be one of ekf, passthrough, got 'kalman'" in bad.stderr
+    estimates: list[t.StateInformation] = []
+    bus.transport.subscribe(ch.STATE_ESTIMATE, t.StateInformation, lambda _c, msg: estimates.append(msg))
+    services.start("est", "--vehicle", str(vehicle))
+
+    def copied() -> bool:
+        bus.publish(ch.STATE_INFO, info("gps", x=3.0, psi=1.25))
+        return bool(estimates)
+
+    wait_until(copied, timeout=20, message="a pass-through estimate")
+    assert estimates[-1].present_fields() == ["x", "psi"] and (estimates[-1].x, estimates[-1].psi) == (3.0, 1.25)

@@ -68,8 +68,9 @@ class StateEstimator(U2SAService):
 
     def _checked_mode(self, mode: str) -> str:
         if mode not in MODES:
-            raise ConfigError(f"{self.config.path or 'state_estimator config'}: mode must be one of "
-                              f"{', '.join(MODES)}, got {mode!r}")
+            where = f"{self.config.path} or " if self.config.path else ""
+            raise ConfigError(f"{self.name}: config field 'mode' must be one of {', '.join(MODES)}, got {mode!r} "
+                              f"(fix it in {where}the vehicle profile's settings)")
         return mode
 
     def _new_fusion(self) -> StateFusion:
@@ -153,4 +154,5 @@ class StateEstimator(U2SAService):
         if self.mode == "ekf":
             details["outliers"] = ",".join(f"{r.name}:{r.outliers}" for r in records)
             details["unusable_fields"] = ",".join(f"{r.name}:{r.unusable}" for r in records if r.unusable)
+            details["waiting_for_heading"] = ",".join(f"{r.name}:{r.deferred}" for r in records if r.deferred)
         return details
