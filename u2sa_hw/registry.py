@@ -16,6 +16,7 @@ SERVICE_KINDS: dict[str, str] = {
     "mission_manager": "u2sa_hw.services.mission.service:MissionManagerService",
     "world_modeler": "u2sa_hw.services.world.service:WorldModeler",
     "recorder": "u2sa_hw.services.recorder.service:Recorder",
+    "gps_nmea": "drivers.gps_nmea:GpsNmeaDriver",
 }
 
 

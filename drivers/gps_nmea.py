@@ -1,0 +1,147 @@
+"""GPS over serial NMEA 0183: a proprioceptive sensor publishing one State Information per fix.
+
+Each line is parsed by pynmeagps (checksums enforced: a bad one is counted per sentence
+kind and dropped). Sentences are grouped into epochs (``drivers.nmea_fields``: a new UTC
+time, a repeated sentence kind, or ``epoch_gap_s`` of silence ends one), and each epoch
+becomes one message (``drivers.gps_fix``): position about the profile origin in the
+configured ``position_frame``, NED ground velocity from speed and course, psi from HDT,
+sigmas from GST or HDOP. No fix: no position and no velocity (an HDT heading still goes
+out), status ``degraded`` with ``degraded_reason = "no fix"``.
+
+See docs/drivers-serial.md for the config, frames and faults.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from u2sa_hw.config import ConfigError, field
+
+from drivers.gps_fix import (ALTITUDE_DATUMS, GGA_QUALITY, POSITION_FRAMES, GpsFix, StateSettings, fix_from_epoch,
+                             state_from_fix)
+from drivers.nmea_fields import BadChecksum, Epoch, EpochCollector, SentenceError, parse_sentence
+from drivers.serial_sensor import SerialLineSensor
+
+GPS_KINDS = frozenset({"GGA", "RMC", "VTG", "GSA", "GST", "GNS", "ZDA", "HDT"})
+
+
+class GpsNmeaDriver(SerialLineSensor):
+    """A GNSS receiver speaking NMEA 0183 on a serial port (any talker: GP, GN, GL, GA, GB, GQ ...)."""
+
+    CONFIG = (
+        field("position_frame", "NED", "NED: x north, y east, z down (m) about the profile origin; "
+                                       "GEODETIC: x = lat, y = lon (deg), z = altitude (m up)"),
+        field("altitude_datum", "msl", "msl: the GGA altitude (above the geoid); ellipsoid: plus the geoid separation"),
+        field("uere_m", 3.0, "user equivalent range error (m): sigmas from HDOP/VDOP when there is no GST"),
+        field("speed_sigma_mps", 0.1, "sigma of x_dot, y_dot (m/s)"),
+        field("heading_sigma_deg", 0.5, "sigma of psi from HDT (deg)"),
+    )
+
+    def __init__(self, name: str, **kwargs: Any) -> None:
+        super().__init__(name, **kwargs)
+        self.epochs = EpochCollector()
+        self.epoch_count = 0
+        self.fix: GpsFix | None = None       # the latest epoch's reading
+        self.last_fix: GpsFix | None = None  # the latest epoch with a position
+        self.talkers: set[str] = set()
+
+    def validate_config(self) -> None:
+        """The serial fields, plus the frame, datum and sigma fields."""
+        super().validate_config()
+        cfg = self.config
+        if cfg.get("position_frame").upper() not in POSITION_FRAMES:
+            raise ConfigError(f"service '{self.name}': position_frame {cfg.get('position_frame')!r} is not one of "
+                              f"{', '.join(POSITION_FRAMES)}")
+        if cfg.get("altitude_datum").lower() not in ALTITUDE_DATUMS:
+            raise ConfigError(f"service '{self.name}': altitude_datum {cfg.get('altitude_datum')!r} is not one of "
+                              f"{', '.join(ALTITUDE_DATUMS)}")
+        for key in ("uere_m", "speed_sigma_mps", "heading_sigma_deg"):
+            if not cfg.get(key) > 0:
+                raise ConfigError(f"service '{self.name}': {key} must be > 0, got {cfg.get(key)!r}")
+
+    def settings(self) -> StateSettings:
+        """The config as the fix-to-message settings (read live, so changes apply at the next epoch)."""
+        cfg = self.config
+        return StateSettings(origin=self.profile.origin, position_frame=cfg.get("position_frame").upper(),
+                             altitude_datum=cfg.get("altitude_datum").lower(), uere_m=cfg.get("uere_m"),
+                             speed_sigma_mps=cfg.get("speed_sigma_mps"), heading_sigma_deg=cfg.get("heading_sigma_deg"))
+
+    # -- lines and epochs -------------------------------------------------------------------
+    def handle_line(self, line: bytes, received: float) -> None:
+        """Parse one line; publish the previous epoch when this sentence starts a new one."""
+        try:
+            sentence = parse_sentence(line)
+        except BadChecksum as exc:
+            self.count_bad_checksum(exc.kind, str(exc))
+            return
+        except SentenceError as exc:
+            self.count_malformed(str(exc))
+            return
+        if sentence is None or sentence.kind not in GPS_KINDS:
+            self.ignored += 1
+            return
+        self.count_valid(noise_bytes=sentence.noise_bytes)
+        self.talkers.add(sentence.talker)
+        done = self.epochs.add(sentence, received=received)
+        if done is not None:
+            self.publish_epoch(done)
+
+    def handle_idle(self) -> None:
+        """The receiver finished its burst: publish the epoch."""
+        done = self.epochs.flush()
+        if done is not None:
+            self.publish_epoch(done)
+
+    def on_port_lost(self) -> None:
+        """A half-received epoch is dropped."""
+        self.epochs.flush()
+
+    def publish_epoch(self, epoch: Epoch) -> None:
+        """Turn one epoch into at most one State Information and publish it."""
+        fix = fix_from_epoch(epoch)
+        self.epoch_count += 1
+        had_fix = self.fix is not None and self.fix.has_fix
+        self.fix = fix
+        if fix.has_fix:
+            self.last_fix = fix
+        if had_fix != fix.has_fix:
+            self.logger.info("%s: %s", self.name, f"{fix.fix_name} fix" if fix.has_fix else "lost the fix")
+        msg = state_from_fix(fix, self.settings())
+        if msg is not None:
+            self.publish_measurement(msg, received=epoch.received)
+
+    # -- health ----------------------------------------------------------------------------------
+    def problem(self) -> str:
+        """``"no fix"`` while the latest epoch has no position."""
+        if self.fix is None:
+            return ""
+        return "" if self.fix.has_fix else "no fix"
+
+    def sensor_details(self) -> dict[str, Any]:
+        """Fix, quality, satellites, dilution and the latest position and motion."""
+        fix, last = self.fix, self.last_fix
+        quality = fix.quality if fix else None
+        details: dict[str, Any] = {
+            "fix": bool(fix and fix.has_fix),
+            "fix_type": fix.fix_name if fix else "no data",
+            "fix_quality": "" if quality is None else f"{quality} ({GGA_QUALITY.get(quality, 'unknown')})",
+            "satellites": _show(fix.satellites if fix else None),
+            "hdop": _show(fix.hdop if fix else None),
+            "vdop": _show(fix.vdop if fix else None),
+            "epochs": self.epoch_count,
+            "talkers": ",".join(sorted(self.talkers)),
+            "position_frame": self.config.get("position_frame").upper(),
+        }
+        if last is not None:
+            details.update({"lat": _show(last.lat, ".8f"), "lon": _show(last.lon, ".8f"),
+                            "alt": _show(last.altitude(self.config.get("altitude_datum").lower()), ".2f"),
+                            "speed_mps": _show(last.speed_mps, ".3f"), "course_deg": _show(last.course_deg, ".2f")})
+        if fix is not None:
+            details["heading_deg"] = _show(fix.heading_deg, ".2f")
+            details["utc"] = " ".join(str(v) for v in (fix.utc_date, fix.utc_time) if v is not None)
+        return details
+
+
+def _show(value: float | int | None, fmt: str = "") -> str:
+    """A health detail value: empty when absent."""
+    return "" if value is None else format(value, fmt)

@@ -1,0 +1,205 @@
+"""NMEA 0183 lines to parsed sentences, typed field access, and grouping sentences into epochs.
+
+Shared by the GPS and compass drivers. Parsing is pynmeagps's (``NMEAReader.parse`` with
+checksum validation); this module decides what a line *is* before and after that:
+
+- bytes before the last ``$`` are line noise (a garbage burst glued to the next sentence)
+  and are dropped; the sentence after them is still used;
+- a sentence without ``*HH`` or with non-ASCII bytes is :class:`MalformedSentence`;
+- a wrong checksum is :class:`BadChecksum` (it names the sentence kind, e.g. ``GGA``);
+- a sentence pynmeagps does not know (or a proprietary ``$P...`` one) parses to ``None``.
+
+pynmeagps turns an unparseable field into ``""`` and leaves fields missing from a short
+sentence unset, so fields are read with :func:`number` / :func:`text`, which give ``None``
+/ ``""`` for both and never a stale or zero value.
+
+An *epoch* is the burst of sentences a receiver sends for one solution.
+:class:`EpochCollector` ends an epoch when a sentence carries a different UTC time than
+the epoch so far, when a once-per-epoch sentence kind repeats, or when the caller reports
+that the line went quiet (:meth:`EpochCollector.flush`).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import math
+import re
+from dataclasses import dataclass, field
+from typing import Any, Iterable
+
+from pynmeagps import NMEAMessage, NMEAReader
+from pynmeagps.exceptions import NMEAMessageError, NMEAParseError, NMEATypeError
+from pynmeagps.nmeahelpers import calc_checksum
+from pynmeagps.nmeatypes_get import NMEA_PAYLOADS_GET
+
+_CHECKSUM = re.compile(r"\*([0-9A-Fa-f]{2})\s*$")
+# kinds that may appear several times in one epoch (one GSA per constellation, one XDR per transducer)
+REPEATABLE_KINDS = frozenset({"GSA", "GSV", "XDR", "TXT"})
+
+
+class SentenceError(ValueError):
+    """A line that is not a usable sentence; ``kind`` is its sentence id (``GGA``) or ``"?"``."""
+
+    def __init__(self, message: str, *, kind: str = "?") -> None:
+        super().__init__(message)
+        self.kind = kind
+
+
+class BadChecksum(SentenceError):
+    """The sentence's checksum does not match its content."""
+
+
+class MalformedSentence(SentenceError):
+    """No ``$``, no ``*HH`` checksum, non-ASCII bytes, or fields pynmeagps cannot take."""
+
+
+@dataclass(frozen=True)
+class Sentence:
+    """One parsed sentence: its talker (``GP``), kind (``GGA``) and the pynmeagps message."""
+
+    talker: str
+    kind: str
+    msg: NMEAMessage
+    noise_bytes: int = 0  # bytes of line noise dropped before the ``$``
+
+
+def sentence_text(line: bytes) -> tuple[str, int]:
+    """The sentence in *line* from its last ``$`` (CR LF stripped) and how many noise bytes preceded it."""
+    start = line.rfind(b"$")
+    if start < 0:
+        raise MalformedSentence(f"no '$' in {line[:40]!r}")
+    body = line[start:].rstrip(b"\r\n")
+    try:
+        return body.decode("ascii"), start
+    except UnicodeDecodeError:
+        raise MalformedSentence(f"non-ASCII bytes in {body[:40]!r}") from None
+
+
+def address_of(text: str) -> tuple[str, str]:
+    """``(talker, kind)`` of ``$GPGGA,...``; proprietary ``$PXXX`` gives ``("P", "XXX")``."""
+    address = text[1:].split(",", 1)[0].split("*", 1)[0]
+    if address.startswith("P"):
+        return "P", address[1:]
+    return address[:2], address[2:]
+
+
+def checked_body(text: str) -> str:
+    """The content between ``$`` and ``*`` after checking the checksum; raises BadChecksum/MalformedSentence."""
+    _, kind = address_of(text)
+    match = _CHECKSUM.search(text)
+    if match is None:
+        raise MalformedSentence(f"no *HH checksum in {text[:40]!r}", kind=kind or "?")
+    body = text[1:match.start()]
+    expected = calc_checksum(body)
+    if match.group(1).upper() != expected:
+        raise BadChecksum(f"checksum {match.group(1)} should be {expected} in {text[:60]!r}", kind=kind or "?")
+    return body
+
+
+def parse_sentence(line: bytes) -> Sentence | None:
+    """Parse one line with pynmeagps; None for a well-formed sentence it does not know.
+
+    Raises BadChecksum or MalformedSentence; never anything else for any input bytes.
+    """
+    text, noise = sentence_text(line)
+    checked_body(text)
+    talker, kind = address_of(text)
+    if talker == "P" or len(talker) != 2 or kind not in NMEA_PAYLOADS_GET:
+        return None  # proprietary, or a sentence pynmeagps has no field table for
+    try:
+        msg = NMEAReader.parse(text.encode("ascii"))  # validates the checksum again: pynmeagps owns the parse
+    except (NMEAParseError, NMEAMessageError, NMEATypeError, ValueError, IndexError, TypeError) as exc:
+        raise MalformedSentence(f"{talker}{kind}: {exc}", kind=kind) from None
+    if msg is None:
+        return None
+    return Sentence(talker=talker, kind=kind, msg=msg, noise_bytes=noise)
+
+
+def number(msg: Any, name: str) -> float | None:
+    """Field *name* as a finite float, or None when empty, unparseable or absent."""
+    value = getattr(msg, name, None)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def text(msg: Any, name: str) -> str:
+    """Field *name* as a stripped string (``""`` when empty or absent)."""
+    value = getattr(msg, name, None)
+    return value.strip() if isinstance(value, str) else ""
+
+
+def utc_time(msg: Any) -> dt.time | None:
+    """The sentence's UTC time of day (``time`` field), or None."""
+    value = getattr(msg, "time", None)
+    return value if isinstance(value, dt.time) else None
+
+
+def signed(value: float | None, hemisphere: str, *, negative: str = "W") -> float | None:
+    """*value* with the sign its hemisphere letter gives (``W``/``S`` negative); None stays None."""
+    if value is None:
+        return None
+    return -value if hemisphere.upper() == negative else value
+
+
+@dataclass
+class Epoch:
+    """The sentences of one solution, in arrival order; ``received`` is the wall time (s) of the first."""
+
+    received: float
+    time: dt.time | None = None
+    sentences: list[Sentence] = field(default_factory=list)
+
+    def kinds(self) -> list[str]:
+        """The sentence kinds, in arrival order (repeats kept)."""
+        return [s.kind for s in self.sentences]
+
+    def first(self, kind: str) -> NMEAMessage | None:
+        """The first sentence of *kind* in this epoch, or None."""
+        return next((s.msg for s in self.sentences if s.kind == kind), None)
+
+    def all(self, kind: str) -> list[NMEAMessage]:
+        """Every sentence of *kind* in this epoch."""
+        return [s.msg for s in self.sentences if s.kind == kind]
+
+    def talkers(self) -> set[str]:
+        """The talker ids seen in this epoch."""
+        return {s.talker for s in self.sentences}
+
+
+class EpochCollector:
+    """Groups parsed sentences into epochs (see the module docstring for the rules)."""
+
+    def __init__(self, *, repeatable: Iterable[str] = REPEATABLE_KINDS) -> None:
+        self.repeatable = frozenset(repeatable)
+        self._pending: Epoch | None = None
+
+    @property
+    def pending(self) -> Epoch | None:
+        """The epoch being collected, if any."""
+        return self._pending
+
+    def add(self, sentence: Sentence, *, received: float) -> Epoch | None:
+        """Add *sentence*; returns the previous epoch when this sentence starts a new one."""
+        done = None
+        when = utc_time(sentence.msg)
+        cur = self._pending
+        if cur is not None and self._starts_new(cur, sentence.kind, when):
+            done, cur = cur, None
+        if cur is None:
+            cur = self._pending = Epoch(received=received)
+        if cur.time is None and when is not None:
+            cur.time = when
+        cur.sentences.append(sentence)
+        return done
+
+    def _starts_new(self, cur: Epoch, kind: str, when: dt.time | None) -> bool:
+        if when is not None and cur.time is not None and when != cur.time:
+            return True
+        return kind not in self.repeatable and kind in cur.kinds()
+
+    def flush(self) -> Epoch | None:
+        """End the pending epoch (the line went quiet); returns it, or None when there is none."""
+        done, self._pending = self._pending, None
+        return done

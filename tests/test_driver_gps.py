@@ -1,0 +1,332 @@
+"""GPS NMEA driver: the parser and fix logic on their own, then the driver as a real service
+process against the mock receiver on a pty, with every fault the mock can script."""
+
+from __future__ import annotations
+
+import datetime as dt
+import math
+from pathlib import Path
+from typing import Iterator
+
+import pytest
+from conftest import ServiceProcesses, wait_until
+from pynmeagps.nmeahelpers import calc_checksum
+from serial_driver_harness import ORIGIN, SIM_ORIGIN, DriverProbe, start_driver, write_profile
+
+from drivers.gps_fix import KNOT_MPS, StateSettings, fix_from_epoch, state_from_fix
+from drivers.nmea_fields import (BadChecksum, Epoch, EpochCollector, MalformedSentence, Sentence, parse_sentence)
+from mock_devices.nmea_gps import NmeaGpsDevice
+from mock_devices.vehicle_sim import SimVehicle
+from u2sa_hw.bus_client import BusClient
+from u2sa_hw.geo import geodetic_to_ned, ned_to_geodetic
+from u2sa_hw.vehicle import Origin
+
+GEO = Origin(**ORIGIN)
+
+
+def nmea(body: str) -> bytes:
+    """``$<body>*HH`` CR LF with a correct checksum."""
+    return f"${body}*{calc_checksum(body)}\r\n".encode()
+
+
+def parsed(body: str) -> Sentence:
+    s = parse_sentence(nmea(body))
+    assert s is not None, body
+    return s
+
+
+def epoch_of(*bodies: str) -> Epoch:
+    epoch = Epoch(received=0.0)
+    for body in bodies:
+        epoch.sentences.append(parsed(body))
+    return epoch
+
+
+def dm(value: float, *, lat: bool) -> tuple[str, str]:
+    """Degrees to NMEA ddmm.mmmmm / dddmm.mmmmm and the hemisphere letter."""
+    deg = int(abs(value))
+    minutes = (abs(value) - deg) * 60.0
+    text = f"{deg:02d}{minutes:08.5f}" if lat else f"{deg:03d}{minutes:08.5f}"
+    return text, ("N" if value >= 0 else "S") if lat else ("E" if value >= 0 else "W")
+
+
+def gga(lat: float, lon: float, *, talker: str = "GP", quality: int = 1, alt: str = "12.0", hdop: str = "0.9",
+        time: str = "120000.00") -> str:
+    la, ns = dm(lat, lat=True)
+    lo, ew = dm(lon, lat=False)
+    return f"{talker}GGA,{time},{la},{ns},{lo},{ew},{quality},09,{hdop},{alt},M,-30.5,M,,"
+
+
+# ---------------------------------------------------------------- parsing ----------------------
+@pytest.mark.parametrize("talker", ["GP", "GN", "GL", "GA", "GB", "GQ"])
+def test_every_talker_and_sentence_kind_parses(talker: str) -> None:
+    bodies = {
+        "GGA": gga(29.19, -81.05, talker=talker),
+        "RMC": f"{talker}RMC,120000.00,A,2911.37000,N,08103.00000,W,1.944,90.00,140326,,,A,V",
+        "VTG": f"{talker}VTG,90.00,T,,M,1.944,N,3.600,K,A",
+        "GSA": f"{talker}GSA,A,3,02,05,07,09,,,,,,,,,1.70,0.90,1.40",
+        "GST": f"{talker}GST,120000.00,1.5,1.50,1.50,0.0,0.80,0.60,2.00",
+        "GNS": f"{talker}GNS,120000.00,2911.37000,N,08103.00000,W,AA,09,0.9,12.0,-30.5,,,V",
+        "ZDA": f"{talker}ZDA,120000.00,14,03,2026,00,00",
+        "HDT": f"{talker}HDT,45.50,T",
+    }
+    for kind, body in bodies.items():
+        s = parsed(body)
+        assert (s.talker, s.kind, s.noise_bytes) == (talker, kind, 0)
+
+
+def test_checksums_are_enforced_and_bad_input_never_raises_anything_else() -> None:
+    good = nmea(gga(29.19, -81.05))
+    bad = good[:-4] + (b"00" if good[-4:-2] != b"00" else b"11") + good[-2:]
+    with pytest.raises(BadChecksum) as err:
+        parse_sentence(bad)
+    assert err.value.kind == "GGA"
+    for line in (b"\x00\xff\xfe garbage\r\n", b"$GPGGA,120000.00,,,,,0,00,,,,,,,\r\n", b"$GPHDT,1.0,T*zz\r\n",
+                 "$GPHDT,\u00e91.0,T*00\r\n".encode("latin-1"), b"", b"\r\n", b"*4F$"):
+        with pytest.raises(MalformedSentence):
+            parse_sentence(line)
+    # noise glued to the front of a sentence (a garbage burst without a newline) is dropped, not the sentence
+    s = parse_sentence(b"\x8a\x13$$\x02junk" + good)
+    assert s is not None and s.kind == "GGA" and s.noise_bytes == 9
+    # known to nobody, or proprietary: None (ignored, not an error)
+    assert parse_sentence(nmea("GPXYZ,1,2")) is None
+    assert parse_sentence(nmea("PGRMZ,246,f,3")) is None
+
+
+def test_epochs_split_on_a_new_utc_time_or_a_repeated_kind_but_not_on_gsa_per_constellation() -> None:
+    col = EpochCollector()
+    first = [gga(29.19, -81.05, talker="GN"), "GNRMC,120000.00,A,2911.37000,N,08103.00000,W,0.0,,140326,,,A,V",
+             "GPGSA,A,3,02,05,,,,,,,,,,,1.70,0.90,1.40", "GLGSA,A,3,70,71,,,,,,,,,,,1.70,0.90,1.40",
+             "GNVTG,,T,,M,0.000,N,0.000,K,A"]
+    assert all(col.add(parsed(b), received=1.0) is None for b in first)
+    done = col.add(parsed(gga(29.19, -81.05, talker="GN", time="120000.20")), received=1.2)
+    assert done is not None and done.kinds() == ["GGA", "RMC", "GSA", "GSA", "VTG"]
+    assert done.time == dt.time(12, 0, 0) and done.talkers() == {"GN", "GP", "GL"} and done.received == 1.0
+    # a receiver that sends no time: the second VTG starts the next epoch
+    assert col.add(parsed("GNVTG,10.0,T,,M,1.0,N,1.852,K,A"), received=1.3) is None
+    done = col.add(parsed("GNVTG,11.0,T,,M,1.0,N,1.852,K,A"), received=1.4)
+    assert done is not None and done.kinds() == ["GGA", "VTG"] and done.time == dt.time(12, 0, 0, 200000)
+    assert col.flush().kinds() == ["VTG"] and col.flush() is None
+
+
+# ---------------------------------------------------------------- fixes -------------------------
+def test_a_full_epoch_gives_ned_position_velocity_heading_and_gst_sigmas() -> None:
+    lat, lon, alt = ned_to_geodetic(123.4, -56.7, 1.5, origin=GEO)
+    la, ns = dm(lat, lat=True)
+    lo, ew = dm(lon, lat=False)
+    fix = fix_from_epoch(epoch_of(
+        gga(lat, lon, alt=f"{alt:.2f}"),
+        f"GPRMC,120000.00,A,{la},{ns},{lo},{ew},{2.0 / KNOT_MPS:.4f},90.00,140326,,,A,V",
+        "GPGSA,A,3,02,05,07,09,,,,,,,,,1.70,0.90,1.40",
+        "GPGST,120000.00,1.5,1.50,1.50,0.0,0.80,0.60,2.00",
+        "GPZDA,120000.00,14,03,2026,00,00",
+        "GPHDT,359.90,T"))
+    assert fix.has_fix and fix.fix_dim == 3 and fix.quality == 1 and fix.satellites == 9 and fix.hdop == 0.9
+    assert fix.utc_date == dt.date(2026, 3, 14) and fix.utc_time == dt.time(12, 0)
+    msg = state_from_fix(fix, StateSettings(origin=GEO))
+    assert msg is not None and msg.reference_frame == "NED"
+    assert msg.x == pytest.approx(123.4, abs=0.02) and msg.y == pytest.approx(-56.7, abs=0.02)
+    assert msg.z == pytest.approx(1.5, abs=0.01)
+    assert msg.x_dot == pytest.approx(0.0, abs=1e-9) and msg.y_dot == pytest.approx(2.0, abs=1e-3)
+    assert (msg.x_sigma, msg.y_sigma, msg.z_sigma) == (0.80, 0.60, 2.00)
+    assert msg.psi == pytest.approx(math.radians(-0.1)) and -math.pi <= msg.psi < math.pi
+    assert msg.get("phi") is None and msg.get("psi_dot") is None   # only what a GPS measures
+
+
+def test_sigmas_fall_back_to_hdop_and_the_geodetic_frame_keeps_lat_lon() -> None:
+    fix = fix_from_epoch(epoch_of(gga(-33.85, 151.21, hdop="1.2", alt="40.0"),
+                                  "GPGSA,A,3,02,05,07,09,,,,,,,,,2.00,1.20,1.60"))
+    assert fix.lat == pytest.approx(-33.85, abs=1e-6) and fix.lon == pytest.approx(151.21, abs=1e-6)
+    msg = state_from_fix(fix, StateSettings(origin=GEO, position_frame="GEODETIC", uere_m=4.0,
+                                            altitude_datum="ellipsoid"))
+    assert msg.reference_frame == "GEODETIC"
+    assert (msg.x, msg.y) == (pytest.approx(-33.85, abs=1e-6), pytest.approx(151.21, abs=1e-6))
+    assert msg.z == pytest.approx(40.0 - 30.5)          # ellipsoid height = MSL + geoid separation
+    assert msg.x_sigma == pytest.approx(1.2 * 4.0 / math.sqrt(2.0)) and msg.z_sigma == pytest.approx(1.6 * 4.0)
+    assert not msg.has("x_dot") and not msg.has("psi")  # no RMC/VTG, no HDT in this epoch
+
+
+def test_2d_fix_has_no_altitude_and_vtg_gives_velocity_in_kmh() -> None:
+    fix = fix_from_epoch(epoch_of(gga(29.19, -81.05), "GPGSA,A,2,02,05,07,,,,,,,,,,3.00,2.00,2.20",
+                                  "GPVTG,180.0,T,,M,,N,7.200,K,D"))
+    assert fix.fix_dim == 2 and fix.alt_msl is None
+    msg = state_from_fix(fix, StateSettings(origin=GEO))
+    assert not msg.has("z") and not msg.has("z_sigma")
+    assert msg.x_dot == pytest.approx(-2.0) and msg.y_dot == pytest.approx(0.0, abs=1e-9)
+
+
+@pytest.mark.parametrize("bodies", [
+    (gga(29.19, -81.05, quality=0),),                              # invalid
+    (gga(29.19, -81.05, quality=6),),                              # dead reckoning is no measurement
+    ("GPGGA,120000.00,,,,,0,00,99.99,,,,,,",),                     # empty position
+    ("GPRMC,120000.00,V,,,,,,,140326,,,N,V", "GPVTG,,T,,M,,N,,K,N"),
+    ("GNGNS,120000.00,2911.37000,N,08103.00000,W,NN,00,99.9,,,,,V",),
+])
+def test_no_fix_gives_no_position_and_no_velocity(bodies: tuple[str, ...]) -> None:
+    fix = fix_from_epoch(epoch_of(*bodies))
+    assert not fix.has_fix and fix.fix_name == "no fix"
+    assert state_from_fix(fix, StateSettings(origin=GEO)) is None
+    with_heading = fix_from_epoch(epoch_of(*bodies, "GPHDT,90.0,T"))
+    msg = state_from_fix(with_heading, StateSettings(origin=GEO))
+    assert msg.present_fields() == ["psi", "psi_sigma"]
+
+
+def test_gns_and_rmc_alone_give_a_fix() -> None:
+    gns = fix_from_epoch(epoch_of("GNGNS,120000.00,2911.37000,N,08103.00000,W,RN,14,0.7,12.0,-30.5,,,V"))
+    assert gns.has_fix and gns.satellites == 14 and gns.fix_dim == 3
+    rmc = fix_from_epoch(epoch_of("GPRMC,120000.00,A,2911.37000,S,08103.00000,E,0.0,,140326,,,A,V"))
+    assert rmc.has_fix and rmc.fix_dim == 2 and rmc.lat < 0 < rmc.lon
+    assert rmc.speed_mps == 0.0 and rmc.course_deg == 0.0   # empty course at rest: velocity (0, 0)
+    assert rmc.utc_date == dt.date(2026, 3, 14)
+
+
+# ---------------------------------------------------------------- the service ------------------
+RATE_HZ = 5.0
+H_SIGMA = 0.3
+
+
+@pytest.fixture
+def vehicle() -> Iterator[SimVehicle]:
+    """A rover about 140 m from the origin driving at 0.5 m/s on a heading of 30 degrees."""
+    v = SimVehicle(**SIM_ORIGIN, start_north=120.0, start_east=-80.0, start_yaw=math.radians(30.0))
+    v.set_wheel_speed("left", 0.5)
+    v.set_wheel_speed("right", 0.5)
+    v.start(rate_hz=100.0)
+    yield v
+    v.stop()
+
+
+def make_gps(vehicle: SimVehicle, tmp_path: Path, **options: object) -> NmeaGpsDevice:
+    options = {"rate_hz": RATE_HZ, "horizontal_sigma_m": H_SIGMA, "vertical_sigma_m": 0.5, "seed": 3, **options}
+    dev = NmeaGpsDevice(vehicle, link_path=tmp_path / "dev" / "gps", **options)
+    dev.start()
+    return dev
+
+
+@pytest.fixture
+def gps(vehicle: SimVehicle, tmp_path: Path) -> Iterator[NmeaGpsDevice]:
+    dev = make_gps(vehicle, tmp_path, talker="GN")
+    yield dev
+    dev.stop()
+
+
+def run_gps(services: ServiceProcesses, bus: BusClient, tmp_path: Path, address: str, vehicle: SimVehicle,
+            **settings: object) -> tuple[object, DriverProbe]:
+    profile = write_profile(tmp_path, name="gps", kind="gps_nmea",
+                            settings={"port": address, "baudrate": 38400, **settings})
+    probe = DriverProbe(bus, "gps", on_state=vehicle.snapshot)
+    proc = start_driver(services, profile, "gps")
+    return proc, probe
+
+
+def test_gps_service_publishes_one_ned_fix_per_epoch_matching_the_vehicle(
+        services: ServiceProcesses, bus: BusClient, tmp_path: Path, vehicle: SimVehicle, gps: NmeaGpsDevice) -> None:
+    proc, probe = run_gps(services, bus, tmp_path, gps.address, vehicle)
+    states = probe.wait_states(10, timeout=20)
+    for msg, truth in states:
+        assert msg.sensor_name == "gps" and msg.reference_frame == "NED" and msg.header.system_id == 7
+        # the message left up to one epoch gap before the truth was sampled; 0.5 m/s moves 0.1 m in that time
+        assert abs(msg.x - truth.north) < 5 * H_SIGMA + 0.2 and abs(msg.y - truth.east) < 5 * H_SIGMA + 0.2
+        assert abs(msg.z - truth.down) < 5 * 0.5
+        assert abs(msg.x_dot - truth.v_north) < 0.3 and abs(msg.y_dot - truth.v_east) < 0.3
+        assert abs(math.degrees(msg.psi - truth.yaw)) < 1.5                     # HDT true heading
+        assert (msg.x_sigma, msg.y_sigma, msg.z_sigma) == (H_SIGMA, H_SIGMA, 0.5)  # from GST
+    details = probe.wait_health(lambda d, s: int(d["epochs"]) >= 5)
+    assert details["status"] == "ok" and details["degraded_reason"] == ""
+    assert details["fix"] == "True" and details["fix_type"] == "3D" and details["fix_quality"] == "1 (gps)"
+    assert details["satellites"] == "10" and details["hdop"] == "0.9" and details["talkers"] == "GN"
+    assert details["port"] == "open" and details["bad_checksums"] == "0"
+    # one publication per epoch of seven sentences, not one per sentence
+    assert int(details["published"]) == int(details["epochs"]) and int(details["lines"]) >= 6 * int(details["epochs"])
+    lat, lon = float(details["lat"]), float(details["lon"])
+    north, east, _ = geodetic_to_ned(lat, lon, origin=GEO)
+    assert abs(north - vehicle.snapshot().north) < 3.0 and abs(east - vehicle.snapshot().east) < 3.0
+    assert proc.poll() is None
+
+
+def test_gps_geodetic_frame_hdop_sigmas_and_raw_taps(services: ServiceProcesses, bus: BusClient, tmp_path: Path,
+                                                      vehicle: SimVehicle) -> None:
+    dev = make_gps(vehicle, tmp_path, talker="GB", sentences=("GGA", "RMC", "VTG", "GSA"))
+    try:
+        _, probe = run_gps(services, bus, tmp_path, dev.address, vehicle, position_frame="GEODETIC", uere_m=2.0,
+                           record_raw=True)
+        states = probe.wait_states(5, timeout=20)
+        for msg, truth in states:
+            assert msg.reference_frame == "GEODETIC"
+            north, east, down = geodetic_to_ned(msg.x, msg.y, msg.z, origin=GEO)
+            assert abs(north - truth.north) < 5 * H_SIGMA + 0.2 and abs(east - truth.east) < 5 * H_SIGMA + 0.2
+            assert msg.x_sigma == pytest.approx(0.9 * 2.0 / math.sqrt(2)) and msg.z_sigma == pytest.approx(1.4 * 2.0)
+            assert not msg.has("psi")
+        wait_until(lambda: len(probe.raw) >= 5, timeout=10, message="RAW.gps records")
+        received = b"".join(r.data for r in list(probe.raw) if r.direction == 0)
+        assert all(r.device == "gps" and r.length == len(r.data) for r in probe.raw)
+        sent = [line.text.encode() for line in dev.history]
+        assert sum(line in received for line in sent) >= 10   # the very bytes the receiver wrote
+    finally:
+        dev.stop()
+
+
+def test_gps_survives_garbage_bad_checksums_and_loss_of_fix(services: ServiceProcesses, bus: BusClient,
+                                                            tmp_path: Path, vehicle: SimVehicle,
+                                                            gps: NmeaGpsDevice) -> None:
+    proc, probe = run_gps(services, bus, tmp_path, gps.address, vehicle)
+    probe.wait_states(3, timeout=20)
+
+    for _ in range(5):
+        gps.inject_garbage(300)
+    probe.wait_health(lambda d, s: int(d["malformed"]) + int(d["noise_bytes"]) > 0, message="garbage counted")
+    probe.wait_states(3, since=probe.state_count(), message="fixes after the garbage")
+
+    gps.bad_checksums(True)
+    details = probe.wait_health(lambda d, s: int(d["bad_checksums"]) >= 14, message="bad checksums counted")
+    assert "GGA:" in details["bad_checksum_kinds"] and "RMC:" in details["bad_checksum_kinds"]
+    assert proc.poll() is None
+    gps.bad_checksums(False)
+    probe.wait_states(3, since=probe.state_count(), message="fixes after the bad checksums")
+
+    gps.set_fix(False)
+    details = probe.wait_health(lambda d, s: d["fix"] == "False", message="the lost fix in health")
+    assert details["status"] == "degraded" and details["degraded_reason"] == "no fix"
+    assert details["fix_type"] == "no fix" and details["fix_quality"] == "0 (invalid)"
+    mark = probe.state_count()
+    epochs = int(details["epochs"])
+    probe.wait_health(lambda d, s: int(d["epochs"]) >= epochs + 5, message="five epochs without a fix")
+    assert not any(msg.has("x") or msg.has("x_dot") for msg, _ in probe.states_since(mark))
+    gps.set_fix(True)
+    msg, truth = probe.wait_states(1, since=probe.state_count(), message="a fix again")[-1]
+    assert abs(msg.x - truth.north) < 5 * H_SIGMA + 0.2
+    assert probe.wait_health(lambda d, s: s == "ok")["fix"] == "True"
+    assert proc.poll() is None
+
+
+def test_gps_reports_silence_and_recovers_from_a_disconnect(services: ServiceProcesses, bus: BusClient,
+                                                            tmp_path: Path, vehicle: SimVehicle,
+                                                            gps: NmeaGpsDevice) -> None:
+    proc, probe = run_gps(services, bus, tmp_path, gps.address, vehicle, stale_after_s=0.5)
+    probe.wait_states(3, timeout=20)
+
+    gps.silence(True)
+    details = probe.wait_health(lambda d, s: d["data"] == "stale", message="stale data in health")
+    assert details["status"] == "degraded" and details["degraded_reason"].startswith("no data for")
+    assert details["port"] == "open"
+    gps.silence(False)
+    probe.wait_health(lambda d, s: s == "ok" and d["data"] == "ok", message="fresh data again")
+
+    gps.disconnect()
+    details = probe.wait_health(lambda d, s: d["port"] == "down", message="the port down in health")
+    assert details["status"] == "degraded" and details["degraded_reason"] == "port down"
+    assert int(details["port_losses"]) >= 1 and details["port_error"] and details["last_error"]
+    assert proc.poll() is None
+    gps.reconnect()
+    mark = probe.state_count()
+    msg, truth = probe.wait_states(3, since=mark, timeout=20, message="fixes after the reconnect")[-1]
+    assert abs(msg.x - truth.north) < 5 * H_SIGMA + 0.2
+    assert probe.wait_health(lambda d, s: s == "ok")["port"] == "open"
+
+
+def test_gps_refuses_an_unsupported_baud_rate_with_a_clear_error(services: ServiceProcesses, tmp_path: Path) -> None:
+    profile = write_profile(tmp_path, name="gps", kind="gps_nmea", settings={"port": "/dev/u2sa/gps", "baudrate": 1234})
+    proc = start_driver(services, profile, "gps")
+    assert proc.wait(timeout=20) != 0
+    out = (tmp_path / "gps.stderr").read_text()
+    assert "baudrate 1234 is not supported" in out and "4800, 9600, 19200, 38400, 57600, 115200" in out
