@@ -5,7 +5,6 @@ from __future__ import annotations
 import os
 import re
 import signal
-import subprocess
 import sys
 import threading
 from pathlib import Path
@@ -13,70 +12,13 @@ from typing import Any
 
 import pytest
 from conftest import wait_until
+from supervision_helpers import launch, write_profile  # noqa: F401 - launch is a fixture
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus_client import BusClient
 from u2sa_hw.launcher import Launcher, LauncherBusy, LauncherClient, LauncherError, RestartPolicy
-from u2sa_hw.launcher.launcher import u2sa_command
 from u2sa_hw.vehicle import load_profile
-
-
-def write_profile(tmp: Path, url: str, services: dict[str, str], *, health_interval: float = 0.2) -> Path:
-    """A vehicle profile with one service per name -> kind, fast health."""
-    lines = ["[vehicle]", 'name = "bench"', f'lcm_url = "{url}"', ""]
-    for name, kind in services.items():
-        lines += [f"[services.{name}]", f'kind = "{kind}"',
-                  f"settings = {{ health_interval_s = {health_interval} }}", ""]
-    path = tmp / "vehicle.toml"
-    path.write_text("\n".join(lines))
-    return path
-
-
-class LauncherProcess:
-    """`u2sa run` as a real process with its output in a file."""
-
-    def __init__(self, profile: Path, *args: str) -> None:
-        self.out_path = profile.parent / "launcher.out"
-        self._out = open(self.out_path, "wb")
-        self.proc = subprocess.Popen([*u2sa_command(), "run", "--vehicle", str(profile), "--no-color", *args],
-                                     stdout=self._out, stderr=subprocess.STDOUT, cwd=profile.parent,
-                                     env=dict(os.environ, PYTHONUNBUFFERED="1"))
-        self.client = LauncherClient(profile.parent / "data" / "launcher.sock", timeout=5.0)
-
-    @property
-    def output(self) -> str:
-        return self.out_path.read_text(errors="replace")
-
-    def status(self) -> dict[str, dict[str, Any]]:
-        try:
-            return {s["name"]: s for s in self.client.status()}
-        except LauncherError:
-            return {}
-
-    def close(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-            try:
-                self.proc.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        self._out.close()
-
-
-@pytest.fixture
-def launch(tmp_path: Path) -> Any:
-    started: list[LauncherProcess] = []
-
-    def start(profile: Path, *args: str) -> LauncherProcess:
-        lp = LauncherProcess(profile, *args)
-        started.append(lp)
-        return lp
-
-    yield start
-    for lp in started:
-        lp.close()
 
 
 def _alive(pid: int) -> bool:

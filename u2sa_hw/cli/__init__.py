@@ -20,6 +20,7 @@ COMMAND_MODULES = [
     "u2sa_hw.cli.param_cmd",
     "u2sa_hw.cli.record_cmd",
     "u2sa_hw.cli.run_cmd",
+    "u2sa_hw.cli.health_cmd",
     "u2sa_hw.cli.install_cmd",
 ]
 

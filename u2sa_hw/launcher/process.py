@@ -26,7 +26,6 @@ BACKOFF = "backoff"
 EXITED = "exited"      # exited with status 0 on its own: not restarted (like systemd's on-failure)
 STOPPED = "stopped"    # stopped because we asked
 FAILED = "failed"      # given up after too many quick deaths
-DEAD_STATES = (BACKOFF, EXITED, STOPPED, FAILED)
 
 _PR_SET_PDEATHSIG = 1
 try:

@@ -1,0 +1,124 @@
+"""The HSM end to end under the local launcher: real processes, real LCM multicast, real signals."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import threading
+from pathlib import Path
+from typing import Any
+
+from conftest import wait_until
+from supervision_helpers import launch  # noqa: F401 - a fixture
+
+from u2sa_hw import channels as ch
+from u2sa_hw import lcmtypes as t
+from u2sa_hw.bus_client import BusClient
+from u2sa_hw.launcher.launcher import u2sa_command
+
+# Services beat every 0.2 s; 10 missed beats (2 s) before "missing" keeps a loaded CI machine from
+# looking like a hang, and the grace covers a slow Python start.
+HSM_SETTINGS = ("health_interval_s = 0.2, missed_heartbeats = 10, restart_backoff_s = 0.5, max_restarts = 2, "
+                "system_health_interval_s = 0.2")
+
+
+def profile(tmp: Path, url: str, services: str, *, startup_grace_s: float) -> Path:
+    path = tmp / "vehicle.toml"
+    path.write_text(f'[vehicle]\nname = "bench"\nlcm_url = "{url}"\n\n{services}\n[services.hsm]\nkind = "hsm"\n'
+                    f"settings = {{ {HSM_SETTINGS}, startup_grace_s = {startup_grace_s} }}\n")
+    return path
+
+
+class Watch:
+    """Collects Health pids per service, SystemHealth and Failsafe messages from the bus."""
+
+    def __init__(self, bus: BusClient) -> None:
+        self.pids: dict[str, list[int]] = {}
+        self.system: list[t.SystemHealth] = []
+        self.failsafes: list[t.Failsafe] = []
+        self._lock = threading.Lock()
+        bus.transport.subscribe(ch.HEALTH, t.Health, self._health)
+        bus.transport.subscribe(ch.SYSTEM_HEALTH, t.SystemHealth, lambda _c, m: self._add(self.system, m))
+        bus.transport.subscribe(ch.FAILSAFE, t.Failsafe, lambda _c, m: self._add(self.failsafes, m))
+
+    def _add(self, items: list[Any], msg: Any) -> None:
+        with self._lock:
+            items.append(msg)
+
+    def _health(self, _c: str, msg: t.Health) -> None:
+        with self._lock:
+            pids = self.pids.setdefault(msg.name, [])
+            if not pids or pids[-1] != msg.pid:
+                pids.append(msg.pid)
+
+    def service_state(self, name: str) -> t.ServiceState | None:
+        with self._lock:
+            latest = self.system[-1] if self.system else None
+        return next((s for s in latest.services if s.name == name), None) if latest else None
+
+
+def u2sa(tmp: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([*u2sa_command(), *args], cwd=tmp, capture_output=True, text=True, timeout=60,
+                          env=dict(os.environ))
+
+
+def test_hung_service_is_restarted_through_the_launcher(tmp_path: Path, lcm_url: str, bus: BusClient,
+                                                        launch: Any) -> None:
+    watch = Watch(bus)
+    vehicle = profile(tmp_path, lcm_url, '[services.est_a]\nkind = "state_estimator"\n'
+                      "settings = { health_interval_s = 0.2 }\n", startup_grace_s=10.0)
+    lp = launch(vehicle, "--grace", "3")
+    wait_until(lambda: (s := watch.service_state("est_a")) and s.state == "ok", timeout=30,
+               message="the HSM to see est_a ok")
+    old_pid = watch.pids["est_a"][-1]
+    assert lp.status()["est_a"]["pid"] == old_pid
+
+    os.kill(old_pid, signal.SIGSTOP)                         # a hang: alive, but no more heartbeats
+    wait_until(lambda: len(watch.pids["est_a"]) >= 2, timeout=30, message="health from a new est_a process")
+    assert watch.pids["est_a"][-1] != old_pid
+    status = lp.status()["est_a"]
+    assert status["run_id"] == 2 and status["pid"] == watch.pids["est_a"][-1]
+    wait_until(lambda: (s := watch.service_state("est_a")) and s.state == "ok" and s.restarts == 1, timeout=30,
+               message="the HSM to report est_a ok after one restart")
+    assert "restarting est_a (restart 1 of 2): no heartbeat for" in lp.output
+    assert "restart of est_a requested: HSM: no heartbeat" in lp.output
+
+    shown = u2sa(tmp_path, "health", "--vehicle", str(vehicle), "--json")
+    assert shown.returncode == 0, shown.stderr
+    report = json.loads(shown.stdout)
+    est = next(s for s in report["services"] if s["name"] == "est_a")
+    assert report["failsafe"] is False and est["state"] == "ok" and est["restarts"] == 1
+    assert report["source"] == "hsm" and est["heartbeat_age_s"] is not None and est["data_age_s"] is None
+    table = u2sa(tmp_path, "health", "--vehicle", str(vehicle))
+    assert table.returncode == 0 and "failsafe off" in table.stdout and "est_a" in table.stdout
+
+
+def test_crash_looping_required_service_raises_the_failsafe(tmp_path: Path, lcm_url: str, bus: BusClient,
+                                                            launch: Any) -> None:
+    watch = Watch(bus)
+    vehicle = profile(tmp_path, lcm_url, '[services.est]\nkind = "state_estimator"\n'
+                      "settings = { health_interval_s = 0.2 }\n\n"
+                      '[services.broken]\nkind = "no_such_kind"\n', startup_grace_s=5.0)
+    lp = launch(vehicle, "--give-up-after", "0", "--backoff", "0.2", "--max-backoff", "1")
+    failsafe = wait_until(lambda: next((f for f in list(watch.failsafes) if f.active), None), timeout=60,
+                          message="an active FAILSAFE")
+    assert failsafe.service == "broken" and failsafe.header.source == "hsm"
+    assert "required service broken failed: no heartbeat" in failsafe.reason and "after 2 restarts" in failsafe.reason
+    wait_until(lambda: (s := watch.service_state("broken")) and s.state == "failed", timeout=10,
+               message="SystemHealth to show broken failed")
+    assert watch.system[-1].failsafe and watch.system[-1].summary.startswith("FAILSAFE")
+    assert watch.service_state("est").state == "ok"
+    assert lp.proc.poll() is None                            # the launcher keeps going: give-up is off
+    assert "broken FAILED (required -> failsafe)" in lp.output
+
+    report = json.loads(u2sa(tmp_path, "health", "--vehicle", str(vehicle), "--json").stdout)
+    assert report["failsafe"] is True
+    assert next(s for s in report["services"] if s["name"] == "broken")["state"] == "failed"
+
+
+def test_health_without_an_hsm_names_the_problem(tmp_path: Path, lcm_url: str) -> None:
+    done = u2sa(tmp_path, "health", "--timeout", "0.5")
+    assert done.returncode == 1
+    assert "no HSM answered: nothing on U2SA_SYSTEM_HEALTH within 0.5 s" in done.stderr and 'kind = "hsm"' in done.stderr

@@ -1,0 +1,79 @@
+"""``u2sa health``: the HSM's view of the system (its SystemHealth on ``U2SA_SYSTEM_HEALTH``)."""
+
+from __future__ import annotations
+
+import json
+import threading
+from typing import Any
+
+from u2sa_hw.cli.common import add_vehicle_option, bus_client
+
+HELP = """\
+Wait for the HSM's next system health message and show each service's state
+(ok, degraded, stale, missing, restarting, stopped, failed, starting), its restarts,
+last error, heartbeat age and data age, with the failsafe state. Exits 1 when no
+HSM answers within --timeout (is a service of kind "hsm" in the profile and running?).
+"""
+
+
+def register(sub: Any) -> None:
+    """Add the ``health`` subcommand."""
+    p = sub.add_parser("health", help="the HSM's view: each service's state, restarts, last error, data age",
+                       description=HELP)
+    add_vehicle_option(p)
+    p.add_argument("--json", action="store_true", help="print one JSON object (failsafe, summary, services)")
+    p.add_argument("--timeout", type=float, default=3.0, metavar="S",
+                   help="seconds to wait for the HSM (default 3; it publishes every second)")
+    p.set_defaults(func=cmd_health)
+
+
+def _age(seconds: float) -> str:
+    return "-" if seconds < 0 else f"{seconds:.1f}s"
+
+
+def as_dict(msg: Any) -> dict[str, Any]:
+    """A SystemHealth message as plain values."""
+    return {
+        "source": msg.header.source,
+        "failsafe": msg.failsafe,
+        "summary": msg.summary,
+        "services": [{"name": s.name, "state": s.state, "restarts": s.restarts, "last_error": s.last_error,
+                      "heartbeat_age_s": None if s.heartbeat_age_s < 0 else round(s.heartbeat_age_s, 3),
+                      "data_age_s": None if s.data_age_s < 0 else round(s.data_age_s, 3)} for s in msg.services],
+    }
+
+
+def cmd_health(args: Any) -> int:
+    """Print the next SystemHealth; exit 1 naming the problem when no HSM answers."""
+    from u2sa_hw import channels as ch
+    from u2sa_hw import lcmtypes as t
+    from u2sa_hw.cli import CliError
+
+    got: list[Any] = []
+    arrived = threading.Event()
+
+    def on_message(_c: str, msg: Any) -> None:
+        if not arrived.is_set():
+            got.append(msg)
+            arrived.set()
+
+    with bus_client(args) as bus:
+        bus.transport.subscribe(ch.SYSTEM_HEALTH, t.SystemHealth, on_message)
+        arrived.wait(max(0.0, args.timeout))
+        url = bus.transport.url
+    if not got:
+        raise CliError(f"no HSM answered: nothing on {ch.SYSTEM_HEALTH} within {args.timeout:g} s on {url} "
+                       "(add a service with kind = \"hsm\" to the vehicle profile and start it, "
+                       "e.g. 'u2sa run' or 'systemctl start u2sa@hsm')")
+    report = as_dict(got[0])
+    if args.json:
+        print(json.dumps(report, indent=2))
+        return 0
+    print(f"{'FAILSAFE ACTIVE' if report['failsafe'] else 'failsafe off'} -- {report['summary']} "
+          f"(from {report['source'] or 'hsm'})")
+    if report["services"]:
+        print(f"{'SERVICE':22} {'STATE':11} {'RESTARTS':>8} {'HEARTBEAT':>9} {'DATA AGE':>8}  LAST ERROR")
+    for s in got[0].services:
+        print(f"{s.name:22} {s.state:11} {s.restarts:>8} {_age(s.heartbeat_age_s):>9} {_age(s.data_age_s):>8}  "
+              f"{s.last_error}")
+    return 0

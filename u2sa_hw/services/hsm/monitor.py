@@ -1,0 +1,318 @@
+"""The HSM's judgement, as pure logic: every input carries the time, so tests use a fake clock.
+
+Feed it heartbeats (:meth:`HealthMonitor.on_health`) and data sightings
+(:meth:`HealthMonitor.on_data`); call :meth:`HealthMonitor.evaluate` periodically. It
+returns what to do (:class:`Restart`, :class:`Failed`, :class:`Recovered`,
+:class:`FailsafeChange`); the service carries that out. Rules, in order, for a service:
+
+1. no heartbeat within ``startup_grace_s`` of the watch starting or of a restart, or none
+   for ``heartbeat_timeout_s`` -> *missing*; if its last word was ``stopping`` it stopped
+   on purpose -> *stopped* (never restarted);
+2. its own health says ``failed``; its data (``data_channel``) silent for ``stale_after_s``;
+   a required health detail false for ``require_grace_s`` -> *stale*;
+   ``degraded`` for ``degraded_restart_s`` (when set) -> *degraded*;
+3. a problem is met by a restart, then judgement pauses for ``startup_grace_s``; restart k+1
+   waits ``restart_backoff_s * 2**(k-1)`` after restart k; after ``max_restarts`` without
+   recovery (or at once with ``restart = false``) the service is *failed*;
+4. ``recovery_s`` of health forgives the restarts; a failed service that comes back recovers;
+5. a *failed* or *stopped* required service raises the failsafe. It stays raised while the HSM
+   runs when ``failsafe_latch`` is set; it is cleared once every required service is ok
+   (on its own without the latch; after an HSM restart with it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from u2sa_hw.services.hsm.rules import MonitorPolicy, WatchRule
+
+FALSE_WORDS = {"", "0", "0.0", "false", "no", "none", "off", "n/a"}
+UNWATCHED_FORGET_S = 60.0
+
+
+@dataclass(frozen=True)
+class Restart:
+    """Restart *service* now (restart number *attempt* since it was last healthy)."""
+
+    service: str
+    reason: str
+    attempt: int
+
+
+@dataclass(frozen=True)
+class Failed:
+    """*service* is given up."""
+
+    service: str
+    reason: str
+    required: bool
+
+
+@dataclass(frozen=True)
+class Recovered:
+    """*service* is healthy again after a problem."""
+
+    service: str
+
+
+@dataclass(frozen=True)
+class FailsafeChange:
+    """The failsafe goes up (active) or down."""
+
+    active: bool
+    reason: str
+    service: str
+
+
+@dataclass(frozen=True)
+class ServiceView:
+    """One row of the system health."""
+
+    name: str
+    state: str           # starting, ok, degraded, stale, missing, restarting, stopped, failed
+    restarts: int
+    last_error: str
+    heartbeat_age_s: float   # -1: never heard
+    data_age_s: float        # -1: no data channel watched
+    required: bool
+    watched: bool
+
+
+def truthy(value: str | None) -> bool:
+    """A health detail read as a boolean ("1", "true", "yes", a non-zero number are true)."""
+    return value is not None and value.strip().lower() not in FALSE_WORDS
+
+
+@dataclass
+class _Track:
+    rule: WatchRule | None
+    watch_since: float
+    last_heartbeat: float | None = None
+    pid: int | None = None
+    status: str = ""
+    health_error: str = ""
+    incarnation: float | None = None
+    last_data: float | None = None
+    details_bad_since: float | None = None
+    degraded_since: float | None = None
+    restarts: int = 0
+    attempts: int = 0
+    last_restart: float | None = None
+    healthy_since: float | None = None
+    failed: bool = False
+    state: str = "starting"
+    problem: str = ""
+    restart_error: str = ""
+    details: dict[str, str] = field(default_factory=dict)
+
+
+class HealthMonitor:
+    """Judges expected services from their heartbeats and data (see the module docstring)."""
+
+    def __init__(self, rules: list[WatchRule], *, policy: MonitorPolicy, now: float,
+                 default_timeout_s: float = 3.0) -> None:
+        self.policy = policy
+        self.default_timeout_s = default_timeout_s
+        self._tracks: dict[str, _Track] = {r.name: _Track(rule=r, watch_since=now) for r in rules}
+        self.failsafe_active = False
+        self.failsafe_reason = ""
+        self.failsafe_service = ""
+        self._failsafe_announced = False   # a fresh HSM says "clear" once, when all is well
+
+    # -- inputs ------------------------------------------------------------------------------
+    def data_channels(self) -> dict[str, set[str]]:
+        """Channel -> the services whose data is watched on it."""
+        out: dict[str, set[str]] = {}
+        for name, tr in self._tracks.items():
+            if tr.rule is not None and tr.rule.data_channel:
+                out.setdefault(tr.rule.data_channel, set()).add(name)
+        return out
+
+    def unwatch(self, names: set[str], reason: str) -> None:
+        """Stop expecting *names* (e.g. not started by the launcher); they stay visible if they talk."""
+        for name in names:
+            tr = self._tracks.get(name)
+            if tr is None:
+                continue
+            if tr.last_heartbeat is None:
+                del self._tracks[name]
+            else:
+                tr.rule, tr.problem = None, reason
+
+    def on_health(self, msg: Any, now: float) -> None:
+        """A Health message arrived (``name``, ``pid``, ``status``, ``last_error``, ``details``)."""
+        tr = self._tracks.get(msg.name)
+        if tr is None:
+            tr = self._tracks[msg.name] = _Track(rule=None, watch_since=now)
+        if tr.pid is not None and msg.pid != tr.pid:
+            if tr.last_restart is None or now - tr.last_restart > self._grace(tr):
+                tr.restarts += 1   # restarted by systemd or the launcher on its own
+            tr.incarnation = now
+        elif tr.incarnation is None:
+            tr.incarnation = now
+        tr.pid = msg.pid
+        tr.last_heartbeat = now
+        tr.status = msg.status
+        tr.health_error = msg.last_error
+        tr.details = {kv.key: kv.value for kv in msg.details}
+        if tr.rule is not None and tr.rule.require_details:
+            if all(truthy(tr.details.get(k)) for k in tr.rule.require_details):
+                tr.details_bad_since = None
+            elif tr.details_bad_since is None:
+                tr.details_bad_since = now
+        if msg.status == "degraded":
+            tr.degraded_since = tr.degraded_since if tr.degraded_since is not None else now
+        else:
+            tr.degraded_since = None
+
+    def on_data(self, source: str, channel: str, now: float) -> None:
+        """A message from *source* was seen on *channel*."""
+        tr = self._tracks.get(source)
+        if tr is not None and tr.rule is not None and tr.rule.data_channel == channel:
+            tr.last_data = now
+
+    def restart_result(self, service: str, ok: bool, text: str) -> None:
+        """The restarter's outcome for *service* (shown as its last error when it failed)."""
+        tr = self._tracks.get(service)
+        if tr is not None:
+            tr.restart_error = "" if ok else f"restart failed: {text}"
+
+    # -- judgement ---------------------------------------------------------------------------
+    def _grace(self, tr: _Track) -> float:
+        return tr.rule.startup_grace_s if tr.rule is not None else self.default_timeout_s
+
+    def _data_age(self, tr: _Track, now: float) -> float | None:
+        if tr.rule is None or not tr.rule.data_channel or tr.incarnation is None:
+            return None
+        return now - max(tr.last_data or tr.incarnation, tr.incarnation)
+
+    def _problem(self, tr: _Track, now: float) -> tuple[str, str] | None:
+        rule = tr.rule
+        timeout = rule.heartbeat_timeout_s if rule is not None else self.default_timeout_s
+        if tr.last_heartbeat is None:
+            waited = now - tr.watch_since
+            if waited > self._grace(tr):
+                return "missing", f"no heartbeat in {waited:.1f} s"
+            return None
+        age = now - tr.last_heartbeat
+        if age > timeout:
+            if tr.status == "stopping":
+                return "stopped", f"stopped on purpose {age:.1f} s ago"
+            return "missing", f"no heartbeat for {age:.1f} s (timeout {timeout:g} s)"
+        if rule is None:
+            return None
+        if tr.status == "failed":
+            return "stale", f"reports failed: {tr.health_error or 'no reason given'}"
+        data_age = self._data_age(tr, now)
+        if rule.stale_after_s > 0 and data_age is not None and data_age > rule.stale_after_s:
+            return "stale", f"no data on {rule.data_channel} for {data_age:.1f} s (limit {rule.stale_after_s:g} s)"
+        if tr.details_bad_since is not None and now - tr.details_bad_since > rule.require_grace_s:
+            bad = [k for k in rule.require_details if not truthy(tr.details.get(k))]
+            shown = ", ".join(f"{k}={tr.details.get(k, 'absent')}" for k in bad)
+            return "stale", f"{shown} for {now - tr.details_bad_since:.1f} s (required: {', '.join(bad)})"
+        if rule.degraded_restart_s > 0 and tr.degraded_since is not None \
+                and now - tr.degraded_since > rule.degraded_restart_s:
+            return "degraded", f"degraded for {now - tr.degraded_since:.1f} s: {tr.health_error or 'no reason given'}"
+        return None
+
+    def evaluate(self, now: float) -> list[Any]:
+        """Judge every service at *now*; return the actions to carry out, in order."""
+        actions: list[Any] = []
+        for name, tr in list(self._tracks.items()):
+            problem = self._problem(tr, now)
+            if tr.rule is None:
+                tr.state = problem[0] if problem else ("degraded" if tr.status == "degraded" else "ok")
+                if problem and tr.last_heartbeat is not None and now - tr.last_heartbeat > UNWATCHED_FORGET_S:
+                    del self._tracks[name]
+                continue
+            if problem is None:
+                self._healthy(tr, now, actions)
+                continue
+            tr.healthy_since = None
+            if tr.failed:
+                tr.state = "failed"   # keeps the reason it failed with
+                continue
+            if tr.last_restart is not None and now - tr.last_restart < tr.rule.startup_grace_s:
+                tr.state = "restarting"
+                continue
+            tr.state, tr.problem = problem
+            if tr.state == "stopped":
+                continue
+            if not tr.rule.restart or tr.attempts >= self.policy.max_restarts:
+                tr.failed, tr.state = True, "failed"
+                how = "restarts are off for it" if not tr.rule.restart else f"after {tr.attempts} restarts"
+                tr.problem = f"{tr.problem} ({how})"
+                actions.append(Failed(name, tr.problem, tr.rule.required))
+                continue
+            if tr.last_restart is None or now - tr.last_restart >= self.policy.backoff(tr.attempts):
+                tr.attempts += 1
+                tr.restarts += 1
+                tr.last_restart = now
+                tr.watch_since = now
+                tr.state = "restarting"
+                actions.append(Restart(name, tr.problem, tr.attempts))
+        actions.extend(self._failsafe(now))
+        return actions
+
+    def _healthy(self, tr: _Track, now: float, actions: list[Any]) -> None:
+        assert tr.rule is not None
+        was_bad = tr.failed or tr.state in ("missing", "stale", "restarting", "stopped")
+        if tr.last_heartbeat is None:
+            tr.state = "starting"
+            return
+        tr.state = "degraded" if tr.status == "degraded" else "ok"
+        tr.problem = ""
+        if tr.healthy_since is None:
+            tr.healthy_since = now
+        if tr.attempts and now - tr.healthy_since >= self.policy.recovery_s:
+            tr.attempts = 0
+            tr.last_restart = None
+        if was_bad:
+            tr.failed = False
+            tr.restart_error = ""
+            actions.append(Recovered(tr.rule.name))
+
+    def _failsafe(self, now: float) -> list[FailsafeChange]:
+        causes = [tr for tr in self._tracks.values()
+                  if tr.rule is not None and tr.rule.required and (tr.failed or tr.state == "stopped")]
+        if causes and not self.failsafe_active:
+            first = causes[0]
+            self.failsafe_active, self._failsafe_announced = True, True
+            self.failsafe_service = first.rule.name if first.rule else ""
+            self.failsafe_reason = f"required service {self.failsafe_service} {first.state}: {first.problem}"
+            return [FailsafeChange(True, self.failsafe_reason, self.failsafe_service)]
+        all_ok = all(tr.state in ("ok", "degraded") for tr in self._tracks.values()
+                     if tr.rule is not None and tr.rule.required)
+        if not causes and all_ok and (not self.failsafe_active and not self._failsafe_announced
+                                      or self.failsafe_active and not self.policy.failsafe_latch):
+            self.failsafe_active, self._failsafe_announced = False, True
+            self.failsafe_reason, self.failsafe_service = "", ""
+            return [FailsafeChange(False, "every required service is ok", "")]
+        return []
+
+    # -- reports -------------------------------------------------------------------------------
+    def views(self, now: float) -> list[ServiceView]:
+        """One row per known service, expected ones first."""
+        rows = []
+        for name, tr in self._tracks.items():
+            data_age = self._data_age(tr, now)
+            error = tr.restart_error or (tr.problem if tr.state not in ("ok", "degraded", "starting")
+                                         else "") or tr.health_error
+            rows.append(ServiceView(
+                name=name, state=tr.state, restarts=tr.restarts, last_error=error,
+                heartbeat_age_s=now - tr.last_heartbeat if tr.last_heartbeat is not None else -1.0,
+                data_age_s=data_age if data_age is not None else -1.0,
+                required=bool(tr.rule and tr.rule.required), watched=tr.rule is not None))
+        return sorted(rows, key=lambda v: (not v.watched, v.name))
+
+    def summary(self, now: float) -> str:
+        """One line: FAILSAFE and why, or the services that are not ok, or all ok."""
+        rows = self.views(now)
+        if self.failsafe_active:
+            return f"FAILSAFE: {self.failsafe_reason}"
+        bad = [f"{v.name} {v.state}" for v in rows if v.watched and v.state not in ("ok", "starting")]
+        ok = sum(v.state == "ok" for v in rows if v.watched)
+        if bad:
+            return f"degraded: {', '.join(bad)} ({ok} of {sum(v.watched for v in rows)} ok)"
+        return f"ok: {ok} of {sum(v.watched for v in rows)} services ok"

@@ -1,0 +1,196 @@
+"""The Health and Status Monitor service (requirements H1, H2; DESIGN.md section 5).
+
+Listens to every service's Health on ``U2SA_HEALTH`` and, for services whose data is
+watched, to their data channels (only the header's ``source`` is read). A
+:class:`HealthMonitor` judges them; this service carries out its verdicts: restarts
+(through systemd or the local launcher, on a worker thread so the loop never blocks),
+the failsafe on ``FAILSAFE`` (re-sent every second while active, so a restarted actuator
+learns it), and the system health on ``U2SA_SYSTEM_HEALTH`` at 1 Hz. Its loop is
+``while self.wait(...)``, so systemd's watchdog restarts a hung HSM.
+"""
+
+from __future__ import annotations
+
+import queue
+import struct
+import threading
+import time
+from io import BytesIO
+from typing import Any, ClassVar
+
+from u2sa_hw import channels as ch
+from u2sa_hw import lcmtypes as t
+from u2sa_hw.config import field
+from u2sa_hw.services.hsm.monitor import Failed, FailsafeChange, HealthMonitor, Recovered, Restart
+from u2sa_hw.services.hsm.restarters import (DEFAULT_UNIT_TEMPLATE, LauncherRestarter, Restarter, RestartError,
+                                             choose_restarter)
+from u2sa_hw.services.hsm.rules import MonitorPolicy, rules_from_profile
+from u2sa_hw.service import U2SAService
+
+FAILSAFE_REPEAT_S = 1.0
+
+
+class HealthStatusMonitor(U2SAService):
+    """Watches every expected service, restarts the ones in trouble, raises the failsafe."""
+
+    SERVICE_TYPE: ClassVar[str] = "hsm"
+    CONFIG = (
+        field("missed_heartbeats", 3, "heartbeats a service may miss before it counts as missing"),
+        field("startup_grace_s", 10.0, "time to the first heartbeat after the HSM starts or a restart"),
+        field("max_restarts", 3, "restarts without recovery before a service is marked failed"),
+        field("restart_backoff_s", 2.0, "wait after the first restart before another; doubles each time"),
+        field("max_backoff_s", 30.0, "cap of the wait between restarts"),
+        field("recovery_s", 30.0, "healthy this long -> the restart count starts over"),
+        field("failsafe_latch", True, "true: the failsafe stays until the HSM restarts; false: clears when all ok"),
+        field("system_health_interval_s", 1.0, "seconds between SystemHealth messages"),
+        field("check_interval_s", 0.1, "seconds between judgements"),
+        field("restarter", "auto", "auto, systemd, launcher or none (see docs/supervision.md)"),
+        field("unit_template", DEFAULT_UNIT_TEMPLATE, "systemd unit of a service; {name} is its name"),
+    )
+
+    def __init__(self, name: str, **kwargs: Any) -> None:
+        super().__init__(name, **kwargs)
+        cfg = self.config
+        self.rules = rules_from_profile(self.profile, own_name=name, missed_heartbeats=int(cfg["missed_heartbeats"]),
+                                        startup_grace_s=float(cfg["startup_grace_s"]))
+        self.policy = MonitorPolicy(max_restarts=int(cfg["max_restarts"]),
+                                    restart_backoff_s=float(cfg["restart_backoff_s"]),
+                                    max_backoff_s=float(cfg["max_backoff_s"]), recovery_s=float(cfg["recovery_s"]),
+                                    failsafe_latch=bool(cfg["failsafe_latch"]))
+        self.monitor = HealthMonitor(self.rules, policy=self.policy, now=time.monotonic(),
+                                     default_timeout_s=int(cfg["missed_heartbeats"]) * 1.0)
+        self.restarter: Restarter | None = None
+        self._lock = threading.Lock()
+        self._restarts: queue.Queue[tuple[str, str] | None] = queue.Queue()
+        self._worker: threading.Thread | None = None
+        self._summary = ""
+        self.register_subscriber(ch.HEALTH, t.Health, self._on_health)
+        for channel in self.monitor.data_channels():
+            self.transport.subscribe(channel, None, self._on_data, raw=True)
+            self._subscribers[channel] = "(header only)"
+        self.register_publisher(ch.SYSTEM_HEALTH, t.SystemHealth)
+        self.register_publisher(ch.FAILSAFE, t.Failsafe)
+
+    # -- inputs (LCM handler thread) -----------------------------------------------------------
+    def _on_health(self, msg: t.Health) -> None:
+        if msg.name == self.name:
+            return
+        with self._lock:
+            self.monitor.on_health(msg, time.monotonic())
+
+    def _on_data(self, channel: str, data: bytes) -> None:
+        try:
+            source = t.Header._decode_one(BytesIO(data[8:])).source   # every U2SA type starts with its header
+        except (struct.error, UnicodeDecodeError, ValueError, MemoryError):
+            self.transport.rx[channel].malformed += 1
+            return
+        with self._lock:
+            self.monitor.on_data(source, channel, time.monotonic())
+
+    # -- lifecycle --------------------------------------------------------------------------------
+    def setup(self) -> None:
+        """Choose the restarter; under a launcher, watch only the services it runs."""
+        names = [r.name for r in self.rules]
+        self.restarter = choose_restarter(str(self.config["restarter"]), profile=self.profile, services=names,
+                                          unit_template=str(self.config["unit_template"]))
+        if isinstance(self.restarter, LauncherRestarter):
+            supervised = self.restarter.supervised()
+            if supervised is not None:
+                absent = set(names) - supervised
+                if absent:
+                    self.logger.info("not watching %s: the launcher does not run them (--only)",
+                                     ", ".join(sorted(absent)))
+                    self.monitor.unwatch(absent, "not run by the launcher")
+        self.logger.info("watching %s; restarts via %s", ", ".join(names) or "no services",
+                         self.restarter.describe())
+        self._worker = threading.Thread(target=self._restart_worker, name="hsm-restarts", daemon=True)
+        self._worker.start()
+
+    def run(self) -> None:
+        """Judge, act, report; the loop's wait() pings systemd's watchdog."""
+        next_report = 0.0
+        next_failsafe = 0.0
+        while self.wait(float(self.config["check_interval_s"])):
+            now = time.monotonic()
+            with self._lock:
+                actions = self.monitor.evaluate(now)
+            for action in actions:
+                self._act(action)
+            if self.monitor.failsafe_active and now >= next_failsafe:
+                self._publish_failsafe(True, self.monitor.failsafe_reason, self.monitor.failsafe_service)
+                next_failsafe = now + FAILSAFE_REPEAT_S
+            if now >= next_report:
+                self.publish_system_health(now)
+                next_report = now + float(self.config["system_health_interval_s"])
+
+    def kill(self) -> None:
+        """Stop the restart worker, then release."""
+        self._restarts.put(None)
+        super().kill()
+
+    # -- actions ------------------------------------------------------------------------------------
+    def _act(self, action: Any) -> None:
+        if isinstance(action, Restart):
+            self.logger.warning("restarting %s (restart %d of %d): %s", action.service, action.attempt,
+                                self.policy.max_restarts, action.reason)
+            self._restarts.put((action.service, action.reason))
+        elif isinstance(action, Failed):
+            what = "required -> failsafe" if action.required else "not required -> system degraded"
+            self.error(f"{action.service} FAILED ({what}): {action.reason}")
+        elif isinstance(action, Recovered):
+            self.logger.info("%s is healthy again", action.service)
+        elif isinstance(action, FailsafeChange):
+            if action.active:
+                self.error(f"FAILSAFE raised: {action.reason}")
+            else:
+                self.logger.info("failsafe clear: %s", action.reason)
+            self._publish_failsafe(action.active, action.reason, action.service)
+
+    def _restart_worker(self) -> None:
+        while True:
+            item = self._restarts.get()
+            if item is None:
+                return
+            service, reason = item
+            assert self.restarter is not None
+            try:
+                account = self.restarter.restart(service, reason=f"HSM: {reason}")
+            except RestartError as exc:
+                self.error(str(exc))
+                ok, text = False, str(exc)
+            else:
+                self.logger.info("%s", account)
+                ok, text = True, account
+            with self._lock:
+                self.monitor.restart_result(service, ok, text)
+
+    def _publish_failsafe(self, active: bool, reason: str, service: str) -> None:
+        msg = t.Failsafe()
+        msg.active, msg.reason, msg.service = active, reason, service
+        self.publish(ch.FAILSAFE, msg)
+
+    def publish_system_health(self, now: float | None = None) -> None:
+        """Publish one SystemHealth now."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            views = self.monitor.views(now)
+            summary = self.monitor.summary(now)
+            failsafe = self.monitor.failsafe_active
+        msg = t.SystemHealth()
+        msg.failsafe, msg.summary = failsafe, summary
+        for v in views:
+            s = t.ServiceState()
+            s.name, s.state, s.restarts, s.last_error = v.name, v.state, v.restarts, v.last_error[:500]
+            s.heartbeat_age_s, s.data_age_s = v.heartbeat_age_s, v.data_age_s
+            msg.services.append(s)
+        msg.num_services = len(msg.services)
+        self.publish(ch.SYSTEM_HEALTH, msg)
+        if summary != self._summary:
+            self._summary = summary
+            self.notify_status(summary)
+            self.status = "degraded" if failsafe else "ok"
+
+    def health_details(self) -> dict[str, Any]:
+        """Restarter, failsafe state and the number of watched services."""
+        return {"restarter": self.restarter.kind if self.restarter else "?", "failsafe": self.monitor.failsafe_active,
+                "watched": len(self.rules)}
