@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
@@ -154,7 +155,8 @@ class NavigationEkf:
         return h, jac
 
     @staticmethod
-    def _residual_fn(m: Measurement):  # noqa: ANN205 - a closure for filterpy
+    def _residual_fn(m: Measurement) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+        """z - h(x) for *m*, with heading rows wrapped to [-pi, pi] (filterpy's ``residual``)."""
         wrap_rows = [i for i, comp in enumerate(m.components) if comp == "psi"]
 
         def residual(z: np.ndarray, hx: np.ndarray) -> np.ndarray:
