@@ -18,6 +18,7 @@ SERVICE_KINDS: dict[str, str] = {
     "hsm": "u2sa_hw.services.hsm.service:HealthStatusMonitor",
     "recorder": "u2sa_hw.services.recorder.service:Recorder",
     "gps_nmea": "drivers.gps_nmea:GpsNmeaDriver",
+    "compass_serial": "drivers.compass_serial:SerialCompassDriver",
 }
 
 

@@ -1,0 +1,202 @@
+"""Serial compass driver: the OS5000 parser and heading arithmetic on their own, then the driver
+as a real service process against the mock NMEA and OS5000 compasses on a pty."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Iterator
+
+import pytest
+from conftest import ServiceProcesses
+from pynmeagps.nmeahelpers import calc_checksum
+from serial_driver_harness import SIM_ORIGIN, DriverProbe, start_driver, write_profile
+
+from drivers.compass_serial import CompassReading, reading_from_epoch, state_from_reading
+from drivers.nmea_fields import Epoch, parse_sentence
+from drivers.os5000_format import Os5000BadChecksum, Os5000Error, is_os5000_line, parse_os5000
+from mock_devices.serial_compass import NmeaCompassDevice, Os5000CompassDevice
+from mock_devices.vehicle_sim import SimVehicle
+from u2sa_hw.bus_client import BusClient
+
+
+def nmea(body: str) -> bytes:
+    return f"${body}*{calc_checksum(body)}\r\n".encode()
+
+
+def epoch_of(*bodies: str) -> Epoch:
+    epoch = Epoch(received=0.0)
+    for body in bodies:
+        s = parse_sentence(nmea(body))
+        assert s is not None, body
+        epoch.sentences.append(s)
+    return epoch
+
+
+def angle_error_deg(a: float, b: float) -> float:
+    """|a - b| in degrees, both in radians, across the wrap."""
+    return abs(math.degrees((a - b + math.pi) % (2 * math.pi) - math.pi))
+
+
+# ---------------------------------------------------------------- OS5000 format ----------------
+def test_os5000_examples_from_the_manual_parse_with_their_checksums() -> None:
+    reading, noise = parse_os5000(b"$C320.5P0.2R-18.3T19.0*3C\r\n")
+    assert (reading.heading, reading.pitch, reading.roll, reading.temperature, noise) == (320.5, 0.2, -18.3, 19.0, 0)
+    full, _ = parse_os5000(b"$C212.4P2.5R-14.0T28.4Mx107977.90My-79422.00Mz173.27Ax0.045Ay-0.245Az0.977*3A\r\n")
+    assert (full.mag_x, full.mag_y, full.mag_z) == (107977.90, -79422.00, 173.27)
+    assert (full.accel_x, full.accel_y, full.accel_z) == (0.045, -0.245, 0.977)
+    body = "C328.3P28.4R-12.4T21.1D21.01Q7"
+    depth, noise = parse_os5000(b"\x07\xfe" + f"${body}*{calc_checksum(body)}\r\n".encode())
+    assert depth.depth == 21.01 and depth.unknown == {"Q": 7.0} and noise == 2
+    heading_only, _ = parse_os5000(f"$C7.0*{calc_checksum('C7.0')}\r\n".encode())
+    assert heading_only.heading == 7.0 and heading_only.pitch is None
+
+
+def test_os5000_bad_lines_are_refused_with_the_reason() -> None:
+    with pytest.raises(Os5000BadChecksum):
+        parse_os5000(b"$C320.5P0.2R-18.3T19.0*3D\r\n")
+    for line in (b"garbage\r\n", b"$C320.5P0.2R-18.3T19.0\r\n", b"$P0.2R-18.3*00\r\n",
+                 f"$P0.2R1.0*{calc_checksum('P0.2R1.0')}".encode(),            # no heading
+                 f"$C1.0P?2*{calc_checksum('C1.0P?2')}".encode(),               # unreadable field
+                 "$C1\u00e9*00".encode("latin-1")):
+        with pytest.raises(Os5000Error):
+            parse_os5000(line)
+    assert is_os5000_line(b"$C320.5P0.2*3C") and not is_os5000_line(b"$HCHDT,1.0,T*00")
+    assert not is_os5000_line(b"$C") and not is_os5000_line(b"no dollar")
+
+
+# ---------------------------------------------------------------- heading arithmetic -----------
+def test_hdg_applies_deviation_and_its_own_variation_or_the_configured_declination() -> None:
+    epoch = epoch_of("HCHDG,98.3,1.5,W,12.6,W")
+    with_variation = reading_from_epoch(epoch, declination_deg=3.0, use_hdg_variation=True)
+    assert with_variation.magnetic_heading == pytest.approx(96.8)        # sensor + deviation (W negative)
+    assert with_variation.true_heading == pytest.approx(96.8 - 12.6)     # + variation (W negative)
+    configured = reading_from_epoch(epoch, declination_deg=3.0, use_hdg_variation=False)
+    assert configured.true_heading == pytest.approx(96.8 + 3.0)
+    no_variation = reading_from_epoch(epoch_of("HCHDG,98.3,,,,"), declination_deg=-2.0, use_hdg_variation=True)
+    assert no_variation.true_heading == pytest.approx(96.3)
+
+
+def test_hdt_wins_over_hdg_over_hdm_and_xdr_gives_pitch_and_roll() -> None:
+    xdr = "HCXDR,A,-3.5,D,PITCH,A,12.0,D,ROLL"
+    assert reading_from_epoch(epoch_of("HCHDM,10.0,M", "HCHDG,20.0,,,,", "HCHDT,30.0,T", xdr), declination_deg=5.0,
+                              use_hdg_variation=True) == CompassReading("HDT", 30.0, None, -3.5, 12.0)
+    hdm = reading_from_epoch(epoch_of("HCHDM,350.0,M", xdr), declination_deg=15.0, use_hdg_variation=True)
+    assert (hdm.source, hdm.true_heading, hdm.pitch, hdm.roll) == ("HDM", 365.0, -3.5, 12.0)
+    msg = state_from_reading(hdm, heading_sigma_deg=2.0, attitude_sigma_deg=0.5)
+    assert msg.psi == pytest.approx(math.radians(5.0)) and msg.psi_sigma == pytest.approx(math.radians(2.0))
+    assert msg.theta == pytest.approx(math.radians(-3.5)) and msg.phi == pytest.approx(math.radians(12.0))
+    assert msg.phi_sigma == pytest.approx(math.radians(0.5)) and msg.reference_frame == "NED"
+    attitude_only = reading_from_epoch(epoch_of("HCXDR,A,1.0,D,PTCH"), declination_deg=0.0, use_hdg_variation=True)
+    assert state_from_reading(attitude_only, heading_sigma_deg=1.0, attitude_sigma_deg=1.0).present_fields() == \
+        ["theta", "theta_sigma"]
+    assert state_from_reading(CompassReading(""), heading_sigma_deg=1.0, attitude_sigma_deg=1.0) is None
+
+
+@pytest.mark.parametrize("heading, expected", [(0.0, 0.0), (179.9, 179.9), (180.0, -180.0), (359.9, -0.1),
+                                               (-190.0, 170.0), (540.0, -180.0)])
+def test_psi_is_radians_in_minus_pi_to_pi(heading: float, expected: float) -> None:
+    msg = state_from_reading(CompassReading("HDT", heading), heading_sigma_deg=1.0, attitude_sigma_deg=1.0)
+    assert -math.pi <= msg.psi < math.pi and msg.psi == pytest.approx(math.radians(expected), abs=1e-9)
+
+
+# ---------------------------------------------------------------- the service ------------------
+YAW_DEG = -100.0
+DECLINATION = -7.5
+
+
+@pytest.fixture
+def vehicle() -> Iterator[SimVehicle]:
+    """A rover turning slowly to the right from a heading of 260 degrees."""
+    v = SimVehicle(**SIM_ORIGIN, start_yaw=math.radians(YAW_DEG))
+    v.set_wheel_speed("left", 0.05)
+    v.set_wheel_speed("right", -0.05)
+    v.start(rate_hz=100.0)
+    yield v
+    v.stop()
+
+
+def check_heading(probe: DriverProbe, count: int, *, since: int = 0, attitude: bool = True) -> None:
+    for msg, truth in probe.wait_states(count, since=since, timeout=20):
+        assert msg.sensor_name == "compass" and msg.reference_frame == "NED"
+        # 0.5 deg noise, 0.1 deg rounding and up to one epoch gap of turning (0.2 rad/s x 0.05 s)
+        assert angle_error_deg(msg.psi, truth.yaw) < 3.5
+        assert -math.pi <= msg.psi < math.pi
+        if attitude:
+            assert abs(msg.phi) < math.radians(1.5) and abs(msg.theta) < math.radians(1.5)
+        assert not msg.has("x") and not msg.has("psi_dot")
+
+
+def test_os5000_compass_service_true_heading_faults_and_recovery(services: ServiceProcesses, bus: BusClient,
+                                                                 tmp_path: Path, vehicle: SimVehicle) -> None:
+    dev = Os5000CompassDevice(vehicle, link_path=tmp_path / "dev" / "compass", rate_hz=20.0,
+                              declination_deg=DECLINATION, seed=5)
+    dev.start()
+    try:
+        profile = write_profile(tmp_path, name="compass", kind="compass_serial",
+                                settings={"port": dev.address, "format": "os5000", "declination_deg": DECLINATION,
+                                          "heading_sigma_deg": 2.0})
+        probe = DriverProbe(bus, "compass", on_state=vehicle.snapshot)
+        proc = start_driver(services, profile, "compass")
+        check_heading(probe, 10)
+        msg = probe.states_since(0)[-1][0]
+        assert msg.psi_sigma == pytest.approx(math.radians(2.0))
+        details = probe.wait_health(lambda d, s: s == "ok" and d["source"] == "$C")
+        assert details["temperature_c"] == "25.0" and details["format"] == "os5000"
+
+        dev.bad_checksums(True)
+        details = probe.wait_health(lambda d, s: int(d["bad_checksums"]) >= 5, message="bad checksums counted")
+        assert details["bad_checksum_kinds"].startswith("$C:")
+        dev.bad_checksums(False)
+        dev.inject_garbage(200)
+        probe.wait_health(lambda d, s: int(d["malformed"]) + int(d["noise_bytes"]) > 0, message="garbage counted")
+        check_heading(probe, 5, since=probe.state_count())
+
+        dev.disconnect()
+        probe.wait_health(lambda d, s: d["port"] == "down" and s == "degraded", message="the port down in health")
+        dev.reconnect()
+        check_heading(probe, 5, since=probe.state_count())
+        assert proc.poll() is None
+    finally:
+        dev.stop()
+
+
+def test_nmea_compass_service_uses_hdg_variation_deviation_and_xdr(services: ServiceProcesses, bus: BusClient,
+                                                                   tmp_path: Path, vehicle: SimVehicle) -> None:
+    dev = NmeaCompassDevice(vehicle, link_path=tmp_path / "dev" / "compass", rate_hz=20.0, sentences=("HDG", "XDR"),
+                            declination_deg=DECLINATION, deviation_deg=2.5, seed=9)
+    dev.start()
+    try:
+        # the configured declination is wrong on purpose: HDG's own variation field must win
+        profile = write_profile(tmp_path, name="compass", kind="compass_serial",
+                                settings={"port": dev.address, "baudrate": 4800, "declination_deg": 20.0})
+        probe = DriverProbe(bus, "compass", on_state=vehicle.snapshot)
+        start_driver(services, profile, "compass")
+        check_heading(probe, 10)
+        details = probe.wait_health(lambda d, s: s == "ok" and d["source"] == "HDG")
+        # one message per HDG + XDR burst, not one per sentence
+        assert int(details["lines"]) >= 2 * int(details["published"]) - 2
+
+        dev.silence(True)
+        details = probe.wait_health(lambda d, s: d["data"] == "stale", message="stale data in health")
+        assert details["status"] == "degraded" and details["degraded_reason"].startswith("no data for")
+        dev.silence(False)
+        check_heading(probe, 3, since=probe.state_count())
+    finally:
+        dev.stop()
+
+
+def test_hdm_compass_service_applies_the_configured_declination(services: ServiceProcesses, bus: BusClient,
+                                                               tmp_path: Path, vehicle: SimVehicle) -> None:
+    dev = NmeaCompassDevice(vehicle, link_path=tmp_path / "dev" / "compass", rate_hz=20.0, sentences=("HDM",),
+                            talker="II", declination_deg=DECLINATION, seed=2)
+    dev.start()
+    try:
+        profile = write_profile(tmp_path, name="compass", kind="compass_serial",
+                                settings={"port": dev.address, "declination_deg": DECLINATION})
+        probe = DriverProbe(bus, "compass", on_state=vehicle.snapshot)
+        start_driver(services, profile, "compass")
+        check_heading(probe, 5, attitude=False)
+        assert not probe.states_since(0)[-1][0].has("phi")
+    finally:
+        dev.stop()
