@@ -15,7 +15,7 @@ the few shutdown targets it needs, copied from the host), runs in container mode
 (``container=``: no remounts, no global sysctl writes at shutdown) and boots straight
 into ``--unit=``. Nothing of the host's unit set is ever started, and the host's /tmp
 is never touched. The network namespace is the host's, so LCM multicast between a test
-and the services works. ``poweroff()`` (also on exit) stops everything cleanly and the
+and the services works (``private_network=True`` gives it one with only lo instead). ``poweroff()`` (also on exit) stops everything cleanly and the
 namespace disappears with its PID 1.
 """
 
@@ -100,15 +100,17 @@ OUTER_SCRIPT = """\
 set -e
 mkdir "$CG"
 echo $$ > "$CG/cgroup.procs"
-exec unshare --pid --fork --mount-proc --mount --uts --ipc --cgroup --propagation private sh -c "$BOOT"
+exec unshare --pid --fork --mount-proc --mount --uts --ipc --cgroup $NET --propagation private sh -c "$BOOT"
 """
 
 
 class SystemdNamespace:
     """systemd booted into *unit* on the staged *root* (see the module docstring)."""
 
-    def __init__(self, root: Path, *, unit: str = "u2sa.target", boot_timeout: float = 30.0) -> None:
+    def __init__(self, root: Path, *, unit: str = "u2sa.target", boot_timeout: float = 30.0,
+                 private_network: bool = False) -> None:
         self.root = root.resolve()
+        self.private_network = private_network  # a network namespace with only lo: a vehicle offline
         self.unit = unit
         self.boot_timeout = boot_timeout
         mount = cgroup2_mount()
@@ -123,6 +125,7 @@ class SystemdNamespace:
     def boot(self) -> None:
         """Start systemd and wait until it answers and *unit* has been started."""
         env = {**os.environ, "R": str(self.root), "UNIT": self.unit, "CG": str(self.cgroup),
+               "NET": "--net" if self.private_network else "",
                "BOOT": BOOT_SCRIPT.format(support=SUPPORT_DIR, systemd=SYSTEMD)}
         self.proc = subprocess.Popen(["sh", "-c", OUTER_SCRIPT], env=env, stdin=subprocess.DEVNULL,
                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
@@ -204,8 +207,9 @@ class SystemdNamespace:
 
     # -- talking to it ---------------------------------------------------------------------
     def run(self, *cmd: str, check: bool = True, timeout: float = 30.0) -> subprocess.CompletedProcess[str]:
-        """Run *cmd* inside the namespace's mount and PID namespaces."""
-        return subprocess.run(["nsenter", "-t", str(self.pid), "-m", "-p", *cmd], capture_output=True,
+        """Run *cmd* inside the namespace's mount and PID (and private network) namespaces."""
+        spaces = ["-m", "-p", *(["-n"] if self.private_network else [])]
+        return subprocess.run(["nsenter", "-t", str(self.pid), *spaces, *cmd], capture_output=True,
                               text=True, timeout=timeout, check=check)
 
     def systemctl(self, *args: str, check: bool = True, timeout: float = 30.0) -> subprocess.CompletedProcess[str]:

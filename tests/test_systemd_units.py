@@ -225,3 +225,22 @@ def test_poweroff_ends_the_namespace(ns: SystemdNamespace) -> None:
     assert not ns.alive
     assert not Path(f"/proc/{pid}").exists()
     assert not ns.cgroup.exists()
+
+
+def test_offline_vehicle_gets_multicast_on_lo_and_its_services_talk(tmp_path: Path) -> None:
+    """No network at all (a namespace with only lo, no route): the oneshot routes multicast over lo."""
+    port = random.randint(20000, 60000)
+    profile = write_profile(tmp_path / "vehicle.toml", port)
+    root = stage_root(tmp_path / "root")
+    subprocess.run([str(U2SA), "install", "--vehicle", str(profile), "--root", str(root)], check=True,
+                   capture_output=True, timeout=120)
+    with SystemdNamespace(root, private_network=True) as offline:
+        assert offline.state("u2sa-multicast-lo.service") == "active/exited"
+        assert "224.0.0.0/4 dev lo" in offline.run("ip", "-4", "route", "show").stdout
+        for name in SERVICES:
+            offline.wait_active(f"u2sa@{name}.service")
+        found = offline.run("/opt/u2sa/venv/bin/u2sa", "services", "--vehicle", "/etc/u2sa/vehicle.toml",
+                            "--json", "--timeout", "2", check=False)
+        assert sorted(s["name"] for s in json.loads(found.stdout)) == sorted(SERVICES), found.stderr
+        offline.systemctl("stop", "u2sa.target", "u2sa-multicast-lo.service")
+        assert "224.0.0.0/4" not in offline.run("ip", "-4", "route", "show").stdout
