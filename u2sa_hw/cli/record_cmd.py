@@ -54,6 +54,17 @@ def register(sub: Any) -> None:
     rp.add_argument("file")
     rp.add_argument("-o", "--output", metavar="FILE", help="output (default: <file>.recovered.mcap)")
     rp.set_defaults(func=cmd_recover)
+    xp = lsub.add_parser("export", help="write a copy Foxglove can open (JSON messages, JSON schemas)",
+                         description="Foxglove cannot decode LCM: this writes every message as JSON with a JSON "
+                         "schema, plus foxglove.LocationFix tracks for the Map panel.")
+    xp.add_argument("file")
+    xp.add_argument("--foxglove", required=True, metavar="OUT.mcap", help="output file")
+    xp.set_defaults(func=cmd_export)
+    pp = lsub.add_parser("plot", help="PNG of track, heading, speed and actuator commands over time")
+    pp.add_argument("file")
+    pp.add_argument("-o", "--output", metavar="PNG", help="output (default: <file>.png)")
+    pp.add_argument("--channel", default="STATE_ESTIMATE", help="state channel to plot (default STATE_ESTIMATE)")
+    pp.set_defaults(func=cmd_plot)
 
 
 def cmd_record(args: Any) -> int:
@@ -183,4 +194,33 @@ def cmd_recover(args: Any) -> int:
     except LogError as exc:
         raise CliError(str(exc)) from None
     print(f"wrote {count} messages to {dst}" + (f" ({src}: {problem})" if problem else f" ({src} was complete)"))
+    return 0
+
+
+def cmd_export(args: Any) -> int:
+    """``u2sa log export --foxglove``."""
+    from u2sa_hw.recording.foxglove import export_foxglove
+
+    _open(args.file)  # clear error for a missing or foreign file
+    counts = export_foxglove(args.file, args.foxglove)
+    total = sum(counts.values())
+    fixes = sum(n for c, n in counts.items() if c.startswith("/location/"))
+    print(f"wrote {total} JSON messages on {len(counts)} channels to {args.foxglove} ({fixes} location fixes)")
+    return 0
+
+
+def cmd_plot(args: Any) -> int:
+    """``u2sa log plot``."""
+    from u2sa_hw.cli import CliError
+    from u2sa_hw.recording.plot import plot_log
+
+    _open(args.file)
+    out = Path(args.output) if args.output else Path(args.file).with_suffix(".png")
+    try:
+        counts = plot_log(args.file, out, channel=args.channel)
+    except ModuleNotFoundError as exc:
+        raise CliError(f"plotting needs {exc.name}: pip install 'u2sa-hw[sim]'") from None
+    if not any(counts.values()):
+        raise CliError(f"{args.file}: nothing to plot (no {args.channel} positions or actuator commands)")
+    print(f"wrote {out} ({counts['track']} track points, {counts['commands']} commands)")
     return 0
