@@ -39,6 +39,10 @@ kind = "hsm"
 kind = "state_estimator"
 enabled = false
 
+[services.rudder]
+kind = "pwm_servo"
+settings = { channels = [{ address = "/sys/class/pwm/pwmchip0", channel = 0 }] }
+
 [devices.gps]
 usb = { vendor = "1546", product = "01A7", serial = "A1B2" }
 
@@ -86,7 +90,12 @@ def test_install_stages_units_configs_rules_users_and_links(vehicle: Path, root:
                  "u2sa@recorder.service.d/10-recorder.conf"):
         assert (units / name).is_file(), name
     wants = units / "u2sa.target.wants"
-    assert sorted(os.listdir(wants)) == ["u2sa-hsm.service", "u2sa@estimator.service", "u2sa@gps.service"]
+    assert sorted(os.listdir(wants)) == ["u2sa-hsm.service", "u2sa@estimator.service", "u2sa@gps.service",
+                                         "u2sa@rudder.service"]
+    # Only the sysfs PWM service gets a writable /sys.
+    assert os.listdir(units / "u2sa@rudder.service.d") == ["50-pwm-sysfs.conf"]
+    assert "ProtectKernelTunables=no" in (units / "u2sa@rudder.service.d/50-pwm-sysfs.conf").read_text()
+    assert not (units / "u2sa@gps.service.d").exists()
     assert os.readlink(wants / "u2sa@gps.service") == "/etc/systemd/system/u2sa@.service"
     assert os.readlink(units / "multi-user.target.wants/u2sa.target") == "/etc/systemd/system/u2sa.target"
     # Profile: directories pointed at the vehicle's, service configs all in /etc/u2sa/config.
@@ -125,7 +134,7 @@ def test_install_stages_units_configs_rules_users_and_links(vehicle: Path, root:
     manifest = load_manifest(root)
     assert manifest is not None and "u2sa" in manifest.users
     assert manifest.units_enabled == sorted(["u2sa.target", "u2sa@estimator.service", "u2sa@gps.service",
-                                             "u2sa-hsm.service"])
+                                             "u2sa@rudder.service", "u2sa-hsm.service"])
 
 
 def test_second_install_changes_nothing_and_says_so(vehicle: Path, root: Path) -> None:

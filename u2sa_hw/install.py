@@ -30,7 +30,7 @@ from u2sa_hw.install_system import (VENV_MODES, InstallError, ensure_users, ensu
                                     project_source, reload_systemd, reload_udev, remove_users)
 from u2sa_hw.install_units import (CONFIG_DIR, DOC, ETC_DIR, LOG_DIR, PROFILE, STATE_DIR, SYSUSERS, TARGET,
                                    UDEV_DIR, UNIT_DIR, VEHICLE_RULES, render_profile, render_vehicle_rules,
-                                   service_configs, service_units, sysusers_conf, udev_sources, unit_sources,
+                                   service_configs, service_units, sysusers_conf, udev_sources, unit_dropins, unit_sources,
                                    wants_links)
 from u2sa_hw.vehicle import load_profile
 
@@ -67,7 +67,8 @@ def install(*, vehicle: Path | str, root: Path | str = "/", venv: str | None = N
     owner = owner_ids(root)
     ensure_venv(tree, mode=mode, source=src, python=python)
 
-    unit_actions = [tree.put_managed(dest, data) for dest, data in unit_sources(src).items()]
+    unit_files = {**unit_sources(src), **unit_dropins(profile)}
+    unit_actions = [tree.put_managed(dest, data) for dest, data in unit_files.items()]
     unit_actions += [tree.link(dest, target) for dest, target in wants_links(units).items()]
     rule_actions = [tree.put_managed(dest, data) for dest, data in udev_sources(src).items()]
     rule_actions.append(tree.put_managed(f"{UDEV_DIR}/{VEHICLE_RULES}", vehicle_rules))

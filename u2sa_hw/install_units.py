@@ -81,6 +81,37 @@ def _unit_for(spec: ServiceSpec, profile: VehicleProfile) -> ServiceUnit:
     return ServiceUnit(spec.name, f"u2sa@{spec.name}.service", TEMPLATE)
 
 
+PWM_SYSFS = "/sys/class/pwm"
+PWM_DROPIN = """\
+# Written by `u2sa install`: this service drives PWM through sysfs ({path}), whose files
+# udev gives to group gpio (60-u2sa-permissions.rules). The template's
+# ProtectKernelTunables=yes makes all of /sys read-only, so it is off for this unit only.
+[Service]
+ProtectKernelTunables=no
+"""
+
+
+def _strings(value: Any) -> list[str]:
+    if isinstance(value, str):
+        return [value]
+    if isinstance(value, dict):
+        return [s for v in value.values() for s in _strings(v)]
+    if isinstance(value, list):
+        return [s for v in value for s in _strings(v)]
+    return []
+
+
+def unit_dropins(profile: VehicleProfile) -> dict[str, bytes]:
+    """Per-service drop-ins the profile calls for: sysfs PWM needs a writable /sys."""
+    dropins = {}
+    for unit in service_units(profile):
+        spec = profile.services[unit.name]
+        pwm = [s for s in _strings(spec.settings) if s.startswith(PWM_SYSFS)]
+        if pwm and unit.unit != HSM_UNIT:
+            dropins[f"{UNIT_DIR}/{unit.unit}.d/50-pwm-sysfs.conf"] = PWM_DROPIN.format(path=pwm[0]).encode()
+    return dropins
+
+
 def unit_sources(source: Path) -> dict[str, bytes]:
     """Every file under the project's ``systemd/``, keyed by its path in /etc/systemd/system."""
     base = source / "systemd"
