@@ -182,8 +182,8 @@ class SerialLineSensor(ProprioceptiveSensor):
     def count_malformed(self, detail: str) -> None:
         """A line that is no sentence (noise, no checksum, bad fields) was dropped."""
         self.malformed += 1
-        if self.malformed == 1 or logging.DEBUG >= self.logger.getEffectiveLevel():
-            self.logger.info("%s: dropping malformed line (counted in health): %s", self.device_name, detail)
+        level = logging.INFO if self.malformed == 1 else logging.DEBUG  # the first one says what is going on
+        self.logger.log(level, "%s: dropping malformed line (counted in health): %s", self.device_name, detail)
 
     # -- status and health -------------------------------------------------------------------
     def data_age(self) -> float | None:

@@ -241,6 +241,14 @@ def test_gps_service_publishes_one_ned_fix_per_epoch_matching_the_vehicle(
     lat, lon = float(details["lat"]), float(details["lon"])
     north, east, _ = geodetic_to_ned(lat, lon, origin=GEO)
     assert abs(north - vehicle.snapshot().north) < 3.0 and abs(east - vehicle.snapshot().east) < 3.0
+
+    # the frame is read live: changed over the bus, the next epochs come out geodetic
+    reply = bus.set_config("gps", "position_frame", "GEODETIC")
+    assert reply is not None and reply.ok, reply and reply.error
+    wait_until(lambda: probe.states_since(0)[-1][0].reference_frame == "GEODETIC", message="a GEODETIC message")
+    msg, truth = probe.states_since(0)[-1]
+    north, east, _ = geodetic_to_ned(msg.x, msg.y, origin=GEO)
+    assert abs(north - truth.north) < 5 * H_SIGMA + 0.2 and abs(east - truth.east) < 5 * H_SIGMA + 0.2
     assert proc.poll() is None
 
 
