@@ -1,0 +1,357 @@
+"""Path Planner: avoidance, the goal-type state machine, bookkeeping, and closed-loop missions.
+
+The closed-loop tests run the planner's and the control system's own logic against the
+project's SimVehicle in simulated time: the estimate is the simulated truth, a tiny mission
+manager advances on the planner's completion reports, and the controller's percentages
+drive the simulated wheels, thrusters or steering.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import pytest
+
+from mock_devices.vehicle_sim import ACKERMANN_MAX_STEER_RAD, SimVehicle
+from u2sa_hw import lcmtypes as t
+from u2sa_hw.messages import REGISTRY
+from u2sa_hw.services.control.controller import ControlSettings, VehicleController
+from u2sa_hw.services.control.mixers import build_mixer
+from u2sa_hw.services.planner.avoidance import AvoidanceSettings, Obstacle, choose_heading
+from u2sa_hw.services.planner.planner import PathPlanner, PlannerTimings
+from u2sa_hw.services.planner.states import (GOAL_STATES, GoalState, GuidanceSettings, IdleState, Plan, PlanContext,
+                                             WaypointState, register_goal_state, state_for)
+from u2sa_hw.services.world.shapes import distance_to_point
+
+AVOID = AvoidanceSettings(margin_m=1.0, range_m=10.0)
+
+
+def waypoint(uid: str, x: float | None, y: float | None, *, threshold: float = 1.0, frame: str = "LOCAL") -> t.Waypoint:
+    wp = t.Waypoint()
+    wp.base.uid, wp.reference_frame, wp.horizontal_threshold = uid, frame, threshold
+    if x is not None:
+        wp.set(x=x)
+    if y is not None:
+        wp.set(y=y)
+    return wp
+
+
+def circle(uid: str, x: float, y: float, radius: float, *, level: int = 3, frame: str = "NED") -> t.Circle:
+    c = t.Circle()
+    b = c.base.base
+    b.uid, b.level, b.reference_frame, b.x, b.y = uid, level, frame, x, y
+    c.radius = radius
+    return c
+
+
+def rectangle(uid: str, x: float, y: float, *, length: float, width: float, level: int = 3) -> t.Rectangle:
+    r = t.Rectangle()
+    b = r.base.base
+    b.uid, b.level, b.reference_frame, b.x, b.y = uid, level, "NED", x, y
+    r.length, r.width = length, width
+    return r
+
+
+def estimate(x: float, y: float, psi: float) -> t.StateInformation:
+    return t.StateInformation().set(x=x, y=y, psi=psi)
+
+
+# -- avoidance --------------------------------------------------------------------------------
+def test_clear_way_heads_straight_for_the_goal() -> None:
+    s = choose_heading(x=0, y=0, goal_x=10, goal_y=10, obstacles=[Obstacle(circle("far", 0, 30, 2))], settings=AVOID)
+    assert s.heading == pytest.approx(math.pi / 4) and s.deflection == 0.0 and not s.blocked
+
+
+def test_object_on_the_path_is_passed_with_the_margin_and_the_side_is_kept() -> None:
+    buoy = Obstacle(circle("buoy", 6, 0, 2))
+    s = choose_heading(x=0, y=0, goal_x=12, goal_y=0, obstacles=[buoy], settings=AVOID)
+    assert s.deflection != 0.0 and not s.blocked and s.obstacles_near == 1
+    # the chosen ray keeps the margin: sample it densely
+    for i in range(101):
+        d = 6.0 * i / 100
+        assert buoy.distance(d * math.cos(s.heading), d * math.sin(s.heading)) >= AVOID.margin_m - 1e-6
+    # symmetric obstacle: whichever side was taken before is kept (hysteresis)
+    left = choose_heading(x=0, y=0, goal_x=12, goal_y=0, obstacles=[buoy], settings=AVOID, previous_deflection=-0.3)
+    right = choose_heading(x=0, y=0, goal_x=12, goal_y=0, obstacles=[buoy], settings=AVOID, previous_deflection=0.3)
+    assert left.deflection < 0 < right.deflection
+
+
+def box(level: int) -> list[Obstacle]:
+    """Four walls 3 m around the origin: no ray from inside gets out."""
+    return [Obstacle(rectangle(f"wall{i}", x, y, length=length, width=width, level=level))
+            for i, (x, y, length, width) in enumerate([(3, 0, 1, 8), (-3, 0, 1, 8), (0, 3, 8, 1), (0, -3, 8, 1)])]
+
+
+def test_levels_hindrance_crossed_soft_given_up_hard_never_entered() -> None:
+    s = choose_heading(x=0, y=0, goal_x=10, goal_y=0, obstacles=box(1), settings=AVOID)
+    assert s.deflection == 0.0 and s.obstacles_near == 0
+    s = choose_heading(x=0, y=0, goal_x=10, goal_y=0, obstacles=box(2), settings=AVOID)
+    assert s.soft_ignored and not s.blocked and s.deflection == 0.0
+    s = choose_heading(x=0, y=0, goal_x=10, goal_y=0, obstacles=box(0), settings=AVOID)
+    assert s.soft_ignored
+    s = choose_heading(x=0, y=0, goal_x=10, goal_y=0, obstacles=box(3), settings=AVOID)
+    assert s.blocked
+    # the wall ahead hard, the others soft: out through a soft wall, never through the hard one
+    s = choose_heading(x=0, y=0, goal_x=10, goal_y=0, obstacles=box(3)[:1] + box(2)[1:], settings=AVOID)
+    assert s.soft_ignored and not s.blocked and abs(s.deflection) > math.radians(45)
+    # a goal inside a level-3 object is unreachable, though its margin shrinks to the goal
+    rock = Obstacle(circle("rock", 10, 0, 1.0))
+    assert choose_heading(x=0, y=0, goal_x=10, goal_y=0, obstacles=[rock], settings=AVOID).blocked
+
+
+def test_goal_next_to_an_object_and_vehicle_inside_a_margin_stay_workable() -> None:
+    buoy = Obstacle(circle("buoy", 10, 1.0, 0.5))      # the goal is 0.5 m from its edge, inside the 1 m margin
+    s = choose_heading(x=0, y=0, goal_x=10, goal_y=0, obstacles=[buoy], settings=AVOID)
+    assert not s.blocked and s.deflection == 0.0
+    # pushed to 0.3 m from a rock: any heading that does not close in is allowed; toward the goal is preferred
+    rock = Obstacle(circle("rock", 0, 1.3, 1.0))
+    s = choose_heading(x=0, y=0, goal_x=10, goal_y=0, obstacles=[rock], settings=AVOID)
+    assert not s.blocked and abs(s.deflection) < math.radians(30)
+    s = choose_heading(x=0, y=0, goal_x=0, goal_y=10, obstacles=[rock], settings=AVOID)   # the goal behind the rock
+    assert not s.blocked and abs(s.deflection) >= math.radians(45)
+
+
+def test_obstacle_distance_matches_distance_to_point_for_every_shape() -> None:
+    poly = t.Polygon()
+    poly.base.base.reference_frame = "NED"
+    poly.vx, poly.vy, poly.num_vertices = [0.0, 4.0, 4.0], [0.0, 0.0, 3.0], 3
+    cloud = t.PointCloud()
+    p = t.CloudPoint()
+    p.azimuth, p.elevation, p.distance = 0.5, 0.0, 5.0
+    cloud.points, cloud.num_points = [p], 1
+    point = t.ObjectDescription()
+    point.x = 3.0
+    sphere = t.Sphere()
+    sphere.sphere_radius = 2.0
+    for obj in (circle("c", 1, 2, 1.5), rectangle("r", 2, 2, length=3, width=1), poly, cloud, point, sphere):
+        for x, y in ((0.0, 0.0), (7.0, -3.0), (2.0, 1.0)):
+            assert Obstacle(obj).distance(x, y) == pytest.approx(distance_to_point(obj, x, y))
+
+
+# -- the state machine --------------------------------------------------------------------------
+def unknown_goal_bytes() -> bytes:
+    """A goal type this build does not know: a GoalInformation child with its own fingerprint and a field."""
+    parent = t.GoalInformation()
+    parent.uid = "orbit-1"
+    body = parent.encode()[8:]
+    return b"\x13\x37" * 4 + body + b"\x00\x00\x00\x00\x00\x00\x24\x40"   # + a double radius
+
+
+def test_state_per_goal_type_and_unknown_types_idle() -> None:
+    assert isinstance(state_for(waypoint("w", 1, 2)), WaypointState)
+    assert isinstance(state_for(None), IdleState)
+    goal, known = REGISTRY.decode(unknown_goal_bytes(), t.GoalInformation)
+    assert not known and type(goal) is t.GoalInformation and goal.uid == "orbit-1"
+    state = state_for(goal)
+    assert isinstance(state, IdleState) and state.uid == "orbit-1" and "unsupported goal type" in state.reason
+    unusable = state_for(waypoint("w", 1, None))
+    assert isinstance(unusable, IdleState) and "no x/y" in unusable.reason
+    assert "frame" in state_for(waypoint("g", 1, 2, frame="GEODETIC")).reason
+
+
+class Loiter:
+    """Stands in for a generated extension type of Waypoint (first field ``base``)."""
+
+    __slots__ = ["base", "radius"]
+
+    def __init__(self) -> None:
+        self.base = t.Waypoint()
+        self.radius = 0.0
+
+    @staticmethod
+    def _get_packed_fingerprint() -> bytes:
+        return b"loiter!!"
+
+
+class LoiterState(GoalState):
+    name = "loiter"
+
+    def step(self, ctx: PlanContext) -> Plan:
+        return Plan.hold("circling")
+
+
+def test_an_extension_flies_as_its_parent_until_its_own_state_is_registered() -> None:
+    goal = Loiter()
+    goal.base.base.uid = "L"
+    goal.base.set(x=5.0, y=0.0)
+    assert isinstance(state_for(goal), WaypointState)
+    register_goal_state(Loiter, LoiterState)
+    try:
+        state = state_for(goal)
+        assert isinstance(state, LoiterState) and state.uid == "L"
+    finally:
+        del GOAL_STATES[Loiter]
+    with pytest.raises(TypeError):
+        register_goal_state(Loiter, Plan)  # type: ignore[arg-type]
+
+
+# -- bookkeeping ------------------------------------------------------------------------------------
+def new_planner(**timings: float) -> PathPlanner:
+    return PathPlanner(guidance=GuidanceSettings(avoidance=AVOID), timings=PlannerTimings(**timings))
+
+
+def status(current: str, uids: list[str], *, finished: bool = False) -> t.MissionStatus:
+    s = t.MissionStatus()
+    s.current_uid, s.goal_uids, s.num_goals, s.finished = current, uids, len(uids), finished
+    return s
+
+
+def test_nothing_without_estimate_hold_without_goal_and_a_point_ahead_with_one() -> None:
+    p = new_planner(estimate_timeout_s=1.0)
+    assert p.step(0.0).nav is None and p.summary()["doing"] == "waiting for STATE_ESTIMATE"
+    p.on_estimate(t.StateInformation().set(x=0.0, y=0.0), 0.0)        # no heading: not a pose
+    assert p.step(0.0).nav is None
+    p.on_estimate(estimate(0, 0, math.pi / 2), 0.0)                   # facing east
+    nav = p.step(0.1).nav
+    assert nav is not None and (nav.x, nav.y, nav.speed, nav.distance_to_goal, nav.goal_uid) == (0, 0, 0, -1, "")
+    assert p.summary()["state"] == "idle"
+    p.on_goal(waypoint("a", 10, 0), 0.2)                              # due north: to the vehicle's left
+    nav = p.step(0.2).nav
+    assert nav.goal_uid == "a" and nav.x == pytest.approx(0, abs=1e-9) and nav.y == pytest.approx(-3.0)
+    assert nav.speed == pytest.approx(1.0) and nav.distance_to_goal == pytest.approx(10.0)
+    assert p.step(1.5).nav is None and p.summary()["doing"] == "waiting for a fresh STATE_ESTIMATE"
+
+
+def test_report_once_resent_while_still_current_and_again_on_the_next_lap() -> None:
+    p = new_planner(report_resend_s=2.0)
+    p.on_goal(waypoint("a", 0.5, 0), 0.0)
+    p.on_goal(waypoint("b", 20, 0), 0.0)
+    p.on_status(status("a", ["a", "b"]), 0.0)
+    reports = []
+    for i in range(60):                       # 3 s at the goal, the manager not answering
+        now = i * 0.05
+        p.on_estimate(estimate(0, 0, 0), now)
+        cycle = p.step(now)
+        assert cycle.nav.speed == 0 and cycle.plan.reached
+        if cycle.report:
+            reports.append((now, cycle.report.uid, cycle.report.completed))
+    assert [(uid, done) for _, uid, done in reports] == [("a", True), ("a", True)]
+    assert reports[1][0] - reports[0][0] == pytest.approx(2.0)
+    p.on_status(status("b", ["a", "b"]), 3.0)
+    assert p.step(3.0).report is None and p.state.uid == "b"
+    p.on_status(status("a", ["a", "b"]), 3.1)   # looped back: reported again at once
+    report = p.step(3.1).report
+    assert report is not None and report.uid == "a"
+    p.on_status(status("", ["a", "b"], finished=True), 4.0)
+    p.on_estimate(estimate(0, 0, 0), 4.0)
+    assert p.step(4.0).nav.goal_uid == "" and p.summary()["doing"] == "mission finished"
+
+
+def test_objects_expire_and_only_local_ones_are_steered_around() -> None:
+    p = new_planner(object_expiry_s=3.0)
+    p.on_object(circle("buoy", 6, 0, 2), 0.0)
+    p.on_object(circle("rel", 6, 0, 2, frame="FRD"), 0.0)
+    assert list(p.objects) == ["buoy"] and p.objects_skipped == 1
+    p.on_goal(waypoint("a", 12, 0), 0.0)
+    p.on_estimate(estimate(0, 0, 0), 0.0)
+    nav = p.step(1.0).nav
+    assert abs(math.atan2(nav.y, nav.x)) > math.radians(10) and p.summary()["doing"].startswith("avoiding")
+    p.on_estimate(estimate(0, 0, 0), 3.5)
+    nav = p.step(3.5).nav
+    assert p.objects == {} and math.atan2(nav.y, nav.x) == pytest.approx(0.0)
+
+
+# -- closed loop against the simulated vehicle --------------------------------------------------------
+SIM_RATE_HZ = 20.0
+
+
+@dataclass
+class MiniMission:
+    """The mission manager's part: current goal, advanced by completion reports."""
+
+    goals: list[t.Waypoint]
+    index: int = 0
+    arrivals: list[tuple[str, float]] = field(default_factory=list)
+
+    @property
+    def finished(self) -> bool:
+        return self.index >= len(self.goals)
+
+    def status(self) -> t.MissionStatus:
+        uids = [g.base.uid for g in self.goals]
+        return status("" if self.finished else uids[self.index], uids, finished=self.finished)
+
+    def report(self, msg: t.GoalReport, now: float) -> None:
+        if not self.finished and msg.completed and msg.uid == self.goals[self.index].base.uid:
+            self.arrivals.append((msg.uid, now))
+            self.index += 1
+
+
+def drive(model: str, goals: list[t.Waypoint], objects: list[object], *, limit_s: float = 120.0
+          ) -> tuple[MiniMission, list[tuple[float, float]]]:
+    """Fly *goals* around *objects* with the planner + control logic; returns the mission and the track."""
+    sim = SimVehicle(origin_lat=45.0, origin_lon=7.0, model=model, max_speed=2.0)
+    mixer = build_mixer("ackermann" if model == "ackermann" else model, left="L", right="R", steering="S",
+                        throttle="T")
+    control = VehicleController(settings=ControlSettings(), mixer=mixer)
+    planner = new_planner()
+    mission = MiniMission(goals)
+    rc = t.RcMode()
+    rc.mode = 1
+    track = []
+    now = 0.0
+    while not mission.finished and now < limit_s:
+        truth = sim.snapshot()
+        track.append((truth.north, truth.east))
+        est = t.StateInformation().set(x=truth.north, y=truth.east, psi=truth.yaw, x_dot=truth.v_north,
+                                       y_dot=truth.v_east, psi_dot=truth.yaw_rate)
+        for goal in goals:
+            planner.on_goal(goal, now)
+        planner.on_status(mission.status(), now)
+        for obj in objects:
+            planner.on_object(obj, now)
+        planner.on_estimate(est, now)
+        cycle = planner.step(now)
+        if cycle.report is not None:
+            mission.report(cycle.report, now)
+        control.on_rc_mode(rc, now)
+        control.on_estimate(est, now)
+        if cycle.nav is not None:
+            control.on_nav(cycle.nav, now)
+        out = control.step(now)
+        if model == "differential":
+            sim.set_wheel_speed("left", out["L"] / 100 * sim.max_speed)
+            sim.set_wheel_speed("right", out["R"] / 100 * sim.max_speed)
+        elif model == "twin_thruster":
+            sim.set_thrust("left", out["L"] / 100)
+            sim.set_thrust("right", out["R"] / 100)
+        else:
+            sim.set_steering(out["S"] / 100 * ACKERMANN_MAX_STEER_RAD)
+            sim.set_throttle(out["T"] / 100)
+        for _ in range(5):
+            sim.step(1.0 / SIM_RATE_HZ / 5)
+        now += 1.0 / SIM_RATE_HZ
+    return mission, track
+
+
+SQUARE = [waypoint("p1", 12, 0), waypoint("p2", 12, 12), waypoint("p3", 0, 12), waypoint("p4", 0, 0)]
+
+
+@pytest.mark.parametrize("model", ["differential", "twin_thruster", "ackermann"])
+def test_closed_loop_completes_a_sequence_of_waypoints(model: str) -> None:
+    mission, track = drive(model, SQUARE, [])
+    assert [uid for uid, _ in mission.arrivals] == ["p1", "p2", "p3", "p4"], f"{model} reached {mission.arrivals}"
+    for (uid, when), goal in zip(mission.arrivals, SQUARE):
+        index = round(when * SIM_RATE_HZ)
+        north, east = track[index]
+        assert math.hypot(north - goal.x, east - goal.y) <= goal.horizontal_threshold + 0.2
+
+
+@pytest.mark.parametrize("model", ["differential", "ackermann"])
+def test_closed_loop_avoids_an_obstacle_on_the_path(model: str) -> None:
+    rock = circle("rock", 10.0, 0.0, 2.0)                       # dead on the line from (0, 0) to (20, 0)
+    mission, track = drive(model, [waypoint("far", 20, 0)], [rock])
+    assert [uid for uid, _ in mission.arrivals] == ["far"]
+    closest = min(math.hypot(n - 10.0, e) for n, e in track)
+    assert closest > rock.radius + 0.5, f"came within {closest:.2f} m of the rock's centre (radius 2)"
+    assert min(distance_to_point(rock, n, e) for n, e in track) > 0.5
+
+
+def test_closed_loop_mission_around_a_wall_and_a_buoy() -> None:
+    wall = rectangle("wall", 6.0, 0.0, length=1.0, width=6.0)   # across the first leg (east -3..3)
+    buoy = circle("buoy", 12.0, 6.0, 1.0)                      # on the second leg
+    mission, track = drive("differential", SQUARE, [wall, buoy])
+    assert [uid for uid, _ in mission.arrivals] == ["p1", "p2", "p3", "p4"]
+    for obj in (wall, buoy):
+        assert min(distance_to_point(obj, n, e) for n, e in track) > 0.5

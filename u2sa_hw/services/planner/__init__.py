@@ -1,0 +1,1 @@
+"""The Path Planner service: a state machine per goal type with obstacle avoidance."""

@@ -1,0 +1,199 @@
+"""The Path Planner's state machine (thesis 3.2.3.4): one state per goal type.
+
+Pure logic, free of the bus. The planner is in exactly one state at a time, chosen by the
+type of the current goal: :class:`WaypointState` for a ``Waypoint``, :class:`IdleState`
+when there is no goal, the mission has finished, or the goal is of a type no state
+handles (a goal type someone added later arrives decoded as its base ``GoalInformation``,
+thesis 8.2.5; the planner holds still and says so in its health rather than guess).
+
+Adding a goal type (say a ``Loiter`` that extends ``Waypoint`` or ``GoalInformation``):
+
+1. add its ``.lcm`` struct (first field ``base``) and regenerate the messages;
+2. write a state::
+
+       class LoiterState(GoalState):
+           name = "loiter"
+           def step(self, ctx: PlanContext) -> Plan:
+               ...   # return Plan.hold(...) or a Plan with the body-frame point to go to
+
+3. register it: ``register_goal_state(t.Loiter, LoiterState)``, in the module that
+   defines the state (import it from the planner service, or list it in
+   :data:`GOAL_STATES` here).
+
+The state for a goal is looked up along the goal's ancestry, nearest type first, so a
+``Loiter`` extending ``Waypoint`` without its own state is flown as a waypoint.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+from u2sa_hw import lcmtypes as t
+from u2sa_hw.geo import ned_to_body
+from u2sa_hw.messages import REGISTRY, as_type
+from u2sa_hw.services.planner.avoidance import AvoidanceSettings, Obstacle, choose_heading
+
+
+@dataclass(frozen=True)
+class Pose:
+    """The vehicle's pose from the state estimate (local NED, heading clockwise from north)."""
+
+    x: float
+    y: float
+    psi: float
+    z: float | None = None
+
+    @classmethod
+    def from_estimate(cls, msg: t.StateInformation) -> Pose | None:
+        """The pose in *msg*, or None when it lacks x, y or psi."""
+        if not (msg.has("x") and msg.has("y") and msg.has("psi")):
+            return None
+        return cls(x=msg.x, y=msg.y, psi=msg.psi, z=msg.get("z"))
+
+
+@dataclass(frozen=True)
+class GuidanceSettings:
+    """How a goal is approached."""
+
+    cruise_speed: float = 1.0          # m/s
+    slowdown_radius_m: float = 3.0     # within this distance of the goal the speed ramps down...
+    min_speed_fraction: float = 0.3    # ...to this fraction of cruise
+    lookahead_m: float = 3.0           # distance of the navigation point along the chosen heading
+    default_threshold_m: float = 2.0   # for a waypoint whose horizontal_threshold is not > 0
+    avoidance: AvoidanceSettings = field(default_factory=AvoidanceSettings)
+
+
+@dataclass
+class PlanContext:
+    """What a state sees in one cycle."""
+
+    pose: Pose
+    obstacles: list[Obstacle]
+    settings: GuidanceSettings
+    memory: dict[str, Any] = field(default_factory=dict)   # kept per state between cycles
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A state's decision for one cycle: a body-frame (FRD) point to head for, or a hold."""
+
+    x: float = 0.0                 # forward, m
+    y: float = 0.0                 # right, m
+    z: float = 0.0                 # down, m (0 when the goal or the estimate has no z)
+    speed: float = 0.0             # desired speed, m/s; 0 holds the vehicle
+    distance_to_goal: float = -1.0   # horizontal, m; -1 without a goal
+    reached: bool = False          # the goal's completion condition holds now
+    note: str = ""                 # what the state is doing, for health ("avoiding", "blocked", ...)
+
+    @classmethod
+    def hold(cls, note: str, *, distance_to_goal: float = -1.0, reached: bool = False) -> Plan:
+        """Stay put (speed 0, the point on the vehicle)."""
+        return cls(distance_to_goal=distance_to_goal, reached=reached, note=note)
+
+
+class GoalState:
+    """Base of the planner's states: one instance per goal being worked on."""
+
+    name: ClassVar[str] = "goal"
+
+    def __init__(self, goal: Any) -> None:
+        self.goal = goal
+
+    @property
+    def uid(self) -> str:
+        """The goal's UID ('' for the idle state without a goal)."""
+        return "" if self.goal is None else as_type(self.goal, t.GoalInformation).uid
+
+    @classmethod
+    def problem(cls, goal: Any) -> str | None:
+        """Why this state cannot work on *goal* (then the planner idles), or None."""
+        return None
+
+    def step(self, ctx: PlanContext) -> Plan:
+        """Decide this cycle's plan."""
+        raise NotImplementedError
+
+
+class IdleState(GoalState):
+    """No goal to work on: hold still and say why."""
+
+    name: ClassVar[str] = "idle"
+
+    def __init__(self, goal: Any = None, *, reason: str = "no current goal") -> None:
+        super().__init__(goal)
+        self.reason = reason
+
+    def step(self, ctx: PlanContext) -> Plan:
+        """Always a hold."""
+        return Plan.hold(self.reason)
+
+
+class WaypointState(GoalState):
+    """Drive to a LOCAL (NED) waypoint around the objects; reached within its horizontal threshold."""
+
+    name: ClassVar[str] = "waypoint"
+
+    @classmethod
+    def problem(cls, goal: Any) -> str | None:
+        """A waypoint needs x and y in the local frame (the service converts GLOBAL ones first)."""
+        wp = as_type(goal, t.Waypoint)
+        if not (wp.has("x") and wp.has("y")):
+            return f"waypoint {wp.base.uid} has no x/y"
+        frame = wp.reference_frame.strip().upper()
+        if frame not in ("", "LOCAL", "NED"):
+            return f"waypoint {wp.base.uid} is in frame {wp.reference_frame!r}, not LOCAL"
+        return None
+
+    def step(self, ctx: PlanContext) -> Plan:
+        """Head for the waypoint along the clear heading nearest its bearing; hold once inside the threshold."""
+        wp = as_type(self.goal, t.Waypoint)
+        pose, s = ctx.pose, ctx.settings
+        dn, de = wp.x - pose.x, wp.y - pose.y
+        distance = math.hypot(dn, de)
+        threshold = wp.horizontal_threshold if wp.horizontal_threshold > 0 else s.default_threshold_m
+        dz = wp.z - pose.z if wp.has("z") and pose.z is not None else 0.0
+        if distance <= threshold:
+            return Plan.hold("arrived", distance_to_goal=distance, reached=True)
+        steering = choose_heading(x=pose.x, y=pose.y, goal_x=wp.x, goal_y=wp.y, obstacles=ctx.obstacles,
+                                  settings=s.avoidance, previous_deflection=ctx.memory.get("deflection", 0.0))
+        ctx.memory["deflection"] = steering.deflection
+        if steering.blocked:
+            return Plan.hold(f"blocked: {steering.reason}", distance_to_goal=distance)
+        ahead = min(s.lookahead_m, distance) if steering.deflection == 0.0 else s.lookahead_m
+        fx, fy = ned_to_body(ahead * math.cos(steering.heading), ahead * math.sin(steering.heading), pose.psi)
+        fraction = min(1.0, max(s.min_speed_fraction, distance / max(1e-6, s.slowdown_radius_m)))
+        note = "to waypoint"
+        if steering.soft_ignored:
+            note = "through a level 0/2 object: no clear heading around it"
+        elif steering.deflection != 0.0:
+            note = f"avoiding ({math.degrees(steering.deflection):+.0f} deg)"
+        return Plan(x=fx, y=fy, z=dz, speed=s.cruise_speed * fraction, distance_to_goal=distance, note=note)
+
+
+GOAL_STATES: dict[type, type[GoalState]] = {
+    t.Waypoint: WaypointState,
+}
+"""Goal type -> the state that works on it. Extend with :func:`register_goal_state`."""
+
+
+def register_goal_state(goal_type: type, state: type[GoalState]) -> None:
+    """Make *state* the planner's state for goals of *goal_type* (and its extensions without their own)."""
+    if not issubclass(state, GoalState):
+        raise TypeError(f"{state.__name__} is not a GoalState")
+    GOAL_STATES[goal_type] = state
+
+
+def state_for(goal: Any) -> GoalState:
+    """The state that works on *goal*: the registered state nearest in its ancestry, else idle with the reason."""
+    if goal is None:
+        return IdleState()
+    for cls in REGISTRY.ancestry(type(goal)):
+        state = GOAL_STATES.get(cls)
+        if state is not None:
+            problem = state.problem(goal)
+            if problem is not None:
+                return IdleState(goal, reason=f"unusable goal: {problem}")
+            return state(goal)
+    return IdleState(goal, reason=f"unsupported goal type {type(goal).__name__}")
