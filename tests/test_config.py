@@ -113,3 +113,13 @@ def test_unwritable_file_set_returns_false_and_file_intact() -> None:
     finally:
         os.chmod(workdir / "cfg", 0o755)
         shutil.rmtree(workdir)
+
+
+def test_validator_refuses_before_writing(tmp_path: Path) -> None:
+    path = tmp_path / "c.toml"
+    cfg = Configurator(path, FIELDS, validator=lambda n, v: "must be positive" if n == "rate_hz" and v <= 0 else None)
+    assert cfg.set("rate_hz", 5)
+    before = path.read_bytes()
+    ok, reason = cfg.try_set("rate_hz", -1.0)
+    assert not ok and reason == "field 'rate_hz': must be positive"
+    assert path.read_bytes() == before and cfg.get("rate_hz") == 5.0

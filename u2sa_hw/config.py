@@ -17,7 +17,7 @@ import threading
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
 import tomli_w
 
@@ -90,8 +90,10 @@ class Configurator:
     """Typed get/set/enumerate over one service's TOML file."""
 
     def __init__(self, path: Path | str | None, fields: Iterable[ConfigField], *,
-                 logger: logging.Logger | None = None, initial: dict[str, Any] | None = None) -> None:
+                 logger: logging.Logger | None = None, initial: dict[str, Any] | None = None,
+                 validator: Callable[[str, Any], str | None] | None = None) -> None:
         self.path = Path(path) if path else None
+        self.validator = validator
         self.fields: dict[str, ConfigField] = {f.name: f for f in fields}
         self._log = logger or logging.getLogger("u2sa_hw.config")
         self._lock = threading.Lock()
@@ -153,12 +155,20 @@ class Configurator:
         return ok
 
     def try_set(self, name: str, value: Any) -> tuple[bool, str]:
-        """Like :meth:`set`, returning ``(ok, reason)`` so the bus can send the reason back."""
+        """Like :meth:`set`, returning ``(ok, reason)`` so the bus can send the reason back.
+
+        After the type check the service's *validator* (if any) may refuse the value with a
+        reason (a baud rate the driver does not support, a negative rate); nothing is written then.
+        """
         try:
             coerced = self.check(name, value)
         except ConfigError as exc:
             self._log.error("config change refused: %s", exc)
             return False, str(exc)
+        problem = self.validator(name, coerced) if self.validator else None
+        if problem:
+            self._log.error("config change refused: field '%s': %s", name, problem)
+            return False, f"field '{name}': {problem}"
         with self._lock:
             old = self._values[name]
             self._values[name] = coerced

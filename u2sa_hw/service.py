@@ -49,7 +49,8 @@ class U2SAService:
         self.profile = profile or VehicleProfile(path=None)
         self.logger = logger or logging.getLogger(f"u2sa.{name}")
         path = config_path if config_path is not None else self.profile.config_path_for(name)
-        self.config = Configurator(path, (*BASE_CONFIG, *self.config_fields()), logger=self.logger, initial=settings)
+        self.config = Configurator(path, (*BASE_CONFIG, *self.config_fields()), logger=self.logger, initial=settings,
+                                   validator=self.validate_config)
         self.transport = transport or Transport(self.profile.lcm_url, name=name)
         self.running = False
         self.status = "starting"
@@ -144,6 +145,13 @@ class U2SAService:
     def health_details(self) -> dict[str, Any]:
         """Service-specific key/values for the health message (override)."""
         return {}
+
+    def validate_config(self, name: str, value: Any) -> str | None:
+        """Refuse a type-correct but unusable config change by returning the reason (override).
+
+        Called before a change is written, so a refused value never reaches the file.
+        """
+        return None
 
     def on_config_change(self, name: str, value: Any) -> None:
         """Called after a config field changed over the bus (override to apply it live)."""
