@@ -15,8 +15,9 @@ the few shutdown targets it needs, copied from the host), runs in container mode
 (``container=``: no remounts, no global sysctl writes at shutdown) and boots straight
 into ``--unit=``. Nothing of the host's unit set is ever started, and the host's /tmp
 is never touched. The network namespace is the host's, so LCM multicast between a test
-and the services works (``private_network=True`` gives it one with only lo instead). ``poweroff()`` (also on exit) stops everything cleanly and the
-namespace disappears with its PID 1.
+and the services works (``private_network=True`` gives it one with only lo instead).
+``poweroff()`` (also on exit) stops everything cleanly and the namespace disappears with
+its PID 1.
 """
 
 from __future__ import annotations

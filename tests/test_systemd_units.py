@@ -126,7 +126,8 @@ def test_every_unit_reaches_active_through_ready_as_u2sa(ns: SystemdNamespace, s
     assert ns.state("u2sa-multicast-lo.service") == "active/exited"
     assert ns.state("u2sa@broken.service").startswith("inactive")
     passwd = {line.split(":")[0]: line.split(":") for line in (staged["root"] / "etc/passwd").read_text().splitlines()}
-    groups = {line.split(":")[0]: line.split(":")[2] for line in (staged["root"] / "etc/group").read_text().splitlines()}
+    group_file = (staged["root"] / "etc/group").read_text()
+    groups = {line.split(":")[0]: line.split(":")[2] for line in group_file.splitlines()}
     status = Path(f"/proc/{ns.host_pid(ns.main_pid('u2sa@est_a.service'))}/status").read_text()
     uid = next(line.split()[1] for line in status.splitlines() if line.startswith("Uid:"))
     sup = next(line.split()[1:] for line in status.splitlines() if line.startswith("Groups:"))
@@ -197,6 +198,26 @@ def test_status_shows_each_unit_next_to_the_hsm_view(ns: SystemdNamespace, stage
     assert report["hsm"] == {"failsafe": False, "summary": "3 services ok"}
 
 
+def test_the_hsm_sandbox_may_restart_other_units(ns: SystemdNamespace, staged: dict[str, Any]) -> None:
+    """u2sa-hsm.service (uid 0, no capabilities, sandboxed) can still restart a service via systemctl."""
+    dropin = staged["root"] / "etc/systemd/system/u2sa-hsm.service.d"
+    dropin.mkdir()
+    # Same sandbox, but the program is a single systemctl call instead of the HSM service.
+    (dropin / "test.conf").write_text("[Service]\nType=oneshot\nRestart=no\nWatchdogSec=0\nExecStart=\n"
+                                      "ExecStart=/bin/systemctl restart u2sa@est_c.service\n")
+    ns.systemctl("daemon-reload")
+    try:
+        old = ns.wait_active("u2sa@est_c.service")
+        done = ns.systemctl("start", "u2sa-hsm.service", check=False)
+        assert done.returncode == 0, (done.stderr, ns.journal_hint("u2sa-hsm.service"))
+        ns.wait_active("u2sa@est_c.service", not_pid=old)
+    finally:
+        for f in dropin.iterdir():
+            f.unlink()
+        dropin.rmdir()
+        ns.systemctl("daemon-reload")
+
+
 def test_crash_loop_ends_at_the_start_limit(ns: SystemdNamespace) -> None:
     unit = "u2sa@broken.service"
     ns.systemctl("start", "--no-block", unit)
@@ -244,3 +265,31 @@ def test_offline_vehicle_gets_multicast_on_lo_and_its_services_talk(tmp_path: Pa
         assert sorted(s["name"] for s in json.loads(found.stdout)) == sorted(SERVICES), found.stderr
         offline.systemctl("stop", "u2sa.target", "u2sa-multicast-lo.service")
         assert "224.0.0.0/4" not in offline.run("ip", "-4", "route", "show").stdout
+
+
+def test_install_and_uninstall_on_a_running_system(tmp_path: Path) -> None:
+    """`u2sa install` without --root, as on the vehicle: inside the namespace, whose / it installs into."""
+    port = random.randint(20000, 60000)
+    root = stage_root(tmp_path / "root")
+    (root / "opt/src").mkdir()
+    write_profile(root / "opt/src/vehicle.toml", port)
+    u2sa = [str(U2SA)]
+    with SystemdNamespace(root, unit="multi-user.target") as live:
+        first = live.run(*u2sa, "install", "--vehicle", "/opt/src/vehicle.toml", "--venv", "shared",
+                         check=False, timeout=120)
+        assert first.returncode == 0, first.stderr
+        assert "created   user u2sa" in first.stdout and "daemon-reload" in first.stdout
+        assert "udevadm control --reload  (udevd is not running" in first.stdout
+        assert "/usr/bin/python3" in first.stdout  # this environment's pyenv interpreter is under /root
+        assert live.show("u2sa.target", "UnitFileState")["UnitFileState"] == "enabled"
+        live.systemctl("start", "u2sa.target")
+        for name in SERVICES:
+            live.wait_active(f"u2sa@{name}.service")
+        again = live.run(*u2sa, "install", "--vehicle", "/opt/src/vehicle.toml", "--venv", "shared", check=False)
+        assert again.stdout.strip() == "nothing to do: everything is already installed as this profile wants"
+        gone = live.run(*u2sa, "uninstall", check=False, timeout=120)
+        assert gone.returncode == 0, gone.stderr
+        for name in SERVICES:
+            assert live.show(f"u2sa@{name}.service", "LoadState", "ActiveState") == \
+                {"LoadState": "not-found", "ActiveState": "inactive"}
+        assert (root / "etc/u2sa/vehicle.toml").is_file() and not (root / "etc/systemd/system/u2sa@.service").exists()

@@ -30,8 +30,8 @@ from u2sa_hw.install_system import (VENV_MODES, InstallError, ensure_users, ensu
                                     project_source, reload_systemd, reload_udev, remove_users)
 from u2sa_hw.install_units import (CONFIG_DIR, DOC, ETC_DIR, LOG_DIR, PROFILE, STATE_DIR, SYSUSERS, TARGET,
                                    UDEV_DIR, UNIT_DIR, VEHICLE_RULES, render_profile, render_vehicle_rules,
-                                   service_configs, service_units, sysusers_conf, udev_sources, unit_dropins, unit_sources,
-                                   wants_links)
+                                   service_configs, service_units, sysusers_conf, udev_sources, unit_dropins,
+                                   unit_sources, wants_links)
 from u2sa_hw.vehicle import load_profile
 
 OPT_DIR = "/opt/u2sa"
@@ -132,7 +132,8 @@ def uninstall(*, root: Path | str = "/", purge: bool = False) -> InstallTree:
         # knows which configs the user changed, and a later --purge what install created.
         kept = Manifest(files={p: r for p, r in old.files.items() if r.kind != MANAGED},
                         users=old.users, groups=old.groups, profile_source=old.profile_source,
-                        dirs=[d for d in old.dirs if d in (ETC_DIR, CONFIG_DIR, OPT_DIR) or OPT_DIR.startswith(d + "/")])
+                        dirs=[d for d in old.dirs
+                              if d in (ETC_DIR, CONFIG_DIR, OPT_DIR) or OPT_DIR.startswith(d + "/")])
         if save_manifest(root, kept):
             tree.note("updated", MANIFEST_PATH, "now lists only what uninstall kept")
     reload_systemd(tree, units_changed=True)

@@ -109,7 +109,8 @@ class InstallTree:
                 atomic_write(path, data, mode=mode)
                 self._apply_mode(path, mode, owner)
                 action = "created" if current is None else "updated"
-                self.changes.append(Change(action, dest, "" if current is None else "new default; you had not changed it"))
+                note = "" if current is None else "new default; you had not changed it"
+                self.changes.append(Change(action, dest, note))
             old_new = self.old.files.get(new_path)
             if old_new is not None and old_new.kind == CONFIG_NEW:
                 self._remove_file(new_path, "the config now matches it")

@@ -2,15 +2,17 @@
 
 Users and groups are made with ``groupadd``/``useradd --system`` (``--prefix ROOT`` when
 staging into a tree that has an ``etc/passwd``; a tree without one gets only the
-sysusers.d file (/etc/sysusers.d/u2sa.conf), from which ``systemd-sysusers`` creates them on the target's first boot).
+sysusers.d file ``/etc/sysusers.d/u2sa.conf``, from which ``systemd-sysusers`` creates
+them on the target's first boot).
 
-The venv under ``/opt/u2sa/venv`` is made one of two ways:
+The venv under ``/opt/u2sa/venv`` is made one of three ways:
 
 - ``build``: ``python -m venv`` and ``pip install`` of the project (the vehicle; slow).
 - ``shared``: a venv without pip whose site-packages point at the environment ``u2sa``
   runs from (a ``.pth`` file). Seconds, not minutes: for staging, tests and development
   boards. Its interpreter must be reachable by the user u2sa under ``ProtectHome=`` (so
   not under /root or /home) and of the same Python version as the environment.
+- ``none``: nothing; a package provides the venv.
 """
 
 from __future__ import annotations

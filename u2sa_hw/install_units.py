@@ -188,7 +188,7 @@ def render_vehicle_rules(profile: VehicleProfile) -> bytes:
         usb, can = table.get("usb"), table.get("can")
         if usb is not None:
             if not isinstance(usb, dict):
-                raise InstallError(f"{where}: usb must be a table like usb = {{ vendor = \"1546\", product = \"01a7\" }}")
+                raise InstallError(f'{where}: usb must be a table like usb = {{ vendor = "1546", product = "01a7" }}')
             _rule_value(name, where, pattern=_NAME, hint=" as /dev/u2sa/NAME; use letters, digits, '_', '.', '-'")
             vendor = _rule_value(usb.get("vendor"), f"{where} usb.vendor", pattern=_HEX4,
                                  hint=' (4 hex digits, e.g. "1546")')
@@ -203,7 +203,7 @@ def render_vehicle_rules(profile: VehicleProfile) -> bytes:
             lines.append(", ".join(match) + f', SYMLINK+="u2sa/{name}", GROUP="dialout", MODE="0660"')
         if can is not None:
             if not isinstance(can, dict):
-                raise InstallError(f"{where}: can must be a table like can = {{ channel = \"can0\", bitrate = 500000 }}")
+                raise InstallError(f'{where}: can must be a table like can = {{ channel = "can0", bitrate = 500000 }}')
             channel = _rule_value(can.get("channel"), f"{where} can.channel", pattern=_CAN, hint=" (canN)")
             bitrate = can.get("bitrate")
             if not isinstance(bitrate, int) or isinstance(bitrate, bool) or not 0 < bitrate <= 8_000_000:

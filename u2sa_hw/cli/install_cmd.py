@@ -57,11 +57,9 @@ def register(sub: Any) -> None:
 
 
 def _print_changes(tree: Any, *, verbose: bool, done: str) -> None:
-    shown = 0
     for change in tree.changes:
-        if verbose or change.action not in ("unchanged",):
+        if verbose or change.action != "unchanged":
             print(change)
-            shown += 1
     if not tree.changed:
         print(f"nothing to do: {done}")
 
