@@ -109,8 +109,8 @@ class PathPlanner:
         frame = base.reference_frame.strip().upper()
         if frame not in LOCAL_OBJECT_FRAMES:
             self.objects_skipped += 1
-            self._log_once(f"frame-{frame}", f"object {base.uid or '?'} in frame {base.reference_frame!r} skipped: "
-                                              "the planner steers around local NED objects (the world modeler's output)")
+            self._log_once(f"frame-{frame}", f"object {base.uid or '?'} in frame {base.reference_frame!r} skipped: the "
+                                              "planner steers around local NED objects (the world modeler's output)")
             return
         uid = base.uid or f"{base.source}@{base.x:.1f},{base.y:.1f}"
         self.objects[uid] = _Tracked(Obstacle(msg), now)
@@ -145,6 +145,8 @@ class PathPlanner:
             self.state = state_for(goal)
         if self.state.uid != previous_uid:
             self.memory = {}
+            if self.state.uid:
+                self.logger.info("working on goal %s (%s state)", self.state.uid, self.state.name)
         if isinstance(self.state, IdleState) and goal is not None:
             self._log_once(f"idle-{uid}-{type(goal).__name__}", f"goal {uid}: {self.state.reason}; holding")
 

@@ -69,7 +69,8 @@ class PathPlannerService(U2SAService):
         avoidance = AvoidanceSettings(margin_m=float(c("clearance_margin_m")), range_m=float(c("avoidance_range_m")),
                                       heading_step_deg=float(c("heading_step_deg")),
                                       hysteresis_deg=float(c("hysteresis_deg")))
-        return GuidanceSettings(cruise_speed=float(c("cruise_speed_m_s")), slowdown_radius_m=float(c("slowdown_radius_m")),
+        return GuidanceSettings(cruise_speed=float(c("cruise_speed_m_s")),
+                                slowdown_radius_m=float(c("slowdown_radius_m")),
                                 min_speed_fraction=float(c("min_speed_fraction")), lookahead_m=float(c("lookahead_m")),
                                 default_threshold_m=float(c("default_threshold_m")), avoidance=avoidance)
 

@@ -1,0 +1,1 @@
+"""The Control System service: PID on heading and speed, mixed for the configured drive."""

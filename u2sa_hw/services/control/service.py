@@ -1,0 +1,176 @@
+"""Control System service (requirement S5; thesis 3.2.3.5, 4.6.2.5).
+
+Subscribes ``NAV_POINT`` (the planner's body-frame point and desired speed),
+``STATE_ESTIMATE`` (yaw rate and velocity), ``RC_MODE`` and ``FAILSAFE``. At
+``control_rate_hz`` it runs the control law (:mod:`.controller`: PID on heading and speed,
+:mod:`.mixers` for the drive, rate limits) and publishes one ``PercentageCommand`` per
+actuator on ``ACTUATOR_CMD``, addressed by actuator name. While ``RC_MODE`` is not
+autonomous (or silent), a failsafe is active, or navigation points stop, the commands are
+neutral (0 %) and the integrators are reset; neutral commands keep going out at the control
+rate so every actuator sees the system alive and at rest.
+
+A bad ``mixer`` or empty actuator name stops the service at start with the reason; changed
+over the bus it is refused in the log and the running mixer is kept.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any, ClassVar
+
+from u2sa_hw import channels as ch
+from u2sa_hw import lcmtypes as t
+from u2sa_hw.config import ConfigError, field
+from u2sa_hw.service import U2SAService
+from u2sa_hw.services.control.controller import RC_NAMES, ControlSettings, VehicleController
+from u2sa_hw.services.control.mixers import Mixer, build_mixer
+from u2sa_hw.services.control.pid import PidGains
+
+_MIXER_FIELDS = ("mixer", "left_actuator", "right_actuator", "steering_actuator", "throttle_actuator")
+
+
+class ControlSystem(U2SAService):
+    """Navigation points to actuator percentages, by actuator name."""
+
+    SERVICE_TYPE: ClassVar[str] = "control"
+    CONFIG = (
+        field("control_rate_hz", 20.0, "ACTUATOR_CMD cycles per second"),
+        field("mixer", "differential", "differential, ackermann or twin_thruster"),
+        field("left_actuator", "left_wheel", "differential/twin_thruster: the left wheel or thruster's actuator name"),
+        field("right_actuator", "right_wheel", "differential/twin_thruster: the right one's actuator name"),
+        field("steering_actuator", "steering", "ackermann: the steering servo's actuator name (+100 % = full right)"),
+        field("throttle_actuator", "throttle", "ackermann: the throttle's actuator name"),
+        field("subsystem", "vehicle", "follow the navigation points of this subsystem"),
+        field("heading_kp", 80.0, "turn % per rad of heading error"),
+        field("heading_ki", 5.0, "turn % per rad*s"),
+        field("heading_kd", 10.0, "turn % per rad/s (on the yaw rate when the estimate has it)"),
+        field("heading_integral_limit", 20.0, "largest turn % the heading integral may add"),
+        field("turn_limit_pct", 100.0, "largest |turn| %"),
+        field("speed_kp", 40.0, "throttle % per m/s of speed error"),
+        field("speed_ki", 20.0, "throttle % per m"),
+        field("speed_kd", 0.0, "throttle % per m/s^2"),
+        field("speed_integral_limit", 40.0, "largest throttle % the speed integral may add"),
+        field("speed_feedforward", 50.0, "throttle % per m/s of desired speed (100 / top speed)"),
+        field("throttle_limit_pct", 100.0, "largest |throttle correction| % from the speed PID"),
+        field("turn_speed_fraction", 0.25, "desired speed kept while the point is abeam or behind (ackermann > 0)"),
+        field("rate_limit_pct_s", 200.0, "slew limit of every output, %/s (0: none); neutral is immediate"),
+        field("nav_timeout_s", 0.5, "no NAV_POINT for this long -> neutral"),
+        field("rc_timeout_s", 1.0, "no RC_MODE for this long -> neutral"),
+        field("estimate_timeout_s", 0.5, "an older STATE_ESTIMATE is not used (feedforward only)"),
+    )
+
+    def __init__(self, name: str, **kwargs: Any) -> None:
+        super().__init__(name, **kwargs)
+        self._lock = threading.Lock()
+        try:
+            mixer = self._mixer()
+        except ValueError as exc:
+            where = f"{self.config.path} or " if self.config.path else ""
+            raise ConfigError(f"{self.name}: {exc} (fix it in {where}the vehicle profile's settings)") from None
+        self.controller = VehicleController(settings=self._settings(), mixer=mixer)
+        self.commands_sent = 0
+        self.register_subscriber(ch.NAV_POINT, t.NavigationPoint, self._on_nav)
+        self.register_subscriber(ch.STATE_ESTIMATE, t.StateInformation, self._on_estimate)
+        self.register_subscriber(ch.RC_MODE, t.RcMode, self._on_rc_mode)
+        self.register_subscriber(ch.FAILSAFE, t.Failsafe, self._on_failsafe)
+        self.register_publisher(ch.ACTUATOR_CMD, t.PercentageCommand)
+
+    # -- configuration -----------------------------------------------------------------------
+    def _mixer(self) -> Mixer:
+        c = self.config.get
+        return build_mixer(str(c("mixer")), left=str(c("left_actuator")), right=str(c("right_actuator")),
+                           steering=str(c("steering_actuator")), throttle=str(c("throttle_actuator")))
+
+    def _settings(self) -> ControlSettings:
+        c = self.config.get
+
+        def f(name: str) -> float:
+            return float(c(name))
+
+        heading = PidGains(kp=f("heading_kp"), ki=f("heading_ki"), kd=f("heading_kd"),
+                           output_limit=f("turn_limit_pct"), integral_limit=f("heading_integral_limit"))
+        speed = PidGains(kp=f("speed_kp"), ki=f("speed_ki"), kd=f("speed_kd"),
+                         output_limit=f("throttle_limit_pct"), integral_limit=f("speed_integral_limit"))
+        return ControlSettings(heading=heading, speed=speed, speed_feedforward=f("speed_feedforward"),
+                               turn_speed_fraction=f("turn_speed_fraction"), rate_limit_pct_s=f("rate_limit_pct_s"),
+                               subsystem=str(c("subsystem")), nav_timeout_s=f("nav_timeout_s"),
+                               rc_timeout_s=f("rc_timeout_s"), estimate_timeout_s=f("estimate_timeout_s"))
+
+    def on_config_change(self, name: str, value: Any) -> None:
+        """Apply gains, limits and the mixer live; the controller restarts from neutral."""
+        with self._lock:
+            mixer = self.controller.mixer
+            if name in _MIXER_FIELDS:
+                try:
+                    mixer = self._mixer()
+                except ValueError as exc:
+                    self.error(f"{name} = {value!r} not applied: {exc}; keeping the {mixer.kind} mixer")
+                    return
+            old = set(self.controller.mixer.actuators)
+            self.controller.configure(settings=self._settings(), mixer=mixer)
+        for gone in sorted(old - set(mixer.actuators)):
+            self._send(gone, 0.0)   # an actuator dropped by the new mixer is left at rest
+
+    # -- inputs -----------------------------------------------------------------------------
+    def _on_nav(self, msg: t.NavigationPoint) -> None:
+        with self._lock:
+            self.controller.on_nav(msg, time.monotonic())
+
+    def _on_estimate(self, msg: t.StateInformation) -> None:
+        with self._lock:
+            self.controller.on_estimate(msg, time.monotonic())
+
+    def _on_rc_mode(self, msg: t.RcMode) -> None:
+        with self._lock:
+            before = self.controller.rc.msg.mode if self.controller.rc else None
+            self.controller.on_rc_mode(msg, time.monotonic())
+        if before != msg.mode:
+            self.logger.info("RC mode %d (%s)", msg.mode, msg.mode_name or RC_NAMES.get(msg.mode, "unknown"))
+
+    def _on_failsafe(self, msg: t.Failsafe) -> None:
+        with self._lock:
+            was = self.controller.failsafe is not None
+            self.controller.on_failsafe(msg, time.monotonic())
+        if msg.active and not was:
+            self.logger.warning("FAILSAFE from %s: %s -> neutral", msg.header.source or "?", msg.reason)
+        elif was and not msg.active:
+            self.logger.info("failsafe cleared by %s", msg.header.source or "?")
+
+    # -- output -----------------------------------------------------------------------------
+    def _send(self, actuator: str, percent: float) -> None:
+        cmd = t.PercentageCommand()
+        cmd.base.actuator_name = actuator
+        cmd.percentage = percent
+        if self.publish(ch.ACTUATOR_CMD, cmd):
+            self.commands_sent += 1
+
+    def run(self) -> None:
+        """Control at ``control_rate_hz``; log when the controller engages or goes neutral."""
+        reason = None
+        while self.wait(1.0 / max(0.1, float(self.config.get("control_rate_hz")))):
+            with self._lock:
+                outputs = self.controller.step(time.monotonic())
+                now_reason = self.controller.neutral_reason
+            if now_reason != reason:
+                if now_reason:
+                    self.logger.info("neutral: %s", now_reason)
+                else:
+                    self.logger.info("driving")
+                reason = now_reason
+            for actuator, percent in outputs.items():
+                self._send(actuator, percent)
+
+    def kill(self) -> None:
+        """Send neutral once more on the way out, then release."""
+        try:
+            for actuator in self.controller.mixer.actuators:
+                self._send(actuator, 0.0)
+        finally:
+            super().kill()
+
+    def health_details(self) -> dict[str, Any]:
+        """Mixer, whether driving or why neutral, errors, outputs, commands sent."""
+        with self._lock:
+            details = self.controller.summary()
+        return {"mixer": self.controller.mixer.kind, **details, "commands_sent": self.commands_sent}
