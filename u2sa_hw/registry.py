@@ -15,6 +15,8 @@ SERVICE_KINDS: dict[str, str] = {
     "state_estimator": "u2sa_hw.services.estimator.service:StateEstimator",
     "mission_manager": "u2sa_hw.services.mission.service:MissionManagerService",
     "world_modeler": "u2sa_hw.services.world.service:WorldModeler",
+    "path_planner": "u2sa_hw.services.planner.service:PathPlannerService",
+    "control": "u2sa_hw.services.control.service:ControlSystem",
     "hsm": "u2sa_hw.services.hsm.service:HealthStatusMonitor",
     "recorder": "u2sa_hw.services.recorder.service:Recorder",
     "gps_nmea": "drivers.gps_nmea:GpsNmeaDriver",
