@@ -21,6 +21,8 @@ SERVICE_KINDS: dict[str, str] = {
     "recorder": "u2sa_hw.services.recorder.service:Recorder",
     "gps_nmea": "drivers.gps_nmea:GpsNmeaDriver",
     "compass_serial": "drivers.compass_serial:SerialCompassDriver",
+    "gpio_output": "drivers.gpio_io:GpioOutputDriver",
+    "gpio_input": "drivers.gpio_io:GpioInputDriver",
 }
 
 
