@@ -23,6 +23,7 @@ SERVICE_KINDS: dict[str, str] = {
     "compass_serial": "drivers.compass_serial:SerialCompassDriver",
     "gpio_output": "drivers.gpio_io:GpioOutputDriver",
     "gpio_input": "drivers.gpio_io:GpioInputDriver",
+    "rc_mux": "drivers.rc_mux:RcMuxDriver",
 }
 
 
