@@ -100,7 +100,8 @@ def test_crash_looping_required_service_raises_the_failsafe(tmp_path: Path, lcm_
     watch = Watch(bus)
     vehicle = profile(tmp_path, lcm_url, '[services.est]\nkind = "state_estimator"\n'
                       "settings = { health_interval_s = 0.2 }\n\n"
-                      '[services.broken]\nkind = "no_such_kind"\n', startup_grace_s=5.0)
+                      '[services.broken]\nkind = "no_such_kind"\n'
+                      "[services.broken.supervision]\nstartup_grace_s = 2.0\n", startup_grace_s=10.0)
     lp = launch(vehicle, "--give-up-after", "0", "--backoff", "0.2", "--max-backoff", "1")
     failsafe = wait_until(lambda: next((f for f in list(watch.failsafes) if f.active), None), timeout=60,
                           message="an active FAILSAFE")
@@ -122,3 +123,36 @@ def test_health_without_an_hsm_names_the_problem(tmp_path: Path, lcm_url: str) -
     done = u2sa(tmp_path, "health", "--timeout", "0.5")
     assert done.returncode == 1
     assert "no HSM answered: nothing on U2SA_SYSTEM_HEALTH within 0.5 s" in done.stderr and 'kind = "hsm"' in done.stderr
+
+
+def test_alive_but_silent_service_is_restarted(tmp_path: Path, lcm_url: str, bus: BusClient, launch: Any) -> None:
+    watch = Watch(bus)
+    vehicle = profile(tmp_path, lcm_url, '[services.est]\nkind = "state_estimator"\n'
+                      'settings = { health_interval_s = 0.2, mode = "passthrough" }\n'   # publishes only when fed
+                      '[services.est.supervision]\ndata_channel = "STATE_ESTIMATE"\nstale_after_s = 2.0\n',
+                      startup_grace_s=10.0)
+    lp = launch(vehicle)
+    feeding = threading.Event()
+    feeding.set()
+    stop = threading.Event()
+
+    def feed() -> None:                    # a sensor: while it feeds, est publishes estimates
+        while not stop.wait(0.1):
+            if feeding.is_set():
+                info = t.StateInformation().set(x=1.0)
+                info.sensor_name = "test_sensor"
+                bus.publish(ch.STATE_INFO, info)
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    feeder.start()
+    try:
+        wait_until(lambda: (s := watch.service_state("est")) and s.state == "ok" and 0 <= s.data_age_s < 1.0,
+                   timeout=30, message="est ok with fresh data")
+        first_pid = watch.pids["est"][-1]
+        feeding.clear()                    # est stays alive and keeps beating, but its data stops
+        wait_until(lambda: watch.pids["est"][-1] != first_pid, timeout=30, message="a restarted est")
+    finally:
+        stop.set()
+        feeder.join()
+    assert "restarting est (restart 1 of 2): no data on STATE_ESTIMATE for" in lp.output
+    assert lp.status()["est"]["run_id"] == 2

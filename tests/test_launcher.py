@@ -10,6 +10,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
+import psutil
 import pytest
 from conftest import wait_until
 from supervision_helpers import launch, write_profile  # noqa: F401 - launch is a fixture
@@ -22,11 +23,11 @@ from u2sa_hw.vehicle import load_profile
 
 
 def _alive(pid: int) -> bool:
+    """True while *pid* runs (a zombie nobody reaped yet counts as dead)."""
     try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
+        return psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
         return False
-    return True
 
 
 def _health_pids(bus: BusClient) -> dict[str, set[int]]:
@@ -142,3 +143,18 @@ def test_library_sigkill_after_grace_control_socket_and_single_owner(tmp_path: P
         assert launcher.stop(timeout=10) == 0
     assert launcher.finished.is_set()
     assert sum("did not stop within" in line for _, line in lines) == 2
+
+
+def test_killed_launcher_takes_its_children_and_leaves_a_reusable_socket(tmp_path: Path, lcm_url: str,
+                                                                        launch: Any) -> None:
+    profile = write_profile(tmp_path, lcm_url, {"est": "state_estimator"})
+    first = launch(profile)
+    pid = wait_until(lambda: (s := first.status()) and s["est"]["state"] == "running" and s["est"]["pid"],
+                     timeout=20, message="est running")
+    first.proc.kill()
+    first.proc.wait(timeout=10)
+    wait_until(lambda: not _alive(pid), timeout=10, message="the orphaned child to die with its launcher")
+    assert (tmp_path / "data" / "launcher.sock").exists()   # left behind by the SIGKILL
+    second = launch(profile)
+    wait_until(lambda: (s := second.status()) and s["est"]["state"] == "running", timeout=20,
+               message="a new launcher on the same vehicle")

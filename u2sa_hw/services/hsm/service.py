@@ -95,12 +95,11 @@ class HealthStatusMonitor(U2SAService):
                                           unit_template=str(self.config["unit_template"]))
         if isinstance(self.restarter, LauncherRestarter):
             supervised = self.restarter.supervised()
-            if supervised is not None:
-                absent = set(names) - supervised
-                if absent:
-                    self.logger.info("not watching %s: the launcher does not run them (--only)",
-                                     ", ".join(sorted(absent)))
-                    self.monitor.unwatch(absent, "not run by the launcher")
+            absent = set(names) - supervised if supervised is not None else set()
+            if absent:
+                self.logger.info("not watching %s: the launcher does not run them (--only)", ", ".join(sorted(absent)))
+                self.monitor.unwatch(absent, "not run by the launcher")
+                names = [n for n in names if n not in absent]
         self.logger.info("watching %s; restarts via %s", ", ".join(names) or "no services",
                          self.restarter.describe())
         self._worker = threading.Thread(target=self._restart_worker, name="hsm-restarts", daemon=True)
