@@ -24,6 +24,7 @@ SERVICE_KINDS: dict[str, str] = {
     "gpio_output": "drivers.gpio_io:GpioOutputDriver",
     "gpio_input": "drivers.gpio_io:GpioInputDriver",
     "rc_mux": "drivers.rc_mux:RcMuxDriver",
+    "odrive_can": "drivers.odrive_can:OdriveCanMotor",
 }
 
 

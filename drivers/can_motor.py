@@ -1,0 +1,386 @@
+"""What the CAN motor drivers share: the bus, the actuator names, command timing, odometry.
+
+:class:`CanMotorService` is an Actuator (Percentage Commands addressed to any of its
+``actuators`` names; neutral on stop, kill, failsafe and command timeout) that drives one
+motor controller per name on one CAN bus, and a wheel-odometry sensor: when two of its
+wheels form a differential pair it publishes body speed and yaw rate (FRD) as State
+Information. The bus is opened through :class:`~u2sa_hw.ports.ReconnectingPort`, so a lost
+adapter is reported in health and reopened with backoff; with ``record_raw`` every frame is
+published as ``RawCanFrame`` on ``RAW.<device>``.
+
+One thread runs the bus: it receives frames (handed to :meth:`handle_frame`) and calls
+:meth:`tick` every ``TICK_S`` for the controller's own work (re-sending setpoints, arming,
+polling). Bus callbacks (commands, failsafe) run on the transport's thread; both paths take
+``self.lock``. The vendor subclasses are ``drivers.odrive_can`` and ``drivers.vesc_can``.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, ClassVar
+
+import can
+
+from u2sa_hw import channels as ch
+from u2sa_hw import lcmtypes as t
+from u2sa_hw.abstract import Actuator
+from u2sa_hw.config import ConfigError, field
+from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence setters
+from u2sa_hw.ports import PortClosed, PortError, PortIOError, PortUnavailable, ReconnectingPort
+from u2sa_hw.ports.can_port import CanPort, open_can
+from u2sa_hw.ports.tap import raw_channel
+
+from drivers.diff_drive_odometry import SOURCES, BodyMotion, DiffDriveOdometry
+
+TICK_S = 0.01
+_PORT_FIELDS = frozenset({"interface", "channel", "bitrate", "udp_port", "device_name"})
+_ODOMETRY_FIELDS = frozenset({"odometry", "odometry_left", "odometry_right", "track_width_m", "odometry_source",
+                              "odometry_window_s", "wheel_radius_m", "directions"})
+
+
+@dataclass(frozen=True)
+class MotorSpec:
+    """One controller as configured: actuator name, CAN id, direction (+1/-1), wheel radius (m)."""
+
+    name: str
+    can_id: int
+    direction: int
+    radius_m: float
+
+
+class CanMotorService(Actuator):
+    """Base of the CAN motor drivers (see the module docstring)."""
+
+    ID_FIELD: ClassVar[str] = "node_ids"
+    ID_MAX: ClassVar[int] = 0x3F
+    CONFIG = (
+        field("interface", "socketcan", "python-can interface: socketcan on a vehicle; virtual, udp_multicast in tests"),
+        field("channel", "can0", "python-can channel: can0, a virtual bus name, or a multicast group"),
+        field("bitrate", 0, "bit/s given to python-can (0: leave the interface as configured, e.g. by udev)"),
+        field("udp_port", 0, "udp_multicast only: UDP port of the bus (0: python-can's default 43113)"),
+        field("device_name", "", "device name in errors and RAW.<device> (empty: the service name)"),
+        field("record_raw", False, "publish every frame sent and received as RawCanFrame on RAW.<device>"),
+        field("actuators", ["left", "right"], "actuator names, one per controller (Percentage Commands address them)"),
+        field("directions", [1, 1], "+1 or -1 per controller: -1 where forward means turning the motor backwards"),
+        field("wheel_radius_m", [0.1, 0.1], "wheel radius per controller (m), for the odometry"),
+        field("command_period_s", 0.05, "setpoints are re-sent this often (keeps the controller's timeout fed)"),
+        field("silent_after_s", 0.5, "no frame from a controller for this long -> 'silent' and degraded"),
+        field("odometry", True, "publish body speed (x_dot, FRD) and yaw rate from the differential wheel pair"),
+        field("odometry_left", "left", "the actuator name of the left wheel"),
+        field("odometry_right", "right", "the actuator name of the right wheel"),
+        field("track_width_m", 0.5, "distance between the left and right wheels' contact lines (m)"),
+        field("odometry_source", "velocity", "velocity: the controller's speed estimate; position: travel deltas"),
+        field("odometry_window_s", 0.1, "position source: travel deltas over this window (s)"),
+        field("speed_sigma_mps", 0.05, "sigma of the published x_dot and y_dot (m/s)"),
+        field("yaw_rate_sigma_rad_s", 0.05, "sigma of the published psi_dot (rad/s)"),
+    )
+
+    def __init__(self, name: str, **kwargs: Any) -> None:
+        super().__init__(name, **kwargs)
+        self.lock = threading.RLock()
+        self.motors: dict[str, MotorSpec] = {}
+        self.frames_rx = self.frames_tx = self.dropped = self.tx_failed = 0
+        self.odometry_published = 0
+        self.odometry: DiffDriveOdometry | None = None
+        self._port: ReconnectingPort[CanPort] | None = None
+        self._current: CanPort | None = None
+        self._reopen = False
+        self.started_at = time.monotonic()  # since when a controller never heard counts as silent
+        self._reason = ""
+        self._logged_drops: set[str] = set()
+        self.check_config(self.config.get)
+        self._build()
+
+    # -- config ------------------------------------------------------------------------------
+    def _fail(self, text: str) -> ConfigError:
+        return ConfigError(f"service '{self.name}': {text}")
+
+    def validate_config(self, name: str, value: Any) -> str | None:
+        """Refuse a change over the bus that would leave a config this driver cannot run with."""
+        try:
+            self.check_config(lambda key: value if key == name else self.config.get(key))
+        except ConfigError as exc:
+            return str(exc)
+        return None
+
+    def check_config(self, get: Callable[[str], Any]) -> None:
+        """Raise ConfigError (naming the field and the fix) unless the values *get* returns can run."""
+        names, ids = get("actuators"), get(self.ID_FIELD)
+        dirs, radii = get("directions"), get("wheel_radius_m")
+        if not names or not all(isinstance(n, str) and n.strip() for n in names) or len(set(names)) != len(names):
+            raise self._fail(f"actuators must be distinct non-empty names, got {names!r}")
+        for key, values in ((self.ID_FIELD, ids), ("directions", dirs), ("wheel_radius_m", radii)):
+            if len(values) != len(names):
+                raise self._fail(f"{key} needs one entry per actuator ({len(names)}: {', '.join(names)}), "
+                                 f"got {values!r}")
+        if not all(isinstance(i, int) and not isinstance(i, bool) and 0 <= i <= self.ID_MAX for i in ids) \
+                or len(set(ids)) != len(ids):
+            raise self._fail(f"{self.ID_FIELD} must be distinct integers 0..{self.ID_MAX}, got {ids!r}")
+        if any(d not in (1, -1) or isinstance(d, bool) for d in dirs):
+            raise self._fail(f"directions must be 1 or -1 per actuator, got {dirs!r}")
+        if not all(isinstance(r, (int, float)) and not isinstance(r, bool) and r > 0 for r in radii):
+            raise self._fail(f"wheel_radius_m must be positive numbers, got {radii!r}")
+        for key in ("command_period_s", "silent_after_s", "track_width_m", "odometry_window_s",
+                    "speed_sigma_mps", "yaw_rate_sigma_rad_s"):
+            if not get(key) > 0:
+                raise self._fail(f"{key} must be > 0, got {get(key)!r}")
+        if get("odometry_source") not in SOURCES:
+            raise self._fail(f"odometry_source must be one of {', '.join(SOURCES)}, got {get('odometry_source')!r}")
+        if get("odometry"):
+            for key in ("odometry_left", "odometry_right"):
+                if get(key) not in names:
+                    raise self._fail(f"{key} = {get(key)!r} is not one of the actuators ({', '.join(names)}); "
+                                     "name the wheel, or set odometry = false")
+
+    def _build(self) -> None:
+        cfg = self.config
+        self.motors = {n: MotorSpec(n, int(i), int(d), float(r)) for n, i, d, r in zip(
+            cfg.get("actuators"), cfg.get(self.ID_FIELD), cfg.get("directions"), cfg.get("wheel_radius_m"))}
+        self.odometry = DiffDriveOdometry(
+            track_width_m=cfg.get("track_width_m"), source=cfg.get("odometry_source"),
+            window_s=cfg.get("odometry_window_s")) if cfg.get("odometry") else None
+
+    @property
+    def device_name(self) -> str:
+        """The bus's name in port errors and taps (``device_name``, else the service name)."""
+        return self.config.get("device_name").strip() or self.name
+
+    def actuator_names(self) -> set[str]:
+        """The configured actuator names."""
+        return set(self.motors)
+
+    def on_config_change(self, name: str, value: Any) -> None:
+        """Bus fields reopen the port, odometry fields restart the odometry (checked by validate_config)."""
+        with self.lock:
+            if name in _PORT_FIELDS:
+                self._reopen = True
+            if name in _ODOMETRY_FIELDS:
+                self._build()
+            if name == "record_raw" and value:
+                self.register_publisher(raw_channel(self.device_name), t.RawCanFrame)
+
+    # -- the bus -------------------------------------------------------------------------------
+    def _open(self) -> CanPort:
+        cfg = self.config
+        options: dict[str, Any] = {}
+        if cfg.get("interface") == "udp_multicast" and cfg.get("udp_port"):
+            options["port"] = cfg.get("udp_port")
+        return open_can(device=self.device_name, interface=cfg.get("interface"), channel=cfg.get("channel"),
+                        bitrate=cfg.get("bitrate") or None, tap=self._tap, **options)
+
+    def _tap(self, record: t.RawCanFrame) -> None:
+        if self.config.get("record_raw"):
+            self.publish(raw_channel(self.device_name), record)
+
+    def _new_port(self) -> None:
+        if self._port is not None:
+            self._port.close()
+        self._port = ReconnectingPort(self._open, device=self.device_name)
+
+    def send(self, msg: can.Message) -> bool:
+        """Send one frame if the bus is open; False (counted) when it is not or the send failed."""
+        port_holder = self._port
+        if port_holder is None or port_holder.state != "open":
+            self.tx_failed += 1
+            return False
+        try:
+            port = port_holder.get()  # open: returns the port without calling the opener
+        except PortError:
+            self.tx_failed += 1
+            return False
+        try:
+            port.send(msg, timeout=0.05)
+        except (PortClosed, PortIOError) as exc:
+            self.tx_failed += 1
+            if isinstance(exc, PortClosed):
+                port_holder.lost(exc, port=port)
+            self.error(str(exc))
+            return False
+        self.frames_tx += 1
+        return True
+
+    def setup(self) -> None:
+        """Create the reconnecting port (opened by the run loop) and declare what we publish."""
+        if self.config.get("record_raw"):
+            self.register_publisher(raw_channel(self.device_name), t.RawCanFrame)
+        self.register_publisher(ch.STATE_INFO, t.StateInformation)
+        self.started_at = time.monotonic()
+        self._new_port()
+
+    def run(self) -> None:
+        """Receive frames and tick the controllers until stopped; survive bus loss and bad frames."""
+        next_tick = time.monotonic()
+        while self.wait(0.0):
+            if self._reopen:
+                self._reopen = False
+                with self.lock:
+                    self.on_port_lost()
+                self._new_port()
+            holder = self._port
+            assert holder is not None, "setup() creates the port"
+            try:
+                port = holder.get()
+            except PortUnavailable:
+                self._tick_and_status()
+                self.wait(min(0.1, max(0.01, holder.retry_in())))
+                continue
+            except PortClosed:
+                break  # closed by kill()
+            if port is not self._current:  # (re)opened: controllers get silent_after_s to be heard
+                self._current = port
+                self.started_at = time.monotonic()
+            try:
+                msg = port.recv(max(0.0, min(next_tick - time.monotonic(), TICK_S)))
+            except (PortClosed, PortIOError) as exc:
+                holder.lost(exc, port=port)
+                self.error(str(exc))
+                with self.lock:
+                    self.on_port_lost()
+                continue
+            if msg is not None:
+                self._dispatch(msg)
+            if time.monotonic() >= next_tick:
+                next_tick = time.monotonic() + TICK_S
+                self._tick_and_status()
+
+    def _tick_and_status(self) -> None:
+        self.check_command_timeout()
+        now = time.monotonic()
+        with self.lock:
+            self.tick(now)
+            reasons = self.problems(now)
+        port = self._port
+        if port is not None and port.state != "open":
+            reasons.insert(0, f"CAN bus {port.state}")
+        if self.failsafe_active:
+            reasons.insert(0, "failsafe")
+        self._reason = "; ".join(reasons)
+        if self.status != "stopping":
+            self.status = "degraded" if reasons else "ok"
+
+    def _dispatch(self, msg: can.Message) -> None:
+        self.frames_rx += 1
+        if msg.is_error_frame:
+            return
+        try:
+            with self.lock:
+                self.handle_frame(msg, time.monotonic())
+        except ValueError as exc:  # the protocol modules' decode errors
+            self.count_drop(type(exc).__name__, str(exc))
+
+    def count_drop(self, kind: str, detail: str) -> None:
+        """A frame that could not be decoded was dropped: counted, logged once per kind."""
+        self.dropped += 1
+        if kind not in self._logged_drops:
+            self._logged_drops.add(kind)
+            self.logger.warning("%s: dropping undecodable frames (counted in health; logged once): %s",
+                                self.device_name, detail)
+
+    def kill(self) -> None:
+        """Neutral, let the controllers go (release), close the bus, then stop."""
+        try:
+            super().kill()  # Actuator.kill: neutral() first
+            with self.lock:
+                self.release()
+        finally:
+            if self._port is not None:
+                self._port.close()
+
+    # -- actuator --------------------------------------------------------------------------------
+    def on_percentage(self, actuator: str, percent: float) -> None:
+        """Drive *actuator* to *percent* at once (and keep re-sending it)."""
+        with self.lock:
+            self.set_output(actuator, percent)
+
+    def neutral(self) -> None:
+        """Every controller to zero output, sent at once."""
+        with self.lock:
+            self.zero_outputs()
+
+    # -- odometry ----------------------------------------------------------------------------------
+    def wheel_sample(self, name: str, stamp: float, *, position_m: float | None = None,
+                     speed_mps: float | None = None) -> None:
+        """A wheel's travel/speed at bus time *stamp* (s); publishes the body motion when a pair is complete."""
+        odo, cfg = self.odometry, self.config
+        if odo is None:
+            return
+        side = "left" if name == cfg.get("odometry_left") else "right" if name == cfg.get("odometry_right") else None
+        if side is None:
+            return
+        motion = odo.update(side, stamp, position_m=position_m, speed_mps=speed_mps)
+        if motion is not None:
+            self._publish_motion(motion)
+
+    def _publish_motion(self, motion: BodyMotion) -> None:
+        cfg = self.config
+        msg = t.StateInformation()
+        msg.sensor_name = self.name
+        msg.reference_frame = "FRD"
+        wall = time.time()
+        msg.header.timestamp_us = int((motion.t if abs(motion.t - wall) < 5.0 else wall) * 1e6)
+        sigma_v, sigma_r = cfg.get("speed_sigma_mps"), cfg.get("yaw_rate_sigma_rad_s")
+        msg.set(x_dot=motion.speed_mps, y_dot=0.0, psi_dot=motion.yaw_rate_rad_s,
+                x_dot_sigma=sigma_v, y_dot_sigma=sigma_v, psi_dot_sigma=sigma_r)
+        if self.publish(ch.STATE_INFO, msg):
+            self.odometry_published += 1
+
+    @staticmethod
+    def frame_time(msg: can.Message) -> float:
+        """The frame's bus timestamp (s) if the interface gave one, else wall time now."""
+        return float(msg.timestamp) if msg.timestamp else time.time()
+
+    # -- health -------------------------------------------------------------------------------------
+    def health_details(self) -> dict[str, Any]:
+        """Command state, bus state and counters, per-controller details, odometry counters."""
+        port = self._port
+        details: dict[str, Any] = {
+            **super().health_details(),
+            "degraded_reason": self._reason,
+            "bus": port.state if port else "none",
+            "address": f"{self.config.get('interface')}:{self.config.get('channel')}",
+            "bus_error": str(port.last_error) if port and port.state != "open" and port.last_error else "",
+            "bus_losses": port.losses if port else 0,
+            "frames_rx": self.frames_rx,
+            "frames_tx": self.frames_tx,
+            "tx_failed": self.tx_failed,
+            "dropped": self.dropped,
+        }
+        if self.odometry is not None:
+            details.update(odometry_published=self.odometry_published, odometry_resets=self.odometry.resets,
+                           odometry_unpaired=self.odometry.unpaired)
+        with self.lock:
+            details.update(self.motor_details())
+        return details
+
+    # -- for subclasses (called with self.lock held) -------------------------------------------------
+    def handle_frame(self, msg: can.Message, now: float) -> None:
+        """One received frame (our own echoes included on udp_multicast); ValueError = undecodable."""
+        raise NotImplementedError
+
+    def tick(self, now: float) -> None:
+        """Periodic work: re-send setpoints, arm, poll, notice silence."""
+        raise NotImplementedError
+
+    def set_output(self, name: str, percent: float) -> None:
+        """Set and send the setpoint of actuator *name* (-100..100 %)."""
+        raise NotImplementedError
+
+    def zero_outputs(self) -> None:
+        """Set and send zero output on every controller."""
+        raise NotImplementedError
+
+    def release(self) -> None:
+        """On the way out, after neutral: leave the controllers safe (e.g. ODrive IDLE)."""
+
+    def on_port_lost(self) -> None:
+        """The bus went away or is being reopened: drop state that depended on it."""
+
+    def problems(self, now: float) -> list[str]:
+        """Why the service is degraded (silent nodes, errors); empty when all is well."""
+        return []
+
+    def motor_details(self) -> dict[str, Any]:
+        """Per-controller health details, keys prefixed with the actuator name."""
+        return {}

@@ -1,0 +1,253 @@
+"""ODrive CAN driver: the wheel odometry on its own, then the driver as a real ``u2sa service``
+process against mock ODrive nodes in a process of their own on a udp_multicast bus."""
+
+from __future__ import annotations
+
+import math
+import random
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterator
+
+import pytest
+from can_mock_harness import GROUP, Commander, MockCanProcess
+from conftest import REPO, ServiceProcesses, wait_until
+from serial_driver_harness import DriverProbe, start_driver, write_profile
+
+from drivers.diff_drive_odometry import DiffDriveOdometry, WheelTravel, body_motion
+from drivers.odrive_can import OdriveCanMotor, error_names
+from u2sa_hw import lcmtypes as t
+from u2sa_hw.bus_client import BusClient
+from u2sa_hw.config import ConfigError
+from u2sa_hw.ports.tap import RX, TX, raw_channel
+from u2sa_hw.protocols.odrive_cansimple import AxisError05, AxisState, Cmd, OdriveError
+
+CIRCUMFERENCE = 2 * math.pi * 0.1  # the mock's default wheel radius
+NODES = (3, 4)
+
+
+# ---------------------------------------------------------------- odometry, pure ---------------
+def test_body_motion_is_frd_with_yaw_positive_to_the_right() -> None:
+    assert body_motion(1.0, 1.0, 0.5) == (1.0, 0.0)
+    speed, yaw_rate = body_motion(1.0, 0.5, 0.5)  # left wheel faster: turning right, psi grows
+    assert (speed, yaw_rate) == (0.75, 1.0)
+    assert body_motion(-0.5, 0.5, 0.5) == (0.0, -2.0)
+
+
+def test_wheel_travel_uses_deltas_over_the_window_and_restarts_on_a_jump() -> None:
+    wheel = WheelTravel(window_s=0.1, max_wheel_speed_mps=5.0)
+    assert wheel.add(0.0, 0.0) is None
+    speeds = [wheel.add(0.02 * i, 0.02 * i * 1.5) for i in range(1, 20)]
+    assert all(s == pytest.approx(1.5) for s in speeds)
+    assert wheel.add(0.40, -3.0) is None  # a controller reboot zeroed (here: moved) its position
+    assert wheel.resets == 1
+    assert wheel.add(0.42, -3.0 + 0.02) == pytest.approx(1.0)
+    assert wheel.add(0.42, 7.0) is None and wheel.add(float("nan"), 0.0) is None  # duplicate time, NaN
+
+
+def test_odometry_pairs_one_fresh_sample_per_side() -> None:
+    odo = DiffDriveOdometry(track_width_m=0.5, source="velocity", max_skew_s=0.05)
+    assert odo.update("left", 1.00, speed_mps=1.0) is None
+    assert odo.update("left", 1.02, speed_mps=1.0) is None  # still waiting for the right side
+    motion = odo.update("right", 1.03, speed_mps=0.5)
+    assert motion is not None and (motion.t, motion.speed_mps, motion.yaw_rate_rad_s) == (1.03, 0.75, 1.0)
+    assert odo.update("right", 1.05, speed_mps=0.5) is None
+    assert odo.update("left", 1.20, speed_mps=1.0) is None  # the right sample is too old to pair
+    assert odo.unpaired == 1
+    positions = DiffDriveOdometry(track_width_m=0.5, source="position", window_s=0.05)
+    out = [positions.update(side, 0.01 * i, position_m=0.01 * i * (2.0 if side == "left" else 1.0))
+           for i in range(10) for side in ("left", "right")]
+    assert [m for m in out if m][-1].speed_mps == pytest.approx(1.5)
+    with pytest.raises(ValueError):
+        DiffDriveOdometry(track_width_m=0.0)
+
+
+def test_error_names_decode_both_firmware_lines() -> None:
+    bits = int(OdriveError.ESTOP_REQUESTED | OdriveError.DRV_FAULT) | 0x80000000
+    assert error_names(bits, firmware="0.6") == "DRV_FAULT|ESTOP_REQUESTED|0x80000000"
+    assert error_names(int(AxisError05.MOTOR_FAILED), firmware="0.5") == "MOTOR_FAILED"
+    assert error_names(0, firmware="0.6") == "none"
+
+
+@pytest.mark.parametrize("settings, words", [
+    ({"node_ids": [1]}, "one entry per actuator"),
+    ({"node_ids": [1, 1]}, "distinct integers"),
+    ({"directions": [1, 2]}, "1 or -1"),
+    ({"max_turns_per_s": 0.0}, "max_turns_per_s must be > 0"),
+    ({"firmware": "0.4"}, "firmware must be one of"),
+    ({"odometry_left": "port"}, "is not one of the actuators"),
+])
+def test_a_bad_config_is_refused_with_the_field_named(lcm_url: str, settings: dict, words: str) -> None:
+    with pytest.raises(ConfigError, match=words):
+        OdriveCanMotor("motors", settings=settings)
+
+
+# ---------------------------------------------------------------- across processes -------------
+@dataclass
+class Rig:
+    """One mock process (two ODrive axes), the driver process, a probe and a commander."""
+
+    mock: MockCanProcess
+    probe: DriverProbe
+    driver: object
+    commander: Commander
+    bus: BusClient
+
+    def wheel(self, side: str) -> float:
+        return self.mock.get(side, "wheel_speed_mps")
+
+    def wait_wheels(self, left: float, right: float, *, timeout: float = 15.0, what: str = "") -> None:
+        wait_until(lambda: self.wheel("left") == pytest.approx(left, abs=1e-3)
+                   and self.wheel("right") == pytest.approx(right, abs=1e-3), timeout=timeout,
+                   message=what or f"wheel speeds {left}, {right} m/s")
+
+    def wait_phases(self, left: str, right: str, *, timeout: float = 20.0) -> dict[str, str]:
+        return self.probe.wait_health(lambda d, s: d.get("left.phase") == left and d.get("right.phase") == right,
+                                      timeout=timeout, message=f"axes {left}/{right}")
+
+
+@pytest.fixture
+def rig(tmp_path: Path, services: ServiceProcesses, bus: BusClient) -> Iterator[Callable[..., Rig]]:
+    made: list[Rig] = []
+
+    def make(*, settings: dict | None = None, node: dict | None = None, right: dict | None = None) -> Rig:
+        port = random.randint(30000, 60000)
+        nodes = [{"side": "left", "node_id": NODES[0], "vel_limit": 10.0, **(node or {})},
+                 {"side": "right", "node_id": NODES[1], "vel_limit": 10.0, **(node or {}), **(right or {})}]
+        mock = MockCanProcess({"kind": "odrive", "port": port, "nodes": nodes}, repo=REPO, log=tmp_path / "mock.log")
+        config = {"interface": "udp_multicast", "channel": GROUP, "udp_port": port, "node_ids": list(NODES),
+                  "silent_after_s": 0.5, "status_poll_s": 0.2, **(settings or {})}
+        profile = write_profile(tmp_path, name="motors", kind="odrive_can", settings=config)
+        probe = DriverProbe(bus, "motors")
+        driver = start_driver(services, profile, "motors")
+        made.append(Rig(mock, probe, driver, Commander(bus), bus))
+        return made[-1]
+
+    yield make
+    for r in made:
+        r.commander.close()
+        r.mock.stop()
+
+
+def test_commands_drive_the_wheels_within_limits_and_odometry_matches_the_vehicle(rig, bus: BusClient) -> None:
+    raw: list[t.RawCanFrame] = []
+    bus.transport.subscribe(raw_channel("can0"), t.RawCanFrame, lambda _c, m: raw.append(m))
+    r = rig(settings={"max_turns_per_s": 1.5, "directions": [1, -1], "command_timeout_s": 0.0,
+                      "record_raw": True, "device_name": "can0", "speed_sigma_mps": 0.03,
+                      "status_poll_s": 0.0},  # only the setpoint re-sends may feed the watchdog
+            right={"direction": -1, "watchdog_timeout_s": 0.3}, node={"watchdog_timeout_s": 0.3})
+    r.wait_phases("armed", "armed")
+    r.commander.hold(left=100.0, right=50.0)
+    r.wait_wheels(1.5 * CIRCUMFERENCE, 0.75 * CIRCUMFERENCE, what="100 % -> 1.5 rev/s, 50 % -> 0.75 rev/s")
+    assert r.mock.get("right", "input_vel") == pytest.approx(-0.75)  # a mirrored motor turns backwards
+    r.commander.hold(left=-250.0)  # beyond the range: limited to -max_turns_per_s
+    r.wait_wheels(-1.5 * CIRCUMFERENCE, 0.75 * CIRCUMFERENCE)
+
+    r.commander.hold(left=60.0, right=30.0)
+    r.wait_wheels(0.9 * CIRCUMFERENCE, 0.45 * CIRCUMFERENCE)
+    since = r.probe.state_count()
+    states = r.probe.wait_states(20, since=since + 10, message="odometry at the encoder rate")
+    truth = r.mock.truth()
+    msg = states[-1][0]
+    assert msg.reference_frame == "FRD" and msg.sensor_name == "motors"
+    assert (msg.has("x_dot"), msg.has("y_dot"), msg.has("psi_dot"), msg.has("x"), msg.has("psi")) == \
+        (True, True, True, False, False)
+    assert msg.x_dot == pytest.approx(truth["speed"], rel=0.02)
+    assert msg.psi_dot == pytest.approx(truth["yaw_rate"], rel=0.02)
+    assert truth["yaw_rate"] == pytest.approx((0.9 - 0.45) * CIRCUMFERENCE / 0.5)
+    assert (msg.y_dot, msg.x_dot_sigma, msg.psi_dot_sigma) == (0.0, 0.03, 0.05)
+
+    # no more commands and no command timeout: the driver keeps re-sending the setpoint, which keeps
+    # the ODrive's 0.3 s CAN watchdog fed for as long as it runs
+    r.commander.release()
+    r.probe.health_after(6)
+    assert (r.mock.get("left", "axis_error"), r.mock.get("left", "axis_state")) == (0, AxisState.CLOSED_LOOP_CONTROL)
+    assert r.wheel("left") == pytest.approx(0.9 * CIRCUMFERENCE, abs=1e-3)
+
+    wait_until(lambda: any(f.direction == RX for f in raw) and any(f.direction == TX for f in raw),
+               message="raw frames both ways on RAW.can0")
+    set_vel = [f for f in raw if f.direction == TX and f.arbitration_id == NODES[0] << 5 | Cmd.SET_INPUT_VEL]
+    assert set_vel and set_vel[-1].dlc == 8 and not set_vel[-1].is_extended_id
+    assert any(f.arbitration_id == NODES[1] << 5 | Cmd.HEARTBEAT for f in raw if f.direction == RX)
+
+
+def test_command_timeout_and_failsafe_go_neutral_and_estop_is_cleared_after(rig, bus: BusClient) -> None:
+    r = rig(settings={"command_timeout_s": 0.5})
+    r.wait_phases("armed", "armed")
+    r.commander.hold(left=50.0, right=50.0)
+    r.wait_wheels(CIRCUMFERENCE, CIRCUMFERENCE)
+    r.commander.release()
+    r.wait_wheels(0.0, 0.0, what="0 rev/s once commands stop for command_timeout_s")
+    r.probe.wait_health(lambda d, s: d["command_timed_out"] == "True", message="command_timed_out in health")
+
+    r.commander.hold(left=50.0, right=-50.0)
+    r.wait_wheels(CIRCUMFERENCE, -CIRCUMFERENCE)
+    r.commander.failsafe(True)
+    r.wait_wheels(0.0, 0.0, what="neutral on FAILSAFE")
+    details = r.probe.wait_health(lambda d, s: s == "degraded" and int(d["ignored"]) > 2,
+                                  message="commands ignored during the failsafe")
+    assert "failsafe" in details["degraded_reason"]
+    assert r.wheel("left") == 0.0 and r.mock.get("left", "axis_state") == AxisState.CLOSED_LOOP_CONTROL
+    r.commander.failsafe(False)
+    r.wait_wheels(CIRCUMFERENCE, -CIRCUMFERENCE, what="commands obeyed again after the failsafe")
+
+    reply = bus.set_config("motors", "estop_on_failsafe", "true")
+    assert reply is not None and reply.ok, reply
+    r.commander.failsafe(True)
+    wait_until(lambda: r.mock.get("left", "axis_error") & OdriveError.ESTOP_REQUESTED
+               and r.mock.get("right", "axis_error") & OdriveError.ESTOP_REQUESTED, message="Estop on both axes")
+    r.wait_wheels(0.0, 0.0)
+    r.commander.failsafe(False)
+    r.wait_phases("armed", "armed")
+    r.wait_wheels(CIRCUMFERENCE, -CIRCUMFERENCE, what="cleared, re-armed and driving after the failsafe")
+    assert r.driver.poll() is None
+
+
+def test_a_silent_node_is_reported_and_recovers_while_the_other_keeps_driving(rig) -> None:
+    r = rig(settings={"command_timeout_s": 0.5})
+    r.wait_phases("armed", "armed")
+    r.commander.hold(left=30.0, right=40.0)
+    r.wait_wheels(0.6 * CIRCUMFERENCE, 0.8 * CIRCUMFERENCE)
+    r.mock.call("left", "stop_answering", True)
+    details = r.wait_phases("silent", "armed")
+    assert details["status"] == "degraded" and "left (node 3) node silent" in details["degraded_reason"]
+    assert "node silent" in details["last_error"] and details["left.silent_events"] == "1"
+    r.commander.hold(right=-40.0)
+    r.wait_wheels(0.6 * CIRCUMFERENCE, -0.8 * CIRCUMFERENCE, what="the other axis still obeys")
+    assert r.driver.poll() is None
+
+    r.mock.call("left", "stop_answering", False)
+    details = r.probe.wait_health(lambda d, s: s == "ok" and d["left.phase"] == "armed", message="recovered")
+    assert details["degraded_reason"] == ""
+    r.commander.hold(left=-20.0)
+    r.wait_wheels(-0.4 * CIRCUMFERENCE, -0.8 * CIRCUMFERENCE, what="the recovered axis obeys again")
+
+
+@pytest.mark.parametrize("firmware", ["0.6", "0.5"])
+def test_an_axis_error_is_reported_and_cleared_by_config(rig, bus: BusClient, firmware: str) -> None:
+    r = rig(settings={"firmware": firmware, "command_timeout_s": 0.0}, node={"firmware": firmware})
+    r.wait_phases("armed", "armed")
+    r.commander.hold(left=25.0, right=25.0)
+    r.wait_wheels(0.5 * CIRCUMFERENCE, 0.5 * CIRCUMFERENCE)
+    if firmware == "0.6":
+        r.mock.call("right", "inject_error", int(OdriveError.CURRENT_LIMIT_VIOLATION))
+        expect, detail = "CURRENT_LIMIT_VIOLATION", ("right.active_errors", hex(OdriveError.CURRENT_LIMIT_VIOLATION))
+    else:
+        r.mock.call("right", "inject_error", 0x1000, kind="motor")
+        expect, detail = "MOTOR_FAILED", ("right.motor_error", "0x1000")
+    details = r.probe.wait_health(lambda d, s: d.get(detail[0]) == detail[1] and d["right.phase"] == "error",
+                                  message=f"right axis error {expect} in health")
+    assert expect in details["right.error"] and expect in details["degraded_reason"]
+    assert expect in details["last_error"] and "clear_errors" in details["last_error"]
+    r.wait_wheels(0.5 * CIRCUMFERENCE, 0.0, what="the failed axis disarmed, the other still driving")
+    r.mock.call("left", "inject_garbage", 3)
+    details = r.probe.health_after(4)  # no automatic re-arm without rearm_on_error
+    assert details["right.phase"] == "error" and int(details["dropped"]) >= 3
+
+    reply = bus.set_config("motors", "clear_errors", "true")
+    assert reply is not None and reply.ok, reply
+    r.wait_phases("armed", "armed")
+    r.wait_wheels(0.5 * CIRCUMFERENCE, 0.5 * CIRCUMFERENCE, what="driving again after clear_errors")
+    config = bus.get_config("motors")
+    assert config is not None and {f.name: f.value for f in config.fields}["clear_errors"] == "false"
+    assert r.driver.poll() is None
