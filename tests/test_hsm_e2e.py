@@ -7,9 +7,11 @@ import os
 import signal
 import subprocess
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
+import pytest
 from conftest import wait_until
 from supervision_helpers import launch  # noqa: F401 - a fixture
 
@@ -156,3 +158,35 @@ def test_alive_but_silent_service_is_restarted(tmp_path: Path, lcm_url: str, bus
         feeder.join()
     assert "restarting est (restart 1 of 2): no data on STATE_ESTIMATE for" in lp.output
     assert lp.status()["est"]["run_id"] == 2
+
+
+def test_hsm_service_in_process_applies_policy_changes_and_drops_garbage(tmp_path: Path, lcm_url: str) -> None:
+    from u2sa_hw.services.hsm.service import HealthStatusMonitor
+    from u2sa_hw.vehicle import load_profile
+
+    vehicle = profile(tmp_path, lcm_url, '[services.gps]\nkind = "gps_nmea"\n'
+                      '[services.gps.supervision]\ndata_channel = "STATE_INFO"\nstale_after_s = 2.0\n',
+                      startup_grace_s=10.0)
+    loaded = load_profile(vehicle)
+    hsm = HealthStatusMonitor("hsm", profile=loaded, settings={**loaded.service("hsm").settings, "restarter": "none"})
+    try:
+        assert [r.name for r in hsm.rules] == ["gps"] and hsm.policy.max_restarts == 2
+        ok, _ = hsm.config.try_set("max_restarts", 7)
+        assert ok
+        hsm.on_config_change("max_restarts", 7)
+        assert hsm.monitor.policy.max_restarts == 7
+        hsm._on_data("STATE_INFO", b"\x00" * 9)               # garbage: counted, not fatal
+        assert hsm.transport.rx["STATE_INFO"].malformed == 1
+        beat = t.Health()
+        beat.name, beat.pid, beat.status = "gps", 1234, "ok"
+        hsm.monitor.on_health(beat, time.monotonic() - 100.0)   # gps started 100 s ago, no data since
+        later = time.monotonic() + 5.0
+        info = t.StateInformation()
+        info.header.source = "someone_else"
+        hsm._on_data("STATE_INFO", info.encode())
+        assert hsm.monitor.views(later)[0].data_age_s == pytest.approx(105.0, abs=1.0)
+        info.header.source = "gps"
+        hsm._on_data("STATE_INFO", info.encode())          # only the header is read
+        assert hsm.monitor.views(later)[0].data_age_s == pytest.approx(5.0, abs=1.0)
+    finally:
+        hsm.transport.stop()

@@ -49,7 +49,7 @@ def test_choice_systemd_launcher_or_none(tmp_path: Path, lcm_url: str) -> None:
         launcher.stop(timeout=10)
     with pytest.raises(RestartError, match="no launcher"):
         chosen.restart("gps", reason="test")
-    with pytest.raises(ValueError, match="not one of auto, systemd, launcher, none"):
+    with pytest.raises(ValueError, match="restarter = .docker. is not one of auto, systemd, launcher, none"):
         choose_restarter("docker", profile=profile, services=[])
 
 

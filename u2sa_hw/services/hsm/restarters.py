@@ -147,7 +147,7 @@ def choose_restarter(kind: str, *, profile: VehicleProfile, services: list[str],
     """The restarter for *kind* (``auto``, ``systemd``, ``launcher``, ``none``); see the module docstring."""
     env = os.environ if env is None else env
     if kind not in RESTARTER_KINDS:
-        raise ValueError(f"restarter '{kind}' is not one of {', '.join(RESTARTER_KINDS)}")
+        raise ValueError(f"the HSM's config field restarter = '{kind}' is not one of {', '.join(RESTARTER_KINDS)}")
     if kind == "none":
         return NoRestarter("restarter = \"none\" in the HSM's config")
     if kind == "systemd":

@@ -53,10 +53,7 @@ class HealthStatusMonitor(U2SAService):
         cfg = self.config
         self.rules = rules_from_profile(self.profile, own_name=name, missed_heartbeats=int(cfg["missed_heartbeats"]),
                                         startup_grace_s=float(cfg["startup_grace_s"]))
-        self.policy = MonitorPolicy(max_restarts=int(cfg["max_restarts"]),
-                                    restart_backoff_s=float(cfg["restart_backoff_s"]),
-                                    max_backoff_s=float(cfg["max_backoff_s"]), recovery_s=float(cfg["recovery_s"]),
-                                    failsafe_latch=bool(cfg["failsafe_latch"]))
+        self.policy = self._policy()
         self.monitor = HealthMonitor(self.rules, policy=self.policy, now=time.monotonic(),
                                      default_timeout_s=int(cfg["missed_heartbeats"]) * 1.0)
         self.restarter: Restarter | None = None
@@ -70,6 +67,12 @@ class HealthStatusMonitor(U2SAService):
             self._subscribers[channel] = "(header only)"
         self.register_publisher(ch.SYSTEM_HEALTH, t.SystemHealth)
         self.register_publisher(ch.FAILSAFE, t.Failsafe)
+
+    def _policy(self) -> MonitorPolicy:
+        cfg = self.config
+        return MonitorPolicy(max_restarts=int(cfg["max_restarts"]), restart_backoff_s=float(cfg["restart_backoff_s"]),
+                             max_backoff_s=float(cfg["max_backoff_s"]), recovery_s=float(cfg["recovery_s"]),
+                             failsafe_latch=bool(cfg["failsafe_latch"]))
 
     # -- inputs (LCM handler thread) -----------------------------------------------------------
     def _on_health(self, msg: t.Health) -> None:
@@ -121,6 +124,16 @@ class HealthStatusMonitor(U2SAService):
             if now >= next_report:
                 self.publish_system_health(now)
                 next_report = now + float(self.config["system_health_interval_s"])
+
+    def on_config_change(self, name: str, value: Any) -> None:
+        """Apply a new restart/failsafe policy live; rule and restarter fields apply at the next start."""
+        if name in ("max_restarts", "restart_backoff_s", "max_backoff_s", "recovery_s", "failsafe_latch"):
+            policy = self._policy()
+            with self._lock:
+                self.policy = self.monitor.policy = policy
+            self.logger.info("%s is now %r", name, value)
+        elif name in ("missed_heartbeats", "startup_grace_s", "restarter", "unit_template"):
+            self.logger.info("%s changed to %r: takes effect when the HSM restarts", name, value)
 
     def kill(self) -> None:
         """Stop the restart worker, then release."""
