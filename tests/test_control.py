@@ -196,6 +196,14 @@ def test_other_subsystems_and_non_finite_points_are_not_followed() -> None:
     assert c.step(0.0) == {"L": 0.0, "R": 0.0} and c.neutral_reason == "no NAV_POINT received"
 
 
+def test_a_non_finite_velocity_leaves_the_feedforward_alone() -> None:
+    c = controller(rate_limit_pct_s=0.0)
+    c.on_estimate(t.StateInformation().set(psi=0.0, x_dot=float("nan"), y_dot=0.0), 0.0)
+    c.on_rc_mode(rc(1), 0.0)
+    c.on_nav(nav(3, 0, 1.0), 0.0)
+    assert c.step(0.0) == {"L": 50.0, "R": 50.0} and c.measured_speed is None
+
+
 # -- planner and control as real services over LCM -------------------------------------------------------
 ORIGIN = Origin(lat=47.0, lon=8.0, alt=400.0)
 
@@ -214,6 +222,9 @@ def test_planner_and_control_processes_drive_and_report(services: ServiceProcess
     bus.transport.subscribe(ch.NAV_POINT, t.NavigationPoint, lambda _c, m: navs.append(m))
     bus.transport.subscribe(ch.ACTUATOR_CMD, t.ActuatorCommand, lambda _c, m: cmds.append(m))
     bus.transport.subscribe(ch.GOAL_REPORT, t.GoalReport, lambda _c, m: reports.append(m))
+    health: dict[str, dict[str, str]] = {}
+    bus.transport.subscribe(ch.HEALTH, t.Health, lambda _c, m: health.update(
+        {m.name: {kv.key: kv.value for kv in m.details}}))
     services.start("planner", "--vehicle", str(vehicle))
     services.start("control", "--vehicle", str(vehicle))
 
@@ -237,6 +248,11 @@ def test_planner_and_control_processes_drive_and_report(services: ServiceProcess
     assert point.x == pytest.approx(3.0, abs=0.01) and point.y == pytest.approx(0.0, abs=0.01)
     assert point.distance_to_goal == pytest.approx(10.0, abs=0.01) and point.speed > 0
     assert {m.base.actuator_name for m in cmds[-4:]} == {"wheel_l", "wheel_r"}
+    wait_until(lambda: driving() and health.get("planner", {}).get("doing") == "to waypoint"
+               and health.get("control", {}).get("driving") == "True", timeout=10, interval=0.05,
+               message="health of both services saying they drive to the waypoint")
+    assert health["planner"]["state"] == "waypoint" and health["planner"]["goal"] == "north10"
+    assert health["control"]["mixer"] == "differential"
 
     def neutral() -> bool:
         publish(0)

@@ -252,6 +252,22 @@ def test_objects_expire_and_only_local_ones_are_steered_around() -> None:
     assert p.objects == {} and math.atan2(nav.y, nav.x) == pytest.approx(0.0)
 
 
+def test_non_finite_inputs_are_refused_not_followed() -> None:
+    nan = float("nan")
+    p = new_planner()
+    p.on_estimate(estimate(nan, 0, 0), 0.0)
+    assert p.pose is None and p.step(0.0).nav is None
+    p.on_estimate(estimate(0, 0, 0), 0.0)
+    p.on_object(circle("ghost", nan, 0, 1), 0.0)
+    assert p.objects == {} and p.objects_skipped == 1
+    p.on_goal(waypoint("bad", nan, 5), 0.0)
+    cycle = p.step(0.0)
+    assert cycle.nav.speed == 0 and "non-finite" in p.summary()["doing"]
+    heading = choose_heading(x=0, y=0, goal_x=nan, goal_y=0, obstacles=[Obstacle(circle("c", 3, 0, 1))],
+                             settings=AVOID)
+    assert heading.blocked      # and above all: it returns
+
+
 # -- closed loop against the simulated vehicle --------------------------------------------------------
 SIM_RATE_HZ = 20.0
 

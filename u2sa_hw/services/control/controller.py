@@ -183,7 +183,8 @@ class VehicleController:
 
 
 def _surge(msg: t.StateInformation) -> float | None:
-    """Forward speed: the NED velocity projected on the heading; None without x_dot, y_dot and psi."""
+    """Forward speed: the NED velocity projected on the heading; None without finite x_dot, y_dot and psi."""
     if not (msg.has("x_dot") and msg.has("y_dot") and msg.has("psi")):
         return None
-    return msg.x_dot * math.cos(msg.psi) + msg.y_dot * math.sin(msg.psi)
+    surge = msg.x_dot * math.cos(msg.psi) + msg.y_dot * math.sin(msg.psi)
+    return surge if math.isfinite(surge) else None

@@ -56,7 +56,7 @@ class AvoidanceSettings:
     range_m: float = 10.0           # how far ahead a candidate heading is checked
     heading_step_deg: float = 5.0   # spacing of the candidate headings
     hysteresis_deg: float = 15.0    # bonus for staying on the side already taken
-    min_step_m: float = 0.1         # smallest march step along a ray
+    min_step_m: float = 0.1         # smallest march step along a ray (> 0)
 
 
 class Obstacle:
@@ -136,10 +136,12 @@ def ray_clearance(near: list[_Near], *, x: float, y: float, heading: float, leng
     """
     if not near:
         return math.inf
+    if not (math.isfinite(length) and math.isfinite(heading)):
+        return None
     c, s = math.cos(heading), math.sin(heading)
     smallest = math.inf
     along = 0.0
-    while True:
+    for _ in range(int(length / settings.min_step_m) + 2):   # every step is >= min_step_m: a bound, not a cut
         px, py = x + along * c, y + along * s
         step = math.inf
         for item in near:
@@ -152,6 +154,7 @@ def ray_clearance(near: list[_Near], *, x: float, y: float, heading: float, leng
         if along >= length:
             return smallest
         along = min(length, along + max(step, settings.min_step_m))
+    return smallest
 
 
 def _best_clear(near: list[_Near], *, x: float, y: float, bearing: float, length: float, previous: float,

@@ -24,6 +24,7 @@ this class directly in a closed loop.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -112,14 +113,18 @@ class PathPlanner:
             self._log_once(f"frame-{frame}", f"object {base.uid or '?'} in frame {base.reference_frame!r} skipped: the "
                                               "planner steers around local NED objects (the world modeler's output)")
             return
+        if not all(math.isfinite(v) for v in (base.x, base.y)):
+            self.objects_skipped += 1
+            self._log_once("object-nan", f"object {base.uid or '?'} with a non-finite position skipped")
+            return
         uid = base.uid or f"{base.source}@{base.x:.1f},{base.y:.1f}"
         self.objects[uid] = _Tracked(Obstacle(msg), now)
 
     def on_estimate(self, msg: t.StateInformation, now: float) -> None:
-        """The state estimate; one without x, y and psi is not a pose."""
+        """The state estimate; one without a finite x, y and psi is not a pose."""
         pose = Pose.from_estimate(msg)
         if pose is None:
-            self._log_once("no-pose", "STATE_ESTIMATE lacks x, y or psi: waiting for a full pose")
+            self._log_once("no-pose", "STATE_ESTIMATE lacks a finite x, y or psi: waiting for a full pose")
             return
         self.pose, self.pose_time = pose, now
 

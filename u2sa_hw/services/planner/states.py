@@ -47,10 +47,13 @@ class Pose:
 
     @classmethod
     def from_estimate(cls, msg: t.StateInformation) -> Pose | None:
-        """The pose in *msg*, or None when it lacks x, y or psi."""
+        """The pose in *msg*, or None when it lacks a finite x, y or psi."""
         if not (msg.has("x") and msg.has("y") and msg.has("psi")):
             return None
-        return cls(x=msg.x, y=msg.y, psi=msg.psi, z=msg.get("z"))
+        if not all(math.isfinite(v) for v in (msg.x, msg.y, msg.psi)):
+            return None
+        z = msg.get("z")
+        return cls(x=msg.x, y=msg.y, psi=msg.psi, z=z if z is not None and math.isfinite(z) else None)
 
 
 @dataclass(frozen=True)
@@ -141,6 +144,9 @@ class WaypointState(GoalState):
         wp = as_type(goal, t.Waypoint)
         if not (wp.has("x") and wp.has("y")):
             return f"waypoint {wp.base.uid} has no x/y"
+        if not all(math.isfinite(v) for v in (wp.x, wp.y, wp.horizontal_threshold)) or \
+                (wp.has("z") and not math.isfinite(wp.z)):
+            return f"waypoint {wp.base.uid} has a non-finite x, y, z or threshold"
         frame = wp.reference_frame.strip().upper()
         if frame not in ("", "LOCAL", "NED"):
             return f"waypoint {wp.base.uid} is in frame {wp.reference_frame!r}, not LOCAL"
