@@ -1,0 +1,216 @@
+"""IMU driver for the InvenSense MPU-6050 / MPU-6500 / MPU-9250 family over I2C.
+
+On every open of the chip (start, and after a lost bus or a chip that stopped answering):
+WHO_AM_I is checked against ``chip`` (``auto`` takes any member of the family), the chip
+is reset and woken on the gyro PLL, and SMPLRT_DIV, CONFIG (DLPF), GYRO_CONFIG and
+ACCEL_CONFIG are written in one transaction and read back. Each sample is one 14-byte
+burst from ACCEL_XOUT_H (accel, temperature and gyro of one instant), scaled by the
+configured full scales and turned from chip axes into body FRD by ``mounting``.
+
+What is published (reference_frame "FRD"):
+
+- phi_dot, theta_dot, psi_dot: the body rates p, q, r (rad/s) minus the gyro bias. The
+  bias is the mean of ``calibrate_samples`` readings taken at rest after start; a window
+  that was not at rest (see :class:`~drivers.imu_common.RestCalibration`) is discarded and
+  the next one tried, so a driver restarted while the vehicle moves calibrates at its next
+  stop. Until then the rates carry no bias correction and ``uncalibrated_rate_sigma``.
+- x_ddot, y_ddot, z_ddot: body acceleration (m/s^2), i.e. the measured specific force with
+  gravity removed. The chip cannot tell gravity from acceleration, so ``gravity`` says
+  what is removed: ``rest`` (default) the specific force measured in the rest window
+  (gravity at the start attitude plus the accelerometer's bias), ``level`` g along body
+  down, ``none`` publishes no accelerations. Both assume the attitude stays near the
+  one assumed (true of ground vehicles and boats, within g*sin(tilt)); say so with
+  ``accel_sigma``. Use the BNO055, whose fusion removes gravity at any attitude, when it
+  matters.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, ClassVar
+
+from u2sa_hw import lcmtypes as t
+from u2sa_hw.config import ConfigError, field
+from u2sa_hw.ports.errors import PortIOError, PortUnavailable
+from u2sa_hw.protocols import mpu9250 as mpu
+
+from drivers.imu_common import (ACCEL_FIELDS, RATE_FIELDS, ChipIdentityError, I2cImuDriver, Mounting,
+                                RestCalibration, RetryingI2c, Vector, set_vector)
+
+# Members outside the register table's three that share their register layout [LNX].
+COMPATIBLE_WHO_AM_I = {0x73: ("MPU-9255", "mpu9250"), 0x74: ("MPU-6515", "mpu6500")}
+CHIP_NAMES = {"mpu6050": "MPU-6050", "mpu6500": "MPU-6500", "mpu9250": "MPU-9250"}
+GRAVITY_MODES = ("rest", "level", "none")
+RESET_WAIT_S = 0.1  # PWR_MGMT_1.DEVICE_RESET takes up to 100 ms [RM6050]
+WAKE_WAIT_S = 0.01
+
+
+def identify(who_am_i: int) -> tuple[str, str] | None:
+    """(variant, part name) for a WHO_AM_I value of the family, or None."""
+    variant = mpu.WHO_AM_I_TO_VARIANT.get(who_am_i)
+    if variant is not None:
+        return variant, CHIP_NAMES[variant]
+    if who_am_i in COMPATIBLE_WHO_AM_I:
+        part, variant = COMPATIBLE_WHO_AM_I[who_am_i]
+        return variant, part
+    return None
+
+
+def sample_rate_divider(rate_hz: float, dlpf_cfg: int) -> int:
+    """SMPLRT_DIV for *rate_hz*: the gyro runs at 1 kHz with the DLPF on (1..6), else 8 kHz."""
+    internal = 1000.0 if 1 <= dlpf_cfg <= 6 else 8000.0
+    return max(0, min(255, round(internal / rate_hz) - 1))
+
+
+class Mpu9250ImuDriver(I2cImuDriver):
+    """MPU-6050/6500/9250 accel/gyro over I2C: body rates and accelerations in FRD."""
+
+    DEFAULT_ADDRESS: ClassVar[int] = mpu.I2C_ADDRESS
+    CONFIG = (
+        field("address", mpu.I2C_ADDRESS, "7-bit I2C address: 0x68 (AD0 low) or 0x69"),
+        field("chip", "auto", "auto, mpu6050, mpu6500 or mpu9250 (checked against WHO_AM_I)"),
+        field("gyro_range_dps", 500, "gyro full scale: 250, 500, 1000 or 2000 deg/s"),
+        field("accel_range_g", 4, "accelerometer full scale: 2, 4, 8 or 16 g"),
+        field("dlpf_cfg", 3, "CONFIG.DLPF_CFG 0..6 (3: about 42 Hz bandwidth, 1 kHz gyro rate)"),
+        field("mounting", "x,-y,-z", "body forward,right,down as signed chip axes (chip flat, x fwd, y left, z up)"),
+        field("calibrate_samples", 200, "gyro bias window at rest after start (0: no calibration)"),
+        field("rest_max_std_dps", 0.5, "a window whose gyro std exceeds this is not at rest"),
+        field("rest_max_rate_dps", 10.0, "a window whose mean rate exceeds this is turning, not bias"),
+        field("uncalibrated_rate_sigma", 0.1, "rad/s, rate sigma until the bias is calibrated"),
+        field("gravity", "rest", "what x_ddot..z_ddot lose: rest, level or none (no accelerations)"),
+    )
+
+    def __init__(self, name: str, **kwargs: Any) -> None:
+        super().__init__(name, **kwargs)
+        self.variant: mpu.MpuVariant | None = None
+        self.part = ""
+        self.who_am_i: int | None = None
+        self.temperature_c: float | None = None
+        self.gyro_bias: Vector = (0.0, 0.0, 0.0)
+        self.rest_force: Vector = (0.0, 0.0, -RestCalibration.GRAVITY)
+        self.calibrated = False
+        self.calibration_state = "not started"
+        self.calibration: RestCalibration | None = None
+
+    def validate_config(self) -> None:
+        """Ranges, DLPF, chip, mounting and gravity mode; ConfigError names the field."""
+        c = self.config
+        try:
+            self.gyro_fs = mpu.gyro_fs_index(int(c["gyro_range_dps"]))
+            self.accel_fs = mpu.accel_fs_index(int(c["accel_range_g"]))
+        except ValueError as exc:
+            raise ConfigError(f"{self.name}: {exc}") from None
+        if not 0 <= int(c["dlpf_cfg"]) <= 6:
+            raise ConfigError(f"{self.name}: config 'dlpf_cfg' must be 0..6, got {c['dlpf_cfg']}")
+        if c["chip"] != "auto" and c["chip"] not in mpu.VARIANTS:
+            raise ConfigError(f"{self.name}: config 'chip' must be auto or one of {sorted(mpu.VARIANTS)}, "
+                              f"got {c['chip']!r}")
+        if c["gravity"] not in GRAVITY_MODES:
+            raise ConfigError(f"{self.name}: config 'gravity' must be one of {GRAVITY_MODES}, got {c['gravity']!r}")
+        self.mounting = Mounting.parse(c["mounting"])
+        if int(c["calibrate_samples"]) > 0:
+            self.calibration = RestCalibration(samples=int(c["calibrate_samples"]),
+                                               max_std_dps=float(c["rest_max_std_dps"]),
+                                               max_rate_dps=float(c["rest_max_rate_dps"]))
+            self.calibration_state = "calibrating"
+        else:
+            self.calibrated, self.calibration_state = True, "off"
+
+    # -- chip set-up ----------------------------------------------------------------------
+    def init_chip(self, port: RetryingI2c, *, first: bool) -> None:
+        """Check WHO_AM_I, reset, wake, configure, read the configuration back."""
+        who = port.read_byte(mpu.WHO_AM_I)
+        self._check_identity(who, first=first)
+        variant = self.variant
+        assert variant is not None
+        port.write_byte(mpu.PWR_MGMT_1, mpu.PWR1_DEVICE_RESET)
+        time.sleep(RESET_WAIT_S)
+        port.write_byte(mpu.PWR_MGMT_1, 0x01)  # awake, clock from the X gyro PLL
+        time.sleep(WAKE_WAIT_S)
+        dlpf = int(self.config["dlpf_cfg"])
+        wanted = bytes((sample_rate_divider(float(self.config["rate_hz"]), dlpf), dlpf,
+                        mpu.fs_config(self.gyro_fs), mpu.fs_config(self.accel_fs)))
+        port.write_block(mpu.SMPLRT_DIV, wanted)  # 0x19..0x1C in one transaction
+        if variant.name != "mpu6050":
+            port.write_byte(mpu.ACCEL_CONFIG2, dlpf)  # the accelerometer's own DLPF (A_DLPFCFG)
+        got = port.read_block(mpu.SMPLRT_DIV, len(wanted))
+        if got != wanted or port.read_byte(mpu.PWR_MGMT_1) & mpu.PWR1_SLEEP:
+            raise PortIOError(self.name, f"configuration did not take: wrote {wanted.hex()} to 0x19.., read "
+                                         f"{got.hex()}", address=self.where,
+                              fix="check the chip's power and wiring; the driver retries")
+
+    def _check_identity(self, who: int, *, first: bool) -> None:
+        found = identify(who)
+        wanted = self.config["chip"]
+        if found is None:
+            problem = (f"the chip at {self.where} answers WHO_AM_I 0x{who:02x}, not an MPU-6050/6500/9250 "
+                       "(0x68/0x70/0x71)")
+            fix = "check the address (an MPU answers at 0x68 or 0x69) and that the chip is an MPU"
+        elif wanted != "auto" and found[0] != wanted:
+            problem = (f"the chip at {self.where} answers WHO_AM_I 0x{who:02x} ({found[1]}), but chip = "
+                       f"\"{wanted}\" expects 0x{mpu.VARIANTS[wanted].who_am_i:02x}")
+            fix = f'set chip = "{found[0]}" (or "auto") in the config, or check the address'
+        else:
+            self.variant, self.part, self.who_am_i = mpu.VARIANTS[found[0]], found[1], who
+            return
+        if first:
+            raise ChipIdentityError(f"{self.name}: {problem}; fix: {fix}")
+        raise PortUnavailable(self.name, problem, address=self.where, fix=fix)
+
+    # -- samples --------------------------------------------------------------------------
+    def read_sample(self, port: RetryingI2c) -> t.StateInformation | None:
+        """One burst: scale, rotate into FRD, calibrate, build the message."""
+        raw = mpu.decode_burst(port.read_block(mpu.BURST_START, mpu.BURST_LENGTH))
+        msg = self.new_state()
+        variant = self.variant
+        assert variant is not None
+        g_per_count = mpu.STANDARD_GRAVITY / mpu.ACCEL_LSB_PER_G[self.accel_fs]
+        rad_per_count = math.radians(1.0 / mpu.GYRO_LSB_PER_DPS[self.gyro_fs])
+        force = self.mounting.to_body([c * g_per_count for c in (raw.ax, raw.ay, raw.az)])
+        gyro = self.mounting.to_body([c * rad_per_count for c in (raw.gx, raw.gy, raw.gz)])
+        self.temperature_c = raw.temp / variant.temp_lsb_per_c + variant.temp_offset_c
+        if not self.calibrated and self.calibration is not None:
+            self._calibrate(gyro, force)
+        rates = [w - b for w, b in zip(gyro, self.gyro_bias)]
+        sigma = float(self.config["rate_sigma" if self.calibrated else "uncalibrated_rate_sigma"])
+        set_vector(msg, RATE_FIELDS, rates, sigma)
+        mode = self.config["gravity"]
+        if mode != "none":
+            reference = self.rest_force if mode == "rest" else (0.0, 0.0, -RestCalibration.GRAVITY)
+            set_vector(msg, ACCEL_FIELDS, [f - r for f, r in zip(force, reference)], float(self.config["accel_sigma"]))
+        return msg
+
+    def _calibrate(self, gyro: Vector, force: Vector) -> None:
+        assert self.calibration is not None
+        result = self.calibration.add(gyro, force)
+        if result is None:
+            return
+        if not result.accepted:
+            self.calibration_state = f"waiting for rest ({result.reason})"
+            self.logger.warning("%s: gyro bias window rejected: %s; trying again", self.name, result.reason)
+            return
+        self.gyro_bias, self.rest_force = result.gyro_mean, result.accel_mean
+        self.calibrated, self.calibration_state = True, "calibrated"
+        self.logger.info("%s: gyro bias %s deg/s (FRD), std %.3f deg/s; rest specific force %s m/s^2", self.name,
+                         _fmt(math.degrees(b) for b in self.gyro_bias), result.gyro_std_dps, _fmt(self.rest_force))
+
+    def healthy(self) -> bool:
+        """Degraded until the gyro bias is calibrated."""
+        return self.calibrated
+
+    def chip_health(self) -> dict[str, Any]:
+        """Part, WHO_AM_I, temperature, ranges, calibration and the bias found."""
+        return {
+            "chip": self.part or "not identified",
+            "who_am_i": f"0x{self.who_am_i:02x}" if self.who_am_i is not None else "",
+            "temperature_c": f"{self.temperature_c:.1f}" if self.temperature_c is not None else "",
+            "gyro_range_dps": self.config["gyro_range_dps"], "accel_range_g": self.config["accel_range_g"],
+            "calibration": self.calibration_state,
+            "gyro_bias_dps": _fmt(math.degrees(b) for b in self.gyro_bias),
+            "gravity": self.config["gravity"],
+        }
+
+
+def _fmt(values: Any) -> str:
+    return ",".join(f"{v:.4f}" for v in values)
