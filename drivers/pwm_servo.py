@@ -1,0 +1,281 @@
+"""Servos and ESCs on PWM outputs (Linux sysfs PWM or a PCA9685 on I2C) as one Actuator.
+
+One service drives several channels; each channel is an actuator name that Percentage
+Commands address. The channels are the service's ``channels`` config field, a list of
+tables (in the vehicle profile's ``settings`` or the service's own TOML file, so they are
+enumerated and changed over the bus like every other field; a change applies at the
+next start)::
+
+    channels = [
+      { name = "rudder", address = "pca9685:1:0x40", channel = 0, min_us = 1100, max_us = 1900 },
+      { name = "throttle", address = "/sys/class/pwm/pwmchip0", channel = 1, reverse = true,
+        slew_percent_per_s = 50 },
+    ]
+
+Keys: ``name``, ``address`` (as ``open_pwm`` takes it), ``channel`` (required);
+``min_us`` 1000, ``neutral_us`` 1500, ``max_us`` 2000, ``reverse`` false, ``frame_hz``
+50, ``slew_percent_per_s`` 0 (no limit) (optional).
+
+-100..100 % maps piecewise linearly: 0 % is ``neutral_us``, +100 % ``max_us``, -100 %
+``min_us`` (reversed with ``reverse``), so an ESC with an off-centre neutral still stops
+at 0 %. With a slew limit the output moves toward the command by at most that many
+percent per second, stepped ``update_hz`` times a second. Neutral is immediate, never
+slewed: on start, on stop and kill, on a failsafe and when commands stop arriving for
+``command_timeout_s``. After the final neutral the outputs keep producing the neutral
+pulse (an ESC stays armed at stop, a servo holds centre) unless ``release_on_exit``.
+
+A channel whose chip goes away is reopened with backoff and set to the output it should
+have; the others keep working. With ``record_raw`` each channel's writes are published as
+``RawPwmWrite`` on ``RAW.<name>``.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+import typing
+from dataclasses import dataclass
+from typing import Any
+
+from u2sa_hw.abstract import Actuator
+from u2sa_hw.config import ConfigError, field
+from u2sa_hw.ports.errors import PortClosed, PortIOError, PortUnavailable
+from u2sa_hw.ports.pwm_port import PwmChannel, open_pwm
+from u2sa_hw.ports.reconnect import ReconnectingPort
+from u2sa_hw.ports.tap import raw_channel
+
+
+@dataclass(frozen=True)
+class ServoChannelSpec:
+    """One output: its actuator name, PWM address and channel, pulse limits (µs) and behaviour."""
+
+    name: str
+    address: str
+    channel: int
+    min_us: float = 1000.0
+    neutral_us: float = 1500.0
+    max_us: float = 2000.0
+    reverse: bool = False
+    frame_hz: float = 50.0
+    slew_percent_per_s: float = 0.0
+
+    @property
+    def period_ns(self) -> int:
+        """The PWM frame period."""
+        return round(1e9 / self.frame_hz)
+
+    def pulse_us(self, percent: float) -> float:
+        """The pulse for *percent* (-100..100), piecewise linear through neutral."""
+        p = max(-100.0, min(100.0, -percent if self.reverse else percent)) / 100.0
+        span = (self.max_us - self.neutral_us) if p >= 0 else (self.neutral_us - self.min_us)
+        return self.neutral_us + p * span
+
+    @classmethod
+    def from_table(cls, table: Any, *, where: str) -> "ServoChannelSpec":
+        """Build and check a spec from one config table; ConfigError names *where*, the key and the fix."""
+        if not isinstance(table, dict):
+            raise ConfigError(f"{where}: must be a table like {{ name = \"rudder\", address = \"pca9685:1:0x40\", "
+                              f"channel = 0 }}, got {table!r}")
+        known = typing.get_type_hints(cls)
+        unknown = sorted(set(table) - set(known))
+        if unknown:
+            raise ConfigError(f"{where}: unknown key(s) {', '.join(unknown)} (known: {', '.join(known)})")
+        missing = [k for k in ("name", "address", "channel") if k not in table]
+        if missing:
+            raise ConfigError(f"{where}: missing {', '.join(missing)}")
+        values: dict[str, Any] = {}
+        for key, value in table.items():
+            kind = known[key]
+            if kind is float and isinstance(value, int) and not isinstance(value, bool):
+                value = float(value)
+            if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+                raise ConfigError(f"{where}: '{key}' must be {kind.__name__}, got {type(value).__name__} {value!r}")
+            values[key] = value
+        spec = cls(**values)
+        spec._check(where)
+        return spec
+
+    def _check(self, where: str) -> None:
+        if not self.name or not self.address:
+            raise ConfigError(f"{where}: 'name' and 'address' must not be empty")
+        if self.channel < 0:
+            raise ConfigError(f"{where}: 'channel' must be >= 0, got {self.channel}")
+        if not 0 < self.frame_hz <= 2000:
+            raise ConfigError(f"{where}: 'frame_hz' must be in (0, 2000], got {self.frame_hz} (servos: 50)")
+        if not 0 <= self.min_us <= self.neutral_us <= self.max_us or self.min_us == self.max_us:
+            raise ConfigError(f"{where}: need 0 <= min_us <= neutral_us <= max_us and min_us < max_us, got "
+                              f"{self.min_us}/{self.neutral_us}/{self.max_us}")
+        if self.max_us * 1000 > self.period_ns:
+            raise ConfigError(f"{where}: max_us {self.max_us} does not fit a {self.frame_hz} Hz frame "
+                              f"({self.period_ns / 1000:.0f} us); lower frame_hz or max_us")
+        if self.slew_percent_per_s < 0:
+            raise ConfigError(f"{where}: 'slew_percent_per_s' must be >= 0 (0: no limit)")
+
+
+def parse_channels(tables: Any, *, service: str) -> list[ServoChannelSpec]:
+    """Every channel of the ``channels`` config field, checked together (names, outputs, shared frames)."""
+    if not isinstance(tables, list) or not tables:
+        raise ConfigError(f"{service}: config 'channels' must list at least one channel, e.g. channels = "
+                          '[{ name = "rudder", address = "pca9685:1:0x40", channel = 0 }]')
+    specs = [ServoChannelSpec.from_table(tab, where=f"{service}: channels[{i}]") for i, tab in enumerate(tables)]
+    names: set[str] = set()
+    outputs: dict[tuple[str, int], str] = {}
+    frames: dict[str, ServoChannelSpec] = {}
+    for s in specs:
+        if s.name in names:
+            raise ConfigError(f"{service}: two channels are called '{s.name}'; actuator names must be unique")
+        names.add(s.name)
+        other_name = outputs.setdefault((s.address, s.channel), s.name)
+        if other_name != s.name:
+            raise ConfigError(f"{service}: channels '{other_name}' and '{s.name}' both use channel {s.channel} of "
+                              f"{s.address}; give each actuator its own output")
+        other = frames.setdefault(s.address, s)
+        if s.address.startswith("pca9685:") and other.period_ns != s.period_ns:
+            raise ConfigError(f"{service}: channels '{other.name}' and '{s.name}' are on one PCA9685 ({s.address}) "
+                              f"but ask {other.frame_hz} and {s.frame_hz} Hz; all its channels share one frame")
+    return specs
+
+
+class ServoOutput:
+    """One channel at run time: its port (reopened with backoff), the command and the slewed output."""
+
+    def __init__(self, spec: ServoChannelSpec, *, tap: Any) -> None:
+        self.spec = spec
+        self.target = 0.0  # commanded percent
+        self.output = 0.0  # percent being output (slewed toward target)
+        self.pulse_us: float | None = None  # pulse last written
+        self.write_errors = 0
+        self._tap = tap
+        self.port: ReconnectingPort[PwmChannel] = ReconnectingPort(self._open, device=spec.name)
+
+    def _open(self) -> PwmChannel:
+        s = self.spec
+        pwm = open_pwm(device=s.name, address=s.address, channel=s.channel, period_ns=s.period_ns, tap=self._tap)
+        try:
+            pwm.set_pulse_us(s.pulse_us(self.output))
+            pwm.enable(True)
+        except BaseException:
+            pwm.close()
+            raise
+        self.pulse_us = s.pulse_us(self.output)
+        return pwm
+
+    def step(self, dt: float) -> None:
+        """Move the output toward the target, by at most the slew limit over *dt* seconds."""
+        limit = self.spec.slew_percent_per_s
+        if limit <= 0:
+            self.output = self.target
+            return
+        delta = max(-limit * dt, min(limit * dt, self.target - self.output))
+        self.output += delta
+
+    def write(self) -> None:
+        """Put the output's pulse on the channel; a lost channel is marked for reopening."""
+        pulse = self.spec.pulse_us(self.output)
+        try:
+            pwm = self.port.get()
+        except PortUnavailable:
+            return
+        for attempt in (1, 2):  # once more at once: a PCA9685 channel reopens its bus on the next call
+            try:
+                pwm.set_pulse_us(pulse)
+                self.pulse_us = pulse
+                return
+            except (PortClosed, PortIOError) as exc:
+                self.write_errors += 1
+                if attempt == 2:
+                    self.port.lost(exc, port=pwm)
+
+
+class PwmServoDriver(Actuator):
+    """Servos and ESCs on sysfs PWM or PCA9685 channels; see the module docstring."""
+
+    CONFIG = (
+        field("channels", [], "list of tables: name, address, channel, min_us, neutral_us, max_us, reverse, "
+                              "frame_hz, slew_percent_per_s (applied at the next start)"),
+        field("update_hz", 50.0, "how often slewed outputs step and lost channels are retried"),
+        field("release_on_exit", False, "stop the pulses after the final neutral (default: hold neutral)"),
+        field("record_raw", False, "publish every PWM write on RAW.<channel name>"),
+    )
+
+    def __init__(self, name: str, **kwargs: Any) -> None:
+        super().__init__(name, **kwargs)
+        self.outputs: dict[str, ServoOutput] = {}
+        self._lock = threading.RLock()
+
+    def actuator_names(self) -> set[str]:
+        """The channel names."""
+        return set(self.outputs)
+
+    def setup(self) -> None:
+        """Check the channels (a bad config stops the service with the reason) and output neutral."""
+        if not 0 < float(self.config["update_hz"]) <= 1000:
+            raise ConfigError(f"{self.name}: config 'update_hz' must be in (0, 1000], got {self.config['update_hz']}")
+        specs = parse_channels(self.config["channels"], service=self.name)
+        record = bool(self.config["record_raw"])
+        for spec in specs:
+            tap = (lambda rec, ch=raw_channel(spec.name): self.publish(ch, rec)) if record else None
+            self.outputs[spec.name] = ServoOutput(spec, tap=tap)
+        self.neutral()
+        self._update_status()
+
+    def on_percentage(self, actuator: str, percent: float) -> None:
+        """Set the channel's target; without a slew limit it is output at once."""
+        with self._lock:
+            out = self.outputs[actuator]
+            out.target = percent
+            if out.spec.slew_percent_per_s <= 0:
+                out.step(0.0)
+                out.write()
+
+    def neutral(self) -> None:
+        """Every channel to its neutral pulse at once (no slew)."""
+        with self._lock:
+            for out in self.outputs.values():
+                out.target = out.output = 0.0
+                out.write()
+
+    def on_config_change(self, name: str, value: Any) -> None:
+        """Channel changes take effect at the next start (outputs are not reshuffled under a running vehicle)."""
+        if name == "channels":
+            self.logger.warning("%s: new channels saved; they apply when the service restarts", self.name)
+
+    def run(self) -> None:
+        """Step slewed outputs, retry lost channels, enforce the command timeout."""
+        last = time.monotonic()
+        while self.wait(1.0 / float(self.config["update_hz"])):
+            now = time.monotonic()
+            dt, last = now - last, now
+            self.check_command_timeout()
+            with self._lock:
+                for out in self.outputs.values():
+                    out.step(dt)
+                    out.write()
+            self._update_status()
+
+    def _update_status(self) -> None:
+        down = any(out.port.state != "open" for out in self.outputs.values())
+        self.status = "degraded" if down or self.failsafe_active else "ok"
+
+    def health_details(self) -> dict[str, Any]:
+        """Per channel: pulse, output and target percent, port state and last error."""
+        details = super().health_details()
+        for name, out in self.outputs.items():
+            details[f"{name}.pulse_us"] = f"{out.pulse_us:.1f}" if out.pulse_us is not None else ""
+            details[f"{name}.percent"] = f"{out.output:.1f}"
+            details[f"{name}.target"] = f"{out.target:.1f}"
+            details[f"{name}.port"] = out.port.state
+            details[f"{name}.errors"] = out.write_errors + out.port.losses
+            if out.port.last_error is not None:
+                details[f"{name}.last_error"] = str(out.port.last_error)
+        return details
+
+    def kill(self) -> None:
+        """Neutral, then (with ``release_on_exit``) stop the pulses and release the channels."""
+        try:
+            super().kill()
+        finally:
+            if self.config["release_on_exit"]:
+                with self._lock:
+                    for out in self.outputs.values():
+                        out.port.close()
