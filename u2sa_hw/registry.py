@@ -25,6 +25,7 @@ SERVICE_KINDS: dict[str, str] = {
     "gpio_input": "drivers.gpio_io:GpioInputDriver",
     "rc_mux": "drivers.rc_mux:RcMuxDriver",
     "odrive_can": "drivers.odrive_can:OdriveCanMotor",
+    "vesc_can": "drivers.vesc_can:VescCanMotor",
 }
 
 

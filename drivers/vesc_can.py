@@ -1,0 +1,257 @@
+"""VESC motor controllers over CAN (VESC mode, extended ids) as one Actuator.
+
+One service drives one or more VESCs on one bus, each a controller id mapped to an actuator
+name (``actuators``/``controller_ids``/``directions``/``wheel_radius_m``). A Percentage
+Command becomes SET_DUTY (``mode = "duty"``: ``percent / 100 * max_duty``) or SET_RPM
+(``mode = "rpm"``: ``percent / 100 * max_erpm`` electrical RPM), times the direction. The
+VESC releases its motor when no command arrives for its app ``timeout_msec`` (1000 ms by
+default), so the setpoint is re-sent every ``command_period_s`` (default 50 ms) for as long
+as the service runs; a dead driver therefore stops the motors by itself.
+
+Neutral (stop, kill, command timeout, failsafe) is ``SET_CURRENT 0`` (``neutral =
+"release"``: the motor coasts) or zero in the command mode (``neutral = "zero"``: duty 0 /
+0 ERPM, which brakes). The STATUS frames (1: ERPM, current, duty; 4: temperatures, input
+current; 5: tachometer, input voltage; the rest if enabled) go into health; a controller
+with no STATUS for ``silent_after_s`` is 'silent'. A VESC fault is not in any STATUS frame,
+so a motor that is commanded (at least ``stall_percent``) but turns slower than
+``stall_erpm`` for ``stall_after_s`` is reported as not following its command.
+
+Wheel odometry: speed from STATUS ERPM (``odometry_source = "velocity"``) or travel from the
+STATUS_5 tachometer (``"position"``), with ``pole_pairs`` and ``gear_ratio`` (motor turns
+per wheel turn). See docs/drivers-can.md.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, Callable
+
+import can
+
+from u2sa_hw.config import field
+from u2sa_hw.protocols import vesc_can as vc
+from u2sa_hw.protocols.vesc_can import PacketId
+
+from drivers.can_motor import CanMotorService, MotorSpec
+
+MODES = {"duty": PacketId.SET_DUTY, "rpm": PacketId.SET_RPM}
+NEUTRALS = ("release", "zero")
+TACHO_COUNTS_PER_EREV = 6
+
+
+def _unwrap_i32(delta: int) -> int:
+    return (delta + 0x80000000) % 0x100000000 - 0x80000000
+
+
+class VescMotor:
+    """What the driver knows about one VESC (mutated under the service's lock)."""
+
+    def __init__(self, spec: MotorSpec) -> None:
+        self.spec = spec
+        self.percent = 0.0
+        self.last_status: float | None = None
+        self.silent = False
+        self.silent_events = 0
+        self.status: dict[int, Any] = {}  # STATUS number -> its latest dataclass
+        self.tacho_raw: int | None = None
+        self.tacho_total = 0  # unwrapped tachometer counts since start
+        self.stall_since: float | None = None
+        self.stalled = False
+        self.stall_events = 0
+        self.next_command = 0.0
+
+
+class VescCanMotor(CanMotorService):
+    """VESCs on CAN as actuators, with STATUS monitoring and odometry."""
+
+    ID_FIELD = "controller_ids"
+    ID_MAX = vc.BROADCAST_ID - 1
+    CONFIG = (
+        field("controller_ids", [0, 1], "VESC CAN id per actuator (0..254)"),
+        field("mode", "duty", "duty: SET_DUTY; rpm: SET_RPM (speed control in the VESC)"),
+        field("max_duty", 0.95, "duty cycle at 100 % in duty mode (0..1)"),
+        field("max_erpm", 7000.0, "electrical RPM at 100 % in rpm mode"),
+        field("neutral", "release", "release: SET_CURRENT 0 (coast); zero: 0 in the command mode (brake)"),
+        field("pole_pairs", 7, "motor pole pairs (ERPM / pole pairs = motor RPM), for the odometry"),
+        field("gear_ratio", 1.0, "motor turns per wheel turn, for the odometry"),
+        field("stall_after_s", 1.0, "commanded but not turning for this long -> reported (0: never)"),
+        field("stall_percent", 10.0, "commands below this |%| are never a stall"),
+        field("stall_erpm", 50.0, "slower than this |ERPM| counts as not turning"),
+    )
+
+    def __init__(self, name: str, **kwargs: Any) -> None:
+        super().__init__(name, **kwargs)
+        self.vescs: dict[str, VescMotor] = {}
+        self._by_id: dict[int, VescMotor] = {}
+        self._make_vescs()
+
+    def check_config(self, get: Callable[[str], Any]) -> None:
+        """The shared fields, then mode, scales, neutral and the stall thresholds."""
+        super().check_config(get)
+        if get("mode") not in MODES:
+            raise self._fail(f"mode must be one of {', '.join(MODES)}, got {get('mode')!r}")
+        if get("neutral") not in NEUTRALS:
+            raise self._fail(f"neutral must be one of {', '.join(NEUTRALS)}, got {get('neutral')!r}")
+        if not 0 < get("max_duty") <= 1:
+            raise self._fail(f"max_duty must be in (0, 1], got {get('max_duty')!r}")
+        for key in ("max_erpm", "pole_pairs", "gear_ratio"):
+            if not get(key) > 0:
+                raise self._fail(f"{key} must be > 0, got {get(key)!r}")
+        for key in ("stall_after_s", "stall_percent", "stall_erpm"):
+            if not get(key) >= 0:
+                raise self._fail(f"{key} must be >= 0, got {get(key)!r}")
+
+    def _make_vescs(self) -> None:
+        self.vescs = {n: VescMotor(spec) for n, spec in self.motors.items()}
+        self._by_id = {m.spec.can_id: m for m in self.vescs.values()}
+
+    def on_config_change(self, name: str, value: Any) -> None:
+        """New controllers for the id/name fields; mode and scales apply at the next re-send."""
+        super().on_config_change(name, value)
+        with self.lock:
+            if name in ("actuators", "controller_ids", "directions", "wheel_radius_m"):
+                self._build()
+                self._make_vescs()
+
+    # -- frames -------------------------------------------------------------------------------
+    def handle_frame(self, msg: can.Message, now: float) -> None:
+        """STATUS frames of our controllers; anything else (commands, our own echoes) is ignored."""
+        if not msg.is_extended_id or msg.is_remote_frame or msg.arbitration_id > 0xFFFF:
+            return
+        packet, controller = vc.split_ext_id(msg.arbitration_id)
+        motor = self._by_id.get(controller)
+        if motor is None or packet not in vc.STATUS_NUMBER:
+            return
+        status = vc.decode_status(packet, bytes(msg.data))
+        number = vc.STATUS_NUMBER[PacketId(packet)]
+        motor.status[number] = status
+        motor.last_status = now
+        if motor.silent:
+            motor.silent = False
+            self.logger.info("%s answering again", self._label(motor))
+        cfg = self.config
+        erev_per_turn = cfg.get("pole_pairs") * cfg.get("gear_ratio")
+        metres_per_erev = 2.0 * math.pi * motor.spec.radius_m * motor.spec.direction / erev_per_turn
+        if isinstance(status, vc.Status1):
+            self._check_stall(motor, status.erpm, now)
+            self.wheel_sample(motor.spec.name, self.frame_time(msg), speed_mps=status.erpm / 60.0 * metres_per_erev)
+        elif isinstance(status, vc.Status5):
+            if motor.tacho_raw is not None:
+                motor.tacho_total += _unwrap_i32(status.tachometer - motor.tacho_raw)
+            motor.tacho_raw = status.tachometer
+            self.wheel_sample(motor.spec.name, self.frame_time(msg),
+                              position_m=motor.tacho_total / TACHO_COUNTS_PER_EREV * metres_per_erev)
+
+    def _check_stall(self, motor: VescMotor, erpm: float, now: float) -> None:
+        cfg = self.config
+        limit = cfg.get("stall_after_s")
+        commanded = abs(motor.percent) >= max(cfg.get("stall_percent"), 1e-9)
+        if not limit or not commanded or abs(erpm) >= cfg.get("stall_erpm"):
+            if motor.stalled:
+                self.logger.info("%s follows its command again", self._label(motor))
+            motor.stall_since, motor.stalled = None, False
+            return
+        if motor.stall_since is None:
+            motor.stall_since = now
+        elif not motor.stalled and now - motor.stall_since > limit:
+            motor.stalled = True
+            motor.stall_events += 1
+            self.error(f"{self._label(motor)}: commanded {motor.percent:.0f} % but turning at {erpm:.0f} ERPM for "
+                       f"{now - motor.stall_since:.1f} s (a VESC fault, a stall or a blocked wheel; VESC Tool shows "
+                       "the fault code)")
+
+    def _label(self, motor: VescMotor) -> str:
+        return f"VESC {motor.spec.name} (id {motor.spec.can_id} on {self.device_name})"
+
+    # -- periodic work ------------------------------------------------------------------------
+    def tick(self, now: float) -> None:
+        """Notice silent controllers; re-send every setpoint once its period is due."""
+        for motor in self.vescs.values():
+            last = motor.last_status if motor.last_status is not None else self.started_at
+            if now - last > self.config.get("silent_after_s") and not motor.silent:
+                motor.silent = True
+                motor.silent_events += 1
+                motor.stall_since = None
+                heard = "never heard" if motor.last_status is None else f"no STATUS for {now - last:.1f} s"
+                self.error(f"{self._label(motor)}: node silent ({heard}); check power, wiring, its CAN id and that "
+                           "VESC Tool's CAN status messages (1, 4, 5) are enabled")
+                if self.odometry is not None:
+                    self.odometry.reset()
+            if now >= motor.next_command:
+                self._send_setpoint(motor, now)
+
+    def _send_setpoint(self, motor: VescMotor, now: float) -> None:
+        cfg = self.config
+        motor.next_command = now + cfg.get("command_period_s")
+        if motor.percent == 0.0 and cfg.get("neutral") == "release":
+            payload, packet = vc.encode_set_current(0.0), PacketId.SET_CURRENT
+        else:
+            packet = MODES[cfg.get("mode")]
+            scale = cfg.get("max_duty") if packet == PacketId.SET_DUTY else cfg.get("max_erpm")
+            payload = vc.encode_command(packet, motor.percent / 100.0 * scale * motor.spec.direction)
+        self.send(vc.make_frame(motor.spec.can_id, packet, payload))
+
+    # -- actuator ----------------------------------------------------------------------------------
+    def set_output(self, name: str, percent: float) -> None:
+        """Remember *percent* for actuator *name* and send it now."""
+        motor = self.vescs[name]
+        if (motor.percent == 0.0) != (percent == 0.0):
+            motor.stall_since = None
+        motor.percent = percent
+        self._send_setpoint(motor, time.monotonic())
+
+    def zero_outputs(self) -> None:
+        """Every controller to neutral, sent now."""
+        for motor in self.vescs.values():
+            motor.percent = 0.0
+            motor.stall_since = None
+            self._send_setpoint(motor, time.monotonic())
+
+    def release(self) -> None:
+        """SET_CURRENT 0 to every controller: the motors coast whatever ``neutral`` says."""
+        for motor in self.vescs.values():
+            self.send(vc.make_frame(motor.spec.can_id, PacketId.SET_CURRENT, vc.encode_set_current(0.0)))
+
+    def on_port_lost(self) -> None:
+        """The bus is gone: tachometer continuity and odometry start again."""
+        for motor in self.vescs.values():
+            motor.tacho_raw = None
+        if self.odometry is not None:
+            self.odometry.reset()
+
+    # -- health ----------------------------------------------------------------------------------
+    def problems(self, now: float) -> list[str]:
+        """Silent controllers and motors that do not follow their command."""
+        out = []
+        for motor in self.vescs.values():
+            name = f"{motor.spec.name} (id {motor.spec.can_id})"
+            if motor.silent:
+                out.append(f"{name} node silent")
+            elif motor.stalled:
+                out.append(f"{name} not turning")
+        return out
+
+    def motor_details(self) -> dict[str, Any]:
+        """Per controller (keys ``<actuator>.<what>``): setpoint and the latest STATUS values."""
+        now = time.monotonic()
+        details: dict[str, Any] = {"mode": self.config.get("mode")}
+        for name, motor in self.vescs.items():
+            d: dict[str, Any] = {
+                "id": motor.spec.can_id,
+                "phase": "silent" if motor.silent else "waiting" if motor.last_status is None
+                else "stalled" if motor.stalled else "ok",
+                "setpoint_percent": f"{motor.percent:.1f}",
+                "status_age_s": "" if motor.last_status is None else f"{now - motor.last_status:.2f}",
+                "silent_events": motor.silent_events, "stall_events": motor.stall_events,
+            }
+            s1, s4, s5 = motor.status.get(1), motor.status.get(4), motor.status.get(5)
+            if s1 is not None:
+                d.update(erpm=f"{s1.erpm:.0f}", current_a=f"{s1.current_a:.1f}", duty=f"{s1.duty:.3f}")
+            if s4 is not None:
+                d.update(temp_fet_c=f"{s4.temp_fet_c:.1f}", temp_motor_c=f"{s4.temp_motor_c:.1f}",
+                         current_in_a=f"{s4.current_in_a:.1f}")
+            if s5 is not None:
+                d.update(tachometer=s5.tachometer, voltage_in_v=f"{s5.voltage_in_v:.1f}")
+            details.update({f"{name}.{k}": v for k, v in d.items()})
+        return details

@@ -1,0 +1,184 @@
+"""VESC CAN driver as a real ``u2sa service`` process against mock VESC nodes in a process of
+their own on a udp_multicast bus: duty and rpm modes, STATUS in health, odometry, neutral,
+silence and faults."""
+
+from __future__ import annotations
+
+import math
+import random
+from dataclasses import dataclass
+from pathlib import Path
+from statistics import mean
+from typing import Callable, Iterator
+
+import pytest
+from can_mock_harness import GROUP, Commander, MockCanProcess
+from conftest import REPO, ServiceProcesses, wait_until
+from serial_driver_harness import DriverProbe, start_driver, write_profile
+
+from drivers.vesc_can import VescCanMotor
+from u2sa_hw.bus_client import BusClient
+from u2sa_hw.config import ConfigError
+
+IDS = (10, 11)
+POLE_PAIRS = 7
+CIRCUMFERENCE = 2 * math.pi * 0.1
+
+
+def wheel_mps(erpm: float) -> float:
+    """The mock's wheel surface speed for *erpm* (gear ratio 1)."""
+    return erpm / POLE_PAIRS / 60.0 * CIRCUMFERENCE
+
+
+@pytest.mark.parametrize("settings, words", [
+    ({"controller_ids": [10, 255]}, "0..254"),
+    ({"mode": "current"}, "mode must be one of"),
+    ({"max_duty": 1.5}, "max_duty must be in"),
+    ({"neutral": "coast"}, "neutral must be one of"),
+    ({"wheel_radius_m": [0.1, -0.1]}, "positive numbers"),
+])
+def test_a_bad_config_is_refused_with_the_field_named(lcm_url: str, settings: dict, words: str) -> None:
+    with pytest.raises(ConfigError, match=words):
+        VescCanMotor("motors", settings=settings)
+
+
+@dataclass
+class Rig:
+    """One mock process (two VESCs), the driver process, a probe and a commander."""
+
+    mock: MockCanProcess
+    probe: DriverProbe
+    driver: object
+    commander: Commander
+
+    def wait_outputs(self, left: float, right: float, *, what: str = "", timeout: float = 15.0) -> None:
+        wait_until(lambda: self.mock.get("left", "output") == pytest.approx(left, abs=1e-3)
+                   and self.mock.get("right", "output") == pytest.approx(right, abs=1e-3), timeout=timeout,
+                   message=what or f"wheel speeds {left}, {right} m/s")
+
+    def wait_modes(self, left: tuple[str, float], right: tuple[str, float], *, what: str = "") -> None:
+        def now() -> tuple:
+            return (self.mock.get("left", "mode"), self.mock.get("left", "command_value"),
+                    self.mock.get("right", "mode"), self.mock.get("right", "command_value"))
+        wait_until(lambda: now() == (left[0], pytest.approx(left[1]), right[0], pytest.approx(right[1])),
+                   timeout=15.0, message=what or f"VESC commands {left}, {right}")
+
+    def wait_ok(self) -> dict[str, str]:
+        return self.probe.wait_health(lambda d, s: d.get("left.phase") == "ok" and d.get("right.phase") == "ok",
+                                      timeout=20.0, message="both VESCs heard")
+
+
+@pytest.fixture
+def rig(tmp_path: Path, services: ServiceProcesses, bus: BusClient) -> Iterator[Callable[..., Rig]]:
+    made: list[Rig] = []
+
+    def make(*, settings: dict | None = None, right: dict | None = None) -> Rig:
+        port = random.randint(30000, 60000)
+        nodes = [{"side": "left", "controller_id": IDS[0], "timeout_s": 0.3},
+                 {"side": "right", "controller_id": IDS[1], "timeout_s": 0.3, **(right or {})}]
+        mock = MockCanProcess({"kind": "vesc", "port": port, "nodes": nodes}, repo=REPO, log=tmp_path / "mock.log")
+        config = {"interface": "udp_multicast", "channel": GROUP, "udp_port": port, "controller_ids": list(IDS),
+                  "silent_after_s": 0.5, "max_duty": 0.1, **(settings or {})}
+        profile = write_profile(tmp_path, name="motors", kind="vesc_can", settings=config)
+        probe = DriverProbe(bus, "motors")
+        driver = start_driver(services, profile, "motors")
+        made.append(Rig(mock, probe, driver, Commander(bus)))
+        return made[-1]
+
+    yield make
+    for r in made:
+        r.commander.close()
+        r.mock.stop()
+
+
+def test_duty_commands_status_in_health_and_odometry(rig) -> None:
+    r = rig(settings={"directions": [1, -1], "command_timeout_s": 0.0}, right={"direction": -1})
+    r.wait_ok()
+    r.commander.hold(left=100.0, right=50.0)
+    r.wait_modes(("duty", 0.1), ("duty", -0.05), what="100 % -> duty 0.1, 50 % mirrored -> duty -0.05")
+    r.wait_outputs(wheel_mps(700), wheel_mps(350))
+    r.commander.hold(left=-250.0)  # limited to -100 %
+    r.wait_modes(("duty", -0.1), ("duty", -0.05))
+
+    r.commander.hold(left=80.0, right=40.0)
+    r.wait_outputs(wheel_mps(560), wheel_mps(280))
+    details = r.probe.wait_health(lambda d, s: d["left.erpm"] == "560" and d["right.erpm"] == "-280",
+                                  message="STATUS ERPM in health")
+    assert (details["left.temp_fet_c"], details["left.temp_motor_c"], details["left.voltage_in_v"]) == \
+        ("30.0", "28.0", "24.0")
+    assert float(details["left.duty"]) == pytest.approx(0.08, abs=1e-3) and int(details["left.tachometer"]) > 0
+    assert details["status"] == "ok" and details["degraded_reason"] == ""
+    since = r.probe.state_count()
+    msg = r.probe.wait_states(20, since=since + 10, message="odometry from STATUS")[-1][0]
+    truth = r.mock.truth()
+    assert msg.reference_frame == "FRD" and msg.x_dot == pytest.approx(truth["speed"], rel=0.02)
+    assert msg.psi_dot == pytest.approx(truth["yaw_rate"], rel=0.02) and truth["yaw_rate"] > 0.5
+
+    # commands stop, command timeout off: the driver re-sends within the VESCs' 0.3 s timeout
+    r.commander.release()
+    r.probe.health_after(6)
+    assert r.mock.get("left", "mode") == "duty" and r.mock.get("left", "output") == pytest.approx(wheel_mps(560))
+
+
+def test_rpm_mode_and_tachometer_odometry(rig) -> None:
+    r = rig(settings={"mode": "rpm", "max_erpm": 1000.0, "command_timeout_s": 0.0, "odometry_source": "position",
+                      "odometry_window_s": 0.5})
+    r.wait_ok()
+    r.commander.hold(left=100.0, right=60.0)
+    r.wait_modes(("rpm", 1000.0), ("rpm", 600.0), what="100 % -> 1000 ERPM, 60 % -> 600 ERPM")
+    r.wait_outputs(wheel_mps(1000), wheel_mps(600))
+    since = r.probe.state_count()
+    states = [m for m, _ in r.probe.wait_states(40, since=since + 40, message="odometry from the tachometer")][-30:]
+    truth = r.mock.truth()
+    assert mean(m.x_dot for m in states) == pytest.approx(truth["speed"], rel=0.05)
+    assert mean(m.psi_dot for m in states) == pytest.approx(truth["yaw_rate"], rel=0.1)
+
+
+def test_neutral_on_command_timeout_and_failsafe(rig, bus: BusClient) -> None:
+    r = rig(settings={"command_timeout_s": 0.5})
+    r.wait_ok()
+    r.commander.hold(left=50.0, right=50.0)
+    r.wait_outputs(wheel_mps(350), wheel_mps(350))
+    r.commander.release()
+    r.wait_modes(("current", 0.0), ("current", 0.0), what="SET_CURRENT 0 (release) after the command timeout")
+    r.wait_outputs(0.0, 0.0)
+    r.probe.wait_health(lambda d, s: d["command_timed_out"] == "True", message="command_timed_out in health")
+
+    reply = bus.set_config("motors", "neutral", "zero")
+    assert reply is not None and reply.ok, reply
+    refused = bus.set_config("motors", "max_duty", "2.0")
+    assert refused is not None and not refused.ok and "max_duty" in refused.error
+    r.commander.hold(left=50.0, right=-50.0)
+    r.wait_outputs(wheel_mps(350), -wheel_mps(350))
+    r.commander.failsafe(True)
+    r.wait_modes(("duty", 0.0), ("duty", 0.0), what="duty 0 on FAILSAFE with neutral = zero")
+    r.probe.wait_health(lambda d, s: s == "degraded" and int(d["ignored"]) > 2 and "failsafe" in d["degraded_reason"],
+                        message="commands ignored during the failsafe")
+    assert r.mock.get("left", "output") == 0.0
+    r.commander.failsafe(False)
+    r.wait_outputs(wheel_mps(350), -wheel_mps(350), what="driving again after the failsafe")
+
+
+def test_silence_and_a_fault_are_reported_and_recovered_from(rig) -> None:
+    r = rig(settings={"command_timeout_s": 0.5, "stall_after_s": 0.5})
+    r.wait_ok()
+    r.commander.hold(left=40.0, right=40.0)
+    r.wait_outputs(wheel_mps(280), wheel_mps(280))
+    r.mock.call("left", "stop_answering", True)
+    details = r.probe.wait_health(lambda d, s: d["left.phase"] == "silent" and d["right.phase"] == "ok",
+                                  message="left silent")
+    assert details["status"] == "degraded" and "left (id 10) node silent" in details["degraded_reason"]
+    r.mock.call("left", "inject_garbage", 2)  # forced onto the bus even while silent
+    r.mock.call("left", "stop_answering", False)
+    details = r.probe.wait_health(lambda d, s: s == "ok" and d["left.phase"] == "ok", message="left back")
+    assert details["left.silent_events"] == "1" and int(details["dropped"]) >= 2
+    r.wait_outputs(wheel_mps(280), wheel_mps(280))
+
+    r.mock.call("right", "set_fault", 3)  # DRV fault: motor released, commands ignored, nothing on the bus
+    details = r.probe.wait_health(lambda d, s: d["right.phase"] == "stalled", message="right not following")
+    assert "right (id 11) not turning" in details["degraded_reason"] and "not turning" not in details["left.phase"]
+    assert "commanded 40 %" in details["last_error"]
+    r.mock.call("right", "set_fault", 0)
+    r.probe.wait_health(lambda d, s: s == "ok" and d["right.phase"] == "ok", message="right follows again")
+    r.wait_outputs(wheel_mps(280), wheel_mps(280))
+    assert r.driver.poll() is None
