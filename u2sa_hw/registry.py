@@ -24,6 +24,9 @@ SERVICE_KINDS: dict[str, str] = {
     "gpio_output": "drivers.gpio_io:GpioOutputDriver",
     "gpio_input": "drivers.gpio_io:GpioInputDriver",
     "rc_mux": "drivers.rc_mux:RcMuxDriver",
+    "imu_mpu9250": "drivers.imu_mpu9250:Mpu9250ImuDriver",
+    "imu_bno055": "drivers.imu_bno055:Bno055ImuDriver",
+    "pwm_servo": "drivers.pwm_servo:PwmServoDriver",
     "odrive_can": "drivers.odrive_can:OdriveCanMotor",
     "vesc_can": "drivers.vesc_can:VescCanMotor",
 }
