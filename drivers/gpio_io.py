@@ -24,10 +24,10 @@ from __future__ import annotations
 import time
 from collections import Counter
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Mapping
 
-from drivers.gpio_lines import (GpioLineSet, note_restart_needed, parse_levels, parse_line_map, parse_names,
-                                parse_positions)
+from drivers.gpio_lines import (GpioLineSet, check_chip, config_problem, note_restart_needed, parse_levels,
+                                parse_line_map, parse_names, parse_positions)
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Actuator, ExteroceptiveSensor
@@ -55,16 +55,24 @@ class GpioOutputDriver(Actuator):
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
         c = self.config
-        self.lines_by_name = parse_line_map(c["outputs"], service=name, key="outputs")
-        if not self.lines_by_name:
-            raise ConfigError(f"service '{name}': no output lines configured; set outputs = \"lamp=17\"")
-        known = list(self.lines_by_name)
-        safe = parse_levels(c["safe_levels"], known=known, service=name, key="safe_levels")
-        self.safe_levels = {n: safe.get(n, 0) for n in known}
+        self.lines_by_name, self.safe_levels = self.parse_config(c)
         self.levels = dict(self.safe_levels)  # what each line was last driven to (or opened with)
         self.device = c["device_name"].strip() or name
         self.gpio = GpioLineSet(self, chip=c["chip"], device=self.device, initial_outputs=self._initial_outputs,
                                 record_raw=c["record_raw"])
+
+    def parse_config(self, c: Mapping[str, Any]) -> tuple[dict[str, int], dict[str, int]]:
+        """Lines by name and the safe level of each; ConfigError names the field and the fix."""
+        check_chip(c["chip"], service=self.name)
+        lines = parse_line_map(c["outputs"], service=self.name, key="outputs")
+        if not lines:
+            raise ConfigError(f"service '{self.name}': no output lines configured; set outputs = \"lamp=17\"")
+        safe = parse_levels(c["safe_levels"], known=list(lines), service=self.name, key="safe_levels")
+        return lines, {n: safe.get(n, 0) for n in lines}
+
+    def validate_config(self, name: str, value: Any) -> str | None:
+        """Refuse a change that would leave the service unable to start."""
+        return config_problem(self, name, value, self.parse_config)
 
     def _initial_outputs(self) -> dict[int, int]:
         self.levels = dict(self.safe_levels)  # a (re)opened port starts safe
@@ -159,18 +167,8 @@ class GpioInputDriver(ExteroceptiveSensor):
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
         c = self.config
-        self.lines_by_name = parse_line_map(c["inputs"], service=name, key="inputs")
-        if not self.lines_by_name:
-            raise ConfigError(f"service '{name}': no input lines configured; set inputs = \"estop=4\"")
-        known = list(self.lines_by_name)
+        self.lines_by_name, self.active_low, self.estops, self.bumpers = self.parse_config(c)
         self.names_by_line = {line: n for n, line in self.lines_by_name.items()}
-        self.active_low = set(parse_names(c["active_low"], known=known, service=name, key="active_low"))
-        self.estops = parse_names(c["failsafe_on"], known=known, service=name, key="failsafe_on")
-        self.bumpers = parse_positions(c["positions"], known=known, service=name, key="positions")
-        if c["bias"] not in BIASES:
-            raise ConfigError(f"service '{name}': config 'bias' must be one of {', '.join(BIASES)}, got {c['bias']!r}")
-        if c["debounce_ms"] < 0:
-            raise ConfigError(f"service '{name}': config 'debounce_ms' must be >= 0, got {c['debounce_ms']}")
         self.inputs: dict[str, DebouncedInput] = {}
         self.failsafe = _Announce()
         self.failsafe_reason = ""
@@ -182,6 +180,28 @@ class GpioInputDriver(ExteroceptiveSensor):
         self.device = c["device_name"].strip() or name
         self.gpio = GpioLineSet(self, chip=c["chip"], device=self.device, inputs=list(self.lines_by_name.values()),
                                 bias=c["bias"], record_raw=c["record_raw"], on_open=self._read_levels)
+
+    def parse_config(self, c: Mapping[str, Any]) -> tuple[dict[str, int], set[str], list[str],
+                                                           dict[str, tuple[float, float, float]]]:
+        """Lines by name, active-low names, e-stop names, bumper positions; ConfigError names the field."""
+        check_chip(c["chip"], service=self.name)
+        lines = parse_line_map(c["inputs"], service=self.name, key="inputs")
+        if not lines:
+            raise ConfigError(f"service '{self.name}': no input lines configured; set inputs = \"estop=4\"")
+        if c["bias"] not in BIASES:
+            raise ConfigError(f"service '{self.name}': config 'bias' must be one of {', '.join(BIASES)}, "
+                              f"got {c['bias']!r}")
+        for key in ("debounce_ms", "failsafe_repeat_s", "bumper_repeat_s"):
+            if c[key] < 0:
+                raise ConfigError(f"service '{self.name}': config '{key}' must be >= 0, got {c[key]}")
+        known = list(lines)
+        return (lines, set(parse_names(c["active_low"], known=known, service=self.name, key="active_low")),
+                parse_names(c["failsafe_on"], known=known, service=self.name, key="failsafe_on"),
+                parse_positions(c["positions"], known=known, service=self.name, key="positions"))
+
+    def validate_config(self, name: str, value: Any) -> str | None:
+        """Refuse a change that would leave the service unable to start."""
+        return config_problem(self, name, value, self.parse_config)
 
     def _read_levels(self, port: GpioPort) -> None:
         """After every (re)open: the present levels, since edges before the open are not seen."""

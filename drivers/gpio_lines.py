@@ -99,6 +99,28 @@ def parse_positions(text: str, *, known: Sequence[str], service: str,
     return positions
 
 
+def check_chip(chip: str, *, service: str) -> None:
+    """ConfigError unless a chip address is configured."""
+    if not chip.strip():
+        raise ConfigError(f"service '{service}': no GPIO chip configured; set chip = \"/dev/gpiochip0\" "
+                          "(gpiodetect lists the chips) or a mock chip address \"mock:/path/to.sock\"")
+
+
+def config_problem(service: U2SAService, name: str, value: Any, parse: Callable[[Mapping[str, Any]], object]
+                   ) -> str | None:
+    """Why the config with *name* set to *value* cannot run (*parse* raises ConfigError), or None.
+
+    For ``validate_config``: a value refused here never reaches the file, so it cannot stop
+    the next start."""
+    values = {n: v for n, _, v in service.config.enumerate()}
+    values[name] = value
+    try:
+        parse(values)
+    except ConfigError as exc:
+        return str(exc)
+    return None
+
+
 def note_restart_needed(service: U2SAService, name: str, *, live: Sequence[str] = ()) -> None:
     """Log that a changed field of the driver's own CONFIG applies at the next start (lines, chip,
     thresholds are not switched under a running vehicle); fields in *live* are read as they go."""
@@ -118,9 +140,7 @@ class GpioLineSet:
     def __init__(self, service: U2SAService, *, chip: str, device: str, inputs: Sequence[int] = (),
                  initial_outputs: Callable[[], Mapping[int, int]] = dict, edge: str = "both", bias: str = "as-is",
                  record_raw: bool = False, on_open: Callable[[GpioPort], None] | None = None) -> None:
-        if not chip.strip():
-            raise ConfigError(f"service '{service.name}': no GPIO chip configured; set chip = \"/dev/gpiochip0\" "
-                              "(gpiodetect lists the chips) or a mock chip address \"mock:/path/to.sock\"")
+        check_chip(chip, service=service.name)
         self.service, self.chip, self.device = service, chip, device
         self.inputs, self.edge, self.bias = tuple(inputs), edge, bias
         self._initial_outputs, self._on_open = initial_outputs, on_open

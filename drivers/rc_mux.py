@@ -27,15 +27,26 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Any
+from typing import Any, Mapping, NamedTuple
 
-from drivers.gpio_lines import GpioLineSet, note_restart_needed, parse_line_map
+from drivers.gpio_lines import GpioLineSet, check_chip, config_problem, note_restart_needed, parse_line_map
 from drivers.rc_pulse import MODE_AUTONOMOUS, MODE_MANUAL, MODE_NAMES, MODE_NO_SIGNAL, PulseMeter, RcModeFilter
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Sensor
 from u2sa_hw.config import ConfigError, field
 from u2sa_hw.ports.gpio_port import GpioPort
+
+
+class RcSetup(NamedTuple):
+    """What the config says, checked: channel lines by name, enable and select lines, the pulse meter
+    and the mode filter."""
+
+    channels: dict[str, int]
+    enable_line: int
+    select_line: int
+    meter: PulseMeter
+    filter: RcModeFilter
 
 
 class RcMuxDriver(Sensor):
@@ -64,24 +75,7 @@ class RcMuxDriver(Sensor):
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
         c = self.config
-        self.channels = parse_line_map(c["channels"], service=name, key="channels")
-        if c["mode_channel"] not in self.channels:
-            raise ConfigError(f"service '{name}': mode_channel {c['mode_channel']!r} is not one of the channels "
-                              f"({', '.join(self.channels) or 'none'}); add it to 'channels' as name=line")
-        self.enable_line, self.select_line = int(c["enable_line"]), int(c["select_line"])
-        used = set(self.channels.values())
-        if self.enable_line < 0 or self.enable_line in used or self.select_line in used | {self.enable_line}:
-            raise ConfigError(f"service '{name}': enable_line {self.enable_line} and select_line {self.select_line} "
-                              f"must be distinct lines, not RC channel lines {sorted(used)}; enable_line is required")
-        if c["publish_hz"] <= 0 or c["select_mismatch_ms"] <= 0:
-            raise ConfigError(f"service '{name}': publish_hz and select_mismatch_ms must be > 0")
-        try:
-            self.meter = PulseMeter(lines=used, min_us=c["min_pulse_us"], max_us=c["max_pulse_us"])
-            self.filter = RcModeFilter(autonomous_above_us=c["autonomous_above_us"],
-                                       manual_below_us=c["manual_below_us"], debounce_frames=c["debounce_frames"],
-                                       signal_timeout_ns=int(c["signal_timeout_ms"] * 1e6))
-        except ValueError as exc:
-            raise ConfigError(f"service '{name}': {exc}") from None
+        self.channels, self.enable_line, self.select_line, self.meter, self.filter = self.parse_config(c)
         self.mode_line = self.channels[c["mode_channel"]]
         self.names_by_line = {line: n for n, line in self.channels.items()}
         self.widths: dict[str, tuple[float, int]] = {}  # channel -> (width us, falling edge ns)
@@ -101,6 +95,33 @@ class RcMuxDriver(Sensor):
                                 on_open=self._on_open)
         self.register_publisher(ch.RC_MODE, t.RcMode)
         self.register_subscriber(ch.FAILSAFE, t.Failsafe, self._on_failsafe)
+
+    def parse_config(self, c: Mapping[str, Any]) -> RcSetup:
+        """Check the config and build the pulse meter and mode filter; ConfigError names the field."""
+        name = self.name
+        check_chip(c["chip"], service=name)
+        channels = parse_line_map(c["channels"], service=name, key="channels")
+        if c["mode_channel"] not in channels:
+            raise ConfigError(f"service '{name}': mode_channel {c['mode_channel']!r} is not one of the channels "
+                              f"({', '.join(channels) or 'none'}); add it to 'channels' as name=line")
+        enable, select, used = int(c["enable_line"]), int(c["select_line"]), set(channels.values())
+        if enable < 0 or enable in used or select in used | {enable}:
+            raise ConfigError(f"service '{name}': enable_line {enable} and select_line {select} must be distinct "
+                              f"lines, not RC channel lines {sorted(used)}; enable_line is required")
+        if c["publish_hz"] <= 0 or c["select_mismatch_ms"] <= 0:
+            raise ConfigError(f"service '{name}': publish_hz and select_mismatch_ms must be > 0")
+        try:
+            return RcSetup(channels, enable, select,
+                           PulseMeter(lines=used, min_us=c["min_pulse_us"], max_us=c["max_pulse_us"]),
+                           RcModeFilter(autonomous_above_us=c["autonomous_above_us"],
+                                        manual_below_us=c["manual_below_us"], debounce_frames=c["debounce_frames"],
+                                        signal_timeout_ns=int(c["signal_timeout_ms"] * 1e6)))
+        except ValueError as exc:
+            raise ConfigError(f"service '{name}': {exc}") from None
+
+    def validate_config(self, name: str, value: Any) -> str | None:
+        """Refuse a change that would leave the service unable to start."""
+        return config_problem(self, name, value, self.parse_config)
 
     def on_config_change(self, name: str, value: Any) -> None:
         """require_rearm and select_mismatch_ms apply at once; lines and thresholds at the next start."""

@@ -122,6 +122,9 @@ def test_outputs_switch_at_50_percent_and_go_to_safe_levels(chip: MockGpioChip, 
                message="lamp on, then off when commands stop for command_timeout_s")
     col.health_of("io", lambda d: d["command_timed_out"] == "True", message="the timeout in health")
 
+    refused = bus.set_config("io", "safe_levels", "horn=1")
+    assert refused is not None and not refused.ok and "config 'safe_levels' names 'horn'" in refused.error
+
     command(bus, "lamp", 100.0)
     wait_until(lambda: chip.read_output(LAMP) == 1, message="lamp on again")
     proc.terminate()

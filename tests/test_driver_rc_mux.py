@@ -246,6 +246,16 @@ def test_glitch_frames_do_not_flip_the_mode(rig: RcRig) -> None:
     assert not any(r.kind == "output" and r.line == ENABLE and r.value == 1 for r in rig.chip.history)
 
 
+def test_unusable_config_change_over_the_bus_is_refused(rig: RcRig) -> None:
+    resp = rig.bus.set_config("rc", "channels", "throttle=5,steering=6")
+    assert resp is not None and not resp.ok
+    assert "mode_channel 'mode' is not one of the channels" in resp.error
+    resp = rig.bus.set_config("rc", "manual_below_us", "1800.0")
+    assert resp is not None and not resp.ok and "hysteresis needs" in resp.error
+    resp = rig.bus.set_config("rc", "select_mismatch_ms", "900.0")
+    assert resp is not None and resp.ok
+
+
 def test_select_readback_mismatch_is_reported(rig: RcRig) -> None:
     rig.to_autonomous()
     rig.mux.stop()                          # the mux sticks on autonomous whatever the enable line says
