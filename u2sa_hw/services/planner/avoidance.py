@@ -139,9 +139,10 @@ def ray_clearance(near: list[_Near], *, x: float, y: float, heading: float, leng
     if not (math.isfinite(length) and math.isfinite(heading)):
         return None
     c, s = math.cos(heading), math.sin(heading)
+    min_step = max(settings.min_step_m, 0.01)
     smallest = math.inf
     along = 0.0
-    for _ in range(int(length / settings.min_step_m) + 2):   # every step is >= min_step_m: a bound, not a cut
+    for _ in range(int(length / min_step) + 2):   # every step but the last is >= min_step: a bound, not a cut
         px, py = x + along * c, y + along * s
         step = math.inf
         for item in near:
@@ -153,7 +154,7 @@ def ray_clearance(near: list[_Near], *, x: float, y: float, heading: float, leng
         smallest = min(smallest, step)
         if along >= length:
             return smallest
-        along = min(length, along + max(step, settings.min_step_m))
+        along = min(length, along + max(step, min_step))
     return smallest
 
 
