@@ -120,6 +120,14 @@ def test_crash_looping_required_service_raises_the_failsafe(tmp_path: Path, lcm_
     assert report["failsafe"] is True
     assert next(s for s in report["services"] if s["name"] == "broken")["state"] == "failed"
 
+    clear = t.Failsafe()
+    clear.active, clear.reason = False, "operator"
+    seen = len(watch.failsafes)
+    bus.publish(ch.FAILSAFE, clear)                          # refused while broken is failed: asserted again
+    wait_until(lambda: "failsafe clear from" in lp.output and any(f.active for f in watch.failsafes[seen + 1:]),
+               timeout=10, message="the HSM to refuse the clear and assert the failsafe again")
+    assert "refused: broken is still failed" in lp.output
+
 
 def test_health_without_an_hsm_names_the_problem(tmp_path: Path, lcm_url: str) -> None:
     done = u2sa(tmp_path, "health", "--timeout", "0.5")

@@ -39,8 +39,7 @@ def test_missed_heartbeat_requests_a_restart_after_the_timeout_only() -> None:
     mon = HealthMonitor([WatchRule("gps", heartbeat_timeout_s=3.0, startup_grace_s=5.0)], policy=POLICY, now=0.0)
     assert of(Restart, mon.evaluate(4.9)) == [] and state(mon, "gps", 4.9) == "starting"
     mon.on_health(health("gps", 100), 0.5)
-    first = mon.evaluate(1.0)
-    assert of(FailsafeChange, first) == [FailsafeChange(False, "every required service is ok", "")]
+    assert mon.evaluate(1.0) == []                          # nothing to do, no failsafe to lower
     assert of(Restart, mon.evaluate(3.4)) == [] and state(mon, "gps", 3.4) == "ok"
     restarts = of(Restart, mon.evaluate(3.6))
     assert len(restarts) == 1 and restarts[0].service == "gps" and restarts[0].attempt == 1
@@ -71,6 +70,7 @@ def test_repeated_failures_mark_failed_and_raise_the_failsafe_once() -> None:
     assert mon.failsafe_active and mon.summary(6.3).startswith("FAILSAFE: required service gps failed")
     assert state(mon, "gps", 6.3) == "failed" and state(mon, "camera", 6.3) == "failed"
     assert mon.evaluate(60.0) == []                         # failed is final: no more restarts, no repeats
+    assert mon.external_clear() == "gps is still failed" and mon.failsafe_active
 
 
 def test_restart_backoff_doubles() -> None:
@@ -140,14 +140,16 @@ def test_clean_stop_is_not_restarted_but_a_required_one_raises_the_failsafe() ->
         assert of(Restart, actions) == [] and state(mon, "ctl", 2.0) == "stopped"
         assert of(FailsafeChange, actions)[0].active
         mon.on_health(health("ctl", 2), 3.0)                 # started again by someone
-        mon.evaluate(3.1)
-    assert latched.failsafe_active and not loose.failsafe_active
+    assert loose.evaluate(3.1) == [Recovered("ctl"), FailsafeChange(False, "every required service is ok again", "")]
+    assert latched.evaluate(3.1) == [Recovered("ctl")] and latched.failsafe_active
+    assert latched.external_clear() == "" and not latched.failsafe_active   # an operator's clear, all ok
+    assert latched.evaluate(3.2) == []                       # it stays down
 
 
 def test_unexpected_services_are_shown_never_restarted() -> None:
     mon = HealthMonitor([], policy=POLICY, now=0.0, default_timeout_s=3.0)
     mon.on_health(health("visitor", 9), 1.0)
-    assert mon.evaluate(2.0) == [FailsafeChange(False, "every required service is ok", "")]
+    assert mon.evaluate(2.0) == []
     assert mon.evaluate(10.0) == [] and state(mon, "visitor", 10.0) == "missing"
     assert [v.watched for v in mon.views(10.0)] == [False]
     mon.evaluate(70.0)

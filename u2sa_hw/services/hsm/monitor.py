@@ -15,9 +15,10 @@ returns what to do (:class:`Restart`, :class:`Failed`, :class:`Recovered`,
    waits ``restart_backoff_s * 2**(k-1)`` after restart k; after ``max_restarts`` without
    recovery (or at once with ``restart = false``) the service is *failed*;
 4. ``recovery_s`` of health forgives the restarts; a failed service that comes back recovers;
-5. a *failed* or *stopped* required service raises the failsafe. It stays raised while the HSM
-   runs when ``failsafe_latch`` is set; it is cleared once every required service is ok
-   (on its own without the latch; after an HSM restart with it).
+5. a *failed* or *stopped* required service raises the failsafe. Without ``failsafe_latch``
+   the HSM lowers it once every required service is ok again; with it (the default) it stays
+   up until someone else clears it (:meth:`HealthMonitor.external_clear`) while every
+   required service is ok. The HSM never lowers a failsafe it did not raise.
 """
 
 from __future__ import annotations
@@ -118,7 +119,6 @@ class HealthMonitor:
         self.failsafe_active = False
         self.failsafe_reason = ""
         self.failsafe_service = ""
-        self._failsafe_announced = False   # a fresh HSM says "clear" once, when all is well
 
     # -- inputs ------------------------------------------------------------------------------
     def data_channels(self) -> dict[str, set[str]]:
@@ -273,23 +273,44 @@ class HealthMonitor:
             tr.restart_error = ""
             actions.append(Recovered(tr.rule.name))
 
+    def _causes(self) -> list[_Track]:
+        return [tr for tr in self._tracks.values()
+                if tr.rule is not None and tr.rule.required and (tr.failed or tr.state == "stopped")]
+
+    def _all_required_ok(self) -> bool:
+        return all(tr.state in ("ok", "degraded") for tr in self._tracks.values()
+                   if tr.rule is not None and tr.rule.required)
+
     def _failsafe(self, now: float) -> list[FailsafeChange]:
-        causes = [tr for tr in self._tracks.values()
-                  if tr.rule is not None and tr.rule.required and (tr.failed or tr.state == "stopped")]
+        causes = self._causes()
         if causes and not self.failsafe_active:
             first = causes[0]
-            self.failsafe_active, self._failsafe_announced = True, True
+            self.failsafe_active = True
             self.failsafe_service = first.rule.name if first.rule else ""
             self.failsafe_reason = f"required service {self.failsafe_service} {first.state}: {first.problem}"
             return [FailsafeChange(True, self.failsafe_reason, self.failsafe_service)]
-        all_ok = all(tr.state in ("ok", "degraded") for tr in self._tracks.values()
-                     if tr.rule is not None and tr.rule.required)
-        if not causes and all_ok and (not self.failsafe_active and not self._failsafe_announced
-                                      or self.failsafe_active and not self.policy.failsafe_latch):
-            self.failsafe_active, self._failsafe_announced = False, True
-            self.failsafe_reason, self.failsafe_service = "", ""
-            return [FailsafeChange(False, "every required service is ok", "")]
+        if self.failsafe_active and not self.policy.failsafe_latch and not causes and self._all_required_ok():
+            self.failsafe_active, self.failsafe_reason, self.failsafe_service = False, "", ""
+            return [FailsafeChange(False, "every required service is ok again", "")]
         return []
+
+    def external_clear(self) -> str:
+        """Someone else (an operator, a released e-stop) cleared the failsafe: unlatch if all is well.
+
+        Returns "" when the HSM's failsafe is now down (or was not up), else why it stays up
+        (the HSM then asserts it again at once).
+        """
+        if not self.failsafe_active:
+            return ""
+        causes = self._causes()
+        if causes:
+            return f"{causes[0].rule.name if causes[0].rule else '?'} is still {causes[0].state}"
+        if not self._all_required_ok():
+            bad = [tr.rule.name for tr in self._tracks.values() if tr.rule is not None and tr.rule.required
+                   and tr.state not in ("ok", "degraded")]
+            return f"{', '.join(bad)} not ok yet"
+        self.failsafe_active, self.failsafe_reason, self.failsafe_service = False, "", ""
+        return ""
 
     # -- reports -------------------------------------------------------------------------------
     def views(self, now: float) -> list[ServiceView]:

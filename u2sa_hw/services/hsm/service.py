@@ -5,7 +5,8 @@ watched, to their data channels (only the header's ``source`` is read). A
 :class:`HealthMonitor` judges them; this service carries out its verdicts: restarts
 (through systemd or the local launcher, on a worker thread so the loop never blocks),
 the failsafe on ``FAILSAFE`` (re-sent every second while active, so a restarted actuator
-learns it), and the system health on ``U2SA_SYSTEM_HEALTH`` at 1 Hz. Its loop is
+learns it; a clear from anyone else is accepted only while every required service is ok),
+and the system health on ``U2SA_SYSTEM_HEALTH`` at 1 Hz. Its loop is
 ``while self.wait(...)``, so systemd's watchdog restarts a hung HSM.
 """
 
@@ -61,7 +62,9 @@ class HealthStatusMonitor(U2SAService):
         self._restarts: queue.Queue[tuple[str, str] | None] = queue.Queue()
         self._worker: threading.Thread | None = None
         self._summary = ""
+        self._reassert = threading.Event()
         self.register_subscriber(ch.HEALTH, t.Health, self._on_health)
+        self.register_subscriber(ch.FAILSAFE, t.Failsafe, self._on_failsafe)
         for channel in self.monitor.data_channels():
             self.transport.subscribe(channel, None, self._on_data, raw=True)
             self._subscribers[channel] = "(header only)"
@@ -80,6 +83,19 @@ class HealthStatusMonitor(U2SAService):
             return
         with self._lock:
             self.monitor.on_health(msg, time.monotonic())
+
+    def _on_failsafe(self, msg: t.Failsafe) -> None:
+        if msg.active or msg.header.source == self.name:
+            return
+        with self._lock:
+            was_active = self.monitor.failsafe_active
+            refusal = self.monitor.external_clear()
+        who = msg.header.source or "?"
+        if refusal:
+            self.logger.warning("failsafe clear from %s refused: %s; asserting it again", who, refusal)
+            self._reassert.set()
+        elif was_active:
+            self.logger.info("failsafe cleared by %s (%s); every required service is ok", who, msg.reason or "-")
 
     def _on_data(self, channel: str, data: bytes) -> None:
         try:
@@ -118,6 +134,9 @@ class HealthStatusMonitor(U2SAService):
                 actions = self.monitor.evaluate(now)
             for action in actions:
                 self._act(action)
+            if self._reassert.is_set():
+                self._reassert.clear()
+                next_failsafe = 0.0
             if self.monitor.failsafe_active and now >= next_failsafe:
                 self._publish_failsafe(True, self.monitor.failsafe_reason, self.monitor.failsafe_service)
                 next_failsafe = now + FAILSAFE_REPEAT_S
