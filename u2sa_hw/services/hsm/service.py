@@ -42,7 +42,8 @@ class HealthStatusMonitor(U2SAService):
         field("restart_backoff_s", 2.0, "wait after the first restart before another; doubles each time"),
         field("max_backoff_s", 30.0, "cap of the wait between restarts"),
         field("recovery_s", 30.0, "healthy this long -> the restart count starts over"),
-        field("failsafe_latch", True, "true: the failsafe stays until the HSM restarts; false: clears when all ok"),
+        field("failsafe_latch", True, "true: the failsafe stays up until someone clears it while all is ok; "
+              "false: the HSM lowers it when every required service is ok again"),
         field("system_health_interval_s", 1.0, "seconds between SystemHealth messages"),
         field("check_interval_s", 0.1, "seconds between judgements"),
         field("restarter", "auto", "auto, systemd, launcher or none (see docs/supervision.md)"),
