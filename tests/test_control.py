@@ -89,9 +89,10 @@ def nav(x: float, y: float, speed: float, *, subsystem: str = "vehicle") -> t.Na
     return n
 
 
-def rc(mode: int) -> t.RcMode:
+def rc(mode: int, *, enabled: bool | None = None) -> t.RcMode:
     r = t.RcMode()
     r.mode = mode
+    r.autonomy_enabled = mode == 1 if enabled is None else enabled
     return r
 
 
@@ -120,6 +121,13 @@ def test_neutral_reasons() -> None:
     assert feed(c, 0.3, point=nav(3, 0, 0.0)) == {"L": 0.0, "R": 0.0} and c.neutral_reason == "hold (speed 0)"
     feed(c, 0.4, point=nav(3, 0, 1.0), mode=2)
     assert c.neutral_reason == "RC no signal"
+    c.on_rc_mode(rc(1, enabled=False), 0.45)                   # switch autonomous, mux not enabled (not re-armed)
+    assert c.step(0.45) == {"L": 0.0, "R": 0.0}
+    assert c.neutral_reason == "RC autonomous but the mux's autonomy enable is off"
+    lenient = controller(require_autonomy_enabled=False)
+    feed(lenient, 0.0, point=nav(3, 0, 1.0))
+    lenient.on_rc_mode(rc(1, enabled=False), 0.0)
+    assert lenient.step(0.05)["L"] > 0 and lenient.neutral_reason == ""
     c.on_rc_mode(rc(1), 0.5)
     c.on_nav(nav(3, 0, 1.0), 0.5)
     c.step(0.5)

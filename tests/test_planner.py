@@ -304,7 +304,7 @@ def drive(model: str, goals: list[t.Waypoint], objects: list[object], *, limit_s
     planner = new_planner()
     mission = MiniMission(goals)
     rc = t.RcMode()
-    rc.mode = 1
+    rc.mode, rc.autonomy_enabled = 1, True
     track = []
     now = 0.0
     while not mission.finished and now < limit_s:

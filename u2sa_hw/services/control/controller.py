@@ -4,7 +4,8 @@ Each cycle (:meth:`VehicleController.step`):
 
 1. **Neutral** when any of these holds, with the reason kept in ``neutral_reason``: a
    failsafe is active; no ``RC_MODE`` has arrived within ``rc_timeout_s``, or it is not
-   autonomous (0 manual, 2 no signal); no navigation point for this subsystem within
+   autonomous (0 manual, 2 no signal), or (with ``require_autonomy_enabled``) its
+   ``autonomy_enabled`` -- the RC mux's enable line -- is off; no navigation point for this subsystem within
    ``nav_timeout_s``; the navigation point asks for speed 0 (the planner's hold). Neutral
    is every actuator at 0 % at once (not slewed), both integrators and derivative memories
    reset and every rate limiter set to 0, so that handing back to autonomy starts from
@@ -46,6 +47,7 @@ class ControlSettings:
     turn_speed_fraction: float = 0.25  # the desired speed kept when the point is abeam or behind
     rate_limit_pct_s: float = 200.0    # slew limit of every output, %/s (<= 0: none)
     subsystem: str = "vehicle"         # the navigation points this controller follows
+    require_autonomy_enabled: bool = True   # RcMode.autonomy_enabled (the mux's enable line) must be set too
     nav_timeout_s: float = 0.5
     rc_timeout_s: float = 1.0
     estimate_timeout_s: float = 0.5
@@ -123,6 +125,8 @@ class VehicleController:
         mode = int(self.rc.msg.mode)
         if mode != RC_AUTONOMOUS:
             return f"RC {RC_NAMES.get(mode, f'mode {mode}')}"
+        if s.require_autonomy_enabled and not self.rc.msg.autonomy_enabled:
+            return "RC autonomous but the mux's autonomy enable is off"
         if self.nav is None:
             return "no NAV_POINT received"
         if now - self.nav.time > s.nav_timeout_s:

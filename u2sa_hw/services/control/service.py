@@ -5,7 +5,8 @@ Subscribes ``NAV_POINT`` (the planner's body-frame point and desired speed),
 ``control_rate_hz`` it runs the control law (:mod:`.controller`: PID on heading and speed,
 :mod:`.mixers` for the drive, rate limits) and publishes one ``PercentageCommand`` per
 actuator on ``ACTUATOR_CMD``, addressed by actuator name. While ``RC_MODE`` is not
-autonomous (or silent), a failsafe is active, or navigation points stop, the commands are
+autonomous with the mux's autonomy enable on (or is silent), a failsafe is active, or
+navigation points stop, the commands are
 neutral (0 %) and the integrators are reset; neutral commands keep going out at the control
 rate so every actuator sees the system alive and at rest.
 
@@ -55,6 +56,7 @@ class ControlSystem(U2SAService):
         field("throttle_limit_pct", 100.0, "largest |throttle correction| % from the speed PID"),
         field("turn_speed_fraction", 0.25, "desired speed kept while the point is abeam or behind (ackermann > 0)"),
         field("rate_limit_pct_s", 200.0, "slew limit of every output, %/s (0: none); neutral is immediate"),
+        field("require_autonomy_enabled", True, "also require RC_MODE's autonomy_enabled (the mux's enable line)"),
         field("nav_timeout_s", 0.5, "no NAV_POINT for this long -> neutral"),
         field("rc_timeout_s", 1.0, "no RC_MODE for this long -> neutral"),
         field("estimate_timeout_s", 0.5, "an older STATE_ESTIMATE is not used (feedforward only)"),
@@ -95,6 +97,7 @@ class ControlSystem(U2SAService):
         return ControlSettings(heading=heading, speed=speed, speed_feedforward=f("speed_feedforward"),
                                turn_speed_fraction=f("turn_speed_fraction"), rate_limit_pct_s=f("rate_limit_pct_s"),
                                subsystem=str(c("subsystem")), nav_timeout_s=f("nav_timeout_s"),
+                               require_autonomy_enabled=bool(c("require_autonomy_enabled")),
                                rc_timeout_s=f("rc_timeout_s"), estimate_timeout_s=f("estimate_timeout_s"))
 
     def on_config_change(self, name: str, value: Any) -> None:
