@@ -75,8 +75,16 @@ def test_failsafe_forces_neutral_and_blocks_commands(tmp_path: Path, lcm_url: st
         bus.publish(ch.ACTUATOR_CMD, _command("thruster", 40))
         wait_until(lambda: act.commands_ignored >= 1, message="the command to be ignored")
         assert ("thruster", 40.0) not in act.outputs
+        estop = t.Failsafe()
+        estop.active, estop.reason, estop.header.source = True, "e-stop pressed", "estop"
+        bus.publish(ch.FAILSAFE, estop)
+        wait_until(lambda: "estop" in act.failsafe_sources, message="the second source")
         fs.active = False
-        bus.publish(ch.FAILSAFE, fs)
+        bus.publish(ch.FAILSAFE, fs)  # one source clears; the e-stop still holds
+        wait_until(lambda: len(act.failsafe_sources) == 1, message="the first source to clear")
+        assert act.failsafe_active
+        estop.active = False
+        bus.publish(ch.FAILSAFE, estop)
         wait_until(lambda: not act.failsafe_active, message="the failsafe to clear")
         bus.publish(ch.ACTUATOR_CMD, _command("thruster", 40))
         wait_until(lambda: ("thruster", 40.0) in act.outputs, message="commands after the failsafe")

@@ -74,6 +74,7 @@ class Actuator(U2SAService):
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
         self.failsafe_active = False
+        self.failsafe_sources: dict[str, str] = {}  # source -> reason, for every source holding one
         self.commands_received = 0
         self.commands_ignored = 0
         self._last_command: float | None = None
@@ -121,13 +122,21 @@ class Actuator(U2SAService):
             self.on_command(msg)
 
     def _on_failsafe(self, msg: t.Failsafe) -> None:
-        if msg.active and not self.failsafe_active:
-            self.logger.warning("FAILSAFE from %s: %s -> neutral", msg.header.source or "?", msg.reason)
+        # Several services may hold a failsafe (the HSM, an e-stop input): a clear from one
+        # must not lower another's, so the actuator stays safe while any source holds one.
+        source = msg.header.source or "?"
+        if msg.active:
+            self.failsafe_sources[source] = msg.reason
+        else:
+            self.failsafe_sources.pop(source, None)
+        active = bool(self.failsafe_sources)
+        if active and not self.failsafe_active:
+            self.logger.warning("FAILSAFE from %s: %s -> neutral", source, msg.reason)
             self.neutral()
-        elif not msg.active and self.failsafe_active:
-            self.logger.info("failsafe cleared by %s", msg.header.source or "?")
-        self.failsafe_active = msg.active
-        self.status = "degraded" if msg.active else "ok"
+        elif not active and self.failsafe_active:
+            self.logger.info("failsafe cleared by %s", source)
+        self.failsafe_active = active
+        self.status = "degraded" if active else "ok"
 
     def check_command_timeout(self) -> bool:
         """Go neutral once when commands stopped arriving; True while timed out. Call from ``run``."""
@@ -145,7 +154,8 @@ class Actuator(U2SAService):
     def health_details(self) -> dict[str, Any]:
         """Command counters and failsafe/timeout state."""
         return {"commands": self.commands_received, "ignored": self.commands_ignored,
-                "failsafe": self.failsafe_active, "command_timed_out": self._timed_out}
+                "failsafe": self.failsafe_active, "failsafe_sources": ",".join(sorted(self.failsafe_sources)),
+                "command_timed_out": self._timed_out}
 
     def kill(self) -> None:
         """Neutral, then release."""
