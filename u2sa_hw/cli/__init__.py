@@ -22,6 +22,7 @@ COMMAND_MODULES = [
     "u2sa_hw.cli.run_cmd",
     "u2sa_hw.cli.health_cmd",
     "u2sa_hw.cli.install_cmd",
+    "u2sa_hw.cli.replay_cmd",
 ]
 
 EPILOG = """\

@@ -1,0 +1,242 @@
+"""``u2sa replay --compare``: the replayed outputs against the recorded ones, stream by stream.
+
+A *stream* is one channel from one source service (``STATE_INFO [gps]``): only the
+services the replay ran are compared, and never the contract channels (``U2SA_*``: health
+carries uptime and CPU) or raw device I/O (``RAW.*``). For each stream:
+
+- counts: recorded and replayed messages. A recording cuts its devices' input at both
+  ends (the recorder starts and stops while drivers run), so up to ``edge`` messages at
+  each end of a stream may go unmatched; they are reported as notes, more is a difference.
+  The two sequences are aligned at the start by trying the skips up to ``edge`` on either
+  side and keeping the one that matches best.
+- fields: every field from ``enumerate_fields`` except the header's ``timestamp_us`` and
+  ``sequence`` (and ``ignore`` patterns), floats equal within ``tolerance`` (absolute, or
+  relative 1e-9), everything else exactly.
+- timing: each message's time since the stream's first, replayed (times the rate) against
+  recorded; the median and largest offset are shown and a largest offset above
+  ``time_tolerance_s`` is a difference. Not checked for ``--fast`` replays, which have no clock.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import math
+import statistics
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from u2sa_hw.channels import base_type
+from u2sa_hw.messages import REGISTRY, MalformedMessage, enumerate_fields
+from u2sa_hw.recording.log_reader import LogFile
+
+from hil.player import header_source
+
+HEADER_FIELDS = ("*header.timestamp_us", "*header.sequence")
+ALIGN_WINDOW = 10
+SHOWN_FIELDS = 8
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One message of a stream: log time, type and its comparable fields."""
+
+    t_ns: int
+    type_name: str
+    fields: dict[str, Any]
+
+
+def load_streams(path: Path | str, *, sources: set[str], start_ns: int | None = None, end_ns: int | None = None,
+                 ignore: tuple[str, ...] = ()) -> dict[str, list[Sample]]:
+    """``"CHANNEL [source]"`` -> samples, for messages from *sources* within the window."""
+    patterns = (*HEADER_FIELDS, *ignore)
+    streams: dict[str, list[Sample]] = {}
+    for m in LogFile(path).messages():
+        if m.channel.startswith(("U2SA_", "RAW.")):
+            continue
+        if (start_ns is not None and m.log_time_ns < start_ns) or (end_ns is not None and m.log_time_ns > end_ns):
+            continue
+        try:
+            msg, _ = REGISTRY.decode(m.data, base_type(m.channel))
+        except MalformedMessage:
+            continue
+        source = header_source(msg)
+        if source not in sources:
+            continue
+        fields = {k: v for k, v in enumerate_fields(msg) if not any(fnmatch.fnmatchcase(k, p) for p in patterns)}
+        streams.setdefault(f"{m.channel} [{source}]", []).append(Sample(m.log_time_ns, type(msg).__name__, fields))
+    return streams
+
+
+def values_equal(a: Any, b: Any, tolerance: float) -> bool:
+    """Floats within *tolerance* (NaN equals NaN), lists element-wise, the rest exactly."""
+    if isinstance(a, float) or isinstance(b, float):
+        try:
+            fa, fb = float(a), float(b)
+        except (TypeError, ValueError):
+            return False
+        if math.isnan(fa) or math.isnan(fb):
+            return math.isnan(fa) and math.isnan(fb)
+        return math.isclose(fa, fb, rel_tol=1e-9, abs_tol=tolerance)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(values_equal(x, y, tolerance) for x, y in zip(a, b))
+    return a == b
+
+
+def differing_fields(a: Sample, b: Sample, tolerance: float) -> list[str]:
+    """Names of the fields that differ (``_type`` when the types do)."""
+    if a.type_name != b.type_name:
+        return ["_type"]
+    names = sorted(set(a.fields) | set(b.fields))
+    return [n for n in names if not values_equal(a.fields.get(n), b.fields.get(n), tolerance)]
+
+
+@dataclass
+class FieldDiff:
+    """One field that differs in some messages of a stream."""
+
+    name: str
+    count: int = 0
+    max_abs: float = 0.0
+    first: tuple[int, Any, Any] | None = None   # (index, recorded, replayed)
+
+
+@dataclass
+class StreamReport:
+    """The comparison of one stream."""
+
+    key: str
+    recorded: int
+    replayed: int
+    matched: int = 0
+    differing: int = 0
+    head_skipped: tuple[int, int] = (0, 0)        # (recorded, replayed) unmatched at the start
+    tail_unmatched: tuple[int, int] = (0, 0)      # ... and at the end
+    fields: dict[str, FieldDiff] = field(default_factory=dict)
+    time_p50_s: float | None = None
+    time_max_s: float | None = None
+    problems: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        """True when nothing differs beyond the tolerances."""
+        return not self.problems
+
+
+def align(rec: list[Sample], rep: list[Sample], *, edge: int, tolerance: float) -> tuple[int, int]:
+    """The (recorded, replayed) head skips, each up to *edge*, under which the next messages match best."""
+    best: tuple[tuple[int, int], tuple[int, int]] | None = None
+    for i in range(min(edge, len(rec)) + 1):
+        for j in range(min(edge, len(rep)) + 1):
+            n = min(ALIGN_WINDOW, len(rec) - i, len(rep) - j)
+            bad = ALIGN_WINDOW + 1 if n <= 0 else sum(
+                bool(differing_fields(rec[i + k], rep[j + k], tolerance)) for k in range(n))
+            score = (bad, i + j)
+            if best is None or score < best[0]:
+                best = (score, (i, j))
+    return best[1] if best else (0, 0)
+
+
+def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance: float, edge: int,
+                   rate: float | None, time_tolerance_s: float) -> StreamReport:
+    """Compare one stream (see the module docstring)."""
+    r = StreamReport(key, len(rec), len(rep))
+    if not rec or not rep:
+        r.problems.append("only in the replay" if rep else "not reproduced by the replay")
+        return r
+    i0, j0 = align(rec, rep, edge=edge, tolerance=tolerance)
+    n = min(len(rec) - i0, len(rep) - j0)
+    r.head_skipped, r.matched = (i0, j0), n
+    r.tail_unmatched = (len(rec) - i0 - n, len(rep) - j0 - n)
+    offsets: list[float] = []
+    for k in range(n):
+        a, b = rec[i0 + k], rep[j0 + k]
+        names = differing_fields(a, b, tolerance)
+        if names:
+            r.differing += 1
+        for name in names:
+            d = r.fields.setdefault(name, FieldDiff(name))
+            d.count += 1
+            va, vb = a.fields.get(name), b.fields.get(name)
+            if isinstance(va, (int, float)) and isinstance(vb, (int, float)) and not isinstance(va, bool):
+                if math.isfinite(va) and math.isfinite(vb):
+                    d.max_abs = max(d.max_abs, abs(float(va) - float(vb)))
+            if d.first is None:
+                d.first = (k, va if name != "_type" else a.type_name, vb if name != "_type" else b.type_name)
+        if rate is not None:
+            rec_s = (a.t_ns - rec[i0].t_ns) / 1e9
+            rep_s = (b.t_ns - rep[j0].t_ns) / 1e9 * rate
+            offsets.append(abs(rep_s - rec_s))
+    if offsets:
+        r.time_p50_s, r.time_max_s = statistics.median(offsets), max(offsets)
+        if r.time_max_s > time_tolerance_s:
+            r.problems.append(f"timing: a message is {r.time_max_s:.3f} s off its recorded time "
+                              f"(tolerance {time_tolerance_s:g} s)")
+    if r.differing:
+        r.problems.append(f"{r.differing} of {n} matched messages differ")
+    for where, (a_n, b_n) in (("start", r.head_skipped), ("end", r.tail_unmatched)):
+        for count, what in ((a_n, "recorded message(s) not reproduced"), (b_n, "replayed message(s) not recorded")):
+            if not count:
+                continue
+            text = f"{count} {what} at the {where}"
+            (r.notes if count <= edge else r.problems).append(
+                text + (" (the recording cuts the input there)" if count <= edge else ""))
+    return r
+
+
+@dataclass
+class CompareReport:
+    """Every stream's comparison."""
+
+    recorded: Path
+    replayed: Path
+    streams: list[StreamReport]
+    tolerance: float
+    timed: bool
+
+    @property
+    def ok(self) -> bool:
+        """True when no stream differs."""
+        return all(s.ok for s in self.streams)
+
+    def format(self) -> str:
+        """The printed report."""
+        lines = [f"compare: recorded {self.recorded} vs replayed {self.replayed} (tolerance {self.tolerance:g}; "
+                 f"header timestamp and sequence not compared{'' if self.timed else '; timing not checked (--fast)'})",
+                 f"{'STREAM':32} {'RECORDED':>8} {'REPLAYED':>8} {'MATCHED':>7} {'DIFFER':>6} "
+                 f"{'TIME p50/max s':>15}  RESULT"]
+        for s in self.streams:
+            timing = "-" if s.time_max_s is None else f"{s.time_p50_s:.3f}/{s.time_max_s:.3f}"
+            lines.append(f"{s.key:32} {s.recorded:>8} {s.replayed:>8} {s.matched:>7} {s.differing:>6} "
+                         f"{timing:>15}  {'same' if s.ok else 'DIFFERENT'}")
+        for s in self.streams:
+            for problem in s.problems:
+                lines.append(f"  {s.key}: {problem}")
+            for d in sorted(s.fields.values(), key=lambda d: -d.count)[:SHOWN_FIELDS]:
+                k, va, vb = d.first or (0, None, None)
+                size = f", max |d| {d.max_abs:.6g}" if d.max_abs else ""
+                lines.append(f"    {d.name}: differs in {d.count} of {s.matched}{size}; first at #{k}: "
+                             f"recorded {va!r}, replayed {vb!r}")
+            if len(s.fields) > SHOWN_FIELDS:
+                lines.append(f"    ... and {len(s.fields) - SHOWN_FIELDS} more fields")
+            for note in s.notes:
+                lines.append(f"  {s.key}: note: {note}")
+        bad = sum(not s.ok for s in self.streams)
+        if not self.streams:
+            lines.append("result: no streams to compare (the replayed services published nothing, "
+                         "and the recording has nothing from them)")
+        else:
+            lines.append(f"result: {'no differences' if not bad else f'{bad} of {len(self.streams)} streams differ'}")
+        return "\n".join(lines)
+
+
+def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[str], start_ns: int | None = None,
+                 end_ns: int | None = None, rate: float | None = 1.0, tolerance: float = 1e-6, edge: int = 1,
+                 time_tolerance_s: float = 0.5, ignore: tuple[str, ...] = ()) -> CompareReport:
+    """Compare the streams of *services* in *recorded* (within the window) and *replayed*; ``rate=None``: no timing."""
+    rec = load_streams(recorded, sources=services, start_ns=start_ns, end_ns=end_ns, ignore=ignore)
+    rep = load_streams(replayed, sources=services, ignore=ignore)
+    reports = [compare_stream(key, rec.get(key, []), rep.get(key, []), tolerance=tolerance, edge=edge, rate=rate,
+                              time_tolerance_s=time_tolerance_s) for key in sorted(set(rec) | set(rep))]
+    return CompareReport(Path(recorded), Path(replayed), reports, tolerance, rate is not None)

@@ -1,0 +1,174 @@
+"""The replay clock: walks a log in order and hands each recorded record to its replay device
+(or republishes it on the replay bus) at its time.
+
+Timing:
+
+- ``rate`` (``--rate X``, default 1): a record recorded *t* seconds into the window goes out
+  *t / X* seconds after the playback started. Silences are scaled too, so a driver that ends
+  a burst on silence (``epoch_gap_s``) sees the same bursts as long as X times its gap stays
+  above a few milliseconds.
+- fast (``--fast``, ``rate=None``): no clock. A device's next record goes out as soon as its
+  driver has taken the previous one (the pty is empty), consecutive chunks of one device are
+  written together, and recorded silences are not reproduced. Output is the same wherever a
+  driver's result depends only on the bytes, which holds for the NMEA drivers as long as a
+  new UTC time or a repeated sentence marks each burst's start (see docs/replay.md).
+
+The player streams the log (a long one is never loaded whole) and stops early when the
+``abort`` event is set, raising the reason the orchestration stored.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Iterator
+
+from u2sa_hw.channels import base_type
+from u2sa_hw.messages import REGISTRY, MalformedMessage
+from u2sa_hw.recording.log_reader import LogFile
+from u2sa_hw.transport import Transport
+
+from hil.replay_devices import ReplayDevice, ReplayStalled
+
+
+@dataclass
+class PlayStats:
+    """What the player did."""
+
+    records: int = 0          # device records fed
+    republished: int = 0      # bus messages republished
+    malformed: int = 0        # records that did not decode (skipped)
+    late_s: float = 0.0       # the largest lag behind the clock (rate mode)
+    wall_s: float = 0.0       # playback time
+
+
+def header_source(msg: Any) -> str:
+    """The source service in a message's root header ('' if it has none)."""
+    cur = msg
+    while cur is not None:
+        header = getattr(cur, "header", None)
+        if header is not None and hasattr(header, "source"):
+            return header.source
+        cur = getattr(cur, "base", None)
+    return ""
+
+
+class Player:
+    """Plays the window [start_ns, end_ns] of a log into devices and onto the replay bus."""
+
+    def __init__(self, log_path: Any, *, devices: dict[str, ReplayDevice], transport: Transport | None,
+                 republish: set[str], replayed_services: set[str], start_ns: int, end_ns: int,
+                 rate: float | None, abort: threading.Event, abort_reason: Callable[[], str],
+                 progress: Callable[[float], None] = lambda _s: None, stall_timeout_s: float = 20.0) -> None:
+        if rate is not None and not rate > 0:
+            raise ValueError(f"--rate must be > 0, got {rate!r}")
+        self.log_path = log_path
+        self.devices = devices
+        self.transport = transport
+        self.republish = republish
+        self.replayed = replayed_services
+        self.start_ns, self.end_ns = start_ns, end_ns
+        self.rate = rate
+        self.abort = abort
+        self.abort_reason = abort_reason
+        self.progress = progress
+        self.stall_timeout_s = stall_timeout_s
+        self.stats = PlayStats()
+
+    # -- the recorded stream -------------------------------------------------------------------
+    def events(self) -> Iterator[tuple[int, str, Any]]:
+        """``(log time ns, target, payload)`` in log order: target a device name, or ``"bus:<channel>"``
+        with the recorded bytes."""
+        for m in LogFile(self.log_path).messages():
+            if m.log_time_ns < self.start_ns:
+                continue
+            if m.log_time_ns > self.end_ns:
+                break
+            if m.channel.startswith("RAW."):
+                device = m.channel[4:]
+                if device not in self.devices:
+                    continue
+                try:
+                    record, _ = REGISTRY.decode(m.data)
+                except MalformedMessage:
+                    self.stats.malformed += 1
+                    continue
+                yield m.log_time_ns, device, record
+            elif m.channel in self.republish:
+                try:
+                    msg, _ = REGISTRY.decode(m.data, base_type(m.channel))
+                except MalformedMessage:
+                    self.stats.malformed += 1
+                    continue
+                if header_source(msg) not in self.replayed:
+                    yield m.log_time_ns, f"bus:{m.channel}", m.data
+
+    def _merged(self) -> Iterator[tuple[int, str, Any]]:
+        """Fast mode: runs of one device's records joined where the device can merge them."""
+        held: tuple[int, str, Any] | None = None
+        for ev in self.events():
+            if held is not None:
+                dev = self.devices.get(held[1])
+                merge = getattr(dev, "merge", None)
+                if ev[1] == held[1] and merge is not None:
+                    joined = merge(held[2], ev[2])
+                    if joined is not None:
+                        held = (held[0], held[1], joined)
+                        continue
+                yield held
+            held = ev
+        if held is not None:
+            yield held
+
+    # -- playing ---------------------------------------------------------------------------------
+    def run(self) -> PlayStats:
+        """Play the window; returns the stats (ReplayStalled or the abort reason as RuntimeError on failure)."""
+        started = time.monotonic()
+        stream = self._merged() if self.rate is None else self.events()
+        for t_ns, target, payload in stream:
+            if self.abort.is_set():
+                raise RuntimeError(self.abort_reason())
+            offset_s = (t_ns - self.start_ns) / 1e9
+            if self.rate is not None:
+                due = started + offset_s / self.rate
+                delay = due - time.monotonic()
+                if delay > 0 and self.abort.wait(delay):
+                    raise RuntimeError(self.abort_reason())
+                self.stats.late_s = max(self.stats.late_s, -delay)
+            if target.startswith("bus:"):
+                if self.transport is not None:
+                    self.transport.publish_bytes(target[4:], payload)
+                self.stats.republished += 1
+            else:
+                device = self.devices[target]
+                if self.rate is None:
+                    self.wait_taken(device)
+                device.feed(payload)
+                self.stats.records += 1
+            self.progress(offset_s)
+        if self.rate is None:
+            for device in self.devices.values():
+                self.wait_taken(device)
+        else:  # the window's end, so timer-driven services get the whole window and the speed is honest
+            rest = started + (self.end_ns - self.start_ns) / 1e9 / self.rate - time.monotonic()
+            if rest > 0 and self.abort.wait(rest):
+                raise RuntimeError(self.abort_reason())
+        self.progress((self.end_ns - self.start_ns) / 1e9)
+        self.stats.wall_s = time.monotonic() - started
+        return self.stats
+
+    def wait_taken(self, device: ReplayDevice) -> None:
+        """Wait until *device*'s driver has taken everything fed so far."""
+        if not device.pending():
+            return
+        deadline = time.monotonic() + self.stall_timeout_s
+        pause = 0.0002
+        while device.pending():
+            if self.abort.is_set():
+                raise RuntimeError(self.abort_reason())
+            if time.monotonic() > deadline:
+                raise ReplayStalled(f"{device.name}: its driver has not taken its input for "
+                                    f"{self.stall_timeout_s:g} s; is the service still running?")
+            time.sleep(pause)
+            pause = min(0.002, pause * 2)

@@ -1,0 +1,312 @@
+"""``u2sa replay``: run the real drivers (and any core services asked for) against mock devices
+that play a log's recorded raw I/O back, and record what they publish.
+
+Steps: plan (hil/replay_plan.py: which service drives which device, the configs, the
+overrides) -> a private run directory and LCM URL (a replay never talks to a live vehicle:
+``ttl=0`` and a port of its own) -> replay devices at the addresses written into the
+drivers' configs -> capture of the replay bus into the output log (the recorder's
+BusCapture) -> the services as supervised processes (the launcher) -> wait until every
+driver has opened its device -> play (hil/player.py) -> let the last outputs arrive -> stop.
+"""
+
+from __future__ import annotations
+
+import random
+import shutil
+import tempfile
+import threading
+import time
+import tomllib
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import tomli_w
+
+from u2sa_hw.launcher import Launcher, ProcessStatus, RestartPolicy
+from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo
+from u2sa_hw.services.recorder.capture import BusCapture
+from u2sa_hw.transport import Transport, TransportError, check_multicast
+from u2sa_hw.vehicle import load_profile
+
+from hil.player import PlayStats, Player
+from hil.progress import ProgressBar
+from hil.replay_devices import ReplayDevice, ReplaySerialDevice, ReplayStalled
+from hil.replay_plan import DevicePlan, ReplayError, ReplayPlan, build_plan, write_run_profile
+
+CONTRACT_PREFIX = "U2SA_"
+DEFAULT_GROUP = "239.255.76.67"
+
+
+@dataclass
+class ReplayOptions:
+    """What ``u2sa replay`` was asked for."""
+
+    rate: float = 1.0
+    fast: bool = False
+    start_s: float = 0.0
+    end_s: float | None = None
+    services: list[str] = field(default_factory=list)
+    overrides: list[str] = field(default_factory=list)
+    out: Path | None = None
+    vehicle: Path | None = None
+    keep_run_dir: bool = False
+    progress: bool | None = None          # None: when stderr is a terminal
+    ready_timeout_s: float = 30.0
+    settle_s: float = 0.5                 # quiet time that ends the replay after the last input
+    lcm_url: str | None = None            # default: a random private port, ttl=0
+
+
+@dataclass
+class ReplayResult:
+    """What a replay did."""
+
+    plan: ReplayPlan
+    out: Path
+    play: PlayStats
+    startup_s: float
+    outputs: int                           # messages the replayed services published (non-contract)
+    written: int                           # messages in the output log
+    dropped: int
+    devices: dict[str, dict[str, Any]]
+    run_dir: Path | None
+
+    def summary(self, *, fast: bool, rate: float) -> str:
+        """The one-line summary printed at the end."""
+        played = self.plan.duration_s
+        speed = played / self.play.wall_s if self.play.wall_s > 0 else 0.0
+        mode = "--fast" if fast else f"--rate {rate:g}"
+        return (f"replayed {played:.1f} s of {self.plan.log.name} ({mode}) in {self.play.wall_s:.1f} s "
+                f"({speed:.1f}x real time, {self.startup_s:.1f} s starting {len(self.plan.services)} services): "
+                f"{self.outputs} messages from {', '.join(self.plan.services)}; {self.written} written to "
+                f"{self.out}, {self.dropped} dropped")
+
+
+def private_url(plan: ReplayPlan) -> str:
+    """``udpm://239.255.76.67:<random port>?ttl=0``, never the recorded vehicle's port."""
+    recorded = plan.summary.contents.metadata.get("u2sa", {}).get("lcm_url", "")
+    while True:
+        port = random.randint(20000, 60000)
+        if f":{port}" not in recorded and port != 7667:
+            return f"udpm://{DEFAULT_GROUP}:{port}?ttl=0"
+
+
+def make_device(dev: DevicePlan, run_dir: Path) -> ReplayDevice:
+    """The replay device for *dev* (ReplayError for a kind that cannot be replayed)."""
+    if dev.kind == "serial":
+        return ReplaySerialDevice(name=dev.name, link_path=run_dir / "dev" / dev.name)
+    from hil import replay_buses
+
+    return replay_buses.make_device(dev, run_dir)
+
+
+class _Outputs:
+    """The services' output lines (the last few per service, for error messages)."""
+
+    def __init__(self, echo: Callable[[str], None] | None) -> None:
+        self.lines: dict[str, deque[str]] = {}
+        self.echo = echo
+
+    def __call__(self, name: str, line: str) -> None:
+        self.lines.setdefault(name, deque(maxlen=12)).append(line)
+        if self.echo is not None:
+            self.echo(f"{name} | {line}")
+
+    def tail(self, name: str) -> str:
+        lines = self.lines.get(name)
+        return ("; its last output:\n    " + "\n    ".join(lines)) if lines else ""
+
+
+class Replay:
+    """One replay run; :meth:`run` does everything and cleans up."""
+
+    def __init__(self, path: Path | str, options: ReplayOptions, *, echo: Callable[[str], None] | None = None) -> None:
+        self.options = options
+        self.plan = build_plan(path, extra_services=options.services, overrides=options.overrides,
+                               start_s=options.start_s, end_s=options.end_s, vehicle=options.vehicle)
+        self.out = options.out or self.plan.log.with_suffix(".replay.mcap")
+        if self.out.resolve() == self.plan.log.resolve():
+            raise ReplayError(f"--out {self.out}: the output must not be the log being replayed")
+        self.echo = echo
+        self.outputs = _Outputs(echo)
+        self.abort = threading.Event()
+        self._abort_reason = ""
+        self._stopping = False
+        self._health_pids: dict[str, int] = {}
+        self._output_count = 0
+        self._last_output = time.monotonic()
+
+    # -- pieces ------------------------------------------------------------------------------
+    def _fail(self, reason: str) -> None:
+        if not self._abort_reason:
+            self._abort_reason = reason
+        self.abort.set()
+
+    def _on_death(self, status: ProcessStatus, _account: str) -> None:
+        if self._stopping:
+            return
+        self._fail(f"service '{status.name}' died during the replay ({status.last_exit}); its log is "
+                   f"{self.run_dir / 'logs' / (status.name + '.log')}{self.outputs.tail(status.name)}")
+
+    def _on_message(self, channel: str, data: bytes) -> None:
+        if channel.startswith(CONTRACT_PREFIX):
+            if channel == "U2SA_HEALTH":
+                self._note_health(data)
+            return
+        if not channel.startswith("RAW.") and channel != "LCM_SELF_TEST":
+            self._output_count += 1
+            self._last_output = time.monotonic()
+
+    def _note_health(self, data: bytes) -> None:
+        from u2sa_hw import lcmtypes as t
+
+        try:
+            msg = t.Health.decode(data)
+        except Exception:  # noqa: BLE001 - a malformed health message is not our concern here
+            return
+        if msg.name in self.plan.services:
+            self._health_pids[msg.name] = msg.pid
+
+    def _wait_ready(self, devices: dict[str, ReplayDevice], launcher: Launcher) -> None:
+        deadline = time.monotonic() + self.options.ready_timeout_s
+        while True:
+            if self.abort.is_set():
+                raise ReplayError(self._abort_reason)
+            pids = {s.name: s.pid for s in launcher.status()}
+            waiting = [n for n in self.plan.services if n not in self._health_pids]
+            waiting += [f"{d.name} (device of {self.plan.devices[d.name].service})" for d in devices.values()
+                        if not d.ready(pids.get(self.plan.devices[d.name].service))]
+            if not waiting:
+                return
+            if time.monotonic() > deadline:
+                first = waiting[0].split(" ")[0]
+                service = self.plan.devices[first].service if first in self.plan.devices else first
+                raise ReplayError(f"not ready after {self.options.ready_timeout_s:g} s: {', '.join(waiting)}; "
+                                  f"see {self.run_dir / 'logs' / (service + '.log')}{self.outputs.tail(service)}")
+            time.sleep(0.05)
+
+    def _republished_channels(self, url: str) -> set[str]:
+        """Channels the replayed services subscribe to (their recorded traffic from other sources is replayed)."""
+        from u2sa_hw.bus_client import BusClient
+
+        with BusClient(url, name="u2sa-replay") as client:
+            found: dict[str, Any] = {}
+            for _ in range(3):
+                for r in client.discover(timeout=0.5):
+                    found[r.name] = r
+                if all(n in found for n in self.plan.services):
+                    break
+        channels = {c.channel for r in found.values() if r.name in self.plan.services for c in r.subscribes}
+        return {c for c in channels if not c.startswith(CONTRACT_PREFIX) and not c.startswith("RAW.")}
+
+    def _settle(self) -> None:
+        """Wait until the services published nothing new for settle_s (at most 10 s)."""
+        give_up = time.monotonic() + 10.0
+        while time.monotonic() - self._last_output < self.options.settle_s and time.monotonic() < give_up:
+            if self.abort.is_set():
+                raise ReplayError(self._abort_reason)
+            time.sleep(0.05)
+
+    def _attachments(self, profile_path: Path) -> dict[str, bytes]:
+        out = {"vehicle.toml": profile_path.read_bytes()}
+        for name in self.plan.services:
+            out[f"config/{name}.toml"] = (self.run_dir / "config" / f"{name}.toml").read_bytes()
+        o = self.options
+        out["replay.toml"] = tomli_w.dumps({"replay": {
+            "source": str(self.plan.log.resolve()), "fast": o.fast, "rate": o.rate, "start_s": o.start_s,
+            "end_s": -1.0 if o.end_s is None else o.end_s, "overrides": list(o.overrides),
+            "services": list(self.plan.services), "devices": [d for d in self.plan.devices
+                                                              if self.plan.devices[d].service]}}).encode()
+        return out
+
+    # -- the run -----------------------------------------------------------------------------------
+    def run(self) -> ReplayResult:
+        """Replay; ReplayError (or ReplayStalled) with the reason on failure."""
+        o = self.options
+        self.run_dir = Path(tempfile.mkdtemp(prefix="u2sa-replay-"))
+        keep = o.keep_run_dir
+        url = o.lcm_url or private_url(self.plan)
+        try:
+            check_multicast(url)
+        except TransportError as exc:
+            raise ReplayError(str(exc)) from None
+        devices: dict[str, ReplayDevice] = {}
+        launcher: Launcher | None = None
+        transport: Transport | None = None
+        capture: BusCapture | None = None
+        try:
+            changes: dict[str, dict[str, Any]] = {}
+            for dev in self.plan.devices.values():
+                if dev.service:
+                    devices[dev.name] = make_device(dev, self.run_dir)
+                    changes.setdefault(dev.service, {}).update(devices[dev.name].config_changes())
+            profile_path = write_run_profile(self.plan, self.run_dir, lcm_url=url, changes=changes)
+            profile = load_profile(profile_path)
+            transport = Transport(url, name="u2sa-replay")
+            self.out.parent.mkdir(parents=True, exist_ok=True)
+            writer = McapLogWriter(self.out.parent, path=self.out, run=RunInfo(
+                vehicle=f"{profile.name} (replay)", system_id=profile.system_id, lcm_url=url,
+                attachments=self._attachments(profile_path)))
+            capture = BusCapture(transport, writer, min_free_mb=50)
+            transport.subscribe(".*", None, self._on_message, raw=True)
+            capture.start()
+            transport.start()
+            for device in devices.values():
+                device.start()
+            started = time.monotonic()
+            launcher = Launcher(profile, grace_s=3.0, control=False, output=self.outputs, on_death=self._on_death,
+                                policy=RestartPolicy(initial_backoff_s=0.5, max_backoff_s=0.5, quick_death_s=1e9,
+                                                     give_up_after=1))
+            launcher.start()
+            self._wait_ready(devices, launcher)
+            republish = self._republished_channels(url)
+            startup_s = time.monotonic() - started
+            bar = ProgressBar(self.plan.duration_s, enabled=o.progress)
+            player = Player(self.plan.log, devices=devices, transport=transport, republish=republish,
+                            replayed_services=set(self.plan.services), start_ns=self.plan.start_ns,
+                            end_ns=self.plan.end_ns, rate=None if o.fast else o.rate, abort=self.abort,
+                            abort_reason=lambda: self._abort_reason, progress=bar.update)
+            try:
+                stats = player.run()
+            except RuntimeError as exc:
+                if isinstance(exc, ReplayStalled) and self._abort_reason:
+                    raise ReplayError(self._abort_reason) from None
+                raise ReplayError(str(exc)) from None
+            finally:
+                bar.close()
+            self._settle()
+            self._stopping = True
+            launcher.stop(timeout=10.0)
+            launcher = None
+            capture.stop()
+            s = capture.stats
+            capture = None
+            return ReplayResult(self.plan, self.out, stats, startup_s, self._output_count, s.written, s.dropped,
+                                {n: d.report() for n, d in devices.items()}, self.run_dir if keep else None)
+        except BaseException:
+            keep = True
+            raise
+        finally:
+            self._stopping = True
+            if launcher is not None:
+                launcher.stop(timeout=10.0)
+            if capture is not None:
+                capture.stop()
+            if transport is not None:
+                transport.stop()
+            for device in devices.values():
+                device.stop()
+            if not keep:
+                shutil.rmtree(self.run_dir, ignore_errors=True)
+
+
+def replay_config(log: Path | str) -> dict[str, Any]:
+    """The ``replay.toml`` attachment of a replay's output log ({} for a recorded log)."""
+    from u2sa_hw.recording.log_reader import LogFile
+
+    lf = LogFile(log)
+    for _ in lf.records():
+        break
+    data = lf.contents.attachments.get("replay.toml")
+    return tomllib.loads(data.decode()).get("replay", {}) if data else {}

@@ -1,0 +1,270 @@
+"""What a replay runs: the log's vehicle profile and configs, which service drives each device,
+the ``--set`` overrides, and the private run directory the services are started from.
+
+A log says everything about its run: ``vehicle.toml`` and ``config/<service>.toml`` are
+attachments, and every tapped device has a ``RAW.<device>`` channel. A service *claims* a
+device when the device name is
+
+1. the service's name,
+2. its config's ``device_name`` (serial sensors, CAN motors, GPIO drivers), or
+3. the ``name`` of an entry in one of its config's lists of tables (the PWM servo driver's
+   ``channels``, which tap each output under its own name).
+
+Each device must be claimed by exactly one service of the profile; a device nobody claims
+is left out (and said so), two claimants are an error.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import tomli_w
+
+from u2sa_hw.config import ConfigError, parse_text
+from u2sa_hw.recording.log_reader import LogFile, LogSummary
+from u2sa_hw.registry import resolve_kind
+
+RAW_KINDS = {"RawSerial": "serial", "RawCanFrame": "can", "RawI2c": "i2c", "RawGpioEdge": "gpio",
+             "RawGpioWrite": "gpio", "RawPwmWrite": "pwm"}
+
+
+class ReplayError(ValueError):
+    """A log cannot be replayed as asked; the message names the file or service and the fix."""
+
+
+@dataclass
+class DevicePlan:
+    """One device seen in the log."""
+
+    name: str
+    kind: str                      # serial, can, i2c, gpio, pwm
+    records: int
+    service: str = ""              # the service that claims it ("" when none)
+
+
+@dataclass
+class ServicePlan:
+    """One service the replay starts, with the config it is started with."""
+
+    name: str
+    kind: str
+    config: dict[str, Any]
+    devices: list[str] = field(default_factory=list)
+    overrides: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class ReplayPlan:
+    """Everything decided before anything starts."""
+
+    log: Path
+    summary: LogSummary
+    vehicle: dict[str, Any]                        # the [vehicle] table of the log's profile
+    services: dict[str, ServicePlan]
+    devices: dict[str, DevicePlan]
+    notes: list[str] = field(default_factory=list)  # what is left out, and why
+    start_ns: int = 0                              # the replayed window, log time (ns)
+    end_ns: int = 0
+
+    @property
+    def duration_s(self) -> float:
+        """Seconds of log time replayed."""
+        return max(0.0, (self.end_ns - self.start_ns) / 1e9)
+
+
+def claimed_devices(service: str, config: dict[str, Any]) -> set[str]:
+    """The device names *service* with *config* taps under (see the module docstring)."""
+    names = {service}
+    device_name = config.get("device_name")
+    if isinstance(device_name, str) and device_name.strip():
+        names.add(device_name.strip())
+    for value in config.values():
+        if isinstance(value, list):
+            names.update(v["name"] for v in value if isinstance(v, dict) and isinstance(v.get("name"), str))
+    return names
+
+
+def _toml(data: bytes, where: str) -> dict[str, Any]:
+    try:
+        return tomllib.loads(data.decode())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ReplayError(f"{where} is not valid TOML ({exc})") from None
+
+
+def read_profile(log: LogFile, vehicle: Path | None) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
+    """The profile (as a TOML dict) and each service's effective config (profile settings, then its file).
+
+    With *vehicle*, that profile and its config files are used instead of the log's attachments.
+    """
+    attachments = log.contents.attachments
+    if vehicle is not None:
+        try:
+            profile = _toml(vehicle.read_bytes(), str(vehicle))
+        except OSError as exc:
+            raise ReplayError(f"{vehicle}: cannot read ({exc.strerror})") from None
+        from u2sa_hw.vehicle import ProfileError, load_profile
+
+        try:
+            parsed = load_profile(vehicle)
+        except ProfileError as exc:
+            raise ReplayError(str(exc)) from None
+        files = {n: s.config_path.read_bytes() for n, s in parsed.services.items() if s.config_path.exists()}
+    elif "vehicle.toml" in attachments:
+        profile = _toml(attachments["vehicle.toml"], f"{log.path}: attachment vehicle.toml")
+        files = {name[len("config/"):-len(".toml")]: data for name, data in attachments.items()
+                 if name.startswith("config/") and name.endswith(".toml")}
+    else:
+        raise ReplayError(f"{log.path}: the log carries no vehicle.toml (it was recorded without a vehicle "
+                          "profile), so replay cannot tell which service drives each device; give the profile "
+                          "with --vehicle FILE")
+    configs: dict[str, dict[str, Any]] = {}
+    for name, table in (profile.get("services") or {}).items():
+        if not isinstance(table, dict):
+            continue
+        settings = table.get("settings") if isinstance(table.get("settings"), dict) else {}
+        config = dict(settings)
+        if name in files:
+            config.update(_toml(files[name], f"{log.path}: config of service '{name}'"))
+        configs[name] = config
+    return profile, configs
+
+
+def parse_overrides(items: list[str]) -> dict[str, dict[str, str]]:
+    """``["gps.uere_m=9", ...]`` -> ``{"gps": {"uere_m": "9"}}``; ReplayError on a malformed item."""
+    out: dict[str, dict[str, str]] = {}
+    for item in items:
+        target, sep, text = item.partition("=")
+        service, dot, name = target.strip().partition(".")
+        if not sep or not dot or not service or not name:
+            raise ReplayError(f"--set {item!r}: expected SERVICE.FIELD=VALUE, e.g. --set gps.uere_m=9")
+        out.setdefault(service, {})[name] = text.strip()
+    return out
+
+
+def typed_overrides(service: str, kind: str, texts: dict[str, str]) -> dict[str, Any]:
+    """The override texts of *service* parsed with its kind's declared field types."""
+    try:
+        fields = {f.name: f for f in resolve_kind(kind).config_fields()}
+    except (LookupError, ImportError) as exc:
+        raise ReplayError(f"service '{service}': cannot load kind '{kind}' ({exc})") from None
+    values: dict[str, Any] = {}
+    for name, text in texts.items():
+        f = fields.get(name)
+        if f is None:
+            raise ReplayError(f"--set {service}.{name}: '{kind}' has no config field '{name}' "
+                              f"(fields: {', '.join(sorted(fields))})")
+        try:
+            values[name] = parse_text(f, text)
+        except ConfigError as exc:
+            raise ReplayError(f"--set {service}.{name}={text}: {exc}") from None
+    return values
+
+
+def build_plan(path: Path | str, *, extra_services: list[str] = (), overrides: list[str] = (),
+               start_s: float = 0.0, end_s: float | None = None, vehicle: Path | str | None = None) -> ReplayPlan:
+    """Read the log once and decide what to replay (ReplayError says why something cannot be)."""
+    from u2sa_hw.recording.log_reader import LogError
+
+    try:
+        log = LogFile(path)
+    except LogError as exc:
+        raise ReplayError(str(exc)) from None
+    summary = log.scan()
+    if log.contents.problem:
+        raise ReplayError(f"{log.path}: {log.contents.problem}; repair it first with "
+                          f"u2sa log recover {log.path}, then replay the recovered file")
+    if not summary.messages:
+        raise ReplayError(f"{log.path}: the log holds no messages; nothing to replay")
+    profile, configs = read_profile(log, Path(vehicle) if vehicle else None)
+    services_table = profile.get("services") or {}
+    devices: dict[str, DevicePlan] = {}
+    for ch in summary.channels:
+        if not ch.channel.startswith("RAW."):
+            continue
+        name = ch.channel[4:]
+        kind = RAW_KINDS.get(ch.type_name, "")
+        dev = devices.get(name)
+        if dev is None:
+            devices[name] = DevicePlan(name, kind, ch.count)
+        else:
+            dev.records += ch.count
+            dev.kind = dev.kind or kind
+    plan = ReplayPlan(Path(path), summary, dict(profile.get("vehicle") or {}), {}, devices)
+    for dev in devices.values():
+        owners = sorted(n for n, cfg in configs.items() if dev.name in claimed_devices(n, cfg))
+        if len(owners) > 1:
+            raise ReplayError(f"{log.path}: device '{dev.name}' is claimed by services {', '.join(owners)}; "
+                              "give each service its own device_name")
+        if not owners:
+            plan.notes.append(f"RAW.{dev.name}: no service of the profile names device '{dev.name}' "
+                              "(as its name, device_name or a channels entry); not replayed")
+            continue
+        if not dev.kind:
+            plan.notes.append(f"RAW.{dev.name}: unknown raw type; not replayed")
+            continue
+        dev.service = owners[0]
+        _add_service(plan, owners[0], services_table, configs).devices.append(dev.name)
+    for name in extra_services:
+        if name not in services_table:
+            raise ReplayError(f"--services {name}: the log's profile has no service '{name}' "
+                              f"(services: {', '.join(services_table) or 'none'})")
+        _add_service(plan, name, services_table, configs)
+    for service, texts in parse_overrides(list(overrides)).items():
+        sp = plan.services.get(service)
+        if sp is None:
+            raise ReplayError(f"--set {service}.…: service '{service}' is not replayed "
+                              f"(replayed: {', '.join(plan.services) or 'none'}; add it with --services)")
+        sp.overrides = typed_overrides(service, sp.kind, texts)
+    if not plan.services:
+        raise ReplayError(f"{log.path}: nothing to replay: no RAW.<device> channel belongs to a service of the "
+                          "profile (record with record_raw = true in the driver configs) and no --services given")
+    first, last = summary.start_ns, summary.end_ns
+    plan.start_ns = first + int(max(0.0, start_s) * 1e9)
+    plan.end_ns = last if end_s is None else min(last, first + int(end_s * 1e9))
+    if plan.end_ns <= plan.start_ns:
+        raise ReplayError(f"--start {start_s:g} / --end {end_s}: empty window; the log lasts "
+                          f"{summary.duration_s:.1f} s")
+    return plan
+
+
+def _add_service(plan: ReplayPlan, name: str, table: dict[str, Any], configs: dict[str, dict[str, Any]]) -> ServicePlan:
+    sp = plan.services.get(name)
+    if sp is None:
+        kind = table[name].get("kind") if isinstance(table.get(name), dict) else None
+        if not isinstance(kind, str) or not kind:
+            raise ReplayError(f"{plan.log}: service '{name}' in the log's profile has no kind")
+        sp = plan.services[name] = ServicePlan(name, kind, dict(configs.get(name, {})))
+    return sp
+
+
+def write_run_profile(plan: ReplayPlan, run_dir: Path, *, lcm_url: str,
+                      changes: dict[str, dict[str, Any]]) -> Path:
+    """Write ``vehicle.toml`` and ``config/<service>.toml`` for the replay into *run_dir*.
+
+    Each config is the recorded one with *changes* (replay device addresses, record_raw off)
+    and then the ``--set`` overrides applied; the profile points every directory into
+    *run_dir* and the LCM URL at the private replay bus.
+    """
+    (run_dir / "config").mkdir(parents=True, exist_ok=True)
+    vehicle = {**plan.vehicle, "lcm_url": lcm_url, "config_dir": "config", "log_dir": "logs", "data_dir": "data"}
+    services: dict[str, Any] = {}
+    for name, sp in plan.services.items():
+        config = {**sp.config, **changes.get(name, {})}
+        if _declares(sp.kind, "record_raw"):
+            config["record_raw"] = False  # the replay's input is the log; re-tapping it only doubles traffic
+        config.update(sp.overrides)
+        (run_dir / "config" / f"{name}.toml").write_text(tomli_w.dumps(config))
+        services[name] = {"kind": sp.kind, "config": f"config/{name}.toml"}
+    path = run_dir / "vehicle.toml"
+    path.write_text(tomli_w.dumps({"vehicle": vehicle, "services": services}))
+    return path
+
+
+def _declares(kind: str, name: str) -> bool:
+    try:
+        return any(f.name == name for f in resolve_kind(kind).config_fields())
+    except (LookupError, ImportError):
+        return False
