@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import math
 import random
+import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator
@@ -20,7 +22,8 @@ from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus_client import BusClient
 from u2sa_hw.config import ConfigError
 from u2sa_hw.ports.tap import RX, TX, raw_channel
-from u2sa_hw.protocols.odrive_cansimple import AxisError05, AxisState, Cmd, OdriveError
+from u2sa_hw.protocols.odrive_cansimple import (AxisError05, AxisState, Cmd, Heartbeat, OdriveError, ProcedureResult,
+                                                arbitration_id, encode_heartbeat, make_frame)
 
 CIRCUMFERENCE = 2 * math.pi * 0.1  # the mock's default wheel radius
 NODES = (3, 4)
@@ -80,6 +83,69 @@ def test_error_names_decode_both_firmware_lines() -> None:
 def test_a_bad_config_is_refused_with_the_field_named(lcm_url: str, settings: dict, words: str) -> None:
     with pytest.raises(ConfigError, match=words):
         OdriveCanMotor("motors", settings=settings)
+
+
+class StubbornNode:
+    """A CANSimple node on a virtual bus that reports IDLE / NOT_CALIBRATED and ignores arming
+    until ``accept`` is set; it records when each Set_Axis_State arrived."""
+
+    def __init__(self, channel: str, node_id: int) -> None:
+        import can
+
+        self.bus = can.Bus(interface="virtual", channel=channel)
+        self.node_id = node_id
+        self.accept = False
+        self.state = AxisState.IDLE
+        self.arm_requests: list[float] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        next_hb = 0.0
+        while not self._stop.is_set():
+            msg = self.bus.recv(timeout=0.01)
+            if msg is not None and msg.arbitration_id == arbitration_id(self.node_id, Cmd.SET_AXIS_STATE):
+                self.arm_requests.append(time.monotonic())
+                if self.accept:
+                    self.state = AxisState.CLOSED_LOOP_CONTROL
+            if time.monotonic() >= next_hb:
+                next_hb = time.monotonic() + 0.05
+                result = ProcedureResult.SUCCESS if self.accept else ProcedureResult.NOT_CALIBRATED
+                self.bus.send(make_frame(self.node_id, Cmd.HEARTBEAT, encode_heartbeat(Heartbeat(0, self.state, result))))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.bus.shutdown()
+
+
+def test_arming_that_does_not_take_is_retried_with_growing_waits_and_reported(lcm_url: str) -> None:
+    channel = f"odrive-arm-{random.randint(0, 1 << 30)}"
+    node = StubbornNode(channel, 5)
+    svc = OdriveCanMotor("motors", settings={
+        "interface": "virtual", "channel": channel, "actuators": ["wheel"], "node_ids": [5], "directions": [1],
+        "wheel_radius_m": [0.1], "odometry": False, "arm_retry_s": 0.2, "silent_after_s": 1.0})
+    runner = threading.Thread(target=svc.run, daemon=True)
+    try:
+        svc.start()
+        runner.start()
+        wait_until(lambda: len(node.arm_requests) >= 4, timeout=20, message="four arming attempts")
+        gaps = [b - a for a, b in zip(node.arm_requests, node.arm_requests[1:])]
+        assert gaps == sorted(gaps), gaps  # the backoff doubles: each wait longer than the last
+        details = svc.health_details()
+        assert details["wheel.phase"] == "arming" and details["wheel.arm_failures"] >= 3
+        assert "not in closed loop" in svc.last_error and "NOT_CALIBRATED" in svc.last_error
+        assert svc.status == "degraded" and "wheel (node 5) not armed (IDLE)" in details["degraded_reason"]
+        node.accept = True
+        wait_until(lambda: svc.health_details()["wheel.phase"] == "armed", timeout=20, message="armed at last")
+        wait_until(lambda: svc.status == "ok", timeout=5, message="status ok once armed")
+    finally:
+        svc.stop()
+        runner.join(timeout=10)
+        svc.kill()
+        svc.transport.stop()
+        node.close()
 
 
 # ---------------------------------------------------------------- across processes -------------
@@ -204,8 +270,10 @@ def test_command_timeout_and_failsafe_go_neutral_and_estop_is_cleared_after(rig,
 
 
 def test_a_silent_node_is_reported_and_recovers_while_the_other_keeps_driving(rig) -> None:
-    r = rig(settings={"command_timeout_s": 0.5})
+    # the nodes send no cyclic estimates here: the driver polls them by RTR
+    r = rig(settings={"command_timeout_s": 0.5, "encoder_poll_hz": 25.0}, node={"encoder_hz": 0})
     r.wait_phases("armed", "armed")
+    r.probe.wait_states(5, message="odometry from polled encoder estimates")
     r.commander.hold(left=30.0, right=40.0)
     r.wait_wheels(0.6 * CIRCUMFERENCE, 0.8 * CIRCUMFERENCE)
     r.mock.call("left", "stop_answering", True)
