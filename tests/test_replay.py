@@ -1,0 +1,201 @@
+"""u2sa replay: a driver-level log recorded here (mock GPS and compass on ptys, the real drivers
+as processes with record_raw, the recorder's capture) is replayed into the real drivers through
+replay devices, compared with --compare, changed with --set, replayed twice, and refused when
+damaged."""
+
+from __future__ import annotations
+
+import os
+import random
+import subprocess
+import sys
+from pathlib import Path
+from typing import Iterator
+
+import pytest
+import tomli_w
+from conftest import REPO, wait_until
+
+from hil.compare import Sample, align, compare_stream, load_streams, values_equal
+from hil.progress import format_duration, progress_line
+from hil.replay_plan import ReplayError, build_plan, claimed_devices, parse_overrides
+from mock_devices.nmea_gps import NmeaGpsDevice
+from mock_devices.serial_compass import NmeaCompassDevice
+from mock_devices.vehicle_sim import SimVehicle
+from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo
+from u2sa_hw.services.recorder.capture import BusCapture
+from u2sa_hw.services.recorder.service import run_info
+from u2sa_hw.transport import Transport
+from u2sa_hw.vehicle import load_profile
+
+ORIGIN = {"lat": 29.1895, "lon": -81.0483, "alt": 10.0}
+U2SA = [sys.executable, "-m", "u2sa_hw.cli"]
+
+
+def _url() -> str:
+    return f"udpm://239.255.76.67:{random.randint(20000, 60000)}?ttl=0"
+
+
+def record_driver_log(workdir: Path, *, gps_epochs: int = 12, compass_epochs: int = 24) -> Path:
+    """Record a log with the GPS and compass drivers tapping their raw input; returns its path."""
+    url = _url()
+    dev = workdir / "dev"
+    profile_path = workdir / "vehicle.toml"
+    profile_path.write_text(tomli_w.dumps({
+        "vehicle": {"name": "testrover", "system_id": 7, "origin": ORIGIN, "lcm_url": url},
+        "services": {
+            "gps": {"kind": "gps_nmea", "settings": {"port": str(dev / "gps"), "record_raw": True}},
+            "compass": {"kind": "compass_serial", "settings": {"port": str(dev / "compass"), "record_raw": True,
+                                                               "baudrate": 4800, "device_name": "hdg"}},
+            "state_estimator": {"kind": "state_estimator"}}}))
+    profile = load_profile(profile_path)
+    vehicle = SimVehicle(origin_lat=ORIGIN["lat"], origin_lon=ORIGIN["lon"], origin_alt=ORIGIN["alt"])
+    vehicle.set_wheel_speed("left", 1.0)
+    vehicle.set_wheel_speed("right", 1.3)
+    vehicle.start()
+    gps = NmeaGpsDevice(vehicle, link_path=dev / "gps", rate_hz=5, seed=1)
+    compass = NmeaCompassDevice(vehicle, link_path=dev / "compass", rate_hz=10, sentences=("HDG", "XDR"), seed=2)
+    transport = Transport(url, name="test-recorder")
+    log_path = workdir / "run.mcap"
+    capture = BusCapture(transport, McapLogWriter(workdir, path=log_path, run=run_info(profile, url)))
+    capture.start()
+    transport.start()
+    gps.start()
+    compass.start()
+    env = dict(os.environ, PYTHONPATH=str(REPO), U2SA_LCM_URL=url)
+    procs = [subprocess.Popen([*U2SA, "service", name, "--vehicle", str(profile_path)], cwd=workdir, env=env,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for name in ("gps", "compass")]
+    try:
+        per = capture.stats.per_channel
+        wait_until(lambda: per.get("RAW.gps", 0) >= gps_epochs and per.get("RAW.hdg", 0) >= compass_epochs,
+                   timeout=30, message="raw GPS and compass input recorded")
+    finally:
+        gps.stop()
+        compass.stop()
+        for p in procs:
+            p.terminate()
+        for p in procs:
+            p.wait(timeout=10)
+        capture.stop()
+        transport.stop()
+        vehicle.stop()
+    return log_path
+
+
+@pytest.fixture(scope="module")
+def driver_log(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """One recorded driver-level log shared by the tests of this module."""
+    yield record_driver_log(tmp_path_factory.mktemp("recorded"))
+
+
+def replay_cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env.pop("U2SA_LCM_URL", None)
+    return subprocess.run([*U2SA, "replay", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=120)
+
+
+# ------------------------------------------------------------------ planning and pure parts --------
+def test_devices_map_to_the_services_that_name_them(driver_log: Path) -> None:
+    plan = build_plan(driver_log)
+    assert {d.name: d.service for d in plan.devices.values()} == {"gps": "gps", "hdg": "compass"}
+    assert sorted(plan.services) == ["compass", "gps"]
+    assert plan.devices["hdg"].kind == "serial" and plan.devices["hdg"].records > 0
+    assert claimed_devices("servo", {"channels": [{"name": "rudder", "address": "x"}]}) == {"servo", "rudder"}
+    with_estimator = build_plan(driver_log, extra_services=["state_estimator"], overrides=["gps.heading_sigma_deg=2"])
+    assert with_estimator.services["gps"].overrides == {"heading_sigma_deg": 2.0}
+    assert "state_estimator" in with_estimator.services
+
+
+@pytest.mark.parametrize("overrides, expected", [
+    (["gps.nope=1"], "has no config field 'nope'"),
+    (["gps.uere_m=fast"], "expects float"),
+    (["uere_m=9"], "expected SERVICE.FIELD=VALUE"),
+    (["radar.range=9"], "service 'radar' is not replayed"),
+])
+def test_bad_overrides_are_refused_with_the_reason(driver_log: Path, overrides: list[str], expected: str) -> None:
+    with pytest.raises(ReplayError, match=expected):
+        build_plan(driver_log, overrides=overrides)
+    assert parse_overrides(["gps.position_frame=GEODETIC"]) == {"gps": {"position_frame": "GEODETIC"}}
+
+
+def test_alignment_skips_a_cut_message_at_the_start_and_floats_compare_within_tolerance() -> None:
+    def s(x: float) -> Sample:
+        return Sample(0, "StateInformation", {"x": x, "sensor_name": "gps"})
+
+    rec = [s(v) for v in (0.5, 1.0, 2.0, 3.0)]
+    rep = [s(v) for v in (1.0, 2.0, 3.0 + 1e-9)]
+    assert align(rec, rep, edge=1, tolerance=1e-6) == (1, 0)
+    report = compare_stream("STATE_INFO [gps]", rec, rep, tolerance=1e-6, edge=1, rate=None, time_tolerance_s=1)
+    assert report.ok and report.matched == 3 and report.notes
+    strict = compare_stream("STATE_INFO [gps]", rec, rep, tolerance=1e-6, edge=0, rate=None, time_tolerance_s=1)
+    assert not strict.ok and strict.differing == 3
+    assert values_equal(float("nan"), float("nan"), 0.0) and not values_equal(1.0, 1.1, 0.01)
+    assert format_duration(3725) == "1:02:05" and "ETA 0:03" in progress_line(10, 20, 3.0)
+
+
+# ------------------------------------------------------------------ replay end to end -------------
+def test_fast_replay_reproduces_the_recorded_outputs(driver_log: Path, tmp_path: Path) -> None:
+    out = tmp_path / "replayed.mcap"
+    res = replay_cli(str(driver_log), "--fast", "--compare", "-o", str(out), cwd=tmp_path)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "result: no differences" in res.stdout
+    assert "STATE_INFO [gps]" in res.stdout and "STATE_INFO [compass]" in res.stdout
+    streams = load_streams(out, sources={"gps", "compass"})
+    assert len(streams["STATE_INFO [gps]"]) >= 10 and len(streams["STATE_INFO [compass]"]) >= 20
+    assert not (tmp_path / "replayed.mcap").with_suffix(".replay.mcap").exists()
+
+
+def test_a_changed_setting_is_reported_and_fails_the_comparison(driver_log: Path, tmp_path: Path) -> None:
+    res = replay_cli(str(driver_log), "--fast", "--compare", "--set", "gps.position_frame=GEODETIC",
+                     "-o", str(tmp_path / "geo.mcap"), cwd=tmp_path)
+    assert res.returncode == 1, res.stdout + res.stderr
+    rows = {line.split()[1].strip("[]"): line for line in res.stdout.splitlines() if line.startswith("STATE_INFO")}
+    assert rows["gps"].endswith("DIFFERENT") and rows["compass"].endswith("same")
+    assert "reference_frame: differs" in res.stdout and "1 of 2 streams differ" in res.stdout
+
+
+def test_two_replays_give_the_same_messages(driver_log: Path, tmp_path: Path) -> None:
+    outs = [tmp_path / "one.mcap", tmp_path / "two.mcap"]
+    for out in outs:
+        res = replay_cli(str(driver_log), "--fast", "-o", str(out), cwd=tmp_path)
+        assert res.returncode == 0, res.stdout + res.stderr
+        assert "replayed" in res.stdout and "x real time" in res.stdout
+    one, two = (load_streams(o, sources={"gps", "compass"}) for o in outs)
+    assert one.keys() == two.keys() == {"STATE_INFO [gps]", "STATE_INFO [compass]"}
+    for key in one:
+        assert [s.fields for s in one[key]] == [s.fields for s in two[key]], key
+
+
+def test_timed_replay_of_a_window_compares_with_timing(driver_log: Path, tmp_path: Path) -> None:
+    res = replay_cli(str(driver_log), "--rate", "2", "--start", "0.5", "--end", "2.5", "--compare",
+                     "--time-tolerance", "5", "--edge", "2", "-o", str(tmp_path / "w.mcap"), cwd=tmp_path)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "--rate 2" in res.stdout and "timing not checked" not in res.stdout
+    gps_row = next(line for line in res.stdout.splitlines() if line.startswith("STATE_INFO [gps]"))
+    assert "/" in gps_row.split()[-2]  # TIME p50/max filled in
+
+
+def test_damaged_logs_get_a_clear_error(driver_log: Path, tmp_path: Path) -> None:
+    data = driver_log.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    res = replay_cli(str(cut), "--fast", cwd=tmp_path)
+    assert res.returncode == 1 and "truncated" in res.stderr and "u2sa log recover" in res.stderr
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"\x00garbage" * 100)
+    res = replay_cli(str(junk), cwd=tmp_path)
+    assert res.returncode == 1 and "not an MCAP file" in res.stderr
+    bare = tmp_path / "bare.mcap"  # recorded without a vehicle profile: nothing says who drives RAW.gps
+    writer = McapLogWriter(tmp_path, path=bare, run=RunInfo())
+    for record in load_raw(driver_log):
+        writer.write(*record)
+    writer.close()
+    res = replay_cli(str(bare), cwd=tmp_path)
+    assert res.returncode == 1 and "--vehicle" in res.stderr, res.stderr
+    assert not list(Path(tmp_path).glob("*.replay.mcap"))
+
+
+def load_raw(path: Path) -> list[tuple[str, bytes, int]]:
+    from u2sa_hw.recording.log_reader import LogFile
+
+    return [(m.channel, m.data, m.log_time_ns) for m in LogFile(path).messages(r"RAW\..*")]
