@@ -120,7 +120,7 @@ class StubbornNode:
         self.bus.shutdown()
 
 
-def test_arming_that_does_not_take_is_retried_with_growing_waits_and_reported(lcm_url: str) -> None:
+def test_arming_that_does_not_take_is_retried_with_doubling_waits_and_reported(lcm_url: str) -> None:
     channel = f"odrive-arm-{random.randint(0, 1 << 30)}"
     node = StubbornNode(channel, 5)
     svc = OdriveCanMotor("motors", settings={
@@ -131,8 +131,9 @@ def test_arming_that_does_not_take_is_retried_with_growing_waits_and_reported(lc
         svc.start()
         runner.start()
         wait_until(lambda: len(node.arm_requests) >= 4, timeout=20, message="four arming attempts")
-        gaps = [b - a for a, b in zip(node.arm_requests, node.arm_requests[1:])]
-        assert gaps == sorted(gaps), gaps  # the backoff doubles: each wait longer than the last
+        with svc.lock:  # the wait before the next attempt doubles from arm_retry_s with every attempt
+            axis = svc.axes["wheel"]
+            assert axis.arm_attempts >= 4 and axis.backoff == pytest.approx(min(0.2 * 2 ** axis.arm_attempts, 5.0))
         details = svc.health_details()
         assert details["wheel.phase"] == "arming" and details["wheel.arm_failures"] >= 3
         assert "not in closed loop" in svc.last_error and "NOT_CALIBRATED" in svc.last_error
@@ -140,6 +141,7 @@ def test_arming_that_does_not_take_is_retried_with_growing_waits_and_reported(lc
         node.accept = True
         wait_until(lambda: svc.health_details()["wheel.phase"] == "armed", timeout=20, message="armed at last")
         wait_until(lambda: svc.status == "ok", timeout=5, message="status ok once armed")
+        assert svc.axes["wheel"].backoff == 0.2  # armed: the next trouble starts from arm_retry_s again
     finally:
         svc.stop()
         runner.join(timeout=10)
