@@ -35,8 +35,8 @@ import threading
 import time
 from dataclasses import dataclass
 
-WGS84_A = 6378137.0  # semi-major axis, m
-WGS84_E2 = 6.69437999014e-3  # first eccentricity squared
+from u2sa_hw import geo
+from u2sa_hw.vehicle import Origin
 GRAVITY = 9.80665  # standard gravity, m/s^2
 
 BOAT_SURGE_TAU_S = 2.0
@@ -48,36 +48,19 @@ MODELS = ("differential", "twin_thruster", "ackermann")
 SIDES = ("left", "right")
 
 
-def _radii(origin_lat: float) -> tuple[float, float]:
-    """WGS84 meridian (north) and prime-vertical (east) radii of curvature at *origin_lat* deg."""
-    s = math.sin(math.radians(origin_lat))
-    w = math.sqrt(1.0 - WGS84_E2 * s * s)
-    return WGS84_A * (1.0 - WGS84_E2) / w**3, WGS84_A / w
-
-
 def ned_to_geodetic(north: float, east: float, down: float, *, origin_lat: float, origin_lon: float,
                     origin_alt: float = 0.0) -> tuple[float, float, float]:
-    """(lat deg, lon deg, alt m) of a NED point (m) about the origin; local flat-earth projection."""
-    r_north, r_east = _radii(origin_lat)
-    lat = origin_lat + math.degrees(north / (r_north + origin_alt))
-    lon = origin_lon + math.degrees(east / ((r_east + origin_alt) * math.cos(math.radians(origin_lat))))
-    return lat, lon, origin_alt - down
+    """(lat deg, lon deg, alt m) of a NED point (m) about the origin: the runtime's own projection."""
+    return geo.ned_to_geodetic(north, east, down, origin=Origin(origin_lat, origin_lon, origin_alt))
 
 
 def geodetic_to_ned(lat: float, lon: float, alt: float, *, origin_lat: float, origin_lon: float,
                     origin_alt: float = 0.0) -> tuple[float, float, float]:
     """(north, east, down) in m about the origin of a geodetic point; inverse of ned_to_geodetic."""
-    r_north, r_east = _radii(origin_lat)
-    north = math.radians(lat - origin_lat) * (r_north + origin_alt)
-    # wrap the longitude difference so an origin near the antimeridian still works
-    dlon = (lon - origin_lon + 180.0) % 360.0 - 180.0
-    east = math.radians(dlon) * (r_east + origin_alt) * math.cos(math.radians(origin_lat))
-    return north, east, origin_alt - alt
+    return geo.geodetic_to_ned(lat, lon, alt, origin=Origin(origin_lat, origin_lon, origin_alt))
 
 
-def wrap_angle(angle: float) -> float:
-    """*angle* (rad) wrapped into [-pi, pi)."""
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+wrap_angle = geo.wrap_angle
 
 
 @dataclass(frozen=True)
