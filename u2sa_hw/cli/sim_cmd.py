@@ -1,0 +1,67 @@
+"""``u2sa sim``: the whole stack on simulated hardware, driving a mission."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+DEFAULT_VEHICLE = Path("examples/ground_vehicle/vehicle.toml")
+EXIT_FAILED, EXIT_TIMEOUT = 1, 3
+
+HELP = """\
+Start the mock devices of the vehicle profile around one simulated vehicle (it
+moves under the motor commands the mocks receive), run every service of the
+profile through the launcher, let the simulated pilot switch the RC mux to
+autonomous once the stack is ready, and follow the mission on one progress line
+(goal k of N, distance to it, speed, heading, mode).
+
+Exit status: 0 when the mission completes (for a looping mission: one full
+loop), 3 on timeout, 1 when a service keeps failing, a failsafe is raised or the
+vehicle leaves autonomous mode; the reason is printed. Written to --out:
+summary.json and summary.txt (time, distance, per-goal arrival times, largest
+cross-track error, closest approach to each obstacle, estimate error), track.csv,
+track.png (the driven track, the waypoints, the obstacles), services.log (every
+service's output), logs/ (one log per service), run/ (the simulation's copy of
+the profile, the mock device nodes), recording/ with --record. See
+docs/simulation.md.
+"""
+
+
+def register(sub: Any) -> None:
+    """Add the ``sim`` subcommand."""
+    p = sub.add_parser("sim", help="drive a mission with the whole stack on simulated hardware",
+                       description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter,
+                       epilog="example:\n  u2sa sim --vehicle examples/boat/vehicle.toml --out boat-out --record")
+    p.add_argument("--vehicle", metavar="PATH", type=Path, default=DEFAULT_VEHICLE,
+                   help=f"vehicle profile (default: {DEFAULT_VEHICLE})")
+    p.add_argument("--mission", metavar="FILE", type=Path, help="mission XML instead of the profile's mission_file")
+    p.add_argument("--out", metavar="DIR", type=Path, default=Path("sim-out"),
+                   help="where the summary, plot and logs go (default: sim-out)")
+    p.add_argument("--timeout", metavar="S", type=float,
+                   help="give up after S seconds from start (default: the profile's [simulation] timeout_s)")
+    p.add_argument("--record", action="store_true", help="record every channel with the recorder into DIR/recording")
+    p.add_argument("--lcm-url", metavar="URL", help="LCM URL of this run (default: the profile's; use another "
+                   "port to run beside other u2sa processes)")
+    p.add_argument("--can-port", type=int, metavar="PORT",
+                   help="UDP port of the simulated CAN bus (default: [simulation] can_udp_port)")
+    p.set_defaults(func=cmd_sim)
+
+
+def cmd_sim(args: Any) -> int:
+    """Run the simulation; CliError with the reason unless the mission completed."""
+    from u2sa_hw.cli import CliError
+    from u2sa_hw.sim.runner import SimOptions, SimRun
+
+    if args.timeout is not None and args.timeout <= 0:
+        raise CliError("sim: --timeout must be > 0 seconds", 2)
+    if not args.vehicle.exists():
+        raise CliError(f"sim: {args.vehicle}: vehicle profile not found (run from the repository root for the "
+                       "default, or pass --vehicle PATH)", 2)
+    options = SimOptions(vehicle=args.vehicle, out=args.out, mission=args.mission, timeout_s=args.timeout,
+                         record=args.record, lcm_url=args.lcm_url, can_port=args.can_port)
+    summary = SimRun(options).run()
+    if summary["result"] == "completed":
+        return 0
+    code = EXIT_TIMEOUT if summary["result"] == "timeout" else EXIT_FAILED
+    raise CliError(f"sim: {summary['result']}: {summary['reason']}", code)

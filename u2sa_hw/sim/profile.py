@@ -1,0 +1,122 @@
+"""The simulation's copy of a vehicle profile: the same services, pointed at the mock devices.
+
+A vehicle profile names the real device addresses (``/dev/u2sa/gps``, ``can0``, I2C bus 1,
+``/dev/gpiochip0``). In simulation every service whose device has a mock gets settings
+that point it at the mock instead (the mock launcher's ``overrides``). Rather than edit
+the user's files, :func:`write_sim_profile` writes a complete copy under the run
+directory: ``vehicle.toml`` with the overrides in each service's ``settings``, and a
+copy of each service's config file (a config file wins over the profile's settings, so
+the overrides go into the copy too). Paths the services read relative to the profile
+(mission and objects files) are made absolute, so the copy runs from anywhere, and what
+a ``u2sa param set`` changes during a simulation stays in the run directory.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import tomllib
+from pathlib import Path
+from typing import Any, Mapping
+
+import tomli_w
+
+from u2sa_hw.config import Configurator
+from u2sa_hw.service import BASE_CONFIG
+from u2sa_hw.vehicle import ProfileError, VehicleProfile
+
+PROFILE_RELATIVE_FIELDS = ("mission_file", "objects_file")   # relative to the profile's directory
+SIM_PROFILE_NAME = "vehicle.toml"
+_quiet = logging.getLogger("u2sa_hw.sim.profile")
+_quiet.addHandler(logging.NullHandler())
+_quiet.propagate = False
+
+
+def effective_config(profile: VehicleProfile, name: str) -> dict[str, Any]:
+    """What service *name* will run with: its kind's defaults, the profile settings, its config file.
+
+    The kind is imported through the service registry (as ``u2sa service`` does).
+    """
+    from u2sa_hw.registry import resolve_kind
+
+    spec = profile.service(name)
+    try:
+        cls = resolve_kind(spec.kind)
+    except LookupError as exc:
+        raise ProfileError(f"{profile.path} [services.{name}]: {exc}") from None
+    config = Configurator(spec.config_path, (*BASE_CONFIG, *cls.config_fields()), logger=_quiet,
+                          initial=spec.settings)
+    return {field_name: value for field_name, _type, value in config.enumerate()}
+
+
+def effective_configs(profile: VehicleProfile) -> dict[str, dict[str, Any]]:
+    """:func:`effective_config` of every enabled service."""
+    return {name: effective_config(profile, name) for name, spec in profile.services.items() if spec.enabled}
+
+
+def _absolute(value: Any, base: Path) -> Any:
+    if isinstance(value, str) and value.strip() and not Path(value).is_absolute():
+        return str((base / value).resolve())
+    return value
+
+
+def _read_config(path: Path) -> dict[str, Any]:
+    if not path.exists():
+        return {}
+    try:
+        return tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise ProfileError(f"{path}: cannot read this service config ({exc}); fix or delete it") from None
+
+
+def write_sim_profile(profile: VehicleProfile, *, run_dir: Path, overrides: Mapping[str, Mapping[str, Any]],
+                      log_dir: Path | None = None, lcm_url: str | None = None, mission: Path | None = None,
+                      record_dir: Path | None = None) -> Path:
+    """Write the simulation copy of *profile* into *run_dir*; returns the new ``vehicle.toml``.
+
+    *overrides* maps a service to the settings that point it at its mocks; *mission*
+    replaces every mission manager's ``mission_file``; *record_dir* adds (or enables) a
+    recorder service writing there; *lcm_url* isolates the run's bus.
+    """
+    if profile.path is None:
+        raise ProfileError("a simulation needs a vehicle profile file (--vehicle PATH)")
+    base = profile.path.resolve().parent
+    run_dir = run_dir.resolve()
+    config_dir = run_dir / "config"
+    config_dir.mkdir(parents=True, exist_ok=True)
+    data = copy.deepcopy(profile.raw)
+    vehicle = data.setdefault("vehicle", {})
+    vehicle.update(config_dir=str(config_dir), data_dir=str(run_dir / "data"),
+                   log_dir=str((log_dir or run_dir / "logs").resolve()))
+    if lcm_url:
+        vehicle["lcm_url"] = lcm_url
+    services = data.setdefault("services", {})
+    if record_dir is not None:
+        recorders = [n for n, s in profile.services.items() if s.kind == "recorder"]
+        for name in recorders or ["recorder"]:
+            table = services.setdefault(name, {"kind": "recorder"})
+            table["enabled"] = True
+            table["required"] = False
+            table.setdefault("settings", {})["directory"] = str(record_dir.resolve())
+    for name, table in services.items():
+        spec = profile.services.get(name)
+        changes: dict[str, Any] = dict(overrides.get(name, {}))
+        if spec is not None and spec.kind == "mission_manager" and mission is not None:
+            changes["mission_file"] = str(mission.resolve())
+        settings = dict(table.get("settings", {}))
+        original = _read_config(spec.config_path) if spec is not None else {}
+        for key in PROFILE_RELATIVE_FIELDS:
+            for values in (settings, original):
+                if key in values:
+                    values[key] = _absolute(values[key], base)
+        settings.update(changes)
+        table["settings"] = settings
+        copied = config_dir / f"{name}.toml"
+        original.update({k: v for k, v in changes.items() if k in original})
+        copied.write_text(tomli_w.dumps(original))
+        table["config"] = str(copied)
+    path = run_dir / SIM_PROFILE_NAME
+    header = (f"# Simulation copy of {profile.path.resolve()} written by u2sa sim / u2sa mock.\n"
+              "# Device addresses point at the mock devices; edit the original, not this file.\n")
+    path.write_text(header + tomli_w.dumps(data))
+    return path

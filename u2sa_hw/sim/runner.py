@@ -1,0 +1,312 @@
+"""``u2sa sim``: the mock devices, the whole stack through the launcher, a pilot, a mission.
+
+:class:`SimRun` does it in steps a benchmark can interleave with its own::
+
+    run = SimRun(SimOptions(vehicle=Path("examples/ground_vehicle/vehicle.toml"), out=Path("sim-out")))
+    run.start()                 # mocks, simulation profile, bus monitor, launcher (all services)
+    run.wait_ready()            # every service up, a pose estimate, a mission, the RC mux in manual
+    run.engage()                # the pilot flips the mode switch: autonomous
+    run.drive()                 # until the mission completes, a service fails, or the timeout
+    summary = run.finish()      # stop everything; summary.json/.txt, track.csv, track.png
+
+``run()`` chains them. The simulated vehicle lives in this process (with the mocks), so
+its true track is sampled here, at ``SAMPLE_HZ``.
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from u2sa_hw.launcher import Launcher, RestartPolicy
+from u2sa_hw.sim.profile import effective_configs, write_sim_profile
+from u2sa_hw.sim.progress import BusMonitor, BusSnapshot, ProgressLine, status_text
+from u2sa_hw.sim.scenario import load_scenario
+from u2sa_hw.sim.summary import RunRecord, TrackSample, summarise, summary_text, write_summary, write_track_csv
+from u2sa_hw.vehicle import load_profile
+
+SAMPLE_HZ = 10.0
+TICK_S = 0.2
+ERROR_MARKERS = (" ERROR ", " CRITICAL ", "Traceback (most recent call last)")
+
+
+class SimFailure(RuntimeError):
+    """The simulation cannot go on; ``result`` is "timeout" or "failed"."""
+
+    def __init__(self, reason: str, result: str = "failed") -> None:
+        super().__init__(reason)
+        self.result = result
+
+
+@dataclass
+class SimOptions:
+    """What ``u2sa sim`` was asked for."""
+
+    vehicle: Path
+    out: Path = Path("sim-out")
+    mission: Path | None = None
+    timeout_s: float | None = None     # None: the profile's [simulation] timeout_s
+    record: bool = False
+    lcm_url: str | None = None          # None: the profile's
+    can_port: int | None = None         # None: the profile's [simulation] can_udp_port
+    grace_s: float = 3.0
+
+
+class SimRun:
+    """One simulation run (see the module docstring)."""
+
+    def __init__(self, options: SimOptions, *, progress: ProgressLine | None = None) -> None:
+        self.options = options
+        self.progress = progress or ProgressLine()
+        self.out = options.out.resolve()
+        self.profile = load_profile(options.vehicle)
+        self.configs = effective_configs(self.profile)
+        self.scenario = load_scenario(self.profile, self.configs, mission=options.mission)
+        self.mocks: Any = None
+        self.monitor: BusMonitor | None = None
+        self.launcher: Launcher | None = None
+        self.record = RunRecord(vehicle=self.profile.name, mission=self.scenario.mission_name,
+                                looping=self.scenario.looping, goals=self.scenario.goals,
+                                obstacles=self.scenario.obstacles, t_start=time.monotonic())
+        self.deadline = math.inf
+        self._stop_sampling = threading.Event()
+        self._sampler: threading.Thread | None = None
+        self._services_log: Any = None
+        self._tmp_device_dir: Path | None = None
+        self._stopping = False
+
+    # -- steps ---------------------------------------------------------------------------
+    def start(self) -> None:
+        """Start the mocks, write the simulation profile, listen to the bus, launch the services."""
+        from mock_devices.launcher import MockLauncher
+        from mock_devices.sim_context import device_dir_for
+
+        for sub in ("run", "logs"):
+            shutil.rmtree(self.out / sub, ignore_errors=True)
+        run_dir = self.out / "run"
+        device_dir = device_dir_for(run_dir / "dev")
+        if not device_dir.is_relative_to(self.out):
+            self._tmp_device_dir = device_dir
+        self.mocks = MockLauncher(self.profile, device_dir=device_dir, service_configs=self.configs,
+                                  can_udp_port=self.options.can_port)
+        timeout = self.options.timeout_s or self.mocks.settings.timeout_s
+        self.deadline = self.record.t_start + timeout
+        self.mocks.start()
+        record_dir = self.out / "recording" if self.options.record else None
+        sim_profile_path = write_sim_profile(self.profile, run_dir=run_dir, overrides=self.mocks.overrides,
+                                             log_dir=self.out / "logs", lcm_url=self.options.lcm_url,
+                                             mission=self.scenario.mission_file, record_dir=record_dir)
+        sim_profile = load_profile(sim_profile_path)
+        self.monitor = BusMonitor(sim_profile.lcm_url)
+        self._say_start(sim_profile, timeout)
+        self._services_log = (self.out / "services.log").open("w", buffering=1)
+        self.launcher = Launcher(sim_profile, grace_s=self.options.grace_s, output=self._on_output,
+                                 policy=RestartPolicy(initial_backoff_s=0.5, give_up_after=3),
+                                 on_death=self._on_death)
+        self.launcher.start()
+        self._sampler = threading.Thread(target=self._sample, name="sim-sampler", daemon=True)
+        self._sampler.start()
+
+    def wait_ready(self) -> None:
+        """Wait until the stack can drive: SimFailure (timeout or failed) otherwise."""
+        while True:
+            snap = self._check()
+            missing = self._not_ready(snap)
+            if not missing:
+                up = len(self.launcher.processes)
+                self.progress.event(f"ready after {time.monotonic() - self.record.t_start:.1f} s: {up} services up, "
+                                    "pose estimate, mission loaded, RC in manual")
+                return
+            self._tick(f"[{time.monotonic() - self.record.t_start:5.1f} s] starting: " + "; ".join(missing),
+                       waiting_for="the stack to start: " + "; ".join(missing))
+
+    def engage(self) -> None:
+        """The pilot flips the RC mode switch to autonomous; waits for the mux to hand over."""
+        self.mocks.set_mode_switch(True)
+        self.progress.event("pilot: RC mode switch -> AUTONOMOUS")
+        while True:
+            snap = self._check()
+            if snap.autonomous_since is not None:
+                self.record.t_engage = snap.autonomous_since
+                return
+            self._tick(f"[{time.monotonic() - self.record.t_start:5.1f} s] waiting for RC_MODE autonomous",
+                       waiting_for="RC_MODE to report autonomous with autonomy enabled (see the rc service's "
+                                   "health: enable_blocked_by)")
+
+    def drive(self) -> None:
+        """Follow the mission until it completes (one full loop for a looping one)."""
+        seen_indices: set[int] = set()
+        reported = 0
+        total = len(self.scenario.goals)
+        while True:
+            snap = self._check()
+            if snap.autonomous_since is None and snap.rc is not None:
+                raise SimFailure(f"the vehicle left autonomous mode ({snap.rc.mode_name or snap.rc.mode}, "
+                                 f"autonomy enabled: {snap.rc.autonomy_enabled})")
+            before = [i for i, c in enumerate(snap.changes) if c.t < self.record.t_engage]
+            changes = snap.changes[before[-1] if before else 0:]   # from the goal current when engaging
+            for previous, change in zip(changes[reported:], changes[reported + 1:]):
+                if not previous.finished:
+                    at = change.t - self.record.t_engage
+                    self.progress.event(f"goal {previous.index + 1}/{total} {previous.uid} reached at {at:.1f} s")
+            reported = max(reported, len(changes) - 1)
+            st = snap.status
+            if st is not None and st.finished:
+                return
+            if st is not None:
+                if self.scenario.looping and seen_indices >= set(range(st.num_goals)) and st.current_index == 0:
+                    return   # one full loop of a looping mission
+                seen_indices.add(st.current_index)
+            distance = snap.nav.distance_to_goal if snap.nav is not None and snap.nav.distance_to_goal >= 0 else None
+            self._tick(status_text(snap, elapsed=time.monotonic() - self.record.t_engage, goal_total=total,
+                                   distance=distance), waiting_for=self._where(snap))
+
+    def run(self) -> dict[str, Any]:
+        """All steps; returns the summary (``result`` completed, timeout or failed)."""
+        try:
+            self.start()
+            self.wait_ready()
+            self.engage()
+            self.drive()
+            self.record.result, self.record.reason = "completed", ""
+        except SimFailure as exc:
+            self.record.result, self.record.reason = exc.result, str(exc)
+        except KeyboardInterrupt:
+            self.record.result, self.record.reason = "failed", "interrupted (Ctrl-C)"
+        return self.finish()
+
+    def finish(self) -> dict[str, Any]:
+        """Stop services and mocks; write the summary, the track and the plot; return the summary."""
+        self.record.t_end = time.monotonic()
+        self.progress.finish()
+        self.stop()
+        files = []
+        self.out.mkdir(parents=True, exist_ok=True)
+        files.append(write_track_csv(self.record.samples, self.out / "track.csv"))
+        try:
+            from u2sa_hw.sim.plot import plot_run
+
+            files.append(plot_run(self.out / "track.png", samples=self.record.samples, goals=self.scenario.goals,
+                                  obstacles=self.scenario.obstacles, t_engage=self.record.t_engage,
+                                  title=self._title()))
+        except ImportError as exc:   # matplotlib is the "sim" extra
+            self.progress.event(f"no plot: {exc} (pip install 'u2sa-hw[sim]')")
+        summary = summarise(self.record)
+        json_path, text_path = write_summary(summary, self.out, extra_files=files)
+        self.progress.event(summary_text(summary, files=[json_path, text_path, *files]))
+        return summary
+
+    def stop(self) -> None:
+        """Stop the services (SIGTERM, SIGKILL after the grace), the sampler, the monitor, the mocks."""
+        self._stopping = True
+        if self.launcher is not None:
+            self.launcher.stop(timeout=self.options.grace_s + 10)
+            self.record.services = {s.name: {"state": s.state, "restarts": s.restarts, "last_exit": s.last_exit}
+                                    for s in self.launcher.status()}
+        self._stop_sampling.set()
+        if self._sampler is not None:
+            self._sampler.join(timeout=2)
+        if self.monitor is not None:
+            self.record.changes = self.monitor.snapshot().changes
+            self.monitor.close()
+        if self.mocks is not None:
+            self.mocks.stop()
+        if self._services_log is not None:
+            self._services_log.close()
+            self._services_log = None
+        if self._tmp_device_dir is not None:
+            shutil.rmtree(self._tmp_device_dir, ignore_errors=True)
+
+    # -- internals -----------------------------------------------------------------------
+    def _say_start(self, sim_profile: Any, timeout: float) -> None:
+        s = self.scenario
+        self.progress.event(f"u2sa sim: {self.profile.name} ({self.mocks.settings.model}), mission '{s.mission_name}' "
+                            f"({len(s.goals)} goals{', looping' if s.looping else ''}), "
+                            f"{len([x for x in sim_profile.services.values() if x.enabled])} services, "
+                            f"timeout {timeout:g} s")
+        self.progress.event(f"  bus {self.monitor.transport.url}; output in {self.out}")
+        for line in self.mocks.describe():
+            self.progress.event(f"  mock {line}")
+
+    def _on_output(self, name: str, line: str) -> None:
+        log = self._services_log
+        if log is not None:
+            try:
+                log.write(f"{name:<10} | {line}\n")
+            except ValueError:
+                pass
+        if name != "launcher" and any(marker in line for marker in ERROR_MARKERS):
+            self.progress.event(f"  ! {name}: {line[line.find(' ERROR ') + 1:] if ' ERROR ' in line else line}")
+
+    def _on_death(self, status: Any, account: str) -> None:
+        if not self._stopping:
+            self.progress.event(f"  ! {status.name} {account}")
+
+    def _check(self) -> BusSnapshot:
+        """The bus state; SimFailure on a failsafe or a service the launcher gave up."""
+        assert self.monitor is not None and self.launcher is not None
+        snap = self.monitor.snapshot()
+        if self.launcher.failed:
+            failed = self.launcher.failed[0]
+            status = next(s for s in self.launcher.status() if s.name == failed)
+            raise SimFailure(f"service {failed} keeps failing ({status.reason or status.last_exit}); "
+                             f"its log: {self.out / 'logs' / (failed + '.log')}")
+        if self.launcher.finished.is_set():
+            raise SimFailure("every service stopped")
+        if snap.failsafe is not None:
+            raise SimFailure(f"FAILSAFE from {snap.failsafe.header.source or '?'}: {snap.failsafe.reason}")
+        return snap
+
+    def _tick(self, text: str, *, waiting_for: str) -> None:
+        self.progress.update(text)
+        if time.monotonic() >= self.deadline:
+            timeout = self.deadline - self.record.t_start
+            raise SimFailure(f"timeout after {timeout:g} s waiting for {waiting_for}", "timeout")
+        time.sleep(TICK_S)
+
+    def _not_ready(self, snap: BusSnapshot) -> list[str]:
+        missing = []
+        names = list(self.launcher.processes)
+        up = [n for n in names if n in snap.health and snap.health[n][0] not in ("starting", "stopping")]
+        if len(up) < len(names):
+            waiting = [n for n in names if n not in up]
+            missing.append(f"{len(up)}/{len(names)} services up (waiting: {', '.join(waiting)})")
+        if snap.estimate is None or not math.isfinite(snap.estimate[3]):
+            missing.append("no pose estimate" if snap.estimate is None else "estimate has no heading")
+        if snap.status is None or snap.status.finished or snap.status.num_goals == 0:
+            missing.append("no mission")
+        if snap.rc is None:
+            missing.append("no RC_MODE (the control system drives only in autonomous mode)")
+        elif snap.rc.mode != 0:
+            missing.append(f"RC mode {snap.rc.mode_name or snap.rc.mode}, not manual")
+        return missing
+
+    def _where(self, snap: BusSnapshot) -> str:
+        st = snap.status
+        if st is None:
+            return "MISSION_STATUS"
+        distance = f", {snap.nav.distance_to_goal:.1f} m away" if snap.nav is not None else ""
+        return f"goal {st.current_index + 1} of {len(self.scenario.goals)} ({st.current_uid}{distance})"
+
+    def _sample(self) -> None:
+        while not self._stop_sampling.wait(1.0 / SAMPLE_HZ):
+            truth = self.mocks.vehicle.snapshot()
+            snap = self.monitor.snapshot()
+            est = snap.estimate
+            fresh = est is not None and time.monotonic() - est[0] < 0.5
+            st = snap.status
+            self.record.samples.append(TrackSample(
+                t=time.monotonic(), north=truth.north, east=truth.east, yaw=truth.yaw, speed=truth.speed,
+                est_north=est[1] if fresh else None, est_east=est[2] if fresh else None,
+                goal_index=st.current_index if st is not None and not st.finished else None))
+            self.record.changes = snap.changes
+
+    def _title(self) -> str:
+        r = self.record
+        took = f" in {r.t_end - r.t_engage:.1f} s" if r.t_engage is not None else ""
+        return f"{r.vehicle}: mission '{r.mission}' {r.result}{took}"
