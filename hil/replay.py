@@ -54,7 +54,7 @@ class ReplayOptions:
     keep_run_dir: bool = False
     progress: bool | None = None          # None: when stderr is a terminal
     ready_timeout_s: float = 30.0
-    settle_s: float = 0.5                 # quiet time that ends the replay after the last input
+    settle_s: float = 1.0                 # quiet time that ends the replay after the last input
     lcm_url: str | None = None            # default: a random private port, ttl=0
 
 
@@ -133,7 +133,7 @@ class Replay:
         self.abort = threading.Event()
         self._abort_reason = ""
         self._stopping = False
-        self._health_pids: dict[str, int] = {}
+        self._health: dict[str, dict[str, str]] = {}   # service -> its latest health details
         self._output_count = 0
         self._last_output = time.monotonic()
 
@@ -166,7 +166,7 @@ class Replay:
         except Exception:  # noqa: BLE001 - a malformed health message is not our concern here
             return
         if msg.name in self.plan.services:
-            self._health_pids[msg.name] = msg.pid
+            self._health[msg.name] = {kv.key: kv.value for kv in msg.details}
 
     def _wait_ready(self, devices: dict[str, ReplayDevice], launcher: Launcher) -> None:
         deadline = time.monotonic() + self.options.ready_timeout_s
@@ -174,9 +174,11 @@ class Replay:
             if self.abort.is_set():
                 raise ReplayError(self._abort_reason)
             pids = {s.name: s.pid for s in launcher.status()}
-            waiting = [n for n in self.plan.services if n not in self._health_pids]
-            waiting += [f"{d.name} (device of {self.plan.devices[d.name].service})" for d in devices.values()
-                        if not d.ready(pids.get(self.plan.devices[d.name].service))]
+            waiting = [n for n in self.plan.services if n not in self._health]
+            for d in devices.values():
+                service = self.plan.devices[d.name].service
+                if not d.ready(pids.get(service), self._health.get(service, {})):
+                    waiting.append(f"{d.name} (device of {service})")
             if not waiting:
                 return
             if time.monotonic() > deadline:
@@ -201,7 +203,8 @@ class Replay:
         return {c for c in channels if not c.startswith(CONTRACT_PREFIX) and not c.startswith("RAW.")}
 
     def _settle(self) -> None:
-        """Wait until the services published nothing new for settle_s (at most 10 s)."""
+        """Wait until the services published nothing new for settle_s after the input ended (at most 10 s)."""
+        self._last_output = max(self._last_output, time.monotonic())
         give_up = time.monotonic() + 10.0
         while time.monotonic() - self._last_output < self.options.settle_s and time.monotonic() < give_up:
             if self.abort.is_set():

@@ -9,7 +9,7 @@ the recorded ``RAW.<device>`` records by the player (hil/player.py):
 - CAN, I2C and GPIO replay devices live in :mod:`hil.replay_buses`.
 
 Every device has ``config_changes()`` (the config fields that point its driver at it),
-``start()``/``stop()``, ``ready(pid)`` (the driver has opened its side), ``feed(record)``,
+``start()``/``stop()``, ``ready(pid, health)`` (the driver has opened its side), ``feed(record)``,
 ``pending()`` (input the driver has not taken yet: the pacing of ``--fast``) and
 ``report()`` (counts and divergences for the summary).
 """
@@ -49,8 +49,8 @@ class ReplayDevice(Protocol):
     def stop(self) -> None:
         """Close it."""
 
-    def ready(self, pid: int | None) -> bool:
-        """True once the driver (process *pid*) has opened its side."""
+    def ready(self, pid: int | None, health: dict[str, str]) -> bool:
+        """True once the driver (process *pid*, whose latest health details are *health*) has opened its side."""
 
     def feed(self, record: Any) -> None:
         """Play one recorded record (RX) or note one the driver should send (TX)."""
@@ -140,8 +140,12 @@ class ReplaySerialDevice:
                     pass
         self._master = self._slave = -1
 
-    def ready(self, pid: int | None) -> bool:
-        """The driver holds the pty slave open (pyserial flushes input on open: feed only after)."""
+    def ready(self, pid: int | None, health: dict[str, str]) -> bool:
+        """The driver has finished opening the pty: pyserial flushes the input while it opens, so
+        bytes fed earlier would be lost. A serial sensor says ``port = open`` in its health once
+        the open returned; for a driver without that detail, holding the slave open must do."""
+        if "port" in health:
+            return health["port"] == "open" and fd_open_by(pid, self.slave_name)
         return fd_open_by(pid, self.slave_name)
 
     def feed(self, record: Any) -> None:

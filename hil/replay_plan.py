@@ -31,6 +31,9 @@ RAW_KINDS = {"RawSerial": "serial", "RawCanFrame": "can", "RawI2c": "i2c", "RawG
              "RawGpioWrite": "gpio", "RawPwmWrite": "pwm"}
 
 
+HEALTH_INTERVAL_S = 0.2
+
+
 class ReplayError(ValueError):
     """A log cannot be replayed as asked; the message names the file or service and the fix."""
 
@@ -252,7 +255,8 @@ def write_run_profile(plan: ReplayPlan, run_dir: Path, *, lcm_url: str,
     vehicle = {**plan.vehicle, "lcm_url": lcm_url, "config_dir": "config", "log_dir": "logs", "data_dir": "data"}
     services: dict[str, Any] = {}
     for name, sp in plan.services.items():
-        config = {**sp.config, **changes.get(name, {})}
+        # health often, so the replay learns quickly that a driver has opened its device
+        config = {**sp.config, "health_interval_s": HEALTH_INTERVAL_S, **changes.get(name, {})}
         if _declares(sp.kind, "record_raw"):
             config["record_raw"] = False  # the replay's input is the log; re-tapping it only doubles traffic
         config.update(sp.overrides)
