@@ -49,6 +49,25 @@ def cannot_boot_reason() -> str | None:
         return f"{SYSTEMD} is not installed"
     if cgroup2_mount() is None:
         return "no cgroup2 (unified) hierarchy is mounted"
+    return code_hidden_reason()
+
+
+# The units run with PrivateTmp= and ProtectHome=, so code that lives below one of these is
+# invisible to the services (a shared venv points at this checkout and its .venv).
+HIDDEN_FROM_UNITS = ("/tmp/", "/var/tmp/", "/home/", "/root/", "/run/user/")
+
+
+def code_hidden_reason() -> str | None:
+    """Why the services under test could not see this checkout's code, or None."""
+    import sysconfig
+
+    import u2sa_hw
+
+    for what, path in (("the checkout", Path(u2sa_hw.__file__).resolve().parent.parent),
+                       ("the environment's site-packages", Path(sysconfig.get_paths()["purelib"]).resolve())):
+        if any(str(path).startswith(prefix) for prefix in HIDDEN_FROM_UNITS):
+            return (f"{what} is at {path}, which the units' PrivateTmp=/ProtectHome= hide from the services; "
+                    "run the tests from a checkout and venv outside /tmp, /var/tmp and home directories")
     return None
 
 

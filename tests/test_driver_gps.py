@@ -243,7 +243,7 @@ def test_gps_service_publishes_one_ned_fix_per_epoch_matching_the_vehicle(
     assert abs(north - vehicle.snapshot().north) < 3.0 and abs(east - vehicle.snapshot().east) < 3.0
 
     # the frame is read live: changed over the bus, the next epochs come out geodetic
-    reply = bus.set_config("gps", "position_frame", "GEODETIC")
+    reply = bus.set_config("gps", "position_frame", "GEODETIC", timeout=10)
     assert reply is not None and reply.ok, reply and reply.error
     wait_until(lambda: probe.states_since(0)[-1][0].reference_frame == "GEODETIC", message="a GEODETIC message")
     msg, truth = probe.states_since(0)[-1]

@@ -90,7 +90,7 @@ class BusClient:
             by_name[r.name] = r
         return [by_name[n] for n in sorted(by_name)]
 
-    def get_config(self, service: str, *, timeout: float = 2.0) -> t.ConfigResponse | None:
+    def get_config(self, service: str, *, timeout: float = 5.0) -> t.ConfigResponse | None:
         """The config of *service*, or None when it does not answer."""
         req = t.ConfigRequest()
         req.request_id = uuid.uuid4().hex
@@ -99,7 +99,7 @@ class BusClient:
                                 timeout=timeout, want=1, match=lambda m: m.name == service)
         return replies[0] if replies else None
 
-    def set_config(self, service: str, field_name: str, value: str, *, timeout: float = 2.0) -> t.ConfigResponse | None:
+    def set_config(self, service: str, field_name: str, value: str, *, timeout: float = 5.0) -> t.ConfigResponse | None:
         """Change one field of *service*; the response says ok or why not; None when no answer."""
         req = t.ConfigChange()
         req.request_id = uuid.uuid4().hex
