@@ -146,7 +146,7 @@ def build_pca9685(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     channels = spec.setting("channels")
     if not isinstance(channels, list) or not channels:
         raise spec.fail(f"service '{spec.service}' has no 'channels' to put on a PCA9685")
-    rewritten, chips = [], []
+    rewritten, chips, made = [], [], set()
     for index, table in enumerate(channels):
         table = dict(table)
         address = str(table.get("address", ""))
@@ -158,7 +158,8 @@ def build_pca9685(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
                 raise spec.fail(f"channels[{index}].address {address!r}: the chip address after the last ':' "
                                 "must be a number like 0x40") from None
             bus = ctx.i2c_bus(bus_text)
-            if not ctx.has_chip(bus, chip_address):
+            if (bus.socket_path, chip_address) not in made:   # channels of one chip share it
+                made.add((bus.socket_path, chip_address))
                 chips.append(ctx.add_chip(bus, construct(spec, Pca9685Chip, address=chip_address), device=spec.name))
             table["address"] = f"pca9685:{bus.address}:0x{chip_address:02x}"
         rewritten.append(table)
@@ -252,7 +253,7 @@ def build_can_motors(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
 
 
 CATALOG: dict[str, tuple[Builder, str]] = {
-    "nmea_gps": (build_serial, "NMEA 0183 GNSS receiver on a pty (service setting: port)"),
+    "nmea_gps": (build_serial, "NMEA 0183 GNSS receiver on a pty (port)"),
     "nmea_compass": (build_serial, "NMEA HDG/HDM/HDT compass on a pty (port)"),
     "os5000_compass": (build_serial, "OceanServer OS5000 compass on a pty (port)"),
     "mpu9250": (build_imu_chip, "MPU-9250 + AK8963 on the mock I2C bus (bus, address)"),

@@ -177,10 +177,6 @@ class MockContext:
         self._chip_owner[key] = device
         return bus.add(chip)
 
-    def has_chip(self, bus: MockI2cBus, address: int) -> bool:
-        """True when a chip already answers at *address* on *bus*."""
-        return (bus.socket_path, address) in self._chip_owner
-
     def gpio_chip(self, real: str) -> MockGpioChip:
         """The mock chip standing in for GPIO chip *real* ("/dev/gpiochip0" or "mock:<path>")."""
         real = real.strip()

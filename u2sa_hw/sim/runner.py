@@ -32,6 +32,7 @@ from u2sa_hw.vehicle import load_profile
 
 SAMPLE_HZ = 10.0
 TICK_S = 0.2
+MAX_INTERRUPTIONS = 3   # autonomy lost and re-engaged by the pilot at most this often
 ERROR_MARKERS = (" ERROR ", " CRITICAL ", "Traceback (most recent call last)")
 
 
@@ -132,11 +133,30 @@ class SimRun:
         while True:
             snap = self._check()
             if snap.autonomous_since is not None:
-                self.record.t_engage = snap.autonomous_since
+                if self.record.t_engage is None:
+                    self.record.t_engage = snap.autonomous_since
                 return
             self._tick(f"[{time.monotonic() - self.record.t_start:5.1f} s] waiting for RC_MODE autonomous",
                        waiting_for="RC_MODE to report autonomous with autonomy enabled (see the rc service's "
                                    "health: enable_blocked_by)")
+
+    def _reengage(self, snap: BusSnapshot) -> None:
+        """Autonomy dropped (the mux's side of it): the safety pilot re-arms through manual and hands back."""
+        rc = snap.rc
+        why = f"RC_MODE {rc.mode_name or rc.mode}, autonomy enabled {rc.autonomy_enabled}" if rc else "no RC_MODE"
+        self.record.interruptions.append({"at_s": round(time.monotonic() - self.record.t_engage, 2), "why": why})
+        if len(self.record.interruptions) > MAX_INTERRUPTIONS:
+            raise SimFailure(f"the vehicle left autonomous mode {len(self.record.interruptions)} times "
+                             f"(last: {why})")
+        self.progress.event(f"  ! autonomy lost ({why}): the pilot switches to manual and back")
+        self.mocks.set_mode_switch(False)
+        while True:
+            snap = self._check()
+            if snap.rc is not None and snap.rc.mode == 0:
+                break
+            self._tick(f"[{time.monotonic() - self.record.t_start:5.1f} s] waiting for RC_MODE manual",
+                       waiting_for="RC_MODE manual after autonomy was lost (" + why + ")")
+        self.engage()
 
     def drive(self) -> None:
         """Follow the mission until it completes (one full loop for a looping one)."""
@@ -145,9 +165,9 @@ class SimRun:
         total = len(self.scenario.goals)
         while True:
             snap = self._check()
-            if snap.autonomous_since is None and snap.rc is not None:
-                raise SimFailure(f"the vehicle left autonomous mode ({snap.rc.mode_name or snap.rc.mode}, "
-                                 f"autonomy enabled: {snap.rc.autonomy_enabled})")
+            if snap.autonomous_since is None:
+                self._reengage(snap)
+                continue
             before = [i for i, c in enumerate(snap.changes) if c.t < self.record.t_engage]
             changes = snap.changes[before[-1] if before else 0:]   # from the goal current when engaging
             for previous, change in zip(changes[reported:], changes[reported + 1:]):

@@ -65,6 +65,7 @@ class RunRecord:
     result: str = "failed"
     reason: str = ""
     services: dict[str, dict[str, Any]] = field(default_factory=dict)
+    interruptions: list[dict[str, Any]] = field(default_factory=list)
 
 
 def _rel(t: float | None, t0: float | None) -> float | None:
@@ -144,6 +145,7 @@ def summarise(record: RunRecord) -> dict[str, Any]:
         "estimate_error_m": {"mean": round(sum(errors) / len(errors), 3) if errors else None,
                              "p95": round(errors[int(0.95 * (len(errors) - 1))], 3) if errors else None,
                              "max": round(errors[-1], 3) if errors else None},
+        "autonomy_interruptions": record.interruptions,
         "services": record.services,
     }
 
@@ -173,6 +175,8 @@ def summary_text(summary: dict[str, Any], *, files: Iterable[Path] = ()) -> str:
     err = summary["estimate_error_m"]
     lines.append(f"  estimate vs truth    mean {_fmt(err['mean'], 'm', 2)}, p95 {_fmt(err['p95'], 'm', 2)}, "
                  f"max {_fmt(err['max'], 'm', 2)}")
+    for gap in summary["autonomy_interruptions"]:
+        lines.append(f"  autonomy lost        at {gap['at_s']:.1f} s ({gap['why']}), re-engaged by the pilot")
     restarts = {n: s.get("restarts", 0) for n, s in summary["services"].items() if s.get("restarts")}
     lines.append(f"  services             {len(summary['services'])} run, "
                  + (", ".join(f"{n} restarted {k}x" for n, k in restarts.items()) if restarts else "no restarts"))

@@ -1,0 +1,166 @@
+"""The mock launcher: a profile's [devices] built around one SimVehicle, read by the real drivers.
+
+Real parts throughout: pty links, the mock I2C bus and GPIO chip sockets, driver processes
+started by the launcher on the simulation copy of the profile, LCM multicast on a port of
+the test's own.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+import signal
+import subprocess
+import threading
+from pathlib import Path
+
+import pytest
+
+from conftest import U2SA, wait_until
+from mock_devices.launcher import MockLauncher
+from mock_devices.sim_context import DeviceError
+from u2sa_hw import channels as ch
+from u2sa_hw import lcmtypes as t
+from u2sa_hw.launcher import Launcher
+from u2sa_hw.ports.gpio_port import open_gpio
+from u2sa_hw.sim.profile import effective_configs, write_sim_profile
+from u2sa_hw.transport import Transport
+from u2sa_hw.vehicle import load_profile
+
+SENSORS = """
+[vehicle]
+name = "bench"
+origin = { lat = 29.1895, lon = -81.0483, alt = 10.0 }
+
+[services.gps]
+kind = "gps_nmea"
+settings = { port = "/dev/u2sa/gps" }
+
+[services.imu]
+kind = "imu_mpu9250"
+settings = { bus = "1", address = 0x69, rate_hz = 20.0, calibrate_samples = 10 }
+
+[simulation]
+start = { north = 5.0, east = -3.0, heading_deg = 90.0 }
+can_udp_port = 43000
+
+[devices.gps]
+mock = "nmea_gps"
+options = { horizontal_sigma_m = 0.1, rate_hz = 5 }
+
+[devices.imu]
+mock = "mpu9250"
+"""
+
+RC = """
+[vehicle]
+origin = { lat = 29.1895, lon = -81.0483 }
+
+[services.rc]
+kind = "rc_mux"
+settings = { chip = "/dev/gpiochip0", channels = "throttle=5,steering=6,mode=13", enable_line = 21 }
+
+[devices.rc]
+mock = "rc_receiver"
+"""
+
+
+def profile_file(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "vehicle.toml"
+    path.write_text(text)
+    return path
+
+
+def test_drivers_read_the_mocks_through_the_simulation_profile(tmp_path: Path, lcm_url: str) -> None:
+    profile = load_profile(profile_file(tmp_path, SENSORS))
+    mocks = MockLauncher(profile, device_dir=tmp_path / "dev", service_configs=effective_configs(profile))
+    assert mocks.overrides == {"gps": {"port": str(tmp_path / "dev" / "gps")},
+                               "imu": {"bus": f"mock:{tmp_path / 'dev' / 'i2c-1.sock'}"}}
+    sim_path = write_sim_profile(profile, run_dir=tmp_path / "run", overrides=mocks.overrides, lcm_url=lcm_url)
+    seen: dict[str, t.StateInformation] = {}
+    bus = Transport(lcm_url, name="test")
+    bus.subscribe(ch.STATE_INFO, t.StateInformation, lambda _c, m: seen.__setitem__(m.header.source, m))
+    bus.start()
+    mocks.start()
+    launcher = Launcher(load_profile(sim_path), grace_s=3.0, output=lambda _n, _l: None)
+    try:
+        launcher.start()
+        gps = wait_until(lambda: seen.get("gps"), timeout=30, message="STATE_INFO from the GPS driver")
+        assert math.hypot(gps.x - 5.0, gps.y + 3.0) < 1.0   # the mock's start position, NED about the origin
+        imu = wait_until(lambda: seen.get("imu"), timeout=30, message="STATE_INFO from the IMU driver")
+        assert imu.has("psi_dot")
+        chip = mocks.context.i2c_buses[str(tmp_path / "dev" / "i2c-1.sock")].chip(0x69)
+        assert chip.samples > 0   # the driver burst-read the chip the profile's address names
+    finally:
+        launcher.stop(timeout=10)
+        bus.stop()
+        mocks.stop()
+    assert not (tmp_path / "dev" / "gps").exists()
+
+
+def test_rc_mux_routes_the_motors_only_while_software_and_pilot_agree(tmp_path: Path) -> None:
+    profile = load_profile(profile_file(tmp_path, RC))
+    mocks = MockLauncher(profile, device_dir=tmp_path / "dev")   # settings only, no kind defaults
+    mocks.start()
+    vehicle, mux = mocks.vehicle, mocks.context.muxes[0][1]
+    try:
+        mocks.actuated.set_wheel_speed("left", 1.0)    # what the ODrive mocks do
+        mocks.actuated.set_wheel_speed("right", 1.0)
+        mocks.set_mode_switch(True)
+        wait_until(lambda: vehicle.snapshot().t > 0.3, message="simulation time to pass")
+        assert mux.selected == "rc" and vehicle.snapshot().speed == 0.0   # no autonomy enable: the pilot drives
+        enable = open_gpio(device="rc", chip=mocks.overrides["rc"]["chip"], outputs={21: 1})
+        wait_until(lambda: mux.selected == "autonomous", message="the mux to select autonomous")
+        wait_until(lambda: vehicle.snapshot().speed > 0.9, message="the motor commands to reach the vehicle")
+        mocks.actuated.hold(True)
+        wait_until(lambda: vehicle.snapshot().speed == 0.0, message="the held vehicle to stop")
+        mocks.actuated.hold(False)
+        wait_until(lambda: vehicle.snapshot().speed > 0.9, message="the released vehicle to drive again")
+        enable.close()   # the line falls to the board's pull-down: back to the pilot, sticks centred
+        wait_until(lambda: mux.selected == "rc" and vehicle.snapshot().speed == 0.0, message="the pilot side")
+    finally:
+        mocks.stop()
+
+
+def test_u2sa_mock_prints_the_addresses_and_cleans_up_on_ctrl_c(tmp_path: Path) -> None:
+    vehicle = profile_file(tmp_path, SENSORS)
+    run_dir = tmp_path / "sim"
+    proc = subprocess.Popen([*U2SA, "mock", "--vehicle", str(vehicle), "--run-dir", str(run_dir),
+                             "--can-port", str(random.randint(20000, 60000))],
+                            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
+    reader.start()
+    try:
+        wait_until(lambda: any(line.startswith("run the stack on it") for line in lines), timeout=30,
+                   message="u2sa mock to print its addresses")
+        text = "".join(lines)
+        assert f"{run_dir / 'dev' / 'gps'}  (pty for /dev/u2sa/gps)" in text
+        assert f"mock:{run_dir / 'dev' / 'i2c-1.sock'}" in text
+        assert (run_dir / "dev" / "gps").is_symlink()
+        sim_profile = load_profile(run_dir / "vehicle.toml")
+        assert sim_profile.services["gps"].settings["port"] == str(run_dir / "dev" / "gps")
+    finally:
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=15) == 0
+    assert not (run_dir / "dev" / "gps").exists()
+
+
+@pytest.mark.parametrize("change, error", [
+    (('mock = "nmea_gps"', 'mock = "sextant"'), r"\[devices.gps\]: mock = 'sextant' is not a mock kind; known: .*nmea_gps"),
+    (('[devices.gps]\n', '[devices.gps]\nservice = "gnss"\n'), r"service = 'gnss' is not a service of the profile"),
+    (("can_udp_port = 43000", "can_port = 43000"), r"\[simulation\]: unknown key\(s\) can_port"),
+    (('address = 0x69', 'address = 0x40'), None),
+    (('options = { horizontal_sigma_m = 0.1, rate_hz = 5 }', 'options = { sigma = 1 }'),
+     r"unknown option\(s\) sigma for NmeaGpsDevice; valid: .*horizontal_sigma_m"),
+])
+def test_bad_device_tables_name_the_table_and_the_fix(tmp_path: Path, change: tuple[str, str],
+                                                      error: str | None) -> None:
+    text = SENSORS.replace(*change)
+    if error is None:   # a second chip on the IMU's address
+        text += '\n[services.pan]\nkind = "pwm_servo"\nsettings = { channels = [ { name = "pan", ' \
+                'address = "pca9685:1:0x40", channel = 0 } ] }\n[devices.pan]\nmock = "pca9685"\n'
+        error = r"devices.pan: I2C address 0x40 on mock:.*i2c-1.sock is already taken by devices.imu"
+    profile = load_profile(profile_file(tmp_path, text))
+    with pytest.raises(DeviceError, match=error):
+        MockLauncher(profile, device_dir=tmp_path / "dev")
