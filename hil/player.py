@@ -8,8 +8,9 @@ Timing:
   a burst on silence (``epoch_gap_s``) sees the same bursts as long as X times its gap stays
   above a few milliseconds.
 - fast (``--fast``, ``rate=None``): no clock. A device's next record goes out as soon as its
-  driver has taken the previous one (the pty is empty), consecutive chunks of one device are
-  written together, and recorded silences are not reproduced. Output is the same wherever a
+  driver has taken the previous one (the pty is empty), each burst of a device (records closer
+  than its driver's ``epoch_gap_s``) is written at once, and silences between bursts are not
+  reproduced. Output is the same wherever a
   driver's result depends only on the bytes, which holds for the NMEA drivers as long as a
   new UTC time or a repeated sentence marks each burst's start (see docs/replay.md).
 
@@ -19,6 +20,7 @@ The player streams the log (a long one is never loaded whole) and stops early wh
 
 from __future__ import annotations
 
+import heapq
 import threading
 import time
 from dataclasses import dataclass
@@ -104,28 +106,53 @@ class Player:
                 if header_source(msg) not in self.replayed:
                     yield m.log_time_ns, f"bus:{m.channel}", m.data
 
-    def _merged(self) -> Iterator[tuple[int, str, Any]]:
-        """Fast mode: runs of one device's records joined where the device can merge them."""
-        held: tuple[int, str, Any] | None = None
-        for ev in self.events():
-            if held is not None:
-                dev = self.devices.get(held[1])
-                merge = getattr(dev, "merge", None)
-                if ev[1] == held[1] and merge is not None:
-                    joined = merge(held[2], ev[2])
-                    if joined is not None:
-                        held = (held[0], held[1], joined)
-                        continue
-                yield held
-            held = ev
-        if held is not None:
-            yield held
+    def _bursts(self) -> Iterator[tuple[int, str, Any]]:
+        """Fast mode: each device's bursts written whole.
+
+        A burst is a run of one device's records with recorded gaps shorter than the device's
+        ``burst_gap_s`` (its driver's ``epoch_gap_s``: no silence its driver could have noticed).
+        Records of other devices recorded in between go out after it, so no stall on another
+        device can put a silence into the middle of a burst. Items leave in the order of their
+        first record's time.
+        """
+        held: list[tuple[int, int, str, Any]] = []       # finished items, a heap by first time
+        open_: dict[str, list[Any]] = {}                 # device -> [first t, last t, payload, order]
+        order = 0
+        for t_ns, target, payload in self.events():
+            for dev in [d for d, b in open_.items() if t_ns - b[1] >= self._gap_ns(d)]:
+                b = open_.pop(dev)
+                heapq.heappush(held, (b[0], b[3], dev, b[2]))
+            merge = getattr(self.devices.get(target), "merge", None)
+            if merge is None:
+                heapq.heappush(held, (t_ns, order, target, payload))
+            else:
+                b = open_.get(target)
+                joined = merge(b[2], payload) if b is not None else None
+                if joined is not None:
+                    b[1], b[2] = t_ns, joined
+                else:
+                    if b is not None:
+                        heapq.heappush(held, (b[0], b[3], target, b[2]))
+                    open_[target] = [t_ns, t_ns, payload, order]
+            order += 1
+            horizon = min((b[0] for b in open_.values()), default=None)
+            while held and (horizon is None or held[0][0] < horizon):
+                first, _, dev, item = heapq.heappop(held)
+                yield first, dev, item
+        for dev, b in open_.items():
+            heapq.heappush(held, (b[0], b[3], dev, b[2]))
+        while held:
+            first, _, dev, item = heapq.heappop(held)
+            yield first, dev, item
+
+    def _gap_ns(self, device: str) -> int:
+        return int(getattr(self.devices.get(device), "burst_gap_s", 0.0) * 1e9)
 
     # -- playing ---------------------------------------------------------------------------------
     def run(self) -> PlayStats:
         """Play the window; returns the stats (ReplayStalled or the abort reason as RuntimeError on failure)."""
         started = time.monotonic()
-        stream = self._merged() if self.rate is None else self.events()
+        stream = self._bursts() if self.rate is None else self.events()
         for t_ns, target, payload in stream:
             if self.abort.is_set():
                 raise RuntimeError(self.abort_reason())

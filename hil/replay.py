@@ -37,6 +37,7 @@ from hil.replay_plan import DevicePlan, ReplayError, ReplayPlan, build_plan, wri
 
 CONTRACT_PREFIX = "U2SA_"
 DEFAULT_GROUP = "239.255.76.67"
+RECV_BUF_SIZE = 4 * 1024 * 1024   # --fast bursts outputs; the kernel caps it at net.core.rmem_max
 
 
 @dataclass
@@ -66,7 +67,8 @@ class ReplayResult:
     out: Path
     play: PlayStats
     startup_s: float
-    outputs: int                           # messages the replayed services published (non-contract)
+    outputs: int                           # messages from the replayed services that reached the recorder
+    lost: int                              # ... that the services published but the replay bus lost
     written: int                           # messages in the output log
     dropped: int
     devices: dict[str, dict[str, Any]]
@@ -79,8 +81,26 @@ class ReplayResult:
         mode = "--fast" if fast else f"--rate {rate:g}"
         return (f"replayed {played:.1f} s of {self.plan.log.name} ({mode}) in {self.play.wall_s:.1f} s "
                 f"({speed:.1f}x real time, {self.startup_s:.1f} s starting {len(self.plan.services)} services): "
-                f"{self.outputs} messages from {', '.join(self.plan.services)}; {self.written} written to "
-                f"{self.out}, {self.dropped} dropped")
+                f"{self.outputs} messages from {', '.join(self.plan.services)}"
+                + (f" ({self.lost} more lost on the replay bus)" if self.lost else "")
+                + f"; {self.written} written to {self.out}, {self.dropped} dropped")
+
+
+class ReplayTransport(Transport):
+    """A Transport whose subscriptions queue up to QUEUE_CAPACITY messages.
+
+    LCM keeps at most 30 undelivered messages per subscription by default and silently drops
+    the rest; a --fast replay delivers bursts faster than this process's handler thread can
+    always keep up with (it shares the interpreter with the player and the MCAP writer).
+    """
+
+    QUEUE_CAPACITY = 50_000
+
+    def subscribe(self, channel: str, base: type | None, callback: Any, *, raw: bool = False) -> Any:
+        """Subscribe as Transport does, with the deeper queue."""
+        sub = super().subscribe(channel, base, callback, raw=raw)
+        sub.handle.set_queue_capacity(self.QUEUE_CAPACITY)
+        return sub
 
 
 def private_url(plan: ReplayPlan) -> str:
@@ -89,16 +109,34 @@ def private_url(plan: ReplayPlan) -> str:
     while True:
         port = random.randint(20000, 60000)
         if f":{port}" not in recorded and port != 7667:
-            return f"udpm://{DEFAULT_GROUP}:{port}?ttl=0"
+            return f"udpm://{DEFAULT_GROUP}:{port}?ttl=0&recv_buf_size={RECV_BUF_SIZE}"
 
 
-def make_device(dev: DevicePlan, run_dir: Path) -> ReplayDevice:
-    """The replay device for *dev* (ReplayError for a kind that cannot be replayed)."""
+def make_device(dev: DevicePlan, run_dir: Path, config: dict[str, Any]) -> ReplayDevice:
+    """The replay device for *dev*, whose driver has *config* (ReplayError for a kind that cannot be replayed)."""
     if dev.kind == "serial":
-        return ReplaySerialDevice(name=dev.name, link_path=run_dir / "dev" / dev.name)
+        gap = config.get("epoch_gap_s", 0.05)
+        return ReplaySerialDevice(name=dev.name, link_path=run_dir / "dev" / dev.name,
+                                  burst_gap_s=float(gap) if isinstance(gap, (int, float)) else 0.05)
     from hil import replay_buses
 
-    return replay_buses.make_device(dev, run_dir)
+    return replay_buses.make_device(dev, run_dir, config)
+
+
+def raw_source(data: bytes) -> str:
+    """The header's source service straight from a message's bytes ('' if they hold none).
+
+    Every U2SA type's root header comes first (an extension's first field is its parent), so
+    after the 8-byte fingerprint: int32 system id, int64 timestamp, then the source string
+    (int32 length with its NUL, the bytes). Decoding whole messages here would cost the
+    replay's bus thread the time it needs to keep up with a --fast replay.
+    """
+    if len(data) < 24:
+        return ""
+    n = int.from_bytes(data[20:24], "big")
+    if n < 1 or 24 + n > len(data):
+        return ""
+    return data[24:24 + n - 1].decode("utf-8", "replace")
 
 
 class _Outputs:
@@ -134,7 +172,8 @@ class Replay:
         self._abort_reason = ""
         self._stopping = False
         self._health: dict[str, dict[str, str]] = {}   # service -> its latest health details
-        self._output_count = 0
+        self._received: dict[str, int] = {}    # service -> its outputs the replay bus delivered here
+        self._published: dict[str, int] = {}   # service -> its outputs by its own count (latest health)
         self._last_output = time.monotonic()
 
     # -- pieces ------------------------------------------------------------------------------
@@ -154,8 +193,11 @@ class Replay:
             if channel == "U2SA_HEALTH":
                 self._note_health(data)
             return
-        if not channel.startswith("RAW.") and channel != "LCM_SELF_TEST":
-            self._output_count += 1
+        if channel.startswith("RAW.") or channel == "LCM_SELF_TEST":
+            return
+        source = raw_source(data)
+        if source in self.plan.services:
+            self._received[source] = self._received.get(source, 0) + 1
             self._last_output = time.monotonic()
 
     def _note_health(self, data: bytes) -> None:
@@ -167,6 +209,8 @@ class Replay:
             return
         if msg.name in self.plan.services:
             self._health[msg.name] = {kv.key: kv.value for kv in msg.details}
+            self._published[msg.name] = sum(c.messages for c in msg.channels if c.direction == "out" and not
+                                            c.channel.startswith((CONTRACT_PREFIX, "RAW.")))
 
     def _wait_ready(self, devices: dict[str, ReplayDevice], launcher: Launcher) -> None:
         deadline = time.monotonic() + self.options.ready_timeout_s
@@ -242,11 +286,12 @@ class Replay:
             changes: dict[str, dict[str, Any]] = {}
             for dev in self.plan.devices.values():
                 if dev.service:
-                    devices[dev.name] = make_device(dev, self.run_dir)
+                    sp = self.plan.services[dev.service]
+                    devices[dev.name] = make_device(dev, self.run_dir, {**sp.config, **sp.overrides})
                     changes.setdefault(dev.service, {}).update(devices[dev.name].config_changes())
             profile_path = write_run_profile(self.plan, self.run_dir, lcm_url=url, changes=changes)
             profile = load_profile(profile_path)
-            transport = Transport(url, name="u2sa-replay")
+            transport = ReplayTransport(url, name="u2sa-replay")
             self.out.parent.mkdir(parents=True, exist_ok=True)
             writer = McapLogWriter(self.out.parent, path=self.out, run=RunInfo(
                 vehicle=f"{profile.name} (replay)", system_id=profile.system_id, lcm_url=url,
@@ -285,7 +330,9 @@ class Replay:
             capture.stop()
             s = capture.stats
             capture = None
-            return ReplayResult(self.plan, self.out, stats, startup_s, self._output_count, s.written, s.dropped,
+            received = sum(self._received.values())
+            lost = max(0, sum(self._published.values()) - received)
+            return ReplayResult(self.plan, self.out, stats, startup_s, received, lost, s.written, s.dropped,
                                 {n: d.report() for n, d in devices.items()}, self.run_dir if keep else None)
         except BaseException:
             keep = True

@@ -85,8 +85,10 @@ class ReplaySerialDevice:
 
     kind = "serial"
 
-    def __init__(self, *, name: str, link_path: Path | str, write_timeout_s: float = 10.0) -> None:
+    def __init__(self, *, name: str, link_path: Path | str, burst_gap_s: float = 0.05,
+                 write_timeout_s: float = 10.0) -> None:
         self.name = name
+        self.burst_gap_s = burst_gap_s  # records closer than this are one burst (the driver's epoch_gap_s)
         self.link_path = Path(link_path)
         self.write_timeout_s = write_timeout_s
         self._master = self._slave = -1
@@ -173,7 +175,7 @@ class ReplaySerialDevice:
         self.fed_chunks += 1
 
     @staticmethod
-    def merge(first: Any, second: Any, *, limit: int = 2048) -> Any | None:
+    def merge(first: Any, second: Any, *, limit: int = 4096) -> Any | None:
         """One RX record holding both chunks (``--fast`` feeds runs at once), or None when they cannot merge."""
         if first.direction != RX or second.direction != RX or first.length + second.length > limit:
             return None

@@ -102,4 +102,7 @@ def cmd_replay(args: Any) -> int:
                           rate=None if args.fast else args.rate, tolerance=args.tolerance, edge=args.edge,
                           time_tolerance_s=args.time_tolerance, ignore=tuple(args.ignore))
     print(report.format())
+    if result.lost:
+        print(f"note: {result.lost} messages of the replayed services were lost on the replay bus; "
+              "count differences may come from that rather than from the drivers")
     return 0 if report.ok else 1
