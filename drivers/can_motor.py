@@ -90,7 +90,7 @@ class CanMotorService(Actuator):
         self.started_at = time.monotonic()  # since when a controller never heard counts as silent
         self._reason = ""
         self._logged_drops: set[str] = set()
-        self.check_config(self.config.get)
+        self.check_settings(self.config.get)
         self._build()
 
     # -- config ------------------------------------------------------------------------------
@@ -100,12 +100,12 @@ class CanMotorService(Actuator):
     def validate_config(self, name: str, value: Any) -> str | None:
         """Refuse a change over the bus that would leave a config this driver cannot run with."""
         try:
-            self.check_config(lambda key: value if key == name else self.config.get(key))
+            self.check_settings(lambda key: value if key == name else self.config.get(key))
         except ConfigError as exc:
             return str(exc)
         return None
 
-    def check_config(self, get: Callable[[str], Any]) -> None:
+    def check_settings(self, get: Callable[[str], Any]) -> None:
         """Raise ConfigError (naming the field and the fix) unless the values *get* returns can run."""
         names, ids = get("actuators"), get(self.ID_FIELD)
         dirs, radii = get("directions"), get("wheel_radius_m")

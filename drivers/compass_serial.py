@@ -125,9 +125,9 @@ class SerialCompassDriver(SerialLineSensor):
         self.epochs = EpochCollector()
         self.reading: CompassReading | None = None
 
-    def validate_config(self) -> None:
+    def check_config(self) -> None:
         """The serial fields, plus the format, declination and sigmas."""
-        super().validate_config()
+        super().check_config()
         cfg = self.config
         if cfg.get("format").lower() not in FORMATS:
             raise ConfigError(f"service '{self.name}': format {cfg.get('format')!r} is not one of {', '.join(FORMATS)}")

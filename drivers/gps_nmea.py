@@ -45,9 +45,9 @@ class GpsNmeaDriver(SerialLineSensor):
         self.last_fix: GpsFix | None = None  # the latest epoch with a position
         self.talkers: set[str] = set()
 
-    def validate_config(self) -> None:
+    def check_config(self) -> None:
         """The serial fields, plus the frame, datum and sigma fields."""
-        super().validate_config()
+        super().check_config()
         cfg = self.config
         if cfg.get("position_frame").upper() not in POSITION_FRAMES:
             raise ConfigError(f"service '{self.name}': position_frame {cfg.get('position_frame')!r} is not one of "

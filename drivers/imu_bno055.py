@@ -75,7 +75,7 @@ class Bno055ImuDriver(I2cImuDriver):
         self.software = ""
         self._since_status = 0
 
-    def validate_config(self) -> None:
+    def check_config(self) -> None:
         """Mode, axis map and calibration threshold; ConfigError names the field."""
         c = self.config
         if c["mode"] not in MODES:

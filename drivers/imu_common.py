@@ -156,7 +156,7 @@ class I2cImuDriver(ProprioceptiveSensor):
     """Base of the I2C IMU drivers (see the module docstring).
 
     Subclasses declare an ``address`` config field, set ``DEFAULT_ADDRESS`` and write
-    ``init_chip`` and ``read_sample``; ``validate_config``, ``chip_health`` and ``healthy``
+    ``init_chip`` and ``read_sample``; ``check_config``, ``chip_health`` and ``healthy``
     are optional.
     """
 
@@ -185,7 +185,7 @@ class I2cImuDriver(ProprioceptiveSensor):
         self.port: ReconnectingPort[I2cPort] | None = None
 
     # -- for subclasses -------------------------------------------------------------------
-    def validate_config(self) -> None:
+    def check_config(self) -> None:
         """Check the chip-specific config; raise ConfigError naming the field and the fix."""
 
     def init_chip(self, port: RetryingI2c, *, first: bool) -> None:
@@ -220,7 +220,7 @@ class I2cImuDriver(ProprioceptiveSensor):
             raise ConfigError(f"{self.name}: config 'rate_hz' must be in (0, 1000], got {c['rate_hz']}")
         if int(c["retries"]) < 0 or int(c["reinit_after_errors"]) < 1:
             raise ConfigError(f"{self.name}: config needs retries >= 0 and reinit_after_errors >= 1")
-        self.validate_config()
+        self.check_config()
         self.where = f"0x{self.i2c_address:02x} on {self.bus if isinstance(self.bus, str) else f'/dev/i2c-{self.bus}'}"
         tap = self._publish_raw if c["record_raw"] else None
         self.port = ReconnectingPort(lambda: self._open(tap), device=self.name)

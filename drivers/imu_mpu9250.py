@@ -93,7 +93,7 @@ class Mpu9250ImuDriver(I2cImuDriver):
         self.calibration_state = "not started"
         self.calibration: RestCalibration | None = None
 
-    def validate_config(self) -> None:
+    def check_config(self) -> None:
         """Ranges, DLPF, chip, mounting and gravity mode; ConfigError names the field."""
         c = self.config
         try:

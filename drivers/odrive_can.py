@@ -131,9 +131,9 @@ class OdriveCanMotor(CanMotorService):
         self._by_node: dict[int, OdriveAxis] = {}
         self._make_axes()
 
-    def check_config(self, get: Callable[[str], Any]) -> None:
+    def check_settings(self, get: Callable[[str], Any]) -> None:
         """The shared fields, then firmware, speed limit, input mode and rates."""
-        super().check_config(get)
+        super().check_settings(get)
         if get("firmware") not in cs.FIRMWARES:
             raise self._fail(f"firmware must be one of {', '.join(cs.FIRMWARES)}, got {get('firmware')!r}")
         if get("input_mode") not in INPUT_MODES:

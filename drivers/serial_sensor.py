@@ -42,7 +42,7 @@ class SerialLineSensor(ProprioceptiveSensor):
 
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
-        self.validate_config()
+        self.check_config()
         self.lines = 0
         self.malformed = 0
         self.ignored = 0
@@ -56,7 +56,7 @@ class SerialLineSensor(ProprioceptiveSensor):
         self._problem = ""
 
     # -- config ------------------------------------------------------------------------------
-    def validate_config(self) -> None:
+    def check_config(self) -> None:
         """Refuse a config this driver cannot run with (ConfigError names the field and the fix)."""
         port, baud = self.config.get("port"), self.config.get("baudrate")
         if not port.strip():
@@ -76,7 +76,7 @@ class SerialLineSensor(ProprioceptiveSensor):
 
     def on_config_change(self, name: str, value: Any) -> None:
         """Check the new config; a port, baud rate, device name or gap change reopens the port."""
-        self.validate_config()
+        self.check_config()
         if name in _PORT_FIELDS:
             self._reopen = True
         if name == "record_raw" and value:

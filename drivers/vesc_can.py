@@ -86,9 +86,9 @@ class VescCanMotor(CanMotorService):
         self._by_id: dict[int, VescMotor] = {}
         self._make_vescs()
 
-    def check_config(self, get: Callable[[str], Any]) -> None:
+    def check_settings(self, get: Callable[[str], Any]) -> None:
         """The shared fields, then mode, scales, neutral and the stall thresholds."""
-        super().check_config(get)
+        super().check_settings(get)
         if get("mode") not in MODES:
             raise self._fail(f"mode must be one of {', '.join(MODES)}, got {get('mode')!r}")
         if get("neutral") not in NEUTRALS:

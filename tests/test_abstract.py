@@ -117,3 +117,26 @@ def test_sensors_publish_with_their_name(tmp_path: Path, lcm_url: str, bus: BusC
         for s in (compass, sonar):
             s.kill()
             s.transport.stop()
+
+
+def test_check_config_refuses_a_change_before_it_is_written(tmp_path: Path, lcm_url: str) -> None:
+    from u2sa_hw.config import ConfigError, field
+    from u2sa_hw.service import U2SAService
+
+    class RateService(U2SAService):
+        CONFIG = (field("rate_hz", 10.0), field("burst", 2))
+
+        def check_config(self) -> None:
+            if self.config["rate_hz"] * self.config["burst"] > 100:
+                raise ConfigError("rate_hz * burst must stay <= 100")
+
+    svc = RateService("rates", config_path=tmp_path / "rates.toml")
+    try:
+        assert svc.config.set("burst", 5)
+        before = (tmp_path / "rates.toml").read_bytes()
+        ok, reason = svc.config.try_set("rate_hz", 50.0)
+        assert not ok and "rate_hz * burst must stay <= 100" in reason
+        assert svc.config["rate_hz"] == 10.0 and (tmp_path / "rates.toml").read_bytes() == before
+        assert svc.config.set("rate_hz", 20.0)
+    finally:
+        svc.transport.stop()

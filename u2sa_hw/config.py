@@ -10,6 +10,7 @@ half-written file; an unwritable file makes ``set`` return False and logs why.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import tempfile
@@ -17,7 +18,7 @@ import threading
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, Callable, Iterable, Iterator
 
 import tomli_w
 
@@ -96,7 +97,7 @@ class Configurator:
         self.validator = validator
         self.fields: dict[str, ConfigField] = {f.name: f for f in fields}
         self._log = logger or logging.getLogger("u2sa_hw.config")
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()
         self._values: dict[str, Any] = {n: f.default for n, f in self.fields.items()}
         self._extra: dict[str, Any] = {}
         for name, value in (initial or {}).items():
@@ -137,6 +138,20 @@ class Configurator:
 
     def __getitem__(self, name: str) -> Any:
         return self.get(name)
+
+    @contextlib.contextmanager
+    def trial(self, name: str, value: Any) -> Iterator[None]:
+        """Let :meth:`get` return *value* for *name* inside the block, writing nothing.
+
+        For a validator that checks the whole config as it would be after a change.
+        """
+        with self._lock:
+            old = self._values[name]
+            self._values[name] = value
+            try:
+                yield
+            finally:
+                self._values[name] = old
 
     def enumerate(self) -> list[tuple[str, str, Any]]:
         """``(name, type name, value)`` for every declared field."""

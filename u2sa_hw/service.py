@@ -23,7 +23,7 @@ from typing import Any, Callable, ClassVar
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config import ConfigField, Configurator, field, to_text
+from u2sa_hw.config import ConfigError, ConfigField, Configurator, field, to_text
 from u2sa_hw.health import HOSTNAME, ProcessStats, build_health
 from u2sa_hw.messages import type_name
 from u2sa_hw.sdnotify import SystemdNotifier, watchdog_interval
@@ -146,11 +146,24 @@ class U2SAService:
         """Service-specific key/values for the health message (override)."""
         return {}
 
-    def validate_config(self, name: str, value: Any) -> str | None:
-        """Refuse a type-correct but unusable config change by returning the reason (override).
+    def check_config(self) -> None:
+        """Raise ConfigError (or ValueError) when the current config cannot work (override).
 
-        Called before a change is written, so a refused value never reaches the file.
+        Called by :meth:`validate_config` with a proposed change in place; a service may also
+        call it at start-up to refuse a bad file with a clear message.
         """
+
+    def validate_config(self, name: str, value: Any) -> str | None:
+        """The reason to refuse changing *name* to *value*, or None (called before writing).
+
+        The default runs :meth:`check_config` with the value tried in place; override for
+        checks that need more than the config.
+        """
+        with self.config.trial(name, value):
+            try:
+                self.check_config()
+            except (ConfigError, ValueError) as exc:
+                return str(exc)
         return None
 
     def on_config_change(self, name: str, value: Any) -> None:
