@@ -53,7 +53,7 @@ def test_example_ground_vehicle_completes_its_mission(tmp_path: Path, lcm_url: s
 def test_timeout_exits_3_with_what_it_was_waiting_for(tmp_path: Path, lcm_url: str) -> None:
     proc, out = run_sim(tmp_path, lcm_url, "--timeout", "4", timeout=100)
     assert proc.returncode == 3, proc.stdout + proc.stderr
-    assert "u2sa: sim: timeout: timeout after 4 s waiting for" in proc.stderr
+    assert "u2sa: sim: timeout after 4 s waiting for" in proc.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["result"] == "timeout" and summary["reason"].startswith("timeout after 4 s waiting for")
 
@@ -67,7 +67,7 @@ def test_a_service_that_keeps_failing_stops_the_run_with_its_name(tmp_path: Path
     proc, out = run_sim(tmp_path, lcm_url, "--vehicle", str(vehicle / "vehicle.toml"), "--timeout", "90",
                         timeout=110)
     assert proc.returncode == 1, proc.stdout + proc.stderr
-    assert "u2sa: sim: failed: service control keeps failing" in proc.stderr
+    assert "u2sa: sim failed: service control keeps failing" in proc.stderr
     assert "tank" in (out / "services.log").read_text()   # the service's own refusal, as it printed it
 
 

@@ -63,5 +63,7 @@ def cmd_sim(args: Any) -> int:
     summary = SimRun(options).run()
     if summary["result"] == "completed":
         return 0
-    code = EXIT_TIMEOUT if summary["result"] == "timeout" else EXIT_FAILED
-    raise CliError(f"sim: {summary['result']}: {summary['reason']}", code)
+    where = f"(summary: {args.out / 'summary.txt'})"
+    if summary["result"] == "timeout":
+        raise CliError(f"sim: {summary['reason']} {where}", EXIT_TIMEOUT)
+    raise CliError(f"sim failed: {summary['reason']} {where}", EXIT_FAILED)

@@ -32,6 +32,7 @@ from u2sa_hw.vehicle import load_profile
 
 SAMPLE_HZ = 10.0
 TICK_S = 0.2
+DEGRADED_GRACE_S = 20.0   # the pilot waits this long for degraded services (an IMU calibrating) to be ok
 MAX_INTERRUPTIONS = 3   # autonomy lost and re-engaged by the pilot at most this often
 ERROR_MARKERS = (" ERROR ", " CRITICAL ", "Traceback (most recent call last)")
 
@@ -99,7 +100,11 @@ class SimRun:
         self.deadline = self.record.t_start + timeout
         self.mocks.start()
         record_dir = self.out / "recording" if self.options.record else None
-        sim_profile_path = write_sim_profile(self.profile, run_dir=run_dir, overrides=self.mocks.overrides,
+        overrides = self.mocks.overrides
+        if record_dir is not None:   # the drivers tap their ports too, so the recording can be replayed
+            for name in (n for n, c in self.configs.items() if "record_raw" in c):
+                overrides.setdefault(name, {})["record_raw"] = True
+        sim_profile_path = write_sim_profile(self.profile, run_dir=run_dir, overrides=overrides,
                                              log_dir=self.out / "logs", lcm_url=self.options.lcm_url,
                                              mission=self.scenario.mission_file, record_dir=record_dir)
         sim_profile = load_profile(sim_profile_path)
@@ -119,9 +124,12 @@ class SimRun:
             snap = self._check()
             missing = self._not_ready(snap)
             if not missing:
-                up = len(self.launcher.processes)
-                self.progress.event(f"ready after {time.monotonic() - self.record.t_start:.1f} s: {up} services up, "
-                                    "pose estimate, mission loaded, RC in manual")
+                degraded = sorted(n for n, (status, _e, _t) in snap.health.items()
+                                  if n in self.launcher.processes and status != "ok")
+                self.progress.event(f"ready after {time.monotonic() - self.record.t_start:.1f} s: "
+                                    f"{len(self.launcher.processes)} services up"
+                                    + (f" ({', '.join(degraded)} still degraded)" if degraded else "")
+                                    + ", pose estimate, mission loaded, RC in manual")
                 return
             self._tick(f"[{time.monotonic() - self.record.t_start:5.1f} s] starting: " + "; ".join(missing),
                        waiting_for="the stack to start: " + "; ".join(missing))
@@ -176,11 +184,12 @@ class SimRun:
                     self.progress.event(f"goal {previous.index + 1}/{total} {previous.uid} reached at {at:.1f} s")
             reported = max(reported, len(changes) - 1)
             st = snap.status
-            if st is not None and st.finished:
+            looped = (st is not None and self.scenario.looping and seen_indices >= set(range(st.num_goals))
+                      and st.current_index == 0)   # one full loop of a looping mission
+            if st is not None and (st.finished or looped):
+                self.record.result, self.record.reason = "completed", ""
                 return
             if st is not None:
-                if self.scenario.looping and seen_indices >= set(range(st.num_goals)) and st.current_index == 0:
-                    return   # one full loop of a looping mission
                 seen_indices.add(st.current_index)
             distance = snap.nav.distance_to_goal if snap.nav is not None and snap.nav.distance_to_goal >= 0 else None
             self._tick(status_text(snap, elapsed=time.monotonic() - self.record.t_engage, goal_total=total,
@@ -193,7 +202,6 @@ class SimRun:
             self.wait_ready()
             self.engage()
             self.drive()
-            self.record.result, self.record.reason = "completed", ""
         except SimFailure as exc:
             self.record.result, self.record.reason = exc.result, str(exc)
         except KeyboardInterrupt:
@@ -296,6 +304,10 @@ class SimRun:
         if len(up) < len(names):
             waiting = [n for n in names if n not in up]
             missing.append(f"{len(up)}/{len(names)} services up (waiting: {', '.join(waiting)})")
+        degraded = [n for n in up if snap.health[n][0] != "ok"]
+        if degraded and time.monotonic() - self.record.t_start < DEGRADED_GRACE_S:
+            missing.append("degraded: " + ", ".join(f"{n} ({snap.health[n][1] or snap.health[n][0]})"
+                                                    for n in degraded))
         if snap.estimate is None or not math.isfinite(snap.estimate[3]):
             missing.append("no pose estimate" if snap.estimate is None else "estimate has no heading")
         if snap.status is None or snap.status.finished or snap.status.num_goals == 0:

@@ -1,0 +1,318 @@
+#!/usr/bin/env python3
+"""The whole stack on simulated hardware: sensor-to-actuator latency, CPU and memory, message rates.
+
+Two runs of the example ground vehicle (``u2sa sim`` as a library, each on a bus and CAN
+port of its own):
+
+1. **Mission.** The example mission, as ``make sim`` drives it. While the vehicle drives
+   (from the pilot's switch to the mission's end): the CPU % (of one core) and the largest
+   RSS of every service process, from psutil on the launcher's children (CPU = user +
+   system time used during the window / the window), their totals, the same for the
+   ``u2sa sim`` process that hosts the mocks and the simulator, and the rate of every
+   channel on the bus.
+2. **Latency.** From an NMEA sentence written to the GPS pty to the CAN frame it causes.
+   The rover is held still (wheels in the air: motor commands arrive, nothing moves),
+   sensor noise is off and the control system's integrators are off, so the motor
+   commands change only when an input does. Then the GPS mock's position is moved 2 m
+   east and back every second (each GPS epoch, 5 Hz, carries a new innovation for the
+   estimator). For every GPS epoch: t0 = when the mock wrote its first sentence (GGA) to
+   the pty (the mock's history); t1 = the first Set_Input_Vel frame the mock ODrives
+   received after t0 whose velocity differs from that node's previous one by more than
+   ``--threshold`` rev/s. Epochs without such a frame before the next epoch count as "no
+   effect". The stages between are timed from the same process's bus listener
+   (receive times): the GPS driver's STATE_INFO, the next STATE_ESTIMATE, the first
+   NAV_POINT and ACTUATOR_CMD that changed.
+
+Usage: ``python bench/stack.py [--vehicle PATH] [--latency-s 30] [--skip-mission]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import random
+import shutil
+import statistics
+import sys
+import tempfile
+import threading
+import time
+import tomllib
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import psutil
+import tomli_w
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+from u2sa_hw import channels as ch  # noqa: E402
+from u2sa_hw import lcmtypes as t  # noqa: E402
+from u2sa_hw.protocols import odrive_cansimple as cs  # noqa: E402
+from u2sa_hw.sim.progress import ProgressLine  # noqa: E402
+from u2sa_hw.sim.runner import SimOptions, SimRun  # noqa: E402
+from u2sa_hw.transport import Transport  # noqa: E402
+
+LATENCY_MISSION = """<?xml version="1.0"?>
+<mission name="straight ahead" loop="false">
+  <waypoint><name>ahead</name><x>25</x><y>0</y><threshold>1.0</threshold></waypoint>
+</mission>
+"""
+
+
+def options(vehicle: Path, out: Path) -> SimOptions:
+    port = random.randint(20000, 60000)
+    return SimOptions(vehicle=vehicle, out=out, lcm_url=f"udpm://239.255.76.67:{port}?ttl=0",
+                      can_port=random.randint(20000, 60000), timeout_s=600)
+
+
+def pct(values: list[float], q: float) -> float:
+    """The q-quantile (0..1) of *values*, nearest rank."""
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, max(0, round(q * (len(ordered) - 1))))]
+
+
+# -- phase 1: resources and rates ---------------------------------------------------------
+class ResourceMeter:
+    """CPU time and RSS of the launcher's children (and this process) over a window."""
+
+    def __init__(self, pids: dict[str, int]) -> None:
+        self.procs = {name: psutil.Process(pid) for name, pid in pids.items()}
+        self.procs["(u2sa sim: mocks, simulator)"] = psutil.Process()
+        self.rss: dict[str, int] = defaultdict(int)
+        self.cpu0 = {n: sum(p.cpu_times()[:2]) for n, p in self.procs.items()}
+        self.t0 = time.monotonic()
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._sample, daemon=True)
+        self._thread.start()
+
+    def _sample(self) -> None:
+        while not self._done.wait(1.0):
+            for name, proc in self.procs.items():
+                try:
+                    self.rss[name] = max(self.rss[name], proc.memory_info().rss)
+                except psutil.Error:
+                    pass
+
+    def stop(self) -> dict[str, tuple[float, float]]:
+        """name -> (CPU % of one core, largest RSS MB) over the window."""
+        wall = time.monotonic() - self.t0
+        result = {}
+        for name, proc in self.procs.items():
+            try:
+                cpu = sum(proc.cpu_times()[:2]) - self.cpu0[name]
+                self.rss[name] = max(self.rss[name], proc.memory_info().rss)
+            except psutil.Error:
+                cpu = float("nan")
+            result[name] = (100.0 * cpu / wall, self.rss[name] / 2**20)
+        self._done.set()
+        return result
+
+
+class RateCounter:
+    """Messages and bytes per channel on the bus."""
+
+    def __init__(self, url: str) -> None:
+        self.counts: dict[str, list[int]] = defaultdict(lambda: [0, 0])
+        self.transport = Transport(url, name="bench-rates")
+        self.transport.subscribe(".*", None, self._on, raw=True)
+        self.transport.start()
+        self.t0 = time.monotonic()
+
+    def _on(self, channel: str, data: bytes) -> None:
+        c = self.counts[channel]
+        c[0] += 1
+        c[1] += len(data)
+
+    def stop(self) -> tuple[float, dict[str, list[int]]]:
+        self.transport.stop()
+        return time.monotonic() - self.t0, dict(self.counts)
+
+
+def mission_phase(vehicle: Path, out: Path) -> None:
+    run = SimRun(options(vehicle, out / "mission"), progress=ProgressLine(interactive=False, plain_every_s=30))
+    try:
+        run.start()
+        run.wait_ready()
+        run.engage()
+        pids = {s.name: s.pid for s in run.launcher.status() if s.pid}
+        meter, rates = ResourceMeter(pids), RateCounter(run.monitor.transport.url)
+        run.drive()
+        usage, (window, counts) = meter.stop(), rates.stop()
+    finally:
+        summary = run.finish()
+    print(f"\n== mission: {summary['result']} in {summary['mission_time_s']} s; measured over {window:.1f} s of driving")
+    print(f"{'process':34} {'CPU % of 1 core':>16} {'RSS MB':>8}")
+    services = {n: v for n, v in usage.items() if not n.startswith("(")}
+    for name, (cpu, rss) in sorted(services.items(), key=lambda kv: -kv[1][0]):
+        print(f"{name:34} {cpu:16.1f} {rss:8.1f}")
+    print(f"{'all services':34} {sum(c for c, _ in services.values()):16.1f} "
+          f"{sum(r for _, r in services.values()):8.1f}")
+    for name, (cpu, rss) in usage.items():
+        if name.startswith("("):
+            print(f"{name:34} {cpu:16.1f} {rss:8.1f}")
+    print(f"\n{'channel':28} {'msg/s':>8} {'kB/s':>8}")
+    for channel, (n, size) in sorted(counts.items(), key=lambda kv: -kv[1][0]):
+        print(f"{channel:28} {n / window:8.1f} {size / window / 1000:8.2f}")
+    total = sum(n for n, _ in counts.values())
+    print(f"{'all channels':28} {total / window:8.1f} {sum(s for _, s in counts.values()) / window / 1000:8.2f}")
+
+
+# -- phase 2: latency ---------------------------------------------------------------------
+def quiet_copy(vehicle: Path, into: Path) -> Path:
+    """The vehicle with sensor noise off, control integrators off, one waypoint straight ahead."""
+    shutil.copytree(vehicle.parent, into, ignore=shutil.ignore_patterns("data", "logs"))
+    path = into / vehicle.name
+    profile = tomllib.loads(path.read_text())
+    noise_off = {"nmea_gps": {"horizontal_sigma_m": 0.0, "vertical_sigma_m": 0.0, "speed_sigma_mps": 0.0,
+                              "heading_sigma_deg": 0.0},
+                 "nmea_compass": {"heading_sigma_deg": 0.0, "attitude_sigma_deg": 0.0},
+                 "mpu9250": {"gyro_noise_dps": 0.0, "accel_noise_g": 0.0}}
+    for device in profile.get("devices", {}).values():
+        device.setdefault("options", {}).update(noise_off.get(device.get("mock"), {}))
+    path.write_text(tomli_w.dumps(profile))
+    control = into / "config" / "control.toml"
+    settings = tomllib.loads(control.read_text()) | {"heading_ki": 0.0, "speed_ki": 0.0}
+    control.write_text(tomli_w.dumps(settings))
+    (into / "mission.xml").write_text(LATENCY_MISSION)
+    return path
+
+
+class StageListener:
+    """Receive times of the messages between the GPS and the motors."""
+
+    def __init__(self, url: str) -> None:
+        self.info: list[float] = []
+        self.estimate: list[float] = []
+        self.nav: list[tuple[float, tuple[float, float]]] = []
+        self.cmd: list[tuple[float, str, float]] = []
+        self.transport = Transport(url, name="bench-stages")
+        self.transport.subscribe(ch.STATE_INFO, t.StateInformation, self._on_info)
+        self.transport.subscribe(ch.STATE_ESTIMATE, t.StateInformation,
+                                 lambda _c, _m: self.estimate.append(time.monotonic()))
+        self.transport.subscribe(ch.NAV_POINT, t.NavigationPoint,
+                                 lambda _c, m: self.nav.append((time.monotonic(), (m.x, m.y))))
+        self.transport.subscribe(ch.ACTUATOR_CMD, t.PercentageCommand,
+                                 lambda _c, m: self.cmd.append((time.monotonic(), m.base.actuator_name, m.percentage)))
+        self.transport.start()
+
+    def _on_info(self, _c: str, msg: t.StateInformation) -> None:
+        if msg.header.source == "gps":
+            self.info.append(time.monotonic())
+
+
+def first_after(times: list[float], t0: float) -> float | None:
+    return next((x for x in times if x > t0), None)
+
+
+def first_changed_command(cmds: list[tuple[float, str, float]], after: float) -> float | None:
+    """Receive time of the first ACTUATOR_CMD after *after* that differs from its actuator's previous one."""
+    last: dict[str, float] = {}
+    for tc, name, value in cmds:
+        if tc > after and name in last and abs(value - last[name]) > 1e-6:
+            return tc
+        last[name] = value
+    return None
+
+
+def set_input_vels(nodes: list[Any]) -> dict[int, list[tuple[float, float]]]:
+    """node id -> [(t, rev/s)] of the Set_Input_Vel frames each mock ODrive received."""
+    out: dict[int, list[tuple[float, float]]] = {}
+    for node in nodes:
+        rows = []
+        for rec in node.history:
+            if rec.direction == "rx" and not rec.message.is_remote_frame:
+                node_id, cmd = cs.split_arbitration_id(rec.message.arbitration_id)
+                if cmd == cs.Cmd.SET_INPUT_VEL:
+                    rows.append((rec.t, cs.decode_floats(bytes(rec.message.data), 2)[0]))
+        out[node.node_id] = rows
+    return out
+
+
+def latency_phase(vehicle: Path, out: Path, *, seconds: float, threshold: float) -> None:
+    work = Path(tempfile.mkdtemp(prefix="u2sa-bench-"))
+    run = SimRun(options(quiet_copy(vehicle, work / "vehicle"), out / "latency"),
+                 progress=ProgressLine(interactive=False, plain_every_s=60))
+    try:
+        run.start()
+        run.mocks.actuated.hold(True)
+        gps = run.mocks.device("gps").parts[0]
+        offset = {"east": 0.0}
+        solve = gps.solve
+        gps.solve = lambda truth: solve(dataclasses.replace(truth, east=truth.east + offset["east"]))
+        run.wait_ready()
+        run.engage()
+        stages = StageListener(run.monitor.transport.url)
+        time.sleep(5.0)   # the estimate and the commands settle
+        start = time.monotonic()
+        while time.monotonic() - start < seconds:
+            offset["east"] = 2.0 - offset["east"]
+            time.sleep(1.0)
+        end = time.monotonic()
+        stages.transport.stop()
+        epochs = [line.t for line in gps.history if line.text[3:6] == "GGA" and start <= line.t <= end]
+        vels = set_input_vels(list(run.mocks.context.can_nodes.values()))
+    finally:
+        run.record.result, run.record.reason = "stopped", "latency benchmark: the vehicle was held still"
+        run.finish()
+        shutil.rmtree(work, ignore_errors=True)
+    totals, per_stage, missed, effects = [], defaultdict(list), 0, []
+    for t0, t_next in zip(epochs, epochs[1:] + [end]):
+        t1, size = None, 0.0
+        for rows in vels.values():
+            before = [v for (t, v) in rows if t <= t0]
+            if not before:
+                continue
+            hit = next(((t, abs(v - before[-1])) for (t, v) in rows if t0 < t < t_next and abs(v - before[-1]) > threshold),
+                       None)
+            if hit and (t1 is None or hit[0] < t1):
+                t1, size = hit
+        if t1 is None:
+            missed += 1
+            continue
+        totals.append(t1 - t0)
+        effects.append(size)
+        t_info = first_after(stages.info, t0)
+        t_est = first_after(stages.estimate, t_info) if t_info else None
+        t_nav = next((tn for (tn, _p), (_tp, prev) in zip(stages.nav[1:], stages.nav) if t_est and tn > t_est
+                      and _p != prev), None)
+        t_cmd = first_changed_command(stages.cmd, t_nav) if t_nav else None
+        for name, a, b in (("NMEA -> STATE_INFO (gps driver)", t0, t_info),
+                           ("STATE_INFO -> STATE_ESTIMATE (estimator)", t_info, t_est),
+                           ("STATE_ESTIMATE -> NAV_POINT (planner)", t_est, t_nav),
+                           ("NAV_POINT -> ACTUATOR_CMD (control)", t_nav, t_cmd),
+                           ("ACTUATOR_CMD -> CAN frame (odrive driver)", t_cmd, t1)):
+            if a is not None and b is not None and b >= a:
+                per_stage[name].append(b - a)
+    print(f"\n== latency: {len(epochs)} GPS epochs over {seconds:g} s, {len(totals)} with an effect on the motors, "
+          f"{missed} without (threshold {threshold:g} rev/s; smallest effect seen {min(effects, default=0):.4f})")
+    if totals:
+        print(f"{'NMEA written -> Set_Input_Vel received':44} p50 {1e3 * pct(totals, 0.5):6.1f} ms   "
+              f"p99 {1e3 * pct(totals, 0.99):6.1f} ms   max {1e3 * max(totals):6.1f} ms")
+    for name, values in per_stage.items():
+        print(f"  {name:42} p50 {1e3 * pct(values, 0.5):6.1f} ms   p99 {1e3 * pct(values, 0.99):6.1f} ms"
+              f"   mean {1e3 * statistics.fmean(values):6.1f} ms")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--vehicle", type=Path, default=REPO / "examples" / "ground_vehicle" / "vehicle.toml")
+    parser.add_argument("--out", type=Path, default=Path(tempfile.gettempdir()) / "u2sa-bench-stack")
+    parser.add_argument("--latency-s", type=float, default=30.0, help="seconds of GPS steps (default 30)")
+    parser.add_argument("--threshold", type=float, default=2e-3, help="rev/s change that counts as an effect")
+    parser.add_argument("--skip-mission", action="store_true")
+    parser.add_argument("--skip-latency", action="store_true")
+    args = parser.parse_args()
+    print(f"u2sa-hw stack benchmark: {args.vehicle}, {psutil.cpu_count()} CPUs, "
+          f"load average {', '.join(f'{x:.1f}' for x in psutil.getloadavg())}")
+    if not args.skip_mission:
+        mission_phase(args.vehicle, args.out)
+    if not args.skip_latency:
+        latency_phase(args.vehicle, args.out, seconds=args.latency_s, threshold=args.threshold)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
