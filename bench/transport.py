@@ -22,7 +22,7 @@ import time
 import lcm
 
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.transport import Transport
+from u2sa_hw.transport import DEFAULT_QUEUE_CAPACITY, Transport
 
 CHANNEL = "BENCH_STATE"
 
@@ -52,8 +52,10 @@ def receiver(url: str, mode: str, count: int, timeout: float) -> None:
 
     if mode == "raw":
         lc = lcm.LCM(url)
+        # Raw LCM gets the same subscription queue as u2sa's Transport (LCM's default is 30).
         # The send time travels in the header's timestamp_us slot (bytes 12..20 after the fingerprint+system id).
-        lc.subscribe(CHANNEL, lambda _c, data: note(struct.unpack_from(">q", data, 12)[0]))
+        sub = lc.subscribe(CHANNEL, lambda _c, data: note(struct.unpack_from(">q", data, 12)[0]))
+        sub.set_queue_capacity(DEFAULT_QUEUE_CAPACITY)
         print("READY", flush=True)
         while not done.is_set() and time.monotonic() - last[0] < timeout:
             lc.handle_timeout(100)

@@ -23,6 +23,10 @@ import lcm
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 
 DEFAULT_LCM_URL = "udpm://239.255.76.67:7667?ttl=0"
+# LCM queues at most 30 messages per subscription by default and drops the rest without a
+# word; a burst (a log replay, a recorder catching up, 50 Hz from several sensors while the
+# handler thread is busy) needs more.
+DEFAULT_QUEUE_CAPACITY = 10_000
 LCM_URL_ENV = "U2SA_LCM_URL"
 
 Callback = Callable[[str, Any], None]
@@ -115,16 +119,19 @@ class Transport:
         return True
 
     # -- subscribing --------------------------------------------------------------
-    def subscribe(self, channel: str, base: type | None, callback: Callback, *, raw: bool = False) -> _Subscription:
+    def subscribe(self, channel: str, base: type | None, callback: Callback, *, raw: bool = False,
+                  queue_capacity: int = DEFAULT_QUEUE_CAPACITY) -> _Subscription:
         """Deliver messages on *channel* (an exact name, or a regex) to ``callback(channel, msg)``.
 
         *base* is the channel's base type: known extensions decode to their own type, unknown
         ones as *base*. With ``raw=True`` the callback gets the bytes undecoded. Callbacks run
         on the handler thread; an exception in one is logged and counted, never raised.
+        *queue_capacity* is how many messages LCM holds for this subscription before dropping.
         """
         sub = _Subscription(channel, base, callback, raw)
         sub.handle = self._lc.subscribe(channel if _is_regex(channel) else re.escape(channel),
                                         lambda ch, data, s=sub: self._dispatch(s, ch, data))
+        sub.handle.set_queue_capacity(queue_capacity)
         with self._subs_lock:
             self._subs.append(sub)
         return sub
