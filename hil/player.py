@@ -89,8 +89,8 @@ class Player:
                 break
             if m.channel.startswith("RAW."):
                 device = m.channel[4:]
-                if device not in self.devices:
-                    continue
+                if not getattr(self.devices.get(device), "streamed", device in self.devices):
+                    continue  # not replayed, or loaded before the start (I2C)
                 try:
                     record, _ = REGISTRY.decode(m.data)
                 except MalformedMessage:
@@ -187,15 +187,20 @@ class Player:
 
     def wait_taken(self, device: ReplayDevice) -> None:
         """Wait until *device*'s driver has taken everything fed so far."""
-        if not device.pending():
+        left = device.pending()
+        if not left:
             return
         deadline = time.monotonic() + self.stall_timeout_s
         pause = 0.0002
-        while device.pending():
+        while left:
             if self.abort.is_set():
                 raise RuntimeError(self.abort_reason())
             if time.monotonic() > deadline:
-                raise ReplayStalled(f"{device.name}: its driver has not taken its input for "
+                raise ReplayStalled(f"{device.name}: its driver has not taken any of its input for "
                                     f"{self.stall_timeout_s:g} s; is the service still running?")
             time.sleep(pause)
             pause = min(0.002, pause * 2)
+            now_left = device.pending()
+            if now_left < left:   # progress: a long input (I2C reads at the driver's pace) may take a while
+                deadline = time.monotonic() + self.stall_timeout_s
+            left = now_left

@@ -33,7 +33,8 @@ from u2sa_hw.vehicle import load_profile
 from hil.player import PlayStats, Player
 from hil.progress import ProgressBar
 from hil.replay_devices import ReplayDevice, ReplaySerialDevice, ReplayStalled
-from hil.replay_plan import DevicePlan, ReplayError, ReplayPlan, build_plan, write_run_profile
+from hil.replay_plan import (DevicePlan, ReplayError, ReplayPlan, ServicePlan, build_plan, declared_fields,
+                             write_run_profile)
 
 CONTRACT_PREFIX = "U2SA_"
 DEFAULT_GROUP = "239.255.76.67"
@@ -112,15 +113,16 @@ def private_url(plan: ReplayPlan) -> str:
             return f"udpm://{DEFAULT_GROUP}:{port}?ttl=0&recv_buf_size={RECV_BUF_SIZE}"
 
 
-def make_device(dev: DevicePlan, run_dir: Path, config: dict[str, Any]) -> ReplayDevice:
-    """The replay device for *dev*, whose driver has *config* (ReplayError for a kind that cannot be replayed)."""
+def make_device(dev: DevicePlan, run_dir: Path, service: ServicePlan, *, fast: bool) -> ReplayDevice:
+    """The replay device for *dev*, driven by *service* (ReplayError for a kind that cannot be replayed)."""
+    config = {**service.config, **service.overrides}
     if dev.kind == "serial":
         gap = config.get("epoch_gap_s", 0.05)
         return ReplaySerialDevice(name=dev.name, link_path=run_dir / "dev" / dev.name,
                                   burst_gap_s=float(gap) if isinstance(gap, (int, float)) else 0.05)
     from hil import replay_buses
 
-    return replay_buses.make_device(dev, run_dir, config)
+    return replay_buses.make_device(dev, run_dir, fast=fast, fields=declared_fields(service.kind))
 
 
 def raw_source(data: bytes) -> str:
@@ -286,8 +288,10 @@ class Replay:
             changes: dict[str, dict[str, Any]] = {}
             for dev in self.plan.devices.values():
                 if dev.service:
-                    sp = self.plan.services[dev.service]
-                    devices[dev.name] = make_device(dev, self.run_dir, {**sp.config, **sp.overrides})
+                    devices[dev.name] = make_device(dev, self.run_dir, self.plan.services[dev.service], fast=o.fast)
+                    preload = getattr(devices[dev.name], "preload", None)
+                    if preload is not None:
+                        preload(self.plan.log, start_ns=self.plan.start_ns, end_ns=self.plan.end_ns)
                     changes.setdefault(dev.service, {}).update(devices[dev.name].config_changes())
             profile_path = write_run_profile(self.plan, self.run_dir, lcm_url=url, changes=changes)
             profile = load_profile(profile_path)

@@ -29,6 +29,7 @@ from u2sa_hw.registry import resolve_kind
 
 RAW_KINDS = {"RawSerial": "serial", "RawCanFrame": "can", "RawI2c": "i2c", "RawGpioEdge": "gpio",
              "RawGpioWrite": "gpio", "RawPwmWrite": "pwm"}
+REPLAYABLE = {"serial", "i2c"}   # device kinds with a replay device (hil/replay_devices.py, hil/replay_buses.py)
 
 
 HEALTH_INTERVAL_S = 0.2
@@ -196,6 +197,7 @@ def build_plan(path: Path | str, *, extra_services: list[str] = (), overrides: l
             dev.records += ch.count
             dev.kind = dev.kind or kind
     plan = ReplayPlan(Path(path), summary, dict(profile.get("vehicle") or {}), {}, devices)
+    blocked: set[str] = set()   # services that drive a device replay cannot stand in for
     for dev in devices.values():
         owners = sorted(n for n, cfg in configs.items() if dev.name in claimed_devices(n, cfg))
         if len(owners) > 1:
@@ -205,11 +207,19 @@ def build_plan(path: Path | str, *, extra_services: list[str] = (), overrides: l
             plan.notes.append(f"RAW.{dev.name}: no service of the profile names device '{dev.name}' "
                               "(as its name, device_name or a channels entry); not replayed")
             continue
-        if not dev.kind:
-            plan.notes.append(f"RAW.{dev.name}: unknown raw type; not replayed")
+        if dev.kind not in REPLAYABLE:
+            what = f"{dev.kind} devices cannot be replayed yet" if dev.kind else "unknown raw type"
+            plan.notes.append(f"RAW.{dev.name}: {what}; service '{owners[0]}' is not replayed")
+            blocked.add(owners[0])
             continue
         dev.service = owners[0]
-        _add_service(plan, owners[0], services_table, configs).devices.append(dev.name)
+    for dev in devices.values():
+        if dev.service in blocked:
+            plan.notes.append(f"RAW.{dev.name}: its service '{dev.service}' also drives a device that cannot be "
+                              "replayed; not replayed")
+            dev.service = ""
+        elif dev.service:
+            _add_service(plan, dev.service, services_table, configs).devices.append(dev.name)
     for name in extra_services:
         if name not in services_table:
             raise ReplayError(f"--services {name}: the log's profile has no service '{name}' "
@@ -257,7 +267,7 @@ def write_run_profile(plan: ReplayPlan, run_dir: Path, *, lcm_url: str,
     for name, sp in plan.services.items():
         # health often, so the replay learns quickly that a driver has opened its device
         config = {**sp.config, "health_interval_s": HEALTH_INTERVAL_S, **changes.get(name, {})}
-        if _declares(sp.kind, "record_raw"):
+        if "record_raw" in declared_fields(sp.kind):
             config["record_raw"] = False  # the replay's input is the log; re-tapping it only doubles traffic
         config.update(sp.overrides)
         (run_dir / "config" / f"{name}.toml").write_text(tomli_w.dumps(config))
@@ -267,8 +277,9 @@ def write_run_profile(plan: ReplayPlan, run_dir: Path, *, lcm_url: str,
     return path
 
 
-def _declares(kind: str, name: str) -> bool:
+def declared_fields(kind: str) -> set[str]:
+    """The config field names service kind *kind* declares (empty when it cannot be loaded)."""
     try:
-        return any(f.name == name for f in resolve_kind(kind).config_fields())
+        return {f.name for f in resolve_kind(kind).config_fields()}
     except (LookupError, ImportError):
-        return False
+        return set()

@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import os
 import random
+import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 from typing import Iterator
 
@@ -19,6 +21,8 @@ from conftest import REPO, wait_until
 from hil.compare import Sample, align, compare_stream, load_streams, values_equal
 from hil.progress import format_duration, progress_line
 from hil.replay_plan import ReplayError, build_plan, claimed_devices, parse_overrides
+from mock_devices.i2c_bus import MockI2cBus
+from mock_devices.mpu9250_chip import Mpu9250Chip
 from mock_devices.nmea_gps import NmeaGpsDevice
 from mock_devices.serial_compass import NmeaCompassDevice
 from mock_devices.vehicle_sim import SimVehicle
@@ -80,6 +84,51 @@ def record_driver_log(workdir: Path, *, gps_epochs: int = 12, compass_epochs: in
         transport.stop()
         vehicle.stop()
     return log_path
+
+
+def record_imu_log(workdir: Path, *, samples: int = 80) -> Path:
+    """Record a log of the MPU-9250 driver (I2C, record_raw) sampling a mock chip on a turning rover."""
+    url = _url()
+    vehicle = SimVehicle(origin_lat=ORIGIN["lat"], origin_lon=ORIGIN["lon"], origin_alt=ORIGIN["alt"])
+    vehicle.set_wheel_speed("left", 1.0)
+    vehicle.set_wheel_speed("right", 0.6)
+    vehicle.start(rate_hz=200)
+    sockets = Path(tempfile.mkdtemp(prefix="rpi2c", dir="/tmp"))  # Unix socket paths must stay short
+    i2c = MockI2cBus(socket_path=str(sockets / "bus.sock"))
+    i2c.add(Mpu9250Chip(vehicle=vehicle, seed=3))
+    profile_path = workdir / "vehicle.toml"
+    profile_path.write_text(tomli_w.dumps({
+        "vehicle": {"name": "testrover", "system_id": 7, "origin": ORIGIN, "lcm_url": url},
+        "services": {"imu": {"kind": "imu_mpu9250", "settings": {
+            "bus": i2c.address, "record_raw": True, "rate_hz": 50.0, "calibrate_samples": 20}}}}))
+    transport = Transport(url, name="test-recorder")
+    log_path = workdir / "imu.mcap"
+    capture = BusCapture(transport, McapLogWriter(workdir, path=log_path,
+                                                  run=run_info(load_profile(profile_path), url)))
+    capture.start()
+    transport.start()
+    i2c.start()
+    env = dict(os.environ, PYTHONPATH=str(REPO), U2SA_LCM_URL=url)
+    proc = subprocess.Popen([*U2SA, "service", "imu", "--vehicle", str(profile_path)], cwd=workdir, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        wait_until(lambda: capture.stats.per_channel.get("STATE_INFO", 0) >= samples, timeout=30,
+                   message="IMU samples recorded")
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+        capture.stop()
+        transport.stop()
+        i2c.stop()
+        vehicle.stop()
+        shutil.rmtree(sockets, ignore_errors=True)
+    return log_path
+
+
+@pytest.fixture(scope="module")
+def imu_log(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """One recorded I2C IMU log shared by the tests of this module."""
+    yield record_imu_log(tmp_path_factory.mktemp("recorded-imu"))
 
 
 @pytest.fixture(scope="module")
@@ -199,3 +248,16 @@ def load_raw(path: Path) -> list[tuple[str, bytes, int]]:
     from u2sa_hw.recording.log_reader import LogFile
 
     return [(m.channel, m.data, m.log_time_ns) for m in LogFile(path).messages(r"RAW\..*")]
+
+
+def test_i2c_reads_replay_into_the_imu_driver(imu_log: Path, tmp_path: Path) -> None:
+    res = replay_cli(str(imu_log), "--fast", "--compare", "-o", str(tmp_path / "imu.mcap"), cwd=tmp_path)
+    assert res.returncode == 0, res.stdout + res.stderr
+    row = next(line for line in res.stdout.splitlines() if line.startswith("STATE_INFO [imu]"))
+    recorded, replayed = (int(v) for v in row.split()[2:4])
+    assert recorded == replayed >= 80 and row.endswith("same")
+    # the recorded gyro counts were taken at 500 deg/s full scale; read as 1000 deg/s they double
+    res = replay_cli(str(imu_log), "--fast", "--compare", "--set", "imu.gyro_range_dps=1000",
+                     "-o", str(tmp_path / "imu1000.mcap"), cwd=tmp_path)
+    assert res.returncode == 1, res.stdout + res.stderr
+    assert "psi_dot: differs" in res.stdout and "write" in res.stderr  # the config write differs from the log's

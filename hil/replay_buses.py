@@ -1,0 +1,195 @@
+"""Replay devices for the buses: I2C chips answering with recorded register reads (and, as they
+are added, CAN and GPIO). Serial is in :mod:`hil.replay_devices`; the interface is the same.
+
+I2C is pulled, not pushed: the driver reads when its own timer says so, so the recorded reads
+are loaded before the replay starts and each read of a register (by chip address) is
+answered with the next recorded answer for that register, in order, whatever the timing.
+A read the recording has no answer for left is answered with the register's last value
+from before the replayed window (the driver's identification at start, when the window
+starts later), else refused with EIO; both are counted. Writes are checked, in order,
+against the recorded writes to the same chip, and every difference is counted.
+
+A driver that writes a register differently from the recording (a changed setting, or
+``rate_hz`` raised for --fast) and reads it back to verify gets its own value back: a
+recorded read byte that equals what the recorded driver last wrote to that register is
+answered with what the replayed driver wrote there (registers auto-increment, as on the
+supported chips). The chip's data registers are never written, so the samples stay as recorded.
+"""
+
+from __future__ import annotations
+
+import re
+import threading
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+from u2sa_hw.messages import REGISTRY, MalformedMessage
+from u2sa_hw.ports.i2c_port import OP_READ, OP_WRITE, STATUS_EIO, STATUS_OK
+from u2sa_hw.recording.log_reader import LogFile
+
+from hil.replay_plan import DevicePlan, ReplayError
+
+FAST_I2C_RATE_HZ = 1000.0   # --fast: the IMU drivers' highest rate_hz, so they pull their reads quickly
+
+
+class ReplayI2cChip:
+    """One chip address on the replay bus (the MockI2cBus chip interface: ``address``, ``handle``)."""
+
+    def __init__(self, address: int, owner: "ReplayI2cDevice") -> None:
+        self.address = address
+        self.owner = owner
+
+    def handle(self, op: int, register: int, length: int, data: bytes) -> tuple[int, bytes]:
+        """Answer a read from the recording; check a write against it."""
+        return self.owner.transact(self.address, op, register, length, data)
+
+
+class ReplayI2cDevice:
+    """A mock I2C bus whose chips answer with a log's recorded register reads."""
+
+    kind = "i2c"
+    streamed = False   # loaded before the start (preload); the player does not feed it
+
+    def __init__(self, *, name: str, socket_path: Path | str, fast: bool, declares_rate: bool) -> None:
+        self.name = name
+        self.socket_path = Path(socket_path)
+        self.fast = fast
+        self.declares_rate = declares_rate
+        self._lock = threading.Lock()
+        self._reads: dict[tuple[int, int], deque[tuple[bool, bytes]]] = {}
+        self._before: dict[tuple[int, int], tuple[bool, bytes]] = {}
+        self._writes: dict[int, deque[tuple[int, bytes]]] = {}
+        self._main: tuple[int, int] | None = None    # the most-read register: its queue paces --fast
+        self._recorded_written: dict[tuple[int, int], int] = {}   # (address, register) -> byte, by the recording
+        self._replay_written: dict[tuple[int, int], int] = {}     # ... and by the replayed driver
+        self._bus: Any = None
+        self.counts = {"reads": 0, "from_before_window": 0, "unrecorded_reads": 0, "length_mismatches": 0,
+                       "writes": 0, "write_mismatches": 0, "unrecorded_writes": 0}
+
+    def config_changes(self) -> dict[str, Any]:
+        """``bus`` -> the replay bus socket; with --fast also ``rate_hz`` -> FAST_I2C_RATE_HZ."""
+        changes: dict[str, Any] = {"bus": f"mock:{self.socket_path}"}
+        if self.fast and self.declares_rate:
+            changes["rate_hz"] = FAST_I2C_RATE_HZ
+        return changes
+
+    def preload(self, log_path: Path, *, start_ns: int, end_ns: int) -> None:
+        """Load the device's recorded transactions: reads in the window queued per register."""
+        for m in LogFile(log_path).messages(rf"RAW\.{re.escape(self.name)}"):
+            if m.log_time_ns > end_ns:
+                break
+            try:
+                rec, _ = REGISTRY.decode(m.data)
+            except MalformedMessage:
+                continue
+            if type(rec).__name__ != "RawI2c":
+                continue
+            key = (int(rec.address), int(rec.register))
+            if rec.op == OP_READ:
+                if m.log_time_ns < start_ns:
+                    self._before[key] = (bool(rec.ok), bytes(rec.data))
+                else:
+                    self._reads.setdefault(key, deque()).append((bool(rec.ok), bytes(rec.data)))
+            elif rec.op == OP_WRITE and m.log_time_ns >= start_ns:
+                self._writes.setdefault(key[0], deque()).append((key[1], bytes(rec.data)))
+        if self._reads:
+            self._main = max(self._reads, key=lambda k: len(self._reads[k]))
+
+    def start(self) -> None:
+        """Serve the replay bus with one replay chip per recorded address."""
+        from mock_devices.i2c_bus import MockI2cBus
+
+        self._bus = MockI2cBus(socket_path=str(self.socket_path))
+        for address in sorted({a for a, _ in self._reads} | {a for a, _ in self._before} | set(self._writes)):
+            self._bus.add(ReplayI2cChip(address, self))
+        self._bus.start()
+
+    def stop(self) -> None:
+        """Stop serving."""
+        if self._bus is not None:
+            self._bus.stop()
+            self._bus = None
+
+    def ready(self, pid: int | None, health: dict[str, str]) -> bool:
+        """The driver's port is open (its identification and setup reads were answered)."""
+        return health.get("port", "open") == "open"
+
+    def feed(self, record: Any) -> None:
+        """Nothing: the recording was loaded by preload()."""
+
+    def pending(self) -> int:
+        """Recorded reads of the most-read register not asked for yet."""
+        with self._lock:
+            return len(self._reads.get(self._main, ())) if self._main is not None else 0
+
+    def transact(self, address: int, op: int, register: int, length: int, data: bytes) -> tuple[int, bytes]:
+        """One transaction from the driver (on the bus's client thread)."""
+        key = (address, register)
+        with self._lock:
+            if op == OP_WRITE:
+                self.counts["writes"] += 1
+                expected = self._writes.get(address)
+                if not expected:
+                    self.counts["unrecorded_writes"] += 1
+                else:
+                    rec_register, rec_data = expected.popleft()
+                    if (rec_register, rec_data) != (register, bytes(data)):
+                        self.counts["write_mismatches"] += 1
+                    for i, b in enumerate(rec_data):
+                        self._recorded_written[(address, rec_register + i)] = b
+                for i, b in enumerate(data):
+                    self._replay_written[(address, register + i)] = b
+                return STATUS_OK, b""
+            self.counts["reads"] += 1
+            queue = self._reads.get(key)
+            if queue:
+                ok, answer = queue.popleft()
+            elif key in self._before:
+                self.counts["from_before_window"] += 1
+                ok, answer = self._before[key]
+            else:
+                self.counts["unrecorded_reads"] += 1
+                return STATUS_EIO, b""
+            if not ok:
+                return STATUS_EIO, b""
+            if len(answer) != length:
+                self.counts["length_mismatches"] += 1
+                answer = (answer + bytes(length))[:length]
+            return STATUS_OK, self._echo_writes(address, register, answer)
+
+    def _echo_writes(self, address: int, register: int, answer: bytes) -> bytes:
+        """*answer* with each byte the recorded driver had written replaced by the replayed driver's."""
+        out = bytearray(answer)
+        for i, b in enumerate(out):
+            key = (address, register + i)
+            recorded = self._recorded_written.get(key)
+            if recorded is not None and b == recorded and key in self._replay_written:
+                out[i] = self._replay_written[key]
+        return bytes(out)
+
+    def report(self) -> dict[str, Any]:
+        """Transactions answered and every kind of difference from the recording."""
+        with self._lock:
+            unread = sum(len(q) for q in self._reads.values())
+            unwritten = sum(len(q) for q in self._writes.values())
+            c = dict(self.counts)
+        divergences = c["unrecorded_reads"] + c["length_mismatches"] + c["write_mismatches"] + c["unrecorded_writes"]
+        out: dict[str, Any] = {"kind": self.kind, **c, "recorded_reads_left": unread,
+                               "recorded_writes_left": unwritten, "divergences": divergences}
+        if divergences:
+            out["divergence"] = (f"{c['unrecorded_reads']} reads with no recorded answer, {c['length_mismatches']} "
+                                 f"of another length, {c['write_mismatches']} writes unlike the recorded ones, "
+                                 f"{c['unrecorded_writes']} writes beyond them"
+                                 + (f" (rate_hz was raised to {FAST_I2C_RATE_HZ:g} for --fast)"
+                                    if self.fast and self.declares_rate else ""))
+        return out
+
+
+def make_device(dev: DevicePlan, run_dir: Path, *, fast: bool, fields: set[str]) -> Any:
+    """The replay device for a bus device (*fields*: the config fields its driver declares)."""
+    if dev.kind == "i2c":
+        return ReplayI2cDevice(name=dev.name, socket_path=run_dir / f"i2c-{dev.name}.sock", fast=fast,
+                               declares_rate="rate_hz" in fields)
+    raise ReplayError(f"RAW.{dev.name}: replaying {dev.kind} devices is not supported; "
+                      "leave the device out with --vehicle (a profile without its service)")
