@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import inspect
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Mapping
 
 from mock_devices.bno055_chip import Bno055Chip
@@ -97,10 +97,8 @@ def construct(spec: DeviceSpec, cls: type, *args: Any, **kwargs: Any) -> Any:
 
 
 def _seeded(spec: DeviceSpec, ctx: MockContext) -> DeviceSpec:
-    if "seed" in spec.options:
-        return spec
-    return DeviceSpec(spec.name, spec.mock, spec.service, spec.service_config, {**spec.options, "seed": ctx.next_seed()},
-                      spec.sides, spec.where)
+    """*spec* with a noise seed of its own unless its options give one."""
+    return spec if "seed" in spec.options else replace(spec, options={**spec.options, "seed": ctx.next_seed()})
 
 
 # ---- serial ---------------------------------------------------------------------------------
@@ -234,6 +232,7 @@ def build_can_motors(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     nodes = []
     for name, can_id, side, direction, radius in zip(names, ids, sides, directions, radii):
         if spec.mock == "odrive":
+            # the driver limits its commands to max_turns_per_s; the node's own limit sits above it
             defaults = {"firmware": str(spec.service_config.get("firmware", "0.6")),
                         "vel_limit": float(spec.service_config.get("max_turns_per_s", 2.0)) * 1.25}
             node = construct(spec, OdriveCanNode, ctx.actuated, side=side, node_id=int(can_id), direction=int(direction),

@@ -164,3 +164,21 @@ def test_bad_device_tables_name_the_table_and_the_fix(tmp_path: Path, change: tu
     profile = load_profile(profile_file(tmp_path, text))
     with pytest.raises(DeviceError, match=error):
         MockLauncher(profile, device_dir=tmp_path / "dev")
+
+
+def test_simulation_copy_points_config_files_at_the_mocks_and_keeps_the_originals(tmp_path: Path) -> None:
+    config = tmp_path / "config"
+    config.mkdir()
+    (config / "gps.toml").write_text('port = "/dev/ttyUSB3"\nuere_m = 4.0\n')   # an address in the config file
+    (config / "mission.toml").write_text('mission_file = "missions/loop.xml"\n')
+    text = SENSORS + '\n[services.mission]\nkind = "mission_manager"\n'
+    profile = load_profile(profile_file(tmp_path, text))
+    mocks = MockLauncher(profile, device_dir=tmp_path / "dev", service_configs=effective_configs(profile))
+    assert mocks.overrides["gps"] == {"port": str(tmp_path / "dev" / "ttyUSB3")}   # named after the real device
+    sim = load_profile(write_sim_profile(profile, run_dir=tmp_path / "run", overrides=mocks.overrides,
+                                         lcm_url="udpm://239.255.76.67:7001?ttl=0"))
+    copied = effective_configs(sim)
+    assert copied["gps"]["port"] == str(tmp_path / "dev" / "ttyUSB3") and copied["gps"]["uere_m"] == 4.0
+    assert copied["mission"]["mission_file"] == str(tmp_path / "missions" / "loop.xml")
+    assert sim.lcm_url == "udpm://239.255.76.67:7001?ttl=0" and sim.data_dir == tmp_path / "run" / "data"
+    assert (config / "gps.toml").read_text() == 'port = "/dev/ttyUSB3"\nuere_m = 4.0\n'   # the user's file untouched

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import shutil
 import signal
 import sys
 import threading
@@ -84,8 +85,9 @@ def cmd_mock(args: Any) -> int:
     if profile.path is None:
         raise CliError("mock: give the vehicle profile with --vehicle PATH (or set $U2SA_VEHICLE)", 2)
     run_dir = Path(args.run_dir) if args.run_dir else profile.data_dir / "sim"
+    device_dir = device_dir_for(run_dir / "dev")
     try:
-        mocks = MockLauncher(profile, device_dir=device_dir_for(run_dir / "dev"),
+        mocks = MockLauncher(profile, device_dir=device_dir,
                              service_configs=effective_configs(profile), can_udp_port=args.can_port)
         mocks.start()
     except (DeviceError, ProfileError, RuntimeError, OSError) as exc:
@@ -110,4 +112,6 @@ def cmd_mock(args: Any) -> int:
             pass
     finally:
         mocks.stop()
+        if not device_dir.is_relative_to(run_dir.resolve()):   # a short /tmp directory of our own
+            shutil.rmtree(device_dir, ignore_errors=True)
     return 0

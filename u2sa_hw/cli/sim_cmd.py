@@ -17,8 +17,9 @@ autonomous once the stack is ready, and follow the mission on one progress line
 (goal k of N, distance to it, speed, heading, mode).
 
 Exit status: 0 when the mission completes (for a looping mission: one full
-loop), 3 on timeout, 1 when a service keeps failing, a failsafe is raised or the
-vehicle leaves autonomous mode; the reason is printed. Written to --out:
+loop), 3 on timeout, 1 when a service keeps failing, a failsafe is raised or
+autonomy is lost more than 3 times (the simulated safety pilot re-engages after
+each loss); the reason is printed. Written to --out:
 summary.json and summary.txt (time, distance, per-goal arrival times, largest
 cross-track error, closest approach to each obstacle, estimate error), track.csv,
 track.png (the driven track, the waypoints, the obstacles), services.log (every
@@ -60,7 +61,10 @@ def cmd_sim(args: Any) -> int:
                        "default, or pass --vehicle PATH)", 2)
     options = SimOptions(vehicle=args.vehicle, out=args.out, mission=args.mission, timeout_s=args.timeout,
                          record=args.record, lcm_url=args.lcm_url, can_port=args.can_port)
-    summary = SimRun(options).run()
+    try:
+        summary = SimRun(options).run()
+    except RuntimeError as exc:   # the bus or a mock CAN node could not open; the message says why
+        raise CliError(f"sim: {exc}") from None
     if summary["result"] == "completed":
         return 0
     where = f"(summary: {args.out / 'summary.txt'})"

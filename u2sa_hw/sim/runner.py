@@ -206,6 +206,9 @@ class SimRun:
             self.record.result, self.record.reason = exc.result, str(exc)
         except KeyboardInterrupt:
             self.record.result, self.record.reason = "failed", "interrupted (Ctrl-C)"
+        except BaseException:
+            self.stop()   # a setup error: nothing to summarise, but leave no services or mocks behind
+            raise
         return self.finish()
 
     def finish(self) -> dict[str, Any]:
