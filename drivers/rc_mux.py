@@ -155,8 +155,11 @@ class RcMuxDriver(Sensor):
             if new != self.enabled:
                 self.enabled = new
                 self.enable_changes += 1
-                self.logger.warning("autonomy enable %s (%s)", "HIGH" if new else "low", "all conditions hold"
-                                    if new else why)
+                # Handing over to autonomy is normal operation; losing it is worth a warning.
+                if new:
+                    self.logger.info("autonomy enable HIGH (all conditions hold)")
+                else:
+                    self.logger.warning("autonomy enable low (%s)", why)
                 self._changed.set()
 
     def _on_failsafe(self, msg: t.Failsafe) -> None:
