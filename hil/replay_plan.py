@@ -29,7 +29,7 @@ from u2sa_hw.registry import resolve_kind
 
 RAW_KINDS = {"RawSerial": "serial", "RawCanFrame": "can", "RawI2c": "i2c", "RawGpioEdge": "gpio",
              "RawGpioWrite": "gpio", "RawPwmWrite": "pwm"}
-REPLAYABLE = {"serial", "i2c"}   # device kinds with a replay device (hil/replay_devices.py, hil/replay_buses.py)
+REPLAYABLE = {"serial", "i2c", "can"}   # device kinds with a replay device (hil/replay_devices.py, hil/replay_buses.py)
 
 
 HEALTH_INTERVAL_S = 0.2

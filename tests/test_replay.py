@@ -16,6 +16,7 @@ from typing import Iterator
 
 import pytest
 import tomli_w
+from can_mock_harness import GROUP, Commander, MockCanProcess
 from conftest import REPO, wait_until
 
 from hil.compare import Sample, align, compare_stream, load_streams, values_equal
@@ -26,6 +27,7 @@ from mock_devices.mpu9250_chip import Mpu9250Chip
 from mock_devices.nmea_gps import NmeaGpsDevice
 from mock_devices.serial_compass import NmeaCompassDevice
 from mock_devices.vehicle_sim import SimVehicle
+from u2sa_hw.bus_client import BusClient
 from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo
 from u2sa_hw.services.recorder.capture import BusCapture
 from u2sa_hw.services.recorder.service import run_info
@@ -123,6 +125,52 @@ def record_imu_log(workdir: Path, *, samples: int = 80) -> Path:
         vehicle.stop()
         shutil.rmtree(sockets, ignore_errors=True)
     return log_path
+
+
+def record_can_log(workdir: Path, *, outputs: int = 120) -> Path:
+    """Record a log of the ODrive driver (CAN, record_raw) driving two mock nodes under Percentage Commands."""
+    url = _url()
+    port = random.randint(30000, 60000)
+    nodes = [{"side": "left", "node_id": 0, "vel_limit": 10.0}, {"side": "right", "node_id": 1, "vel_limit": 10.0}]
+    mock = MockCanProcess({"kind": "odrive", "port": port, "nodes": nodes}, repo=REPO, log=workdir / "mock.log")
+    profile_path = workdir / "vehicle.toml"
+    profile_path.write_text(tomli_w.dumps({
+        "vehicle": {"name": "testrover", "system_id": 7, "origin": ORIGIN, "lcm_url": url},
+        "services": {"wheels": {"kind": "odrive_can", "settings": {
+            "interface": "udp_multicast", "channel": GROUP, "udp_port": port, "node_ids": [0, 1],
+            "record_raw": True, "command_timeout_s": 0.0}}}}))
+    transport = Transport(url, name="test-recorder")
+    log_path = workdir / "can.mcap"
+    capture = BusCapture(transport, McapLogWriter(workdir, path=log_path,
+                                                  run=run_info(load_profile(profile_path), url)))
+    capture.start()
+    transport.start()
+    client = BusClient(url)
+    commander = Commander(client)
+    env = dict(os.environ, PYTHONPATH=str(REPO), U2SA_LCM_URL=url)
+    proc = subprocess.Popen([*U2SA, "service", "wheels", "--vehicle", str(profile_path)], cwd=workdir, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        commander.hold(left=40.0, right=60.0)
+        odometry = lambda: capture.stats.per_channel.get("STATE_INFO", 0)  # noqa: E731
+        wait_until(lambda: odometry() >= outputs // 2, timeout=30, message="odometry recorded")
+        commander.hold(left=-20.0, right=30.0)
+        wait_until(lambda: odometry() >= outputs, timeout=30, message="more odometry recorded")
+    finally:
+        commander.close()
+        proc.terminate()
+        proc.wait(timeout=10)
+        capture.stop()
+        transport.stop()
+        client.close()
+        mock.stop()
+    return log_path
+
+
+@pytest.fixture(scope="module")
+def can_log(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """One recorded CAN motor log shared by the tests of this module."""
+    yield record_can_log(tmp_path_factory.mktemp("recorded-can"))
 
 
 @pytest.fixture(scope="module")
@@ -261,3 +309,18 @@ def test_i2c_reads_replay_into_the_imu_driver(imu_log: Path, tmp_path: Path) -> 
                      "-o", str(tmp_path / "imu1000.mcap"), cwd=tmp_path)
     assert res.returncode == 1, res.stdout + res.stderr
     assert "psi_dot: differs" in res.stdout and "write" in res.stderr  # the config write differs from the log's
+
+
+def test_can_frames_replay_into_the_motor_driver_with_its_commands(can_log: Path, tmp_path: Path) -> None:
+    res = replay_cli(str(can_log), "--fast", "--compare", "-o", str(tmp_path / "can.mcap"), cwd=tmp_path)
+    assert res.returncode == 0, res.stdout + res.stderr
+    row = next(line for line in res.stdout.splitlines() if line.startswith("STATE_INFO [wheels]"))
+    recorded, replayed = (int(v) for v in row.split()[2:4])
+    assert recorded == replayed >= 120 and row.endswith("same")
+    # the driver subscribes to ACTUATOR_CMD: the recorded commands were played to it on the replay bus
+    from u2sa_hw.recording.log_reader import LogFile
+
+    assert sum(1 for _ in LogFile(tmp_path / "can.mcap").messages("ACTUATOR_CMD")) > 10
+    res = replay_cli(str(can_log), "--fast", "--compare", "--set", "wheels.wheel_radius_m=[0.2, 0.2]",
+                     "-o", str(tmp_path / "can2.mcap"), cwd=tmp_path)
+    assert res.returncode == 1 and "x_dot: differs" in res.stdout, res.stdout + res.stderr
