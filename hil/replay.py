@@ -16,7 +16,6 @@ import shutil
 import tempfile
 import threading
 import time
-import tomllib
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -177,6 +176,10 @@ class Replay:
         self._received: dict[str, int] = {}    # service -> its outputs the replay bus delivered here
         self._published: dict[str, int] = {}   # service -> its outputs by its own count (latest health)
         self._last_output = time.monotonic()
+        self.run_dir: Path | None = None   # made by run(); kept after a failure for its logs
+
+    def _log_of(self, service: str) -> Path:
+        return (self.run_dir or Path(".")) / "logs" / f"{service}.log"
 
     # -- pieces ------------------------------------------------------------------------------
     def _fail(self, reason: str) -> None:
@@ -188,7 +191,7 @@ class Replay:
         if self._stopping:
             return
         self._fail(f"service '{status.name}' died during the replay ({status.last_exit}); its log is "
-                   f"{self.run_dir / 'logs' / (status.name + '.log')}{self.outputs.tail(status.name)}")
+                   f"{self._log_of(status.name)}{self.outputs.tail(status.name)}")
 
     def _on_message(self, channel: str, data: bytes) -> None:
         if channel.startswith(CONTRACT_PREFIX):
@@ -231,7 +234,7 @@ class Replay:
                 first = waiting[0].split(" ")[0]
                 service = self.plan.devices[first].service if first in self.plan.devices else first
                 raise ReplayError(f"not ready after {self.options.ready_timeout_s:g} s: {', '.join(waiting)}; "
-                                  f"see {self.run_dir / 'logs' / (service + '.log')}{self.outputs.tail(service)}")
+                                  f"see {self._log_of(service)}{self.outputs.tail(service)}")
             time.sleep(0.05)
 
     def _republished_channels(self, url: str) -> set[str]:
@@ -354,13 +357,3 @@ class Replay:
             if not keep:
                 shutil.rmtree(self.run_dir, ignore_errors=True)
 
-
-def replay_config(log: Path | str) -> dict[str, Any]:
-    """The ``replay.toml`` attachment of a replay's output log ({} for a recorded log)."""
-    from u2sa_hw.recording.log_reader import LogFile
-
-    lf = LogFile(log)
-    for _ in lf.records():
-        break
-    data = lf.contents.attachments.get("replay.toml")
-    return tomllib.loads(data.decode()).get("replay", {}) if data else {}

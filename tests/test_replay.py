@@ -324,3 +324,13 @@ def test_can_frames_replay_into_the_motor_driver_with_its_commands(can_log: Path
     res = replay_cli(str(can_log), "--fast", "--compare", "--set", "wheels.wheel_radius_m=[0.2, 0.2]",
                      "-o", str(tmp_path / "can2.mcap"), cwd=tmp_path)
     assert res.returncode == 1 and "x_dot: differs" in res.stdout, res.stdout + res.stderr
+
+
+def test_a_service_that_dies_ends_the_replay_with_its_reason(driver_log: Path, tmp_path: Path) -> None:
+    res = replay_cli(str(driver_log), "--fast", "--set", "gps.baudrate=1234", "-o", str(tmp_path / "x.mcap"),
+                     cwd=tmp_path)
+    assert res.returncode == 1
+    assert "service 'gps' died during the replay" in res.stderr and "baudrate 1234 is not supported" in res.stderr
+    kept = res.stderr.rsplit("replay files kept in ", 1)[1].strip(" )\n")
+    assert (Path(kept) / "config" / "gps.toml").read_text().count("baudrate = 1234") == 1
+    shutil.rmtree(kept, ignore_errors=True)
