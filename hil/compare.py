@@ -4,9 +4,11 @@ A *stream* is one channel from one source service (``STATE_INFO [gps]``): only t
 services the replay ran are compared, and never the contract channels (``U2SA_*``: health
 carries uptime and CPU) or raw device I/O (``RAW.*``). For each stream:
 
-- counts: recorded and replayed messages. A recording cuts its devices' input at both
-  ends (the recorder starts and stops while drivers run), so up to ``edge`` messages at
-  each end of a stream may go unmatched; they are reported as notes, more is a difference.
+- counts: recorded and replayed messages. A stream of a service the recording has nothing
+  from at all (it was not running) is shown as ``new``, with nothing to compare. A
+  recording cuts its devices' input at both ends (the recorder starts and stops while
+  drivers run), so up to ``edge`` messages at each end of a stream may go unmatched; they
+  are reported as notes, more is a difference.
   The two sequences are aligned at the start by trying the skips up to ``edge`` on either
   side and keeping the one that matches best.
 - fields: every field from ``enumerate_fields`` except the header's ``timestamp_us`` and
@@ -208,8 +210,9 @@ class CompareReport:
                  f"{'TIME p50/max s':>15}  RESULT"]
         for s in self.streams:
             timing = "-" if s.time_max_s is None else f"{s.time_p50_s:.3f}/{s.time_max_s:.3f}"
+            result = "DIFFERENT" if not s.ok else "same" if s.recorded else "new"
             lines.append(f"{s.key:32} {s.recorded:>8} {s.replayed:>8} {s.matched:>7} {s.differing:>6} "
-                         f"{timing:>15}  {'same' if s.ok else 'DIFFERENT'}")
+                         f"{timing:>15}  {result}")
         for s in self.streams:
             for problem in s.problems:
                 lines.append(f"  {s.key}: {problem}")
@@ -239,4 +242,10 @@ def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[st
     rep = load_streams(replayed, sources=services, ignore=ignore)
     reports = [compare_stream(key, rec.get(key, []), rep.get(key, []), tolerance=tolerance, edge=edge, rate=rate,
                               time_tolerance_s=time_tolerance_s) for key in sorted(set(rec) | set(rep))]
+    recorded_sources = {key.rsplit(" [", 1)[1] for key in rec}
+    for r in reports:
+        if not r.recorded and r.key.rsplit(" [", 1)[1] not in recorded_sources:
+            # a service that was not running (or not recorded) in the log: nothing to compare with
+            r.problems.clear()
+            r.notes.append("the recording has nothing from this service to compare with")
     return CompareReport(Path(recorded), Path(replayed), reports, tolerance, rate is not None)

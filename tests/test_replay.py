@@ -265,9 +265,12 @@ def test_two_replays_give_the_same_messages(driver_log: Path, tmp_path: Path) ->
 
 def test_timed_replay_of_a_window_compares_with_timing(driver_log: Path, tmp_path: Path) -> None:
     res = replay_cli(str(driver_log), "--rate", "2", "--start", "0.5", "--end", "2.5", "--compare",
-                     "--time-tolerance", "5", "--edge", "2", "-o", str(tmp_path / "w.mcap"), cwd=tmp_path)
+                     "--time-tolerance", "5", "--edge", "2", "--services", "state_estimator",
+                     "-o", str(tmp_path / "w.mcap"), cwd=tmp_path)
     assert res.returncode == 0, res.stdout + res.stderr
     assert "--rate 2" in res.stdout and "timing not checked" not in res.stdout
+    summary = res.stdout.splitlines()[0]  # a core service ran on the replayed sensors' output
+    assert "starting 3 services" in summary and "state_estimator" in summary.split("messages from")[1]
     gps_row = next(line for line in res.stdout.splitlines() if line.startswith("STATE_INFO [gps]"))
     assert "/" in gps_row.split()[-2]  # TIME p50/max filled in
 
