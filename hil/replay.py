@@ -86,23 +86,6 @@ class ReplayResult:
                 + f"; {self.written} written to {self.out}, {self.dropped} dropped")
 
 
-class ReplayTransport(Transport):
-    """A Transport whose subscriptions queue up to QUEUE_CAPACITY messages.
-
-    LCM keeps at most 30 undelivered messages per subscription by default and silently drops
-    the rest; a --fast replay delivers bursts faster than this process's handler thread can
-    always keep up with (it shares the interpreter with the player and the MCAP writer).
-    """
-
-    QUEUE_CAPACITY = 50_000
-
-    def subscribe(self, channel: str, base: type | None, callback: Any, *, raw: bool = False) -> Any:
-        """Subscribe as Transport does, with the deeper queue."""
-        sub = super().subscribe(channel, base, callback, raw=raw)
-        sub.handle.set_queue_capacity(self.QUEUE_CAPACITY)
-        return sub
-
-
 def private_url(plan: ReplayPlan) -> str:
     """``udpm://239.255.76.67:<random port>?ttl=0``, never the recorded vehicle's port."""
     recorded = plan.summary.contents.metadata.get("u2sa", {}).get("lcm_url", "")
@@ -298,7 +281,7 @@ class Replay:
                     changes.setdefault(dev.service, {}).update(devices[dev.name].config_changes())
             profile_path = write_run_profile(self.plan, self.run_dir, lcm_url=url, changes=changes)
             profile = load_profile(profile_path)
-            transport = ReplayTransport(url, name="u2sa-replay")
+            transport = Transport(url, name="u2sa-replay")
             self.out.parent.mkdir(parents=True, exist_ok=True)
             writer = McapLogWriter(self.out.parent, path=self.out, run=RunInfo(
                 vehicle=f"{profile.name} (replay)", system_id=profile.system_id, lcm_url=url,
