@@ -86,6 +86,16 @@ class VehicleProfile:
             known = ", ".join(self.services) or "none"
             raise ProfileError(f"{where}: no service '{name}' (services: {known})") from None
 
+    def resolve_path(self, text: str) -> Path | None:
+        """A file named in a config (``~`` expanded), relative to the profile's directory; None if empty."""
+        text = text.strip()
+        if not text:
+            return None
+        path = Path(text).expanduser()
+        if not path.is_absolute():
+            path = (self.path.resolve().parent if self.path else Path.cwd()) / path
+        return path
+
     def config_path_for(self, name: str) -> Path:
         """Where the config file of service *name* lives."""
         spec = self.services.get(name)

@@ -65,14 +65,7 @@ class MissionManagerService(U2SAService):
 
     def mission_path(self) -> Path | None:
         """The configured mission file, resolved against the profile's directory."""
-        text = str(self.config.get("mission_file")).strip()
-        if not text:
-            return None
-        path = Path(text).expanduser()
-        if not path.is_absolute():
-            base = self.profile.path.resolve().parent if self.profile.path else Path.cwd()
-            path = base / path
-        return path
+        return self.profile.resolve_path(str(self.config.get("mission_file")))
 
     def load_configured_mission(self) -> bool:
         """Load ``mission_file``; on error keep the current mission, log it and degrade."""

@@ -53,14 +53,7 @@ class WorldModeler(U2SAService):
 
     def objects_path(self) -> Path | None:
         """The configured objects file, resolved against the profile's directory."""
-        text = str(self.config.get("objects_file")).strip()
-        if not text:
-            return None
-        path = Path(text).expanduser()
-        if not path.is_absolute():
-            base = self.profile.path.resolve().parent if self.profile.path else Path.cwd()
-            path = base / path
-        return path
+        return self.profile.resolve_path(str(self.config.get("objects_file")))
 
     def load_a_priori(self) -> bool:
         """(Re)load the a-priori objects; on error keep what is there, log it and degrade."""
