@@ -20,7 +20,6 @@ Uninstall removes what the manifest lists; configs, logs and recordings stay unl
 from __future__ import annotations
 
 import os
-import shutil
 import subprocess
 from pathlib import Path
 

@@ -8,7 +8,6 @@ code differs from what lcm-gen makes now (the test suite runs this check).
 from __future__ import annotations
 
 import argparse
-import filecmp
 import os
 import re
 import shutil
