@@ -2,7 +2,8 @@
 
 Each line is parsed by pynmeagps (checksums enforced: a bad one is counted per sentence
 kind and dropped). Sentences are grouped into epochs (``drivers.nmea_fields``: a new UTC
-time, a repeated sentence kind, or ``epoch_gap_s`` of silence ends one), and each epoch
+time, a repeated sentence kind, or ``epoch_gap_s`` of silence ends one; once the driver has
+learned what a complete epoch holds, its last sentence ends it at once), and each epoch
 becomes one message (``drivers.gps_fix``): position about the profile origin in the
 configured ``position_frame``, NED ground velocity from speed and course, psi from HDT,
 sigmas from GST or HDOP. No fix: no position and no velocity (an HDT heading still goes
@@ -39,7 +40,8 @@ class GpsNmeaDriver(SerialLineSensor):
 
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
-        self.epochs = EpochCollector()
+        self.epochs = EpochCollector(end_on_complete=True)
+        self._epoch_mode = self.epochs.mode
         self.epoch_count = 0
         self.fix: GpsFix | None = None       # the latest epoch's reading
         self.last_fix: GpsFix | None = None  # the latest epoch with a position
@@ -83,18 +85,33 @@ class GpsNmeaDriver(SerialLineSensor):
         self.count_valid(noise_bytes=sentence.noise_bytes)
         self.talkers.add(sentence.talker)
         done = self.epochs.add(sentence, received=received)
+        if self.epochs.mode != self._epoch_mode:
+            self._log_epoch_mode(sentence.kind)
         if done is not None:
             self.publish_epoch(done)
+
+    def _log_epoch_mode(self, kind: str) -> None:
+        """Say once how epochs end now (*kind*: the sentence that changed it)."""
+        mode, self._epoch_mode = self.epochs.mode, self.epochs.mode
+        if mode == "on completion":
+            expected = ",".join(f"{k}x{n}" if n > 1 else k for k, n in sorted(self.epochs.expected.items()))
+            self.logger.info("%s: epochs hold %s: each ends with its last sentence", self.name, expected)
+        elif mode == "on silence":
+            self.logger.info("%s: a %s came after its epoch looked complete: the receiver's epochs vary, so they "
+                             "end on epoch_gap_s of silence from now on (the late sentence is dropped)", self.name, kind)
 
     def handle_idle(self) -> None:
         """The receiver finished its burst: publish the epoch."""
         done = self.epochs.flush()
+        if self.epochs.mode != self._epoch_mode:
+            self._log_epoch_mode("")
         if done is not None:
             self.publish_epoch(done)
 
     def on_port_lost(self) -> None:
-        """A half-received epoch is dropped."""
-        self.epochs.flush()
+        """A half-received epoch is dropped, and what a complete epoch holds is learned again."""
+        self.epochs.reset()
+        self._epoch_mode = self.epochs.mode
 
     def publish_epoch(self, epoch: Epoch) -> None:
         """Turn one epoch into at most one State Information and publish it."""
@@ -129,6 +146,8 @@ class GpsNmeaDriver(SerialLineSensor):
             "hdop": _show(fix.hdop if fix else None),
             "vdop": _show(fix.vdop if fix else None),
             "epochs": self.epoch_count,
+            "epoch_end": self.epochs.mode,
+            "late_sentences": self.epochs.late,
             "talkers": ",".join(sorted(self.talkers)),
             "position_frame": self.config.get("position_frame").upper(),
         }

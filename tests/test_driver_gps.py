@@ -109,6 +109,79 @@ def test_epochs_split_on_a_new_utc_time_or_a_repeated_kind_but_not_on_gsa_per_co
     assert col.flush().kinds() == ["VTG"] and col.flush() is None
 
 
+def rmc(time: str) -> str:
+    return f"GNRMC,{time},A,2911.37000,N,08103.00000,W,0.0,,140326,,,A,V"
+
+
+def burst(time: str) -> list[str]:
+    """One epoch of a two-constellation receiver: GGA, RMC, two GSA, VTG."""
+    return [gga(29.19, -81.05, talker="GN", time=time), rmc(time), "GPGSA,A,3,02,05,,,,,,,,,,,1.70,0.90,1.40",
+            "GLGSA,A,3,70,71,,,,,,,,,,,1.70,0.90,1.40", "GNVTG,,T,,M,0.000,N,0.000,K,A"]
+
+
+def feed(col: EpochCollector, bodies: list[str], *, at: float = 0.0) -> list[Epoch | None]:
+    return [col.add(parsed(b), received=at) for b in bodies]
+
+
+def test_an_epoch_ends_with_its_last_sentence_once_two_alike_have_been_seen() -> None:
+    col = EpochCollector(end_on_complete=True)
+    assert col.mode == "learning"
+    for k, time in enumerate(("120000.00", "120000.20")):
+        assert feed(col, burst(time)) == [None] * 5           # still learning: the silence ends these
+        assert col.flush().kinds() == ["GGA", "RMC", "GSA", "GSA", "VTG"]
+        assert col.mode == ("on completion" if k else "learning")
+    assert col.expected == {"GGA": 1, "RMC": 1, "GSA": 2, "VTG": 1} and col.first_kind == "GGA"
+    *early, last = feed(col, burst("120000.40"), at=3.0)
+    assert early == [None] * 4 and last is not None       # the second GSA alone does not complete it
+    assert last.kinds() == ["GGA", "RMC", "GSA", "GSA", "VTG"] and last.received == 3.0
+    assert col.pending is None and col.flush() is None and col.completed == 1
+    # a sentence missing from an epoch (a bad checksum): it ends the ordinary way, nothing is learned from it
+    partial = burst("120000.60")
+    del partial[1]
+    assert feed(col, partial) == [None] * 4
+    done = feed(col, burst("120000.80"))
+    assert done[0].kinds() == ["GGA", "GSA", "GSA", "VTG"]    # ended by the new time
+    assert done[-1].kinds() == ["GGA", "RMC", "GSA", "GSA", "VTG"] and col.mode == "on completion"
+    # back-to-back bursts (no silence between them) still end on completion
+    assert feed(col, burst("120001.00"))[-1] is not None and feed(col, burst("120001.20"))[-1] is not None
+    assert col.late == 0
+
+
+def test_a_late_sentence_is_dropped_and_switches_back_to_ending_on_silence() -> None:
+    col = EpochCollector(end_on_complete=True)
+    for time in ("120000.00", "120000.20"):
+        feed(col, burst(time))
+        col.flush()
+    done = feed(col, [*burst("120001.00"), "GNZDA,120001.00,14,03,2026,00,00", "GNVTG,,T,,M,0.000,N,0.000,K,A"])
+    assert done[4] is not None and done[5:] == [None, None]
+    # the ZDA carries the ended epoch's time, the VTG none and is not what epochs start with: both were late
+    assert col.late == 2 and col.varying and col.mode == "on silence"
+    assert col.flush() is None
+    assert feed(col, [*burst("120001.20"), "GNZDA,120001.20,14,03,2026,00,00"]) == [None] * 6
+    assert col.flush().kinds() == ["GGA", "RMC", "GSA", "GSA", "VTG", "ZDA"]
+    col.reset()                                                # a reopened port learns again
+    assert col.mode == "learning" and col.late == 2
+
+
+def test_epoch_learning_ignores_a_split_burst_and_whole_second_time_stamps() -> None:
+    col = EpochCollector(end_on_complete=True)
+    head, tail = burst("120000.00")[:2], burst("120000.00")[2:]
+    feed(col, head)
+    col.flush()                                                # a stall mid-burst: the silence split it
+    feed(col, tail)
+    assert col.flush().kinds() == ["GSA", "GSA", "VTG"]
+    feed(col, burst("120000.20"))
+    assert col.flush().kinds() == ["GGA", "RMC", "GSA", "GSA", "VTG"]
+    assert col.mode == "learning"                              # the halves and the whole: no two alike yet
+    # a receiver that stamps whole seconds at 5 Hz: the next epoch's first sentence repeats the time
+    col = EpochCollector(end_on_complete=True)
+    for _ in range(2):
+        feed(col, burst("120000"))
+        col.flush()
+    assert feed(col, burst("120000"))[-1] is not None and feed(col, burst("120000"))[-1] is not None
+    assert col.late == 0 and col.mode == "on completion"
+
+
 # ---------------------------------------------------------------- fixes -------------------------
 def test_a_full_epoch_gives_ned_position_velocity_heading_and_gst_sigmas() -> None:
     lat, lon, alt = ned_to_geodetic(123.4, -56.7, 1.5, origin=GEO)
@@ -236,6 +309,8 @@ def test_gps_service_publishes_one_ned_fix_per_epoch_matching_the_vehicle(
     assert details["fix"] == "True" and details["fix_type"] == "3D" and details["fix_quality"] == "1 (gps)"
     assert details["satellites"] == "10" and details["hdop"] == "0.9" and details["talkers"] == "GN"
     assert details["port"] == "open" and details["bad_checksums"] == "0"
+    # the receiver's epochs are alike: each ends with its last sentence, not after the silence
+    assert details["epoch_end"] == "on completion" and details["late_sentences"] == "0"
     # one publication per epoch of seven sentences, not one per sentence
     assert int(details["published"]) == int(details["epochs"]) and int(details["lines"]) >= 6 * int(details["epochs"])
     lat, lon = float(details["lat"]), float(details["lon"])
