@@ -6,6 +6,7 @@ import math
 import random
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import ServiceProcesses, wait_until
 
@@ -15,7 +16,7 @@ from u2sa_hw import geo
 from u2sa_hw import lcmtypes as t
 from u2sa_hw import messages as m
 from u2sa_hw.bus_client import BusClient
-from u2sa_hw.services.estimator.ekf import Measurement, NavigationEkf
+from u2sa_hw.services.estimator.ekf import Measurement, NavigationEkf, chi2_quantile
 from u2sa_hw.services.estimator.fusion import FusionSettings, StateFusion
 from u2sa_hw.vehicle import Origin
 
@@ -120,6 +121,80 @@ def test_each_message_updates_only_its_present_fields_with_default_sigmas() -> N
     assert fusion.sensors["a"].unusable == 1 and not fusion.estimate().has("y")
 
 
+def test_the_filter_computes_what_filterpy_computes() -> None:
+    """filterpy's ExtendedKalmanFilter beside NavigationEkf on the same measurements: same state and covariance."""
+    from filterpy.common import Q_continuous_white_noise
+    from filterpy.kalman import ExtendedKalmanFilter
+
+    noise = {(0, 3): 2.0, (1, 4): 2.0, (2, 5): 0.3, (6, 7): 4.0}
+    ekf = NavigationEkf(accel_noise=2.0, vertical_accel_noise=0.3, yaw_accel_noise=4.0, gate_probability=1.0)
+    ekf.predict_to(0.0)
+    ekf.update(Measurement("position", ("north", "east", "down"), (3.0, -4.0, 1.0), (1.0, 1.0, 2.0)))
+    ekf.update(Measurement("heading", ("psi",), (3.1,), (0.05,)))
+    ref = ExtendedKalmanFilter(dim_x=8, dim_z=1)
+    ref.x, ref.P = ekf.x.reshape(8, 1).copy(), ekf.P.copy()
+
+    def model(m: Measurement) -> tuple[np.ndarray, np.ndarray]:
+        """h(x) and H at the reference's state, written from the model in ekf.py's docstring."""
+        x = ref.x[:, 0]
+        index = {"north": 0, "east": 1, "down": 2, "v_north": 3, "v_east": 4, "v_down": 5, "psi": 6, "yaw_rate": 7}
+        c, s_ = math.cos(x[6]), math.sin(x[6])
+        h, jac = np.zeros((len(m.components), 1)), np.zeros((len(m.components), 8))
+        for row, comp in enumerate(m.components):
+            if m.kind == "velocity_body" and comp == "forward":
+                h[row, 0], jac[row, [3, 4, 6]] = x[3] * c + x[4] * s_, (c, s_, -x[3] * s_ + x[4] * c)
+            elif m.kind == "velocity_body" and comp == "right":
+                h[row, 0], jac[row, [3, 4, 6]] = -x[3] * s_ + x[4] * c, (-s_, c, -x[3] * c - x[4] * s_)
+            else:
+                i = 5 if m.kind == "velocity_body" else index[comp]
+                h[row, 0], jac[row, i] = x[i], 1.0
+        return h, jac
+
+    def residual(z: np.ndarray, hx: np.ndarray, psi_rows: list[int]) -> np.ndarray:
+        y = z - hx
+        for i in psi_rows:
+            y[i, 0] = geo.wrap_angle(y[i, 0])
+        return y
+
+    kinds = [("position", ("north", "east")), ("position", ("north", "east", "down")), ("heading", ("psi",)),
+             ("velocity_ned", ("v_north", "v_east")), ("velocity_body", ("forward", "right")),
+             ("velocity_body", ("forward", "right", "down")), ("yaw_rate", ("yaw_rate",))]
+    rng = random.Random(5)
+    now = 0.0
+    for step in range(400):
+        dt = rng.choice((0.004, 0.02, 0.1, 0.35))
+        now += dt
+        ekf.predict_to(now)
+        ref.F, ref.Q = np.eye(8), np.zeros((8, 8))
+        for (pos, vel), density in noise.items():
+            ref.F[pos, vel] = dt
+            ref.Q[np.ix_([pos, vel], [pos, vel])] = Q_continuous_white_noise(dim=2, dt=dt, spectral_density=density ** 2)
+        ref.predict()
+        ref.x[6, 0] = geo.wrap_angle(ref.x[6, 0])
+        kind, comps = rng.choice(kinds)
+        values = tuple(rng.uniform(-3.2, 3.2) if c == "psi" else rng.gauss(0.0, 3.0) for c in comps)
+        m = Measurement(kind, comps, values, tuple(rng.uniform(0.05, 2.0) for _ in comps))
+        assert ekf.update(m).outcome == "accepted"
+        h, jac = model(m)
+        psi_rows = [i for i, c in enumerate(comps) if c == "psi"]
+        ref.update(np.array(values).reshape(-1, 1), HJacobian=lambda _x: jac, Hx=lambda _x: h,
+                   R=np.diag(np.square(m.sigmas)), residual=lambda z, hx: residual(z, hx, psi_rows))
+        ref.x[6, 0] = geo.wrap_angle(ref.x[6, 0])
+        assert ekf.x == pytest.approx(ref.x[:, 0], rel=1e-9, abs=1e-9), f"state after step {step} ({kind})"
+        assert ekf.P == pytest.approx(ref.P, rel=1e-9, abs=1e-9), f"covariance after step {step} ({kind})"
+
+
+def test_gate_quantiles_are_scipys() -> None:
+    from scipy.stats import chi2
+
+    for dof in range(1, 7):
+        for p in (0.5, 0.9, 0.99, 0.999, 0.999999):
+            assert chi2_quantile(p, dof) == pytest.approx(chi2.ppf(p, dof), rel=1e-9)
+    assert NavigationEkf(gate_probability=1.0).gate_threshold(2) == math.inf
+    with pytest.raises(ValueError):
+        chi2_quantile(1.0, 2)
+
+
 def test_heading_innovation_is_wrapped_across_pi() -> None:
     ekf = NavigationEkf()
     ekf.update(Measurement("heading", ("psi",), (math.pi - 0.02,), (0.05,)))
@@ -197,6 +272,36 @@ def test_service_fuses_gps_publishes_at_its_rate_and_reports_outliers_and_silenc
     assert abs(estimates[-1].x - 25.0) < 1.0
     wait_until(lambda: _details(health[-1]).get("silent_sensors") == "gps" and health[-1].status == "degraded",
                timeout=10, message="the silent GPS in health")
+
+
+def test_service_publishes_each_position_fix_at_once_with_the_rate_as_the_longest_silence(
+        services: ServiceProcesses, bus: BusClient, tmp_path: Path) -> None:
+    vehicle = tmp_path / "vehicle.toml"
+    # one prediction per 30 s at most: the estimates that answer the fixes below can only be update publications
+    vehicle.write_text(f"[vehicle]\norigin = {{ lat = {ORIGIN.lat}, lon = {ORIGIN.lon}, alt = {ORIGIN.alt} }}\n"
+                       "[services.est]\nkind = \"state_estimator\"\n"
+                       "settings = { publish_rate_hz = 0.033, publish_on = \"position\", health_interval_s = 0.2 }\n")
+    estimates: list[t.StateInformation] = []
+    health: list[t.Health] = []
+    bus.transport.subscribe(ch.STATE_ESTIMATE, t.StateInformation, lambda _c, msg: estimates.append(msg))
+    bus.transport.subscribe(ch.HEALTH, t.Health, lambda _c, msg: health.append(msg) if msg.name == "est" else None)
+    services.start("est", "--vehicle", str(vehicle))
+    wait_until(lambda: health, timeout=20, message="the estimator's health")
+    bus.publish(ch.STATE_INFO, info("compass", psi=0.5, psi_sigma=0.05))     # a heading: not in publish_on
+    wait_until(lambda: _details(health[-1]).get("sensors") == "compass", timeout=10, message="the compass registered")
+    for k, north in enumerate((5.0, 5.3, 5.6)):
+        bus.publish(ch.STATE_INFO, gps_fix(north, 2.0, sigma=1.0))
+        wait_until(lambda: len(estimates) > k, timeout=10, message=f"the estimate answering fix {k + 1}")
+    est = estimates[-1]
+    assert 5.0 < est.x < 5.6 and est.y == pytest.approx(2.0, abs=0.5)
+    assert est.psi == pytest.approx(0.5, abs=0.01)                              # the heading was folded in
+    wait_until(lambda: int(_details(health[-1]).get("published_on_update", 0)) >= 3, timeout=10,
+               message="three publications on update in health")
+    # a rate that is not > 0 is refused over the bus, and the file keeps the old one
+    reply = bus.set_config("est", "publish_rate_hz", "0", timeout=10)
+    assert reply is not None and not reply.ok and "publish_rate_hz must be > 0" in reply.error
+    reply = bus.set_config("est", "publish_on", "position,altitude", timeout=10)
+    assert reply is not None and not reply.ok and "'publish_on' names altitude" in reply.error
 
 
 def test_passthrough_mode_stays_selectable_and_a_bad_mode_is_one_clear_error(

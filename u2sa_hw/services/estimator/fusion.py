@@ -28,13 +28,14 @@ estimate cannot lock out every sensor forever.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from dataclasses import dataclass, field
 
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.geo import GeoOrigin, geodetic_to_ned
-from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence setters
+from u2sa_hw.messages import STATE_FIELDS  # also installs the presence setters
 from u2sa_hw.services.estimator.ekf import Measurement, NavigationEkf, UpdateResult
 
 NED_FRAMES = frozenset({"", "NED", "LOCAL"})
@@ -46,6 +47,29 @@ PASSTHROUGH_FIELDS = (*_PASSTHROUGH_VALUES, *(f"{n}_sigma" for n in _PASSTHROUGH
 # estimate field <- filter state
 _OUTPUT = (("x", "north"), ("y", "east"), ("z", "down"), ("x_dot", "v_north"), ("y_dot", "v_east"),
            ("z_dot", "v_down"), ("psi", "psi"), ("psi_dot", "yaw_rate"))
+_BIT = {name: 1 << i for i, name in enumerate(STATE_FIELDS)}
+_PASSTHROUGH = tuple((name, _BIT[name]) for name in PASSTHROUGH_FIELDS)
+_PASSTHROUGH_MASK = sum(bit for _, bit in _PASSTHROUGH)
+_OUTPUT_BITS = tuple((state, out, _BIT[out], f"{out}_sigma", _BIT[f"{out}_sigma"]) for out, state in _OUTPUT)
+
+
+# (kind, filter components, message fields, (sigma field, its presence bit, default sigma) per field)
+_Group = tuple[str, tuple[str, ...], tuple[str, ...], tuple[tuple[str, int, float], ...]]
+
+
+def _sigma(msg: t.StateInformation, bit: int, name: str, default: float) -> float:
+    """The sigma field *name* when present, finite and > 0, else *default*."""
+    if msg.presence_vector & bit:
+        sigma = getattr(msg, name)
+        if math.isfinite(sigma) and sigma > 0:
+            return sigma
+    return default
+
+
+@functools.lru_cache(maxsize=256)
+def _value_fields(presence_vector: int) -> tuple[str, ...]:
+    """The value (not sigma) fields a presence vector marks (a sensor sends a handful of vectors)."""
+    return tuple(n for n in STATE_FIELDS if presence_vector & _BIT[n] and not n.endswith("_sigma"))
 
 
 @dataclass(frozen=True)
@@ -94,62 +118,77 @@ class StateFusion:
         self.sensors: dict[str, SensorRecord] = {}
         self.passthrough = t.StateInformation()
         self._warned: set[tuple[str, str]] = set()
+        self._layouts: dict[tuple[int, str], tuple[list[_Group], list[str]]] = {}
 
     # -- messages -> measurements ---------------------------------------------------------
-    def _sigma(self, msg: t.StateInformation, name: str, default: float) -> float:
-        sigma = msg.get(f"{name}_sigma")
-        return sigma if sigma is not None and math.isfinite(sigma) and sigma > 0 else default
-
     def measurements(self, msg: t.StateInformation) -> tuple[list[Measurement], list[str]]:
         """The measurement groups in *msg*, and the present fields that cannot be used."""
+        present = msg.presence_vector
+        bad = [n for n in _value_fields(present) if not math.isfinite(getattr(msg, n))]
+        usable = present & ~sum(_BIT[n] for n in bad)
+        layout = self._layouts.get((usable, msg.reference_frame))
+        if layout is None:
+            layout = self._layouts[(usable, msg.reference_frame)] = self._layout(usable, msg.reference_frame)
+        groups, unusable = layout
+        out = []
+        for kind, components, fields, sigmas in groups:
+            values = tuple(getattr(msg, f) for f in fields)
+            if kind == "geodetic":   # x = lat, y = lon (deg), z = altitude up (m)
+                kind, values = "position", self._geodetic_to_ned(fields, values)
+            out.append(Measurement(kind, components, values,
+                                   tuple(_sigma(msg, bit, name, default) for name, bit, default in sigmas)))
+        return out, [*bad, *unusable]
+
+    def _geodetic_to_ned(self, fields: tuple[str, ...], values: tuple[float, ...]) -> tuple[float, ...]:
+        by_field = dict(zip(fields, values))
+        out: list[float] = []
+        if "x" in by_field:
+            north, east, _ = geodetic_to_ned(by_field["x"], by_field["y"], None, origin=self.origin)
+            out += [north, east]
+        if "z" in by_field:
+            out.append(self.origin.alt - by_field["z"])
+        return tuple(out)
+
+    def _layout(self, usable: int, frame_text: str) -> tuple[list[_Group], list[str]]:
+        """Which groups a message with the finite fields *usable* in *frame_text* makes, and what is unusable.
+
+        Computed once per presence vector and frame: a sensor sends the same few every time.
+        """
         s = self.settings
-        frame = msg.reference_frame.strip().upper()
-        present = [n for n in msg.present_fields() if not n.endswith("_sigma")]
-        bad = [n for n in present if not math.isfinite(getattr(msg, n))]
-        ok = {n: getattr(msg, n) for n in present if n not in bad}
-        unusable = list(bad)
-        out: list[Measurement] = []
+        frame = frame_text.strip().upper()
+        ok = {n for n in STATE_FIELDS if usable & _BIT[n] and not n.endswith("_sigma")}
+        defaults = {"x": s.default_position_sigma, "y": s.default_position_sigma, "z": s.default_altitude_sigma,
+                    "x_dot": s.default_velocity_sigma, "y_dot": s.default_velocity_sigma,
+                    "z_dot": s.default_velocity_sigma, "psi": s.default_heading_sigma,
+                    "psi_dot": s.default_yaw_rate_sigma}
+        groups: list[_Group] = []
+        unusable: list[str] = []
 
-        def group(kind: str, parts: list[tuple[str, str, float, float]]) -> None:
+        def group(kind: str, pairs: tuple[tuple[str, str], ...]) -> None:
+            parts = [(n, c) for n, c in pairs if n in ok]
             if parts:
-                out.append(Measurement(kind, tuple(p[1] for p in parts), tuple(p[2] for p in parts),
-                                       tuple(p[3] for p in parts)))
+                groups.append((kind, tuple(c for _, c in parts), tuple(n for n, _ in parts),
+                               tuple((f"{n}_sigma", _BIT[f"{n}_sigma"], defaults[n]) for n, _ in parts)))
 
-        pos_sigma = {"x": s.default_position_sigma, "y": s.default_position_sigma, "z": s.default_altitude_sigma}
-        pos = [n for n in ("x", "y", "z") if n in ok]
-        vel = [n for n in ("x_dot", "y_dot", "z_dot") if n in ok]
+        position = (("x", "north"), ("y", "east"), ("z", "down"))
         if frame in NED_FRAMES:
-            group("position", [(n, c, ok[n], self._sigma(msg, n, pos_sigma[n]))
-                               for n, c in (("x", "north"), ("y", "east"), ("z", "down")) if n in ok])
+            group("position", position)
         elif frame in GEODETIC_FRAMES:
-            parts = []
-            if "x" in ok and "y" in ok:
-                north, east, _ = geodetic_to_ned(ok["x"], ok["y"], None, origin=self.origin)
-                parts += [("x", "north", north, self._sigma(msg, "x", pos_sigma["x"])),
-                          ("y", "east", east, self._sigma(msg, "y", pos_sigma["y"]))]
-            else:
+            if not ("x" in ok and "y" in ok):
                 unusable += [n for n in ("x", "y") if n in ok]   # latitude without longitude or vice versa
-            if "z" in ok:
-                parts.append(("z", "down", self.origin.alt - ok["z"], self._sigma(msg, "z", pos_sigma["z"])))
-            group("position", parts)
+                ok -= {"x", "y"}
+            group("geodetic", position)
         else:
-            unusable += pos
+            unusable += [n for n in ("x", "y", "z") if n in ok]
         if frame in NED_FRAMES or frame in GEODETIC_FRAMES:
-            group("velocity_ned", [(n, c, ok[n], self._sigma(msg, n, s.default_velocity_sigma))
-                                   for n, c in (("x_dot", "v_north"), ("y_dot", "v_east"), ("z_dot", "v_down"))
-                                   if n in ok])
+            group("velocity_ned", (("x_dot", "v_north"), ("y_dot", "v_east"), ("z_dot", "v_down")))
         elif frame in BODY_FRAMES:
-            group("velocity_body", [(n, c, ok[n], self._sigma(msg, n, s.default_velocity_sigma))
-                                    for n, c in (("x_dot", "forward"), ("y_dot", "right"), ("z_dot", "down"))
-                                    if n in ok])
+            group("velocity_body", (("x_dot", "forward"), ("y_dot", "right"), ("z_dot", "down")))
         else:
-            unusable += vel
-        if "psi" in ok:
-            group("heading", [("psi", "psi", ok["psi"], self._sigma(msg, "psi", s.default_heading_sigma))])
-        if "psi_dot" in ok:
-            group("yaw_rate", [("psi_dot", "yaw_rate", ok["psi_dot"],
-                                self._sigma(msg, "psi_dot", s.default_yaw_rate_sigma))])
-        return out, unusable
+            unusable += [n for n in ("x_dot", "y_dot", "z_dot") if n in ok]
+        group("heading", (("psi", "psi"),))
+        group("yaw_rate", (("psi_dot", "yaw_rate"),))
+        return groups, unusable
 
     # -- ingest -----------------------------------------------------------------------------
     def register(self, name: str, *, now: float) -> SensorRecord:
@@ -167,7 +206,7 @@ class StateFusion:
         rec.messages += 1
         rec.last_seen = now
         rec.frames.add(msg.reference_frame.strip().upper() or "NED")
-        rec.fields.update(n for n in msg.present_fields() if not n.endswith("_sigma"))
+        rec.fields.update(_value_fields(msg.presence_vector))
         groups, unusable = self.measurements(msg)
         if unusable:
             rec.unusable += len(unusable)
@@ -205,10 +244,16 @@ class StateFusion:
         return results
 
     def _copy_passthrough(self, msg: t.StateInformation) -> None:
-        for name in PASSTHROUGH_FIELDS:
-            value = msg.get(name)
-            if value is not None and math.isfinite(value):
-                self.passthrough.set(**{name: value})
+        present = msg.presence_vector & _PASSTHROUGH_MASK
+        if not present:
+            return
+        kept = self.passthrough
+        for name, bit in _PASSTHROUGH:
+            if present & bit:
+                value = getattr(msg, name)
+                if math.isfinite(value):
+                    setattr(kept, name, value)
+                    kept.presence_vector |= bit
 
     def _warn_once(self, sensor: str, what: str, why: str) -> None:
         if (sensor, what) not in self._warned:
@@ -223,19 +268,24 @@ class StateFusion:
     def estimate(self, *, name: str = "state_estimator") -> t.StateInformation | None:
         """The current estimate (NED, with sigmas), or None before any usable measurement."""
         state = self.ekf.state()
-        if not state and not self.passthrough.presence_vector:
+        kept = self.passthrough
+        if not state and not kept.presence_vector:
             return None
         msg = t.StateInformation()
         msg.sensor_name = name
         msg.reference_frame = "NED"
-        for out_name, state_name in _OUTPUT:
+        present = kept.presence_vector
+        for state_name, out, bit, out_sigma, sigma_bit in _OUTPUT_BITS:
             if state_name in state:
                 value, sigma = state[state_name]
-                msg.set(**{out_name: value, f"{out_name}_sigma": sigma})
-        for name_ in PASSTHROUGH_FIELDS:
-            value = self.passthrough.get(name_)
-            if value is not None:
-                msg.set(**{name_: value})
+                setattr(msg, out, value)
+                setattr(msg, out_sigma, sigma)
+                present |= bit | sigma_bit
+        if kept.presence_vector:
+            for name_, bit in _PASSTHROUGH:
+                if kept.presence_vector & bit:
+                    setattr(msg, name_, getattr(kept, name_))
+        msg.presence_vector = present
         return msg
 
     def silent_sensors(self, *, now: float, timeout: float) -> list[str]:

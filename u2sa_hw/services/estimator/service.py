@@ -4,9 +4,12 @@ Two modes, chosen by the config field ``mode``:
 
 ``ekf`` (default)
     An extended Kalman filter (:mod:`.ekf`) fed by every sensor on ``STATE_INFO``
-    (:mod:`.fusion` says how each field and frame is read). The run loop predicts and
-    publishes ``STATE_ESTIMATE`` (NED, with sigmas) at ``publish_rate_hz``; nothing is
-    published before the first usable measurement.
+    (:mod:`.fusion` says how each field and frame is read). ``STATE_ESTIMATE`` (NED, with
+    sigmas) goes out at once after a message whose update moved a kind listed in
+    ``publish_on`` (position and heading: what the planner steers by), and the run loop
+    predicts and publishes whenever nothing went out for ``1 / publish_rate_hz``, so the
+    rate is the least the consumers get. Nothing is published before the first usable
+    measurement.
 ``passthrough``
     The thesis's FlightGear estimator: each State Information has its present fields
     copied into the running estimate, which is published at once.
@@ -31,6 +34,10 @@ from u2sa_hw.services.estimator.fusion import FusionSettings, StateFusion
 
 MODES = ("ekf", "passthrough")
 _FILTER_FIELDS = tuple(FusionSettings.__dataclass_fields__)
+# publish_on names -> the filter's measurement kinds
+PUBLISH_KINDS = {"position": ("position",), "velocity": ("velocity_ned", "velocity_body"), "heading": ("heading",),
+                 "yaw_rate": ("yaw_rate",)}
+_FOLDED = ("accepted", "initialised")
 
 
 class StateEstimator(U2SAService):
@@ -41,7 +48,10 @@ class StateEstimator(U2SAService):
     CONFIG = (
         field("mode", "ekf", "ekf: extended Kalman filter; passthrough: copy present fields of each message"),
         field("sensor_timeout_s", 2.0, "a sensor silent for this long is reported in health"),
-        field("publish_rate_hz", 50.0, "ekf: STATE_ESTIMATE publications per second"),
+        field("publish_rate_hz", 50.0, "ekf: the least STATE_ESTIMATE publications per second (a prediction "
+                                        "goes out when nothing did for 1/rate)"),
+        field("publish_on", "position,heading", "ekf: measurement kinds whose update is published at once "
+                                                 "(position, velocity, heading, yaw_rate; comma separated, may be empty)"),
         field("default_position_sigma", _D.default_position_sigma, "m, for a position without x_sigma/y_sigma"),
         field("default_altitude_sigma", _D.default_altitude_sigma, "m, for a z without z_sigma"),
         field("default_velocity_sigma", _D.default_velocity_sigma, "m/s, for a velocity without its sigma"),
@@ -57,12 +67,17 @@ class StateEstimator(U2SAService):
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
         self._lock = threading.Lock()
-        self.mode = self._checked_mode(self.config.get("mode"))
+        self.check_config()
+        self.mode = self.config.get("mode")
         self.estimate = t.StateInformation()
         self.estimate.sensor_name = name
         self.estimate.reference_frame = "NED"
         self.sensors: dict[str, float] = {}
         self.fusion = self._new_fusion()
+        self.publish_kinds = self._checked_publish_on(self.config.get("publish_on"))
+        self._last_publish = -float("inf")   # monotonic time of the latest STATE_ESTIMATE
+        self.published_on_update = 0
+        self.published_on_rate = 0
         self.register_subscriber(ch.STATE_INFO, t.StateInformation)
         self.register_publisher(ch.STATE_ESTIMATE, t.StateInformation)
 
@@ -72,6 +87,22 @@ class StateEstimator(U2SAService):
             raise ConfigError(f"{self.name}: config field 'mode' must be one of {', '.join(MODES)}, got {mode!r} "
                               f"(fix it in {where}the vehicle profile's settings)")
         return mode
+
+    def _checked_publish_on(self, text: str) -> frozenset[str]:
+        names = [n.strip().lower() for n in str(text).split(",") if n.strip()]
+        unknown = [n for n in names if n not in PUBLISH_KINDS]
+        if unknown:
+            where = f"{self.config.path} or " if self.config.path else ""
+            raise ConfigError(f"{self.name}: config field 'publish_on' names {', '.join(unknown)}; use any of "
+                              f"{', '.join(PUBLISH_KINDS)} (fix it in {where}the vehicle profile's settings)")
+        return frozenset(kind for n in names for kind in PUBLISH_KINDS[n])
+
+    def check_config(self) -> None:
+        """Refuse an unknown mode or publish_on kind, or a rate that is not > 0."""
+        self._checked_mode(self.config.get("mode"))
+        self._checked_publish_on(self.config.get("publish_on"))
+        if not float(self.config.get("publish_rate_hz")) > 0:
+            raise ConfigError(f"{self.name}: publish_rate_hz must be > 0, got {self.config.get('publish_rate_hz')!r}")
 
     def _new_fusion(self) -> StateFusion:
         settings = FusionSettings(**{k: self.config.get(k) for k in _FILTER_FIELDS})
@@ -91,7 +122,15 @@ class StateEstimator(U2SAService):
                                  ", ".join(data.present_fields()))
             self.sensors[name] = now
             if self.mode == "ekf":
-                self.fusion.ingest(data, now=now)
+                results = self.fusion.ingest(data, now=now)
+                if not any(m.kind in self.publish_kinds and r.outcome in _FOLDED for m, r in results):
+                    return
+                msg = self.fusion.estimate(name=self.name)
+                if msg is None:
+                    return
+                self._last_publish = now
+                self.published_on_update += 1
+                self.publish(ch.STATE_ESTIMATE, msg)
                 return
             self.copy_present(data, self.estimate)
             self.estimate.header.timestamp_us = data.header.timestamp_us
@@ -111,15 +150,22 @@ class StateEstimator(U2SAService):
 
     # -- output -----------------------------------------------------------------------------
     def run(self) -> None:
-        """In ekf mode: predict and publish the estimate at ``publish_rate_hz``."""
-        while self.wait(1.0 / max(0.1, float(self.config.get("publish_rate_hz")))):
-            if self.mode != "ekf":
-                continue
+        """In ekf mode: predict and publish when nothing went out for ``1 / publish_rate_hz``."""
+        while True:
+            period = 1.0 / float(self.config.get("publish_rate_hz"))
             with self._lock:
-                self.fusion.predict_to(time.monotonic())
-                msg = self.fusion.estimate(name=self.name)
-            if msg is not None:
-                self.publish(ch.STATE_ESTIMATE, msg)
+                now = time.monotonic()
+                if self.mode == "ekf" and now - self._last_publish >= period:
+                    self.fusion.predict_to(now)
+                    msg = self.fusion.estimate(name=self.name)
+                    if msg is not None:
+                        self._last_publish = now
+                        self.published_on_rate += 1
+                        self.publish(ch.STATE_ESTIMATE, msg)
+                since = now - self._last_publish
+                due = now + (period - since if since < period else period)
+            if not self.wait(max(0.0, due - time.monotonic())):
+                return
 
     def on_config_change(self, name: str, value: Any) -> None:
         """Apply a new mode or filter setting live (a filter setting restarts the filter)."""
@@ -137,6 +183,8 @@ class StateEstimator(U2SAService):
             with self._lock:
                 self.fusion = self._new_fusion()
             self.logger.info("%s changed to %s: filter restarted", name, value)
+        elif name == "publish_on":
+            self.publish_kinds = self._checked_publish_on(value)
 
     def health_details(self) -> dict[str, Any]:
         """Mode, known and silent sensors, and per-sensor outliers (ekf)."""
@@ -152,6 +200,8 @@ class StateEstimator(U2SAService):
         details: dict[str, Any] = {"mode": self.mode, "sensors": ",".join(sorted(self.sensors)),
                                    "silent_sensors": ",".join(silent)}
         if self.mode == "ekf":
+            details["published_on_update"] = self.published_on_update
+            details["published_on_rate"] = self.published_on_rate
             details["outliers"] = ",".join(f"{r.name}:{r.outliers}" for r in records)
             details["unusable_fields"] = ",".join(f"{r.name}:{r.unusable}" for r in records if r.unusable)
             details["waiting_for_heading"] = ",".join(f"{r.name}:{r.deferred}" for r in records if r.deferred)
