@@ -195,6 +195,27 @@ def test_manual_resets_integrators_and_handback_is_bumpless() -> None:
         assert all(abs(b[n] - a[n]) <= 5.0 + 1e-9 for n in a)
 
 
+def test_a_cycle_without_a_new_point_slews_on_and_leaves_the_loops_alone() -> None:
+    c = controller(rate_limit_pct_s=100.0, heading=PidGains(kp=80.0, ki=5.0, kd=10.0, integral_limit=20.0))
+    c.on_estimate(t.StateInformation().set(psi=0.0, x_dot=0.5, y_dot=0.0), 0.0)   # no yaw rate: d from the error
+    feed(c, 0.0, point=nav(3, 1, 1.0))
+    first = feed(c, 0.05, point=nav(3, 1, 1.0))
+    integral, terms, targets = c.heading_pid.integral, c.heading_pid.terms, dict(c.targets)
+    assert max(abs(v - targets[n]) for n, v in first.items()) > 5.0     # still slewing toward the targets
+    refreshed = c.refresh(0.08)                                         # the rate's cycle: no new point
+    assert c.heading_pid.integral == integral and c.heading_pid.terms == terms and c.targets == targets
+    for name, value in refreshed.items():                               # on toward the same targets, 30 ms worth
+        assert abs(value - first[name]) == pytest.approx(min(100.0 * 0.03, abs(targets[name] - first[name])))
+    # the next point's PID step spans the 50 ms since the last point; the slew, the 20 ms since the refresh
+    error = math.atan2(1.5, 3.0)
+    after = feed(c, 0.1, point=nav(3, 1.5, 1.0))
+    assert c.heading_pid.integral == pytest.approx(integral + 5.0 * error * 0.05)
+    assert c.heading_pid.terms[2] == pytest.approx(10.0 * (error - math.atan2(1, 3)) / 0.05)
+    assert all(abs(after[n] - refreshed[n]) <= 100.0 * 0.02 + 1e-9 for n in after)
+    assert c.refresh(0.7) == {"L": 0.0, "R": 0.0} and c.neutral_reason == "NAV_POINT silent for 0.6 s"
+    assert c.targets is None and c.heading_pid.integral == 0.0
+
+
 def test_other_subsystems_and_non_finite_points_are_not_followed() -> None:
     c = controller()
     assert not c.on_nav(nav(3, 0, 1.0, subsystem="gimbal"), 0.0)
@@ -281,3 +302,41 @@ def test_planner_and_control_processes_drive_and_report(services: ServiceProcess
         return bool(navs) and navs[-1].speed == 0.0 and all(m.percentage == 0.0 for m in recent)
 
     wait_until(holding, timeout=10, interval=0.05, message="the hold at the goal to reach the wheels")
+
+
+def test_planner_and_control_answer_each_input_at_once_with_their_rates_as_the_floor(
+        services: ServiceProcesses, bus: BusClient, tmp_path: Path) -> None:
+    vehicle = tmp_path / "vehicle.toml"
+    # one cycle per 30 s from the rates: what answers the inputs below within seconds is the inputs' doing
+    vehicle.write_text(
+        f"[vehicle]\norigin = {{ lat = {ORIGIN.lat}, lon = {ORIGIN.lon}, alt = {ORIGIN.alt} }}\n"
+        "[services.planner]\nkind = \"path_planner\"\nsettings = { control_rate_hz = 0.033 }\n"
+        "[services.control]\nkind = \"control\"\nsettings = { control_rate_hz = 0.033, nav_timeout_s = 60.0, "
+        "rc_timeout_s = 60.0, left_actuator = \"wheel_l\", right_actuator = \"wheel_r\" }\n")
+    navs: list[t.NavigationPoint] = []
+    cmds: list[t.PercentageCommand] = []
+    bus.transport.subscribe(ch.NAV_POINT, t.NavigationPoint, lambda _c, m: navs.append(m))
+    bus.transport.subscribe(ch.ACTUATOR_CMD, t.PercentageCommand, lambda _c, m: cmds.append(m))
+    seen: set[str] = set()
+    bus.transport.subscribe(ch.HEALTH, t.Health, lambda _c, m: seen.add(m.name))
+    services.start("planner", "--vehicle", str(vehicle))
+    services.start("control", "--vehicle", str(vehicle))
+    wait_until(lambda: {"planner", "control"} <= seen, timeout=20, message="both services' health")
+    goal = t.Waypoint()
+    goal.base.uid, goal.reference_frame = "ahead", "LOCAL"
+    goal.set(x=20.0, y=0.0)
+    bus.publish(ch.RC_MODE, rc(1))
+    wait_until(lambda: cmds, timeout=10, message="the neutral commands of the first cycle, at start")
+    base_navs, base_cmds = len(navs), len(cmds)
+    for k in range(1, 4):
+        bus.publish(ch.GOALS, goal)
+        bus.publish(ch.STATE_ESTIMATE, t.StateInformation().set(x=0.1 * k, y=0.0, psi=0.0, x_dot=0.0, y_dot=0.0))
+        wait_until(lambda: len(navs) >= base_navs + k and len(cmds) >= base_cmds + 2 * k, timeout=10,
+                   message=f"the point and the two commands answering estimate {k}")
+    assert navs[-1].goal_uid == "ahead" and navs[-1].speed > 0
+    assert {c.base.actuator_name for c in cmds[-2:]} == {"wheel_l", "wheel_r"}
+    assert all(c.percentage > 0 for c in cmds[-2:])                      # driving, slewed up from rest
+    mark = len(cmds)
+    bus.publish(ch.RC_MODE, rc(0))                                       # the pilot takes over: neutral at once
+    wait_until(lambda: len(cmds) >= mark + 2, timeout=10, message="neutral commands answering RC manual")
+    assert all(c.percentage == 0.0 for c in cmds[mark:mark + 2])

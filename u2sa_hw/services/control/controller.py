@@ -21,6 +21,12 @@ Each cycle (:meth:`VehicleController.step`):
    feedforward acts alone and the speed integrator is held at 0.
 4. **Mix and slew**: the mixer turns (turn, throttle) into actuator percentages, and each
    actuator's output moves toward its target by at most ``rate_limit_pct_s`` per second.
+
+:meth:`VehicleController.step` runs all of that (the service calls it for each navigation
+point); :meth:`VehicleController.refresh` is a cycle without new navigation (the service's
+minimum output rate): it re-checks neutral and slews the outputs on toward the targets of
+the latest step, leaving the PID loops alone, so their time steps always span the time
+between two navigation points however the cycles interleave.
 """
 
 from __future__ import annotations
@@ -74,7 +80,9 @@ class VehicleController:
         self.rc: _Stamped | None = None
         self.failsafe: t.Failsafe | None = None
         self.neutral_reason = "starting"
-        self.last_step: float | None = None
+        self.last_step: float | None = None      # the latest cycle (step or refresh): the slew's time base
+        self.last_law: float | None = None       # the latest step: the PID loops' time base
+        self.targets: dict[str, float] | None = None   # the mixer's output at the latest step, None when neutral
         self.outputs = {name: 0.0 for name in mixer.actuators}
         self.heading_error = 0.0
         self.desired_speed = 0.0
@@ -88,6 +96,7 @@ class VehicleController:
         self.speed_pid = PidController(settings.speed)
         self.limiters = {name: RateLimiter(settings.rate_limit_pct_s) for name in mixer.actuators}
         self.outputs = {name: 0.0 for name in mixer.actuators}
+        self.targets = None
 
     # -- inputs ------------------------------------------------------------------------------
     def on_nav(self, msg: t.NavigationPoint, now: float) -> bool:
@@ -147,14 +156,29 @@ class VehicleController:
         for limiter in self.limiters.values():
             limiter.reset(0.0)
         self.outputs = {name: 0.0 for name in self.mixer.actuators}
+        self.targets = None
         self.desired_speed = 0.0
+        return dict(self.outputs)
+
+    def _since(self, then: float | None, now: float) -> float:
+        return 0.0 if then is None else min(self.settings.max_dt_s, max(0.0, now - then))
+
+    def refresh(self, now: float) -> dict[str, float]:
+        """A cycle without a new navigation point: neutral if it must be, else slew on toward the latest targets."""
+        self.neutral_reason = self.why_neutral(now)
+        if self.neutral_reason or self.targets is None:
+            return self.step(now)
+        dt = self._since(self.last_step, now)
+        self.last_step = now
+        self.outputs = {name: self.limiters[name].step(value, dt) for name, value in self.targets.items()}
         return dict(self.outputs)
 
     def step(self, now: float) -> dict[str, float]:
         """One control cycle at monotonic time *now*: actuator name -> percentage."""
         s = self.settings
-        dt = 0.0 if self.last_step is None else min(s.max_dt_s, max(0.0, now - self.last_step))
-        self.last_step = now
+        dt = self._since(self.last_law, now)        # the PID loops' step
+        slew_dt = self._since(self.last_step, now)  # the outputs' step (shorter after a refresh)
+        self.last_step = self.last_law = now
         self.neutral_reason = self.why_neutral(now)
         if self.neutral_reason:
             return self.go_neutral()
@@ -171,8 +195,8 @@ class VehicleController:
         else:
             correction = self.speed_pid.update(desired - measured, dt)
         throttle = s.speed_feedforward * desired + correction
-        targets = self.mixer.mix(turn, throttle)
-        self.outputs = {name: self.limiters[name].step(value, dt) for name, value in targets.items()}
+        targets = self.targets = self.mixer.mix(turn, throttle)
+        self.outputs = {name: self.limiters[name].step(value, slew_dt) for name, value in targets.items()}
         self.heading_error, self.desired_speed, self.measured_speed = error, desired, measured
         return dict(self.outputs)
 

@@ -1,14 +1,16 @@
 """Control System service (requirement S5; thesis 3.2.3.5, 4.6.2.5).
 
 Subscribes ``NAV_POINT`` (the planner's body-frame point and desired speed),
-``STATE_ESTIMATE`` (yaw rate and velocity), ``RC_MODE`` and ``FAILSAFE``. At
-``control_rate_hz`` it runs the control law (:mod:`.controller`: PID on heading and speed,
+``STATE_ESTIMATE`` (yaw rate and velocity), ``RC_MODE`` and ``FAILSAFE``. On each
+navigation point it runs the control law (:mod:`.controller`: PID on heading and speed,
 :mod:`.mixers` for the drive, rate limits) and publishes one ``PercentageCommand`` per
-actuator on ``ACTUATOR_CMD``, addressed by actuator name. While ``RC_MODE`` is not
+actuator on ``ACTUATOR_CMD``, addressed by actuator name; ``control_rate_hz`` is the least
+it publishes: a cycle without a new point (:meth:`~.controller.VehicleController.refresh`)
+goes out when nothing did for ``1 / control_rate_hz``. While ``RC_MODE`` is not
 autonomous with the mux's autonomy enable on (or is silent), a failsafe is active, or
-navigation points stop, the commands are
-neutral (0 %) and the integrators are reset; neutral commands keep going out at the control
-rate so every actuator sees the system alive and at rest.
+navigation points stop, the commands are neutral (0 %) and the integrators are reset; an
+``RC_MODE`` or ``FAILSAFE`` that ends driving sends neutral at once, and neutral commands
+keep going out at the control rate so every actuator sees the system alive and at rest.
 
 A bad ``mixer`` or empty actuator name stops the service at start with the reason; changed
 over the bus it is refused in the log and the running mixer is kept.
@@ -36,7 +38,7 @@ class ControlSystem(U2SAService):
 
     SERVICE_TYPE: ClassVar[str] = "control"
     CONFIG = (
-        field("control_rate_hz", 20.0, "ACTUATOR_CMD cycles per second"),
+        field("control_rate_hz", 20.0, "the least ACTUATOR_CMD cycles per second (each NAV_POINT makes one too)"),
         field("mixer", "differential", "differential, ackermann or twin_thruster"),
         field("left_actuator", "left_wheel", "differential/twin_thruster: the left wheel or thruster's actuator name"),
         field("right_actuator", "right_wheel", "differential/twin_thruster: the right one's actuator name"),
@@ -72,6 +74,9 @@ class ControlSystem(U2SAService):
             raise ConfigError(f"{self.name}: {exc} (fix it in {where}the vehicle profile's settings)") from None
         self.controller = VehicleController(settings=self._settings(), mixer=mixer)
         self.commands_sent = 0
+        self._last_cycle = -float("inf")   # monotonic time of the latest commands sent
+        self._sent: dict[str, float] = {}
+        self._logged_reason: str | None = None
         self.register_subscriber(ch.NAV_POINT, t.NavigationPoint, self._on_nav)
         self.register_subscriber(ch.STATE_ESTIMATE, t.StateInformation, self._on_estimate)
         self.register_subscriber(ch.RC_MODE, t.RcMode, self._on_rc_mode)
@@ -118,7 +123,9 @@ class ControlSystem(U2SAService):
     # -- inputs -----------------------------------------------------------------------------
     def _on_nav(self, msg: t.NavigationPoint) -> None:
         with self._lock:
-            self.controller.on_nav(msg, time.monotonic())
+            now = time.monotonic()
+            if self.controller.on_nav(msg, now):
+                self._cycle(self.controller.step(now), now)
 
     def _on_estimate(self, msg: t.StateInformation) -> None:
         with self._lock:
@@ -127,18 +134,27 @@ class ControlSystem(U2SAService):
     def _on_rc_mode(self, msg: t.RcMode) -> None:
         with self._lock:
             before = self.controller.rc.msg.mode if self.controller.rc else None
-            self.controller.on_rc_mode(msg, time.monotonic())
+            now = time.monotonic()
+            self.controller.on_rc_mode(msg, now)
+            self._neutral_at_once(now)
         if before != msg.mode:
             self.logger.info("RC mode %d (%s)", msg.mode, msg.mode_name or RC_NAMES.get(msg.mode, "unknown"))
 
     def _on_failsafe(self, msg: t.Failsafe) -> None:
         with self._lock:
             was = self.controller.failsafe is not None
-            self.controller.on_failsafe(msg, time.monotonic())
+            now = time.monotonic()
+            self.controller.on_failsafe(msg, now)
+            self._neutral_at_once(now)
         if msg.active and not was:
             self.logger.warning("FAILSAFE from %s: %s -> neutral", msg.header.source or "?", msg.reason)
         elif was and not msg.active:
             self.logger.info("failsafe cleared by %s", msg.header.source or "?")
+
+    def _neutral_at_once(self, now: float) -> None:
+        """While driving, an input that ends it (manual, the enable off, a failsafe) sends neutral now."""
+        if not self.controller.neutral_reason and self.controller.why_neutral(now):
+            self._cycle(self.controller.refresh(now), now)
 
     # -- output -----------------------------------------------------------------------------
     def _send(self, actuator: str, percent: float) -> None:
@@ -148,21 +164,36 @@ class ControlSystem(U2SAService):
         if self.publish(ch.ACTUATOR_CMD, cmd):
             self.commands_sent += 1
 
-    def run(self) -> None:
-        """Control at ``control_rate_hz``; log when the controller engages or goes neutral."""
-        reason = None
-        while self.wait(1.0 / max(0.1, float(self.config.get("control_rate_hz")))):
-            with self._lock:
-                outputs = self.controller.step(time.monotonic())
-                now_reason = self.controller.neutral_reason
-            if now_reason != reason:
-                if now_reason:
-                    self.logger.info("neutral: %s", now_reason)
-                else:
-                    self.logger.info("driving")
-                reason = now_reason
+    def _cycle(self, outputs: dict[str, float], now: float) -> None:
+        """Publish one cycle's commands (under the lock, so cycles go out in order); log a change of mode.
+
+        Commands equal to the ones last sent (neutral in manual, a hold) go out at the control rate only.
+        """
+        period = 1.0 / max(0.1, float(self.config.get("control_rate_hz")))
+        if outputs != self._sent or now - self._last_cycle >= period:
+            self._last_cycle, self._sent = now, outputs
             for actuator, percent in outputs.items():
                 self._send(actuator, percent)
+        reason = self.controller.neutral_reason
+        kind = reason.split(" for ")[0]   # "NAV_POINT silent for 0.6 s": logged once, not each tenth of a second
+        if kind != self._logged_reason:
+            self._logged_reason = kind
+            if reason:
+                self.logger.info("neutral: %s", reason)
+            else:
+                self.logger.info("driving")
+
+    def run(self) -> None:
+        """Keep commands going out at ``control_rate_hz`` at least when navigation points do not come."""
+        while True:
+            period = 1.0 / max(0.1, float(self.config.get("control_rate_hz")))
+            with self._lock:
+                now = time.monotonic()
+                if now - self._last_cycle >= period:
+                    self._cycle(self.controller.refresh(now), now)
+                due = self._last_cycle + period
+            if not self.wait(max(0.0, due - time.monotonic())):
+                return
 
     def kill(self) -> None:
         """Send neutral once more on the way out, then release."""

@@ -3,9 +3,10 @@
 Subscribes ``STATE_ESTIMATE`` (the pose), ``GOALS`` (Waypoint, or any GoalInformation:
 an unknown extension arrives as its base and leaves the planner idle, logged),
 ``MISSION_STATUS`` (which goal is current) and ``WORLD`` (objects in local NED, kept by
-UID until they expire). At ``control_rate_hz`` it runs the state of the current goal
+UID until they expire). On each estimate it runs the state of the current goal
 (:mod:`.states`, steering around objects with :mod:`.avoidance`) and publishes a
-``NavigationPoint`` on ``NAV_POINT``: a point in the body frame (FRD: x forward, y right,
+``NavigationPoint`` on ``NAV_POINT`` -- and when no estimate made one for
+``1 / control_rate_hz``, its run loop does (so the hold point and report re-sends go on): a point in the body frame (FRD: x forward, y right,
 z down, metres from the vehicle) ``lookahead_m`` along the heading to take, with the
 desired speed, the horizontal distance to the goal and the goal's UID. A reached goal is
 reported on ``GOAL_REPORT`` (once, again after ``report_resend_s`` if still current).
@@ -35,7 +36,7 @@ class PathPlannerService(U2SAService):
 
     SERVICE_TYPE: ClassVar[str] = "path_planner"
     CONFIG = (
-        field("control_rate_hz", 20.0, "NAV_POINT publications per second"),
+        field("control_rate_hz", 20.0, "the least NAV_POINT publications per second (each estimate makes one too)"),
         field("subsystem", "vehicle", "the NavigationPoint's subsystem"),
         field("cruise_speed_m_s", 1.0, "desired speed toward a goal, m/s"),
         field("slowdown_radius_m", 3.0, "within this distance of a goal the speed ramps down, m"),
@@ -54,6 +55,9 @@ class PathPlannerService(U2SAService):
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
         self._lock = threading.Lock()
+        self._last_cycle = -float("inf")   # monotonic time of the latest planning cycle
+        self._last_sent = -float("inf")    # ... and of the latest NAV_POINT
+        self._sent: tuple[Any, ...] = ()
         self.planner = PathPlanner(guidance=self._guidance(), timings=self._timings(),
                                    subsystem=str(self.config.get("subsystem")), logger=self.logger)
         self.register_subscriber(ch.STATE_ESTIMATE, t.StateInformation, self._on_estimate)
@@ -89,7 +93,9 @@ class PathPlannerService(U2SAService):
     # -- inputs ---------------------------------------------------------------------------------
     def _on_estimate(self, msg: t.StateInformation) -> None:
         with self._lock:
-            self.planner.on_estimate(msg, time.monotonic())
+            now = time.monotonic()
+            self.planner.on_estimate(msg, now)
+            self._cycle(now)
 
     def _on_goal(self, msg: Any) -> None:
         if isinstance(msg, t.Waypoint) and msg.reference_frame.strip().upper() in ("GLOBAL", "GEODETIC"):
@@ -119,15 +125,34 @@ class PathPlannerService(U2SAService):
             self.planner.on_object(msg, time.monotonic())
 
     # -- output ----------------------------------------------------------------------------------
+    def _cycle(self, now: float) -> None:
+        """Plan once and publish the report and the point (under the lock, so cycles go out in order).
+
+        A point equal to the one last sent (a hold) goes out at ``control_rate_hz`` only.
+        """
+        self._last_cycle = now
+        cycle = self.planner.step(now)
+        if cycle.report is not None:
+            self.publish(ch.GOAL_REPORT, cycle.report)
+        nav = cycle.nav
+        if nav is None:
+            return
+        key = (nav.subsystem, nav.goal_uid, nav.x, nav.y, nav.z, nav.speed, nav.distance_to_goal)
+        if key != self._sent or now - self._last_sent >= 1.0 / max(0.1, float(self.config.get("control_rate_hz"))):
+            self._last_sent, self._sent = now, key
+            self.publish(ch.NAV_POINT, nav)
+
     def run(self) -> None:
-        """Plan and publish at ``control_rate_hz``."""
-        while self.wait(1.0 / max(0.1, float(self.config.get("control_rate_hz")))):
+        """Plan when no estimate made a cycle for ``1 / control_rate_hz``."""
+        while True:
+            period = 1.0 / max(0.1, float(self.config.get("control_rate_hz")))
             with self._lock:
-                cycle = self.planner.step(time.monotonic())
-            if cycle.report is not None:
-                self.publish(ch.GOAL_REPORT, cycle.report)
-            if cycle.nav is not None:
-                self.publish(ch.NAV_POINT, cycle.nav)
+                now = time.monotonic()
+                if now - self._last_cycle >= period:
+                    self._cycle(now)
+                due = self._last_cycle + period
+            if not self.wait(max(0.0, due - time.monotonic())):
+                return
 
     def health_details(self) -> dict[str, Any]:
         """State, goal, what the planner is doing or waiting for, object and report counts."""
