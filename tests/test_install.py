@@ -151,6 +151,48 @@ def test_second_install_changes_nothing_and_says_so(vehicle: Path, root: Path) -
     assert (root / MANIFEST_PATH.lstrip("/")).read_bytes() == manifest
 
 
+def test_the_log_directory_exists_for_the_services_and_the_hsm_before_any_unit_starts(vehicle: Path,
+                                                                                      root: Path) -> None:
+    """/var/log/u2sa is u2sa:u2sa 0770 (the HSM, uid 0 without capabilities, writes through its group),
+    declared for systemd-tmpfiles, and no unit of another user than u2sa lets systemd manage it."""
+    install(vehicle=vehicle, root=root)
+    tmpfiles = (root / "etc/tmpfiles.d/u2sa.conf").read_text()
+    assert "d /var/log/u2sa 0770 u2sa u2sa -\n" in tmpfiles
+    passwd = entries(root / "etc/passwd")
+    st = (root / "var/log/u2sa").stat()
+    assert (st.st_uid, st.st_gid) == (int(passwd["u2sa"][2]), int(passwd["u2sa"][3]))
+    assert st.st_mode & 0o7777 == 0o770
+    units = root / "etc/systemd/system"
+    hsm = (units / "u2sa-hsm.service").read_text().splitlines()
+    assert "User=root" in hsm and "Group=u2sa" in hsm and "ReadWritePaths=/var/log/u2sa" in hsm
+    assert not [line for line in hsm if line.split("=")[0] in ("StateDirectory", "LogsDirectory")], hsm
+    assert "LogsDirectoryMode=0770" in (units / "u2sa@.service").read_text().splitlines()
+    manifest = load_manifest(root)
+    assert manifest is not None and "/var/log/u2sa" in manifest.dirs
+    assert "/etc/tmpfiles.d/u2sa.conf" in manifest.files
+    # A second install finds both as wanted; one whose owner or mode drifted is put back.
+    before = snapshot(root)
+    again = install(vehicle=vehicle, root=root)
+    assert not again.changed, [str(c) for c in again.changes if c.action != "unchanged"]
+    assert snapshot(root) == before
+    os.chown(root / "var/log/u2sa", 0, 0)
+    (root / "var/log/u2sa").chmod(0o750)
+    fixed = install(vehicle=vehicle, root=root)
+    assert [str(c) for c in fixed.changes if c.action != "unchanged"] == ["updated   /var/log/u2sa  (mode/owner)"]
+    st = (root / "var/log/u2sa").stat()
+    assert (st.st_uid, st.st_gid, st.st_mode & 0o7777) == (int(passwd["u2sa"][2]), int(passwd["u2sa"][3]), 0o770)
+    # An hsm.log that systemd chowned to u2sa under an earlier install goes back to root:u2sa.
+    hsm_log = root / "var/log/u2sa/hsm.log"
+    hsm_log.write_text("a log line\n")
+    os.chown(hsm_log, int(passwd["u2sa"][2]), int(passwd["u2sa"][3]))
+    install(vehicle=vehicle, root=root)
+    assert (hsm_log.stat().st_uid, hsm_log.stat().st_gid) == (0, int(passwd["u2sa"][3]))
+    assert not install(vehicle=vehicle, root=root).changed
+    # Uninstall keeps the logs (only --purge removes them) but not the tmpfiles declaration.
+    uninstall(root=root)
+    assert (root / "var/log/u2sa/hsm.log").is_file() and not (root / "etc/tmpfiles.d").exists()
+
+
 def test_a_config_the_user_changed_is_kept_and_the_new_default_goes_beside_it(vehicle: Path, root: Path) -> None:
     install(vehicle=vehicle, root=root)
     cfg = root / "etc/u2sa/config"
@@ -185,9 +227,9 @@ def test_a_service_dropped_from_the_profile_is_disabled(vehicle: Path, root: Pat
 
 def test_uninstall_keeps_configs_and_purge_removes_everything(vehicle: Path, root: Path) -> None:
     install(vehicle=vehicle, root=root)
-    (root / "var/log/u2sa").mkdir(parents=True)
     (root / "var/log/u2sa/gps.log").write_text("a log line\n")
     uninstall(root=root)
+    assert not (root / "etc/tmpfiles.d/u2sa.conf").exists()
     assert not (root / "etc/systemd/system/u2sa@.service").exists()
     assert not (root / "etc/systemd/system/u2sa.target.wants").exists()
     assert not (root / "etc/udev/rules.d/60-u2sa-permissions.rules").exists()

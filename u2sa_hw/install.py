@@ -7,10 +7,12 @@ Install, on the SBC as root (or staged into ``--root DIR`` for packaging and tes
 2. makes the venv under /opt/u2sa/venv (see :mod:`u2sa_hw.install_system`);
 3. installs the profile and service configs under /etc/u2sa (never overwriting one the
    user changed: the new default goes beside it as ``.new``);
-4. installs the units and udev rules, enables ``u2sa.target`` and one
+4. makes the log directory /var/log/u2sa (u2sa:u2sa 0770) and declares it in
+   /etc/tmpfiles.d/u2sa.conf, so that it exists before any unit starts;
+5. installs the units and udev rules, enables ``u2sa.target`` and one
    ``u2sa@NAME.service`` per enabled service (the wants symlinks, made directly);
-5. reloads systemd and udev (not with ``--root``);
-6. records all of it in /opt/u2sa/install-manifest.json.
+6. reloads systemd and udev (not with ``--root``);
+7. records all of it in /opt/u2sa/install-manifest.json.
 
 Every step compares with what is there, so a second run changes nothing and says so.
 Uninstall removes what the manifest lists; configs, logs and recordings stay unless
@@ -25,15 +27,18 @@ from pathlib import Path
 
 from u2sa_hw.install_files import InstallTree
 from u2sa_hw.install_manifest import MANAGED, MANIFEST_PATH, Manifest, host_path, load_manifest, save_manifest
-from u2sa_hw.install_system import (VENV_MODES, InstallError, ensure_users, ensure_venv, owner_ids,
-                                    project_source, reload_systemd, reload_udev, remove_users)
-from u2sa_hw.install_units import (CONFIG_DIR, DOC, ETC_DIR, LOG_DIR, PROFILE, STATE_DIR, SYSUSERS, TARGET,
-                                   UDEV_DIR, UNIT_DIR, VEHICLE_RULES, render_profile, render_vehicle_rules,
-                                   service_configs, service_units, sysusers_conf, udev_sources, unit_dropins,
-                                   unit_sources, wants_links)
+from u2sa_hw.install_system import (SERVICE_USER, VENV_MODES, InstallError, apply_tmpfiles, ensure_users,
+                                    ensure_venv, owner_ids, project_source, reload_systemd, reload_udev,
+                                    remove_users, user_ids)
+from u2sa_hw.install_units import (CONFIG_DIR, DOC, ETC_DIR, HSM_LOG, LOG_DIR, LOG_DIR_MODE, PROFILE, STATE_DIR, SYSUSERS,
+                                   TARGET, TMPFILES, UDEV_DIR, UNIT_DIR, VEHICLE_RULES, render_profile,
+                                   render_vehicle_rules, service_configs, service_units, sysusers_conf,
+                                   tmpfiles_conf, udev_sources, unit_dropins, unit_sources, wants_links)
 from u2sa_hw.vehicle import load_profile
 
 OPT_DIR = "/opt/u2sa"
+# Directories uninstall (without --purge) leaves, with what is in them.
+KEPT_DIRS = (ETC_DIR, CONFIG_DIR, OPT_DIR, LOG_DIR)
 
 
 def _check_root(root: Path) -> Path:
@@ -82,6 +87,7 @@ def install(*, vehicle: Path | str, root: Path | str = "/", venv: str | None = N
     tree.put_config(PROFILE, profile_text, mode=0o644)
     for dest, data in configs.items():
         tree.put_config(dest, data, mode=0o660, owner=owner)
+    _ensure_log_dir(tree)
 
     before = len(tree.changes)
     tree.prune()
@@ -93,6 +99,36 @@ def install(*, vehicle: Path | str, root: Path | str = "/", venv: str | None = N
     if save_manifest(root, tree.new) and tree.old.files == {}:
         tree.note("created", MANIFEST_PATH)
     return tree
+
+
+def _ensure_log_dir(tree: InstallTree) -> None:
+    """/var/log/u2sa, u2sa:u2sa 0770, before any unit starts: the services and the HSM share it."""
+    actions = [tree.put_managed(TMPFILES, tmpfiles_conf())]
+    log_owner = user_ids(tree.root)
+    if log_owner is None:
+        tree.note("skipped", LOG_DIR, f"no user {SERVICE_USER} in {tree.root}/etc/passwd yet; "
+                  f"systemd-tmpfiles makes it at boot from {TMPFILES}")
+    else:
+        actions.append(tree.make_dir(LOG_DIR, mode=LOG_DIR_MODE, owner=log_owner))
+        _reclaim_hsm_log(tree, gid=log_owner[1])
+    apply_tmpfiles(tree, TMPFILES, changed=any(a != "unchanged" for a in actions))
+
+
+def _reclaim_hsm_log(tree: InstallTree, *, gid: int) -> None:
+    """Give back to root:u2sa an hsm.log that systemd chowned to u2sa under an earlier install.
+
+    Then the HSM shared the services' LogsDirectory=, so a service's start left hsm.log
+    u2sa's, 0640, and the HSM (uid 0 without CAP_DAC_OVERRIDE) could not append to it.
+    (Not a tmpfiles ``z`` line: systemd-tmpfiles refuses a root-owned file in a directory
+    of u2sa as an unsafe path transition.)
+    """
+    path = tree.path(HSM_LOG)
+    if path.is_symlink() or not path.is_file():
+        return
+    st = path.lstat()
+    if (st.st_uid, st.st_gid) != (0, gid):
+        os.chown(path, 0, gid, follow_symlinks=False)
+        tree.note("updated", HSM_LOG, "owner root:u2sa again, so the HSM can append to it")
 
 
 def _stop_units(tree: InstallTree) -> None:
@@ -118,7 +154,7 @@ def uninstall(*, root: Path | str = "/", purge: bool = False) -> InstallTree:
     _stop_units(tree)
     if old.venv.get("path"):
         tree.remove_tree(old.venv["path"])
-    tree.remove_installed(purge=purge)
+    tree.remove_installed(purge=purge, keep_dirs=() if purge else (LOG_DIR,))
     if purge:
         host_path(root, MANIFEST_PATH).unlink(missing_ok=True)
         tree.note("removed", MANIFEST_PATH)
@@ -131,8 +167,7 @@ def uninstall(*, root: Path | str = "/", purge: bool = False) -> InstallTree:
         # knows which configs the user changed, and a later --purge what install created.
         kept = Manifest(files={p: r for p, r in old.files.items() if r.kind != MANAGED},
                         users=old.users, groups=old.groups, profile_source=old.profile_source,
-                        dirs=[d for d in old.dirs
-                              if d in (ETC_DIR, CONFIG_DIR, OPT_DIR) or OPT_DIR.startswith(d + "/")])
+                        dirs=[d for d in old.dirs if any(d == k or k.startswith(d + "/") for k in KEPT_DIRS)])
         if save_manifest(root, kept):
             tree.note("updated", MANIFEST_PATH, "now lists only what uninstall kept")
     reload_systemd(tree, units_changed=True)

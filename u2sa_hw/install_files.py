@@ -189,8 +189,9 @@ class InstallTree:
             if dest not in self.new.symlinks:
                 self._remove_file(dest, "no longer enabled")
 
-    def remove_installed(self, *, purge: bool) -> None:
-        """Uninstall: remove what the old manifest lists (configs only when *purge*), then its empty dirs."""
+    def remove_installed(self, *, purge: bool, keep_dirs: tuple[str, ...] = ()) -> None:
+        """Uninstall: remove what the old manifest lists (configs only when *purge*), then its empty dirs
+        other than *keep_dirs*."""
         for dest, rec in sorted(self.old.files.items()):
             if rec.kind == MANAGED or purge:
                 self._remove_file(dest)
@@ -198,11 +199,13 @@ class InstallTree:
                 self.changes.append(Change("kept", dest, "config (u2sa uninstall --purge removes it)"))
         for dest in sorted(self.old.symlinks):
             self._remove_file(dest)
-        self.remove_empty_dirs()
+        self.remove_empty_dirs(keep=keep_dirs)
 
-    def remove_empty_dirs(self) -> None:
+    def remove_empty_dirs(self, *, keep: tuple[str, ...] = ()) -> None:
         """Remove the directories install created (old manifest) that are now empty, deepest first."""
         for dest in sorted(self.old.dirs, key=len, reverse=True):
+            if any(dest == k or k.startswith(dest + "/") for k in keep):
+                continue
             path = self.path(dest)
             if path.is_dir() and not path.is_symlink() and not any(path.iterdir()):
                 path.rmdir()

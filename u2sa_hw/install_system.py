@@ -117,6 +117,28 @@ def owner_ids(root: Path, group: str = SERVICE_USER) -> tuple[int, int] | None:
     return (0, int(entry[2])) if entry and len(entry) > 2 and entry[2].isdigit() else None
 
 
+def user_ids(root: Path, user: str = SERVICE_USER) -> tuple[int, int] | None:
+    """``(uid, gid)`` of *user* from the tree's passwd file, for files the services own; None if unknown."""
+    etc = user_database(root)
+    if etc is None:
+        return None
+    entry = _names(etc / "passwd").get(user)
+    if not entry or len(entry) < 4 or not (entry[2].isdigit() and entry[3].isdigit()):
+        return None
+    return int(entry[2]), int(entry[3])
+
+
+def apply_tmpfiles(tree: InstallTree, conf: str, *, changed: bool) -> None:
+    """``systemd-tmpfiles --create CONF`` on this system when it or its paths changed (never with --root)."""
+    if tree.root != Path("/") or not changed:
+        return
+    if shutil.which("systemd-tmpfiles") is None:
+        tree.note("skipped", f"systemd-tmpfiles --create {conf}", "systemd-tmpfiles is not installed")
+        return
+    _run(["systemd-tmpfiles", "--create", conf], what=f"applying {conf}")
+    tree.note("updated", conf, "applied (systemd-tmpfiles --create)")
+
+
 def project_source(explicit: str | None) -> Path:
     """The project checkout (with systemd/, udev/, pyproject.toml) that install deploys."""
     candidates = [Path(explicit)] if explicit else [Path(__file__).resolve().parent.parent]

@@ -36,6 +36,9 @@ LOG_DIR = "/var/log/u2sa"
 STATE_DIR = "/var/lib/u2sa"
 DOC = "/opt/u2sa/doc/deployment.md"
 SYSUSERS = "/etc/sysusers.d/u2sa.conf"
+TMPFILES = "/etc/tmpfiles.d/u2sa.conf"
+HSM_LOG = "/var/log/u2sa/hsm.log"
+LOG_DIR_MODE = 0o770
 VEHICLE_RULES = "65-u2sa-vehicle.rules"
 TARGET = "u2sa.target"
 TEMPLATE = "u2sa@.service"
@@ -170,6 +173,16 @@ def sysusers_conf() -> bytes:
              f'u {SERVICE_USER} - "U2SA vehicle services" {STATE_DIR} /usr/sbin/nologin',
              *(f"m {SERVICE_USER} {g}" for g in DEVICE_GROUPS)]
     return ("\n".join(lines) + "\n").encode()
+
+
+def tmpfiles_conf() -> bytes:
+    """systemd-tmpfiles declaration of the log directory, made (again) before any unit starts.
+
+    Shared by the services (User=u2sa, its LogsDirectory=) and the HSM (uid 0, group u2sa,
+    which may not declare it: systemd would chown it to root at each HSM start).
+    """
+    return (f"# u2sa-hw: the services' and the HSM's log directory (written by u2sa install).\n"
+            f"d {LOG_DIR} {LOG_DIR_MODE:04o} {SERVICE_USER} {SERVICE_USER} -\n").encode()
 
 
 def _rule_value(value: Any, where: str, *, pattern: re.Pattern[str] = _RULE_VALUE, hint: str = "") -> str:
