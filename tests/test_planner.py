@@ -129,6 +129,46 @@ def test_obstacle_distance_matches_distance_to_point_for_every_shape() -> None:
             assert Obstacle(obj).distance(x, y) == pytest.approx(distance_to_point(obj, x, y))
 
 
+def test_ray_checks_skip_only_objects_that_cannot_decide_them() -> None:
+    """ray_clearance measures an object again only when its Lipschitz bound could matter: the
+    result is exactly that of measuring every object at every sample (written out here)."""
+    import random
+
+    from u2sa_hw.services.planner.avoidance import TOLERANCE_M, _Near, ray_clearance
+
+    def every_object(near: list, *, x: float, y: float, heading: float, length: float) -> float | None:
+        c, s = math.cos(heading), math.sin(heading)
+        smallest, along = math.inf, 0.0
+        for _ in range(int(length / 0.1) + 2):
+            px, py = x + along * c, y + along * s
+            step = math.inf
+            for item in near:
+                d = item.obstacle.distance(px, py)
+                if d - item.margin < -TOLERANCE_M or (along > 0.0 and d <= 0.0 and item.obstacle.hard):
+                    return None
+                step = min(step, d - item.margin)
+            smallest = min(smallest, step)
+            if along >= length:
+                return smallest
+            along = min(length, along + max(step, 0.1))
+        return smallest
+
+    rng = random.Random(11)
+    settings = AvoidanceSettings(margin_m=1.0, range_m=10.0, min_step_m=0.1)
+    outcomes = set()
+    for _ in range(1000):   # objects strewn along both sides of the ray: the nearest one keeps changing
+        objects = [circle(f"c{k}", rng.uniform(1, 10), rng.choice((-1, 1)) * rng.uniform(1.0, 3.5),
+                          rng.uniform(0.1, 1.0), level=rng.choice((0, 2, 3))) for k in range(rng.randint(2, 7))]
+        objects.append(rectangle("r", rng.uniform(0, 10), rng.uniform(-5, 5), length=rng.uniform(0.5, 4),
+                                 width=rng.uniform(0.5, 3), level=rng.choice((2, 3))))
+        near = [_Near(Obstacle(o), rng.choice((0.0, 0.5, 1.0))) for o in objects]
+        heading, length = rng.gauss(0.0, 0.2), rng.uniform(1.0, 10.0)
+        got = ray_clearance(near, x=0.0, y=0.0, heading=heading, length=length, settings=settings)
+        assert got == every_object(near, x=0.0, y=0.0, heading=heading, length=length)
+        outcomes.add(got is None)
+    assert outcomes == {True, False}                                   # both clear and violated rays were tried
+
+
 # -- the state machine --------------------------------------------------------------------------
 def unknown_goal_bytes() -> bytes:
     """A goal type this build does not know: a GoalInformation child with its own fingerprint and a field."""
