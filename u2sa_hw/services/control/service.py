@@ -169,6 +169,8 @@ class ControlSystem(U2SAService):
 
         Commands equal to the ones last sent (neutral in manual, a hold) go out at the control rate only.
         """
+        if not self.running:
+            return   # stopping: kill() sends the last word, neutral
         period = 1.0 / max(0.1, float(self.config.get("control_rate_hz")))
         if outputs != self._sent or now - self._last_cycle >= period:
             self._last_cycle, self._sent = now, outputs
@@ -197,9 +199,11 @@ class ControlSystem(U2SAService):
 
     def kill(self) -> None:
         """Send neutral once more on the way out, then release."""
+        self.running = False
         try:
-            for actuator in self.controller.mixer.actuators:
-                self._send(actuator, 0.0)
+            with self._lock:   # a callback's cycle in progress goes out before the neutral, none after it
+                for actuator in self.controller.mixer.actuators:
+                    self._send(actuator, 0.0)
         finally:
             super().kill()
 
