@@ -48,6 +48,7 @@ from u2sa_hw import lcmtypes as t  # noqa: E402
 from u2sa_hw.bus_client import BusClient  # noqa: E402
 from u2sa_hw.protocols import odrive_cansimple as cs  # noqa: E402
 from u2sa_hw.protocols.odrive_cansimple import Cmd  # noqa: E402
+from u2sa_hw.udp_ports import private_lcm_url, private_udp_port  # noqa: E402
 
 GROUP = "239.74.163.2"
 RADIUS = 0.1  # the mock ODrive's default wheel radius (m)
@@ -74,7 +75,7 @@ class Services:
 
     def __init__(self, workdir: Path) -> None:
         self.workdir = workdir
-        self.url = f"udpm://239.255.76.67:{random.randint(20000, 60000)}?ttl=0"
+        self.url = private_lcm_url()
         self.procs: list[subprocess.Popen] = []
         self.services: dict[str, Any] = {}
 
@@ -296,7 +297,7 @@ def main() -> None:
             if args.only in (None, "gps"):
                 bench_gps(services, bus, 300 if args.quick else 2000)
             if args.only in (None, "can"):
-                port = random.randint(30000, 60000)
+                port = private_udp_port()
                 start_mock_odrives(services, port)
                 bench_rtr(port, 200 if args.quick else 1000)
                 bench_driver(services, bus, port, 60 if args.quick else 300)

@@ -41,6 +41,7 @@ from mock_devices.vehicle_sim import SimVehicle  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
 from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo  # noqa: E402
 from u2sa_hw.vehicle import Origin  # noqa: E402
+from u2sa_hw.udp_ports import private_lcm_url  # noqa: E402
 
 ORIGIN = Origin(29.1895, -81.0483, 10.0)
 GPS_BAUD, COMPASS_BAUD = 115200, 19200
@@ -199,13 +200,11 @@ def publisher(url: str, factor: float, seconds: float) -> None:
 
 def bench_recorder(factor: float, seconds: float) -> None:
     """Part 2: the recorder's capture under the example vehicle's mix times *factor*."""
-    import random
-
     from u2sa_hw.services.recorder.capture import BusCapture
     from u2sa_hw.transport import Transport
 
     nominal = sum(r for r, _ in EXAMPLE_RATES.values())
-    url = f"udpm://239.255.76.67:{random.randint(20000, 60000)}?ttl=0&recv_buf_size=4194304"
+    url = private_lcm_url(options="ttl=0&recv_buf_size=4194304")
     work = Path(tempfile.mkdtemp(prefix="u2sa-bench-recorder-"))
     transport = Transport(url, name="bench-recorder")
     writer = McapLogWriter(work, path=work / "throughput.mcap", run=RunInfo(vehicle="bench"))

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import random
 import signal
 import statistics
 import subprocess
@@ -37,6 +36,7 @@ from systemd_ns import SystemdNamespace, cannot_boot_reason, stage_root, wait_un
 from u2sa_hw import channels as ch  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
 from u2sa_hw.bus_client import BusClient  # noqa: E402
+from u2sa_hw.udp_ports import private_udp_port  # noqa: E402
 
 UNIT = "u2sa@bench.service"
 
@@ -114,7 +114,7 @@ def main() -> int:
     if reason:
         print(f"bench/restart.py: cannot boot systemd here: {reason}", file=sys.stderr)
         return 2
-    port = random.randint(20000, 60000)
+    port = private_udp_port()
     url = f"udpm://239.255.76.67:{port}?ttl=0"
     with tempfile.TemporaryDirectory(prefix="u2sa-bench-restart-") as tmp:
         base = Path(tmp)

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import random
 import shutil
 import statistics
 import sys
@@ -55,6 +54,7 @@ from u2sa_hw.protocols import odrive_cansimple as cs  # noqa: E402
 from u2sa_hw.sim.progress import ProgressLine  # noqa: E402
 from u2sa_hw.sim.runner import SimOptions, SimRun  # noqa: E402
 from u2sa_hw.transport import Transport  # noqa: E402
+from u2sa_hw.udp_ports import private_udp_port  # noqa: E402
 
 LATENCY_MISSION = """<?xml version="1.0"?>
 <mission name="straight ahead" loop="false">
@@ -67,9 +67,9 @@ STEP_M = 4.0   # the GPS position step, east (m); well inside the estimator's ou
 
 
 def options(vehicle: Path, out: Path) -> SimOptions:
-    port = random.randint(20000, 60000)
+    port = private_udp_port()
     return SimOptions(vehicle=vehicle, out=out, lcm_url=f"udpm://239.255.76.67:{port}?ttl=0",
-                      can_port=random.randint(20000, 60000), timeout_s=600)
+                      can_port=private_udp_port(), timeout_s=600)
 
 
 def pct(values: list[float], q: float) -> float:

@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import random
 import struct
 import subprocess
 import sys
@@ -23,6 +22,7 @@ import lcm
 
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.transport import DEFAULT_QUEUE_CAPACITY, Transport
+from u2sa_hw.udp_ports import private_lcm_url
 
 CHANNEL = "BENCH_STATE"
 
@@ -143,7 +143,7 @@ def main() -> int:
     if args.role == "recv":
         receiver(args.url, args.mode, args.count, timeout=2.0)
         return 0
-    url = args.url or f"udpm://239.255.76.67:{random.randint(20000, 60000)}?ttl=0"
+    url = args.url or private_lcm_url()
     n_lat = 1000 if args.quick else 5000
     print(f"u2sa transport benchmark on {url}, {os.cpu_count()} cores, State Information "
           f"{len(full_state().encode())} bytes")

@@ -11,7 +11,7 @@ driver has opened its device -> play (hil/player.py) -> let the last outputs arr
 
 from __future__ import annotations
 
-import random
+import re
 import shutil
 import tempfile
 import threading
@@ -28,6 +28,7 @@ from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo
 from u2sa_hw.services.recorder.capture import BusCapture
 from u2sa_hw.transport import Transport, TransportError, check_multicast
 from u2sa_hw.vehicle import load_profile
+from u2sa_hw.udp_ports import private_lcm_url
 
 from hil.player import PlayStats, Player
 from hil.progress import ProgressBar
@@ -36,7 +37,6 @@ from hil.replay_plan import (DevicePlan, ReplayError, ReplayPlan, ServicePlan, b
                              write_run_profile)
 
 CONTRACT_PREFIX = "U2SA_"
-DEFAULT_GROUP = "239.255.76.67"
 RECV_BUF_SIZE = 4 * 1024 * 1024   # --fast bursts outputs; the kernel caps it at net.core.rmem_max
 
 
@@ -87,12 +87,10 @@ class ReplayResult:
 
 
 def private_url(plan: ReplayPlan) -> str:
-    """``udpm://239.255.76.67:<random port>?ttl=0``, never the recorded vehicle's port."""
+    """``udpm://239.255.76.67:<private port>?ttl=0``, never the recorded vehicle's port."""
     recorded = plan.summary.contents.metadata.get("u2sa", {}).get("lcm_url", "")
-    while True:
-        port = random.randint(20000, 60000)
-        if f":{port}" not in recorded and port != 7667:
-            return f"udpm://{DEFAULT_GROUP}:{port}?ttl=0&recv_buf_size={RECV_BUF_SIZE}"
+    ports = {int(p) for p in re.findall(r":(\d+)", recorded)}
+    return private_lcm_url(avoid=ports, options=f"ttl=0&recv_buf_size={RECV_BUF_SIZE}")
 
 
 def make_device(dev: DevicePlan, run_dir: Path, service: ServicePlan, *, fast: bool) -> ReplayDevice:

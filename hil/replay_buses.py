@@ -30,6 +30,7 @@ from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.ports.i2c_port import OP_READ, OP_WRITE, STATUS_EIO, STATUS_OK
 from u2sa_hw.ports.tap import TX
 from u2sa_hw.recording.log_reader import LogFile
+from u2sa_hw.udp_ports import private_udp_port
 
 from hil.replay_plan import DevicePlan, ReplayError
 
@@ -329,8 +330,6 @@ def make_device(dev: DevicePlan, run_dir: Path, *, fast: bool, fields: set[str])
         return ReplayI2cDevice(name=dev.name, socket_path=run_dir / f"i2c-{dev.name}.sock", fast=fast,
                                declares_rate="rate_hz" in fields)
     if dev.kind == "can":
-        import random
-
-        return ReplayCanDevice(name=dev.name, port=random.randint(20000, 60000))
+        return ReplayCanDevice(name=dev.name, port=private_udp_port())
     raise ReplayError(f"RAW.{dev.name}: replaying {dev.kind} devices is not supported; "
                       "leave the device out with --vehicle (a profile without its service)")

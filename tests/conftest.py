@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import random
 import subprocess
 import sys
 import time
@@ -11,6 +10,8 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 import pytest
+
+from u2sa_hw.udp_ports import private_lcm_url
 
 REPO = Path(__file__).resolve().parent.parent
 U2SA = [sys.executable, "-m", "u2sa_hw.cli"]
@@ -32,7 +33,7 @@ def wait_until(predicate: Callable[[], object], *, timeout: float = 10.0, interv
 @pytest.fixture
 def lcm_url(monkeypatch: pytest.MonkeyPatch) -> str:
     """A multicast URL on a port of this test's own, exported as $U2SA_LCM_URL."""
-    url = f"udpm://239.255.76.67:{random.randint(20000, 60000)}?ttl=0"
+    url = private_lcm_url()
     monkeypatch.setenv("U2SA_LCM_URL", url)
     return url
 

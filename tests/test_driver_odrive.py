@@ -24,6 +24,7 @@ from u2sa_hw.config import ConfigError
 from u2sa_hw.ports.tap import RX, TX, raw_channel
 from u2sa_hw.protocols.odrive_cansimple import (AxisError05, AxisState, Cmd, Heartbeat, OdriveError, ProcedureResult,
                                                 arbitration_id, encode_heartbeat, make_frame)
+from u2sa_hw.udp_ports import private_udp_port
 
 CIRCUMFERENCE = 2 * math.pi * 0.1  # the mock's default wheel radius
 NODES = (3, 4)
@@ -179,7 +180,7 @@ def rig(tmp_path: Path, services: ServiceProcesses, bus: BusClient) -> Iterator[
     made: list[Rig] = []
 
     def make(*, settings: dict | None = None, node: dict | None = None, right: dict | None = None) -> Rig:
-        port = random.randint(30000, 60000)
+        port = private_udp_port()
         nodes = [{"side": "left", "node_id": NODES[0], "vel_limit": 10.0, **(node or {})},
                  {"side": "right", "node_id": NODES[1], "vel_limit": 10.0, **(node or {}), **(right or {})}]
         mock = MockCanProcess({"kind": "odrive", "port": port, "nodes": nodes}, repo=REPO, log=tmp_path / "mock.log")

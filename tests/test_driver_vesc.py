@@ -5,7 +5,6 @@ silence and faults."""
 from __future__ import annotations
 
 import math
-import random
 from dataclasses import dataclass
 from pathlib import Path
 from statistics import mean
@@ -19,6 +18,7 @@ from serial_driver_harness import DriverProbe, start_driver, write_profile
 from drivers.vesc_can import VescCanMotor
 from u2sa_hw.bus_client import BusClient
 from u2sa_hw.config import ConfigError
+from u2sa_hw.udp_ports import private_udp_port
 
 IDS = (10, 11)
 POLE_PAIRS = 7
@@ -73,7 +73,7 @@ def rig(tmp_path: Path, services: ServiceProcesses, bus: BusClient) -> Iterator[
     made: list[Rig] = []
 
     def make(*, settings: dict | None = None, right: dict | None = None) -> Rig:
-        port = random.randint(30000, 60000)
+        port = private_udp_port()
         nodes = [{"side": "left", "controller_id": IDS[0], "timeout_s": 0.3},
                  {"side": "right", "controller_id": IDS[1], "timeout_s": 0.3, **(right or {})}]
         mock = MockCanProcess({"kind": "vesc", "port": port, "nodes": nodes}, repo=REPO, log=tmp_path / "mock.log")

@@ -7,7 +7,6 @@ and checks the wheel through the SimVehicle the node drives.
 from __future__ import annotations
 
 import math
-import random
 import subprocess
 import sys
 import time
@@ -26,6 +25,7 @@ from u2sa_hw.protocols import odrive_cansimple as cs
 from u2sa_hw.protocols import vesc_can as vc
 from u2sa_hw.protocols.odrive_cansimple import AxisState, Cmd, ControlMode, InputMode
 from u2sa_hw.protocols.vesc_can import FaultCode, PacketId
+from u2sa_hw.udp_ports import private_udp_port
 
 CIRCUMFERENCE = 2 * math.pi * 0.1  # the nodes' default wheel radius
 GROUP = "239.74.163.2"
@@ -446,7 +446,7 @@ def test_vesc_fault_silence_and_garbage(vehicle, channel, client, start_node) ->
 # ==== across processes on udp_multicast ===================================================
 @pytest.fixture
 def udp_port() -> int:
-    return random.randint(20000, 60000)
+    return private_udp_port()
 
 
 @pytest.fixture

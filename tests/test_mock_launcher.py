@@ -8,7 +8,6 @@ the test's own.
 from __future__ import annotations
 
 import math
-import random
 import signal
 import subprocess
 import threading
@@ -26,6 +25,7 @@ from u2sa_hw.ports.gpio_port import open_gpio
 from u2sa_hw.sim.profile import effective_configs, write_sim_profile
 from u2sa_hw.transport import Transport
 from u2sa_hw.vehicle import load_profile
+from u2sa_hw.udp_ports import private_udp_port
 
 SENSORS = """
 [vehicle]
@@ -126,7 +126,7 @@ def test_u2sa_mock_prints_the_addresses_and_cleans_up_on_ctrl_c(tmp_path: Path) 
     vehicle = profile_file(tmp_path, SENSORS)
     run_dir = tmp_path / "sim"
     proc = subprocess.Popen([*U2SA, "mock", "--vehicle", str(vehicle), "--run-dir", str(run_dir),
-                             "--can-port", str(random.randint(20000, 60000))],
+                             "--can-port", str(private_udp_port())],
                             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)

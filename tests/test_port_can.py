@@ -3,7 +3,6 @@ udp_multicast across processes, bad datagrams, and the SocketCAN open hints."""
 
 from __future__ import annotations
 
-import random
 import socket
 import subprocess
 import sys
@@ -16,6 +15,7 @@ import pytest
 from u2sa_hw.ports import PortClosed, PortIOError, PortUnavailable, open_can
 from u2sa_hw.ports.can_port import CanPort
 from u2sa_hw.ports.tap import RX, TX
+from u2sa_hw.udp_ports import private_udp_port
 
 GROUP = "239.74.163.2"  # python-can's default IPv4 group
 
@@ -31,7 +31,7 @@ class CanBackend:
             self.missing: dict | None = None  # a virtual channel always exists
         else:
             self.channel = GROUP
-            self.options = {"port": random.randint(20000, 60000)}
+            self.options = {"port": private_udp_port()}
             self.missing = {"channel": "no-such-group.invalid"}
 
     def open(self, device: str, **kwargs) -> CanPort:

@@ -6,7 +6,6 @@ damaged."""
 from __future__ import annotations
 
 import os
-import random
 import shutil
 import subprocess
 import sys
@@ -33,13 +32,14 @@ from u2sa_hw.services.recorder.capture import BusCapture
 from u2sa_hw.services.recorder.service import run_info
 from u2sa_hw.transport import Transport
 from u2sa_hw.vehicle import load_profile
+from u2sa_hw.udp_ports import private_lcm_url, private_udp_port
 
 ORIGIN = {"lat": 29.1895, "lon": -81.0483, "alt": 10.0}
 U2SA = [sys.executable, "-m", "u2sa_hw.cli"]
 
 
 def _url() -> str:
-    return f"udpm://239.255.76.67:{random.randint(20000, 60000)}?ttl=0"
+    return private_lcm_url()
 
 
 def record_driver_log(workdir: Path, *, gps_epochs: int = 12, compass_epochs: int = 24) -> Path:
@@ -130,7 +130,7 @@ def record_imu_log(workdir: Path, *, samples: int = 80) -> Path:
 def record_can_log(workdir: Path, *, outputs: int = 120) -> Path:
     """Record a log of the ODrive driver (CAN, record_raw) driving two mock nodes under Percentage Commands."""
     url = _url()
-    port = random.randint(30000, 60000)
+    port = private_udp_port()
     nodes = [{"side": "left", "node_id": 0, "vel_limit": 10.0}, {"side": "right", "node_id": 1, "vel_limit": 10.0}]
     mock = MockCanProcess({"kind": "odrive", "port": port, "nodes": nodes}, repo=REPO, log=workdir / "mock.log")
     profile_path = workdir / "vehicle.toml"

@@ -8,7 +8,6 @@ failing cases check that the reason comes out and the exit status says what happ
 from __future__ import annotations
 
 import json
-import random
 import shutil
 import subprocess
 from pathlib import Path
@@ -18,6 +17,7 @@ import pytest
 from conftest import REPO, U2SA
 from u2sa_hw.sim.progress import StatusChange
 from u2sa_hw.sim.summary import Goal, RunRecord, TrackSample, summarise
+from u2sa_hw.udp_ports import private_udp_port
 
 GROUND = REPO / "examples" / "ground_vehicle"
 
@@ -25,7 +25,7 @@ GROUND = REPO / "examples" / "ground_vehicle"
 def run_sim(tmp_path: Path, lcm_url: str, *args: str, timeout: float) -> tuple[subprocess.CompletedProcess, Path]:
     out = tmp_path / "out"
     proc = subprocess.run([*U2SA, "sim", "--out", str(out), "--lcm-url", lcm_url,
-                           "--can-port", str(random.randint(20000, 60000)), *args],
+                           "--can-port", str(private_udp_port()), *args],
                           cwd=REPO, capture_output=True, text=True, timeout=timeout)
     return proc, out
 

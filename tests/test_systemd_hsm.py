@@ -20,7 +20,6 @@ every start; systemd boots straight into u2sa.target. Checked, all through real 
 from __future__ import annotations
 
 import os
-import random
 import signal
 import subprocess
 import sys
@@ -37,6 +36,7 @@ from systemd_ns import SystemdNamespace, cannot_boot_reason, stage_root  # noqa:
 from u2sa_hw import channels as ch  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
 from u2sa_hw.bus_client import BusClient  # noqa: E402
+from u2sa_hw.udp_ports import private_lcm_url  # noqa: E402
 
 REASON = cannot_boot_reason()
 pytestmark = pytest.mark.skipif(REASON is not None, reason=f"systemd cannot boot here: {REASON}")
@@ -161,7 +161,7 @@ class Feeder:
 @pytest.fixture(scope="module")
 def url() -> str:
     """This module's own LCM port."""
-    return f"udpm://239.255.76.67:{random.randint(20000, 60000)}?ttl=0"
+    return private_lcm_url()
 
 
 @pytest.fixture(scope="module")

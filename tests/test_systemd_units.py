@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import os
-import random
 import signal
 import subprocess
 import sys
@@ -29,6 +28,7 @@ from systemd_ns import SystemdNamespace, cannot_boot_reason, stage_root, wait_un
 from u2sa_hw import channels as ch  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
 from u2sa_hw.bus_client import BusClient  # noqa: E402
+from u2sa_hw.udp_ports import private_udp_port  # noqa: E402
 
 REASON = cannot_boot_reason()
 pytestmark = pytest.mark.skipif(REASON is not None, reason=f"systemd cannot boot here: {REASON}")
@@ -77,7 +77,7 @@ class HealthWatch:
 @pytest.fixture(scope="module")
 def staged(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     base = tmp_path_factory.mktemp("systemd")
-    port = random.randint(20000, 60000)
+    port = private_udp_port()
     profile = write_profile(base / "vehicle.toml", port)
     root = stage_root(base / "root")
     done = subprocess.run([str(U2SA), "install", "--vehicle", str(profile), "--root", str(root)],
@@ -250,7 +250,7 @@ def test_poweroff_ends_the_namespace(ns: SystemdNamespace) -> None:
 
 def test_offline_vehicle_gets_multicast_on_lo_and_its_services_talk(tmp_path: Path) -> None:
     """No network at all (a namespace with only lo, no route): the oneshot routes multicast over lo."""
-    port = random.randint(20000, 60000)
+    port = private_udp_port()
     profile = write_profile(tmp_path / "vehicle.toml", port)
     root = stage_root(tmp_path / "root")
     subprocess.run([str(U2SA), "install", "--vehicle", str(profile), "--root", str(root)], check=True,
@@ -269,7 +269,7 @@ def test_offline_vehicle_gets_multicast_on_lo_and_its_services_talk(tmp_path: Pa
 
 def test_install_and_uninstall_on_a_running_system(tmp_path: Path) -> None:
     """`u2sa install` without --root, as on the vehicle: inside the namespace, whose / it installs into."""
-    port = random.randint(20000, 60000)
+    port = private_udp_port()
     root = stage_root(tmp_path / "root")
     (root / "opt/src").mkdir()
     write_profile(root / "opt/src/vehicle.toml", port)
