@@ -1,11 +1,17 @@
 """Configurator (requirement C1, C7): a per-service TOML file of typed variables.
 
 A service declares its fields with defaults (the default's type is the field's type:
-int, float, bool or str). A missing file means defaults; the file is created, with every
-field, on the first change. A change is checked against the declared type; a wrong type is refused with
-a message naming the field, the expected and the given type. Writes are atomic (temp
-file in the same directory, fsync, rename), so a crash or a full disk never leaves a
-half-written file; an unwritable file makes ``set`` return False and logs why.
+int, float, bool or str) and, where only some values make sense, the allowed ``choices``.
+A missing file means defaults; the file is created, with every field, on the first change.
+A change is checked against the declared type; a wrong type is refused with a message
+naming the field, the expected and the given type (a value outside ``choices``: the field
+and the allowed values). Writes are atomic (temp file in the same directory, fsync, rename),
+so a crash or a full disk never leaves a half-written file; an unwritable file makes ``set``
+return False and logs why.
+
+Text (what ``u2sa param set`` sends) is read as a TOML literal: ``42``, ``2.5``, ``true``,
+``"text"``. For a string field a TOML string literal (``"passthrough"`` or ``'passthrough'``)
+gives its contents, and any other text (a bare word, ``42``) is taken as it is.
 """
 
 from __future__ import annotations
@@ -36,6 +42,7 @@ class ConfigField:
     name: str
     default: Any
     help: str = ""
+    choices: tuple[Any, ...] = ()
 
     @property
     def type(self) -> type:
@@ -48,11 +55,20 @@ class ConfigField:
         return TYPE_NAMES.get(self.type, self.type.__name__)
 
 
-def field(name: str, default: Any, help: str = "") -> ConfigField:  # noqa: A002 - reads well at call sites
-    """Declare a config variable (shorthand for :class:`ConfigField`)."""
+def field(name: str, default: Any, help: str = "", *,  # noqa: A002 - reads well at call sites
+          choices: Iterable[Any] = ()) -> ConfigField:
+    """Declare a config variable (shorthand for :class:`ConfigField`); *choices*: the only values allowed."""
     if type(default) not in TYPE_NAMES and not isinstance(default, list):
         raise TypeError(f"config field {name}: default must be int, float, bool, str or list, not {type(default).__name__}")
-    return ConfigField(name, default, help)
+    allowed = tuple(choices)
+    if allowed and default not in allowed:
+        raise ValueError(f"config field {name}: default {default!r} is not one of its choices {allowed!r}")
+    return ConfigField(name, default, help, allowed)
+
+
+def choices_text(f: ConfigField) -> str:
+    """The allowed values of *f* as TOML literals, comma separated."""
+    return ", ".join(to_text(c) for c in f.choices)
 
 
 def coerce(f: ConfigField, value: Any) -> Any:
@@ -63,22 +79,34 @@ def coerce(f: ConfigField, value: Any) -> Any:
     expected = f.type
     given = type(value)
     if given is expected:
-        return value
-    if expected is float and given is int:
-        return float(value)
-    raise ConfigError(f"field '{f.name}' expects {f.type_name}, got {TYPE_NAMES.get(given, given.__name__)} {value!r}")
+        result = value
+    elif expected is float and given is int:
+        result = float(value)
+    else:
+        raise ConfigError(f"field '{f.name}' expects {f.type_name}, got {TYPE_NAMES.get(given, given.__name__)} "
+                          f"{value!r}")
+    if f.choices and result not in f.choices:
+        raise ConfigError(f"field '{f.name}' must be one of {choices_text(f)}; got {to_text(result)}")
+    return result
 
 
 def parse_text(f: ConfigField, text: str) -> Any:
-    """Parse *text* (a TOML literal, or a bare word for a str field) as *f*'s value."""
+    """Parse *text* as *f*'s value: a TOML literal, or for a str field also any other text as it is.
+
+    For a str field, a TOML string literal (``"passthrough"``, ``'passthrough'``) gives its
+    contents, so the quoted form ``u2sa param get`` prints can be fed back to ``set``.
+    """
     try:
-        value = tomllib.loads(f"v = {text}")["v"]
+        table = tomllib.loads(f"v = {text}")
+        if len(table) != 1:  # "1\nother = 2" is not one literal
+            raise tomllib.TOMLDecodeError("more than one value")
+        value = table["v"]
     except tomllib.TOMLDecodeError:
         if f.type is str:
-            return text
+            return coerce(f, text)
         raise ConfigError(f"field '{f.name}' expects {f.type_name}, got unparseable text {text!r}") from None
     if f.type is str and not isinstance(value, str):
-        return text  # `name = 42` for a string field means the string "42"
+        return coerce(f, text)  # `name = 42` for a string field means the string "42"
     return coerce(f, value)
 
 
@@ -158,11 +186,14 @@ class Configurator:
         return [(n, f.type_name, self._values[n]) for n, f in self.fields.items()]
 
     def check(self, name: str, value: Any) -> Any:
-        """The coerced value, or ConfigError (unknown field, wrong type)."""
+        """The coerced value, or ConfigError (unknown field, wrong type, not one of the choices).
+
+        A ``str`` value is text and read by :func:`parse_text` (a TOML literal).
+        """
         f = self.fields.get(name)
         if f is None:
             raise ConfigError(f"no config field '{name}' (known: {', '.join(sorted(self.fields))})")
-        return parse_text(f, value) if isinstance(value, str) and f.type is not str else coerce(f, value)
+        return parse_text(f, value) if isinstance(value, str) else coerce(f, value)
 
     def set(self, name: str, value: Any) -> bool:
         """Change *name* and persist the file; False (and a logged error) when refused or unwritable."""
@@ -171,6 +202,9 @@ class Configurator:
 
     def try_set(self, name: str, value: Any) -> tuple[bool, str]:
         """Like :meth:`set`, returning ``(ok, reason)`` so the bus can send the reason back.
+
+        ``(True, warning)`` with a non-empty warning: the file changed but its directory could
+        not be synced (the change is in effect and saved, possibly not durable).
 
         After the type check the service's *validator* (if any) may refuse the value with a
         reason (a baud rate the driver does not support, a negative rate); nothing is written then.
@@ -188,18 +222,22 @@ class Configurator:
             old = self._values[name]
             self._values[name] = coerced
             try:
-                self._write()
+                warning = self._write()
             except OSError as exc:
                 self._values[name] = old
                 reason = f"cannot write {self.path}: {exc.strerror or exc}; the file is unchanged"
                 self._log.error("config change of '%s' not saved: %s", name, reason)
                 return False, reason
         self._log.info("config '%s' changed from %r to %r", name, old, coerced)
-        return True, ""
+        if warning:
+            self._log.warning("config change of '%s': %s", name, warning)
+        return True, warning
 
-    def _write(self) -> None:
+    def _write(self) -> str:
+        """Write the file atomically; OSError when it is unchanged, a warning text when it changed but
+        its directory could not be synced (the rename may not survive a power cut), else ""."""
         if self.path is None:
-            return
+            return ""
         self.path.parent.mkdir(parents=True, exist_ok=True)
         data = {**self._extra, **self._values}
         fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent)
@@ -209,14 +247,20 @@ class Configurator:
                 fh.flush()
                 os.fsync(fh.fileno())
             os.replace(tmp, self.path)
-            dir_fd = os.open(self.path.parent, os.O_RDONLY)
-            try:
-                os.fsync(dir_fd)
-            finally:
-                os.close(dir_fd)
         except BaseException:
             try:
                 os.unlink(tmp)
             except OSError:
                 pass
             raise
+        # From here on the file holds the new value: a failure only weakens durability.
+        try:
+            dir_fd = os.open(self.path.parent, os.O_RDONLY)
+            try:
+                os.fsync(dir_fd)
+            finally:
+                os.close(dir_fd)
+        except OSError as exc:
+            return (f"saved to {self.path}, but syncing its directory {self.path.parent} failed "
+                    f"({exc.strerror or exc}); the change may be lost on a power cut")
+        return ""

@@ -8,7 +8,12 @@ systemd notification (READY, WATCHDOG from the service's own loop, STATUS, STOPP
 and clean exit on SIGTERM/SIGINT.
 
 A run loop is written as ``while self.wait(period): ...``: ``wait`` returns False once
-the service is stopping and pings systemd's watchdog, so a hung loop is a dead service.
+the service is stopping and pings systemd's watchdog (every half ``$WATCHDOG_USEC``, however
+long the period), so a hung loop is a dead service but a slow one is not.
+
+Log level: ``u2sa service --log-level`` at start, else the service's ``log_level`` config
+field (its TOML file or the profile's settings for it), else the profile's ``log_level``,
+else info. A change of ``log_level`` over the bus applies at once (empty: the profile's).
 """
 
 from __future__ import annotations
@@ -27,12 +32,14 @@ from u2sa_hw.config import ConfigError, ConfigField, Configurator, field, to_tex
 from u2sa_hw.health import HOSTNAME, ProcessStats, build_health
 from u2sa_hw.messages import type_name
 from u2sa_hw.sdnotify import SystemdNotifier, watchdog_interval
+from u2sa_hw.service_log import LEVEL_NAMES, level_number, set_level
 from u2sa_hw.transport import Transport
 from u2sa_hw.vehicle import VehicleProfile
 
 BASE_CONFIG: tuple[ConfigField, ...] = (
     field("health_interval_s", 1.0, "seconds between health messages"),
-    field("log_level", "info", "debug, info, warn or error"),
+    field("log_level", "", "debug, info, warn or error; empty: the vehicle profile's log_level",
+          choices=("", *LEVEL_NAMES)),
 )
 
 
@@ -57,8 +64,10 @@ class U2SAService:
         self.last_error = ""
         self.thread_id = threading.get_ident()
         self._stop_event = threading.Event()
-        self._publishers: dict[str, str] = {}
+        self._publishers: dict[str, str] = {}     # channel -> type name (functionality discovery)
         self._subscribers: dict[str, str] = {}
+        self._subscriptions: dict[str, list[Any]] = {}   # channel -> transport subscriptions
+        self._unhandled: dict[str, int] = {}      # message type -> count reaching the default callback
         self._sequence: dict[str, int] = {}
         self._stats = ProcessStats()
         self._notifier = SystemdNotifier()
@@ -92,31 +101,43 @@ class U2SAService:
 
     def log(self, message: str, level: str = "info") -> None:
         """Write *message* to the service's log at *level* (debug, info, warn, error)."""
-        self.logger.log({"warn": logging.WARNING}.get(level, logging.getLevelName(level.upper())), message)
+        self.logger.log(level_number(level), message)
 
     def register_publisher(self, channel: str, msg_type: type) -> None:
         """Declare that this service publishes *msg_type* on *channel* (for discovery)."""
         self._publishers[channel] = type_name(msg_type)
+
+    def unregister_publisher(self, channel: str) -> None:
+        """Withdraw *channel* from the published channels in discovery (publishing on it again re-declares it)."""
+        self._publishers.pop(channel, None)
 
     def register_subscriber(self, channel: str, msg_type: type,
                             callback: Callable[[Any], None] | None = None) -> None:
         """Subscribe to *channel* as *msg_type* (its base type); messages go to *callback* or ``callback()``."""
         self._subscribers[channel] = type_name(msg_type)
         target = callback or self.callback
-        self.transport.subscribe(channel, msg_type, lambda _ch, msg: target(msg))
+        sub = self.transport.subscribe(channel, msg_type, lambda _ch, msg: target(msg))
+        self._subscriptions.setdefault(channel, []).append(sub)
 
     def unregister_subscriber(self, channel: str) -> None:
-        """Forget *channel* in discovery (the transport keeps no handler for it after stop)."""
+        """Unsubscribe every handler this service registered on *channel* and drop it from discovery."""
         self._subscribers.pop(channel, None)
+        for sub in self._subscriptions.pop(channel, []):
+            self.transport.unsubscribe(sub)
 
-    def publish(self, channel: str, msg: Any) -> bool:
-        """Stamp *msg*'s header (system id, time, source, sequence) and publish it; True on success."""
+    def publish(self, channel: str, msg: Any, *, restamp: bool = False) -> bool:
+        """Stamp *msg*'s header (system id, source, sequence, time) and publish it; True on success.
+
+        A timestamp the caller already set is kept: it is the time of the measurement (a driver
+        stamps when the bytes arrived, the pass-through estimator forwards its sensor's), not of
+        sending. A zero timestamp, or any with ``restamp=True``, becomes now.
+        """
         header = _root_header(msg)
         if header is not None:
             seq = self._sequence.get(channel, 0) + 1
             self._sequence[channel] = seq
             header.system_id = self.profile.system_id
-            if not header.timestamp_us:
+            if restamp or not header.timestamp_us:
                 header.timestamp_us = time.time_ns() // 1000
             header.source = self.name
             header.sequence = seq
@@ -134,8 +155,13 @@ class U2SAService:
             pass
 
     def callback(self, data: Any) -> None:
-        """Handle a message from a subscription; the default logs it as unhandled."""
-        self.logger.debug("unhandled message %s", type(data).__name__)
+        """Handle a message from a subscription; the default counts it as unhandled (a warning per type)."""
+        kind = type(data).__name__
+        count = self._unhandled.get(kind, 0)
+        self._unhandled[kind] = count + 1
+        if count == 0:
+            self.logger.warning("unhandled message type %s reached %s.callback(); further ones are counted "
+                                "in health (unhandled)", kind, type(self).__name__)
 
     def kill(self) -> None:
         """Stop looping and release resources (subclasses close theirs, then call this)."""
@@ -169,15 +195,29 @@ class U2SAService:
     def on_config_change(self, name: str, value: Any) -> None:
         """Called after a config field changed over the bus (override to apply it live)."""
 
+    def log_level_name(self) -> str:
+        """The level this service logs at: its ``log_level`` field, else the profile's, else info."""
+        return self.config.get("log_level") or self.profile.log_level or "info"
+
     # -- loop helpers ---------------------------------------------------------------------
     def wait(self, timeout: float) -> bool:
-        """Sleep up to *timeout* s (less if stopped); ping the watchdog; False once stopping."""
-        self._last_loop = time.monotonic()
-        self._ping_watchdog()
-        if self._stop_event.wait(timeout):
-            return False
-        self._ping_watchdog()
-        return self.running
+        """Sleep up to *timeout* s (less if stopped); ping the watchdog; False once stopping.
+
+        Under a systemd watchdog the sleep is cut in slices of a quarter of ``$WATCHDOG_USEC``
+        and a ping goes out every half, so a period longer than ``WatchdogSec`` is no hang.
+        """
+        now = self._last_loop = time.monotonic()
+        deadline = now + max(0.0, timeout)
+        while True:
+            self._ping_watchdog()
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                break
+            if self._watchdog_period is not None:
+                remaining = min(remaining, self._watchdog_period / 2)
+            if self._stop_event.wait(remaining):
+                return False
+        return self.running and not self._stop_event.is_set()
 
     def _ping_watchdog(self) -> None:
         if self._watchdog_period is None:
@@ -198,12 +238,14 @@ class U2SAService:
 
     # -- contract messages over the bus -----------------------------------------------------
     def _contract_subscriptions(self) -> None:
-        tr = self.transport
-        tr.subscribe(ch.DISCOVERY_REQUEST, t.DiscoveryRequest, lambda _c, m: self._on_discovery(m))
-        tr.subscribe(ch.STOP, t.StopCommand, lambda _c, m: self._on_stop(m))
-        tr.subscribe(ch.CONFIG_REQUEST, t.ConfigRequest, lambda _c, m: self._on_config_request(m))
-        tr.subscribe(ch.CONFIG_CHANGE, t.ConfigChange, lambda _c, m: self._on_config_change(m))
-        self._publishers[ch.HEALTH] = "Health"
+        # Registered like any other channel, so discovery lists them from the first reply on.
+        self.register_subscriber(ch.DISCOVERY_REQUEST, t.DiscoveryRequest, self._on_discovery)
+        self.register_subscriber(ch.STOP, t.StopCommand, self._on_stop)
+        self.register_subscriber(ch.CONFIG_REQUEST, t.ConfigRequest, self._on_config_request)
+        self.register_subscriber(ch.CONFIG_CHANGE, t.ConfigChange, self._on_config_change)
+        self.register_publisher(ch.DISCOVERY_RESPONSE, t.DiscoveryResponse)
+        self.register_publisher(ch.CONFIG_RESPONSE, t.ConfigResponse)
+        self.register_publisher(ch.HEALTH, t.Health)
 
     def _on_discovery(self, req: t.DiscoveryRequest) -> None:
         if req.name_filter and req.name_filter != self.name:
@@ -212,9 +254,10 @@ class U2SAService:
         resp.request_id = req.request_id
         resp.name, resp.service_type, resp.status = self.name, self.SERVICE_TYPE, self.status
         resp.host, resp.pid = HOSTNAME, os.getpid()
-        resp.publishes = [_channel_info(c, ty) for c, ty in sorted(self._publishers.items())]
+        # dict() copies in one step: other threads may register channels meanwhile.
+        resp.publishes = [_channel_info(c, ty) for c, ty in sorted(dict(self._publishers).items())]
         resp.num_publishes = len(resp.publishes)
-        resp.subscribes = [_channel_info(c, ty) for c, ty in sorted(self._subscribers.items())]
+        resp.subscribes = [_channel_info(c, ty) for c, ty in sorted(dict(self._subscribers).items())]
         resp.num_subscribes = len(resp.subscribes)
         self.publish(ch.DISCOVERY_RESPONSE, resp)
 
@@ -247,9 +290,10 @@ class U2SAService:
         ok, reason = self.config.try_set(req.field, req.value)
         self.publish(ch.CONFIG_RESPONSE, self._config_response(req.request_id, ok, reason, [req.field]))
         if ok:
-            if req.field == "log_level":
-                logging.getLogger().setLevel(req.value.strip('"').upper().replace("WARN", "WARNING"))
             try:
+                if req.field == "log_level":
+                    set_level(self.log_level_name())
+                    self.logger.info("log level is now %s", self.log_level_name())
                 self.on_config_change(req.field, self.config.get(req.field))
             except Exception as exc:  # noqa: BLE001 - a bad live change must not kill the service
                 self.error(f"applying config change {req.field} failed: {exc}")
@@ -263,6 +307,8 @@ class U2SAService:
         """Publish one Health message now."""
         try:
             details = {"loop_age_s": f"{time.monotonic() - self._last_loop:.2f}", **self.health_details()}
+            if self._unhandled:
+                details["unhandled"] = ",".join(f"{k}:{n}" for k, n in sorted(dict(self._unhandled).items()))
         except Exception as exc:  # noqa: BLE001 - health must still go out
             details = {"health_details_error": str(exc)}
         last_error = self.last_error or self.transport.last_error
@@ -289,8 +335,12 @@ class U2SAService:
         self.running = False
         self._stop_event.set()
 
-    def main(self) -> int:
-        """Run the service in the foreground until stopped; return the exit status (0 when clean)."""
+    def main(self, *, log_level: str | None = None) -> int:
+        """Run the service in the foreground until stopped; return the exit status (0 when clean).
+
+        The process logs at *log_level* (the command line's), else :meth:`log_level_name`.
+        """
+        set_level(log_level or self.log_level_name())
         self.thread_id = threading.get_ident()
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: self.stop())

@@ -12,6 +12,20 @@ from pathlib import Path
 
 LEVELS = {"debug": logging.DEBUG, "info": logging.INFO, "warn": logging.WARNING,
           "warning": logging.WARNING, "error": logging.ERROR}
+LEVEL_NAMES = tuple(LEVELS)
+
+
+def level_number(level: str) -> int:
+    """The logging level of *level* (debug, info, warn/warning, error; any case); ValueError names them."""
+    try:
+        return LEVELS[level.strip().lower()]
+    except KeyError:
+        raise ValueError(f"unknown log level {level!r}; use one of {', '.join(LEVEL_NAMES)}") from None
+
+
+def set_level(level: str) -> None:
+    """Set the process's (root logger's) level to *level*; ValueError for an unknown name."""
+    logging.getLogger().setLevel(level_number(level))
 FORMAT = "%(asctime)s.%(msecs)03d %(levelname)-5s %(service)s [%(thread)d] %(message)s"
 DATEFMT = "%Y-%m-%dT%H:%M:%S"
 
@@ -35,10 +49,7 @@ def setup_service_logging(service: str, *, log_dir: Path | str | None, level: st
     Raises ValueError for an unknown level and OSError (with the path) when the log
     directory cannot be created.
     """
-    try:
-        lvl = LEVELS[level.lower()]
-    except KeyError:
-        raise ValueError(f"unknown log level {level!r}; use one of debug, info, warn, error") from None
+    lvl = level_number(level)
     root = logging.getLogger()
     for h in list(root.handlers):
         root.removeHandler(h)

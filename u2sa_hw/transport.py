@@ -4,19 +4,27 @@ LCM's Python binding allows one thread in ``handle``; publishing from several Py
 threads at once is known to corrupt data, so every publish takes a lock. Subscriptions
 are typed: a callback gets a decoded message of the channel's base type or of a known
 extension of it. Malformed packets (wrong type, truncated, garbage) are counted per
-channel and logged once per channel; they never reach or break the service.
+channel and logged once per channel; they never reach or break the service. Counters
+count packets: a packet that several subscriptions receive counts once.
+
+The LCM C library reports a failure to open (no multicast route, a bad URL, a port held by
+another program) with many lines on stderr; those are caught and folded into the one-line
+:class:`TransportError`.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import re
+import sys
+import tempfile
 import threading
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import lcm
 
@@ -43,6 +51,10 @@ MULTICAST_FIX = (
     "sudo ip route add 224.0.0.0/4 dev lo' (u2sa install adds a oneshot unit that does this), "
     "or set U2SA_LCM_URL / lcm_url in the vehicle profile to another provider"
 )
+
+
+URL_HELP = ("check the URL: udpm://GROUP:PORT?ttl=N with a multicast group (224.0.0.0/4) and a port "
+            "1-65535, or another LCM provider (memq://, file://PATH?mode=w)")
 
 
 def resolve_url(profile_url: str | None = None) -> str:
@@ -77,16 +89,26 @@ class Transport:
     def __init__(self, url: str | None = None, *, name: str = "u2sa") -> None:
         self.url = resolve_url(url)
         self.name = name
-        try:
-            self._lc = lcm.LCM(self.url)
-        except (RuntimeError, OSError) as exc:
-            raise TransportError(f"cannot open LCM at {self.url}: {exc}; {MULTICAST_FIX}") from None
+        with _captured_c_stderr() as printed:
+            try:
+                self._lc = lcm.LCM(self.url)
+                failure = None
+            except (RuntimeError, OSError) as exc:
+                failure = exc
+        if failure is not None:
+            raise TransportError(_open_error(self.url, f"cannot open LCM at {self.url}", failure, printed[0]))
+        _reemit(printed[0])
+        self._receiving = False   # set once _open_receiver had LCM bind its receive socket
         self._publish_lock = threading.Lock()
         self._subs: list[_Subscription] = []
         self._subs_lock = threading.Lock()
         self.rx: dict[str, ChannelCounters] = defaultdict(ChannelCounters)
         self.tx: dict[str, ChannelCounters] = defaultdict(ChannelCounters)
         self._malformed_logged: set[str] = set()
+        # One handle() call dispatches one packet to every matching subscription: the
+        # generation below tells a packet's first dispatch (which counts it) from the others.
+        self._generation = 0
+        self._bytes_counted = self._messages_counted = self._malformed_counted = -1
         self.last_error = ""
         self._thread: threading.Thread | None = None
         self._running = False
@@ -104,19 +126,21 @@ class Transport:
 
     def publish_bytes(self, channel: str, data: bytes, *, type_name: str = "") -> bool:
         """Publish already-encoded bytes; True on success."""
-        try:
-            with self._publish_lock:
+        with self._publish_lock:
+            c = self.tx[channel]
+            try:
                 self._lc.publish(channel, data)
-        except (OSError, IOError) as exc:
-            self._error(f"publish on {channel} failed: {exc}")
-            self.tx[channel].dropped += 1
-            return False
-        c = self.tx[channel]
-        c.messages += 1
-        c.bytes += len(data)
-        if type_name:
-            c.type_name = type_name
-        return True
+            except (OSError, IOError) as exc:
+                c.dropped += 1
+                failure = exc
+            else:
+                c.messages += 1
+                c.bytes += len(data)
+                if type_name:
+                    c.type_name = type_name
+                return True
+        self._error(f"publish on {channel} failed: {failure}")
+        return False
 
     # -- subscribing --------------------------------------------------------------
     def subscribe(self, channel: str, base: type | None, callback: Callback, *, raw: bool = False,
@@ -129,12 +153,31 @@ class Transport:
         *queue_capacity* is how many messages LCM holds for this subscription before dropping.
         """
         sub = _Subscription(channel, base, callback, raw)
-        sub.handle = self._lc.subscribe(channel if _is_regex(channel) else re.escape(channel),
-                                        lambda ch, data, s=sub: self._dispatch(s, ch, data))
+        pattern = channel if _is_regex(channel) else re.escape(channel)
+        handler = lambda ch, data, s=sub: self._dispatch(s, ch, data)  # noqa: E731
+        self._open_receiver()
+        sub.handle = self._lc.subscribe(pattern, handler)
+        if sub.handle is None:
+            raise TransportError(f"cannot subscribe to {channel} on LCM at {self.url}")
         sub.handle.set_queue_capacity(queue_capacity)
         with self._subs_lock:
             self._subs.append(sub)
         return sub
+
+    def _open_receiver(self) -> None:
+        """Have LCM bind its receive socket now, before any handler thread, so a failure is one clear error.
+
+        LCM binds lazily (at the first subscribe or handle); a bind that fails there prints to
+        stderr and can leave a handling thread and a subscribing one blocked on each other.
+        """
+        if self._receiving:
+            return
+        with _captured_c_stderr() as printed:
+            fd = self._lc.fileno()
+        if fd < 0:
+            raise TransportError(_open_error(self.url, f"cannot receive on LCM at {self.url}", None, printed[0]))
+        _reemit(printed[0])
+        self._receiving = True
 
     def unsubscribe(self, sub: _Subscription) -> None:
         """Stop delivering to *sub*."""
@@ -145,15 +188,22 @@ class Transport:
 
     def _dispatch(self, sub: _Subscription, channel: str, data: bytes) -> None:
         counters = self.rx[channel]
-        counters.bytes += len(data)
+        generation = self._generation
+        if self._bytes_counted != generation:
+            self._bytes_counted = generation
+            counters.bytes += len(data)
         if sub.raw:
-            counters.messages += 1
+            if self._messages_counted != generation:
+                self._messages_counted = generation
+                counters.messages += 1
             self._call(sub, channel, data)
             return
         try:
             msg, known = REGISTRY.decode(data, sub.base)
         except MalformedMessage as exc:
-            counters.malformed += 1
+            if self._malformed_counted != generation:
+                self._malformed_counted = generation
+                counters.malformed += 1
             if channel not in self._malformed_logged:
                 self._malformed_logged.add(channel)
                 log.warning("%s: dropping malformed message on %s (%s); further ones are only counted",
@@ -164,7 +214,9 @@ class Transport:
             sub.unknown_logged.add(data[:8])
             log.info("%s: unknown type %s on %s decoded as its base %s",
                      self.name, data[:8].hex(), channel, sub.base.__name__)
-        counters.messages += 1
+        if self._messages_counted != generation:
+            self._messages_counted = generation
+            counters.messages += 1
         counters.type_name = type(msg).__name__
         self._call(sub, channel, msg)
 
@@ -182,12 +234,16 @@ class Transport:
     # -- handling -----------------------------------------------------------------
     def handle_once(self, timeout: float) -> bool:
         """Handle at most one message, waiting up to *timeout* s; True if one was handled."""
-        return self._lc.handle_timeout(max(0, int(timeout * 1000))) > 0
+        try:
+            return self._lc.handle_timeout(max(0, int(timeout * 1000))) > 0
+        finally:
+            self._generation += 1
 
     def start(self) -> None:
         """Start the one handler thread (idempotent)."""
         if self._thread is not None:
             return
+        self._open_receiver()
         self._running = True
         self._thread = threading.Thread(target=self._loop, name=f"lcm-{self.name}", daemon=True)
         self._thread.start()
@@ -200,6 +256,7 @@ class Transport:
             except Exception as exc:  # noqa: BLE001 - keep handling; LCM reports socket trouble here
                 self._error(f"LCM handle failed: {exc}")
                 time.sleep(0.01)
+            self._generation += 1
 
     def stop(self) -> None:
         """Stop the handler thread and release the LCM instance."""
@@ -227,8 +284,78 @@ def _is_regex(channel: str) -> bool:
     return any(ch in channel for ch in "*+?[]()|\\^$")
 
 
+@contextlib.contextmanager
+def _captured_c_stderr() -> Iterator[list[str]]:
+    """Redirect file descriptor 2 (where C code prints) to a temp file for the block.
+
+    The yielded list gets one item after the block: the text printed meanwhile ("" when
+    fd 2 could not be redirected). Python's own stderr writes meanwhile are caught too;
+    :func:`_reemit` gives them back.
+    """
+    printed: list[str] = []
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):  # no fd 2 (a daemon), or sys.stderr closed
+        printed.append("")
+        yield printed
+        return
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield printed
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            printed.append(tmp.read().decode(errors="replace"))
+
+
+def _reemit(text: str) -> None:
+    """Write back to stderr what a successful call printed while stderr was captured."""
+    if text:
+        try:
+            os.write(2, text.encode())
+        except OSError:
+            pass
+
+
+def _fold(printed: str, *, limit: int = 300) -> str:
+    """The C library's lines as one: its own multicast advice (ours replaces it) left out."""
+    lines = []
+    for line in printed.splitlines():
+        line = line.strip()
+        if line.startswith("LCM requires"):
+            break
+        if line:
+            lines.append(line.removeprefix("Error: "))
+    text = "; ".join(lines)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def _open_error(url: str, what: str, exc: BaseException | None, printed: str) -> str:
+    """One line: what failed, what LCM said, and the fix that fits the cause."""
+    said = _fold(printed)
+    detail = ": ".join(p for p in (said, str(exc) if exc and not said else "") if p) or "LCM gave no reason"
+    low = said.lower()
+    if "address already in use" in low:
+        port = url.split("?", 1)[0].rsplit(":", 1)[-1]
+        fix = (f"another program holds UDP port {port} without sharing it (find it with 'ss -ulpn sport = :{port}'), "
+               "or choose another port in U2SA_LCM_URL / the profile's lcm_url")
+    elif "provider" in low or "bad multicast" in low or not url.startswith("udpm://"):
+        fix = URL_HELP
+    else:
+        fix = MULTICAST_FIX
+    return f"{what}: {detail}; {fix}"
+
+
 def check_multicast(url: str | None = None, *, timeout: float = 1.0) -> None:
-    """Send one packet to ourselves; raise TransportError with the fix if it never arrives."""
+    """Send one packet to ourselves; raise TransportError with the fix if it never arrives.
+
+    Only ``udpm://`` URLs are probed: other providers do not loop packets back the same way.
+    """
+    if not resolve_url(url).startswith("udpm://"):
+        return
     probe = f"U2SA_PROBE_{os.getpid()}_{time.monotonic_ns()}"
     t = Transport(url, name="probe")
     got = threading.Event()

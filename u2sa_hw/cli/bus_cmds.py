@@ -10,7 +10,7 @@ import time
 from collections import defaultdict
 from typing import Any
 
-from u2sa_hw.cli.common import add_timeout_option, add_vehicle_option, bus_client
+from u2sa_hw.cli.common import add_timeout_option, add_vehicle_option, bus_client, no_answer_error
 
 
 def register(sub: Any) -> None:
@@ -69,8 +69,6 @@ def _channel_list(infos: Any) -> list[dict[str, str]]:
 
 def cmd_services(args: Any) -> int:
     """``u2sa services``."""
-    from u2sa_hw.cli import CliError
-
     with bus_client(args) as bus:
         found = bus.discover(timeout=args.timeout)
     if args.json:
@@ -84,8 +82,8 @@ def cmd_services(args: Any) -> int:
             pubs = ", ".join(i.channel for i in r.publishes)
             print(f"{r.name:22} {r.service_type:18} {r.status:9} {r.host:14} {r.pid:>7}  {pubs}")
     if not found:
-        raise CliError(f"no service answered discovery within {args.timeout:g} s "
-                       "(are services running, and on the same LCM URL?)")
+        raise no_answer_error(args, f"no service answered discovery within {args.timeout:g} s "
+                              "(are services running, and on the same LCM URL?)")
     return 0
 
 
@@ -212,7 +210,8 @@ def cmd_stop(args: Any) -> int:
         before = bus.discover(timeout=min(1.0, args.timeout), name="" if args.all else args.name)
         if not before:
             target = "no service" if args.all else f"service '{args.name}'"
-            raise CliError(f"{target} answered discovery within {min(1.0, args.timeout):g} s; nothing to stop")
+            raise no_answer_error(args, f"{target} answered discovery within {min(1.0, args.timeout):g} s; "
+                                  "nothing to stop")
         names = {r.name for r in before}
         bus.stop(name=args.name or "", all_services=args.all)
         deadline = time.monotonic() + args.timeout

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import argparse
-from typing import Any
+import contextlib
+from typing import Any, Iterator
 
-from u2sa_hw.transport import TransportError
+from u2sa_hw.transport import TransportError, check_multicast
 from u2sa_hw.vehicle import ProfileError, VehicleProfile, load_profile
 
 
@@ -31,13 +32,38 @@ def profile_from(args: Any) -> VehicleProfile:
         raise CliError(str(exc)) from None
 
 
-def bus_client(args: Any) -> Any:
-    """A BusClient on the profile's LCM URL; CliError with the multicast fix if it cannot open."""
+@contextlib.contextmanager
+def bus_client(args: Any) -> Iterator[Any]:
+    """A BusClient on the profile's LCM URL for a ``with`` block, closed after it.
+
+    A TransportError (LCM cannot open or receive) becomes a one-line CliError with the fix.
+    """
     from u2sa_hw.bus_client import BusClient
     from u2sa_hw.cli import CliError
 
     profile = profile_from(args)
     try:
-        return BusClient(profile.lcm_url, system_id=profile.system_id)
+        client = BusClient(profile.lcm_url, system_id=profile.system_id)
     except TransportError as exc:
         raise CliError(str(exc)) from None
+    try:
+        yield client
+    except TransportError as exc:
+        raise CliError(str(exc)) from None
+    finally:
+        client.close()
+
+
+def no_answer_error(args: Any, text: str) -> Exception:
+    """The CliError for a request nobody answered: *text*, or why multicast fails here and the fix.
+
+    Multicast that loops nothing back looks like an empty bus; one probe packet tells them apart.
+    """
+    from u2sa_hw.cli import CliError
+
+    profile = profile_from(args)
+    try:
+        check_multicast(profile.lcm_url)
+    except TransportError as exc:
+        return CliError(f"{text}, and {exc}")
+    return CliError(text)

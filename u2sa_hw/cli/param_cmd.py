@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import tomllib
 from typing import Any
 
-from u2sa_hw.cli.common import add_timeout_option, add_vehicle_option, bus_client
+from u2sa_hw.cli.common import add_timeout_option, add_vehicle_option, bus_client, no_answer_error
 
 
 def register(sub: Any) -> None:
@@ -15,9 +16,14 @@ def register(sub: Any) -> None:
     p = sub.add_parser("param", help="list, get or set a service's config over the bus",
                        formatter_class=argparse.RawDescriptionHelpFormatter,
                        description="Read and change a running service's typed config. A change is checked "
-                       "against the field's type by the service and written to its TOML file atomically.",
+                       "against the field's type (and allowed values) by the service and written to its TOML "
+                       "file atomically. VALUE is a TOML literal: 42, 2.5, true, \"text\". For a text field "
+                       "a quoted string gives its contents and anything else is taken as it is, so "
+                       "mode passthrough and mode '\"passthrough\"' both set passthrough.",
                        epilog="examples:\n  u2sa param list state_estimator --json\n"
-                       "  u2sa param set gps baudrate 38400\n  u2sa param set estimator mode '\"passthrough\"'")
+                       "  u2sa param set gps baudrate 38400\n  u2sa param set state_estimator mode passthrough\n"
+                       "  u2sa param set state_estimator log_level debug\n"
+                       "  u2sa param set state_estimator log_level '\"\"'     (empty: the profile's level)")
     psub = p.add_subparsers(dest="param_command", metavar="ACTION", required=True)
     lp = psub.add_parser("list", help="every field with its type and value")
     lp.add_argument("service")
@@ -28,7 +34,8 @@ def register(sub: Any) -> None:
     sp = psub.add_parser("set", help="change one field (persisted); exits 1 with the reason when refused")
     sp.add_argument("service")
     sp.add_argument("field")
-    sp.add_argument("value", help="a TOML literal (42, 2.5, true, \"text\"); bare words are strings")
+    sp.add_argument("value", help="a TOML literal (42, 2.5, true, \"text\"); for a text field a quoted "
+                    "string gives its contents and a bare word is itself")
     for q in (lp, gp, sp):
         add_vehicle_option(q)
         add_timeout_option(q, 2.0)
@@ -52,10 +59,12 @@ def cmd_param(args: Any) -> int:
         else:
             resp = bus.get_config(args.service, timeout=args.timeout)
     if resp is None:
-        raise CliError(f"service '{args.service}' did not answer within {args.timeout:g} s "
-                       "(u2sa services lists the live ones)")
+        raise no_answer_error(args, f"service '{args.service}' did not answer within {args.timeout:g} s "
+                              "(u2sa services lists the live ones)")
     if not resp.ok:
         raise CliError(f"{args.service} refused: {resp.error}")
+    if resp.error:  # accepted with a warning (saved, but its directory could not be synced)
+        print(f"u2sa: warning: {args.service}: {resp.error}", file=sys.stderr)
     fields = {f.name: f for f in resp.fields}
     if args.param_command == "list":
         if args.json:

@@ -14,6 +14,13 @@ With --vehicle, NAME is a service of the profile and its kind, config file and
 settings come from there; without one, NAME is a service kind (see --list-kinds)
 and the service is called NAME. Logs go to the profile's log_dir (one file per
 service) and to stderr (journald under systemd).
+
+Config file: --config PATH, else the profile's `config` for the service, else
+<config_dir>/<NAME>.toml (a missing file means defaults).
+
+Log level: --log-level, else the service's log_level config field (its config
+file, or the profile's settings for it), else the profile's log_level, else
+info. `u2sa param set NAME log_level debug` changes it while running.
 """
 
 
@@ -26,7 +33,8 @@ def register(sub: Any) -> None:
     p.add_argument("--config", metavar="PATH", help="the service's TOML config (default: from the profile, "
                    "else <config_dir>/<name>.toml)")
     p.add_argument("--kind", help="service kind when NAME is not in the profile")
-    p.add_argument("--log-level", choices=["debug", "info", "warn", "error"], help="override the log level")
+    p.add_argument("--log-level", choices=["debug", "info", "warn", "error"],
+                   help="log level at start (wins over the config field and the profile)")
     p.add_argument("--list-kinds", action="store_true", help="list the service kinds and exit")
     p.set_defaults(func=run)
 
@@ -36,7 +44,7 @@ def run(args: Any) -> int:
     from u2sa_hw.cli import CliError
     from u2sa_hw.config import ConfigError
     from u2sa_hw.registry import known_kinds, resolve_kind
-    from u2sa_hw.service_log import setup_service_logging
+    from u2sa_hw.service_log import level_number, setup_service_logging
     from u2sa_hw.transport import TransportError
 
     if args.list_kinds:
@@ -53,12 +61,16 @@ def run(args: Any) -> int:
     except LookupError as exc:
         where = f" in {profile.path}" if profile.path else ""
         raise CliError(f"service '{args.name}'{where}: {exc}") from None
-    level = args.log_level or profile.log_level
-    logger = setup_service_logging(args.name, log_dir=profile.log_dir, level=level)
+    try:
+        level_number(profile.log_level)
+    except ValueError as exc:
+        raise CliError(f"{profile.path or 'vehicle profile'}: log_level: {exc}") from None
+    # Until the service's config is read, log at the command line's or the profile's level.
+    logger = setup_service_logging(args.name, log_dir=profile.log_dir, level=args.log_level or profile.log_level)
     config_path = Path(args.config) if args.config else profile.config_path_for(args.name)
     try:
         service = cls(args.name, profile=profile, config_path=config_path,
                       settings=spec.settings if spec else None, logger=logger)
     except (ConfigError, TransportError) as exc:
         raise CliError(str(exc)) from None
-    return service.main()
+    return service.main(log_level=args.log_level)
