@@ -18,7 +18,7 @@ from supervision_helpers import launch, write_profile  # noqa: F401 - launch is 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus_client import BusClient
-from u2sa_hw.launcher import Launcher, LauncherBusy, LauncherClient, LauncherError, RestartPolicy
+from u2sa_hw.launcher import Launcher, LauncherBusy, LauncherClient, LauncherError, RestartPolicy, SupervisedProcess
 from u2sa_hw.vehicle import load_profile
 
 
@@ -107,6 +107,75 @@ def test_restart_policy_doubles_caps_decays_and_gives_up() -> None:
     assert not RestartPolicy(give_up_after=0).gives_up(1000)
     with pytest.raises(ValueError, match="initial_backoff_s"):
         RestartPolicy(initial_backoff_s=5.0, max_backoff_s=1.0)
+
+
+SLOW_CRASH = ("import os, sys, time\n"
+              "time.sleep(float(os.environ['CRASH_AFTER_S']))\n"
+              "print('crashing now', flush=True)\n"
+              "sys.exit(3)\n")
+
+
+def test_a_service_that_crashes_after_a_healthy_looking_start_is_given_up(tmp_path: Path, lcm_url: str) -> None:
+    # Each run outlives quick_death_s, so the quick-death rule alone would restart it forever.
+    profile = load_profile(write_profile(tmp_path, lcm_url, {"slow": "state_estimator"}))
+    lines: list[tuple[str, str]] = []
+    policy = RestartPolicy(initial_backoff_s=0.05, quick_death_s=0.1, give_up_after=2, max_failures=3,
+                           failure_window_s=120.0)
+    launcher = Launcher(profile, policy=policy, control=False, output=lambda n, line: lines.append((n, line)),
+                        command=lambda spec: [sys.executable, "-c", SLOW_CRASH], env={"CRASH_AFTER_S": "0.3"})
+    launcher.start()
+    try:
+        assert launcher.wait(60), "the launcher never gave up on a service crashing every 0.3 s"
+    finally:
+        launcher.stop(timeout=10)
+    assert launcher.exit_code == 1 and launcher.failed == ["slow"]
+    said = [line for name, line in lines if name == "launcher"]
+    assert sum("slow exited with status 3" in line for line in said) == 3
+    assert any("restarting in 0.05 s (quick deaths: 0, failures: 2/3 within 120 s)" in line for line in said), said
+    assert any("giving up after 3 failed exits within 120 s" in line for line in said), said
+    (status,) = launcher.status()
+    assert status.state == "failed" and status.quick_deaths == 0 and status.failures == 3
+    assert status.reason == "3 failed exits within 120 s, last exited with status 3"
+    assert lines.count(("slow", "crashing now")) == 3
+
+
+def test_failures_outside_the_window_are_forgotten() -> None:
+    now = [0.0]
+    policy = RestartPolicy(initial_backoff_s=0.0, quick_death_s=1.0, give_up_after=0, max_failures=3,
+                           failure_window_s=60.0)
+    proc = SupervisedProcess("svc", ["true"], policy=policy, clock=lambda: now[0])
+    for at in (0.0, 40.0, 80.0, 120.0):        # one failure every 40 s: at most 2 within any 60 s
+        now[0] = at
+        account = proc.failed_to_spawn("no such file")
+        assert proc.state == "backoff", account
+    assert proc.status().failures == 2
+    now[0] = 130.0
+    proc.failed_to_spawn("no such file")
+    assert proc.state == "failed" and "3 failed exits within 60 s" in proc.reason
+    proc.restart("operator", grace_s=1.0)       # a fresh start forgets the failures
+    assert proc.state == "backoff" and proc.status().failures == 0
+    assert not RestartPolicy(max_failures=0).too_many_failures(10_000)
+    with pytest.raises(ValueError, match="failure_window_s > 0"):
+        RestartPolicy(failure_window_s=0.0)
+
+
+def test_run_gives_up_by_failures_within_the_window_with_quick_deaths_off(tmp_path: Path, lcm_url: str,
+                                                                         launch: Any) -> None:
+    profile = write_profile(tmp_path, lcm_url, {"broken": "no_such_kind"})
+    lp = launch(profile, "--backoff", "0.05", "--give-up-after", "0", "--max-failures", "3",
+                "--failure-window", "600")
+    assert lp.proc.wait(timeout=60) == 1
+    out = lp.output
+    assert out.count("broken exited with status 1") == 3
+    assert "giving up after 3 failed exits within 600 s" in out and "exit 1: given up on broken" in out
+
+
+def test_run_help_documents_both_give_up_rules() -> None:
+    from u2sa_hw.cli import build_parser
+
+    run = build_parser()._subparsers._group_actions[0].choices["run"]   # noqa: SLF001 - the real parser
+    text = run.format_help()
+    assert "--max-failures N" in text and "--failure-window S" in text and "crashes every 6 s" in text
 
 
 STUBBORN = ("import signal, sys, time\n"

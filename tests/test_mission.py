@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -69,13 +70,63 @@ def test_thesis_style_waypoints_without_names_get_their_position_as_uid(tmp_path
     assert [g.uid for g in s.goals] == ["1", "2"] and s.name == "fg" and not s.loop
 
 
+def test_uid_is_an_alias_of_name() -> None:
+    s = spec("<mission><waypoint><uid>A</uid><x>1</x></waypoint>"
+             "<waypoint><name>B</name><uid>B</uid><next>A</next><x>2</x></waypoint></mission>")
+    assert [g.uid for g in s.goals] == ["A", "B"] and s.goals[1].next_uids == ["A"]
+
+
+# The thesis's own examples, copied from its text (3.2.3.2 and 4.5.2.3); a mission file wraps its waypoints.
+THESIS_3_2_3_2 = """\
+<waypoint>
+  <name>1</name>
+  <next>2</next>
+  <reference>Global</reference>
+  <x>10</x>
+  <y>15</y>
+</waypoint>
+"""
+THESIS_4_5_2_3 = """\
+<waypoint>
+  <y>37.466189</y>
+  <x>-121.134548</x>
+  <z>3000</z>
+</waypoint>
+"""
+
+
+def test_the_thesis_mission_examples_load() -> None:
+    # 3.2.3.2 names a next goal "2" that its snippet does not show: add one
+    s = spec(f"<mission>\n{THESIS_3_2_3_2}<waypoint><name>2</name><x>0</x></waypoint></mission>")
+    first = s.goals[0]
+    assert (first.uid, first.frame, first.next_uids) == ("1", GLOBAL, ["2"])
+    assert first.values == {"x": 15.0, "y": 10.0}                 # x = lon, y = lat: as latitude 15, longitude 10
+    assert first.line == 2
+    # 4.5.2.3: FlightGear's lat/lon/altitude waypoints, in a mission whose goals are Global by default
+    s = spec(f'<mission loop="true" reference="Global">\n{THESIS_4_5_2_3}{THESIS_4_5_2_3}</mission>')
+    assert s.loop and [g.uid for g in s.goals] == ["1", "2"] and s.goals[1].line == 7
+    assert s.goals[0].frame == GLOBAL and s.goals[0].values == {"x": 37.466189, "y": -121.134548, "z": 3000.0}
+    # the same lines without the Global default are local metres, as the file says nothing else
+    assert spec(f"<mission>{THESIS_4_5_2_3}</mission>").goals[0].frame == LOCAL
+
+
 @pytest.mark.parametrize(("text", "line", "element", "words"), [
     ("<mission>\n<waypoint><x>1</x>\n</mission>", 3, "waypoint", "mismatched tag"),
     ("<mission>\n  <waypoint>\n    <x>1</x><speed>3</speed>\n  </waypoint>\n</mission>", 3, "speed",
      "unknown element inside <waypoint>"),
     ("<mission>\n<waypoint>\n<x>ten</x></waypoint></mission>", 3, "x", "expected a number, got 'ten'"),
-    ("<mission>\n<waypoint><reference>Global</reference>\n<x>29.1</x></waypoint></mission>", 3, "x",
-     "Global goals use <lat>, <lon>, <alt>"),
+    ("<mission>\n<waypoint><reference>Global</reference>\n<x>29.1</x></waypoint></mission>", 2, "waypoint",
+     "needs <y> and <x> together (<x> is the longitude, <y> the latitude)"),
+    ("<mission>\n<waypoint><reference>Global</reference><lat>29.1</lat>\n<x>-81</x></waypoint></mission>", 3, "x",
+     "either <lat>/<lon>/<alt> or the thesis's <x> = longitude"),
+    ("<mission>\n<waypoint><reference>Global</reference><x>-81</x>\n<y>181</y></waypoint></mission>", 3, "y",
+     "<y> is the latitude in a Global waypoint: must be within -90..90"),
+    ("<mission>\n<waypoint><reference>Global</reference><lat>29</lat>\n<lon>-181</lon></waypoint></mission>", 3,
+     "lon", "longitude must be within -180..180"),
+    ("<mission reference='ECEF'>\n<waypoint><x>1</x></waypoint></mission>", 1, "mission",
+     'reference="ECEF" must be Local or Global'),
+    ("<mission>\n<waypoint><name>A</name>\n<uid>B</uid><x>1</x></waypoint></mission>", 3, "uid",
+     "'B' differs from <name> 'A' on line 2"),
     ("<mission>\n<waypoint><lat>29.1</lat><lon>-81</lon></waypoint></mission>", 2, "lat",
      "need <reference>Global</reference>"),
     ("<mission>\n\n<waypoint><reference>Global</reference><lat>29.1</lat></waypoint></mission>", 3, "waypoint",
@@ -91,7 +142,7 @@ def test_thesis_style_waypoints_without_names_get_their_position_as_uid(tmp_path
     ("<mission>\n<waypoint><x>1</x><psi unit='grad'>1</psi></waypoint></mission>", 2, "psi", "unit must be"),
     ("<mission loop='maybe'>\n</mission>", 1, "mission", "loop=\"maybe\" must be true or false"),
     ("<mission>\n<goal/></mission>", 2, "goal", "unknown goal type"),
-    ("<waypoints/>", 1, "waypoints", "root element must be <mission"),
+    ("<waypoint><x>1</x></waypoint>", 1, "waypoint", "a single <waypoint> must be wrapped in one"),
     ("<mission>\n</mission>", 1, "mission", "has no goals"),
 ])
 def test_malformed_missions_name_file_line_and_element(text: str, line: int, element: str, words: str) -> None:
@@ -244,3 +295,73 @@ def test_service_publishes_advances_merges_and_takes_commands(services: ServiceP
     goto.command, goto.uid = "goto", "P"
     bus.publish(ch.MISSION_CMD, goto)
     wait_until(lambda: status[-1].current_uid == "P" and not status[-1].finished, timeout=10, message="goto P")
+
+
+# -- u2sa mission: the operator's command line against a real mission manager ----------------------------
+def mission_cli(*argv: str) -> int:
+    """``u2sa mission ARGV`` in this process (its parser built from the command's own module)."""
+    import argparse
+
+    from u2sa_hw.cli import mission_cmd
+
+    parser = argparse.ArgumentParser(prog="u2sa")
+    mission_cmd.register(parser.add_subparsers())
+    args = parser.parse_args(["mission", *argv])
+    return args.func(args)
+
+
+def test_mission_command_line_status_goto_skip_restart_upload(services: ServiceProcesses, tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    from u2sa_hw.cli import CliError
+
+    (tmp_path / "mission.xml").write_text(MISSION)
+    vehicle = tmp_path / "vehicle.toml"
+    vehicle.write_text(f"[vehicle]\norigin = {{ lat = {ORIGIN.lat}, lon = {ORIGIN.lon}, alt = {ORIGIN.alt} }}\n"
+                       "[services.mission]\nkind = \"mission_manager\"\n"
+                       "settings = { mission_file = \"mission.xml\", publish_interval_s = 0.5 }\n")
+    v = ("--vehicle", str(vehicle))
+    services.start("mission", *v)
+
+    assert mission_cli("status", *v, "--timeout", "20") == 0
+    out = capsys.readouterr().out
+    assert out.startswith("mission 'harbour' (mission): goal 1 of 4: A, looping\n") and "  >  1 A\n" in out
+
+    assert mission_cli("goto", "C", *v) == 0
+    assert capsys.readouterr().out.startswith("mission 'harbour' (mission): goal 3 of 4: C")
+    assert mission_cli("skip", *v, "--json") == 0
+    assert json.loads(capsys.readouterr().out)["current_uid"] == "D"
+    assert mission_cli("restart", *v) == 0
+    assert "goal 1 of 4: A" in capsys.readouterr().out
+
+    with pytest.raises(CliError, match=r"mission goto: mission refused: goto 'Q': no such goal \(goals: A, B, C, D\)"):
+        mission_cli("goto", "Q", *v)
+
+    bad = tmp_path / "bad.xml"
+    bad.write_text("<mission name='bad'>\n<waypoint><x>1</x>\n<speed>3</speed></waypoint>\n</mission>\n")
+    with pytest.raises(CliError, match=rf"mission upload: {bad}:3: <speed> unknown element .*nothing was sent"):
+        mission_cli("upload", str(bad), *v)
+    with pytest.raises(CliError, match=r"cannot read"):
+        mission_cli("upload", str(tmp_path / "missing.xml"), *v)
+
+    good = tmp_path / "survey.xml"
+    good.write_text('<?xml version="1.0" encoding="UTF-8"?>\n<mission name="survey">'
+                    "<waypoint><uid>P</uid><x>5</x><y>5</y></waypoint><waypoint><uid>Q</uid><x>9</x></waypoint>"
+                    "</mission>\n")
+    assert mission_cli("upload", str(good), *v) == 0
+    assert capsys.readouterr().out.startswith("mission 'survey' (mission): goal 1 of 2: P\n")
+    assert mission_cli("goto", "Q", *v) == 0
+    capsys.readouterr()
+
+
+def test_mission_command_line_without_a_mission_manager_says_so(tmp_path: Path, lcm_url: str) -> None:
+    from u2sa_hw.cli import CliError
+
+    vehicle = tmp_path / "vehicle.toml"
+    vehicle.write_text("[vehicle]\nname = \"lonely\"\n")
+    with pytest.raises(CliError, match=r"mission skip: no mission manager acknowledged within 0.5 s"):
+        mission_cli("skip", "--vehicle", str(vehicle), "--timeout", "0.5")
+    with pytest.raises(CliError, match=r"mission status: no MISSION_STATUS within 0.5 s"):
+        mission_cli("status", "--vehicle", str(vehicle), "--timeout", "0.5")
+    with pytest.raises(CliError, match=r"mission goto: give the goal UID") as err:
+        mission_cli("goto", "--vehicle", str(vehicle))
+    assert err.value.code == 2

@@ -110,8 +110,31 @@ def test_a_priori_objects_parse_and_are_placed_in_ned() -> None:
     assert model.expire(now=1e9) == [] and len(model.objects()) == 6                 # never expire
 
 
+# The thesis's Circle example (3.2.3.3), copied from its text: a uid and a position, no radius.
+THESIS_CIRCLE = """\
+<Circle>
+  <uid>Circle1</uid>
+  <x>4</x>
+  <y>8</y>
+</Circle>
+"""
+
+
+def test_the_thesis_circle_example_loads_as_a_point_or_with_the_default_radius() -> None:
+    (circle,) = parse_objects(f"<world>\n{THESIS_CIRCLE}</world>", source="w.xml", origin=ORIGIN)
+    assert isinstance(circle, t.Circle) and circle.base.base.uid == "Circle1" and circle.radius == 0.0
+    assert (circle.base.base.x, circle.base.base.y, circle.base.base.reference_frame) == (4.0, 8.0, "NED")
+    assert distance_to_point(circle, 4.0, 11.0) == pytest.approx(3.0)             # a point
+    (circle,) = parse_objects(f"<world>{THESIS_CIRCLE}</world>", source="w.xml", origin=ORIGIN, default_radius=1.5)
+    assert circle.radius == 1.5 and distance_to_point(circle, 4.0, 11.0) == pytest.approx(1.5)
+    sphere, = parse_objects("<world><Sphere><uid>s</uid><x>1</x><y>1</y></Sphere></world>", source="w.xml",
+                            origin=ORIGIN, default_radius=2.0)
+    assert sphere.sphere_radius == 2.0
+    with pytest.raises(ValueError, match="default radius must be >= 0"):
+        parse_objects(f"<world>{THESIS_CIRCLE}</world>", source="w.xml", origin=ORIGIN, default_radius=-1.0)
+
+
 @pytest.mark.parametrize(("text", "line", "element", "words"), [
-    ("<world>\n<Circle><uid>a</uid><x>1</x><y>1</y></Circle></world>", 2, "Circle", "has no <radius>"),
     ("<world>\n<Circle><x>1</x><y>1</y><radius>1</radius></Circle></world>", 2, "Circle", "has no <uid>"),
     ("<world>\n<Triangle/></world>", 2, "Triangle", "unknown object class"),
     ("<world>\n<Polygon><uid>p</uid>\n<vertex><x>1</x></vertex></Polygon></world>", 3, "vertex",
@@ -176,19 +199,23 @@ def test_association_by_uid_and_by_source_and_proximity_then_expiry() -> None:
 # -- the service over real LCM -----------------------------------------------------------------------
 def test_service_places_merges_expires_and_publishes(services: ServiceProcesses, bus: BusClient,
                                                      tmp_path: Path) -> None:
-    (tmp_path / "objects.xml").write_text(WORLD)
+    thesis_circle = THESIS_CIRCLE.replace("Circle1", "thesis")
+    (tmp_path / "objects.xml").write_text(WORLD.replace("</world>", thesis_circle + "</world>"))
     vehicle = tmp_path / "vehicle.toml"
     vehicle.write_text(f"[vehicle]\norigin = {{ lat = {ORIGIN.lat}, lon = {ORIGIN.lon}, alt = {ORIGIN.alt} }}\n"
                        "[services.world]\nkind = \"world_modeler\"\n"
-                       "settings = { objects_file = \"objects.xml\", publish_rate_hz = 10.0, expiry_s = 1.0 }\n")
+                       "settings = { objects_file = \"objects.xml\", publish_rate_hz = 10.0, expiry_s = 1.0, "
+                       "default_radius_m = 0.8 }\n")
     world: list[object] = []
     summaries: list[t.WorldSummary] = []
     bus.transport.subscribe(ch.WORLD, t.ObjectDescription, lambda _c, msg: world.append(msg))
     bus.transport.subscribe(ch.WORLD_SUMMARY, t.WorldSummary, lambda _c, msg: summaries.append(msg))
     services.start("world", "--vehicle", str(vehicle))
-    wait_until(lambda: summaries and summaries[-1].num_objects == 6, timeout=20, message="the a-priori objects")
+    wait_until(lambda: summaries and summaries[-1].num_objects == 7, timeout=20, message="the a-priori objects")
     assert {type(o).__name__ for o in world} == {"Circle", "Rectangle", "Polygon", "Sphere", "PointCloud",
                                                   "ObjectDescription"}
+    thesis = next(o for o in world if isinstance(o, t.Circle) and o.base.base.uid == "thesis")
+    assert thesis.radius == 0.8                                          # the configured default_radius_m
 
     estimate = t.StateInformation().set(x=10.0, y=20.0, psi=math.pi)       # facing south
     estimate.sensor_name = "state_estimator"
@@ -203,5 +230,5 @@ def test_service_places_merges_expires_and_publishes(services: ServiceProcesses,
     assert (buoy.base.base.x, buoy.base.base.y) == pytest.approx((6.0, 20.0)) and buoy.radius == 0.5
     assert buoy.base.base.reference_frame == "NED" and buoy.base.base.source == "camera"
     assert "buoy7" in summaries[-1].uids
-    wait_until(lambda: summaries[-1].num_objects == 6 and "buoy7" not in summaries[-1].uids, timeout=10,
+    wait_until(lambda: summaries[-1].num_objects == 7 and "buoy7" not in summaries[-1].uids, timeout=10,
                message="the buoy to expire, the a-priori objects to stay")

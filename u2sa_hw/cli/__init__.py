@@ -18,6 +18,7 @@ COMMAND_MODULES = [
     "u2sa_hw.cli.service_cmd",
     "u2sa_hw.cli.bus_cmds",
     "u2sa_hw.cli.param_cmd",
+    "u2sa_hw.cli.mission_cmd",
     "u2sa_hw.cli.record_cmd",
     "u2sa_hw.cli.run_cmd",
     "u2sa_hw.cli.health_cmd",
@@ -35,6 +36,7 @@ examples:
   u2sa echo STATE_ESTIMATE --count 1 --json
   u2sa pub STATE_INFO StateInformation sensor_name=test x=1.5 psi=0.3
   u2sa param list state_estimator    a service's config; param set changes and persists it
+  u2sa mission status                the mission and its current goal; goto/skip/restart/upload change it
   u2sa stop --all
 
 The LCM URL comes from the vehicle profile, else $U2SA_LCM_URL, else

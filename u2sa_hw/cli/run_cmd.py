@@ -15,9 +15,11 @@ after healthy uptime, and stop everything on Ctrl-C or SIGTERM (SIGTERM to each
 service, SIGKILL after the grace period; a second Ctrl-C kills at once).
 
 A service that exits with status 0 stopped on purpose and is not restarted. A
-service that dies quickly --give-up-after times in a row is given up: the launcher
-stops everything and exits 1 (with --keep-going the others keep running and the
-exit status is 1 at the end).
+service is given up when it dies quickly --give-up-after times in a row, or when
+it fails --max-failures times within --failure-window seconds however long each
+run lasted (a service that crashes every 6 s looks healthy to the quick-death
+rule but is not). Then the launcher stops everything and exits 1 (with
+--keep-going the others keep running and the exit status is 1 at the end).
 
 The HSM (a service of kind "hsm") asks the launcher to restart services through
 the control socket <data_dir>/launcher.sock. See docs/supervision.md.
@@ -42,6 +44,11 @@ def register(sub: Any) -> None:
     p.add_argument("--quick-death", type=float, default=5.0, metavar="S",
                    help="a death within S seconds of starting is quick; each S of healthy uptime "
                    "forgives one quick death (default 5)")
+    p.add_argument("--max-failures", type=int, default=10, metavar="N",
+                   help="failed exits (non-zero status or a signal) within --failure-window before a service is "
+                   "given up, whatever its uptime (default 10; 0 = never)")
+    p.add_argument("--failure-window", type=float, default=300.0, metavar="S",
+                   help="the window of --max-failures, seconds (default 300)")
     p.add_argument("--keep-going", action="store_true",
                    help="keep the other services running when one is given up")
     p.add_argument("--no-color", action="store_true", help="never colour the service names")
@@ -61,7 +68,8 @@ def cmd_run(args: Any) -> int:
         raise CliError("run: --grace must be >= 0", 2)
     try:
         policy = RestartPolicy(initial_backoff_s=args.backoff, max_backoff_s=args.max_backoff,
-                               quick_death_s=args.quick_death, give_up_after=args.give_up_after)
+                               quick_death_s=args.quick_death, give_up_after=args.give_up_after,
+                               max_failures=args.max_failures, failure_window_s=args.failure_window)
         names = [s.name for s in select_services(profile, only)]
     except ValueError as exc:
         raise CliError(f"run: {exc}", 2) from None

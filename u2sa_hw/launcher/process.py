@@ -4,7 +4,9 @@ A :class:`SupervisedProcess` keeps the *desired* state (running or stopped) apar
 the *observed* one (running, stopping, backoff, exited, stopped, failed). Every start is
 an edge with a new run id. A death is judged by :class:`RestartPolicy`: a quick death
 (uptime below ``quick_death_s``) doubles the respawn delay, healthy uptime makes it decay,
-and too many quick deaths in a row mean the process is given up (state ``failed``).
+and the process is given up (state ``failed``) after too many quick deaths in a row or
+too many failed exits within a window (a service that crashes every few seconds after a
+healthy-looking start would otherwise restart forever).
 
 The launcher's event loop drives it: ``spawn`` and ``poll`` run on the loop thread only
 (the child's parent-death signal is tied to the thread that forked it).
@@ -17,6 +19,7 @@ import os
 import signal
 import subprocess
 import time
+from collections import deque
 from dataclasses import dataclass
 from typing import Callable
 
@@ -25,7 +28,7 @@ STOPPING = "stopping"
 BACKOFF = "backoff"
 EXITED = "exited"      # exited with status 0 on its own: not restarted (like systemd's on-failure)
 STOPPED = "stopped"    # stopped because we asked
-FAILED = "failed"      # given up after too many quick deaths
+FAILED = "failed"      # given up: too many quick deaths in a row, or failed exits within the window
 
 _PR_SET_PDEATHSIG = 1
 try:
@@ -43,12 +46,19 @@ def _die_with_parent() -> None:
 
 @dataclass(frozen=True)
 class RestartPolicy:
-    """Respawn rules: backoff that doubles on quick deaths and decays after healthy uptime."""
+    """Respawn rules: backoff that doubles on quick deaths and decays after healthy uptime; when to give up.
+
+    Two give-up rules: ``give_up_after`` quick deaths in a row, and ``max_failures``
+    failed exits (non-zero status, a signal, a failed exec) within ``failure_window_s``,
+    whatever the uptime before each. 0 turns a rule off.
+    """
 
     initial_backoff_s: float = 0.5
     max_backoff_s: float = 30.0
     quick_death_s: float = 5.0
     give_up_after: int = 5
+    max_failures: int = 10
+    failure_window_s: float = 300.0
 
     def __post_init__(self) -> None:
         if self.initial_backoff_s < 0 or self.max_backoff_s < self.initial_backoff_s:
@@ -56,6 +66,9 @@ class RestartPolicy:
                              f"<= max_backoff_s ({self.max_backoff_s})")
         if self.quick_death_s <= 0 or self.give_up_after < 0:
             raise ValueError("restart policy: quick_death_s must be > 0 and give_up_after >= 0 (0 = never give up)")
+        if self.max_failures < 0 or self.failure_window_s <= 0:
+            raise ValueError(f"restart policy: need max_failures >= 0 (0 = no limit, got {self.max_failures}) and "
+                             f"failure_window_s > 0 (got {self.failure_window_s})")
 
     def after_death(self, quick_deaths: int, uptime_s: float) -> tuple[int, float]:
         """``(quick deaths now, respawn delay)`` after a death following *uptime_s* of running.
@@ -75,6 +88,10 @@ class RestartPolicy:
         """True when *quick_deaths* in a row mean the process keeps failing."""
         return self.give_up_after > 0 and quick_deaths >= self.give_up_after
 
+    def too_many_failures(self, failures: int) -> bool:
+        """True when *failures* failed exits within ``failure_window_s`` mean the process keeps failing."""
+        return self.max_failures > 0 and failures >= self.max_failures
+
 
 @dataclass(frozen=True)
 class ProcessStatus:
@@ -87,6 +104,7 @@ class ProcessStatus:
     run_id: int
     restarts: int
     quick_deaths: int
+    failures: int          # failed exits within the policy's window
     backoff_s: float
     uptime_s: float
     last_exit: str
@@ -124,6 +142,7 @@ class SupervisedProcess:
         self.run_id = 0
         self.restarts = 0
         self.quick_deaths = 0
+        self.failure_times: deque[float] = deque()   # clock() of each failed exit within the window
         self.backoff_s = 0.0
         self.next_start = clock()
         self.started_at = 0.0
@@ -143,7 +162,8 @@ class SupervisedProcess:
         now = self.clock()
         return ProcessStatus(name=self.name, desired=self.desired, state=self.state, pid=self.pid,
                              run_id=self.run_id, restarts=self.restarts, quick_deaths=self.quick_deaths,
-                             backoff_s=self.backoff_s, uptime_s=now - self.started_at if self.proc else 0.0,
+                             failures=self.failures_in_window(), backoff_s=self.backoff_s,
+                             uptime_s=now - self.started_at if self.proc else 0.0,
                              last_exit=self.last_exit, reason=self.reason)
 
     def due(self) -> bool:
@@ -197,16 +217,32 @@ class SupervisedProcess:
             return f"{self.last_exit} after {uptime:.1f} s; not restarted (a clean exit is deliberate)"
         return self._judge_death(uptime=uptime, prefix=f"{self.last_exit} after {uptime:.1f} s")
 
+    def failures_in_window(self) -> int:
+        """Failed exits within the policy's ``failure_window_s`` up to now."""
+        horizon = self.clock() - self.policy.failure_window_s
+        while self.failure_times and self.failure_times[0] < horizon:
+            self.failure_times.popleft()
+        return len(self.failure_times)
+
     def _judge_death(self, *, uptime: float, prefix: str = "") -> str:
         self.quick_deaths, self.backoff_s = self.policy.after_death(self.quick_deaths, uptime)
+        self.failure_times.append(self.clock())
+        failures = self.failures_in_window()
         prefix = prefix or self.last_exit
         if self.policy.gives_up(self.quick_deaths):
             self.state = FAILED
             self.reason = f"{self.quick_deaths} quick deaths in a row, last {self.last_exit}"
             return f"{prefix}; giving up after {self.quick_deaths} quick deaths in a row"
+        if self.policy.too_many_failures(failures):
+            self.state = FAILED
+            window = self.policy.failure_window_s
+            self.reason = f"{failures} failed exits within {window:g} s, last {self.last_exit}"
+            return f"{prefix}; giving up after {failures} failed exits within {window:g} s"
         self.state = BACKOFF
         self.next_start = self.clock() + self.backoff_s
-        return f"{prefix}; restarting in {self.backoff_s:.2f} s (quick deaths: {self.quick_deaths})"
+        return (f"{prefix}; restarting in {self.backoff_s:.2f} s (quick deaths: {self.quick_deaths}, "
+                f"failures: {failures}/{self.policy.max_failures or 'no limit'} within "
+                f"{self.policy.failure_window_s:g} s)")
 
     def signal(self, sig: int) -> None:
         """Send *sig* to the child's process group (it is its own group leader)."""
@@ -242,7 +278,7 @@ class SupervisedProcess:
     def restart(self, reason: str, grace_s: float) -> None:
         """Restart as an edge: stop a live child then start at once; start a dead one now.
 
-        Deaths caused by this are not quick deaths; a failed process gets a fresh start.
+        Deaths caused by this are not quick deaths nor failures; a failed process gets a fresh start.
         """
         self.desired = RUNNING
         self.reason = reason
@@ -252,6 +288,7 @@ class SupervisedProcess:
             return
         if self.state == FAILED:
             self.quick_deaths = 0
+            self.failure_times.clear()
         self.state, self.next_start, self.backoff_s = BACKOFF, self.clock(), 0.0
 
     def enforce_grace(self) -> bool:

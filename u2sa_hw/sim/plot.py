@@ -24,7 +24,7 @@ def _obstacle_patch(obj: Any, patches: Any) -> Any:
     style = {"facecolor": OBSTACLE_COLOUR, "edgecolor": OBSTACLE_COLOUR, "alpha": 0.35, "linewidth": 1.5}
     if isinstance(obj, (t.Circle, t.Sphere)):
         radius = obj.radius if isinstance(obj, t.Circle) else obj.sphere_radius
-        return patches.Circle((base.y, base.x), radius, **style)
+        return patches.Circle((base.y, base.x), max(radius, 0.3), **style)   # radius 0: a point, drawn as a dot
     if isinstance(obj, t.Rectangle):
         c, s = math.cos(obj.heading), math.sin(obj.heading)
         corners = []

@@ -19,7 +19,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, TextIO
+from typing import Any, Sequence, TextIO
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
@@ -119,6 +119,30 @@ class BusMonitor:
     def _on_failsafe(self, _channel: str, msg: t.Failsafe) -> None:
         with self._lock:
             self._state.failsafe = msg if msg.active else None
+
+
+def loop_completed(changes: Sequence[StatusChange], *, since: float) -> bool:
+    """True once a looping mission went round once after *since* (when the vehicle went autonomous).
+
+    The loop starts at the goal current at *since*; it is complete when that goal is
+    current again after another goal was. Which goals lie between does not matter, so a
+    mission whose ``<next>`` branches skip some goals on every lap completes too (counting
+    the goals seen would wait forever for the branch not taken). A ``restart`` or a
+    ``goto`` back to the start goal also closes the loop.
+    """
+    before = [i for i, c in enumerate(changes) if c.t < since]
+    timeline = changes[before[-1] if before else 0:]
+    if not timeline or timeline[0].finished:
+        return False
+    start, left = timeline[0].uid, False
+    for change in timeline[1:]:
+        if change.finished:
+            return False
+        if change.uid != start:
+            left = True
+        elif left:
+            return True
+    return False
 
 
 def control_mode(s: BusSnapshot) -> str:

@@ -25,7 +25,7 @@ from typing import Any
 
 from u2sa_hw.launcher import Launcher, RestartPolicy
 from u2sa_hw.sim.profile import effective_configs, write_sim_profile
-from u2sa_hw.sim.progress import BusMonitor, BusSnapshot, ProgressLine, status_text
+from u2sa_hw.sim.progress import BusMonitor, BusSnapshot, ProgressLine, loop_completed, status_text
 from u2sa_hw.sim.scenario import load_scenario
 from u2sa_hw.sim.summary import RunRecord, TrackSample, summarise, summary_text, write_summary, write_track_csv
 from u2sa_hw.vehicle import load_profile
@@ -167,8 +167,7 @@ class SimRun:
         self.engage()
 
     def drive(self) -> None:
-        """Follow the mission until it completes (one full loop for a looping one)."""
-        seen_indices: set[int] = set()
+        """Follow the mission until it completes (one full loop for a looping one, see :func:`loop_completed`)."""
         reported = 0
         total = len(self.scenario.goals)
         while True:
@@ -184,13 +183,10 @@ class SimRun:
                     self.progress.event(f"goal {previous.index + 1}/{total} {previous.uid} reached at {at:.1f} s")
             reported = max(reported, len(changes) - 1)
             st = snap.status
-            looped = (st is not None and self.scenario.looping and seen_indices >= set(range(st.num_goals))
-                      and st.current_index == 0)   # one full loop of a looping mission
+            looped = st is not None and st.looping and loop_completed(snap.changes, since=self.record.t_engage)
             if st is not None and (st.finished or looped):
                 self.record.result, self.record.reason = "completed", ""
                 return
-            if st is not None:
-                seen_indices.add(st.current_index)
             distance = snap.nav.distance_to_goal if snap.nav is not None and snap.nav.distance_to_goal >= 0 else None
             self._tick(status_text(snap, elapsed=time.monotonic() - self.record.t_engage, goal_total=total,
                                    distance=distance), waiting_for=self._where(snap))

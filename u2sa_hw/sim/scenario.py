@@ -60,8 +60,10 @@ def load_scenario(profile: VehicleProfile, configs: Mapping[str, Mapping[str, An
     goals = []
     for goal in spec.goals:
         values = goal.values
-        if goal.frame == GLOBAL:
+        if goal.frame == GLOBAL and "x" in values:
             north, east, _ = geodetic_to_ned(values["x"], values["y"], origin=profile.origin)
+        elif goal.frame == GLOBAL:   # altitude only: the origin's position
+            north, east = 0.0, 0.0
         else:
             north, east = values.get("x", 0.0), values.get("y", 0.0)
         goals.append(Goal(goal.uid, north, east, goal.horizontal_threshold))
@@ -70,6 +72,7 @@ def load_scenario(profile: VehicleProfile, configs: Mapping[str, Mapping[str, An
     objects_text = str(configs.get(world, {}).get("objects_file", "")).strip() if world else ""
     if objects_text:
         scenario.objects_file = _profile_path(profile, objects_text)
-        scenario.obstacles = [place_in_world(o, pose=None, origin=profile.origin)
-                              for o in load_objects(scenario.objects_file, origin=profile.origin)]
+        radius = float(configs.get(world, {}).get("default_radius_m", 0.0)) if world else 0.0
+        objects = load_objects(scenario.objects_file, origin=profile.origin, default_radius=radius)
+        scenario.obstacles = [place_in_world(o, pose=None, origin=profile.origin) for o in objects]
     return scenario

@@ -11,10 +11,16 @@ every ``publish_interval_s``. Its inputs:
 - ``MISSION_CMD``: ``goto`` uid, ``skip``, ``restart``, or ``upload`` with ``mission_xml``
   (a whole new mission; bad XML is refused, logged with the element and line, and the
   running mission is kept).
+
+Every command is acknowledged on ``U2SA_HEALTH`` at once: the health detail
+``last_command`` reads ``"<command> from <sender>: ok"`` or ``"...: refused: <reason>"``
+(the sender is the command's ``header.source``), after the changed mission went out.
+``u2sa mission`` waits for it (:mod:`u2sa_hw.cli.mission_cmd`).
 """
 
 from __future__ import annotations
 
+import math
 import threading
 from pathlib import Path
 from typing import Any, ClassVar
@@ -22,13 +28,15 @@ from typing import Any, ClassVar
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.config import field
+from u2sa_hw.geo import geodetic_to_ned
 from u2sa_hw.messages import as_type
 from u2sa_hw.service import U2SAService
 from u2sa_hw.services.mission.manager import MissionError, MissionManager, from_message, to_waypoint
-from u2sa_hw.services.mission.xml import load_mission, parse_mission
+from u2sa_hw.services.mission.xml import GLOBAL, MissionSpec, load_mission, parse_mission
 from u2sa_hw.services.mission.xmltree import XmlFileError
 
 LOOP_CHOICES = {"file": None, "true": True, "false": False}
+FAR_GOAL_M = 100_000.0   # a Global goal this far from the origin is most likely a lat/lon mix-up
 
 
 class MissionManagerService(U2SAService):
@@ -49,6 +57,7 @@ class MissionManagerService(U2SAService):
                                       default_threshold=float(self.config.get("default_threshold_m")))
         self.reports_ignored = 0
         self.commands_refused = 0
+        self.last_command = ""
         self.register_subscriber(ch.GOAL_REPORT, t.GoalReport, self._on_report)
         self.register_subscriber(ch.GOALS, t.GoalInformation, self._on_goal_update)
         self.register_subscriber(ch.MISSION_CMD, t.MissionCommand, self._on_command)
@@ -79,12 +88,27 @@ class MissionManagerService(U2SAService):
             self.error(f"mission not loaded: {exc}")
             self.status = "degraded"
             return False
+        self._warn_far_goals(spec)
         with self._lock:
             self.manager.load(spec)
         self.status = "ok"
         self.logger.info("mission %s loaded from %s: %d goals, loop %s", spec.name, path, len(spec.goals),
                          self.manager.looping)
         return True
+
+    def _warn_far_goals(self, spec: MissionSpec) -> None:
+        """Log Global goals over FAR_GOAL_M from the origin: latitude and longitude swapped, or a wrong origin."""
+        origin = self.profile.origin
+        for goal in spec.goals:
+            if goal.frame != GLOBAL or "x" not in goal.values:
+                continue
+            north, east, _ = geodetic_to_ned(goal.values["x"], goal.values["y"], origin=origin)
+            if math.hypot(north, east) > FAR_GOAL_M:
+                self.logger.warning("%s:%d: goal %s (latitude %.6f, longitude %.6f) is %.0f km from the origin "
+                                    "(%.6f, %.6f): check the vehicle profile's origin and, for <x>/<y> in a Global "
+                                    "waypoint, that <x> is the longitude and <y> the latitude", goal.source,
+                                    goal.line, goal.uid, goal.values["x"], goal.values["y"],
+                                    math.hypot(north, east) / 1000.0, origin.lat, origin.lon)
 
     def setup(self) -> None:
         """Load the mission file."""
@@ -139,6 +163,8 @@ class MissionManagerService(U2SAService):
     def _on_command(self, cmd: t.MissionCommand) -> None:
         who = cmd.header.source or "?"
         verb = cmd.command.strip().lower()
+        what = f"{verb} {cmd.uid}" if verb == "goto" else verb
+        refused: Exception | None = None
         with self._lock:
             before = self.manager.version
             try:
@@ -152,17 +178,24 @@ class MissionManagerService(U2SAService):
                 elif verb == "upload":
                     spec = parse_mission(cmd.mission_xml, source=f"mission uploaded by {who}",
                                          default_threshold=float(self.config.get("default_threshold_m")))
+                    self._warn_far_goals(spec)
                     self.manager.load(spec)
                 else:
                     raise MissionError(f"unknown command {cmd.command!r}; known: goto, skip, restart, upload")
             except (MissionError, XmlFileError) as exc:
+                refused = exc
                 self.commands_refused += 1
-                self.error(f"mission command from {who} refused: {exc}")
-                return
-        self.logger.info("mission command %s%s from %s", verb, f" {cmd.uid}" if cmd.uid else "", who)
+        if refused is not None:
+            self.last_command = f"{what} from {who}: refused: {refused}"
+            self.error(f"mission command from {who} refused: {refused}")
+            self.publish_health()   # the acknowledgement (outside the lock: health_details takes it)
+            return
+        self.logger.info("mission command %s from %s", what, who)
         if verb == "upload":
             self.status = "ok"
         self._changed(before)
+        self.last_command = f"{what} from {who}: ok"
+        self.publish_health()   # the acknowledgement, after the mission it changed
 
     # -- outputs -----------------------------------------------------------------------------------
     def publish_mission(self) -> None:
@@ -192,7 +225,8 @@ class MissionManagerService(U2SAService):
             state = self.manager.state()
         return {"mission": state.name, "current": state.current_uid,
                 "progress": f"{state.current_index + 1}/{len(state.uids)}" if not state.finished else "finished",
-                "reports_ignored": self.reports_ignored, "commands_refused": self.commands_refused}
+                "reports_ignored": self.reports_ignored, "commands_refused": self.commands_refused,
+                "last_command": self.last_command}
 
 
 def _source_of(msg: Any) -> str:

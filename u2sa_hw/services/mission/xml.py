@@ -3,7 +3,7 @@
 ```xml
 <mission name="harbour loop" loop="true">      <!-- loop: after the last goal, start again -->
   <waypoint>
-    <name>start</name>                          <!-- the goal's UID (default: its position, "1", "2", ...) -->
+    <name>start</name>                          <!-- the goal's UID; <uid> is the same (default: "1", "2", ...) -->
     <reference>Local</reference>                <!-- Local (default): x north, y east, z down, m about the origin -->
     <x>0</x> <y>0</y>
     <threshold>2.0</threshold>                  <!-- horizontal completion radius, m (default: config) -->
@@ -21,11 +21,15 @@
 ```
 
 Rules: a goal without ``<next>`` is followed by the next goal in the file; the last one
-by the first when the mission loops, else the mission ends there. ``<x>/<y>/<z>`` belong
-to Local goals and ``<lat>/<lon>/<alt>`` to Global ones (the thesis's examples put
-geodetic values in x/y with the axes swapped between sections, so global positions get
-tags that cannot be misread). A goal needs at least one position value; lat and lon come
-together. Every error names the file, the line and the element.
+by the first when the mission loops, else the mission ends there. ``<x>/<y>/<z>`` of a
+Local goal are NED metres. A Global goal is best written with ``<lat>/<lon>/<alt>``,
+which cannot be misread; the thesis's own files write it as ``<x>`` = longitude,
+``<y>`` = latitude, ``<z>`` = altitude (4.5.2.3, the FlightGear mission; 3.2.3.2's
+Global x/y example fits the same reading), and that form is accepted too. Mixing the two
+forms in one goal is an error. ``<mission reference="Global">`` makes Global the default
+of every goal without its own ``<reference>`` (the thesis's 4.5.2.3 waypoints have none).
+A goal needs at least one position value; a Global goal's latitude and longitude come
+together and are range-checked. Every error names the file, the line and the element.
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ from u2sa_hw.services.mission.xmltree import XmlFileError, XmlNode, parse_bool, 
 
 LOCAL, GLOBAL = "LOCAL", "GLOBAL"
 # child tag -> may repeat
-WAYPOINT_TAGS = {"name": False, "next": True, "reference": False, "x": False, "y": False, "z": False,
+WAYPOINT_TAGS = {"name": False, "uid": False, "next": True, "reference": False, "x": False, "y": False, "z": False,
                  "lat": False, "lon": False, "alt": False, "phi": False, "theta": False, "psi": False,
                  "time": False, "threshold": False, "vertical_threshold": False}
 GOAL_TYPES = ("waypoint",)
@@ -74,29 +78,64 @@ class MissionSpec:
     source: str = ""
 
 
-def _waypoint(node: XmlNode, index: int, default_threshold: float | None) -> MissionGoal:
+def _frame(node: XmlNode, one: dict[str, XmlNode], default_reference: str) -> str:
+    reference = one["reference"].word().lower() if "reference" in one else default_reference
+    if reference not in ("local", "global"):
+        where = one["reference"] if "reference" in one else node
+        raise where.error(f"reference must be Local or Global, got {reference!r}")
+    return GLOBAL if reference == "global" else LOCAL
+
+
+def _local_position(one: dict[str, XmlNode]) -> dict[str, float]:
+    for tag in ("lat", "lon", "alt"):
+        if tag in one:
+            raise one[tag].error("not allowed in a Local waypoint: "
+                                 "<lat>/<lon>/<alt> need <reference>Global</reference>")
+    return {slot: one[slot].number() for slot in ("x", "y", "z") if slot in one}
+
+
+def _global_position(node: XmlNode, one: dict[str, XmlNode]) -> dict[str, float]:
+    """x = latitude, y = longitude, z = altitude (the Waypoint message's GLOBAL convention)."""
+    geodetic = [tag for tag in ("lat", "lon", "alt") if tag in one]
+    thesis = [tag for tag in ("x", "y", "z") if tag in one]
+    if geodetic and thesis:
+        raise one[thesis[0]].error(f"a Global waypoint uses either <lat>/<lon>/<alt> or the thesis's <x> = longitude, "
+                                   f"<y> = latitude, <z> = altitude, not both (it also has <{geodetic[0]}>)")
+    lat_tag, lon_tag, alt_tag = ("y", "x", "z") if thesis else ("lat", "lon", "alt")
+    if (lat_tag in one) != (lon_tag in one):
+        raise node.error(f"a Global waypoint needs <{lat_tag}> and <{lon_tag}> together"
+                         + (" (<x> is the longitude, <y> the latitude)" if thesis else ""))
+    values: dict[str, float] = {}
+    if lat_tag in one:
+        values["x"], values["y"] = one[lat_tag].number(), one[lon_tag].number()
+        if not -90.0 <= values["x"] <= 90.0:
+            what = "<y> is the latitude in a Global waypoint" if thesis else "latitude"
+            raise one[lat_tag].error(f"{what}: must be within -90..90 degrees, got {one[lat_tag].text}")
+        if not -180.0 <= values["y"] <= 180.0:
+            raise one[lon_tag].error(f"longitude must be within -180..180 degrees, got {one[lon_tag].text}")
+    if alt_tag in one:
+        values["z"] = one[alt_tag].number()
+    return values
+
+
+def _uid(node: XmlNode, one: dict[str, XmlNode], index: int) -> str:
+    """``<name>`` or its alias ``<uid>`` (both: they must agree), else the goal's position in the file."""
+    name = one["name"].word() if "name" in one else None
+    uid = one["uid"].word() if "uid" in one else None
+    if name is not None and uid is not None and name != uid:
+        raise one["uid"].error(f"{uid!r} differs from <name> {name!r} on line {one['name'].line}: "
+                               "<uid> and <name> are the same thing, keep one")
+    return name or uid or str(index)
+
+
+def _waypoint(node: XmlNode, index: int, default_threshold: float | None, default_reference: str) -> MissionGoal:
     tags = node.only_children(WAYPOINT_TAGS)
     one = {k: v[0] for k, v in tags.items() if not WAYPOINT_TAGS[k]}
-    reference = one["reference"].word().lower() if "reference" in one else "local"
-    if reference not in ("local", "global"):
-        raise one["reference"].error(f"must be Local or Global, got {one['reference'].text!r}")
-    frame = GLOBAL if reference == "global" else LOCAL
-    own, other = (("lat", "lon", "alt"), ("x", "y", "z")) if frame == GLOBAL else (("x", "y", "z"), ("lat", "lon", "alt"))
-    for tag in other:
-        if tag in one:
-            hint = ("Global goals use <lat>, <lon>, <alt>" if frame == GLOBAL
-                    else "<lat>/<lon>/<alt> need <reference>Global</reference>")
-            raise one[tag].error(f"not allowed in a {reference.capitalize()} waypoint: {hint}")
-    values: dict[str, float] = {}
-    for tag, slot in zip(own, ("x", "y", "z")):
-        if tag in one:
-            values[slot] = one[tag].number()
+    frame = _frame(node, one, default_reference)
+    values = _global_position(node, one) if frame == GLOBAL else _local_position(one)
     if not values:
-        raise node.error(f"has no position: give at least one of {', '.join(f'<{t}>' for t in own)}")
-    if frame == GLOBAL and ("lat" in one) != ("lon" in one):
-        raise node.error("a Global waypoint needs <lat> and <lon> together")
-    if "lat" in one and not -90.0 <= values["x"] <= 90.0:
-        raise one["lat"].error(f"latitude must be within -90..90 degrees, got {one['lat'].text}")
+        own = "<lat>/<lon>/<alt> (or <x>/<y>/<z>)" if frame == GLOBAL else "<x>, <y>, <z>"
+        raise node.error(f"has no position: give at least one of {own}")
     for tag in ("phi", "theta", "psi"):
         if tag in one:
             values[tag] = one[tag].angle()
@@ -110,25 +149,28 @@ def _waypoint(node: XmlNode, index: int, default_threshold: float | None) -> Mis
         threshold = default_threshold
     else:
         raise node.error("has no <threshold> (the horizontal completion radius in m) and no default is configured")
-    uid = one["name"].word() if "name" in one else str(index)
     nexts = [n.word() for n in tags.get("next", [])]
-    return MissionGoal(uid=uid, frame=frame, values=values, horizontal_threshold=threshold, next_uids=nexts,
-                       line=node.line, source=node.source)
+    return MissionGoal(uid=_uid(node, one, index), frame=frame, values=values, horizontal_threshold=threshold,
+                       next_uids=nexts, line=node.line, source=node.source)
 
 
 def mission_from_tree(root: XmlNode, *, default_threshold: float | None = None) -> MissionSpec:
     """Build a :class:`MissionSpec` from a parsed tree (checks uids and ``next`` links)."""
     if root.key != "mission":
-        raise root.error("the root element must be <mission name=\"...\" loop=\"true|false\">")
+        raise root.error("the root element must be <mission name=\"...\" loop=\"true|false\"> "
+                         "(a single <waypoint> must be wrapped in one)")
     if root.text:
         raise root.error(f"stray text {root.text[:30]!r} between the goals")
     loop = parse_bool(root, "loop", False)
+    default_reference = root.attrs.get("reference", "Local").strip().lower()
+    if default_reference not in ("local", "global"):
+        raise root.error(f"attribute reference=\"{root.attrs['reference']}\" must be Local or Global")
     goals: list[MissionGoal] = []
     seen: dict[str, MissionGoal] = {}
     for index, child in enumerate(root.children, start=1):
         if child.key not in GOAL_TYPES:
             raise child.error(f"unknown goal type; known: {', '.join(f'<{g}>' for g in GOAL_TYPES)}")
-        goal = _waypoint(child, index, default_threshold)
+        goal = _waypoint(child, index, default_threshold, default_reference)
         if goal.uid in seen:
             raise child.error(f"duplicate name {goal.uid!r} (also on line {seen[goal.uid].line})")
         seen[goal.uid] = goal

@@ -23,12 +23,12 @@ from typing import Any, ClassVar
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config import field
+from u2sa_hw.config import ConfigError, field
 from u2sa_hw.geo import geodetic_to_ned
 from u2sa_hw.service import U2SAService
 from u2sa_hw.services.planner.avoidance import AvoidanceSettings
 from u2sa_hw.services.planner.planner import PathPlanner, PlannerTimings
-from u2sa_hw.services.planner.states import GuidanceSettings
+from u2sa_hw.services.planner.states import GoalStateModuleError, GuidanceSettings, load_goal_state_modules
 
 
 class PathPlannerService(U2SAService):
@@ -50,10 +50,13 @@ class PathPlannerService(U2SAService):
         field("estimate_timeout_s", 1.0, "an older STATE_ESTIMATE is not used: nothing is published"),
         field("object_expiry_s", 3.0, "an object not on WORLD for this long is forgotten (0: never)"),
         field("report_resend_s", 2.0, "resend a completion report if the goal is still current this long after"),
+        field("goal_state_modules", [], "modules imported at start that register goal states (plus the "
+              "u2sa_hw.goal_states entry points); see docs/core-services-planner-control.md"),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
+        self._load_goal_states()
         self._lock = threading.Lock()
         self._last_cycle = -float("inf")   # monotonic time of the latest planning cycle
         self._last_sent = -float("inf")    # ... and of the latest NAV_POINT
@@ -68,6 +71,20 @@ class PathPlannerService(U2SAService):
         self.register_publisher(ch.GOAL_REPORT, t.GoalReport)
 
     # -- configuration -----------------------------------------------------------------------
+    def _load_goal_states(self) -> None:
+        """Import the goal state modules (config list and entry points); ConfigError naming a bad one."""
+        modules = self.config.get("goal_state_modules")
+        if isinstance(modules, str) or not all(isinstance(m, str) for m in modules):
+            raise ConfigError(f"{self.name}: goal_state_modules must be a list of module names, like "
+                              f"[\"team_goals.states\"], got {modules!r}")
+        try:
+            loaded = load_goal_state_modules(modules)
+        except GoalStateModuleError as exc:
+            where = f" (fix it in {self.config.path} or the vehicle profile's settings)" if modules else ""
+            raise ConfigError(f"{self.name}: {exc}{where}") from None
+        for module, goal_types in loaded.items():
+            self.logger.info("goal state module %s: states for %s", module, ", ".join(goal_types) or "(already loaded)")
+
     def _guidance(self) -> GuidanceSettings:
         c = self.config.get
         avoidance = AvoidanceSettings(margin_m=float(c("clearance_margin_m")), range_m=float(c("avoidance_range_m")),

@@ -6,33 +6,43 @@ when there is no goal, the mission has finished, or the goal is of a type no sta
 handles (a goal type someone added later arrives decoded as its base ``GoalInformation``,
 thesis 8.2.5; the planner holds still and says so in its health rather than guess).
 
-Adding a goal type (say a ``Loiter`` that extends ``Waypoint`` or ``GoalInformation``):
+Adding a goal type (say a ``Loiter`` that extends ``Waypoint``) without editing u2sa-hw:
 
-1. add its ``.lcm`` struct (first field ``base``) and regenerate the messages;
-2. write a state::
+1. in your own package, an ``.lcm`` struct whose first field is ``u2sa_hw.lcmtypes.Waypoint
+   base;`` (or ``GoalInformation``), compiled with ``lcm-gen -p``;
+2. a module that writes the state and registers it at import::
 
-       class LoiterState(GoalState):
+       class LoiterState(WaypointState):
            name = "loiter"
            def step(self, ctx: PlanContext) -> Plan:
                ...   # return Plan.hold(...) or a Plan with the body-frame point to go to
 
-3. register it: ``register_goal_state(t.Loiter, LoiterState)``, in the module that
-   defines the state (import it from the planner service, or list it in
-   :data:`GOAL_STATES` here).
+       register_goal_state(Loiter, LoiterState)
+
+3. name that module in the planner's ``goal_state_modules`` config list, or declare it in
+   your package's ``u2sa_hw.goal_states`` entry-point group;
+   :func:`load_goal_state_modules` imports them when the planner starts and refuses, naming
+   the module, one that cannot be imported or registers nothing.
 
 The state for a goal is looked up along the goal's ancestry, nearest type first, so a
 ``Loiter`` extending ``Waypoint`` without its own state is flown as a waypoint.
+docs/core-services-planner-control.md has the complete example.
 """
 
 from __future__ import annotations
 
+import importlib
 import math
+import sys
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+from importlib.metadata import entry_points
 from typing import Any, ClassVar
 
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.geo import ned_to_body
 from u2sa_hw.messages import REGISTRY, as_type
+from u2sa_hw.messages.registry import fingerprint_of
 from u2sa_hw.services.planner.avoidance import AvoidanceSettings, Obstacle, choose_heading
 
 
@@ -134,7 +144,15 @@ class IdleState(GoalState):
 
 
 class WaypointState(GoalState):
-    """Drive to a LOCAL (NED) waypoint around the objects; reached within its horizontal threshold."""
+    """Drive to a LOCAL (NED) waypoint around the objects; reached within its thresholds.
+
+    Reached when the horizontal distance is within ``horizontal_threshold`` and, when the
+    waypoint has ``z`` and ``vertical_threshold`` and the estimate has ``z``, the vertical
+    one within ``vertical_threshold`` too (inside the horizontal threshold it holds its
+    position, ``z`` saying how far up or down is left). The waypoint's attitude
+    (``phi``/``theta``/``psi``) and ``time`` are not used here: a goal state of your own
+    can (docs/core-services-planner-control.md).
+    """
 
     name: ClassVar[str] = "waypoint"
 
@@ -161,6 +179,11 @@ class WaypointState(GoalState):
         threshold = wp.horizontal_threshold if wp.horizontal_threshold > 0 else s.default_threshold_m
         dz = wp.z - pose.z if wp.has("z") and pose.z is not None else 0.0
         if distance <= threshold:
+            vertical = wp.get("vertical_threshold")
+            if wp.has("z") and pose.z is not None and vertical is not None and math.isfinite(vertical) \
+                    and abs(dz) > vertical:
+                return Plan(z=dz, distance_to_goal=distance,
+                            note=f"over the waypoint, {abs(dz):.1f} m {'down' if dz > 0 else 'up'} to go")
             return Plan.hold("arrived", distance_to_goal=distance, reached=True)
         steering = choose_heading(x=pose.x, y=pose.y, goal_x=wp.x, goal_y=wp.y, obstacles=ctx.obstacles,
                                   settings=s.avoidance, previous_deflection=ctx.memory.get("deflection", 0.0))
@@ -184,11 +207,75 @@ GOAL_STATES: dict[type, type[GoalState]] = {
 """Goal type -> the state that works on it. Extend with :func:`register_goal_state`."""
 
 
+GOAL_STATE_GROUP = "u2sa_hw.goal_states"
+"""Entry-point group of modules that register goal states (``name = "package.module"``)."""
+
+
+class GoalStateModuleError(ImportError):
+    """A goal state module cannot be loaded; the message names the module and the fix."""
+
+
 def register_goal_state(goal_type: type, state: type[GoalState]) -> None:
-    """Make *state* the planner's state for goals of *goal_type* (and its extensions without their own)."""
-    if not issubclass(state, GoalState):
-        raise TypeError(f"{state.__name__} is not a GoalState")
+    """Make *state* the planner's state for goals of *goal_type* (and its extensions without their own).
+
+    A goal type from outside u2sa-hw is added to the message registry, so the planner
+    decodes it as itself rather than as its base.
+    """
+    if not (isinstance(state, type) and issubclass(state, GoalState)):
+        raise TypeError(f"{state!r} is not a GoalState subclass")
+    if not hasattr(goal_type, "_get_packed_fingerprint"):
+        raise TypeError(f"{goal_type!r} is not an LCM type (generate it with lcm-gen -p)")
+    if REGISTRY.by_fingerprint(fingerprint_of(goal_type)) is None:
+        REGISTRY.register(goal_type)
+    if not REGISTRY.is_a(goal_type, t.GoalInformation):
+        raise TypeError(f"{goal_type.__name__} is not a goal: its first field must be 'base' of type "
+                        "GoalInformation or an extension of it (Waypoint)")
     GOAL_STATES[goal_type] = state
+
+
+def _import_goal_module(name: str, *, origin: str) -> list[str]:
+    """Import module *name*; the goal types it registered. GoalStateModuleError names it and the fix."""
+    if not all(part.isidentifier() for part in name.split(".")):
+        raise GoalStateModuleError(f"{origin}: {name!r} is not a module name (like team_goals.states)")
+    already = name in sys.modules
+    before = dict(GOAL_STATES)
+    try:
+        importlib.import_module(name)
+    except ModuleNotFoundError as exc:
+        if exc.name is not None and (name == exc.name or name.startswith(exc.name + ".")):
+            raise GoalStateModuleError(f"{origin}: no module {name!r}: install its package into this Python "
+                                       f"({sys.executable}) or put its directory on PYTHONPATH") from None
+        raise GoalStateModuleError(f"{origin}: module {name!r} failed to import: {exc}") from exc
+    except Exception as exc:  # noqa: BLE001 - any error inside the team's module, reported with its name
+        raise GoalStateModuleError(f"{origin}: module {name!r} failed to import: {type(exc).__name__}: {exc}") from exc
+    added = [goal.__name__ for goal, state in GOAL_STATES.items() if before.get(goal) is not state]
+    if not added and not already:
+        raise GoalStateModuleError(f"{origin}: module {name!r} registered no goal state; call "
+                                   "register_goal_state(GoalType, StateClass) at its top level")
+    return added
+
+
+def load_goal_state_modules(modules: Iterable[str] = (), *, group: str | None = GOAL_STATE_GROUP
+                            ) -> dict[str, list[str]]:
+    """Import each of *modules* and every module of the entry-point *group*; module -> goal types registered.
+
+    Each module registers its states with :func:`register_goal_state` when imported. An
+    entry point names a module (``loiter = "team_goals.states"``). Raises
+    :class:`GoalStateModuleError` naming the module (and the entry point) on any failure.
+    """
+    loaded: dict[str, list[str]] = {}
+    for name in modules:
+        name = str(name).strip()
+        if name and name not in loaded:
+            loaded[name] = _import_goal_module(name, origin="goal_state_modules")
+    if group:
+        for ep in entry_points(group=group):
+            dist = getattr(ep.dist, "name", None) or "?"
+            module = ep.value.partition(":")[0].strip()
+            if module not in loaded:
+                loaded[module] = _import_goal_module(module, origin=f"entry point {ep.name} = {ep.value!r} "
+                                                                    f"of {dist} (group {group})")
+    return loaded
 
 
 def state_for(goal: Any) -> GoalState:

@@ -17,7 +17,7 @@ from typing import Any, ClassVar
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config import field
+from u2sa_hw.config import ConfigError, field
 from u2sa_hw.service import U2SAService
 from u2sa_hw.services.world.model import PlacementError, Pose, WorldModel
 from u2sa_hw.services.world.xml import XmlFileError, load_objects
@@ -33,6 +33,8 @@ class WorldModeler(U2SAService):
         field("association_radius_m", 1.0, "objects without a UID from one source merge within this distance"),
         field("publish_rate_hz", 2.0, "WORLD and WORLD_SUMMARY publications per second"),
         field("max_pose_age_s", 1.0, "a body-frame object needs a STATE_ESTIMATE at most this old"),
+        field("default_radius_m", 0.0, "radius of an a-priori <Circle>/<Sphere> written without <radius> "
+              "(the thesis's example has none), m; 0: a point"),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:
@@ -61,7 +63,8 @@ class WorldModeler(U2SAService):
         if path is None:
             return False
         try:
-            objects = load_objects(path, origin=self.profile.origin)
+            objects = load_objects(path, origin=self.profile.origin,
+                                   default_radius=float(self.config.get("default_radius_m")))
         except XmlFileError as exc:
             self.error(f"a-priori objects not loaded: {exc}")
             self.status = "degraded"
@@ -76,13 +79,20 @@ class WorldModeler(U2SAService):
         self.logger.info("%d a-priori objects loaded from %s", len(objects), path)
         return True
 
+    def check_config(self) -> None:
+        """Refuse a negative default radius."""
+        if float(self.config.get("default_radius_m")) < 0:
+            raise ConfigError(f"{self.name}: default_radius_m must be >= 0 m (0: a point), "
+                              f"got {self.config.get('default_radius_m')!r}")
+
     def setup(self) -> None:
-        """Load the a-priori objects."""
+        """Check the config and load the a-priori objects."""
+        self.check_config()
         self.load_a_priori()
 
     def on_config_change(self, name: str, value: Any) -> None:
         """Apply new settings live."""
-        if name == "objects_file":
+        if name in ("objects_file", "default_radius_m"):
             self.load_a_priori()
         elif name == "expiry_s":
             self.model.expiry_s = float(value)

@@ -2,10 +2,10 @@
 
 ```xml
 <world>
-  <Circle>                                  <!-- the thesis's example, plus a radius -->
+  <Circle>                                  <!-- the thesis's example (uid, x, y), plus a radius -->
     <uid>Circle1</uid>
     <x>4</x> <y>8</y>                       <!-- Local (default): NED metres about the origin -->
-    <radius>1.5</radius>
+    <radius>1.5</radius>                    <!-- without it: the default radius (config, 0 = a point) -->
     <type>buoy</type>                       <!-- object_type (default: the class, lower case) -->
     <level>3</level>                        <!-- 0 unknown, 1 hindrance, 2 avoid if possible, 3 avoid at all costs (default) -->
   </Circle>
@@ -29,6 +29,9 @@
 </world>
 ```
 
+A ``<Circle>`` or ``<Sphere>`` without ``<radius>`` -- the thesis's own Circle example has
+none -- gets *default_radius* (the world modeler's ``default_radius_m``, 0 by default:
+a point, which the planner still keeps its clearance margin from).
 Class names are case-insensitive. Global entries use ``<lat>/<lon>/<alt>`` (vertices
 ``<vertex><lat/><lon/></vertex>``), Local ones ``<x>/<y>/<z>``; an absent altitude means
 the origin's. The objects come back in their file frame (``NED`` or ``GEODETIC``); the world
@@ -95,7 +98,11 @@ def _cloud_point(node: XmlNode) -> t.CloudPoint:
     return p
 
 
-def _object(node: XmlNode, origin: GeoOrigin) -> Any:
+def _radius(node: XmlNode, one: dict[str, XmlNode], default_radius: float) -> float:
+    return one["radius"].positive() if "radius" in one else default_radius
+
+
+def _object(node: XmlNode, origin: GeoOrigin, default_radius: float) -> Any:
     cls, extra = SHAPES[node.key]
     tags = node.only_children({**_COMMON, **extra})
     one = {k: v[0] for k, v in tags.items() if not {**_COMMON, **extra}[k]}
@@ -121,9 +128,9 @@ def _object(node: XmlNode, origin: GeoOrigin) -> Any:
         as_type(obj, t.ShapeDescription).shape_type = node.key
     pos = _position(node, one, geodetic=geodetic, origin=origin, required=not isinstance(obj, t.Polygon))
     if isinstance(obj, t.Circle):
-        obj.radius = _required(node, one, "radius").positive()
+        obj.radius = _radius(node, one, default_radius)
     elif isinstance(obj, t.Sphere):
-        obj.sphere_radius = _required(node, one, "radius").positive()
+        obj.sphere_radius = _radius(node, one, default_radius)
     elif isinstance(obj, t.Rectangle):
         obj.length = _required(node, one, "length").positive()
         obj.width = _required(node, one, "width").positive()
@@ -151,8 +158,10 @@ def _required(node: XmlNode, one: dict[str, XmlNode], tag: str) -> XmlNode:
     return one[tag]
 
 
-def objects_from_tree(root: XmlNode, *, origin: GeoOrigin) -> list[Any]:
-    """The objects of a parsed ``<world>`` tree (UIDs checked unique)."""
+def objects_from_tree(root: XmlNode, *, origin: GeoOrigin, default_radius: float = 0.0) -> list[Any]:
+    """The objects of a parsed ``<world>`` tree (UIDs checked unique; *default_radius* for circles without one)."""
+    if default_radius < 0:
+        raise ValueError(f"default radius must be >= 0 m, got {default_radius}")
     if root.key != "world":
         raise root.error("the root element must be <world>")
     out: list[Any] = []
@@ -161,7 +170,7 @@ def objects_from_tree(root: XmlNode, *, origin: GeoOrigin) -> list[Any]:
         if child.key not in SHAPES:
             known = ", ".join(f"<{cls.__name__ if k != 'object' else 'Object'}>" for k, (cls, _) in SHAPES.items())
             raise child.error(f"unknown object class; known: {known}")
-        obj = _object(child, origin)
+        obj = _object(child, origin, default_radius)
         uid = as_type(obj, t.ObjectDescription).uid
         if uid in seen:
             raise child.error(f"duplicate uid {uid!r} (also on line {seen[uid]})")
@@ -170,14 +179,14 @@ def objects_from_tree(root: XmlNode, *, origin: GeoOrigin) -> list[Any]:
     return out
 
 
-def parse_objects(text: str | bytes, *, source: str, origin: GeoOrigin) -> list[Any]:
+def parse_objects(text: str | bytes, *, source: str, origin: GeoOrigin, default_radius: float = 0.0) -> list[Any]:
     """Parse a-priori objects XML *text*; *source* names it in errors."""
-    return objects_from_tree(parse_xml(text, source=source), origin=origin)
+    return objects_from_tree(parse_xml(text, source=source), origin=origin, default_radius=default_radius)
 
 
-def load_objects(path: Path | str, *, origin: GeoOrigin) -> list[Any]:
+def load_objects(path: Path | str, *, origin: GeoOrigin, default_radius: float = 0.0) -> list[Any]:
     """Read and parse the a-priori objects file at *path*."""
-    return objects_from_tree(read_xml_file(path), origin=origin)
+    return objects_from_tree(read_xml_file(path), origin=origin, default_radius=default_radius)
 
 
 __all__ = ["XmlFileError", "load_objects", "parse_objects", "objects_from_tree", "SHAPES"]
