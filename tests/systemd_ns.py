@@ -11,7 +11,8 @@ Reusable by every test (and bench script) that needs units under systemd:
 Inside the namespace the staged ``etc``, ``opt`` and ``var`` are bind-mounted over
 /etc, /opt and /var; /run, /tmp and /var/tmp are fresh tmpfs; cgroup2 is mounted on a
 cgroup of its own; systemd loads units only from the staged /etc/systemd/system (plus
-the few shutdown targets it needs, copied from the host), runs in container mode
+the few targets it needs, copied from the host, and journald on its /run socket, so
+``ns.journal("-u", UNIT)`` reads the units' output and systemd's own messages), runs in container mode
 (``container=``: no remounts, no global sysctl writes at shutdown) and boots straight
 into ``--unit=``. Nothing of the host's unit set is ever started, and the host's /tmp
 is never touched. The network namespace is the host's, so LCM multicast between a test
@@ -35,7 +36,15 @@ SYSTEMD = Path("/lib/systemd/systemd")
 SUPPORT_DIR = "etc/systemd/u2sa-test-support"
 # What systemd needs beyond our units to boot into a target and power off cleanly.
 SUPPORT_UNITS = ("basic.target", "sysinit.target", "multi-user.target", "network.target", "shutdown.target",
-                 "umount.target", "final.target", "poweroff.target", "systemd-poweroff.service")
+                 "umount.target", "final.target", "poweroff.target", "systemd-poweroff.service",
+                 "systemd-journald.socket")
+# journald, so that the units' output and systemd's own record of them ("Watchdog timeout",
+# "Failed with result") are in a journal the tests read (journalctl inside the namespace,
+# volatile in its /run). Started through sysinit.target, which every unit with default
+# dependencies requires. Only its /run socket: not the /dev/log one (its Symlinks= would
+# replace the host's /dev/log, since /dev is shared) nor the audit one.
+JOURNALD = "systemd-journald.service"
+JOURNALD_SOCKETS = "Sockets=systemd-journald.socket"
 
 
 def cannot_boot_reason() -> str | None:
@@ -94,6 +103,11 @@ def stage_root(root: Path) -> Path:
     support.mkdir(parents=True)
     for name in SUPPORT_UNITS:
         shutil.copy(Path("/lib/systemd/system") / name, support / name)
+    journald = (Path("/lib/systemd/system") / JOURNALD).read_text()
+    (support / JOURNALD).write_text("\n".join(JOURNALD_SOCKETS if line.startswith("Sockets=") else line
+                                              for line in journald.splitlines()) + "\n")
+    (support / "sysinit.target.wants").mkdir()
+    (support / "sysinit.target.wants" / JOURNALD).symlink_to(f"../{JOURNALD}")
     for d in ("opt", "var/lib", "var/log", "var/tmp", "var/cache"):
         (root / d).mkdir(parents=True, exist_ok=True)
     (root / "var/run").symlink_to("/run")
@@ -267,10 +281,15 @@ class SystemdNamespace:
                                  f"{self.journal_hint(unit)}")
         return found[-1]
 
+    def journal(self, *args: str) -> str:
+        """``journalctl --no-pager -o cat ARGS`` inside the namespace (e.g. ``-u UNIT``): the text."""
+        return self.run("journalctl", "--no-pager", "-o", "cat", *args, check=False).stdout
+
     def journal_hint(self, unit: str) -> str:
-        """The unit's last result and status line, for failure messages."""
+        """The unit's last result and status line and its last journal lines, for failure messages."""
         p = self.show(unit, "Result", "StatusText", "NRestarts", "ExecMainStatus")
-        return ", ".join(f"{k}={v}" for k, v in p.items())
+        tail = self.journal("-u", unit, "-n", "8").strip().replace("\n", " | ")
+        return ", ".join(f"{k}={v}" for k, v in p.items()) + (f"; journal: {tail}" if tail else "")
 
     def host_pid(self, ns_pid: int) -> int:
         """The host PID of the process the namespace calls *ns_pid*."""

@@ -86,9 +86,9 @@ def test_install_stages_units_configs_rules_users_and_links(vehicle: Path, root:
     tree = install(vehicle=vehicle, root=root)
     assert tree.changed
     units = root / "etc/systemd/system"
-    for name in ("u2sa@.service", "u2sa.target", "u2sa-hsm.service", "u2sa-multicast-lo.service",
-                 "u2sa@recorder.service.d/10-recorder.conf"):
+    for name in ("u2sa@.service", "u2sa.target", "u2sa-hsm.service", "u2sa-multicast-lo.service"):
         assert (units / name).is_file(), name
+    assert not (units / "u2sa@recorder.service.d").exists()  # this vehicle has no recorder
     wants = units / "u2sa.target.wants"
     assert sorted(os.listdir(wants)) == ["u2sa-hsm.service", "u2sa@estimator.service", "u2sa@gps.service",
                                          "u2sa@rudder.service"]
@@ -214,6 +214,27 @@ def test_a_config_the_user_changed_is_kept_and_the_new_default_goes_beside_it(ve
     (vehicle.parent / "elsewhere/gps.toml").write_text("baudrate = 115200\n")
     install(vehicle=vehicle, root=root)
     assert (cfg / "gps.toml").read_text() == "baudrate = 115200\n"
+
+
+def test_every_recorder_gets_the_recorder_dropin_whatever_its_name(vehicle: Path, root: Path) -> None:
+    """The drop-in follows the kind: a recorder named logbook gets it, an estimator named recorder does not."""
+    vehicle.write_text(PROFILE + '\n[services.logbook]\nkind = "recorder"\n\n'
+                       '[services.recorder]\nkind = "state_estimator"\n')
+    install(vehicle=vehicle, root=root)
+    units = root / "etc/systemd/system"
+    dropin = (units / "u2sa@logbook.service.d/10-recorder.conf").read_text().splitlines()
+    assert {"[Service]", "Nice=5", "IOSchedulingClass=best-effort", "TimeoutStopSec=15s"} <= set(dropin), dropin
+    assert os.listdir(units / "u2sa@logbook.service.d") == ["10-recorder.conf"]
+    assert not (units / "u2sa@recorder.service.d").exists()
+    assert (units / "u2sa.target.wants/u2sa@logbook.service").is_symlink()
+    # Renamed: the drop-in moves with the service, nothing is left under the old name.
+    vehicle.write_text(PROFILE + '\n[services.blackbox]\nkind = "recorder"\n')
+    tree = install(vehicle=vehicle, root=root)
+    assert (units / "u2sa@blackbox.service.d/10-recorder.conf").read_text().splitlines() == \
+        [line.replace("u2sa@logbook", "u2sa@blackbox") for line in dropin]
+    assert not (units / "u2sa@logbook.service.d").exists()
+    assert any(c.action == "removed" and c.path.endswith("u2sa@logbook.service.d/10-recorder.conf")
+               for c in tree.changes)
 
 
 def test_a_service_dropped_from_the_profile_is_disabled(vehicle: Path, root: Path) -> None:

@@ -295,6 +295,9 @@ def test_crash_loop_ends_failed_and_the_hsm_raises_the_failsafe(ns: SystemdNames
 def test_sigkilled_hsm_is_restarted_by_systemd_and_reports_again(ns: SystemdNamespace, watch: Watch) -> None:
     unit = "u2sa-hsm.service"
     old = ns.wait_active(unit)
+    # Active through READY (Type=notify), under the watchdog like the services.
+    props = ns.show(unit, "Type", "WatchdogUSec", "Restart")
+    assert props == {"Type": "notify", "WatchdogUSec": "2s", "Restart": "always"}, props
     wait_until(lambda: watch.pid("hsm") == old, timeout=10, message=f"health from the HSM (pid {old})")
     restarts = int(ns.show(unit, "NRestarts")["NRestarts"])
     os.kill(ns.host_pid(old), signal.SIGKILL)

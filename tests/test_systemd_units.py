@@ -1,14 +1,15 @@
 """The units under a real systemd: booted as PID 1 of a private namespace (tests/systemd_ns.py).
 
-`u2sa install --root` stages a vehicle with three state estimators and one service that
-cannot start; systemd boots straight into u2sa.target. Checked: every unit reaches
-active through READY (Type=notify) as the user u2sa with the device groups; SIGKILL ->
-restarted and publishing health again; SIGSTOP (a hang) -> the watchdog kills it and it
-is restarted; a crash loop ends at the start limit (failed); stopping u2sa.target stops
-every service cleanly; poweroff ends the namespace. `systemd-analyze verify` passes on
-every unit file.
+`u2sa install --root` stages a vehicle with three state estimators, a recorder (named
+``rec``: its drop-in follows the kind, not the name) and one service that cannot start;
+systemd boots straight into u2sa.target, with journald. Checked: every unit reaches
+active through READY (Type=notify) as the user u2sa with the device groups, its output in
+the journal; SIGKILL -> restarted and publishing health again; SIGSTOP (a hang) -> the
+watchdog kills it (systemd's journal says so) and it is restarted; a crash loop ends at
+the start limit (failed); stopping u2sa.target stops every service cleanly and leaves the
+recorder's file in /var/lib/u2sa/recordings a complete, indexed MCAP; poweroff ends the
+namespace. `systemd-analyze verify` passes on every unit file.
 """
-
 from __future__ import annotations
 
 import json
@@ -23,7 +24,8 @@ from typing import Any
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from systemd_ns import SystemdNamespace, cannot_boot_reason, stage_root, wait_until  # noqa: E402
+from mcap.reader import make_reader  # noqa: E402
+from systemd_ns import HIDDEN_FROM_UNITS, SystemdNamespace, cannot_boot_reason, stage_root, wait_until  # noqa: E402
 
 from u2sa_hw import channels as ch  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
@@ -35,15 +37,20 @@ pytestmark = pytest.mark.skipif(REASON is not None, reason=f"systemd cannot boot
 
 U2SA = Path(sys.executable).with_name("u2sa")
 SERVICES = ("est_a", "est_b", "est_c")
+RECORDER = "rec"
+KINDS = {**{name: "state_estimator" for name in SERVICES}, RECORDER: "recorder"}
 UNIT_FILES = ("u2sa@.service", "u2sa.target", "u2sa-hsm.service", "u2sa-multicast-lo.service")
 
 
-def write_profile(path: Path, port: int) -> Path:
-    """A vehicle of three estimators and one service whose kind does not exist (not enabled)."""
+def write_profile(path: Path, port: int, *, recorder: bool = False) -> Path:
+    """A vehicle of three estimators (and a recorder), one service whose kind does not exist (not enabled)."""
     lines = ["[vehicle]", 'name = "systemd-test"', "system_id = 9",
              f'lcm_url = "udpm://239.255.76.67:{port}?ttl=0"', ""]
     for name in SERVICES:
         lines += [f"[services.{name}]", 'kind = "state_estimator"', ""]
+    if recorder:
+        # A low disk floor: the test's disk may be fuller than a vehicle's.
+        lines += [f"[services.{RECORDER}]", 'kind = "recorder"', "settings = { min_free_mb = 10.0 }", ""]
     lines += ["[services.broken]", 'kind = "no_such_kind"', "enabled = false", ""]
     path.write_text("\n".join(lines))
     return path
@@ -78,12 +85,17 @@ class HealthWatch:
 def staged(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     base = tmp_path_factory.mktemp("systemd")
     port = private_udp_port()
-    profile = write_profile(base / "vehicle.toml", port)
+    profile = write_profile(base / "vehicle.toml", port, recorder=True)
     root = stage_root(base / "root")
     done = subprocess.run([str(U2SA), "install", "--vehicle", str(profile), "--root", str(root)],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     return {"root": root, "url": f"udpm://239.255.76.67:{port}?ttl=0"}
+
+
+def recordings(root: Path) -> list[Path]:
+    """The recorder's files (the staged /var is the namespace's /var)."""
+    return sorted((root / "var/lib/u2sa/recordings").glob("*.mcap"))
 
 
 @pytest.fixture(scope="module")
@@ -106,7 +118,7 @@ def test_systemd_analyze_verify_passes_on_every_unit(staged: dict[str, Any]) -> 
     units = root / "etc/systemd/system"
     # The units name /opt/u2sa/venv/bin/u2sa: verify in a mount namespace where the staged /opt is /opt.
     script = (f'mount --make-rprivate / && mount --bind "{root}/opt" /opt && cd "{units}" && '
-              "systemd-analyze verify --man=no ./u2sa@est_a.service ./u2sa@recorder.service "
+              f"systemd-analyze verify --man=no ./u2sa@est_a.service ./u2sa@{RECORDER}.service "
               + " ".join(f"./{u}" for u in UNIT_FILES if u != "u2sa@.service"))
     done = subprocess.run(["unshare", "--mount", "sh", "-c", script], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
@@ -115,13 +127,17 @@ def test_systemd_analyze_verify_passes_on_every_unit(staged: dict[str, Any]) -> 
 
 def test_every_unit_reaches_active_through_ready_as_u2sa(ns: SystemdNamespace, staged: dict[str, Any],
                                                          health: HealthWatch) -> None:
-    for name in SERVICES:
+    for name, kind in KINDS.items():
         ns.wait_active(f"u2sa@{name}.service")
         props = ns.show(f"u2sa@{name}.service", "Type", "StatusText", "User", "WatchdogUSec")
         # Type=notify is only active after READY=1; STATUS= is the service's own line.
         assert props["Type"] == "notify"
-        assert props["StatusText"] == f"{name} (state_estimator) running"
+        assert props["StatusText"] == f"{name} ({kind}) running"
         assert props["WatchdogUSec"] == "2s"
+        # Output goes to journald under the unit's identifier.
+        started = f"{name} ({kind}) started, pid"
+        assert wait_until(lambda n=name, s=started: s in ns.journal("-t", f"u2sa-{n}"), timeout=10), \
+            ns.journal_hint(f"u2sa@{name}.service")
     assert ns.state("u2sa.target") == "active/active"
     assert ns.state("u2sa-multicast-lo.service") == "active/exited"
     assert ns.state("u2sa@broken.service").startswith("inactive")
@@ -155,9 +171,13 @@ def test_sigstop_hang_is_killed_by_the_watchdog_and_restarted(ns: SystemdNamespa
     new = ns.wait_active(unit, not_pid=old, timeout=30)
     assert not Path(f"/proc/{host_old}").exists() or "zombie" in Path(f"/proc/{host_old}/status").read_text()
     assert wait_until(lambda: health.pid_of("est_b") == new, timeout=10)
-    # systemd's record of why: the watchdog, not an exit of the service.
-    log = ns.run("sh", "-c", "cat /var/log/u2sa/est_b.log", check=False).stdout
-    assert log.count("started, pid") >= 2, log
+    # systemd's record of why: the watchdog, not an exit of the service. (systemd sends SIGCONT
+    # with the SIGABRT, so the stopped process wakes and faulthandler puts its stacks in the journal.)
+    why = ("u2sa@est_b.service: Watchdog timeout (limit 2s)!", f"Killing process {old} (u2sa) with signal SIGABRT",
+           "u2sa@est_b.service: Failed with result 'watchdog'.")
+    assert wait_until(lambda: all(line in ns.journal("-u", unit) for line in why), timeout=10), ns.journal("-u", unit)
+    log = ns.run("cat", "/var/log/u2sa/est_b.log", check=False).stdout
+    assert log.count("est_b (state_estimator) started, pid") == 2, log
 
 
 def test_status_shows_each_unit_next_to_the_hsm_view(ns: SystemdNamespace, staged: dict[str, Any]) -> None:
@@ -191,7 +211,7 @@ def test_status_shows_each_unit_next_to_the_hsm_view(ns: SystemdNamespace, stage
     report = json.loads(done.stdout)
     units = {u["unit"]: u for u in report["units"]}
     assert units["u2sa@est_a.service"]["active"] == "active"
-    assert units["u2sa@est_a.service"]["restarts"] == "1"  # systemd's count, from the SIGKILL test
+    assert units["u2sa@est_a.service"]["restarts"] == ns.show("u2sa@est_a.service", "NRestarts")["NRestarts"]
     assert units["u2sa@est_a.service"]["hsm"] == {"state": "ok", "restarts": 1, "last_error": "killed by SIGKILL",
                                                    "heartbeat_age_s": 0.0, "data_age_s": 0.0}
     assert units["u2sa@est_b.service"]["hsm"] == {}
@@ -228,16 +248,49 @@ def test_crash_loop_ends_at_the_start_limit(ns: SystemdNamespace) -> None:
     assert props["Result"] == "exit-code" and props["ExecMainStatus"] == "1", props
 
 
-def test_stopping_the_target_stops_every_service_cleanly(ns: SystemdNamespace) -> None:
-    pids = {name: ns.host_pid(ns.wait_active(f"u2sa@{name}.service")) for name in SERVICES}
+def test_a_recorder_of_any_name_runs_with_its_dropin_and_records(ns: SystemdNamespace,
+                                                                 staged: dict[str, Any]) -> None:
+    unit = f"u2sa@{RECORDER}.service"
+    ns.wait_active(unit)
+    props = ns.show(unit, "DropInPaths", "Nice", "IOSchedulingClass", "IOSchedulingPriority", "TimeoutStopUSec")
+    assert props["DropInPaths"].split() == [f"/etc/systemd/system/{unit}.d/10-recorder.conf"], props
+    # IOSchedulingClass 2 is best-effort.
+    assert (props["Nice"], props["IOSchedulingClass"], props["IOSchedulingPriority"], props["TimeoutStopUSec"]) == \
+        ("5", "2", "7", "15s"), props
+    passwd = {line.split(":")[0]: line.split(":") for line in (staged["root"] / "etc/passwd").read_text().splitlines()}
+    # It writes into the state directory, as u2sa, under ProtectSystem=strict: chunks reach the disk every second.
+    assert wait_until(lambda: any(p.stat().st_size > 4096 for p in recordings(staged["root"])), timeout=20), \
+        (recordings(staged["root"]), ns.journal_hint(unit))
+    assert [p.stat().st_uid for p in recordings(staged["root"])] == [int(passwd["u2sa"][2])]
+
+
+def test_stopping_the_target_stops_every_service_cleanly(ns: SystemdNamespace, staged: dict[str, Any]) -> None:
+    pids = {name: ns.host_pid(ns.wait_active(f"u2sa@{name}.service")) for name in KINDS}
     ns.systemctl("stop", "u2sa.target", timeout=60)
-    for name in SERVICES:
+    for name in KINDS:
         # PartOf= propagates the stop; systemctl waits for the target's own job only.
-        assert wait_until(lambda: ns.state(f"u2sa@{name}.service") == "inactive/dead", timeout=20)
-        props = ns.show(f"u2sa@{name}.service", "ActiveState", "Result", "ExecMainStatus")
+        assert wait_until(lambda n=name: ns.state(f"u2sa@{n}.service") == "inactive/dead", timeout=20)
+        props = ns.show(f"u2sa@{name}.service", "ActiveState", "Result", "ExecMainCode", "ExecMainStatus")
         assert props["ActiveState"] == "inactive", props
-        assert props["Result"] == "success" and props["ExecMainStatus"] == "0", props
+        # Exited by itself with status 0 (code 1 is CLD_EXITED): not SIGTERM's default death, not a timeout's SIGKILL.
+        assert props["Result"] == "success" and (props["ExecMainCode"], props["ExecMainStatus"]) == ("1", "0"), props
         assert not Path(f"/proc/{pids[name]}").exists()
+    # The recorder closed its file on the way out: summary, chunk indexes, statistics that match.
+    files = recordings(staged["root"])
+    assert len(files) == 1, files
+    with open(files[0], "rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None, f"{files[0]} has no summary section"
+        assert summary.chunk_indexes, f"{files[0]} has no chunk index"
+        seen: set[str] = set()
+        count = 0
+        for _schema, channel, message in reader.iter_messages():  # through the index
+            count += 1
+            if channel.topic == ch.HEALTH:
+                seen.add(t.Health.decode(message.data).name)
+    assert count == summary.statistics.message_count > 0
+    assert set(KINDS) <= seen, seen
 
 
 def test_poweroff_ends_the_namespace(ns: SystemdNamespace) -> None:
@@ -280,7 +333,12 @@ def test_install_and_uninstall_on_a_running_system(tmp_path: Path) -> None:
         assert first.returncode == 0, first.stderr
         assert "created   user u2sa" in first.stdout and "daemon-reload" in first.stdout
         assert "udevadm control --reload  (udevd is not running" in first.stdout
-        assert "/usr/bin/python3" in first.stdout  # this environment's pyenv interpreter is under /root
+        # The interpreter install chose (and says it chose) is one the sandboxed services can reach.
+        cfg = dict(line.split(" = ", 1) for line in (root / "opt/u2sa/venv/pyvenv.cfg").read_text().splitlines()
+                   if " = " in line)
+        chosen = cfg["executable"]
+        assert f"created   /opt/u2sa/venv  (shared venv, {chosen})" in first.stdout, first.stdout
+        assert Path(chosen).is_file() and not chosen.startswith(HIDDEN_FROM_UNITS), chosen
         assert live.show("u2sa.target", "UnitFileState")["UnitFileState"] == "enabled"
         live.systemctl("start", "u2sa.target")
         for name in SERVICES:

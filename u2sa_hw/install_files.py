@@ -188,6 +188,12 @@ class InstallTree:
         for dest in self.old.symlinks:
             if dest not in self.new.symlinks:
                 self._remove_file(dest, "no longer enabled")
+        # e.g. u2sa@NAME.service.d of a service renamed or dropped: install made it, nothing needs it now.
+        for dest in sorted(set(self.old.dirs) - set(self.new.dirs), key=len, reverse=True):
+            path = self.path(dest)
+            if path.is_dir() and not path.is_symlink() and not any(path.iterdir()):
+                path.rmdir()
+                self.changes.append(Change("removed", dest, "no longer needed"))
 
     def remove_installed(self, *, purge: bool, keep_dirs: tuple[str, ...] = ()) -> None:
         """Uninstall: remove what the old manifest lists (configs only when *purge*), then its empty dirs

@@ -1,10 +1,13 @@
 """What ``u2sa install`` deploys from the project and the profile: units, rules, configs.
 
-- The unit files of ``systemd/`` (template, target, HSM, multicast oneshot, recorder
-  drop-in) go to ``/etc/systemd/system``; the rules of ``udev/`` to ``/etc/udev/rules.d``.
+- The unit files of ``systemd/`` (template, target, HSM, multicast oneshot) go to
+  ``/etc/systemd/system``; the rules of ``udev/`` to ``/etc/udev/rules.d``.
 - Each enabled service of the profile becomes ``u2sa@NAME.service``, wanted by
   ``u2sa.target``; the service of kind ``hsm`` (it must be called ``hsm``) becomes
   ``u2sa-hsm.service``, which may restart the others.
+- Drop-ins by what a service is, whatever its name: every service of kind ``recorder``
+  gets ``u2sa@NAME.service.d/10-recorder.conf`` (lower CPU and I/O priority, a longer
+  stop), every service that drives PWM through sysfs ``50-pwm-sysfs.conf``.
 - The profile is installed as ``/etc/u2sa/vehicle.toml`` with its directories pointed at
   the vehicle's (``/etc/u2sa/config``, ``/var/log/u2sa``, ``/var/lib/u2sa``) and every
   service config as ``/etc/u2sa/config/NAME.toml``.
@@ -84,6 +87,21 @@ def _unit_for(spec: ServiceSpec, profile: VehicleProfile) -> ServiceUnit:
     return ServiceUnit(spec.name, f"u2sa@{spec.name}.service", TEMPLATE)
 
 
+RECORDER_KIND = "recorder"
+RECORDER_DROPIN = """\
+# Written by `u2sa install`: {name} is a recorder (kind "recorder"). Recordings go to the
+# profile's data_dir, /var/lib/u2sa/recordings on the vehicle (StateDirectory= of the
+# template, writable under ProtectSystem=strict; a `directory` elsewhere needs its own
+# drop-in with ReadWritePaths=). Disk I/O and CPU yield to the services that drive the vehicle.
+[Service]
+Nice=5
+IOSchedulingClass=best-effort
+IOSchedulingPriority=7
+# Stopping closes the current file (summary and index): a large last chunk may need more
+# than the template's 5 s.
+TimeoutStopSec=15s
+"""
+
 PWM_SYSFS = "/sys/class/pwm"
 PWM_DROPIN = """\
 # Written by `u2sa install`: this service drives PWM through sysfs ({path}), whose files
@@ -105,10 +123,12 @@ def _strings(value: Any) -> list[str]:
 
 
 def unit_dropins(profile: VehicleProfile) -> dict[str, bytes]:
-    """Per-service drop-ins the profile calls for: sysfs PWM needs a writable /sys."""
+    """Per-service drop-ins the profile calls for: a recorder's priorities, sysfs PWM's writable /sys."""
     dropins = {}
     for unit in service_units(profile):
         spec = profile.services[unit.name]
+        if spec.kind == RECORDER_KIND:
+            dropins[f"{UNIT_DIR}/{unit.unit}.d/10-recorder.conf"] = RECORDER_DROPIN.format(name=unit.unit).encode()
         pwm = [s for s in _strings(spec.settings) if s.startswith(PWM_SYSFS)]
         if pwm and unit.unit != HSM_UNIT:
             dropins[f"{UNIT_DIR}/{unit.unit}.d/50-pwm-sysfs.conf"] = PWM_DROPIN.format(path=pwm[0]).encode()

@@ -14,7 +14,9 @@ Deploy the vehicle profile FILE on this SBC: the user u2sa and the device groups
 venv under /opt/u2sa, the profile and configs under /etc/u2sa (a config you changed is
 never overwritten; a newer default goes beside it as .new), the systemd units and udev
 rules, then enable u2sa.target and one u2sa@NAME.service per service of the profile.
-Running it again changes only what differs, and says so. Needs root, unless --root DIR
+Drop-ins follow a service's kind, not its name: every service of kind recorder gets
+u2sa@NAME.service.d/10-recorder.conf (lower CPU and I/O priority, a longer stop), every
+service that drives PWM through sysfs 50-pwm-sysfs.conf. Running it again changes only what differs, and says so. Needs root, unless --root DIR
 stages everything into DIR instead (for packages, images and tests).
 """
 
