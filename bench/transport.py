@@ -4,7 +4,10 @@
 Compares (a) the raw ``lcm`` package publishing the encoded bytes of a full State
 Information to a raw byte callback, with (b) u2sa's Transport publishing the message to a
 typed callback that decodes it. Prints p50/p99 latency of each, their ratio, and the
-highest rate each sustains with zero loss. Usage: ``python bench/transport.py [--quick]``.
+highest rate each sustains with zero loss. Both open the same effective LCM URL: the one
+the Transport opens (``with_receive_buffer``: a udpm URL gets a receive buffer as large as
+net.core.rmem_max allows, up to 4 MiB), so the comparison is of the code, not of the
+socket. Usage: ``python bench/transport.py [--quick]``.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import time
 import lcm
 
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.transport import DEFAULT_QUEUE_CAPACITY, Transport
+from u2sa_hw.transport import DEFAULT_QUEUE_CAPACITY, Transport, with_receive_buffer
 from u2sa_hw.udp_ports import private_lcm_url
 
 CHANNEL = "BENCH_STATE"
@@ -51,7 +54,7 @@ def receiver(url: str, mode: str, count: int, timeout: float) -> None:
             done.set()
 
     if mode == "raw":
-        lc = lcm.LCM(url)
+        lc = lcm.LCM(with_receive_buffer(url))
         # Raw LCM gets the same subscription queue as u2sa's Transport (LCM's default is 30).
         # The send time travels in the header's timestamp_us slot (bytes 12..20 after the fingerprint+system id).
         sub = lc.subscribe(CHANNEL, lambda _c, data: note(struct.unpack_from(">q", data, 12)[0]))
@@ -81,7 +84,7 @@ def run_case(url: str, mode: str, *, rate: float, count: int) -> tuple[int, list
     time.sleep(0.3)  # let the receiver's socket join the group before the first packet
     msg = full_state()
     if mode == "raw":
-        lc = lcm.LCM(url)
+        lc = lcm.LCM(with_receive_buffer(url))
         publish = lambda: lc.publish(CHANNEL, stamp_and_encode(msg))  # noqa: E731
     else:
         tr = Transport(url, name="bench-tx")
@@ -145,8 +148,8 @@ def main() -> int:
         return 0
     url = args.url or private_lcm_url()
     n_lat = 1000 if args.quick else 5000
-    print(f"u2sa transport benchmark on {url}, {os.cpu_count()} cores, State Information "
-          f"{len(full_state().encode())} bytes")
+    print(f"u2sa transport benchmark on {with_receive_buffer(url)}, {os.cpu_count()} cores, State Information "
+          f"{len(full_state().encode())} bytes, load average {', '.join(f'{v:.1f}' for v in os.getloadavg())}")
     lat = {}
     for mode in ("raw", "u2sa"):
         received, values = run_case(url, mode, rate=1000, count=n_lat)

@@ -13,6 +13,7 @@ import pytest
 from u2sa_hw.install import install, uninstall
 from u2sa_hw.install_manifest import MANIFEST_PATH, load_manifest
 from u2sa_hw.install_system import InstallError
+from u2sa_hw.transport import DEFAULT_RECV_BUF_SIZE
 
 U2SA = Path(sys.executable).with_name("u2sa")
 PROFILE = """\
@@ -170,6 +171,9 @@ def test_the_log_directory_exists_for_the_services_and_the_hsm_before_any_unit_s
     manifest = load_manifest(root)
     assert manifest is not None and "/var/log/u2sa" in manifest.dirs
     assert "/etc/tmpfiles.d/u2sa.conf" in manifest.files
+    # The kernel's cap on receive buffers, raised to what the transport asks for.
+    assert f"net.core.rmem_max = {DEFAULT_RECV_BUF_SIZE}\n" in (root / "etc/sysctl.d/60-u2sa-lcm.conf").read_text()
+    assert "/etc/sysctl.d/60-u2sa-lcm.conf" in manifest.files
     # A second install finds both as wanted; one whose owner or mode drifted is put back.
     before = snapshot(root)
     again = install(vehicle=vehicle, root=root)
@@ -191,6 +195,7 @@ def test_the_log_directory_exists_for_the_services_and_the_hsm_before_any_unit_s
     # Uninstall keeps the logs (only --purge removes them) but not the tmpfiles declaration.
     uninstall(root=root)
     assert (root / "var/log/u2sa/hsm.log").is_file() and not (root / "etc/tmpfiles.d").exists()
+    assert not (root / "etc/sysctl.d").exists()
 
 
 def test_a_config_the_user_changed_is_kept_and_the_new_default_goes_beside_it(vehicle: Path, root: Path) -> None:

@@ -18,7 +18,8 @@ from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw import message_codegen
 from u2sa_hw.service import U2SAService
-from u2sa_hw.transport import DEFAULT_LCM_URL, Transport, TransportError, check_multicast, resolve_url
+from u2sa_hw.transport import (DEFAULT_LCM_URL, DEFAULT_RECV_BUF_SIZE, Transport, TransportError, check_multicast,
+                               resolve_url, with_receive_buffer)
 from u2sa_hw.udp_ports import private_lcm_url
 from u2sa_hw.vehicle import VehicleProfile
 
@@ -45,6 +46,20 @@ def test_url_comes_from_the_profile_then_the_environment_then_the_default(monkey
         assert tr.url == env_url
     finally:
         tr.stop()
+
+
+def test_a_udpm_url_gets_a_receive_buffer_the_kernel_allows(tmp_path: Path) -> None:
+    rmem_max = tmp_path / "rmem_max"
+    rmem_max.write_text("212992\n")   # Debian's default cap: asking for more makes LCM warn on stderr
+    url = "udpm://239.255.76.67:7667?ttl=0"
+    assert with_receive_buffer(url, rmem_max_file=str(rmem_max)) == url + "&recv_buf_size=212992"
+    rmem_max.write_text(f"{DEFAULT_RECV_BUF_SIZE * 4}\n")
+    assert with_receive_buffer("udpm://239.255.76.67:7667", rmem_max_file=str(rmem_max)) == \
+        f"udpm://239.255.76.67:7667?recv_buf_size={DEFAULT_RECV_BUF_SIZE}"
+    mine = url + "&recv_buf_size=65536"
+    assert with_receive_buffer(mine, rmem_max_file=str(rmem_max)) == mine            # the user's own wins
+    assert with_receive_buffer("memq://", rmem_max_file=str(rmem_max)) == "memq://"   # not a socket
+    assert with_receive_buffer(url, rmem_max_file=str(tmp_path / "missing")) == url   # no /proc: kernel default
 
 
 def test_publishing_from_several_threads_delivers_every_message_intact(lcm_url: str) -> None:

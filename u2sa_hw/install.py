@@ -9,9 +9,10 @@ Install, on the SBC as root (or staged into ``--root DIR`` for packaging and tes
    user changed: the new default goes beside it as ``.new``);
 4. makes the log directory /var/log/u2sa (u2sa:u2sa 0770) and declares it in
    /etc/tmpfiles.d/u2sa.conf, so that it exists before any unit starts;
-5. installs the units and udev rules, enables ``u2sa.target`` and one
+5. installs the units, the udev rules and /etc/sysctl.d/60-u2sa-lcm.conf (LCM's
+   receive buffers may grow to 4 MiB), enables ``u2sa.target`` and one
    ``u2sa@NAME.service`` per enabled service (the wants symlinks, made directly);
-6. reloads systemd and udev (not with ``--root``);
+6. reloads systemd and udev and applies the sysctl file (not with ``--root``);
 7. records all of it in /opt/u2sa/install-manifest.json.
 
 Every step compares with what is there, so a second run changes nothing and says so.
@@ -27,12 +28,12 @@ from pathlib import Path
 
 from u2sa_hw.install_files import InstallTree
 from u2sa_hw.install_manifest import MANAGED, MANIFEST_PATH, Manifest, host_path, load_manifest, save_manifest
-from u2sa_hw.install_system import (SERVICE_USER, VENV_MODES, InstallError, apply_tmpfiles, ensure_users,
+from u2sa_hw.install_system import (SERVICE_USER, VENV_MODES, InstallError, apply_sysctl, apply_tmpfiles, ensure_users,
                                     ensure_venv, owner_ids, project_source, reload_systemd, reload_udev,
                                     remove_users, user_ids)
 from u2sa_hw.install_units import (CONFIG_DIR, DOC, ETC_DIR, HSM_LOG, LOG_DIR, LOG_DIR_MODE, PROFILE, STATE_DIR, SYSUSERS,
-                                   TARGET, TMPFILES, UDEV_DIR, UNIT_DIR, VEHICLE_RULES, render_profile,
-                                   render_vehicle_rules, service_configs, service_units, sysusers_conf,
+                                   SYSCTL, TARGET, TMPFILES, UDEV_DIR, UNIT_DIR, VEHICLE_RULES, render_profile,
+                                   render_vehicle_rules, service_configs, service_units, sysctl_conf, sysusers_conf,
                                    tmpfiles_conf, udev_sources, unit_dropins, unit_sources, wants_links)
 from u2sa_hw.vehicle import load_profile
 
@@ -77,6 +78,7 @@ def install(*, vehicle: Path | str, root: Path | str = "/", venv: str | None = N
     rule_actions = [tree.put_managed(dest, data) for dest, data in udev_sources(src).items()]
     rule_actions.append(tree.put_managed(f"{UDEV_DIR}/{VEHICLE_RULES}", vehicle_rules))
     tree.put_managed(SYSUSERS, sysusers_conf())
+    sysctl_action = tree.put_managed(SYSCTL, sysctl_conf())
     doc = src / "docs" / "deployment.md"
     if doc.is_file():
         tree.put_managed(DOC, doc.read_bytes())
@@ -96,6 +98,7 @@ def install(*, vehicle: Path | str, root: Path | str = "/", venv: str | None = N
     tree.new.profile_source = str(profile.path.resolve())
     reload_systemd(tree, units_changed=pruned or any(a != "unchanged" for a in unit_actions))
     reload_udev(tree, rules_changed=any(a != "unchanged" for a in rule_actions))
+    apply_sysctl(tree, SYSCTL, changed=sysctl_action != "unchanged")
     if save_manifest(root, tree.new) and tree.old.files == {}:
         tree.note("created", MANIFEST_PATH)
     return tree

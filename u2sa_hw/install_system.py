@@ -139,6 +139,24 @@ def apply_tmpfiles(tree: InstallTree, conf: str, *, changed: bool) -> None:
     tree.note("updated", conf, "applied (systemd-tmpfiles --create)")
 
 
+def apply_sysctl(tree: InstallTree, conf: str, *, changed: bool) -> None:
+    """``sysctl -p CONF`` on this system when it changed (never with --root); a refusal is noted, not fatal.
+
+    A kernel that refuses (a container without the right) still reads the file at the next boot.
+    """
+    if tree.root != Path("/") or not changed:
+        return
+    if shutil.which("sysctl") is None:
+        tree.note("skipped", f"sysctl -p {conf}", "sysctl is not installed; the setting applies from next boot")
+        return
+    done = subprocess.run(["sysctl", "-p", conf], capture_output=True, text=True, timeout=60)
+    if done.returncode != 0:
+        tree.note("skipped", f"sysctl -p {conf}", f"refused ({(done.stderr or done.stdout).strip()[-200:]}); "
+                  "it applies from next boot")
+        return
+    tree.note("updated", conf, "applied (sysctl -p)")
+
+
 def project_source(explicit: str | None) -> Path:
     """The project checkout (with systemd/, udev/, pyproject.toml) that install deploys."""
     candidates = [Path(explicit)] if explicit else [Path(__file__).resolve().parent.parent]

@@ -28,6 +28,7 @@ from typing import Any
 import tomli_w
 
 from u2sa_hw.install_system import DEVICE_GROUPS, SERVICE_USER, InstallError
+from u2sa_hw.transport import DEFAULT_RECV_BUF_SIZE
 from u2sa_hw.vehicle import ServiceSpec, VehicleProfile
 
 UNIT_DIR = "/etc/systemd/system"
@@ -40,6 +41,7 @@ STATE_DIR = "/var/lib/u2sa"
 DOC = "/opt/u2sa/doc/deployment.md"
 SYSUSERS = "/etc/sysusers.d/u2sa.conf"
 TMPFILES = "/etc/tmpfiles.d/u2sa.conf"
+SYSCTL = "/etc/sysctl.d/60-u2sa-lcm.conf"
 HSM_LOG = "/var/log/u2sa/hsm.log"
 LOG_DIR_MODE = 0o770
 VEHICLE_RULES = "65-u2sa-vehicle.rules"
@@ -203,6 +205,18 @@ def tmpfiles_conf() -> bytes:
     """
     return (f"# u2sa-hw: the services' and the HSM's log directory (written by u2sa install).\n"
             f"d {LOG_DIR} {LOG_DIR_MODE:04o} {SERVICE_USER} {SERVICE_USER} -\n").encode()
+
+
+def sysctl_conf() -> bytes:
+    """The kernel's cap on a socket's receive buffer, raised so LCM's receive buffers get what they ask for.
+
+    u2sa's transport asks for a 4 MiB UDP receive buffer (``recv_buf_size``); the kernel
+    grants at most ``net.core.rmem_max``, 208 KiB by default, which a burst at 20,000 msg/s
+    overflows in a few milliseconds (LCM's own setup guide recommends raising it).
+    """
+    return ("# u2sa-hw: let LCM's UDP receive buffers grow to 4 MiB (written by u2sa install;\n"
+            "# see docs/deployment.md). The default cap, 208 KiB, drops packets in bursts.\n"
+            f"net.core.rmem_max = {DEFAULT_RECV_BUF_SIZE}\n").encode()
 
 
 def _rule_value(value: Any, where: str, *, pattern: re.Pattern[str] = _RULE_VALUE, hint: str = "") -> str:
