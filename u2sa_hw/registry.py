@@ -8,7 +8,6 @@ add kinds through the ``u2sa_hw.services`` entry-point group.
 from __future__ import annotations
 
 import importlib
-from importlib.metadata import entry_points
 
 SERVICE_KINDS: dict[str, str] = {
     # core services
@@ -34,6 +33,8 @@ SERVICE_KINDS: dict[str, str] = {
 
 def known_kinds() -> dict[str, str]:
     """Every registered kind, built-in ones and those from entry points."""
+    from importlib.metadata import entry_points   # scanning installed packages costs ~15 ms: only when needed
+
     kinds = dict(SERVICE_KINDS)
     for ep in entry_points(group="u2sa_hw.services"):
         kinds.setdefault(ep.name, ep.value)
@@ -42,8 +43,10 @@ def known_kinds() -> dict[str, str]:
 
 def resolve_kind(kind: str) -> type:
     """Import and return the service class of *kind*; LookupError lists the known kinds."""
-    kinds = known_kinds()
-    target = kinds.get(kind)
+    target = SERVICE_KINDS.get(kind)
+    if target is None:
+        kinds = known_kinds()
+        target = kinds.get(kind)
     if target is None:
         raise LookupError(f"unknown service kind '{kind}'; known kinds: {', '.join(sorted(kinds))}")
     module_name, _, class_name = target.partition(":")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import inspect
 import struct
+from io import BytesIO
 from typing import Any
 
 from u2sa_hw import lcmtypes
@@ -36,6 +37,7 @@ class TypeRegistry:
     def __init__(self) -> None:
         self._by_fp: dict[bytes, type] = {}
         self._by_name: dict[str, type] = {}
+        self._ancestry: dict[type, tuple[type, ...]] = {}   # parent_of builds an instance: once per class
 
     def register(self, cls: type) -> type:
         """Add an LCM class (its parent is found through its ``base`` field); returns it."""
@@ -77,14 +79,20 @@ class TypeRegistry:
 
     def ancestry(self, cls: type) -> list[type]:
         """*cls* followed by its parents up to the root type."""
-        chain = [cls]
-        while (parent := self.parent_of(chain[-1])) is not None:
-            chain.append(parent)
+        return list(self._chain(cls))
+
+    def _chain(self, cls: type) -> tuple[type, ...]:
+        chain = self._ancestry.get(cls)
+        if chain is None:
+            found = [cls]
+            while (parent := self.parent_of(found[-1])) is not None:
+                found.append(parent)
+            chain = self._ancestry[cls] = tuple(found)
         return chain
 
     def is_a(self, cls: type, base: type) -> bool:
         """True when *cls* is *base* or extends it (at any depth)."""
-        return base in self.ancestry(cls)
+        return base in self._chain(cls)
 
     def decode(self, data: bytes, base: type | None = None) -> tuple[Any, bool]:
         """Decode *data*; return ``(message, known)``.
@@ -97,7 +105,7 @@ class TypeRegistry:
             raise MalformedMessage(f"truncated: {len(data)} bytes, shorter than a fingerprint")
         cls = self._by_fp.get(data[:8])
         if cls is not None:
-            if base is not None and not self.is_a(cls, base):
+            if base is not None and cls is not base and not self.is_a(cls, base):
                 raise MalformedMessage(f"wrong type: {cls.__name__} is not a {base.__name__}")
             return _decode_body(cls, data), True
         if base is None:
@@ -106,8 +114,6 @@ class TypeRegistry:
 
 
 def _decode_body(cls: type, data: bytes) -> Any:
-    from io import BytesIO
-
     buf = BytesIO(data)
     buf.seek(8)
     try:
