@@ -17,10 +17,28 @@ carries uptime and CPU) or raw device I/O (``RAW.*``). For each stream:
 - timing: each message's time since the stream's first, replayed (times the rate) against
   recorded; the median and largest offset are shown and a largest offset above
   ``time_tolerance_s`` is a difference. Not checked for ``--fast`` replays, which have no clock.
+  Messages a replayed service published before the playback began (while it started) are
+  not timed: the first message at or after the playback's start is the reference.
+
+Raw device I/O is left out except the records of what a driver *drives*: ``RawGpioWrite``
+and ``RawPwmWrite`` (a GPIO or PWM driver's outputs), compared like any stream under
+``RAW.<device> [service]``.
+
+State channels (``STATE_CHANNELS``: ``RC_MODE``) are published on a timer as well as on
+every change, so which messages exist depends on the timer's phase. With a clock (``--rate``)
+they are compared as states over time: each replayed message's time is mapped onto the
+log's clock (the playback started at log time ``start_ns``), and every field value (each
+element of a list on its own) of every message must also be found on the other side within
+``time_tolerance_s`` of it (the state then held counts). The first and last ``edge``
+messages of each side may miss (the input starts and ends there); they are notes. Replayed
+messages from before the recorded stream's first message or after its last are not compared
+(the recorded service was not running, or not recorded, then; after the input ends a driver
+reacts to its end).
 """
 
 from __future__ import annotations
 
+import bisect
 import fnmatch
 import math
 import statistics
@@ -35,6 +53,8 @@ from u2sa_hw.recording.log_reader import LogFile
 from hil.player import header_source
 
 HEADER_FIELDS = ("*header.timestamp_us", "*header.sequence")
+STATE_CHANNELS = ("RC_MODE",)                       # published on a timer and on every change
+OUTPUT_RAW_TYPES = ("RawGpioWrite", "RawPwmWrite")  # raw records of what a driver drives
 ALIGN_WINDOW = 10
 SHOWN_FIELDS = 8
 
@@ -54,7 +74,7 @@ def load_streams(path: Path | str, *, sources: set[str], start_ns: int | None = 
     patterns = (*HEADER_FIELDS, *ignore)
     streams: dict[str, list[Sample]] = {}
     for m in LogFile(path).messages():
-        if m.channel.startswith(("U2SA_", "RAW.")):
+        if m.channel.startswith("U2SA_") or (m.channel.startswith("RAW.") and m.type_name not in OUTPUT_RAW_TYPES):
             continue
         if (start_ns is not None and m.log_time_ns < start_ns) or (end_ns is not None and m.log_time_ns > end_ns):
             continue
@@ -141,8 +161,8 @@ def align(rec: list[Sample], rep: list[Sample], *, edge: int, tolerance: float) 
 
 
 def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance: float, edge: int,
-                   rate: float | None, time_tolerance_s: float) -> StreamReport:
-    """Compare one stream (see the module docstring)."""
+                   rate: float | None, time_tolerance_s: float, replay_start_ns: int | None = None) -> StreamReport:
+    """Compare one stream (see the module docstring); *replay_start_ns*: when the playback began."""
     r = StreamReport(key, len(rec), len(rep))
     if not rec or not rep:
         r.problems.append("only in the replay" if rep else "not reproduced by the replay")
@@ -152,6 +172,9 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
     r.head_skipped, r.matched = (i0, j0), n
     r.tail_unmatched = (len(rec) - i0 - n, len(rep) - j0 - n)
     offsets: list[float] = []
+    k0 = 0   # the timing reference: the first pair whose replayed message came after the playback began
+    if replay_start_ns is not None:
+        k0 = next((k for k in range(n) if rep[j0 + k].t_ns >= replay_start_ns), n)
     for k in range(n):
         a, b = rec[i0 + k], rep[j0 + k]
         names = differing_fields(a, b, tolerance)
@@ -166,9 +189,9 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
                     d.max_abs = max(d.max_abs, abs(float(va) - float(vb)))
             if d.first is None:
                 d.first = (k, va if name != "_type" else a.type_name, vb if name != "_type" else b.type_name)
-        if rate is not None:
-            rec_s = (a.t_ns - rec[i0].t_ns) / 1e9
-            rep_s = (b.t_ns - rep[j0].t_ns) / 1e9 * rate
+        if rate is not None and k >= k0:
+            rec_s = (a.t_ns - rec[i0 + k0].t_ns) / 1e9
+            rep_s = (b.t_ns - rep[j0 + k0].t_ns) / 1e9 * rate
             offsets.append(abs(rep_s - rec_s))
     if offsets:
         r.time_p50_s, r.time_max_s = statistics.median(offsets), max(offsets)
@@ -184,6 +207,84 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
             text = f"{count} {what} at the {where}"
             (r.notes if count <= edge else r.problems).append(
                 text + (" (the recording cuts the input there)" if count <= edge else ""))
+    return r
+
+
+def _missing_fields(s: Sample, times: list[int], others: list[Sample], *, window_ns: int,
+                    tolerance: float) -> tuple[list[str], Sample | None]:
+    """Fields of *s* whose value no message of *others* (sorted by time) had within *window_ns* of it,
+    counting the one then held; and the nearest of those messages."""
+    lo = bisect.bisect_left(times, s.t_ns - window_ns)
+    hi = bisect.bisect_right(times, s.t_ns + window_ns)
+    near = others[max(0, lo - 1):hi]
+    if not near:
+        return ["_type"], None
+    nearest = min(near, key=lambda o: abs(o.t_ns - s.t_ns))
+    missing = [] if any(o.type_name == s.type_name for o in near) else ["_type"]
+    missing += [name for name, value in s.fields.items()
+                if not any(values_equal(value, o.fields.get(name), tolerance) for o in near)]
+    return missing, nearest
+
+
+def _elements(fields: dict[str, Any]) -> dict[str, Any]:
+    """*fields* with every list split into its elements (``pulse_us[0]``, ...): each element is a state of its own."""
+    out: dict[str, Any] = {}
+    for name, value in fields.items():
+        if isinstance(value, (list, tuple)):
+            out[f"{name}.len"] = len(value)
+            out.update((f"{name}[{i}]", v) for i, v in enumerate(value))
+        else:
+            out[name] = value
+    return out
+
+
+def compare_states(key: str, rec: list[Sample], rep: list[Sample], *, tolerance: float, edge: int,
+                   time_tolerance_s: float, start_ns: int, end_ns: int, rate: float,
+                   replay_start_ns: int) -> StreamReport:
+    """Compare a state stream over time (see the module docstring)."""
+    rec = [Sample(s.t_ns, s.type_name, _elements(s.fields)) for s in rec]
+    mapped = sorted((Sample(start_ns + int((s.t_ns - replay_start_ns) * rate), s.type_name, _elements(s.fields))
+                     for s in rep), key=lambda s: s.t_ns)
+    # only while the recorded stream ran: before it the recorded service was not up (or not recorded yet)
+    first, last = (max(start_ns, rec[0].t_ns), min(end_ns, rec[-1].t_ns)) if rec else (start_ns, end_ns)
+    inside = [s for s in mapped if first <= s.t_ns <= last]
+    r = StreamReport(key, len(rec), len(inside))
+    r.notes.append("a state stream: compared over time (every field value found on the other side within "
+                   f"{time_tolerance_s:g} s), not message by message")
+    if not rec or not inside:
+        r.problems.append("only in the replay" if inside else "not reproduced by the replay")
+        return r
+    window = int(time_tolerance_s * 1e9)
+    sides = ((rec, mapped, "recorded"), (inside, rec, "replayed"))
+    unmatched = {"recorded": 0, "replayed": 0}
+    at_edges = 0
+    for samples, others, side in sides:
+        times = [o.t_ns for o in others]
+        for i, s in enumerate(samples):
+            missing, nearest = _missing_fields(s, times, others, window_ns=window, tolerance=tolerance)
+            if not missing:
+                if side == "recorded":
+                    r.matched += 1
+                continue
+            if i < edge or i >= len(samples) - edge:
+                at_edges += 1
+                continue
+            unmatched[side] += 1
+            for name in missing:
+                d = r.fields.setdefault(name, FieldDiff(name))
+                d.count += 1
+                if d.first is None:
+                    mine = s.type_name if name == "_type" else s.fields.get(name)
+                    other = None if nearest is None else (nearest.type_name if name == "_type"
+                                                          else nearest.fields.get(name))
+                    d.first = (i, mine, other) if side == "recorded" else (i, other, mine)
+    r.differing = unmatched["recorded"] + unmatched["replayed"]
+    if r.differing:
+        r.problems.append(f"{unmatched['recorded']} recorded and {unmatched['replayed']} replayed messages hold a "
+                          f"field value the other side did not have within {time_tolerance_s:g} s")
+    if at_edges:
+        r.notes.append(f"{at_edges} message(s) at the start or end of the window without a counterpart "
+                       "(the recording cuts the input there)")
     return r
 
 
@@ -236,12 +337,25 @@ class CompareReport:
 
 def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[str], start_ns: int | None = None,
                  end_ns: int | None = None, rate: float | None = 1.0, tolerance: float = 1e-6, edge: int = 1,
-                 time_tolerance_s: float = 0.5, ignore: tuple[str, ...] = ()) -> CompareReport:
-    """Compare the streams of *services* in *recorded* (within the window) and *replayed*; ``rate=None``: no timing."""
+                 time_tolerance_s: float = 0.5, ignore: tuple[str, ...] = (),
+                 replay_start_ns: int | None = None) -> CompareReport:
+    """Compare the streams of *services* in *recorded* (within the window) and *replayed*; ``rate=None``: no timing.
+
+    *replay_start_ns*: the wall-clock time the playback began (log time *start_ns* was played
+    then); with a rate and the window it lets state channels be compared over time.
+    """
     rec = load_streams(recorded, sources=services, start_ns=start_ns, end_ns=end_ns, ignore=ignore)
     rep = load_streams(replayed, sources=services, ignore=ignore)
-    reports = [compare_stream(key, rec.get(key, []), rep.get(key, []), tolerance=tolerance, edge=edge, rate=rate,
-                              time_tolerance_s=time_tolerance_s) for key in sorted(set(rec) | set(rep))]
+    reports = []
+    for key in sorted(set(rec) | set(rep)):
+        a, b = rec.get(key, []), rep.get(key, [])
+        timed = rate is not None and replay_start_ns is not None and start_ns is not None and end_ns is not None
+        if timed and key.split(" [", 1)[0] in STATE_CHANNELS:
+            reports.append(compare_states(key, a, b, tolerance=tolerance, edge=edge, time_tolerance_s=time_tolerance_s,
+                                          start_ns=start_ns, end_ns=end_ns, rate=rate, replay_start_ns=replay_start_ns))
+        else:
+            reports.append(compare_stream(key, a, b, tolerance=tolerance, edge=edge, rate=rate,
+                                          time_tolerance_s=time_tolerance_s, replay_start_ns=replay_start_ns))
     recorded_sources = {key.rsplit(" [", 1)[1] for key in rec}
     for r in reports:
         if not r.recorded and r.key.rsplit(" [", 1)[1] not in recorded_sources:

@@ -43,6 +43,7 @@ class PlayStats:
     malformed: int = 0        # records that did not decode (skipped)
     late_s: float = 0.0       # the largest lag behind the clock (rate mode)
     wall_s: float = 0.0       # playback time
+    started_ns: int = 0       # wall clock (ns) when the playback began: log time start_ns was played then
 
 
 def header_source(msg: Any) -> str:
@@ -152,6 +153,7 @@ class Player:
     def run(self) -> PlayStats:
         """Play the window; returns the stats (ReplayStalled or the abort reason as RuntimeError on failure)."""
         started = time.monotonic()
+        self.stats.started_ns = time.time_ns()
         stream = self._bursts() if self.rate is None else self.events()
         for t_ns, target, payload in stream:
             if self.abort.is_set():

@@ -30,6 +30,7 @@ from u2sa_hw.transport import Transport, TransportError, check_multicast
 from u2sa_hw.vehicle import load_profile
 from u2sa_hw.udp_ports import private_lcm_url
 
+from hil.compare import STATE_CHANNELS
 from hil.player import PlayStats, Player
 from hil.progress import ProgressBar
 from hil.replay_devices import ReplayDevice, ReplaySerialDevice, ReplayStalled
@@ -93,13 +94,22 @@ def private_url(plan: ReplayPlan) -> str:
     return private_lcm_url(avoid=ports, options=f"ttl=0&recv_buf_size={RECV_BUF_SIZE}")
 
 
-def make_device(dev: DevicePlan, run_dir: Path, service: ServicePlan, *, fast: bool) -> ReplayDevice:
-    """The replay device for *dev*, driven by *service* (ReplayError for a kind that cannot be replayed)."""
+def make_device(dev: DevicePlan, run_dir: Path, service: ServicePlan, *, fast: bool,
+                rigs: dict[str, Any] | None = None) -> ReplayDevice:
+    """The replay device for *dev*, driven by *service* (ReplayError for a kind that cannot be replayed).
+
+    *rigs* holds what the devices of one service share (the PWM outputs of a servo service).
+    """
     config = {**service.config, **service.overrides}
     if dev.kind == "serial":
         gap = config.get("epoch_gap_s", 0.05)
         return ReplaySerialDevice(name=dev.name, link_path=run_dir / "dev" / dev.name,
                                   burst_gap_s=float(gap) if isinstance(gap, (int, float)) else 0.05)
+    if dev.kind in ("gpio", "pwm"):
+        from hil import replay_gpio
+
+        return replay_gpio.make_device(dev.kind, dev.name, run_dir, service=service.name, config=config,
+                                       rigs=rigs if rigs is not None else {})
     from hil import replay_buses
 
     return replay_buses.make_device(dev, run_dir, fast=fast, fields=declared_fields(service.kind))
@@ -145,6 +155,8 @@ class Replay:
         self.options = options
         self.plan = build_plan(path, extra_services=options.services, overrides=options.overrides,
                                start_s=options.start_s, end_s=options.end_s, vehicle=options.vehicle)
+        self.fast, self.rate = options.fast, options.rate   # as played (see _real_time_devices)
+        self._real_time_devices()
         self.out = options.out or self.plan.log.with_suffix(".replay.mcap")
         if self.out.resolve() == self.plan.log.resolve():
             raise ReplayError(f"--out {self.out}: the output must not be the log being replayed")
@@ -158,6 +170,21 @@ class Replay:
         self._published: dict[str, int] = {}   # service -> its outputs by its own count (latest health)
         self._last_output = time.monotonic()
         self.run_dir: Path | None = None   # made by run(); kept after a failure for its logs
+
+    def _real_time_devices(self) -> None:
+        """A GPIO device with recorded edges is played at --rate 1, and with it the whole replay.
+
+        Its driver compares the edge stamps with its own clock (signal timeouts, debounce), so
+        played faster (or slower) it would see a world that never happened.
+        """
+        timed = sorted(d.name for d in self.plan.devices.values() if d.service and d.kind == "gpio"
+                       and "RawGpioEdge" in d.types)
+        if timed and (self.fast or self.rate != 1.0):
+            asked = "--fast" if self.fast else f"--rate {self.rate:g}"
+            self.plan.notes.append(f"{', '.join('RAW.' + n for n in timed)}: GPIO edges are played in real time, "
+                                   f"so the replay runs at --rate 1 instead of {asked} (the GPIO drivers time the "
+                                   "edges against their own clock: pulse widths, debounce, signal timeouts)")
+            self.fast, self.rate = False, 1.0
 
     def _log_of(self, service: str) -> Path:
         return (self.run_dir or Path(".")) / "logs" / f"{service}.log"
@@ -184,7 +211,8 @@ class Replay:
         source = raw_source(data)
         if source in self.plan.services:
             self._received[source] = self._received.get(source, 0) + 1
-            self._last_output = time.monotonic()
+            if channel not in STATE_CHANNELS:   # published on a timer too: never quiet, so not waited for
+                self._last_output = time.monotonic()
 
     def _note_health(self, data: bytes) -> None:
         from u2sa_hw import lcmtypes as t
@@ -247,7 +275,7 @@ class Replay:
             out[f"config/{name}.toml"] = (self.run_dir / "config" / f"{name}.toml").read_bytes()
         o = self.options
         out["replay.toml"] = tomli_w.dumps({"replay": {
-            "source": str(self.plan.log.resolve()), "fast": o.fast, "rate": o.rate, "start_s": o.start_s,
+            "source": str(self.plan.log.resolve()), "fast": self.fast, "rate": self.rate, "start_s": o.start_s,
             "end_s": -1.0 if o.end_s is None else o.end_s, "overrides": list(o.overrides),
             "services": list(self.plan.services), "devices": [d for d in self.plan.devices
                                                               if self.plan.devices[d].service]}}).encode()
@@ -270,9 +298,11 @@ class Replay:
         capture: BusCapture | None = None
         try:
             changes: dict[str, dict[str, Any]] = {}
+            rigs: dict[str, Any] = {}
             for dev in self.plan.devices.values():
                 if dev.service:
-                    devices[dev.name] = make_device(dev, self.run_dir, self.plan.services[dev.service], fast=o.fast)
+                    devices[dev.name] = make_device(dev, self.run_dir, self.plan.services[dev.service],
+                                                    fast=self.fast, rigs=rigs)
                     preload = getattr(devices[dev.name], "preload", None)
                     if preload is not None:
                         preload(self.plan.log, start_ns=self.plan.start_ns, end_ns=self.plan.end_ns)
@@ -301,7 +331,7 @@ class Replay:
             bar = ProgressBar(self.plan.duration_s, enabled=o.progress)
             player = Player(self.plan.log, devices=devices, transport=transport, republish=republish,
                             replayed_services=set(self.plan.services), start_ns=self.plan.start_ns,
-                            end_ns=self.plan.end_ns, rate=None if o.fast else o.rate, abort=self.abort,
+                            end_ns=self.plan.end_ns, rate=None if self.fast else self.rate, abort=self.abort,
                             abort_reason=lambda: self._abort_reason, progress=bar.update)
             try:
                 stats = player.run()

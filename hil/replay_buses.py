@@ -331,5 +331,5 @@ def make_device(dev: DevicePlan, run_dir: Path, *, fast: bool, fields: set[str])
                                declares_rate="rate_hz" in fields)
     if dev.kind == "can":
         return ReplayCanDevice(name=dev.name, port=private_udp_port())
-    raise ReplayError(f"RAW.{dev.name}: replaying {dev.kind} devices is not supported; "
+    raise ReplayError(f"RAW.{dev.name}: replaying {dev.kind or 'unknown'} devices is not supported here; "
                       "leave the device out with --vehicle (a profile without its service)")

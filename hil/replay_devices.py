@@ -6,7 +6,8 @@ the recorded ``RAW.<device>`` records by the player (hil/player.py):
 - :class:`ReplaySerialDevice`: a pty at a symlink (like ``mock_devices.pty_serial``);
   recorded RX bytes are written into it, with backpressure instead of drops; what the
   driver writes is kept and checked against the recorded TX bytes.
-- CAN, I2C and GPIO replay devices live in :mod:`hil.replay_buses`.
+- CAN and I2C replay devices live in :mod:`hil.replay_buses`, GPIO and PWM in
+  :mod:`hil.replay_gpio`.
 
 Every device has ``config_changes()`` (the config fields that point its driver at it),
 ``start()``/``stop()``, ``ready(pid, health)`` (the driver has opened its side), ``feed(record)``,

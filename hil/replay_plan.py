@@ -29,7 +29,9 @@ from u2sa_hw.registry import resolve_kind
 
 RAW_KINDS = {"RawSerial": "serial", "RawCanFrame": "can", "RawI2c": "i2c", "RawGpioEdge": "gpio",
              "RawGpioWrite": "gpio", "RawPwmWrite": "pwm"}
-REPLAYABLE = {"serial", "i2c", "can"}   # device kinds with a replay device (hil/replay_devices.py, hil/replay_buses.py)
+# device kinds with a replay device (hil/replay_devices.py, hil/replay_buses.py, hil/replay_gpio.py)
+REPLAYABLE = {"serial", "i2c", "can", "gpio", "pwm"}
+OUTPUT_TAPPED = {"gpio", "pwm"}   # kinds whose driver's outputs are its raw taps: record_raw stays on in a replay
 
 
 HEALTH_INTERVAL_S = 0.2
@@ -47,6 +49,7 @@ class DevicePlan:
     kind: str                      # serial, can, i2c, gpio, pwm
     records: int
     service: str = ""              # the service that claims it ("" when none)
+    types: set[str] = field(default_factory=set)   # raw record types in the log (RawGpioEdge, ...)
 
 
 @dataclass
@@ -192,10 +195,11 @@ def build_plan(path: Path | str, *, extra_services: list[str] = (), overrides: l
         kind = RAW_KINDS.get(ch.type_name, "")
         dev = devices.get(name)
         if dev is None:
-            devices[name] = DevicePlan(name, kind, ch.count)
+            dev = devices[name] = DevicePlan(name, kind, ch.count)
         else:
             dev.records += ch.count
             dev.kind = dev.kind or kind
+        dev.types.add(ch.type_name)
     plan = ReplayPlan(Path(path), summary, dict(profile.get("vehicle") or {}), {}, devices)
     blocked: set[str] = set()   # services that drive a device replay cannot stand in for
     for dev in devices.values():
@@ -257,8 +261,9 @@ def write_run_profile(plan: ReplayPlan, run_dir: Path, *, lcm_url: str,
                       changes: dict[str, dict[str, Any]]) -> Path:
     """Write ``vehicle.toml`` and ``config/<service>.toml`` for the replay into *run_dir*.
 
-    Each config is the recorded one with *changes* (replay device addresses, record_raw off)
-    and then the ``--set`` overrides applied; the profile points every directory into
+    Each config is the recorded one with ``record_raw`` off (on for GPIO and PWM drivers, whose
+    taps are their outputs), the ``--set`` overrides, and then *changes* (the replay device
+    addresses, which no override may move back to real hardware); the profile points every directory into
     *run_dir* and the LCM URL at the private replay bus.
     """
     (run_dir / "config").mkdir(parents=True, exist_ok=True)
@@ -266,10 +271,13 @@ def write_run_profile(plan: ReplayPlan, run_dir: Path, *, lcm_url: str,
     services: dict[str, Any] = {}
     for name, sp in plan.services.items():
         # health often, so the replay learns quickly that a driver has opened its device
-        config = {**sp.config, "health_interval_s": HEALTH_INTERVAL_S, **changes.get(name, {})}
+        config = {**sp.config, "health_interval_s": HEALTH_INTERVAL_S}
         if "record_raw" in declared_fields(sp.kind):
-            config["record_raw"] = False  # the replay's input is the log; re-tapping it only doubles traffic
+            # the replay's input is the log, re-tapping it only doubles the traffic; but a GPIO or PWM
+            # driver's outputs are its taps (RawGpioWrite, RawPwmWrite), which --compare compares
+            config["record_raw"] = any(plan.devices[d].kind in OUTPUT_TAPPED for d in sp.devices)
         config.update(sp.overrides)
+        config.update(changes.get(name, {}))   # last: a device address always points at the replay device
         (run_dir / "config" / f"{name}.toml").write_text(tomli_w.dumps(config))
         services[name] = {"kind": sp.kind, "config": f"config/{name}.toml"}
     path = run_dir / "vehicle.toml"

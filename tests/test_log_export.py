@@ -75,3 +75,30 @@ def test_plot_writes_a_png(log_path: Path, tmp_path: Path) -> None:
     counts = plot_log(log_path, png)
     assert counts["track"] == 40 and counts["commands"] == 40
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_nan_and_infinite_fields_export_as_null_and_still_validate(tmp_path: Path) -> None:
+    path = tmp_path / "nan.mcap"
+    writer = McapLogWriter(tmp_path, path=path, run=RunInfo(vehicle="rover", attachments={"vehicle.toml": PROFILE}))
+    t0 = time.time_ns()
+    good = t.StateInformation().set(x=1.0, y=2.0, psi=float("nan"), x_sigma=float("inf"), y_sigma=0.5)
+    good.sensor_name, good.reference_frame = "estimator", "NED"
+    writer.write("STATE_ESTIMATE", good.encode(), t0)
+    lost = t.StateInformation().set(x=float("nan"), y=2.0)   # no position: no LocationFix
+    lost.sensor_name, lost.reference_frame = "estimator", "NED"
+    writer.write("STATE_ESTIMATE", lost.encode(), t0 + 1000)
+    writer.close()
+    out = tmp_path / "fox.mcap"
+    counts = export_foxglove(path, out)
+    assert counts == {"STATE_ESTIMATE": 2, "/location/STATE_ESTIMATE": 1}
+    payloads = {}
+    with open(out, "rb") as fh:
+        for schema, channel, message in make_reader(fh).iter_messages():
+            payload = json.loads(message.data)
+            jsonschema.validate(payload, json.loads(schema.data))
+            payloads.setdefault(channel.topic, []).append(payload)
+    first = payloads["STATE_ESTIMATE"][0]
+    assert first["psi"] is None and first["x_sigma"] is None and first["y_sigma"] == 0.5
+    assert payloads["STATE_ESTIMATE"][1]["x"] is None
+    fix = payloads["/location/STATE_ESTIMATE"][0]
+    assert fix["position_covariance_type"] == 0 and all(math.isfinite(v) for v in fix["position_covariance"])

@@ -3,31 +3,34 @@
 from __future__ import annotations
 
 import json
+import re
 import signal
-import textwrap
+import subprocess
+import sys
+import threading
 from pathlib import Path
+from types import SimpleNamespace
 
+import tomli_w
 from conftest import ServiceProcesses, wait_until
+from gpio_driver_harness import BusCollector
 from mcap.reader import make_reader
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus_client import BusClient
 from u2sa_hw.recording.log_reader import LogFile
+from u2sa_hw.recording.mcap_log import McapLogWriter
+from u2sa_hw.services.recorder.capture import BusCapture
+from u2sa_hw.transport import Transport
+
+TIMESTAMPED = re.compile(r"u2sa-\d{8}-\d{6}(_\d{3})?\.mcap")
 
 
-def _profile(tmp: Path, url: str, **recorder: str) -> Path:
-    settings = ", ".join(f'{k} = "{v}"' for k, v in recorder.items())
+def _profile(tmp: Path, url: str, **recorder: object) -> Path:
     path = tmp / "vehicle.toml"
-    path.write_text(textwrap.dedent(f"""\
-        [vehicle]
-        name = "testbot"
-        system_id = 7
-        lcm_url = "{url}"
-        [services.recorder]
-        kind = "recorder"
-        settings = {{ {settings} }}
-        """))
+    path.write_text(tomli_w.dumps({"vehicle": {"name": "testbot", "system_id": 7, "lcm_url": url},
+                                   "services": {"recorder": {"kind": "recorder", "settings": recorder}}}))
     return path
 
 
@@ -113,9 +116,6 @@ def test_killed_recorder_log_recovers(services: ServiceProcesses, bus: BusClient
 
 
 def test_record_command_with_filters_and_duration(services: ServiceProcesses, bus: BusClient) -> None:
-    import subprocess
-    import sys
-
     out = services.workdir / "cli.mcap"
     proc = subprocess.Popen([sys.executable, "-m", "u2sa_hw.cli", "record", "-o", str(out), "--exclude",
                              "U2SA_.*", "--duration", "30"], env=services.env(), stdout=subprocess.PIPE,
@@ -149,3 +149,136 @@ def test_corrupt_and_missing_files_get_clear_errors(services: ServiceProcesses, 
     empty.write_bytes(b"")
     r = services.cli("log", "recover", str(empty))
     assert r.returncode == 1 and "empty.mcap: empty" in r.stderr
+
+
+# ---------------------------------------------------------------- disk floor, queue, rotation ----
+class StallingDisk:
+    """A disk_usage stand-in: plenty of space until armed; then the next call blocks until
+    released and reports *low* bytes free (the writer thread is held while the queue fills)."""
+
+    def __init__(self, *, low: int) -> None:
+        self.low = low
+        self.armed = self.blocked = False
+        self.release = threading.Event()
+
+    def __call__(self, _path: Path) -> SimpleNamespace:
+        if not self.armed:
+            return SimpleNamespace(free=10 ** 15)
+        self.blocked = True
+        self.release.wait(30)
+        return SimpleNamespace(free=self.low)
+
+
+def test_disk_floor_with_a_full_queue_finishes_the_file_and_stop_returns(tmp_path: Path, lcm_url: str,
+                                                                         bus: BusClient) -> None:
+    disk = StallingDisk(low=10_000_000)
+    transport = Transport(lcm_url, name="test-capture")
+    path = tmp_path / "floor.mcap"
+    capture = BusCapture(transport, McapLogWriter(tmp_path, path=path), queue_size=5, flush_interval_s=0.05,
+                         min_free_mb=50, disk_usage=disk)
+    capture.start()
+    transport.start()
+    stopper: threading.Thread | None = None
+    try:
+        for i in range(3):
+            bus.publish(ch.STATE_INFO, _state(i))
+        wait_until(lambda: capture.stats.written == 3, message="three messages written")
+        disk.armed = True
+        wait_until(lambda: disk.blocked, message="the writer checking the disk")
+        for i in range(3, 20):
+            bus.publish(ch.STATE_INFO, _state(i))
+        wait_until(lambda: capture.queue_depth == 5 and capture.stats.dropped > 0,
+                   message="a full queue and drops counted")
+        disk.release.set()
+        wait_until(lambda: capture.stats.stopped_reason, message="the recording stopped at the floor")
+        assert "10 MB, below the 50 MB floor" in capture.stats.stopped_reason
+        assert not capture.active
+        stopper = threading.Thread(target=capture.stop)
+        stopper.start()
+        wait_until(lambda: not stopper.is_alive(), timeout=20, message="stop() to return")
+    finally:
+        disk.release.set()
+        if stopper is None:
+            capture.stop()
+        transport.stop()
+    with open(path, "rb") as fh:   # finished by the writer thread: summary and indexes, readable
+        summary = make_reader(fh).get_summary()
+        assert summary is not None and summary.chunk_indexes
+        assert sum(summary.statistics.channel_message_counts.values()) == 3
+    assert LogFile(path).contents is not None and _count(path, ch.STATE_INFO) == 3
+    assert capture.stats.written == 3 and capture.stats.dropped >= 5 + 1   # the queued five were never written
+
+
+def test_recorder_below_the_disk_floor_stays_up_and_says_why_in_health(services: ServiceProcesses,
+                                                                       bus: BusClient) -> None:
+    health = BusCollector(bus).listen(ch.HEALTH, t.Health)
+    vehicle = _profile(services.workdir, services.url, min_free_mb=1e12, health_interval_s=0.2)
+    proc = services.start("recorder", "--vehicle", str(vehicle))
+    details = health.health_of("recorder", lambda d: d["status"] == "degraded", timeout=20,
+                               message="the recorder degraded")
+    assert "below the 1000000000000 MB floor" in details["stopped"]
+    assert "below the" in details["last_error"] and "recording stopped" in details["last_error"]
+    assert proc.poll() is None
+    assert not _recorder_files(services.workdir)    # stopped before the first message: no file at all
+
+
+def test_recorder_rotates_by_size_into_timestamped_complete_files(services: ServiceProcesses,
+                                                                  bus: BusClient) -> None:
+    vehicle = _profile(services.workdir, services.url, rotate_size_mb=0.002, flush_interval_s=0.05)
+    proc = services.start("recorder", "--vehicle", str(vehicle))
+    wait_until(lambda: bus.discover(timeout=0.3, name="recorder"), timeout=20, message="the recorder")
+    sent = 0
+
+    def three_files() -> bool:
+        nonlocal sent
+        for _ in range(20):
+            bus.publish(ch.STATE_INFO, _state(sent))
+            sent += 1
+        return len(_recorder_files(services.workdir)) >= 3
+
+    wait_until(three_files, timeout=30, interval=0.05, message="three rotated files")
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=15) == 0
+    files = _recorder_files(services.workdir)
+    assert all(TIMESTAMPED.fullmatch(f.name) for f in files), [f.name for f in files]
+    xs: list[float] = []
+    for f in files:
+        log = LogFile(f)
+        xs += [t.StateInformation.decode(m.data).x for m in log.messages(ch.STATE_INFO)]
+        assert log.contents.complete and "vehicle.toml" in log.contents.attachments, f
+    assert xs == sorted(xs) and len(xs) > 20   # nothing lost or reordered across the rotations
+
+
+def test_record_command_rotates_by_duration_with_lz4_chunks(services: ServiceProcesses, bus: BusClient) -> None:
+    out = services.workdir / "run.mcap"
+    proc = subprocess.Popen([sys.executable, "-m", "u2sa_hw.cli", "record", "-o", str(out), "--rotate-duration",
+                             "0.5", "--compression", "lz4", "--include", "STATE_INFO"], env=services.env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        def three_files() -> bool:
+            bus.publish(ch.STATE_INFO, _state(1))
+            return len(list(services.workdir.glob("*.mcap"))) >= 3
+
+        wait_until(three_files, timeout=30, interval=0.05, message="three files, one every 0.5 s")
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=15)
+        assert proc.returncode == 0, stderr
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    rotated = sorted(p for p in services.workdir.glob("*.mcap") if p != out)
+    assert out.exists() and len(rotated) >= 2
+    assert all(re.fullmatch(r"run-\d{8}-\d{6}(_\d{3})?\.mcap", p.name) for p in rotated), rotated
+    for path in [out, *rotated]:
+        with open(path, "rb") as fh:
+            summary = make_reader(fh).get_summary()
+        assert summary.chunk_indexes and {c.compression for c in summary.chunk_indexes} == {"lz4"}, path
+    assert str(out) in stdout and "0 dropped" in stdout
+
+
+def test_record_command_below_min_free_stops_with_the_reason(services: ServiceProcesses) -> None:
+    r = services.cli("record", "-o", str(services.workdir / "x.mcap"), "--min-free-mb", "1e12", "--duration", "20")
+    assert r.returncode == 1
+    assert "below the 1000000000000 MB floor" in r.stderr and "recording stopped" in r.stderr
+    r = services.cli("record", "--queue-size", "0")
+    assert r.returncode == 2 and "--queue-size" in r.stderr

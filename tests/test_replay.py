@@ -280,18 +280,18 @@ def test_damaged_logs_get_a_clear_error(driver_log: Path, tmp_path: Path) -> Non
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: len(data) // 2])
     res = replay_cli(str(cut), "--fast", cwd=tmp_path)
-    assert res.returncode == 1 and "truncated" in res.stderr and "u2sa log recover" in res.stderr
+    assert res.returncode == 2 and "truncated" in res.stderr and "u2sa log recover" in res.stderr
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"\x00garbage" * 100)
     res = replay_cli(str(junk), cwd=tmp_path)
-    assert res.returncode == 1 and "not an MCAP file" in res.stderr
+    assert res.returncode == 2 and "not an MCAP file" in res.stderr
     bare = tmp_path / "bare.mcap"  # recorded without a vehicle profile: nothing says who drives RAW.gps
     writer = McapLogWriter(tmp_path, path=bare, run=RunInfo())
     for record in load_raw(driver_log):
         writer.write(*record)
     writer.close()
     res = replay_cli(str(bare), cwd=tmp_path)
-    assert res.returncode == 1 and "--vehicle" in res.stderr, res.stderr
+    assert res.returncode == 2 and "--vehicle" in res.stderr, res.stderr
     assert not list(Path(tmp_path).glob("*.replay.mcap"))
 
 
@@ -332,7 +332,7 @@ def test_can_frames_replay_into_the_motor_driver_with_its_commands(can_log: Path
 def test_a_service_that_dies_ends_the_replay_with_its_reason(driver_log: Path, tmp_path: Path) -> None:
     res = replay_cli(str(driver_log), "--fast", "--set", "gps.baudrate=1234", "-o", str(tmp_path / "x.mcap"),
                      cwd=tmp_path)
-    assert res.returncode == 1
+    assert res.returncode == 2   # the replay failed (1 would mean "outputs differ")
     assert "service 'gps' died during the replay" in res.stderr and "baudrate 1234 is not supported" in res.stderr
     kept = res.stderr.rsplit("replay files kept in ", 1)[1].strip(" )\n")
     assert (Path(kept) / "config" / "gps.toml").read_text().count("baudrate = 1234") == 1

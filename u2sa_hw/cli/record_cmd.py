@@ -18,6 +18,10 @@ Record the bus into an MCAP log until Ctrl-C (or --duration). The LCM bytes are 
 unchanged with each type's .lcm definition as its schema, plus the vehicle profile and
 service configs, so the log says everything about the run. Chunks are closed every
 second: a kill or power cut loses at most the last second (u2sa log recover repairs it).
+Below --min-free-mb of free disk space in the log's directory the recording stops, the
+file is finished and the command exits 1 saying so. A message that finds the queue to
+the disk full is dropped and counted ("dropped" in the final line), never waited for.
+See docs/recording.md.
 """
 
 
@@ -31,37 +35,48 @@ def register(sub: Any) -> None:
     p.add_argument("--include", default=".*", metavar="RE", help="record channels fully matching RE (default all)")
     p.add_argument("--exclude", default="", metavar="RE", help="skip channels fully matching RE")
     p.add_argument("--duration", type=float, default=0.0, metavar="S", help="stop after S seconds")
-    p.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd")
-    p.add_argument("--rotate-size-mb", type=float, default=0.0, metavar="MB", help="start a new file past MB")
+    p.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd",
+                   help="chunk compression (default zstd)")
+    p.add_argument("--rotate-size-mb", type=float, default=0.0, metavar="MB",
+                   help="start a new file past MB (names: <name>-YYYYmmdd-HHMMSS.mcap)")
     p.add_argument("--rotate-duration", type=float, default=0.0, metavar="S", help="start a new file every S seconds")
+    p.add_argument("--min-free-mb", type=float, default=50.0, metavar="MB",
+                   help="stop (and finish the file) below MB of free disk (default 50)")
+    p.add_argument("--queue-size", type=int, default=20000, metavar="N",
+                   help="messages buffered between the bus and the disk; beyond, drops are counted (default 20000)")
     add_vehicle_option(p)
     p.set_defaults(func=cmd_record)
 
     lp = sub.add_parser("log", help="inspect, print, repair and export MCAP logs",
                         description="Work with MCAP logs written by u2sa record or the recorder service.")
     lsub = lp.add_subparsers(dest="log_command", metavar="ACTION", required=True)
-    ip = lsub.add_parser("info", help="duration, channels, types, counts, rates, devices, vehicle")
-    ip.add_argument("file")
-    ip.add_argument("--json", action="store_true")
+    ip = lsub.add_parser("info", help="duration, channels, types, counts, rates, devices, vehicle",
+                         description="Summarise a log: vehicle, duration, whether it is complete (a killed "
+                         "recorder leaves it incomplete: u2sa log recover), devices with raw I/O, attachments, "
+                         "and per channel its type, message count and rate.")
+    ip.add_argument("file", help="an MCAP log (complete or truncated)")
+    ip.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
     ip.set_defaults(func=cmd_info)
-    ep = lsub.add_parser("echo", help="print the decoded messages of a channel")
-    ep.add_argument("file")
+    ep = lsub.add_parser("echo", help="print the decoded messages of a channel",
+                         description="Print the messages of the channels fully matching CHANNEL, decoded from "
+                         "their LCM bytes, in log order.")
+    ep.add_argument("file", help="an MCAP log (complete or truncated)")
     ep.add_argument("channel", help="channel name or regex (RAW\\..*)")
     ep.add_argument("--json", action="store_true", help="one JSON object per line")
     ep.add_argument("--count", type=int, default=0, metavar="N", help="stop after N messages")
     ep.set_defaults(func=cmd_echo)
     rp = lsub.add_parser("recover", help="rewrite a truncated log (killed recorder) as a valid indexed one")
-    rp.add_argument("file")
+    rp.add_argument("file", help="the truncated (or complete) log")
     rp.add_argument("-o", "--output", metavar="FILE", help="output (default: <file>.recovered.mcap)")
     rp.set_defaults(func=cmd_recover)
     xp = lsub.add_parser("export", help="write a copy Foxglove can open (JSON messages, JSON schemas)",
                          description="Foxglove cannot decode LCM: this writes every message as JSON with a JSON "
                          "schema, plus foxglove.LocationFix tracks for the Map panel.")
-    xp.add_argument("file")
+    xp.add_argument("file", help="an MCAP log written by u2sa")
     xp.add_argument("--foxglove", required=True, metavar="OUT.mcap", help="output file")
     xp.set_defaults(func=cmd_export)
     pp = lsub.add_parser("plot", help="PNG of track, heading, speed and actuator commands over time")
-    pp.add_argument("file")
+    pp.add_argument("file", help="an MCAP log written by u2sa")
     pp.add_argument("-o", "--output", metavar="PNG", help="output (default: <file>.png)")
     pp.add_argument("--channel", default="STATE_ESTIMATE", help="state channel to plot (default STATE_ESTIMATE)")
     pp.set_defaults(func=cmd_plot)
@@ -81,11 +96,14 @@ def cmd_record(args: Any) -> int:
         transport = Transport(profile.lcm_url, name="u2sa-record")
     except TransportError as exc:
         raise CliError(str(exc)) from None
+    if args.queue_size < 1 or args.min_free_mb < 0:
+        raise CliError("--queue-size must be at least 1 and --min-free-mb at least 0", 2)
     writer = McapLogWriter(out.parent if out else Path("."), compression=args.compression,
                            rotate_size_mb=args.rotate_size_mb, rotate_duration_s=args.rotate_duration,
                            run=run_info(profile, transport.url), path=out)
     try:
-        capture = BusCapture(transport, writer, include=args.include, exclude=args.exclude, min_free_mb=50)
+        capture = BusCapture(transport, writer, include=args.include, exclude=args.exclude,
+                             min_free_mb=args.min_free_mb, queue_size=args.queue_size)
     except ValueError as exc:
         raise CliError(str(exc), 2) from None
     stop = threading.Event()

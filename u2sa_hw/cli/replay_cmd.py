@@ -14,6 +14,10 @@ device_name or a channels entry) runs as a real process on a private LCM bus wit
 log's own config, the recorded bytes/frames/register reads/edges are played into the
 mocks with the original timing, and what the services publish is recorded to --out.
 --compare then checks the replayed outputs against the recorded ones.
+
+Exit status: 0 when the replay ran (and, with --compare, nothing differs); 1 when
+--compare found a difference; 2 when the replay could not run or failed (a damaged or
+unreplayable log, a bad option or --set, a service that died or never opened its device).
 """
 
 EPILOG = """\
@@ -21,9 +25,15 @@ examples:
   u2sa replay run1.mcap --fast --compare            regression check of the drivers
   u2sa replay run1.mcap --set gps.uere_m=5 --compare    what does this setting change?
   u2sa replay run1.mcap --rate 2 --start 60 --end 120 --services state_estimator
+  u2sa replay rc.mcap --compare --set rc.autonomous_above_us=1900    (GPIO: RC pulses, e-stops)
 
---fast plays each device as fast as its driver reads (no clock; silences are not
-reproduced); see docs/replay.md for what that means for each driver.
+Devices replayed: serial (bytes into a pty), I2C (register reads answered), CAN (frames
+onto a private bus), GPIO (edges on a mock chip, with their recorded spacing) and PWM
+(a sysfs-shaped directory or a mock PCA9685; the driver's recorded commands are played
+on the bus and its pulse writes compared). --fast plays each device as fast as its
+driver reads (no clock; silences are not reproduced); a log with GPIO edges is always
+played at --rate 1, because the GPIO drivers time the edges against their own clock.
+See docs/replay.md for what each mode means for each driver.
 """
 
 
@@ -34,7 +44,7 @@ def register(sub: Any) -> None:
     p.add_argument("file", help="an MCAP log recorded with record_raw = true in the driver configs")
     speed = p.add_mutually_exclusive_group()
     speed.add_argument("--rate", type=float, default=1.0, metavar="X", help="play X times real time (default 1)")
-    speed.add_argument("--fast", action="store_true", help="as fast as the drivers take their input")
+    speed.add_argument("--fast", action="store_true", help="as fast as the drivers take their input (GPIO edges: always --rate 1)")
     p.add_argument("--start", type=float, default=0.0, metavar="S", help="begin S seconds into the log")
     p.add_argument("--end", type=float, default=None, metavar="S", help="stop S seconds into the log")
     p.add_argument("--services", nargs="+", default=[], metavar="NAME",
@@ -44,7 +54,7 @@ def register(sub: Any) -> None:
     p.add_argument("-o", "--out", metavar="FILE", help="output log (default: <file>.replay.mcap)")
     p.add_argument("--vehicle", metavar="PATH", help="use this profile instead of the one in the log")
     p.add_argument("--compare", action="store_true", help="compare the outputs with the recorded ones; "
-                   "exit status 1 on a difference")
+                   "exit status 1 on a difference (2 means the replay itself failed)")
     p.add_argument("--tolerance", type=float, default=1e-6, metavar="D", help="float difference allowed (default 1e-6)")
     p.add_argument("--time-tolerance", type=float, default=0.5, metavar="S",
                    help="timing offset allowed, not checked with --fast (default 0.5 s)")
@@ -61,6 +71,7 @@ def cmd_replay(args: Any) -> int:
     """Run the replay, print the summary (and the comparison)."""
     from u2sa_hw.cli import CliError
 
+    failed = 2   # exit status of a replay that could not run (1 is kept for "outputs differ")
     try:
         from hil.compare import compare_logs
         from hil.replay import Replay, ReplayOptions
@@ -69,7 +80,7 @@ def cmd_replay(args: Any) -> int:
         if exc.name != "hil":
             raise
         raise CliError("u2sa replay needs the hil package of u2sa-hw, which this installation lacks: "
-                       "reinstall u2sa-hw (make venv, or pip install -e . in the source tree)") from None
+                       "reinstall u2sa-hw (make venv, or pip install -e . in the source tree)", failed) from None
 
     if args.rate <= 0:
         raise CliError(f"--rate must be > 0, got {args.rate:g}", 2)
@@ -81,14 +92,14 @@ def cmd_replay(args: Any) -> int:
     try:
         replay = Replay(args.file, options, echo=echo)
     except ReplayError as exc:
-        raise CliError(str(exc)) from None
+        raise CliError(str(exc), failed) from None
     for note in replay.plan.notes:
         print(f"u2sa: note: {note}", file=sys.stderr)
     try:
         result = replay.run()
     except (ReplayError, RuntimeError) as exc:
-        raise CliError(f"{exc}\n(replay files kept in {replay.run_dir})") from None
-    print(result.summary(fast=args.fast, rate=args.rate))
+        raise CliError(f"{exc}\n(replay files kept in {replay.run_dir})", failed) from None
+    print(result.summary(fast=replay.fast, rate=replay.rate))
     for name, report in result.devices.items():
         if report.get("divergences"):
             print(f"u2sa: note: device {name}: {report.get('divergence', 'diverged from the recording')}",
@@ -99,8 +110,9 @@ def cmd_replay(args: Any) -> int:
         return 0
     report = compare_logs(result.plan.log, result.out, services=set(result.plan.services),
                           start_ns=result.plan.start_ns, end_ns=result.plan.end_ns,
-                          rate=None if args.fast else args.rate, tolerance=args.tolerance, edge=args.edge,
-                          time_tolerance_s=args.time_tolerance, ignore=tuple(args.ignore))
+                          rate=None if replay.fast else replay.rate, tolerance=args.tolerance, edge=args.edge,
+                          time_tolerance_s=args.time_tolerance, ignore=tuple(args.ignore),
+                          replay_start_ns=result.play.started_ns or None)
     print(report.format())
     if result.lost:
         print(f"note: {result.lost} messages of the replayed services were lost on the replay bus; "

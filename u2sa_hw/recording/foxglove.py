@@ -23,8 +23,11 @@ from u2sa_hw.messages import REGISTRY, MalformedMessage, to_dict
 from u2sa_hw.recording.log_reader import LogFile
 from u2sa_hw.vehicle import Origin
 
-_JSON_TYPES = {"int8_t": "integer", "int16_t": "integer", "int32_t": "integer", "int64_t": "integer",
-               "byte": "integer", "float": "number", "double": "number", "string": "string", "boolean": "boolean"}
+# JSON has no NaN or infinity: the export writes them as null, so a float field is a number or null
+_FLOAT = ["number", "null"]
+_JSON_TYPES: dict[str, Any] = {"int8_t": "integer", "int16_t": "integer", "int32_t": "integer", "int64_t": "integer",
+                               "byte": "integer", "float": _FLOAT, "double": _FLOAT, "string": "string",
+                               "boolean": "boolean"}
 LOCATION_CHANNELS = ("STATE_ESTIMATE", "STATE_INFO")
 
 LOCATION_FIX_SCHEMA: dict[str, Any] = {
@@ -50,6 +53,8 @@ def json_schema(cls: type) -> dict[str, Any]:
     for name, lcm_type, dims in zip(cls.__slots__, cls.__typenames__, cls.__dimensions__):
         if lcm_type in _JSON_TYPES:
             item: dict[str, Any] = {"type": _JSON_TYPES[lcm_type]}
+            if _JSON_TYPES[lcm_type] is _FLOAT:
+                item["description"] = "null where the value is NaN or infinite"
             if lcm_type == "byte" and dims is not None:
                 props[name] = {"type": "string", "description": "bytes as hex"}
                 continue
@@ -72,7 +77,12 @@ def _origin(log: LogFile) -> Origin | None:
 
 
 def location_fix(msg: Any, origin: Origin | None, log_time_ns: int) -> dict[str, Any] | None:
-    """A LocationFix for a State Information with a position, or None."""
+    """A LocationFix for a State Information with a finite position, or None.
+
+    Foxglove's LocationFix schema allows only numbers, so a message whose position (or
+    altitude) is NaN or infinite gives no fix, and a non-finite sigma makes the covariance
+    unknown (type 0).
+    """
     if not (msg.has("x") and msg.has("y")):
         return None
     if msg.reference_frame == "GEODETIC":
@@ -81,8 +91,10 @@ def location_fix(msg: Any, origin: Origin | None, log_time_ns: int) -> dict[str,
         lat, lon, alt = ned_to_geodetic(msg.x, msg.y, msg.get("z", 0.0), origin=origin)
     else:
         return None
+    if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in (lat, lon, alt)):
+        return None
     sx, sy = msg.get("x_sigma"), msg.get("y_sigma")
-    known = sx is not None and sy is not None
+    known = sx is not None and sy is not None and math.isfinite(sx) and math.isfinite(sy)
     cov = [0.0] * 9
     if known:
         cov[0], cov[4] = sy * sy, sx * sx  # ENU order: east, north

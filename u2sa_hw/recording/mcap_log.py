@@ -43,7 +43,8 @@ class RunInfo:
 
 
 def timestamped_name(prefix: str, *, when: float | None = None) -> str:
-    """``<prefix>-YYYYmmdd-HHMMSS.mcap`` in local time."""
+    """``<prefix>-YYYYmmdd-HHMMSS.mcap`` in local time (a second file in the same second gets ``_001``,
+    ``_002``, ... before ``.mcap``, so the names sort in recording order)."""
     return f"{prefix}-{time.strftime('%Y%m%d-%H%M%S', time.localtime(when))}.mcap"
 
 
@@ -133,10 +134,10 @@ class McapLogWriter:
             path = self._fixed_path
         else:
             base = self._fixed_path.stem if self._fixed_path else self.prefix
-            path = self.directory / timestamped_name(base)
-            n = 1
-            while path.exists() or path in self.files:
-                path = self.directory / f"{path.stem.rsplit('.', 1)[0]}.{n}.mcap"
+            first = self.directory / timestamped_name(base)
+            path, n = first, 1
+            while path.exists() or path in self.files:   # a second file within one second
+                path = first.with_name(f"{first.stem}_{n:03d}.mcap")
                 n += 1
         self.files.append(path)
         return McapFile(path, compression=self.compression, chunk_size=self.chunk_size, run=self.run)

@@ -3,7 +3,9 @@
 The LCM handler thread only appends ``(channel, bytes, time)`` to a bounded queue; a
 writer thread drains it into :class:`McapLogWriter`, closing a chunk every
 ``flush_interval_s`` and checking the free disk space. A full queue drops the message and
-counts it; a disk below the floor stops the recording cleanly with the reason.
+counts it; a disk below the floor (or a failing write) stops the recording cleanly: the
+writer thread finishes the file (summary, indexes) and says why in ``stats.stopped_reason``.
+:meth:`BusCapture.stop` never blocks on the queue, whatever state the writer thread is in.
 """
 
 from __future__ import annotations
@@ -15,12 +17,15 @@ import shutil
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from pathlib import Path
+from typing import Any, Callable
 
 from u2sa_hw.recording.mcap_log import McapLogWriter
 from u2sa_hw.transport import Transport
 
 log = logging.getLogger("u2sa_hw.recorder")
+
+JOIN_TIMEOUT_S = 30.0   # stop() waits this long for the writer to write what is queued
 
 
 @dataclass
@@ -29,28 +34,38 @@ class CaptureStats:
 
     received: int = 0
     written: int = 0
-    dropped: int = 0
+    dropped: int = 0          # queue full, or still queued when the recording stopped on an error
     filtered: int = 0
     stopped_reason: str = ""
     per_channel: dict[str, int] = field(default_factory=dict)
 
 
 class BusCapture:
-    """Subscribes to every channel and feeds a writer thread through a bounded queue."""
+    """Subscribes to every channel and feeds a writer thread through a bounded queue.
+
+    *disk_usage* is ``shutil.disk_usage`` (anything returning an object with ``free`` in
+    bytes for a path); the free space of the log directory is checked when the writer
+    starts and after every flush.
+    """
 
     def __init__(self, transport: Transport, writer: McapLogWriter, *, include: str = ".*", exclude: str = "",
-                 queue_size: int = 20000, flush_interval_s: float = 1.0, min_free_mb: float = 200.0) -> None:
+                 queue_size: int = 20000, flush_interval_s: float = 1.0, min_free_mb: float = 200.0,
+                 disk_usage: Callable[[Path], Any] = shutil.disk_usage) -> None:
         try:
             self._include = re.compile(include or ".*")
             self._exclude = re.compile(exclude) if exclude else None
         except re.error as exc:
             raise ValueError(f"bad channel pattern: {exc}") from None
+        if queue_size < 1:
+            raise ValueError(f"queue_size must be at least 1, got {queue_size}")
         self.transport = transport
         self.writer = writer
         self.flush_interval = min(1.0, max(0.05, flush_interval_s))
         self.min_free = min_free_mb * 1e6
+        self.disk_usage = disk_usage
         self.stats = CaptureStats()
         self._queue: queue.Queue[tuple[str, bytes, int] | None] = queue.Queue(maxsize=queue_size)
+        self._finish = threading.Event()   # stop() asked: write what is queued, then finish the file
         self._thread: threading.Thread | None = None
         self._sub: Any = None
         self.active = False
@@ -79,18 +94,45 @@ class BusCapture:
         self._sub = self.transport.subscribe(".*", None, self._on_message, raw=True)
 
     def _space_ok(self) -> bool:
+        where = self.writer.directory.absolute()
+        while not where.exists() and where != where.parent:
+            where = where.parent   # the directory is made at the first write: its file system is the parent's
         try:
-            free = shutil.disk_usage(self.writer.directory).free
+            free = self.disk_usage(where).free
         except OSError:
-            return True
+            return True   # cannot be asked: keep recording
         if free < self.min_free:
             self.stats.stopped_reason = (f"free space on {self.writer.directory} is {free / 1e6:.0f} MB, below the "
-                                         f"{self.min_free / 1e6:.0f} MB floor: recording stopped")
-            log.error(self.stats.stopped_reason)
+                                         f"{self.min_free / 1e6:.0f} MB floor (min_free_mb): recording stopped; "
+                                         "free some space and restart the recorder")
             return False
         return True
 
+    def _halt(self, reason: str) -> None:
+        """Stop recording on an error: refuse new messages, count the queued ones as dropped, finish the file."""
+        self.active = False
+        if reason:
+            self.stats.stopped_reason = reason
+        log.error(self.stats.stopped_reason)
+        while True:
+            try:
+                item = self._queue.get_nowait()
+            except queue.Empty:
+                break
+            if item is not None:
+                self.stats.dropped += 1
+        self._close_writer()
+
+    def _close_writer(self) -> None:
+        try:
+            self.writer.close()
+        except OSError as exc:
+            log.error("finishing %s failed: %s", self.writer.directory, exc)
+
     def _drain(self) -> None:
+        if not self._space_ok():
+            self._halt("")
+            return
         next_flush = time.monotonic() + self.flush_interval
         while True:
             timeout = max(0.0, next_flush - time.monotonic())
@@ -98,6 +140,8 @@ class BusCapture:
                 item = self._queue.get(timeout=timeout)
             except queue.Empty:
                 item = ()
+                if self._finish.is_set():
+                    break   # stop() could not queue its end marker (queue full), and everything is written
             if item is None:
                 break
             if item:
@@ -105,10 +149,8 @@ class BusCapture:
                 try:
                     self.writer.write(channel, data, t_ns)
                 except OSError as exc:
-                    self.stats.stopped_reason = f"cannot write {self.writer.directory}: {exc}; recording stopped"
-                    log.error(self.stats.stopped_reason)
-                    self.active = False
-                    break
+                    self._halt(f"cannot write {self.writer.directory}: {exc}; recording stopped")
+                    return
                 self.stats.written += 1
                 self.stats.per_channel[channel] = self.stats.per_channel.get(channel, 0) + 1
             if time.monotonic() >= next_flush:
@@ -116,28 +158,32 @@ class BusCapture:
                 try:
                     self.writer.flush()
                 except OSError as exc:
-                    self.stats.stopped_reason = f"cannot flush {self.writer.directory}: {exc}; recording stopped"
-                    log.error(self.stats.stopped_reason)
-                    self.active = False
-                    break
+                    self._halt(f"cannot flush {self.writer.directory}: {exc}; recording stopped")
+                    return
                 if not self._space_ok():
-                    self.active = False
-                    break
+                    self._halt("")
+                    return
+        self._close_writer()
 
     def stop(self) -> None:
-        """Stop capturing, write what is queued, finish the file."""
+        """Stop capturing, write what is queued and finish the file; never blocks on a full queue."""
         self.active = False
         if self._sub is not None:
             self.transport.unsubscribe(self._sub)
             self._sub = None
-        if self._thread is not None:
-            self._queue.put(None)
-            self._thread.join(timeout=30)
-            self._thread = None
-        try:
-            self.writer.close()
-        except OSError as exc:
-            log.error("closing %s failed: %s", self.writer.directory, exc)
+        thread, self._thread = self._thread, None
+        if thread is not None and thread.is_alive():
+            self._finish.set()
+            try:
+                self._queue.put_nowait(None)
+            except queue.Full:
+                pass   # the writer sees _finish once it has emptied the queue
+            thread.join(timeout=JOIN_TIMEOUT_S)
+            if thread.is_alive():
+                log.error("the recorder's writer did not finish %s within %g s (disk stalled?); the file is left "
+                          "unfinished: repair it with u2sa log recover", self.writer.directory, JOIN_TIMEOUT_S)
+                return
+        self._close_writer()   # nothing open when the writer thread finished it already
 
     @property
     def queue_depth(self) -> int:

@@ -1,0 +1,293 @@
+"""Replay devices for GPIO and PWM: a mock GPIO chip that plays recorded edges into the
+driver's input lines, and mock PWM outputs (a sysfs-shaped directory or a mock PCA9685)
+for a servo driver whose recorded commands come over the bus.
+
+GPIO. :class:`ReplayGpioDevice` serves the mock chip protocol (it *is* a
+``mock_devices.gpio_chip.MockGpioChip`` at a socket in the run directory), so the driver
+requests its lines exactly as from a real chip. Each recorded ``RawGpioEdge`` drives its
+input line when the player reaches it, stamped with the recorded kernel timestamp moved
+onto this machine's CLOCK_MONOTONIC by one offset: every interval between edges (a pulse
+width, a bounce) is the recorded one to the nanosecond. The offset is fixed at the first
+edge so that the edge stamps keep their recorded lag behind the driver's clock (the time
+between an edge and its tap, taken from each record's header). Lines start at the level the
+recording implies (the level before the window, or the opposite of a line's first edge).
+The drivers compare these stamps with their own clock (rc_mux's signal timeout, gpio_input's
+debounce), so a device with recorded edges is played in real time: the replay forces
+``--rate 1`` (hil/replay.py). What the driver writes to its output lines is compared by
+``--compare`` as the ``RawGpioWrite`` records it taps (the replay keeps ``record_raw`` on).
+
+PWM. A PWM output's input is not on the device at all: the driver is commanded over the
+bus (``ACTUATOR_CMD``, ``FAILSAFE``), and the replay republishes the recorded commands
+(hil/replay.py). The device only has to be there: every channel's ``address`` in the
+service's ``channels`` is pointed at a sysfs-shaped directory (``make_sysfs_pwm_tree``) or,
+for a PCA9685, at a mock PCA9685 on a mock I2C bus, so the same port code runs and taps
+the same ``RawPwmWrite`` records, which ``--compare`` compares with the recorded ones.
+"""
+
+from __future__ import annotations
+
+import re
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from u2sa_hw.messages import REGISTRY, MalformedMessage
+from u2sa_hw.recording.log_reader import LogFile
+
+from hil.replay_plan import ReplayError
+
+GPIO_MIN_LINES = 64   # lines of the replay chip (more when the log names higher offsets)
+
+
+class ReplayGpioDevice:
+    """A mock GPIO chip whose input lines replay a log's recorded edges (see the module docstring)."""
+
+    kind = "gpio"
+    streamed = True
+
+    def __init__(self, *, name: str, socket_path: Path | str) -> None:
+        self.name = name
+        self.socket_path = Path(socket_path)
+        self.chip: Any = None
+        self.timed = False                        # the window holds edges: play in real time
+        self._levels: dict[int, int] = {}         # line -> level at the window's start
+        self._num_lines = GPIO_MIN_LINES
+        self._min_lag_ns: int | None = None       # smallest (tap time - kernel stamp) in the window
+        self._offset_ns: int | None = None
+        self._lock = threading.Lock()
+        self.counts = {"edges": 0, "edges_on_outputs": 0, "repeated_levels": 0, "recorded_writes": 0,
+                       "output_changes": 0}
+
+    @property
+    def address(self) -> str:
+        """The chip address the driver's config names."""
+        return f"mock:{self.socket_path}"
+
+    def config_changes(self) -> dict[str, Any]:
+        """``chip`` -> this replay chip."""
+        return {"chip": self.address}
+
+    def preload(self, log_path: Path, *, start_ns: int, end_ns: int) -> None:
+        """Read the device's records once: start levels, the lines used, the taps' lag, whether edges are timed."""
+        first_in_window: dict[int, int] = {}
+        for m in LogFile(log_path).messages(rf"RAW\.{re.escape(self.name)}"):
+            if m.log_time_ns > end_ns:
+                break
+            try:
+                rec, _ = REGISTRY.decode(m.data)
+            except MalformedMessage:
+                continue
+            kind = type(rec).__name__
+            if kind not in ("RawGpioEdge", "RawGpioWrite"):
+                continue
+            line = int(rec.line)
+            self._num_lines = max(self._num_lines, line + 1)
+            if kind != "RawGpioEdge":
+                continue
+            level = 1 if rec.edge else 0
+            if m.log_time_ns < start_ns:
+                self._levels[line] = level
+                continue
+            self.timed = True
+            first_in_window.setdefault(line, level)
+            lag = _tap_lag_ns(rec)
+            if lag is not None and (self._min_lag_ns is None or lag < self._min_lag_ns):
+                self._min_lag_ns = lag
+        for line, first in first_in_window.items():
+            self._levels.setdefault(line, 1 - first)   # an edge to *first* means the line was at the other level
+
+    def start(self) -> None:
+        """Serve the replay chip with every recorded input line at its starting level."""
+        from mock_devices.gpio_chip import MockGpioChip
+
+        self.socket_path.parent.mkdir(parents=True, exist_ok=True)
+        self.chip = MockGpioChip(socket_path=str(self.socket_path), num_lines=self._num_lines,
+                                 label=f"replay-{self.name}", release_level=None)
+        for line, level in self._levels.items():
+            self.chip.drive_input(line, level)
+        self.chip.on_output(self._on_output)
+        self.chip.start()
+
+    def stop(self) -> None:
+        """Stop serving."""
+        if self.chip is not None:
+            self.chip.stop()
+            self.chip = None
+
+    def ready(self, pid: int | None, health: dict[str, str]) -> bool:
+        """The driver holds its lines (its health says ``port = open`` and the chip has a consumer)."""
+        return health.get("port") == "open" and self.chip is not None and bool(self.chip.consumers())
+
+    def feed(self, record: Any) -> None:
+        """Drive a recorded edge onto its line (stamped as described above); count a recorded write."""
+        kind = type(record).__name__
+        if kind == "RawGpioWrite":
+            self.counts["recorded_writes"] += 1
+            return
+        if kind != "RawGpioEdge":
+            return
+        kernel_ns = int(record.kernel_timestamp_ns)
+        if self._offset_ns is None:
+            lag = _tap_lag_ns(record)
+            behind = max(0, lag - self._min_lag_ns) if lag is not None and self._min_lag_ns is not None else 0
+            self._offset_ns = time.monotonic_ns() - behind - kernel_ns
+        try:
+            changed = self.chip.drive_input(int(record.line), 1 if record.edge else 0, kernel_ns + self._offset_ns)
+        except ValueError:   # the replayed driver uses this line as an output (a changed config)
+            self.counts["edges_on_outputs"] += 1
+            return
+        self.counts["edges"] += 1
+        if not changed:      # the recording missed the opposite edge (the kernel dropped it): no edge now
+            self.counts["repeated_levels"] += 1
+
+    def pending(self) -> int:
+        """Nothing waits: an edge is on the line (and in the driver's socket) once fed."""
+        return 0
+
+    def _on_output(self, line: int, value: int, timestamp_ns: int) -> None:
+        with self._lock:
+            self.counts["output_changes"] += 1
+
+    def report(self) -> dict[str, Any]:
+        """Edges played, recorded writes, and edges the replayed driver could not receive."""
+        c = dict(self.counts)
+        out: dict[str, Any] = {"kind": self.kind, **c, "divergences": c["edges_on_outputs"]}
+        if c["edges_on_outputs"]:
+            out["divergence"] = (f"{c['edges_on_outputs']} recorded edges fell on lines the replayed driver "
+                                 "drives as outputs (changed line settings?)")
+        return out
+
+
+def _tap_lag_ns(record: Any) -> int | None:
+    """How long after its kernel stamp an edge was tapped: header time (wall) - kernel stamp (monotonic).
+
+    The two clocks differ by a constant, so only differences between records mean something.
+    """
+    stamp_us = int(record.header.timestamp_us)
+    return stamp_us * 1000 - int(record.kernel_timestamp_ns) if stamp_us else None
+
+
+class PwmReplayRig:
+    """The mock PWM outputs of one servo service: one sysfs-shaped tree per recorded sysfs chip,
+    one mock I2C bus with a mock PCA9685 per recorded PCA9685 bus. Shared by the service's devices."""
+
+    def __init__(self, *, service: str, channels: Any, run_dir: Path) -> None:
+        from u2sa_hw.ports.errors import PortError
+        from u2sa_hw.ports.pca9685_pwm import SCHEME, parse_address
+
+        if not isinstance(channels, list) or not channels:
+            raise ReplayError(f"service '{service}': its config has no 'channels' list to point at replay outputs")
+        self.service = service
+        self._trees: dict[str, tuple[Path, int]] = {}          # recorded address -> (mock tree, channels)
+        self._buses: dict[str, tuple[Path, set[int]]] = {}     # recorded bus -> (socket, chip addresses)
+        self._addresses: dict[str, str] = {}                   # recorded address -> replay address
+        self._objects: list[Any] = []
+        self._started = False
+        self.channels: list[Any] = []
+        for i, table in enumerate(channels):
+            if not isinstance(table, dict) or not isinstance(table.get("address"), str):
+                self.channels.append(table)   # the driver refuses it with the reason when it starts
+                continue
+            address = table["address"]
+            if address not in self._addresses:
+                if address.startswith(SCHEME):
+                    try:
+                        bus, chip_address = parse_address(address, device=str(table.get("name", service)))
+                    except PortError as exc:
+                        raise ReplayError(f"service '{service}': channels[{i}]: {exc}") from None
+                    key = str(bus)
+                    sock, chips = self._buses.setdefault(key, (run_dir / f"pwm-i2c-{len(self._buses)}.sock", set()))
+                    chips.add(chip_address)
+                    self._addresses[address] = f"{SCHEME}mock:{sock}:0x{chip_address:02x}"
+                else:
+                    tree = run_dir / "pwm" / f"pwmchip{len(self._trees)}"
+                    self._trees[address] = (tree, 0)
+                    self._addresses[address] = str(tree)
+            if address in self._trees:
+                tree, npwm = self._trees[address]
+                channel = table.get("channel")
+                size = channel + 1 if isinstance(channel, int) and not isinstance(channel, bool) else 0
+                self._trees[address] = (tree, max(npwm, size, 16))
+            self.channels.append({**table, "address": self._addresses[address]})
+
+    def config_changes(self) -> dict[str, Any]:
+        """``channels`` with every address pointed at its replay output."""
+        return {"channels": self.channels}
+
+    def start(self) -> None:
+        """Create the trees and start the buses (once for all the service's devices)."""
+        if self._started:
+            return
+        from mock_devices.i2c_bus import MockI2cBus
+        from mock_devices.pca9685_chip import Pca9685Chip
+        from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
+
+        self._started = True
+        for tree, npwm in self._trees.values():
+            make_sysfs_pwm_tree(tree, npwm=npwm)
+        for sock, chips in self._buses.values():
+            bus = MockI2cBus(socket_path=str(sock))
+            for address in sorted(chips):
+                bus.add(Pca9685Chip(address=address))
+            bus.start()
+            self._objects.append(bus)
+
+    def stop(self) -> None:
+        """Stop the buses (the trees go with the run directory)."""
+        for bus in self._objects:
+            bus.stop()
+        self._objects.clear()
+
+
+class ReplayPwmDevice:
+    """One recorded PWM output (``RAW.<channel name>``): present for the driver, its writes counted."""
+
+    kind = "pwm"
+    streamed = True
+
+    def __init__(self, *, name: str, rig: PwmReplayRig) -> None:
+        self.name = name
+        self.rig = rig
+        self.counts = {"recorded_writes": 0}
+
+    def config_changes(self) -> dict[str, Any]:
+        """The service's ``channels``, pointed at the replay outputs."""
+        return self.rig.config_changes()
+
+    def start(self) -> None:
+        """Start the service's replay outputs (shared)."""
+        self.rig.start()
+
+    def stop(self) -> None:
+        """Stop them (shared; idempotent)."""
+        self.rig.stop()
+
+    def ready(self, pid: int | None, health: dict[str, str]) -> bool:
+        """The servo driver has opened this channel (``<name>.port = open`` in its health)."""
+        return health.get(f"{self.name}.port") == "open"
+
+    def feed(self, record: Any) -> None:
+        """A recorded write is the driver's output, not its input: only counted."""
+        self.counts["recorded_writes"] += 1
+
+    def pending(self) -> int:
+        """Nothing to take: the driver's input is the republished commands."""
+        return 0
+
+    def report(self) -> dict[str, Any]:
+        """Recorded writes passed (the writes themselves are compared by --compare)."""
+        return {"kind": self.kind, **self.counts, "divergences": 0}
+
+
+def make_device(kind: str, name: str, run_dir: Path, *, service: str, config: dict[str, Any],
+                rigs: dict[str, PwmReplayRig]) -> ReplayGpioDevice | ReplayPwmDevice:
+    """The replay device for a GPIO or PWM device of *service* (with *config*); *rigs* shares PWM outputs."""
+    if kind == "gpio":
+        return ReplayGpioDevice(name=name, socket_path=run_dir / f"gpio-{name}.sock")
+    if kind == "pwm":
+        rig = rigs.get(service)
+        if rig is None:
+            rig = rigs[service] = PwmReplayRig(service=service, channels=config.get("channels"), run_dir=run_dir)
+        return ReplayPwmDevice(name=name, rig=rig)
+    raise ReplayError(f"RAW.{name}: replaying {kind} devices is not supported")
