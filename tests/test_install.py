@@ -230,8 +230,13 @@ def test_every_recorder_gets_the_recorder_dropin_whatever_its_name(vehicle: Path
     dropin = (units / "u2sa@logbook.service.d/10-recorder.conf").read_text().splitlines()
     assert {"[Service]", "Nice=5", "IOSchedulingClass=best-effort", "TimeoutStopSec=15s"} <= set(dropin), dropin
     assert os.listdir(units / "u2sa@logbook.service.d") == ["10-recorder.conf"]
-    assert not (units / "u2sa@recorder.service.d").exists()
+    assert os.listdir(units / "u2sa@recorder.service.d") == ["20-after-recorder.conf"]
     assert (units / "u2sa.target.wants/u2sa@logbook.service").is_symlink()
+    # Every other enabled service (the HSM too) starts after the recorder is ready, so recordings replay.
+    for unit in ("u2sa@estimator.service", "u2sa@gps.service", "u2sa@recorder.service", "u2sa-hsm.service"):
+        after = (units / f"{unit}.d/20-after-recorder.conf").read_text().splitlines()
+        assert "[Unit]" in after and "After=u2sa@logbook.service" in after, (unit, after)
+    assert not (units / "u2sa@spare.service.d").exists()   # disabled: nothing to order
     # Renamed: the drop-in moves with the service, nothing is left under the old name.
     vehicle.write_text(PROFILE + '\n[services.blackbox]\nkind = "recorder"\n')
     tree = install(vehicle=vehicle, root=root)
@@ -240,6 +245,11 @@ def test_every_recorder_gets_the_recorder_dropin_whatever_its_name(vehicle: Path
     assert not (units / "u2sa@logbook.service.d").exists()
     assert any(c.action == "removed" and c.path.endswith("u2sa@logbook.service.d/10-recorder.conf")
                for c in tree.changes)
+    assert "After=u2sa@blackbox.service" in (units / "u2sa@gps.service.d/20-after-recorder.conf").read_text()
+    # No recorder left: no ordering left either.
+    vehicle.write_text(PROFILE)
+    install(vehicle=vehicle, root=root)
+    assert not list(units.glob("*.d/20-after-recorder.conf"))
 
 
 def test_a_service_dropped_from_the_profile_is_disabled(vehicle: Path, root: Path) -> None:

@@ -19,6 +19,7 @@ from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus_client import BusClient
 from u2sa_hw.launcher import Launcher, LauncherBusy, LauncherClient, LauncherError, RestartPolicy, SupervisedProcess
+from u2sa_hw.launcher.launcher import u2sa_command
 from u2sa_hw.vehicle import load_profile
 
 
@@ -227,3 +228,43 @@ def test_killed_launcher_takes_its_children_and_leaves_a_reusable_socket(tmp_pat
     second = launch(profile)
     wait_until(lambda: (s := second.status()) and s["est"]["state"] == "running", timeout=20,
                message="a new launcher on the same vehicle")
+
+
+def test_a_recorder_starts_first_and_the_others_once_it_is_ready(tmp_path: Path, lcm_url: str) -> None:
+    """READY=1 reaches the launcher's own NOTIFY_SOCKET with the sender's pid; the others wait for the recorder's."""
+    profile = load_profile(write_profile(tmp_path, lcm_url, {"est": "state_estimator", "rec": "recorder",
+                                                              "world": "world_modeler"}))
+    lines: list[tuple[str, str]] = []
+    launcher = Launcher(profile, control=False, output=lambda n, line: lines.append((n, line)))
+    assert launcher.start_first == ["rec"]
+    launcher.start()
+    try:
+        wait_until(lambda: all(s.ready for s in launcher.status()), timeout=30,
+                   message="every child to report READY=1 to the launcher")
+        said = [line for name, line in lines if name == "launcher"]
+        order = [next(i for i, line in enumerate(said) if line.startswith(prefix))
+                 for prefix in ("rec started", "rec ready after", "starting the others now that rec is ready")]
+        assert order == sorted(order), said
+        others = [i for i, line in enumerate(said) if line.startswith(("est started", "world started"))]
+        assert len(others) == 2 and min(others) > order[1], said
+        assert all(s.status_text for s in launcher.status())   # STATUS= arrives too
+    finally:
+        assert launcher.stop(timeout=30) == 0
+
+
+def test_a_first_service_that_never_gets_ready_holds_the_others_only_for_first_wait_s(tmp_path: Path,
+                                                                                      lcm_url: str) -> None:
+    profile = load_profile(write_profile(tmp_path, lcm_url, {"rec": "recorder", "est": "state_estimator"}))
+    lines: list[tuple[str, str]] = []
+    mute = [sys.executable, "-c", "import time; time.sleep(60)"]   # runs, never says READY=1
+    launcher = Launcher(profile, control=False, first_wait_s=1.0, grace_s=1.0,
+                        output=lambda n, line: lines.append((n, line)),
+                        command=lambda spec: mute if spec.name == "rec" else
+                        [*u2sa_command(), "service", spec.name, "--vehicle", str(profile.path)])
+    launcher.start()
+    try:
+        wait_until(lambda: {s.name: s.ready for s in launcher.status()} == {"rec": False, "est": True}, timeout=30,
+                   message="the estimator started and ready while the muted recorder never is")
+        assert ("launcher", "rec not ready after 1 s: starting the others anyway") in lines
+    finally:
+        launcher.stop(timeout=30)

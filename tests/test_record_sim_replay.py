@@ -118,3 +118,17 @@ def test_killed_recorder_log_recovers_and_replays_with_no_differences(recordings
     compared = {line.split(" [", 1)[1].split("]", 1)[0] for line in res.stdout.splitlines() if " [" in line
                 and line.rstrip().endswith("same")}
     assert DRIVERS <= compared, res.stdout
+
+
+@pytest.mark.timeout(300)
+def test_the_simulations_own_recording_replays_with_no_differences(recordings: SimRecordings) -> None:
+    """The launcher starts the recorder first and the drivers once it is ready, so its log holds their start-up."""
+    files = sorted((recordings.sim_out / "recording").glob("*.mcap"))
+    work = recordings.workdir
+    res = cli("replay", str(files[0]), "--fast", "--compare", "-o", str(work / "sim-replayed.mcap"), cwd=work,
+              timeout=240)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "result: no differences" in res.stdout
+    compared = {line.split(" [", 1)[1].split("]", 1)[0] for line in res.stdout.splitlines() if " [" in line
+                and line.rstrip().endswith("same")}
+    assert DRIVERS <= compared, res.stdout

@@ -124,13 +124,29 @@ def _strings(value: Any) -> list[str]:
     return []
 
 
+AFTER_RECORDER_DROPIN = """\
+# Written by `u2sa install`: the vehicle has a recorder, so {name} starts once the recorder
+# is ready (READY=1 after it subscribed): the recording then holds this service's start-up
+# I/O (an IMU's identification reads, a motor controller's arming), which replay needs.
+# u2sa run does the same. Only ordering: a recorder that fails to start holds nobody back.
+[Unit]
+After={recorders}
+"""
+
+
 def unit_dropins(profile: VehicleProfile) -> dict[str, bytes]:
-    """Per-service drop-ins the profile calls for: a recorder's priorities, sysfs PWM's writable /sys."""
+    """Per-service drop-ins the profile calls for: a recorder's priorities, the others ordered after it,
+    sysfs PWM's writable /sys."""
     dropins = {}
-    for unit in service_units(profile):
+    units = service_units(profile)
+    recorders = [u.unit for u in units if profile.services[u.name].kind == RECORDER_KIND]
+    for unit in units:
         spec = profile.services[unit.name]
         if spec.kind == RECORDER_KIND:
             dropins[f"{UNIT_DIR}/{unit.unit}.d/10-recorder.conf"] = RECORDER_DROPIN.format(name=unit.unit).encode()
+        elif recorders:
+            dropins[f"{UNIT_DIR}/{unit.unit}.d/20-after-recorder.conf"] = AFTER_RECORDER_DROPIN.format(
+                name=unit.unit, recorders=" ".join(recorders)).encode()
         pwm = [s for s in _strings(spec.settings) if s.startswith(PWM_SYSFS)]
         if pwm and unit.unit != HSM_UNIT:
             dropins[f"{UNIT_DIR}/{unit.unit}.d/50-pwm-sysfs.conf"] = PWM_DROPIN.format(path=pwm[0]).encode()

@@ -5,6 +5,11 @@ One event-loop thread starts the children (``u2sa service NAME --vehicle FILE``)
 their output and prefixes it with the service name, restarts crashed ones with the
 backoff of :class:`RestartPolicy`, answers the control socket (so the HSM can ask for a
 restart), and on stop sends SIGTERM, then SIGKILL after the grace period.
+
+The children report readiness on the launcher's own ``$NOTIFY_SOCKET`` (:mod:`.notify`), as
+they do to systemd. Services of kind ``recorder`` start first and the others once they are
+ready (or after ``first_wait_s``): a recording then holds every service's start-up I/O (an
+IMU's identification reads, a motor controller's arming), which replay needs.
 """
 
 from __future__ import annotations
@@ -19,8 +24,10 @@ from pathlib import Path
 from typing import Any, Callable
 
 from u2sa_hw.launcher.control import SOCKET_ENV, ControlServer, LauncherError, default_socket_path
+from u2sa_hw.launcher.notify import NotifyListener
 from u2sa_hw.launcher.output import LineSink, LineSplitter, PrefixedOutput
-from u2sa_hw.launcher.process import BACKOFF, FAILED, RUNNING, RestartPolicy, ProcessStatus, SupervisedProcess
+from u2sa_hw.launcher.process import (BACKOFF, EXITED, FAILED, RUNNING, STOPPED, ProcessStatus, RestartPolicy,
+                                     SupervisedProcess)
 from u2sa_hw.vehicle import ServiceSpec, VehicleProfile
 
 DeathCallback = Callable[[ProcessStatus, str], None]
@@ -28,6 +35,7 @@ DeathCallback = Callable[[ProcessStatus, str], None]
 
 LAUNCHER_NAME = "launcher"
 _MAX_WAIT = 0.1   # loop wake-up at least this often to notice deaths and deadlines
+RECORDER_KIND = "recorder"
 
 
 def u2sa_command() -> list[str]:
@@ -58,7 +66,8 @@ class Launcher:
                  output: LineSink | None = None, on_death: DeathCallback | None = None,
                  control: bool = True, socket_path: Path | None = None,
                  command: Callable[[ServiceSpec], list[str]] | None = None,
-                 env: dict[str, str] | None = None) -> None:
+                 env: dict[str, str] | None = None, start_first: list[str] | None = None,
+                 first_wait_s: float = 15.0) -> None:
         if profile.path is None:
             raise ValueError("the launcher needs a vehicle profile file (--vehicle PATH)")
         specs = select_services(profile, only)
@@ -68,13 +77,20 @@ class Launcher:
         self.output = output or PrefixedOutput(names=[s.name for s in specs])
         self.on_death = on_death
         self.socket_path = (socket_path or default_socket_path(profile.data_dir)) if control else None
-        child_env = dict(os.environ, PYTHONUNBUFFERED="1", **(env or {}))
+        self.notify = NotifyListener()
+        child_env = dict(os.environ, PYTHONUNBUFFERED="1", **(env or {}), NOTIFY_SOCKET=self.notify.address)
         if self.socket_path is not None:
             child_env[SOCKET_ENV] = str(self.socket_path)
         vehicle = str(profile.path.resolve())
         build = command or (lambda spec: [*u2sa_command(), "service", spec.name, "--vehicle", vehicle])
         self.processes: dict[str, SupervisedProcess] = {
             s.name: SupervisedProcess(s.name, build(s), policy=policy, env=child_env) for s in specs}
+        names = [s.name for s in specs]
+        first = start_first if start_first is not None else [s.name for s in specs if s.kind == RECORDER_KIND]
+        self.start_first = [n for n in first if n in names]
+        self.first_wait_s = first_wait_s
+        self._holding = bool(self.start_first) and len(self.start_first) < len(names)
+        self._hold_since: float | None = None
         self._lock = threading.RLock()
         self._wake_r, self._wake_w = os.pipe2(os.O_CLOEXEC | os.O_NONBLOCK)
         self._stop_reason: str | None = None
@@ -221,6 +237,7 @@ class Launcher:
     def _loop(self) -> None:
         sel = selectors.DefaultSelector()
         sel.register(self._wake_r, selectors.EVENT_READ, "wake")
+        sel.register(self.notify.sock, selectors.EVENT_READ, "notify")
         if self._server is not None:
             sel.register(self._server.sock, selectors.EVENT_READ, "accept")
         try:
@@ -237,6 +254,7 @@ class Launcher:
             if self._server is not None:
                 self._server.close()
             sel.close()
+            self.notify.close()
             self.finished.set()
 
     def _on_ready(self, sel: selectors.BaseSelector, key: selectors.SelectorKey) -> None:
@@ -246,6 +264,8 @@ class Launcher:
                 os.read(self._wake_r, 4096)
             except BlockingIOError:
                 pass
+        elif kind == "notify":
+            self._on_notifications()
         elif kind == "accept":
             conn = self._server.accept() if self._server else None
             if conn is not None:
@@ -256,6 +276,38 @@ class Launcher:
                 self._server.drop(kind[1])
         elif kind[0] == "out":
             self._read_output(sel, key.fd)
+
+    def _on_notifications(self) -> None:
+        by_pid = {p.pid: p for p in self.processes.values() if p.pid is not None}
+        for note in self.notify.read():
+            p = by_pid.get(note.pid)
+            if p is None:
+                continue   # a grandchild, or a child already reaped
+            if "STATUS" in note.fields:
+                p.status_text = note.fields["STATUS"]
+            if note.fields.get("READY") == "1" and not p.ready:
+                p.ready = True
+                if p.name in self.start_first:
+                    self.say(f"{p.name} ready after {p.clock() - p.started_at:.1f} s")
+
+    def _still_holding(self) -> bool:
+        """True while the start_first services are neither ready nor done and first_wait_s has not passed."""
+        if not self._holding:
+            return False
+        now = time.monotonic()
+        if self._hold_since is None:
+            self._hold_since = now
+        waiting = [n for n in self.start_first
+                   if not self.processes[n].ready and self.processes[n].state not in (FAILED, EXITED, STOPPED)]
+        if waiting and now - self._hold_since < self.first_wait_s:
+            return True
+        self._holding = False
+        if waiting:
+            self.say(f"{', '.join(waiting)} not ready after {self.first_wait_s:g} s: starting the others anyway")
+        else:
+            self.say(f"starting the others now that {', '.join(self.start_first)} "
+                     f"{'is' if len(self.start_first) == 1 else 'are'} ready")
+        return False
 
     def _read_output(self, sel: selectors.BaseSelector, fd: int) -> None:
         pipe, splitter = self._outputs[fd]
@@ -306,8 +358,9 @@ class Launcher:
                 self.say(f"{p.name} did not stop within {self.grace_s:g} s: SIGKILL")
         if self._stopping:
             return
+        holding = self._still_holding()
         for p in self.processes.values():
-            if p.due():
+            if p.due() and not (holding and p.name not in self.start_first):
                 self._spawn(sel, p)
 
     def _spawn(self, sel: selectors.BaseSelector, p: SupervisedProcess) -> None:

@@ -109,6 +109,8 @@ class ProcessStatus:
     uptime_s: float
     last_exit: str
     reason: str
+    ready: bool = False    # this run sent READY=1 (on the launcher's NOTIFY_SOCKET)
+    status_text: str = ""  # its latest STATUS=
 
     def as_dict(self) -> dict[str, object]:
         """JSON-ready form."""
@@ -150,6 +152,8 @@ class SupervisedProcess:
         self.restart_pending = False
         self.last_exit = ""
         self.reason = ""
+        self.ready = False            # the current run said READY=1
+        self.status_text = ""         # ... and its latest STATUS=
 
     # -- observing -----------------------------------------------------------------
     @property
@@ -164,7 +168,8 @@ class SupervisedProcess:
                              run_id=self.run_id, restarts=self.restarts, quick_deaths=self.quick_deaths,
                              failures=self.failures_in_window(), backoff_s=self.backoff_s,
                              uptime_s=now - self.started_at if self.proc else 0.0,
-                             last_exit=self.last_exit, reason=self.reason)
+                             last_exit=self.last_exit, reason=self.reason, ready=self.ready,
+                             status_text=self.status_text)
 
     def due(self) -> bool:
         """True when the child should be (re)started now."""
@@ -189,6 +194,8 @@ class SupervisedProcess:
         self.state = RUNNING
         self.kill_at = None
         self.reason = ""
+        self.ready = False
+        self.status_text = ""
         return self.proc
 
     def failed_to_spawn(self, error: str) -> str:
