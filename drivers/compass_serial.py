@@ -176,6 +176,9 @@ class SerialCompassDriver(SerialLineSensor):
             sentence = parse_sentence(line)
         except BadChecksum as exc:
             self.count_bad_checksum(exc.kind, str(exc))
+            done = self.epochs.dropped(exc.kind)
+            if done is not None:
+                self._publish_epoch(done)
             return
         except SentenceError as exc:
             self.count_malformed(str(exc))

@@ -57,9 +57,10 @@ class GpioOutputDriver(Actuator):
         c = self.config
         self.lines_by_name, self.safe_levels = self.parse_config(c)
         self.levels = dict(self.safe_levels)  # what each line was last driven to (or opened with)
+        self.unapplied = 0  # writes (commands or neutral) that could not reach the chip
         self.device = c["device_name"].strip() or name
         self.gpio = GpioLineSet(self, chip=c["chip"], device=self.device, initial_outputs=self._initial_outputs,
-                                record_raw=c["record_raw"])
+                                record_raw=c["record_raw"], on_open=self._on_open)
 
     def parse_config(self, c: Mapping[str, Any]) -> tuple[dict[str, int], dict[str, int]]:
         """Lines by name and the safe level of each; ConfigError names the field and the fix."""
@@ -75,8 +76,10 @@ class GpioOutputDriver(Actuator):
         return config_problem(self, name, value, self.parse_config)
 
     def _initial_outputs(self) -> dict[int, int]:
-        self.levels = dict(self.safe_levels)  # a (re)opened port starts safe
-        return {self.lines_by_name[n]: v for n, v in self.safe_levels.items()}
+        return {self.lines_by_name[n]: v for n, v in self.safe_levels.items()}  # a (re)opened port starts safe
+
+    def _on_open(self, port: GpioPort) -> None:
+        self.levels = dict(self.safe_levels)
 
     def on_config_change(self, name: str, value: Any) -> None:
         """Lines and levels apply at the next start."""
@@ -89,6 +92,8 @@ class GpioOutputDriver(Actuator):
     def _drive(self, name: str, level: int) -> None:
         if self.gpio.set(self.lines_by_name[name], level):
             self.levels[name] = level
+        else:
+            self.unapplied += 1  # the chip is down or the write failed: the line is not at this level
 
     def on_percentage(self, actuator: str, percent: float) -> None:
         """On at 50 % and above, off below."""
@@ -100,9 +105,11 @@ class GpioOutputDriver(Actuator):
             self._drive(name, level)
 
     def run(self) -> None:
-        """Keep the port open and apply the command timeout."""
+        """Keep the port open (noticing a lost chip without waiting for a write) and apply the command timeout."""
         while self.wait(0.05):
-            self.gpio.port()
+            port = self.gpio.port()
+            if port is not None:
+                self.gpio.read_edges(port, 0.0)  # no inputs: raises (and marks the port lost) only if the chip is gone
             self.check_command_timeout()
             if self.failsafe_active:
                 continue
@@ -116,8 +123,10 @@ class GpioOutputDriver(Actuator):
             self.gpio.close()
 
     def health_details(self) -> dict[str, Any]:
-        """Command counters, port state and each output's level."""
-        return {**super().health_details(), **self.gpio.health(), **{n: v for n, v in self.levels.items()}}
+        """Command counters, port state, unapplied writes and each output's level ("unknown" while down)."""
+        known = self.gpio.is_open  # with the chip gone, nobody knows what the lines are doing
+        return {**super().health_details(), **self.gpio.health(), "unapplied": self.unapplied,
+                **{n: v if known else "unknown" for n, v in self.levels.items()}}
 
 
 class DebouncedInput:

@@ -75,6 +75,9 @@ class GpsNmeaDriver(SerialLineSensor):
             sentence = parse_sentence(line)
         except BadChecksum as exc:
             self.count_bad_checksum(exc.kind, str(exc))
+            done = self.epochs.dropped(exc.kind)
+            if done is not None:
+                self.publish_epoch(done)
             return
         except SentenceError as exc:
             self.count_malformed(str(exc))

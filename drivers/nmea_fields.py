@@ -270,6 +270,16 @@ class EpochCollector:
             self._last_kinds = (kinds, first)
         return done
 
+    def dropped(self, kind: str) -> Epoch | None:
+        """A *kind* sentence was dropped (bad checksum). If it would have started a new epoch
+        (a kind the pending epoch already holds), the pending epoch is over: end and return it,
+        so a run of corrupted sentences does not hold the last good epoch back."""
+        cur = self._pending
+        if cur is None or kind in self.repeatable or kind not in self._pending_kinds:
+            return None
+        self._ended_early = None
+        return self._end()
+
     def flush(self) -> Epoch | None:
         """End the pending epoch (the line went quiet); returns it, or None when there is none."""
         self._ended_early = None

@@ -31,6 +31,7 @@ have; the others keep working. With ``record_raw`` each channel's writes are pub
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 import typing
@@ -39,10 +40,12 @@ from typing import Any
 
 from u2sa_hw.abstract import Actuator
 from u2sa_hw.config import ConfigError, field
-from u2sa_hw.ports.errors import PortClosed, PortIOError, PortUnavailable
+from u2sa_hw.ports.errors import PortError, PortUnavailable
 from u2sa_hw.ports.pwm_port import PwmChannel, open_pwm
 from u2sa_hw.ports.reconnect import ReconnectingPort
 from u2sa_hw.ports.tap import raw_channel
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -145,6 +148,7 @@ class ServoOutput:
         self.output = 0.0  # percent being output (slewed toward target)
         self.pulse_us: float | None = None  # pulse last written
         self.write_errors = 0
+        self.last_error = ""  # the latest write or open failure, kept after recovery
         self._tap = tap
         self.port: ReconnectingPort[PwmChannel] = ReconnectingPort(self._open, device=spec.name)
 
@@ -175,16 +179,24 @@ class ServoOutput:
         try:
             pwm = self.port.get()
         except PortUnavailable:
+            if self.port.last_error is not None:
+                self._note(str(self.port.last_error))
             return
         for attempt in (1, 2):  # once more at once: a PCA9685 channel reopens its bus on the next call
             try:
                 pwm.set_pulse_us(pulse)
                 self.pulse_us = pulse
                 return
-            except (PortClosed, PortIOError) as exc:
+            except PortError as exc:  # closed, I/O, timeout, or (PCA9685) its bus cannot be reopened
                 self.write_errors += 1
+                self._note(str(exc))
                 if attempt == 2:
                     self.port.lost(exc, port=pwm)
+
+    def _note(self, error: str) -> None:
+        if error != self.last_error:  # a failure repeated every update is logged once
+            log.warning("%s: %s", self.spec.name, error)
+        self.last_error = error
 
 
 class PwmServoDriver(Actuator):
@@ -258,7 +270,8 @@ class PwmServoDriver(Actuator):
         self.status = "degraded" if down or self.failsafe_active else "ok"
 
     def health_details(self) -> dict[str, Any]:
-        """Per channel: pulse, output and target percent, port state and last error."""
+        """Per channel: pulse, output and target percent, port state, errors (failed writes plus losses)
+        and the last write or open failure."""
         details = super().health_details()
         for name, out in self.outputs.items():
             details[f"{name}.pulse_us"] = f"{out.pulse_us:.1f}" if out.pulse_us is not None else ""
@@ -266,8 +279,8 @@ class PwmServoDriver(Actuator):
             details[f"{name}.target"] = f"{out.target:.1f}"
             details[f"{name}.port"] = out.port.state
             details[f"{name}.errors"] = out.write_errors + out.port.losses
-            if out.port.last_error is not None:
-                details[f"{name}.last_error"] = str(out.port.last_error)
+            if out.last_error:
+                details[f"{name}.last_error"] = out.last_error
         return details
 
     def kill(self) -> None:

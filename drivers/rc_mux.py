@@ -85,6 +85,7 @@ class RcMuxDriver(Sensor):
         self.select_level: int | None = None
         self.mismatch, self._mismatch_since = False, None
         self.mismatches = self.enable_changes = 0
+        self.signal_losses = 0  # times the mode went from manual/autonomous to no signal
         self._stopping = False
         self._enable_lock = threading.RLock()
         self._changed = threading.Event()  # something a subscriber should hear about at once
@@ -218,7 +219,12 @@ class RcMuxDriver(Sensor):
 
     def _mode_changed(self) -> None:
         mode = self.filter.mode
-        self.logger.info("RC mode %s", MODE_NAMES[mode])
+        if mode == MODE_NO_SIGNAL:
+            self.signal_losses += 1
+            self.logger.warning("RC mode %s: no valid mode pulse for %.0f ms (signal loss %d)", MODE_NAMES[mode],
+                                self.filter.signal_timeout_ns / 1e6, self.signal_losses)
+        else:
+            self.logger.info("RC mode %s", MODE_NAMES[mode])
         with self._enable_lock:
             if mode == MODE_MANUAL:
                 self.armed = True
@@ -292,6 +298,7 @@ class RcMuxDriver(Sensor):
             "select_readback": "none" if self.select_level is None else self.select_level,
             "select_mismatch": self.mismatch, "select_mismatches": self.mismatches,
             "mode_frames": self.filter.frames, "mode_changes": self.filter.changes,
+            "signal_losses": self.signal_losses,
             "enable_changes": self.enable_changes, "pulses": self.meter.pulses,
             "rejected": self.meter.rejected_total,
             "rejected_kinds": ",".join(f"{k}:{n}" for k, n in sorted(self.meter.rejected.items())),

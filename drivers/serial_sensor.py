@@ -13,6 +13,7 @@ Its status is ``ok`` or ``degraded``; the reason (port down, no data, or the sub
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from typing import Any, ClassVar
 
@@ -24,7 +25,10 @@ from u2sa_hw.ports.serial_port import SerialPort, open_serial
 from u2sa_hw.ports.tap import raw_channel
 
 BAUDRATES = (4800, 9600, 19200, 38400, 57600, 115200)
-_PORT_FIELDS = ("port", "baudrate", "device_name", "epoch_gap_s")
+BYTESIZES = (5, 6, 7, 8)
+PARITIES = ("N", "E", "O", "M", "S")  # none, even, odd, mark, space (pyserial's letters)
+STOPBITS = (1.0, 1.5, 2.0)
+_PORT_FIELDS = ("port", "baudrate", "bytesize", "parity", "stopbits", "device_name", "epoch_gap_s")
 
 
 class SerialLineSensor(ProprioceptiveSensor):
@@ -33,6 +37,9 @@ class SerialLineSensor(ProprioceptiveSensor):
     CONFIG = (
         field("port", "", "device path (/dev/u2sa/NAME) or pyserial URL"),
         field("baudrate", 9600, "one of 4800, 9600, 19200, 38400, 57600, 115200"),
+        field("bytesize", 8, "data bits: 5, 6, 7 or 8"),
+        field("parity", "N", "parity: N (none), E (even), O (odd), M (mark) or S (space)"),
+        field("stopbits", 1.0, "stop bits: 1, 1.5 or 2"),
         field("device_name", "", "device name in errors and RAW.<device> (empty: the service name)"),
         field("record_raw", False, "publish every chunk read as RawSerial on RAW.<device>"),
         field("stale_after_s", 2.0, "no valid sentence for this long -> degraded, data stale"),
@@ -48,6 +55,9 @@ class SerialLineSensor(ProprioceptiveSensor):
         self.ignored = 0
         self.published = 0
         self.noise_bytes = 0
+        self.stale_events = 0  # times the data went from fresh to stale (the device fell silent)
+        self._stale = False
+        self._stale_lock = threading.Lock()
         self.bad_checksums: dict[str, int] = {}
         self.last_valid: float | None = None  # monotonic time of the last sentence that parsed
         self._started = time.monotonic()
@@ -65,9 +75,28 @@ class SerialLineSensor(ProprioceptiveSensor):
         if baud not in BAUDRATES:
             raise ConfigError(f"service '{self.name}': baudrate {baud} is not supported; use one of "
                               f"{', '.join(map(str, BAUDRATES))} (the device's configured rate)")
+        self._check_framing()
         for key in ("stale_after_s", "epoch_gap_s"):
             if not self.config.get(key) > 0:
                 raise ConfigError(f"service '{self.name}': {key} must be > 0, got {self.config.get(key)!r}")
+
+    def _check_framing(self) -> None:
+        bytesize, parity, stopbits = (self.config.get(k) for k in ("bytesize", "parity", "stopbits"))
+        if bytesize not in BYTESIZES:
+            raise ConfigError(f"service '{self.name}': bytesize {bytesize!r} is not supported; use one of "
+                              f"{', '.join(map(str, BYTESIZES))} (the device's data bits)")
+        if parity not in PARITIES:
+            raise ConfigError(f"service '{self.name}': parity {parity!r} is not supported; use one of "
+                              f"{', '.join(PARITIES)} (none, even, odd, mark, space)")
+        if stopbits not in STOPBITS:
+            raise ConfigError(f"service '{self.name}': stopbits {stopbits!r} is not supported; use one of "
+                              "1, 1.5, 2")
+
+    @property
+    def framing(self) -> str:
+        """The configured framing as data bits, parity, stop bits (``8N1``, ``7E2``, ``8N1.5``)."""
+        stopbits = self.config.get("stopbits")
+        return f"{self.config.get('bytesize')}{self.config.get('parity')}{stopbits:g}"
 
     @property
     def device_name(self) -> str:
@@ -75,7 +104,7 @@ class SerialLineSensor(ProprioceptiveSensor):
         return self.config.get("device_name").strip() or self.name
 
     def on_config_change(self, name: str, value: Any) -> None:
-        """Check the new config; a port, baud rate, device name or gap change reopens the port."""
+        """Check the new config; a port, framing, device name or gap change reopens the port."""
         self.check_config()
         if name in _PORT_FIELDS:
             self._reopen = True
@@ -84,7 +113,10 @@ class SerialLineSensor(ProprioceptiveSensor):
 
     # -- port ----------------------------------------------------------------------------------
     def _open(self) -> SerialPort:
+        stopbits = self.config.get("stopbits")
         return open_serial(self.config.get("port"), device=self.device_name, baudrate=self.config.get("baudrate"),
+                           bytesize=self.config.get("bytesize"), parity=self.config.get("parity"),
+                           stopbits=int(stopbits) if stopbits.is_integer() else stopbits,
                            timeout=self.config.get("epoch_gap_s"), tap=self._tap)
 
     def _tap(self, record: t.RawSerial) -> None:
@@ -204,6 +236,15 @@ class SerialLineSensor(ProprioceptiveSensor):
             reason = f"no data for {age:.1f} s"
         else:
             reason = self.problem()
+        stale = age is not None and age > limit
+        with self._stale_lock:  # the run loop and the health thread both get here
+            went_stale = stale and not self._stale
+            self._stale = stale
+            if went_stale:
+                self.stale_events += 1
+        if went_stale:
+            self.logger.warning("%s: no valid sentence for %.1f s (data stale; counted in stale_events)",
+                                self.device_name, age)
         self._problem = reason
         if self.status != "stopping":
             self.status = "degraded" if reason else "ok"
@@ -215,15 +256,18 @@ class SerialLineSensor(ProprioceptiveSensor):
         port = self._port
         age = self.data_age()
         stale = age is None or age > self.config.get("stale_after_s")
+        open_port = port.port if port else None  # the framing pyserial applied, once open
         details: dict[str, Any] = {
             "degraded_reason": reason,
             "port": port.state if port else "none",
             "address": self.config.get("port"),
             "baudrate": self.config.get("baudrate"),
+            "framing": open_port.framing if open_port is not None else self.framing,
             "port_losses": port.losses if port else 0,
             "port_error": str(port.last_error) if port and port.state != "open" and port.last_error else "",
             "data": "none yet" if age is None else ("stale" if stale else "ok"),
             "last_data_age_s": "" if age is None else f"{age:.2f}",
+            "stale_events": self.stale_events,
             "lines": self.lines,
             "published": self.published,
             "bad_checksums": sum(self.bad_checksums.values()),

@@ -15,8 +15,10 @@ The mock mirrors the service's own effective config (its defaults, the profile's
 address picks the mock's address under the simulation's device directory
 (``/dev/u2sa/gps`` -> ``<dir>/gps``, I2C bus 1 -> ``<dir>/i2c-1.sock`` shared by every chip
 on bus 1, ``/dev/gpiochip0`` -> ``<dir>/gpiochip0.sock``, CAN ``can0`` -> python-can
-``udp_multicast`` on the simulation's UDP port) and each build returns the settings that
-point the service at it (``overrides``).
+``udp_multicast`` on the simulation's UDP port, ``/sys/class/pwm/pwmchip0`` -> the
+directory ``<dir>/pwmchip0``) and each build returns the settings that point the service
+at it (``overrides``). A pwm_servo service with both PCA9685 and sysfs channels takes one
+table of each kind; the second builds on the channels the first rewrote.
 """
 
 from __future__ import annotations
@@ -35,7 +37,9 @@ from mock_devices.pca9685_chip import Pca9685Chip
 from mock_devices.rc_receiver import MuxMock, RcReceiverMock
 from mock_devices.serial_compass import NmeaCompassDevice, Os5000CompassDevice
 from mock_devices.sim_context import CAN_GROUP, DeviceError, MockContext
+from mock_devices.sysfs_pwm import SysfsPwmChip
 from mock_devices.vesc_node import VescCanNode
+from u2sa_hw.ports.pwm_port import is_real_sysfs
 
 SERIAL_KINDS = {"nmea_gps": NmeaGpsDevice, "nmea_compass": NmeaCompassDevice, "os5000_compass": Os5000CompassDevice}
 COMPASS_FORMATS = {"nmea_compass": "nmea", "os5000_compass": "os5000"}
@@ -139,11 +143,17 @@ def build_imu_chip(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
                       f"chip 0x{address:02x} on {bus.address}")
 
 
+def _pwm_channels(spec: DeviceSpec, ctx: MockContext, what: str) -> list[dict[str, Any]]:
+    """The service's channels, as an earlier PWM mock of the same service left them (mixed chips)."""
+    channels = ctx.pwm_channels.get(spec.service, spec.setting("channels"))
+    if not isinstance(channels, list) or not channels:
+        raise spec.fail(f"service '{spec.service}' has no 'channels' to put on {what}")
+    return [dict(table) if isinstance(table, dict) else table for table in channels]
+
+
 def build_pca9685(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     """PCA9685 chips for every ``pca9685:<bus>:<addr>`` channel of a pwm_servo service."""
-    channels = spec.setting("channels")
-    if not isinstance(channels, list) or not channels:
-        raise spec.fail(f"service '{spec.service}' has no 'channels' to put on a PCA9685")
+    channels = _pwm_channels(spec, ctx, "a PCA9685")
     rewritten, chips, made = [], [], set()
     for index, table in enumerate(channels):
         table = dict(table)
@@ -164,9 +174,40 @@ def build_pca9685(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     if not chips and not any(str(t.get("address", "")).startswith("pca9685:mock:") for t in rewritten):
         raise spec.fail(f"no channel of service '{spec.service}' has a pca9685:<bus>:<address> address")
     ctx.pwm_chips[spec.name] = chips
-    addresses = sorted({t["address"] for t in rewritten})
+    ctx.pwm_channels[spec.service] = rewritten
+    addresses = sorted({t["address"] for t in rewritten if str(t["address"]).startswith("pca9685:")})
     return MockDevice(spec.name, spec.mock, spec.service, ", ".join(addresses), {"channels": rewritten}, [],
                       f"{len(rewritten)} channel(s)")
+
+
+def build_sysfs_pwm(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
+    """Sysfs-shaped chip directories for every sysfs channel (``/sys/class/pwm/pwmchipN``) of a pwm_servo
+    service: ``<dir>/pwmchipN``; a path outside /sys is already a mock chip and is used as it is."""
+    channels = _pwm_channels(spec, ctx, "a sysfs PWM chip")
+    rewritten, wanted = [], {}
+    for index, table in enumerate(channels):
+        address = str(table.get("address", "")).strip() if isinstance(table, dict) else ""
+        if not address:
+            raise spec.fail(f"channels[{index}] of service '{spec.service}' has no address")
+        if not address.startswith("pca9685:"):
+            path = ctx.path(os.path.basename(address.rstrip("/"))) if is_real_sysfs(address) else address
+            channel = table.get("channel", 0)
+            if isinstance(channel, bool) or not isinstance(channel, int) or channel < 0:
+                raise spec.fail(f"channels[{index}].channel must be a channel number, got {channel!r}")
+            wanted[path] = max(wanted.get(path, 0), channel + 1)
+            table = {**table, "address": path}
+        rewritten.append(table)
+    if not wanted:
+        raise spec.fail(f"no channel of service '{spec.service}' has a sysfs PWM address "
+                        "(/sys/class/pwm/pwmchipN); PCA9685 channels take mock = \"pca9685\"")
+    npwm = spec.options.get("npwm")
+    chips = [construct(replace(spec, options={k: v for k, v in spec.options.items() if k != "npwm"}), SysfsPwmChip,
+                       path=path, npwm=max(int(npwm or 0), count), name=f"{spec.name}:{os.path.basename(path)}")
+             for path, count in sorted(wanted.items())]
+    ctx.pwm_chips.setdefault(spec.name, []).extend(chips)
+    ctx.pwm_channels[spec.service] = rewritten
+    return MockDevice(spec.name, spec.mock, spec.service, ", ".join(sorted(wanted)), {"channels": rewritten}, chips,
+                      f"{sum(1 for t in rewritten if not str(t['address']).startswith('pca9685:'))} channel(s)")
 
 
 # ---- GPIO -----------------------------------------------------------------------------------
@@ -260,6 +301,8 @@ CATALOG: dict[str, tuple[Builder, str]] = {
     "mpu6050": (build_imu_chip, "MPU-6050 on the mock I2C bus (bus, address)"),
     "bno055": (build_imu_chip, "BNO055 on the mock I2C bus (bus, address)"),
     "pca9685": (build_pca9685, "PCA9685 PWM chips for the pca9685: channels of a pwm_servo service (channels)"),
+    "sysfs_pwm": (build_sysfs_pwm, "sysfs-shaped PWM chip directories for the /sys/class/pwm channels of a "
+                                   "pwm_servo service (channels)"),
     "rc_receiver": (build_rc_receiver, "RC receiver pulse trains and the RC mux on a mock GPIO chip "
                                        "(chip, channels, mode_channel, enable_line, select_line)"),
     "gpio_chip": (build_gpio_chip, "a mock GPIO chip (chip)"),

@@ -16,6 +16,10 @@ Faults, as the driver sees them through pyserial:
   with "No such file or directory" until ``reconnect()``.
 - ``reconnect()``: a new pty, the symlink re-pointed at it atomically (rename over it).
 
+``line_settings()`` reads back the line settings the driver applied through its end, as the
+kernel keeps them: the baud rate and the stop bits. (Linux ptys force 8 data bits and no
+parity whatever the driver asks, so those two cannot be observed on a pty.)
+
 A pty has no baud rate: the driver may set any rate and bytes move at memory speed. The
 mock holds its own slave descriptor so the master never sees EIO while no driver has the
 port open; bytes written then wait in the kernel buffer and pyserial flushes them when it
@@ -35,6 +39,7 @@ import logging
 import os
 import random
 import select
+import termios
 import threading
 import time
 import tty
@@ -60,6 +65,18 @@ class SerialRecord:
     direction: str
     data: bytes
     note: str = ""
+
+
+@dataclass(frozen=True)
+class LineSettings:
+    """The line settings the kernel holds for the pty: ``baudrate`` (bit/s) and ``stopbits`` (1 or 2)."""
+
+    baudrate: int
+    stopbits: int
+
+
+_SPEEDS = {getattr(termios, f"B{rate}"): rate for rate in (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200,
+                                                             230400, 460800, 921600) if hasattr(termios, f"B{rate}")}
 
 
 class _PtyPair:
@@ -121,6 +138,14 @@ class PtySerialDevice:
     def connected(self) -> bool:
         """True while the device is 'plugged in'."""
         return self._pair is not None
+
+    def line_settings(self) -> LineSettings:
+        """The baud rate and stop bits the driver set on its end (the master shares the slave's termios)."""
+        pair = self._pair
+        if pair is None:
+            raise RuntimeError(f"{self.name}: not connected; start() or reconnect() first")
+        attrs = termios.tcgetattr(pair.master)
+        return LineSettings(baudrate=_SPEEDS.get(attrs[4], 0), stopbits=2 if attrs[2] & termios.CSTOPB else 1)
 
     def start(self) -> None:
         """Create the pty and the symlink (a no-op when already connected)."""

@@ -13,6 +13,8 @@ frames).
 autonomy-enable output line is high AND the pilot's mode switch (the mode channel) says
 autonomous; otherwise, and on loss of the RC signal, the pilot (RC) side. Software and
 pilot must both agree. It drives an optional select read-back input line (1 = autonomous).
+Fault: ``stick(side)`` jams the mux on one side whatever its inputs say (a welded relay, a
+mux that lost its own RC input); ``stick(None)`` frees it.
 """
 
 from __future__ import annotations
@@ -187,7 +189,9 @@ class MuxMock:
     """The hardware RC multiplexer: ``selected`` is "autonomous" only while the chip's
     *enable_line* output is high and the pilot's mode channel reads autonomous
     (>= *threshold_us*); otherwise "rc". Mode pulses outside *valid_us* are ignored (the
-    last decision stands); a frame without signal selects "rc" at once."""
+    last decision stands); a frame without signal selects "rc" at once. ``stick(side)`` jams it."""
+
+    SIDES = ("rc", "autonomous")
 
     def __init__(self, chip: MockGpioChip, rc: RcReceiverMock, *, enable_line: int, select_line: int | None = None,
                  threshold_us: float = 1500.0, valid_us: tuple[float, float] = (900.0, 2100.0)) -> None:
@@ -203,12 +207,28 @@ class MuxMock:
         self._pilot_autonomous = False
         self._selected = "rc"
         self._active = False
+        self._stuck: str | None = None
 
     @property
     def selected(self) -> str:
         """The side the mux passes to the actuators: "rc" or "autonomous"."""
         with self._lock:
             return self._selected
+
+    @property
+    def stuck(self) -> str | None:
+        """The side ``stick()`` jammed the mux on, or None while it follows its inputs."""
+        with self._lock:
+            return self._stuck
+
+    def stick(self, side: str | None) -> None:
+        """Fault: select *side* ("rc" or "autonomous") and drive the read-back to it whatever the
+        enable line and the pilot's switch say, until ``stick(None)`` lets the inputs decide again."""
+        if side is not None and side not in self.SIDES:
+            raise ValueError(f"MuxMock.stick: side must be 'rc', 'autonomous' or None, not {side!r}")
+        with self._lock:
+            self._stuck = side
+        self._update()
 
     def start(self) -> MuxMock:
         """Watch the enable line and the RC frames; drive the read-back line to "rc" (0)."""
@@ -247,7 +267,7 @@ class MuxMock:
         with self._lock:
             if not self._active:
                 return
-            side = "autonomous" if self._enabled and self._pilot_autonomous else "rc"
+            side = self._stuck or ("autonomous" if self._enabled and self._pilot_autonomous else "rc")
             if side == self._selected and not force:
                 return
             self._selected = side

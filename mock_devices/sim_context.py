@@ -148,6 +148,7 @@ class MockContext:
         self.muxes: list[tuple[RcReceiverMock, MuxMock]] = []
         self.can_nodes: dict[str, Any] = {}
         self.pwm_chips: dict[str, list[Any]] = {}
+        self.pwm_channels: dict[str, list[dict[str, Any]]] = {}   # service -> its channels as rewritten so far
         self._chip_owner: dict[tuple[str, int], str] = {}
         self._seed = int(seed)
 

@@ -7,6 +7,8 @@ JSON requests, one per stdin line, with one JSON line on stdout:
     {"op": "truth"}                                   -> the vehicle's VehicleTruth as a dict
     {"op": "get", "node": "left", "attr": "axis_state"}  -> {"value": ...}
     {"op": "call", "node": "left", "method": "stop_answering", "args": [true]} -> {"value": ...}
+    {"op": "received", "node": "left"}                -> [[arbitration_id, "data hex"], ...]
+        (the frames the node accepted, oldest first)
 
 The driver under test runs as a real ``u2sa service`` process and meets these nodes only on
 the bus, exactly as it would meet hardware. :class:`MockCanProcess` is the test's side.
@@ -70,6 +72,8 @@ def _answer(request: dict[str, Any], vehicle: Any, nodes: dict[str, Any]) -> Any
     if op == "truth":
         return dataclasses.asdict(vehicle.snapshot())
     node = nodes[request["node"]]
+    if op == "received":
+        return [[r.message.arbitration_id, r.message.data.hex()] for r in node.history if r.direction == "rx"]
     if op == "get":
         return _plain(getattr(node, request["attr"]))
     if op == "call":
@@ -113,6 +117,10 @@ class MockCanProcess:
     def call(self, node: str, method: str, *args: Any, **kwargs: Any) -> Any:
         """Call a method (a fault, usually) of the node on *node*'s side."""
         return self.request(op="call", node=node, method=method, args=list(args), kwargs=kwargs)
+
+    def received(self, node: str) -> list[tuple[int, bytes]]:
+        """The frames the node on *node*'s side accepted so far: (arbitration id, data), oldest first."""
+        return [(can_id, bytes.fromhex(data)) for can_id, data in self.request(op="received", node=node)]
 
     def stop(self) -> None:
         """Close stdin (the harness stops its nodes) and reap the process."""

@@ -127,36 +127,84 @@ def check_heading(probe: DriverProbe, count: int, *, since: int = 0, attitude: b
         assert not msg.has("x") and not msg.has("psi_dot")
 
 
-def test_os5000_compass_service_true_heading_faults_and_recovery(services: ServiceProcesses, bus: BusClient,
-                                                                 tmp_path: Path, vehicle: SimVehicle) -> None:
-    dev = Os5000CompassDevice(vehicle, link_path=tmp_path / "dev" / "compass", rate_hz=20.0,
-                              declination_deg=DECLINATION, seed=5)
+def make_compass(fmt: str, vehicle: SimVehicle, tmp_path: Path) -> NmeaCompassDevice | Os5000CompassDevice:
+    """A mock compass in *fmt* ("nmea": HDG + XDR; "os5000": $C lines) at 20 Hz, started."""
+    link = tmp_path / "dev" / "compass"
+    if fmt == "nmea":
+        dev: NmeaCompassDevice | Os5000CompassDevice = NmeaCompassDevice(
+            vehicle, link_path=link, rate_hz=20.0, sentences=("HDG", "XDR"), declination_deg=DECLINATION, seed=9)
+    else:
+        dev = Os5000CompassDevice(vehicle, link_path=link, rate_hz=20.0, declination_deg=DECLINATION, seed=5)
     dev.start()
+    return dev
+
+
+@pytest.mark.parametrize(("fmt", "checksum_kinds"), [("nmea", ("HDG:", "XDR:")), ("os5000", ("$C:",))])
+def test_compass_survives_garbage_bad_checksums_silence_and_a_disconnect(
+        services: ServiceProcesses, bus: BusClient, tmp_path: Path, vehicle: SimVehicle, fmt: str,
+        checksum_kinds: tuple[str, ...]) -> None:
+    dev = make_compass(fmt, vehicle, tmp_path)
+    try:
+        profile = write_profile(tmp_path, name="compass", kind="compass_serial",
+                                settings={"port": dev.address, "format": fmt, "declination_deg": DECLINATION,
+                                          "stale_after_s": 0.5})
+        probe = DriverProbe(bus, "compass", on_state=vehicle.snapshot)
+        proc = start_driver(services, profile, "compass")
+        check_heading(probe, 5)
+        details = probe.wait_health(lambda d, s: s == "ok" and d["data"] == "ok")
+        assert details["bad_checksums"] == "0" and details["format"] == fmt
+
+        dev.inject_garbage(300)
+        probe.wait_health(lambda d, s: int(d["malformed"]) + int(d["noise_bytes"]) > 0, message="garbage counted")
+        check_heading(probe, 3, since=probe.state_count())
+
+        dev.bad_checksums(True)
+        details = probe.wait_health(lambda d, s: int(d["bad_checksums"]) >= 6, message="bad checksums counted")
+        for kind in checksum_kinds:   # counted per sentence kind, HDG included
+            assert kind in details["bad_checksum_kinds"], details["bad_checksum_kinds"]
+        mark = probe.state_count()
+        probe.health_after(3)
+        assert probe.state_count() - mark <= 1   # nothing published from corrupted sentences (one may be in flight)
+        dev.bad_checksums(False)
+        check_heading(probe, 3, since=probe.state_count())
+
+        # only valid sentences keep the data fresh: a run of bad checksums may itself have made it stale
+        stale_before = int(probe.wait_health(lambda d, s: d["data"] == "ok")["stale_events"])
+        dev.silence(True)
+        details = probe.wait_health(lambda d, s: d["data"] == "stale", message="stale data in health")
+        assert details["status"] == "degraded" and details["degraded_reason"].startswith("no data for")
+        assert int(details["stale_events"]) == stale_before + 1 and details["port"] == "open"
+        dev.silence(False)
+        check_heading(probe, 3, since=probe.state_count())
+        probe.wait_health(lambda d, s: s == "ok" and d["data"] == "ok", message="fresh data again")
+
+        dev.disconnect()
+        details = probe.wait_health(lambda d, s: d["port"] == "down" and s == "degraded",
+                                    message="the port down in health")
+        assert int(details["port_losses"]) >= 1 and details["port_error"]
+        assert proc.poll() is None
+        dev.reconnect()
+        check_heading(probe, 5, since=probe.state_count())
+        assert probe.wait_health(lambda d, s: s == "ok")["port"] == "open"
+        assert proc.poll() is None
+    finally:
+        dev.stop()
+
+
+def test_os5000_compass_service_gives_true_heading_sigma_and_temperature(services: ServiceProcesses, bus: BusClient,
+                                                                         tmp_path: Path, vehicle: SimVehicle) -> None:
+    dev = make_compass("os5000", vehicle, tmp_path)
     try:
         profile = write_profile(tmp_path, name="compass", kind="compass_serial",
                                 settings={"port": dev.address, "format": "os5000", "declination_deg": DECLINATION,
                                           "heading_sigma_deg": 2.0})
         probe = DriverProbe(bus, "compass", on_state=vehicle.snapshot)
-        proc = start_driver(services, profile, "compass")
+        start_driver(services, profile, "compass")
         check_heading(probe, 10)
         msg = probe.states_since(0)[-1][0]
         assert msg.psi_sigma == pytest.approx(math.radians(2.0))
         details = probe.wait_health(lambda d, s: s == "ok" and d["source"] == "$C")
         assert details["temperature_c"] == "25.0" and details["format"] == "os5000"
-
-        dev.bad_checksums(True)
-        details = probe.wait_health(lambda d, s: int(d["bad_checksums"]) >= 5, message="bad checksums counted")
-        assert details["bad_checksum_kinds"].startswith("$C:")
-        dev.bad_checksums(False)
-        dev.inject_garbage(200)
-        probe.wait_health(lambda d, s: int(d["malformed"]) + int(d["noise_bytes"]) > 0, message="garbage counted")
-        check_heading(probe, 5, since=probe.state_count())
-
-        dev.disconnect()
-        probe.wait_health(lambda d, s: d["port"] == "down" and s == "degraded", message="the port down in health")
-        dev.reconnect()
-        check_heading(probe, 5, since=probe.state_count())
-        assert proc.poll() is None
     finally:
         dev.stop()
 
@@ -176,12 +224,6 @@ def test_nmea_compass_service_uses_hdg_variation_deviation_and_xdr(services: Ser
         details = probe.wait_health(lambda d, s: s == "ok" and d["source"] == "HDG")
         # one message per HDG + XDR burst, not one per sentence
         assert int(details["lines"]) >= 2 * int(details["published"]) - 2
-
-        dev.silence(True)
-        details = probe.wait_health(lambda d, s: d["data"] == "stale", message="stale data in health")
-        assert details["status"] == "degraded" and details["degraded_reason"].startswith("no data for")
-        dev.silence(False)
-        check_heading(probe, 3, since=probe.state_count())
     finally:
         dev.stop()
 

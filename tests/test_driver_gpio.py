@@ -134,6 +134,43 @@ def test_outputs_switch_at_50_percent_and_go_to_safe_levels(chip: MockGpioChip, 
     assert {(w.line, w.value) for w in writes} >= {(LAMP, 0), (LAMP, 1), (BRAKE, 0), (BRAKE, 1)}
 
 
+def test_a_lost_chip_is_reported_commands_are_counted_and_outputs_restart_safe(
+        chip: MockGpioChip, tmp_path: Path, services: ServiceProcesses, bus: BusClient) -> None:
+    col = BusCollector(bus).listen(ch.HEALTH, t.Health)
+    proc = start(services, tmp_path, name="io", kind="gpio_output",
+                 settings={"chip": chip.address, "outputs": "lamp=17,brake=18", "safe_levels": "brake=1",
+                           "command_timeout_s": 0.0})
+    wait_until(lambda: chip.consumers().get(LAMP) == "u2sa:io", message="the lines requested", timeout=30)
+    command(bus, "lamp", 100.0)
+    command(bus, "brake", 0.0)
+    wait_until(lambda: (chip.read_output(LAMP), chip.read_output(BRAKE)) == (1, 0), message="lamp on, brake off")
+
+    chip.stop()                              # the chip goes away under the driver, no write pending
+    details = col.health_of("io", lambda d: d["port"] == "down", since=col.count(ch.HEALTH),
+                            message="the lost chip in health")
+    assert details["status"] == "degraded" and details["port_losses"] == "1"
+    assert "mock chip" in details["port_error"] and "start the mock chip" in details["port_error"]
+    command(bus, "lamp", 0.0)                # cannot be applied while the chip is gone: counted
+    details = col.health_of("io", lambda d: d["unapplied"] == "1", since=col.count(ch.HEALTH),
+                            message="the command that could not be applied")
+    assert details["port"] == "down" and details["lamp"] == "unknown" and proc.poll() is None
+
+    again = MockGpioChip(socket_path=chip.socket_path, release_level=None).start()
+    try:
+        wait_until(lambda: again.consumers().get(LAMP) == "u2sa:io", message="the lines requested again")
+        assert (again.read_output(LAMP), again.read_output(BRAKE)) == (0, 1), "re-requested at the safe levels"
+        details = col.health_of("io", lambda d: d["port"] == "open", since=col.count(ch.HEALTH))
+        assert details["status"] == "ok" and details["port_losses"] == "1" and details["port_error"] == ""
+        assert (details["lamp"], details["brake"]) == ("0", "1")
+        command(bus, "lamp", 100.0)
+        wait_until(lambda: again.read_output(LAMP) == 1, message="commands obeyed on the new chip")
+        proc.terminate()
+        assert proc.wait(timeout=10) == 0
+        assert (again.read_output(LAMP), again.read_output(BRAKE)) == (0, 1), "safe levels on SIGTERM"
+    finally:
+        again.stop()
+
+
 @pytest.fixture
 def inputs_service(chip: MockGpioChip, tmp_path: Path, services: ServiceProcesses,
                    bus: BusClient) -> Iterator[tuple[BusCollector, subprocess.Popen]]:

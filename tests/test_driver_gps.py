@@ -15,10 +15,14 @@ from serial_driver_harness import ORIGIN, SIM_ORIGIN, DriverProbe, start_driver,
 
 from drivers.gps_fix import KNOT_MPS, StateSettings, fix_from_epoch, state_from_fix
 from drivers.nmea_fields import (BadChecksum, Epoch, EpochCollector, MalformedSentence, Sentence, parse_sentence)
+from drivers.gps_nmea import GpsNmeaDriver
 from mock_devices.nmea_gps import NmeaGpsDevice
+from mock_devices.pty_serial import LineSettings
 from mock_devices.vehicle_sim import SimVehicle
 from u2sa_hw.bus_client import BusClient
+from u2sa_hw.config import ConfigError
 from u2sa_hw.geo import geodetic_to_ned, ned_to_geodetic
+from u2sa_hw.transport import Transport
 from u2sa_hw.vehicle import Origin
 
 GEO = Origin(**ORIGIN)
@@ -145,6 +149,16 @@ def test_an_epoch_ends_with_its_last_sentence_once_two_alike_have_been_seen() ->
     # back-to-back bursts (no silence between them) still end on completion
     assert feed(col, burst("120001.00"))[-1] is not None and feed(col, burst("120001.20"))[-1] is not None
     assert col.late == 0
+
+
+def test_a_dropped_sentence_of_a_kind_already_held_ends_the_pending_epoch() -> None:
+    col = EpochCollector()
+    assert feed(col, burst("120000.00")) == [None] * 5
+    assert col.dropped("GSA") is None                # repeatable: a second GSA belongs to the same epoch
+    assert col.dropped("ZDA") is None                # not in the epoch yet: it may still belong to it
+    done = col.dropped("GGA")                        # a corrupted GGA: the receiver has started the next epoch
+    assert done is not None and done.kinds() == ["GGA", "RMC", "GSA", "GSA", "VTG"]
+    assert col.pending is None and col.dropped("GGA") is None and col.flush() is None
 
 
 def test_a_late_sentence_is_dropped_and_switches_back_to_ending_on_silence() -> None:
@@ -388,12 +402,16 @@ def test_gps_reports_silence_and_recovers_from_a_disconnect(services: ServicePro
     proc, probe = run_gps(services, bus, tmp_path, gps.address, vehicle, stale_after_s=0.5)
     probe.wait_states(3, timeout=20)
 
+    stale_before = int(probe.wait_health(lambda d, s: d["data"] == "ok")["stale_events"])
     gps.silence(True)
     details = probe.wait_health(lambda d, s: d["data"] == "stale", message="stale data in health")
     assert details["status"] == "degraded" and details["degraded_reason"].startswith("no data for")
     assert details["port"] == "open"
+    assert int(details["stale_events"]) == stale_before + 1   # one silence, counted once however long it lasts
+    assert int(probe.health_after(3)["stale_events"]) == stale_before + 1
     gps.silence(False)
-    probe.wait_health(lambda d, s: s == "ok" and d["data"] == "ok", message="fresh data again")
+    details = probe.wait_health(lambda d, s: s == "ok" and d["data"] == "ok", message="fresh data again")
+    assert int(details["stale_events"]) == stale_before + 1
 
     gps.disconnect()
     details = probe.wait_health(lambda d, s: d["port"] == "down", message="the port down in health")
@@ -413,3 +431,40 @@ def test_gps_refuses_an_unsupported_baud_rate_with_a_clear_error(services: Servi
     assert proc.wait(timeout=20) != 0
     out = (tmp_path / "gps.stderr").read_text()
     assert "baudrate 1234 is not supported" in out and "4800, 9600, 19200, 38400, 57600, 115200" in out
+
+
+def test_gps_opens_the_port_with_the_configured_framing_and_changes_it_live(
+        services: ServiceProcesses, bus: BusClient, tmp_path: Path, vehicle: SimVehicle, gps: NmeaGpsDevice) -> None:
+    _, probe = run_gps(services, bus, tmp_path, gps.address, vehicle, baudrate=19200, bytesize=7, parity="E",
+                       stopbits=2)
+    probe.wait_states(2, timeout=20)
+    details = probe.wait_health(lambda d, s: d["port"] == "open", message="the port open in health")
+    assert details["framing"] == "7E2" and details["baudrate"] == "19200"   # as pyserial applied it
+    # the kernel's view of the line (a pty forces 8 data bits and no parity, so baud and stop bits show)
+    assert gps.link.line_settings() == LineSettings(baudrate=19200, stopbits=2)
+
+    reply = bus.set_config("gps", "parity", "X", timeout=10)
+    assert reply is not None and not reply.ok and "parity 'X' is not supported" in reply.error
+    assert "N, E, O, M, S" in reply.error
+    reply = bus.set_config("gps", "stopbits", "1", timeout=10)
+    assert reply is not None and reply.ok, reply and reply.error
+    probe.wait_health(lambda d, s: d["framing"] == "7E1" and d["port"] == "open", message="the port reopened 7E1")
+    wait_until(lambda: gps.link.line_settings().stopbits == 1, message="one stop bit on the line")
+    probe.wait_states(2, since=probe.state_count(), message="fixes after the reopen")
+
+
+@pytest.mark.parametrize(("key", "value", "expected"), [
+    ("bytesize", 9, "bytesize 9 is not supported; use one of 5, 6, 7, 8"),
+    ("parity", "X", "parity 'X' is not supported; use one of N, E, O, M, S"),
+    ("stopbits", 3.0, "stopbits 3.0 is not supported; use one of 1, 1.5, 2"),
+])
+def test_bad_framing_is_refused_naming_the_field_and_the_allowed_values(tmp_path: Path, lcm_url: str, key: str,
+                                                                       value: object, expected: str) -> None:
+    transport = Transport(lcm_url, name="test")
+    try:
+        with pytest.raises(ConfigError) as err:
+            GpsNmeaDriver("gps", config_path=tmp_path / "gps.toml", transport=transport,
+                          settings={"port": "/dev/u2sa/gps", key: value})
+        assert expected in str(err.value) and "service 'gps'" in str(err.value)
+    finally:
+        transport.stop()

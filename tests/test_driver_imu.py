@@ -100,6 +100,48 @@ def test_mpu9250_calibrates_at_rest_then_rates_and_accelerations_follow_the_vehi
         assert abs(mean_of(turning, "phi_dot")) < 0.003 and abs(mean_of(turning, "x_ddot")) < 0.05
 
 
+@pytest.mark.parametrize(("variant", "part", "gyro_dps", "accel_g", "dlpf", "rate_hz"), [
+    ("mpu6050", "MPU-6050", 250, 2, 1, 100.0),
+    ("mpu6500", "MPU-6500", 1000, 8, 5, 50.0),
+    ("mpu9250", "MPU-9250", 2000, 16, 0, 100.0),
+])
+def test_every_variant_and_full_scale_is_configured_and_scaled_through_the_driver(
+        tmp_path: Path, services: ServiceProcesses, bus, sim: SimVehicle, socket_dir: Path, variant: str, part: str,
+        gyro_dps: int, accel_g: int, dlpf: int, rate_hz: float) -> None:
+    i2c = MockI2cBus(socket_path=str(socket_dir / "bus.sock"))
+    chip = i2c.add(Mpu9250Chip(variant=variant, vehicle=sim, seed=5))
+    with i2c:
+        probe = DriverProbe(bus, "imu")
+        profile = write_profile(tmp_path, name="imu", kind="imu_mpu9250", settings={
+            "bus": i2c.address, "chip": variant, "gyro_range_dps": gyro_dps, "accel_range_g": accel_g,
+            "dlpf_cfg": dlpf, "rate_hz": rate_hz, "calibrate_samples": 20})
+        start_driver(services, profile, "imu")
+        health = probe.wait_health(lambda d, s: d.get("calibration") == "calibrated", message="calibrated")
+        assert (health["chip"], health["who_am_i"]) == (part, f"0x{mpu.VARIANTS[variant].who_am_i:02x}")
+        assert (health["gyro_range_dps"], health["accel_range_g"]) == (str(gyro_dps), str(accel_g))
+        # the configuration registers as the driver wrote them
+        assert chip.peek(mpu.GYRO_CONFIG) == mpu.fs_config(mpu.GYRO_RANGE_DPS.index(gyro_dps))
+        assert chip.peek(mpu.ACCEL_CONFIG) == mpu.fs_config(mpu.ACCEL_RANGE_G.index(accel_g))
+        assert chip.dlpf_cfg == dlpf
+        internal_hz = 1000.0 if 1 <= dlpf <= 6 else 8000.0
+        assert chip.peek(mpu.SMPLRT_DIV) == round(internal_hz / rate_hz) - 1
+        # the accelerometer's own DLPF register exists on the MPU-6500/9250 only
+        assert chip.peek(mpu.ACCEL_CONFIG2) == (0 if variant == "mpu6050" else dlpf)
+        assert not chip.asleep   # the MPU-6050 powers up asleep: woken by the driver
+        # the variant's own temperature formula (MPU-6050: /340 + 36.53; 6500/9250: /333.87 + 21)
+        assert float(health["temperature_c"]) == pytest.approx(25.0, abs=0.5)
+
+        sim.set_wheel_speed("left", 1.0)
+        sim.set_wheel_speed("right", 0.5)  # 0.75 m/s turning right at 1 rad/s: 0.75 m/s^2 to the right
+        wait_until(lambda: probe.states[-1][0].psi_dot > 0.9, message="the turn to show")
+        truth = sim.snapshot()
+        turning = probe.wait_states(40, since=probe.state_count())[-40:]
+        # scaled with the configured full scale: a wrong FS (a factor 2 or more) misses by far
+        assert mean_of(turning, "psi_dot") == pytest.approx(truth.yaw_rate, abs=0.01)
+        assert mean_of(turning, "y_ddot") == pytest.approx(truth.accel_y, abs=0.06)
+        assert abs(mean_of(turning, "z_ddot")) < 0.06 and abs(mean_of(turning, "phi_dot")) < 0.005
+
+
 @pytest.mark.parametrize(("kind", "chip_spec", "settings", "expected"), [
     ("imu_mpu9250", "mpu6500@0x68", {"chip": "mpu9250"},
      ["WHO_AM_I 0x70 (MPU-6500)", 'chip = "mpu9250" expects 0x71', "0x68 on mock:", 'set chip = "mpu6500"']),

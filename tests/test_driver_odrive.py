@@ -18,12 +18,16 @@ from serial_driver_harness import DriverProbe, start_driver, write_profile
 
 from drivers.diff_drive_odometry import DiffDriveOdometry, WheelTravel, body_motion
 from drivers.odrive_can import OdriveCanMotor, error_names
+from mock_devices import can_adapter
+from mock_devices.odrive_node import OdriveCanNode
+from mock_devices.vehicle_sim import SimVehicle
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus_client import BusClient
 from u2sa_hw.config import ConfigError
 from u2sa_hw.ports.tap import RX, TX, raw_channel
 from u2sa_hw.protocols.odrive_cansimple import (AxisError05, AxisState, Cmd, Heartbeat, OdriveError, ProcedureResult,
-                                                arbitration_id, encode_heartbeat, make_frame)
+                                                arbitration_id, decode_set_axis_state, encode_heartbeat, make_frame)
+from u2sa_hw.protocols.odrive_cansimple import decode_set_input_vel as cs_decode_vel
 from u2sa_hw.udp_ports import private_udp_port
 
 CIRCUMFERENCE = 2 * math.pi * 0.1  # the mock's default wheel radius
@@ -149,6 +153,63 @@ def test_arming_that_does_not_take_is_retried_with_doubling_waits_and_reported(l
         svc.kill()
         svc.transport.stop()
         node.close()
+
+
+def test_losing_the_can_adapter_is_reported_counted_and_the_bus_reopened(lcm_url: str) -> None:
+    interface = can_adapter.register()
+    channel = f"odrive-unplug-{random.randint(0, 1 << 30)}"
+    vehicle = SimVehicle(origin_lat=0.0, origin_lon=0.0)
+    nodes = {side: OdriveCanNode(vehicle, side=side, node_id=node, interface="virtual", channel=channel,
+                                 vel_limit=10.0) for side, node in zip(("left", "right"), NODES)}
+    svc = OdriveCanMotor("motors", settings={
+        "interface": interface, "channel": channel, "node_ids": list(NODES), "command_timeout_s": 0.0,
+        "silent_after_s": 0.5, "status_poll_s": 0.0, "odometry": False})
+    runner = threading.Thread(target=svc.run, daemon=True)
+
+    def phases() -> tuple[str, str]:
+        d = svc.health_details()
+        return d["left.phase"], d["right.phase"]
+
+    try:
+        vehicle.start()
+        for node in nodes.values():
+            node.start()
+        svc.start()
+        runner.start()
+        wait_until(lambda: phases() == ("armed", "armed"), timeout=20, message="both axes armed")
+        svc.on_percentage("left", 50.0)
+        wait_until(lambda: nodes["left"].wheel_speed_mps == pytest.approx(CIRCUMFERENCE, abs=1e-3),
+                   message="the left wheel at 1 rev/s")
+
+        can_adapter.unplug(channel)      # the adapter is gone: the open bus fails, reopening fails
+        details = wait_until(lambda: (d := svc.health_details())["bus"] == "down" and d, message="the bus down")
+        assert details["bus_losses"] == 1 and "receive failed, bus lost (Network is down" in svc.last_error
+        details = wait_until(lambda: (d := svc.health_details())["bus"] == "down" and "cannot open CAN bus" in d["bus_error"]
+                             and d, message="a failed reopen in health")
+        assert "no CAN adapter" in details["bus_error"] and details["bus_losses"] == 1
+        wait_until(lambda: svc.status == "degraded", message="degraded while the bus is down")
+        assert svc.health_details()["degraded_reason"].startswith("CAN bus down")
+        assert set(phases()) <= {"waiting", "silent"}   # what the axes said went with the bus
+        assert runner.is_alive()
+
+        can_adapter.replug(channel)
+        wait_until(lambda: svc.health_details()["bus"] == "open", message="the bus reopened")
+        wait_until(lambda: phases() == ("armed", "armed"), timeout=20, message="both axes heard and armed again")
+        svc.on_percentage("left", -30.0)
+        wait_until(lambda: nodes["left"].wheel_speed_mps == pytest.approx(-0.6 * CIRCUMFERENCE, abs=1e-3),
+                   message="commands obeyed after the reopen")
+        details = svc.health_details()
+        assert details["bus_losses"] == 1 and details["bus_error"] == ""
+        wait_until(lambda: svc.status == "ok", message="ok again")
+    finally:
+        can_adapter.replug(channel)
+        svc.stop()
+        runner.join(timeout=10)
+        svc.kill()
+        svc.transport.stop()
+        for node in nodes.values():
+            node.stop()
+        vehicle.stop()
 
 
 # ---------------------------------------------------------------- across processes -------------
@@ -322,3 +383,34 @@ def test_an_axis_error_is_reported_and_cleared_by_config(rig, bus: BusClient, fi
     config = bus.get_config("motors")
     assert config is not None and {f.name: f.value for f in config.fields}["clear_errors"] == "false"
     assert r.driver.poll() is None
+
+
+@pytest.mark.parametrize(("how", "idle_on_stop"), [("u2sa stop", True), ("SIGTERM", True), ("u2sa stop", False),
+                                                    ("SIGTERM", False)])
+def test_stop_over_the_bus_and_sigterm_leave_both_axes_at_zero_and_idle(rig, bus: BusClient, how: str,
+                                                                         idle_on_stop: bool) -> None:
+    r = rig(settings={"command_timeout_s": 0.0, "idle_on_stop": idle_on_stop})   # no watchdog on the nodes
+    r.wait_phases("armed", "armed")
+    r.commander.hold(left=50.0, right=-50.0)
+    r.wait_wheels(CIRCUMFERENCE, -CIRCUMFERENCE)
+    r.commander.close()
+    marks = {side: len(r.mock.received(side)) for side in ("left", "right")}
+    if how == "u2sa stop":
+        bus.stop(name="motors")
+    else:
+        r.driver.terminate()
+    assert r.driver.wait(timeout=15) == 0
+    for side, node in zip(("left", "right"), NODES):
+        frames = r.mock.received(side)[marks[side]:]
+        cmds = [(can_id & 0x1F, data) for can_id, data in frames if can_id >> 5 == node]
+        velocities = [cs_decode_vel(data) for cmd, data in cmds if cmd == Cmd.SET_INPUT_VEL]
+        assert velocities and velocities[-1] == (0.0, 0.0), f"{side}: the last Set_Input_Vel is 0 rev/s"
+        assert r.mock.get(side, "input_vel") == 0.0 and r.wheel(side) == 0.0
+        idle = [i for i, (cmd, data) in enumerate(cmds)
+                if cmd == Cmd.SET_AXIS_STATE and decode_set_axis_state(data) == AxisState.IDLE]
+        if idle_on_stop:   # zero first, then IDLE: the motor stops holding
+            last_vel = max(i for i, (cmd, _) in enumerate(cmds) if cmd == Cmd.SET_INPUT_VEL)
+            assert idle and idle[-1] > last_vel
+            assert r.mock.get(side, "axis_state") == AxisState.IDLE
+        else:              # the axis holds 0 rev/s in closed loop
+            assert not idle and r.mock.get(side, "axis_state") == AxisState.CLOSED_LOOP_CONTROL

@@ -171,9 +171,24 @@ def test_pca9685_channels_slew_limit_taps_reconnect_and_neutral_on_kill(
     assert abs(pca.pulse_width_us(0) - 1500) < count_us
     failsafe(bus, False)
 
+    probe = DriverProbe(bus, "gimbal")
+    before = probe.health_after(1)
+    assert (before["pan.errors"], before["winch.errors"]) == ("0", "0")
     pca_bus.disconnect_clients()  # the bus connection drops: the next write finds out, the channel reopens
     command(bus, "pan", -100)
     wait_until(lambda: abs(pca.pulse_width_us(0) - 1000) < count_us, message="pan after the reconnect")
+    details = probe.wait_health(lambda d, s: d["pan.errors"] == "1", message="the failed write counted")
+    assert details["pan.port"] == "open" and details["status"] == "ok"   # reopened by the retry at once
+    assert "went away" in details["pan.last_error"] and details["winch.errors"] == "0"
+
+    pca_bus.stop()                # the bus server dies: the channel cannot be reopened until it is back
+    command(bus, "pan", 100)
+    details = probe.wait_health(lambda d, s: d["pan.port"] == "down", message="pan down while the bus is gone")
+    assert details["status"] == "degraded" and "mock I2C bus" in details["pan.last_error"]
+    assert proc.poll() is None
+    pca_bus.start()
+    wait_until(lambda: abs(pca.pulse_width_us(0) - 2000) < count_us, message="pan at 100 % once the bus is back")
+    assert probe.wait_health(lambda d, s: s == "ok")["pan.port"] == "open"
 
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(timeout=10) == 0
@@ -193,3 +208,34 @@ def test_bad_channel_config_stops_the_service_with_the_reason(
     proc = start_driver(services, profile, "servos")
     assert proc.wait(timeout=15) != 0
     assert expected in (tmp_path / "servos.stderr").read_text()
+
+
+def test_a_vanished_sysfs_chip_is_reported_and_reopened_while_another_chip_keeps_working(
+        tmp_path: Path, services: ServiceProcesses, bus: BusClient) -> None:
+    chip0 = make_sysfs_pwm_tree(tmp_path / "pwmchip0", npwm=2)
+    chip1 = make_sysfs_pwm_tree(tmp_path / "pwmchip1", npwm=2)
+    channels = [{"name": "rudder", "address": str(chip0), "channel": 0},
+                {"name": "esc", "address": str(chip1), "channel": 1}]
+    probe = DriverProbe(bus, "servos")
+    profile = write_profile(tmp_path, name="servos", kind="pwm_servo",
+                            settings={"channels": channels, "command_timeout_s": 0.0})
+    proc = start_driver(services, profile, "servos")
+    wait_until(lambda: sysfs(chip0, 0, "enable") == 1 and sysfs(chip1, 1, "enable") == 1, message="both enabled")
+    command(bus, "rudder", 50)
+    wait_duty(chip0, 0, 1_750_000)
+
+    shutil.rmtree(chip0)                     # the chip's driver is unbound (overlay removed): its tree is gone
+    command(bus, "rudder", -50)
+    details = probe.wait_health(lambda d, s: d["rudder.port"] == "down" and "no PWM chip" in d["rudder.last_error"],
+                                message="the vanished chip in health")
+    assert details["status"] == "degraded" and int(details["rudder.errors"]) >= 1
+    assert details["esc.port"] == "open" and details["esc.errors"] == "0"
+    command(bus, "esc", 50)                  # the other chip is untouched
+    wait_duty(chip1, 1, 1_750_000)
+    assert proc.poll() is None
+
+    make_sysfs_pwm_tree(chip0, npwm=2)       # the chip is back: reopened at the output it should have
+    wait_until(lambda: sysfs(chip0, 0, "enable") == 1, message="pwm0 exported and enabled again")
+    wait_duty(chip0, 0, 1_250_000, message="the last command (-50 %) restored")
+    details = probe.wait_health(lambda d, s: s == "ok", message="ok again")
+    assert details["rudder.port"] == "open" and int(details["rudder.errors"]) >= 1

@@ -218,13 +218,15 @@ def test_pilot_switch_failsafe_rearm_and_sigterm(rig: RcRig) -> None:
     assert rig.mux.selected == "rc"
 
 
-def test_signal_loss_is_no_signal_and_autonomy_needs_rearming(rig: RcRig) -> None:
+def test_signal_loss_is_no_signal_counted_and_autonomy_needs_rearming(rig: RcRig) -> None:
     rig.to_autonomous()
+    assert rig.health(lambda d: d["mode"] == "autonomous")["signal_losses"] == "0"
     rig.rc.signal_loss(True)
     lost = rig.mode(lambda m: m.mode == MODE_NO_SIGNAL, message="no signal")
     assert lost.mode_name == "no signal" and not lost.autonomy_enabled and list(lost.pulse_us) == [0, 0, 0]
     assert rig.chip.read_output(ENABLE) == 0 and rig.mux.selected == "rc"
-    assert rig.health(lambda d: d["mode"] == "no signal")["status"] == "degraded"
+    details = rig.health(lambda d: d["mode"] == "no signal")
+    assert details["status"] == "degraded" and details["signal_losses"] == "1"
 
     rig.rc.signal_loss(False)               # the switch is still at autonomous
     back = rig.col.count(ch.RC_MODE)
@@ -232,6 +234,14 @@ def test_signal_loss_is_no_signal_and_autonomy_needs_rearming(rig: RcRig) -> Non
     rig.mode(lambda m: m.mode == MODE_AUTONOMOUS, message="another message in autonomous")
     assert not any(m.autonomy_enabled for m in rig.col.since(ch.RC_MODE, back))
     assert rig.chip.read_output(ENABLE) == 0
+    assert "not armed" in rig.health(lambda d: d["mode"] == "autonomous")["enable_blocked_by"]
+
+    rig.rc.set_mode_switch(False)           # the pilot re-arms through manual ...
+    rig.mode(lambda m: m.mode == MODE_MANUAL, message="manual again")
+    rig.to_autonomous()                     # ... and autonomy can be enabled again
+    assert rig.chip.read_output(ENABLE) == 1
+    details = rig.health(lambda d: d["autonomy_enabled"] == "True", message="enabled again in health")
+    assert details["status"] == "ok" and details["signal_losses"] == "1" and details["armed"] == "True"
 
 
 def test_glitch_frames_do_not_flip_the_mode(rig: RcRig) -> None:
@@ -258,16 +268,34 @@ def test_unusable_config_change_over_the_bus_is_refused(rig: RcRig) -> None:
 
 def test_select_readback_mismatch_is_reported(rig: RcRig) -> None:
     rig.to_autonomous()
-    rig.mux.stop()                          # the mux sticks on autonomous whatever the enable line says
+    rig.mux.stick("autonomous")             # the mux stays on autonomous whatever the enable line says
     rig.failsafe(True)
     wait_until(lambda: rig.chip.read_output(ENABLE) == 0, message="enable dropped")
     bad = rig.mode(lambda m: m.select_mismatch, message="a select mismatch")
-    assert not bad.autonomy_enabled
+    assert not bad.autonomy_enabled and rig.mux.selected == "autonomous"
     details = rig.health(lambda d: d["select_mismatch"] == "True", message="the mismatch in health")
     assert details["status"] == "degraded" and details["select_mismatches"] == "1"
-    assert "select line 20 reads autonomous" in details["last_error"]
-    rig.chip.drive_input(SELECT, 0)         # the mux comes back to RC
+    assert "select line 20 reads autonomous but autonomy enable is low" in details["last_error"]
+    rig.mux.stick(None)                     # the mux follows its inputs again: back to RC
     rig.mode(lambda m: not m.select_mismatch, message="the mismatch cleared")
+    assert rig.mux.selected == "rc"
+
+
+def test_mux_stuck_on_rc_is_a_mismatch_that_drops_and_disarms_autonomy(rig: RcRig) -> None:
+    rig.mux.stick("rc")
+    rig.rc.set_mode_switch(True)
+    rig.mode(lambda m: m.mode == MODE_AUTONOMOUS and m.autonomy_enabled, message="autonomous and enabled")
+    bad = rig.mode(lambda m: m.select_mismatch, message="a select mismatch")
+    assert not bad.autonomy_enabled and rig.mux.selected == "rc"
+    wait_until(lambda: rig.chip.read_output(ENABLE) == 0, message="enable dropped on the mismatch")
+    details = rig.health(lambda d: d["select_mismatches"] == "1" and d["select_mismatch"] == "False",
+                         message="the mismatch counted, then agreeing again (both low)")
+    assert "select line 20 reads rc but autonomy enable is high" in details["last_error"]
+    assert "not armed" in details["enable_blocked_by"] and rig.chip.read_output(ENABLE) == 0
+    rig.mux.stick(None)
+    rig.rc.set_mode_switch(False)           # re-armed through manual, autonomy works with a healthy mux
+    rig.mode(lambda m: m.mode == MODE_MANUAL, message="manual again")
+    rig.to_autonomous()
 
 
 def test_lost_gpio_port_drops_enable_and_is_reopened(rig: RcRig) -> None:

@@ -18,6 +18,8 @@ from serial_driver_harness import DriverProbe, start_driver, write_profile
 from drivers.vesc_can import VescCanMotor
 from u2sa_hw.bus_client import BusClient
 from u2sa_hw.config import ConfigError
+from u2sa_hw.protocols import vesc_can as vc
+from u2sa_hw.protocols.vesc_can import PacketId
 from u2sa_hw.udp_ports import private_udp_port
 
 IDS = (10, 11)
@@ -72,10 +74,10 @@ class Rig:
 def rig(tmp_path: Path, services: ServiceProcesses, bus: BusClient) -> Iterator[Callable[..., Rig]]:
     made: list[Rig] = []
 
-    def make(*, settings: dict | None = None, right: dict | None = None) -> Rig:
+    def make(*, settings: dict | None = None, right: dict | None = None, node: dict | None = None) -> Rig:
         port = private_udp_port()
-        nodes = [{"side": "left", "controller_id": IDS[0], "timeout_s": 0.3},
-                 {"side": "right", "controller_id": IDS[1], "timeout_s": 0.3, **(right or {})}]
+        nodes = [{"side": "left", "controller_id": IDS[0], "timeout_s": 0.3, **(node or {})},
+                 {"side": "right", "controller_id": IDS[1], "timeout_s": 0.3, **(node or {}), **(right or {})}]
         mock = MockCanProcess({"kind": "vesc", "port": port, "nodes": nodes}, repo=REPO, log=tmp_path / "mock.log")
         config = {"interface": "udp_multicast", "channel": GROUP, "udp_port": port, "controller_ids": list(IDS),
                   "silent_after_s": 0.5, "max_duty": 0.1, **(settings or {})}
@@ -176,9 +178,36 @@ def test_silence_and_a_fault_are_reported_and_recovered_from(rig) -> None:
 
     r.mock.call("right", "set_fault", 3)  # DRV fault: motor released, commands ignored, nothing on the bus
     details = r.probe.wait_health(lambda d, s: d["right.phase"] == "stalled", message="right not following")
-    assert "right (id 11) not turning" in details["degraded_reason"] and "not turning" not in details["left.phase"]
+    assert "right (id 11) not turning" in details["degraded_reason"] and details["left.phase"] == "ok"
+    assert details["right.stall_events"] == "1" and details["left.stall_events"] == "0"
     assert "commanded 40 %" in details["last_error"]
     r.mock.call("right", "set_fault", 0)
     r.probe.wait_health(lambda d, s: s == "ok" and d["right.phase"] == "ok", message="right follows again")
     r.wait_outputs(wheel_mps(280), wheel_mps(280))
     assert r.driver.poll() is None
+
+
+@pytest.mark.parametrize(("how", "neutral"), [("u2sa stop", "release"), ("SIGTERM", "release"), ("u2sa stop", "zero"),
+                                              ("SIGTERM", "zero")])
+def test_stop_over_the_bus_and_sigterm_leave_the_motors_at_zero(rig, bus: BusClient, how: str, neutral: str) -> None:
+    # the VESCs' own command timeout is off here: only the driver's last frames can bring them to zero
+    r = rig(settings={"command_timeout_s": 0.0, "neutral": neutral}, node={"timeout_s": 0.0})
+    r.wait_ok()
+    r.commander.hold(left=50.0, right=-50.0)
+    r.wait_modes(("duty", 0.05), ("duty", -0.05), what="duty 5 % both ways")
+    r.commander.close()
+    marks = {side: len(r.mock.received(side)) for side in ("left", "right")}
+    if how == "u2sa stop":
+        bus.stop(name="motors")
+    else:
+        r.driver.terminate()
+    assert r.driver.wait(timeout=15) == 0
+    for side, controller in zip(("left", "right"), IDS):
+        ids = [(vc.split_ext_id(can_id), data) for can_id, data in r.mock.received(side)[marks[side]:]]
+        sent = [(packet, vc.decode_command(packet, data)) for (packet, target), data in ids
+                if target == controller and packet in vc.COMMAND_SCALES]
+        zero = (PacketId.SET_CURRENT if neutral == "release" else PacketId.SET_DUTY, 0.0)
+        assert zero in sent, f"{side}: neutral ({neutral}) sent on the way out"
+        assert sent[-1] == (PacketId.SET_CURRENT, 0.0), f"{side}: released last"   # whatever neutral says
+        assert (r.mock.get(side, "mode"), r.mock.get(side, "command_value"), r.mock.get(side, "output")) == \
+            ("current", 0.0, 0.0)

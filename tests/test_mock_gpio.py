@@ -250,6 +250,28 @@ def test_mux_selects_autonomous_only_when_software_and_pilot_agree(chip: MockGpi
     assert [side for _, side in mux.history][-2:] == ["autonomous", "rc"]
 
 
+def test_a_stuck_mux_ignores_its_inputs_until_freed(chip: MockGpioChip, rc: RcReceiverMock) -> None:
+    mux = MuxMock(chip, rc, enable_line=21, select_line=20).start()
+    port = open_gpio(device="rc_mux", chip=chip.address, inputs=[20], outputs={21: 0})
+    try:
+        mux.stick("autonomous")
+        assert mux.stuck == "autonomous" and mux.selected == "autonomous" and port.get(20) == 1
+        rc.set_mode_switch(True)
+        port.set(21, 1)
+        mux.stick("rc")                      # both inputs say autonomous; jammed on the pilot side
+        assert mux.selected == "rc" and port.get(20) == 0
+        mux.stick(None)                      # free again: its inputs (both autonomous) decide
+        assert mux.stuck is None
+        wait_until(lambda: mux.selected == "autonomous", message="the mux following its inputs again")
+        assert port.get(20) == 1
+        port.set(21, 0)
+        assert mux.selected == "rc" and port.get(20) == 0
+        with pytest.raises(ValueError, match="side must be"):
+            mux.stick("pilot")
+    finally:
+        port.close()
+
+
 def test_rc_receiver_in_another_process_measured_over_the_socket(tmp_path: Path) -> None:
     sock = tmp_path / "rc.sock"
     env = dict(os.environ, PYTHONPATH=str(REPO))

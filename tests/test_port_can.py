@@ -1,17 +1,22 @@
-"""CAN port contract: one suite over python-can's virtual and udp_multicast buses, plus
+"""CAN port contract: one suite over python-can's virtual and udp_multicast buses, the
+unpluggable adapter (mock_devices.can_adapter) and SocketCAN on a vcan interface when one
+exists (skipped with the reason otherwise: this machine has no vcan module), plus
 udp_multicast across processes, bad datagrams, and the SocketCAN open hints."""
 
 from __future__ import annotations
 
+import os
 import socket
 import subprocess
 import sys
 import uuid
+from pathlib import Path
 from typing import Iterator
 
 import can
 import pytest
 
+from mock_devices import can_adapter
 from u2sa_hw.ports import PortClosed, PortIOError, PortUnavailable, open_can
 from u2sa_hw.ports.can_port import CanPort
 from u2sa_hw.ports.tap import RX, TX
@@ -20,15 +25,37 @@ from u2sa_hw.udp_ports import private_udp_port
 GROUP = "239.74.163.2"  # python-can's default IPv4 group
 
 
+VCAN = os.environ.get("U2SA_TEST_VCAN", "vcan0")
+
+
+def socketcan_missing(channel: str) -> str:
+    """Why SocketCAN on *channel* cannot be tested here ("" when it can)."""
+    if not hasattr(socket, "AF_CAN"):
+        return "this Python has no AF_CAN"
+    try:
+        socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW).close()
+    except OSError as exc:
+        return f"this kernel has no SocketCAN ({exc.strerror}): modprobe can can_raw vcan"
+    if not Path(f"/sys/class/net/{channel}").exists():
+        return (f"no CAN interface {channel}: `ip link add dev {channel} type vcan && ip link set {channel} up` "
+                "(modprobe vcan first), or name another one in U2SA_TEST_VCAN")
+    return ""
+
+
 class CanBackend:
-    """How to reach one python-can interface from a test: options, and a missing device."""
+    """How to reach one python-can interface from a test: options, a missing device, and a loss."""
 
     def __init__(self, interface: str) -> None:
         self.interface = interface
+        self.options: dict = {}
+        self.missing: dict | None = None
         if interface == "virtual":
+            self.channel = f"u2sa-test-{uuid.uuid4().hex[:8]}"  # a virtual channel always exists
+        elif interface == can_adapter.INTERFACE:
             self.channel = f"u2sa-test-{uuid.uuid4().hex[:8]}"
-            self.options: dict = {}
-            self.missing: dict | None = None  # a virtual channel always exists
+        elif interface == "socketcan":
+            self.channel = VCAN
+            self.missing = {"channel": "u2sa-none0"}
         else:
             self.channel = GROUP
             self.options = {"port": private_udp_port()}
@@ -37,11 +64,27 @@ class CanBackend:
     def open(self, device: str, **kwargs) -> CanPort:
         return open_can(device=device, interface=self.interface, channel=self.channel, **self.options, **kwargs)
 
+    def lose(self, port: CanPort) -> None:
+        """Take the bus away under *port*: unplug the adapter, or shut the python-can bus down
+        underneath the port (what a vanished interface looks like to a double that cannot be unplugged)."""
+        if self.interface == can_adapter.INTERFACE:
+            can_adapter.unplug(self.channel)
+        else:
+            port._bus.shutdown()
 
-@pytest.fixture(params=["virtual", "udp_multicast"])
-def backend(request: pytest.FixtureRequest) -> CanBackend:
-    """Each CAN test double python-can ships."""
-    return CanBackend(request.param)
+    def cleanup(self) -> None:
+        if self.interface == can_adapter.INTERFACE:
+            can_adapter.replug(self.channel)
+
+
+@pytest.fixture(params=["virtual", "udp_multicast", can_adapter.register(), "socketcan"])
+def backend(request: pytest.FixtureRequest) -> Iterator[CanBackend]:
+    """Each CAN test double python-can ships, the unpluggable adapter, and SocketCAN where a vcan exists."""
+    if request.param == "socketcan" and (why := socketcan_missing(VCAN)):
+        pytest.skip(f"SocketCAN contract not run: {why}")
+    b = CanBackend(request.param)
+    yield b
+    b.cleanup()
 
 
 @pytest.fixture
@@ -101,11 +144,9 @@ class TestCanContract:
         finally:
             port.close()
 
-    def test_losing_the_bus_raises_port_closed(self, pair) -> None:
+    def test_losing_the_bus_raises_port_closed(self, backend: CanBackend, pair) -> None:
         driver, _, _, _ = pair
-        # A python-can double cannot be unplugged; its bus shut down underneath the port is
-        # what a vanished interface looks like from above.
-        driver._bus.shutdown()
+        backend.lose(driver)
         with pytest.raises(PortClosed) as info:
             driver.recv(0.05)
         assert info.value.device == "motor" and info.value.fix
@@ -114,10 +155,15 @@ class TestCanContract:
             driver.send(can.Message(arbitration_id=1, data=b"\x00", is_extended_id=False))
 
     def test_missing_device_is_unavailable_with_a_fix(self, backend: CanBackend) -> None:
-        if backend.missing is None:
+        if backend.interface == can_adapter.INTERFACE:
+            can_adapter.unplug(backend.channel)
+            missing = {"channel": backend.channel}
+        elif backend.missing is None:
             pytest.skip("a virtual channel cannot be missing: python-can creates it on first use")
+        else:
+            missing = backend.missing
         with pytest.raises(PortUnavailable) as info:
-            open_can(device="motor", interface=backend.interface, **backend.missing)
+            open_can(device="motor", interface=backend.interface, **missing)
         assert info.value.device == "motor" and "motor" in str(info.value) and info.value.fix
 
     def test_closed_port_refuses_io(self, backend: CanBackend) -> None:

@@ -1,9 +1,13 @@
 """GPIO port: one contract suite over every chip backend that can run here, and the gpiod
 backend's error paths (this machine has no /dev/gpiochip*).
 
-Backends of the contract: the mock chip in this process, and the mock chip in another
-process (driven through a small stdin/stdout control script), so the port is exercised
-over a real Unix socket between processes.
+Backends of the contract: the mock chip in this process; the mock chip in another process
+(driven through a small stdin/stdout control script), so the port is exercised over a real
+Unix socket between processes; and the gpiod backend (``GpiodGpioPort``, libgpiod v2's
+own LineSettings, enums and errors) with libgpiod's two kernel calls answered by a mock
+chip (mock_devices.gpiod_on_mock). The kernel's gpio-sim would give the gpiod backend a
+real kernel chip, but it needs configfs (/sys/kernel/config/gpio-sim), which this machine
+does not have.
 """
 
 from __future__ import annotations
@@ -15,12 +19,14 @@ import time
 from pathlib import Path
 from typing import Iterator
 
+import gpiod
 import pytest
 
 from conftest import REPO, wait_until
 from mock_devices.gpio_chip import MockGpioChip
+from mock_devices.gpiod_on_mock import GpiodOnMockChips
 from u2sa_hw.ports.errors import PortClosed, PortUnavailable
-from u2sa_hw.ports.gpio_port import EdgeEvent, GpioPort, open_gpio
+from u2sa_hw.ports.gpio_port import EdgeEvent, GpiodGpioPort, GpioPort, open_gpio
 
 CHIP_PROCESS = r"""
 import sys
@@ -82,9 +88,27 @@ class ChildProcessChip:
         self.proc.wait(timeout=10)
 
 
-@pytest.fixture(params=["mock-in-process", "mock-other-process"])
-def chip(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[InProcessChip | ChildProcessChip]:
-    backend = (InProcessChip if request.param == "mock-in-process" else ChildProcessChip)(tmp_path / "gpio.sock")
+class GpiodOnMockChip(InProcessChip):
+    """The gpiod backend: the port opens /dev/gpiochip7 through libgpiod, whose kernel calls a mock chip answers."""
+
+    PATH = "/dev/gpiochip7"
+
+    def __init__(self, path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+        super().__init__(path)
+        fake = GpiodOnMockChips()
+        fake.attach(self.PATH, self.chip)
+        monkeypatch.setattr(gpiod, "request_lines", fake.request_lines)
+        monkeypatch.setattr(gpiod, "Chip", fake.Chip)
+        self.address = self.PATH
+
+
+@pytest.fixture(params=["mock-in-process", "mock-other-process", "gpiod-on-mock"])
+def chip(request: pytest.FixtureRequest, tmp_path: Path,
+         monkeypatch: pytest.MonkeyPatch) -> Iterator[InProcessChip | ChildProcessChip]:
+    if request.param == "gpiod-on-mock":
+        backend: InProcessChip | ChildProcessChip = GpiodOnMockChip(tmp_path / "gpio.sock", monkeypatch)
+    else:
+        backend = (InProcessChip if request.param == "mock-in-process" else ChildProcessChip)(tmp_path / "gpio.sock")
     yield backend
     backend.vanish()
 
@@ -99,6 +123,7 @@ def read_until(port: GpioPort, count: int, *, timeout: float = 5.0) -> list[Edge
 
 def test_outputs_start_at_their_initial_value_and_follow_set(chip) -> None:
     port = open_gpio(device="lights", chip=chip.address, outputs={17: 1, 18: 0})
+    assert isinstance(port, GpiodGpioPort) == isinstance(chip, GpiodOnMockChip)
     assert (chip.read_output(17), chip.read_output(18)) == (1, 0)
     port.set(18, 1)
     port.set(17, 0)

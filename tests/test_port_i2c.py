@@ -1,5 +1,7 @@
-"""The I2C port against the mock I2C bus server (in this process and in another one) and
-the smbus2 backend's error mapping on this machine, which has no /dev/i2c-*."""
+"""I2C port contract: one suite over every I2C implementation that runs here -- the mock
+bus server in this process, the mock bus server in another process, and the smbus2 backend
+(``SmbusI2cPort``) on a mock adapter standing in for ``/dev/i2c-N`` (mock_devices.
+smbus_adapter) -- then the mock server's own behaviour and the smbus2 error mapping."""
 
 from __future__ import annotations
 
@@ -15,14 +17,18 @@ from pathlib import Path
 from typing import Iterator
 
 import pytest
+import smbus2
 
 from mock_devices.i2c_bus import MockI2cBus
 from mock_devices.mpu9250_chip import Mpu9250Chip
+from mock_devices.smbus_adapter import SmbusAdapters
 from conftest import REPO, wait_until
 from u2sa_hw.ports.errors import PortClosed, PortIOError, PortTimeout, PortUnavailable
-from u2sa_hw.ports.i2c_port import (REQUEST, RESPONSE, STATUS_BAD_REQUEST, STATUS_EIO, STATUS_OK, I2cPort, MockI2cPort,
-                                    open_error, open_i2c, transaction_error)
+from u2sa_hw.ports.i2c_port import (MOCK_BUS_NUMBER, REQUEST, RESPONSE, STATUS_BAD_REQUEST, I2cPort, MockI2cPort,
+                                    SmbusI2cPort, open_error, open_i2c, transaction_error)
 from u2sa_hw.protocols import mpu9250 as mpu
+
+WHO_AM_I_9250 = 0x71
 
 
 @pytest.fixture
@@ -42,47 +48,197 @@ def bus(sock_dir: Path) -> Iterator[MockI2cBus]:
         yield mock
 
 
-def test_server_in_another_process_answers_and_its_death_closes_the_port(sock_dir: Path) -> None:
-    path = sock_dir / "bus.sock"
-    proc = subprocess.Popen([sys.executable, "-m", "mock_devices.i2c_bus", "--socket", str(path),
-                             "--chip", "mpu9250@0x68", "--chip", "bno055@0x28"], cwd=REPO,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    try:
-        def try_open() -> I2cPort | None:
+class MockBusBackend:
+    """The mock bus server in this process, an MPU-9250 at 0x68."""
+
+    faults = True
+
+    def __init__(self, sock_dir: Path) -> None:
+        self.server = MockI2cBus(socket_path=str(sock_dir / "bus.sock"))
+        self.chip: Mpu9250Chip | None = self.server.add(Mpu9250Chip(address=0x68, seed=3))  # type: ignore[assignment]
+        self.server.start()
+        self.bus: int | str = self.server.address
+        self.bus_number = MOCK_BUS_NUMBER
+        self.missing: int | str = f"mock:{sock_dir}/nothing.sock"
+        self.missing_fix = "start the mock I2C bus server"
+
+    def lose(self) -> None:
+        self.server.stop()
+
+    def cleanup(self) -> None:
+        self.server.stop()
+
+
+class ProcessBusBackend:
+    """The mock bus server in another process (``python -m mock_devices.i2c_bus``)."""
+
+    faults = False  # its chips live in the other process
+
+    def __init__(self, sock_dir: Path) -> None:
+        path = sock_dir / "bus.sock"
+        self.proc = subprocess.Popen([sys.executable, "-m", "mock_devices.i2c_bus", "--socket", str(path),
+                                      "--chip", "mpu9250@0x68", "--chip", "bno055@0x28"], cwd=REPO,
+                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        self.chip = None
+        self.bus = f"mock:{path}"
+        self.bus_number = MOCK_BUS_NUMBER
+        self.missing = f"mock:{sock_dir}/nothing.sock"
+        self.missing_fix = "start the mock I2C bus server"
+
+        def listening() -> bool:
             try:
-                return open_i2c(device="imu", bus=f"mock:{path}", address=0x68)
+                open_i2c(device="probe", bus=self.bus, address=0x68).close()
             except PortUnavailable:
-                return None
+                return False
+            return True
 
-        port = wait_until(try_open, timeout=20, message="the mock I2C bus process to listen")
-        assert port.read_byte(mpu.WHO_AM_I) == 0x71
+        wait_until(listening, timeout=20, message="the mock I2C bus process to listen")
+
+    def lose(self) -> None:
+        self.proc.terminate()
+        self.proc.wait(timeout=10)
+
+    def cleanup(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait()
+
+
+class SmbusBackend:
+    """smbus2 on adapter /dev/i2c-7, a mock adapter whose chips are mock bus models (no kernel here)."""
+
+    faults = True
+    NUMBER = 7
+
+    def __init__(self, sock_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+        self.adapters = SmbusAdapters()
+        self.server = MockI2cBus(socket_path=str(sock_dir / "unused.sock"))  # its chips are called directly
+        self.chip = self.server.add(Mpu9250Chip(address=0x68, seed=3))  # type: ignore[assignment]
+        self.adapters.attach(self.NUMBER, self.server)
+        monkeypatch.setattr(smbus2, "SMBus", self.adapters.smbus_class())
+        self.bus = self.NUMBER
+        self.bus_number = self.NUMBER
+        self.missing = 8
+        self.missing_fix = "dtparam=i2c_arm=on"
+
+    def lose(self) -> None:
+        self.adapters.unplug(self.NUMBER)
+
+    def cleanup(self) -> None:
+        pass
+
+
+@pytest.fixture(params=["mock", "mock-process", "smbus2"])
+def backend(request: pytest.FixtureRequest, sock_dir: Path,
+            monkeypatch: pytest.MonkeyPatch) -> Iterator[MockBusBackend | ProcessBusBackend | SmbusBackend]:
+    """Each I2C implementation that runs on this machine."""
+    if request.param == "mock":
+        b: MockBusBackend | ProcessBusBackend | SmbusBackend = MockBusBackend(sock_dir)
+    elif request.param == "mock-process":
+        b = ProcessBusBackend(sock_dir)
+    else:
+        b = SmbusBackend(sock_dir, monkeypatch)
+    yield b
+    b.cleanup()
+
+
+class TestI2cContract:
+    """What every I2C implementation must do."""
+
+    def test_the_chip_answers_and_a_burst_is_one_sample(self, backend) -> None:
+        port = open_i2c(device="imu", bus=backend.bus, address=0x68)
+        if backend.bus_number >= 0:
+            assert isinstance(port, SmbusI2cPort) and port.address == f"/dev/i2c-{backend.bus_number}:0x68"
+        assert port.read_byte(mpu.WHO_AM_I) == WHO_AM_I_9250
+        port.write_byte(mpu.PWR_MGMT_1, 0x01)   # awake
         sample = mpu.decode_burst(port.read_block(mpu.BURST_START, mpu.BURST_LENGTH))
-        assert abs(sample.az - 16384) < 400 and abs(sample.ax) < 400 and abs(sample.ay) < 400
-        bno = open_i2c(device="ahrs", bus=f"mock:{path}", address=0x28)
-        assert bno.read_byte(0x00) == 0xA0
-        bno.close()
+        assert abs(sample.az - 16384) < 400 and abs(sample.ax) < 400 and abs(sample.ay) < 400   # +1 g at rest
+        port.close()
 
-        proc.terminate()
-        proc.wait(timeout=10)
+    def test_byte_and_block_transactions_are_tapped(self, backend) -> None:
+        records = []
+        port = open_i2c(device="imu", bus=backend.bus, address=0x68, tap=records.append)
+        port.write_byte(mpu.SMPLRT_DIV, 9)
+        assert port.read_byte(mpu.SMPLRT_DIV) == 9
+        port.write_block(mpu.SMPLRT_DIV, bytes([4, 3, 0x18]))  # SMPLRT_DIV, CONFIG, GYRO_CONFIG in one go
+        assert port.read_block(mpu.SMPLRT_DIV, 3) == bytes([4, 3, 0x18])
+        assert [(r.op, r.register, r.ok) for r in records[:4]] == [
+            (1, mpu.SMPLRT_DIV, True), (0, mpu.SMPLRT_DIV, True), (1, mpu.SMPLRT_DIV, True), (0, mpu.SMPLRT_DIV, True)]
+        assert records[3].data == bytes([4, 3, 0x18]) and records[3].length == 3
+        assert all(r.device == "imu" and r.address == 0x68 and r.bus == backend.bus_number for r in records)
+        port.close()
+
+    def test_transfers_longer_than_an_smbus_block_work_both_ways(self, backend) -> None:
+        port = open_i2c(device="imu", bus=backend.bus, address=0x68)
+        data = bytes(range(1, 41))                    # 40 bytes into 0x00..0x27 (self-test and offset registers)
+        port.write_block(0x00, data)
+        assert port.read_block(0x00, 40) == data
+        assert len(port.read_block(0x00, 200)) == 200
+        port.close()
+
+    def test_an_absent_chip_does_not_acknowledge(self, backend) -> None:
+        records = []
+        port = open_i2c(device="mag", bus=backend.bus, address=0x69, tap=records.append)
+        with pytest.raises(PortIOError) as info:
+            port.read_byte(0x00)
+        assert "no ACK from 0x69" in str(info.value) and "mag" in str(info.value) and info.value.fix
+        assert records[-1].ok is False and records[-1].op == 0
+        assert port.is_open
+        port.close()
+
+    def test_chip_nack_and_eio_are_io_errors_and_the_port_lives_on(self, backend) -> None:
+        if not backend.faults:
+            pytest.skip("the chip runs in another process: its faults are scripted in-process only")
+        chip = backend.chip
+        port = open_i2c(device="imu", bus=backend.bus, address=0x68)
+        chip.nack(True)
+        with pytest.raises(PortIOError, match="no ACK"):
+            port.read_byte(mpu.WHO_AM_I)
+        chip.nack(False)
+        assert port.read_byte(mpu.WHO_AM_I) == WHO_AM_I_9250
+        chip.eio_every(2)
+        outcomes = []
+        for _ in range(4):
+            try:
+                port.read_byte(mpu.WHO_AM_I)
+                outcomes.append("ok")
+            except PortIOError as exc:
+                assert "imu" in str(exc) and exc.fix
+                outcomes.append("io error")
+        assert outcomes == ["ok", "io error", "ok", "io error"] and port.is_open
+        chip.eio_every(0)
+        assert port.read_byte(mpu.WHO_AM_I) == WHO_AM_I_9250
+        port.close()
+
+    def test_losing_the_bus_closes_the_port(self, backend) -> None:
+        port = open_i2c(device="imu", bus=backend.bus, address=0x68)
+        assert port.read_byte(mpu.WHO_AM_I) == WHO_AM_I_9250
+        backend.lose()
         with pytest.raises(PortClosed) as info:
             port.read_byte(mpu.WHO_AM_I)
-        assert "imu" in str(info.value) and "fix:" in str(info.value)
+        assert "imu" in str(info.value) and info.value.fix
         assert not port.is_open
         with pytest.raises(PortClosed):
             port.read_byte(mpu.WHO_AM_I)
         with pytest.raises(PortUnavailable):
-            open_i2c(device="imu", bus=f"mock:{path}", address=0x68)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-        proc.wait()
+            open_i2c(device="imu", bus=backend.bus, address=0x68)
 
+    def test_a_missing_bus_is_unavailable_naming_device_and_fix(self, backend) -> None:
+        with pytest.raises(PortUnavailable) as info:
+            open_i2c(device="imu", bus=backend.missing, address=0x68)
+        assert "imu" in str(info.value) and backend.missing_fix in str(info.value)
 
-def test_missing_socket_is_unavailable_naming_device_and_fix(sock_dir: Path) -> None:
-    with pytest.raises(PortUnavailable) as info:
-        open_i2c(device="imu", bus=f"mock:{sock_dir}/nothing.sock", address=0x68)
-    text = str(info.value)
-    assert "imu" in text and "nothing.sock" in text and "start the mock I2C bus server" in text
+    def test_a_closed_port_and_bad_arguments_are_refused(self, backend) -> None:
+        port = open_i2c(device="imu", bus=backend.bus, address=0x68)
+        for call in (lambda: port.read_byte(256), lambda: port.read_block(0, 0), lambda: port.write_byte(0, 300),
+                     lambda: port.write_block(0, b""), lambda: port.read_block(0, 5000)):
+            with pytest.raises(ValueError, match="imu"):
+                call()
+        assert port.read_byte(mpu.WHO_AM_I) == WHO_AM_I_9250
+        port.close()
+        port.close()
+        with pytest.raises(PortClosed):
+            port.read_byte(mpu.WHO_AM_I)
 
 
 def test_stale_socket_without_server_is_unavailable(sock_dir: Path) -> None:
@@ -91,69 +247,6 @@ def test_stale_socket_without_server_is_unavailable(sock_dir: Path) -> None:
     stale.close()  # the file stays, nobody listens: connection refused
     with pytest.raises(PortUnavailable, match="imu"):
         open_i2c(device="imu", bus=f"mock:{sock_dir}/stale.sock", address=0x68)
-
-
-def test_byte_and_block_transactions_and_tap(bus: MockI2cBus) -> None:
-    records = []
-    port = open_i2c(device="imu", bus=bus.address, address=0x68, tap=records.append)
-    assert port.address == f"{bus.address}:0x68"
-    port.write_byte(mpu.SMPLRT_DIV, 9)
-    assert port.read_byte(mpu.SMPLRT_DIV) == 9
-    port.write_block(mpu.SMPLRT_DIV, bytes([4, 3, 0x18]))  # SMPLRT_DIV, CONFIG, GYRO_CONFIG in one go
-    assert port.read_block(mpu.SMPLRT_DIV, 3) == bytes([4, 3, 0x18])
-    assert len(port.read_block(0x00, 200)) == 200  # longer than an SMBus block
-    assert [(r.op, r.register, r.ok) for r in records[:4]] == [(1, mpu.SMPLRT_DIV, True), (0, mpu.SMPLRT_DIV, True),
-                                                               (1, mpu.SMPLRT_DIV, True), (0, mpu.SMPLRT_DIV, True)]
-    assert records[3].data == bytes([4, 3, 0x18]) and records[3].length == 3
-    assert all(r.device == "imu" and r.address == 0x68 and r.bus == -1 for r in records)
-    port.close()
-    with pytest.raises(PortClosed):
-        port.read_byte(0)
-
-
-def test_absent_chip_nacks_as_port_io_error(bus: MockI2cBus) -> None:
-    records = []
-    port = open_i2c(device="mag", bus=bus.address, address=0x69, tap=records.append)
-    with pytest.raises(PortIOError) as info:
-        port.read_byte(0x00)
-    assert "no ACK from 0x69" in str(info.value) and "mag" in str(info.value)
-    assert records[-1].ok is False and records[-1].op == 0
-    assert bus.history[-1].address == 0x69
-
-
-def test_chip_nack_and_eio_faults(bus: MockI2cBus) -> None:
-    chip = bus.chip(0x68)
-    port = open_i2c(device="imu", bus=bus.address, address=0x68)
-    chip.nack(True)
-    with pytest.raises(PortIOError, match="no ACK"):
-        port.read_byte(mpu.WHO_AM_I)
-    chip.nack(False)
-    assert port.read_byte(mpu.WHO_AM_I) == 0x71
-    chip.eio_every(3)
-    outcomes = []
-    for _ in range(6):
-        try:
-            port.read_byte(mpu.WHO_AM_I)
-            outcomes.append("ok")
-        except PortIOError as exc:
-            assert "EIO" in str(exc)
-            outcomes.append("eio")
-    assert outcomes == ["ok", "ok", "eio", "ok", "ok", "eio"]
-    assert port.is_open  # a failed transaction leaves the port usable
-    chip.eio_every(0)
-    assert port.read_byte(mpu.WHO_AM_I) == 0x71
-    assert [t.status for t in list(chip.history)[-7:]] == [STATUS_OK, STATUS_OK, STATUS_EIO, STATUS_OK, STATUS_OK,
-                                                           STATUS_EIO, STATUS_OK]
-
-
-def test_server_dropping_clients_closes_ports(bus: MockI2cBus) -> None:
-    port = open_i2c(device="imu", bus=bus.address, address=0x68)
-    assert port.read_byte(mpu.WHO_AM_I) == 0x71
-    bus.disconnect_clients()
-    with pytest.raises(PortClosed, match="went away"):
-        port.read_byte(mpu.WHO_AM_I)
-    again = open_i2c(device="imu", bus=bus.address, address=0x68)
-    assert again.read_byte(mpu.WHO_AM_I) == 0x71
 
 
 def test_many_clients_at_once(bus: MockI2cBus) -> None:
@@ -209,15 +302,6 @@ def test_silent_server_times_out(sock_dir: Path) -> None:
 def test_bad_bus_or_address_is_refused(kwargs: dict) -> None:
     with pytest.raises(PortUnavailable, match="imu"):
         open_i2c(device="imu", **kwargs)
-
-
-def test_bad_register_arguments_are_value_errors(bus: MockI2cBus) -> None:
-    port = open_i2c(device="imu", bus=bus.address, address=0x68)
-    for call in (lambda: port.read_byte(256), lambda: port.read_block(0, 0), lambda: port.write_byte(0, 300),
-                 lambda: port.write_block(0, b""), lambda: port.read_block(0, 5000)):
-        with pytest.raises(ValueError, match="imu"):
-            call()
-    assert port.read_byte(mpu.WHO_AM_I) == 0x71
 
 
 def test_missing_i2c_adapter_names_the_fix() -> None:

@@ -18,8 +18,9 @@ sampling and driven by ONE simulated vehicle ([simulation] table), in this
 process; print each device's address; run until Ctrl-C.
 
 The mocks live in the run directory (default <data_dir>/sim): pty links for
-serial devices, Unix sockets for the I2C buses and GPIO chips; CAN buses are
-python-can udp_multicast on the [simulation] can_udp_port. A copy of the profile
+serial devices, Unix sockets for the I2C buses and GPIO chips, sysfs-shaped
+directories (pwmchipN) for sysfs PWM chips; CAN buses are python-can
+udp_multicast on the [simulation] can_udp_port. A copy of the profile
 whose device addresses point at the mocks is written there too: run the stack on
 it in another terminal with the command printed at start.
 
@@ -40,7 +41,8 @@ def register(sub: Any) -> None:
                    "(default: <data_dir>/sim)")
     p.add_argument("--can-port", type=int, metavar="PORT", help="UDP port of the simulated CAN bus "
                    "(default: [simulation] can_udp_port)")
-    p.add_argument("--list-kinds", action="store_true", help="list the mock kinds and exit")
+    p.add_argument("--list-kinds", action="store_true", help="list the mock kinds (and the service settings each "
+                   "reads) and exit")
     p.set_defaults(func=cmd_mock)
 
 

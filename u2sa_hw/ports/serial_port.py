@@ -100,6 +100,12 @@ class SerialPort:
         self._closed = False
 
     @property
+    def framing(self) -> str:
+        """The framing applied to the device: data bits, parity, stop bits (``8N1``, ``7E2``)."""
+        handle = self._serial
+        return f"{handle.bytesize}{handle.parity}{float(handle.stopbits):g}"
+
+    @property
     def is_open(self) -> bool:
         """True until the port is closed or the device is lost."""
         return not self._closed and bool(self._serial.is_open)
@@ -234,7 +240,9 @@ def open_serial(address: str, *, device: str, baudrate: int = 9600, bytesize: in
         code = _os_errno(exc)
         if isinstance(exc, ValueError) and not is_serial_url(address):
             reason = f"bad serial settings ({exc})"
-            fix = "check baudrate, bytesize, parity and stopbits in the service config"
+            fix = (f"check the framing in the service config: baudrate {baudrate!r} (e.g. 4800-115200), "
+                   f"bytesize {bytesize!r} (5, 6, 7, 8), parity {parity!r} (N, E, O, M, S), "
+                   f"stopbits {stopbits!r} (1, 1.5, 2)")
         else:
             reason = f"cannot open ({exc})"
             fix = _open_fix(address, exc)
