@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -28,6 +29,16 @@ def wait_until(predicate: Callable[[], object], *, timeout: float = 10.0, interv
         if time.monotonic() > deadline:
             pytest.fail(f"timed out after {timeout:g} s waiting for {message}")
         time.sleep(interval)
+
+
+def unprivileged(cmd: list[str]) -> list[str]:
+    """*cmd* run as user nobody when we are root (root ignores file permissions); skip without setpriv."""
+    if os.geteuid() != 0:
+        return cmd
+    setpriv = shutil.which("setpriv")
+    if setpriv is None:
+        pytest.skip("running as root without setpriv: cannot make a file unwritable")
+    return [setpriv, "--reuid=65534", "--regid=65534", "--clear-groups", *cmd]
 
 
 @pytest.fixture

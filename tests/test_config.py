@@ -12,6 +12,7 @@ import tomllib
 from pathlib import Path
 
 import pytest
+from conftest import unprivileged
 
 from u2sa_hw.config import ConfigError, Configurator, field
 
@@ -74,16 +75,6 @@ def test_unknown_fields_in_the_file_are_kept_on_write(tmp_path: Path) -> None:
     cfg = Configurator(path, FIELDS)
     assert cfg.set("retries", 9)
     assert tomllib.loads(path.read_text())["future_field"] == 1
-
-
-def unprivileged(cmd: list[str]) -> list[str]:
-    """*cmd* run as user nobody when we are root (root ignores file permissions); skip without setpriv."""
-    if os.geteuid() != 0:
-        return cmd
-    setpriv = shutil.which("setpriv")
-    if setpriv is None:
-        pytest.skip("running as root without setpriv: cannot make a file unwritable")
-    return [setpriv, "--reuid=65534", "--regid=65534", "--clear-groups", *cmd]
 
 
 def _try_set_unprivileged(path: Path, name: str, value: object) -> str:

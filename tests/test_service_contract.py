@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import pytest
-from conftest import U2SA, ServiceProcesses, wait_until
+from conftest import U2SA, ServiceProcesses, unprivileged, wait_until
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
@@ -199,15 +199,6 @@ def test_log_level_from_the_config_file_checked_and_changed_live(services: Servi
     assert _discover(bus, "state_estimator").status == "ok"
 
 
-def _unprivileged(cmd: list[str]) -> list[str]:
-    if os.geteuid() != 0:
-        return cmd
-    setpriv = shutil.which("setpriv")
-    if setpriv is None:
-        pytest.skip("running as root without setpriv: cannot make a file unwritable")
-    return [setpriv, "--reuid=65534", "--regid=65534", "--clear-groups", *cmd]
-
-
 def test_param_set_on_an_unwritable_config_file_fails_with_the_reason(services: ServiceProcesses,
                                                                       bus: BusClient) -> None:
     """The service runs as nobody (root ignores permissions) with its config in a read-only directory."""
@@ -220,7 +211,7 @@ def test_param_set_on_an_unwritable_config_file_fails_with_the_reason(services: 
         config.write_text("sensor_timeout_s = 2.5\n")
         os.chmod(config, 0o444)
         os.chmod(ro_dir, 0o555)
-        cmd = _unprivileged([*U2SA, "service", "state_estimator", "--config", str(config)])
+        cmd = unprivileged([*U2SA, "service", "state_estimator", "--config", str(config)])
         log = open(services.workdir / "ro-service.stderr", "wb")
         proc = subprocess.Popen(cmd, cwd=workdir, env=services.env(PYTHONPATH=str(REPO)), stdout=log,
                                 stderr=subprocess.STDOUT)
