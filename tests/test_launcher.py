@@ -7,6 +7,7 @@ import re
 import signal
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -257,14 +258,19 @@ def test_a_first_service_that_never_gets_ready_holds_the_others_only_for_first_w
     profile = load_profile(write_profile(tmp_path, lcm_url, {"rec": "recorder", "est": "state_estimator"}))
     lines: list[tuple[str, str]] = []
     mute = [sys.executable, "-c", "import time; time.sleep(60)"]   # runs, never says READY=1
-    launcher = Launcher(profile, control=False, first_wait_s=1.0, grace_s=1.0,
+    launcher = Launcher(profile, control=False, first_wait_s=2.0, grace_s=1.0,
                         output=lambda n, line: lines.append((n, line)),
                         command=lambda spec: mute if spec.name == "rec" else
                         [*u2sa_command(), "service", spec.name, "--vehicle", str(profile.path)])
+    cpu_before = time.process_time()
     launcher.start()
     try:
+        wait_until(lambda: any(line.startswith("rec not ready") for _n, line in lines), timeout=30,
+                   message="the hold to end")
+        # While holding, the loop sleeps until the hold ends (it used to spin: a whole core for first_wait_s).
+        assert time.process_time() - cpu_before < 1.0
         wait_until(lambda: {s.name: s.ready for s in launcher.status()} == {"rec": False, "est": True}, timeout=30,
                    message="the estimator started and ready while the muted recorder never is")
-        assert ("launcher", "rec not ready after 1 s: starting the others anyway") in lines
+        assert ("launcher", "rec not ready after 2 s: starting the others anyway") in lines
     finally:
         launcher.stop(timeout=30)

@@ -111,7 +111,11 @@ class Launcher:
         if self._thread is not None:
             return
         if self.socket_path is not None:
-            self._server = ControlServer(self.socket_path, self._handle_request)
+            try:
+                self._server = ControlServer(self.socket_path, self._handle_request)
+            except BaseException:
+                self.notify.close()   # the loop that would close it never runs
+                raise
             self.say(f"control socket {self.socket_path}")
         self._thread = threading.Thread(target=self._loop, name="u2sa-launcher", daemon=True)
         self._thread.start()
@@ -192,6 +196,8 @@ class Launcher:
         return self.exit_code
 
     def __del__(self) -> None:
+        if getattr(self, "_thread", None) is None and hasattr(self, "notify"):
+            self.notify.close()   # never started: the loop did not close it
         # The wake pipe outlives the loop: other threads may still call _wake() after it ended.
         for fd in (getattr(self, "_wake_r", -1), getattr(self, "_wake_w", -1)):
             if fd >= 0:
@@ -396,7 +402,12 @@ class Launcher:
 
     def _next_timeout(self) -> float:
         now = time.monotonic()
-        deadlines = [p.next_start for p in self.processes.values() if p.state == BACKOFF and p.desired == RUNNING]
+        held = self._holding and not self._stopping
+        # A held service is due but waits for the start_first ones: its deadline is the end of the hold.
+        deadlines = [p.next_start for p in self.processes.values() if p.state == BACKOFF and p.desired == RUNNING
+                     and not (held and p.name not in self.start_first)]
+        if held and self._hold_since is not None:
+            deadlines.append(self._hold_since + self.first_wait_s)
         deadlines += [p.kill_at for p in self.processes.values() if p.kill_at is not None]
         soonest = min(deadlines, default=now + _MAX_WAIT)
         return max(0.0, min(_MAX_WAIT, soonest - now))
