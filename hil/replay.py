@@ -38,7 +38,6 @@ from hil.replay_plan import (DevicePlan, ReplayError, ReplayPlan, ServicePlan, b
                              write_run_profile)
 
 CONTRACT_PREFIX = "U2SA_"
-RECV_BUF_SIZE = 4 * 1024 * 1024   # --fast bursts outputs; the kernel caps it at net.core.rmem_max
 
 
 @dataclass
@@ -57,7 +56,7 @@ class ReplayOptions:
     progress: bool | None = None          # None: when stderr is a terminal
     ready_timeout_s: float = 30.0
     settle_s: float = 1.0                 # quiet time that ends the replay after the last input
-    lcm_url: str | None = None            # default: a random private port, ttl=0
+    lcm_url: str | None = None            # default: a free private port (u2sa_hw.udp_ports), ttl=0
 
 
 @dataclass
@@ -91,7 +90,7 @@ def private_url(plan: ReplayPlan) -> str:
     """``udpm://239.255.76.67:<private port>?ttl=0``, never the recorded vehicle's port."""
     recorded = plan.summary.contents.metadata.get("u2sa", {}).get("lcm_url", "")
     ports = {int(p) for p in re.findall(r":(\d+)", recorded)}
-    return private_lcm_url(avoid=ports, options=f"ttl=0&recv_buf_size={RECV_BUF_SIZE}")
+    return private_lcm_url(avoid=ports)   # the transport adds the receive buffer --fast bursts need
 
 
 def make_device(dev: DevicePlan, run_dir: Path, service: ServicePlan, *, fast: bool,

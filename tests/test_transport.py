@@ -62,6 +62,30 @@ def test_a_udpm_url_gets_a_receive_buffer_the_kernel_allows(tmp_path: Path) -> N
     assert with_receive_buffer(url, rmem_max_file=str(tmp_path / "missing")) == url   # no /proc: kernel default
 
 
+def test_opening_from_several_threads_at_once_leaves_stderr_where_it_was() -> None:
+    """Each open catches what the LCM C library prints on fd 2; interleaved, they used to leave fd 2 on a
+    deleted temp file, and every later log line and traceback was lost."""
+    import os
+
+    before = os.fstat(2)
+    start = threading.Barrier(8)
+    opened: list[Transport] = []
+
+    def open_one() -> None:
+        start.wait()
+        opened.append(Transport("memq://", name="many"))
+
+    threads = [threading.Thread(target=open_one) for _ in range(8)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join(timeout=30)
+    for tr in opened:
+        tr.stop()
+    after = os.fstat(2)
+    assert len(opened) == 8 and (after.st_dev, after.st_ino) == (before.st_dev, before.st_ino)
+
+
 def test_publishing_from_several_threads_delivers_every_message_intact(lcm_url: str) -> None:
     threads, per_thread = 4, 300
     received: list[bytes] = []

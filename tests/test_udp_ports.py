@@ -20,9 +20,12 @@ def test_ports_come_from_below_the_ephemeral_range_and_skip_the_lcm_default() ->
 def test_a_port_held_without_reuse_or_asked_to_avoid_is_never_handed_out() -> None:
     # The same seed picks the same first candidate; hold it the way a sending socket does.
     first = private_udp_port(rng=random.Random(11))
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as held:
-        held.bind(("", first))
-        assert private_udp_port(rng=random.Random(11)) != first
+    for reuse in (False, True):   # a sending socket holds it without SO_REUSEADDR, an LCM receiver with it
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as held:
+            if reuse:
+                held.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            held.bind(("", first))
+            assert private_udp_port(rng=random.Random(11)) != first
     assert private_udp_port(rng=random.Random(11), avoid={first}) != first
     assert private_udp_port(rng=random.Random(11)) == first   # free again once released
 

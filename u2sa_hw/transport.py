@@ -302,6 +302,9 @@ def _is_regex(channel: str) -> bool:
     return any(ch in channel for ch in "*+?[]()|\\^$")
 
 
+_STDERR_LOCK = threading.Lock()   # fd 2 is the process's: one capture at a time
+
+
 @contextlib.contextmanager
 def _captured_c_stderr() -> Iterator[list[str]]:
     """Redirect file descriptor 2 (where C code prints) to a temp file for the block.
@@ -311,22 +314,23 @@ def _captured_c_stderr() -> Iterator[list[str]]:
     :func:`_reemit` gives them back.
     """
     printed: list[str] = []
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-    except (OSError, ValueError, AttributeError):  # no fd 2 (a daemon), or sys.stderr closed
-        printed.append("")
-        yield printed
-        return
-    with tempfile.TemporaryFile() as tmp:
-        os.dup2(tmp.fileno(), 2)
+    with _STDERR_LOCK:   # two threads interleaving dup/dup2 would leave fd 2 on a deleted temp file
         try:
+            sys.stderr.flush()
+            saved = os.dup(2)
+        except (OSError, ValueError, AttributeError):  # no fd 2 (a daemon), or sys.stderr closed
+            printed.append("")
             yield printed
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-            tmp.seek(0)
-            printed.append(tmp.read().decode(errors="replace"))
+            return
+        with tempfile.TemporaryFile() as tmp:
+            os.dup2(tmp.fileno(), 2)
+            try:
+                yield printed
+            finally:
+                os.dup2(saved, 2)
+                os.close(saved)
+                tmp.seek(0)
+                printed.append(tmp.read().decode(errors="replace"))
 
 
 def _reemit(text: str) -> None:

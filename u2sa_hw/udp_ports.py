@@ -28,8 +28,9 @@ def ephemeral_range(path: Path = EPHEMERAL_RANGE_FILE) -> tuple[int, int]:
 
 
 def _bindable(port: int) -> bool:
+    # Without SO_REUSEADDR: a port an LCM receiver (which shares with SO_REUSEADDR) or a sending
+    # socket holds fails this bind, so a bus in use is never handed out again.
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             sock.bind(("", port))
         except OSError:

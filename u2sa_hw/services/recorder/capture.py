@@ -25,7 +25,9 @@ from u2sa_hw.transport import Transport
 
 log = logging.getLogger("u2sa_hw.recorder")
 
-JOIN_TIMEOUT_S = 30.0   # stop() waits this long for the writer to write what is queued
+# stop() waits this long for the writer to write what is queued: less than the recorder unit's
+# TimeoutStopSec (15 s), so a stalled disk is reported before systemd's SIGKILL.
+JOIN_TIMEOUT_S = 10.0
 
 
 @dataclass
