@@ -586,4 +586,9 @@ def test_register_goal_state_refuses_what_cannot_be_a_goal_or_a_state() -> None:
         register_goal_state(t.Waypoint, object)   # type: ignore[arg-type]
     with pytest.raises(TypeError, match="is not an LCM type"):
         register_goal_state(dict, WaypointState)
+    # An LCM type that is no goal is refused before it reaches the message registry.
+    stranger = type("Stranger", (), {"__slots__": ["x"], "_get_packed_fingerprint": staticmethod(lambda: b"\x5a" * 8)})
+    with pytest.raises(TypeError, match="Stranger is not a goal"):
+        register_goal_state(stranger, WaypointState)
+    assert REGISTRY.by_fingerprint(b"\x5a" * 8) is None
     assert GOAL_STATES == before

@@ -199,6 +199,20 @@ def test_log_level_from_the_config_file_checked_and_changed_live(services: Servi
     assert _discover(bus, "state_estimator").status == "ok"
 
 
+def test_a_profile_with_an_unknown_log_level_is_refused_by_every_command(tmp_path: Path) -> None:
+    """Checked when the profile loads: u2sa run and install too, not only u2sa service (whose children
+    would otherwise crash-loop under the launcher)."""
+    from u2sa_hw.vehicle import ProfileError, load_profile
+
+    profile = tmp_path / "vehicle.toml"
+    profile.write_text('[vehicle]\nname = "x"\nlog_level = "verbose"\n\n[services.est]\nkind = "state_estimator"\n')
+    with pytest.raises(ProfileError, match=r"vehicle.toml \[vehicle\]: log_level: unknown log level 'verbose'"):
+        load_profile(profile)
+    for cmd in (["run"], ["service", "est"]):
+        r = subprocess.run([*U2SA, *cmd, "--vehicle", str(profile)], capture_output=True, text=True, timeout=60)
+        assert r.returncode != 0 and r.stderr.count("\n") == 1 and "unknown log level 'verbose'" in r.stderr, r.stderr
+
+
 def test_param_set_on_an_unwritable_config_file_fails_with_the_reason(services: ServiceProcesses,
                                                                       bus: BusClient) -> None:
     """The service runs as nobody (root ignores permissions) with its config in a read-only directory."""

@@ -31,6 +31,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from u2sa_hw.service_log import level_number
+
 VEHICLE_ENV = "U2SA_VEHICLE"
 SYSTEM_PROFILE = Path("/etc/u2sa/vehicle.toml")
 
@@ -158,6 +160,11 @@ def load_profile(path: Path | str | None) -> VehicleProfile:
         services[name] = ServiceSpec(name=name, kind=kind, config_path=cfg_path, settings=settings,
                                      enabled=_typed(s, "enabled", bool, True, w),
                                      required=_typed(s, "required", bool, True, w))
+    log_level = _typed(v, "log_level", str, "info", where)
+    try:
+        level_number(log_level)
+    except ValueError as exc:
+        raise ProfileError(f"{where}: log_level: {exc}") from None
     return VehicleProfile(
         path=path,
         name=_typed(v, "name", str, path.stem, where),
@@ -166,7 +173,7 @@ def load_profile(path: Path | str | None) -> VehicleProfile:
         config_dir=config_dir,
         log_dir=rel("log_dir", "logs"),
         data_dir=rel("data_dir", "data"),
-        log_level=_typed(v, "log_level", str, "info", where),
+        log_level=log_level,
         origin=origin,
         services=services,
         devices={k: d for k, d in data.get("devices", {}).items() if isinstance(d, dict)},

@@ -44,7 +44,7 @@ def run(args: Any) -> int:
     from u2sa_hw.cli import CliError
     from u2sa_hw.config import ConfigError
     from u2sa_hw.registry import known_kinds, resolve_kind
-    from u2sa_hw.service_log import level_number, setup_service_logging
+    from u2sa_hw.service_log import setup_service_logging
     from u2sa_hw.transport import TransportError
 
     if args.list_kinds:
@@ -61,10 +61,6 @@ def run(args: Any) -> int:
     except LookupError as exc:
         where = f" in {profile.path}" if profile.path else ""
         raise CliError(f"service '{args.name}'{where}: {exc}") from None
-    try:
-        level_number(profile.log_level)
-    except ValueError as exc:
-        raise CliError(f"{profile.path or 'vehicle profile'}: log_level: {exc}") from None
     # Until the service's config is read, log at the command line's or the profile's level.
     logger = setup_service_logging(args.name, log_dir=profile.log_dir, level=args.log_level or profile.log_level)
     config_path = Path(args.config) if args.config else profile.config_path_for(args.name)

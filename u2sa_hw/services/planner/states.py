@@ -225,11 +225,11 @@ def register_goal_state(goal_type: type, state: type[GoalState]) -> None:
         raise TypeError(f"{state!r} is not a GoalState subclass")
     if not hasattr(goal_type, "_get_packed_fingerprint"):
         raise TypeError(f"{goal_type!r} is not an LCM type (generate it with lcm-gen -p)")
-    if REGISTRY.by_fingerprint(fingerprint_of(goal_type)) is None:
-        REGISTRY.register(goal_type)
-    if not REGISTRY.is_a(goal_type, t.GoalInformation):
+    if not REGISTRY.is_a(goal_type, t.GoalInformation):   # checked before it is registered for decoding
         raise TypeError(f"{goal_type.__name__} is not a goal: its first field must be 'base' of type "
                         "GoalInformation or an extension of it (Waypoint)")
+    if REGISTRY.by_fingerprint(fingerprint_of(goal_type)) is None:
+        REGISTRY.register(goal_type)
     GOAL_STATES[goal_type] = state
 
 
