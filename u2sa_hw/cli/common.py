@@ -33,8 +33,8 @@ def profile_from(args: Any) -> VehicleProfile:
 
 
 @contextlib.contextmanager
-def bus_client(args: Any) -> Iterator[Any]:
-    """A BusClient on the profile's LCM URL for a ``with`` block, closed after it.
+def bus_client(args: Any, *, name: str | None = None) -> Iterator[Any]:
+    """A BusClient on the profile's LCM URL for a ``with`` block, closed after it (*name*: its source name).
 
     A TransportError (LCM cannot open or receive) becomes a one-line CliError with the fix.
     """
@@ -43,7 +43,7 @@ def bus_client(args: Any) -> Iterator[Any]:
 
     profile = profile_from(args)
     try:
-        client = BusClient(profile.lcm_url, system_id=profile.system_id)
+        client = BusClient(profile.lcm_url, system_id=profile.system_id, **({"name": name} if name else {}))
     except TransportError as exc:
         raise CliError(str(exc)) from None
     try:

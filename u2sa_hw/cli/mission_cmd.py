@@ -15,14 +15,13 @@ import argparse
 import json
 import os
 import threading
-import time
 import uuid
 from pathlib import Path
 from typing import Any
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.cli.common import add_timeout_option, add_vehicle_option, profile_from
+from u2sa_hw.cli.common import add_timeout_option, add_vehicle_option, bus_client, no_answer_error
 
 MANAGER_TYPE = "mission_manager"
 ACTIONS = ("status", "goto", "skip", "restart", "upload")
@@ -86,6 +85,8 @@ class MissionListener:
         self.sender = sender
         self.status: t.MissionStatus | None = None
         self.ack: tuple[str, str] | None = None   # (mission manager's name, last_command text)
+        self.got_status = threading.Event()
+        self.got_ack = threading.Event()
         self._lock = threading.Lock()
         self._subs = [bus.transport.subscribe(ch.MISSION_STATUS, t.MissionStatus, self._on_status),
                       bus.transport.subscribe(ch.HEALTH, t.Health, self._on_health)]
@@ -99,6 +100,7 @@ class MissionListener:
     def _on_status(self, _channel: str, msg: t.MissionStatus) -> None:
         with self._lock:
             self.status = msg
+        self.got_status.set()
 
     def _on_health(self, _channel: str, msg: t.Health) -> None:
         if msg.service_type != MANAGER_TYPE:
@@ -107,6 +109,7 @@ class MissionListener:
         if f" from {self.sender}: " in text:
             with self._lock:
                 self.ack = (msg.name, text)
+            self.got_ack.set()
 
 
 def status_dict(st: t.MissionStatus) -> dict[str, Any]:
@@ -133,20 +136,9 @@ def _print_status(st: t.MissionStatus, *, as_json: bool) -> None:
         print("\n".join(status_lines(st)))
 
 
-def _wait(predicate: Any, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() >= deadline:
-            return False
-        time.sleep(0.02)
-    return True
-
-
 def cmd_mission(args: Any) -> int:
     """Run ``u2sa mission ACTION``; CliError (exit 1) on a refusal or without an answer."""
-    from u2sa_hw.bus_client import BusClient
     from u2sa_hw.cli import CliError
-    from u2sa_hw.transport import TransportError
 
     action = args.action
     if action in ("goto", "upload") and not args.target:
@@ -156,39 +148,41 @@ def cmd_mission(args: Any) -> int:
     if args.timeout <= 0:
         raise CliError("mission: --timeout must be > 0 seconds", 2)
     mission_xml = read_mission_file(Path(args.target)) if action == "upload" else ""
-    profile = profile_from(args)
     sender = f"u2sa-mission-{os.getpid()}-{uuid.uuid4().hex[:6]}"
-    try:
-        bus = BusClient(profile.lcm_url, name=sender, system_id=profile.system_id)
-    except TransportError as exc:
-        raise CliError(str(exc)) from None
-    listener = MissionListener(bus, sender)
-    try:
-        if action == "status":
-            if not _wait(lambda: listener.status is not None, args.timeout):
-                raise CliError(f"mission status: no MISSION_STATUS within {args.timeout:g} s on {bus.transport.url}; "
-                               "is a mission manager running (u2sa services lists the live ones)?")
-            _print_status(listener.status, as_json=args.json)
-            return 0
-        cmd = t.MissionCommand()
-        cmd.command = action
-        cmd.uid = args.target if action == "goto" else ""
-        cmd.mission_xml = mission_xml
-        bus.publish(ch.MISSION_CMD, cmd)
-        if not _wait(lambda: listener.ack is not None, args.timeout):
-            raise CliError(f"mission {action}: no mission manager acknowledged within {args.timeout:g} s on "
-                           f"{bus.transport.url}; is one running (u2sa services lists the live ones)? Check with "
-                           "u2sa mission status before sending again")
-        manager, text = listener.ack
-        outcome = text.split(f" from {sender}: ", 1)[1]
-        if outcome != "ok":
-            raise CliError(f"mission {action}: {manager} {outcome}")
-        # The manager publishes the changed mission before its acknowledgement.
-        if listener.status is not None:
-            _print_status(listener.status, as_json=args.json)
-        else:
-            print(f"{manager}: {action} done")
+    with bus_client(args, name=sender) as bus:
+        listener = MissionListener(bus, sender)
+        try:
+            return _run_action(args, bus, listener, action=action, mission_xml=mission_xml)
+        finally:
+            listener.close()
+
+
+def _run_action(args: Any, bus: Any, listener: MissionListener, *, action: str, mission_xml: str) -> int:
+    from u2sa_hw.cli import CliError
+
+    if action == "status":
+        if not listener.got_status.wait(args.timeout):
+            raise no_answer_error(args, f"mission status: no MISSION_STATUS within {args.timeout:g} s on "
+                                        f"{bus.transport.url}; is a mission manager running (u2sa services lists "
+                                        "the live ones)?")
+        _print_status(listener.status, as_json=args.json)
         return 0
-    finally:
-        listener.close()
-        bus.close()
+    cmd = t.MissionCommand()
+    cmd.command = action
+    cmd.uid = args.target if action == "goto" else ""
+    cmd.mission_xml = mission_xml
+    bus.publish(ch.MISSION_CMD, cmd)
+    if not listener.got_ack.wait(args.timeout):
+        raise no_answer_error(args, f"mission {action}: no mission manager acknowledged within {args.timeout:g} s "
+                                    f"on {bus.transport.url}; is one running (u2sa services lists the live ones)? "
+                                    "Check with u2sa mission status before sending again")
+    manager, text = listener.ack
+    outcome = text.split(f" from {listener.sender}: ", 1)[1]
+    if outcome != "ok":
+        raise CliError(f"mission {action}: {manager} {outcome}")
+    # The manager publishes the changed mission before its acknowledgement.
+    if listener.status is not None:
+        _print_status(listener.status, as_json=args.json)
+    else:
+        print(f"{manager}: {action} done")
+    return 0
