@@ -37,9 +37,9 @@ class SerialLineSensor(ProprioceptiveSensor):
     CONFIG = (
         field("port", "", "device path (/dev/u2sa/NAME) or pyserial URL"),
         field("baudrate", 9600, "one of 4800, 9600, 19200, 38400, 57600, 115200"),
-        field("bytesize", 8, "data bits: 5, 6, 7 or 8"),
-        field("parity", "N", "parity: N (none), E (even), O (odd), M (mark) or S (space)"),
-        field("stopbits", 1.0, "stop bits: 1, 1.5 or 2"),
+        field("bytesize", 8, "data bits: 5, 6, 7 or 8", choices=BYTESIZES),
+        field("parity", "N", "parity: N (none), E (even), O (odd), M (mark) or S (space)", choices=PARITIES),
+        field("stopbits", 1.0, "stop bits: 1, 1.5 or 2", choices=STOPBITS),
         field("device_name", "", "device name in errors and RAW.<device> (empty: the service name)"),
         field("record_raw", False, "publish every chunk read as RawSerial on RAW.<device>"),
         field("stale_after_s", 2.0, "no valid sentence for this long -> degraded, data stale"),
@@ -75,22 +75,9 @@ class SerialLineSensor(ProprioceptiveSensor):
         if baud not in BAUDRATES:
             raise ConfigError(f"service '{self.name}': baudrate {baud} is not supported; use one of "
                               f"{', '.join(map(str, BAUDRATES))} (the device's configured rate)")
-        self._check_framing()
         for key in ("stale_after_s", "epoch_gap_s"):
             if not self.config.get(key) > 0:
                 raise ConfigError(f"service '{self.name}': {key} must be > 0, got {self.config.get(key)!r}")
-
-    def _check_framing(self) -> None:
-        bytesize, parity, stopbits = (self.config.get(k) for k in ("bytesize", "parity", "stopbits"))
-        if bytesize not in BYTESIZES:
-            raise ConfigError(f"service '{self.name}': bytesize {bytesize!r} is not supported; use one of "
-                              f"{', '.join(map(str, BYTESIZES))} (the device's data bits)")
-        if parity not in PARITIES:
-            raise ConfigError(f"service '{self.name}': parity {parity!r} is not supported; use one of "
-                              f"{', '.join(PARITIES)} (none, even, odd, mark, space)")
-        if stopbits not in STOPBITS:
-            raise ConfigError(f"service '{self.name}': stopbits {stopbits!r} is not supported; use one of "
-                              "1, 1.5, 2")
 
     @property
     def framing(self) -> str:

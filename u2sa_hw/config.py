@@ -120,6 +120,7 @@ class Configurator:
 
     def __init__(self, path: Path | str | None, fields: Iterable[ConfigField], *,
                  logger: logging.Logger | None = None, initial: dict[str, Any] | None = None,
+                 initial_source: str = "the vehicle profile",
                  validator: Callable[[str, Any], str | None] | None = None) -> None:
         self.path = Path(path) if path else None
         self.validator = validator
@@ -129,7 +130,7 @@ class Configurator:
         self._values: dict[str, Any] = {n: f.default for n, f in self.fields.items()}
         self._extra: dict[str, Any] = {}
         for name, value in (initial or {}).items():
-            self._load_value(name, value, source="the vehicle profile")
+            self._load_value(name, value, source=initial_source)
         if self.path is not None and self.path.exists():
             self._load_file()
 
