@@ -28,6 +28,7 @@ from typing import Any
 import tomli_w
 
 from u2sa_hw.install_system import DEVICE_GROUPS, SERVICE_USER, InstallError
+from u2sa_hw.registry import RECORDER_KIND
 from u2sa_hw.transport import DEFAULT_RECV_BUF_SIZE
 from u2sa_hw.vehicle import ServiceSpec, VehicleProfile
 
@@ -89,7 +90,6 @@ def _unit_for(spec: ServiceSpec, profile: VehicleProfile) -> ServiceUnit:
     return ServiceUnit(spec.name, f"u2sa@{spec.name}.service", TEMPLATE)
 
 
-RECORDER_KIND = "recorder"
 RECORDER_DROPIN = """\
 # Written by `u2sa install`: {name} is a recorder (kind "recorder"). Recordings go to the
 # profile's data_dir, /var/lib/u2sa/recordings on the vehicle (StateDirectory= of the

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import importlib
 
+RECORDER_KIND = "recorder"   # started first by the launcher and systemd, so its log holds everyone's start-up
+
 SERVICE_KINDS: dict[str, str] = {
     # core services
     "state_estimator": "u2sa_hw.services.estimator.service:StateEstimator",

@@ -28,6 +28,7 @@ from u2sa_hw.launcher.notify import NotifyListener
 from u2sa_hw.launcher.output import LineSink, LineSplitter, PrefixedOutput
 from u2sa_hw.launcher.process import (BACKOFF, EXITED, FAILED, RUNNING, STOPPED, ProcessStatus, RestartPolicy,
                                      SupervisedProcess)
+from u2sa_hw.registry import RECORDER_KIND
 from u2sa_hw.vehicle import ServiceSpec, VehicleProfile
 
 DeathCallback = Callable[[ProcessStatus, str], None]
@@ -35,7 +36,6 @@ DeathCallback = Callable[[ProcessStatus, str], None]
 
 LAUNCHER_NAME = "launcher"
 _MAX_WAIT = 0.1   # loop wake-up at least this often to notice deaths and deadlines
-RECORDER_KIND = "recorder"
 
 
 def u2sa_command() -> list[str]:

@@ -22,6 +22,7 @@ from typing import Any, Mapping
 import tomli_w
 
 from u2sa_hw.config import Configurator
+from u2sa_hw.registry import RECORDER_KIND
 from u2sa_hw.service import BASE_CONFIG
 from u2sa_hw.vehicle import ProfileError, VehicleProfile
 
@@ -92,7 +93,7 @@ def write_sim_profile(profile: VehicleProfile, *, run_dir: Path, overrides: Mapp
         vehicle["lcm_url"] = lcm_url
     services = data.setdefault("services", {})
     if record_dir is not None:
-        recorders = [n for n, s in profile.services.items() if s.kind == "recorder"]
+        recorders = [n for n, s in profile.services.items() if s.kind == RECORDER_KIND]
         for name in recorders or ["recorder"]:
             table = services.setdefault(name, {"kind": "recorder"})
             table["enabled"] = True
