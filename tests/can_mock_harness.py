@@ -197,3 +197,12 @@ class Commander:
 
 if __name__ == "__main__":
     serve(json.loads(sys.argv[1]))
+
+
+def stop_driver(driver: Any, bus: Any, how: str, *, name: str = "motors") -> None:
+    """Stop the driver process over the bus (``how == "u2sa stop"``) or with SIGTERM; it must exit 0."""
+    if how == "u2sa stop":
+        bus.stop(name=name)
+    else:
+        driver.terminate()
+    assert driver.wait(timeout=15) == 0

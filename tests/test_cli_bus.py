@@ -65,9 +65,10 @@ def test_pub_with_rate_and_count_publishes_n_stamped_messages(services: ServiceP
     assert len({m.base.header.source for m in got}) == 1
 
 
-def test_echo_text_mode_prints_the_type_and_each_field(services: ServiceProcesses, bus: BusClient) -> None:
-    proc = subprocess.Popen([*U2SA, "echo", "NAV_POINT", "--count", "1", "--timeout", "20"], env=services.env(),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+def _echo_one_nav_point(services: ServiceProcesses, bus: BusClient, *args: str) -> str:
+    """Run ``u2sa echo NAV_POINT --count 1 ARGS`` while a NavigationPoint is published; its stdout."""
+    proc = subprocess.Popen([*U2SA, "echo", "NAV_POINT", "--count", "1", "--timeout", "20", *args],
+                            env=services.env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         nav = t.NavigationPoint()
         nav.subsystem, nav.x = "vehicle", 4.5
@@ -79,14 +80,23 @@ def test_echo_text_mode_prints_the_type_and_each_field(services: ServiceProcesse
         wait_until(published_and_seen, timeout=20, interval=0.2, message="echo to print a message")
         out, err = proc.communicate(timeout=10)
         assert proc.returncode == 0, err
-        lines = out.splitlines()
-        assert lines[0] == "--- NAV_POINT NavigationPoint"
-        assert "  x: 4.5" in lines and "  subsystem: vehicle" in lines
-        assert any(line.startswith("  header.timestamp_us: ") for line in lines)
+        return out
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_echo_text_mode_prints_the_type_and_each_field(services: ServiceProcesses, bus: BusClient) -> None:
+    lines = _echo_one_nav_point(services, bus).splitlines()
+    assert lines[0] == "--- NAV_POINT NavigationPoint"
+    assert "  x: 4.5" in lines and "  subsystem: vehicle" in lines
+    assert any(line.startswith("  header.timestamp_us: ") for line in lines)
+
+
+def test_echo_json_prints_fields_by_name(services: ServiceProcesses, bus: BusClient) -> None:
+    obj = json.loads(_echo_one_nav_point(services, bus, "--json").splitlines()[0])
+    assert obj["channel"] == "NAV_POINT" and obj["_type"] == "NavigationPoint" and obj["x"] == 4.5
 
 
 def test_echo_with_timeout_and_no_traffic_is_one_line(services: ServiceProcesses) -> None:

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 import pytest
-from can_mock_harness import GROUP, Commander, MockCanProcess
+from can_mock_harness import GROUP, Commander, MockCanProcess, stop_driver
 from conftest import REPO, ServiceProcesses, wait_until
 from serial_driver_harness import DriverProbe, start_driver, write_profile
 
@@ -395,11 +395,7 @@ def test_stop_over_the_bus_and_sigterm_leave_both_axes_at_zero_and_idle(rig, bus
     r.wait_wheels(CIRCUMFERENCE, -CIRCUMFERENCE)
     r.commander.close()
     marks = {side: len(r.mock.received(side)) for side in ("left", "right")}
-    if how == "u2sa stop":
-        bus.stop(name="motors")
-    else:
-        r.driver.terminate()
-    assert r.driver.wait(timeout=15) == 0
+    stop_driver(r.driver, bus, how)
     for side, node in zip(("left", "right"), NODES):
         frames = r.mock.received(side)[marks[side]:]
         cmds = [(can_id & 0x1F, data) for can_id, data in frames if can_id >> 5 == node]

@@ -11,7 +11,7 @@ from statistics import mean
 from typing import Callable, Iterator
 
 import pytest
-from can_mock_harness import GROUP, Commander, MockCanProcess
+from can_mock_harness import GROUP, Commander, MockCanProcess, stop_driver
 from conftest import REPO, ServiceProcesses, wait_until
 from serial_driver_harness import DriverProbe, start_driver, write_profile
 
@@ -197,11 +197,7 @@ def test_stop_over_the_bus_and_sigterm_leave_the_motors_at_zero(rig, bus: BusCli
     r.wait_modes(("duty", 0.05), ("duty", -0.05), what="duty 5 % both ways")
     r.commander.close()
     marks = {side: len(r.mock.received(side)) for side in ("left", "right")}
-    if how == "u2sa stop":
-        bus.stop(name="motors")
-    else:
-        r.driver.terminate()
-    assert r.driver.wait(timeout=15) == 0
+    stop_driver(r.driver, bus, how)
     for side, controller in zip(("left", "right"), IDS):
         ids = [(vc.split_ext_id(can_id), data) for can_id, data in r.mock.received(side)[marks[side]:]]
         sent = [(packet, vc.decode_command(packet, data)) for (packet, target), data in ids

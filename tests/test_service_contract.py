@@ -318,28 +318,6 @@ def test_pub_rejects_bad_field_with_message(services: ServiceProcesses) -> None:
     assert r.returncode == 1 and "unknown message type 'NoSuchType'" in r.stderr
 
 
-def test_echo_json_prints_fields_by_name(services: ServiceProcesses, bus: BusClient, tmp_path: Path) -> None:
-    import subprocess
-    import sys
-
-    proc = subprocess.Popen([sys.executable, "-m", "u2sa_hw.cli", "echo", "NAV_POINT", "--count", "1", "--json",
-                             "--timeout", "20"], env=services.env(), stdout=subprocess.PIPE, text=True)
-    try:
-        nav = t.NavigationPoint()
-        nav.subsystem, nav.x = "vehicle", 4.5
-
-        def published_and_seen() -> bool:
-            bus.publish(ch.NAV_POINT, nav)
-            return proc.poll() is not None
-
-        wait_until(published_and_seen, timeout=20, interval=0.2, message="echo to print a message")
-        obj = json.loads(proc.stdout.readline())
-        assert obj["channel"] == "NAV_POINT" and obj["_type"] == "NavigationPoint" and obj["x"] == 4.5
-    finally:
-        proc.kill()
-        proc.wait()
-
-
 # -- the contract in one process -------------------------------------------------------------
 
 @contextlib.contextmanager
