@@ -18,7 +18,8 @@ OBJECTS = "OBJECTS"                  # exteroceptive sensors -> world modeler
 WORLD = "WORLD"                      # world modeler -> path planner
 WORLD_SUMMARY = "WORLD_SUMMARY"
 NAV_POINT = "NAV_POINT"              # path planner -> control system
-ACTUATOR_CMD = "ACTUATOR_CMD"        # control system -> actuators
+ACTUATOR_CMD = "ACTUATOR_CMD"        # control system -> actuators (obeyed only while autonomy is granted)
+MANUAL_CMD = "MANUAL_CMD"            # RC mux (the pilot's sticks through the manual mixer) -> actuators
 RC_MODE = "RC_MODE"                  # RC mux driver -> control system, HSM
 FAILSAFE = "FAILSAFE"                # HSM -> actuators, RC mux
 DISCOVERY_REQUEST = "U2SA_DISCOVERY"
@@ -43,6 +44,7 @@ BASE_TYPES: dict[str, type] = {
     WORLD_SUMMARY: t.WorldSummary,
     NAV_POINT: t.NavigationPoint,
     ACTUATOR_CMD: t.ActuatorCommand,
+    MANUAL_CMD: t.ActuatorCommand,
     RC_MODE: t.RcMode,
     FAILSAFE: t.Failsafe,
     DISCOVERY_REQUEST: t.DiscoveryRequest,

@@ -10,7 +10,12 @@ import struct
 import u2sa_hw.lcmtypes
 
 class Failsafe(object):
-    """ A failsafe command from the HSM (or any service): actuators go neutral, autonomy drops. """
+    """
+    A failsafe command from the HSM (or any service): actuators go neutral, autonomy drops.
+    Held per source (header.source); a source clears only its own, except that an operator
+    clear (source "operator") naming a source in `service` (or "*") clears that one
+    (u2sa_hw/failsafe.py has the one rule every holder uses).
+    """
 
     __slots__ = ["header", "active", "reason", "service"]
 

@@ -12,11 +12,11 @@ import u2sa_hw.lcmtypes
 class RcMode(object):
     """ RC multiplexer mode: 0 manual, 1 autonomous, 2 no signal. """
 
-    __slots__ = ["header", "mode", "mode_name", "autonomy_enabled", "select_mismatch", "num_channels", "pulse_us"]
+    __slots__ = ["header", "mode", "mode_name", "autonomy_enabled", "select_mismatch", "armed", "hold", "blocked_by", "num_channels", "pulse_us"]
 
-    __typenames__ = ["u2sa_hw.lcmtypes.Header", "int8_t", "string", "boolean", "boolean", "int32_t", "int32_t"]
+    __typenames__ = ["u2sa_hw.lcmtypes.Header", "int8_t", "string", "boolean", "boolean", "boolean", "boolean", "string", "int32_t", "int32_t"]
 
-    __dimensions__ = [None, None, None, None, None, None, ["num_channels"]]
+    __dimensions__ = [None, None, None, None, None, None, None, None, None, ["num_channels"]]
 
     def __init__(self):
         self.header = u2sa_hw.lcmtypes.Header()
@@ -33,9 +33,27 @@ class RcMode(object):
         LCM Type: boolean
         """
 
-        self.num_channels = 0
+        self.armed = False
         """
         read-back of the mux select line disagrees
+        LCM Type: boolean
+        """
+
+        self.hold = False
+        """
+        autonomy armed: the switch passed through manual since the last disarm
+        LCM Type: boolean
+        """
+
+        self.blocked_by = ""
+        """
+        autonomy granted but a pre-arm check was lost with action "hold": outputs neutral
+        LCM Type: string
+        """
+
+        self.num_channels = 0
+        """
+        why autonomy is not granted (the failed pre-arm check, failsafe, ...); "" when granted
         LCM Type: int32_t
         """
 
@@ -56,7 +74,12 @@ class RcMode(object):
         buf.write(struct.pack('>I', len(__mode_name_encoded)+1))
         buf.write(__mode_name_encoded)
         buf.write(b"\0")
-        buf.write(struct.pack(">bbi", self.autonomy_enabled, self.select_mismatch, self.num_channels))
+        buf.write(struct.pack(">bbbb", self.autonomy_enabled, self.select_mismatch, self.armed, self.hold))
+        __blocked_by_encoded = self.blocked_by.encode('utf-8')
+        buf.write(struct.pack('>I', len(__blocked_by_encoded)+1))
+        buf.write(__blocked_by_encoded)
+        buf.write(b"\0")
+        buf.write(struct.pack(">i", self.num_channels))
         buf.write(struct.pack('>%di' % self.num_channels, *self.pulse_us[:self.num_channels]))
 
     @staticmethod
@@ -78,6 +101,10 @@ class RcMode(object):
         self.mode_name = buf.read(__mode_name_len)[:-1].decode('utf-8', 'replace')
         self.autonomy_enabled = bool(struct.unpack('b', buf.read(1))[0])
         self.select_mismatch = bool(struct.unpack('b', buf.read(1))[0])
+        self.armed = bool(struct.unpack('b', buf.read(1))[0])
+        self.hold = bool(struct.unpack('b', buf.read(1))[0])
+        __blocked_by_len = struct.unpack('>I', buf.read(4))[0]
+        self.blocked_by = buf.read(__blocked_by_len)[:-1].decode('utf-8', 'replace')
         self.num_channels = struct.unpack(">i", buf.read(4))[0]
         self.pulse_us = struct.unpack('>%di' % self.num_channels, buf.read(self.num_channels * 4))
         return self
@@ -86,7 +113,7 @@ class RcMode(object):
     def _get_hash_recursive(parents):
         if RcMode in parents: return 0
         newparents = parents + [RcMode]
-        tmphash = (0x74ff1b2c5885f121+ u2sa_hw.lcmtypes.Header._get_hash_recursive(newparents)) & 0xffffffffffffffff
+        tmphash = (0xf94895f167d45f9+ u2sa_hw.lcmtypes.Header._get_hash_recursive(newparents)) & 0xffffffffffffffff
         tmphash  = (((tmphash<<1)&0xffffffffffffffff) + (tmphash>>63)) & 0xffffffffffffffff
         return tmphash
     _packed_fingerprint = None
