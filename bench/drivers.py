@@ -205,7 +205,7 @@ def bench_round_trip(services: Services, bus: BusClient, port: int, count: int) 
     health = health_watch(bus, "motors")
     services.start("motors", "odrive_can", {
         "interface": "udp_multicast", "channel": GROUP, "udp_port": port, "node_ids": [1, 2],
-        "max_turns_per_s": MAX_TURNS, "command_timeout_s": 0.0, "track_width_m": TRACK})
+        "max_turns_per_s": MAX_TURNS, "command_timeout_s": 0.0, "rc_gating": False, "track_width_m": TRACK})
     wait_for(lambda: health.get("left.phase") == "armed" and health.get("right.phase") == "armed", 30,
              "both ODrive axes armed")
     can_bus = can.Bus(interface="udp_multicast", channel=GROUP, port=port)

@@ -72,8 +72,15 @@ class GpioOutputDriver(Actuator):
         return lines, {n: safe.get(n, 0) for n in lines}
 
     def validate_config(self, name: str, value: Any) -> str | None:
-        """Refuse a change that would leave the service unable to start."""
+        """Refuse a change that would leave the service unable to start (the dead-man as every actuator)."""
+        if name in ("command_timeout_s", "rc_gating"):
+            return super().validate_config(name, value)
         return config_problem(self, name, value, self.parse_config)
+
+    @classmethod
+    def declared_actuators(cls, name: str, config: Mapping[str, Any]) -> set[str]:
+        """The output names of ``outputs``."""
+        return set(parse_line_map(config["outputs"], service=name, key="outputs"))
 
     def _initial_outputs(self) -> dict[int, int]:
         return {self.lines_by_name[n]: v for n, v in self.safe_levels.items()}  # a (re)opened port starts safe

@@ -219,6 +219,11 @@ class PwmServoDriver(Actuator):
         """The channel names."""
         return set(self.outputs)
 
+    @classmethod
+    def declared_actuators(cls, name: str, config: typing.Mapping[str, Any]) -> set[str]:
+        """The channel names of ``channels``."""
+        return {spec.name for spec in parse_channels(config["channels"], service=name)}
+
     def setup(self) -> None:
         """Check the channels (a bad config stops the service with the reason) and output neutral."""
         if not 0 < float(self.config["update_hz"]) <= 1000:

@@ -47,7 +47,7 @@ def _run(service: Any) -> threading.Thread:
 
 
 def test_actuator_acts_only_on_its_name_clamps_and_times_out(tmp_path: Path, lcm_url: str, bus: BusClient) -> None:
-    act = RecordingActuator("left", config_path=tmp_path / "left.toml", settings={"command_timeout_s": 0.3})
+    act = RecordingActuator("left", config_path=tmp_path / "left.toml", settings={"command_timeout_s": 0.3, "rc_gating": False})
     thread = _run(act)
     try:
         bus.publish(ch.ACTUATOR_CMD, _command("right", 50))
@@ -64,14 +64,13 @@ def test_actuator_acts_only_on_its_name_clamps_and_times_out(tmp_path: Path, lcm
 
 
 def test_failsafe_forces_neutral_and_blocks_commands(tmp_path: Path, lcm_url: str, bus: BusClient) -> None:
-    act = RecordingActuator("thruster", config_path=tmp_path / "t.toml", settings={"command_timeout_s": 0.0})
+    act = RecordingActuator("thruster", config_path=tmp_path / "t.toml", settings={"command_timeout_s": 0.0, "rc_gating": False})
     thread = _run(act)
     try:
         fs = t.Failsafe()
         fs.active, fs.reason = True, "test"
         bus.publish(ch.FAILSAFE, fs)
-        wait_until(lambda: act.failsafe_active, message="the failsafe")
-        assert act.outputs[-1] == ("neutral", 0.0)
+        wait_until(lambda: act.failsafe_active and act.outputs[-1:] == [("neutral", 0.0)], message="the failsafe")
         bus.publish(ch.ACTUATOR_CMD, _command("thruster", 40))
         wait_until(lambda: act.commands_ignored >= 1, message="the command to be ignored")
         assert ("thruster", 40.0) not in act.outputs

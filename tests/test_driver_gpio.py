@@ -95,7 +95,7 @@ def test_outputs_switch_at_50_percent_and_go_to_safe_levels(chip: MockGpioChip, 
     col = BusCollector(bus).listen(ch.HEALTH, t.Health).listen(raw_channel("io"), None)
     proc = start(services, tmp_path, name="io", kind="gpio_output",
                  settings={"chip": chip.address, "outputs": "lamp=17,brake=18", "safe_levels": "brake=1",
-                           "command_timeout_s": 1.0, "record_raw": True})
+                           "command_timeout_s": 0.5, "rc_gating": False, "record_raw": True})
     wait_until(lambda: chip.consumers().get(LAMP) == "u2sa:io", message="the lines requested", timeout=30)
     assert (chip.read_output(LAMP), chip.read_output(BRAKE)) == (0, 1), "started at the safe levels"
 
@@ -139,7 +139,7 @@ def test_a_lost_chip_is_reported_commands_are_counted_and_outputs_restart_safe(
     col = BusCollector(bus).listen(ch.HEALTH, t.Health)
     proc = start(services, tmp_path, name="io", kind="gpio_output",
                  settings={"chip": chip.address, "outputs": "lamp=17,brake=18", "safe_levels": "brake=1",
-                           "command_timeout_s": 0.0})
+                           "command_timeout_s": 0.0, "rc_gating": False})
     wait_until(lambda: chip.consumers().get(LAMP) == "u2sa:io", message="the lines requested", timeout=30)
     command(bus, "lamp", 100.0)
     command(bus, "brake", 0.0)

@@ -58,7 +58,7 @@ def test_sysfs_channels_map_percent_and_go_neutral_on_start_timeout_failsafe_and
     ]
     probe = DriverProbe(bus, "servos")
     profile = write_profile(tmp_path, name="servos", kind="pwm_servo",
-                            settings={"channels": channels, "command_timeout_s": 0.0})
+                            settings={"channels": channels, "command_timeout_s": 0.0, "rc_gating": False})
     proc = start_driver(services, profile, "servos")
     for channel, neutral in ((0, 1_500_000), (1, 1_500_000), (2, 1_400_000)):  # neutral on start
         wait_until(lambda: sysfs(chip, channel, "enable") == 1, message=f"pwm{channel} enabled")
@@ -142,7 +142,7 @@ def test_pca9685_channels_slew_limit_taps_reconnect_and_neutral_on_kill(
     ]
     raw = RawPwmProbe(bus, "winch")
     profile = write_profile(tmp_path, name="gimbal", kind="pwm_servo",
-                            settings={"channels": channels, "command_timeout_s": 0.0, "record_raw": True})
+                            settings={"channels": channels, "command_timeout_s": 0.0, "rc_gating": False, "record_raw": True})
     proc = start_driver(services, profile, "gimbal")
     wait_until(lambda: abs(pca.pulse_width_us(0) - 1500) < count_us and abs(pca.pulse_width_us(3) - 1500) < count_us,
                message="neutral on start")
@@ -218,7 +218,7 @@ def test_a_vanished_sysfs_chip_is_reported_and_reopened_while_another_chip_keeps
                 {"name": "esc", "address": str(chip1), "channel": 1}]
     probe = DriverProbe(bus, "servos")
     profile = write_profile(tmp_path, name="servos", kind="pwm_servo",
-                            settings={"channels": channels, "command_timeout_s": 0.0})
+                            settings={"channels": channels, "command_timeout_s": 0.0, "rc_gating": False})
     proc = start_driver(services, profile, "servos")
     wait_until(lambda: sysfs(chip0, 0, "enable") == 1 and sysfs(chip1, 1, "enable") == 1, message="both enabled")
     command(bus, "rudder", 50)

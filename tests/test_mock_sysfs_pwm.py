@@ -27,7 +27,7 @@ origin = { lat = 29.1895, lon = -81.0483 }
 
 [services.servos]
 kind = "pwm_servo"
-settings = { command_timeout_s = 0.0, channels = [
+settings = { command_timeout_s = 0.0, rc_gating = false, channels = [
   { name = "rudder", address = "/sys/class/pwm/pwmchip0", channel = 0 },
   { name = "esc", address = "/sys/class/pwm/pwmchip1", channel = 1, neutral_us = 1400.0 },
   { name = "pan", address = "pca9685:1:0x40", channel = 0 },
@@ -112,7 +112,7 @@ def test_the_driver_drives_sysfs_and_pca9685_mocks_of_one_service(tmp_path: Path
         assert sysfs0.bound and sysfs1.bound
         probe = DriverProbe(bus, "servos")
         driver_profile = write_profile(tmp_path, name="servos", kind="pwm_servo",
-                                       settings={"channels": channels, "command_timeout_s": 0.0})
+                                       settings={"channels": channels, "command_timeout_s": 0.0, "rc_gating": False})
         proc = start_driver(services, driver_profile, "servos")
         wait_until(lambda: sysfs0.pulse_width_us(0) == 1500.0 and sysfs1.pulse_width_us(1) == 1400.0,
                    message="neutral on start on both sysfs chips", timeout=30)

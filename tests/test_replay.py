@@ -138,7 +138,7 @@ def record_can_log(workdir: Path, *, outputs: int = 120) -> Path:
         "vehicle": {"name": "testrover", "system_id": 7, "origin": ORIGIN, "lcm_url": url},
         "services": {"wheels": {"kind": "odrive_can", "settings": {
             "interface": "udp_multicast", "channel": GROUP, "udp_port": port, "node_ids": [0, 1],
-            "record_raw": True, "command_timeout_s": 0.0}}}}))
+            "record_raw": True, "command_timeout_s": 0.0, "rc_gating": False}}}}))
     transport = Transport(url, name="test-recorder")
     log_path = workdir / "can.mcap"
     capture = BusCapture(transport, McapLogWriter(workdir, path=log_path,

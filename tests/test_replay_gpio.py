@@ -126,7 +126,7 @@ def record_pwm_log(workdir: Path) -> Path:
     """The PWM servo driver on a sysfs-shaped tree under a sequence of Percentage Commands."""
     chip = make_sysfs_pwm_tree(workdir / "pwmchip0", npwm=4)
     rec = Recording(workdir, name="servos", kind="pwm_servo", settings={
-        "command_timeout_s": 0.0, "channels": [
+        "command_timeout_s": 0.0, "rc_gating": False, "channels": [
             {"name": "rudder", "address": str(chip), "channel": 0},
             {"name": "throttle", "address": str(chip), "channel": 1, "min_us": 1100.0, "max_us": 1900.0}]})
     try:

@@ -3,19 +3,23 @@
 A proprioceptive sensor publishes State Information with its sensor name and only the
 fields it measures (the presence vector says which). An exteroceptive sensor publishes
 Object Descriptions. An actuator acts only on commands addressed to its name, maps
--100..100 % to its hardware, goes neutral on stop, on kill, on a failsafe, and when
-commands stop arriving for ``command_timeout_s``.
+-100..100 % to its hardware, obeys the pilot's RC switch (the software mux), and goes
+neutral on stop, on kill, on a failsafe, on a stale RC mode and when commands stop
+arriving for ``command_timeout_s`` (docs/safety.md).
 """
 
 from __future__ import annotations
 
+import math
 import time
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Mapping
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config import field
+from u2sa_hw.config import ConfigError, field
 from u2sa_hw.messages import as_type
+from u2sa_hw.safety.config import load_safety
+from u2sa_hw.safety.gate import AUTONOMOUS, MANUAL, CommandGate
 from u2sa_hw.service import U2SAService
 
 
@@ -64,23 +68,68 @@ class ExteroceptiveSensor(Sensor):
 
 
 class Actuator(U2SAService):
-    """A service that acts on Percentage Commands addressed to its name(s)."""
+    """A service that acts on Percentage Commands addressed to its name(s), as the pilot's switch allows.
+
+    The software RC mux lives here (:mod:`u2sa_hw.safety.gate`): autonomous commands
+    (``ACTUATOR_CMD``) are obeyed only while the newest ``RC_MODE`` grants autonomy, manual
+    commands (``MANUAL_CMD``, the pilot's sticks) only in manual and only for outputs not
+    wired through the hardware mux (the profile's ``[safety] hardware_mux``); the outputs
+    go neutral when the authority changes, on a failsafe from any source, on a stale
+    ``RC_MODE``, and when no obeyed command arrived for ``command_timeout_s`` (the dead-man).
+    """
 
     SERVICE_TYPE: ClassVar[str] = "actuator"
     CONFIG = (
-        field("command_timeout_s", 0.5, "no command for this long -> neutral (0 disables)"),
+        field("command_timeout_s", 0.25, "dead-man: no obeyed command for this long -> neutral (0 < s <= 0.5; "
+                                         "0 = off, allowed only with rc_gating = false)"),
+        field("rc_gating", True, "obey commands only as the pilot's RC switch allows; false only on a bench "
+                                 "without an RC receiver, never on a vehicle"),
     )
+    MAX_COMMAND_TIMEOUT_S: ClassVar[float] = 0.5
 
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
-        self.failsafe_active = False
-        self.failsafe_sources: dict[str, str] = {}  # source -> reason, for every source holding one
+        problem = self._dead_man_problem(self.config["command_timeout_s"])
+        if problem:
+            raise ConfigError(problem)
+        if not self.config["rc_gating"]:
+            self.logger.warning("rc_gating = false: autonomous commands are obeyed without the pilot's switch "
+                                "(bench only; never on a vehicle)")
+        self.safety = load_safety(self.profile)
+        self.gate = CommandGate(rc_mode_timeout_s=self.safety.rc_mode_timeout_s,
+                                rc_gating=bool(self.config["rc_gating"]))
         self.commands_received = 0
-        self.commands_ignored = 0
         self._last_command: float | None = None
         self._timed_out = False
-        self.register_subscriber(ch.ACTUATOR_CMD, t.ActuatorCommand, self._on_actuator_command)
+        self._neutral_for: str | None = None   # why the outputs were last sent neutral by the gate
+        self.register_subscriber(ch.ACTUATOR_CMD, t.ActuatorCommand, self._on_autonomous_command)
+        self.register_subscriber(ch.MANUAL_CMD, t.ActuatorCommand, self._on_manual_command)
         self.register_subscriber(ch.FAILSAFE, t.Failsafe, self._on_failsafe)
+        self.register_subscriber(ch.RC_MODE, t.RcMode, self._on_rc_mode)
+
+    @classmethod
+    def declared_actuators(cls, name: str, config: Mapping[str, Any]) -> set[str]:
+        """The actuator names a service of this kind called *name* answers to with *config* (for
+        checking a profile before anything starts); default: the service name."""
+        return {name}
+
+    def _dead_man_problem(self, value: Any, *, rc_gating: bool | None = None) -> str | None:
+        gating = bool(self.config["rc_gating"]) if rc_gating is None else rc_gating
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return f"service '{self.name}': command_timeout_s must be a number of seconds, got {value!r}"
+        if 0 < value <= self.MAX_COMMAND_TIMEOUT_S or (value == 0 and not gating):
+            return None
+        return (f"service '{self.name}': command_timeout_s = {value!r} is out of range; the dead-man must be in "
+                f"(0, {self.MAX_COMMAND_TIMEOUT_S}] s (default 0.25); only a bench with rc_gating = false may turn "
+                "it off with 0")
+
+    def validate_config(self, name: str, value: Any) -> str | None:
+        """Refuse a dead-man outside (0, 0.5] s; other fields as the subclass checks them."""
+        if name == "command_timeout_s":
+            return self._dead_man_problem(value)
+        if name == "rc_gating":
+            return self._dead_man_problem(self.config["command_timeout_s"], rc_gating=bool(value))
+        return super().validate_config(name, value)
 
     # -- for subclasses -------------------------------------------------------------------
     def actuator_names(self) -> set[str]:
@@ -100,62 +149,105 @@ class Actuator(U2SAService):
         self.logger.warning("unhandled actuator command %s for %s", type(msg).__name__,
                             as_type(msg, t.ActuatorCommand).actuator_name)
 
+    @property
+    def failsafe_active(self) -> bool:
+        """True while any source holds a failsafe."""
+        return self.gate.failsafes.active
+
+    @property
+    def failsafe_sources(self) -> dict[str, str]:
+        """Source -> reason for every source holding a failsafe."""
+        return self.gate.failsafes.held()
+
+    @property
+    def commands_ignored(self) -> int:
+        """Commands addressed to us that were not obeyed (no authority, failsafe, NaN)."""
+        return self.gate.dropped_total()
+
     # -- machinery --------------------------------------------------------------------------
-    def _on_actuator_command(self, msg: Any) -> None:
+    def _on_autonomous_command(self, msg: Any) -> None:
+        self._on_command_from(AUTONOMOUS, msg)
+
+    def _on_manual_command(self, msg: Any) -> None:
+        if as_type(msg, t.ActuatorCommand).actuator_name in self.safety.hardware_mux:
+            return  # the pilot drives this output by wire through the hardware mux
+        self._on_command_from(MANUAL, msg)
+
+    def _on_command_from(self, source: str, msg: Any) -> None:
         base = as_type(msg, t.ActuatorCommand)
         if base.actuator_name not in self.actuator_names():
             return
-        if self.failsafe_active:
-            self.commands_ignored += 1
+        now = time.monotonic()
+        self._follow_authority(now)
+        if not self.gate.admit(source, now):
             return
-        self.commands_received += 1
-        self._last_command = time.monotonic()
-        self._timed_out = False
         if isinstance(msg, t.PercentageCommand):
             pct = msg.percentage
-            if pct != pct:  # NaN: refuse rather than drive
-                self.commands_ignored += 1
-                self.error(f"NaN percentage for {base.actuator_name} ignored")
+            if not math.isfinite(pct):  # NaN or inf: refuse rather than drive
+                self.gate.count_drop("not_finite")
+                self.error(f"{pct} percentage for {base.actuator_name} ignored")
                 return
+            self.commands_received += 1
+            self._last_command = now
+            self._timed_out = False
             self.on_percentage(base.actuator_name, max(-100.0, min(100.0, pct)))
         else:
+            self.commands_received += 1
+            self._last_command = now
+            self._timed_out = False
             self.on_command(msg)
 
+    def _on_rc_mode(self, msg: t.RcMode) -> None:
+        now = time.monotonic()
+        self.gate.on_rc_mode(msg, now)
+        self._follow_authority(now)
+
     def _on_failsafe(self, msg: t.Failsafe) -> None:
-        # Several services may hold a failsafe (the HSM, an e-stop input): a clear from one
-        # must not lower another's, so the actuator stays safe while any source holds one.
+        change = self.gate.failsafes.apply_message(msg)
         source = msg.header.source or "?"
-        if msg.active:
-            self.failsafe_sources[source] = msg.reason
-        else:
-            self.failsafe_sources.pop(source, None)
-        active = bool(self.failsafe_sources)
-        if active and not self.failsafe_active:
+        if change.edge and change.active_after:
             self.logger.warning("FAILSAFE from %s: %s -> neutral", source, msg.reason)
-            self.neutral()
-        elif not active and self.failsafe_active:
+        elif change.edge:
             self.logger.info("failsafe cleared by %s", source)
-        self.failsafe_active = active
-        self.status = "degraded" if active else "ok"
+        self._follow_authority(time.monotonic())
+        self.status = "degraded" if change.active_after else "ok"
+
+    def _follow_authority(self, now: float) -> None:
+        """Neutral at once when the authority changed (a failsafe, the switch, a stale RC_MODE)."""
+        new = self.gate.changed(now)
+        if new is None:
+            return
+        self._last_command = None  # the new authority starts from neutral; its first command re-arms the dead-man
+        self._timed_out = False
+        if new.source is None:
+            self.logger.warning("outputs neutral: %s", new.why)
+        else:
+            self.logger.info("commands now from %s (outputs neutral until its first command)", new.source)
+        self.neutral()
 
     def check_command_timeout(self) -> bool:
-        """Go neutral once when commands stopped arriving; True while timed out. Call from ``run``."""
+        """Apply the stale-RC_MODE check and the dead-man; True while timed out. Call from ``run`` often."""
+        now = time.monotonic()
+        self._follow_authority(now)
         timeout = float(self.config.get("command_timeout_s"))
-        if timeout <= 0 or self._last_command is None:
+        if self._last_command is None or timeout <= 0:
             return False
-        if time.monotonic() - self._last_command > timeout:
+        if now - self._last_command > timeout:
             if not self._timed_out:
                 self._timed_out = True
-                self.logger.warning("no command for %.2f s -> neutral", timeout)
+                self.logger.warning("no command for %.2f s -> neutral (dead-man)", timeout)
                 self.neutral()
             return True
         return False
 
     def health_details(self) -> dict[str, Any]:
-        """Command counters and failsafe/timeout state."""
+        """Command counters, who has authority and why not, drops by kind, failsafe/timeout state."""
+        auth = self.gate.current
         return {"commands": self.commands_received, "ignored": self.commands_ignored,
-                "failsafe": self.failsafe_active, "failsafe_sources": ",".join(sorted(self.failsafe_sources)),
-                "command_timed_out": self._timed_out}
+                "dropped": self.gate.drops_text(), "authority": auth.source or "none",
+                "neutral_because": auth.why, "failsafe": self.failsafe_active,
+                "failsafe_sources": ",".join(sorted(self.failsafe_sources)),
+                "command_timed_out": self._timed_out, "rc_gating": bool(self.config["rc_gating"])}
 
     def kill(self) -> None:
         """Neutral, then release."""
