@@ -71,7 +71,7 @@ def test_hung_service_is_restarted_through_the_launcher(tmp_path: Path, lcm_url:
     watch = Watch(bus)
     vehicle = profile(tmp_path, lcm_url, '[services.est_a]\nkind = "state_estimator"\n'
                       "settings = { health_interval_s = 0.2 }\n", startup_grace_s=10.0)
-    lp = launch(vehicle, "--grace", "3")
+    lp = launch(vehicle, "--grace", "3", "--watchdog", "0")   # the HSM, not the launcher's watchdog, must see it
     wait_until(lambda: (s := watch.service_state("est_a")) and s.state == "ok", timeout=30,
                message="the HSM to see est_a ok")
     old_pid = watch.pids["est_a"][-1]

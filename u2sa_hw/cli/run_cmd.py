@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import argparse
-from typing import Any
+import contextlib
+import os
+import tempfile
+from typing import Any, Iterator
 
 from u2sa_hw.cli.common import add_vehicle_option, profile_from
 
@@ -20,6 +23,13 @@ it fails --max-failures times within --failure-window seconds however long each
 run lasted (a service that crashes every 6 s looks healthy to the quick-death
 rule but is not). Then the launcher stops everything and exits 1 (with
 --keep-going the others keep running and the exit status is 1 at the end).
+
+Like systemd, the launcher watches each service's watchdog: a service pings
+WATCHDOG=1 from its own loop; one silent for WatchdogSec of its unit file
+(systemd/u2sa@.service, u2sa-hsm.service for the HSM: 2 s) is hung: it gets
+SIGABRT (its stacks are printed), SIGKILL after TimeoutAbortSec, and is restarted
+by the rules above, logged as a watchdog timeout. --watchdog S sets the timeout
+for every service (0 turns the watchdog off).
 
 The HSM (a service of kind "hsm") asks the launcher to restart services through
 the control socket <data_dir>/launcher.sock. See docs/supervision.md.
@@ -49,6 +59,9 @@ def register(sub: Any) -> None:
                    "given up, whatever its uptime (default 10; 0 = never)")
     p.add_argument("--failure-window", type=float, default=300.0, metavar="S",
                    help="the window of --max-failures, seconds (default 300)")
+    p.add_argument("--watchdog", type=float, default=None, metavar="S",
+                   help="restart a service that sends no WATCHDOG=1 for S seconds (default: WatchdogSec of its "
+                   "systemd unit, 2 s; 0 = off)")
     p.add_argument("--keep-going", action="store_true",
                    help="keep the other services running when one is given up")
     p.add_argument("--no-color", action="store_true", help="never colour the service names")
@@ -58,7 +71,7 @@ def register(sub: Any) -> None:
 def cmd_run(args: Any) -> int:
     """Run the launcher in the foreground until Ctrl-C/SIGTERM or a failure; return its exit status."""
     from u2sa_hw.cli import CliError
-    from u2sa_hw.launcher import Launcher, LauncherError, PrefixedOutput, RestartPolicy, select_services
+    from u2sa_hw.launcher import PrefixedOutput, RestartPolicy, select_services
 
     profile = profile_from(args)
     if profile.path is None:
@@ -66,6 +79,8 @@ def cmd_run(args: Any) -> int:
     only = [n.strip() for item in args.only or [] for n in item.split(",") if n.strip()] or None
     if args.grace < 0:
         raise CliError("run: --grace must be >= 0", 2)
+    if args.watchdog is not None and args.watchdog < 0:
+        raise CliError("run: --watchdog must be >= 0 (0 turns the watchdog off)", 2)
     try:
         policy = RestartPolicy(initial_backoff_s=args.backoff, max_backoff_s=args.max_backoff,
                                quick_death_s=args.quick_death, give_up_after=args.give_up_after,
@@ -74,8 +89,16 @@ def cmd_run(args: Any) -> int:
     except ValueError as exc:
         raise CliError(f"run: {exc}", 2) from None
     output = PrefixedOutput(names=names, colour=False if args.no_color else None)
+    with _run_key(profile, output):
+        return _launch(args, profile, only=only, policy=policy, output=output)
+
+
+def _launch(args: Any, profile: Any, *, only: list[str] | None, policy: Any, output: Any) -> int:
+    from u2sa_hw.cli import CliError
+    from u2sa_hw.launcher import Launcher, LauncherError
+
     launcher = Launcher(profile, only=only, grace_s=args.grace, policy=policy, keep_going=args.keep_going,
-                        output=output)
+                        output=output, watchdog_s=args.watchdog)
     try:
         code = launcher.run()
     except LauncherError as exc:
@@ -85,3 +108,35 @@ def cmd_run(args: Any) -> int:
     else:
         output("launcher", "all services stopped")
     return code
+
+
+@contextlib.contextmanager
+def _run_key(profile: Any, output: Any) -> Iterator[None]:
+    """Without an installed bus key, a fresh one for this run in $U2SA_BUS_KEY_FILE (the services inherit it).
+
+    A key that exists but cannot be read is an error naming the file and the fix.
+    """
+    from u2sa_hw.bus_auth import OPEN, resolve_security
+    from u2sa_hw.bus_key import KEY_ENV, BusKeyError, fresh_key_file, key_path, read_key
+    from u2sa_hw.cli import CliError
+
+    try:
+        if resolve_security(profile.bus_security) == OPEN:
+            yield
+            return
+        path = key_path(profile.bus_key)
+        if path.exists() or KEY_ENV in os.environ:
+            read_key(path)
+            yield
+            return
+    except BusKeyError as exc:
+        raise CliError(f"run: {exc}") from None
+    with tempfile.TemporaryDirectory(prefix="u2sa-run-key-") as tmp:
+        key = fresh_key_file(tmp)
+        os.environ[KEY_ENV] = str(key)
+        output("launcher", f"no bus key at {path}: this run signs with a fresh key {key} "
+                           f"(to join: {KEY_ENV}={key} u2sa services)")
+        try:
+            yield
+        finally:
+            os.environ.pop(KEY_ENV, None)

@@ -7,9 +7,12 @@ backoff of :class:`RestartPolicy`, answers the control socket (so the HSM can as
 restart), and on stop sends SIGTERM, then SIGKILL after the grace period.
 
 The children report readiness on the launcher's own ``$NOTIFY_SOCKET`` (:mod:`.notify`), as
-they do to systemd. Services of kind ``recorder`` start first and the others once they are
-ready (or after ``first_wait_s``): a recording then holds every service's start-up I/O (an
-IMU's identification reads, a motor controller's arming), which replay needs.
+they do to systemd, and ping its watchdog (:mod:`.watchdog`): a child that stops pinging for
+its unit's ``WatchdogSec`` (2 s) is killed with SIGABRT, SIGKILL after ``TimeoutAbortSec``,
+and restarted like any dead one, its death counted and logged as a watchdog timeout.
+Services of kind ``recorder`` start first and the others once they are ready (or after
+``first_wait_s``): a recording then holds every service's start-up I/O (an IMU's
+identification reads, a motor controller's arming), which replay needs.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from u2sa_hw.launcher.notify import NotifyListener
 from u2sa_hw.launcher.output import LineSink, LineSplitter, PrefixedOutput
 from u2sa_hw.launcher.process import (BACKOFF, EXITED, FAILED, RUNNING, STOPPED, ProcessStatus, RestartPolicy,
                                      SupervisedProcess)
+from u2sa_hw.launcher.watchdog import WatchdogSetting, watchdog_for
 from u2sa_hw.registry import RECORDER_KIND
 from u2sa_hw.vehicle import ServiceSpec, VehicleProfile
 
@@ -58,6 +62,14 @@ def select_services(profile: VehicleProfile, only: list[str] | None = None) -> l
     return specs
 
 
+def _watchdog(kind: str, override_s: float | None) -> WatchdogSetting:
+    """The unit file's watchdog for *kind*, its timeout replaced by *override_s* when given (0: off)."""
+    setting = watchdog_for(kind)
+    if override_s is None:
+        return setting
+    return WatchdogSetting(max(0.0, override_s), setting.abort_s, "override")
+
+
 class Launcher:
     """Starts, watches, restarts and stops the services of a profile (see the module docstring)."""
 
@@ -67,7 +79,7 @@ class Launcher:
                  control: bool = True, socket_path: Path | None = None,
                  command: Callable[[ServiceSpec], list[str]] | None = None,
                  env: dict[str, str] | None = None, start_first: list[str] | None = None,
-                 first_wait_s: float = 15.0) -> None:
+                 first_wait_s: float = 15.0, watchdog_s: float | None = None) -> None:
         if profile.path is None:
             raise ValueError("the launcher needs a vehicle profile file (--vehicle PATH)")
         specs = select_services(profile, only)
@@ -78,13 +90,16 @@ class Launcher:
         self.on_death = on_death
         self.socket_path = (socket_path or default_socket_path(profile.data_dir)) if control else None
         self.notify = NotifyListener()
-        child_env = dict(os.environ, PYTHONUNBUFFERED="1", **(env or {}), NOTIFY_SOCKET=self.notify.address)
+        # PYTHONFAULTHANDLER as in the units: a child killed by the watchdog's SIGABRT prints its stacks.
+        child_env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONFAULTHANDLER="1", **(env or {}),
+                         NOTIFY_SOCKET=self.notify.address)
         if self.socket_path is not None:
             child_env[SOCKET_ENV] = str(self.socket_path)
         vehicle = str(profile.path.resolve())
         build = command or (lambda spec: [*u2sa_command(), "service", spec.name, "--vehicle", vehicle])
         self.processes: dict[str, SupervisedProcess] = {
-            s.name: SupervisedProcess(s.name, build(s), policy=policy, env=child_env) for s in specs}
+            s.name: SupervisedProcess(s.name, build(s), policy=policy, env=child_env,
+                                      watchdog=_watchdog(s.kind, watchdog_s)) for s in specs}
         names = [s.name for s in specs]
         first = start_first if start_first is not None else [s.name for s in specs if s.kind == RECORDER_KIND]
         self.start_first = [n for n in first if n in names]
@@ -288,13 +303,9 @@ class Launcher:
         for note in self.notify.read():
             p = by_pid.get(note.pid)
             if p is None:
-                continue   # a grandchild, or a child already reaped
-            if "STATUS" in note.fields:
-                p.status_text = note.fields["STATUS"]
-            if note.fields.get("READY") == "1" and not p.ready:
-                p.ready = True
-                if p.name in self.start_first:
-                    self.say(f"{p.name} ready after {p.clock() - p.started_at:.1f} s")
+                continue   # a grandchild, or a child already reaped (systemd's NotifyAccess=main)
+            if p.on_notify(note.fields) and p.name in self.start_first:
+                self.say(f"{p.name} ready after {p.clock() - p.started_at:.1f} s")
 
     def _still_holding(self) -> bool:
         """True while the start_first services are neither ready nor done and first_wait_s has not passed."""
@@ -360,6 +371,9 @@ class Launcher:
             account = p.poll()
             if account is not None:
                 self._on_death(p, account)
+            fired = p.check_watchdog()
+            if fired is not None:
+                self.say(f"{p.name} {fired}")
             if p.enforce_grace():
                 self.say(f"{p.name} did not stop within {self.grace_s:g} s: SIGKILL")
         if self._stopping:

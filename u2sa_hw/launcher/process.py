@@ -23,6 +23,8 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Callable
 
+from u2sa_hw.launcher.watchdog import WatchdogSetting, WatchdogTimer
+
 RUNNING = "running"
 STOPPING = "stopping"
 BACKOFF = "backoff"
@@ -111,6 +113,9 @@ class ProcessStatus:
     reason: str
     ready: bool = False    # this run sent READY=1 (on the launcher's NOTIFY_SOCKET)
     status_text: str = ""  # its latest STATUS=
+    result: str = ""       # how the last run ended, in systemd's words: exit-code, signal, watchdog ("" yet)
+    watchdog_kills: int = 0   # runs killed because they stopped pinging WATCHDOG=1
+    watchdog_s: float = 0.0   # the watchdog timeout (WATCHDOG_USEC), 0 = off
 
     def as_dict(self) -> dict[str, object]:
         """JSON-ready form."""
@@ -131,7 +136,8 @@ class SupervisedProcess:
     """Desired vs observed state of one child, its run id and its respawn backoff."""
 
     def __init__(self, name: str, argv: list[str], *, policy: RestartPolicy, env: dict[str, str] | None = None,
-                 cwd: str | None = None, clock: Callable[[], float] = time.monotonic) -> None:
+                 cwd: str | None = None, clock: Callable[[], float] = time.monotonic,
+                 watchdog: WatchdogSetting | None = None) -> None:
         self.name = name
         self.argv = argv
         self.policy = policy
@@ -154,6 +160,9 @@ class SupervisedProcess:
         self.reason = ""
         self.ready = False            # the current run said READY=1
         self.status_text = ""         # ... and its latest STATUS=
+        self.watchdog = WatchdogTimer(watchdog or WatchdogSetting(timeout_s=0.0))
+        self.watchdog_kills = 0
+        self.result = ""
 
     # -- observing -----------------------------------------------------------------
     @property
@@ -169,7 +178,8 @@ class SupervisedProcess:
                              failures=self.failures_in_window(), backoff_s=self.backoff_s,
                              uptime_s=now - self.started_at if self.proc else 0.0,
                              last_exit=self.last_exit, reason=self.reason, ready=self.ready,
-                             status_text=self.status_text)
+                             status_text=self.status_text, result=self.result, watchdog_kills=self.watchdog_kills,
+                             watchdog_s=self.watchdog.setting.timeout_s)
 
     def due(self) -> bool:
         """True when the child should be (re)started now."""
@@ -183,6 +193,11 @@ class SupervisedProcess:
             self.restarts += 1
         env = dict(self.env if self.env is not None else os.environ)
         env["U2SA_RUN_ID"] = str(self.run_id)
+        if self.watchdog.setting.timeout_s > 0:
+            env["WATCHDOG_USEC"] = str(self.watchdog.setting.usec)
+        else:
+            env.pop("WATCHDOG_USEC", None)
+        env.pop("WATCHDOG_PID", None)   # the child's pid is unknown before the fork; it is the main process
         try:
             self.proc = subprocess.Popen(self.argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                          stderr=subprocess.STDOUT, env=env, cwd=self.cwd, process_group=0,
@@ -196,11 +211,13 @@ class SupervisedProcess:
         self.reason = ""
         self.ready = False
         self.status_text = ""
+        self.watchdog.reset()
         return self.proc
 
     def failed_to_spawn(self, error: str) -> str:
         """Count a start that could not even exec as a quick death; return what happens next."""
         self.last_exit = f"could not start: {error}"
+        self.result = "exit-code"
         return self._judge_death(uptime=0.0)
 
     def poll(self) -> str | None:
@@ -212,6 +229,11 @@ class SupervisedProcess:
         self.proc = None
         self.kill_at = None
         self.last_exit = describe_exit(code)
+        self.result = "success" if code == 0 else "signal" if code < 0 else "exit-code"
+        if self.watchdog.fired:
+            self.result = "watchdog"
+            self.watchdog_kills += 1
+            self.last_exit = f"watchdog timeout, {self.last_exit}"
         if self.desired != RUNNING:
             self.state = STOPPED
             return f"{self.last_exit} after {uptime:.1f} s (stopped)"
@@ -219,7 +241,7 @@ class SupervisedProcess:
             self.restart_pending = False
             self.state, self.next_start, self.backoff_s = BACKOFF, self.clock(), 0.0
             return f"{self.last_exit}; restarting now (requested: {self.reason})"
-        if code == 0:
+        if code == 0 and not self.watchdog.fired:
             self.state = EXITED
             return f"{self.last_exit} after {uptime:.1f} s; not restarted (a clean exit is deliberate)"
         return self._judge_death(uptime=uptime, prefix=f"{self.last_exit} after {uptime:.1f} s")
@@ -250,6 +272,35 @@ class SupervisedProcess:
         return (f"{prefix}; restarting in {self.backoff_s:.2f} s (quick deaths: {self.quick_deaths}, "
                 f"failures: {failures}/{self.policy.max_failures or 'no limit'} within "
                 f"{self.policy.failure_window_s:g} s)")
+
+    def on_notify(self, fields: dict[str, str]) -> bool:
+        """Apply an sd_notify message from this run (READY, STATUS, WATCHDOG); True when it just became ready."""
+        if "STATUS" in fields:
+            self.status_text = fields["STATUS"]
+        self.watchdog.on_fields(fields, self.clock())
+        if fields.get("READY") == "1" and not self.ready:
+            self.ready = True
+            return True
+        return False
+
+    def check_watchdog(self) -> str | None:
+        """Fire the watchdog of a running child that stopped pinging, as systemd does; return an account.
+
+        SIGABRT (with SIGCONT, so a stopped child acts on it; Python's faulthandler prints its
+        stacks), SIGKILL after the abort timeout; its death then takes the normal restart path.
+        """
+        if self.proc is None or self.state != RUNNING:
+            return None
+        silent = self.watchdog.overdue(self.clock())
+        if silent is None:
+            return None
+        setting = self.watchdog.setting
+        self.kill_at = self.clock() + setting.abort_s
+        self.signal(signal.SIGABRT)
+        self.signal(signal.SIGCONT)
+        what = "WATCHDOG=trigger" if self.watchdog.triggered else f"no WATCHDOG=1 for {silent:.1f} s"
+        return (f"watchdog timeout ({what}, limit {setting.timeout_s:g} s): SIGABRT, "
+                f"SIGKILL in {setting.abort_s:g} s")
 
     def signal(self, sig: int) -> None:
         """Send *sig* to the child's process group (it is its own group leader)."""

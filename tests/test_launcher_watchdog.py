@@ -1,0 +1,141 @@
+"""The launcher's watchdog, as systemd's: real children, real signals, the period from the unit files."""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+from conftest import REPO, wait_until
+from supervision_helpers import launch, write_profile  # noqa: F401 - launch is a fixture
+
+from u2sa_hw.launcher import Launcher, RestartPolicy, SupervisedProcess
+from u2sa_hw.launcher.process import BACKOFF
+from u2sa_hw.launcher.watchdog import WatchdogSetting, parse_timespan, unit_watchdog, watchdog_for
+from u2sa_hw.vehicle import load_profile
+
+SLEEPER = [sys.executable, "-c", "import time; time.sleep(120)"]
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_the_period_comes_from_the_units_watchdogsec(tmp_path: Path) -> None:
+    for kind in ("hsm", "gps_nmea"):
+        setting = watchdog_for(kind, unit_dir=REPO / "systemd")
+        assert (setting.timeout_s, setting.abort_s, setting.usec) == (2.0, 1.0, 2_000_000)
+    assert watchdog_for("hsm", unit_dir=REPO / "systemd").source.endswith("u2sa-hsm.service")
+    assert watchdog_for("gps_nmea", unit_dir=tmp_path) == WatchdogSetting()       # no units here: the defaults
+    unit = tmp_path / "u2sa@.service"
+    unit.write_text("[Unit]\nWatchdogSec=9s\n[Service]\nWatchdogSec=1min 30s\nTimeoutAbortSec=250ms\n")
+    assert (watchdog_for("imu", unit_dir=tmp_path).timeout_s, unit_watchdog(unit).abort_s) == (90.0, 0.25)
+    assert parse_timespan("infinity") == 0.0 and parse_timespan("3") == 3.0
+    unit.write_text("[Service]\nWatchdogSec=2 fortnights\n")
+    with pytest.raises(ValueError, match=r"u2sa@.service:2: WatchdogSec: '2 fortnights' is not a systemd time span"):
+        unit_watchdog(unit)
+
+
+def test_a_child_that_stops_pinging_is_aborted_and_restarted_as_a_failure() -> None:
+    clock = FakeClock()
+    p = SupervisedProcess("svc", SLEEPER, policy=RestartPolicy(), clock=clock,
+                          watchdog=WatchdogSetting(timeout_s=2.0, abort_s=1.0))
+    child = p.spawn()
+    try:
+        clock.now += 30.0
+        assert p.check_watchdog() is None            # silent since the start, but never armed: not judged
+        p.on_notify({"READY": "1"})                  # armed
+        clock.now += 1.9
+        assert p.check_watchdog() is None
+        p.on_notify({"WATCHDOG": "1"})
+        clock.now += 2.0
+        assert p.check_watchdog() is None            # exactly the timeout: not yet
+        clock.now += 0.1
+        fired = p.check_watchdog()
+        assert fired == "watchdog timeout (no WATCHDOG=1 for 2.1 s, limit 2 s): SIGABRT, SIGKILL in 1 s"
+        assert p.check_watchdog() is None            # once per run
+        assert child.wait(timeout=30) == -signal.SIGABRT
+        account = p.poll()
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+    assert account is not None and account.startswith("watchdog timeout, killed by SIGABRT after 34.0 s; restarting")
+    status = p.status()
+    assert (status.state, status.result, status.watchdog_kills, status.watchdog_s) == (BACKOFF, "watchdog", 1, 2.0)
+    assert p.failures_in_window() == 1               # counted as a failed exit, like any crash
+
+
+def test_watchdog_trigger_fires_at_once_and_a_fresh_run_is_disarmed() -> None:
+    clock = FakeClock()
+    p = SupervisedProcess("svc", SLEEPER, policy=RestartPolicy(initial_backoff_s=0.0), clock=clock,
+                          watchdog=WatchdogSetting(timeout_s=5.0, abort_s=0.0))
+    first = p.spawn()
+    try:
+        p.on_notify({"WATCHDOG": "trigger"})
+        assert p.check_watchdog() is None            # not armed yet (no READY=1 or WATCHDOG=1)
+        p.on_notify({"WATCHDOG": "1", "STATUS": "busy"})
+        assert "WATCHDOG=trigger" in (p.check_watchdog() or "") and p.status_text == "busy"
+        first.wait(timeout=30)
+        assert p.poll() is not None and p.result == "watchdog"
+        second = p.spawn()
+        try:
+            clock.now += 60.0
+            assert p.check_watchdog() is None and p.status().run_id == 2
+        finally:
+            second.kill()
+            second.wait()
+        assert p.poll() is not None and p.result == "signal" and p.watchdog_kills == 1
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.wait()
+    off = SupervisedProcess("off", SLEEPER, policy=RestartPolicy(), clock=clock)
+    assert off.status().watchdog_s == 0.0
+
+
+def test_a_stopped_child_is_restarted_by_the_watchdog_and_a_healthy_one_is_not(tmp_path: Path, lcm_url: str) -> None:
+    profile = load_profile(write_profile(tmp_path, lcm_url, {"hung": "state_estimator", "fine": "state_estimator"}))
+    lines: list[tuple[str, str]] = []
+    launcher = Launcher(profile, control=False, output=lambda n, line: lines.append((n, line)))  # units' 2 s
+    launcher.start()
+    try:
+        before = wait_until(lambda: (s := {x.name: x for x in launcher.status()}) and all(x.ready for x in s.values())
+                            and s, timeout=30, message="both services ready")
+        assert before["hung"].watchdog_s == before["fine"].watchdog_s == 2.0
+        os.kill(before["hung"].pid, signal.SIGSTOP)
+        after = wait_until(lambda: (s := {x.name: x for x in launcher.status()}) and s["hung"].run_id == 2
+                           and s["hung"].ready and s, timeout=60, message="the stopped service restarted and ready")
+    finally:
+        launcher.stop(timeout=20)
+    hung, fine = after["hung"], after["fine"]
+    assert (hung.result, hung.watchdog_kills, hung.restarts) == ("watchdog", 1, 1)
+    assert hung.last_exit == "watchdog timeout, killed by SIGABRT" and hung.pid != before["hung"].pid
+    assert (fine.run_id, fine.restarts, fine.watchdog_kills, fine.pid) == (1, 0, 0, before["fine"].pid)
+    said = [line for name, line in lines if name == "launcher"]
+    assert any(line.startswith("hung watchdog timeout (no WATCHDOG=1 for") for line in said), said
+    assert any(line.startswith("hung watchdog timeout, killed by SIGABRT after") and "restarting in" in line
+               for line in said), said
+    assert not any(line.startswith("fine watchdog") for line in said)
+    assert any(name == "hung" and "Fatal Python error: Aborted" in line for name, line in lines)  # its stacks
+
+
+def test_u2sa_run_restarts_a_hung_hsm(tmp_path: Path, lcm_url: str, launch: Any) -> None:
+    vehicle = write_profile(tmp_path, lcm_url, {"est": "state_estimator", "hsm": "hsm"})
+    lp = launch(vehicle)
+    first = wait_until(lambda: (s := lp.status()) and all(x["ready"] for x in s.values()) and s, timeout=30,
+                       message="est and the HSM ready")
+    assert first["hsm"]["watchdog_s"] == 2.0
+    os.kill(first["hsm"]["pid"], signal.SIGSTOP)
+    after = wait_until(lambda: (s := lp.status()) and s["hsm"]["run_id"] == 2 and s["hsm"]["ready"] and s,
+                       timeout=60, message="the stopped HSM restarted by the launcher's watchdog")
+    assert (after["hsm"]["result"], after["hsm"]["watchdog_kills"]) == ("watchdog", 1)
+    assert (after["est"]["run_id"], after["est"]["watchdog_kills"]) == (1, 0)
+    assert "hsm watchdog timeout (no WATCHDOG=1 for" in lp.output
