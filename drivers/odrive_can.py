@@ -8,9 +8,10 @@ name (``actuators``/``node_ids``/``directions``/``wheel_radius_m``). For every a
   Set_Input_Vel, Set_Axis_State(CLOSED_LOOP_CONTROL); the heartbeat must then show closed
   loop, else the attempt is reported (state, procedure result, errors) and retried with a
   backoff doubling from ``arm_retry_s`` to 5 s;
+- turns on the axis's own watchdog before arming it (``hw_watchdog``, see below);
 - maps a Percentage Command to ``percent / 100 * max_turns_per_s * direction`` rev/s,
-  sends it at once and re-sends it every ``command_period_s`` (that keeps the ODrive's CAN
-  watchdog fed while we are alive);
+  sends it at once and re-sends it every ``command_period_s`` to every heard axis, armed or
+  not (every frame to the axis feeds its watchdog while we are alive);
 - watches the heartbeat: an axis error is reported (and cleared and re-armed only with
   ``rearm_on_error`` or a ``clear_errors = true`` config change); a heartbeat that stops for
   ``silent_after_s`` makes the node 'silent' (degraded); when it comes back the axis is
@@ -18,6 +19,15 @@ name (``actuators``/``node_ids``/``directions``/``wheel_radius_m``). For every a
 - reads encoder estimates (cyclic, or RTR-polled at ``encoder_poll_hz``) into the wheel
   odometry, and polls bus voltage/current, temperatures and error details every
   ``status_poll_s`` for health.
+
+The ODrive watchdog (``axis.config.enable_watchdog``/``watchdog_timeout``) disarms the axis
+with WATCHDOG_TIMER_EXPIRED when no CAN frame reaches it for ``hw_watchdog_timeout_s``: the
+last line of defence when this process dies or hangs. Firmware 0.6 has endpoint access over
+CAN (RxSdo/TxSdo), but endpoint ids belong to one firmware build (its flat_endpoints.json):
+with ``watchdog_timeout_endpoint``/``enable_watchdog_endpoint`` and the build they belong to
+(``endpoints_fw``, checked against Get_Version) the driver writes both and reads them back.
+Firmware 0.5 has no parameter access over CAN at all: the watchdog must be set once with
+odrivetool, and the driver says so (log and the ``hw_watchdog`` health detail).
 
 Neutral is 0 rev/s (stop, kill, command timeout, failsafe); on FAILSAFE it also sends Estop
 when ``estop_on_failsafe`` is set (cleared and re-armed when the failsafe ends). On stop the
@@ -36,13 +46,17 @@ from u2sa_hw.config import field
 from u2sa_hw.protocols import odrive_cansimple as cs
 from u2sa_hw.protocols.odrive_cansimple import AxisState, Cmd, ControlMode, InputMode, ProcedureResult
 
-from drivers.can_motor import CanMotorService, MotorSpec
+from drivers.can_motor import CanMotorService, MotorSpec, WatchdogStep, check_hw_watchdog, watchdog_summary
 
 INPUT_MODES = {"passthrough": InputMode.PASSTHROUGH, "vel_ramp": InputMode.VEL_RAMP}
 MAX_ARM_BACKOFF_S = 5.0
+WD_REPLY_S = 0.5  # wait this long for Get_Version / TxSdo answers before asking again
+WD_TRIES = 4
+_WATCHDOG_FIELDS = frozenset({"hw_watchdog", "hw_watchdog_timeout_s", "watchdog_timeout_endpoint",
+                              "enable_watchdog_endpoint", "endpoints_fw", "firmware", "command_period_s"})  # then the watchdog step is an error, and arming goes ahead without it
 # frames an ODrive sends (anything else on its ids is a host's command, e.g. our own echo)
 _REPLIES_06 = frozenset({Cmd.HEARTBEAT, Cmd.GET_ENCODER_ESTIMATES, Cmd.GET_BUS_VOLTAGE_CURRENT, Cmd.GET_ERROR,
-                         Cmd.GET_TEMPERATURE, Cmd.GET_IQ, Cmd.GET_VERSION})
+                         Cmd.GET_TEMPERATURE, Cmd.GET_IQ, Cmd.GET_VERSION, Cmd.TX_SDO})
 _REPLIES_05 = frozenset({Cmd.HEARTBEAT, Cmd.GET_ENCODER_ESTIMATES, Cmd.GET_BUS_VOLTAGE_CURRENT, Cmd.GET_IQ,
                          Cmd.GET_MOTOR_ERROR, Cmd.GET_ENCODER_ERROR, Cmd.GET_CONTROLLER_ERROR})
 
@@ -89,6 +103,7 @@ class OdriveAxis:
         self.backoff = arm_retry_s
         self.next_arm = 0.0
         self.next_command = self.next_poll = self.next_encoder_poll = 0.0
+        self.wd = WatchdogStep()
 
     @property
     def armed(self) -> bool:
@@ -121,6 +136,12 @@ class OdriveCanMotor(CanMotorService):
         field("clear_errors", False, "set true to clear every axis's errors and re-arm (resets itself to false)"),
         field("estop_on_failsafe", False, "on FAILSAFE send Estop as well as 0 rev/s (cleared when it ends)"),
         field("idle_on_stop", True, "put the axes in IDLE when the service stops (else hold 0 rev/s)"),
+        field("hw_watchdog", True, "turn on each axis's own watchdog (it disarms when this driver dies or hangs)"),
+        field("hw_watchdog_timeout_s", 0.3, "axis watchdog timeout (s); more than twice command_period_s"),
+        field("watchdog_timeout_endpoint", 0, "0.6: endpoint id of axis0.config.watchdog_timeout in the "
+                                               "flat_endpoints.json of endpoints_fw (0: unknown)"),
+        field("enable_watchdog_endpoint", 0, "0.6: endpoint id of axis0.config.enable_watchdog (0: unknown)"),
+        field("endpoints_fw", "", "0.6: the firmware (Get_Version, e.g. 0.6.10) the endpoint ids are from"),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:
@@ -144,6 +165,10 @@ class OdriveCanMotor(CanMotorService):
         for key in ("encoder_poll_hz", "status_poll_s"):
             if not get(key) >= 0:
                 raise self._fail(f"{key} must be >= 0 (0 disables), got {get(key)!r}")
+        check_hw_watchdog(get, self._fail)
+        for key in ("watchdog_timeout_endpoint", "enable_watchdog_endpoint"):
+            if not isinstance(get(key), int) or isinstance(get(key), bool) or not 0 <= get(key) <= 0xFFFF:
+                raise self._fail(f"{key} must be an endpoint id 0..65535 (0: unknown), got {get(key)!r}")
 
     def _make_axes(self) -> None:
         retry = self.config.get("arm_retry_s")
@@ -158,6 +183,9 @@ class OdriveCanMotor(CanMotorService):
                 self._build()
                 self._make_axes()
             self.firmware = self.config.get("firmware")
+            if name in _WATCHDOG_FIELDS:
+                for axis in self.axes.values():
+                    axis.wd = WatchdogStep()
             if name == "clear_errors" and value:
                 self.logger.info("clearing errors and re-arming every axis (clear_errors set)")
                 self._clear_all()
@@ -188,6 +216,10 @@ class OdriveCanMotor(CanMotorService):
                               speed_mps=axis.vel_turns_s * metres_per_turn)
         elif cmd == Cmd.GET_BUS_VOLTAGE_CURRENT:
             axis.bus = cs.decode_bus_voltage_current(data)
+        elif self.firmware == "0.6" and cmd == Cmd.GET_VERSION:
+            self._on_version(axis, cs.decode_version(data), now)
+        elif self.firmware == "0.6" and cmd == Cmd.TX_SDO:
+            self._on_tx_sdo(axis, *cs.decode_tx_sdo(data))
         elif self.firmware == "0.6" and cmd == Cmd.GET_ERROR:
             axis.errors["active_errors"], axis.errors["disarm_reason"] = cs.decode_get_error(data)
         elif self.firmware == "0.6" and cmd == Cmd.GET_TEMPERATURE:
@@ -205,6 +237,7 @@ class OdriveCanMotor(CanMotorService):
         if axis.silent:
             axis.silent = False
             axis.retry_now()
+            axis.wd = WatchdogStep()  # it may have rebooted: settings written over CAN live in RAM
             self.logger.info("%s answering again (%s)", label, _enum_name(AxisState, hb.axis_state))
         if hb.axis_error and (prev is None or prev.axis_error != hb.axis_error):
             axis.error_events += 1
@@ -240,10 +273,11 @@ class OdriveCanMotor(CanMotorService):
         for axis in self.axes.values():
             if self._check_silence(axis, now) or axis.heartbeat is None:
                 continue
-            if axis.armed:
-                if now >= axis.next_command:
-                    self._send_setpoint(axis, now)
-            else:
+            if not axis.wd.settled:
+                self._watchdog_step(axis, now)
+            if now >= axis.next_command:  # armed or not: every frame feeds the axis watchdog
+                self._send_setpoint(axis, now)
+            if not axis.armed:
                 self._maybe_arm(axis, now)
             self._poll(axis, now)
 
@@ -276,6 +310,8 @@ class OdriveCanMotor(CanMotorService):
         hb = axis.heartbeat
         if hb is None or now < axis.next_arm or (self.failsafe_active and cfg.get("estop_on_failsafe")):
             return
+        if not axis.wd.settled:
+            return  # the watchdog first; _watchdog_step settles it within WD_TRIES * WD_REPLY_S
         clear = (axis.arm_attempts == 0 and cfg.get("clear_errors_on_start")) \
             or (bool(hb.axis_error) and cfg.get("rearm_on_error"))
         if hb.axis_error and not clear:
@@ -300,6 +336,91 @@ class OdriveCanMotor(CanMotorService):
         axis.arming_since = axis.arming_since if axis.arming_since is not None else now
         axis.next_arm = now + axis.backoff
         axis.backoff = min(axis.backoff * 2.0, MAX_ARM_BACKOFF_S)
+
+    # -- the axis watchdog ---------------------------------------------------------------------
+    def _watchdog_step(self, axis: OdriveAxis, now: float) -> None:
+        """Move the watchdog set-up of *axis* on: decide what can be done, ask again, or give up."""
+        cfg, wd, label = self.config, axis.wd, self._label(axis)
+        timeout = float(cfg.get("hw_watchdog_timeout_s"))
+        if wd.started is None:
+            wd.started = now
+        if not cfg.get("hw_watchdog"):
+            wd.settle("off", "off (hw_watchdog = false): a dead driver leaves the axis at its last setpoint")
+            self.logger.warning("%s: hw_watchdog is off; the axis keeps its setpoint if this driver dies", label)
+            return
+        if self.firmware == "0.5":
+            wd.settle("unverified", f"not settable over CAN on fw 0.5: configure with odrivetool "
+                                    f"(axis.config.watchdog_timeout = {timeout:g}, axis.config.enable_watchdog = "
+                                    "True, save_configuration()); not readable over CAN either")
+            self.logger.warning("%s: %s", label, wd.text)
+            return
+        endpoints = (cfg.get("watchdog_timeout_endpoint"), cfg.get("enable_watchdog_endpoint"))
+        if not all(endpoints):
+            wd.settle("unverified", "not set: endpoint ids unknown; set watchdog_timeout_endpoint, "
+                                    "enable_watchdog_endpoint and endpoints_fw from the flat_endpoints.json of the "
+                                    "node's firmware, or configure with odrivetool and save_configuration()")
+            self.logger.warning("%s: watchdog %s", label, wd.text)
+            return
+        if now < wd.next_try:
+            return
+        if wd.tries >= WD_TRIES:
+            asked = "Get_Version" if wd.version is None else "RxSdo reads"
+            wd.settle("error", f"no answer to {asked} after {wd.tries} tries; the watchdog is not verified "
+                               "(configure it with odrivetool if this firmware has no endpoint access)")
+            self.error(f"{label}: watchdog {wd.text}")
+            return
+        wd.tries += 1
+        wd.next_try = now + WD_REPLY_S
+        if wd.version is None:
+            self._request(axis, Cmd.GET_VERSION)
+        else:
+            self._watchdog_write(axis)
+
+    def _on_version(self, axis: OdriveAxis, version: cs.Version, now: float) -> None:
+        wd, cfg = axis.wd, self.config
+        if wd.settled or wd.version is not None or wd.started is None:
+            return
+        wd.version = cs.version_text(version)
+        if wd.version != cfg.get("endpoints_fw"):
+            wd.settle("error", f"not set: the node runs firmware {wd.version} but the endpoint ids are for "
+                               f"{cfg.get('endpoints_fw') or '(endpoints_fw empty)'}; take watchdog_timeout_endpoint "
+                               f"and enable_watchdog_endpoint from the flat_endpoints.json of {wd.version} and set "
+                               f"endpoints_fw = '{wd.version}'")
+            self.error(f"{self._label(axis)}: watchdog {wd.text}")
+            return
+        wd.tries, wd.next_try = 1, now + WD_REPLY_S
+        self._watchdog_write(axis)
+
+    def _watchdog_write(self, axis: OdriveAxis) -> None:
+        cfg = self.config
+        timeout_ep, enable_ep = cfg.get("watchdog_timeout_endpoint"), cfg.get("enable_watchdog_endpoint")
+        axis.wd.read.clear()
+        # timeout first, so the watchdog never runs with the firmware's default timeout
+        self._frame(axis, Cmd.RX_SDO, cs.encode_sdo_write(timeout_ep, "float", cfg.get("hw_watchdog_timeout_s")))
+        self._frame(axis, Cmd.RX_SDO, cs.encode_sdo_write(enable_ep, "bool", True))
+        self._frame(axis, Cmd.RX_SDO, cs.encode_sdo_read(timeout_ep))
+        self._frame(axis, Cmd.RX_SDO, cs.encode_sdo_read(enable_ep))
+
+    def _on_tx_sdo(self, axis: OdriveAxis, endpoint: int, raw: bytes) -> None:
+        wd, cfg = axis.wd, self.config
+        timeout_ep, enable_ep = cfg.get("watchdog_timeout_endpoint"), cfg.get("enable_watchdog_endpoint")
+        if wd.settled or endpoint not in (timeout_ep, enable_ep):
+            return
+        wd.read[endpoint] = raw
+        if len(wd.read) < 2:
+            return
+        wanted = float(cfg.get("hw_watchdog_timeout_s"))
+        timeout = float(cs.sdo_value("float", wd.read[timeout_ep]))
+        enabled = bool(cs.sdo_value("bool", wd.read[enable_ep]))
+        if enabled and abs(timeout - wanted) < 1e-4:
+            wd.settle("on", f"on {timeout:.2f} s (read back)")
+            self.logger.info("%s: watchdog %s", self._label(axis), wd.text)
+            return
+        wd.settle("error", f"read back timeout {timeout:g} s, enabled {enabled} after writing {wanted:g} s, "
+                           f"enabled True: endpoints {timeout_ep}/{enable_ep} may not be axis0.config."
+                           f"watchdog_timeout/enable_watchdog of firmware {wd.version}; check them in its "
+                           "flat_endpoints.json, or configure with odrivetool")
+        self.error(f"{self._label(axis)}: watchdog {wd.text}")
 
     def _poll(self, axis: OdriveAxis, now: float) -> None:
         cfg = self.config
@@ -350,6 +471,7 @@ class OdriveCanMotor(CanMotorService):
             axis.heartbeat = None
             axis.arming_since = None
             axis.retry_now()
+            axis.wd = WatchdogStep()
         if self.odometry is not None:
             self.odometry.reset()
 
@@ -365,12 +487,15 @@ class OdriveCanMotor(CanMotorService):
                 out.append(f"{name} error {error_names(hb.axis_error, firmware=self.firmware)}")
             elif hb is not None and not axis.armed:
                 out.append(f"{name} not armed ({_enum_name(AxisState, hb.axis_state)})")
+            if axis.wd.state == "error":
+                out.append(f"{name} watchdog {axis.wd.text.split(';')[0]}")
         return out
 
     def motor_details(self) -> dict[str, Any]:
         """Per axis (keys ``<actuator>.<what>``): state, errors, setpoint, estimates, bus, temperatures."""
         now = time.monotonic()
-        details: dict[str, Any] = {"firmware": self.firmware, "estopped": self._estopped}
+        details: dict[str, Any] = {"firmware": self.firmware, "estopped": self._estopped,
+                                   "hw_watchdog": watchdog_summary({n: a.wd.text for n, a in self.axes.items()})}
         for name, axis in self.axes.items():
             hb = axis.heartbeat
             phase = "silent" if axis.silent else "waiting" if hb is None else "armed" if axis.armed \
@@ -381,7 +506,7 @@ class OdriveCanMotor(CanMotorService):
                  "heartbeat_age_s": f"{now - axis.last_heartbeat:.2f}" if axis.last_heartbeat else "",
                  "silent_events": axis.silent_events, "error_events": axis.error_events,
                  "arm_attempts": axis.arm_attempts, "arm_failures": axis.arm_failures,
-                 "setpoint_turns_s": f"{axis.target:.3f}",
+                 "setpoint_turns_s": f"{axis.target:.3f}", "hw_watchdog": axis.wd.text,
                  "vel_turns_s": "" if axis.vel_turns_s is None else f"{axis.vel_turns_s:.3f}",
                  "pos_turns": "" if axis.pos_turns is None else f"{axis.pos_turns:.3f}"}
             if hb is not None and self.firmware == "0.6":

@@ -3,10 +3,15 @@
 One service drives one or more VESCs on one bus, each a controller id mapped to an actuator
 name (``actuators``/``controller_ids``/``directions``/``wheel_radius_m``). A Percentage
 Command becomes SET_DUTY (``mode = "duty"``: ``percent / 100 * max_duty``) or SET_RPM
-(``mode = "rpm"``: ``percent / 100 * max_erpm`` electrical RPM), times the direction. The
-VESC releases its motor when no command arrives for its app ``timeout_msec`` (1000 ms by
-default), so the setpoint is re-sent every ``command_period_s`` (default 50 ms) for as long
-as the service runs; a dead driver therefore stops the motors by itself.
+(``mode = "rpm"``: ``percent / 100 * max_erpm`` electrical RPM), times the direction.
+
+The VESC releases its motor when no command arrives for its app ``timeout_msec``, so the
+setpoint is re-sent every ``command_period_s`` (default 50 ms) for as long as the service
+runs, and a dead or hung driver stops the motors within that timeout. With ``hw_watchdog``
+the driver reads the app configuration of every VESC over CAN (COMM_GET_APPCONF, answered
+to ``host_id``), and when its timeout_msec is not ``hw_watchdog_timeout_s`` writes it back
+changed (COMM_SET_APPCONF: the VESC stores it in flash, so this happens once) and reads it
+again; the outcome is the ``hw_watchdog`` health detail.
 
 Neutral (stop, kill, command timeout, failsafe) is ``SET_CURRENT 0`` (``neutral =
 "release"``: the motor coasts) or zero in the command mode (``neutral = "zero"``: duty 0 /
@@ -33,11 +38,16 @@ from u2sa_hw.config import field
 from u2sa_hw.protocols import vesc_can as vc
 from u2sa_hw.protocols.vesc_can import PacketId
 
-from drivers.can_motor import CanMotorService, MotorSpec
+from drivers.can_motor import CanMotorService, MotorSpec, WatchdogStep, check_hw_watchdog, watchdog_summary
 
 MODES = {"duty": PacketId.SET_DUTY, "rpm": PacketId.SET_RPM}
+_BUFFER_PACKETS = frozenset({PacketId.FILL_RX_BUFFER, PacketId.FILL_RX_BUFFER_LONG, PacketId.PROCESS_RX_BUFFER,
+                             PacketId.PROCESS_SHORT_BUFFER})
 NEUTRALS = ("release", "zero")
 TACHO_COUNTS_PER_EREV = 6
+WD_REPLY_S = 1.0  # an app configuration is ~50 frames each way
+WD_TRIES = 3
+_WATCHDOG_FIELDS = frozenset({"hw_watchdog", "hw_watchdog_timeout_s", "host_id", "command_period_s"})
 
 
 def _unwrap_i32(delta: int) -> int:
@@ -60,6 +70,8 @@ class VescMotor:
         self.stalled = False
         self.stall_events = 0
         self.next_command = 0.0
+        self.wd = WatchdogStep()
+        self.wrote = False  # the app configuration was written once this session
 
 
 class VescCanMotor(CanMotorService):
@@ -78,12 +90,19 @@ class VescCanMotor(CanMotorService):
         field("stall_after_s", 1.0, "commanded but not turning for this long -> reported (0: never)"),
         field("stall_percent", 10.0, "commands below this |%| are never a stall"),
         field("stall_erpm", 50.0, "slower than this |ERPM| counts as not turning"),
+        field("hw_watchdog", True, "set and check each VESC's timeout_msec (it releases the motor when this "
+                                   "driver dies or hangs)"),
+        field("hw_watchdog_timeout_s", 0.3, "VESC command timeout (s); more than twice command_period_s"),
+        field("host_id", 254, "this driver's CAN id: the VESCs answer configuration reads to it (not a VESC's id)"),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
         self.vescs: dict[str, VescMotor] = {}
         self._by_id: dict[int, VescMotor] = {}
+        self._assembler = vc.BufferAssembler()
+        self._wd_busy: VescMotor | None = None  # the one VESC a configuration request is out to
+        self._wd_deadline = 0.0
         self._make_vescs()
 
     def check_settings(self, get: Callable[[str], Any]) -> None:
@@ -101,6 +120,12 @@ class VescCanMotor(CanMotorService):
         for key in ("stall_after_s", "stall_percent", "stall_erpm"):
             if not get(key) >= 0:
                 raise self._fail(f"{key} must be >= 0, got {get(key)!r}")
+        check_hw_watchdog(get, self._fail)
+        host = get("host_id")
+        if not isinstance(host, int) or isinstance(host, bool) or not 0 <= host < vc.BROADCAST_ID \
+                or host in get("controller_ids"):
+            raise self._fail(f"host_id must be a CAN id 0..254 that no VESC uses (controller_ids "
+                             f"{get('controller_ids')!r}), got {host!r}")
 
     def _make_vescs(self) -> None:
         self.vescs = {n: VescMotor(spec) for n, spec in self.motors.items()}
@@ -113,6 +138,10 @@ class VescCanMotor(CanMotorService):
             if name in ("actuators", "controller_ids", "directions", "wheel_radius_m"):
                 self._build()
                 self._make_vescs()
+            if name in _WATCHDOG_FIELDS:
+                for motor in self.vescs.values():
+                    motor.wd, motor.wrote = WatchdogStep(), False
+                self._wd_busy = None
 
     # -- frames -------------------------------------------------------------------------------
     def handle_frame(self, msg: can.Message, now: float) -> None:
@@ -120,6 +149,11 @@ class VescCanMotor(CanMotorService):
         if not msg.is_extended_id or msg.is_remote_frame or msg.arbitration_id > 0xFFFF:
             return
         packet, controller = vc.split_ext_id(msg.arbitration_id)
+        if controller == self.config.get("host_id") and packet in _BUFFER_PACKETS:
+            done = self._assembler.feed(packet, bytes(msg.data))
+            if done is not None:
+                self._on_comm(done[0], done[2], now)
+            return
         motor = self._by_id.get(controller)
         if motor is None or packet not in vc.STATUS_NUMBER:
             return
@@ -180,6 +214,74 @@ class VescCanMotor(CanMotorService):
                     self.odometry.reset()
             if now >= motor.next_command:
                 self._send_setpoint(motor, now)
+        self._watchdog_tick(now)
+
+    # -- the VESC's command timeout (timeout_msec) ---------------------------------------------------
+    def _watchdog_tick(self, now: float) -> None:
+        """One configuration request on the bus at a time: time it out, or start the next one."""
+        busy = self._wd_busy
+        if busy is not None:
+            if now < self._wd_deadline:
+                return
+            self._wd_busy = None
+            if busy.wd.tries >= WD_TRIES:
+                busy.wd.settle("error", f"no answer to COMM_GET_APPCONF after {busy.wd.tries} tries; check that "
+                                        "App Settings > General > CAN Mode is VESC and host_id is free, or set "
+                                        "the timeout in VESC Tool (App Settings > General > Timeout)")
+                self.error(f"{self._label(busy)}: watchdog {busy.wd.text}")
+        if self._wd_busy is not None:
+            return
+        for motor in self.vescs.values():
+            if motor.wd.settled or motor.silent or motor.last_status is None:
+                continue
+            if not self.config.get("hw_watchdog"):
+                motor.wd.settle("off", "off (hw_watchdog = false): timeout_msec left as it is in the VESC")
+                self.logger.warning("%s: hw_watchdog is off; timeout_msec is neither set nor checked",
+                                    self._label(motor))
+                continue
+            motor.wd.tries += 1
+            self._comm_request(motor, bytes([vc.CommPacket.GET_APPCONF]), now)
+            return
+
+    def _comm_request(self, motor: VescMotor, payload: bytes, now: float) -> None:
+        self._wd_busy, self._wd_deadline = motor, now + WD_REPLY_S
+        for frame in vc.buffer_frames(motor.spec.can_id, self.config.get("host_id"), payload):
+            self.send(frame)
+
+    def _on_comm(self, sender: int, payload: bytes, now: float) -> None:
+        """A COMM packet a VESC sent to host_id: the app configuration, or the write's acknowledgement."""
+        motor = self._by_id.get(sender)
+        if motor is None or motor is not self._wd_busy or not payload:
+            return
+        self._wd_busy = None
+        wd, label = motor.wd, self._label(motor)
+        wanted = round(float(self.config.get("hw_watchdog_timeout_s")) * 1000)
+        if payload[0] == vc.CommPacket.SET_APPCONF:
+            self._comm_request(motor, bytes([vc.CommPacket.GET_APPCONF]), now)  # read it back
+            return
+        if payload[0] != vc.CommPacket.GET_APPCONF:
+            return
+        appconf = payload[1:]
+        try:
+            have = vc.appconf_timeout_ms(appconf, controller_id=motor.spec.can_id)
+        except vc.VescCanError as exc:
+            wd.settle("error", f"cannot read timeout_msec: {exc}; set it in VESC Tool (App Settings > General > "
+                               f"Timeout = {wanted} ms) and turn hw_watchdog off")
+            self.error(f"{label}: watchdog {wd.text}")
+            return
+        if have == wanted:
+            wd.settle("on", f"on {have / 1000:.2f} s (read back)")
+            self.logger.info("%s: watchdog %s", label, wd.text)
+        elif not motor.wrote:
+            motor.wrote = True
+            self.logger.warning("%s: timeout_msec is %d ms, writing %d ms into its app configuration (stored in "
+                                "its flash)", label, have, wanted)
+            self._comm_request(motor, bytes([vc.CommPacket.SET_APPCONF]) +
+                               vc.appconf_with_timeout(appconf, wanted, controller_id=motor.spec.can_id), now)
+        else:
+            wd.settle("error", f"read back timeout_msec {have} ms after writing {wanted} ms; set it in VESC Tool "
+                               f"(App Settings > General > Timeout = {wanted} ms, then write the app configuration)")
+            self.error(f"{label}: watchdog {wd.text}")
 
     def _send_setpoint(self, motor: VescMotor, now: float) -> None:
         cfg = self.config
@@ -217,6 +319,7 @@ class VescCanMotor(CanMotorService):
         """The bus is gone: tachometer continuity and odometry start again."""
         for motor in self.vescs.values():
             motor.tacho_raw = None
+        self._wd_busy = None
         if self.odometry is not None:
             self.odometry.reset()
 
@@ -230,12 +333,15 @@ class VescCanMotor(CanMotorService):
                 out.append(f"{name} node silent")
             elif motor.stalled:
                 out.append(f"{name} not turning")
+            if motor.wd.state == "error":
+                out.append(f"{name} watchdog {motor.wd.text.split(';')[0]}")
         return out
 
     def motor_details(self) -> dict[str, Any]:
         """Per controller (keys ``<actuator>.<what>``): setpoint and the latest STATUS values."""
         now = time.monotonic()
-        details: dict[str, Any] = {"mode": self.config.get("mode")}
+        details: dict[str, Any] = {"mode": self.config.get("mode"), "hw_watchdog": watchdog_summary(
+            {n: m.wd.text for n, m in self.vescs.items()})}
         for name, motor in self.vescs.items():
             d: dict[str, Any] = {
                 "id": motor.spec.can_id,
@@ -244,6 +350,7 @@ class VescCanMotor(CanMotorService):
                 "setpoint_percent": f"{motor.percent:.1f}",
                 "status_age_s": "" if motor.last_status is None else f"{now - motor.last_status:.2f}",
                 "silent_events": motor.silent_events, "stall_events": motor.stall_events,
+                "hw_watchdog": motor.wd.text,
             }
             s1, s4, s5 = motor.status.get(1), motor.status.get(4), motor.status.get(5)
             if s1 is not None:

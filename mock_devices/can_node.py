@@ -123,6 +123,7 @@ class MockCanNode(ABC):
         self._history: deque[FrameRecord] = deque(maxlen=history_size)
         self._lock = threading.RLock()
         self._silent = False
+        self.config_frozen = False  # freeze_config(True): configuration writes acknowledged, not applied
         self._echoes: deque[tuple[float, tuple]] = deque()
         self._filter_echoes = interface == "udp_multicast"
         self._bus: can.BusABC | None = None
@@ -178,6 +179,12 @@ class MockCanNode(ABC):
         """Cut the node off the bus (on=True): it neither sends nor hears frames, but keeps running."""
         with self._lock:
             self._silent = bool(on)
+
+    def freeze_config(self, on: bool) -> None:
+        """Acknowledge configuration writes but keep the old values (a read-only endpoint, a failed
+        flash write): what a driver then reads back disagrees with what it wrote."""
+        with self._lock:
+            self.config_frozen = bool(on)
 
     @property
     def answering(self) -> bool:

@@ -10,8 +10,12 @@ cyclically; ``Get_*`` values are answered to an RTR (or empty) frame on their id
 
 As in the firmware (can_simple.cpp calls ``axis.watchdog_feed()`` for every frame on the
 axis's id), any frame addressed to the node feeds the watchdog, RTR requests included. With
-``watchdog_timeout_s`` set, a closed-loop axis not fed for that long raises
-WATCHDOG_TIMER_EXPIRED and disarms. Any axis error (watchdog, Estop, ``inject_error``)
+the watchdog enabled (``watchdog_timeout_s`` at construction is what odrivetool saved; with
+firmware 0.6 a driver writes ``axis0.config.watchdog_timeout``/``enable_watchdog`` by RxSdo), a
+closed-loop axis not fed for that long raises WATCHDOG_TIMER_EXPIRED and disarms; each expiry
+is kept in ``watchdog_trips``. RxSdo reaches the endpoints in ENDPOINTS (this mock's own
+flat_endpoints table for its build MOCK_FW, not a real release's ids) and answers reads with
+TxSdo; ``freeze_config(True)`` makes writes silently not apply. Any axis error (watchdog, Estop, ``inject_error``)
 disarms to IDLE and stops the wheel; Clear_Errors clears, Set_Axis_State re-arms.
 
 Position estimates come from the vehicle's wheel odometer, velocity estimates from its rate
@@ -39,8 +43,18 @@ CALIBRATION_STATES = frozenset({AxisState.STARTUP_SEQUENCE, AxisState.FULL_CALIB
                                 AxisState.ENCODER_DIR_FIND, AxisState.HOMING,
                                 AxisState.ENCODER_HALL_POLARITY_CALIBRATION,
                                 AxisState.ENCODER_HALL_PHASE_CALIBRATION, AxisState.ANTICOGGING_CALIBRATION})
+# an unreleased build, so endpoint ids written for this mock are refused by a real 0.6.10
 VERSION_06 = cs.Version(protocol=2, hw_major=3, hw_minor=6, hw_variant=56, fw_major=0, fw_minor=6,
-                        fw_revision=10, fw_unreleased=0)
+                        fw_revision=10, fw_unreleased=1)
+MOCK_FW = cs.version_text(VERSION_06)
+WATCHDOG_TIMEOUT_ENDPOINT = 0x2F0
+ENABLE_WATCHDOG_ENDPOINT = 0x2F1
+# endpoint id -> (OdriveConfig field, endpoint type)
+ENDPOINTS: dict[int, tuple[str, str]] = {
+    WATCHDOG_TIMEOUT_ENDPOINT: ("watchdog_timeout", "float"),
+    ENABLE_WATCHDOG_ENDPOINT: ("enable_watchdog", "bool"),
+    0x2F2: ("vel_limit", "float"),
+}
 
 
 @dataclasses.dataclass
@@ -60,7 +74,8 @@ class OdriveConfig:
     traj_accel_limit: float = 0.5
     traj_decel_limit: float = 0.5
     traj_inertia: float = 0.0
-    watchdog_timeout_s: float | None = None  # None: enable_watchdog = False
+    watchdog_timeout: float = 0.0  # s (axis.config.watchdog_timeout)
+    enable_watchdog: bool = False
 
 
 class OdriveCanNode(MockCanNode):
@@ -99,7 +114,10 @@ class OdriveCanNode(MockCanNode):
         self._encoder_hz = encoder_hz
         self._factory = OdriveConfig(node_id=node_id, control_mode=control_mode, input_mode=input_mode,
                                      vel_limit=vel_limit, current_limit=current_limit, vel_ramp_rate=vel_ramp_rate,
-                                     pos_gain=pos_gain, watchdog_timeout_s=watchdog_timeout_s)
+                                     pos_gain=pos_gain, watchdog_timeout=watchdog_timeout_s or 0.0,
+                                     enable_watchdog=watchdog_timeout_s is not None)
+        self.watchdog_trips: list[float] = []  # time.monotonic() of each expiry
+        self.sdo_log: list[tuple[float, int, int, bytes]] = []  # (t, opcode, endpoint, value bytes)
         self._saved = dataclasses.replace(self._factory)
         self._odometer = WheelOdometer(vehicle, side)
         self._wheel_speed = 0.0
@@ -253,6 +271,7 @@ class OdriveCanNode(MockCanNode):
             Cmd.CLEAR_ERRORS: self._clear_errors,
         }
         if self.firmware == "0.6":
+            table[Cmd.RX_SDO] = self._rx_sdo
             table[Cmd.SET_ABSOLUTE_POSITION] = lambda data, now: self._set_position(cs.decode_floats(data, 1)[0])
             table[Cmd.ENTER_DFU_MODE] = lambda data, now: self.stop_answering(True)
         else:
@@ -280,6 +299,20 @@ class OdriveCanNode(MockCanNode):
             if self.firmware == "0.5":
                 self._raise_error(int(cs.AxisError05.INVALID_STATE))
             self.procedure_result = ProcedureResult.INVALID_STATE
+
+    def _rx_sdo(self, data: bytes, now: float) -> None:
+        opcode, endpoint, raw = cs.decode_rx_sdo(data)
+        self.sdo_log.append((now, opcode, endpoint, raw))
+        entry = ENDPOINTS.get(endpoint)
+        if entry is None:
+            raise cs.CanSimpleError(f"{self.name}: no endpoint {endpoint} in this firmware build ({MOCK_FW})")
+        field, kind = entry
+        if opcode == cs.SDO_WRITE:
+            if not self.config_frozen:
+                setattr(self.config, field, cs.sdo_value(kind, raw))
+            return
+        self._send(cs.make_frame(self.node_id, Cmd.TX_SDO, cs.encode_tx_sdo(endpoint, kind,
+                                                                            getattr(self.config, field))))
 
     def _set_controller_mode(self, data: bytes, now: float) -> None:
         self.config.control_mode, self.config.input_mode = cs.decode_set_controller_mode(data)
@@ -328,8 +361,9 @@ class OdriveCanNode(MockCanNode):
         dt = min(now - self._last_tick, 0.1) if self._last_tick else 0.0
         self._last_tick = now
         pos, vel = self._estimates()
-        wd = self.config.watchdog_timeout_s
-        if self.axis_state == AxisState.CLOSED_LOOP_CONTROL and wd and now - self._last_feed > wd:
+        wd = self.config.watchdog_timeout if self.config.enable_watchdog else 0.0
+        if self.axis_state == AxisState.CLOSED_LOOP_CONTROL and wd > 0 and now - self._last_feed > wd:
+            self.watchdog_trips.append(now)
             self._raise_error(self._error_bit("WATCHDOG_TIMER_EXPIRED"))
         self._drive(self._setpoint(pos, dt) if self.axis_state == AxisState.CLOSED_LOOP_CONTROL else 0.0)
         if self._heartbeat.due(now):

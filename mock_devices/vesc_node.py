@@ -9,7 +9,12 @@ SET_POS are accepted and reported (current in STATUS, position in STATUS_4) but 
 motor still: the mock has no torque model.
 
 Like the firmware's app-config ``timeout_msec`` (timeout.c), a motor that gets no command
-for ``timeout_s`` is released (the mock stops the wheel / thruster); 0 disables the timeout.
+for ``timeout_s`` is released (the mock stops the wheel / thruster; each expiry is kept in
+``timeouts``); 0 disables the timeout. COMM_GET_APPCONF and COMM_SET_APPCONF arrive in CAN
+buffers (FILL_RX_BUFFER.. PROCESS_RX_BUFFER) and are answered the same way to the sender's
+id; the app configuration is serialized as the firmware does up to timeout_msec (the rest is
+filler), so a driver reads and writes timeout_s over CAN. ``freeze_config(True)`` acknowledges
+a SET_APPCONF without applying it.
 The STATUS frames chosen in ``status_messages`` (1..6; default 1, 4 and 5, as VESC Tool's
 "CAN Status Message Mode") are sent at ``status_hz``. ERPM and the tachometer (6 counts per
 electrical revolution) come from the vehicle's wheel odometer on a differential vehicle, and
@@ -21,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import struct
 from typing import Any, Iterable, Mapping
 
 import can
@@ -32,6 +38,10 @@ from u2sa_hw.protocols.vesc_can import FaultCode, PacketId
 
 DRIVES = ("wheel", "thruster")
 HW_TYPE_VESC = 0
+APPCONF_SIGNATURE = 0x4D4F434B  # this mock's own; a real firmware's changes with its version
+APPCONF_FILLER = 290  # bytes after timeout_msec, so an answer needs FILL_RX_BUFFER_LONG too
+_BUFFER_PACKETS = frozenset({PacketId.FILL_RX_BUFFER, PacketId.FILL_RX_BUFFER_LONG, PacketId.PROCESS_RX_BUFFER,
+                             PacketId.PROCESS_SHORT_BUFFER})
 _MODES = {PacketId.SET_DUTY: "duty", PacketId.SET_RPM: "rpm", PacketId.SET_CURRENT: "current",
           PacketId.SET_CURRENT_REL: "current", PacketId.SET_CURRENT_BRAKE: "brake",
           PacketId.SET_CURRENT_BRAKE_REL: "brake", PacketId.SET_CURRENT_HANDBRAKE: "brake",
@@ -95,6 +105,9 @@ class VescCanNode(MockCanNode):
         self._tacho_counts = 0.0  # integrated from the commanded speed (thruster drive)
         self._last_tick = 0.0
         self._status = PeriodicSchedule(status_hz)
+        self._assembler = vc.BufferAssembler()
+        self.timeouts: list[float] = []  # time.monotonic() of each command timeout that released the motor
+        self.appconf_writes = 0
         self._odometer = WheelOdometer(vehicle, side) if drive == "wheel" else None
 
     # ---- faults ----------------------------------------------------------------------
@@ -149,6 +162,12 @@ class VescCanNode(MockCanNode):
         packet, target = vc.split_ext_id(msg.arbitration_id)
         if target not in (self.controller_id, vc.BROADCAST_ID):
             return False
+        if packet in _BUFFER_PACKETS:
+            if target == self.controller_id:
+                done = self._assembler.feed(packet, msg.data)
+                if done is not None:
+                    self._comm(*done)
+            return True
         if packet == PacketId.PING:
             if msg.data:  # byte 0: the sender's id, which the PONG goes to
                 self._send(vc.make_frame(msg.data[0], PacketId.PONG, bytes([self.controller_id, HW_TYPE_VESC])))
@@ -166,11 +185,34 @@ class VescCanNode(MockCanNode):
         self._set_erpm(self._command_erpm())
         return True
 
+    def appconf(self) -> bytes:
+        """The app configuration as COMM_GET_APPCONF returns it."""
+        head = struct.pack(">IBIf", APPCONF_SIGNATURE, self.controller_id, round(self.timeout_s * 1000), 0.0)
+        return head + bytes(APPCONF_FILLER)
+
+    def _comm(self, sender: int, send: int, payload: bytes) -> None:
+        """One COMM packet from *sender*: the app configuration is read and written here."""
+        command = payload[0]
+        if command == vc.CommPacket.GET_APPCONF:
+            answer = bytes([command]) + self.appconf()
+        elif command == vc.CommPacket.SET_APPCONF:
+            timeout_ms = vc.appconf_timeout_ms(payload[1:], controller_id=self.controller_id)
+            self.appconf_writes += 1
+            if not self.config_frozen:
+                self.timeout_s = timeout_ms / 1000.0
+            answer = bytes([command])
+        else:
+            return  # other COMM packets are not modelled
+        if send == vc.SEND_REPLY:
+            for frame in vc.buffer_frames(sender, self.controller_id, answer, send=1):
+                self._send(frame)
+
     # ---- control loop ----------------------------------------------------------------
     def _tick(self, now: float) -> None:
         dt = min(now - self._last_tick, 0.1) if self._last_tick else 0.0
         self._last_tick = now
         if self.mode != "released" and self.timeout_s > 0 and now - self._last_command > self.timeout_s:
+            self.timeouts.append(now)
             self._release()
         self._set_erpm(self._command_erpm())
         self._tacho_counts += self._erpm_target / 60.0 * dt * 6.0

@@ -4,7 +4,9 @@ process against mock ODrive nodes in a process of their own on a udp_multicast b
 from __future__ import annotations
 
 import math
+import os
 import random
+import signal
 import threading
 import time
 from dataclasses import dataclass
@@ -19,7 +21,7 @@ from serial_driver_harness import DriverProbe, start_driver, write_profile
 from drivers.diff_drive_odometry import DiffDriveOdometry, WheelTravel, body_motion
 from drivers.odrive_can import OdriveCanMotor, error_names
 from mock_devices import can_adapter
-from mock_devices.odrive_node import OdriveCanNode
+from mock_devices.odrive_node import ENABLE_WATCHDOG_ENDPOINT, MOCK_FW, WATCHDOG_TIMEOUT_ENDPOINT, OdriveCanNode
 from mock_devices.vehicle_sim import SimVehicle
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus_client import BusClient
@@ -162,7 +164,7 @@ def test_losing_the_can_adapter_is_reported_counted_and_the_bus_reopened(lcm_url
     nodes = {side: OdriveCanNode(vehicle, side=side, node_id=node, interface="virtual", channel=channel,
                                  vel_limit=10.0) for side, node in zip(("left", "right"), NODES)}
     svc = OdriveCanMotor("motors", settings={
-        "interface": interface, "channel": channel, "node_ids": list(NODES), "command_timeout_s": 0.0,
+        "interface": interface, "channel": channel, "node_ids": list(NODES), "command_timeout_s": 0.0, "rc_gating": False,
         "silent_after_s": 0.5, "status_poll_s": 0.0, "odometry": False})
     runner = threading.Thread(target=svc.run, daemon=True)
 
@@ -246,7 +248,7 @@ def rig(tmp_path: Path, services: ServiceProcesses, bus: BusClient) -> Iterator[
                  {"side": "right", "node_id": NODES[1], "vel_limit": 10.0, **(node or {}), **(right or {})}]
         mock = MockCanProcess({"kind": "odrive", "port": port, "nodes": nodes}, repo=REPO, log=tmp_path / "mock.log")
         config = {"interface": "udp_multicast", "channel": GROUP, "udp_port": port, "node_ids": list(NODES),
-                  "silent_after_s": 0.5, "status_poll_s": 0.2, **(settings or {})}
+                  "silent_after_s": 0.5, "status_poll_s": 0.2, "rc_gating": False, **(settings or {})}
         profile = write_profile(tmp_path, name="motors", kind="odrive_can", settings=config)
         probe = DriverProbe(bus, "motors")
         driver = start_driver(services, profile, "motors")
@@ -262,7 +264,7 @@ def rig(tmp_path: Path, services: ServiceProcesses, bus: BusClient) -> Iterator[
 def test_commands_drive_the_wheels_within_limits_and_odometry_matches_the_vehicle(rig, bus: BusClient) -> None:
     raw: list[t.RawCanFrame] = []
     bus.transport.subscribe(raw_channel("can0"), t.RawCanFrame, lambda _c, m: raw.append(m))
-    r = rig(settings={"max_turns_per_s": 1.5, "directions": [1, -1], "command_timeout_s": 0.0,
+    r = rig(settings={"max_turns_per_s": 1.5, "directions": [1, -1], "command_timeout_s": 0.0, "rc_gating": False,
                       "record_raw": True, "device_name": "can0", "speed_sigma_mps": 0.03,
                       "status_poll_s": 0.0},  # only the setpoint re-sends may feed the watchdog
             right={"direction": -1, "watchdog_timeout_s": 0.3}, node={"watchdog_timeout_s": 0.3})
@@ -357,7 +359,7 @@ def test_a_silent_node_is_reported_and_recovers_while_the_other_keeps_driving(ri
 
 @pytest.mark.parametrize("firmware", ["0.6", "0.5"])
 def test_an_axis_error_is_reported_and_cleared_by_config(rig, bus: BusClient, firmware: str) -> None:
-    r = rig(settings={"firmware": firmware, "command_timeout_s": 0.0}, node={"firmware": firmware})
+    r = rig(settings={"firmware": firmware, "command_timeout_s": 0.0, "rc_gating": False}, node={"firmware": firmware})
     r.wait_phases("armed", "armed")
     r.commander.hold(left=25.0, right=25.0)
     r.wait_wheels(0.5 * CIRCUMFERENCE, 0.5 * CIRCUMFERENCE)
@@ -389,7 +391,7 @@ def test_an_axis_error_is_reported_and_cleared_by_config(rig, bus: BusClient, fi
                                                     ("SIGTERM", False)])
 def test_stop_over_the_bus_and_sigterm_leave_both_axes_at_zero_and_idle(rig, bus: BusClient, how: str,
                                                                          idle_on_stop: bool) -> None:
-    r = rig(settings={"command_timeout_s": 0.0, "idle_on_stop": idle_on_stop})   # no watchdog on the nodes
+    r = rig(settings={"command_timeout_s": 0.0, "rc_gating": False, "idle_on_stop": idle_on_stop})   # no watchdog on the nodes
     r.wait_phases("armed", "armed")
     r.commander.hold(left=50.0, right=-50.0)
     r.wait_wheels(CIRCUMFERENCE, -CIRCUMFERENCE)
@@ -410,3 +412,152 @@ def test_stop_over_the_bus_and_sigterm_leave_both_axes_at_zero_and_idle(rig, bus
             assert r.mock.get(side, "axis_state") == AxisState.IDLE
         else:              # the axis holds 0 rev/s in closed loop
             assert not idle and r.mock.get(side, "axis_state") == AxisState.CLOSED_LOOP_CONTROL
+
+
+# ---------------------------------------------------------------- the axis watchdog -------------
+WATCHDOG_06 = {"watchdog_timeout_endpoint": WATCHDOG_TIMEOUT_ENDPOINT,
+               "enable_watchdog_endpoint": ENABLE_WATCHDOG_ENDPOINT, "endpoints_fw": MOCK_FW}
+
+
+@pytest.mark.parametrize("settings", [{"hw_watchdog_timeout_s": 0.05}, {"hw_watchdog_timeout_s": 0.1},
+                                      {"hw_watchdog_timeout_s": 0.3, "command_period_s": 0.2},
+                                      {"hw_watchdog_timeout_s": 0.0}])
+def test_a_watchdog_timeout_not_above_twice_the_resend_period_is_refused(lcm_url: str, settings: dict) -> None:
+    with pytest.raises(ConfigError, match="hw_watchdog_timeout_s") as err:
+        OdriveCanMotor("motors", settings=settings)
+    assert "service 'motors'" in str(err.value)
+    OdriveCanMotor("motors", settings={**settings, "hw_watchdog": False, "hw_watchdog_timeout_s": 0.3})  # off: no check
+
+
+class InProcess:
+    """Two mock ODrive axes on a virtual bus and the driver object running on a thread."""
+
+    def __init__(self, *, settings: dict, firmware: str = "0.6", node: dict | None = None) -> None:
+        self.channel = f"odrive-wd-{random.randint(0, 1 << 30)}"
+        self.vehicle = SimVehicle(origin_lat=0.0, origin_lon=0.0)
+        self.nodes = {side: OdriveCanNode(self.vehicle, side=side, node_id=node_id, interface="virtual",
+                                          channel=self.channel, vel_limit=10.0, firmware=firmware, **(node or {}))
+                      for side, node_id in zip(("left", "right"), NODES)}
+        self.svc = OdriveCanMotor("motors", settings={
+            "interface": "virtual", "channel": self.channel, "node_ids": list(NODES), "firmware": firmware,
+            "status_poll_s": 0.0, "odometry": False, "rc_gating": False, "command_timeout_s": 0.5, **settings})
+        self.runner = threading.Thread(target=self.svc.run, daemon=True)
+        self.killed = False
+
+    def __enter__(self) -> "InProcess":
+        self.vehicle.start()
+        for node in self.nodes.values():
+            node.start()
+        self.svc.start()
+        self.runner.start()
+        return self
+
+    def hang(self) -> None:
+        """The driver stops sending anything, as a hung or killed process does (no neutral, no IDLE)."""
+        self.svc.stop()
+        self.runner.join(timeout=10)
+        assert not self.runner.is_alive()
+
+    def __exit__(self, *exc: object) -> None:
+        self.svc.stop()
+        self.runner.join(timeout=10)
+        self.svc.kill()
+        self.svc.transport.stop()
+        for node in self.nodes.values():
+            node.stop()
+        self.vehicle.stop()
+
+
+def test_the_driver_turns_the_axis_watchdog_on_reads_it_back_and_a_hung_driver_stops_the_wheels(lcm_url: str) -> None:
+    with InProcess(settings=WATCHDOG_06) as rig:
+        details = wait_until(lambda: (d := rig.svc.health_details())["left.phase"] == "armed"
+                             and d["right.phase"] == "armed" and d, timeout=20, message="both axes armed")
+        assert details["hw_watchdog"] == "on 0.30 s (read back)"
+        assert details["left.hw_watchdog"] == details["right.hw_watchdog"] == "on 0.30 s (read back)"
+        for node in rig.nodes.values():
+            assert (node.config.enable_watchdog, node.config.watchdog_timeout) == (True, pytest.approx(0.3))
+            ops = [(op, ep) for _, op, ep, _ in node.sdo_log]   # written, then read back
+            assert ops[:4] == [(1, WATCHDOG_TIMEOUT_ENDPOINT), (1, ENABLE_WATCHDOG_ENDPOINT),
+                               (0, WATCHDOG_TIMEOUT_ENDPOINT), (0, ENABLE_WATCHDOG_ENDPOINT)]
+            arm = [r.t for r in node.history if r.direction == "rx" and r.message.arbitration_id & 0x1F
+                   == Cmd.SET_AXIS_STATE]
+            enable = [r.t for r in node.history if r.direction == "rx" and r.message.arbitration_id & 0x1F
+                      == Cmd.RX_SDO]
+            assert arm and enable and enable[0] < arm[0], "the watchdog is on before the axis is armed"
+        rig.svc.on_percentage("left", 50.0)
+        rig.svc.on_percentage("right", -50.0)
+        wait_until(lambda: rig.nodes["left"].wheel_speed_mps == pytest.approx(CIRCUMFERENCE, abs=1e-3)
+                   and rig.nodes["right"].wheel_speed_mps == pytest.approx(-CIRCUMFERENCE, abs=1e-3),
+                   message="both wheels turning")
+        assert not any(node.watchdog_trips for node in rig.nodes.values())   # fed while the driver runs
+
+        rig.hang()
+        for side, node in rig.nodes.items():
+            wait_until(lambda: node.axis_state == AxisState.IDLE and node.wheel_speed_mps == 0.0, timeout=20,
+                       message=f"the {side} axis disarmed by its own watchdog")
+            assert node.axis_error == OdriveError.WATCHDOG_TIMER_EXPIRED and len(node.watchdog_trips) == 1
+            assert node.input_vel != 0.0   # the last setpoint was still 'drive': only the watchdog stopped it
+
+
+def test_a_watchdog_read_back_that_disagrees_is_an_error_naming_the_node(lcm_url: str) -> None:
+    with InProcess(settings=WATCHDOG_06) as rig:
+        rig.nodes["right"].freeze_config(True)   # the writes are acknowledged but do not apply
+        details = wait_until(lambda: (d := rig.svc.health_details())["right.hw_watchdog"] != "pending: not heard yet"
+                             and d["left.hw_watchdog"].startswith("on") and d, timeout=20, message="read back")
+        assert details["right.hw_watchdog"].startswith("read back timeout 0 s, enabled False after writing 0.3 s")
+        assert "flat_endpoints.json" in details["right.hw_watchdog"]
+        assert "ODrive right (node 4 on motors): watchdog read back" in rig.svc.last_error
+        details = wait_until(lambda: (d := rig.svc.health_details())["right.phase"] == "armed" and d, timeout=20,
+                             message="armed anyway, degraded")
+        assert rig.svc.status == "degraded" and "right (node 4) watchdog read back" in details["degraded_reason"]
+        assert details["hw_watchdog"].startswith("left: on 0.30 s (read back); right: read back")
+
+
+def test_endpoint_ids_of_another_firmware_build_are_not_written(lcm_url: str) -> None:
+    with InProcess(settings={**WATCHDOG_06, "endpoints_fw": "0.6.10"}) as rig:
+        details = wait_until(lambda: (d := rig.svc.health_details())["left.phase"] == "armed" and d, timeout=20,
+                             message="armed")
+        assert details["left.hw_watchdog"].startswith(f"not set: the node runs firmware {MOCK_FW} but the endpoint "
+                                                      "ids are for 0.6.10")
+        assert f"endpoints_fw = '{MOCK_FW}'" in details["left.hw_watchdog"]
+        assert not rig.nodes["left"].sdo_log and not rig.nodes["left"].config.enable_watchdog
+
+
+@pytest.mark.parametrize("firmware, settings, words", [
+    ("0.5", {}, "not settable over CAN on fw 0.5: configure with odrivetool (axis.config.watchdog_timeout = 0.3"),
+    ("0.6", {}, "not set: endpoint ids unknown"),
+    ("0.6", {"hw_watchdog": False}, "off (hw_watchdog = false)"),
+])
+def test_what_cannot_be_set_over_can_is_said_in_health(lcm_url: str, firmware: str, settings: dict,
+                                                        words: str) -> None:
+    with InProcess(settings=settings, firmware=firmware) as rig:
+        details = wait_until(lambda: (d := rig.svc.health_details())["left.phase"] == "armed"
+                             and d["right.phase"] == "armed" and d, timeout=20, message="armed")
+        assert details["hw_watchdog"].startswith(words)
+        wait_until(lambda: rig.svc.status == "ok", message="not degraded: nothing is wrong with the bus")
+        assert not any(node.config.enable_watchdog for node in rig.nodes.values())
+
+
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP])
+def test_a_killed_or_frozen_driver_process_is_stopped_by_the_axis_watchdogs(rig, bus: BusClient, sig: int) -> None:
+    r = rig(settings={**WATCHDOG_06, "command_timeout_s": 0.5})
+    details = r.wait_phases("armed", "armed")
+    assert details["hw_watchdog"] == "on 0.30 s (read back)"
+    refused = bus.set_config("motors", "hw_watchdog_timeout_s", "0.05")
+    assert refused is not None and not refused.ok and "more than twice command_period_s" in refused.error
+    r.commander.hold(left=50.0, right=-50.0)
+    r.wait_wheels(CIRCUMFERENCE, -CIRCUMFERENCE)
+    assert r.mock.get("left", "watchdog_trips") == [] and r.mock.get("right", "watchdog_trips") == []
+    try:
+        os.kill(r.driver.pid, sig)   # no neutral, no IDLE: only the ODrives' own watchdogs can stop the wheels
+        r.wait_wheels(0.0, 0.0, timeout=20, what="both wheels stopped by the axis watchdogs")
+        for side in ("left", "right"):
+            assert r.mock.get(side, "axis_state") == AxisState.IDLE
+            assert r.mock.get(side, "axis_error") == OdriveError.WATCHDOG_TIMER_EXPIRED
+            assert len(r.mock.get(side, "watchdog_trips")) == 1
+            assert r.mock.get(side, "input_vel") != 0.0   # the driver's last word was still 'drive'
+    finally:
+        r.commander.close()
+        if r.driver.poll() is None:
+            r.driver.kill()
+            r.driver.wait(timeout=10)

@@ -5,6 +5,8 @@ silence and faults."""
 from __future__ import annotations
 
 import math
+import os
+import signal
 from dataclasses import dataclass
 from pathlib import Path
 from statistics import mean
@@ -38,6 +40,9 @@ def wheel_mps(erpm: float) -> float:
     ({"max_duty": 1.5}, "max_duty must be in"),
     ({"neutral": "coast"}, "neutral must be one of"),
     ({"wheel_radius_m": [0.1, -0.1]}, "positive numbers"),
+    ({"hw_watchdog_timeout_s": 0.1}, "hw_watchdog_timeout_s = 0.1 s must be more than twice command_period_s"),
+    ({"hw_watchdog_timeout_s": 0.3, "command_period_s": 0.15}, "more than twice command_period_s"),
+    ({"host_id": 1}, "host_id must be a CAN id 0..254 that no VESC uses"),
 ])
 def test_a_bad_config_is_refused_with_the_field_named(lcm_url: str, settings: dict, words: str) -> None:
     with pytest.raises(ConfigError, match=words):
@@ -80,7 +85,7 @@ def rig(tmp_path: Path, services: ServiceProcesses, bus: BusClient) -> Iterator[
                  {"side": "right", "controller_id": IDS[1], "timeout_s": 0.3, **(node or {}), **(right or {})}]
         mock = MockCanProcess({"kind": "vesc", "port": port, "nodes": nodes}, repo=REPO, log=tmp_path / "mock.log")
         config = {"interface": "udp_multicast", "channel": GROUP, "udp_port": port, "controller_ids": list(IDS),
-                  "silent_after_s": 0.5, "max_duty": 0.1, **(settings or {})}
+                  "silent_after_s": 0.5, "max_duty": 0.1, "rc_gating": False, **(settings or {})}
         profile = write_profile(tmp_path, name="motors", kind="vesc_can", settings=config)
         probe = DriverProbe(bus, "motors")
         driver = start_driver(services, profile, "motors")
@@ -94,7 +99,7 @@ def rig(tmp_path: Path, services: ServiceProcesses, bus: BusClient) -> Iterator[
 
 
 def test_duty_commands_status_in_health_and_odometry(rig) -> None:
-    r = rig(settings={"directions": [1, -1], "command_timeout_s": 0.0}, right={"direction": -1})
+    r = rig(settings={"directions": [1, -1], "command_timeout_s": 0.0, "rc_gating": False}, right={"direction": -1})
     r.wait_ok()
     r.commander.hold(left=100.0, right=50.0)
     r.wait_modes(("duty", 0.1), ("duty", -0.05), what="100 % -> duty 0.1, 50 % mirrored -> duty -0.05")
@@ -123,7 +128,7 @@ def test_duty_commands_status_in_health_and_odometry(rig) -> None:
 
 
 def test_rpm_mode_and_tachometer_odometry(rig) -> None:
-    r = rig(settings={"mode": "rpm", "max_erpm": 1000.0, "command_timeout_s": 0.0, "odometry_source": "position",
+    r = rig(settings={"mode": "rpm", "max_erpm": 1000.0, "command_timeout_s": 0.0, "rc_gating": False, "odometry_source": "position",
                       "odometry_window_s": 0.5})
     r.wait_ok()
     r.commander.hold(left=100.0, right=60.0)
@@ -191,7 +196,7 @@ def test_silence_and_a_fault_are_reported_and_recovered_from(rig) -> None:
                                               ("SIGTERM", "zero")])
 def test_stop_over_the_bus_and_sigterm_leave_the_motors_at_zero(rig, bus: BusClient, how: str, neutral: str) -> None:
     # the VESCs' own command timeout is off here: only the driver's last frames can bring them to zero
-    r = rig(settings={"command_timeout_s": 0.0, "neutral": neutral}, node={"timeout_s": 0.0})
+    r = rig(settings={"command_timeout_s": 0.0, "rc_gating": False, "neutral": neutral}, node={"timeout_s": 0.0})
     r.wait_ok()
     r.commander.hold(left=50.0, right=-50.0)
     r.wait_modes(("duty", 0.05), ("duty", -0.05), what="duty 5 % both ways")
@@ -207,3 +212,46 @@ def test_stop_over_the_bus_and_sigterm_leave_the_motors_at_zero(rig, bus: BusCli
         assert sent[-1] == (PacketId.SET_CURRENT, 0.0), f"{side}: released last"   # whatever neutral says
         assert (r.mock.get(side, "mode"), r.mock.get(side, "command_value"), r.mock.get(side, "output")) == \
             ("current", 0.0, 0.0)
+
+
+# ---------------------------------------------------------------- the VESC's own timeout ---------
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP])
+def test_the_driver_sets_timeout_msec_reads_it_back_and_a_dead_driver_is_stopped_by_it(rig, sig: int) -> None:
+    r = rig(settings={"command_timeout_s": 0.5}, node={"timeout_s": 1.0})   # VESC Tool's default 1000 ms
+    details = r.probe.wait_health(lambda d, s: d.get("hw_watchdog") == "on 0.30 s (read back)", timeout=20,
+                                  message="timeout_msec written and read back")
+    assert details["left.hw_watchdog"] == details["right.hw_watchdog"] == "on 0.30 s (read back)"
+    for side in ("left", "right"):   # written once (it goes to flash), then read back
+        assert (r.mock.get(side, "timeout_s"), r.mock.get(side, "appconf_writes")) == (0.3, 1)
+    r.commander.hold(left=50.0, right=-50.0)
+    r.wait_modes(("duty", 0.05), ("duty", -0.05))
+    assert r.mock.get("left", "timeouts") == []   # fed while the driver runs
+    try:
+        os.kill(r.driver.pid, sig)   # no neutral on the way out: only the VESCs' timeout can stop them
+        r.wait_outputs(0.0, 0.0, timeout=20, what="both motors released by timeout_msec")
+        for side in ("left", "right"):
+            assert r.mock.get(side, "mode") == "released" and len(r.mock.get(side, "timeouts")) == 1
+    finally:
+        r.commander.close()
+        if r.driver.poll() is None:
+            r.driver.kill()
+            r.driver.wait(timeout=10)
+
+
+def test_a_timeout_that_does_not_read_back_is_an_error_naming_the_vesc(rig, bus: BusClient) -> None:
+    r = rig(settings={"command_timeout_s": 0.5})   # the nodes already have 300 ms: read, nothing written
+    r.probe.wait_health(lambda d, s: d.get("hw_watchdog") == "on 0.30 s (read back)", timeout=20,
+                        message="timeout_msec read back")
+    assert r.mock.get("left", "appconf_writes") == 0
+    r.mock.call("right", "freeze_config", True)   # its flash write fails: the old value stays
+    reply = bus.set_config("motors", "hw_watchdog_timeout_s", "0.4")
+    assert reply is not None and reply.ok, reply
+    details = r.probe.wait_health(lambda d, s: d["right.hw_watchdog"].startswith("read back"), timeout=20,
+                                  message="the right VESC's read-back error")
+    assert details["right.hw_watchdog"].startswith("read back timeout_msec 300 ms after writing 400 ms; set it in "
+                                                   "VESC Tool (App Settings > General > Timeout = 400 ms")
+    assert "VESC right (id 11 on motors): watchdog read back" in details["last_error"]
+    details = r.probe.wait_health(lambda d, s: d["left.hw_watchdog"] == "on 0.40 s (read back)" and s == "degraded",
+                                  timeout=20, message="left fine, service degraded")
+    assert "right (id 11) watchdog read back timeout_msec 300 ms" in details["degraded_reason"]
+    assert r.mock.get("left", "timeout_s") == 0.4 and r.mock.get("right", "timeout_s") == 0.3

@@ -96,7 +96,6 @@ _NAMES_COMMON = {0x01: "Heartbeat", 0x02: "Estop", 0x07: "Set_Axis_State", 0x09:
                  0x1B: "Set_Vel_Gains"}
 
 
-
 def check_firmware(firmware: str) -> str:
     """*firmware* if it is "0.5" or "0.6"; CanSimpleError otherwise."""
     if firmware not in FIRMWARES:
@@ -362,3 +361,60 @@ def encode_encoder_count(shadow_count: int, count_in_cpr: int) -> bytes:
 def decode_encoder_count(data: bytes) -> tuple[int, int]:
     """(shadow_count, count_in_cpr) of a 0.5 Get_Encoder_Count reply."""
     return struct.unpack_from("<ii", _need(data, 8, "Get_Encoder_Count"))
+
+
+# ---- 0.6 endpoint access (RxSdo 0x04 / TxSdo 0x05) ------------------------------------------
+# Endpoint ids come from the flat_endpoints.json of one firmware build and change between builds,
+# so they are never hard-coded here: the caller names them (and the build they belong to).
+SDO_READ = 0
+SDO_WRITE = 1
+SDO_TYPES = {"float": "<f", "bool": "<?", "uint8": "<B", "uint16": "<H", "uint32": "<I", "int32": "<i"}
+
+
+def _sdo_format(kind: str) -> str:
+    try:
+        return SDO_TYPES[kind]
+    except KeyError:
+        raise CanSimpleError(f"ODrive endpoint type must be one of {', '.join(SDO_TYPES)}, got {kind!r}") from None
+
+
+def encode_sdo_read(endpoint_id: int) -> bytes:
+    """RxSdo read request: u8 opcode 0, u16 endpoint id, u8 reserved (DLC 4)."""
+    return struct.pack("<BHB", SDO_READ, endpoint_id, 0)
+
+
+def encode_sdo_write(endpoint_id: int, kind: str, value: float | int | bool) -> bytes:
+    """RxSdo write: u8 opcode 1, u16 endpoint id, u8 reserved, the value in the endpoint's type (LE)."""
+    return struct.pack("<BHB", SDO_WRITE, endpoint_id, 0) + struct.pack(_sdo_format(kind), value)
+
+
+def decode_rx_sdo(data: bytes) -> tuple[int, int, bytes]:
+    """(opcode, endpoint_id, value bytes) of an RxSdo frame."""
+    raw = _need(data, 4, "RxSdo")
+    opcode, endpoint, _ = struct.unpack_from("<BHB", raw)
+    if opcode not in (SDO_READ, SDO_WRITE):
+        raise CanSimpleError(f"ODrive RxSdo: opcode must be 0 (read) or 1 (write), got {opcode}")
+    return opcode, endpoint, raw[4:]
+
+
+def encode_tx_sdo(endpoint_id: int, kind: str, value: float | int | bool) -> bytes:
+    """TxSdo reply: u8 reserved, u16 endpoint id, u8 reserved, the value in the endpoint's type (LE)."""
+    return struct.pack("<BHB", 0, endpoint_id, 0) + struct.pack(_sdo_format(kind), value)
+
+
+def decode_tx_sdo(data: bytes) -> tuple[int, bytes]:
+    """(endpoint_id, value bytes) of a TxSdo reply."""
+    raw = _need(data, 4, "TxSdo")
+    return struct.unpack_from("<H", raw, 1)[0], raw[4:]
+
+
+def sdo_value(kind: str, raw: bytes) -> float | int | bool:
+    """The value of *raw* endpoint bytes read as *kind* (float, bool, uint8, ...)."""
+    fmt = _sdo_format(kind)
+    return struct.unpack_from(fmt, _need(raw, struct.calcsize(fmt), f"{kind} endpoint value"))[0]
+
+
+def version_text(version: Version) -> str:
+    """``"0.6.10"`` for a Get_Version reply (``"0.6.10-dev"`` for an unreleased build)."""
+    text = f"{version.fw_major}.{version.fw_minor}.{version.fw_revision}"
+    return text + "-dev" if version.fw_unreleased else text

@@ -327,3 +327,107 @@ def decode_status(packet_id: int, data: bytes) -> StatusMessage:
     if cls is Status5:
         values[0] = ints[0]  # the tachometer is a raw count
     return cls(*values)
+
+
+# ---- COMM packets over CAN (multi-frame buffers) -------------------------------------------
+# comm_can.c carries a COMM_* packet (the UART protocol's payload) to a VESC in FILL_RX_BUFFER
+# frames (u8 offset + 7 bytes, offsets up to 255), then FILL_RX_BUFFER_LONG (u16 offset + 6
+# bytes), then PROCESS_RX_BUFFER (sender id, send mode, u16 length, u16 CRC, all big-endian);
+# up to 6 bytes fit one PROCESS_SHORT_BUFFER (sender id, send mode, payload). With send mode 0
+# the VESC answers the same way, addressed to the sender id.
+class CommPacket(IntEnum):
+    """COMM_PACKET_ID values used over CAN here (datatypes.h)."""
+
+    SET_APPCONF = 16
+    GET_APPCONF = 17
+
+
+SEND_REPLY = 0  # process the packet and send the answer back to the sender over CAN
+SHORT_MAX = 6
+# app configuration as confgenerator_serialize_appconf() writes it: u32 APPCONF_SIGNATURE,
+# u8 controller_id, u32 timeout_msec, float32_auto timeout_brake_current, ...
+APPCONF_ID_OFFSET = 4
+APPCONF_TIMEOUT_OFFSET = 5
+
+
+def crc16(data: bytes) -> int:
+    """CRC-16/XMODEM (poly 0x1021, init 0) as the VESC's crc16() computes it."""
+    crc = 0
+    for byte in data:
+        crc ^= byte << 8
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x1021) if crc & 0x8000 else crc << 1
+            crc &= 0xFFFF
+    return crc
+
+
+def buffer_frames(target_id: int, sender_id: int, payload: bytes, *, send: int = SEND_REPLY) -> list[can.Message]:
+    """The frames that carry COMM packet *payload* from *sender_id* to *target_id*."""
+    if not payload or len(payload) > 0xFFFF:
+        raise VescCanError(f"VESC COMM packet must be 1..65535 bytes, got {len(payload)}")
+    if len(payload) <= SHORT_MAX:
+        return [make_frame(target_id, PacketId.PROCESS_SHORT_BUFFER, bytes([sender_id, send]) + payload)]
+    frames, offset = [], 0
+    while offset < len(payload) and offset <= 0xFF:
+        frames.append(make_frame(target_id, PacketId.FILL_RX_BUFFER, bytes([offset]) + payload[offset:offset + 7]))
+        offset += 7
+    while offset < len(payload):
+        frames.append(make_frame(target_id, PacketId.FILL_RX_BUFFER_LONG,
+                                 struct.pack(">H", offset) + payload[offset:offset + 6]))
+        offset += 6
+    tail = struct.pack(">BBHH", sender_id, send, len(payload), crc16(payload))
+    return frames + [make_frame(target_id, PacketId.PROCESS_RX_BUFFER, tail)]
+
+
+class BufferAssembler:
+    """Collects FILL_RX_BUFFER(_LONG) frames and returns the packet a PROCESS frame completes."""
+
+    def __init__(self, size: int = 4096) -> None:
+        self._buffer = bytearray(size)
+        self.crc_errors = 0
+
+    def feed(self, packet: int, data: bytes) -> tuple[int, int, bytes] | None:
+        """(sender_id, send mode, payload) once complete; VescCanError for a bad frame or CRC."""
+        data = bytes(data)
+        if packet == PacketId.FILL_RX_BUFFER:
+            self._put(_need(data, 1, "FILL_RX_BUFFER")[0], data[1:])
+        elif packet == PacketId.FILL_RX_BUFFER_LONG:
+            self._put(struct.unpack_from(">H", _need(data, 2, "FILL_RX_BUFFER_LONG"))[0], data[2:])
+        elif packet == PacketId.PROCESS_SHORT_BUFFER:
+            raw = _need(data, 3, "PROCESS_SHORT_BUFFER")
+            return raw[0], raw[1], raw[2:]
+        elif packet == PacketId.PROCESS_RX_BUFFER:
+            sender, send, length, crc = struct.unpack_from(">BBHH", _need(data, 6, "PROCESS_RX_BUFFER"))
+            if length > len(self._buffer):
+                raise VescCanError(f"VESC PROCESS_RX_BUFFER: length {length} exceeds the {len(self._buffer)}-byte buffer")
+            payload = bytes(self._buffer[:length])
+            if crc16(payload) != crc:
+                self.crc_errors += 1
+                raise VescCanError(f"VESC PROCESS_RX_BUFFER from id {sender}: CRC {crc:#06x} does not match the "
+                                   f"{length} bytes received ({crc16(payload):#06x}); a frame was lost")
+            return sender, send, payload
+        return None
+
+    def _put(self, offset: int, chunk: bytes) -> None:
+        if offset + len(chunk) > len(self._buffer):
+            raise VescCanError(f"VESC FILL_RX_BUFFER: offset {offset} beyond the {len(self._buffer)}-byte buffer")
+        self._buffer[offset:offset + len(chunk)] = chunk
+
+
+def appconf_timeout_ms(appconf: bytes, *, controller_id: int) -> int:
+    """timeout_msec of a serialized app configuration; VescCanError unless its controller_id
+    byte is *controller_id* (the check that the layout is the one this code knows)."""
+    raw = _need(appconf, APPCONF_TIMEOUT_OFFSET + 4, "app configuration")
+    if raw[APPCONF_ID_OFFSET] != controller_id:
+        raise VescCanError(f"VESC app configuration: controller_id byte is {raw[APPCONF_ID_OFFSET]}, expected "
+                           f"{controller_id}; unknown layout (firmware too new or too old for this driver)")
+    return struct.unpack_from(">I", raw, APPCONF_TIMEOUT_OFFSET)[0]
+
+
+def appconf_with_timeout(appconf: bytes, timeout_ms: int, *, controller_id: int) -> bytes:
+    """*appconf* with timeout_msec replaced (everything else unchanged)."""
+    appconf_timeout_ms(appconf, controller_id=controller_id)
+    if not 0 <= timeout_ms <= 0xFFFFFFFF:
+        raise VescCanError(f"VESC timeout_msec must fit u32, got {timeout_ms}")
+    end = APPCONF_TIMEOUT_OFFSET + 4
+    return appconf[:APPCONF_TIMEOUT_OFFSET] + struct.pack(">I", timeout_ms) + appconf[end:]
