@@ -8,12 +8,24 @@ the mode with hysteresis, debounce and a signal timeout (``drivers.rc_pulse.RcMo
 The autonomy-enable output goes into the mux, whose default side is the pilot (RC). It is
 high only while ALL of these hold, and is driven low the moment one fails:
 
-- the mode is autonomous (the pilot's switch, debounced);
-- no FAILSAFE is active (dropped from the FAILSAFE callback itself, not the next loop);
+- the mode is autonomous (the pilot's switch; leaving autonomy for manual takes one frame,
+  anything else ``debounce_frames`` frames alike);
+- no FAILSAFE is held by any source (u2sa_hw/failsafe.py; dropped from the FAILSAFE
+  callback itself, not the next loop);
 - the service is healthy: the GPIO port is open and the mux's select read-back agrees;
+- every pre-arm check holds (``[safety.prearm]``, u2sa_hw/safety/prearm.py): a refusal
+  names the failed check in ``RcMode.blocked_by``, health and the log; a check lost while
+  autonomous takes the profile's ``on_check_lost`` action: ``neutral`` disarms (the line
+  drops, the pilot has the hardware-muxed outputs at once), ``hold`` keeps the line but sets
+  ``RcMode.hold`` so every output goes neutral until the pilot re-arms;
 - autonomy is armed: with ``require_rearm`` a failsafe, a loss of signal, a read-back
-  mismatch, a (re)start and a re-opened GPIO port disarm it, and only the switch passing through manual arms it
-  again, so nothing re-enables autonomy behind the pilot's back.
+  mismatch, a lost pre-arm check, a (re)start and a re-opened GPIO port disarm it, and only
+  the switch held at manual for ``debounce_frames`` frames arms it again, so nothing
+  re-enables autonomy behind the pilot's back.
+
+With a ``[safety.manual_mixer]`` in the profile the service is also the software half of
+the mux: in manual it publishes the sticks, mixed, on ``MANUAL_CMD`` at ``manual_hz``
+(drivers/rc_manual.py) for the actuators no hardware mux can switch.
 
 It drops on stop and kill too; a crashed service's request is released and the line falls
 to the board's pull-down. ``RcMode`` goes out at ``publish_hz`` and on every change:
@@ -30,12 +42,17 @@ import time
 from typing import Any, Mapping, NamedTuple
 
 from drivers.gpio_lines import GpioLineSet, check_chip, config_problem, note_restart_needed, parse_line_map
+from drivers.rc_manual import ManualSticks
 from drivers.rc_pulse import MODE_AUTONOMOUS, MODE_MANUAL, MODE_NAMES, MODE_NO_SIGNAL, PulseMeter, RcModeFilter
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Sensor
 from u2sa_hw.config import ConfigError, field
+from u2sa_hw.failsafe import FailsafeSources
 from u2sa_hw.ports.gpio_port import GpioPort
+from u2sa_hw.safety.config import load_safety
+from u2sa_hw.safety.prearm import CheckFailure, PrearmChecks
+from u2sa_hw.safety.wiring import check_wiring
 
 
 class RcSetup(NamedTuple):
@@ -64,10 +81,12 @@ class RcMuxDriver(Sensor):
         field("autonomous_above_us", 1700.0, "mode pulse above this asks for autonomous"),
         field("manual_below_us", 1300.0, "mode pulse below this asks for manual"),
         field("debounce_frames", 3, "consecutive frames needed to change the mode"),
-        field("signal_timeout_ms", 250.0, "no valid mode pulse for this long -> no signal"),
+        field("signal_timeout_ms", 100.0, "no valid mode pulse for this long -> no signal (5 frames at 50 Hz)"),
         field("select_mismatch_ms", 500.0, "read-back disagreeing this long is a mismatch (> signal timeout)"),
         field("require_rearm", True, "after failsafe, signal loss, mismatch or start: switch to manual to re-arm"),
-        field("publish_hz", 10.0, "RcMode messages per second (plus one on every change)"),
+        field("publish_hz", 20.0, "RcMode messages per second (plus one on every change); actuators go neutral "
+                                  "when the newest is older than [safety] rc_mode_timeout_ms"),
+        field("manual_hz", 25.0, "MANUAL_CMD commands per second in manual (with a [safety.manual_mixer])"),
         field("device_name", "", "device name in port errors and RAW.<device> (empty: the service name)"),
         field("record_raw", False, "publish every edge and write as RawGpioEdge/RawGpioWrite on RAW.<device>"),
     )
@@ -81,7 +100,13 @@ class RcMuxDriver(Sensor):
         self.widths: dict[str, tuple[float, int]] = {}  # channel -> (width us, falling edge ns)
         self.enabled = False      # what the enable line was last driven to
         self.armed = not c["require_rearm"]
-        self.failsafe_active, self.failsafe_reason = False, ""
+        self.failsafes = FailsafeSources()
+        self.safety = check_wiring(self.profile) if self.profile.path else load_safety(self.profile)
+        self.sticks = ManualSticks(self.safety.manual_mixer) if self.safety.manual_mixer else None
+        self.prearm = PrearmChecks.from_profile(self.profile)
+        self.prearm_failures: list[CheckFailure] = []
+        self.hold = False
+        self.checks_lost = 0
         self.select_level: int | None = None
         self.mismatch, self._mismatch_since = False, None
         self.mismatches = self.enable_changes = 0
@@ -95,7 +120,13 @@ class RcMuxDriver(Sensor):
                                 initial_outputs=lambda: {self.enable_line: 0}, record_raw=c["record_raw"],
                                 on_open=self._on_open)
         self.register_publisher(ch.RC_MODE, t.RcMode)
+        if self.sticks is not None:
+            self.register_publisher(ch.MANUAL_CMD, t.PercentageCommand)
         self.register_subscriber(ch.FAILSAFE, t.Failsafe, self._on_failsafe)
+        self.register_subscriber(ch.HEALTH, t.Health, lambda msg: self.prearm.on_health(msg, time.monotonic()))
+        if self.prearm.needs_estimate:
+            self.register_subscriber(ch.STATE_ESTIMATE, t.StateInformation,
+                                     lambda msg: self.prearm.on_estimate(msg, time.monotonic()))
 
     def parse_config(self, c: Mapping[str, Any]) -> RcSetup:
         """Check the config and build the pulse meter and mode filter; ConfigError names the field."""
@@ -109,8 +140,8 @@ class RcMuxDriver(Sensor):
         if enable < 0 or enable in used or select in used | {enable}:
             raise ConfigError(f"service '{name}': enable_line {enable} and select_line {select} must be distinct "
                               f"lines, not RC channel lines {sorted(used)}; enable_line is required")
-        if c["publish_hz"] <= 0 or c["select_mismatch_ms"] <= 0:
-            raise ConfigError(f"service '{name}': publish_hz and select_mismatch_ms must be > 0")
+        if c["publish_hz"] <= 0 or c["select_mismatch_ms"] <= 0 or c["manual_hz"] <= 0:
+            raise ConfigError(f"service '{name}': publish_hz, manual_hz and select_mismatch_ms must be > 0")
         try:
             return RcSetup(channels, enable, select,
                            PulseMeter(lines=used, min_us=c["min_pulse_us"], max_us=c["max_pulse_us"]),
@@ -133,12 +164,14 @@ class RcMuxDriver(Sensor):
         """Whether the enable line may be high, and if not the first reason why not."""
         if self._stopping:
             return False, "stopping"
-        if self.failsafe_active:
-            return False, f"failsafe ({self.failsafe_reason or 'no reason given'})"
+        if self.failsafes.active:
+            return False, f"failsafe ({self.failsafes.reason()})"
         if not self.gpio.is_open:
             return False, "GPIO port down"
         if self.mismatch:
             return False, "mux select read-back mismatch"
+        if self.prearm_failures and not (self.hold and self.enabled):
+            return False, f"pre-arm check failed: {self.prearm_failures[0].reason}"
         if self.filter.mode != MODE_AUTONOMOUS:
             return False, f"mode {self.filter.mode_name}"
         if not self.armed:
@@ -163,15 +196,48 @@ class RcMuxDriver(Sensor):
                     self.logger.warning("autonomy enable low (%s)", why)
                 self._changed.set()
 
+    @property
+    def failsafe_active(self) -> bool:
+        """True while any source holds a failsafe."""
+        return self.failsafes.active
+
     def _on_failsafe(self, msg: t.Failsafe) -> None:
         with self._enable_lock:
-            if msg.active and not self.failsafe_active:
+            change = self.failsafes.apply_message(msg)
+            if change.raised:
                 self.logger.warning("FAILSAFE from %s: %s", msg.header.source or "?", msg.reason)
-            self.failsafe_active, self.failsafe_reason = bool(msg.active), msg.reason
-            if msg.active and self.config["require_rearm"]:
+            if change.cleared:
+                self.logger.info("failsafe of %s cleared by %s%s", ", ".join(change.cleared),
+                                 msg.header.source or "?", "" if change.active_after else " (none held now)")
+            if change.active_after and self.config["require_rearm"]:
                 self.armed = False
             self.update_enable()
             self._changed.set()
+
+    def _check_prearm(self, now: float) -> None:
+        """Evaluate the pre-arm checks; a check lost while autonomous disarms or holds."""
+        failures = self.prearm.evaluate(now, rc_link_ok=self.filter.mode != MODE_NO_SIGNAL,
+                                        failsafe_reason=self.failsafes.reason())
+        first = failures[0].reason if failures else ""
+        if first != (self.prearm_failures[0].reason if self.prearm_failures else ""):
+            if first:
+                self.logger.info("pre-arm: %s", first)
+            else:
+                self.logger.info("pre-arm: every check holds")
+            self._changed.set()
+        with self._enable_lock:
+            self.prearm_failures = failures
+            if failures and self.enabled and not self.hold:
+                self.checks_lost += 1
+                if self.safety.on_check_lost == "hold":
+                    self.hold = True
+                    self.logger.warning("pre-arm check lost while autonomous: %s -> hold (outputs neutral until "
+                                        "the pilot re-arms through manual)", first)
+                else:
+                    self.armed = False
+                    self.logger.warning("pre-arm check lost while autonomous: %s -> neutral (autonomy dropped; "
+                                        "switch through manual to re-arm)", first)
+                self._changed.set()
 
     def _on_open(self, port: GpioPort) -> None:
         # runs inside the opener (under the line set's lock, so not under _enable_lock: lock order
@@ -186,7 +252,8 @@ class RcMuxDriver(Sensor):
     def run(self) -> None:
         """Measure pulses, follow the mode, drive the enable line and publish until stopped."""
         period = 1.0 / self.config["publish_hz"]
-        next_publish = time.monotonic()
+        manual_period = 1.0 / self.config["manual_hz"]
+        next_publish = next_manual = time.monotonic()
         while self.wait(0.0):
             port = self.gpio.port()
             if port is None:
@@ -198,6 +265,7 @@ class RcMuxDriver(Sensor):
             if self.filter.check_signal(now_ns):
                 self._mode_changed()
             self._check_select(now_ns)
+            self._check_prearm(now_ns / 1e9)
             self.update_enable()
             self._refresh_status()
             now = time.monotonic()
@@ -205,6 +273,9 @@ class RcMuxDriver(Sensor):
                 self._changed.clear()
                 self.publish_mode()
                 next_publish = max(next_publish + period, now)
+            if self.sticks is not None and self.filter.mode == MODE_MANUAL and now >= next_manual:
+                self.publish_manual()
+                next_manual = max(next_manual + manual_period, now)
 
     def _on_edge(self, line: int, rising: bool, timestamp_ns: int) -> None:
         if line == self.select_line:
@@ -214,8 +285,15 @@ class RcMuxDriver(Sensor):
         if pulse is None:
             return
         self.widths[self.names_by_line[line]] = (pulse.width_us, pulse.end_ns)
-        if line == self.mode_line and self.filter.on_frame(pulse.width_us, pulse.end_ns):
+        if line != self.mode_line:
+            return
+        if self.filter.on_frame(pulse.width_us, pulse.end_ns):
             self._mode_changed()
+        if self.filter.manual_confirmed and (not self.armed or self.hold):
+            with self._enable_lock:
+                self.armed, self.hold = True, False
+            self.logger.info("armed: the switch is at manual")
+            self._changed.set()
 
     def _mode_changed(self) -> None:
         mode = self.filter.mode
@@ -226,10 +304,10 @@ class RcMuxDriver(Sensor):
         else:
             self.logger.info("RC mode %s", MODE_NAMES[mode])
         with self._enable_lock:
-            if mode == MODE_MANUAL:
-                self.armed = True
-            elif mode == MODE_NO_SIGNAL and self.config["require_rearm"]:
+            if mode == MODE_NO_SIGNAL and self.config["require_rearm"]:
                 self.armed = False
+        if mode == MODE_MANUAL and self.sticks is not None:
+            self.publish_manual()  # the pilot has the software-muxed outputs from the first manual frame
         self._changed.set()
 
     def _check_select(self, now_ns: int) -> None:
@@ -269,11 +347,22 @@ class RcMuxDriver(Sensor):
             widths.append(round(last[0]) if last and now_ns - last[1] <= self.filter.signal_timeout_ns else 0)
         return widths
 
+    def publish_manual(self) -> None:
+        """Publish the sticks, mixed, on MANUAL_CMD (one PercentageCommand per mixed actuator)."""
+        if self.sticks is None:
+            return
+        widths = dict(zip(self.channels, self.pulse_widths_us()))
+        for cmd in self.sticks.commands(widths):
+            self.publish(ch.MANUAL_CMD, cmd)
+
     def publish_mode(self) -> bool:
         """Publish the present RcMode on RC_MODE."""
         msg = t.RcMode()
         msg.mode, msg.mode_name = self.filter.mode, self.filter.mode_name
         msg.autonomy_enabled, msg.select_mismatch = self.enabled, self.mismatch
+        allowed, why = self.autonomy_allowed()
+        msg.armed, msg.hold = self.armed, self.hold
+        msg.blocked_by = "" if allowed else why
         msg.pulse_us = self.pulse_widths_us()
         msg.num_channels = len(msg.pulse_us)
         return self.publish(ch.RC_MODE, msg)
@@ -294,7 +383,10 @@ class RcMuxDriver(Sensor):
         allowed, why = self.autonomy_allowed()
         details: dict[str, Any] = {
             **self.gpio.health(), "mode": self.filter.mode_name, "autonomy_enabled": self.enabled,
-            "enable_blocked_by": "" if allowed else why, "armed": self.armed, "failsafe": self.failsafe_active,
+            "enable_blocked_by": "" if allowed else why, "armed": self.armed, "hold": self.hold,
+            "failsafe": self.failsafe_active, "failsafe_sources": ",".join(sorted(self.failsafes.held())),
+            "prearm_failed": "; ".join(f.reason for f in self.prearm_failures), "checks_lost": self.checks_lost,
+            "manual_commands": self.sticks.sent if self.sticks else 0,
             "select_readback": "none" if self.select_level is None else self.select_level,
             "select_mismatch": self.mismatch, "select_mismatches": self.mismatches,
             "mode_frames": self.filter.frames, "mode_changes": self.filter.changes,

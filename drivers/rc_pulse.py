@@ -101,7 +101,7 @@ class RcModeFilter:
     """Mode from the mode channel's pulses, with hysteresis, debounce and a signal timeout."""
 
     def __init__(self, *, autonomous_above_us: float = 1700.0, manual_below_us: float = 1300.0,
-                 debounce_frames: int = 3, signal_timeout_ns: int = 250_000_000) -> None:
+                 debounce_frames: int = 3, signal_timeout_ns: int = 100_000_000) -> None:
         if not manual_below_us < autonomous_above_us:
             raise ValueError(f"hysteresis needs manual_below_us ({manual_below_us}) < autonomous_above_us "
                              f"({autonomous_above_us})")
@@ -119,6 +119,7 @@ class RcModeFilter:
         self.last_frame_ns: int | None = None
         self._candidate = MODE_NO_SIGNAL
         self._streak = 0
+        self.manual_streak = 0   # consecutive valid frames asking for manual
 
     @property
     def mode_name(self) -> str:
@@ -134,11 +135,16 @@ class RcModeFilter:
         return MODE_MANUAL if self.mode == MODE_NO_SIGNAL else self.mode
 
     def on_frame(self, width_us: float, timestamp_ns: int) -> bool:
-        """One valid mode-channel pulse ending at *timestamp_ns*; True when the mode changed."""
+        """One valid mode-channel pulse ending at *timestamp_ns*; True when the mode changed.
+
+        Debounce is one-sided: leaving autonomy for manual takes one frame (the safe direction
+        never waits), any other change ``debounce_frames`` alike in a row.
+        """
         self.frames += 1
         if self.last_frame_ns is None or timestamp_ns > self.last_frame_ns:
             self.last_frame_ns = timestamp_ns
         side = self.wanted(width_us)
+        self.manual_streak = self.manual_streak + 1 if side == MODE_MANUAL else 0
         if side == self.mode:
             self._candidate, self._streak = side, 0
             return False
@@ -146,10 +152,16 @@ class RcModeFilter:
             self._streak += 1
         else:
             self._candidate, self._streak = side, 1
-        if self._streak < self.debounce_frames:
+        needed = 1 if side == MODE_MANUAL and self.mode == MODE_AUTONOMOUS else self.debounce_frames
+        if self._streak < needed:
             return False
         self._set(side)
         return True
+
+    @property
+    def manual_confirmed(self) -> bool:
+        """True when the switch has been at manual for ``debounce_frames`` frames in a row (what arms)."""
+        return self.mode == MODE_MANUAL and self.manual_streak >= self.debounce_frames
 
     def check_signal(self, now_ns: int) -> bool:
         """Go to "no signal" when the last valid frame is older than the timeout; True on change."""
@@ -163,4 +175,6 @@ class RcModeFilter:
     def _set(self, mode: int) -> None:
         self.mode = mode
         self.changes += 1
+        if mode == MODE_NO_SIGNAL:
+            self.manual_streak = 0
         self._candidate, self._streak = mode, 0

@@ -83,12 +83,18 @@ def test_mode_changes_only_after_debounce_frames() -> None:
     assert f.mode_name == "autonomous" and f.changes == 2 and f.frames == 7
 
 
-def test_isolated_glitch_frames_never_flip_the_mode() -> None:
+def test_glitches_never_grant_autonomy_and_one_manual_frame_takes_it_away() -> None:
     f = RcModeFilter(debounce_frames=3)
     frames(f, [1000] * 3)
     assert set(frames(f, [2000, 1000, 2000, 2000, 1000, 2000, 1000] * 5, start_ns=MS)) == {MODE_MANUAL}
+    assert f.manual_confirmed is False, "the last frames were not 3 manual in a row"
+    frames(f, [1000] * 3, start_ns=5_000 * MS)
+    assert f.manual_confirmed, "3 manual frames in a row: what arms"
     frames(f, [2000] * 3, start_ns=10_000 * MS)
-    assert set(frames(f, [1000, 1000, 2000, 1000, 2000] * 5, start_ns=20_000 * MS)) == {MODE_AUTONOMOUS}
+    assert f.mode == MODE_AUTONOMOUS and not f.manual_confirmed
+    # the safe direction never waits: one manual frame leaves autonomy, but does not arm
+    assert frames(f, [1000, 2000], start_ns=20_000 * MS) == [MODE_MANUAL, MODE_MANUAL]
+    assert not f.manual_confirmed
 
 
 def test_hysteresis_band_keeps_the_present_side() -> None:
@@ -204,8 +210,8 @@ def test_pilot_switch_failsafe_rearm_and_sigterm(rig: RcRig) -> None:
     details = rig.health(lambda d: d["failsafe"] == "False", message="the failsafe cleared")
     assert "not armed" in details["enable_blocked_by"] and rig.chip.read_output(ENABLE) == 0
 
-    rig.rc.set_mode_switch(False)           # the pilot re-arms through manual
-    rig.mode(lambda m: m.mode == MODE_MANUAL, message="manual again")
+    rig.rc.set_mode_switch(False)           # the pilot re-arms through manual (held for debounce_frames)
+    rig.mode(lambda m: m.mode == MODE_MANUAL and m.armed, message="manual again, armed")
     rig.to_autonomous()
 
     raw = rig.col.since(raw_channel("rc"))
@@ -237,7 +243,7 @@ def test_signal_loss_is_no_signal_counted_and_autonomy_needs_rearming(rig: RcRig
     assert "not armed" in rig.health(lambda d: d["mode"] == "autonomous")["enable_blocked_by"]
 
     rig.rc.set_mode_switch(False)           # the pilot re-arms through manual ...
-    rig.mode(lambda m: m.mode == MODE_MANUAL, message="manual again")
+    rig.mode(lambda m: m.mode == MODE_MANUAL and m.armed, message="manual again, armed")
     rig.to_autonomous()                     # ... and autonomy can be enabled again
     assert rig.chip.read_output(ENABLE) == 1
     details = rig.health(lambda d: d["autonomy_enabled"] == "True", message="enabled again in health")
@@ -294,7 +300,7 @@ def test_mux_stuck_on_rc_is_a_mismatch_that_drops_and_disarms_autonomy(rig: RcRi
     assert "not armed" in details["enable_blocked_by"] and rig.chip.read_output(ENABLE) == 0
     rig.mux.stick(None)
     rig.rc.set_mode_switch(False)           # re-armed through manual, autonomy works with a healthy mux
-    rig.mode(lambda m: m.mode == MODE_MANUAL, message="manual again")
+    rig.mode(lambda m: m.mode == MODE_MANUAL and m.armed, message="manual again, armed")
     rig.to_autonomous()
 
 
