@@ -232,6 +232,37 @@ def test_odrive_watchdog_is_fed_by_any_frame_and_disarms_when_starved(vehicle, c
     client.encoder(1, until=lambda pos, vel: vel == 0.0)
 
 
+def test_odrive_watchdog_set_over_rxsdo_reads_back_and_trips_when_starved(vehicle, channel, client,
+                                                                           start_node) -> None:
+    from mock_devices.odrive_node import ENABLE_WATCHDOG_ENDPOINT as ENABLE, WATCHDOG_TIMEOUT_ENDPOINT as TIMEOUT
+    node = start_node(odrive(vehicle, channel))   # boots with the watchdog off, as the factory config has it
+
+    def read(endpoint: int, kind: str):
+        client.odrive(1, Cmd.RX_SDO, cs.encode_sdo_read(endpoint))
+        got, raw = cs.decode_tx_sdo(client.wait_for(lambda m: m.arbitration_id == cs.arbitration_id(1, Cmd.TX_SDO),
+                                                    what="TxSdo").data)
+        assert got == endpoint
+        return cs.sdo_value(kind, raw)
+
+    assert (read(TIMEOUT, "float"), read(ENABLE, "bool")) == (0.0, False)
+    client.odrive(1, Cmd.RX_SDO, cs.encode_sdo_write(TIMEOUT, "float", 0.3))
+    client.odrive(1, Cmd.RX_SDO, cs.encode_sdo_write(ENABLE, "bool", True))
+    assert (read(TIMEOUT, "float"), read(ENABLE, "bool")) == (pytest.approx(0.3), True)
+    client.odrive(1, Cmd.RX_SDO, cs.encode_sdo_read(0x7777))   # no such endpoint in this build: counted
+    wait_until(lambda: node.dropped == 1, message="the unknown endpoint to be dropped")
+
+    client.arm_velocity(1, 1.0)
+    client.heartbeat(1, until=lambda hb: hb.axis_state == AxisState.CLOSED_LOOP_CONTROL)
+    hb = client.heartbeat(1, until=lambda hb: hb.axis_error != 0, timeout=10)   # nobody feeds it
+    assert (hb.axis_error, hb.axis_state) == (cs.OdriveError.WATCHDOG_TIMER_EXPIRED, AxisState.IDLE)
+    assert node.wheel_speed_mps == 0.0 and len(node.watchdog_trips) == 1
+
+    node.freeze_config(True)   # a write that does not apply: the read-back shows the old value
+    client.odrive(1, Cmd.RX_SDO, cs.encode_sdo_write(TIMEOUT, "float", 0.8))
+    assert read(TIMEOUT, "float") == pytest.approx(0.3)
+    assert [op for _, op, _, _ in node.sdo_log].count(cs.SDO_WRITE) == 3
+
+
 def test_odrive_estop_clear_errors_and_rearm(vehicle, channel, client, start_node) -> None:
     node = start_node(odrive(vehicle, channel))
     client.arm_velocity(1, 1.0)
@@ -371,6 +402,37 @@ def test_vesc_command_timeout_releases_the_motor(vehicle, channel, client, start
     wait_until(lambda: node.mode == "released", message="the VESC timeout")
     assert node.output == 0.0
     client.status(5, PacketId.STATUS, until=lambda s: s.erpm == 0 and s.duty == 0)
+
+
+def test_vesc_app_configuration_over_can_buffers_sets_the_timeout(vehicle, channel, client, start_node) -> None:
+    node = start_node(vesc(vehicle, channel, timeout_s=1.0))
+    assembler = vc.BufferAssembler()
+
+    def comm(payload: bytes) -> bytes:
+        for frame in vc.buffer_frames(5, 200, payload):
+            client.send(frame)
+        while True:   # the answer comes in buffers addressed to our id 200
+            msg = client.wait_for(lambda m: m.is_extended_id and m.arbitration_id & 0xFF == 200, what="an answer")
+            done = assembler.feed(msg.arbitration_id >> 8, msg.data)
+            if done is not None:
+                assert done[0] == 5
+                return done[2]
+
+    answer = comm(bytes([vc.CommPacket.GET_APPCONF]))
+    assert answer[0] == vc.CommPacket.GET_APPCONF and len(answer) > 256   # long enough for FILL_RX_BUFFER_LONG
+    assert vc.appconf_timeout_ms(answer[1:], controller_id=5) == 1000
+    ack = comm(bytes([vc.CommPacket.SET_APPCONF]) + vc.appconf_with_timeout(answer[1:], 300, controller_id=5))
+    assert ack == bytes([vc.CommPacket.SET_APPCONF]) and node.timeout_s == 0.3 and node.appconf_writes == 1
+    assert vc.appconf_timeout_ms(comm(bytes([vc.CommPacket.GET_APPCONF]))[1:], controller_id=5) == 300
+
+    client.vesc(5, PacketId.SET_DUTY, 0.1)   # one command, then nothing: released after 0.3 s
+    wait_until(lambda: len(node.timeouts) == 1, message="the new timeout to release the motor")
+    assert node.mode == "released" and node.output == 0.0
+
+    node.freeze_config(True)   # acknowledged, not applied
+    assert comm(bytes([vc.CommPacket.SET_APPCONF]) + vc.appconf_with_timeout(answer[1:], 800, controller_id=5)) \
+        == bytes([vc.CommPacket.SET_APPCONF])
+    assert node.timeout_s == 0.3 and node.appconf_writes == 2
 
 
 def test_vesc_addressing_broadcast_and_ping(vehicle, channel, client, start_node) -> None:

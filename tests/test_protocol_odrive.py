@@ -170,3 +170,34 @@ def test_set_input_pos_feed_forward_must_fit_int16() -> None:
 def test_u32_out_of_range() -> None:
     with pytest.raises(cs.CanSimpleError, match="out of range"):
         cs.encode_u32(-1)
+
+
+# ---- 0.6 endpoint access (RxSdo / TxSdo) ------------------------------------------------------
+def test_sdo_frames_follow_the_rxsdo_txsdo_layout() -> None:
+    # node 1 writes 0.3 (float32 0x3E99999A) to endpoint 0x0123: opcode 1, u16 id LE, reserved, value LE
+    write = cs.make_frame(1, cs.Cmd.RX_SDO, cs.encode_sdo_write(0x0123, "float", 0.3))
+    assert (write.arbitration_id, bytes(write.data).hex()) == (0x24, "012301009a99993e")
+    assert bytes(cs.encode_sdo_write(0x0124, "bool", True)).hex() == "0124010001"
+    assert bytes(cs.encode_sdo_read(0x0123)).hex() == "00230100"
+    assert cs.decode_rx_sdo(write.data) == (1, 0x0123, bytes.fromhex("9a99993e"))
+    reply = cs.encode_tx_sdo(0x0123, "float", 0.3)
+    endpoint, raw = cs.decode_tx_sdo(reply)
+    assert endpoint == 0x0123 and cs.sdo_value("float", raw) == pytest.approx(0.3)
+    assert cs.sdo_value("bool", cs.decode_tx_sdo(cs.encode_tx_sdo(7, "bool", False))[1]) is False
+
+
+def test_sdo_bad_input_raises_a_named_error() -> None:
+    with pytest.raises(cs.CanSimpleError, match="RxSdo: opcode must be 0"):
+        cs.decode_rx_sdo(bytes([7, 1, 0, 0]))
+    with pytest.raises(cs.CanSimpleError, match="TxSdo: needs 4 data bytes"):
+        cs.decode_tx_sdo(b"\x00\x01")
+    with pytest.raises(cs.CanSimpleError, match="float endpoint value: needs 4"):
+        cs.sdo_value("float", b"\x01")
+    with pytest.raises(cs.CanSimpleError, match="endpoint type must be one of"):
+        cs.encode_sdo_write(1, "double", 1.0)
+
+
+def test_version_text_marks_unreleased_builds() -> None:
+    release = cs.Version(2, 3, 6, 56, 0, 6, 10, 0)
+    assert cs.version_text(release) == "0.6.10"
+    assert cs.version_text(cs.Version(2, 3, 6, 56, 0, 6, 10, 1)) == "0.6.10-dev"

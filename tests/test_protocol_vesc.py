@@ -130,3 +130,50 @@ def test_values_that_do_not_fit_are_refused() -> None:
         vc.encode_status(vc.Status4(temp_fet_c=4000.0, temp_motor_c=0, current_in_a=0, pid_pos_deg=0))
     with pytest.raises(vc.VescCanError, match="does not fit int32"):
         vc.encode_set_pos(5000.0)
+
+
+# ---- COMM packets in CAN buffers --------------------------------------------------------------
+def test_crc16_is_xmodem() -> None:
+    assert vc.crc16(b"123456789") == 0x31C3  # the CRC-16/XMODEM check value
+    assert vc.crc16(b"") == 0
+
+
+def test_a_short_packet_is_one_process_short_buffer_frame() -> None:
+    (frame,) = vc.buffer_frames(5, 254, bytes([vc.CommPacket.GET_APPCONF]))
+    assert candump(frame) == "00000805#FE0011"   # PROCESS_SHORT_BUFFER to id 5: sender 254, send 0, COMM 17
+    assert vc.BufferAssembler().feed(PacketId.PROCESS_SHORT_BUFFER, frame.data) == (254, 0, b"\x11")
+
+
+def test_a_long_packet_uses_short_then_long_fill_frames_and_a_crc() -> None:
+    payload = bytes(range(256)) + bytes(range(44))   # 300 bytes
+    frames = vc.buffer_frames(7, 3, payload)
+    packets = [vc.split_ext_id(f.arbitration_id) for f in frames]
+    assert all(target == 7 for _, target in packets)
+    fills = [p for p, _ in packets]
+    # offsets 0, 7, .. 252 in FILL_RX_BUFFER (37 frames), then 259.. in FILL_RX_BUFFER_LONG, then PROCESS
+    assert fills.count(PacketId.FILL_RX_BUFFER) == 37 and fills.count(PacketId.FILL_RX_BUFFER_LONG) == 7
+    assert fills[-1] == PacketId.PROCESS_RX_BUFFER
+    assert bytes(frames[37].data[:2]) == b"\x01\x03"   # u16 offset 259, big-endian
+    assert bytes(frames[-1].data) == bytes([3, 0, 0x01, 0x2C]) + vc.crc16(payload).to_bytes(2, "big")
+    assembler = vc.BufferAssembler()
+    results = [assembler.feed(p, f.data) for (p, _), f in zip(packets, frames)]
+    assert results[:-1] == [None] * (len(frames) - 1) and results[-1] == (3, 0, payload)
+
+    lost = vc.BufferAssembler()   # a lost fill frame: the CRC says so, counted
+    for (p, _), f in list(zip(packets, frames))[:10] + list(zip(packets, frames))[11:-1]:
+        lost.feed(p, f.data)
+    with pytest.raises(vc.VescCanError, match="CRC .* does not match"):
+        lost.feed(PacketId.PROCESS_RX_BUFFER, frames[-1].data)
+    assert lost.crc_errors == 1
+
+
+def test_timeout_msec_is_read_and_replaced_in_the_app_configuration() -> None:
+    appconf = bytes.fromhex("11223344") + bytes([9]) + (1000).to_bytes(4, "big") + bytes(20)
+    assert vc.appconf_timeout_ms(appconf, controller_id=9) == 1000
+    changed = vc.appconf_with_timeout(appconf, 300, controller_id=9)
+    assert vc.appconf_timeout_ms(changed, controller_id=9) == 300
+    assert changed[:5] == appconf[:5] and changed[9:] == appconf[9:] and len(changed) == len(appconf)
+    with pytest.raises(vc.VescCanError, match="controller_id byte is 9, expected 4; unknown layout"):
+        vc.appconf_timeout_ms(appconf, controller_id=4)
+    with pytest.raises(vc.VescCanError, match="app configuration: needs 9 data bytes"):
+        vc.appconf_timeout_ms(appconf[:6], controller_id=9)
