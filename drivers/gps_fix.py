@@ -202,6 +202,17 @@ def _sigmas(fix: GpsFix, uere: float) -> tuple[float | None, float | None, float
     return axis, axis, vertical
 
 
+def horizontal_sigma(fix: GpsFix, uere_m: float) -> float | None:
+    """The horizontal 1-sigma error (m, DRMS: the root of the north and east variances), or None.
+
+    From GST when the epoch has it, else ``HDOP * uere``; None without a fix or either source.
+    """
+    if not fix.has_fix:
+        return None
+    sx, sy, _ = _sigmas(fix, uere_m)
+    return None if sx is None or sy is None else math.hypot(sx, sy)
+
+
 def state_from_fix(fix: GpsFix, settings: StateSettings) -> t.StateInformation | None:
     """The State Information for *fix*, or None when it measures nothing (no fix and no heading)."""
     msg = t.StateInformation()

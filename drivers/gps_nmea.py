@@ -19,7 +19,7 @@ from typing import Any
 from u2sa_hw.config import ConfigError, field
 
 from drivers.gps_fix import (ALTITUDE_DATUMS, GGA_QUALITY, POSITION_FRAMES, GpsFix, StateSettings, fix_from_epoch,
-                             state_from_fix)
+                             horizontal_sigma, state_from_fix)
 from drivers.nmea_fields import BadChecksum, Epoch, EpochCollector, SentenceError, parse_sentence
 from drivers.serial_sensor import SerialLineSensor
 
@@ -121,6 +121,7 @@ class GpsNmeaDriver(SerialLineSensor):
         fix = fix_from_epoch(epoch)
         self.epoch_count += 1
         had_fix = self.fix is not None and self.fix.has_fix
+        fix_name = self.fix.fix_name if self.fix is not None else None
         self.fix = fix
         if fix.has_fix:
             self.last_fix = fix
@@ -129,6 +130,9 @@ class GpsNmeaDriver(SerialLineSensor):
         msg = state_from_fix(fix, self.settings())
         if msg is not None:
             self.publish_measurement(msg, received=epoch.received)
+        if fix.fix_name != fix_name:
+            # The pre-arm GPS check reads the fix type from health: say a change now, not at the next interval.
+            self.publish_health()
 
     # -- health ----------------------------------------------------------------------------------
     def problem(self) -> str:
@@ -144,6 +148,7 @@ class GpsNmeaDriver(SerialLineSensor):
         details: dict[str, Any] = {
             "fix": bool(fix and fix.has_fix),
             "fix_type": fix.fix_name if fix else "no data",
+            "h_sigma_m": _show(horizontal_sigma(fix, self.config.get("uere_m")) if fix else None, ".2f"),
             "fix_quality": "" if quality is None else f"{quality} ({GGA_QUALITY.get(quality, 'unknown')})",
             "satellites": _show(fix.satellites if fix else None),
             "hdop": _show(fix.hdop if fix else None),

@@ -183,6 +183,7 @@ class I2cImuDriver(ProprioceptiveSensor):
         self._rate_window: tuple[float, int] = (time.monotonic(), 0)
         self.measured_rate_hz = 0.0
         self.port: ReconnectingPort[I2cPort] | None = None
+        self._calibrated_said = False   # the ``calibrated`` detail as last published on a change
 
     # -- for subclasses -------------------------------------------------------------------
     def check_config(self) -> None:
@@ -299,7 +300,12 @@ class I2cImuDriver(ProprioceptiveSensor):
         msg.reference_frame = "FRD"
         self.publish_state(msg)
         self.samples += 1
-        self.status = "ok" if self.healthy() else "degraded"
+        calibrated = self.healthy()
+        self.status = "ok" if calibrated else "degraded"
+        if calibrated != self._calibrated_said:
+            # The pre-arm IMU check reads ``calibrated`` from health: say a change now, not at the next interval.
+            self._calibrated_said = calibrated
+            self.publish_health()
 
     def new_state(self) -> t.StateInformation:
         """An empty State Information stamped with the time of the sample."""
@@ -322,6 +328,7 @@ class I2cImuDriver(ProprioceptiveSensor):
             "port_losses": port.losses if port else 0, "reinits": self.reinits,
             "samples": self.samples, "rate_hz": f"{self.measured_rate_hz:.1f}", "i2c_errors": self.i2c_errors,
             "retried_samples": self.retried_samples, "missed_samples": self.missed_samples,
+            "calibrated": self.healthy(),
             **self.chip_health(),
         }
 

@@ -13,7 +13,7 @@ from conftest import ServiceProcesses, wait_until
 from pynmeagps.nmeahelpers import calc_checksum
 from serial_driver_harness import ORIGIN, SIM_ORIGIN, DriverProbe, start_driver, write_profile
 
-from drivers.gps_fix import KNOT_MPS, StateSettings, fix_from_epoch, state_from_fix
+from drivers.gps_fix import KNOT_MPS, StateSettings, fix_from_epoch, horizontal_sigma, state_from_fix
 from drivers.nmea_fields import (BadChecksum, Epoch, EpochCollector, MalformedSentence, Sentence, parse_sentence)
 from drivers.gps_nmea import GpsNmeaDriver
 from mock_devices.nmea_gps import NmeaGpsDevice
@@ -339,6 +339,31 @@ def test_gps_service_publishes_one_ned_fix_per_epoch_matching_the_vehicle(
     north, east, _ = geodetic_to_ned(msg.x, msg.y, origin=GEO)
     assert abs(north - truth.north) < 5 * H_SIGMA + 0.2 and abs(east - truth.east) < 5 * H_SIGMA + 0.2
     assert proc.poll() is None
+
+
+def test_gps_says_each_change_of_fix_in_health_at_once(services: ServiceProcesses, bus: BusClient, tmp_path: Path,
+                                                       vehicle: SimVehicle, gps: NmeaGpsDevice) -> None:
+    """With a 60 s health interval only the start and the fix-change hook publish health (pre-arm reads it)."""
+    proc, probe = run_gps(services, bus, tmp_path, gps.address, vehicle, health_interval_s=60.0)
+
+    def said() -> list[dict[str, str]]:
+        return [{kv.key: kv.value for kv in h.details} for h in list(probe.health)]
+
+    fixed = wait_until(lambda: [d for d in said() if d["fix_type"] == "3D"], timeout=20, message="a 3D fix in health")
+    assert float(fixed[0]["h_sigma_m"]) == pytest.approx(math.hypot(H_SIGMA, H_SIGMA), abs=0.01)   # from GST
+    gps.set_fix(False)
+    lost = wait_until(lambda: [d for d in said() if d["fix_type"] == "no fix"], message="the lost fix in health")
+    assert lost[0]["h_sigma_m"] == "" and lost[0]["fix"] == "False"
+    gps.set_fix(True)
+    wait_until(lambda: [d["fix_type"] for d in said()][-1] == "3D", message="the fix back in health")
+    assert proc.poll() is None
+
+
+def test_horizontal_sigma_is_the_drms_from_gst_else_hdop() -> None:
+    with_gst = fix_from_epoch(epoch_of(gga(29.19, -81.05), "GPGST,120000.00,1.5,1.50,1.50,0.0,0.80,0.60,2.00"))
+    assert horizontal_sigma(with_gst, 3.0) == pytest.approx(1.0)
+    assert horizontal_sigma(fix_from_epoch(epoch_of(gga(29.19, -81.05, hdop="1.2"))), 4.0) == pytest.approx(4.8)
+    assert horizontal_sigma(fix_from_epoch(epoch_of(gga(29.19, -81.05, quality=0))), 4.0) is None
 
 
 def test_gps_geodetic_frame_hdop_sigmas_and_raw_taps(services: ServiceProcesses, bus: BusClient, tmp_path: Path,

@@ -69,12 +69,14 @@ def test_mpu9250_calibrates_at_rest_then_rates_and_accelerations_follow_the_vehi
         waiting = probe.wait_health(lambda d, s: d.get("calibration", "").startswith("waiting for rest"),
                                     message="the calibration to refuse a turning vehicle")
         assert waiting["status"] == "degraded" and "turning" in waiting["calibration"]
+        assert waiting["calibrated"] == "False"
         uncalibrated = probe.wait_states(1)[-1][0]
         assert uncalibrated.psi_dot_sigma == pytest.approx(0.1)
 
         sim.set_wheel_speed("left", 0.0)
         sim.set_wheel_speed("right", 0.0)
         health = probe.wait_health(lambda d, s: d.get("calibration") == "calibrated", message="gyro calibration")
+        assert health["calibrated"] == "True"
         # the mock's chip-axes bias (0.8, -0.5, 0.3) deg/s is (0.8, 0.5, -0.3) in FRD
         bias = [float(v) for v in health["gyro_bias_dps"].split(",")]
         assert bias == pytest.approx([0.8, 0.5, -0.3], abs=0.05)
@@ -98,6 +100,24 @@ def test_mpu9250_calibrates_at_rest_then_rates_and_accelerations_follow_the_vehi
         assert mean_of(turning, "psi_dot") == pytest.approx(truth.yaw_rate, abs=0.005)
         assert mean_of(turning, "y_ddot") == pytest.approx(truth.accel_y, abs=0.05)
         assert abs(mean_of(turning, "phi_dot")) < 0.003 and abs(mean_of(turning, "x_ddot")) < 0.05
+
+
+def test_mpu9250_says_it_is_calibrated_in_health_at_once(tmp_path: Path, services: ServiceProcesses, bus,
+                                                         sim: SimVehicle, socket_dir: Path) -> None:
+    """With a 60 s health interval only the start and the calibration hook publish health (pre-arm reads it)."""
+    i2c = MockI2cBus(socket_path=str(socket_dir / "bus.sock"))
+    i2c.add(Mpu9250Chip(vehicle=sim, seed=4))
+    with i2c:
+        probe = DriverProbe(bus, "imu")
+        profile = write_profile(tmp_path, name="imu", kind="imu_mpu9250",
+                                settings={"bus": i2c.address, "calibrate_samples": 40, "health_interval_s": 60.0})
+        start_driver(services, profile, "imu")
+
+        def said() -> list[str]:
+            return [{kv.key: kv.value for kv in h.details}.get("calibrated", "") for h in list(probe.health)]
+
+        wait_until(lambda: "True" in said(), timeout=20, message="calibrated = True published on the change")
+        assert said()[0] == "False"                  # the health at start: not calibrated yet
 
 
 @pytest.mark.parametrize(("variant", "part", "gyro_dps", "accel_g", "dlpf", "rate_hz"), [
@@ -248,7 +268,7 @@ def test_bno055_attitude_rates_linear_acceleration_and_calibration(
         assert chip.mode == bno.MODE_NDOF and chip.peek(bno.UNIT_SEL) == bno.UNIT_GYR_RPS | bno.UNIT_EUL_RAD
         health = probe.wait_health(lambda d, s: d.get("calib_sys") == "3", message="the fusion calibrated")
         assert health["sys_status"] == "fusion running" and health["heading"] == "published"
-        assert health["calibration"] == "sys 3 gyr 3 acc 3 mag 3"
+        assert health["calibration"] == "sys 3 gyr 3 acc 3 mag 3" and health["calibrated"] == "True"
         wait_until(lambda: probe.states[-1][0].has("psi"), message="heading published")
         level = probe.wait_states(20, since=probe.state_count())[-20:]
         assert mean_of(level, "psi") == pytest.approx(2.5, abs=0.01)

@@ -18,6 +18,7 @@ from u2sa_hw import messages as m
 from u2sa_hw.bus_client import BusClient
 from u2sa_hw.services.estimator.ekf import Measurement, NavigationEkf, chi2_quantile
 from u2sa_hw.services.estimator.fusion import FusionSettings, StateFusion
+from u2sa_hw.services.estimator.service import estimate_sigmas
 from u2sa_hw.vehicle import Origin
 
 ORIGIN = Origin(lat=29.1895, lon=-81.0483, alt=10.0)
@@ -243,6 +244,16 @@ def _details(h: t.Health) -> dict[str, str]:
     return {kv.key: kv.value for kv in h.details}
 
 
+def test_estimate_sigmas_are_horizontal_and_in_degrees_empty_until_estimated() -> None:
+    assert estimate_sigmas(None) == {"position_sigma_m": "", "heading_sigma_deg": ""}
+    assert estimate_sigmas(info("est", x=1.0, y=2.0, x_sigma=3.0, y_sigma=4.0, psi=0.1,
+                                psi_sigma=math.radians(2.5))) == {"position_sigma_m": "5.00",
+                                                                  "heading_sigma_deg": "2.50"}
+    assert estimate_sigmas(info("est", x=1.0, y=2.0, psi=0.1)) == {"position_sigma_m": "unknown",
+                                                                   "heading_sigma_deg": "unknown"}
+    assert estimate_sigmas(info("est", x=1.0, x_sigma=1.0)) == {"position_sigma_m": "", "heading_sigma_deg": ""}
+
+
 def test_service_fuses_gps_publishes_at_its_rate_and_reports_outliers_and_silence(
         services: ServiceProcesses, bus: BusClient, tmp_path: Path) -> None:
     vehicle = tmp_path / "vehicle.toml"
@@ -287,6 +298,7 @@ def test_service_publishes_each_position_fix_at_once_with_the_rate_as_the_longes
     bus.transport.subscribe(ch.HEALTH, t.Health, lambda _c, msg: health.append(msg) if msg.name == "est" else None)
     services.start("est", "--vehicle", str(vehicle))
     wait_until(lambda: health, timeout=20, message="the estimator's health")
+    assert (_details(health[0])["position_sigma_m"], _details(health[0])["heading_sigma_deg"]) == ("", "")
     bus.publish(ch.STATE_INFO, info("compass", psi=0.5, psi_sigma=0.05))     # a heading: not in publish_on
     wait_until(lambda: _details(health[-1]).get("sensors") == "compass", timeout=10, message="the compass registered")
     for k, north in enumerate((5.0, 5.3, 5.6)):
@@ -297,6 +309,9 @@ def test_service_publishes_each_position_fix_at_once_with_the_rate_as_the_longes
     assert est.psi == pytest.approx(0.5, abs=0.01)                              # the heading was folded in
     wait_until(lambda: int(_details(health[-1]).get("published_on_update", 0)) >= 3, timeout=10,
                message="three publications on update in health")
+    # the pre-arm estimator check's fallback evidence: horizontal and heading sigmas of the estimate
+    details = _details(health[-1])
+    assert 0 < float(details["position_sigma_m"]) < 2.0 and 0 < float(details["heading_sigma_deg"]) < 90.0
     # a rate that is not > 0 is refused over the bus, and the file keeps the old one
     reply = bus.set_config("est", "publish_rate_hz", "0", timeout=10)
     assert reply is not None and not reply.ok and "publish_rate_hz must be > 0" in reply.error

@@ -21,6 +21,7 @@ gate rejected per sensor. Changing a filter field over the bus restarts the filt
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from typing import Any, ClassVar
@@ -193,12 +194,14 @@ class StateEstimator(U2SAService):
         with self._lock:
             silent = sorted(n for n, seen in self.sensors.items() if now - seen > timeout)
             records = list(self.fusion.sensors.values())
+            current = self.fusion.estimate(name=self.name) if self.mode == "ekf" else self.estimate
+            sigmas = estimate_sigmas(current)
         if silent and self.status == "ok":
             self.status = "degraded"
         elif not silent and self.status == "degraded":
             self.status = "ok"
         details: dict[str, Any] = {"mode": self.mode, "sensors": ",".join(sorted(self.sensors)),
-                                   "silent_sensors": ",".join(silent)}
+                                   "silent_sensors": ",".join(silent), **sigmas}
         if self.mode == "ekf":
             details["published_on_update"] = self.published_on_update
             details["published_on_rate"] = self.published_on_rate
@@ -206,3 +209,18 @@ class StateEstimator(U2SAService):
             details["unusable_fields"] = ",".join(f"{r.name}:{r.unusable}" for r in records if r.unusable)
             details["waiting_for_heading"] = ",".join(f"{r.name}:{r.deferred}" for r in records if r.deferred)
         return details
+
+
+def estimate_sigmas(msg: t.StateInformation | None) -> dict[str, str]:
+    """``position_sigma_m`` (horizontal, the root of the north and east variances) and ``heading_sigma_deg``
+    of an estimate, as health details: empty while that part is not estimated, ``unknown`` without a sigma."""
+    out = {"position_sigma_m": "", "heading_sigma_deg": ""}
+    if msg is None:
+        return out
+    if msg.has("x") and msg.has("y"):
+        sx, sy = msg.get("x_sigma"), msg.get("y_sigma")
+        out["position_sigma_m"] = "unknown" if sx is None or sy is None else f"{math.hypot(sx, sy):.2f}"
+    if msg.has("psi"):
+        sp = msg.get("psi_sigma")
+        out["heading_sigma_deg"] = "unknown" if sp is None else f"{math.degrees(sp):.2f}"
+    return out
