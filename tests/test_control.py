@@ -136,14 +136,24 @@ def test_neutral_reasons() -> None:
     c.on_nav(nav(3, 0, 1.0), 1.6)
     assert c.step(1.6) == {"L": 0.0, "R": 0.0} and c.neutral_reason == "RC_MODE silent for 1.1 s"
     fs = t.Failsafe()
-    fs.active, fs.reason = True, "gps silent"
+    fs.active, fs.reason, fs.header.source = True, "gps silent", "hsm"
     c.on_failsafe(fs, 1.7)
     feed(c, 1.7, point=nav(3, 0, 1.0))
-    assert c.neutral_reason == "failsafe: gps silent"
+    assert c.neutral_reason == "failsafe: hsm: gps silent"
+    other = t.Failsafe()
+    other.active, other.header.source = False, "estop"      # another source's clear is not the HSM's
+    c.on_failsafe(other, 1.75)
+    feed(c, 1.75, point=nav(3, 0, 1.0))
+    assert c.neutral_reason == "failsafe: hsm: gps silent"
     fs.active = False
     c.on_failsafe(fs, 1.8)
     feed(c, 1.8, point=nav(3, 0, 1.0))
     assert c.neutral_reason == ""
+    held = rc(1)
+    held.hold, held.blocked_by = True, "gps: no 3D fix"
+    c.on_rc_mode(held, 1.85)
+    c.on_nav(nav(3, 0, 1.0), 1.85)
+    assert c.step(1.85) == {"L": 0.0, "R": 0.0} and c.neutral_reason == "RC hold: gps: no 3D fix"
 
 
 def test_heading_and_speed_loops_steer_toward_the_point() -> None:

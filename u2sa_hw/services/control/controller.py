@@ -5,7 +5,8 @@ Each cycle (:meth:`VehicleController.step`):
 1. **Neutral** when any of these holds, with the reason kept in ``neutral_reason``: a
    failsafe is active; no ``RC_MODE`` has arrived within ``rc_timeout_s``, or it is not
    autonomous (0 manual, 2 no signal), or (with ``require_autonomy_enabled``) its
-   ``autonomy_enabled`` -- the RC mux's enable line -- is off; no navigation point for this subsystem within
+   ``autonomy_enabled`` -- the RC mux's enable line -- is off, or it says ``hold`` (a pre-arm
+   check lost with the hold action); no navigation point for this subsystem within
    ``nav_timeout_s``; the navigation point asks for speed 0 (the planner's hold). Neutral
    is every actuator at 0 % at once (not slewed), both integrators and derivative memories
    reset and every rate limiter set to 0, so that handing back to autonomy starts from
@@ -36,6 +37,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from u2sa_hw import lcmtypes as t
+from u2sa_hw.failsafe import FailsafeChange, FailsafeSources
 from u2sa_hw.services.control.mixers import Mixer
 from u2sa_hw.services.control.pid import PidController, PidGains, RateLimiter
 
@@ -78,7 +80,7 @@ class VehicleController:
         self.nav: _Stamped | None = None
         self.estimate: _Stamped | None = None
         self.rc: _Stamped | None = None
-        self.failsafe: t.Failsafe | None = None
+        self.failsafes = FailsafeSources()
         self.neutral_reason = "starting"
         self.last_step: float | None = None      # the latest cycle (step or refresh): the slew's time base
         self.last_law: float | None = None       # the latest step: the PID loops' time base
@@ -117,16 +119,16 @@ class VehicleController:
         """The RC multiplexer's mode."""
         self.rc = _Stamped(msg, now)
 
-    def on_failsafe(self, msg: t.Failsafe, now: float) -> None:
-        """A failsafe command: active until one with active = false arrives."""
-        self.failsafe = msg if msg.active else None
+    def on_failsafe(self, msg: t.Failsafe, now: float) -> FailsafeChange:
+        """A failsafe message, held per source (u2sa_hw/failsafe.py: a source clears only its own)."""
+        return self.failsafes.apply_message(msg)
 
     # -- the law -----------------------------------------------------------------------------
     def why_neutral(self, now: float) -> str:
         """The reason the outputs must be neutral now, or '' when cleared to drive."""
         s = self.settings
-        if self.failsafe is not None:
-            return f"failsafe: {self.failsafe.reason or 'no reason given'}"
+        if self.failsafes.active:
+            return f"failsafe: {self.failsafes.reason()}"
         if self.rc is None:
             return "no RC_MODE received"
         if now - self.rc.time > s.rc_timeout_s:
@@ -136,6 +138,8 @@ class VehicleController:
             return f"RC {RC_NAMES.get(mode, f'mode {mode}')}"
         if s.require_autonomy_enabled and not self.rc.msg.autonomy_enabled:
             return "RC autonomous but the mux's autonomy enable is off"
+        if self.rc.msg.hold:
+            return f"RC hold: {self.rc.msg.blocked_by or 'a pre-arm check was lost'}"
         if self.nav is None:
             return "no NAV_POINT received"
         if now - self.nav.time > s.nav_timeout_s:

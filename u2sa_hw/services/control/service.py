@@ -142,13 +142,12 @@ class ControlSystem(U2SAService):
 
     def _on_failsafe(self, msg: t.Failsafe) -> None:
         with self._lock:
-            was = self.controller.failsafe is not None
             now = time.monotonic()
-            self.controller.on_failsafe(msg, now)
+            change = self.controller.on_failsafe(msg, now)
             self._neutral_at_once(now)
-        if msg.active and not was:
+        if change.edge and change.active_after:
             self.logger.warning("FAILSAFE from %s: %s -> neutral", msg.header.source or "?", msg.reason)
-        elif was and not msg.active:
+        elif change.edge:
             self.logger.info("failsafe cleared by %s", msg.header.source or "?")
 
     def _neutral_at_once(self, now: float) -> None:
