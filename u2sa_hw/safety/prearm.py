@@ -46,10 +46,16 @@ from u2sa_hw.safety.prearm_table import PrearmTable, parse_prearm
 
 @dataclass(frozen=True)
 class CheckFailure:
-    """One check that does not hold: its name in the table and one line a pilot understands."""
+    """One check that does not hold: its name in the table, one line a pilot understands, and the service
+    it judged ("" for ``no_failsafe`` and ``rc_link``).
+
+    Ages in a reason are the configured limits ("no health for over 3 s"), so the text of a lasting
+    failure stays the same from one evaluation to the next; a sigma is shown as measured.
+    """
 
     check: str
     reason: str
+    service: str = ""
 
 
 @dataclass(frozen=True)
@@ -76,6 +82,14 @@ def _float(text: str | None) -> float | None:
         return float(text) if text not in (None, "") else None
     except ValueError:
         return None
+
+
+def _sigma(text: str | None) -> float | None:
+    """A sigma health detail: None when empty (not estimated), nan when it is there but no number."""
+    if text in (None, ""):
+        return None
+    value = _float(text)
+    return math.nan if value is None else value
 
 
 def _degraded_why(heard: _Heard) -> str:
@@ -171,7 +185,7 @@ class PrearmChecks:
         if heard is None:
             problem = "no health yet (is it running?)"
         elif now - heard.at > self.table.health_timeout_s:
-            problem = f"no health for {now - heard.at:.1f} s"
+            problem = f"no health for over {self.table.health_timeout_s:g} s"
         elif heard.status == "stopping":
             problem = "stopped"
         elif heard.status == "failed":
@@ -191,7 +205,7 @@ class PrearmChecks:
                 label = f"required service {service}"
             else:
                 label = check if service == check else f"{check} {service}"
-            out.append(CheckFailure(check, f"{label}: {problem}"))
+            out.append(CheckFailure(check, f"{label}: {problem}", service))
 
     def _gps_problem(self, heard: _Heard, now: float) -> str:
         check = self.table.gps
@@ -201,7 +215,7 @@ class PrearmChecks:
             return "no data from the receiver yet"
         age = _float(d.get("last_data_age_s"))
         if age is not None and age + (now - heard.at) > check.max_data_age_s:
-            return f"no data for {age + (now - heard.at):.1f} s"
+            return f"no data for over {check.max_data_age_s:g} s"
         sats = d.get("satellites", "")
         with_sats = f", {sats} satellites" if sats else ""
         fix_type = d.get("fix_type", "")
@@ -220,7 +234,12 @@ class PrearmChecks:
         if truthy(heard.details.get("calibrated")):
             return ""
         state = heard.details.get("calibration") or "the driver reports no calibration"
-        hint = "; keep the vehicle still" if ("rest" in state or "calibrating" in state) else ""
+        if "rest" in state or "calibrating" in state:
+            hint = "; keep the vehicle still"
+        elif "mag" in state:
+            hint = "; turn the vehicle slowly through a figure eight"
+        else:
+            hint = ""
         return f"not calibrated ({state}{hint})"
 
     def _estimator_problem(self, heard: _Heard, _now: float) -> str:
@@ -231,8 +250,8 @@ class PrearmChecks:
             position, heading = est.position_sigma_m, est.heading_sigma_deg
         else:
             d = heard.details
-            position = _float(d.get("position_sigma_m"))
-            heading = _float(d.get("heading_sigma_deg"))
+            position = _sigma(d.get("position_sigma_m"))
+            heading = _sigma(d.get("heading_sigma_deg"))
         if position is None:
             return "not converged (no position yet)"
         if math.isnan(position) or position > check.max_position_sigma_m:
@@ -252,7 +271,7 @@ class PrearmChecks:
         if self._estimate is None:
             return "no STATE_ESTIMATE yet"
         age = now - self._estimate.at
-        return f"no STATE_ESTIMATE for {age:.1f} s" if age > check.max_estimate_age_s else ""
+        return f"no STATE_ESTIMATE for over {check.max_estimate_age_s:g} s" if age > check.max_estimate_age_s else ""
 
     # -- reporting ------------------------------------------------------------------------------
     def summary(self) -> dict[str, Any]:
