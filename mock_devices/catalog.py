@@ -7,6 +7,7 @@ A device table names a mock kind and the service that uses the device::
     service = "gps"              # default: the device's own name
     options = { rate_hz = 5 }    # the mock class's keyword options (lists become tuples)
     sides = ["left", "right"]    # CAN motor mocks only: which side of the vehicle each controller drives
+    drives = { rudder = "steering" }   # PWM and GPIO outputs: actuator name -> the vehicle model input it moves
 
 The mock mirrors the service's own effective config (its defaults, the profile's
 ``settings``, its config file): the ODrive mocks take the service's ``node_ids``,
@@ -17,7 +18,10 @@ address picks the mock's address under the simulation's device directory
 on bus 1, ``/dev/gpiochip0`` -> ``<dir>/gpiochip0.sock``, CAN ``can0`` -> python-can
 ``udp_multicast`` on the simulation's UDP port, ``/sys/class/pwm/pwmchip0`` -> the
 directory ``<dir>/pwmchip0``) and each build returns the settings that point the service
-at it (``overrides``). A pwm_servo service with both PCA9685 and sysfs channels takes one
+at it (``overrides``). Every actuator output is logged and moves the vehicle through
+:mod:`mock_devices.actuation`: CAN motors by their side, PWM outputs named like a model
+input (``steering``, ``throttle``, ``left``, ``right``) or listed in ``drives``, GPIO
+outputs listed in ``drives`` (``enable``: a motor contactor). A pwm_servo service with both PCA9685 and sysfs channels takes one
 table of each kind; the second builds on the channels the first rewrote.
 """
 
@@ -28,6 +32,7 @@ import os
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Mapping
 
+from mock_devices.actuation import GpioFeed, PwmFeed
 from mock_devices.bno055_chip import Bno055Chip
 from mock_devices.i2c_bus import MockI2cBus
 from mock_devices.mpu9250_chip import Ak8963Chip, Mpu9250Chip
@@ -36,7 +41,7 @@ from mock_devices.odrive_node import OdriveCanNode
 from mock_devices.pca9685_chip import Pca9685Chip
 from mock_devices.rc_receiver import MuxMock, RcReceiverMock
 from mock_devices.serial_compass import NmeaCompassDevice, Os5000CompassDevice
-from mock_devices.sim_context import CAN_GROUP, DeviceError, MockContext
+from mock_devices.sim_context import CAN_GROUP, MODEL_INPUTS, DeviceError, MockContext
 from mock_devices.sysfs_pwm import SysfsPwmChip
 from mock_devices.vesc_node import VescCanNode
 from u2sa_hw.ports.pwm_port import is_real_sysfs
@@ -55,6 +60,7 @@ class DeviceSpec:
     service_config: Mapping[str, Any]
     options: dict[str, Any] = field(default_factory=dict)
     sides: tuple[str, ...] = ()
+    drives: dict[str, str] = field(default_factory=dict)
     where: str = ""
 
     def fail(self, text: str) -> DeviceError:
@@ -154,7 +160,8 @@ def _pwm_channels(spec: DeviceSpec, ctx: MockContext, what: str) -> list[dict[st
 def build_pca9685(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     """PCA9685 chips for every ``pca9685:<bus>:<addr>`` channel of a pwm_servo service."""
     channels = _pwm_channels(spec, ctx, "a PCA9685")
-    rewritten, chips, made = [], [], set()
+    rewritten, chips, made = [], [], {}
+    _check_drives(spec, [str(t.get("name", "")) for t in channels if isinstance(t, dict)])
     for index, table in enumerate(channels):
         table = dict(table)
         address = str(table.get("address", ""))
@@ -166,10 +173,13 @@ def build_pca9685(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
                 raise spec.fail(f"channels[{index}].address {address!r}: the chip address after the last ':' "
                                 "must be a number like 0x40") from None
             bus = ctx.i2c_bus(bus_text)
-            if (bus.socket_path, chip_address) not in made:   # channels of one chip share it
-                made.add((bus.socket_path, chip_address))
-                chips.append(ctx.add_chip(bus, construct(spec, Pca9685Chip, address=chip_address), device=spec.name))
+            key = (bus.socket_path, chip_address)
+            if key not in made:   # channels of one chip share it
+                made[key] = ctx.add_chip(bus, construct(spec, Pca9685Chip, address=chip_address), device=spec.name)
+                chips.append(made[key])
             table["address"] = f"pca9685:{bus.address}:0x{chip_address:02x}"
+            chip = made[key]
+            _pwm_feed(spec, ctx, table, index, lambda chip=chip, n=int(table.get("channel", 0)): chip.pulse_width_us(n))
         rewritten.append(table)
     if not chips and not any(str(t.get("address", "")).startswith("pca9685:mock:") for t in rewritten):
         raise spec.fail(f"no channel of service '{spec.service}' has a pca9685:<bus>:<address> address")
@@ -184,7 +194,8 @@ def build_sysfs_pwm(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     """Sysfs-shaped chip directories for every sysfs channel (``/sys/class/pwm/pwmchipN``) of a pwm_servo
     service: ``<dir>/pwmchipN``; a path outside /sys is already a mock chip and is used as it is."""
     channels = _pwm_channels(spec, ctx, "a sysfs PWM chip")
-    rewritten, wanted = [], {}
+    rewritten, wanted, feeds = [], {}, []
+    _check_drives(spec, [str(t.get("name", "")) for t in channels if isinstance(t, dict)])
     for index, table in enumerate(channels):
         address = str(table.get("address", "")).strip() if isinstance(table, dict) else ""
         if not address:
@@ -196,6 +207,7 @@ def build_sysfs_pwm(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
                 raise spec.fail(f"channels[{index}].channel must be a channel number, got {channel!r}")
             wanted[path] = max(wanted.get(path, 0), channel + 1)
             table = {**table, "address": path}
+            feeds.append((table, index, path, channel))
         rewritten.append(table)
     if not wanted:
         raise spec.fail(f"no channel of service '{spec.service}' has a sysfs PWM address "
@@ -204,10 +216,42 @@ def build_sysfs_pwm(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     chips = [construct(replace(spec, options={k: v for k, v in spec.options.items() if k != "npwm"}), SysfsPwmChip,
                        path=path, npwm=max(int(npwm or 0), count), name=f"{spec.name}:{os.path.basename(path)}")
              for path, count in sorted(wanted.items())]
+    by_path = {str(chip.path): chip for chip in chips}
+    for table, index, path, channel in feeds:
+        _pwm_feed(spec, ctx, table, index, lambda chip=by_path[path], n=channel: chip.pulse_width_us(n))
     ctx.pwm_chips.setdefault(spec.name, []).extend(chips)
     ctx.pwm_channels[spec.service] = rewritten
     return MockDevice(spec.name, spec.mock, spec.service, ", ".join(sorted(wanted)), {"channels": rewritten}, chips,
                       f"{sum(1 for t in rewritten if not str(t['address']).startswith('pca9685:'))} channel(s)")
+
+
+def _model_input(spec: DeviceSpec, ctx: MockContext, actuator: str) -> str | None:
+    """The vehicle input *actuator* drives: its ``drives`` entry, else an input of the same name, else None."""
+    if actuator in spec.drives:
+        return spec.drives[actuator]
+    return actuator if actuator in MODEL_INPUTS[ctx.vehicle.model] else None
+
+
+def _check_drives(spec: DeviceSpec, actuators: list[str]) -> None:
+    unknown = sorted(set(spec.drives) - set(actuators))
+    if unknown:
+        raise spec.fail(f"drives names {', '.join(unknown)}, which service '{spec.service}' does not have; "
+                        f"its outputs are {', '.join(actuators) or 'none'}")
+
+
+def _pwm_feed(spec: DeviceSpec, ctx: MockContext, table: dict[str, Any], index: int, read: Any) -> None:
+    """Log a PWM channel's output and, when it drives a model input, move the vehicle with it."""
+    name = str(table.get("name", f"channel{index}"))
+    drives = _model_input(spec, ctx, name)
+    if drives is not None:
+        ctx.feed(drives, device=spec.name)
+    try:
+        feed = PwmFeed(name, read, min_us=float(table.get("min_us", 1000.0)),
+                       neutral_us=float(table.get("neutral_us", 1500.0)), max_us=float(table.get("max_us", 2000.0)),
+                       reverse=bool(table.get("reverse", False)), drives=drives)
+    except (TypeError, ValueError):
+        raise spec.fail(f"channels[{index}]: min_us, neutral_us and max_us must be numbers") from None
+    ctx.feeds.pwm.append(feed)
 
 
 # ---- GPIO -----------------------------------------------------------------------------------
@@ -244,7 +288,19 @@ def build_rc_receiver(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
 def build_gpio_chip(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     """A bare mock chip for gpio_input/gpio_output services (drive inputs from Python)."""
     chip = ctx.gpio_chip(str(spec.setting("chip")))
-    return MockDevice(spec.name, spec.mock, spec.service, chip.address, {"chip": chip.address}, [])
+    outputs = parse_lines(spec.service_config.get("outputs", ""), spec)
+    _check_drives(spec, list(outputs))
+    safe = parse_lines(spec.service_config.get("safe_levels", ""), spec)
+    for name, line in outputs.items():
+        drives = spec.drives.get(name)
+        if drives is not None and drives != "enable":
+            raise spec.fail(f"drives.{name} = {drives!r}: a GPIO output can only drive \"enable\" (a motor "
+                            "contactor: propulsion only while the line is off its safe level)")
+        if drives is not None:
+            ctx.feed_enable(device=spec.name)
+        ctx.feeds.gpio.append(GpioFeed(name, chip, line, safe_level=safe.get(name, 0), drives=drives))
+    detail = ", ".join(f"{n}={line}" + (" (enable)" if spec.drives.get(n) else "") for n, line in outputs.items())
+    return MockDevice(spec.name, spec.mock, spec.service, chip.address, {"chip": chip.address}, [], detail)
 
 
 # ---- CAN ------------------------------------------------------------------------------------
@@ -271,18 +327,21 @@ def build_can_motors(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     sides = _sides(spec, names)
     bus = {"interface": "udp_multicast", "channel": CAN_GROUP, "bus_options": {"port": port}}
     nodes = []
+    if spec.drives:
+        raise spec.fail("drives is for PWM and GPIO outputs; a CAN motor drives the side sides = [...] gives it")
     for name, can_id, side, direction, radius in zip(names, ids, sides, directions, radii):
+        ctx.feed(side, device=spec.name)
         if spec.mock == "odrive":
             # the driver limits its commands to max_turns_per_s; the node's own limit sits above it
             defaults = {"firmware": str(spec.service_config.get("firmware", "0.6")),
                         "vel_limit": float(spec.service_config.get("max_turns_per_s", 2.0)) * 1.25}
-            node = construct(spec, OdriveCanNode, ctx.actuated, side=side, node_id=int(can_id), direction=int(direction),
+            node = construct(spec, OdriveCanNode, ctx.motor_input(name), side=side, node_id=int(can_id), direction=int(direction),
                              wheel_radius_m=float(radius), **bus, **defaults)
         else:
             defaults = {"max_erpm": float(spec.service_config.get("max_erpm", 7000.0)),
                         "pole_pairs": int(spec.service_config.get("pole_pairs", 7)),
                         "gear_ratio": float(spec.service_config.get("gear_ratio", 1.0))}
-            node = construct(spec, VescCanNode, ctx.actuated, side=side, controller_id=int(can_id),
+            node = construct(spec, VescCanNode, ctx.motor_input(name), side=side, controller_id=int(can_id),
                              direction=int(direction), wheel_radius_m=float(radius), **bus, **defaults)
         nodes.append(node)
         ctx.can_nodes[name] = node

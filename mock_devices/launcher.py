@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from mock_devices.catalog import CATALOG, DeviceSpec, MockDevice, build
-from mock_devices.sim_context import DeviceError, MockContext
+from mock_devices.sim_context import MODEL_INPUTS, DeviceError, MockContext
 from mock_devices.vehicle_sim import MODELS, SimVehicle
 from u2sa_hw.vehicle import VehicleProfile
 
@@ -114,10 +114,10 @@ def device_specs(profile: VehicleProfile, configs: Mapping[str, Mapping[str, Any
     specs = []
     for name, table in profile.devices.items():
         where = f"{profile.path} [devices.{name}]"
-        unknown = sorted(set(table) - {"mock", "service", "options", "sides"})
+        unknown = sorted(set(table) - {"mock", "service", "options", "sides", "drives"})
         if unknown:
             raise DeviceError(f"{where}: unknown key(s) {', '.join(unknown)}; a device table has mock, service, "
-                              "options and (CAN motors) sides")
+                              "options, (CAN motors) sides and (PWM, GPIO outputs) drives")
         mock, service = table.get("mock"), table.get("service", name)
         if mock is None:
             continue   # a device described for documentation only
@@ -126,14 +126,53 @@ def device_specs(profile: VehicleProfile, configs: Mapping[str, Mapping[str, Any
         if not isinstance(service, str) or service not in profile.services:
             raise DeviceError(f"{where}: service = {service!r} is not a service of the profile "
                               f"({', '.join(profile.services) or 'none'}); name the service that uses this device")
-        options, sides = table.get("options", {}), table.get("sides", [])
+        options, sides, drives = table.get("options", {}), table.get("sides", []), table.get("drives", {})
         if not isinstance(options, dict) or not isinstance(sides, list):
             raise DeviceError(f"{where}: options must be a table and sides a list like [\"left\", \"right\"]")
+        if not isinstance(drives, dict) or not all(isinstance(v, str) for v in drives.values()):
+            raise DeviceError(f"{where}: drives must be a table of actuator name -> vehicle input, like "
+                              "drives = { rudder = \"steering\" }")
         config = configs[service] if configs is not None and service in configs else file_service_config(profile,
                                                                                                            service)
         specs.append(DeviceSpec(name=name, mock=mock, service=service, service_config=config, options=dict(options),
-                                sides=tuple(sides), where=where))
+                                sides=tuple(sides), drives=dict(drives), where=where))
     return specs
+
+
+def hardware_mux(profile: VehicleProfile) -> dict[str, str]:
+    """The profile's ``[safety] hardware_mux`` (actuator -> RC channel): the outputs wired through the RC mux."""
+    try:
+        from u2sa_hw.safety.config import load_safety
+    except ImportError:   # the safety table's parser is not there yet: read the table as it is
+        table = profile.raw.get("safety", {})
+        mux = table.get("hardware_mux", {}) if isinstance(table, dict) else {}
+        if not isinstance(mux, dict):
+            raise DeviceError(f"{profile.path} [safety]: hardware_mux must be a table like "
+                              "{ steering = \"steering\" } (actuator -> RC channel)") from None
+        return {str(k): str(v) for k, v in mux.items()}
+    return dict(load_safety(profile).hardware_mux)
+
+
+def check_actuation(profile: VehicleProfile, context: MockContext) -> None:
+    """DeviceError unless a device drives every input of the vehicle model and every muxed output is PWM."""
+    where = str(profile.path or "the vehicle profile")
+    model = context.vehicle.model
+    missing = [name for name in MODEL_INPUTS[model] if name not in context.fed]
+    if missing:
+        fed = ", ".join(f"{i} by devices.{d}" for i, d in context.fed.items()) or "nothing"
+        raise DeviceError(f"{where}: [simulation] model = '{model}' moves by {' and '.join(MODEL_INPUTS[model])}, "
+                          f"but no device drives {' or '.join(missing)} (driven: {fed}); name a PWM channel "
+                          f"'{missing[0]}', add drives = {{ <channel> = \"{missing[0]}\" }} to its [devices] table, "
+                          "or give CAN motor mocks sides (docs/simulation.md)")
+    pwm = {feed.actuator for feed in context.feeds.pwm}
+    for actuator in context.hardware_mux:
+        if actuator not in pwm:
+            raise DeviceError(f"{where} [safety] hardware_mux: '{actuator}' is not a PWM output of any [devices] "
+                              f"table (PWM outputs: {', '.join(sorted(pwm)) or 'none'}); a hardware RC mux switches "
+                              "PWM lines only, so list only PWM outputs wired through it")
+    if context.hardware_mux and not context.muxes:
+        raise DeviceError(f"{where} [safety] hardware_mux lists outputs but no rc_receiver device has a mux "
+                          "(the rc service needs an enable_line)")
 
 
 class MockLauncher:
@@ -141,19 +180,22 @@ class MockLauncher:
 
     def __init__(self, profile: VehicleProfile, *, device_dir: Path,
                  service_configs: Mapping[str, Mapping[str, Any]] | None = None,
-                 can_udp_port: int | None = None) -> None:
+                 can_udp_port: int | None = None, check_inputs: bool = False) -> None:
         where = str(profile.path or "the vehicle profile")
         self.profile = profile
         self.settings = SimulationSettings.from_table(profile.raw.get("simulation"), where=where)
         self.vehicle = self.settings.make_vehicle(profile)
         self.context = MockContext(vehicle=self.vehicle, device_dir=device_dir, seed=self.settings.seed,
-                                   can_udp_port=can_udp_port or self.settings.can_udp_port)
+                                   can_udp_port=can_udp_port or self.settings.can_udp_port,
+                                   hardware_mux=hardware_mux(profile))
         self.devices: list[MockDevice] = []
         for spec in device_specs(profile, service_configs):
             self.devices.append(build(spec, self.context))
         if not self.devices:
             raise DeviceError(f"{where}: no [devices.NAME] table names a mock (e.g. mock = \"nmea_gps\"); "
                               "see docs/simulation.md")
+        if check_inputs:
+            check_actuation(profile, self.context)
         self._started: list[Any] = []
 
     @property
@@ -163,6 +205,11 @@ class MockLauncher:
         for device in self.devices:
             result.setdefault(device.service, {}).update(device.overrides)
         return result
+
+    @property
+    def outputs(self) -> Any:
+        """The OutputLog: every actuator output's changes as the devices saw them."""
+        return self.context.outputs
 
     @property
     def actuated(self) -> Any:
@@ -205,6 +252,16 @@ class MockLauncher:
         """The pilot flips the RC mode switch on every RC receiver."""
         for rc in self.context.rc_receivers.values():
             rc.set_mode_switch(autonomous)
+
+    def set_sticks(self, **positions: float) -> None:
+        """The pilot moves sticks (RC channel name -> -1..1) on every RC receiver that has those channels."""
+        for rc in self.context.rc_receivers.values():
+            rc.set_sticks(**{k: v for k, v in positions.items() if k in rc.lines})
+
+    def signal_loss(self, on: bool) -> None:
+        """Every RC receiver stops (on) or resumes its pulses: the pilot's link lost and back."""
+        for rc in self.context.rc_receivers.values():
+            rc.signal_loss(on)
 
     def describe(self) -> list[str]:
         """One line per device: name, mock kind, address, what it stands in for."""

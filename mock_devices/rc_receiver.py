@@ -91,6 +91,34 @@ class RcReceiverMock:
         with self._lock:
             return self._pulses_ns[channel] / 1000
 
+    def set_stick(self, channel: str, position: float) -> None:
+        """Move the stick on *channel* to *position*, -1..1 (clamped): 1000..2000 us, 0 = centred (1500 us)."""
+        self.set_pulse(channel, 1500.0 + 500.0 * max(-1.0, min(1.0, float(position))))
+
+    def set_sticks(self, **positions: float) -> None:
+        """Move several sticks at once: ``set_sticks(throttle=0.5, steering=-0.2)``; unknown channels are refused first."""
+        for channel in positions:
+            if channel not in self.lines:
+                raise ValueError(f"unknown RC channel {channel!r}; channels are {sorted(self.lines)}")
+        for channel, position in positions.items():
+            self.set_stick(channel, position)
+
+    def stick_position(self, channel: str) -> float:
+        """The position of the stick on *channel*, -1..1."""
+        return (self.pulse_us(channel) - 1500.0) / 500.0
+
+    def centre_sticks(self) -> None:
+        """Let go of every stick (each channel but the mode switch back to 1500 us)."""
+        for channel in self.lines:
+            if channel != self.mode_channel:
+                self.set_pulse(channel, 1500.0)
+
+    @property
+    def signal_lost(self) -> bool:
+        """True while ``signal_loss(True)`` is in force."""
+        with self._lock:
+            return self._signal_lost
+
     def set_mode_switch(self, autonomous: bool) -> None:
         """Flip the pilot's mode switch: 2000 us = autonomous, 1000 us = manual."""
         self.set_pulse(self.mode_channel, 2000 if autonomous else 1000)
@@ -229,6 +257,13 @@ class MuxMock:
         with self._lock:
             self._stuck = side
         self._update()
+
+    def rc_pulse_us(self, channel: str) -> float | None:
+        """The pulse the pilot's receiver puts out on *channel* now (None during signal loss): what the
+        mux passes to an output wired through it while it selects the pilot."""
+        if self.rc.signal_lost:
+            return None
+        return self.rc.pulse_us(channel)
 
     def start(self) -> MuxMock:
         """Watch the enable line and the RC frames; drive the read-back line to "rc" (0)."""

@@ -2,25 +2,28 @@
 
 :class:`MockContext` hands out one mock I2C bus per real bus, one mock GPIO chip per real
 chip and one UDP port per real CAN bus, so devices on the same real bus meet on the same
-mock one. :class:`RoutedVehicle` is the vehicle as the actuator mocks see it: behind the
-RC multiplexer (when the mux selects the pilot, the pilot's sticks drive the vehicle and
-the motor controllers' commands wait) and optionally *held* (motors turn, the vehicle
-does not move: a vehicle on blocks, for bench measurements).
+mock one. :class:`RoutedVehicle` is the vehicle as the actuator outputs drive it (each model
+input by name), optionally *held* (motors turn, the vehicle does not move: a vehicle on
+blocks, for bench measurements). The context also keeps the :class:`OutputLog` of every
+actuator output and the PWM/GPIO feeds (:mod:`mock_devices.actuation`).
 """
 
 from __future__ import annotations
 
-import math
 import os
 import tempfile
 import threading
 from pathlib import Path
 from typing import Any
 
+from mock_devices.actuation import Feeds, MotorInput, OutputLog, OutputPoller
 from mock_devices.gpio_chip import MockGpioChip
 from mock_devices.i2c_bus import MockI2cBus
-from mock_devices.rc_receiver import MuxMock, RcFrame, RcReceiverMock
+from mock_devices.rc_receiver import MuxMock, RcReceiverMock
 from mock_devices.vehicle_sim import ACKERMANN_MAX_STEER_RAD, SimVehicle
+
+MODEL_INPUTS = {"differential": ("left", "right"), "twin_thruster": ("left", "right"),
+                "ackermann": ("steering", "throttle")}
 
 CAN_GROUP = "239.74.163.2"   # python-can's default IPv4 group for udp_multicast
 MAX_SOCKET_PATH = 100        # sun_path holds 108 bytes; keep a margin
@@ -43,102 +46,94 @@ def _mock_path(address: str) -> str | None:
 
 
 class RoutedVehicle:
-    """The SimVehicle behind the RC mux: autonomous commands pass only while the mux selects them."""
+    """The SimVehicle as the actuator outputs drive it: each model input by name, optionally *held*.
 
-    _INPUTS = {"set_wheel_speed": "differential", "set_thrust": "twin_thruster",
-               "set_steering": "ackermann", "set_throttle": "ackermann"}
+    Inputs are ``left``/``right`` (differential: wheel surface speed in m/s; twin_thruster:
+    thrust -1..1) and ``steering``/``throttle`` (ackermann). CAN motor nodes set them through
+    :class:`mock_devices.actuation.MotorInput`, PWM outputs through the output poller
+    (``set_fraction``). No RC mux sits here: the simulated mux switches only the PWM outputs
+    wired through it (:class:`mock_devices.actuation.PwmFeed`). A GPIO output that *drives*
+    ``enable`` (a motor contactor) cuts the propulsion while at its safe level.
+    """
 
     def __init__(self, vehicle: SimVehicle) -> None:
         self.vehicle = vehicle
         self._lock = threading.Lock()
-        self._auto: dict[tuple[str, ...], float] = {}
-        self._source = "autonomous"
-        self._pilot = (0.0, 0.0)   # throttle, steering, -1..1
+        self._inputs: dict[str, float] = {}
         self._held = False
+        self._enabled = True
 
     def __getattr__(self, name: str) -> Any:   # snapshot(), model, max_speed, ... of the real vehicle
         return getattr(self.vehicle, name)
 
-    # -- what the motor mocks call -----------------------------------------------------------
+    # -- what the actuator mocks call ----------------------------------------------------------
+    def set_input(self, name: str, value: float) -> None:
+        """Set model input *name* in its own unit (see the class docstring)."""
+        if name not in MODEL_INPUTS[self.vehicle.model]:
+            raise ValueError(f"SimVehicle: a {self.vehicle.model} vehicle has no input {name!r}; its inputs are "
+                             f"{', '.join(MODEL_INPUTS[self.vehicle.model])}")
+        with self._lock:
+            self._inputs[name] = float(value)
+            self._apply()
+
+    def set_fraction(self, name: str, fraction: float) -> None:
+        """Set model input *name* from a -1..1 fraction of full scale (what a PWM output gives)."""
+        f = max(-1.0, min(1.0, fraction))
+        model = self.vehicle.model
+        scale = {"differential": self.vehicle.max_speed, "twin_thruster": 1.0}.get(model, 1.0)
+        self.set_input(name, f * (ACKERMANN_MAX_STEER_RAD if name == "steering" else scale))
+
     def set_wheel_speed(self, side: str, speed_mps: float) -> None:
-        """A wheel controller's output (m/s surface speed)."""
-        self._command("set_wheel_speed", side, value=speed_mps)
+        """A wheel's output (m/s surface speed)."""
+        self.set_input(side, speed_mps)
 
     def set_thrust(self, side: str, fraction: float) -> None:
-        """A thruster controller's output (-1..1)."""
-        self._command("set_thrust", side, value=fraction)
+        """A thruster's output (-1..1)."""
+        self.set_input(side, fraction)
 
-    def set_steering(self, angle_rad: float) -> None:
-        """A steering servo's output (rad)."""
-        self._command("set_steering", value=angle_rad)
-
-    def set_throttle(self, fraction: float) -> None:
-        """A throttle output (-1..1)."""
-        self._command("set_throttle", value=fraction)
-
-    def _command(self, method: str, *key: str, value: float) -> None:
-        if self.vehicle.model != self._INPUTS[method]:
-            getattr(self.vehicle, method)(*key, value)   # raises the vehicle's own error naming the model
-        with self._lock:
-            self._auto[(method, *key)] = value
-            if self._source == "autonomous" and not self._held:
-                getattr(self.vehicle, method)(*key, value)
-
-    # -- the mux, the pilot and the bench ----------------------------------------------------
-    @property
-    def source(self) -> str:
-        """Who drives: "autonomous" (the motor controllers) or "rc" (the pilot's sticks)."""
-        return self._source
-
-    def route(self, source: str, *, throttle: float | None = None, steering: float | None = None) -> None:
-        """Select who drives, and update the pilot's sticks (-1..1)."""
-        with self._lock:
-            pilot = (self._pilot[0] if throttle is None else throttle, self._pilot[1] if steering is None else steering)
-            changed = source != self._source or (source == "rc" and pilot != self._pilot)
-            self._source, self._pilot = source, pilot
-            if changed:
-                self._apply()
-
+    # -- the bench and the contactor -----------------------------------------------------------
     def hold(self, on: bool) -> None:
         """Hold the vehicle still whatever the motors are told (wheels in the air)."""
         with self._lock:
             self._held = bool(on)
             self._apply()
 
+    def enable(self, on: bool) -> None:
+        """A motor contactor on a GPIO output: propulsion only while on."""
+        with self._lock:
+            self._enabled = bool(on)
+            self._apply()
+
+    def inputs(self) -> dict[str, float]:
+        """The inputs last set, by name."""
+        with self._lock:
+            return dict(self._inputs)
+
     def _apply(self) -> None:
         v, model = self.vehicle, self.vehicle.model
-        if self._held or self._source == "rc":
-            thr, steer = (0.0, 0.0) if self._held else self._pilot
-            if model == "differential":
-                v.set_wheel_speed("left", v.max_speed * max(-1.0, min(1.0, thr + steer)))
-                v.set_wheel_speed("right", v.max_speed * max(-1.0, min(1.0, thr - steer)))
-            elif model == "twin_thruster":
-                v.set_thrust("left", max(-1.0, min(1.0, thr + steer)))
-                v.set_thrust("right", max(-1.0, min(1.0, thr - steer)))
-            else:
-                v.set_throttle(thr)
-                v.set_steering(steer * ACKERMANN_MAX_STEER_RAD)
+        still = self._held or not self._enabled
+        get = self._inputs.get
+        if model == "ackermann":
+            v.set_steering(0.0 if self._held else get("steering", 0.0))
+            v.set_throttle(0.0 if still else get("throttle", 0.0))
             return
-        for (method, *key), value in self._auto.items():
-            getattr(v, method)(*key, value)
-        for method, sides in (("set_wheel_speed", ("left", "right")), ("set_thrust", ("left", "right"))):
-            if self._INPUTS[method] == model:
-                for side in sides:
-                    if (method, side) not in self._auto:
-                        getattr(v, method)(side, 0.0)
-
-
-def _stick(pulses: dict[str, float], name: str) -> float:
-    us = pulses.get(name)
-    return 0.0 if us is None or not math.isfinite(us) else max(-1.0, min(1.0, (us - 1500.0) / 500.0))
+        setter = v.set_wheel_speed if model == "differential" else v.set_thrust
+        for side in ("left", "right"):
+            setter(side, 0.0 if still else get(side, 0.0))
 
 
 class MockContext:
     """Shared parts of one simulation; mock builders ask it for buses, chips and paths."""
 
-    def __init__(self, *, vehicle: SimVehicle, device_dir: Path, can_udp_port: int, seed: int = 0) -> None:
+    def __init__(self, *, vehicle: SimVehicle, device_dir: Path, can_udp_port: int, seed: int = 0,
+                 hardware_mux: dict[str, str] | None = None) -> None:
         self.vehicle = vehicle
         self.actuated = RoutedVehicle(vehicle)
+        self.hardware_mux = dict(hardware_mux or {})   # actuator -> RC channel, [safety] hardware_mux
+        self.outputs = OutputLog()
+        self.feeds = Feeds()
+        self.fed: dict[str, str] = {}   # model input -> the device table that drives it
+        self._poller: OutputPoller | None = None
         self.device_dir = Path(device_dir)
         self.can_udp_port = int(can_udp_port)
         self.i2c_buses: dict[str, MockI2cBus] = {}
@@ -195,20 +190,38 @@ class MockContext:
         return self.can_ports[real]
 
     def attach_mux(self, rc: RcReceiverMock, mux: MuxMock) -> None:
-        """Route the actuated vehicle by *mux*'s choice, with *rc*'s sticks on the pilot's side."""
+        """Note *mux*: the PWM outputs of ``hardware_mux`` pass through it."""
         self.muxes.append((rc, mux))
-        self.actuated.route("rc")   # a mux powers up on the pilot's side
+
+    def motor_input(self, actuator: str) -> MotorInput:
+        """What a CAN motor node driving *actuator* is given as its vehicle (logs its setpoints)."""
+        return MotorInput(self.actuated, actuator=actuator, log=self.outputs)
+
+    def feed(self, model_input: str, *, device: str) -> None:
+        """Note that *device* drives *model_input*; DeviceError when another device already does."""
+        model = self.vehicle.model
+        if model_input not in MODEL_INPUTS[model]:
+            raise DeviceError(f"devices.{device}: drives {model_input!r}, which a {model} vehicle does not have; "
+                              f"its inputs are {', '.join(MODEL_INPUTS[model])} (or 'enable' for a GPIO output)")
+        if model_input in self.fed and self.fed[model_input] != device:
+            raise DeviceError(f"devices.{device}: {model_input!r} is already driven by devices.{self.fed[model_input]}; "
+                              "one output per model input")
+        self.fed[model_input] = device
+
+    def feed_enable(self, *, device: str) -> None:
+        """Note that a GPIO output of *device* is the motor contactor: propulsion off until it is set."""
+        if "enable" in self.fed and self.fed["enable"] != device:
+            raise DeviceError(f"devices.{device}: 'enable' is already driven by devices.{self.fed['enable']}")
+        self.fed["enable"] = device
+        self.actuated.enable(False)
 
     def start_routing(self) -> None:
-        """Follow each mux (after the muxes started, so their own listeners run first)."""
-        for rc, mux in self.muxes:
-            def on_frame(frame: RcFrame, mux: MuxMock = mux) -> None:
-                pulses = frame.pulses_us or {}   # no signal: the sticks are let go
-                self.actuated.route(mux.selected, throttle=_stick(pulses, "throttle"),
-                                    steering=_stick(pulses, "steering"))
-
-            rc.add_frame_listener(on_frame)
-            rc.chip.on_output(lambda _line, _value, _t, mux=mux: self.actuated.route(mux.selected))
+        """Wire the muxed PWM outputs to their mux and start sampling the outputs."""
+        mux = self.muxes[0][1] if self.muxes else None
+        for feed in self.feeds.pwm:
+            feed.rc_channel = self.hardware_mux.get(feed.actuator)
+            feed.mux = mux
+        self._poller = OutputPoller(self.feeds, routed=self.actuated, log=self.outputs).start()
 
     def start_shared(self) -> None:
         """Start the buses and chips (before the devices, so drivers find them)."""
@@ -219,7 +232,10 @@ class MockContext:
             chip.start()
 
     def stop_shared(self) -> None:
-        """Stop the buses and chips (removes their sockets)."""
+        """Stop the output sampling, the buses and chips (removes their sockets)."""
+        if self._poller is not None:
+            self._poller.stop()
+            self._poller = None
         for bus in self.i2c_buses.values():
             bus.stop()
         for chip in self.gpio_chips.values():

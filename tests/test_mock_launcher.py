@@ -21,7 +21,6 @@ from mock_devices.sim_context import DeviceError
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.launcher import Launcher
-from u2sa_hw.ports.gpio_port import open_gpio
 from u2sa_hw.sim.profile import effective_configs, write_sim_profile
 from u2sa_hw.transport import Transport
 from u2sa_hw.vehicle import load_profile
@@ -51,19 +50,6 @@ options = { horizontal_sigma_m = 0.1, rate_hz = 5 }
 [devices.imu]
 mock = "mpu9250"
 """
-
-RC = """
-[vehicle]
-origin = { lat = 29.1895, lon = -81.0483 }
-
-[services.rc]
-kind = "rc_mux"
-settings = { chip = "/dev/gpiochip0", channels = "throttle=5,steering=6,mode=13", enable_line = 21 }
-
-[devices.rc]
-mock = "rc_receiver"
-"""
-
 
 def profile_file(tmp_path: Path, text: str) -> Path:
     path = tmp_path / "vehicle.toml"
@@ -96,30 +82,6 @@ def test_drivers_read_the_mocks_through_the_simulation_profile(tmp_path: Path, l
         bus.stop()
         mocks.stop()
     assert not (tmp_path / "dev" / "gps").exists()
-
-
-def test_rc_mux_routes_the_motors_only_while_software_and_pilot_agree(tmp_path: Path) -> None:
-    profile = load_profile(profile_file(tmp_path, RC))
-    mocks = MockLauncher(profile, device_dir=tmp_path / "dev")   # settings only, no kind defaults
-    mocks.start()
-    vehicle, mux = mocks.vehicle, mocks.context.muxes[0][1]
-    try:
-        mocks.actuated.set_wheel_speed("left", 1.0)    # what the ODrive mocks do
-        mocks.actuated.set_wheel_speed("right", 1.0)
-        mocks.set_mode_switch(True)
-        wait_until(lambda: vehicle.snapshot().t > 0.3, message="simulation time to pass")
-        assert mux.selected == "rc" and vehicle.snapshot().speed == 0.0   # no autonomy enable: the pilot drives
-        enable = open_gpio(device="rc", chip=mocks.overrides["rc"]["chip"], outputs={21: 1})
-        wait_until(lambda: mux.selected == "autonomous", message="the mux to select autonomous")
-        wait_until(lambda: vehicle.snapshot().speed > 0.9, message="the motor commands to reach the vehicle")
-        mocks.actuated.hold(True)
-        wait_until(lambda: vehicle.snapshot().speed == 0.0, message="the held vehicle to stop")
-        mocks.actuated.hold(False)
-        wait_until(lambda: vehicle.snapshot().speed > 0.9, message="the released vehicle to drive again")
-        enable.close()   # the line falls to the board's pull-down: back to the pilot, sticks centred
-        wait_until(lambda: mux.selected == "rc" and vehicle.snapshot().speed == 0.0, message="the pilot side")
-    finally:
-        mocks.stop()
 
 
 def test_u2sa_mock_prints_the_addresses_and_cleans_up_on_ctrl_c(tmp_path: Path) -> None:

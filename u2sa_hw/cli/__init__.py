@@ -19,6 +19,7 @@ COMMAND_MODULES = [
     "u2sa_hw.cli.bus_cmds",
     "u2sa_hw.cli.param_cmd",
     "u2sa_hw.cli.mission_cmd",
+    "u2sa_hw.cli.failsafe_cmd",
     "u2sa_hw.cli.record_cmd",
     "u2sa_hw.cli.run_cmd",
     "u2sa_hw.cli.health_cmd",
@@ -37,6 +38,7 @@ examples:
   u2sa pub STATE_INFO StateInformation sensor_name=test x=1.5 psi=0.3
   u2sa param list state_estimator    a service's config; param set changes and persists it
   u2sa mission status                the mission and its current goal; goto/skip/restart/upload change it
+  u2sa failsafe raise                every actuator neutral now; status shows who holds one, clear lowers it
   u2sa stop --all
 
 The LCM URL comes from the vehicle profile, else $U2SA_LCM_URL, else

@@ -24,9 +24,17 @@ udp_multicast on the [simulation] can_udp_port. A copy of the profile
 whose device addresses point at the mocks is written there too: run the stack on
 it in another terminal with the command printed at start.
 
-On a terminal, type a + Enter to flip the pilot's RC mode switch to autonomous,
-m + Enter for manual, h + Enter to hold the vehicle still (motors turn, it does
-not move; again to release), q + Enter to quit. See docs/simulation.md.
+On a terminal the keyboard is the pilot's RC transmitter (no Enter needed):
+  w / s     throttle stick up / down (steps of 10 %)
+  a / d     steering stick left / right
+  space     both sticks back to the centre
+  m         flip the mode switch (manual <-> autonomous)
+  l         RC link lost / back
+  h         hold the vehicle still (motors turn, it does not move; again to release)
+  q         quit
+The simulated RC mux switches only the PWM outputs the profile's [safety]
+hardware_mux lists; every other actuator follows its driver. See
+docs/simulation.md.
 """
 
 
@@ -46,28 +54,6 @@ def register(sub: Any) -> None:
     p.set_defaults(func=cmd_mock)
 
 
-def _commands(mocks: Any, done: threading.Event) -> None:
-    """Read pilot commands from stdin until EOF (a non-interactive stdin simply ends here)."""
-    held = False
-    for line in sys.stdin:
-        word = line.strip().lower()[:1]
-        if word == "a":
-            mocks.set_mode_switch(True)
-            print("pilot: mode switch AUTONOMOUS", flush=True)
-        elif word == "m":
-            mocks.set_mode_switch(False)
-            print("pilot: mode switch MANUAL", flush=True)
-        elif word == "h":
-            held = not held
-            mocks.actuated.hold(held)
-            print(f"vehicle {'held still' if held else 'released'}", flush=True)
-        elif word == "q":
-            done.set()
-            return
-        elif word:
-            print("a: autonomous, m: manual, h: hold/release the vehicle, q: quit", flush=True)
-
-
 def cmd_mock(args: Any) -> int:
     """Start the mocks, write the simulation profile, print the addresses, wait for Ctrl-C."""
     from u2sa_hw.cli import CliError
@@ -79,7 +65,8 @@ def cmd_mock(args: Any) -> int:
             print(f"{kind:16} {what}")
         return 0
     from mock_devices.launcher import MockLauncher
-    from mock_devices.sim_context import DeviceError, device_dir_for
+    from mock_devices.sim_context import MODEL_INPUTS, DeviceError, device_dir_for
+    from u2sa_hw.sim.keys import HELP, StickKeys
     from u2sa_hw.sim.profile import effective_configs, write_sim_profile
     from u2sa_hw.vehicle import ProfileError
 
@@ -94,6 +81,7 @@ def cmd_mock(args: Any) -> int:
         mocks.start()
     except (DeviceError, ProfileError, RuntimeError, OSError) as exc:
         raise CliError(f"mock: {exc}") from None
+    keys = None
     try:
         sim_profile = write_sim_profile(profile, run_dir=run_dir, overrides=mocks.overrides)
         s = mocks.settings
@@ -103,16 +91,30 @@ def cmd_mock(args: Any) -> int:
             print(f"  {line}")
         print(f"simulation profile: {sim_profile}")
         print(f"run the stack on it:  u2sa run --vehicle {sim_profile}")
-        print("Ctrl-C stops the mocks" + ("; a/m/h/q + Enter: autonomous, manual, hold, quit"
-                                          if sys.stdin.isatty() else ""), flush=True)
+        missing = [i for i in MODEL_INPUTS[s.model] if i not in mocks.context.fed]
+        if missing:
+            print(f"note: no device drives {', '.join(missing)} of the {s.model} model: the vehicle will not move "
+                  "(u2sa sim refuses this profile; see docs/simulation.md)")
+        print("Ctrl-C stops the mocks" + (f"; keys: {HELP}, h hold, q quit" if sys.stdin.isatty() else ""),
+              flush=True)
         done = threading.Event()
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: done.set())
         if sys.stdin.isatty():
-            threading.Thread(target=_commands, args=(mocks, done), daemon=True).start()
+            held = [False]
+
+            def hold() -> None:
+                held[0] = not held[0]
+                mocks.actuated.hold(held[0])
+
+            keys = StickKeys(lambda: mocks, say=lambda text: print(text, flush=True),
+                             extra={"h": ("vehicle held still / released", hold), "q": ("quit", done.set)})
+            keys.start()
         while not done.wait(0.5):
             pass
     finally:
+        if keys is not None:
+            keys.stop()
         mocks.stop()
         if not device_dir.is_relative_to(run_dir.resolve()):   # a short /tmp directory of our own
             shutil.rmtree(device_dir, ignore_errors=True)

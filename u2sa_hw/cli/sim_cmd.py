@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -24,8 +25,24 @@ summary.json and summary.txt (time, distance, per-goal arrival times, largest
 cross-track error, closest approach to each obstacle, estimate error), track.csv,
 track.png (the driven track, the waypoints, the obstacles), services.log (every
 service's output), logs/ (one log per service), run/ (the simulation's copy of
-the profile, the mock device nodes), recording/ with --record. See
-docs/simulation.md.
+the profile, the mock device nodes), recording/ with --record. summary.json's
+"outputs" has every actuator output's final state as the mock devices saw it.
+
+--scenario FILE plays a failsafe scenario instead of waiting for the mission's
+end: its events at their times (after autonomy engaged), then summary.json's
+"scenario" says, per event, when each output (CAN setpoint, PWM pulse, GPIO
+level) went neutral and moved again, and the RC_MODE states heard.
+
+The pilot hands over only once the IMU has calibrated at rest. A profile whose
+devices do not drive every input of its [simulation] model is refused.
+
+Keys, when stdin is a terminal (the pilot's RC transmitter):
+  w / s     throttle stick up / down (steps of 10 %)
+  a / d     steering stick left / right
+  space     both sticks back to the centre
+  m         flip the mode switch (manual <-> autonomous)
+  l         RC link lost / back
+See docs/simulation.md.
 """
 
 
@@ -46,6 +63,10 @@ def register(sub: Any) -> None:
                    "port to run beside other u2sa processes)")
     p.add_argument("--can-port", type=int, metavar="PORT",
                    help="UDP port of the simulated CAN bus (default: [simulation] can_udp_port)")
+    p.add_argument("--scenario", metavar="FILE", type=Path,
+                   help="play a failsafe scenario (events at times: RC loss, manual switch, sticks, GPS fix loss, "
+                        "a service killed or stopped, a forged command, a failsafe) and record what every actuator "
+                        "output did (summary.json 'scenario'); e.g. examples/ground_vehicle/scenarios/rc_loss.toml")
     p.set_defaults(func=cmd_sim)
 
 
@@ -53,6 +74,8 @@ def cmd_sim(args: Any) -> int:
     """Run the simulation; CliError with the reason unless the mission completed."""
     from u2sa_hw.cli import CliError
     from u2sa_hw.sim.runner import SimOptions, SimRun
+    from mock_devices.sim_context import DeviceError
+    from u2sa_hw.sim.events import ScenarioError
 
     if args.timeout is not None and args.timeout <= 0:
         raise CliError("sim: --timeout must be > 0 seconds", 2)
@@ -60,11 +83,23 @@ def cmd_sim(args: Any) -> int:
         raise CliError(f"sim: {args.vehicle}: vehicle profile not found (run from the repository root for the "
                        "default, or pass --vehicle PATH)", 2)
     options = SimOptions(vehicle=args.vehicle, out=args.out, mission=args.mission, timeout_s=args.timeout,
-                         record=args.record, lcm_url=args.lcm_url, can_port=args.can_port)
+                         record=args.record, lcm_url=args.lcm_url, can_port=args.can_port, scenario=args.scenario)
+    keys = None
     try:
-        summary = SimRun(options).run()
+        run = SimRun(options)
+        if sys.stdin.isatty() and sys.stdout.isatty():
+            from u2sa_hw.sim.keys import StickKeys
+
+            keys = StickKeys(lambda: run.mocks, say=run.progress.event)
+            keys.start()
+        summary = run.run()
+    except (DeviceError, ScenarioError) as exc:   # refused before anything moves: the file, the key, the fix
+        raise CliError(f"sim: {exc}", 2) from None
     except RuntimeError as exc:   # the bus or a mock CAN node could not open; the message says why
         raise CliError(f"sim: {exc}") from None
+    finally:
+        if keys is not None:
+            keys.stop()
     if summary["result"] == "completed":
         return 0
     where = f"(summary: {args.out / 'summary.txt'})"

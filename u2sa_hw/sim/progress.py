@@ -51,6 +51,7 @@ class BusSnapshot:
     failsafe: t.Failsafe | None = None
     changes: list[StatusChange] = field(default_factory=list)
     autonomous_since: float | None = None
+    rc_changes: list[tuple[int, str]] = field(default_factory=list)   # monotonic ns, rc_state_name()
 
 
 class BusMonitor:
@@ -79,7 +80,7 @@ class BusMonitor:
         with self._lock:
             s = self._state
             return BusSnapshot(s.estimate, s.status, s.nav, s.rc, dict(s.health), s.failsafe, list(s.changes),
-                               s.autonomous_since)
+                               s.autonomous_since, list(s.rc_changes))
 
     def _on_estimate(self, _channel: str, msg: t.StateInformation) -> None:
         if not (msg.has("x") and msg.has("y")):
@@ -104,8 +105,11 @@ class BusMonitor:
             self._state.nav = msg
 
     def _on_rc(self, _channel: str, msg: t.RcMode) -> None:
+        name = rc_state_name(msg)
         with self._lock:
             self._state.rc = msg
+            if not self._state.rc_changes or self._state.rc_changes[-1][1] != name:
+                self._state.rc_changes.append((time.monotonic_ns(), name))
             autonomous = msg.mode == 1 and msg.autonomy_enabled
             if autonomous and self._state.autonomous_since is None:
                 self._state.autonomous_since = time.monotonic()
@@ -119,6 +123,18 @@ class BusMonitor:
     def _on_failsafe(self, _channel: str, msg: t.Failsafe) -> None:
         with self._lock:
             self._state.failsafe = msg if msg.active else None
+
+
+def rc_state_name(msg: t.RcMode) -> str:
+    """``MANUAL``, ``AUTONOMOUS``, ``AUTONOMOUS (not enabled)``, ``NO RC SIGNAL``, with ``, hold`` and
+    ``, blocked: <why>`` when RC_MODE says so: the states a scenario's timeline lists."""
+    name = MODE_NAMES.get(msg.mode, f"mode {msg.mode}")
+    if msg.mode == 1 and not msg.autonomy_enabled:
+        name += " (not enabled)"
+    if getattr(msg, "hold", False):
+        name += ", hold"
+    blocked = getattr(msg, "blocked_by", "")
+    return name + (f", blocked: {blocked}" if blocked and msg.mode == 1 else "")
 
 
 def loop_completed(changes: Sequence[StatusChange], *, since: float) -> bool:

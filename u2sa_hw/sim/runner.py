@@ -10,7 +10,13 @@
     summary = run.finish()      # stop everything; summary.json/.txt, track.csv, track.png
 
 ``run()`` chains them. The simulated vehicle lives in this process (with the mocks), so
-its true track is sampled here, at ``SAMPLE_HZ``.
+its true track is sampled here, at ``SAMPLE_HZ``. With a scenario (``SimOptions.scenario``,
+:mod:`u2sa_hw.sim.events`) ``run()`` plays its events instead of waiting for the mission's
+end, a failsafe or a loss of autonomy is what the run is about rather than a failure, and
+the summary says what each event did to every actuator output (:mod:`u2sa_hw.sim.effects`).
+
+The pilot hands over only once every IMU has calibrated at rest (its health ``ok``): the
+vehicle stands still in manual with the sticks centred until then.
 """
 
 from __future__ import annotations
@@ -25,14 +31,18 @@ from typing import Any
 
 from u2sa_hw.launcher import Launcher, RestartPolicy
 from u2sa_hw.sim.profile import effective_configs, write_sim_profile
-from u2sa_hw.sim.progress import BusMonitor, BusSnapshot, ProgressLine, loop_completed, status_text
+from u2sa_hw.sim.progress import BusMonitor, BusSnapshot, ProgressLine, control_mode, loop_completed, status_text
+from u2sa_hw.sim.effects import event_effects, final_outputs
+from u2sa_hw.sim.events import Scenario, load_scenario_file
 from u2sa_hw.sim.scenario import load_scenario
+from u2sa_hw.sim.script import ScriptRunner
 from u2sa_hw.sim.summary import RunRecord, TrackSample, summarise, summary_text, write_summary, write_track_csv
 from u2sa_hw.vehicle import load_profile
 
 SAMPLE_HZ = 10.0
 TICK_S = 0.2
-DEGRADED_GRACE_S = 20.0   # the pilot waits this long for degraded services (an IMU calibrating) to be ok
+DEGRADED_GRACE_S = 20.0   # the pilot waits this long for degraded services (other than IMUs) to be ok
+IMU_CALIBRATION_S = 45.0  # an IMU not calibrated at rest this long after start fails the run
 MAX_INTERRUPTIONS = 3   # autonomy lost and re-engaged by the pilot at most this often
 ERROR_MARKERS = (" ERROR ", " CRITICAL ", "Traceback (most recent call last)")
 
@@ -57,6 +67,7 @@ class SimOptions:
     lcm_url: str | None = None          # None: the profile's
     can_port: int | None = None         # None: the profile's [simulation] can_udp_port
     grace_s: float = 3.0
+    scenario: Path | None = None        # a failsafe scenario file (u2sa_hw.sim.events)
 
 
 class SimRun:
@@ -69,6 +80,10 @@ class SimRun:
         self.profile = load_profile(options.vehicle)
         self.configs = effective_configs(self.profile)
         self.scenario = load_scenario(self.profile, self.configs, mission=options.mission)
+        self.script: Scenario | None = load_scenario_file(options.scenario) if options.scenario else None
+        self.player: ScriptRunner | None = None
+        self.t0: float | None = None    # when the scenario's clock started
+        self.imus = [n for n, spec in self.profile.services.items() if spec.enabled and spec.kind.startswith("imu_")]
         self.mocks: Any = None
         self.monitor: BusMonitor | None = None
         self.launcher: Launcher | None = None
@@ -95,7 +110,7 @@ class SimRun:
         if not device_dir.is_relative_to(self.out):
             self._tmp_device_dir = device_dir
         self.mocks = MockLauncher(self.profile, device_dir=device_dir, service_configs=self.configs,
-                                  can_udp_port=self.options.can_port)
+                                  can_udp_port=self.options.can_port, check_inputs=True)
         timeout = self.options.timeout_s or self.mocks.settings.timeout_s
         self.deadline = self.record.t_start + timeout
         self.mocks.start()
@@ -114,6 +129,9 @@ class SimRun:
         self.launcher = Launcher(sim_profile, grace_s=self.options.grace_s, output=self._on_output,
                                  policy=RestartPolicy(initial_backoff_s=0.5, give_up_after=3),
                                  on_death=self._on_death)
+        if self.script is not None:
+            self.player = ScriptRunner(self.script, self)
+            self.player.check()
         self.launcher.start()
         self._sampler = threading.Thread(target=self._sample, name="sim-sampler", daemon=True)
         self._sampler.start()
@@ -147,6 +165,18 @@ class SimRun:
             self._tick(f"[{time.monotonic() - self.record.t_start:5.1f} s] waiting for RC_MODE autonomous",
                        waiting_for="RC_MODE to report autonomous with autonomy enabled (see the rc service's "
                                    "health: enable_blocked_by)")
+
+    def reengage(self, tick: Any = None) -> None:
+        """The safety pilot's procedure: mode switch to manual, wait for RC_MODE manual, then engage."""
+        self.mocks.set_mode_switch(False)
+        self.progress.event("pilot: RC mode switch -> MANUAL (to re-arm)")
+        while True:
+            snap = self._check()
+            if snap.rc is not None and snap.rc.mode == 0:
+                break
+            self._tick(f"[{time.monotonic() - self.record.t_start:5.1f} s] waiting for RC_MODE manual",
+                       waiting_for="RC_MODE manual for the pilot to re-arm")
+        self.engage()
 
     def _reengage(self, snap: BusSnapshot) -> None:
         """Autonomy dropped (the mux's side of it): the safety pilot re-arms through manual and hands back."""
@@ -191,13 +221,32 @@ class SimRun:
             self._tick(status_text(snap, elapsed=time.monotonic() - self.record.t_engage, goal_total=total,
                                    distance=distance), waiting_for=self._where(snap))
 
+    def play(self) -> None:
+        """Play the scenario's events from t0 (autonomy engaged, or ready when the scenario does not engage)."""
+        assert self.player is not None and self.script is not None
+        self.t0 = self.record.t_engage if self.script.engage and self.record.t_engage else time.monotonic()
+        self.progress.event(f"scenario '{self.script.name}': {len(self.script.events)} events over "
+                            f"{self.script.end_s:g} s")
+
+        def tick(what: str) -> None:
+            snap = self._check()
+            self._tick(f"[{time.monotonic() - self.t0:5.1f} s] {what} | {control_mode(snap)}", waiting_for=f"scenario '{self.script.name}' ({what})")
+
+        self.player.play(self.t0, tick=tick)
+        self.record.result, self.record.reason = "completed", ""
+
     def run(self) -> dict[str, Any]:
         """All steps; returns the summary (``result`` completed, timeout or failed)."""
         try:
             self.start()
             self.wait_ready()
-            self.engage()
-            self.drive()
+            if self.script is None:
+                self.engage()
+                self.drive()
+            else:
+                if self.script.engage:
+                    self.engage()
+                self.play()
         except SimFailure as exc:
             self.record.result, self.record.reason = exc.result, str(exc)
         except KeyboardInterrupt:
@@ -224,6 +273,15 @@ class SimRun:
         except ImportError as exc:   # matplotlib is the "sim" extra
             self.progress.event(f"no plot: {exc} (pip install 'u2sa-hw[sim]')")
         summary = summarise(self.record)
+        if self.mocks is not None:
+            summary["outputs"] = final_outputs(self.mocks.outputs)
+        if self.player is not None and self.script is not None:
+            t0_ns = int((self.t0 or self.record.t_end) * 1e9)
+            summary["scenario"] = {
+                "name": self.script.name, "file": str(self.script.path), "description": self.script.description,
+                "events": event_effects(self.mocks.outputs, self.player.fired, end_ns=int(self.record.t_end * 1e9),
+                                        t0_ns=t0_ns, rc_modes=self.monitor.snapshot().rc_changes
+                                        if self.monitor is not None else [])}
         json_path, text_path = write_summary(summary, self.out, extra_files=files)
         self.progress.event(summary_text(summary, files=[json_path, text_path, *files]))
         return summary
@@ -285,7 +343,7 @@ class SimRun:
                              f"its log: {self.out / 'logs' / (failed + '.log')}")
         if self.launcher.finished.is_set():
             raise SimFailure("every service stopped")
-        if snap.failsafe is not None:
+        if snap.failsafe is not None and self.script is None:
             raise SimFailure(f"FAILSAFE from {snap.failsafe.header.source or '?'}: {snap.failsafe.reason}")
         return snap
 
@@ -303,8 +361,17 @@ class SimRun:
         if len(up) < len(names):
             waiting = [n for n in names if n not in up]
             missing.append(f"{len(up)}/{len(names)} services up (waiting: {', '.join(waiting)})")
-        degraded = [n for n in up if snap.health[n][0] != "ok"]
-        if degraded and time.monotonic() - self.record.t_start < DEGRADED_GRACE_S:
+        waited = time.monotonic() - self.record.t_start
+        calibrating = [n for n in self.imus if n in up and snap.health[n][0] != "ok"]
+        if calibrating and waited >= IMU_CALIBRATION_S:
+            raise SimFailure(f"IMU {', '.join(calibrating)} did not calibrate at rest within {IMU_CALIBRATION_S:g} s "
+                             f"(health: {'; '.join(snap.health[n][1] or snap.health[n][0] for n in calibrating)}); "
+                             "the pilot does not hand over an uncalibrated IMU")
+        if calibrating:
+            missing.append("IMU calibrating at rest: " + ", ".join(
+                f"{n} ({snap.health[n][1] or snap.health[n][0]})" for n in calibrating))
+        degraded = [n for n in up if snap.health[n][0] != "ok" and n not in self.imus]
+        if degraded and waited < DEGRADED_GRACE_S:
             missing.append("degraded: " + ", ".join(f"{n} ({snap.health[n][1] or snap.health[n][0]})"
                                                     for n in degraded))
         if snap.estimate is None or not math.isfinite(snap.estimate[3]):

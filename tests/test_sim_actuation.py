@@ -1,0 +1,142 @@
+"""An honest simulation: the simulated RC mux switches only the PWM outputs wired through it,
+every actuator kind moves the vehicle, and a profile whose devices cannot move it is refused.
+
+Real parts: the PCA9685 and sysfs PWM mocks written through the real PWM ports, the RC
+receiver's pulse trains and the mux on a mock GPIO chip socket, the enable line driven by
+a GPIO client of that socket.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from conftest import wait_until
+from mock_devices.launcher import MockLauncher
+from mock_devices.sim_context import DeviceError
+from u2sa_hw.ports.gpio_port import open_gpio
+from u2sa_hw.ports.pwm_port import open_pwm
+from u2sa_hw.vehicle import load_profile
+
+ACKERMANN = """
+[vehicle]
+origin = { lat = 29.1895, lon = -81.0483 }
+
+[services.rc]
+kind = "rc_mux"
+settings = { chip = "/dev/gpiochip0", channels = "throttle=5,steering=6,mode=13", enable_line = 21 }
+
+[services.drive]
+kind = "pwm_servo"
+settings = { channels = [
+  { name = "steering", address = "pca9685:1:0x40", channel = 0 },
+  { name = "throttle", address = "pca9685:1:0x40", channel = 1 },
+  { name = "pan", address = "/sys/class/pwm/pwmchip0", channel = 0 } ] }
+
+[services.contactor]
+kind = "gpio_output"
+settings = { chip = "/dev/gpiochip1", outputs = "motor_power=4,lamp=5" }
+
+[safety]
+hardware_mux = { steering = "steering", throttle = "throttle" }
+
+[simulation]
+model = "ackermann"
+
+[devices.rc]
+mock = "rc_receiver"
+
+[devices.drive]
+mock = "pca9685"
+
+[devices.drive_sysfs]
+mock = "sysfs_pwm"
+service = "drive"
+
+[devices.contactor]
+mock = "gpio_chip"
+drives = { motor_power = "enable" }
+"""
+
+
+def profile(tmp_path: Path, text: str) -> MockLauncher:
+    path = tmp_path / "vehicle.toml"
+    path.write_text(text)
+    return MockLauncher(load_profile(path), device_dir=tmp_path / "dev", check_inputs=True)
+
+
+def test_the_mux_switches_only_the_pwm_outputs_wired_through_it(tmp_path: Path) -> None:
+    mocks = profile(tmp_path, ACKERMANN)
+    mocks.start()
+    vehicle, outputs = mocks.vehicle, mocks.outputs
+    chip = mocks.overrides["drive"]["channels"]
+    steering = open_pwm(device="steering", address=chip[0]["address"], channel=0)
+    throttle = open_pwm(device="throttle", address=chip[1]["address"], channel=1)
+    pan = open_pwm(device="pan", address=chip[2]["address"], channel=0)
+    power = open_gpio(device="contactor", chip=mocks.overrides["contactor"]["chip"], outputs={4: 1})
+    try:
+        for channel, us in ((steering, 1900), (throttle, 1800), (pan, 1700)):
+            channel.set_pulse_us(us)
+            channel.enable(True)
+        mocks.set_sticks(throttle=0.0, steering=-1.0)   # the pilot holds full left, no throttle
+        # manual: the mux passes the pilot's pulses to steering and throttle; the pan is not behind it
+        wait_until(lambda: outputs.current("steering").value == -100.0, message="the pilot's steering at the servo")
+        assert outputs.current("throttle").neutral and outputs.current("pan").value == 40.0
+        assert vehicle.snapshot().speed == 0.0
+        enable = open_gpio(device="rc", chip=mocks.overrides["rc"]["chip"], outputs={21: 1})
+        mocks.set_mode_switch(True)
+        wait_until(lambda: abs(outputs.current("throttle").value - 60.0) < 1, message="the SBC's throttle through the mux")
+        assert abs(outputs.current("steering").value - 80.0) < 1   # PCA9685 counts: not exactly
+        wait_until(lambda: vehicle.snapshot().speed > 0.5 and vehicle.snapshot().yaw_rate > 0,
+                   message="the vehicle to drive and turn right under the PWM outputs")
+        power.set(4, 0)   # the contactor opens: the motor stops whatever the ESC is told
+        wait_until(lambda: vehicle.snapshot().speed < 0.05, message="the contactor to stop the vehicle")
+        assert outputs.current("motor_power").neutral and not outputs.current("throttle").neutral
+        power.set(4, 1)
+        mocks.signal_loss(True)   # no pulses: the mux goes to the pilot's side, which carries none
+        wait_until(lambda: outputs.current("throttle").value == 0.0 and outputs.current("steering").value == 0.0,
+                   message="no pulse on the muxed outputs")
+        assert outputs.current("pan").value == 40.0   # not behind the mux: the SBC still drives it
+        enable.close()
+    finally:
+        for channel in (steering, throttle, pan):
+            channel.close()
+        power.close()
+        mocks.stop()
+
+
+def test_can_motors_are_never_gated_by_the_simulated_mux(tmp_path: Path) -> None:
+    text = ACKERMANN[:ACKERMANN.index("[services.drive]")] + '[simulation]\nmodel = "differential"\n' \
+        '[devices.rc]\nmock = "rc_receiver"\n'
+    path = tmp_path / "vehicle.toml"
+    path.write_text(text)
+    mocks = MockLauncher(load_profile(path), device_dir=tmp_path / "dev")
+    mocks.start()
+    try:
+        assert mocks.context.muxes[0][1].selected == "rc"   # manual: the mux selects the pilot
+        for side in ("left", "right"):   # what an ODrive or VESC node is given as its vehicle
+            mocks.context.motor_input(f"{side}_wheel").set_wheel_speed(side, 1.0)
+        wait_until(lambda: mocks.vehicle.snapshot().speed > 0.9, message="the CAN motors to move the vehicle in manual")
+        assert mocks.outputs.current("left_wheel").value == 50.0   # % of the 2 m/s top speed
+        mocks.actuated.hold(True)
+        wait_until(lambda: mocks.vehicle.snapshot().speed == 0.0, message="the held vehicle to stop")
+    finally:
+        mocks.stop()
+
+
+@pytest.mark.parametrize("change, error", [
+    (('  { name = "throttle", address = "pca9685:1:0x40", channel = 1 },\n', ""),
+     r"vehicle.toml: \[simulation\] model = 'ackermann' moves by steering and throttle, but no device drives "
+     r"throttle .*drives = \{ <channel> = \"throttle\" \}"),
+    (('hardware_mux = { steering = "steering", throttle = "throttle" }', 'hardware_mux = { motor_power = "throttle" }'),
+     r"\[safety\] hardware_mux: 'motor_power' is not a PWM output"),
+    (('drives = { motor_power = "enable" }', 'drives = { motor_power = "throttle" }'),
+     r"drives.motor_power = 'throttle': a GPIO output can only drive \"enable\""),
+    (('drives = { motor_power = "enable" }', 'drives = { horn = "enable" }'),
+     r"devices.contactor\]: drives names horn, which service 'contactor' does not have"),
+])
+def test_a_profile_whose_outputs_cannot_move_the_vehicle_is_refused(tmp_path: Path, change: tuple[str, str],
+                                                                      error: str) -> None:
+    with pytest.raises(DeviceError, match=error):
+        profile(tmp_path, ACKERMANN.replace(*change))
