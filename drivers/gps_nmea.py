@@ -46,6 +46,7 @@ class GpsNmeaDriver(SerialLineSensor):
         self.fix: GpsFix | None = None       # the latest epoch's reading
         self.last_fix: GpsFix | None = None  # the latest epoch with a position
         self.talkers: set[str] = set()
+        self._data_said = ""   # the ``data`` detail as last published on a change ("" before any)
 
     def check_config(self) -> None:
         """The serial fields, plus the frame, datum and sigma fields."""
@@ -135,6 +136,19 @@ class GpsNmeaDriver(SerialLineSensor):
             self.publish_health()
 
     # -- health ----------------------------------------------------------------------------------
+    def refresh_status(self) -> str:
+        """The base status, and health published at once when the data goes stale or fresh again."""
+        reason = super().refresh_status()
+        age = self.data_age()
+        data = "none yet" if age is None else ("stale" if age > self.config.get("stale_after_s") else "ok")
+        if data != self._data_said:
+            # The pre-arm GPS check reads ``data`` from health: say a change now, not at the next interval.
+            # Set first: publish_health() comes back here through health_details().
+            changed, self._data_said = bool(self._data_said), data
+            if changed:
+                self.publish_health()
+        return reason
+
     def problem(self) -> str:
         """``"no fix"`` while the latest epoch has no position."""
         if self.fix is None:

@@ -343,8 +343,8 @@ def test_gps_service_publishes_one_ned_fix_per_epoch_matching_the_vehicle(
 
 def test_gps_says_each_change_of_fix_in_health_at_once(services: ServiceProcesses, bus: BusClient, tmp_path: Path,
                                                        vehicle: SimVehicle, gps: NmeaGpsDevice) -> None:
-    """With a 60 s health interval only the start and the fix-change hook publish health (pre-arm reads it)."""
-    proc, probe = run_gps(services, bus, tmp_path, gps.address, vehicle, health_interval_s=60.0)
+    """With a 60 s health interval only the start and the change hooks publish health (pre-arm reads it)."""
+    proc, probe = run_gps(services, bus, tmp_path, gps.address, vehicle, health_interval_s=60.0, stale_after_s=0.5)
 
     def said() -> list[dict[str, str]]:
         return [{kv.key: kv.value for kv in h.details} for h in list(probe.health)]
@@ -356,6 +356,10 @@ def test_gps_says_each_change_of_fix_in_health_at_once(services: ServiceProcesse
     assert lost[0]["h_sigma_m"] == "" and lost[0]["fix"] == "False"
     gps.set_fix(True)
     wait_until(lambda: [d["fix_type"] for d in said()][-1] == "3D", message="the fix back in health")
+    gps.silence(True)
+    wait_until(lambda: said()[-1]["data"] == "stale", message="the silent receiver in health")
+    gps.silence(False)
+    wait_until(lambda: said()[-1]["data"] == "ok", message="the receiver back in health")
     assert proc.poll() is None
 
 

@@ -151,7 +151,7 @@ def test_tables_change_bounds_and_services(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("prearm, key, fix", [
     ({"gsp": True}, "'gsp'", "known:"),
-    ({"gps": {"max_sigma": 5.0}}, "'gps.max_sigma'", "known: max_data_age_s, max_sigma_m, service"),
+    ({"gps": {"max_sigma": 5.0}}, "'gps.max_sigma'", "known: max_sigma_m, service"),
     ({"gps": {"service": "gps9"}}, "'gps.service'", "not in the profile (services: gps, imu"),
     ({"gps": {"service": "world"}}, "'gps.service'", "kind world_modeler"),
     ({"imu": {"services": ["recorder"]}}, "'imu.services'", "disabled (enabled = false)"),
@@ -230,17 +230,16 @@ def test_gps_fails_with_the_named_reason_and_recovers(tmp_path: Path, details: d
     assert checks.evaluate(1.0, **OK) == []
 
 
-def test_gps_data_age_runs_on_between_health_messages(tmp_path: Path) -> None:
-    """A receiver that falls silent (or a driver that hangs) fails within max_data_age_s, not the health timeout."""
+def test_gps_stale_data_fails_and_a_silent_gps_service_times_out(tmp_path: Path) -> None:
     checks = checks_for(tmp_path)
     feed_good(checks, 0.0)
-    checks.on_health(health("gps", **{**GOOD_GPS, "last_data_age_s": "0.20"}), 1.0)
-    feed_good(checks, 2.2, skip=("gps",))
-    assert checks.evaluate(2.2, **OK) == []                      # 0.2 + 1.2 = 1.4 s <= 1.5 s
-    feed_good(checks, 2.4, skip=("gps",))
-    assert reasons(checks.evaluate(2.4, **OK)) == ["gps: no data for over 1.5 s"]
-    feed_good(checks, 4.2, skip=("gps",))
-    assert reasons(checks.evaluate(4.2, **OK)) == ["gps: no health for over 3 s"]
+    checks.on_health(health("gps", "degraded", **{**GOOD_GPS, "data": "stale", "last_data_age_s": "2.05"}), 1.0)
+    feed_good(checks, 1.0, skip=("gps",))
+    assert reasons(checks.evaluate(1.0, **OK)) == ["gps: no data from the receiver (stale)"]
+    checks.on_health(health("gps", **GOOD_GPS), 1.5)
+    feed_good(checks, 4.4, skip=("gps",))
+    assert checks.evaluate(4.4, **OK) == []
+    assert reasons(checks.evaluate(4.6, **OK)) == ["gps: no health for over 3 s"]
 
 
 def test_a_degraded_gps_with_a_good_fix_fails_with_its_own_reason(tmp_path: Path) -> None:

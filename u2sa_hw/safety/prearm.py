@@ -16,9 +16,9 @@ The evidence, per check (the table and its defaults are in :mod:`.prearm_table`)
 
 - ``no_failsafe``: *failsafe_reason* is empty (the host holds the failsafes, per source);
 - ``rc_link``: *rc_link_ok* (the host measures the RC signal);
-- ``gps``: the GPS service's Health: ``fix_type`` 3D, ``h_sigma_m`` under the bound, and
-  ``last_data_age_s`` plus the time since that Health arrived under ``max_data_age_s`` (so a
-  receiver that falls silent, or a driver that hangs, fails the check before its next Health);
+- ``gps``: the GPS service's Health: ``data`` fresh, ``fix_type`` 3D, ``h_sigma_m`` under the
+  bound (the driver publishes its health at once when the fix type or the data's freshness
+  changes);
 - ``imu``: each IMU service's Health: ``calibrated`` true;
 - ``estimator``: its Health, STATE_ESTIMATE younger than ``max_estimate_age_s``, and the
   estimate's position and heading sigmas (from the newest STATE_ESTIMATE, else the Health
@@ -207,15 +207,14 @@ class PrearmChecks:
                 label = check if service == check else f"{check} {service}"
             out.append(CheckFailure(check, f"{label}: {problem}", service))
 
-    def _gps_problem(self, heard: _Heard, now: float) -> str:
+    def _gps_problem(self, heard: _Heard, _now: float) -> str:
         check = self.table.gps
         assert check is not None
         d = heard.details
         if d.get("data") == "none yet":
             return "no data from the receiver yet"
-        age = _float(d.get("last_data_age_s"))
-        if age is not None and age + (now - heard.at) > check.max_data_age_s:
-            return f"no data for over {check.max_data_age_s:g} s"
+        if d.get("data") == "stale":
+            return "no data from the receiver (stale)"
         sats = d.get("satellites", "")
         with_sats = f", {sats} satellites" if sats else ""
         fix_type = d.get("fix_type", "")

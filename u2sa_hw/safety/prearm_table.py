@@ -2,7 +2,7 @@
 
 ```toml
 [safety.prearm]
-gps = { service = "gps", max_sigma_m = 5.0, max_data_age_s = 1.5 }
+gps = { service = "gps", max_sigma_m = 5.0 }
 estimator = { service = "estimator", max_position_sigma_m = 5.0, max_heading_sigma_deg = 10.0,
               max_estimate_age_s = 0.5 }
 imu = { services = ["imu"] }
@@ -42,11 +42,10 @@ DEFAULT_HEALTH_TIMEOUT_S = 3.0
 
 @dataclass(frozen=True)
 class GpsCheck:
-    """A 3D fix with its horizontal sigma under ``max_sigma_m``, data younger than ``max_data_age_s``."""
+    """Fresh data and a 3D fix with its horizontal sigma under ``max_sigma_m``."""
 
     service: str
     max_sigma_m: float = 5.0
-    max_data_age_s: float = 1.5
 
 
 @dataclass(frozen=True)
@@ -186,10 +185,9 @@ def parse_prearm(profile: VehicleProfile) -> PrearmTable:
     timeout = r.number(data, None, "health_timeout_s", DEFAULT_HEALTH_TIMEOUT_S, unit="s")
 
     gps = None
-    table = r.check_table(data, "gps", frozenset({"service", "max_sigma_m", "max_data_age_s"}))
+    table = r.check_table(data, "gps", frozenset({"service", "max_sigma_m"}))
     if table is not None and (name := r.default_service("gps", data, table, GPS_KINDS)) is not None:
-        gps = GpsCheck(service=name, max_sigma_m=r.number(table, "gps", "max_sigma_m", 5.0, unit="m"),
-                       max_data_age_s=r.number(table, "gps", "max_data_age_s", 1.5, unit="s"))
+        gps = GpsCheck(service=name, max_sigma_m=r.number(table, "gps", "max_sigma_m", 5.0, unit="m"))
 
     estimator = None
     table = r.check_table(data, "estimator", frozenset({"service", "max_position_sigma_m", "max_heading_sigma_deg",
