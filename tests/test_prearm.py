@@ -118,6 +118,12 @@ def test_defaults_come_from_the_boat_profiles_service_kinds() -> None:
     assert "rc" not in table.required_services.services
 
 
+@pytest.mark.parametrize("profile", sorted((REPO / "examples").glob("*/vehicle.toml")), ids=lambda p: p.parent.name)
+def test_every_example_profile_parses_with_every_check_on(profile: Path) -> None:
+    table = PrearmChecks.from_profile(load_profile(profile)).table
+    assert table.enabled() == ("no_failsafe", "rc_link", "gps", "imu", "estimator", "required_services")
+
+
 def test_a_profile_without_a_gps_or_imu_has_those_checks_off(tmp_path: Path) -> None:
     services = {k: v for k, v in SERVICES.items() if k not in ("gps", "imu")}
     table = checks_for(tmp_path, services=services).table
