@@ -5,11 +5,15 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
+import threading
 from pathlib import Path
 from typing import Any, Iterator
 
 import pytest
 
+from u2sa_hw import channels as ch
+from u2sa_hw import lcmtypes as t
+from u2sa_hw.bus_client import BusClient
 from u2sa_hw.launcher import LauncherClient, LauncherError
 from u2sa_hw.launcher.launcher import u2sa_command
 
@@ -74,3 +78,51 @@ def launch() -> Iterator[Any]:
         lp.close()
 
 
+# Services beat every 0.2 s; 10 missed beats (2 s) before "missing" keeps a loaded CI machine from
+# looking like a hang, and the grace covers a slow Python start.
+HSM_SETTINGS = ("health_interval_s = 0.2, missed_heartbeats = 10, restart_backoff_s = 0.5, max_restarts = 2, "
+                "system_health_interval_s = 0.2")
+
+
+def hsm_profile(tmp: Path, url: str, services: str, *, startup_grace_s: float,
+                hsm_settings: str = HSM_SETTINGS) -> Path:
+    """A profile with the TOML *services* and an HSM with fast test settings."""
+    path = tmp / "vehicle.toml"
+    path.write_text(f'[vehicle]\nname = "bench"\nlcm_url = "{url}"\n\n{services}\n[services.hsm]\nkind = "hsm"\n'
+                    f"settings = {{ {hsm_settings}, startup_grace_s = {startup_grace_s} }}\n")
+    return path
+
+
+class Watch:
+    """Collects Health pids and newest stamps per service, SystemHealth and Failsafe messages from the bus."""
+
+    def __init__(self, bus: BusClient) -> None:
+        self.pids: dict[str, list[int]] = {}
+        self.stamps: dict[str, int] = {}   # name -> header.timestamp_us of its newest Health
+        self.system: list[t.SystemHealth] = []
+        self.failsafes: list[t.Failsafe] = []
+        self._lock = threading.Lock()
+        bus.transport.subscribe(ch.HEALTH, t.Health, self._health)
+        bus.transport.subscribe(ch.SYSTEM_HEALTH, t.SystemHealth, lambda _c, m: self._add(self.system, m))
+        bus.transport.subscribe(ch.FAILSAFE, t.Failsafe, lambda _c, m: self._add(self.failsafes, m))
+
+    def _add(self, items: list[Any], msg: Any) -> None:
+        with self._lock:
+            items.append(msg)
+
+    def _health(self, _c: str, msg: t.Health) -> None:
+        with self._lock:
+            pids = self.pids.setdefault(msg.name, [])
+            if not pids or pids[-1] != msg.pid:
+                pids.append(msg.pid)
+            self.stamps[msg.name] = max(self.stamps.get(msg.name, 0), msg.header.timestamp_us)
+
+    def latest(self) -> t.SystemHealth | None:
+        """The newest SystemHealth."""
+        with self._lock:
+            return self.system[-1] if self.system else None
+
+    def service_state(self, name: str) -> t.ServiceState | None:
+        with self._lock:
+            latest = self.system[-1] if self.system else None
+        return next((s for s in latest.services if s.name == name), None) if latest else None

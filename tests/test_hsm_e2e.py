@@ -13,53 +13,12 @@ from typing import Any
 
 import pytest
 from conftest import wait_until
-from supervision_helpers import launch  # noqa: F401 - a fixture
+from supervision_helpers import Watch, hsm_profile, launch  # noqa: F401 - launch is a fixture
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus_client import BusClient
 from u2sa_hw.launcher.launcher import u2sa_command
-
-# Services beat every 0.2 s; 10 missed beats (2 s) before "missing" keeps a loaded CI machine from
-# looking like a hang, and the grace covers a slow Python start.
-HSM_SETTINGS = ("health_interval_s = 0.2, missed_heartbeats = 10, restart_backoff_s = 0.5, max_restarts = 2, "
-                "system_health_interval_s = 0.2")
-
-
-def profile(tmp: Path, url: str, services: str, *, startup_grace_s: float) -> Path:
-    path = tmp / "vehicle.toml"
-    path.write_text(f'[vehicle]\nname = "bench"\nlcm_url = "{url}"\n\n{services}\n[services.hsm]\nkind = "hsm"\n'
-                    f"settings = {{ {HSM_SETTINGS}, startup_grace_s = {startup_grace_s} }}\n")
-    return path
-
-
-class Watch:
-    """Collects Health pids per service, SystemHealth and Failsafe messages from the bus."""
-
-    def __init__(self, bus: BusClient) -> None:
-        self.pids: dict[str, list[int]] = {}
-        self.system: list[t.SystemHealth] = []
-        self.failsafes: list[t.Failsafe] = []
-        self._lock = threading.Lock()
-        bus.transport.subscribe(ch.HEALTH, t.Health, self._health)
-        bus.transport.subscribe(ch.SYSTEM_HEALTH, t.SystemHealth, lambda _c, m: self._add(self.system, m))
-        bus.transport.subscribe(ch.FAILSAFE, t.Failsafe, lambda _c, m: self._add(self.failsafes, m))
-
-    def _add(self, items: list[Any], msg: Any) -> None:
-        with self._lock:
-            items.append(msg)
-
-    def _health(self, _c: str, msg: t.Health) -> None:
-        with self._lock:
-            pids = self.pids.setdefault(msg.name, [])
-            if not pids or pids[-1] != msg.pid:
-                pids.append(msg.pid)
-
-    def service_state(self, name: str) -> t.ServiceState | None:
-        with self._lock:
-            latest = self.system[-1] if self.system else None
-        return next((s for s in latest.services if s.name == name), None) if latest else None
-
 
 def u2sa(tmp: Path, *args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([*u2sa_command(), *args], cwd=tmp, capture_output=True, text=True, timeout=60,
@@ -69,7 +28,7 @@ def u2sa(tmp: Path, *args: str) -> subprocess.CompletedProcess[str]:
 def test_hung_service_is_restarted_through_the_launcher(tmp_path: Path, lcm_url: str, bus: BusClient,
                                                         launch: Any) -> None:
     watch = Watch(bus)
-    vehicle = profile(tmp_path, lcm_url, '[services.est_a]\nkind = "state_estimator"\n'
+    vehicle = hsm_profile(tmp_path, lcm_url, '[services.est_a]\nkind = "state_estimator"\n'
                       "settings = { health_interval_s = 0.2 }\n", startup_grace_s=10.0)
     lp = launch(vehicle, "--grace", "3", "--watchdog", "0")   # the HSM, not the launcher's watchdog, must see it
     wait_until(lambda: (s := watch.service_state("est_a")) and s.state == "ok", timeout=30,
@@ -100,11 +59,11 @@ def test_hung_service_is_restarted_through_the_launcher(tmp_path: Path, lcm_url:
 def test_crash_looping_required_service_raises_the_failsafe(tmp_path: Path, lcm_url: str, bus: BusClient,
                                                             launch: Any) -> None:
     watch = Watch(bus)
-    vehicle = profile(tmp_path, lcm_url, '[services.est]\nkind = "state_estimator"\n'
+    vehicle = hsm_profile(tmp_path, lcm_url, '[services.est]\nkind = "state_estimator"\n'
                       "settings = { health_interval_s = 0.2 }\n\n"
                       '[services.broken]\nkind = "no_such_kind"\n'
                       "[services.broken.supervision]\nstartup_grace_s = 2.0\n", startup_grace_s=10.0)
-    lp = launch(vehicle, "--give-up-after", "0", "--backoff", "0.2", "--max-backoff", "1")
+    lp = launch(vehicle, "--give-up-after", "0", "--max-failures", "0", "--backoff", "0.2", "--max-backoff", "1")
     failsafe = wait_until(lambda: next((f for f in list(watch.failsafes) if f.active), None), timeout=60,
                           message="an active FAILSAFE")
     assert failsafe.service == "broken" and failsafe.header.source == "hsm"
@@ -120,13 +79,68 @@ def test_crash_looping_required_service_raises_the_failsafe(tmp_path: Path, lcm_
     assert report["failsafe"] is True
     assert next(s for s in report["services"] if s["name"] == "broken")["state"] == "failed"
 
-    clear = t.Failsafe()
-    clear.active, clear.reason = False, "operator"
+    # Another source raises and clears its own: the HSM reports both, and its own stays up.
+    publish_failsafe(bus, source="estop", active=True, reason="pressed")
+    wait_until(lambda: (m := watch.latest()) and m.summary.startswith("FAILSAFE held by estop, hsm -- estop: pressed"),
+               timeout=10, message="SystemHealth naming both holders")
+    publish_failsafe(bus, source="estop", active=False, reason="released")
+    latest = wait_until(lambda: (m := watch.latest()) and m.summary.startswith("FAILSAFE held by hsm --") and m,
+                        timeout=10, message="SystemHealth after the e-stop's clear")
+    assert latest.failsafe and "hsm: required service broken failed" in latest.summary
+    assert not any(not f.active and f.header.source == "hsm" for f in watch.failsafes)
+    assert "failsafe clear from estop leaves the HSM's own up" in lp.output
+
     seen = len(watch.failsafes)
-    bus.publish(ch.FAILSAFE, clear)                          # refused while broken is failed: asserted again
-    wait_until(lambda: "failsafe clear from" in lp.output and any(f.active for f in watch.failsafes[seen + 1:]),
-               timeout=10, message="the HSM to refuse the clear and assert the failsafe again")
+    publish_failsafe(bus, source="operator", active=False, reason="operator", service="hsm")
+    wait_until(lambda: "failsafe clear from operator refused" in lp.output
+               and any(f.active and f.header.source == "hsm" for f in watch.failsafes[seen + 1:]),
+               timeout=10, message="the HSM to refuse the operator's clear and assert the failsafe again")
     assert "refused: broken is still failed" in lp.output
+
+
+def publish_failsafe(bus: BusClient, *, source: str, active: bool, reason: str, service: str = "") -> None:
+    """A Failsafe message as *source* would send it (an e-stop, the operator)."""
+    msg = t.Failsafe()
+    msg.active, msg.reason, msg.service = active, reason, service
+    msg.header.source = source
+    bus.publish(ch.FAILSAFE, msg)
+
+
+def test_hsm_failsafe_is_cleared_only_by_an_operator_and_only_when_all_is_ok(tmp_path: Path, lcm_url: str,
+                                                                               bus: BusClient, launch: Any) -> None:
+    watch = Watch(bus)
+    vehicle = hsm_profile(tmp_path, lcm_url, '[services.est]\nkind = "state_estimator"\n'
+                          "settings = { health_interval_s = 0.2 }\n", startup_grace_s=10.0)
+    lp = launch(vehicle)
+    wait_until(lambda: (s := watch.service_state("est")) and s.state == "ok", timeout=30, message="est ok")
+    bus.stop(name="est")                               # a clean stop: the launcher leaves it down
+    raised = wait_until(lambda: next((f for f in list(watch.failsafes) if f.active), None), timeout=30,
+                        message="the HSM's failsafe for the stopped est")
+    assert raised.header.source == "hsm" and raised.reason.startswith("required service est stopped")
+
+    seen = len(watch.failsafes)
+    publish_failsafe(bus, source="operator", active=False, reason="try", service="*")
+    wait_until(lambda: "refused: est is still stopped" in lp.output
+               and any(f.active and f.header.source == "hsm" for f in watch.failsafes[seen + 1:]),
+               timeout=10, message="the clear refused while est is stopped, the failsafe asserted again")
+
+    lp.client.request("start", service="est")
+    wait_until(lambda: (s := watch.service_state("est")) and s.state == "ok", timeout=30, message="est ok again")
+    latest = watch.latest()
+    assert latest.failsafe and latest.summary.startswith("FAILSAFE held by hsm"), latest.summary   # latched
+    publish_failsafe(bus, source="rc", active=False, reason="not mine to clear")
+    publish_failsafe(bus, source="operator", active=False, reason="est is back", service="control")
+    wait_until(lambda: lp.output.count("leaves the HSM's own up") >= 2, timeout=10,
+               message="the HSM to read both clears that were not aimed at it")
+    assert not any(not f.active and f.header.source == "hsm" for f in watch.failsafes)
+
+    publish_failsafe(bus, source="operator", active=False, reason="est is back", service="hsm")
+    lowered = wait_until(lambda: next((f for f in list(watch.failsafes) if not f.active and f.header.source == "hsm"),
+                                      None), timeout=10, message="the HSM lowering its failsafe")
+    assert lowered.reason == "cleared by operator: est is back"
+    wait_until(lambda: (m := watch.latest()) and not m.failsafe and m.summary.startswith("ok"), timeout=10,
+               message="SystemHealth without failsafe")
+    assert "failsafe cleared by operator (est is back); every required service is ok" in lp.output
 
 
 def test_health_without_an_hsm_names_the_problem(tmp_path: Path, lcm_url: str) -> None:
@@ -137,7 +151,7 @@ def test_health_without_an_hsm_names_the_problem(tmp_path: Path, lcm_url: str) -
 
 def test_alive_but_silent_service_is_restarted(tmp_path: Path, lcm_url: str, bus: BusClient, launch: Any) -> None:
     watch = Watch(bus)
-    vehicle = profile(tmp_path, lcm_url, '[services.est]\nkind = "state_estimator"\n'
+    vehicle = hsm_profile(tmp_path, lcm_url, '[services.est]\nkind = "state_estimator"\n'
                       'settings = { health_interval_s = 0.2, mode = "passthrough" }\n'   # publishes only when fed
                       '[services.est.supervision]\ndata_channel = "STATE_ESTIMATE"\nstale_after_s = 2.0\n',
                       startup_grace_s=10.0)
@@ -172,7 +186,7 @@ def test_hsm_service_in_process_applies_policy_changes_and_drops_garbage(tmp_pat
     from u2sa_hw.services.hsm.service import HealthStatusMonitor
     from u2sa_hw.vehicle import load_profile
 
-    vehicle = profile(tmp_path, lcm_url, '[services.gps]\nkind = "gps_nmea"\n'
+    vehicle = hsm_profile(tmp_path, lcm_url, '[services.gps]\nkind = "gps_nmea"\n'
                       '[services.gps.supervision]\ndata_channel = "STATE_INFO"\nstale_after_s = 2.0\n',
                       startup_grace_s=10.0)
     loaded = load_profile(vehicle)

@@ -32,7 +32,10 @@ def state(mon: HealthMonitor, name: str, now: float) -> str:
     return next(v.state for v in mon.views(now) if v.name == name)
 
 
-POLICY = MonitorPolicy(max_restarts=2, restart_backoff_s=1.0, max_backoff_s=8.0, recovery_s=10.0)
+# These tests are about the rules and judge at sparse times: no confirmation wait, no stall
+# detection (both have their own tests below).
+POLICY = MonitorPolicy(max_restarts=2, restart_backoff_s=1.0, max_backoff_s=8.0, recovery_s=10.0, confirm_s=0.0,
+                       stall_s=1e9)
 
 
 def test_missed_heartbeat_requests_a_restart_after_the_timeout_only() -> None:
@@ -70,11 +73,11 @@ def test_repeated_failures_mark_failed_and_raise_the_failsafe_once() -> None:
     assert mon.failsafe_active and mon.summary(6.3).startswith("FAILSAFE: required service gps failed")
     assert state(mon, "gps", 6.3) == "failed" and state(mon, "camera", 6.3) == "failed"
     assert mon.evaluate(60.0) == []                         # failed is final: no more restarts, no repeats
-    assert mon.external_clear() == "gps is still failed" and mon.failsafe_active
+    assert mon.operator_clear() == "gps is still failed" and mon.failsafe_active
 
 
 def test_restart_backoff_doubles() -> None:
-    policy = MonitorPolicy(max_restarts=5, restart_backoff_s=4.0, max_backoff_s=100.0)
+    policy = MonitorPolicy(max_restarts=5, restart_backoff_s=4.0, max_backoff_s=100.0, confirm_s=0.0, stall_s=1e9)
     mon = HealthMonitor([WatchRule("imu", startup_grace_s=1.0)], policy=policy, now=0.0)
     times = []
     now = 0.0
@@ -131,7 +134,7 @@ def test_recovery_forgives_restarts_and_degraded_only_restarts_when_configured()
 def test_clean_stop_is_not_restarted_but_a_required_one_raises_the_failsafe() -> None:
     latched = HealthMonitor([WatchRule("ctl", heartbeat_timeout_s=1.0)], policy=POLICY, now=0.0)
     loose = HealthMonitor([WatchRule("ctl", heartbeat_timeout_s=1.0)],
-                          policy=MonitorPolicy(failsafe_latch=False), now=0.0)
+                          policy=MonitorPolicy(failsafe_latch=False, confirm_s=0.0, stall_s=1e9), now=0.0)
     for mon in (latched, loose):
         mon.on_health(health("ctl", 1), 0.0)
         mon.evaluate(0.1)
@@ -142,7 +145,7 @@ def test_clean_stop_is_not_restarted_but_a_required_one_raises_the_failsafe() ->
         mon.on_health(health("ctl", 2), 3.0)                 # started again by someone
     assert loose.evaluate(3.1) == [Recovered("ctl"), FailsafeChange(False, "every required service is ok again", "")]
     assert latched.evaluate(3.1) == [Recovered("ctl")] and latched.failsafe_active
-    assert latched.external_clear() == "" and not latched.failsafe_active   # an operator's clear, all ok
+    assert latched.operator_clear() == "" and not latched.failsafe_active   # an operator's clear, all ok
     assert latched.evaluate(3.2) == []                       # it stays down
 
 

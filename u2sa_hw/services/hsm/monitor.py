@@ -17,8 +17,21 @@ returns what to do (:class:`Restart`, :class:`Failed`, :class:`Recovered`,
 4. ``recovery_s`` of health forgives the restarts; a failed service that comes back recovers;
 5. a *failed* or *stopped* required service raises the failsafe. Without ``failsafe_latch``
    the HSM lowers it once every required service is ok again; with it (the default) it stays
-   up until someone else clears it (:meth:`HealthMonitor.external_clear`) while every
+   up until an operator clears it (:meth:`HealthMonitor.operator_clear`) while every
    required service is ok. The HSM never lowers a failsafe it did not raise.
+
+Doing no harm:
+
+- a heartbeat counts from when the service *sent* it (its header stamp, read by
+  :class:`~u2sa_hw.services.hsm.stamps.SenderClock`), not from when the HSM got to read it;
+- a problem is acted on (restart, failed, stopped) only once it has lasted ``confirm_s``, and a
+  heartbeat (or data) received meanwhile cancels it (:class:`Cancelled`): the HSM never acts on
+  a service that is publishing, even when its own reading lags behind;
+- a gap between two judgements longer than ``stall_s`` means the HSM itself was stalled
+  (SIGSTOP, a frozen machine): every pending decision is dropped (:class:`Stalled`) and a
+  service is judged again only once something arrived from it after the wake, or once its
+  heartbeat timeout has passed since; time the HSM could not watch never counts against a
+  service's data, details or degraded timers.
 """
 
 from __future__ import annotations
@@ -27,6 +40,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from u2sa_hw.services.hsm.rules import MonitorPolicy, WatchRule
+from u2sa_hw.services.hsm.stamps import SenderClock
 
 FALSE_WORDS = {"", "0", "0.0", "false", "no", "none", "off", "n/a"}
 UNWATCHED_FORGET_S = 60.0
@@ -67,6 +81,31 @@ class FailsafeChange:
 
 
 @dataclass(frozen=True)
+class Cancelled:
+    """A problem of *service* was not acted on: it published again before the decision was carried out."""
+
+    service: str
+    problem: str
+    evidence: str
+
+
+@dataclass(frozen=True)
+class Stalled:
+    """The HSM's own judgement stalled for *gap_s*: every service is judged afresh from now."""
+
+    gap_s: float
+
+
+@dataclass(frozen=True)
+class Problem:
+    """What is wrong with a service: its state, why, and what would disprove it (heartbeat, data, health)."""
+
+    state: str
+    text: str
+    evidence: str
+
+
+@dataclass(frozen=True)
 class ServiceView:
     """One row of the system health."""
 
@@ -89,7 +128,13 @@ def truthy(value: str | None) -> bool:
 class _Track:
     rule: WatchRule | None
     watch_since: float
-    last_heartbeat: float | None = None
+    last_heartbeat: float | None = None   # when the newest heartbeat was sent (our clock, from its stamp)
+    last_received: float | None = None    # when the HSM received anything from it (heartbeat or data)
+    clock: SenderClock = field(default_factory=SenderClock)
+    pending_since: float | None = None    # a problem first seen then, not acted on yet
+    confirmed: bool = False               # the current problem outlasted confirm_s
+    cancelled: str = ""                   # why a pending problem was dropped (reported once)
+    problem_evidence: str = ""            # what would disprove the current problem
     pid: int | None = None
     status: str = ""
     health_error: str = ""
@@ -119,6 +164,8 @@ class HealthMonitor:
         self.failsafe_active = False
         self.failsafe_reason = ""
         self.failsafe_service = ""
+        self._last_evaluate: float | None = None
+        self._rebased_at: float | None = None
 
     # -- inputs ------------------------------------------------------------------------------
     def data_channels(self) -> dict[str, set[str]]:
@@ -149,10 +196,16 @@ class HealthMonitor:
             if tr.last_restart is None or now - tr.last_restart > self._grace(tr):
                 tr.restarts += 1   # restarted by systemd or the launcher on its own
             tr.incarnation = now
+            tr.clock.reset()
         elif tr.incarnation is None:
             tr.incarnation = now
+        sent = tr.clock.sent_at(stamp_us=msg.header.timestamp_us, sequence=msg.header.sequence, received=now)
+        if sent is None:
+            return   # a duplicate or reordered heartbeat: older than what we know
         tr.pid = msg.pid
-        tr.last_heartbeat = now
+        tr.last_heartbeat = max(sent, tr.last_heartbeat or sent)
+        tr.last_received = now
+        self._disproved(tr, "heartbeat")
         tr.status = msg.status
         tr.health_error = msg.last_error
         tr.details = {kv.key: kv.value for kv in msg.details}
@@ -171,6 +224,19 @@ class HealthMonitor:
         tr = self._tracks.get(source)
         if tr is not None and tr.rule is not None and tr.rule.data_channel == channel:
             tr.last_data = now
+            tr.last_received = now
+            self._disproved(tr, "data")
+
+    def _disproved(self, tr: _Track, evidence: str) -> None:
+        """*evidence* arrived from a service: it cancels a problem that it contradicts, not yet acted on."""
+        if tr.pending_since is None and not tr.confirmed:
+            return
+        # A heartbeat or data disproves "missing"/"stopped"; data disproves "no data". A problem
+        # read from the health's content is judged again from the new content instead.
+        if tr.problem_evidence == "heartbeat" or tr.problem_evidence == evidence:
+            if tr.pending_since is not None:
+                tr.cancelled = f"{evidence} received"   # not acted on yet: say so once
+            tr.pending_since, tr.confirmed = None, False
 
     def restart_result(self, service: str, ok: bool, text: str) -> None:
         """The restarter's outcome for *service* (shown as its last error when it failed)."""
@@ -182,51 +248,88 @@ class HealthMonitor:
     def _grace(self, tr: _Track) -> float:
         return tr.rule.startup_grace_s if tr.rule is not None else self.default_timeout_s
 
-    def _data_age(self, tr: _Track, now: float) -> float | None:
+    def _timeout(self, tr: _Track) -> float:
+        return tr.rule.heartbeat_timeout_s if tr.rule is not None else self.default_timeout_s
+
+    def _watched(self, t: float) -> float:
+        """*t*, or the end of the HSM's last stall if later: time the HSM could not watch does not count."""
+        return t if self._rebased_at is None else max(t, self._rebased_at)
+
+    def _data_age(self, tr: _Track, now: float, *, judging: bool = False) -> float | None:
         if tr.rule is None or not tr.rule.data_channel or tr.incarnation is None:
             return None
-        return now - max(tr.last_data or tr.incarnation, tr.incarnation)
+        since = max(tr.last_data or tr.incarnation, tr.incarnation)
+        return now - (self._watched(since) if judging else since)
 
-    def _problem(self, tr: _Track, now: float) -> tuple[str, str] | None:
+    def _problem(self, tr: _Track, now: float) -> Problem | None:
         rule = tr.rule
-        timeout = rule.heartbeat_timeout_s if rule is not None else self.default_timeout_s
+        timeout = self._timeout(tr)
         if tr.last_heartbeat is None:
-            waited = now - tr.watch_since
+            waited = now - self._watched(tr.watch_since)
             if waited > self._grace(tr):
-                return "missing", f"no heartbeat in {waited:.1f} s"
+                return Problem("missing", f"no heartbeat in {waited:.1f} s", "heartbeat")
             return None
         age = now - tr.last_heartbeat
         if age > timeout:
             if tr.status == "stopping":
-                return "stopped", f"stopped on purpose {age:.1f} s ago"
-            return "missing", f"no heartbeat for {age:.1f} s (timeout {timeout:g} s)"
+                return Problem("stopped", f"stopped on purpose {age:.1f} s ago", "heartbeat")
+            return Problem("missing", f"no heartbeat for {age:.1f} s (timeout {timeout:g} s)", "heartbeat")
         if rule is None:
             return None
         if tr.status == "failed":
-            return "stale", f"reports failed: {tr.health_error or 'no reason given'}"
-        data_age = self._data_age(tr, now)
+            return Problem("stale", f"reports failed: {tr.health_error or 'no reason given'}", "health")
+        data_age = self._data_age(tr, now, judging=True)
         if rule.stale_after_s > 0 and data_age is not None and data_age > rule.stale_after_s:
-            return "stale", f"no data on {rule.data_channel} for {data_age:.1f} s (limit {rule.stale_after_s:g} s)"
-        if tr.details_bad_since is not None and now - tr.details_bad_since > rule.require_grace_s:
+            return Problem("stale", f"no data on {rule.data_channel} for {data_age:.1f} s "
+                           f"(limit {rule.stale_after_s:g} s)", "data")
+        if tr.details_bad_since is not None and now - self._watched(tr.details_bad_since) > rule.require_grace_s:
             bad = [k for k in rule.require_details if not truthy(tr.details.get(k))]
             shown = ", ".join(f"{k}={tr.details.get(k, 'absent')}" for k in bad)
-            return "stale", f"{shown} for {now - tr.details_bad_since:.1f} s (required: {', '.join(bad)})"
+            return Problem("stale", f"{shown} for {now - tr.details_bad_since:.1f} s (required: {', '.join(bad)})",
+                           "health")
         if rule.degraded_restart_s > 0 and tr.degraded_since is not None \
-                and now - tr.degraded_since > rule.degraded_restart_s:
-            return "degraded", f"degraded for {now - tr.degraded_since:.1f} s: {tr.health_error or 'no reason given'}"
+                and now - self._watched(tr.degraded_since) > rule.degraded_restart_s:
+            return Problem("degraded", f"degraded for {now - tr.degraded_since:.1f} s: "
+                           f"{tr.health_error or 'no reason given'}", "health")
         return None
+
+    def _stalled(self, now: float) -> Stalled | None:
+        """Notice a gap in the judgements: the HSM itself was not running (see the module docstring)."""
+        last, self._last_evaluate = self._last_evaluate, now
+        if last is None or now - last <= self.policy.stall_s:
+            return None
+        self._rebased_at = now
+        for tr in self._tracks.values():
+            tr.pending_since = None
+        return Stalled(now - last)
+
+    def _blind(self, tr: _Track, now: float) -> bool:
+        """True while a service is not judged after a stall: nothing from it since, and within its timeout."""
+        if self._rebased_at is None or (tr.last_received is not None and tr.last_received >= self._rebased_at):
+            return False
+        limit = self._timeout(tr) if tr.last_heartbeat is not None else self._grace(tr)
+        return now - self._rebased_at <= limit
 
     def evaluate(self, now: float) -> list[Any]:
         """Judge every service at *now*; return the actions to carry out, in order."""
         actions: list[Any] = []
+        stall = self._stalled(now)
+        if stall is not None:
+            actions.append(stall)
         for name, tr in list(self._tracks.items()):
+            if self._blind(tr, now):
+                continue
             problem = self._problem(tr, now)
+            if tr.cancelled:
+                actions.append(Cancelled(name, tr.problem, tr.cancelled))
+                tr.cancelled = ""
             if tr.rule is None:
-                tr.state = problem[0] if problem else ("degraded" if tr.status == "degraded" else "ok")
+                tr.state = problem.state if problem else ("degraded" if tr.status == "degraded" else "ok")
                 if problem and tr.last_heartbeat is not None and now - tr.last_heartbeat > UNWATCHED_FORGET_S:
                     del self._tracks[name]
                 continue
             if problem is None:
+                tr.pending_since, tr.confirmed, tr.problem_evidence = None, False, ""
                 self._healthy(tr, now, actions)
                 continue
             tr.healthy_since = None
@@ -236,7 +339,9 @@ class HealthMonitor:
             if tr.last_restart is not None and now - tr.last_restart < tr.rule.startup_grace_s:
                 tr.state = "restarting"
                 continue
-            tr.state, tr.problem = problem
+            tr.state, tr.problem, tr.problem_evidence = problem.state, problem.text, problem.evidence
+            if not self._confirm(tr, now):
+                continue
             if tr.state == "stopped":
                 continue
             if not tr.rule.restart or tr.attempts >= self.policy.max_restarts:
@@ -251,9 +356,21 @@ class HealthMonitor:
                 tr.last_restart = now
                 tr.watch_since = now
                 tr.state = "restarting"
+                tr.confirmed = False
                 actions.append(Restart(name, tr.problem, tr.attempts))
         actions.extend(self._failsafe(now))
         return actions
+
+    def _confirm(self, tr: _Track, now: float) -> bool:
+        """True once the problem has lasted ``confirm_s`` with nothing from the service disproving it."""
+        if tr.confirmed:
+            return True
+        if tr.pending_since is None:
+            tr.pending_since = now
+        if now - tr.pending_since < self.policy.confirm_s:
+            return False
+        tr.pending_since, tr.confirmed = None, True
+        return True
 
     def _healthy(self, tr: _Track, now: float, actions: list[Any]) -> None:
         assert tr.rule is not None
@@ -274,8 +391,8 @@ class HealthMonitor:
             actions.append(Recovered(tr.rule.name))
 
     def _causes(self) -> list[_Track]:
-        return [tr for tr in self._tracks.values()
-                if tr.rule is not None and tr.rule.required and (tr.failed or tr.state == "stopped")]
+        return [tr for tr in self._tracks.values() if tr.rule is not None and tr.rule.required
+                and (tr.failed or (tr.state == "stopped" and tr.confirmed))]
 
     def _all_required_ok(self) -> bool:
         return all(tr.state in ("ok", "degraded") for tr in self._tracks.values()
@@ -294,8 +411,8 @@ class HealthMonitor:
             return [FailsafeChange(False, "every required service is ok again", "")]
         return []
 
-    def external_clear(self) -> str:
-        """Someone else (an operator, a released e-stop) cleared the failsafe: unlatch if all is well.
+    def operator_clear(self) -> str:
+        """An operator cleared the HSM's failsafe (a clear from ``operator`` naming ``hsm`` or ``*``).
 
         Returns "" when the HSM's failsafe is now down (or was not up), else why it stays up
         (the HSM then asserts it again at once).

@@ -58,6 +58,8 @@ class MonitorPolicy:
     max_backoff_s: float = 30.0
     recovery_s: float = 30.0
     failsafe_latch: bool = True
+    confirm_s: float = 0.5       # a problem must last this long, undisproved, before it is acted on
+    stall_s: float = 1.0         # a gap between judgements longer than this: the HSM itself stalled
 
     def backoff(self, attempt: int) -> float:
         """Seconds after restart number *attempt* (1-based) before the next may follow."""

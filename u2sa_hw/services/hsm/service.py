@@ -5,9 +5,14 @@ watched, to their data channels (only the header's ``source`` is read). A
 :class:`HealthMonitor` judges them; this service carries out its verdicts: restarts
 (through systemd or the local launcher, on a worker thread so the loop never blocks),
 the failsafe on ``FAILSAFE`` (re-sent every second while active, so a restarted actuator
-learns it; a clear from anyone else is accepted only while every required service is ok),
-and the system health on ``U2SA_SYSTEM_HEALTH`` at 1 Hz. Its loop is
-``while self.wait(...)``, so systemd's watchdog restarts a hung HSM.
+learns it), and the system health on ``U2SA_SYSTEM_HEALTH`` at 1 Hz. Its loop is
+``while self.wait(...)``, so systemd's (or ``u2sa run``'s) watchdog restarts a hung HSM.
+
+Failsafes follow the one model of :mod:`u2sa_hw.failsafe`: the HSM's own is held under its
+name; a clear from any other source leaves it up; an operator clear (source ``operator``)
+naming the HSM or ``*`` lowers it only while every required service is ok, else the HSM
+says why and asserts it again at once. Every source holding a failsafe is reported in the
+system health (summary) and the HSM's health details (``failsafe_holders``).
 """
 
 from __future__ import annotations
@@ -22,13 +27,16 @@ from typing import Any, ClassVar
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.config import field
-from u2sa_hw.services.hsm.monitor import Failed, FailsafeChange, HealthMonitor, Recovered, Restart
+from u2sa_hw.failsafe import ALL_SOURCES, OPERATOR_SOURCE, FailsafeSources
+from u2sa_hw.services.hsm.monitor import (Cancelled, Failed, FailsafeChange, HealthMonitor, Recovered, Restart,
+                                          Stalled)
 from u2sa_hw.services.hsm.restarters import (DEFAULT_UNIT_TEMPLATE, LauncherRestarter, Restarter, RestartError,
                                              choose_restarter)
 from u2sa_hw.services.hsm.rules import MonitorPolicy, rules_from_profile
 from u2sa_hw.service import U2SAService
 
 FAILSAFE_REPEAT_S = 1.0
+FAILSAFE_HELD = "FAILSAFE held by"
 
 
 class HealthStatusMonitor(U2SAService):
@@ -46,6 +54,8 @@ class HealthStatusMonitor(U2SAService):
               "false: the HSM lowers it when every required service is ok again"),
         field("system_health_interval_s", 1.0, "seconds between SystemHealth messages"),
         field("check_interval_s", 0.1, "seconds between judgements"),
+        field("confirm_s", 0.5, "a problem must last this long, with nothing from the service meanwhile, "
+              "before the HSM restarts it or marks it failed"),
         field("restarter", "auto", "auto, systemd, launcher or none (see docs/supervision.md)"),
         field("unit_template", DEFAULT_UNIT_TEMPLATE, "systemd unit of a service; {name} is its name"),
     )
@@ -64,6 +74,7 @@ class HealthStatusMonitor(U2SAService):
         self._worker: threading.Thread | None = None
         self._summary = ""
         self._reassert = threading.Event()
+        self.failsafes = FailsafeSources()   # every source's, the HSM's own included
         self.register_subscriber(ch.HEALTH, t.Health, self._on_health)
         self.register_subscriber(ch.FAILSAFE, t.Failsafe, self._on_failsafe)
         for channel in self.monitor.data_channels():
@@ -74,9 +85,11 @@ class HealthStatusMonitor(U2SAService):
 
     def _policy(self) -> MonitorPolicy:
         cfg = self.config
+        # A loop gap of 5 periods (at least 1 s) is no scheduling hiccup: the HSM itself was stalled.
         return MonitorPolicy(max_restarts=int(cfg["max_restarts"]), restart_backoff_s=float(cfg["restart_backoff_s"]),
                              max_backoff_s=float(cfg["max_backoff_s"]), recovery_s=float(cfg["recovery_s"]),
-                             failsafe_latch=bool(cfg["failsafe_latch"]))
+                             failsafe_latch=bool(cfg["failsafe_latch"]), confirm_s=float(cfg["confirm_s"]),
+                             stall_s=max(1.0, 5 * float(cfg["check_interval_s"])))
 
     # -- inputs (LCM handler thread) -----------------------------------------------------------
     def _on_health(self, msg: t.Health) -> None:
@@ -86,17 +99,27 @@ class HealthStatusMonitor(U2SAService):
             self.monitor.on_health(msg, time.monotonic())
 
     def _on_failsafe(self, msg: t.Failsafe) -> None:
-        if msg.active or msg.header.source == self.name:
+        source = msg.header.source or "?"
+        if source == self.name:
+            return   # our own, back from the bus: self.failsafes already holds what we sent
+        self.failsafes.apply_message(msg)
+        aimed_at_us = source == OPERATOR_SOURCE and msg.service in (self.name, ALL_SOURCES)
+        if msg.active or not aimed_at_us:
+            if not msg.active and self.monitor.failsafe_active:
+                self.logger.info("failsafe clear from %s%s leaves the HSM's own up (only an operator clear naming "
+                                 "'%s' or '*' lowers it)", source, f" for {msg.service}" if msg.service else "",
+                                 self.name)
             return
         with self._lock:
             was_active = self.monitor.failsafe_active
-            refusal = self.monitor.external_clear()
-        who = msg.header.source or "?"
+            refusal = self.monitor.operator_clear()
         if refusal:
-            self.logger.warning("failsafe clear from %s refused: %s; asserting it again", who, refusal)
+            self.logger.warning("failsafe clear from %s refused: %s; asserting it again", source, refusal)
+            self.failsafes.apply(source=self.name, active=True, reason=self.monitor.failsafe_reason)
             self._reassert.set()
         elif was_active:
-            self.logger.info("failsafe cleared by %s (%s); every required service is ok", who, msg.reason or "-")
+            self.logger.info("failsafe cleared by %s (%s); every required service is ok", source, msg.reason or "-")
+            self._publish_failsafe(False, f"cleared by {source}: {msg.reason or 'no reason given'}", "")
 
     def _on_data(self, channel: str, data: bytes) -> None:
         try:
@@ -162,7 +185,13 @@ class HealthStatusMonitor(U2SAService):
 
     # -- actions ------------------------------------------------------------------------------------
     def _act(self, action: Any) -> None:
-        if isinstance(action, Restart):
+        if isinstance(action, Stalled):
+            self.logger.warning("the HSM itself was stalled for %.1f s (it judges every %g s): no verdict from "
+                                "before; each service is judged again once it is heard from, or after its timeout",
+                                action.gap_s, float(self.config["check_interval_s"]))
+        elif isinstance(action, Cancelled):
+            self.logger.info("%s: not acting on '%s': %s since", action.service, action.problem, action.evidence)
+        elif isinstance(action, Restart):
             self.logger.warning("restarting %s (restart %d of %d): %s", action.service, action.attempt,
                                 self.policy.max_restarts, action.reason)
             self._restarts.put((action.service, action.reason))
@@ -197,6 +226,7 @@ class HealthStatusMonitor(U2SAService):
                 self.monitor.restart_result(service, ok, text)
 
     def _publish_failsafe(self, active: bool, reason: str, service: str) -> None:
+        self.failsafes.apply(source=self.name, active=active, reason=reason)
         msg = t.Failsafe()
         msg.active, msg.reason, msg.service = active, reason, service
         self.publish(ch.FAILSAFE, msg)
@@ -207,7 +237,10 @@ class HealthStatusMonitor(U2SAService):
         with self._lock:
             views = self.monitor.views(now)
             summary = self.monitor.summary(now)
-            failsafe = self.monitor.failsafe_active
+        held = self.failsafes.held()
+        failsafe = bool(held)
+        if held:
+            summary = failsafe_summary(held, services=summary)
         msg = t.SystemHealth()
         msg.failsafe, msg.summary = failsafe, summary
         for v in views:
@@ -225,4 +258,22 @@ class HealthStatusMonitor(U2SAService):
     def health_details(self) -> dict[str, Any]:
         """Restarter, failsafe state and the number of watched services."""
         return {"restarter": self.restarter.kind if self.restarter else "?", "failsafe": self.monitor.failsafe_active,
-                "watched": len(self.rules)}
+                "failsafe_holders": self.failsafes.reason(), "watched": len(self.rules)}
+
+
+def failsafe_summary(held: dict[str, str], *, services: str) -> str:
+    """The system health's summary while sources hold failsafes: ``FAILSAFE held by A, B -- A: why; B: why``.
+
+    *services* (the HSM's own summary) follows in brackets when the HSM holds none itself.
+    """
+    text = (f"{FAILSAFE_HELD} {', '.join(sorted(held))} -- "
+            + "; ".join(f"{src}: {why or 'no reason given'}" for src, why in sorted(held.items())))
+    return text if services.startswith("FAILSAFE") else f"{text} [{services}]"
+
+
+def holders_of(summary: str) -> list[str]:
+    """The sources a :func:`failsafe_summary` names ([] for any other summary)."""
+    if not summary.startswith(FAILSAFE_HELD + " "):
+        return []
+    names, _sep, _rest = summary[len(FAILSAFE_HELD) + 1:].partition(" -- ")
+    return [n.strip() for n in names.split(",") if n.strip()]
