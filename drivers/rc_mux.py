@@ -106,7 +106,7 @@ class RcMuxDriver(Sensor):
         self.prearm = PrearmChecks.from_profile(self.profile)
         self.prearm_failures: list[CheckFailure] = []
         self.hold = False
-        self.checks_lost = 0
+        self.checks_lost = self.stalls = 0
         self.select_level: int | None = None
         self.mismatch, self._mismatch_since = False, None
         self.mismatches = self.enable_changes = 0
@@ -254,7 +254,9 @@ class RcMuxDriver(Sensor):
         period = 1.0 / self.config["publish_hz"]
         manual_period = 1.0 / self.config["manual_hz"]
         next_publish = next_manual = time.monotonic()
+        last_loop_ns = time.monotonic_ns()
         while self.wait(0.0):
+            last_loop_ns = self._check_stall(last_loop_ns)
             port = self.gpio.port()
             if port is None:
                 self.wait(min(0.05, max(0.01, self.gpio.retry_in())))
@@ -276,6 +278,22 @@ class RcMuxDriver(Sensor):
             if self.sticks is not None and self.filter.mode == MODE_MANUAL and now >= next_manual:
                 self.publish_manual()
                 next_manual = max(next_manual + manual_period, now)
+
+    def _check_stall(self, last_loop_ns: int) -> int:
+        """A loop gap longer than the signal timeout (the process was stopped or starved) is a signal
+        loss: the actuators saw RC_MODE go stale, so autonomy must not come back without the pilot."""
+        now_ns = time.monotonic_ns()
+        gap_ns = now_ns - last_loop_ns
+        if gap_ns > self.filter.signal_timeout_ns:
+            self.stalls += 1
+            with self._enable_lock:
+                if self.config["require_rearm"] and self.armed:
+                    self.armed = False
+                    self.logger.warning("RC service stalled for %.0f ms: disarmed (switch through manual to re-arm)",
+                                        gap_ns / 1e6)
+                self.update_enable()
+            self._changed.set()
+        return now_ns
 
     def _on_edge(self, line: int, rising: bool, timestamp_ns: int) -> None:
         if line == self.select_line:
@@ -385,7 +403,7 @@ class RcMuxDriver(Sensor):
             **self.gpio.health(), "mode": self.filter.mode_name, "autonomy_enabled": self.enabled,
             "enable_blocked_by": "" if allowed else why, "armed": self.armed, "hold": self.hold,
             "failsafe": self.failsafe_active, "failsafe_sources": ",".join(sorted(self.failsafes.held())),
-            "prearm_failed": "; ".join(f.reason for f in self.prearm_failures), "checks_lost": self.checks_lost,
+            "prearm_failed": "; ".join(f.reason for f in self.prearm_failures), "checks_lost": self.checks_lost, "stalls": self.stalls,
             "manual_commands": self.sticks.sent if self.sticks else 0,
             "select_readback": "none" if self.select_level is None else self.select_level,
             "select_mismatch": self.mismatch, "select_mismatches": self.mismatches,
