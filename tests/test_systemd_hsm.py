@@ -285,7 +285,7 @@ def test_crash_loop_ends_failed_and_the_hsm_raises_the_failsafe(ns: SystemdNames
     wait_until(lambda: (s := watch.service_state("broken")) and s.state == "failed", timeout=10,
                message="SystemHealth to show broken failed")
     latest = watch.system_since(0)[-1]
-    assert latest.failsafe and latest.summary.startswith("FAILSAFE: required service broken failed"), latest.summary
+    assert latest.failsafe and latest.summary.startswith("FAILSAFE held by hsm -- hsm: required service broken failed"), latest.summary
     assert watch.service_state("est").state == "ok"
     log = hsm_log(root)
     assert f"restarting broken (restart 1 of {MAX_RESTARTS}): no heartbeat" in log, log[-2000:]

@@ -170,7 +170,8 @@ class HealthStatusMonitor(U2SAService):
 
     def on_config_change(self, name: str, value: Any) -> None:
         """Apply a new restart/failsafe policy live; rule and restarter fields apply at the next start."""
-        if name in ("max_restarts", "restart_backoff_s", "max_backoff_s", "recovery_s", "failsafe_latch"):
+        if name in ("max_restarts", "restart_backoff_s", "max_backoff_s", "recovery_s", "failsafe_latch", "confirm_s",
+                    "check_interval_s"):
             policy = self._policy()
             with self._lock:
                 self.policy = self.monitor.policy = policy
@@ -269,11 +270,3 @@ def failsafe_summary(held: dict[str, str], *, services: str) -> str:
     text = (f"{FAILSAFE_HELD} {', '.join(sorted(held))} -- "
             + "; ".join(f"{src}: {why or 'no reason given'}" for src, why in sorted(held.items())))
     return text if services.startswith("FAILSAFE") else f"{text} [{services}]"
-
-
-def holders_of(summary: str) -> list[str]:
-    """The sources a :func:`failsafe_summary` names ([] for any other summary)."""
-    if not summary.startswith(FAILSAFE_HELD + " "):
-        return []
-    names, _sep, _rest = summary[len(FAILSAFE_HELD) + 1:].partition(" -- ")
-    return [n.strip() for n in names.split(",") if n.strip()]
