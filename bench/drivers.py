@@ -46,6 +46,7 @@ sys.path.insert(0, str(REPO))
 
 from mock_devices.nmea_gps import NmeaGpsDevice  # noqa: E402
 from mock_devices.vehicle_sim import SimVehicle  # noqa: E402
+from u2sa_hw.bus_key import use_run_key  # noqa: E402
 from u2sa_hw import channels as ch  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
 from u2sa_hw.bus_client import BusClient  # noqa: E402
@@ -280,6 +281,7 @@ def bench_round_trip(services: Services, bus: BusClient, port: int, count: int) 
 
 def main() -> None:
     """Run the benchmarks and print the figures."""
+    use_run_key()   # without an installed key, a fresh one for this run and the services it starts
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer samples")
     parser.add_argument("--only", choices=("gps", "can"), help="run one part")

@@ -38,6 +38,7 @@ from drivers.nmea_fields import EpochCollector, parse_sentence  # noqa: E402
 from mock_devices.nmea_gps import NmeaGpsDevice  # noqa: E402
 from mock_devices.serial_compass import NmeaCompassDevice  # noqa: E402
 from mock_devices.vehicle_sim import SimVehicle  # noqa: E402
+from u2sa_hw.bus_key import use_run_key  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
 from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo  # noqa: E402
 from u2sa_hw.vehicle import Origin  # noqa: E402
@@ -178,9 +179,9 @@ def bench_replay(minutes: float) -> None:
 
 def publisher(url: str, factor: float, seconds: float) -> None:
     """Child process: publish the example vehicle's mix at *factor* times its rates; print the count sent."""
-    import lcm
+    from u2sa_hw.transport import Transport
 
-    lc = lcm.LCM(url)
+    tx = Transport(url, name="bench-publisher")   # signed, as every u2sa publisher is
     plan = [(ch, rate * factor, b"\x00" * size) for ch, (rate, size) in EXAMPLE_RATES.items()]
     sent = 0
     start = time.monotonic()
@@ -190,7 +191,7 @@ def publisher(url: str, factor: float, seconds: float) -> None:
         for ch, rate, payload in plan:
             due = rate * (now - start) - credit[ch]
             while due >= 1.0:
-                lc.publish(ch, payload)
+                tx.publish_bytes(ch, payload)
                 credit[ch] += 1.0
                 due -= 1.0
                 sent += 1
@@ -241,6 +242,7 @@ def main() -> int:
     p.add_argument("--skip-replay", action="store_true")
     p.add_argument("--skip-recorder", action="store_true")
     args = p.parse_args()
+    use_run_key()
     if not args.skip_replay:
         bench_replay(args.minutes)
     if not args.skip_recorder:

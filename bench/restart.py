@@ -42,6 +42,7 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from systemd_ns import SystemdNamespace, cannot_boot_reason, stage_root, wait_until  # noqa: E402
 
+from u2sa_hw.bus_key import use_run_key  # noqa: E402
 from u2sa_hw import channels as ch  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
 from u2sa_hw.bus_client import BusClient  # noqa: E402
@@ -145,6 +146,7 @@ def stage(base: Path, url: str, services: dict[str, str]) -> Path:
 
 def main() -> int:
     """Run the benchmark; print the figures."""
+    use_run_key()   # without an installed key, a fresh one for this run and the services it starts
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--kills", type=int, default=20, help="SIGKILLs per service (default 20)")
     parser.add_argument("--hangs", type=int, default=5, help="SIGSTOP hangs per service (default 5)")

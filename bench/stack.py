@@ -52,6 +52,7 @@ import tomli_w
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
+from u2sa_hw.bus_key import use_run_key  # noqa: E402
 from u2sa_hw import channels as ch  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
 from u2sa_hw.protocols import odrive_cansimple as cs  # noqa: E402
@@ -344,6 +345,7 @@ def latency_phase(vehicle: Path, out: Path, *, seconds: float, threshold: float)
 
 
 def main() -> int:
+    use_run_key()   # without an installed key, a fresh one for this run and the services it starts
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--vehicle", type=Path, default=REPO / "examples" / "ground_vehicle" / "vehicle.toml")
     parser.add_argument("--out", type=Path, default=Path(tempfile.gettempdir()) / "u2sa-bench-stack")

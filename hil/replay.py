@@ -11,6 +11,7 @@ driver has opened its device -> play (hil/player.py) -> let the last outputs arr
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import tempfile
@@ -23,6 +24,7 @@ from typing import Any, Callable
 
 import tomli_w
 
+from u2sa_hw.bus_key import KEY_ENV, fresh_key_file
 from u2sa_hw.launcher import Launcher, ProcessStatus, RestartPolicy
 from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo
 from u2sa_hw.services.recorder.capture import BusCapture
@@ -291,6 +293,10 @@ class Replay:
             check_multicast(url)
         except TransportError as exc:
             raise ReplayError(str(exc)) from None
+        # The run's private bus gets a key of its own, as a simulation's does: the log holds
+        # verified payloads, so it replays here whatever key recorded it.
+        saved_key = os.environ.get(KEY_ENV)
+        os.environ[KEY_ENV] = str(fresh_key_file(self.run_dir))
         devices: dict[str, ReplayDevice] = {}
         launcher: Launcher | None = None
         transport: Transport | None = None
@@ -364,6 +370,10 @@ class Replay:
                 transport.stop()
             for device in devices.values():
                 device.stop()
+            if saved_key is None:
+                os.environ.pop(KEY_ENV, None)
+            else:
+                os.environ[KEY_ENV] = saved_key
             if not keep:
                 shutil.rmtree(self.run_dir, ignore_errors=True)
 

@@ -6,16 +6,42 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Callable, Iterator
 
 import pytest
 
+from u2sa_hw.bus_key import KEY_ENV, fresh_key_file
 from u2sa_hw.udp_ports import private_lcm_url
 
 REPO = Path(__file__).resolve().parent.parent
 U2SA = [sys.executable, "-m", "u2sa_hw.cli"]
+
+
+_SESSION_KEY_DIR: tempfile.TemporaryDirectory | None = None
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """A fresh bus key for this test session, in $U2SA_BUS_KEY_FILE before any test module is imported.
+
+    Every process a test starts inherits it, so the session's buses are signed with a key of
+    their own: another session (or a vehicle) on this machine is heard only as forged packets.
+    """
+    global _SESSION_KEY_DIR
+    _SESSION_KEY_DIR = tempfile.TemporaryDirectory(prefix="u2sa-test-key-")
+    key = fresh_key_file(_SESSION_KEY_DIR.name)
+    # Some tests run a service as nobody (see unprivileged()): a test key may be world-readable.
+    os.chmod(_SESSION_KEY_DIR.name, 0o755)
+    os.chmod(key, 0o644)
+    os.environ[KEY_ENV] = str(key)
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    """Remove the session's key."""
+    if _SESSION_KEY_DIR is not None:
+        _SESSION_KEY_DIR.cleanup()
 
 
 def wait_until(predicate: Callable[[], object], *, timeout: float = 10.0, interval: float = 0.02,

@@ -99,6 +99,12 @@ def stage_root(root: Path) -> Path:
     units.mkdir(parents=True)
     for gone in ("etc/u2sa", "etc/udev/rules.d"):
         shutil.rmtree(root / gone, ignore_errors=True)
+    # The staged vehicle shares the test session's bus key, as a vehicle shares its key with
+    # its ground station; install keeps a key that is there (and sets it to root:u2sa 0640).
+    session_key = os.environ.get("U2SA_BUS_KEY_FILE")
+    if session_key:
+        (root / "etc/u2sa").mkdir(parents=True)
+        shutil.copy(session_key, root / "etc/u2sa/bus.key")
     support = root / SUPPORT_DIR
     support.mkdir(parents=True)
     for name in SUPPORT_UNITS:
@@ -243,8 +249,11 @@ class SystemdNamespace:
     def run(self, *cmd: str, check: bool = True, timeout: float = 30.0) -> subprocess.CompletedProcess[str]:
         """Run *cmd* inside the namespace's mount and PID (and private network) namespaces."""
         spaces = ["-m", "-p", *(["-n"] if self.private_network else [])]
+        # Inside, u2sa finds the key where the vehicle's services do (/etc/u2sa/bus.key), not
+        # at the session's path in the host's /tmp, which the namespace does not see.
+        env = {k: v for k, v in os.environ.items() if k != "U2SA_BUS_KEY_FILE"}
         return subprocess.run(["nsenter", "-t", str(self.pid), *spaces, *cmd], capture_output=True,
-                              text=True, timeout=timeout, check=check)
+                              text=True, timeout=timeout, check=check, env=env)
 
     def systemctl(self, *args: str, check: bool = True, timeout: float = 30.0) -> subprocess.CompletedProcess[str]:
         """``systemctl ARGS`` against the namespace's systemd."""

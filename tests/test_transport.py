@@ -197,13 +197,14 @@ def test_counters_count_packets_once_and_malformed_ones_are_logged_once(lcm_url:
 
 
 BUOY_PUBLISHER = """\
-import sys, lcm
+import sys
 sys.path.insert(0, sys.argv[1])
 from buoyext import Buoy
-lc = lcm.LCM(sys.argv[2])
+from u2sa_hw.transport import Transport
+tx = Transport(sys.argv[2], name="buoys")   # signed with the session's key ($U2SA_BUS_KEY_FILE)
 for i in range(3):
     b = Buoy(); b.base.uid = f"red-{i}"; b.base.object_type = "buoy"; b.base.x = 4.0 + i; b.colour = "red"
-    lc.publish("OBJECTS", b.encode())
+    tx.publish_bytes("OBJECTS", b.encode())
 """
 
 

@@ -10,6 +10,7 @@ import os
 import threading
 import time
 import uuid
+from pathlib import Path
 from typing import Any
 
 from u2sa_hw import channels as ch
@@ -20,10 +21,12 @@ from u2sa_hw.transport import Transport
 class BusClient:
     """Request/response helpers on top of one :class:`Transport`."""
 
-    def __init__(self, url: str | None = None, *, name: str | None = None, system_id: int = 0) -> None:
+    def __init__(self, url: str | None = None, *, name: str | None = None, system_id: int = 0,
+                 security: str | None = None, key_file: Path | str | None = None) -> None:
         self.name = name or f"u2sa-cli-{os.getpid()}"
         self.system_id = system_id
-        self.transport = Transport(url, name=self.name)
+        # The key is found as a service finds it (u2sa_hw.bus_key.key_path); a TransportError says how to get it.
+        self.transport = Transport(url, name=self.name, security=security, key_file=key_file)
         self.transport.start()
         self._seq = 0
 

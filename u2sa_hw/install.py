@@ -6,7 +6,8 @@ Install, on the SBC as root (or staged into ``--root DIR`` for packaging and tes
    the system user u2sa (no login, home /var/lib/u2sa);
 2. makes the venv under /opt/u2sa/venv (see :mod:`u2sa_hw.install_system`);
 3. installs the profile and service configs under /etc/u2sa (never overwriting one the
-   user changed: the new default goes beside it as ``.new``);
+   user changed: the new default goes beside it as ``.new``), and makes the vehicle's bus
+   key /etc/u2sa/bus.key (root:u2sa 0640) unless one is there (docs/security.md);
 4. makes the log directory /var/log/u2sa (u2sa:u2sa 0770) and declares it in
    /etc/tmpfiles.d/u2sa.conf, so that it exists before any unit starts;
 5. installs the units, the udev rules and /etc/sysctl.d/60-u2sa-lcm.conf (LCM's
@@ -26,6 +27,7 @@ import os
 import subprocess
 from pathlib import Path
 
+from u2sa_hw.bus_key import BusKeyError, ensure_key
 from u2sa_hw.install_files import InstallTree
 from u2sa_hw.install_manifest import MANAGED, MANIFEST_PATH, Manifest, host_path, load_manifest, save_manifest
 from u2sa_hw.install_system import (SERVICE_USER, VENV_MODES, InstallError, apply_sysctl, apply_tmpfiles, ensure_users,
@@ -40,6 +42,7 @@ from u2sa_hw.vehicle import load_profile
 OPT_DIR = "/opt/u2sa"
 # Directories uninstall (without --purge) leaves, with what is in them.
 KEPT_DIRS = (ETC_DIR, CONFIG_DIR, OPT_DIR, LOG_DIR)
+BUS_KEY = f"{ETC_DIR}/bus.key"
 
 
 def _check_root(root: Path) -> Path:
@@ -87,6 +90,7 @@ def install(*, vehicle: Path | str, root: Path | str = "/", venv: str | None = N
     # Services write their configs back (atomically, by rename) into this directory.
     tree.make_dir(CONFIG_DIR, mode=0o2770, owner=owner)
     tree.put_config(PROFILE, profile_text, mode=0o644)
+    _ensure_bus_key(tree, owner=owner)
     for dest, data in configs.items():
         tree.put_config(dest, data, mode=0o660, owner=owner)
     _ensure_log_dir(tree)
@@ -102,6 +106,25 @@ def install(*, vehicle: Path | str, root: Path | str = "/", venv: str | None = N
     if save_manifest(root, tree.new) and tree.old.files == {}:
         tree.note("created", MANIFEST_PATH)
     return tree
+
+
+def _ensure_bus_key(tree: InstallTree, *, owner: tuple[int, int] | None) -> None:
+    """/etc/u2sa/bus.key, 256 random bits, root:u2sa 0640, unless a key is there (then only its mode is set).
+
+    It is not in the manifest: uninstall keeps it with the configs, ``--purge`` removes /etc/u2sa.
+    """
+    path = tree.path(BUS_KEY)
+    try:
+        made = ensure_key(path, group=None)
+        if owner is not None:
+            os.chown(path, *owner)
+        os.chmod(path, 0o640 if owner is not None else 0o600)
+    except (BusKeyError, OSError) as exc:
+        raise InstallError(f"{BUS_KEY}: {exc}") from None
+    if made:
+        tree.note("created", BUS_KEY, "the vehicle's bus key; copy it to a ground station with 'u2sa key show'")
+    else:
+        tree.note("unchanged", BUS_KEY, "the existing bus key is kept")
 
 
 def _ensure_log_dir(tree: InstallTree) -> None:

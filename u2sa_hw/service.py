@@ -59,7 +59,8 @@ class U2SAService:
         where = f"{self.profile.path} [services.{name}] settings" if self.profile.path else f"settings of '{name}'"
         self.config = Configurator(path, (*BASE_CONFIG, *self.config_fields()), logger=self.logger, initial=settings,
                                    initial_source=where, validator=self.validate_config)
-        self.transport = transport or Transport(self.profile.lcm_url, name=name)
+        self.transport = transport or Transport(self.profile.lcm_url, name=name,
+                                                security=self.profile.bus_security, key_file=self.profile.bus_key)
         self.running = False
         self.status = "starting"
         self.last_error = ""
@@ -312,6 +313,10 @@ class U2SAService:
                 details["unhandled"] = ",".join(f"{k}:{n}" for k, n in sorted(dict(self._unhandled).items()))
         except Exception as exc:  # noqa: BLE001 - health must still go out
             details = {"health_details_error": str(exc)}
+        details["bus_security"] = _bus_text(self.transport)
+        rejected = rejected_text(self.transport.rejected())
+        if rejected:
+            details["bus_rejected"] = rejected
         last_error = self.last_error or self.transport.last_error
         msg = build_health(name=self.name, service_type=self.SERVICE_TYPE, status=self.status, stats=self._stats,
                            transport=self.transport, last_error=last_error, details=details)
@@ -329,7 +334,11 @@ class U2SAService:
         self.publish_health()
         self._notifier.notify("READY=1")
         self.notify_status(f"{self.name} ({self.SERVICE_TYPE}) running")
-        self.logger.info("%s (%s) started, pid %d, LCM %s", self.name, self.SERVICE_TYPE, os.getpid(), self.transport.url)
+        self.logger.info("%s (%s) started, pid %d, LCM %s, bus %s", self.name, self.SERVICE_TYPE, os.getpid(),
+                         self.transport.url, _bus_text(self.transport))
+        if self.transport.auth is None:
+            self.logger.warning("the bus is open (bus_security = \"open\"): messages are neither signed nor "
+                                "verified, any process that reaches the multicast group can command this vehicle")
 
     def stop(self) -> None:
         """Ask the service to stop (from any thread or a signal handler)."""
@@ -368,6 +377,16 @@ class U2SAService:
             self._notifier.close()
             self.logger.info("%s stopped", self.name)
         return code
+
+
+def rejected_text(rejected: dict[str, dict[str, int]]) -> str:
+    """``CHANNEL: unsigned 2, replayed 1; ...`` from :meth:`Transport.rejected` (health's ``bus_rejected``)."""
+    return "; ".join(f"{channel}: " + ", ".join(f"{why} {n}" for why, n in counts.items() if n)
+                     for channel, counts in rejected.items())
+
+
+def _bus_text(transport: Transport) -> str:
+    return f"signed (key {transport.key_id()})" if transport.auth is not None else "open"
 
 
 def _root_header(msg: Any) -> t.Header | None:

@@ -7,6 +7,11 @@ extension of it. Malformed packets (wrong type, truncated, garbage) are counted 
 channel and logged once per channel; they never reach or break the service. Counters
 count packets: a packet that several subscriptions receive counts once.
 
+Every packet is signed with the vehicle's bus key and verified on receipt (``u2sa_hw.bus_auth``,
+docs/security.md): unsigned, forged and replayed packets are counted per channel, logged
+once per channel and reason, and never reach a callback. Raw subscribers get the verified
+payload without its trailer. ``security="open"`` (a bench) signs and verifies nothing.
+
 The LCM C library reports a failure to open (no multicast route, a bad URL, a port held by
 another program) with many lines on stderr; those are caught and folded into the one-line
 :class:`TransportError`.
@@ -24,10 +29,13 @@ import threading
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable, Iterator
 
 import lcm
 
+from u2sa_hw.bus_auth import OK, OPEN, REJECTIONS, TRAILER_LEN, BusAuth, Keyring, resolve_security, strip_trailer
+from u2sa_hw.bus_key import BusKeyError, key_path
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 
 DEFAULT_LCM_URL = "udpm://239.255.76.67:7667?ttl=0"
@@ -89,6 +97,13 @@ class ChannelCounters:
     dropped: int = 0
     bytes: int = 0
     type_name: str = ""
+    unsigned: int = 0    # received only: dropped by verification (bus_auth.REJECTIONS)
+    forged: int = 0
+    replayed: int = 0
+
+    def rejected(self) -> int:
+        """Packets verification dropped on this channel."""
+        return self.unsigned + self.forged + self.replayed
 
 
 @dataclass
@@ -101,12 +116,39 @@ class _Subscription:
     unknown_logged: set[bytes] = field(default_factory=set)
 
 
-class Transport:
-    """One LCM instance with a handler thread, a publish lock and per-channel counters."""
+_KEYRINGS: dict[Path, Keyring] = {}
+_KEYRINGS_LOCK = threading.Lock()
 
-    def __init__(self, url: str | None = None, *, name: str = "u2sa") -> None:
+
+def keyring_for(path: Path) -> Keyring:
+    """The process's one keyring for the key file *path* (BusKeyError when it cannot be read)."""
+    with _KEYRINGS_LOCK:
+        ring = _KEYRINGS.get(path)
+        if ring is None:
+            ring = _KEYRINGS[path] = Keyring(path)
+        return ring
+
+
+class Transport:
+    """One LCM instance with a handler thread, a publish lock, signing and per-channel counters.
+
+    *security* is ``signed`` or ``open`` (None: ``$U2SA_BUS_SECURITY``, else signed); the key
+    comes from ``$U2SA_BUS_KEY_FILE``, else *key_file* (the profile's ``bus_key``), else
+    /etc/u2sa/bus.key. A key that cannot be used is a one-line :class:`TransportError`.
+    """
+
+    def __init__(self, url: str | None = None, *, name: str = "u2sa", security: str | None = None,
+                 key_file: Path | str | None = None) -> None:
         self.url = resolve_url(url)
         self.name = name
+        try:
+            self.security = resolve_security(security)
+            self.auth = BusAuth(keyring_for(key_path(key_file))) if self.security != OPEN else None
+        except BusKeyError as exc:
+            raise TransportError(str(exc)) from None
+        self._verdict = OK
+        self._payload = b""
+        self._rejection_logged: set[tuple[str, str]] = set()
         with _captured_c_stderr() as printed:
             try:
                 self._lc = lcm.LCM(with_receive_buffer(self.url))
@@ -143,11 +185,12 @@ class Transport:
         return self.publish_bytes(channel, data, type_name=type(msg).__name__)
 
     def publish_bytes(self, channel: str, data: bytes, *, type_name: str = "") -> bool:
-        """Publish already-encoded bytes; True on success."""
+        """Publish already-encoded bytes (signed unless the bus is open); True on success."""
         with self._publish_lock:
             c = self.tx[channel]
+            wire = self.auth.sign(channel, data) if self.auth is not None else data
             try:
-                self._lc.publish(channel, data)
+                self._lc.publish(channel, wire)
             except (OSError, IOError) as exc:
                 c.dropped += 1
                 failure = exc
@@ -207,9 +250,13 @@ class Transport:
     def _dispatch(self, sub: _Subscription, channel: str, data: bytes) -> None:
         counters = self.rx[channel]
         generation = self._generation
-        if self._bytes_counted != generation:
+        if self._bytes_counted != generation:   # the packet's first dispatch: verify it once
             self._bytes_counted = generation
-            counters.bytes += len(data)
+            self._verdict = self._verify(channel, data, counters)
+            counters.bytes += len(self._payload) if self._verdict is OK else len(data)
+        if self._verdict is not OK:
+            return
+        data = self._payload
         if sub.raw:
             if self._messages_counted != generation:
                 self._messages_counted = generation
@@ -237,6 +284,42 @@ class Transport:
             counters.messages += 1
         counters.type_name = type(msg).__name__
         self._call(sub, channel, msg)
+
+    def _verify(self, channel: str, data: bytes, counters: ChannelCounters) -> str:
+        auth = self.auth
+        if auth is None:
+            self._payload = strip_trailer(data)
+            return OK
+        verdict = auth.verify(channel, data)
+        if verdict is OK:
+            self._payload = data[:-TRAILER_LEN]
+            return OK
+        if channel == LCM_SELF_TEST:   # LCM's own probe at start-up, never ours: not a rejection
+            return verdict
+        setattr(counters, verdict, getattr(counters, verdict) + 1)
+        if (channel, verdict) not in self._rejection_logged:
+            self._rejection_logged.add((channel, verdict))
+            log.warning("%s: dropping %s message on %s (%s); further ones are only counted", self.name, verdict,
+                        channel, _REJECTION_WHY[verdict])
+        return verdict
+
+    @property
+    def sender(self) -> str:
+        """This transport's sender id in the trailers it signs (hex; empty on an open bus)."""
+        return self.auth.sender.hex() if self.auth else ""
+
+    @property
+    def last_sender(self) -> str:
+        """The verified sender id (hex) of the message being dispatched; call from a callback."""
+        return self.auth.last_sender.hex() if self.auth else ""
+
+    def key_id(self) -> str:
+        """The id of the key this transport signs with (hex; empty on an open bus)."""
+        return self.auth.keyring.current.id.hex() if self.auth else ""
+
+    def rejected(self) -> dict[str, dict[str, int]]:
+        """``{channel: {"unsigned": n, "forged": n, "replayed": n}}`` for channels with drops."""
+        return {ch: {r: getattr(c, r) for r in REJECTIONS} for ch, c in sorted(self.rx.items()) if c.rejected()}
 
     def _call(self, sub: _Subscription, channel: str, payload: Any) -> None:
         try:
@@ -269,6 +352,8 @@ class Transport:
     def _loop(self) -> None:
         # handle_timeout releases the GIL while it waits in C; a short timeout bounds stop().
         while self._running:
+            if self.auth is not None:
+                self.auth.keyring.poll()
             try:
                 self._lc.handle_timeout(200)
             except Exception as exc:  # noqa: BLE001 - keep handling; LCM reports socket trouble here
@@ -296,6 +381,14 @@ class Transport:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+LCM_SELF_TEST = "LCM_SELF_TEST"
+_REJECTION_WHY = {
+    "unsigned": "no valid signature trailer: a sender without the bus key, or one with bus_security = \"open\"",
+    "forged": "signed with another key: another vehicle or simulation, or a forgery",
+    "replayed": "its counter is not newer than the sender's last or is outside the window: a replay",
+}
 
 
 def _is_regex(channel: str) -> bool:
@@ -379,7 +472,7 @@ def check_multicast(url: str | None = None, *, timeout: float = 1.0) -> None:
     if not resolve_url(url).startswith("udpm://"):
         return
     probe = f"U2SA_PROBE_{os.getpid()}_{time.monotonic_ns()}"
-    t = Transport(url, name="probe")
+    t = Transport(url, name="probe", security=OPEN)   # it hears only itself: nothing to verify
     got = threading.Event()
     t.subscribe(probe, None, lambda ch, data: got.set(), raw=True)
     try:

@@ -5,6 +5,8 @@
 name = "rover"
 system_id = 1
 lcm_url = "udpm://239.255.76.67:7667?ttl=0"   # optional; else $U2SA_LCM_URL, else this default
+bus_security = "signed"  # optional; "open" only for a bench: nothing signed or verified (docs/security.md)
+bus_key = "/etc/u2sa/bus.key"   # optional; $U2SA_BUS_KEY_FILE overrides it; never the key itself
 config_dir = "config"    # per-service TOML files: <config_dir>/<service>.toml
 log_dir = "logs"         # one log file per service
 data_dir = "data"        # recordings, state
@@ -70,6 +72,8 @@ class VehicleProfile:
     name: str = "vehicle"
     system_id: int = 1
     lcm_url: str | None = None
+    bus_security: str | None = None     # None: $U2SA_BUS_SECURITY, else signed
+    bus_key: Path | None = None         # None: $U2SA_BUS_KEY_FILE, else /etc/u2sa/bus.key
     config_dir: Path = Path(".u2sa/config")
     log_dir: Path = Path(".u2sa/logs")
     data_dir: Path = Path(".u2sa/data")
@@ -165,11 +169,17 @@ def load_profile(path: Path | str | None) -> VehicleProfile:
         level_number(log_level)
     except ValueError as exc:
         raise ProfileError(f"{where}: log_level: {exc}") from None
+    bus_security = _typed(v, "bus_security", str, None, where)
+    if bus_security not in (None, "signed", "open"):
+        raise ProfileError(f"{where}: bus_security must be \"signed\" (the default) or \"open\", not {bus_security!r}")
+    bus_key = _typed(v, "bus_key", str, None, where)
     return VehicleProfile(
         path=path,
         name=_typed(v, "name", str, path.stem, where),
         system_id=_typed(v, "system_id", int, 1, where),
         lcm_url=_typed(v, "lcm_url", str, None, where),
+        bus_security=bus_security,
+        bus_key=(base / Path(bus_key).expanduser()) if bus_key else None,
         config_dir=config_dir,
         log_dir=rel("log_dir", "logs"),
         data_dir=rel("data_dir", "data"),

@@ -24,6 +24,7 @@ COMMAND_MODULES = [
     "u2sa_hw.cli.run_cmd",
     "u2sa_hw.cli.health_cmd",
     "u2sa_hw.cli.install_cmd",
+    "u2sa_hw.cli.key_cmd",
     "u2sa_hw.cli.mock_cmd",
     "u2sa_hw.cli.sim_cmd",
     "u2sa_hw.cli.replay_cmd",

@@ -68,23 +68,47 @@ def _channel_list(infos: Any) -> list[dict[str, str]]:
 
 
 def cmd_services(args: Any) -> int:
-    """``u2sa services``."""
+    """``u2sa services``: who answers discovery, each one's bus (signed or open) and the packets it dropped."""
+    from u2sa_hw import channels as ch
+    from u2sa_hw import lcmtypes as t
+
+    health: dict[str, Any] = {}
     with bus_client(args) as bus:
+        # Health is what says each service's bus and drops; it comes every health_interval_s.
+        bus.transport.subscribe(ch.HEALTH, t.Health, lambda _c, m: health.__setitem__(m.name, m))
         found = bus.discover(timeout=args.timeout)
+        own_drops = bus.transport.rejected()
+    rows = []
+    for r in found:
+        details = {kv.key: kv.value for kv in health[r.name].details} if r.name in health else {}
+        rows.append({"name": r.name, "type": r.service_type, "status": r.status, "host": r.host, "pid": r.pid,
+                     "bus": details.get("bus_security", "?"), "rejected": rejected_total(details.get("bus_rejected", "")),
+                     "rejected_by_channel": details.get("bus_rejected", ""), "publishes": _channel_list(r.publishes),
+                     "subscribes": _channel_list(r.subscribes)})
     if args.json:
-        print(json.dumps([{"name": r.name, "type": r.service_type, "status": r.status, "host": r.host,
-                           "pid": r.pid, "publishes": _channel_list(r.publishes),
-                           "subscribes": _channel_list(r.subscribes)} for r in found], indent=2))
+        print(json.dumps(rows, indent=2))
     else:
         if found:
-            print(f"{'NAME':22} {'TYPE':18} {'STATUS':9} {'HOST':14} {'PID':>7}  PUBLISHES")
-        for r in found:
+            print(f"{'NAME':22} {'TYPE':18} {'STATUS':9} {'HOST':14} {'PID':>7} {'BUS':8} {'DROPPED':>7}  PUBLISHES")
+        for row, r in zip(rows, found):
             pubs = ", ".join(i.channel for i in r.publishes)
-            print(f"{r.name:22} {r.service_type:18} {r.status:9} {r.host:14} {r.pid:>7}  {pubs}")
+            print(f"{r.name:22} {r.service_type:18} {r.status:9} {r.host:14} {r.pid:>7} {row['bus'].split()[0]:8} "
+                  f"{row['rejected']:>7}  {pubs}")
+    if own_drops:
+        from u2sa_hw.service import rejected_text
+
+        print(f"u2sa: dropped while listening: {rejected_text(own_drops)} (unsigned: a sender without the key; "
+              "forged: another key, e.g. a second stack or vehicle on this port; u2sa health shows each "
+              "service's counts)", file=sys.stderr)
     if not found:
         raise no_answer_error(args, f"no service answered discovery within {args.timeout:g} s "
-                              "(are services running, and on the same LCM URL?)")
+                              "(are services running, and on the same LCM URL and bus key?)")
     return 0
+
+
+def rejected_total(text: str) -> int:
+    """The number of packets in a health ``rejected`` text (``CHANNEL: unsigned 2, forged 1; ...``)."""
+    return sum(int(word) for word in text.replace(",", " ").replace(";", " ").split() if word.isdigit())
 
 
 def cmd_topics(args: Any) -> int:

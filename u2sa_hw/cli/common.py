@@ -43,7 +43,8 @@ def bus_client(args: Any, *, name: str | None = None) -> Iterator[Any]:
 
     profile = profile_from(args)
     try:
-        client = BusClient(profile.lcm_url, system_id=profile.system_id, **({"name": name} if name else {}))
+        client = BusClient(profile.lcm_url, system_id=profile.system_id, security=profile.bus_security,
+                           key_file=profile.bus_key, **({"name": name} if name else {}))
     except TransportError as exc:
         raise CliError(str(exc)) from None
     try:

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import sys
 import threading
+import time
 from typing import Any
 
 from u2sa_hw.cli.common import add_vehicle_option, bus_client
@@ -48,6 +50,7 @@ def cmd_health(args: Any) -> int:
     from u2sa_hw import channels as ch
     from u2sa_hw import lcmtypes as t
     from u2sa_hw.cli import CliError
+    from u2sa_hw.cli.bus_cmds import rejected_total
 
     got: list[Any] = []
     arrived = threading.Event()
@@ -57,23 +60,42 @@ def cmd_health(args: Any) -> int:
             got.append(msg)
             arrived.set()
 
+    health: dict[str, Any] = {}
     with bus_client(args) as bus:
+        # Each service's own Health says its bus (signed/open) and the packets it dropped.
+        bus.transport.subscribe(ch.HEALTH, t.Health, lambda _c, m: health.__setitem__(m.name, m))
         bus.transport.subscribe(ch.SYSTEM_HEALTH, t.SystemHealth, on_message)
         arrived.wait(max(0.0, args.timeout))
+        if got:
+            names = {s.name for s in got[0].services}
+            deadline = time.monotonic() + min(1.5, max(0.0, args.timeout))
+            while not names <= set(health) and time.monotonic() < deadline:
+                arrived.wait(0.05)   # polls the callbacks' dict; SystemHealth already arrived
         url = bus.transport.url
+        own_drops = bus.transport.rejected()
+    if own_drops:
+        from u2sa_hw.service import rejected_text
+
+        print(f"u2sa: dropped while listening: {rejected_text(own_drops)}", file=sys.stderr)
     if not got:
         raise CliError(f"no HSM answered: nothing on {ch.SYSTEM_HEALTH} within {args.timeout:g} s on {url} "
                        "(add a service with kind = \"hsm\" to the vehicle profile and start it, "
                        "e.g. 'u2sa run' or 'systemctl start u2sa@hsm')")
     report = as_dict(got[0])
+    for s in report["services"]:
+        details = {kv.key: kv.value for kv in health[s["name"]].details} if s["name"] in health else {}
+        s["bus"] = details.get("bus_security", "?")
+        s["rejected_by_channel"] = details.get("bus_rejected", "")
+        s["rejected"] = rejected_total(s["rejected_by_channel"])
     if args.json:
         print(json.dumps(report, indent=2))
         return 0
     print(f"{'FAILSAFE ACTIVE' if report['failsafe'] else 'failsafe off'} -- {report['summary']} "
           f"(from {report['source'] or 'hsm'})")
     if report["services"]:
-        print(f"{'SERVICE':22} {'STATE':11} {'RESTARTS':>8} {'HEARTBEAT':>9} {'DATA AGE':>8}  LAST ERROR")
-    for s in got[0].services:
-        print(f"{s.name:22} {s.state:11} {s.restarts:>8} {_age(s.heartbeat_age_s):>9} {_age(s.data_age_s):>8}  "
-              f"{s.last_error}")
+        print(f"{'SERVICE':22} {'STATE':11} {'RESTARTS':>8} {'HEARTBEAT':>9} {'DATA AGE':>8} {'DROPPED':>7}  "
+              "LAST ERROR")
+    for s, row in zip(got[0].services, report["services"]):
+        print(f"{s.name:22} {s.state:11} {s.restarts:>8} {_age(s.heartbeat_age_s):>9} {_age(s.data_age_s):>8} "
+              f"{row['rejected']:>7}  {s.last_error}")
     return 0

@@ -93,7 +93,8 @@ def cmd_record(args: Any) -> int:
     profile = profile_from(args)
     out = Path(args.output) if args.output else None
     try:
-        transport = Transport(profile.lcm_url, name="u2sa-record")
+        transport = Transport(profile.lcm_url, name="u2sa-record", security=profile.bus_security,
+                              key_file=profile.bus_key)
     except TransportError as exc:
         raise CliError(str(exc)) from None
     if args.queue_size < 1 or args.min_free_mb < 0:

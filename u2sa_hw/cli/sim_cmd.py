@@ -59,10 +59,10 @@ def register(sub: Any) -> None:
     p.add_argument("--timeout", metavar="S", type=float,
                    help="give up after S seconds from start (default: the profile's [simulation] timeout_s)")
     p.add_argument("--record", action="store_true", help="record every channel with the recorder into DIR/recording")
-    p.add_argument("--lcm-url", metavar="URL", help="LCM URL of this run (default: the profile's; use another "
-                   "port to run beside other u2sa processes)")
+    p.add_argument("--lcm-url", metavar="URL", help="LCM URL of this run (default: a free private port, so "
+                   "runs beside other u2sa processes stay apart)")
     p.add_argument("--can-port", type=int, metavar="PORT",
-                   help="UDP port of the simulated CAN bus (default: [simulation] can_udp_port)")
+                   help="UDP port of the simulated CAN bus (default: a free private port)")
     p.add_argument("--scenario", metavar="FILE", type=Path,
                    help="play a failsafe scenario (events at times: RC loss, manual switch, sticks, GPS fix loss, "
                         "a service killed or stopped, a forged command, a failsafe) and record what every actuator "
@@ -82,8 +82,9 @@ def cmd_sim(args: Any) -> int:
     if not args.vehicle.exists():
         raise CliError(f"sim: {args.vehicle}: vehicle profile not found (run from the repository root for the "
                        "default, or pass --vehicle PATH)", 2)
+    lcm_url, can_port = _private_bus(args)
     options = SimOptions(vehicle=args.vehicle, out=args.out, mission=args.mission, timeout_s=args.timeout,
-                         record=args.record, lcm_url=args.lcm_url, can_port=args.can_port, scenario=args.scenario)
+                         record=args.record, lcm_url=lcm_url, can_port=can_port, scenario=args.scenario)
     keys = None
     try:
         run = SimRun(options)
@@ -106,3 +107,25 @@ def cmd_sim(args: Any) -> int:
     if summary["result"] == "timeout":
         raise CliError(f"sim: {summary['reason']} {where}", EXIT_TIMEOUT)
     raise CliError(f"sim failed: {summary['reason']} {where}", EXIT_FAILED)
+
+
+def _private_bus(args: Any) -> tuple[str, int]:
+    """A fresh bus key, and free LCM and CAN ports, for this run (given ones kept); printed so a user can join.
+
+    The key goes to $U2SA_BUS_KEY_FILE, which the services, the mocks and the monitor inherit:
+    another run, or a vehicle, on this machine is then only forged packets to this one.
+    """
+    import os
+
+    from u2sa_hw.bus_key import KEY_ENV, fresh_key_file
+    from u2sa_hw.udp_ports import private_lcm_url, private_udp_port
+
+    lcm_url = args.lcm_url or private_lcm_url()
+    lcm_port = int(lcm_url.split("?", 1)[0].rsplit(":", 1)[-1]) if lcm_url.startswith("udpm://") else 0
+    can_port = args.can_port or private_udp_port(avoid={lcm_port}, span=4)
+    args.out.mkdir(parents=True, exist_ok=True)
+    key = fresh_key_file(args.out).resolve()
+    os.environ[KEY_ENV] = str(key)
+    print(f"u2sa sim: bus {lcm_url}, CAN port {can_port}, key {key} (to join: U2SA_LCM_URL='{lcm_url}' "
+          f"{KEY_ENV}={key} u2sa services)", flush=True)
+    return lcm_url, can_port

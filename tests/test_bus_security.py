@@ -1,0 +1,205 @@
+"""The authenticated bus between real processes over real multicast (issue 11, docs/security.md).
+
+A state estimator runs as its own process with the session's key. Another process without
+the key (an open transport, as a laptop on the WiFi would be) and one with the wrong key
+send a stop, a config change, a failsafe clear, an actuator command and a STATE_INFO: the
+service obeys none, counts each per channel in its health and keeps running. A captured
+signed packet sent again is dropped as replayed; a rotated key is picked up without a
+restart; a restarted service is heard at once.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+import uuid
+from pathlib import Path
+from typing import Any
+
+import lcm
+import pytest
+from conftest import ServiceProcesses, wait_until
+
+from u2sa_hw import channels as ch
+from u2sa_hw import lcmtypes as t
+from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus_key import KEY_ENV, new_key, write_key
+from u2sa_hw.transport import Transport
+
+SERVICE = "state_estimator"
+
+FORGER = """\
+import sys
+from u2sa_hw import channels as ch, lcmtypes as t
+from u2sa_hw.transport import Transport
+
+tx = Transport(sys.argv[1], name="laptop")    # open, or signed with the wrong key: the environment says
+stop = t.StopCommand(); stop.all = True
+change = t.ConfigChange(); change.request_id, change.target = "forged", sys.argv[2]
+change.field, change.value = "health_interval_s", "0.25"
+failsafe = t.Failsafe()
+command = t.PercentageCommand(); command.base.actuator_name = "left"; command.percentage = 100.0
+state = t.StateInformation().set(x=1000.0, y=1000.0, psi=3.0)
+for channel, msg in ((ch.STOP, stop), (ch.CONFIG_CHANGE, change), (ch.FAILSAFE, failsafe),
+                     (ch.ACTUATOR_CMD, command), (ch.STATE_INFO, state)):
+    assert tx.publish(channel, msg), channel
+"""
+FORGED_CHANNELS = (ch.STOP, ch.CONFIG_CHANGE, ch.FAILSAFE, ch.ACTUATOR_CMD, ch.STATE_INFO)
+
+
+class HealthLog:
+    """The latest Health of every service, from a transport of the test's own."""
+
+    def __init__(self, bus: BusClient) -> None:
+        self.latest: dict[str, t.Health] = {}
+        self._lock = threading.Lock()
+        bus.transport.subscribe(ch.HEALTH, t.Health, self._on_health)
+
+    def _on_health(self, _c: str, msg: t.Health) -> None:
+        with self._lock:
+            self.latest[msg.name] = msg
+
+    def details(self, name: str) -> dict[str, str]:
+        with self._lock:
+            msg = self.latest.get(name)
+        return {kv.key: kv.value for kv in msg.details} if msg else {}
+
+
+def run_forger(url: str, env: dict[str, str]) -> None:
+    subprocess.run([sys.executable, "-c", FORGER, url, SERVICE], env=env, check=True, timeout=60)
+
+
+def start_estimator(services: ServiceProcesses, bus: BusClient) -> t.DiscoveryResponse:
+    services.start(SERVICE)
+    found = wait_until(lambda: bus.discover(timeout=0.5, name=SERVICE), timeout=30, message=f"{SERVICE} to answer")
+    return found[0]
+
+
+def test_forged_commands_and_data_from_processes_without_the_key_are_ignored_and_counted(
+        services: ServiceProcesses, bus: BusClient, tmp_path: Path) -> None:
+    health = HealthLog(bus)
+    heard: list[str] = []
+    for channel in FORGED_CHANNELS:   # a signed listener of the test's own hears none of them either
+        bus.transport.subscribe(channel, None, lambda c, _d: heard.append(c), raw=True)
+    first = start_estimator(services, bus)
+    before = bus.get_config(SERVICE)
+    assert before is not None and before.ok
+
+    keyless = {k: v for k, v in os.environ.items() if k != KEY_ENV}
+    run_forger(services.url, {**keyless, "U2SA_BUS_SECURITY": "open"})
+    wrong = tmp_path / "wrong.key"
+    write_key(wrong, new_key(), group=None)
+    run_forger(services.url, {**keyless, KEY_ENV: str(wrong)})
+
+    expected = {"U2SA_STOP: unsigned 1, forged 1", "U2SA_CONFIG_SET: unsigned 1, forged 1",
+                "STATE_INFO: unsigned 1, forged 1"}
+    wait_until(lambda: expected <= set(health.details(SERVICE).get("bus_rejected", "").split("; ")), timeout=30,
+               message="the estimator's health to count the forged packets")
+    assert health.details(SERVICE)["bus_security"].startswith("signed (key ")
+    assert services.procs[0].poll() is None, "the forged stop stopped the service"
+    after = bus.get_config(SERVICE)
+    assert after is not None
+    assert {f.name: f.value for f in after.fields}["health_interval_s"] == \
+        {f.name: f.value for f in before.fields}["health_interval_s"]
+    assert bus.discover(timeout=1.0, name=SERVICE)[0].pid == first.pid
+    assert heard == []
+    assert {c: bus.transport.rx[c].unsigned for c in FORGED_CHANNELS} == {c: 1 for c in FORGED_CHANNELS}
+    assert {c: bus.transport.rx[c].forged for c in FORGED_CHANNELS} == {c: 1 for c in FORGED_CHANNELS}
+    log = (services.workdir / ".u2sa" / "logs" / f"{SERVICE}.log").read_text()
+    assert log.count("dropping unsigned message on U2SA_STOP") == 1
+
+    shown = services.cli("health", "--json", "--timeout", "3")
+    services_json = services.cli("services", "--json")
+    assert services_json.returncode == 0, services_json.stderr
+    listed = {s["name"]: s for s in json.loads(services_json.stdout)}
+    assert listed[SERVICE]["bus"].startswith("signed") and listed[SERVICE]["rejected"] >= 6, listed
+    assert shown.returncode in (0, 1)
+
+
+def test_a_captured_signed_packet_sent_again_is_dropped_as_replayed(services: ServiceProcesses, bus: BusClient) -> None:
+    health = HealthLog(bus)
+    start_estimator(services, bus)
+    sniffer = lcm.LCM(services.url)           # a plain LCM socket: what anyone on the network captures
+    captured: list[bytes] = []
+    sniffer.subscribe(ch.CONFIG_CHANGE, lambda _c, data: captured.append(data))
+    done = threading.Event()
+
+    def sniff() -> None:
+        while not done.is_set() and not captured:
+            sniffer.handle_timeout(100)
+
+    thread = threading.Thread(target=sniff, daemon=True)
+    thread.start()
+    r = services.cli("param", "set", SERVICE, "health_interval_s", "0.5")
+    assert r.returncode == 0, r.stderr
+    thread.join(30)
+    done.set()
+    assert captured, "the sniffer captured no config change"
+    r = services.cli("param", "set", SERVICE, "health_interval_s", "0.75")
+    assert r.returncode == 0, r.stderr
+
+    sniffer.publish(ch.CONFIG_CHANGE, captured[0])
+    wait_until(lambda: "U2SA_CONFIG_SET: replayed 1" in health.details(SERVICE).get("bus_rejected", ""), timeout=30,
+               message="the estimator to count the replayed config change")
+    current = bus.get_config(SERVICE)
+    assert current is not None
+    assert {f.name: f.value for f in current.fields}["health_interval_s"] == "0.75"
+
+
+def test_a_rotated_key_is_used_without_a_restart(services: ServiceProcesses, tmp_path: Path,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    key = tmp_path / "vehicle.key"
+    write_key(key, new_key(), group=None)
+    monkeypatch.setenv(KEY_ENV, str(key))
+    proc = services.start(SERVICE, U2SA_BUS_KEY_FILE=str(key))
+
+    def listed() -> list[dict[str, Any]]:
+        r = subprocess.run([sys.executable, "-m", "u2sa_hw.cli", "services", "--json"], env=services.env(
+            U2SA_BUS_KEY_FILE=str(key)), capture_output=True, text=True, timeout=30)
+        assert r.returncode in (0, 1), r.stderr    # 1: nobody answered (yet)
+        return json.loads(r.stdout) if r.returncode == 0 else []
+
+    first = wait_until(listed, timeout=30, message="the service to answer with the first key")
+    old_id = subprocess.run([sys.executable, "-m", "u2sa_hw.cli", "key", "show", "--id", "--file", str(key)],
+                            capture_output=True, text=True, check=True).stdout.strip()
+    rotated = subprocess.run([sys.executable, "-m", "u2sa_hw.cli", "key", "rotate", "--file", str(key)],
+                             capture_output=True, text=True, timeout=30)
+    assert rotated.returncode == 0, rotated.stderr
+    assert old_id not in rotated.stdout
+
+    def on_new_key() -> list[dict[str, Any]]:
+        now = listed()
+        return [s for s in now if s["name"] == SERVICE and s["bus"].endswith(f"{rotated.stdout.split()[2]})")]
+
+    again = wait_until(on_new_key, timeout=30, message="the service to answer signed with the rotated key")
+    assert again[0]["pid"] == first[0]["pid"] and proc.poll() is None
+
+
+def test_a_restarted_service_is_heard_at_once(services: ServiceProcesses, bus: BusClient) -> None:
+    first = start_estimator(services, bus)
+    r = services.cli("stop", SERVICE)
+    assert r.returncode == 0, r.stderr
+    services.procs[0].wait(timeout=30)
+    # The same client, which heard the first process's counters, hears the second's at once.
+    second = start_estimator(services, bus)
+    assert second.pid != first.pid
+
+
+def test_an_open_bus_is_said_at_start_and_in_discovery(services: ServiceProcesses, tmp_path: Path) -> None:
+    profile = tmp_path / "vehicle.toml"
+    profile.write_text(f'[vehicle]\nname = "bench"\nlcm_url = "{services.url}"\nbus_security = "open"\n'
+                       f'[services.{SERVICE}]\nkind = "{SERVICE}"\n')
+    services.start(SERVICE, "--vehicle", str(profile))
+    client = BusClient(services.url, security="open", name=f"open-{uuid.uuid4().hex[:6]}")
+    try:
+        wait_until(lambda: client.discover(timeout=0.5, name=SERVICE), timeout=30, message="the open service")
+    finally:
+        client.close()
+    r = services.cli("services", "--vehicle", str(profile), "--json")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)[0]["bus"] == "open"
+    log = wait_until(lambda: (p := tmp_path / "logs" / f"{SERVICE}.log").exists() and p.read_text(), timeout=10)
+    assert "the bus is open" in log

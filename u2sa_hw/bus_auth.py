@@ -1,0 +1,254 @@
+"""Signing and verifying bus messages: the trailer after the LCM payload (DESIGN.md 5b, docs/security.md).
+
+Every signed packet is ``payload | trailer``; the trailer is 40 bytes::
+
+    sender (8)   random per transport: a restarted process is a new sender
+    counter (8)  big-endian µs of the sender's signing clock, strictly growing per sender
+    key id (4)   names the key that signed (rotation keeps the old one for a short overlap)
+    mac (16)     HMAC-SHA256(key, channel NUL payload sender counter key-id), first 16 bytes
+    tag (4)      b"U2S1"
+
+LCM decoders read the payload and ignore what follows, so LCM's own tools still decode.
+
+Replays: a receiver keeps the last counter of every sender it heard. A packet from a known
+sender must carry a larger counter; the first packet of a sender it never heard must be no
+older than :data:`WINDOW_US` on the receiver's signing clock. The signing clock is the wall
+clock, moved forward to the largest counter of any verified packet (MAVLink 2's rule), so a
+board that booted without an RTC adopts the vehicle's time from the first packet it verifies.
+A restarted service is a new sender with a current counter: accepted at once. A packet
+captured and replayed a minute later is either not above its sender's last counter or,
+for a receiver that never heard that sender, outside the window.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import logging
+import os
+import secrets
+import struct
+import threading
+import time
+from pathlib import Path
+from typing import Callable
+
+from u2sa_hw.bus_key import BusKeyError, key_id, read_key
+
+log = logging.getLogger("u2sa_hw.bus_auth")
+
+TAG = b"U2S1"
+SENDER_BYTES = 8
+MAC_BYTES = 16
+KEY_ID_BYTES = 4
+TRAILER_LEN = SENDER_BYTES + 8 + KEY_ID_BYTES + MAC_BYTES + len(TAG)
+_COUNTER = struct.Struct(">Q")
+
+WINDOW_US = 20_000_000             # a sender never heard before: its first counter at most 20 s old
+OVERLAP_S = 30.0                   # a rotated-out key is still accepted this long
+RELOAD_CHECK_S = 1.0               # how often the key file is looked at for a rotation
+PRUNE_EVERY_US = 10_000_000
+SANE_CLOCK_US = 1_704_067_200_000_000   # 2024-01-01: a wall clock before this has no RTC behind it
+MAX_AHEAD_US = 366 * 86_400_000_000     # with a sane clock, a counter further ahead is out of range
+MAX_COUNTER = 2 ** 53                   # about the year 2255: anything above is out of range
+
+# Verification results (also the names of the drop counters).
+OK, UNSIGNED, FORGED, REPLAYED = "ok", "unsigned", "forged", "replayed"
+REJECTIONS = (UNSIGNED, FORGED, REPLAYED)
+
+SECURITY_ENV = "U2SA_BUS_SECURITY"
+SIGNED, OPEN = "signed", "open"
+SECURITY_MODES = (SIGNED, OPEN)
+
+
+def resolve_security(profile_value: str | None = None) -> str:
+    """``signed`` or ``open``: the profile's ``bus_security``, else ``$U2SA_BUS_SECURITY``, else signed."""
+    value = profile_value or os.environ.get(SECURITY_ENV) or SIGNED
+    if value not in SECURITY_MODES:
+        raise BusKeyError(f"bus_security must be \"signed\" or \"open\", not {value!r} (the vehicle profile's "
+                          f"[vehicle] bus_security or ${SECURITY_ENV})")
+    return value
+
+
+def _wall_us() -> int:
+    return time.time_ns() // 1000
+
+
+class BusKey:
+    """One key with its HMAC inner and outer states precomputed (each message copies them)."""
+
+    def __init__(self, key: bytes) -> None:
+        self.id = key_id(key)
+        block = key.ljust(64, b"\0")   # a 32-byte key is shorter than SHA-256's block: HMAC pads it
+        self._inner = hashlib.sha256(bytes(b ^ 0x36 for b in block))
+        self._outer = hashlib.sha256(bytes(b ^ 0x5C for b in block))
+
+    def mac(self, channel: bytes, signed: bytes | memoryview) -> bytes:
+        """The truncated HMAC-SHA256 of *channel* (NUL-terminated) and *signed*."""
+        inner = self._inner.copy()
+        inner.update(channel)
+        inner.update(signed)
+        outer = self._outer.copy()
+        outer.update(inner.digest())
+        return outer.digest()[:MAC_BYTES]
+
+
+class Keyring:
+    """The current key from a file, and the keys it replaced while their overlap lasts.
+
+    :meth:`poll` (cheap; called on every publish and by the handler thread) re-reads the file
+    at most every :data:`RELOAD_CHECK_S` and picks up a rotation without a restart.
+    """
+
+    def __init__(self, path: Path, *, overlap_s: float = OVERLAP_S, clock: Callable[[], float] = time.monotonic) -> None:
+        self.path = Path(path)
+        self.current = BusKey(read_key(self.path))
+        self._overlap_s = overlap_s
+        self._clock = clock
+        self._previous: list[tuple[BusKey, float]] = []
+        self._stamp = _file_stamp(self.path)
+        self._next_check = clock() + RELOAD_CHECK_S
+        self._lock = threading.Lock()
+        self._reload_error_logged = False
+
+    def lookup(self, kid: bytes) -> BusKey | None:
+        """The key with id *kid*: the current one or one still in its overlap; None otherwise."""
+        current = self.current
+        if kid == current.id:
+            return current
+        for key, until in self._previous:
+            if key.id == kid and self._clock() < until:
+                return key
+        return None
+
+    def poll(self) -> None:
+        """Reload the key file if it changed (rate-limited)."""
+        now = self._clock()
+        if now < self._next_check:
+            return
+        with self._lock:
+            if now < self._next_check:
+                return
+            self._next_check = now + RELOAD_CHECK_S
+            self._reload(now)
+
+    def _reload(self, now: float) -> None:
+        stamp = _file_stamp(self.path)
+        if stamp == self._stamp:
+            return
+        try:
+            key = BusKey(read_key(self.path))
+        except BusKeyError as exc:
+            if not self._reload_error_logged:
+                self._reload_error_logged = True
+                log.error("%s; still signing with the key loaded before (id %s)", exc, self.current.id.hex())
+            return
+        self._stamp, self._reload_error_logged = stamp, False
+        if key.id == self.current.id:
+            return
+        self._previous = [(k, u) for k, u in self._previous if u > now] + [(self.current, now + self._overlap_s)]
+        self.current = key
+        log.info("bus key %s changed: now signing with key %s; the previous key is accepted for %g s",
+                 self.path, key.id.hex(), self._overlap_s)
+
+
+def _file_stamp(path: Path) -> tuple[int, int, int] | None:
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return st.st_ino, st.st_mtime_ns, st.st_size
+
+
+class BusAuth:
+    """Signs what one transport publishes and verifies what it receives.
+
+    :meth:`sign` runs under the transport's publish lock, :meth:`verify` on its one handler
+    thread; the signing clock's offset is the only state both touch (an int, replaced whole).
+    """
+
+    def __init__(self, keyring: Keyring, *, sender: bytes | None = None,
+                 wall_us: Callable[[], int] = _wall_us) -> None:
+        self.keyring = keyring
+        self.sender = sender or secrets.token_bytes(SENDER_BYTES)
+        self.last_sender = b""          # the verified sender of the packet being dispatched
+        self._wall_us = wall_us
+        self._offset = 0
+        self._last_sent = 0
+        self._peers: dict[bytes, int] = {}
+        self._channels: dict[str, bytes] = {}
+        self._prune_at = 0
+
+    def now(self) -> int:
+        """The signing clock in µs: the wall clock, moved forward to the newest verified counter."""
+        return self._wall_us() + self._offset
+
+    def _channel(self, channel: str) -> bytes:
+        encoded = self._channels.get(channel)
+        if encoded is None:
+            encoded = self._channels[channel] = channel.encode() + b"\0"
+        return encoded
+
+    def sign(self, channel: str, payload: bytes) -> bytes:
+        """*payload* with its trailer."""
+        self.keyring.poll()
+        key = self.keyring.current
+        counter = self.now()
+        if counter <= self._last_sent:
+            counter = self._last_sent + 1
+        self._last_sent = counter
+        signed = b"".join((payload, self.sender, _COUNTER.pack(counter), key.id))
+        return b"".join((signed, key.mac(self._channel(channel), signed), TAG))
+
+    def verify(self, channel: str, data: bytes) -> str:
+        """OK, or why *data* is dropped: UNSIGNED, FORGED or REPLAYED. Never raises."""
+        n = len(data)
+        if n < TRAILER_LEN or data[n - 4:] != TAG:
+            return UNSIGNED
+        end = n - TRAILER_LEN
+        kid_at = end + SENDER_BYTES + 8
+        key = self.keyring.lookup(data[kid_at:kid_at + KEY_ID_BYTES])
+        if key is None:
+            return FORGED
+        mac_at = kid_at + KEY_ID_BYTES
+        if not hmac.compare_digest(key.mac(self._channel(channel), memoryview(data)[:mac_at]),
+                                   data[mac_at:mac_at + MAC_BYTES]):
+            return FORGED
+        sender = data[end:end + SENDER_BYTES]
+        counter = _COUNTER.unpack_from(data, end + SENDER_BYTES)[0]
+        now = self.now()
+        if counter > MAX_COUNTER or (now >= SANE_CLOCK_US and counter > now + MAX_AHEAD_US):
+            return REPLAYED
+        last = self._peers.get(sender)
+        if last is None:
+            if counter < now - WINDOW_US:
+                return REPLAYED
+            if now >= self._prune_at:
+                self._prune(now)
+        elif counter <= last:
+            return REPLAYED
+        self._peers[sender] = counter
+        self.last_sender = sender
+        if counter > now:
+            self._offset += counter - now
+        return OK
+
+    def _prune(self, now: int) -> None:
+        # A sender whose last counter left the window can be forgotten: anything it sent
+        # before is then older than the window too, and refused as a new sender's would be.
+        self._prune_at = now + PRUNE_EVERY_US
+        horizon = now - WINDOW_US
+        for sender in [s for s, c in self._peers.items() if c < horizon]:
+            del self._peers[sender]
+
+
+def strip_trailer(data: bytes) -> bytes:
+    """*data* without a trailer if it has one (open mode: nothing is verified)."""
+    if len(data) >= TRAILER_LEN and data[-4:] == TAG:
+        return data[:-TRAILER_LEN]
+    return data
+
+
+def payload_of(data: bytes) -> bytes:
+    """The payload of a verified packet."""
+    return data[:-TRAILER_LEN]
