@@ -219,7 +219,9 @@ class RcMuxDriver(Sensor):
         failures = self.prearm.evaluate(now, rc_link_ok=self.filter.mode != MODE_NO_SIGNAL,
                                         failsafe_reason=self.failsafes.reason())
         first = failures[0].reason if failures else ""
-        if first != (self.prearm_failures[0].reason if self.prearm_failures else ""):
+        key = (failures[0].check, failures[0].service) if failures else None
+        old = (self.prearm_failures[0].check, self.prearm_failures[0].service) if self.prearm_failures else None
+        if key != old:  # by check and service: a sigma in the reason changes with every estimate
             if first:
                 self.logger.info("pre-arm: %s", first)
             else:
@@ -251,6 +253,9 @@ class RcMuxDriver(Sensor):
     # -- the loop ------------------------------------------------------------------------
     def run(self) -> None:
         """Measure pulses, follow the mode, drive the enable line and publish until stopped."""
+        self.logger.info("%s; manual mixer: %s; on a lost check: %s", self.prearm.describe(),
+                         f"{self.sticks.spec.kind} -> {', '.join(self.sticks.spec.actuators)}" if self.sticks else "none",
+                         self.safety.on_check_lost)
         period = 1.0 / self.config["publish_hz"]
         manual_period = 1.0 / self.config["manual_hz"]
         next_publish = next_manual = time.monotonic()

@@ -86,7 +86,10 @@ def profile_wiring(profile: VehicleProfile) -> Wiring:
 
 def check_wiring(profile: VehicleProfile, safety: SafetyConfig | None = None) -> SafetyConfig:
     """The profile's safety table, checked against its services; ProfileError names file, key and fix."""
+    from u2sa_hw.safety.prearm_table import parse_prearm
+
     safety = safety if safety is not None else load_safety(profile)
+    parse_prearm(profile)  # the pre-arm table's own checks (services named, keys, types)
     where = f"{profile.path or 'the vehicle profile'} [safety]"
     wiring = profile_wiring(profile)
     known = ", ".join(sorted(wiring.actuators)) or "none"
