@@ -51,9 +51,9 @@ from drivers.can_motor import CanMotorService, MotorSpec, WatchdogStep, check_hw
 INPUT_MODES = {"passthrough": InputMode.PASSTHROUGH, "vel_ramp": InputMode.VEL_RAMP}
 MAX_ARM_BACKOFF_S = 5.0
 WD_REPLY_S = 0.5  # wait this long for Get_Version / TxSdo answers before asking again
-WD_TRIES = 4
+WD_TRIES = 4  # then the watchdog step is an error, and arming goes ahead without it
 _WATCHDOG_FIELDS = frozenset({"hw_watchdog", "hw_watchdog_timeout_s", "watchdog_timeout_endpoint",
-                              "enable_watchdog_endpoint", "endpoints_fw", "firmware", "command_period_s"})  # then the watchdog step is an error, and arming goes ahead without it
+                              "enable_watchdog_endpoint", "endpoints_fw", "firmware", "command_period_s"})
 # frames an ODrive sends (anything else on its ids is a host's command, e.g. our own echo)
 _REPLIES_06 = frozenset({Cmd.HEARTBEAT, Cmd.GET_ENCODER_ESTIMATES, Cmd.GET_BUS_VOLTAGE_CURRENT, Cmd.GET_ERROR,
                          Cmd.GET_TEMPERATURE, Cmd.GET_IQ, Cmd.GET_VERSION, Cmd.TX_SDO})

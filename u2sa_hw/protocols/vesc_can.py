@@ -399,7 +399,8 @@ class BufferAssembler:
         elif packet == PacketId.PROCESS_RX_BUFFER:
             sender, send, length, crc = struct.unpack_from(">BBHH", _need(data, 6, "PROCESS_RX_BUFFER"))
             if length > len(self._buffer):
-                raise VescCanError(f"VESC PROCESS_RX_BUFFER: length {length} exceeds the {len(self._buffer)}-byte buffer")
+                raise VescCanError(f"VESC PROCESS_RX_BUFFER: length {length} exceeds the "
+                                   f"{len(self._buffer)}-byte buffer")
             payload = bytes(self._buffer[:length])
             if crc16(payload) != crc:
                 self.crc_errors += 1
