@@ -264,3 +264,16 @@ def test_the_operator_raises_and_clears_a_failsafe_that_other_sources_cannot_cle
     cleared = services.cli("failsafe", "clear")
     assert cleared.returncode == 0, cleared.stderr
     chain.wait_duty(1, 2000.0, "the pilot's throttle again once the operator cleared")
+
+
+def test_run_and_install_refuse_a_mis_declared_safety_chain_before_anything_starts(
+        tmp_path: Path, services: ServiceProcesses) -> None:
+    path = write_vehicle(tmp_path, safety={"manual_mixer": {**MIXER, "throttle": "esc2"}})
+    for args in (["run", "--vehicle", str(path)], ["install", "--vehicle", str(path), "--root", str(tmp_path / "root")]):
+        done = services.cli(*args)
+        assert done.returncode == 1 and done.stderr.count("\n") == 1, done.stderr
+        assert "[safety].manual_mixer: throttle = 'esc2' is not an actuator" in done.stderr
+    assert not (tmp_path / "root" / "etc").exists(), "install wrote nothing"
+    bad_syntax = write_vehicle(tmp_path, safety={"hardware_mux": ["steer"]})
+    with pytest.raises(ProfileError, match=r"\[safety\]: 'hardware_mux' must be a table"):
+        load_profile(bad_syntax)   # the syntax is checked by every load, services included

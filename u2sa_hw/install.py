@@ -37,6 +37,7 @@ from u2sa_hw.install_units import (CONFIG_DIR, DOC, ETC_DIR, HSM_LOG, LOG_DIR, L
                                    SYSCTL, TARGET, TMPFILES, UDEV_DIR, UNIT_DIR, VEHICLE_RULES, render_profile,
                                    render_vehicle_rules, service_configs, service_units, sysctl_conf, sysusers_conf,
                                    tmpfiles_conf, udev_sources, unit_dropins, unit_sources, wants_links)
+from u2sa_hw.safety.wiring import check_wiring
 from u2sa_hw.vehicle import load_profile
 
 OPT_DIR = "/opt/u2sa"
@@ -65,6 +66,7 @@ def install(*, vehicle: Path | str, root: Path | str = "/", venv: str | None = N
         raise InstallError(f"--venv {mode}: use one of {', '.join(VENV_MODES)}")
     src = project_source(source)
     # Everything that can be refused is checked before anything is written.
+    check_wiring(profile)  # the [safety] table: a vehicle whose safety chain is mis-declared is not installed
     units = service_units(profile)
     profile_text = render_profile(profile)
     configs = service_configs(profile)

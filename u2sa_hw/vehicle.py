@@ -173,6 +173,9 @@ def load_profile(path: Path | str | None) -> VehicleProfile:
     if bus_security not in (None, "signed", "open"):
         raise ProfileError(f"{where}: bus_security must be \"signed\" (the default) or \"open\", not {bus_security!r}")
     bus_key = _typed(v, "bus_key", str, None, where)
+    from u2sa_hw.safety.config import parse_safety  # the syntax of [safety]; names are checked by check_wiring
+
+    parse_safety(data.get("safety"), where=f"{path} [safety]")
     return VehicleProfile(
         path=path,
         name=_typed(v, "name", str, path.stem, where),

@@ -88,6 +88,7 @@ def cmd_run(args: Any) -> int:
         names = [s.name for s in select_services(profile, only)]
     except ValueError as exc:
         raise CliError(f"run: {exc}", 2) from None
+    _check_safety(profile)
     output = PrefixedOutput(names=names, colour=False if args.no_color else None)
     with _run_key(profile, output):
         return _launch(args, profile, only=only, policy=policy, output=output)
@@ -140,3 +141,15 @@ def _run_key(profile: Any, output: Any) -> Iterator[None]:
             yield
         finally:
             os.environ.pop(KEY_ENV, None)
+
+
+def _check_safety(profile: Any) -> None:
+    """The [safety] table against the profile's actuators and RC channels, before anything starts."""
+    from u2sa_hw.cli import CliError
+    from u2sa_hw.safety.wiring import check_wiring
+    from u2sa_hw.vehicle import ProfileError
+
+    try:
+        check_wiring(profile)
+    except ProfileError as exc:
+        raise CliError(str(exc)) from None
