@@ -14,7 +14,8 @@ for ``timeout_s`` is released (the mock stops the wheel / thruster; each expiry 
 buffers (FILL_RX_BUFFER.. PROCESS_RX_BUFFER) and are answered the same way to the sender's
 id; the app configuration is serialized as the firmware does up to timeout_msec (the rest is
 filler), so a driver reads and writes timeout_s over CAN. ``freeze_config(True)`` acknowledges
-a SET_APPCONF without applying it.
+a SET_APPCONF without applying it; ``answer_comm = False`` ignores COMM packets (a VESC whose
+CAN mode is not VESC).
 The STATUS frames chosen in ``status_messages`` (1..6; default 1, 4 and 5, as VESC Tool's
 "CAN Status Message Mode") are sent at ``status_hz``. ERPM and the tachometer (6 counts per
 electrical revolution) come from the vehicle's wheel odometer on a differential vehicle, and
@@ -108,6 +109,7 @@ class VescCanNode(MockCanNode):
         self._assembler = vc.BufferAssembler()
         self.timeouts: list[float] = []  # time.monotonic() of each command timeout that released the motor
         self.appconf_writes = 0
+        self.answer_comm = True
         self._odometer = WheelOdometer(vehicle, side) if drive == "wheel" else None
 
     # ---- faults ----------------------------------------------------------------------
@@ -163,7 +165,7 @@ class VescCanNode(MockCanNode):
         if target not in (self.controller_id, vc.BROADCAST_ID):
             return False
         if packet in _BUFFER_PACKETS:
-            if target == self.controller_id:
+            if target == self.controller_id and self.answer_comm:
                 done = self._assembler.feed(packet, msg.data)
                 if done is not None:
                     self._comm(*done)

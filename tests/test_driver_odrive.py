@@ -561,3 +561,29 @@ def test_a_killed_or_frozen_driver_process_is_stopped_by_the_axis_watchdogs(rig,
         if r.driver.poll() is None:
             r.driver.kill()
             r.driver.wait(timeout=10)
+
+
+def test_a_node_that_does_not_answer_get_version_is_reported_and_armed_anyway(lcm_url: str) -> None:
+    channel = f"odrive-wd-{random.randint(0, 1 << 30)}"
+    node = StubbornNode(channel, 5)   # heartbeats only: no Get_Version, no TxSdo
+    node.accept = True
+    svc = OdriveCanMotor("motors", settings={
+        "interface": "virtual", "channel": channel, "actuators": ["wheel"], "node_ids": [5], "directions": [1],
+        "wheel_radius_m": [0.1], "odometry": False, "silent_after_s": 1.0, "rc_gating": False,
+        "command_timeout_s": 0.5, **WATCHDOG_06})
+    runner = threading.Thread(target=svc.run, daemon=True)
+    try:
+        svc.start()
+        runner.start()
+        details = wait_until(lambda: (d := svc.health_details())["wheel.phase"] == "armed" and d, timeout=20,
+                             message="armed after the watchdog step gave up")
+        assert details["wheel.hw_watchdog"].startswith("no answer to Get_Version after 4 tries")
+        assert "ODrive wheel (node 5 on motors): watchdog no answer" in svc.last_error
+        assert node.arm_requests   # arming waited for the step, then went ahead
+        wait_until(lambda: svc.status == "degraded", message="degraded: the watchdog is not verified")
+    finally:
+        svc.stop()
+        runner.join(timeout=10)
+        svc.kill()
+        svc.transport.stop()
+        node.close()

@@ -7,6 +7,8 @@ from __future__ import annotations
 import math
 import os
 import signal
+import threading
+import uuid
 from dataclasses import dataclass
 from pathlib import Path
 from statistics import mean
@@ -18,6 +20,8 @@ from conftest import REPO, ServiceProcesses, wait_until
 from serial_driver_harness import DriverProbe, start_driver, write_profile
 
 from drivers.vesc_can import VescCanMotor
+from mock_devices.vehicle_sim import SimVehicle
+from mock_devices.vesc_node import VescCanNode
 from u2sa_hw.bus_client import BusClient
 from u2sa_hw.config import ConfigError
 from u2sa_hw.protocols import vesc_can as vc
@@ -255,3 +259,37 @@ def test_a_timeout_that_does_not_read_back_is_an_error_naming_the_vesc(rig, bus:
                                   timeout=20, message="left fine, service degraded")
     assert "right (id 11) watchdog read back timeout_msec 300 ms" in details["degraded_reason"]
     assert r.mock.get("left", "timeout_s") == 0.4 and r.mock.get("right", "timeout_s") == 0.3
+
+
+def test_a_vesc_that_does_not_answer_configuration_reads_is_an_error_with_the_fix(lcm_url: str) -> None:
+    channel = f"vesc-wd-{uuid.uuid4().hex[:8]}"
+    vehicle = SimVehicle(origin_lat=0.0, origin_lon=0.0)
+    nodes = [VescCanNode(vehicle, side=side, controller_id=i, interface="virtual", channel=channel, timeout_s=0.3)
+             for side, i in zip(("left", "right"), IDS)]
+    nodes[1].answer_comm = False   # CAN mode not VESC: STATUS frames, but no COMM packets
+    svc = VescCanMotor("motors", settings={"interface": "virtual", "channel": channel, "controller_ids": list(IDS),
+                                           "odometry": False, "rc_gating": False, "command_timeout_s": 0.5})
+    runner = threading.Thread(target=svc.run, daemon=True)
+    try:
+        vehicle.start()
+        for node in nodes:
+            node.start()
+        svc.start()
+        runner.start()
+        details = wait_until(lambda: (d := svc.health_details())["right.hw_watchdog"].startswith("no answer") and d,
+                             timeout=30, message="the right VESC reported as not answering")
+        assert details["right.hw_watchdog"].startswith("no answer to COMM_GET_APPCONF after 3 tries; check that "
+                                                       "App Settings > General > CAN Mode is VESC")
+        assert details["left.hw_watchdog"] == "on 0.30 s (read back)"
+        assert "VESC right (id 11 on motors): watchdog no answer" in svc.last_error
+        wait_until(lambda: svc.status == "degraded"
+                   and "right (id 11) watchdog no answer" in svc.health_details()["degraded_reason"],
+                   message="degraded with the reason")
+    finally:
+        svc.stop()
+        runner.join(timeout=10)
+        svc.kill()
+        svc.transport.stop()
+        for node in nodes:
+            node.stop()
+        vehicle.stop()
