@@ -99,6 +99,7 @@ class Watch:
     def __init__(self, bus: BusClient) -> None:
         self.pids: dict[str, list[int]] = {}
         self.stamps: dict[str, int] = {}   # name -> header.timestamp_us of its newest Health
+        self.details: dict[str, dict[str, str]] = {}   # name -> the details of its newest Health
         self.system: list[t.SystemHealth] = []
         self.failsafes: list[t.Failsafe] = []
         self._lock = threading.Lock()
@@ -116,6 +117,7 @@ class Watch:
             if not pids or pids[-1] != msg.pid:
                 pids.append(msg.pid)
             self.stamps[msg.name] = max(self.stamps.get(msg.name, 0), msg.header.timestamp_us)
+            self.details[msg.name] = {kv.key: kv.value for kv in msg.details}
 
     def latest(self) -> t.SystemHealth | None:
         """The newest SystemHealth."""

@@ -83,6 +83,9 @@ def test_crash_looping_required_service_raises_the_failsafe(tmp_path: Path, lcm_
     publish_failsafe(bus, source="estop", active=True, reason="pressed")
     wait_until(lambda: (m := watch.latest()) and m.summary.startswith("FAILSAFE held by estop, hsm -- estop: pressed"),
                timeout=10, message="SystemHealth naming both holders")
+    wait_until(lambda: watch.details.get("hsm", {}).get("failsafe_sources") == "estop,hsm", timeout=10,
+               message="the HSM's health naming both holders")
+    assert "estop: pressed" in watch.details["hsm"]["failsafe_reasons"]
     publish_failsafe(bus, source="estop", active=False, reason="released")
     latest = wait_until(lambda: (m := watch.latest()) and m.summary.startswith("FAILSAFE held by hsm --") and m,
                         timeout=10, message="SystemHealth after the e-stop's clear")

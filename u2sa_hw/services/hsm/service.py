@@ -12,7 +12,8 @@ Failsafes follow the one model of :mod:`u2sa_hw.failsafe`: the HSM's own is held
 name; a clear from any other source leaves it up; an operator clear (source ``operator``)
 naming the HSM or ``*`` lowers it only while every required service is ok, else the HSM
 says why and asserts it again at once. Every source holding a failsafe is reported in the
-system health (summary) and the HSM's health details (``failsafe_holders``).
+system health (summary) and the HSM's health details (``failsafe_sources``, as every holder
+reports them, and ``failsafe_reasons``), which ``u2sa failsafe status`` reads.
 """
 
 from __future__ import annotations
@@ -257,9 +258,10 @@ class HealthStatusMonitor(U2SAService):
             self.status = "degraded" if failsafe else "ok"
 
     def health_details(self) -> dict[str, Any]:
-        """Restarter, failsafe state and the number of watched services."""
+        """Restarter, the HSM's own failsafe, every source holding one, and the number of watched services."""
         return {"restarter": self.restarter.kind if self.restarter else "?", "failsafe": self.monitor.failsafe_active,
-                "failsafe_holders": self.failsafes.reason(), "watched": len(self.rules)}
+                "failsafe_sources": ",".join(sorted(self.failsafes.held())),
+                "failsafe_reasons": self.failsafes.reason(), "watched": len(self.rules)}
 
 
 def failsafe_summary(held: dict[str, str], *, services: str) -> str:
