@@ -406,8 +406,9 @@ def watchdog_summary(texts: dict[str, str]) -> str:
 
 
 class WatchdogStep:
-    """Where setting up one axis's watchdog stands: ``pending`` until it is ``on`` (read back),
-    ``unverified`` (cannot be done over CAN), ``off`` (not asked for) or ``error``."""
+    """Where setting up one controller's watchdog stands: ``pending`` until it is ``on`` (read
+    back), ``unverified`` (cannot be done over CAN), ``off`` (not asked for) or ``error``; ``text``
+    is what health shows."""
 
     def __init__(self) -> None:
         self.state = "pending"
