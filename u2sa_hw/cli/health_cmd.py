@@ -13,8 +13,9 @@ from u2sa_hw.cli.common import add_vehicle_option, bus_client
 HELP = """\
 Wait for the HSM's next system health message and show each service's state
 (ok, degraded, stale, missing, restarting, stopped, failed, starting), its restarts,
-last error, heartbeat age and data age, with the failsafe state. Exits 1 when no
-HSM answers within --timeout (is a service of kind "hsm" in the profile and running?).
+last error, heartbeat age and data age, with the failsafe state, and whether the RC mux
+grants autonomy (if not, why: the failed pre-arm check, the failsafe, the mode). Exits 1
+when no HSM answers within --timeout (is a service of kind "hsm" in the profile and running?).
 """
 
 
@@ -87,6 +88,7 @@ def cmd_health(args: Any) -> int:
         s["bus"] = details.get("bus_security", "?")
         s["rejected_by_channel"] = details.get("bus_rejected", "")
         s["rejected"] = rejected_total(s["rejected_by_channel"])
+    report["autonomy"] = autonomy_report(health)
     if args.json:
         print(json.dumps(report, indent=2))
         return 0
@@ -98,4 +100,20 @@ def cmd_health(args: Any) -> int:
     for s, row in zip(got[0].services, report["services"]):
         print(f"{s.name:22} {s.state:11} {s.restarts:>8} {_age(s.heartbeat_age_s):>9} {_age(s.data_age_s):>8} "
               f"{row['rejected']:>7}  {s.last_error}")
+    for rc in report["autonomy"]:
+        state = "GRANTED" if rc["granted"] else f"refused: {rc['blocked_by'] or 'unknown'}"
+        print(f"autonomy ({rc['service']}, RC {rc['mode']}, {'armed' if rc['armed'] else 'not armed'}): {state}")
     return 0
+
+
+def autonomy_report(health: dict[str, Any]) -> list[dict[str, Any]]:
+    """Each RC mux's view of autonomy from its Health: granted, and if not why (the failed pre-arm check)."""
+    out = []
+    for name, msg in sorted(health.items()):
+        details = {kv.key: kv.value for kv in msg.details}
+        if "enable_blocked_by" not in details:
+            continue
+        out.append({"service": name, "granted": details.get("autonomy_enabled") == "True",
+                    "blocked_by": details["enable_blocked_by"], "mode": details.get("mode", "?"),
+                    "armed": details.get("armed") == "True", "prearm_failed": details.get("prearm_failed", "")})
+    return out
