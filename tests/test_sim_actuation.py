@@ -140,3 +140,45 @@ def test_a_profile_whose_outputs_cannot_move_the_vehicle_is_refused(tmp_path: Pa
                                                                       error: str) -> None:
     with pytest.raises(DeviceError, match=error):
         profile(tmp_path, ACKERMANN.replace(*change))
+
+
+BOAT = """
+[vehicle]
+origin = { lat = 29.1895, lon = -81.0483 }
+
+[services.thrusters]
+kind = "pwm_servo"
+settings = { channels = [
+  { name = "left_thruster", address = "/sys/class/pwm/pwmchip0", channel = 0 },
+  { name = "right_thruster", address = "/sys/class/pwm/pwmchip0", channel = 1, reverse = true } ] }
+
+[simulation]
+model = "twin_thruster"
+
+[devices.thrusters]
+mock = "sysfs_pwm"
+drives = { left_thruster = "left", right_thruster = "right" }
+"""
+
+
+def test_a_servo_driven_boat_moves_under_its_sysfs_pwm_thrusters(tmp_path: Path) -> None:
+    mocks = profile(tmp_path, BOAT)
+    mocks.start()
+    channels = mocks.overrides["thrusters"]["channels"]
+    left = open_pwm(device="left", address=channels[0]["address"], channel=0)
+    right = open_pwm(device="right", address=channels[1]["address"], channel=1)
+    try:
+        left.set_pulse_us(2000)    # full ahead
+        right.set_pulse_us(1000)   # full ahead too: the right ESC is mounted reversed (reverse = true)
+        for channel in (left, right):
+            channel.enable(True)
+        wait_until(lambda: mocks.vehicle.snapshot().speed > 0.5, message="both thrusters to push the boat ahead")
+        assert abs(mocks.vehicle.snapshot().yaw_rate) < 0.05
+        assert mocks.outputs.current("right_thruster").value == 100.0
+        left.enable(False)         # no pulse: that ESC stops, the boat turns towards it
+        wait_until(lambda: mocks.vehicle.snapshot().yaw_rate < -0.2, message="the boat to turn left")
+        assert mocks.outputs.current("left_thruster").neutral
+    finally:
+        left.close()
+        right.close()
+        mocks.stop()

@@ -6,7 +6,8 @@ devices saw them; :mod:`mock_devices.actuation`):
 
 * ``at_event``: its value (% of full scale, or the GPIO level) and whether it was neutral;
 * ``neutral_after_ms``: when it went neutral, if it was moving at the event;
-* ``moved_after_ms``: when it first moved (left neutral) in the window;
+* ``moved_after_ms``: when it left neutral in the window (for one moving at the event: after it
+  went neutral, so a new setpoint while driving is not a move);
 * ``at_end``: its value and state when the window closed.
 
 ``all_neutral_after_ms`` is when every output that was moving at the event was neutral at
@@ -45,7 +46,10 @@ def output_window(timeline: Sequence[OutputChange], start_ns: int, end_ns: int) 
     moving = before is not None and not before.neutral
     inside = [c for c in timeline if start_ns < c.t_ns <= end_ns]
     neutral_at = next((c.t_ns for c in inside if c.neutral), None) if moving else None
-    moved_at = next((c.t_ns for c in inside if not c.neutral), None)
+    # "moved" means left neutral: for an output moving at the event, only after it went neutral
+    still_from = start_ns if not moving else neutral_at
+    moved_at = None if still_from is None else next((c.t_ns for c in inside if c.t_ns > still_from and not c.neutral),
+                                                     None)
     return {"at_event": _brief(before),
             "neutral_after_ms": None if neutral_at is None else _ms(neutral_at, start_ns),
             "moved_after_ms": None if moved_at is None else _ms(moved_at, start_ns),

@@ -31,7 +31,8 @@ from typing import Any
 
 from u2sa_hw.launcher import Launcher, RestartPolicy
 from u2sa_hw.sim.profile import effective_configs, write_sim_profile
-from u2sa_hw.sim.progress import BusMonitor, BusSnapshot, ProgressLine, control_mode, loop_completed, status_text
+from u2sa_hw.sim.progress import (BusMonitor, BusSnapshot, ProgressLine, control_mode, loop_completed,
+                                  rc_state_name, status_text)
 from u2sa_hw.sim.effects import event_effects, final_outputs
 from u2sa_hw.sim.events import Scenario, load_scenario_file
 from u2sa_hw.sim.scenario import load_scenario
@@ -162,9 +163,9 @@ class SimRun:
                 if self.record.t_engage is None:
                     self.record.t_engage = snap.autonomous_since
                 return
-            self._tick(f"[{time.monotonic() - self.record.t_start:5.1f} s] waiting for RC_MODE autonomous",
-                       waiting_for="RC_MODE to report autonomous with autonomy enabled (see the rc service's "
-                                   "health: enable_blocked_by)")
+            state = rc_state_name(snap.rc) if snap.rc is not None else "no RC_MODE"
+            self._tick(f"[{time.monotonic() - self.record.t_start:5.1f} s] waiting for RC_MODE autonomous ({state})",
+                       waiting_for=f"RC_MODE to report autonomous with autonomy enabled (RC_MODE: {state})")
 
     def reengage(self, tick: Any = None) -> None:
         """The safety pilot's procedure: mode switch to manual, wait for RC_MODE manual, then engage."""

@@ -1,0 +1,145 @@
+"""Failsafe scenarios: ``u2sa sim --scenario FILE`` plays events and reports each actuator output.
+
+The two runs are real ``u2sa sim`` processes (every service a process, LCM multicast and a
+simulated CAN bus of their own). They assert the ORDER of what the outputs did around each
+event, as the mock devices saw them, and the final state; never a timing. One run plays
+every case of the example rover (examples/ground_vehicle/scenarios/all.toml), one the
+Ackermann car's takeover through the hardware mux, to keep CI short.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from conftest import REPO, U2SA
+from mock_devices.actuation import OutputLog
+from u2sa_hw.sim.effects import event_effects
+from u2sa_hw.sim.events import ScenarioError, ScenarioEvent, load_scenario_file
+from u2sa_hw.udp_ports import private_udp_port
+
+WHEELS = ("left_wheel", "right_wheel")
+
+
+def play(tmp_path: Path, lcm_url: str, vehicle: str, scenario: str) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    out = tmp_path / "out"
+    proc = subprocess.run([*U2SA, "sim", "--vehicle", vehicle, "--scenario", scenario, "--out", str(out),
+                           "--lcm-url", lcm_url, "--can-port", str(private_udp_port()), "--timeout", "150"],
+                          cwd=REPO, capture_output=True, text=True, timeout=200)
+    assert proc.returncode == 0, f"u2sa sim failed:\n{proc.stdout[-4000:]}\n{proc.stderr[-2000:]}"
+    summary = json.loads((out / "summary.json").read_text())
+    return summary, summary["scenario"]["events"]
+
+
+def stopped(event: dict[str, Any], names: tuple[str, ...]) -> bool:
+    """Every output in *names* went neutral in the event's window and did not move again in it."""
+    return all(event["outputs"][n]["neutral_after_ms"] is not None and event["outputs"][n]["moved_after_ms"] is None
+               and event["outputs"][n]["at_end"]["neutral"] for n in names)
+
+
+def moved(event: dict[str, Any], names: tuple[str, ...]) -> bool:
+    """Every output in *names* was neutral at the event and moved in its window."""
+    return all(event["outputs"][n]["at_event"]["neutral"] and event["outputs"][n]["moved_after_ms"] is not None
+               for n in names)
+
+
+def still(event: dict[str, Any], names: tuple[str, ...]) -> bool:
+    """Every output in *names* was neutral at the event and stayed neutral through its window."""
+    return all(event["outputs"][n]["at_event"]["neutral"] and event["outputs"][n]["moved_after_ms"] is None
+               for n in names)
+
+
+@pytest.mark.timeout(240)
+def test_every_failsafe_case_of_the_example_rover_in_order(tmp_path: Path, lcm_url: str) -> None:
+    summary, events = play(tmp_path, lcm_url, "examples/ground_vehicle/vehicle.toml",
+                           "examples/ground_vehicle/scenarios/all.toml")
+    by = {e["event"]: e for e in events}
+    assert [e["action"] for e in events] == ["rc_loss", "rc_return", "reengage", "mode", "forge", "sticks", "centre",
+                                             "mode", "failsafe", "failsafe", "reengage", "gps_fix", "gps_fix",
+                                             "reengage", "signal", "signal", "signal"]
+    rc_loss, rc_return, rearm1, manual, forge, sticks, centre, auto, fs_on, fs_off, rearm2, gps_off, gps_on, \
+        rearm3, stop, cont, kill = events
+    # RC loss: the wheels stop; the link back is not enough, only the pilot's re-arm drives again
+    assert stopped(rc_loss, WHEELS) and "NO RC SIGNAL" in rc_loss["rc_modes"]
+    assert still(rc_return, WHEELS) and moved(rearm1, WHEELS)
+    # manual: the autonomous commands stop at every wheel; a forged one is dropped; the sticks drive
+    assert stopped(manual, WHEELS) and manual["rc_modes"][-1] == "MANUAL"
+    assert still(forge, WHEELS)
+    assert moved(sticks, WHEELS) and stopped(centre, WHEELS)
+    assert moved(auto, WHEELS)
+    # an operator failsafe stops everything; its clear does not restart anything; a re-arm does
+    assert stopped(fs_on, WHEELS) and still(fs_off, WHEELS) and moved(rearm2, WHEELS)
+    # the GPS fix lost: the pre-arm check stops the wheels until the fix is back and the pilot re-arms
+    assert stopped(gps_off, WHEELS) and any("gps" in mode for mode in gps_off["rc_modes"])
+    assert still(gps_on, WHEELS) and moved(rearm3, WHEELS)
+    # control frozen: the wheels' dead-man stops them; resumed, it drives again
+    assert stopped(stop, WHEELS) and moved(cont, WHEELS)
+    # the wheels driver killed: the motors stop (the controllers' own watchdog) before anything else
+    assert all(kill["outputs"][n]["neutral_after_ms"] is not None for n in WHEELS)
+    assert by[kill["event"]]["outputs"]["pan"]["at_event"]["neutral"]
+    # final state: every output neutral after the run stopped the stack
+    assert all(o["neutral"] for o in summary["outputs"].values()) and set(summary["outputs"]) >= {*WHEELS, "pan"}
+
+
+@pytest.mark.timeout(200)
+def test_the_ackermann_car_is_taken_over_through_the_hardware_mux(tmp_path: Path, lcm_url: str) -> None:
+    summary, events = play(tmp_path, lcm_url, "examples/ackermann_rover/vehicle.toml",
+                           "examples/ackermann_rover/scenarios/manual_takeover.toml")
+    manual, sticks, centre, auto, rc_loss, rc_return, rearm = events
+    throttle = ("throttle",)
+    # the PWM outputs move the simulated car: it drove before the takeover
+    assert summary["distance_m"] > 3
+    # manual: the mux passes the pilot's centred sticks at once; then the sticks themselves
+    assert stopped(manual, throttle) and moved(sticks, ("throttle", "steering"))
+    assert sticks["outputs"]["steering"]["at_end"]["value"] < 0 < sticks["outputs"]["throttle"]["at_end"]["value"]
+    assert stopped(centre, ("throttle", "steering")) and moved(auto, throttle)
+    # RC lost: the mux selects the pilot, whose receiver puts out nothing: the ESC has no pulse
+    assert stopped(rc_loss, throttle) and rc_loss["outputs"]["throttle"]["at_end"]["value"] == 0.0
+    assert still(rc_return, throttle) and moved(rearm, throttle)
+    assert all(o["neutral"] for o in summary["outputs"].values())
+
+
+# ---- the scenario file and the effects, without a simulation ---------------------------------
+@pytest.mark.parametrize("text, error", [
+    ("", r"scen.toml: no \[\[event\]\] tables"),
+    ("[[event]]\nat_s = 1\naction = \"explode\"\n", r"scen.toml event\[0\]: action 'explode' is not one of rc_loss"),
+    ("[[event]]\nat_s = -1\naction = \"rc_loss\"\n", r"event\[0\]: at_s must be a number of seconds >= 0"),
+    ("[[event]]\nat_s = 1\naction = \"mode\"\nvalue = \"auto\"\n", r"mode value must be \"manual\" or \"autonomous\""),
+    ("[[event]]\nat_s = 1\naction = \"signal\"\nservice = \"gps\"\nsignal = \"HUP\"\n",
+     r"signal must be one of KILL, STOP, CONT, TERM"),
+    ("[[event]]\nat_s = 1\naction = \"sticks\"\nthrottle = 2\n", r"sticks throttle must be a position -1..1"),
+    ("[[event]]\nat_s = 1\naction = \"forge\"\nactuator = \"x\"\n", r"forge needs percent"),
+    ("[[event]]\nat_s = 1\naction = \"rc_loss\"\nfor_s = 2\n", r"unknown key\(s\) for_s for rc_loss"),
+    ("end_s = 0.5\n[[event]]\nat_s = 1\naction = \"rc_loss\"\n", r"end_s must be a number >= the last event"),
+])
+def test_a_bad_scenario_names_the_file_the_event_and_the_key(tmp_path: Path, text: str, error: str) -> None:
+    path = tmp_path / "scen.toml"
+    path.write_text(text)
+    with pytest.raises(ScenarioError, match=error):
+        load_scenario_file(path)
+
+
+def test_every_shipped_scenario_loads() -> None:
+    files = sorted(REPO.glob("examples/*/scenarios/*.toml"))
+    assert {f.stem for f in files} >= {"rc_loss", "manual_switch", "sticks", "gps_fix_loss", "service_kill",
+                                       "forged_command", "failsafe", "all", "manual_takeover"}
+    for path in files:
+        assert load_scenario_file(path).events
+
+
+def test_effects_say_when_each_output_went_neutral_and_moved_again() -> None:
+    log = OutputLog()
+    ms = 1_000_000
+    for name, t, value in (("a", 0, 0.0), ("b", 0, 0.0), ("a", 10, 50.0), ("b", 12, 40.0), ("a", 30, 55.0), ("a", 105, 0.0), ("b", 140, 0.0),
+                           ("a", 400, 30.0)):
+        log.record(name, value, neutral=value == 0.0, t_ns=t * ms)
+    events = [(ScenarioEvent(1.0, "rc_loss"), 100 * ms), (ScenarioEvent(2.0, "reengage"), 300 * ms)]
+    loss, rearm = event_effects(log, events, end_ns=500 * ms, t0_ns=0, rc_modes=[(120 * ms, "NO RC SIGNAL")])
+    assert loss["outputs"]["a"]["neutral_after_ms"] == 5.0 and loss["outputs"]["a"]["moved_after_ms"] is None
+    assert loss["all_neutral_after_ms"] == 40.0 and loss["rc_modes"] == ["NO RC SIGNAL"]
+    assert rearm["all_neutral_after_ms"] == 0.0 and rearm["outputs"]["a"]["moved_after_ms"] == 100.0
+    assert rearm["outputs"]["b"]["moved_after_ms"] is None and rearm["outputs"]["a"]["at_end"]["value"] == 30.0
