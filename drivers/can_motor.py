@@ -19,7 +19,7 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, ClassVar
+from typing import Any, Callable, ClassVar, Mapping
 
 import can
 
@@ -99,6 +99,8 @@ class CanMotorService(Actuator):
 
     def validate_config(self, name: str, value: Any) -> str | None:
         """Refuse a change over the bus that would leave a config this driver cannot run with."""
+        if name in ("command_timeout_s", "rc_gating"):
+            return super().validate_config(name, value)
         try:
             self.check_settings(lambda key: value if key == name else self.config.get(key))
         except ConfigError as exc:
@@ -150,6 +152,11 @@ class CanMotorService(Actuator):
     def actuator_names(self) -> set[str]:
         """The configured actuator names."""
         return set(self.motors)
+
+    @classmethod
+    def declared_actuators(cls, name: str, config: Mapping[str, Any]) -> set[str]:
+        """The names of ``actuators``."""
+        return {str(a) for a in config["actuators"]}
 
     def on_config_change(self, name: str, value: Any) -> None:
         """Bus fields reopen the port, odometry fields restart the odometry (checked by validate_config)."""
