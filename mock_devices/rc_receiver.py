@@ -6,13 +6,17 @@ of the frame and falls after its pulse width (1000-2000 us, 1500 neutral). Edge
 timestamps are computed from a monotonic frame clock (frame k starts at t0 + k*period),
 not read after a sleep, so a driver measuring fall - rise gets the set width exactly; the
 edges of a frame are handed to the chip once the frame is over, so no edge is delivered
-before its time. Faults: ``signal_loss`` (no edges), ``glitch`` (isolated out-of-range
-frames).
+before its time. The pilot's sticks: ``set_stick(channel, -1..1)``, ``set_sticks(
+throttle=..., steering=...)``, ``centre_sticks()``; the mode switch: ``set_mode_switch``.
+Faults: ``signal_loss`` (no edges), ``glitch`` (isolated out-of-range frames).
 
 ``MuxMock`` models the multiplexer: it selects the autonomous source only while the
 autonomy-enable output line is high AND the pilot's mode switch (the mode channel) says
 autonomous; otherwise, and on loss of the RC signal, the pilot (RC) side. Software and
-pilot must both agree. It drives an optional select read-back input line (1 = autonomous).
+pilot must both agree. It switches only the PWM outputs wired through it (the profile's
+``[safety] hardware_mux``: :class:`mock_devices.actuation.PwmFeed` asks ``rc_pulse_us`` for
+the pilot's pulse); CAN, I2C and GPIO outputs never pass through it. It drives an optional
+select read-back input line (1 = autonomous).
 Fault: ``stick(side)`` jams the mux on one side whatever its inputs say (a welded relay, a
 mux that lost its own RC input); ``stick(None)`` frees it.
 """
