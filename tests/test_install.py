@@ -316,3 +316,46 @@ def test_sysusers_declaration_creates_the_user_and_groups(tmp_path: Path, vehicl
     passwd, group = entries(image / "etc/passwd"), entries(image / "etc/group")
     assert passwd["u2sa"][6] == "/usr/sbin/nologin"
     assert all("u2sa" in group[g][3].split(",") for g in ("dialout", "i2c", "gpio"))
+
+
+def test_install_makes_the_bus_key_root_u2sa_0640_once_and_keeps_an_existing_one(vehicle: Path, root: Path) -> None:
+    from u2sa_hw.bus_key import read_key
+
+    tree = install(vehicle=vehicle, root=root)
+    key_file = root / "etc/u2sa/bus.key"
+    assert any(c.action == "created" and c.path == "/etc/u2sa/bus.key" for c in tree.changes)
+    group = entries(root / "etc/group")
+    st = key_file.stat()
+    assert (st.st_uid, st.st_gid, st.st_mode & 0o7777) == (0, int(group["u2sa"][2]), 0o640)
+    key = read_key(key_file)
+    assert key.hex() not in (root / "etc/u2sa/vehicle.toml").read_text()   # never in the world-readable profile
+    key_file.chmod(0o644)   # drifted: the key is kept, its mode put back
+    again = install(vehicle=vehicle, root=root)
+    assert not again.changed and read_key(key_file) == key
+    assert key_file.stat().st_mode & 0o7777 == 0o640
+    uninstall(root=root)
+    assert read_key(key_file) == key   # kept with the configs; --purge removes /etc/u2sa
+
+
+def test_u2sa_key_rotate_import_and_show_on_a_staged_key(vehicle: Path, root: Path) -> None:
+    install(vehicle=vehicle, root=root)
+    key_file = root / "etc/u2sa/bus.key"
+    u2sa = [sys.executable, "-m", "u2sa_hw.cli", "key"]
+    env = {k: v for k, v in os.environ.items() if k != "U2SA_BUS_KEY_FILE"}
+    old = subprocess.run([*u2sa, "show", "--file", str(key_file)], capture_output=True, text=True, env=env)
+    assert old.returncode == 0 and len(old.stdout.strip()) == 64
+    rotated = subprocess.run([*u2sa, "rotate", "--file", str(key_file)], capture_output=True, text=True, env=env)
+    assert rotated.returncode == 0, rotated.stderr
+    new = subprocess.run([*u2sa, "show", "--file", str(key_file)], capture_output=True, text=True, env=env).stdout
+    assert new != old.stdout
+    st = key_file.stat()
+    assert (st.st_uid, st.st_mode & 0o7777) == (0, 0o640 if os.geteuid() == 0 else 0o600)
+    back = subprocess.run([*u2sa, "import", "-", "--file", str(key_file)], input=old.stdout, capture_output=True,
+                          text=True, env=env)
+    assert back.returncode == 0, back.stderr
+    assert subprocess.run([*u2sa, "show", "--file", str(key_file)], capture_output=True, text=True,
+                          env=env).stdout == old.stdout
+    bad = subprocess.run([*u2sa, "import", "-", "--file", str(key_file)], input="0123\n", capture_output=True,
+                         text=True, env=env)
+    assert bad.returncode == 1 and bad.stderr.count("\n") == 1 and "64 hex digits" in bad.stderr
+    assert "Traceback" not in bad.stderr

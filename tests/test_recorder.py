@@ -19,7 +19,7 @@ from mcap.reader import make_reader
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus_client import BusClient
-from u2sa_hw.recording.log_reader import LogFile
+from u2sa_hw.recording.log_reader import LogError, LogFile
 from u2sa_hw.recording.mcap_log import McapLogWriter
 from u2sa_hw.services.recorder.capture import BusCapture
 from u2sa_hw.transport import Transport
@@ -39,7 +39,11 @@ def _recorder_files(tmp: Path) -> list[Path]:
 
 
 def _count(path: Path, channel: str) -> int:
-    return sum(1 for _ in LogFile(path).messages(channel))
+    """Messages of *channel* in the log so far (0 while the writer has not flushed even the magic bytes)."""
+    try:
+        return sum(1 for _ in LogFile(path).messages(channel))
+    except LogError:
+        return 0
 
 
 def _state(i: int) -> t.StateInformation:
@@ -282,3 +286,39 @@ def test_record_command_below_min_free_stops_with_the_reason(services: ServicePr
     assert "below the 1000000000000 MB floor" in r.stderr and "recording stopped" in r.stderr
     r = services.cli("record", "--queue-size", "0")
     assert r.returncode == 2 and "--queue-size" in r.stderr
+
+
+def test_the_log_holds_verified_payloads_and_says_the_bus_was_signed(services: ServiceProcesses, bus: BusClient,
+                                                                     tmp_path: Path) -> None:
+    """A packet from a process without the key is not recorded but counted; the payloads carry no trailer."""
+    out = services.workdir / "signed.mcap"
+    proc = subprocess.Popen([sys.executable, "-m", "u2sa_hw.cli", "record", "-o", str(out), "--include",
+                             "STATE_INFO", "--duration", "60"], env=services.env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    keyless = {k: v for k, v in services.env().items() if k != "U2SA_BUS_KEY_FILE"}
+    forger = ("import sys; from u2sa_hw.transport import Transport; from u2sa_hw import lcmtypes as t; "
+              "Transport(sys.argv[1], name='laptop', security='open').publish('STATE_INFO', "
+              "t.StateInformation().set(x=666.0))")
+    try:
+        def recorded() -> bool:
+            bus.publish(ch.STATE_INFO, _state(1))
+            return out.exists() and _count(out, ch.STATE_INFO) > 0
+
+        wait_until(recorded, timeout=20, interval=0.2, message="the record command to write a signed message")
+        subprocess.run([sys.executable, "-c", forger, services.url], env=keyless, check=True, timeout=60)
+        bus.publish(ch.STATE_INFO, _state(2))   # after the forgery on the wire: recorded once it is through
+        wait_until(lambda: any(t.StateInformation.decode(m.data).x == 2.0 for m in LogFile(out).messages()
+                               if m.channel == ch.STATE_INFO), timeout=20, interval=0.2, message="the message after the forgery")
+        proc.send_signal(signal.SIGINT)
+        _stdout, stderr = proc.communicate(timeout=15)
+        assert proc.returncode == 0, stderr
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    messages = list(LogFile(out).messages())
+    assert all(t.StateInformation.decode(m.data).x != 666.0 for m in messages)
+    assert all(t.StateInformation.decode(m.data).encode() == m.data for m in messages)   # no trailer in the log
+    info = json.loads(services.cli("log", "info", str(out), "--json").stdout)
+    assert info["bus"]["security"] == "signed" and info["bus"]["dropped"]["unsigned"] == 1
+    text = services.cli("log", "info", str(out)).stdout
+    assert "bus:         signed (key " in text and "STATE_INFO: unsigned 1" in text

@@ -18,6 +18,7 @@ import hashlib
 import os
 import secrets
 import shutil
+import stat
 import tempfile
 from pathlib import Path
 
@@ -93,10 +94,19 @@ def write_key(path: Path, key: bytes, *, group: str | None = KEY_GROUP) -> None:
     """Store *key* at *path* atomically (temp file, fsync, rename), mode 0640 root:*group* when root can.
 
     Without root, or without the group on this machine, the file is the caller's, mode 0600.
+    A key replaced (rotate, import) keeps the old file's group and mode, never wider than 0640.
     """
     if len(key) != KEY_BYTES:
         raise BusKeyError(f"{path}: refusing to write a {len(key)}-byte key (a bus key is {KEY_BYTES} bytes)")
-    gid = _group_id(group) if os.geteuid() == 0 and group else None
+    root = os.geteuid() == 0
+    try:
+        old = path.stat()
+    except OSError:
+        gid = _group_id(group) if root and group else None
+        mode = 0o640 if gid is not None else 0o600
+    else:
+        gid = old.st_gid if root else None
+        mode = stat.S_IMODE(old.st_mode) & 0o640 or 0o600
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".bus.key.")
@@ -106,7 +116,7 @@ def write_key(path: Path, key: bytes, *, group: str | None = KEY_GROUP) -> None:
         with os.fdopen(fd, "w") as f:
             if gid is not None:
                 os.fchown(f.fileno(), 0, gid)
-            os.fchmod(f.fileno(), 0o640 if gid is not None else 0o600)
+            os.fchmod(f.fileno(), mode)
             f.write(key.hex() + "\n")
             f.flush()
             os.fsync(f.fileno())

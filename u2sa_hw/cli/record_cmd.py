@@ -12,10 +12,12 @@ from pathlib import Path
 from typing import Any
 
 from u2sa_hw.cli.common import add_vehicle_option, profile_from
+from u2sa_hw.recording.mcap_log import BUS_METADATA
 
 RECORD_HELP = """\
-Record the bus into an MCAP log until Ctrl-C (or --duration). The LCM bytes are stored
-unchanged with each type's .lcm definition as its schema, plus the vehicle profile and
+Record the bus into an MCAP log until Ctrl-C (or --duration). The LCM bytes of every
+verified packet are stored (without the signature trailer: the log replays with any
+key) with each type's .lcm definition as its schema, plus the vehicle profile and
 service configs, so the log says everything about the run. Chunks are closed every
 second: a kill or power cut loses at most the last second (u2sa log recover repairs it).
 Below --min-free-mb of free disk space in the log's directory the recording stops, the
@@ -152,11 +154,13 @@ def cmd_info(args: Any) -> int:
     summary = log.scan()
     c = summary.contents
     meta = c.metadata.get("u2sa", {})
+    bus = bus_summary(meta, c.metadata.get(BUS_METADATA))
     rows = [{"channel": s.channel, "type": s.type_name, "count": s.count,
              "rate_hz": s.count / summary.duration_s if summary.duration_s else 0.0} for s in summary.channels]
     if args.json:
         print(json.dumps({"file": str(log.path), "complete": c.complete, "problem": c.problem,
                           "duration_s": summary.duration_s, "messages": summary.messages, "vehicle": meta,
+                          "bus": bus,
                           "devices": summary.devices, "attachments": sorted(c.attachments), "channels": rows},
                          indent=2))
         return 0
@@ -164,6 +168,7 @@ def cmd_info(args: Any) -> int:
     print(f"vehicle:     {meta.get('vehicle', '?')} (system id {meta.get('system_id', '?')}) on "
           f"{meta.get('host', '?')}, started {meta.get('started', '?')}")
     print(f"duration:    {summary.duration_s:.1f} s, {summary.messages} messages")
+    print(f"bus:         {bus['text']}")
     print(f"state:       {'complete' if c.complete else 'NOT COMPLETE: ' + (c.problem or 'no summary')}"
           + ("" if c.complete else f" (u2sa log recover {log.path})"))
     print(f"devices:     {', '.join(summary.devices) or 'none (no RAW.* channels)'}")
@@ -172,6 +177,25 @@ def cmd_info(args: Any) -> int:
     for r in rows:
         print(f"{r['channel']:28} {r['type']:22} {r['count']:>8} {r['rate_hz']:9.1f}")
     return 0
+
+
+def bus_summary(meta: dict[str, str], record: dict[str, str] | None) -> dict[str, Any]:
+    """Whether the recorded bus was signed, and the packets the recorder dropped, from the log's metadata."""
+    security = (record or {}).get("security") or meta.get("bus_security") or ""
+    dropped = {why: int((record or {}).get(why, "0") or 0) for why in ("unsigned", "forged", "replayed")}
+    if not security:
+        text = "not recorded (a log from before the bus was signed)"
+    elif security == "open":
+        text = "open: nothing was verified (bus_security = \"open\")"
+    else:
+        key = (record or {}).get("key_id") or meta.get("bus_key_id", "?")
+        counts = ", ".join(f"{why} {n}" for why, n in dropped.items())
+        text = (f"signed (key {key}); the log holds verified payloads; dropped {sum(dropped.values())} packets "
+                f"({counts})" if record else f"signed (key {key}); drop counts not written (log cut short)")
+        if record and record.get("by_channel"):
+            text += f": {record['by_channel']}"
+    return {"security": security or None, "dropped": dropped, "by_channel": (record or {}).get("by_channel", ""),
+            "text": text}
 
 
 def cmd_echo(args: Any) -> int:

@@ -14,7 +14,7 @@ import socket
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, Callable
 
 from mcap.writer import CompressionType, Writer
 
@@ -23,6 +23,7 @@ from u2sa_hw.messages import REGISTRY
 from u2sa_hw.recording.schemas import MESSAGE_ENCODING, SCHEMA_ENCODING, schema_text
 
 PROFILE = "u2sa"
+BUS_METADATA = "u2sa_bus"   # metadata record written as each file is finished (BusCapture.bus_metadata)
 COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
 
@@ -34,12 +35,15 @@ class RunInfo:
     system_id: int = 0
     lcm_url: str = ""
     attachments: dict[str, bytes] = field(default_factory=dict)  # name -> file contents
+    bus_security: str = ""    # "signed" or "open": what the recorder's transport verified
+    bus_key_id: str = ""      # the public id of the key it verified with (never the key)
 
     def metadata(self) -> dict[str, str]:
         """The ``u2sa`` metadata record."""
         return {"vehicle": self.vehicle, "system_id": str(self.system_id), "lcm_url": self.lcm_url,
                 "host": socket.gethostname(), "u2sa_hw_version": __version__,
-                "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+                "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "bus_security": self.bus_security,
+                "bus_key_id": self.bus_key_id}
 
 
 def timestamped_name(prefix: str, *, when: float | None = None) -> str:
@@ -95,8 +99,10 @@ class McapFile:
         self._fh.flush()
         os.fsync(self._fh.fileno())
 
-    def close(self) -> None:
-        """Write the summary (indexes, statistics) and close."""
+    def close(self, metadata: dict[str, dict[str, str]] | None = None) -> None:
+        """Write *metadata* records (what is known only at the end), the summary (indexes, statistics), and close."""
+        for name, record in (metadata or {}).items():
+            self._writer.add_metadata(name, record)
         self._writer.finish()
         self._fh.flush()
         os.fsync(self._fh.fileno())
@@ -127,6 +133,8 @@ class McapLogWriter:
         self.files: list[Path] = []
         self.current: McapFile | None = None
         self.messages = 0
+        # Metadata written into each file as it is finished (the recorder's bus drop counts).
+        self.closing_metadata: Callable[[], dict[str, dict[str, str]]] | None = None
 
     def _open(self) -> McapFile:
         self.directory.mkdir(parents=True, exist_ok=True)
@@ -147,7 +155,7 @@ class McapLogWriter:
         if self.current is None:
             self.current = self._open()
         elif self._due_for_rotation(self.current):
-            self.current.close()
+            self.current.close(self._closing())
             self.current = self._open()
         self.current.write(channel, data, log_time_ns)
         self.messages += 1
@@ -165,8 +173,11 @@ class McapLogWriter:
     def close(self) -> None:
         """Finish the current file."""
         if self.current is not None:
-            self.current.close()
+            self.current.close(self._closing())
             self.current = None
+
+    def _closing(self) -> dict[str, dict[str, str]]:
+        return self.closing_metadata() if self.closing_metadata is not None else {}
 
     def describe(self) -> dict[str, Any]:
         """Figures for health."""

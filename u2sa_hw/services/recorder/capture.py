@@ -20,7 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from u2sa_hw.recording.mcap_log import McapLogWriter
+from u2sa_hw.bus_auth import REJECTIONS
+from u2sa_hw.recording.mcap_log import BUS_METADATA, McapLogWriter
 from u2sa_hw.transport import Transport
 
 log = logging.getLogger("u2sa_hw.recorder")
@@ -62,6 +63,11 @@ class BusCapture:
             raise ValueError(f"queue_size must be at least 1, got {queue_size}")
         self.transport = transport
         self.writer = writer
+        # The log holds verified payloads (the transport strips the trailers); it says which bus
+        # they came from and, in each file, how many packets verification dropped meanwhile.
+        writer.run.bus_security = "signed" if transport.auth is not None else "open"
+        writer.run.bus_key_id = transport.key_id()
+        writer.closing_metadata = self.bus_metadata
         self.flush_interval = min(1.0, max(0.05, flush_interval_s))
         self.min_free = min_free_mb * 1e6
         self.disk_usage = disk_usage
@@ -87,6 +93,15 @@ class BusCapture:
             self._queue.put_nowait((channel, data, time.time_ns()))
         except queue.Full:
             self.stats.dropped += 1
+
+    def bus_metadata(self) -> dict[str, dict[str, str]]:
+        """The ``u2sa_bus`` record: the bus's security and the packets dropped as unsigned, forged, replayed."""
+        rejected = self.transport.rejected()
+        totals = {why: sum(c[why] for c in rejected.values()) for why in REJECTIONS}
+        by_channel = "; ".join(f"{ch}: " + ", ".join(f"{why} {n}" for why, n in c.items() if n)
+                               for ch, c in rejected.items())
+        return {BUS_METADATA: {"security": self.writer.run.bus_security, "key_id": self.writer.run.bus_key_id,
+                               **{why: str(n) for why, n in totals.items()}, "by_channel": by_channel}}
 
     def start(self) -> None:
         """Subscribe and start the writer thread."""
