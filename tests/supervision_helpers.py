@@ -30,6 +30,15 @@ def write_profile(tmp: Path, url: str, services: dict[str, str], *, health_inter
     return path
 
 
+BROKEN_CONFIG_ERROR = "not valid TOML"
+
+
+def break_config(tmp: Path, name: str) -> None:
+    """Give service *name* (of a profile in *tmp*) a config file that is not TOML: it exits 1 at every start."""
+    (tmp / "config").mkdir(exist_ok=True)
+    (tmp / "config" / f"{name}.toml").write_text("this is = = not toml\n")
+
+
 class LauncherProcess:
     """`u2sa run` as a real process with its output in a file."""
 

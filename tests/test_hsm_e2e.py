@@ -13,7 +13,7 @@ from typing import Any
 
 import pytest
 from conftest import wait_until
-from supervision_helpers import Watch, hsm_profile, launch  # noqa: F401 - launch is a fixture
+from supervision_helpers import Watch, break_config, hsm_profile, launch  # noqa: F401 - launch is a fixture
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
@@ -61,8 +61,9 @@ def test_crash_looping_required_service_raises_the_failsafe(tmp_path: Path, lcm_
     watch = Watch(bus)
     vehicle = hsm_profile(tmp_path, lcm_url, '[services.est]\nkind = "state_estimator"\n'
                       "settings = { health_interval_s = 0.2 }\n\n"
-                      '[services.broken]\nkind = "no_such_kind"\n'
+                      '[services.broken]\nkind = "state_estimator"\n'
                       "[services.broken.supervision]\nstartup_grace_s = 2.0\n", startup_grace_s=10.0)
+    break_config(tmp_path, "broken")                         # it exits 1 at every start
     lp = launch(vehicle, "--give-up-after", "0", "--max-failures", "0", "--backoff", "0.2", "--max-backoff", "1")
     failsafe = wait_until(lambda: next((f for f in list(watch.failsafes) if f.active), None), timeout=60,
                           message="an active FAILSAFE")

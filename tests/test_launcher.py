@@ -14,7 +14,7 @@ from typing import Any
 import psutil
 import pytest
 from conftest import wait_until
-from supervision_helpers import launch, write_profile  # noqa: F401 - launch is a fixture
+from supervision_helpers import BROKEN_CONFIG_ERROR, break_config, launch, write_profile  # noqa: F401 - a fixture
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
@@ -77,14 +77,15 @@ def test_killed_child_restarts_with_new_run_id_and_sigint_stops_all(tmp_path: Pa
 
 
 def test_crash_looping_service_backs_off_then_launcher_gives_up(tmp_path: Path, lcm_url: str, launch: Any) -> None:
-    profile = write_profile(tmp_path, lcm_url, {"est": "state_estimator", "broken": "no_such_kind"})
+    profile = write_profile(tmp_path, lcm_url, {"est": "state_estimator", "broken": "state_estimator"})
+    break_config(tmp_path, "broken")
     lp = launch(profile, "--backoff", "0.05", "--give-up-after", "4", "--grace", "5")
     assert lp.proc.wait(timeout=60) == 1
     out = lp.output
     delays = [float(d) for d in re.findall(r"broken exited with status 1 .*restarting in ([0-9.]+) s", out)]
     assert delays == [0.05, 0.1, 0.2], out
     assert "broken exited with status 1" in out and "giving up after 4 quick deaths in a row" in out
-    assert "unknown service kind 'no_such_kind'" in out          # the child's own error, prefixed
+    assert re.search(rf"^broken +\| .*{BROKEN_CONFIG_ERROR}", out, re.MULTILINE)   # the child's own error, prefixed
     assert "exit 1: given up on broken" in out
     # the healthy service was stopped cleanly, not left behind
     assert re.search(r"^launcher +\| est (exited with status 0|killed by SIGTERM) .*\(stopped\)", out, re.MULTILINE), out
@@ -163,7 +164,8 @@ def test_failures_outside_the_window_are_forgotten() -> None:
 
 def test_run_gives_up_by_failures_within_the_window_with_quick_deaths_off(tmp_path: Path, lcm_url: str,
                                                                          launch: Any) -> None:
-    profile = write_profile(tmp_path, lcm_url, {"broken": "no_such_kind"})
+    profile = write_profile(tmp_path, lcm_url, {"broken": "state_estimator"})
+    break_config(tmp_path, "broken")
     lp = launch(profile, "--backoff", "0.05", "--give-up-after", "0", "--max-failures", "3",
                 "--failure-window", "600")
     assert lp.proc.wait(timeout=60) == 1

@@ -170,6 +170,11 @@ class HealthMonitor:
                 tr.cancelled = f"{evidence} received"   # not acted on yet: say so once
             tr.pending_since, tr.confirmed = None, False
 
+    def heard_ago(self, service: str, now: float) -> float | None:
+        """Seconds since anything (heartbeat or data) was received from *service*; None if never."""
+        tr = self._tracks.get(service)
+        return None if tr is None or tr.last_received is None else now - tr.last_received
+
     def restart_result(self, service: str, ok: bool, text: str) -> None:
         """The restarter's outcome for *service* (shown as its last error when it failed)."""
         tr = self._tracks.get(service)

@@ -11,6 +11,10 @@
 systemd restarts go through ``systemctl restart --no-block``, which is systemd's D-Bus
 ``RestartUnit`` call with mode ``replace``; the project ships no D-Bus library, and
 ``--no-block`` keeps the HSM's loop (and so its own watchdog) from waiting on the job.
+
+Before a restart the HSM asks :meth:`Restarter.started_within`: a service whose process was
+started again (by systemd's or the launcher's own watchdog or restart rules) after the HSM
+last heard from it is starting up, not hung, and is left alone.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
+import time
 from pathlib import Path
 from typing import Mapping, Protocol
 
@@ -42,6 +47,9 @@ class Restarter(Protocol):
 
     def describe(self) -> str:
         """One line for the log: how restarts are done."""
+
+    def started_within(self, service: str, seconds: float) -> bool | None:
+        """True when *service*'s process started less than *seconds* ago or is being restarted; None: unknown."""
 
 
 class SystemdRestarter:
@@ -91,6 +99,26 @@ class SystemdRestarter:
         """How restarts are done."""
         return f"systemd ({self.systemctl} restart --no-block {self.unit_template})"
 
+    def started_within(self, service: str, seconds: float) -> bool | None:
+        """From ``systemctl show``: restarting (activating, auto-restart), or its main process's start time."""
+        props = "ActiveState,SubState,ExecMainStartTimestampMonotonic"
+        try:
+            done = subprocess.run([self.systemctl, "show", f"--property={props}", self.unit(service)],
+                                  capture_output=True, text=True, timeout=self.timeout_s)
+        except (OSError, subprocess.TimeoutExpired):
+            return None
+        if done.returncode != 0:
+            return None
+        values = dict(line.partition("=")[::2] for line in done.stdout.splitlines())
+        if values.get("ActiveState") in ("activating", "deactivating") or values.get("SubState") == "auto-restart":
+            return True
+        try:
+            started_us = int(values.get("ExecMainStartTimestampMonotonic", ""))
+        except ValueError:
+            return None
+        # systemd's CLOCK_MONOTONIC is ours: one clock per machine (and per PID namespace).
+        return started_us > 0 and time.monotonic() - started_us / 1e6 < seconds
+
 
 class LauncherRestarter:
     """Asks the local launcher (``u2sa run``) over its control socket."""
@@ -119,6 +147,18 @@ class LauncherRestarter:
         """How restarts are done."""
         return f"launcher (control socket {self.client.path})"
 
+    def started_within(self, service: str, seconds: float) -> bool | None:
+        """From the launcher's status: in backoff or stopping (being restarted), or its run's uptime."""
+        try:
+            status = next((s for s in self.client.status() if s.get("name") == service), None)
+        except LauncherError:
+            return None
+        if status is None:
+            return None
+        if status.get("state") in ("backoff", "stopping"):
+            return True
+        return status.get("state") == "running" and float(status.get("uptime_s", 1e9)) < seconds
+
 
 class NoRestarter:
     """Restarts nothing; says why each time it is asked."""
@@ -135,6 +175,10 @@ class NoRestarter:
     def describe(self) -> str:
         """How restarts are done."""
         return f"none ({self.why})"
+
+    def started_within(self, service: str, seconds: float) -> bool | None:
+        """Unknown: there is no supervisor to ask."""
+        return None
 
 
 def launcher_socket(profile: VehicleProfile, env: Mapping[str, str]) -> Path:

@@ -215,17 +215,31 @@ class HealthStatusMonitor(U2SAService):
             if item is None:
                 return
             service, reason = item
-            assert self.restarter is not None
-            try:
-                account = self.restarter.restart(service, reason=f"HSM: {reason}")
-            except RestartError as exc:
-                self.error(str(exc))
-                ok, text = False, str(exc)
-            else:
-                self.logger.info("%s", account)
-                ok, text = True, account
+            ok, text = self.restart_unless_restarted(service, reason)
             with self._lock:
                 self.monitor.restart_result(service, ok, text)
+
+    def restart_unless_restarted(self, service: str, reason: str) -> tuple[bool, str]:
+        """Restart *service*, unless its supervisor started it again since the HSM last heard from it.
+
+        Returns ``(ok, account)``. A service killed by systemd's (or the launcher's) watchdog is
+        being restarted already: a second restart would only kill the new process as it starts.
+        """
+        assert self.restarter is not None
+        with self._lock:
+            heard = self.monitor.heard_ago(service, time.monotonic())
+        if heard is not None and self.restarter.started_within(service, heard):
+            account = f"not restarting {service}: it was started again since the HSM last heard from it " \
+                      f"{heard:.1f} s ago (by {self.restarter.kind})"
+            self.logger.info("%s", account)
+            return True, account
+        try:
+            account = self.restarter.restart(service, reason=f"HSM: {reason}")
+        except RestartError as exc:
+            self.error(str(exc))
+            return False, str(exc)
+        self.logger.info("%s", account)
+        return True, account
 
     def _publish_failsafe(self, active: bool, reason: str, service: str) -> None:
         self.failsafes.apply(source=self.name, active=active, reason=reason)
