@@ -139,3 +139,16 @@ def test_u2sa_run_restarts_a_hung_hsm(tmp_path: Path, lcm_url: str, launch: Any)
     assert (after["hsm"]["result"], after["hsm"]["watchdog_kills"]) == ("watchdog", 1)
     assert (after["est"]["run_id"], after["est"]["watchdog_kills"]) == (1, 0)
     assert "hsm watchdog timeout (no WATCHDOG=1 for" in lp.output
+
+
+def test_run_help_documents_the_watchdog_and_refuses_a_negative_one(tmp_path: Path, lcm_url: str) -> None:
+    import subprocess
+
+    from u2sa_hw.launcher.launcher import u2sa_command
+
+    shown = subprocess.run([*u2sa_command(), "run", "--help"], capture_output=True, text=True, timeout=60)
+    assert shown.returncode == 0 and "--watchdog S" in shown.stdout and "WatchdogSec" in shown.stdout
+    vehicle = write_profile(tmp_path, lcm_url, {"est": "state_estimator"})
+    bad = subprocess.run([*u2sa_command(), "run", "--vehicle", str(vehicle), "--watchdog", "-1"],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "--watchdog must be >= 0 (0 turns the watchdog off)" in bad.stderr
