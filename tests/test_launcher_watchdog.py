@@ -97,6 +97,17 @@ def test_watchdog_trigger_fires_at_once_and_a_fresh_run_is_disarmed() -> None:
         if first.poll() is None:
             first.kill()
             first.wait()
+    leaving = SupervisedProcess("leaving", SLEEPER, policy=RestartPolicy(), clock=clock,
+                                watchdog=WatchdogSetting(timeout_s=1.0))
+    third = leaving.spawn()
+    try:
+        leaving.on_notify({"READY": "1"})
+        leaving.on_notify({"STOPPING": "1"})        # on its way out: no more pings, and no watchdog
+        clock.now += 60.0
+        assert leaving.check_watchdog() is None
+    finally:
+        third.kill()
+        third.wait()
     off = SupervisedProcess("off", SLEEPER, policy=RestartPolicy(), clock=clock)
     assert off.status().watchdog_s == 0.0
 

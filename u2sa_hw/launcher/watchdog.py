@@ -9,7 +9,9 @@ installed package without the source tree) the defaults are systemd's values in 
 
 As under systemd, a child gets ``WATCHDOG_USEC`` in its environment, the watchdog is armed
 by its first ``READY=1`` or ``WATCHDOG=1`` (a child that never speaks the protocol is never
-judged by it), each ``WATCHDOG=1`` re-arms it, and ``WATCHDOG=trigger`` fires it at once.
+judged by it), each ``WATCHDOG=1`` re-arms it, ``WATCHDOG=trigger`` fires it at once, and
+``STOPPING=1`` ends it for the run: a service on its way out (closing a recording, say) stops
+looping, and systemd does not judge a unit that is stopping by its watchdog either.
 """
 
 from __future__ import annotations
@@ -105,13 +107,16 @@ class WatchdogTimer:
         self.last_ping: float | None = None
         self.fired = False
         self.triggered = False
+        self.stopping = False
 
     def reset(self) -> None:
         """A new run: disarmed until it speaks."""
-        self.last_ping, self.fired, self.triggered = None, False, False
+        self.last_ping, self.fired, self.triggered, self.stopping = None, False, False, False
 
     def on_fields(self, fields: dict[str, str], now: float) -> None:
         """Apply one sd_notify message's fields received at *now*."""
+        if fields.get("STOPPING") == "1":
+            self.stopping = True
         watchdog = fields.get("WATCHDOG")
         if watchdog == "1" or (fields.get("READY") == "1" and self.last_ping is None):
             self.last_ping = now
@@ -120,7 +125,7 @@ class WatchdogTimer:
 
     def overdue(self, now: float) -> float | None:
         """Seconds since the last ping when the watchdog should fire now (once per run), else None."""
-        if self.fired or self.setting.timeout_s <= 0 or self.last_ping is None:
+        if self.fired or self.stopping or self.setting.timeout_s <= 0 or self.last_ping is None:
             return None
         silent = now - self.last_ping
         if self.triggered or silent > self.setting.timeout_s:
