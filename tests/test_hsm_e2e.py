@@ -138,13 +138,14 @@ def test_hsm_failsafe_is_cleared_only_by_an_operator_and_only_when_all_is_ok(tmp
                message="the HSM to read both clears that were not aimed at it")
     assert not any(not f.active and f.header.source == "hsm" for f in watch.failsafes)
 
-    publish_failsafe(bus, source="operator", active=False, reason="est is back", service="hsm")
+    done = u2sa(tmp_path, "failsafe", "clear", "--source", "hsm", "--vehicle", str(vehicle))   # the operator
+    assert done.returncode == 0, done.stderr
     lowered = wait_until(lambda: next((f for f in list(watch.failsafes) if not f.active and f.header.source == "hsm"),
                                       None), timeout=10, message="the HSM lowering its failsafe")
-    assert lowered.reason == "cleared by operator: est is back"
+    assert lowered.reason == "clear from operator accepted: every required service is ok"
     wait_until(lambda: (m := watch.latest()) and not m.failsafe and m.summary.startswith("ok"), timeout=10,
                message="SystemHealth without failsafe")
-    assert "failsafe cleared by operator (est is back); every required service is ok" in lp.output
+    assert "failsafe cleared by operator (cleared by the operator); every required service is ok" in lp.output
 
 
 def test_health_without_an_hsm_names_the_problem(tmp_path: Path, lcm_url: str) -> None:

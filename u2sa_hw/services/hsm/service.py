@@ -120,7 +120,7 @@ class HealthStatusMonitor(U2SAService):
             self._reassert.set()
         elif was_active:
             self.logger.info("failsafe cleared by %s (%s); every required service is ok", source, msg.reason or "-")
-            self._publish_failsafe(False, f"cleared by {source}: {msg.reason or 'no reason given'}", "")
+            self._publish_failsafe(False, f"clear from {source} accepted: every required service is ok", "")
 
     def _on_data(self, channel: str, data: bytes) -> None:
         try:
