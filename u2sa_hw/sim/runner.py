@@ -43,6 +43,8 @@ from u2sa_hw.vehicle import load_profile
 SAMPLE_HZ = 10.0
 TICK_S = 0.2
 DEGRADED_GRACE_S = 20.0   # the pilot waits this long for degraded services (other than IMUs) to be ok
+REARM_AFTER_S = 1.0       # the pilot re-arms when RC_MODE still says "not armed" this long after the switch
+REARM_TRIES = 5
 IMU_CALIBRATION_S = 45.0  # an IMU not calibrated at rest this long after start fails the run
 MAX_INTERRUPTIONS = 3   # autonomy lost and re-engaged by the pilot at most this often
 ERROR_MARKERS = (" ERROR ", " CRITICAL ", "Traceback (most recent call last)")
@@ -154,9 +156,14 @@ class SimRun:
                        waiting_for="the stack to start: " + "; ".join(missing))
 
     def engage(self) -> None:
-        """The pilot flips the RC mode switch to autonomous; waits for the mux to hand over."""
+        """The pilot flips the RC mode switch to autonomous; waits for the mux to hand over.
+
+        A pilot who sees RC_MODE say "not armed" (a pre-arm check that failed just after the
+        switch disarms the rc service) re-arms through manual, at most REARM_TRIES times.
+        """
         self.mocks.set_mode_switch(True)
         self.progress.event("pilot: RC mode switch -> AUTONOMOUS")
+        flipped, tries = time.monotonic(), 0
         while True:
             snap = self._check()
             if snap.autonomous_since is not None:
@@ -164,19 +171,29 @@ class SimRun:
                     self.record.t_engage = snap.autonomous_since
                 return
             state = rc_state_name(snap.rc) if snap.rc is not None else "no RC_MODE"
+            if "not armed" in state and time.monotonic() - flipped > REARM_AFTER_S and tries < REARM_TRIES:
+                tries += 1
+                self.progress.event(f"pilot: RC_MODE says {state}: re-arming through manual")
+                self._to_manual()
+                self.mocks.set_mode_switch(True)
+                flipped = time.monotonic()
+                continue
             self._tick(f"[{time.monotonic() - self.record.t_start:5.1f} s] waiting for RC_MODE autonomous ({state})",
                        waiting_for=f"RC_MODE to report autonomous with autonomy enabled (RC_MODE: {state})")
 
-    def reengage(self, tick: Any = None) -> None:
-        """The safety pilot's procedure: mode switch to manual, wait for RC_MODE manual, then engage."""
+    def _to_manual(self) -> None:
         self.mocks.set_mode_switch(False)
-        self.progress.event("pilot: RC mode switch -> MANUAL (to re-arm)")
         while True:
             snap = self._check()
             if snap.rc is not None and snap.rc.mode == 0:
-                break
+                return
             self._tick(f"[{time.monotonic() - self.record.t_start:5.1f} s] waiting for RC_MODE manual",
                        waiting_for="RC_MODE manual for the pilot to re-arm")
+
+    def reengage(self, tick: Any = None) -> None:
+        """The safety pilot's procedure: mode switch to manual, wait for RC_MODE manual, then engage."""
+        self.progress.event("pilot: RC mode switch -> MANUAL (to re-arm)")
+        self._to_manual()
         self.engage()
 
     def _reengage(self, snap: BusSnapshot) -> None:
