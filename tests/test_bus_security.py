@@ -203,3 +203,15 @@ def test_an_open_bus_is_said_at_start_and_in_discovery(services: ServiceProcesse
     assert json.loads(r.stdout)[0]["bus"] == "open"
     log = wait_until(lambda: (p := tmp_path / "logs" / f"{SERVICE}.log").exists() and p.read_text(), timeout=10)
     assert "the bus is open" in log
+
+
+def test_a_duplicate_service_refuses_to_start_naming_the_other(services: ServiceProcesses, bus: BusClient) -> None:
+    first = start_estimator(services, bus)
+    second = services.start(SERVICE)
+    assert second.wait(timeout=60) == 3
+    out = (services.workdir / f"{SERVICE}.stderr").read_text()
+    line = next(x for x in out.splitlines() if "already runs on this bus" in x)
+    assert f"pid {first.pid} on host {first.host}" in line and f"u2sa stop {SERVICE}" in line
+    assert "Traceback" not in out
+    assert services.procs[0].poll() is None
+    assert bus.discover(timeout=1.0, name=SERVICE)[0].pid == first.pid

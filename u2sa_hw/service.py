@@ -32,6 +32,7 @@ from u2sa_hw.config import ConfigError, ConfigField, Configurator, field, to_tex
 from u2sa_hw.health import HOSTNAME, ProcessStats, build_health
 from u2sa_hw.messages import type_name
 from u2sa_hw.sdnotify import SystemdNotifier, watchdog_interval
+from u2sa_hw.service_bus import DUPLICATE_EXIT, bus_text, find_duplicate, rejected_text
 from u2sa_hw.service_log import LEVEL_NAMES, level_number, set_level
 from u2sa_hw.transport import Transport
 from u2sa_hw.vehicle import VehicleProfile
@@ -250,8 +251,8 @@ class U2SAService:
         self.register_publisher(ch.HEALTH, t.Health)
 
     def _on_discovery(self, req: t.DiscoveryRequest) -> None:
-        if req.name_filter and req.name_filter != self.name:
-            return
+        if (req.name_filter and req.name_filter != self.name) or not self.running:
+            return   # not yet started (find_duplicate pumps the transport before start()) or stopping
         resp = t.DiscoveryResponse()
         resp.request_id = req.request_id
         resp.name, resp.service_type, resp.status = self.name, self.SERVICE_TYPE, self.status
@@ -313,7 +314,7 @@ class U2SAService:
                 details["unhandled"] = ",".join(f"{k}:{n}" for k, n in sorted(dict(self._unhandled).items()))
         except Exception as exc:  # noqa: BLE001 - health must still go out
             details = {"health_details_error": str(exc)}
-        details["bus_security"] = _bus_text(self.transport)
+        details["bus_security"] = bus_text(self.transport)
         rejected = rejected_text(self.transport.rejected())
         if rejected:
             details["bus_rejected"] = rejected
@@ -335,7 +336,7 @@ class U2SAService:
         self._notifier.notify("READY=1")
         self.notify_status(f"{self.name} ({self.SERVICE_TYPE}) running")
         self.logger.info("%s (%s) started, pid %d, LCM %s, bus %s", self.name, self.SERVICE_TYPE, os.getpid(),
-                         self.transport.url, _bus_text(self.transport))
+                         self.transport.url, bus_text(self.transport))
         if self.transport.auth is None:
             self.logger.warning("the bus is open (bus_security = \"open\"): messages are neither signed nor "
                                 "verified, any process that reaches the multicast group can command this vehicle")
@@ -354,6 +355,12 @@ class U2SAService:
         self.thread_id = threading.get_ident()
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: self.stop())
+        other = find_duplicate(self)
+        if other is not None:   # before setup(): no device opened, no health published
+            self.logger.error("%s", other)
+            self.transport.stop()
+            self._notifier.close()
+            return DUPLICATE_EXIT
         code = 0
         try:
             self.start()
@@ -377,16 +384,6 @@ class U2SAService:
             self._notifier.close()
             self.logger.info("%s stopped", self.name)
         return code
-
-
-def rejected_text(rejected: dict[str, dict[str, int]]) -> str:
-    """``CHANNEL: unsigned 2, replayed 1; ...`` from :meth:`Transport.rejected` (health's ``bus_rejected``)."""
-    return "; ".join(f"{channel}: " + ", ".join(f"{why} {n}" for why, n in counts.items() if n)
-                     for channel, counts in rejected.items())
-
-
-def _bus_text(transport: Transport) -> str:
-    return f"signed (key {transport.key_id()})" if transport.auth is not None else "open"
 
 
 def _root_header(msg: Any) -> t.Header | None:

@@ -95,7 +95,7 @@ def cmd_services(args: Any) -> int:
             print(f"{r.name:22} {r.service_type:18} {r.status:9} {r.host:14} {r.pid:>7} {row['bus'].split()[0]:8} "
                   f"{row['rejected']:>7}  {pubs}")
     if own_drops:
-        from u2sa_hw.service import rejected_text
+        from u2sa_hw.service_bus import rejected_text
 
         print(f"u2sa: dropped while listening: {rejected_text(own_drops)} (unsigned: a sender without the key; "
               "forged: another key, e.g. a second stack or vehicle on this port; u2sa health shows each "

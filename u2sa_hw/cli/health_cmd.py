@@ -75,7 +75,7 @@ def cmd_health(args: Any) -> int:
         url = bus.transport.url
         own_drops = bus.transport.rejected()
     if own_drops:
-        from u2sa_hw.service import rejected_text
+        from u2sa_hw.service_bus import rejected_text
 
         print(f"u2sa: dropped while listening: {rejected_text(own_drops)}", file=sys.stderr)
     if not got:
