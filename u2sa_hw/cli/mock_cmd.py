@@ -95,8 +95,6 @@ def cmd_mock(args: Any) -> int:
         if missing:
             print(f"note: no device drives {', '.join(missing)} of the {s.model} model: the vehicle will not move "
                   "(u2sa sim refuses this profile; see docs/simulation.md)")
-        print("Ctrl-C stops the mocks" + (f"; keys: {HELP}, h hold, q quit" if sys.stdin.isatty() else ""),
-              flush=True)
         done = threading.Event()
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: done.set())
@@ -110,6 +108,9 @@ def cmd_mock(args: Any) -> int:
             keys = StickKeys(lambda: mocks, say=lambda text: print(text, flush=True),
                              extra={"h": ("vehicle held still / released", hold), "q": ("quit", done.set)})
             keys.start()
+        # after the terminal is in cbreak mode, so a key pressed on seeing this needs no Enter
+        print("Ctrl-C stops the mocks" + (f"; keys: {HELP}, h hold, q quit" if keys is not None else ""),
+              flush=True)
         while not done.wait(0.5):
             pass
     finally:
