@@ -154,6 +154,20 @@ def _fmt(value: float | None, unit: str, digits: int = 1) -> str:
     return "--" if value is None else f"{value:.{digits}f} {unit}"
 
 
+def _event_outcome(event: dict[str, Any]) -> str:
+    """``all neutral after 97 ms; moved again: left_wheel, right_wheel; RC_MODE NO RC SIGNAL``."""
+    moving = [n for n, o in event["outputs"].items() if not o["at_event"]["neutral"]]
+    after = event["all_neutral_after_ms"]
+    parts = ["nothing was moving" if not moving else
+             f"all neutral after {after:.0f} ms" if after is not None else "NOT all neutral before the next event"]
+    moved = [n for n, o in event["outputs"].items() if o["moved_after_ms"] is not None]
+    if moved:
+        parts.append("moved: " + ", ".join(moved))
+    if event["rc_modes"]:
+        parts.append("RC_MODE " + " -> ".join(event["rc_modes"]))
+    return "; ".join(parts)
+
+
 def summary_text(summary: dict[str, Any], *, files: Iterable[Path] = ()) -> str:
     """A short human summary (what u2sa sim prints at the end and writes to summary.txt)."""
     head = {"completed": "completed", "timeout": "TIMED OUT", "failed": "FAILED"}.get(summary["result"],
@@ -180,6 +194,8 @@ def summary_text(summary: dict[str, Any], *, files: Iterable[Path] = ()) -> str:
     restarts = {n: s.get("restarts", 0) for n, s in summary["services"].items() if s.get("restarts")}
     lines.append(f"  services             {len(summary['services'])} run, "
                  + (", ".join(f"{n} restarted {k}x" for n, k in restarts.items()) if restarts else "no restarts"))
+    for event in summary.get("scenario", {}).get("events", []):
+        lines.append(f"  {event['fired_s']:6.1f} s {event['event']}: {_event_outcome(event)}")
     for path in files:
         lines.append(f"  wrote                {path}")
     return "\n".join(lines)
