@@ -8,11 +8,13 @@ a GPIO client of that socket.
 
 from __future__ import annotations
 
+import shutil
+import subprocess
 from pathlib import Path
 
 import pytest
 
-from conftest import wait_until
+from conftest import REPO, U2SA, wait_until
 from mock_devices.launcher import MockLauncher
 from mock_devices.sim_context import DeviceError
 from u2sa_hw.ports.gpio_port import open_gpio
@@ -182,3 +184,20 @@ def test_a_servo_driven_boat_moves_under_its_sysfs_pwm_thrusters(tmp_path: Path)
         left.close()
         right.close()
         mocks.stop()
+
+
+def test_u2sa_sim_refuses_a_car_whose_throttle_nothing_drives_before_anything_starts(tmp_path: Path) -> None:
+    car = tmp_path / "car"
+    shutil.copytree(REPO / "examples" / "ackermann_rover", car, ignore=shutil.ignore_patterns("data", "logs"))
+    text = (car / "vehicle.toml").read_text()
+    throttle = next(line for line in text.splitlines() if '{ name = "throttle"' in line)
+    text = text.replace(throttle + "\n", "").replace("throttle = \"throttle\" }", "}").replace(", }", " }")
+    (car / "vehicle.toml").write_text(text)
+    proc = subprocess.run([*U2SA, "sim", "--vehicle", str(car / "vehicle.toml"), "--out", str(tmp_path / "out")],
+                          cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    error = proc.stderr.strip().splitlines()
+    assert len(error) == 1 and error[0].startswith(f"u2sa: sim: {car / 'vehicle.toml'}: [simulation] model = "
+                                                   "'ackermann' moves by steering and throttle, but no device "
+                                                   "drives throttle")
+    assert not (tmp_path / "out" / "logs").exists() or not any((tmp_path / "out" / "logs").iterdir())
