@@ -58,7 +58,7 @@ class TwoHosts:
 
     def env(self, key: Path | None, **extra: str) -> dict[str, str]:
         env = {k: v for k, v in os.environ.items() if k != KEY_ENV}
-        env.update(U2SA_LCM_URL=self.url, PYTHONUNBUFFERED="1", **extra)
+        env.update({"U2SA_LCM_URL": self.url, "PYTHONUNBUFFERED": "1", **extra})
         if key is not None:
             env[KEY_ENV] = str(key)
         return env
@@ -125,3 +125,34 @@ def test_a_host_with_the_key_is_heard_and_one_without_is_not(hosts: TwoHosts, tm
             service.wait()
         log.close()
 
+
+
+def test_a_single_board_vehicle_listens_on_loopback_only(hosts: TwoHosts, tmp_path: Path) -> None:
+    """ttl=0 on host A: a stop from host B, signed with the vehicle's own key, never reaches it."""
+    key = tmp_path / "vehicle.key"
+    write_key(key, new_key(), group=None)
+    local = hosts.url.replace("ttl=1", "ttl=0")
+    log = open(tmp_path / "a.stderr", "wb")
+    service = subprocess.Popen(hosts.command("a", *U2SA, "service", SERVICE), cwd=tmp_path,
+                               env=hosts.env(key, U2SA_LCM_URL=local), stdout=log, stderr=subprocess.STDOUT)
+    try:
+        def found_on_a() -> list[dict[str, object]]:
+            r = subprocess.run(hosts.command("a", *U2SA, "services", "--json"), env=hosts.env(key, U2SA_LCM_URL=local),
+                               capture_output=True, text=True, timeout=60)
+            return json.loads(r.stdout) if r.returncode == 0 else []
+
+        first = wait_until(found_on_a, timeout=60, message="the service on A to answer on A")
+        stop = subprocess.run(hosts.command("b", *U2SA, "stop", "--all", "--timeout", "1"), env=hosts.env(key),
+                              capture_output=True, text=True, timeout=60)
+        assert "Traceback" not in stop.stderr
+        again = found_on_a()
+        assert service.poll() is None and [s["pid"] for s in again] == [s["pid"] for s in first]
+        assert not any("U2SA_STOP" in str(s["rejected_by_channel"]) for s in again)   # not even heard
+    finally:
+        service.terminate()
+        try:
+            service.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            service.kill()
+            service.wait()
+        log.close()

@@ -141,7 +141,8 @@ def test_a_captured_signed_packet_sent_again_is_dropped_as_replayed(services: Se
     r = services.cli("param", "set", SERVICE, "health_interval_s", "0.75")
     assert r.returncode == 0, r.stderr
 
-    sniffer.publish(ch.CONFIG_CHANGE, captured[0])
+    # Sent again byte for byte (an open transport adds no trailer; ttl=0 sends on lo, where the vehicle listens).
+    Transport(services.url, name="replayer", security="open").publish_bytes(ch.CONFIG_CHANGE, captured[0])
     wait_until(lambda: "U2SA_CONFIG_SET: replayed 1" in health.details(SERVICE).get("bus_rejected", ""), timeout=30,
                message="the estimator to count the replayed config change")
     current = bus.get_config(SERVICE)

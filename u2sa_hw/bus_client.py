@@ -22,11 +22,12 @@ class BusClient:
     """Request/response helpers on top of one :class:`Transport`."""
 
     def __init__(self, url: str | None = None, *, name: str | None = None, system_id: int = 0,
-                 security: str | None = None, key_file: Path | str | None = None) -> None:
+                 security: str | None = None, key_file: Path | str | None = None,
+                 interface: str | None = None) -> None:
         self.name = name or f"u2sa-cli-{os.getpid()}"
         self.system_id = system_id
         # The key is found as a service finds it (u2sa_hw.bus_key.key_path); a TransportError says how to get it.
-        self.transport = Transport(url, name=self.name, security=security, key_file=key_file)
+        self.transport = Transport(url, name=self.name, security=security, key_file=key_file, interface=interface)
         self.transport.start()
         self._seq = 0
 

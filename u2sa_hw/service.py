@@ -61,7 +61,8 @@ class U2SAService:
         self.config = Configurator(path, (*BASE_CONFIG, *self.config_fields()), logger=self.logger, initial=settings,
                                    initial_source=where, validator=self.validate_config)
         self.transport = transport or Transport(self.profile.lcm_url, name=name,
-                                                security=self.profile.bus_security, key_file=self.profile.bus_key)
+                                                security=self.profile.bus_security, key_file=self.profile.bus_key,
+                                                interface=self.profile.bus_interface)
         self.running = False
         self.status = "starting"
         self.last_error = ""

@@ -36,6 +36,7 @@ import lcm
 
 from u2sa_hw.bus_auth import OK, OPEN, REJECTIONS, TRAILER_LEN, BusAuth, Keyring, resolve_security, strip_trailer
 from u2sa_hw.bus_key import BusKeyError, key_path
+from u2sa_hw.bus_listen import interface_index, listen_interface, receive_on, send_via, socket_fds
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 
 DEFAULT_LCM_URL = "udpm://239.255.76.67:7667?ttl=0"
@@ -138,9 +139,13 @@ class Transport:
     """
 
     def __init__(self, url: str | None = None, *, name: str = "u2sa", security: str | None = None,
-                 key_file: Path | str | None = None) -> None:
+                 key_file: Path | str | None = None, interface: str | None = None) -> None:
         self.url = resolve_url(url)
         self.name = name
+        # ttl=0: loopback only; ttl>=1: the profile's bus_interface, if any (u2sa_hw.bus_listen).
+        self.interface = listen_interface(self.url, interface)
+        self._if_index: int | None = None
+        sockets_before = socket_fds() if self.interface else set()
         try:
             self.security = resolve_security(security)
             self.auth = BusAuth(keyring_for(key_path(key_file))) if self.security != OPEN else None
@@ -158,6 +163,14 @@ class Transport:
         if failure is not None:
             raise TransportError(_open_error(self.url, f"cannot open LCM at {self.url}", failure, printed[0]))
         _reemit(printed[0])
+        self._send_fds = socket_fds() - sockets_before if self.interface else set()
+        if self.interface:
+            try:
+                self._if_index = interface_index(self.interface)
+                if self._if_index is not None:
+                    send_via(self.url, self._send_fds, self._if_index)
+            except OSError as exc:
+                raise TransportError(f"cannot send on {self.interface} only: {exc}") from None
         self._receiving = False   # set once _open_receiver had LCM bind its receive socket
         self._publish_lock = threading.Lock()
         self._subs: list[_Subscription] = []
@@ -233,11 +246,20 @@ class Transport:
         """
         if self._receiving:
             return
+        if self._if_index is not None:
+            send_via(self.url, self._send_fds, 0)   # LCM's self test, as the receiver opens, sends on the route
+            sockets_before = socket_fds()
         with _captured_c_stderr() as printed:
             fd = self._lc.fileno()
         if fd < 0:
             raise TransportError(_open_error(self.url, f"cannot receive on LCM at {self.url}", None, printed[0]))
         _reemit(printed[0])
+        if self._if_index is not None:
+            try:
+                receive_on(self.url, socket_fds() - sockets_before, self._if_index)
+                send_via(self.url, self._send_fds, self._if_index)
+            except OSError as exc:
+                raise TransportError(f"cannot listen on {self.interface} only: {exc}") from None
         self._receiving = True
 
     def unsubscribe(self, sub: _Subscription) -> None:

@@ -7,6 +7,7 @@ system_id = 1
 lcm_url = "udpm://239.255.76.67:7667?ttl=0"   # optional; else $U2SA_LCM_URL, else this default
 bus_security = "signed"  # optional; "open" only for a bench: nothing signed or verified (docs/security.md)
 bus_key = "/etc/u2sa/bus.key"   # optional; $U2SA_BUS_KEY_FILE overrides it; never the key itself
+bus_interface = "eth0"   # optional, for ttl >= 1: the one interface the bus uses (ttl=0 uses lo only)
 config_dir = "config"    # per-service TOML files: <config_dir>/<service>.toml
 log_dir = "logs"         # one log file per service
 data_dir = "data"        # recordings, state
@@ -74,6 +75,7 @@ class VehicleProfile:
     lcm_url: str | None = None
     bus_security: str | None = None     # None: $U2SA_BUS_SECURITY, else signed
     bus_key: Path | None = None         # None: $U2SA_BUS_KEY_FILE, else /etc/u2sa/bus.key
+    bus_interface: str | None = None    # ttl >= 1: join and send only there (None: the default route's)
     config_dir: Path = Path(".u2sa/config")
     log_dir: Path = Path(".u2sa/logs")
     data_dir: Path = Path(".u2sa/data")
@@ -183,6 +185,7 @@ def load_profile(path: Path | str | None) -> VehicleProfile:
         lcm_url=_typed(v, "lcm_url", str, None, where),
         bus_security=bus_security,
         bus_key=(base / Path(bus_key).expanduser()) if bus_key else None,
+        bus_interface=_typed(v, "bus_interface", str, None, where) or None,
         config_dir=config_dir,
         log_dir=rel("log_dir", "logs"),
         data_dir=rel("data_dir", "data"),

@@ -44,7 +44,8 @@ def bus_client(args: Any, *, name: str | None = None) -> Iterator[Any]:
     profile = profile_from(args)
     try:
         client = BusClient(profile.lcm_url, system_id=profile.system_id, security=profile.bus_security,
-                           key_file=profile.bus_key, **({"name": name} if name else {}))
+                           key_file=profile.bus_key, interface=profile.bus_interface,
+                           **({"name": name} if name else {}))
     except TransportError as exc:
         raise CliError(str(exc)) from None
     try:
