@@ -21,7 +21,8 @@ directory ``<dir>/pwmchip0``) and each build returns the settings that point the
 at it (``overrides``). Every actuator output is logged and moves the vehicle through
 :mod:`mock_devices.actuation`: CAN motors by their side, PWM outputs named like a model
 input (``steering``, ``throttle``, ``left``, ``right``) or listed in ``drives``, GPIO
-outputs listed in ``drives`` (``enable``: a motor contactor). A pwm_servo service with both PCA9685 and sysfs channels takes one
+outputs listed in ``drives`` (``enable``: a motor contactor). A pwm_servo service with
+both PCA9685 and sysfs channels takes one
 table of each kind; the second builds on the channels the first rewrote.
 """
 
@@ -335,7 +336,8 @@ def build_can_motors(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
             # the driver limits its commands to max_turns_per_s; the node's own limit sits above it
             defaults = {"firmware": str(spec.service_config.get("firmware", "0.6")),
                         "vel_limit": float(spec.service_config.get("max_turns_per_s", 2.0)) * 1.25}
-            node = construct(spec, OdriveCanNode, ctx.motor_input(name), side=side, node_id=int(can_id), direction=int(direction),
+            node = construct(spec, OdriveCanNode, ctx.motor_input(name), side=side, node_id=int(can_id),
+                             direction=int(direction),
                              wheel_radius_m=float(radius), **bus, **defaults)
         else:
             defaults = {"max_erpm": float(spec.service_config.get("max_erpm", 7000.0)),

@@ -100,7 +100,7 @@ class RcReceiverMock:
         self.set_pulse(channel, 1500.0 + 500.0 * max(-1.0, min(1.0, float(position))))
 
     def set_sticks(self, **positions: float) -> None:
-        """Move several sticks at once: ``set_sticks(throttle=0.5, steering=-0.2)``; unknown channels are refused first."""
+        """Move several sticks at once: ``set_sticks(throttle=0.5, steering=-0.2)``; unknown channels refused first."""
         for channel in positions:
             if channel not in self.lines:
                 raise ValueError(f"unknown RC channel {channel!r}; channels are {sorted(self.lines)}")

@@ -204,7 +204,8 @@ class MockContext:
             raise DeviceError(f"devices.{device}: drives {model_input!r}, which a {model} vehicle does not have; "
                               f"its inputs are {', '.join(MODEL_INPUTS[model])} (or 'enable' for a GPIO output)")
         if model_input in self.fed and self.fed[model_input] != device:
-            raise DeviceError(f"devices.{device}: {model_input!r} is already driven by devices.{self.fed[model_input]}; "
+            raise DeviceError(f"devices.{device}: {model_input!r} is already driven by "
+                              f"devices.{self.fed[model_input]}; "
                               "one output per model input")
         self.fed[model_input] = device
 

@@ -88,7 +88,8 @@ def test_the_mux_switches_only_the_pwm_outputs_wired_through_it(tmp_path: Path) 
         assert vehicle.snapshot().speed == 0.0
         enable = open_gpio(device="rc", chip=mocks.overrides["rc"]["chip"], outputs={21: 1})
         mocks.set_mode_switch(True)
-        wait_until(lambda: abs(outputs.current("throttle").value - 60.0) < 1, message="the SBC's throttle through the mux")
+        wait_until(lambda: abs(outputs.current("throttle").value - 60.0) < 1,
+                   message="the SBC's throttle through the mux")
         assert abs(outputs.current("steering").value - 80.0) < 1   # PCA9685 counts: not exactly
         wait_until(lambda: vehicle.snapshot().speed > 0.5 and vehicle.snapshot().yaw_rate > 0,
                    message="the vehicle to drive and turn right under the PWM outputs")

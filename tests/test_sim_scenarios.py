@@ -134,7 +134,8 @@ def test_every_shipped_scenario_loads() -> None:
 def test_effects_say_when_each_output_went_neutral_and_moved_again() -> None:
     log = OutputLog()
     ms = 1_000_000
-    for name, t, value in (("a", 0, 0.0), ("b", 0, 0.0), ("a", 10, 50.0), ("b", 12, 40.0), ("a", 30, 55.0), ("a", 105, 0.0), ("b", 140, 0.0),
+    for name, t, value in (("a", 0, 0.0), ("b", 0, 0.0), ("a", 10, 50.0), ("b", 12, 40.0), ("a", 30, 55.0),
+                           ("a", 105, 0.0), ("b", 140, 0.0),
                            ("a", 400, 30.0)):
         log.record(name, value, neutral=value == 0.0, t_ns=t * ms)
     events = [(ScenarioEvent(1.0, "rc_loss"), 100 * ms), (ScenarioEvent(2.0, "reengage"), 300 * ms)]

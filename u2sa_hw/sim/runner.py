@@ -33,7 +33,7 @@ from u2sa_hw.launcher import Launcher, RestartPolicy
 from u2sa_hw.sim.profile import effective_configs, write_sim_profile
 from u2sa_hw.sim.progress import (BusMonitor, BusSnapshot, ProgressLine, control_mode, loop_completed,
                                   rc_state_name, status_text)
-from u2sa_hw.sim.effects import event_effects, final_outputs
+from u2sa_hw.sim.effects import final_outputs
 from u2sa_hw.sim.events import Scenario, load_scenario_file
 from u2sa_hw.sim.scenario import load_scenario
 from u2sa_hw.sim.script import ScriptRunner
@@ -205,13 +205,7 @@ class SimRun:
             raise SimFailure(f"the vehicle left autonomous mode {len(self.record.interruptions)} times "
                              f"(last: {why})")
         self.progress.event(f"  ! autonomy lost ({why}): the pilot switches to manual and back")
-        self.mocks.set_mode_switch(False)
-        while True:
-            snap = self._check()
-            if snap.rc is not None and snap.rc.mode == 0:
-                break
-            self._tick(f"[{time.monotonic() - self.record.t_start:5.1f} s] waiting for RC_MODE manual",
-                       waiting_for="RC_MODE manual after autonomy was lost (" + why + ")")
+        self._to_manual()
         self.engage()
 
     def drive(self) -> None:
@@ -248,7 +242,8 @@ class SimRun:
 
         def tick(what: str) -> None:
             snap = self._check()
-            self._tick(f"[{time.monotonic() - self.t0:5.1f} s] {what} | {control_mode(snap)}", waiting_for=f"scenario '{self.script.name}' ({what})")
+            self._tick(f"[{time.monotonic() - self.t0:5.1f} s] {what} | {control_mode(snap)}",
+                       waiting_for=f"scenario '{self.script.name}' ({what})")
 
         self.player.play(self.t0, tick=tick)
         self.record.result, self.record.reason = "completed", ""
@@ -293,13 +288,10 @@ class SimRun:
         summary = summarise(self.record)
         if self.mocks is not None:
             summary["outputs"] = final_outputs(self.mocks.outputs)
-        if self.player is not None and self.script is not None:
-            t0_ns = int((self.t0 or self.record.t_end) * 1e9)
-            summary["scenario"] = {
-                "name": self.script.name, "file": str(self.script.path), "description": self.script.description,
-                "events": event_effects(self.mocks.outputs, self.player.fired, end_ns=int(self.record.t_end * 1e9),
-                                        t0_ns=t0_ns, rc_modes=self.monitor.snapshot().rc_changes
-                                        if self.monitor is not None else [])}
+        if self.player is not None:
+            rc_modes = self.monitor.snapshot().rc_changes if self.monitor is not None else []
+            summary["scenario"] = self.player.summary(self.mocks.outputs, t0=self.t0 or self.record.t_end,
+                                                      end=self.record.t_end, rc_modes=rc_modes)
         json_path, text_path = write_summary(summary, self.out, extra_files=files)
         self.progress.event(summary_text(summary, files=[json_path, text_path, *files]))
         return summary

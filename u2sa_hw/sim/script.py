@@ -17,6 +17,7 @@ from typing import Any, Callable
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
+from u2sa_hw.sim.effects import event_effects
 from u2sa_hw.sim.events import Scenario, ScenarioError, ScenarioEvent
 
 SCRIPT_SOURCE = "scenario"   # header.source of what the scenario runner publishes
@@ -71,6 +72,13 @@ class ScriptRunner:
             tick(f"scenario '{self.scenario.name}' ends at {self.scenario.end_s:g} s")
         for thread in self._threads:
             thread.join(timeout=5)
+
+    def summary(self, outputs: Any, *, t0: float, end: float, rc_modes: list[tuple[int, str]]) -> dict[str, Any]:
+        """The summary's ``scenario`` section: the file, and what each fired event did to the outputs."""
+        return {"name": self.scenario.name, "file": str(self.scenario.path),
+                "description": self.scenario.description,
+                "events": event_effects(outputs, self.fired, end_ns=int(end * 1e9), t0_ns=int(t0 * 1e9),
+                                        rc_modes=rc_modes)}
 
     # -- the actions ---------------------------------------------------------------------------
     def _gps(self) -> list[Any]:

@@ -159,7 +159,8 @@ def _event_outcome(event: dict[str, Any]) -> str:
     moving = [n for n, o in event["outputs"].items() if not o["at_event"]["neutral"]]
     after = event["all_neutral_after_ms"]
     parts = ["nothing was moving" if not moving else
-             f"all neutral after {after:.0f} ms" if after is not None else "kept moving (not all neutral in the window)"]
+             f"all neutral after {after:.0f} ms" if after is not None
+             else "kept moving (not all neutral in the window)"]
     moved = [n for n, o in event["outputs"].items() if o["moved_after_ms"] is not None]
     if moved:
         parts.append("moved: " + ", ".join(moved))
