@@ -377,3 +377,10 @@ def test_describe_lists_what_runs(tmp_path: Path) -> None:
     text = checks_for(tmp_path).describe()
     assert text == ("pre-arm checks: no_failsafe; rc_link; gps (gps: 3D fix, sigma <= 5 m); imu (imu: calibrated); "
                     "estimator (estimator: sigma <= 5 m, <= 10 deg); required_services (world, planner)")
+
+
+def test_an_hsm_degraded_by_another_service_does_not_take_autonomy_away() -> None:
+    profile = load_profile(Path(__file__).parents[1] / "examples/ground_vehicle/vehicle.toml")
+    table = PrearmChecks.from_profile(profile).table
+    assert "hsm" in table.required_services.services and "hsm" in table.required_services.allow_degraded
+    assert "control" not in table.required_services.allow_degraded

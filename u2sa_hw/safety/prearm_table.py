@@ -33,6 +33,7 @@ TABLE = "prearm"
 GPS_KINDS = frozenset({"gps_nmea"})
 ESTIMATOR_KINDS = frozenset({"state_estimator"})
 IMU_KIND_PREFIX = "imu_"
+MONITOR_KINDS = frozenset({"hsm"})   # degraded when others are: allowed degraded by default
 RC_KINDS = frozenset({"rc_mux"})   # the RC link check judges the RC service; it is never a "required service"
 # The order checks are evaluated and reported in: the first failure is the one a pilot reads.
 CHECK_ORDER = ("no_failsafe", "rc_link", "gps", "imu", "estimator", "required_services")
@@ -223,7 +224,11 @@ def parse_prearm(profile: VehicleProfile) -> PrearmTable:
         judged = {*(c.service for c in (gps, estimator) if c is not None), *(imu.services if imu else ())}
         names = tuple(s.name for s in profile.services.values()
                       if s.enabled and s.required and s.kind not in RC_KINDS and s.name not in ignore | judged)
-        required = RequiredServicesCheck(services=names,
-                                         allow_degraded=r.names(table, "required_services", "allow_degraded"))
+        # An HSM says "degraded" when ANOTHER service is in trouble: that service is judged by its own
+        # entry and a failsafe by no_failsafe, so the HSM's own degraded must not take autonomy away.
+        monitors = tuple(s.name for s in profile.services.values() if s.kind in MONITOR_KINDS and s.name in names)
+        allowed = r.names(table, "required_services", "allow_degraded")
+        required = RequiredServicesCheck(services=names, allow_degraded=(*allowed, *(m for m in monitors
+                                                                                     if m not in allowed)))
     return PrearmTable(gps=gps, estimator=estimator, imu=imu, required_services=required,
                        rc_link=flags["rc_link"], no_failsafe=flags["no_failsafe"], health_timeout_s=timeout)
