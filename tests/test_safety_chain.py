@@ -280,21 +280,13 @@ def test_run_and_install_refuse_a_mis_declared_safety_chain_before_anything_star
 
 
 def test_u2sa_health_names_why_autonomy_is_refused() -> None:
+    from test_hsm_monitor import health
+
     from u2sa_hw.cli.health_cmd import autonomy_report
 
-    def health(name: str, **details: str) -> t.Health:
-        msg = t.Health()
-        msg.name = name
-        for key, value in details.items():
-            kv = t.KeyValue()
-            kv.key, kv.value = key, value
-            msg.details.append(kv)
-        msg.num_details = len(msg.details)
-        return msg
-
     report = autonomy_report({
-        "gps": health("gps", fix_type="2D"),
-        "rc": health("rc", mode="autonomous", autonomy_enabled="False", armed="True",
+        "gps": health("gps", 1, fix_type="2D"),
+        "rc": health("rc", 2, mode="autonomous", autonomy_enabled="False", armed="True",
                      enable_blocked_by="pre-arm check failed: gps: no 3D fix (fix type 2D, 7 satellites)"),
     })
     assert report == [{"service": "rc", "granted": False, "mode": "autonomous", "armed": True, "prearm_failed": "",
