@@ -23,6 +23,7 @@ from typing import Any, Sequence, TextIO
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
+from u2sa_hw.failsafe import FailsafeSources
 from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence helpers on StateInformation
 from u2sa_hw.transport import Transport
 
@@ -61,6 +62,8 @@ class BusMonitor:
         self.transport = Transport(url, name="u2sa-sim")
         self._lock = threading.Lock()
         self._state = BusSnapshot()
+        self._failsafes = FailsafeSources()              # the one model: held per source
+        self._failsafe_msgs: dict[str, t.Failsafe] = {}  # source -> its latest active message
         for channel, base, callback in (
                 (ch.STATE_ESTIMATE, t.StateInformation, self._on_estimate),
                 (ch.MISSION_STATUS, t.MissionStatus, self._on_status),
@@ -122,7 +125,12 @@ class BusMonitor:
 
     def _on_failsafe(self, _channel: str, msg: t.Failsafe) -> None:
         with self._lock:
-            self._state.failsafe = msg if msg.active else None
+            self._failsafes.apply_message(msg)
+            if msg.active:
+                self._failsafe_msgs[msg.header.source or "?"] = msg
+            held = self._failsafes.held()
+            self._failsafe_msgs = {src: m for src, m in self._failsafe_msgs.items() if src in held}
+            self._state.failsafe = next((self._failsafe_msgs[src] for src in sorted(self._failsafe_msgs)), None)
 
 
 def rc_state_name(msg: t.RcMode) -> str:
