@@ -42,7 +42,7 @@ enabled = false
 
 [services.rudder]
 kind = "pwm_servo"
-settings = { channels = [{ address = "/sys/class/pwm/pwmchip0", channel = 0 }] }
+settings = { channels = [{ name = "rudder", address = "/sys/class/pwm/pwmchip0", channel = 0 }] }
 
 [devices.gps]
 usb = { vendor = "1546", product = "01A7", serial = "A1B2" }
