@@ -11,6 +11,7 @@ arriving for ``command_timeout_s`` (docs/safety.md).
 from __future__ import annotations
 
 import math
+import threading
 import time
 from typing import Any, ClassVar, Mapping
 
@@ -99,6 +100,10 @@ class Actuator(U2SAService):
         self.gate = CommandGate(rc_mode_timeout_s=self.safety.rc_mode_timeout_s,
                                 rc_gating=bool(self.config["rc_gating"]))
         self.commands_received = 0
+        # One command is admitted and applied, or the authority changes and the outputs go neutral,
+        # never interleaved: a command admitted just before a failsafe cannot land after its neutral.
+        # Order: this lock, then the driver's own (drivers call check_command_timeout outside theirs).
+        self._authority_lock = threading.RLock()
         self._last_command: float | None = None
         self._timed_out = False
         self._neutral_for: str | None = None   # why the outputs were last sent neutral by the gate
@@ -177,10 +182,13 @@ class Actuator(U2SAService):
         base = as_type(msg, t.ActuatorCommand)
         if base.actuator_name not in self.actuator_names():
             return
-        now = time.monotonic()
-        self._follow_authority(now)
-        if not self.gate.admit(source, now):
-            return
+        with self._authority_lock:
+            now = time.monotonic()
+            self._follow_authority(now)
+            if self.gate.admit(source, now):
+                self._apply(base, msg, now)
+
+    def _apply(self, base: Any, msg: Any, now: float) -> None:
         if isinstance(msg, t.PercentageCommand):
             pct = msg.percentage
             if not math.isfinite(pct):  # NaN or inf: refuse rather than drive
@@ -214,31 +222,33 @@ class Actuator(U2SAService):
 
     def _follow_authority(self, now: float) -> None:
         """Neutral at once when the authority changed (a failsafe, the switch, a stale RC_MODE)."""
-        new = self.gate.changed(now)
-        if new is None:
-            return
-        self._last_command = None  # the new authority starts from neutral; its first command re-arms the dead-man
-        self._timed_out = False
-        if new.source is None:
-            self.logger.warning("outputs neutral: %s", new.why)
-        else:
-            self.logger.info("commands now from %s (outputs neutral until its first command)", new.source)
-        self.neutral()
+        with self._authority_lock:
+            new = self.gate.changed(now)
+            if new is None:
+                return
+            self._last_command = None  # the new authority starts from neutral; its first command re-arms the dead-man
+            self._timed_out = False
+            if new.source is None:
+                self.logger.warning("outputs neutral: %s", new.why)
+            else:
+                self.logger.info("commands now from %s (outputs neutral until its first command)", new.source)
+            self.neutral()
 
     def check_command_timeout(self) -> bool:
         """Apply the stale-RC_MODE check and the dead-man; True while timed out. Call from ``run`` often."""
-        now = time.monotonic()
-        self._follow_authority(now)
-        timeout = float(self.config.get("command_timeout_s"))
-        if self._last_command is None or timeout <= 0:
+        with self._authority_lock:
+            now = time.monotonic()
+            self._follow_authority(now)
+            timeout = float(self.config.get("command_timeout_s"))
+            if self._last_command is None or timeout <= 0:
+                return False
+            if now - self._last_command > timeout:
+                if not self._timed_out:
+                    self._timed_out = True
+                    self.logger.warning("no command for %.2f s -> neutral (dead-man)", timeout)
+                    self.neutral()
+                return True
             return False
-        if now - self._last_command > timeout:
-            if not self._timed_out:
-                self._timed_out = True
-                self.logger.warning("no command for %.2f s -> neutral (dead-man)", timeout)
-                self.neutral()
-            return True
-        return False
 
     def health_details(self) -> dict[str, Any]:
         """Command counters, who has authority and why not, drops by kind, failsafe/timeout state."""
