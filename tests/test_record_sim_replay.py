@@ -62,8 +62,10 @@ def recordings(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SimRecordin
 
         wait_until(recorder_listening, timeout=30, interval=0.2, message="u2sa record to listen")
         sim_out = workdir / "sim-out"
+        # The session's key, which the external recorder has too (u2sa sim would make a fresh one).
         sim = subprocess.Popen([*U2SA, "sim", "--out", str(sim_out), "--lcm-url", url, "--can-port",
-                                str(private_udp_port()), "--record", "--timeout", "90"], cwd=REPO, env=env,
+                                str(private_udp_port()), "--record", "--timeout", "90",
+                                "--bus-key", os.environ["U2SA_BUS_KEY_FILE"]], cwd=REPO, env=env,
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         wait_until(lambda: _autonomous_messages(killed) >= AUTONOMOUS_MESSAGES or sim.poll() is not None,
                    timeout=120, interval=1.0, message="the simulated rover driving autonomously")

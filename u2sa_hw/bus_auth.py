@@ -56,6 +56,13 @@ MAX_COUNTER = 2 ** 53                   # about the year 2255: anything above is
 OK, UNSIGNED, FORGED, REPLAYED = "ok", "unsigned", "forged", "replayed"
 REJECTIONS = (UNSIGNED, FORGED, REPLAYED)
 
+LCM_SELF_TEST = "LCM_SELF_TEST"
+REJECTION_WHY = {
+    "unsigned": "no valid signature trailer: a sender without the bus key, or one with bus_security = \"open\"",
+    "forged": "signed with another key: another vehicle or simulation, or a forgery",
+    "replayed": "its counter is not newer than the sender's last or is outside the window: a replay",
+}
+
 SECURITY_ENV = "U2SA_BUS_SECURITY"
 SIGNED, OPEN = "signed", "open"
 SECURITY_MODES = (SIGNED, OPEN)
@@ -150,6 +157,19 @@ class Keyring:
         self.current = key
         log.info("bus key %s changed: now signing with key %s; the previous key is accepted for %g s",
                  self.path, key.id.hex(), self._overlap_s)
+
+
+_KEYRINGS: dict[Path, Keyring] = {}
+_KEYRINGS_LOCK = threading.Lock()
+
+
+def keyring_for(path: Path) -> Keyring:
+    """The process's one keyring for the key file *path* (BusKeyError when it cannot be read)."""
+    with _KEYRINGS_LOCK:
+        ring = _KEYRINGS.get(path)
+        if ring is None:
+            ring = _KEYRINGS[path] = Keyring(path)
+        return ring
 
 
 def _file_stamp(path: Path) -> tuple[int, int, int] | None:

@@ -14,29 +14,28 @@ payload without its trailer. ``security="open"`` (a bench) signs and verifies no
 
 The LCM C library reports a failure to open (no multicast route, a bad URL, a port held by
 another program) with many lines on stderr; those are caught and folded into the one-line
-:class:`TransportError`.
+:class:`TransportError` (``u2sa_hw.lcm_open``).
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
 import re
-import sys
-import tempfile
 import threading
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable
 
 import lcm
 
-from u2sa_hw.bus_auth import OK, OPEN, REJECTIONS, TRAILER_LEN, BusAuth, Keyring, resolve_security, strip_trailer
+from u2sa_hw.bus_auth import (LCM_SELF_TEST, OK, OPEN, REJECTION_WHY, REJECTIONS, TRAILER_LEN, BusAuth, keyring_for,
+                              resolve_security, strip_trailer)
 from u2sa_hw.bus_key import BusKeyError, key_path
 from u2sa_hw.bus_listen import interface_index, listen_interface, receive_on, send_via, socket_fds
+from u2sa_hw.lcm_open import MULTICAST_FIX, URL_HELP, captured_c_stderr, open_error, reemit  # noqa: F401 - re-exported
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 
 DEFAULT_LCM_URL = "udpm://239.255.76.67:7667?ttl=0"
@@ -58,18 +57,6 @@ log = logging.getLogger("u2sa_hw.transport")
 
 class TransportError(RuntimeError):
     """The LCM transport cannot start; the message says why and how to fix it."""
-
-
-MULTICAST_FIX = (
-    "multicast does not work on this machine. If it has no network (a vehicle on the bench), "
-    "enable multicast on loopback: 'sudo ip link set lo multicast on && "
-    "sudo ip route add 224.0.0.0/4 dev lo' (u2sa install adds a oneshot unit that does this), "
-    "or set U2SA_LCM_URL / lcm_url in the vehicle profile to another provider"
-)
-
-
-URL_HELP = ("check the URL: udpm://GROUP:PORT?ttl=N with a multicast group (224.0.0.0/4) and a port "
-            "1-65535, or another LCM provider (memq://, file://PATH?mode=w)")
 
 
 def resolve_url(profile_url: str | None = None) -> str:
@@ -117,19 +104,6 @@ class _Subscription:
     unknown_logged: set[bytes] = field(default_factory=set)
 
 
-_KEYRINGS: dict[Path, Keyring] = {}
-_KEYRINGS_LOCK = threading.Lock()
-
-
-def keyring_for(path: Path) -> Keyring:
-    """The process's one keyring for the key file *path* (BusKeyError when it cannot be read)."""
-    with _KEYRINGS_LOCK:
-        ring = _KEYRINGS.get(path)
-        if ring is None:
-            ring = _KEYRINGS[path] = Keyring(path)
-        return ring
-
-
 class Transport:
     """One LCM instance with a handler thread, a publish lock, signing and per-channel counters.
 
@@ -154,15 +128,15 @@ class Transport:
         self._verdict = OK
         self._payload = b""
         self._rejection_logged: set[tuple[str, str]] = set()
-        with _captured_c_stderr() as printed:
+        with captured_c_stderr() as printed:
             try:
                 self._lc = lcm.LCM(with_receive_buffer(self.url))
                 failure = None
             except (RuntimeError, OSError) as exc:
                 failure = exc
         if failure is not None:
-            raise TransportError(_open_error(self.url, f"cannot open LCM at {self.url}", failure, printed[0]))
-        _reemit(printed[0])
+            raise TransportError(open_error(self.url, f"cannot open LCM at {self.url}", failure, printed[0]))
+        reemit(printed[0])
         self._send_fds = socket_fds() - sockets_before if self.interface else set()
         if self.interface:
             try:
@@ -249,11 +223,11 @@ class Transport:
         if self._if_index is not None:
             send_via(self.url, self._send_fds, 0)   # LCM's self test, as the receiver opens, sends on the route
             sockets_before = socket_fds()
-        with _captured_c_stderr() as printed:
+        with captured_c_stderr() as printed:
             fd = self._lc.fileno()
         if fd < 0:
-            raise TransportError(_open_error(self.url, f"cannot receive on LCM at {self.url}", None, printed[0]))
-        _reemit(printed[0])
+            raise TransportError(open_error(self.url, f"cannot receive on LCM at {self.url}", None, printed[0]))
+        reemit(printed[0])
         if self._if_index is not None:
             try:
                 receive_on(self.url, socket_fds() - sockets_before, self._if_index)
@@ -322,7 +296,7 @@ class Transport:
         if (channel, verdict) not in self._rejection_logged:
             self._rejection_logged.add((channel, verdict))
             log.warning("%s: dropping %s message on %s (%s); further ones are only counted", self.name, verdict,
-                        channel, _REJECTION_WHY[verdict])
+                        channel, REJECTION_WHY[verdict])
         return verdict
 
     @property
@@ -405,85 +379,8 @@ class Transport:
         self.stop()
 
 
-LCM_SELF_TEST = "LCM_SELF_TEST"
-_REJECTION_WHY = {
-    "unsigned": "no valid signature trailer: a sender without the bus key, or one with bus_security = \"open\"",
-    "forged": "signed with another key: another vehicle or simulation, or a forgery",
-    "replayed": "its counter is not newer than the sender's last or is outside the window: a replay",
-}
-
-
 def _is_regex(channel: str) -> bool:
     return any(ch in channel for ch in "*+?[]()|\\^$")
-
-
-_STDERR_LOCK = threading.Lock()   # fd 2 is the process's: one capture at a time
-
-
-@contextlib.contextmanager
-def _captured_c_stderr() -> Iterator[list[str]]:
-    """Redirect file descriptor 2 (where C code prints) to a temp file for the block.
-
-    The yielded list gets one item after the block: the text printed meanwhile ("" when
-    fd 2 could not be redirected). Python's own stderr writes meanwhile are caught too;
-    :func:`_reemit` gives them back.
-    """
-    printed: list[str] = []
-    with _STDERR_LOCK:   # two threads interleaving dup/dup2 would leave fd 2 on a deleted temp file
-        try:
-            sys.stderr.flush()
-            saved = os.dup(2)
-        except (OSError, ValueError, AttributeError):  # no fd 2 (a daemon), or sys.stderr closed
-            printed.append("")
-            yield printed
-            return
-        with tempfile.TemporaryFile() as tmp:
-            os.dup2(tmp.fileno(), 2)
-            try:
-                yield printed
-            finally:
-                os.dup2(saved, 2)
-                os.close(saved)
-                tmp.seek(0)
-                printed.append(tmp.read().decode(errors="replace"))
-
-
-def _reemit(text: str) -> None:
-    """Write back to stderr what a successful call printed while stderr was captured."""
-    if text:
-        try:
-            os.write(2, text.encode())
-        except OSError:
-            pass
-
-
-def _fold(printed: str, *, limit: int = 300) -> str:
-    """The C library's lines as one: its own multicast advice (ours replaces it) left out."""
-    lines = []
-    for line in printed.splitlines():
-        line = line.strip()
-        if line.startswith("LCM requires"):
-            break
-        if line:
-            lines.append(line.removeprefix("Error: "))
-    text = "; ".join(lines)
-    return text if len(text) <= limit else text[:limit - 3] + "..."
-
-
-def _open_error(url: str, what: str, exc: BaseException | None, printed: str) -> str:
-    """One line: what failed, what LCM said, and the fix that fits the cause."""
-    said = _fold(printed)
-    detail = ": ".join(p for p in (said, str(exc) if exc and not said else "") if p) or "LCM gave no reason"
-    low = said.lower()
-    if "address already in use" in low:
-        port = url.split("?", 1)[0].rsplit(":", 1)[-1]
-        fix = (f"another program holds UDP port {port} without sharing it (find it with 'ss -ulpn sport = :{port}'), "
-               "or choose another port in U2SA_LCM_URL / the profile's lcm_url")
-    elif "provider" in low or "bad multicast" in low or not url.startswith("udpm://"):
-        fix = URL_HELP
-    else:
-        fix = MULTICAST_FIX
-    return f"{what}: {detail}; {fix}"
 
 
 def check_multicast(url: str | None = None, *, timeout: float = 1.0) -> None:

@@ -63,6 +63,9 @@ def register(sub: Any) -> None:
                    "runs beside other u2sa processes stay apart)")
     p.add_argument("--can-port", type=int, metavar="PORT",
                    help="UDP port of the simulated CAN bus (default: a free private port)")
+    p.add_argument("--bus-key", type=Path, metavar="FILE",
+                   help="sign the run's bus with this key (default: a fresh one in --out, printed), e.g. to "
+                   "record or watch the run from another process")
     p.add_argument("--scenario", metavar="FILE", type=Path,
                    help="play a failsafe scenario (events at times: RC loss, manual switch, sticks, GPS fix loss, "
                         "a service killed or stopped, a forged command, a failsafe) and record what every actuator "
@@ -124,7 +127,15 @@ def _private_bus(args: Any) -> tuple[str, int]:
     lcm_port = int(lcm_url.split("?", 1)[0].rsplit(":", 1)[-1]) if lcm_url.startswith("udpm://") else 0
     can_port = args.can_port or private_udp_port(avoid={lcm_port}, span=4)
     args.out.mkdir(parents=True, exist_ok=True)
-    key = fresh_key_file(args.out).resolve()
+    if args.bus_key is not None:
+        from u2sa_hw.bus_key import BusKeyError, read_key
+        from u2sa_hw.cli import CliError
+
+        try:
+            read_key(args.bus_key)
+        except BusKeyError as exc:
+            raise CliError(f"sim: {exc}", 2) from None
+    key = args.bus_key.resolve() if args.bus_key is not None else fresh_key_file(args.out).resolve()
     os.environ[KEY_ENV] = str(key)
     print(f"u2sa sim: bus {lcm_url}, CAN port {can_port}, key {key} (to join: U2SA_LCM_URL='{lcm_url}' "
           f"{KEY_ENV}={key} u2sa services)", flush=True)
