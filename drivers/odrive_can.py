@@ -21,13 +21,11 @@ name (``actuators``/``node_ids``/``directions``/``wheel_radius_m``). For every a
   ``status_poll_s`` for health.
 
 The ODrive watchdog (``axis.config.enable_watchdog``/``watchdog_timeout``) disarms the axis
-with WATCHDOG_TIMER_EXPIRED when no CAN frame reaches it for ``hw_watchdog_timeout_s``: the
-last line of defence when this process dies or hangs. Firmware 0.6 has endpoint access over
-CAN (RxSdo/TxSdo), but endpoint ids belong to one firmware build (its flat_endpoints.json):
-with ``watchdog_timeout_endpoint``/``enable_watchdog_endpoint`` and the build they belong to
-(``endpoints_fw``, checked against Get_Version) the driver writes both and reads them back.
-Firmware 0.5 has no parameter access over CAN at all: the watchdog must be set once with
-odrivetool, and the driver says so (log and the ``hw_watchdog`` health detail).
+when no CAN frame reaches it for ``hw_watchdog_timeout_s``: the last line of defence when this
+process dies or hangs. Firmware 0.6 can have it written and read back over CAN (endpoint ids
+``watchdog_timeout_endpoint``/``enable_watchdog_endpoint`` of the build ``endpoints_fw``);
+firmware 0.5 cannot, and the driver says so. See drivers/odrive_watchdog.py, which does this;
+drivers/odrive_axis.py holds what is known about each axis.
 
 Neutral is 0 rev/s (stop, kill, command timeout, failsafe); on FAILSAFE it also sends Estop
 when ``estop_on_failsafe`` is set (cleared and re-armed when the failsafe ends). On stop the
@@ -46,74 +44,17 @@ from u2sa_hw.config import field
 from u2sa_hw.protocols import odrive_cansimple as cs
 from u2sa_hw.protocols.odrive_cansimple import AxisState, Cmd, ControlMode, InputMode, ProcedureResult
 
-from drivers.can_motor import CanMotorService, MotorSpec, WatchdogStep, check_hw_watchdog, watchdog_summary
+from drivers.can_motor import CanMotorService, WatchdogStep, check_hw_watchdog, watchdog_summary
+from drivers.odrive_axis import OdriveAxis, enum_name, error_names
+from drivers.odrive_watchdog import WATCHDOG_FIELDS, OdriveWatchdogSetup, check_watchdog_endpoints
 
 INPUT_MODES = {"passthrough": InputMode.PASSTHROUGH, "vel_ramp": InputMode.VEL_RAMP}
 MAX_ARM_BACKOFF_S = 5.0
-WD_REPLY_S = 0.5  # wait this long for Get_Version / TxSdo answers before asking again
-WD_TRIES = 4  # then the watchdog step is an error, and arming goes ahead without it
-_WATCHDOG_FIELDS = frozenset({"hw_watchdog", "hw_watchdog_timeout_s", "watchdog_timeout_endpoint",
-                              "enable_watchdog_endpoint", "endpoints_fw", "firmware", "command_period_s"})
 # frames an ODrive sends (anything else on its ids is a host's command, e.g. our own echo)
 _REPLIES_06 = frozenset({Cmd.HEARTBEAT, Cmd.GET_ENCODER_ESTIMATES, Cmd.GET_BUS_VOLTAGE_CURRENT, Cmd.GET_ERROR,
                          Cmd.GET_TEMPERATURE, Cmd.GET_IQ, Cmd.GET_VERSION, Cmd.TX_SDO})
 _REPLIES_05 = frozenset({Cmd.HEARTBEAT, Cmd.GET_ENCODER_ESTIMATES, Cmd.GET_BUS_VOLTAGE_CURRENT, Cmd.GET_IQ,
                          Cmd.GET_MOTOR_ERROR, Cmd.GET_ENCODER_ERROR, Cmd.GET_CONTROLLER_ERROR})
-
-
-def error_names(bits: int, *, firmware: str) -> str:
-    """``A|B`` names of the axis error bits set in *bits* ("none" for 0; unknown bits in hex)."""
-    table = cs.OdriveError if firmware == "0.6" else cs.AxisError05
-    names, known = [], 0
-    for member in table:
-        if member.value and bits & member.value == member.value:
-            names.append(str(member.name))
-            known |= member.value
-    if bits & ~known:
-        names.append(hex(bits & ~known))
-    return "|".join(names) or "none"
-
-
-def _enum_name(enum: Any, value: int) -> str:
-    try:
-        return enum(value).name
-    except ValueError:
-        return str(value)
-
-
-class OdriveAxis:
-    """What the driver knows about one axis (mutated under the service's lock)."""
-
-    def __init__(self, spec: MotorSpec, *, arm_retry_s: float) -> None:
-        self.spec = spec
-        self.target = 0.0  # rev/s, direction applied
-        self.heartbeat: cs.Heartbeat | None = None
-        self.last_heartbeat: float | None = None
-        self.silent = False
-        self.silent_events = 0
-        self.pos_turns: float | None = None
-        self.vel_turns_s: float | None = None
-        self.bus: tuple[float, float] | None = None
-        self.temps: tuple[float, float] | None = None
-        self.errors: dict[str, int] = {}  # Get_Error / 0.5 sub-error replies by name
-        self.error_events = 0
-        self.arm_attempts = self.arm_failures = 0
-        self.arming_since: float | None = None
-        self.arm_retry_s = arm_retry_s
-        self.backoff = arm_retry_s
-        self.next_arm = 0.0
-        self.next_command = self.next_poll = self.next_encoder_poll = 0.0
-        self.wd = WatchdogStep()
-
-    @property
-    def armed(self) -> bool:
-        """The last heartbeat showed CLOSED_LOOP_CONTROL without an error."""
-        hb = self.heartbeat
-        return hb is not None and hb.axis_state == AxisState.CLOSED_LOOP_CONTROL and not hb.axis_error
-
-    def retry_now(self) -> None:
-        """Forget the arming backoff (a clear was asked for, or the node came back)."""
-        self.backoff, self.next_arm = self.arm_retry_s, 0.0
 
 
 class OdriveCanMotor(CanMotorService):
@@ -150,6 +91,8 @@ class OdriveCanMotor(CanMotorService):
         self._estopped = False
         self.axes: dict[str, OdriveAxis] = {}
         self._by_node: dict[int, OdriveAxis] = {}
+        self._watchdog_setup = OdriveWatchdogSetup(config=self.config, send=self.send, label=self._label,
+                                                   report_error=self.error, logger=self.logger)
         self._make_axes()
 
     def check_settings(self, get: Callable[[str], Any]) -> None:
@@ -166,9 +109,7 @@ class OdriveCanMotor(CanMotorService):
             if not get(key) >= 0:
                 raise self._fail(f"{key} must be >= 0 (0 disables), got {get(key)!r}")
         check_hw_watchdog(get, self._fail)
-        for key in ("watchdog_timeout_endpoint", "enable_watchdog_endpoint"):
-            if not isinstance(get(key), int) or isinstance(get(key), bool) or not 0 <= get(key) <= 0xFFFF:
-                raise self._fail(f"{key} must be an endpoint id 0..65535 (0: unknown), got {get(key)!r}")
+        check_watchdog_endpoints(get, self._fail)
 
     def _make_axes(self) -> None:
         retry = self.config.get("arm_retry_s")
@@ -183,7 +124,7 @@ class OdriveCanMotor(CanMotorService):
                 self._build()
                 self._make_axes()
             self.firmware = self.config.get("firmware")
-            if name in _WATCHDOG_FIELDS:
+            if name in WATCHDOG_FIELDS:
                 for axis in self.axes.values():
                     axis.wd = WatchdogStep()
             if name == "clear_errors" and value:
@@ -217,9 +158,9 @@ class OdriveCanMotor(CanMotorService):
         elif cmd == Cmd.GET_BUS_VOLTAGE_CURRENT:
             axis.bus = cs.decode_bus_voltage_current(data)
         elif self.firmware == "0.6" and cmd == Cmd.GET_VERSION:
-            self._on_version(axis, cs.decode_version(data), now)
+            self._watchdog_setup.on_version(axis, cs.decode_version(data), now)
         elif self.firmware == "0.6" and cmd == Cmd.TX_SDO:
-            self._on_tx_sdo(axis, *cs.decode_tx_sdo(data))
+            self._watchdog_setup.on_tx_sdo(axis, *cs.decode_tx_sdo(data))
         elif self.firmware == "0.6" and cmd == Cmd.GET_ERROR:
             axis.errors["active_errors"], axis.errors["disarm_reason"] = cs.decode_get_error(data)
         elif self.firmware == "0.6" and cmd == Cmd.GET_TEMPERATURE:
@@ -238,11 +179,11 @@ class OdriveCanMotor(CanMotorService):
             axis.silent = False
             axis.retry_now()
             axis.wd = WatchdogStep()  # it may have rebooted: settings written over CAN live in RAM
-            self.logger.info("%s answering again (%s)", label, _enum_name(AxisState, hb.axis_state))
+            self.logger.info("%s answering again (%s)", label, enum_name(AxisState, hb.axis_state))
         if hb.axis_error and (prev is None or prev.axis_error != hb.axis_error):
             axis.error_events += 1
             self.error(f"{label}: axis error {error_names(hb.axis_error, firmware=self.firmware)} "
-                       f"({_enum_name(AxisState, hb.axis_state)}); "
+                       f"({enum_name(AxisState, hb.axis_state)}); "
                        + ("clearing and re-arming" if self.config.get("rearm_on_error")
                           else "set clear_errors = true to clear it and re-arm"))
         if axis.armed and axis.arming_since is not None:
@@ -250,7 +191,7 @@ class OdriveCanMotor(CanMotorService):
             axis.arming_since = None
             axis.retry_now()
         elif prev is not None and prev.axis_state == AxisState.CLOSED_LOOP_CONTROL and not axis.armed:
-            self.logger.warning("%s left closed loop: now %s, error %s", label, _enum_name(AxisState, hb.axis_state),
+            self.logger.warning("%s left closed loop: now %s, error %s", label, enum_name(AxisState, hb.axis_state),
                                 error_names(hb.axis_error, firmware=self.firmware))
 
     def _label(self, axis: OdriveAxis) -> str:
@@ -274,7 +215,7 @@ class OdriveCanMotor(CanMotorService):
             if self._check_silence(axis, now) or axis.heartbeat is None:
                 continue
             if not axis.wd.settled:
-                self._watchdog_step(axis, now)
+                self._watchdog_setup.step(axis, now, firmware=self.firmware)
             if now >= axis.next_command:  # armed or not: every frame feeds the axis watchdog
                 self._send_setpoint(axis, now)
             if not axis.armed:
@@ -311,17 +252,17 @@ class OdriveCanMotor(CanMotorService):
         if hb is None or now < axis.next_arm or (self.failsafe_active and cfg.get("estop_on_failsafe")):
             return
         if not axis.wd.settled:
-            return  # the watchdog first; _watchdog_step settles it within WD_TRIES * WD_REPLY_S
+            return  # the watchdog first; its set-up settles within WD_TRIES * WD_REPLY_S
         clear = (axis.arm_attempts == 0 and cfg.get("clear_errors_on_start")) \
             or (bool(hb.axis_error) and cfg.get("rearm_on_error"))
         if hb.axis_error and not clear:
             return  # reported as an error until someone clears it
         if axis.arming_since is not None:
             axis.arm_failures += 1
-            result = f", procedure result {_enum_name(ProcedureResult, hb.procedure_result)}" \
+            result = f", procedure result {enum_name(ProcedureResult, hb.procedure_result)}" \
                 if self.firmware == "0.6" else ""
             self.error(f"{self._label(axis)}: not in closed loop {now - axis.arming_since:.1f} s after arming "
-                       f"(state {_enum_name(AxisState, hb.axis_state)}{result}, error "
+                       f"(state {enum_name(AxisState, hb.axis_state)}{result}, error "
                        f"{error_names(hb.axis_error, firmware=self.firmware)}); retrying in {axis.backoff:.1f} s")
         if clear:
             self._frame(axis, Cmd.CLEAR_ERRORS, cs.encode_clear_errors(firmware=self.firmware))
@@ -336,91 +277,6 @@ class OdriveCanMotor(CanMotorService):
         axis.arming_since = axis.arming_since if axis.arming_since is not None else now
         axis.next_arm = now + axis.backoff
         axis.backoff = min(axis.backoff * 2.0, MAX_ARM_BACKOFF_S)
-
-    # -- the axis watchdog ---------------------------------------------------------------------
-    def _watchdog_step(self, axis: OdriveAxis, now: float) -> None:
-        """Move the watchdog set-up of *axis* on: decide what can be done, ask again, or give up."""
-        cfg, wd, label = self.config, axis.wd, self._label(axis)
-        timeout = float(cfg.get("hw_watchdog_timeout_s"))
-        if wd.started is None:
-            wd.started = now
-        if not cfg.get("hw_watchdog"):
-            wd.settle("off", "off (hw_watchdog = false): a dead driver leaves the axis at its last setpoint")
-            self.logger.warning("%s: hw_watchdog is off; the axis keeps its setpoint if this driver dies", label)
-            return
-        if self.firmware == "0.5":
-            wd.settle("unverified", f"not settable over CAN on fw 0.5: configure with odrivetool "
-                                    f"(axis.config.watchdog_timeout = {timeout:g}, axis.config.enable_watchdog = "
-                                    "True, save_configuration()); not readable over CAN either")
-            self.logger.warning("%s: %s", label, wd.text)
-            return
-        endpoints = (cfg.get("watchdog_timeout_endpoint"), cfg.get("enable_watchdog_endpoint"))
-        if not all(endpoints):
-            wd.settle("unverified", "not set: endpoint ids unknown; set watchdog_timeout_endpoint, "
-                                    "enable_watchdog_endpoint and endpoints_fw from the flat_endpoints.json of the "
-                                    "node's firmware, or configure with odrivetool and save_configuration()")
-            self.logger.warning("%s: watchdog %s", label, wd.text)
-            return
-        if now < wd.next_try:
-            return
-        if wd.tries >= WD_TRIES:
-            asked = "Get_Version" if wd.version is None else "RxSdo reads"
-            wd.settle("error", f"no answer to {asked} after {wd.tries} tries; the watchdog is not verified "
-                               "(configure it with odrivetool if this firmware has no endpoint access)")
-            self.error(f"{label}: watchdog {wd.text}")
-            return
-        wd.tries += 1
-        wd.next_try = now + WD_REPLY_S
-        if wd.version is None:
-            self._request(axis, Cmd.GET_VERSION)
-        else:
-            self._watchdog_write(axis)
-
-    def _on_version(self, axis: OdriveAxis, version: cs.Version, now: float) -> None:
-        wd, cfg = axis.wd, self.config
-        if wd.settled or wd.version is not None or wd.started is None:
-            return
-        wd.version = cs.version_text(version)
-        if wd.version != cfg.get("endpoints_fw"):
-            wd.settle("error", f"not set: the node runs firmware {wd.version} but the endpoint ids are for "
-                               f"{cfg.get('endpoints_fw') or '(endpoints_fw empty)'}; take watchdog_timeout_endpoint "
-                               f"and enable_watchdog_endpoint from the flat_endpoints.json of {wd.version} and set "
-                               f"endpoints_fw = '{wd.version}'")
-            self.error(f"{self._label(axis)}: watchdog {wd.text}")
-            return
-        wd.tries, wd.next_try = 1, now + WD_REPLY_S
-        self._watchdog_write(axis)
-
-    def _watchdog_write(self, axis: OdriveAxis) -> None:
-        cfg = self.config
-        timeout_ep, enable_ep = cfg.get("watchdog_timeout_endpoint"), cfg.get("enable_watchdog_endpoint")
-        axis.wd.read.clear()
-        # timeout first, so the watchdog never runs with the firmware's default timeout
-        self._frame(axis, Cmd.RX_SDO, cs.encode_sdo_write(timeout_ep, "float", cfg.get("hw_watchdog_timeout_s")))
-        self._frame(axis, Cmd.RX_SDO, cs.encode_sdo_write(enable_ep, "bool", True))
-        self._frame(axis, Cmd.RX_SDO, cs.encode_sdo_read(timeout_ep))
-        self._frame(axis, Cmd.RX_SDO, cs.encode_sdo_read(enable_ep))
-
-    def _on_tx_sdo(self, axis: OdriveAxis, endpoint: int, raw: bytes) -> None:
-        wd, cfg = axis.wd, self.config
-        timeout_ep, enable_ep = cfg.get("watchdog_timeout_endpoint"), cfg.get("enable_watchdog_endpoint")
-        if wd.settled or endpoint not in (timeout_ep, enable_ep):
-            return
-        wd.read[endpoint] = raw
-        if len(wd.read) < 2:
-            return
-        wanted = float(cfg.get("hw_watchdog_timeout_s"))
-        timeout = float(cs.sdo_value("float", wd.read[timeout_ep]))
-        enabled = bool(cs.sdo_value("bool", wd.read[enable_ep]))
-        if enabled and abs(timeout - wanted) < 1e-4:
-            wd.settle("on", f"on {timeout:.2f} s (read back)")
-            self.logger.info("%s: watchdog %s", self._label(axis), wd.text)
-            return
-        wd.settle("error", f"read back timeout {timeout:g} s, enabled {enabled} after writing {wanted:g} s, "
-                           f"enabled True: endpoints {timeout_ep}/{enable_ep} may not be axis0.config."
-                           f"watchdog_timeout/enable_watchdog of firmware {wd.version}; check them in its "
-                           "flat_endpoints.json, or configure with odrivetool")
-        self.error(f"{self._label(axis)}: watchdog {wd.text}")
 
     def _poll(self, axis: OdriveAxis, now: float) -> None:
         cfg = self.config
@@ -486,7 +342,7 @@ class OdriveCanMotor(CanMotorService):
             elif hb is not None and hb.axis_error:
                 out.append(f"{name} error {error_names(hb.axis_error, firmware=self.firmware)}")
             elif hb is not None and not axis.armed:
-                out.append(f"{name} not armed ({_enum_name(AxisState, hb.axis_state)})")
+                out.append(f"{name} not armed ({enum_name(AxisState, hb.axis_state)})")
             if axis.wd.state == "error":
                 out.append(f"{name} watchdog {axis.wd.text.split(';')[0]}")
         return out
@@ -501,7 +357,7 @@ class OdriveCanMotor(CanMotorService):
             phase = "silent" if axis.silent else "waiting" if hb is None else "armed" if axis.armed \
                 else "error" if hb.axis_error else "arming" if axis.arming_since is not None else "idle"
             d = {"node": axis.spec.can_id, "phase": phase,
-                 "state": _enum_name(AxisState, hb.axis_state) if hb else "",
+                 "state": enum_name(AxisState, hb.axis_state) if hb else "",
                  "error": error_names(hb.axis_error, firmware=self.firmware) if hb else "",
                  "heartbeat_age_s": f"{now - axis.last_heartbeat:.2f}" if axis.last_heartbeat else "",
                  "silent_events": axis.silent_events, "error_events": axis.error_events,
@@ -510,7 +366,7 @@ class OdriveCanMotor(CanMotorService):
                  "vel_turns_s": "" if axis.vel_turns_s is None else f"{axis.vel_turns_s:.3f}",
                  "pos_turns": "" if axis.pos_turns is None else f"{axis.pos_turns:.3f}"}
             if hb is not None and self.firmware == "0.6":
-                d["procedure_result"] = _enum_name(ProcedureResult, hb.procedure_result)
+                d["procedure_result"] = enum_name(ProcedureResult, hb.procedure_result)
             if axis.bus is not None:
                 d["bus_voltage_v"], d["bus_current_a"] = f"{axis.bus[0]:.2f}", f"{axis.bus[1]:.2f}"
             if axis.temps is not None:

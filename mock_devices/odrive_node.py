@@ -13,10 +13,11 @@ axis's id), any frame addressed to the node feeds the watchdog, RTR requests inc
 the watchdog enabled (``watchdog_timeout_s`` at construction is what odrivetool saved; with
 firmware 0.6 a driver writes ``axis0.config.watchdog_timeout``/``enable_watchdog`` by RxSdo), a
 closed-loop axis not fed for that long raises WATCHDOG_TIMER_EXPIRED and disarms; each expiry
-is kept in ``watchdog_trips``. RxSdo reaches the endpoints in ENDPOINTS (this mock's own
-flat_endpoints table for its build MOCK_FW, not a real release's ids) and answers reads with
-TxSdo; ``freeze_config(True)`` makes writes silently not apply. Any axis error (watchdog, Estop, ``inject_error``)
-disarms to IDLE and stops the wheel; Clear_Errors clears, Set_Axis_State re-arms.
+is kept in ``watchdog_trips``. RxSdo reaches the endpoints of mock_devices/odrive_config.py
+(this mock's own flat_endpoints table for its build MOCK_FW, not a real release's ids) and
+answers reads with TxSdo; ``freeze_config(True)`` makes writes silently not apply. Any axis
+error (watchdog, Estop, ``inject_error``) disarms to IDLE and stops the wheel; Clear_Errors
+clears, Set_Axis_State re-arms.
 
 Position estimates come from the vehicle's wheel odometer, velocity estimates from its rate
 (see WheelOdometer), so the node agrees with every other sensor on the same SimVehicle.
@@ -33,6 +34,9 @@ from typing import Any, Callable, Mapping
 import can
 
 from mock_devices.can_node import MockCanNode, PeriodicSchedule, WheelOdometer, add_bus_arguments, bus_options, serve
+from mock_devices.odrive_config import VERSION_06, OdriveConfig, endpoint_access
+# re-exported: the tests and bench/motor_watchdog.py configure drivers for this mock's build with them
+from mock_devices.odrive_config import ENABLE_WATCHDOG_ENDPOINT, MOCK_FW, WATCHDOG_TIMEOUT_ENDPOINT  # noqa: F401
 from mock_devices.vehicle_sim import SimVehicle
 from u2sa_hw.protocols import odrive_cansimple as cs
 from u2sa_hw.protocols.odrive_cansimple import AxisState, Cmd, ControlMode, InputMode, ProcedureResult
@@ -43,39 +47,6 @@ CALIBRATION_STATES = frozenset({AxisState.STARTUP_SEQUENCE, AxisState.FULL_CALIB
                                 AxisState.ENCODER_DIR_FIND, AxisState.HOMING,
                                 AxisState.ENCODER_HALL_POLARITY_CALIBRATION,
                                 AxisState.ENCODER_HALL_PHASE_CALIBRATION, AxisState.ANTICOGGING_CALIBRATION})
-# an unreleased build, so endpoint ids written for this mock are refused by a real 0.6.10
-VERSION_06 = cs.Version(protocol=2, hw_major=3, hw_minor=6, hw_variant=56, fw_major=0, fw_minor=6,
-                        fw_revision=10, fw_unreleased=1)
-MOCK_FW = cs.version_text(VERSION_06)
-WATCHDOG_TIMEOUT_ENDPOINT = 0x2F0
-ENABLE_WATCHDOG_ENDPOINT = 0x2F1
-# endpoint id -> (OdriveConfig field, endpoint type)
-ENDPOINTS: dict[int, tuple[str, str]] = {
-    WATCHDOG_TIMEOUT_ENDPOINT: ("watchdog_timeout", "float"),
-    ENABLE_WATCHDOG_ENDPOINT: ("enable_watchdog", "bool"),
-    0x2F2: ("vel_limit", "float"),
-}
-
-
-@dataclasses.dataclass
-class OdriveConfig:
-    """The axis configuration a reboot restores (what save_configuration would have stored)."""
-
-    node_id: int
-    control_mode: int = ControlMode.POSITION_CONTROL
-    input_mode: int = InputMode.PASSTHROUGH
-    vel_limit: float = 2.0  # rev/s
-    current_limit: float = 10.0  # A
-    vel_ramp_rate: float = 1.0  # rev/s^2
-    pos_gain: float = 20.0  # (rev/s)/rev
-    vel_gain: float = 0.1667
-    vel_integrator_gain: float = 0.3333
-    traj_vel_limit: float = 2.0
-    traj_accel_limit: float = 0.5
-    traj_decel_limit: float = 0.5
-    traj_inertia: float = 0.0
-    watchdog_timeout: float = 0.0  # s (axis.config.watchdog_timeout)
-    enable_watchdog: bool = False
 
 
 class OdriveCanNode(MockCanNode):
@@ -303,16 +274,9 @@ class OdriveCanNode(MockCanNode):
     def _rx_sdo(self, data: bytes, now: float) -> None:
         opcode, endpoint, raw = cs.decode_rx_sdo(data)
         self.sdo_log.append((now, opcode, endpoint, raw))
-        entry = ENDPOINTS.get(endpoint)
-        if entry is None:
-            raise cs.CanSimpleError(f"{self.name}: no endpoint {endpoint} in this firmware build ({MOCK_FW})")
-        field, kind = entry
-        if opcode == cs.SDO_WRITE:
-            if not self.config_frozen:
-                setattr(self.config, field, cs.sdo_value(kind, raw))
-            return
-        self._send(cs.make_frame(self.node_id, Cmd.TX_SDO, cs.encode_tx_sdo(endpoint, kind,
-                                                                            getattr(self.config, field))))
+        reply = endpoint_access(self.config, opcode, endpoint, raw, frozen=self.config_frozen, node_name=self.name)
+        if reply is not None:
+            self._send(cs.make_frame(self.node_id, Cmd.TX_SDO, reply))
 
     def _set_controller_mode(self, data: bytes, now: float) -> None:
         self.config.control_mode, self.config.input_mode = cs.decode_set_controller_mode(data)
