@@ -24,7 +24,7 @@ import os
 import re
 import threading
 import time
-from collections import defaultdict
+from collections import defaultdict, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -102,6 +102,7 @@ class _Subscription:
     raw: bool
     handle: Any = None
     unknown_logged: set[bytes] = field(default_factory=set)
+    active: bool = True
 
 
 class Transport:
@@ -127,6 +128,7 @@ class Transport:
             raise TransportError(str(exc)) from None
         self._verdict = OK
         self._payload = b""
+        self._pending_unsubscribe: deque[Any] = deque()
         self._rejection_logged: set[tuple[str, str]] = set()
         with captured_c_stderr() as printed:
             try:
@@ -237,13 +239,23 @@ class Transport:
         self._receiving = True
 
     def unsubscribe(self, sub: _Subscription) -> None:
-        """Stop delivering to *sub*."""
+        """Stop delivering to *sub* (at once; LCM lets go of it between two packets)."""
         with self._subs_lock:
-            if sub in self._subs:
-                self._subs.remove(sub)
-                self._lc.unsubscribe(sub.handle)
+            if sub not in self._subs:
+                return
+            self._subs.remove(sub)
+        sub.active = False
+        thread = self._thread
+        if thread is None or not thread.is_alive() or thread is threading.current_thread():
+            self._lc.unsubscribe(sub.handle)
+            return
+        # LCM's Python binding crashes when a subscription goes while another thread is in
+        # handle() (lcm-proj/lcm#616): the handler thread unsubscribes after its current handle.
+        self._pending_unsubscribe.append(sub.handle)
 
     def _dispatch(self, sub: _Subscription, channel: str, data: bytes) -> None:
+        if not sub.active:
+            return
         counters = self.rx[channel]
         generation = self._generation
         if self._bytes_counted != generation:   # the packet's first dispatch: verify it once
@@ -356,15 +368,30 @@ class Transport:
                 self._error(f"LCM handle failed: {exc}")
                 time.sleep(0.01)
             self._generation += 1
+            self._unsubscribe_pending()
+        self._unsubscribe_pending()
+
+    def _unsubscribe_pending(self) -> None:
+        while self._pending_unsubscribe:
+            handle = self._pending_unsubscribe.popleft()
+            try:
+                self._lc.unsubscribe(handle)
+            except Exception:  # noqa: BLE001 - LCM forgot it already
+                pass
 
     def stop(self) -> None:
         """Stop the handler thread and release the LCM instance."""
         self._running = False
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout=2.0)
+        thread = self._thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout=2.0)
+        still_handling = thread is not None and thread.is_alive()
         self._thread = None
         with self._subs_lock:
             for sub in self._subs:
+                sub.active = False
+                if still_handling:
+                    continue   # a callback outlived the join: unsubscribing now could crash LCM (see unsubscribe)
                 try:
                     self._lc.unsubscribe(sub.handle)
                 except Exception:  # noqa: BLE001 - tearing down
