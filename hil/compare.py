@@ -24,7 +24,7 @@ Raw device I/O is left out except the records of what a driver *drives*: ``RawGp
 and ``RawPwmWrite`` (a GPIO or PWM driver's outputs), compared like any stream under
 ``RAW.<device> [service]``.
 
-State channels (``STATE_CHANNELS``: ``RC_MODE``) are published on a timer as well as on
+State channels (``STATE_CHANNELS``: ``RC_MODE``, ``MANUAL_CMD``) are published on a timer as well as on
 every change, so which messages exist depends on the timer's phase. With a clock (``--rate``)
 they are compared as states over time: each replayed message's time is mapped onto the
 log's clock (the playback started at log time ``start_ns``), and every field value (each
@@ -34,6 +34,11 @@ messages of each side may miss (the input starts and ends there); they are notes
 messages from before the recorded stream's first message or after its last are not compared
 (the recorded service was not running, or not recorded, then; after the input ends a driver
 reacts to its end).
+
+``SYSTEM_FIELDS`` are what a service decides from the rest of the system, not from its
+device: the RC mux's ``autonomy_enabled``, ``armed``, ``hold``, ``blocked_by`` (its pre-arm
+checks read every service's health) and ``select_mismatch`` (the recorded select read-back
+against the replay's own enable decision). They are compared, and a difference is a note.
 """
 
 from __future__ import annotations
@@ -53,7 +58,12 @@ from u2sa_hw.recording.log_reader import LogFile
 from hil.player import header_source
 
 HEADER_FIELDS = ("*header.timestamp_us", "*header.sequence")
-STATE_CHANNELS = ("RC_MODE",)                       # published on a timer and on every change
+STATE_CHANNELS = ("RC_MODE", "MANUAL_CMD")         # published on a timer and on every change
+# Fields a service decides from the whole system's state (the RC mux's pre-arm checks read every
+# service's health), which a driver-level replay does not reproduce: a difference is a note.
+SYSTEM_FIELDS: dict[str, tuple[str, ...]] = {
+    "RC_MODE": ("autonomy_enabled", "armed", "hold", "blocked_by", "select_mismatch"),
+}
 OUTPUT_RAW_TYPES = ("RawGpioWrite", "RawPwmWrite")  # raw records of what a driver drives
 ALIGN_WINDOW = 10
 SHOWN_FIELDS = 8
@@ -258,10 +268,15 @@ def compare_states(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
     sides = ((rec, mapped, "recorded"), (inside, rec, "replayed"))
     unmatched = {"recorded": 0, "replayed": 0}
     at_edges = 0
+    system = SYSTEM_FIELDS.get(key.split(" [", 1)[0], ())
+    decided: dict[str, int] = {}
     for samples, others, side in sides:
         times = [o.t_ns for o in others]
         for i, s in enumerate(samples):
             missing, nearest = _missing_fields(s, times, others, window_ns=window, tolerance=tolerance)
+            for name in [m for m in missing if m in system]:
+                decided[name] = decided.get(name, 0) + 1
+            missing = [m for m in missing if m not in system]
             if not missing:
                 if side == "recorded":
                     r.matched += 1
@@ -285,6 +300,9 @@ def compare_states(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
     if at_edges:
         r.notes.append(f"{at_edges} message(s) at the start or end of the window without a counterpart "
                        "(the recording cuts the input there)")
+    if decided:
+        r.notes.append("decided from the whole system's health, which a driver-level replay does not reproduce "
+                       f"(not a difference): {', '.join(f'{n} in {c}' for n, c in sorted(decided.items()))}")
     return r
 
 

@@ -40,6 +40,7 @@ from hil.replay_plan import (DevicePlan, ReplayError, ReplayPlan, ServicePlan, b
                              write_run_profile)
 
 CONTRACT_PREFIX = "U2SA_"
+HEALTH_CHANNEL = "U2SA_HEALTH"
 
 
 @dataclass
@@ -259,7 +260,9 @@ class Replay:
                 if all(n in found for n in self.plan.services):
                     break
         channels = {c.channel for r in found.values() if r.name in self.plan.services for c in r.subscribes}
-        return {c for c in channels if not c.startswith(CONTRACT_PREFIX) and not c.startswith("RAW.")}
+        # Health is contract traffic, but the RC mux's pre-arm checks judge the other services by it
+        return {c for c in channels if (c == HEALTH_CHANNEL or not c.startswith(CONTRACT_PREFIX))
+                and not c.startswith("RAW.")}
 
     def _settle(self) -> None:
         """Wait until the services published nothing new for settle_s after the input ended (at most 10 s)."""
@@ -326,7 +329,7 @@ class Replay:
             for device in devices.values():
                 device.start()
             started = time.monotonic()
-            launcher = Launcher(profile, grace_s=3.0, control=False, output=self.outputs, on_death=self._on_death,
+            launcher = Launcher(profile, only=list(self.plan.services), grace_s=3.0, control=False, output=self.outputs, on_death=self._on_death,
                                 policy=RestartPolicy(initial_backoff_s=0.5, max_backoff_s=0.5, quick_death_s=1e9,
                                                      give_up_after=1))
             launcher.start()

@@ -73,6 +73,11 @@ class ReplayPlan:
     services: dict[str, ServicePlan]
     devices: dict[str, DevicePlan]
     notes: list[str] = field(default_factory=list)  # what is left out, and why
+    # The rest of the log's profile, written into the replay's profile but never started: the
+    # RC mux checks its [safety] table against every service's actuators, and its pre-arm checks
+    # judge the other services by their health, which the replay republishes from the log.
+    safety: dict[str, Any] = field(default_factory=dict)
+    others: dict[str, dict[str, Any]] = field(default_factory=dict)   # name -> kind, enabled, required, config
     start_ns: int = 0                              # the replayed window, log time (ns)
     end_ns: int = 0
 
@@ -238,6 +243,12 @@ def build_plan(path: Path | str, *, extra_services: list[str] = (), overrides: l
     if not plan.services:
         raise ReplayError(f"{log.path}: nothing to replay: no RAW.<device> channel belongs to a service of the "
                           "profile (record with record_raw = true in the driver configs) and no --services given")
+    plan.safety = dict(profile.get("safety") or {})
+    for name, table in services_table.items():
+        if name not in plan.services and isinstance(table, dict) and isinstance(table.get("kind"), str):
+            plan.others[name] = {"kind": table["kind"], "enabled": table.get("enabled", True) is not False,
+                                 "required": table.get("required", True) is not False,
+                                 "config": dict(configs.get(name, {}))}
     first, last = summary.start_ns, summary.end_ns
     plan.start_ns = first + int(max(0.0, start_s) * 1e9)
     plan.end_ns = last if end_s is None else min(last, first + int(end_s * 1e9))
@@ -280,8 +291,13 @@ def write_run_profile(plan: ReplayPlan, run_dir: Path, *, lcm_url: str,
         config.update(changes.get(name, {}))   # last: a device address always points at the replay device
         (run_dir / "config" / f"{name}.toml").write_text(tomli_w.dumps(config))
         services[name] = {"kind": sp.kind, "config": f"config/{name}.toml"}
+    for name, other in plan.others.items():   # listed as recorded, never started (see ReplayPlan.others)
+        (run_dir / "config" / f"{name}.toml").write_text(tomli_w.dumps(other["config"]))
+        services[name] = {"kind": other["kind"], "config": f"config/{name}.toml", "enabled": other["enabled"],
+                          "required": other["required"]}
     path = run_dir / "vehicle.toml"
-    path.write_text(tomli_w.dumps({"vehicle": vehicle, "services": services}))
+    path.write_text(tomli_w.dumps({"vehicle": vehicle, "services": services,
+                                   **({"safety": plan.safety} if plan.safety else {})}))
     return path
 
 
