@@ -30,6 +30,7 @@ log = logging.getLogger("u2sa_hw.bus_listen")
 
 IP_MULTICAST_ALL = getattr(socket, "IP_MULTICAST_ALL", 49)
 IFF_MULTICAST = 0x1000
+ANY_INTERFACE_ENV = "U2SA_BUS_ANY_INTERFACE"   # set: LCM's default interface even for ttl=0 (diagnosis)
 _warned: set[str] = set()
 
 
@@ -47,7 +48,7 @@ def socket_fds() -> set[int]:
 
 def listen_interface(url: str, interface: str | None) -> str | None:
     """The interface a transport on *url* should use: ``lo`` for ttl=0, *interface* otherwise (None: LCM's)."""
-    if not url.startswith("udpm://"):
+    if not url.startswith("udpm://") or os.environ.get(ANY_INTERFACE_ENV):
         return None
     ttl = parse_qs(urlsplit(url).query).get("ttl", ["0"])[0]
     return "lo" if ttl.strip() in ("", "0") else interface
