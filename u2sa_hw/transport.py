@@ -179,6 +179,8 @@ class Transport:
             c = self.tx[channel]
             wire = self.auth.sign(channel, data) if self.auth is not None else data
             try:
+                if self._lc is None:
+                    raise OSError("the transport is stopped")
                 self._lc.publish(channel, wire)
             except (OSError, IOError) as exc:
                 c.dropped += 1
@@ -205,6 +207,8 @@ class Transport:
         sub = _Subscription(channel, base, callback, raw)
         pattern = channel if _is_regex(channel) else re.escape(channel)
         handler = lambda ch, data, s=sub: self._dispatch(s, ch, data)  # noqa: E731
+        if self._lc is None:
+            raise TransportError(f"cannot subscribe to {channel}: the transport on {self.url} is stopped")
         self._open_receiver()
         sub.handle = self._lc.subscribe(pattern, handler)
         if sub.handle is None:
@@ -247,7 +251,8 @@ class Transport:
         sub.active = False
         thread = self._thread
         if thread is None or not thread.is_alive() or thread is threading.current_thread():
-            self._lc.unsubscribe(sub.handle)
+            if self._lc is not None:
+                self._lc.unsubscribe(sub.handle)
             return
         # LCM's Python binding crashes when a subscription goes while another thread is in
         # handle() (lcm-proj/lcm#616): the handler thread unsubscribes after its current handle.
@@ -343,6 +348,8 @@ class Transport:
     # -- handling -----------------------------------------------------------------
     def handle_once(self, timeout: float) -> bool:
         """Handle at most one message, waiting up to *timeout* s; True if one was handled."""
+        if self._lc is None:
+            return False
         try:
             return self._lc.handle_timeout(max(0, int(timeout * 1000))) > 0
         finally:
@@ -397,6 +404,12 @@ class Transport:
                 except Exception:  # noqa: BLE001 - tearing down
                     pass
             self._subs.clear()
+        if not still_handling and self._lc is not None:
+            self._unsubscribe_pending()
+            # LCM holds our handlers and we hold LCM: a cycle the garbage collector cannot see through
+            # LCM's C type, so without this every stopped transport kept its sockets and pipes open
+            # until the process ended (a long test run passed 1024 fds and LCM's select() crashed).
+            self._lc = None
 
     def __enter__(self) -> "Transport":
         self.start()
