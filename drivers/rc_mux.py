@@ -107,6 +107,8 @@ class RcMuxDriver(Sensor):
         self.prearm_failures: list[CheckFailure] = []
         self.hold = False
         self.checks_lost = self.stalls = 0
+        stale_ns = int((self.safety.rc_mode_timeout_s - 1.0 / c["publish_hz"]) * 1e9)
+        self.stall_after_ns = max(20_000_000, min(self.filter.signal_timeout_ns, stale_ns))
         self.select_level: int | None = None
         self.mismatch, self._mismatch_since = False, None
         self.mismatches = self.enable_changes = 0
@@ -209,7 +211,8 @@ class RcMuxDriver(Sensor):
             if change.cleared:
                 self.logger.info("failsafe of %s cleared by %s%s", ", ".join(change.cleared),
                                  msg.header.source or "?", "" if change.active_after else " (none held now)")
-            if change.active_after and self.config["require_rearm"]:
+            # raised or cleared: the pilot re-arms after it, so a clear never hands autonomy back by itself
+            if (change.active_after or change.cleared) and self.config["require_rearm"]:
                 self.armed = False
             self.update_enable()
             self._changed.set()
@@ -229,7 +232,13 @@ class RcMuxDriver(Sensor):
             self._changed.set()
         with self._enable_lock:
             self.prearm_failures = failures
-            if failures and self.enabled and not self.hold:
+            if (failures and not self.enabled and self.armed and self.filter.mode == MODE_AUTONOMOUS
+                    and self.config["require_rearm"]):
+                # refused: the attempt is over, so autonomy cannot start by itself once the check passes
+                self.armed = False
+                self.logger.warning("autonomy refused: %s; switch through manual to try again", first)
+                self._changed.set()
+            elif failures and self.enabled and not self.hold:
                 self.checks_lost += 1
                 if self.safety.on_check_lost == "hold":
                     self.hold = True
@@ -261,13 +270,14 @@ class RcMuxDriver(Sensor):
         next_publish = next_manual = time.monotonic()
         last_loop_ns = time.monotonic_ns()
         while self.wait(0.0):
-            last_loop_ns = self._check_stall(last_loop_ns)
             port = self.gpio.port()
             if port is None:
                 self.wait(min(0.05, max(0.01, self.gpio.retry_in())))
             else:
                 for edge in self.gpio.read_edges(port, 0.02):
                     self._on_edge(edge.line, edge.rising, edge.timestamp_ns)
+            # after the wait, before anything is published: a stall anywhere in the loop is caught here
+            last_loop_ns = self._check_stall(last_loop_ns)
             now_ns = time.monotonic_ns()
             if self.filter.check_signal(now_ns):
                 self._mode_changed()
@@ -285,11 +295,12 @@ class RcMuxDriver(Sensor):
                 next_manual = max(next_manual + manual_period, now)
 
     def _check_stall(self, last_loop_ns: int) -> int:
-        """A loop gap longer than the signal timeout (the process was stopped or starved) is a signal
-        loss: the actuators saw RC_MODE go stale, so autonomy must not come back without the pilot."""
+        """A loop gap longer than the signal timeout, or long enough that the actuators may have seen
+        RC_MODE go stale (the process was stopped or starved), is a signal loss: autonomy must not come
+        back without the pilot."""
         now_ns = time.monotonic_ns()
         gap_ns = now_ns - last_loop_ns
-        if gap_ns > self.filter.signal_timeout_ns:
+        if gap_ns > self.stall_after_ns:
             self.stalls += 1
             with self._enable_lock:
                 if self.config["require_rearm"] and self.armed:
@@ -312,7 +323,7 @@ class RcMuxDriver(Sensor):
             return
         if self.filter.on_frame(pulse.width_us, pulse.end_ns):
             self._mode_changed()
-        if self.filter.manual_confirmed and (not self.armed or self.hold):
+        if self.filter.manual_confirmed and (not self.armed or self.hold) and not self.failsafes.active:
             with self._enable_lock:
                 self.armed, self.hold = True, False
             self.logger.info("armed: the switch is at manual")

@@ -139,3 +139,13 @@ def test_check_config_refuses_a_change_before_it_is_written(tmp_path: Path, lcm_
         assert svc.config.set("rate_hz", 20.0)
     finally:
         svc.transport.stop()
+
+
+def test_no_command_is_obeyed_after_the_final_neutral_of_kill(tmp_path: Path, lcm_url: str) -> None:
+    act = RecordingActuator("esc", config_path=tmp_path / "esc.toml", settings={"rc_gating": False})
+    act.kill()
+    assert act.outputs[-1] == ("neutral", 0.0)
+    # a command the transport delivers in the window between kill() and the transport's stop
+    act._on_autonomous_command(_command("esc", 55.0))
+    assert act.outputs[-1] == ("neutral", 0.0) and ("esc", 55.0) not in act.outputs
+    act.transport.stop()

@@ -97,6 +97,7 @@ def rc(mode: int, *, enabled: bool | None = None) -> t.RcMode:
 
 
 def controller(**overrides: object) -> VehicleController:
+    overrides.setdefault("rc_timeout_s", 1.0)   # these tests step the clock in jumps of up to 0.7 s
     settings = ControlSettings(**overrides)  # type: ignore[arg-type]
     return VehicleController(settings=settings, mixer=DifferentialMixer(left="L", right="R"))
 

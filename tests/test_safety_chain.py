@@ -255,6 +255,10 @@ def test_the_operator_raises_and_clears_a_failsafe_that_other_sources_cannot_cle
     raised = services.cli("failsafe", "raise", "--reason", "swimmer near the vehicle")
     assert raised.returncode == 0, raised.stderr
     chain.wait_duty(1, 1500.0, "neutral on the operator's failsafe, even in manual")
+    held = chain.mode(lambda m: m.mode == 0 and not m.armed, "disarmed while the failsafe is held, even at manual")
+    assert "failsafe" in held.blocked_by
+    refused = chain.bus.set_config("drive", "rc_gating", "false")
+    assert refused is not None and not refused.ok and "not changed over the bus" in refused.error
     stranger = t.Failsafe()
     stranger.active, stranger.header.source = False, "u2sa-cli-someone"
     chain.bus.publish(ch.FAILSAFE, stranger)
@@ -264,6 +268,24 @@ def test_the_operator_raises_and_clears_a_failsafe_that_other_sources_cannot_cle
     cleared = services.cli("failsafe", "clear")
     assert cleared.returncode == 0, cleared.stderr
     chain.wait_duty(1, 2000.0, "the pilot's throttle again once the operator cleared")
+    chain.mode(lambda m: m.mode == 0 and m.armed, "armed again only once nobody holds a failsafe")
+
+
+def test_a_refused_autonomy_never_starts_by_itself_when_the_check_passes(chain: Chain) -> None:
+    chain.mode(lambda m: m.mode == 0 and m.armed, "manual, armed")
+    chain.procs["drive"].send_signal(signal.SIGSTOP)          # a required service goes silent
+    chain.mode(lambda m: "required service drive" in m.blocked_by, "the pre-arm check failing")
+    chain.rc.set_mode_switch(True)
+    refused = chain.mode(lambda m: m.mode == 1 and not m.armed, "autonomy refused, and disarmed")
+    assert not refused.autonomy_enabled and "drive" in refused.blocked_by
+    chain.procs["drive"].send_signal(signal.SIGCONT)          # the check passes again ...
+    chain.mode(lambda m: m.mode == 1 and "drive" not in m.blocked_by, "the check holding again")
+    later = chain.mode(lambda m: m.mode == 1, "another RC_MODE")
+    assert not later.autonomy_enabled and not later.armed, "... but autonomy waits for the pilot"
+    chain.rc.set_mode_switch(False)
+    chain.mode(lambda m: m.mode == 0 and m.armed, "the pilot re-arms through manual")
+    chain.rc.set_mode_switch(True)
+    chain.mode(lambda m: m.mode == 1 and m.autonomy_enabled, "autonomy granted on the pilot's new attempt")
 
 
 def test_run_and_install_refuse_a_mis_declared_safety_chain_before_anything_starts(

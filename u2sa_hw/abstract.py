@@ -104,6 +104,7 @@ class Actuator(U2SAService):
         # never interleaved: a command admitted just before a failsafe cannot land after its neutral.
         # Order: this lock, then the driver's own (drivers call check_command_timeout outside theirs).
         self._authority_lock = threading.RLock()
+        self._stopping = False
         self._last_command: float | None = None
         self._timed_out = False
         self._neutral_for: str | None = None   # why the outputs were last sent neutral by the gate
@@ -119,7 +120,8 @@ class Actuator(U2SAService):
         return {name}
 
     def _dead_man_problem(self, value: Any, *, rc_gating: bool | None = None) -> str | None:
-        gating = bool(self.config["rc_gating"]) if rc_gating is None else rc_gating
+        gate = getattr(self, "gate", None)   # running: what the gate enforces, not what a file says
+        gating = rc_gating if rc_gating is not None else (gate.rc_gating if gate else bool(self.config["rc_gating"]))
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             return f"service '{self.name}': command_timeout_s must be a number of seconds, got {value!r}"
         if 0 < value <= self.MAX_COMMAND_TIMEOUT_S or (value == 0 and not gating):
@@ -133,7 +135,8 @@ class Actuator(U2SAService):
         if name == "command_timeout_s":
             return self._dead_man_problem(value)
         if name == "rc_gating":
-            return self._dead_man_problem(self.config["command_timeout_s"], rc_gating=bool(value))
+            return (f"service '{self.name}': rc_gating is not changed over the bus (a remote switch for the "
+                    "software RC mux would defeat it); set it in the profile and restart the service")
         return super().validate_config(name, value)
 
     # -- for subclasses -------------------------------------------------------------------
@@ -183,6 +186,8 @@ class Actuator(U2SAService):
         if base.actuator_name not in self.actuator_names():
             return
         with self._authority_lock:
+            if self._stopping:
+                return   # kill() sent the final neutral: nothing may follow it
             now = time.monotonic()
             self._follow_authority(now)
             if self.gate.admit(source, now):
@@ -218,7 +223,8 @@ class Actuator(U2SAService):
         elif change.edge:
             self.logger.info("failsafe cleared by %s", source)
         self._follow_authority(time.monotonic())
-        self.status = "degraded" if change.active_after else "ok"
+        if change.active_after:
+            self.status = "degraded"   # back to "ok" is the driver's call (its port may be down too)
 
     def _follow_authority(self, now: float) -> None:
         """Neutral at once when the authority changed (a failsafe, the switch, a stale RC_MODE)."""
@@ -257,11 +263,13 @@ class Actuator(U2SAService):
                 "dropped": self.gate.drops_text(), "authority": auth.source or "none",
                 "neutral_because": auth.why, "failsafe": self.failsafe_active,
                 "failsafe_sources": ",".join(sorted(self.failsafe_sources)),
-                "command_timed_out": self._timed_out, "rc_gating": bool(self.config["rc_gating"])}
+                "command_timed_out": self._timed_out, "rc_gating": self.gate.rc_gating}
 
     def kill(self) -> None:
-        """Neutral, then release."""
+        """Neutral, then release; no command is obeyed after this neutral."""
         try:
-            self.neutral()
+            with self._authority_lock:
+                self._stopping = True
+                self.neutral()
         finally:
             super().kill()

@@ -12,8 +12,8 @@ raised it (the HSM, an e-stop input, the operator, ...). The rules, written once
    raises it again at its next repeat, so an operator clear never hides a live fault for long.
 4. Nothing else clears a failsafe: not a timeout, not a restart of the holder. A source that
    dies while holding one leaves it held (fail safe); a restarted holder starts with none and
-   learns the others from their repeats (every source re-sends an active failsafe at least
-   once a second).
+   learns the others from their repeats (the HSM and e-stop inputs re-send an active failsafe
+   every second, and the HSM re-sends the operator's one-shot ``u2sa failsafe raise``).
 
 The system is in failsafe while any source holds one.
 """

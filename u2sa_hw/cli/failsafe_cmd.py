@@ -37,8 +37,9 @@ clear any.
                              back within a second if NAME's condition still holds
   clear --all                lower every source's failsafe
 
-Services that start after a one-shot raise do not hear it; the RC mux does and keeps
-autonomy off, so their outputs stay neutral. See docs/safety.md.
+The HSM (kind "hsm") re-sends the operator's failsafe every second until the operator
+clears it, so a service that restarts, or missed the one packet, still hears it; without
+an HSM in the profile only the services that heard the raise hold it. See docs/safety.md.
 """
 
 
@@ -144,6 +145,11 @@ def cmd_failsafe(args: Any) -> int:
             msg.service = ALL_SOURCES if args.all else (args.source or "")
         if not bus.publish(ch.FAILSAFE, msg):
             raise CliError(f"failsafe {args.action}: could not publish on {bus.transport.url}")
+        if args.action == "clear":
+            # the HSM relays the operator's failsafe every second: a relay already in flight when the
+            # first clear lands would raise it again, so the clear goes out once more after it
+            time.sleep(0.3)
+            bus.publish(ch.FAILSAFE, msg)
     target = "every source's" if args.all else (f"{args.source}'s" if args.source else "the operator's")
     print("failsafe raised by the operator: every actuator neutral, autonomy off"
           if args.action == "raise" else f"cleared {target} failsafe (u2sa failsafe status shows who still holds one)")

@@ -57,7 +57,7 @@ class ControlSettings:
     subsystem: str = "vehicle"         # the navigation points this controller follows
     require_autonomy_enabled: bool = True   # RcMode.autonomy_enabled (the mux's enable line) must be set too
     nav_timeout_s: float = 0.5
-    rc_timeout_s: float = 1.0
+    rc_timeout_s: float = 0.25   # as the actuators' [safety] rc_mode_timeout_ms: PID does not wind up while they are neutral
     estimate_timeout_s: float = 0.5
     max_dt_s: float = 0.25             # a longer gap between cycles counts as this long
 

@@ -60,7 +60,7 @@ class ControlSystem(U2SAService):
         field("rate_limit_pct_s", 200.0, "slew limit of every output, %/s (0: none); neutral is immediate"),
         field("require_autonomy_enabled", True, "also require RC_MODE's autonomy_enabled (the mux's enable line)"),
         field("nav_timeout_s", 0.5, "no NAV_POINT for this long -> neutral"),
-        field("rc_timeout_s", 1.0, "no RC_MODE for this long -> neutral"),
+        field("rc_timeout_s", 0.25, "no RC_MODE for this long -> neutral (as the actuators, [safety] rc_mode_timeout_ms)"),
         field("estimate_timeout_s", 0.5, "an older STATE_ESTIMATE is not used (feedforward only)"),
     )
 

@@ -162,8 +162,10 @@ class HealthStatusMonitor(U2SAService):
             if self._reassert.is_set():
                 self._reassert.clear()
                 next_failsafe = 0.0
-            if self.monitor.failsafe_active and now >= next_failsafe:
-                self._publish_failsafe(True, self.monitor.failsafe_reason, self.monitor.failsafe_service)
+            if now >= next_failsafe:
+                if self.monitor.failsafe_active:
+                    self._publish_failsafe(True, self.monitor.failsafe_reason, self.monitor.failsafe_service)
+                self._relay_operator_failsafe()
                 next_failsafe = now + FAILSAFE_REPEAT_S
             if now >= next_report:
                 self.publish_system_health(now)
@@ -240,6 +242,19 @@ class HealthStatusMonitor(U2SAService):
             return False, str(exc)
         self.logger.info("%s", account)
         return True, account
+
+    def _relay_operator_failsafe(self) -> None:
+        """Re-send the operator's failsafe every second while it is held: ``u2sa failsafe raise`` sends it
+        once, and an actuator that restarts (or lost that packet) must still hear it. The operator's clear
+        ends it here as everywhere (the CLI sends its clear twice, so a relay in flight cannot outlive it)."""
+        reason = self.failsafes.held().get(OPERATOR_SOURCE)
+        if reason is None:
+            return
+        msg = t.Failsafe()
+        msg.active, msg.reason = True, reason
+        msg.header.system_id, msg.header.source = self.profile.system_id, OPERATOR_SOURCE
+        msg.header.timestamp_us = time.time_ns() // 1000
+        self.transport.publish(ch.FAILSAFE, msg)
 
     def _publish_failsafe(self, active: bool, reason: str, service: str) -> None:
         self.failsafes.apply(source=self.name, active=active, reason=reason)
