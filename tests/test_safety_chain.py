@@ -313,3 +313,29 @@ def test_u2sa_health_names_why_autonomy_is_refused() -> None:
     })
     assert report == [{"service": "rc", "granted": False, "mode": "autonomous", "armed": True, "prearm_failed": "",
                        "blocked_by": "pre-arm check failed: gps: no 3D fix (fix type 2D, 7 satellites)"}]
+
+
+def test_the_hsm_re_sends_the_operators_one_shot_failsafe_until_it_is_cleared(
+        tmp_path: Path, lcm_url: str, services: ServiceProcesses, bus: BusClient) -> None:
+    from supervision_helpers import hsm_profile
+
+    vehicle = hsm_profile(tmp_path, lcm_url, "", startup_grace_s=10.0)
+    col = BusCollector(bus).listen(ch.FAILSAFE, t.Failsafe).listen(ch.SYSTEM_HEALTH, t.SystemHealth)
+    services.start("hsm", "--vehicle", str(vehicle))
+    col.wait_for(ch.SYSTEM_HEALTH, lambda m: True, message="the HSM running", timeout=30)
+
+    def operator_raises(since: int = 0) -> int:
+        return sum(1 for m in col.since(ch.FAILSAFE, since) if m.header.source == "operator" and m.active)
+
+    assert services.cli("failsafe", "raise", "--reason", "boat in the way").returncode == 0
+    wait_until(lambda: operator_raises() >= 3, timeout=15, message="the operator's failsafe re-sent by the HSM")
+    assert all(m.reason == "boat in the way" for m in col.since(ch.FAILSAFE) if m.header.source == "operator"
+               and m.active)
+    assert services.cli("failsafe", "clear").returncode == 0
+    col.wait_for(ch.SYSTEM_HEALTH, lambda m: not m.failsafe, since=col.count(ch.SYSTEM_HEALTH),
+                 message="no failsafe held after the clear", timeout=15)
+    mark, health = col.count(ch.FAILSAFE), col.count(ch.SYSTEM_HEALTH)
+    # eight more reports at 0.2 s: longer than the HSM's 1 s re-send period
+    col.wait_for(ch.SYSTEM_HEALTH, lambda m: True, since=health + 8, message="eight more system health reports",
+                 timeout=15)
+    assert operator_raises(mark) == 0, "the HSM stopped re-sending once the operator cleared"
