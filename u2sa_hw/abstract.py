@@ -135,6 +135,9 @@ class Actuator(U2SAService):
         if name == "command_timeout_s":
             return self._dead_man_problem(value)
         if name == "rc_gating":
+            gate = getattr(self, "gate", None)
+            if gate is not None and bool(value) == gate.rc_gating:
+                return None   # no change
             return (f"service '{self.name}': rc_gating is not changed over the bus (a remote switch for the "
                     "software RC mux would defeat it); set it in the profile and restart the service")
         return super().validate_config(name, value)
