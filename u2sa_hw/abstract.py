@@ -107,7 +107,6 @@ class Actuator(U2SAService):
         self._stopping = False
         self._last_command: float | None = None
         self._timed_out = False
-        self._neutral_for: str | None = None   # why the outputs were last sent neutral by the gate
         self.register_subscriber(ch.ACTUATOR_CMD, t.ActuatorCommand, self._on_autonomous_command)
         self.register_subscriber(ch.MANUAL_CMD, t.ActuatorCommand, self._on_manual_command)
         self.register_subscriber(ch.FAILSAFE, t.Failsafe, self._on_failsafe)
