@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Mapping
 
 from u2sa_hw.safety.config import SafetyConfig, load_safety
 from u2sa_hw.vehicle import ProfileError, VehicleProfile
@@ -122,9 +122,3 @@ def _check_channel(wiring: Wiring, channel: str, where: str) -> None:
     if channel not in wiring.rc_channels:
         raise ProfileError(f"{where}: '{channel}' is not a channel of the RC receiver (service "
                            f"'{wiring.rc_service}' channels: {', '.join(wiring.rc_channels) or 'none'})")
-
-
-def software_muxed(profile: VehicleProfile, safety: SafetyConfig, wiring: Wiring | None = None) -> dict[str, Any]:
-    """Actuator -> service for every actuator the software mux switches (those not in hardware_mux)."""
-    wiring = wiring or profile_wiring(profile)
-    return {a: svc for a, (svc, _k) in wiring.actuators.items() if a not in safety.hardware_mux}
