@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from u2sa_hw.install import install, uninstall
-from u2sa_hw.install_manifest import MANIFEST_PATH, load_manifest
-from u2sa_hw.install_system import InstallError
+from u2sa_hw.install.deploy import install, uninstall
+from u2sa_hw.install.manifest import MANIFEST_PATH, load_manifest
+from u2sa_hw.install.system import InstallError
 from u2sa_hw.transport import DEFAULT_RECV_BUF_SIZE
 
 U2SA = Path(sys.executable).with_name("u2sa")

@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 from udev_rules_syntax import RulesSyntaxError, matches, parse_rules
 
-from u2sa_hw.install_units import render_vehicle_rules
+from u2sa_hw.install.units import render_vehicle_rules
 from u2sa_hw.vehicle import load_profile
 
 UDEV_DIR = Path(__file__).resolve().parent.parent / "udev"

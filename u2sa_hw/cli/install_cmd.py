@@ -69,8 +69,8 @@ def _print_changes(tree: Any, *, verbose: bool, done: str) -> None:
 def cmd_install(args: Any) -> int:
     """Run install and print what changed."""
     from u2sa_hw.cli import CliError
-    from u2sa_hw.install import install
-    from u2sa_hw.install_system import InstallError
+    from u2sa_hw.install.deploy import install
+    from u2sa_hw.install.system import InstallError
     from u2sa_hw.vehicle import ProfileError
 
     try:
@@ -87,8 +87,8 @@ def cmd_install(args: Any) -> int:
 def cmd_uninstall(args: Any) -> int:
     """Run uninstall and print what was removed."""
     from u2sa_hw.cli import CliError
-    from u2sa_hw.install import uninstall
-    from u2sa_hw.install_system import InstallError
+    from u2sa_hw.install.deploy import uninstall
+    from u2sa_hw.install.system import InstallError
 
     try:
         tree = uninstall(root=Path(args.root), purge=args.purge)
@@ -101,8 +101,8 @@ def cmd_uninstall(args: Any) -> int:
 def cmd_status(args: Any) -> int:
     """Print the status table (or JSON); exit 1 when a unit of the profile is not active."""
     from u2sa_hw.cli import CliError
-    from u2sa_hw.install_status import collect_status, format_status
-    from u2sa_hw.install_system import InstallError
+    from u2sa_hw.install.status import collect_status, format_status
+    from u2sa_hw.install.system import InstallError
 
     profile = profile_from(args)
     try:

@@ -20,7 +20,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from u2sa_hw.install_units import HSM_KIND, HSM_UNIT, TEMPLATE
+from u2sa_hw.install.units import HSM_KIND, HSM_UNIT, TEMPLATE
 
 UNIT_DIR = Path(__file__).resolve().parents[2] / "systemd"
 DEFAULT_WATCHDOG_S = 2.0

@@ -15,7 +15,7 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-from u2sa_hw.install_manifest import (CONFIG, CONFIG_NEW, MANAGED, FileRecord, Manifest, atomic_write,
+from u2sa_hw.install.manifest import (CONFIG, CONFIG_NEW, MANAGED, FileRecord, Manifest, atomic_write,
                                       host_path, sha256_bytes, sha256_file)
 
 Owner = tuple[int, int] | None

@@ -25,7 +25,7 @@ import sysconfig
 from pathlib import Path
 
 from u2sa_hw import __version__
-from u2sa_hw.install_files import InstallTree
+from u2sa_hw.install.files import InstallTree
 
 SERVICE_USER = "u2sa"
 DEVICE_GROUPS = ("dialout", "i2c", "gpio")
@@ -159,7 +159,7 @@ def apply_sysctl(tree: InstallTree, conf: str, *, changed: bool) -> None:
 
 def project_source(explicit: str | None) -> Path:
     """The project checkout (with systemd/, udev/, pyproject.toml) that install deploys."""
-    candidates = [Path(explicit)] if explicit else [Path(__file__).resolve().parent.parent]
+    candidates = [Path(explicit)] if explicit else [Path(__file__).resolve().parents[2]]
     for cand in candidates:
         if (cand / "pyproject.toml").is_file() and (cand / "systemd" / "u2sa@.service").is_file():
             return cand.resolve()

@@ -15,7 +15,7 @@ from typing import Any
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.install_units import HSM_UNIT, TARGET, service_units
+from u2sa_hw.install.units import HSM_UNIT, TARGET, service_units
 from u2sa_hw.vehicle import VehicleProfile
 
 SHOW_PROPERTIES = ("Id", "LoadState", "ActiveState", "SubState", "NRestarts", "MainPID", "Result",

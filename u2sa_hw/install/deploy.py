@@ -4,7 +4,7 @@ Install, on the SBC as root (or staged into ``--root DIR`` for packaging and tes
 
 1. creates the group u2sa and the device groups dialout, i2c, gpio where missing, and
    the system user u2sa (no login, home /var/lib/u2sa);
-2. makes the venv under /opt/u2sa/venv (see :mod:`u2sa_hw.install_system`);
+2. makes the venv under /opt/u2sa/venv (see :mod:`u2sa_hw.install.system`);
 3. installs the profile and service configs under /etc/u2sa (never overwriting one the
    user changed: the new default goes beside it as ``.new``), and makes the vehicle's bus
    key /etc/u2sa/bus.key (root:u2sa 0640) unless one is there (docs/security.md);
@@ -28,12 +28,12 @@ import subprocess
 from pathlib import Path
 
 from u2sa_hw.bus_key import BusKeyError, ensure_key
-from u2sa_hw.install_files import InstallTree
-from u2sa_hw.install_manifest import MANAGED, MANIFEST_PATH, Manifest, host_path, load_manifest, save_manifest
-from u2sa_hw.install_system import (SERVICE_USER, VENV_MODES, InstallError, apply_sysctl, apply_tmpfiles, ensure_users,
+from u2sa_hw.install.files import InstallTree
+from u2sa_hw.install.manifest import MANAGED, MANIFEST_PATH, Manifest, host_path, load_manifest, save_manifest
+from u2sa_hw.install.system import (SERVICE_USER, VENV_MODES, InstallError, apply_sysctl, apply_tmpfiles, ensure_users,
                                     ensure_venv, owner_ids, project_source, reload_systemd, reload_udev,
                                     remove_users, user_ids)
-from u2sa_hw.install_units import (CONFIG_DIR, DOC, ETC_DIR, HSM_LOG, LOG_DIR, LOG_DIR_MODE, PROFILE, STATE_DIR, SYSUSERS,
+from u2sa_hw.install.units import (CONFIG_DIR, DOC, ETC_DIR, HSM_LOG, LOG_DIR, LOG_DIR_MODE, PROFILE, STATE_DIR, SYSUSERS,
                                    SYSCTL, TARGET, TMPFILES, UDEV_DIR, UNIT_DIR, VEHICLE_RULES, render_profile,
                                    render_vehicle_rules, service_configs, service_units, sysctl_conf, sysusers_conf,
                                    tmpfiles_conf, udev_sources, unit_dropins, unit_sources, wants_links)

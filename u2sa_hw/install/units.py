@@ -27,7 +27,7 @@ from typing import Any
 
 import tomli_w
 
-from u2sa_hw.install_system import DEVICE_GROUPS, SERVICE_USER, InstallError
+from u2sa_hw.install.system import DEVICE_GROUPS, SERVICE_USER, InstallError
 from u2sa_hw.registry import RECORDER_KIND
 from u2sa_hw.transport import DEFAULT_RECV_BUF_SIZE
 from u2sa_hw.vehicle import ServiceSpec, VehicleProfile
