@@ -1,0 +1,214 @@
+"""The ``[devices.NAME]`` tables, the device addresses and ``[simulation]`` of a profile.
+
+On the vehicle (the default) a ``/dev/u2sa/NAME`` serial path must be created by something:
+a USB id or serial number in the device's address (``u2sa install`` writes the udev rule
+from it) or an installed udev rule that makes that link; otherwise the service would wait
+for a device node that never appears, and the check prints the rule line to add.
+
+For ``u2sa sim`` (*for_sim*) every service with a device (a driver) must have a mock: a
+``[devices]`` table with ``mock = "..."`` for it; the error names the mock kind to use.
+Mock kinds and ``[simulation]`` are read through :mod:`mock_devices` when it is installed
+(imported only here, only then).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+from u2sa_hw.check.problem import Collector, did_you_mean, type_name
+
+DEVICE_KEYS = ("address", "mock", "service", "options", "sides", "drives")
+UDEV_RULES_DIRS = (Path("/etc/udev/rules.d"), Path("/run/udev/rules.d"), Path("/lib/udev/rules.d"),
+                   Path("/usr/lib/udev/rules.d"))
+UDEV_DIRS_ENV = "U2SA_UDEV_RULES_DIRS"   # colon-separated directories instead of the above (tests, staged roots)
+U2SA_DEV = "/dev/u2sa/"
+DRIVER_PREFIX = "drivers."               # registry targets of hardware drivers: each has a device
+MOCK_FOR_KIND = {   # the mock kind that stands in for each driver's device (u2sa mock --list-kinds)
+    "gps_nmea": "nmea_gps", "compass_serial": "nmea_compass", "imu_mpu9250": "mpu9250", "imu_bno055": "bno055",
+    "pwm_servo": "pca9685", "rc_mux": "rc_receiver", "gpio_output": "gpio_chip", "gpio_input": "gpio_chip",
+    "odrive_can": "odrive", "vesc_can": "vesc",
+}
+
+
+def check_devices(path: Path, data: Mapping[str, Any], out: Collector, *, profile: Any, for_sim: bool) -> None:
+    """Add the problems of the device tables and addresses of the profile at *path* to *out*."""
+    devices = data.get("devices", {})
+    services = data.get("services", {}) if isinstance(data.get("services"), dict) else {}
+    if not isinstance(devices, dict):
+        return
+    catalog = _mock_catalog()
+    mocked: set[str] = set()
+    for name, table in devices.items():
+        key = f"devices.{name}"
+        if not isinstance(table, dict):
+            out.error(key, f"must be a table, got {type_name(table)}", f"write [devices.{name}] with address = \"...\"")
+            continue
+        for k in table:
+            if k not in DEVICE_KEYS:
+                out.error(f"{key}.{k}", f"unknown key '{k}'{did_you_mean(k, DEVICE_KEYS)}",
+                          f"a device table has {', '.join(DEVICE_KEYS)}")
+        service = table.get("service", name)
+        if not isinstance(service, str) or service not in services:
+            out.error(f"{key}.service", f"'{service}' is not a service of the profile"
+                      f"{did_you_mean(service, services)}", "name the service that uses this device "
+                      f"(services: {', '.join(services) or 'none'})")
+        mock = table.get("mock")
+        if mock is not None:
+            if catalog is not None and mock not in catalog:
+                out.error(f"{key}.mock", f"'{mock}' is not a mock kind{did_you_mean(mock, catalog)}",
+                          f"use one of {', '.join(sorted(catalog))}")
+            else:
+                mocked.add(str(service))
+        for k, want in (("options", dict), ("sides", list), ("drives", dict)):
+            if k in table and not isinstance(table[k], want):
+                out.error(f"{key}.{k}", f"must be a {'table' if want is dict else 'list'}, got {type_name(table[k])}",
+                          "see docs/simulation.md")
+    _check_addresses(profile, out, for_sim=for_sim)
+    if for_sim:
+        _check_mocks(services, mocked, out)
+    elif profile is not None:
+        _check_device_nodes(profile, out)
+
+
+def _mock_catalog() -> Mapping[str, Any] | None:
+    try:
+        from mock_devices.catalog import CATALOG
+    except ImportError:
+        return None
+    return CATALOG
+
+
+def _check_addresses(profile: Any, out: Collector, *, for_sim: bool) -> None:
+    """Each device's address parses (through u2sa_hw.devices when the profile carries addresses)."""
+    if profile is None:
+        return
+    try:
+        from u2sa_hw.devices import profile_devices
+    except ImportError:
+        return
+    try:
+        profile_devices(profile)
+    except (ValueError, LookupError) as exc:
+        out.from_text(str(exc), key="devices", fix="write the address as docs/ports.md shows")
+
+
+def _check_mocks(services: Mapping[str, Any], mocked: set[str], out: Collector) -> None:
+    """Simulation: every enabled driver service has a mock device."""
+    from u2sa_hw.registry import known_kinds
+
+    kinds = known_kinds()
+    for name, table in services.items():
+        if not isinstance(table, dict) or table.get("enabled", True) is False:
+            continue
+        kind = table.get("kind")
+        target = kinds.get(kind) if isinstance(kind, str) else None
+        if target is None or not target.startswith(DRIVER_PREFIX) or name in mocked:
+            continue
+        mock = MOCK_FOR_KIND.get(kind, "...")
+        out.error(f"services.{name}", f"service '{name}' ({kind}) drives a device but no [devices] table gives it a "
+                  "mock, so in simulation it would wait for hardware that is not there",
+                  f"add [devices.{name}] with mock = \"{mock}\" (u2sa mock --list-kinds), or enabled = false "
+                  f"in [services.{name}]")
+
+
+def serial_paths(profile: Any) -> Iterable[tuple[str, str, str]]:
+    """``(device or service name, key, path)`` of every serial device node the profile names."""
+    try:
+        from u2sa_hw.devices import profile_devices
+    except ImportError:
+        profile_devices = None
+    if profile_devices is not None:
+        try:
+            entries = profile_devices(profile)
+        except (ValueError, LookupError):
+            return []   # reported by _check_addresses
+        found = []
+        for name, entry in entries.items():
+            address = getattr(entry, "address", entry)
+            if getattr(address, "kind", "") == "serial":
+                found.append((name, f"devices.{name}.address", str(getattr(address, "path", ""))))
+        return found
+    # Profiles from before device addresses name the port in the service's settings.
+    return [(name, f"services.{name}.settings.port", str(spec.settings["port"]))
+            for name, spec in profile.services.items()
+            if spec.enabled and isinstance(spec.settings.get("port"), str)]
+
+
+def _usb_identified(profile: Any, name: str) -> bool:
+    """Whether device *name*'s address carries a USB id or serial number (install writes its udev rule)."""
+    try:
+        from u2sa_hw.devices import profile_devices
+    except ImportError:
+        return False
+    try:
+        entry = profile_devices(profile).get(name)
+    except (ValueError, LookupError):
+        return False
+    address = getattr(entry, "address", entry)
+    return any(getattr(address, attr, None) for attr in ("usb", "usb_id", "usb_serial", "serial_number"))
+
+
+def rules_dirs() -> list[Path]:
+    """Where installed udev rules live (``$U2SA_UDEV_RULES_DIRS`` overrides it)."""
+    env = os.environ.get(UDEV_DIRS_ENV)
+    return [Path(p) for p in env.split(":") if p] if env is not None else list(UDEV_RULES_DIRS)
+
+
+def rule_creates(link: str, dirs: Iterable[Path]) -> Path | None:
+    """The installed rules file with a ``SYMLINK+="<link>"`` for *link* (e.g. ``u2sa/gps``), or None."""
+    pattern = re.compile(r'SYMLINK\+?=\s*"([^"]*)"')
+    for directory in dirs:
+        try:
+            files = sorted(directory.glob("*.rules"))
+        except OSError:
+            continue
+        for file in files:
+            try:
+                text = file.read_text(errors="replace")
+            except OSError:
+                continue
+            for line in text.splitlines():
+                if line.lstrip().startswith("#"):
+                    continue
+                for match in pattern.finditer(line):
+                    if link in match.group(1).split():
+                        return file
+    return None
+
+
+def udev_line(link: str) -> str:
+    """The udev rule line that creates ``/dev/<link>`` for one USB serial adapter (values to fill in)."""
+    return (f'SUBSYSTEM=="tty", ATTRS{{idVendor}}=="VVVV", ATTRS{{idProduct}}=="PPPP", '
+            f'ATTRS{{serial}}=="SERIAL", SYMLINK+="{link}"')
+
+
+def _check_device_nodes(profile: Any, out: Collector) -> None:
+    """Each ``/dev/u2sa/NAME`` path is created by an installed udev rule or by the address's USB id."""
+    dirs = rules_dirs()
+    for name, key, path in serial_paths(profile):
+        if not path.startswith(U2SA_DEV):
+            continue
+        link = path[len("/dev/"):]
+        if _usb_identified(profile, name) or rule_creates(link, dirs):
+            continue
+        out.error(key, f"nothing creates {path}: the address has no USB id or serial number and no installed "
+                  "udev rule makes that link",
+                  f"give the address the adapter's USB id (docs/ports.md), or add to "
+                  f"/etc/udev/rules.d/65-u2sa-vehicle.rules: {udev_line(link)} "
+                  "(udevadm info -a -n /dev/ttyUSB0 shows the values)")
+
+
+def check_simulation(path: Path, data: Mapping[str, Any], out: Collector) -> None:
+    """``[simulation]`` as the mock launcher reads it."""
+    try:
+        from mock_devices.launcher import SimulationSettings
+        from mock_devices.sim_context import DeviceError
+    except ImportError:
+        return
+    try:
+        SimulationSettings.from_table(data.get("simulation"), where=str(path))
+    except DeviceError as exc:
+        out.from_text(str(exc), key="simulation", fix="see docs/simulation.md")

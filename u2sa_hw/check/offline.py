@@ -1,0 +1,174 @@
+"""The offline check: a vehicle profile against what the code declares, every problem at once.
+
+:func:`check_profile` reads the profile itself (so a table ``load_profile`` would stop at
+does not hide the others), then checks in turn: the top-level tables and ``[vehicle]``
+(unknown keys with a did-you-mean, types, choices, ranges, the directories and files it
+names), every service (:mod:`u2sa_hw.check.services`: kind, settings, config file,
+referenced files, supervision), the device tables and addresses
+(:mod:`u2sa_hw.check.device_checks`), ``[simulation]``, and ``[safety]`` against the
+services (:func:`u2sa_hw.safety.wiring.check_wiring`). Nothing is opened but files:
+``u2sa check --probe`` looks at the devices.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from u2sa_hw.check.problem import Collector, Problem, did_you_mean, type_name
+
+TOP_TABLES = ("vehicle", "services", "devices", "safety", "simulation")
+VEHICLE_KEYS: dict[str, type] = {
+    "name": str, "system_id": int, "lcm_url": str, "bus_security": str, "bus_key": str, "bus_interface": str,
+    "config_dir": str, "log_dir": str, "data_dir": str, "log_level": str, "origin": dict,
+}
+ORIGIN_RANGES = {"lat": (-90.0, 90.0), "lon": (-180.0, 180.0), "alt": (-1000.0, 10000.0)}
+
+
+def read_profile_table(path: Path, out: Collector) -> dict[str, Any] | None:
+    """The profile's TOML as a dict, or None with the reason added to *out*."""
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        out.error("", "vehicle profile not found", "pass --vehicle with the path of your vehicle.toml "
+                  "(examples/ has complete ones)")
+        return None
+    except OSError as exc:
+        out.error("", f"cannot read the profile ({exc.strerror or exc})", "check the path and its permissions")
+        return None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        out.error("", f"not UTF-8 text (byte {raw[exc.start]:#04x} at offset {exc.start})",
+                  "save the profile as UTF-8 text; binary bytes do not belong in a TOML file")
+        return None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        out.error("", f"not valid TOML: {exc}", "fix the syntax at that line")
+        return None
+
+
+def check_profile(path: Path, *, for_sim: bool = False) -> list[Problem]:
+    """Every problem of the vehicle profile at *path*, errors and warnings, in file order.
+
+    *for_sim*: the profile is about to run on mock devices (``u2sa sim``): a device without a
+    mock is an error and host device nodes (udev rules, ``/dev`` paths) are not looked at.
+    """
+    path = Path(path)
+    out = Collector(path)
+    data = read_profile_table(path, out)
+    if data is None:
+        return out.problems
+    for key in data:
+        if key not in TOP_TABLES:
+            out.error(key, f"unknown table '{key}'{did_you_mean(key, TOP_TABLES)}",
+                      f"a profile has the tables {', '.join(TOP_TABLES)}; rename or remove '{key}'")
+    for key in TOP_TABLES:
+        if key in data and not isinstance(data[key], dict):
+            out.error(key, f"'{key}' must be a table, got {type_name(data[key])}", f"write it as [{key}]")
+    vehicle = data.get("vehicle", {}) if isinstance(data.get("vehicle", {}), dict) else {}
+    _check_vehicle(path, vehicle, out)
+    profile = _load(path, out)
+    from u2sa_hw.check.services import check_services
+
+    services = data.get("services", {}) if isinstance(data.get("services"), dict) else {}
+    check_services(path, data, services, out, profile=profile)
+    from u2sa_hw.check.device_checks import check_devices, check_simulation
+
+    check_devices(path, data, out, profile=profile, for_sim=for_sim)
+    if "simulation" in data or for_sim:
+        check_simulation(path, data, out)
+    if profile is not None and not any(p.is_error and p.key.startswith("services.") and ".kind" in p.key
+                                       for p in out.problems):
+        _check_safety(profile, out)
+    return _unique(out.problems)
+
+
+def _check_vehicle(path: Path, vehicle: dict[str, Any], out: Collector) -> None:
+    from u2sa_hw.service_log import LEVEL_NAMES
+
+    for key, value in vehicle.items():
+        want = VEHICLE_KEYS.get(key)
+        if want is None:
+            out.error(f"vehicle.{key}", f"unknown key '{key}'{did_you_mean(key, VEHICLE_KEYS)}",
+                      f"known keys: {', '.join(VEHICLE_KEYS)}")
+        elif not isinstance(value, want) or isinstance(value, bool) and want is not bool:
+            out.error(f"vehicle.{key}", f"must be {want.__name__}, got {type_name(value)} {value!r}",
+                      f"write {key} = {_example(want)}")
+    level = vehicle.get("log_level")
+    if isinstance(level, str) and level not in LEVEL_NAMES:
+        out.error("vehicle.log_level", f"'{level}' is not a log level{did_you_mean(level, LEVEL_NAMES)}",
+                  f"use one of {', '.join(LEVEL_NAMES)}")
+    security = vehicle.get("bus_security")
+    if isinstance(security, str) and security not in ("signed", "open"):
+        out.error("vehicle.bus_security", f"'{security}' is not a bus security mode",
+                  "use \"signed\" (the default) or \"open\" (a bench only; docs/security.md)")
+    system_id = vehicle.get("system_id")
+    if isinstance(system_id, int) and not isinstance(system_id, bool) and not 0 <= system_id <= 255:
+        out.error("vehicle.system_id", f"{system_id} is outside 0..255", "give the vehicle an id in 0..255")
+    origin = vehicle.get("origin")
+    if isinstance(origin, dict):
+        for key, value in origin.items():
+            bounds = ORIGIN_RANGES.get(key)
+            if bounds is None:
+                out.error(f"vehicle.origin.{key}", f"unknown key '{key}'{did_you_mean(key, ORIGIN_RANGES)}",
+                          "origin = { lat = 29.19, lon = -81.05, alt = 10.0 }")
+            elif isinstance(value, bool) or not isinstance(value, (int, float)):
+                out.error(f"vehicle.origin.{key}", f"must be a number, got {type_name(value)} {value!r}",
+                          "origin = { lat = 29.19, lon = -81.05, alt = 10.0 } (degrees, metres)")
+            elif not bounds[0] <= value <= bounds[1]:
+                out.error(f"vehicle.origin.{key}", f"{value} is outside {bounds[0]:g}..{bounds[1]:g}",
+                          "give the local frame's origin in degrees (lat, lon) and metres (alt)")
+    base = path.resolve().parent
+    config_dir = vehicle.get("config_dir")
+    if isinstance(config_dir, str) and not (base / Path(config_dir).expanduser()).is_dir():
+        out.warning("vehicle.config_dir", f"directory {base / config_dir} does not exist: every service runs "
+                    "with its defaults and the profile's settings",
+                    "create it, or correct the path (relative to the profile's directory)")
+    bus_key = vehicle.get("bus_key")
+    if isinstance(bus_key, str) and bus_key.strip():
+        key_path = base / Path(bus_key).expanduser()
+        if not key_path.exists():
+            out.warning("vehicle.bus_key", f"bus key {key_path} does not exist (u2sa run signs with a fresh key; "
+                        "the installed services need this one)", "u2sa key new, or u2sa install creates it")
+
+
+def _example(kind: type) -> str:
+    return {str: '"text"', int: "1", float: "1.0", bool: "true", dict: "{ ... }"}.get(kind, "...")
+
+
+def _load(path: Path, out: Collector) -> Any:
+    """The parsed profile, or None with load_profile's own error added when the checks above missed it."""
+    from u2sa_hw.vehicle import ProfileError, load_profile
+
+    try:
+        return load_profile(path)
+    except ProfileError as exc:
+        if not any(p.is_error for p in out.problems):
+            out.from_text(str(exc), key="", fix="see the example profiles in examples/")
+        return None
+
+
+def _check_safety(profile: Any, out: Collector) -> None:
+    """[safety] (its syntax, the pre-arm table, the wiring against the services): the first problem."""
+    from u2sa_hw.config import ConfigError
+    from u2sa_hw.safety.wiring import check_wiring
+    from u2sa_hw.vehicle import ProfileError
+
+    try:
+        check_wiring(profile)
+    except (ProfileError, ConfigError) as exc:
+        if any(p.is_error and p.key.startswith("services.") for p in out.problems):
+            return   # a service error above already explains why the wiring cannot be read
+        out.from_text(str(exc), key="safety", fix="see docs/safety.md")
+
+
+def _unique(problems: list[Problem]) -> list[Problem]:
+    seen, result = set(), []
+    for p in problems:
+        if p not in seen:
+            seen.add(p)
+            result.append(p)
+    return result

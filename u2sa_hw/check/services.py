@@ -1,0 +1,313 @@
+"""The ``[services.NAME]`` tables of a profile, checked against what each service kind declares.
+
+For each service: its table's keys, its ``kind`` (a registered kind, with a did-you-mean),
+every value of its ``settings`` and of its config file against the kind's declared fields
+(unknown names, type, choices, non-finite numbers), the whole config through the kind's own
+validation (ranges and combinations the kind checks before it starts), the files its
+config names (``mission_file``, ``objects_file``: present and readable as the service reads
+them), and its ``supervision`` table against the HSM's rules.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import tomllib
+from pathlib import Path
+from typing import Any, Mapping
+
+from u2sa_hw.check.problem import Collector, did_you_mean, type_name
+
+SERVICE_KEYS = ("kind", "config", "settings", "enabled", "required", "supervision", "device", "devices")
+SERVICE_KEY_TYPES: dict[str, type | tuple[type, ...]] = {
+    "kind": str, "config": str, "settings": dict, "enabled": bool, "required": bool, "supervision": dict,
+    "device": str, "devices": (list, dict),
+}
+_quiet = logging.getLogger("u2sa_hw.check")
+_quiet.addHandler(logging.NullHandler())
+_quiet.propagate = False
+
+
+def check_services(path: Path, data: Mapping[str, Any], services: Mapping[str, Any], out: Collector, *,
+                   profile: Any) -> None:
+    """Add every problem of every ``[services.NAME]`` table of the profile at *path* to *out*."""
+    from u2sa_hw.registry import known_kinds
+
+    kinds = known_kinds()
+    base = path.resolve().parent
+    vehicle = data.get("vehicle") if isinstance(data.get("vehicle"), dict) else {}
+    config_dir = vehicle.get("config_dir", "config")
+    config_dir = base / (config_dir if isinstance(config_dir, str) else "config")
+    for name, table in services.items():
+        key = f"services.{name}"
+        if not isinstance(table, dict):
+            out.error(key, f"must be a table, got {type_name(table)}", f"write [services.{name}] with kind = \"...\"")
+            continue
+        for k, value in table.items():
+            want = SERVICE_KEY_TYPES.get(k)
+            if want is None:
+                setting_names = _setting_names(table.get("kind"))
+                hint = did_you_mean(k, SERVICE_KEYS) or did_you_mean(k, setting_names)
+                out.error(f"{key}.{k}", f"unknown key '{k}'{hint}",
+                          f"a service table has {', '.join(SERVICE_KEYS)}; a setting goes in settings = {{ ... }}")
+            elif not isinstance(value, want):
+                names = want.__name__ if isinstance(want, type) else " or ".join(w.__name__ for w in want)
+                out.error(f"{key}.{k}", f"must be {names}, got {type_name(value)} {value!r}",
+                          "see the example profiles in examples/")
+        kind = table.get("kind")
+        if kind is None:
+            out.error(f"{key}.kind", "missing 'kind' (what the service is)",
+                      "add kind = \"...\" (u2sa service --list-kinds lists them)")
+            continue
+        if not isinstance(kind, str):
+            continue
+        if kind not in kinds:
+            out.error(f"{key}.kind", f"unknown service kind '{kind}'{did_you_mean(kind, kinds)}",
+                      f"use one of {', '.join(sorted(kinds))}")
+            continue
+        cls = _service_class(kind, key, out)
+        if cls is None:
+            continue
+        config = table.get("config")
+        config_path = base / config if isinstance(config, str) else config_dir / f"{name}.toml"
+        if table.get("enabled", True) is False:
+            continue   # a disabled service is not started: its values are checked when it is enabled
+        _check_config(name, cls, table.get("settings", {}), config_path, explicit=isinstance(config, str),
+                      profile=profile, base=base, out=out)
+        _check_supervision(name, table.get("supervision"), out)
+
+
+def _setting_names(kind: Any) -> list[str]:
+    """The setting names of *kind* (for a did-you-mean), [] for an unknown kind."""
+    from u2sa_hw.registry import known_kinds, resolve_kind
+
+    if not isinstance(kind, str) or kind not in known_kinds():
+        return []
+    try:
+        return list(_fields(resolve_kind(kind)))
+    except (ImportError, AttributeError):
+        return []
+
+
+def _service_class(kind: str, key: str, out: Collector) -> Any:
+    from u2sa_hw.registry import resolve_kind
+
+    try:
+        return resolve_kind(kind)
+    except ImportError as exc:
+        out.error(f"{key}.kind", f"kind '{kind}' cannot be imported ({exc})",
+                  "install the package that provides it (pip install -e .) or fix the entry point")
+    except AttributeError as exc:
+        out.error(f"{key}.kind", f"kind '{kind}' is registered but its class is missing ({exc})",
+                  "fix the registry entry in u2sa_hw/registry.py or the entry point")
+    return None
+
+
+def _fields(cls: Any) -> dict[str, Any]:
+    from u2sa_hw.service import BASE_CONFIG
+
+    return {f.name: f for f in (*BASE_CONFIG, *cls.config_fields())}
+
+
+def _check_values(values: Mapping[str, Any], fields: Mapping[str, Any], out: Collector, *, key: str,
+                  file: Path | None, unknown_is_error: bool) -> bool:
+    """Names and types of *values*; True when every value can be used."""
+    from u2sa_hw.config import ConfigError, coerce, to_text
+
+    usable = True
+    for name, value in values.items():
+        at = f"{key}.{name}" if key else name
+        f = fields.get(name)
+        if f is None:
+            text = f"'{name}' is not a setting of this service{did_you_mean(name, fields)}"
+            fix = f"its settings: {', '.join(sorted(fields))}"
+            (out.error if unknown_is_error else out.warning)(at, text, fix, file=file)
+            continue
+        try:
+            coerced = coerce(f, value)
+        except ConfigError as exc:
+            out.error(at, _reason(str(exc), name), _value_fix(f, value), file=file)
+            usable = False
+            continue
+        if isinstance(coerced, float) and not math.isfinite(coerced) and not getattr(f, "allow_nonfinite", False):
+            out.error(at, f"{coerced} is not a finite number", f"give a finite value like {to_text(f.default)}",
+                      file=file)
+            usable = False
+    return usable
+
+
+def _reason(text: str, name: str) -> str:
+    """A ConfigError's text without the field name the problem's key already gives."""
+    for prefix in (f"field '{name}' ", f"config field '{name}' "):
+        if text.startswith(prefix):
+            return text[len(prefix):]
+    return text
+
+
+def _value_fix(f: Any, value: Any) -> str:
+    """What to write instead of *value* for field *f*: its type, choices or range."""
+    from u2sa_hw.config import choices_text, to_text
+
+    if f.choices:
+        return f"use one of {choices_text(f)}"
+    if type(value) is not f.type and not (f.type is float and type(value) is int):
+        article = "an" if f.type_name[0] in "aeiou" else "a"
+        return f"write {article} {f.type_name} like {f.name} = {to_text(f.default)}"
+    range_text = f.range_text() if hasattr(f, "range_text") else ""
+    return f"give a value {range_text} (default {to_text(f.default)})" if range_text else \
+        f"give a value like {to_text(f.default)}"
+
+
+def _read_config_file(path: Path, key: str, out: Collector) -> dict[str, Any] | None:
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        out.error(key, f"cannot read this service's config file {path} ({exc.strerror or exc})",
+                  "fix its permissions", file=path)
+        return None
+    try:
+        return tomllib.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        out.error("", f"not UTF-8 text (byte {raw[exc.start]:#04x} at offset {exc.start})",
+                  "rewrite the file as UTF-8 TOML, or delete it to use the defaults", file=path)
+    except tomllib.TOMLDecodeError as exc:
+        out.error("", f"not valid TOML: {exc}", "fix the syntax at that line, or delete the file to use the defaults",
+                  file=path)
+    return None
+
+
+def _check_config(name: str, cls: Any, settings: Any, config_path: Path, *, explicit: bool, profile: Any,
+                  base: Path, out: Collector) -> None:
+    key = f"services.{name}"
+    fields = _fields(cls)
+    usable = True
+    if isinstance(settings, dict):
+        usable = _check_values(settings, fields, out, key=f"{key}.settings", file=None, unknown_is_error=True)
+    else:
+        settings, usable = {}, False
+    file_values: dict[str, Any] = {}
+    if config_path.exists():
+        read = _read_config_file(config_path, key, out)
+        if read is None:
+            usable = False
+        else:
+            file_values = read
+            usable = _check_values(read, fields, out, key="", file=config_path, unknown_is_error=False) and usable
+    elif explicit:
+        out.warning(f"{key}.config", f"config file {config_path} does not exist: the service runs with its "
+                    "defaults and the profile's settings", "correct the path, or create the file")
+    if not usable:
+        return   # the kind's own checks would only repeat the errors above
+    effective = {n: f.default for n, f in fields.items()}
+    effective.update({k: v for k, v in settings.items() if k in fields})
+    effective.update({k: v for k, v in file_values.items() if k in fields})
+    _check_semantics(name, cls, effective, config_path, fields, profile=profile, out=out)
+    _check_files(name, effective, fields, base=base, profile=profile, out=out)
+
+
+def _check_semantics(name: str, cls: Any, values: dict[str, Any], config_path: Path, fields: Mapping[str, Any], *,
+                     profile: Any, out: Collector) -> None:
+    """The kind's own validation (ranges, combinations) of the whole effective config."""
+    from u2sa_hw.config import ConfigError, Configurator
+
+    key = f"services.{name}.settings"
+    try:
+        from u2sa_hw.config_validate import validate_settings   # the typed fields' ranges and the kind's hook
+    except ImportError:
+        validate_settings = None
+    if validate_settings is not None:
+        for text in validate_settings(cls_kind(cls, values), values, where=f"services.{name}"):
+            out.from_text(text, key=key, fix="see the service's settings (u2sa service KIND --help-config)")
+        return
+    config = Configurator(None, fields.values(), logger=_quiet, initial=values)
+    service = cls.__new__(cls)   # the kind's checks read only its name and config; nothing is opened
+    service.name, service.config, service.logger = name, config, _quiet
+    if profile is not None:
+        service.profile = profile
+    reasons: list[str] = []
+    for field_name, value in values.items():
+        try:
+            reason = service.validate_config(field_name, value)
+        except (ConfigError, ValueError) as exc:
+            reason = str(exc)
+        except (AttributeError, TypeError, KeyError):
+            return   # this kind's check needs a running service; it runs at start
+        if reason and reason not in reasons:
+            reasons.append(reason)
+    for reason in reasons:
+        text = reason.split(": ", 1)[1] if reason.startswith(("service '", f"{name}: ")) else reason
+        out.error(key, text, "change the value in the profile's settings or the service's config file "
+                  f"{config_path}")
+
+
+def cls_kind(cls: Any, values: Mapping[str, Any]) -> str:
+    """The registry kind of service class *cls* (for validate_settings, which takes a kind)."""
+    from u2sa_hw.registry import known_kinds
+
+    target = f"{cls.__module__}:{cls.__qualname__}"
+    return next((k for k, v in known_kinds().items() if v == target), cls.__name__)
+
+
+def _check_files(name: str, values: Mapping[str, Any], fields: Mapping[str, Any], *, base: Path, profile: Any,
+                 out: Collector) -> None:
+    """Every ``*_file`` setting names a file that exists and reads as the service reads it."""
+    for field_name in (n for n in fields if n.endswith("_file")):
+        text = values.get(field_name)
+        if not isinstance(text, str) or not text.strip():
+            continue
+        path = Path(text.strip()).expanduser()
+        path = path if path.is_absolute() else base / path
+        key = f"services.{name}.settings.{field_name}"
+        if not path.is_file():
+            out.error(key, f"file {path} does not exist", "correct the path (relative to the profile's directory) "
+                      "or add the file")
+            continue
+        problem = _read_referenced(field_name, path, profile)
+        if problem:
+            out.error("", problem, f"fix the file named by services.{name} {field_name}", file=path)
+
+
+def _read_referenced(field_name: str, path: Path, profile: Any) -> str | None:
+    """Why the service could not read *path*, or None (missions and object lists are parsed)."""
+    try:
+        if field_name == "mission_file":
+            from u2sa_hw.services.mission.xml import load_mission
+
+            load_mission(path)
+        elif field_name == "objects_file" and profile is not None:
+            from u2sa_hw.services.world.xml import load_objects
+
+            load_objects(path, origin=profile.origin)
+        else:
+            path.read_bytes()
+    except (OSError, ValueError) as exc:
+        return str(exc).replace(f"{path}: ", "")
+    return None
+
+
+def _check_supervision(name: str, table: Any, out: Collector) -> None:
+    """The ``[services.NAME.supervision]`` keys and types, as the HSM reads them."""
+    from u2sa_hw.channels import BASE_TYPES
+    from u2sa_hw.services.hsm.rules import _KEYS, _checked
+    from u2sa_hw.vehicle import ProfileError
+
+    if table is None or not isinstance(table, dict):
+        return
+    key = f"services.{name}.supervision"
+    for k, value in table.items():
+        f = _KEYS.get(k)
+        if f is None:
+            out.error(f"{key}.{k}", f"unknown key '{k}'{did_you_mean(k, _KEYS)}", f"known: {', '.join(sorted(_KEYS))}")
+            continue
+        try:
+            _checked(key, k, value, f.default)
+        except ProfileError as exc:
+            out.from_text(str(exc), key=f"{key}.{k}", fix="see docs/supervision.md")
+    channel = table.get("data_channel")
+    if isinstance(channel, str) and channel and channel not in BASE_TYPES:
+        out.error(f"{key}.data_channel", f"'{channel}' is not a channel of the system{did_you_mean(channel, BASE_TYPES)}",
+                  "name the channel the service publishes its data on (docs/supervision.md)")
+    stale = table.get("stale_after_s", 0)
+    if isinstance(stale, (int, float)) and stale > 0 and not table.get("data_channel"):
+        out.error(f"{key}.stale_after_s", "stale_after_s needs data_channel",
+                  "add data_channel = \"...\" (the channel the service's data goes out on), or remove stale_after_s")
