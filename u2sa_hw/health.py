@@ -1,10 +1,11 @@
-"""Health reporting (requirement C9): process figures and the Health message of a service."""
+"""Health reporting (requirement C9): process figures, the Health message of a service, and its reason in words."""
 
 from __future__ import annotations
 
 import os
 import socket
 import time
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 import psutil
@@ -69,3 +70,36 @@ def build_health(*, name: str, service_type: str, status: str, stats: ProcessSta
     msg.details = kvs
     msg.num_details = len(kvs)
     return msg
+
+
+# Health details that say, in words, why a service is not ok. A driver's port puts its error
+# (with the fix) in ``port_error`` (a CAN driver in ``bus_error``); drivers and the estimator put their summary in
+# ``degraded_reason``; a multi-channel driver reports per channel as ``CHANNEL.last_error``.
+REASON_KEYS = ("degraded_reason", "port_error", "bus_error")
+
+
+def health_reason(details: Mapping[str, str], last_error: str = "") -> str:
+    """Why a service is not ok, in words, from its Health *details* and *last_error*; "" when nothing says.
+
+    Parts are joined with "; " and a part already contained in an earlier one is left out
+    (``degraded_reason = "port down"`` and the port's own error say the same thing twice otherwise).
+    """
+    parts: list[str] = [str(details.get(k, "")) for k in REASON_KEYS]
+    if details.get("silent_sensors"):
+        parts.append(f"silent sensors: {details['silent_sensors']}")
+    for key, value in sorted(details.items()):
+        if key.endswith((".last_error", ".port_error")) and value:
+            parts.append(f"{key.rsplit('.', 1)[0]}: {value}")
+    parts.append(last_error)
+    return join_reasons(*parts)
+
+
+def join_reasons(*parts: str) -> str:
+    """The non-empty *parts* joined with "; ", each said once (a part inside another is dropped)."""
+    kept: list[str] = []
+    for part in (p.strip() for p in parts):
+        if not part or any(part in k for k in kept):
+            continue
+        kept = [k for k in kept if k not in part]   # a longer part that says it all replaces a shorter one
+        kept.append(part)
+    return "; ".join(kept)

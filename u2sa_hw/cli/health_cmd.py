@@ -13,7 +13,9 @@ from u2sa_hw.cli.common import add_vehicle_option, bus_client
 HELP = """\
 Wait for the HSM's next system health message and show each service's state
 (ok, degraded, stale, missing, restarting, stopped, failed, starting), its restarts,
-last error, heartbeat age and data age, with the failsafe state, and whether the RC mux
+heartbeat age and data age, and for every service not ok the reason in words (the silent
+sensor of an estimator, the missing device of a driver and its fix; for an ok one its last
+error), with the failsafe state, and whether the RC mux
 grants autonomy (if not, why: the failed pre-arm check, the failsafe, the mode). Exits 1
 when no HSM answers within --timeout (is a service of kind "hsm" in the profile and running?).
 """
@@ -88,6 +90,7 @@ def cmd_health(args: Any) -> int:
         s["bus"] = details.get("bus_security", "?")
         s["rejected_by_channel"] = details.get("bus_rejected", "")
         s["rejected"] = rejected_total(s["rejected_by_channel"])
+        s["reason"] = service_reason(s, health.get(s["name"]))
     report["autonomy"] = autonomy_report(health)
     if args.json:
         print(json.dumps(report, indent=2))
@@ -96,14 +99,29 @@ def cmd_health(args: Any) -> int:
           f"(from {report['source'] or 'hsm'})")
     if report["services"]:
         print(f"{'SERVICE':22} {'STATE':11} {'RESTARTS':>8} {'HEARTBEAT':>9} {'DATA AGE':>8} {'DROPPED':>7}  "
-              "LAST ERROR")
+              "REASON / LAST ERROR")
     for s, row in zip(got[0].services, report["services"]):
         print(f"{s.name:22} {s.state:11} {s.restarts:>8} {_age(s.heartbeat_age_s):>9} {_age(s.data_age_s):>8} "
-              f"{row['rejected']:>7}  {s.last_error}")
+              f"{row['rejected']:>7}  {row['reason'] or s.last_error}")
     for rc in report["autonomy"]:
         state = "GRANTED" if rc["granted"] else f"refused: {rc['blocked_by'] or 'unknown'}"
         print(f"autonomy ({rc['service']}, RC {rc['mode']}, {'armed' if rc['armed'] else 'not armed'}): {state}")
     return 0
+
+
+def service_reason(row: dict[str, Any], health: Any | None) -> str:
+    """Why a service the HSM does not call ``ok`` is not, in words ("" for an ok one).
+
+    The HSM's words (its problem, a restart error, what the service said before it died) come
+    first, then the service's own latest Health (the silent sensor, the port's error and fix).
+    """
+    from u2sa_hw.health import health_reason, join_reasons
+
+    if row["state"] == "ok":
+        return ""
+    own = health_reason({kv.key: kv.value for kv in health.details}, health.last_error) if health else ""
+    fallback = "no heartbeat yet" if row["state"] == "starting" else "no reason given by the service or the HSM"
+    return join_reasons(row["last_error"], own) or fallback
 
 
 def autonomy_report(health: dict[str, Any]) -> list[dict[str, Any]]:

@@ -15,8 +15,9 @@ Two modes, chosen by the config field ``mode``:
     copied into the running estimate, which is published at once.
 
 Sensors are registered by name on their first message; a sensor silent for longer than
-``sensor_timeout_s`` is listed in health (status ``degraded``), as are the outliers the
-gate rejected per sensor. Changing a filter field over the bus restarts the filter.
+``sensor_timeout_s`` is listed in health (status ``degraded``, ``silent_sensors``, and in words
+with how long each has been silent in ``degraded_reason``), as are the outliers the gate
+rejected per sensor. Changing a filter field over the bus restarts the filter.
 """
 
 from __future__ import annotations
@@ -192,7 +193,8 @@ class StateEstimator(U2SAService):
         now = time.monotonic()
         timeout = float(self.config.get("sensor_timeout_s"))
         with self._lock:
-            silent = sorted(n for n, seen in self.sensors.items() if now - seen > timeout)
+            silent_for = {n: now - seen for n, seen in sorted(self.sensors.items()) if now - seen > timeout}
+            silent = list(silent_for)
             records = list(self.fusion.sensors.values())
             current = self.fusion.estimate(name=self.name) if self.mode == "ekf" else self.estimate
             sigmas = estimate_sigmas(current)
@@ -201,7 +203,9 @@ class StateEstimator(U2SAService):
         elif not silent and self.status == "degraded":
             self.status = "ok"
         details: dict[str, Any] = {"mode": self.mode, "sensors": ",".join(sorted(self.sensors)),
-                                   "silent_sensors": ",".join(silent), **sigmas}
+                                   "silent_sensors": ",".join(silent), **sigmas,
+                                   # In words, for `u2sa health` and the pre-arm checks: which sensor, how long.
+                                   "degraded_reason": silent_reason(silent_for, timeout)}
         if self.mode == "ekf":
             details["published_on_update"] = self.published_on_update
             details["published_on_rate"] = self.published_on_rate
@@ -209,6 +213,15 @@ class StateEstimator(U2SAService):
             details["unusable_fields"] = ",".join(f"{r.name}:{r.unusable}" for r in records if r.unusable)
             details["waiting_for_heading"] = ",".join(f"{r.name}:{r.deferred}" for r in records if r.deferred)
         return details
+
+
+def silent_reason(silent_for: dict[str, float], timeout: float) -> str:
+    """``silent sensor gps: no message for 3.1 s (sensor_timeout_s 2)``, one part per sensor; "" when none is silent."""
+    if not silent_for:
+        return ""
+    parts = [f"{name or '(no source)'}: no message for {age:.1f} s" for name, age in silent_for.items()]
+    noun = "sensor" if len(parts) == 1 else "sensors"
+    return f"silent {noun} {', '.join(parts)} (sensor_timeout_s {timeout:g})"
 
 
 def estimate_sigmas(msg: t.StateInformation | None) -> dict[str, str]:

@@ -39,6 +39,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from u2sa_hw.health import health_reason, join_reasons
 from u2sa_hw.services.hsm.rules import MonitorPolicy, WatchRule
 from u2sa_hw.services.hsm.stamps import SenderClock
 from u2sa_hw.services.hsm.verdicts import (Cancelled, Failed, FailsafeChange, Problem, Recovered, Restart,
@@ -374,6 +375,10 @@ class HealthMonitor:
             data_age = self._data_age(tr, now)
             error = tr.restart_error or (tr.problem if tr.state not in ("ok", "degraded", "starting")
                                          else "") or tr.health_error
+            if tr.state not in ("ok", "starting"):
+                # The service's own words from its latest Health, kept after it died: the silent
+                # sensor, the missing device and its fix.
+                error = join_reasons(error, health_reason(tr.details, tr.health_error))
             rows.append(ServiceView(
                 name=name, state=tr.state, restarts=tr.restarts, last_error=error,
                 heartbeat_age_s=now - tr.last_heartbeat if tr.last_heartbeat is not None else -1.0,
