@@ -1,7 +1,8 @@
 """Ports: the one seam between drivers and hardware (DESIGN.md section 4).
 
 Drivers never open ``/dev/...`` themselves; they ask this package for a port by the
-device address in their config, real or mock. See ``errors`` for the one error
+device's address (``address``: one URL per device, real or mock; ``opener.open_port``
+dispatches on its scheme; ``device_link.DeviceLink`` is the lifecycle a driver holds). See ``errors`` for the one error
 hierarchy and ``tap`` for how raw I/O is published for recording and replay.
 
 The openers are imported on first use (``from u2sa_hw.ports import open_serial``), so a
@@ -26,6 +27,13 @@ _LAZY = {
     "SysfsPwmChannel": "u2sa_hw.ports.pwm_port",
     "make_sysfs_pwm_tree": "u2sa_hw.ports.pwm_port",
     "ReconnectingPort": "u2sa_hw.ports.reconnect",
+    "open_port": "u2sa_hw.ports.opener",
+    "SCHEMES": "u2sa_hw.ports.opener",
+    "parse_address": "u2sa_hw.ports.address",
+    "make_address": "u2sa_hw.ports.address",
+    "DeviceAddress": "u2sa_hw.ports.address",
+    "AddressError": "u2sa_hw.ports.address",
+    "DeviceLink": "u2sa_hw.ports.device_link",
 }
 
 __all__ = ["PortError", "PortUnavailable", "PortClosed", "PortTimeout", "PortIOError", *_LAZY]

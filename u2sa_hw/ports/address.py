@@ -1,0 +1,488 @@
+"""Device addresses: one URL per device, whose scheme picks the port kind and real or mock.
+
+The grammar (docs/ports.md has the table)::
+
+    serial:///dev/u2sa/gps?baud=9600              a device path; optional bytesize, parity, stopbits,
+                                                   usb=VID:PID and serial=SERIALNO (the udev identity)
+    serial+socket://host:7000?baud=9600           any pyserial URL after "serial+" (socket, rfc2217, loop, spy)
+    can://socketcan/can0?bitrate=500000           python-can interface / channel; other params go to can.Bus
+    i2c://1/0x68                                  adapter number (/dev/i2c-1) / 7-bit chip address
+    gpio://gpiochip0/17,27                        /dev/gpiochip0, the lines the device uses (may be empty)
+    pwm://pwmchip0/0                              /sys/class/pwm/pwmchip0, channel 0
+    pca9685://1/0x40/3                            I2C adapter / chip address / channel 0..15
+
+    mock+serial:///run/sim/gps?baud=9600          a pty (symlink) whose other end a mock device holds
+    mock+can://udp_multicast/239.74.163.2?port=17270   python-can across processes (also virtual, u2sa_unpluggable)
+    mock+i2c:///run/sim/i2c-1.sock/0x68           the mock I2C bus server's Unix socket / chip address
+    mock+gpio:///run/sim/gpiochip0.sock/5,6       the mock GPIO chip's Unix socket / lines
+    mock+pwm:///run/sim/pwmchip0/0                a sysfs-shaped directory / channel
+    mock+pca9685:///run/sim/i2c-1.sock/0x40/3     a PCA9685 model on the mock I2C bus
+
+Replay feeds recorded I/O into mock devices, so a replayed device has a ``mock+`` address.
+
+API (stable; ``u2sa check``, install and udev generation build on it):
+
+- :func:`parse_address` ``(text, *, device) -> DeviceAddress``; :class:`AddressError` (a
+  ``ValueError``) names the device, the bad text and the fix with an example.
+- :class:`DeviceAddress`: ``url``, ``kind`` (:data:`KINDS`), ``mock``, ``params``, and typed
+  properties per kind (``serial_path``, ``baud``..., ``can_interface``..., ``i2c_bus``,
+  ``chip_address``, ``gpio_chip``, ``lines``, ``pwm_chip``, ``pwm_channel``, ``usb_id``...).
+- :func:`make_address` builds one from parts (used by the legacy conversion and the mocks).
+
+Opening is :func:`u2sa_hw.ports.opener.open_port`; this module imports no port library.
+"""
+
+from __future__ import annotations
+
+import difflib
+from dataclasses import dataclass
+from types import MappingProxyType
+from typing import Any, Mapping
+from urllib.parse import parse_qsl, quote, urlencode
+
+KINDS = ("serial", "can", "i2c", "gpio", "pwm", "pca9685")
+MOCK_PREFIX = "mock+"
+
+EXAMPLES = {
+    "serial": "serial:///dev/u2sa/gps?baud=9600",
+    "can": "can://socketcan/can0?bitrate=500000",
+    "i2c": "i2c://1/0x68",
+    "gpio": "gpio://gpiochip0/17,27",
+    "pwm": "pwm://pwmchip0/0",
+    "pca9685": "pca9685://1/0x40/3",
+}
+MOCK_EXAMPLES = {
+    "serial": "mock+serial:///run/sim/gps?baud=9600",
+    "can": "mock+can://udp_multicast/239.74.163.2?port=17270",
+    "i2c": "mock+i2c:///run/sim/i2c-1.sock/0x68",
+    "gpio": "mock+gpio:///run/sim/gpiochip0.sock/5,6",
+    "pwm": "mock+pwm:///run/sim/pwmchip0/0",
+    "pca9685": "mock+pca9685:///run/sim/i2c-1.sock/0x40/3",
+}
+
+SERIAL_PARAMS = ("baud", "bytesize", "parity", "stopbits", "usb", "serial")
+PARAMS: dict[str, tuple[str, ...] | None] = {   # None: any parameter (CAN ones go to can.Bus)
+    "serial": SERIAL_PARAMS, "can": None, "i2c": (), "gpio": (), "pwm": (), "pca9685": (),
+}
+BAUDRATES = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
+PARITIES = ("N", "E", "O", "M", "S")
+BYTESIZES = (5, 6, 7, 8)
+STOPBITS = (1.0, 1.5, 2.0)
+SYSFS_PWM = "/sys/class/pwm"
+
+
+class AddressError(ValueError):
+    """A device address that cannot be parsed; the text names the device, the address and the fix."""
+
+    def __init__(self, device: str, text: str, problem: str, *, kind: str | None = None) -> None:
+        self.device = device
+        self.text = text
+        self.problem = problem
+        example = (f"{EXAMPLES[kind]} (mock: {MOCK_EXAMPLES[kind]})" if kind in EXAMPLES
+                   else "; ".join(EXAMPLES.values()))
+        self.fix = f"write it like {example}"
+        super().__init__(f"device '{device}': address {text!r}: {problem}; {self.fix} (docs/ports.md)")
+
+
+@dataclass(frozen=True)
+class DeviceAddress:
+    """A parsed device address.
+
+    ``backend`` says what opens it: serial ``"path"`` or a pyserial URL scheme; CAN the
+    python-can interface; I2C/PCA9685 ``"smbus"`` or ``"mock"``; GPIO ``"gpiod"`` or ``"mock"``;
+    PWM ``"sysfs"`` or ``"mock"``. ``location`` is the path, channel, adapter number or socket
+    path; ``numbers`` the chip address, lines or channel that follow it.
+    """
+
+    url: str
+    kind: str
+    mock: bool
+    params: Mapping[str, str]
+    backend: str
+    location: str
+    numbers: tuple[int, ...] = ()
+
+    def __hash__(self) -> int:
+        return hash(self.url)
+
+    def __str__(self) -> str:
+        return self.url
+
+    @property
+    def scheme(self) -> str:
+        """The scheme as written, e.g. ``serial``, ``mock+can``, ``serial+socket``."""
+        return self.url.split("://", 1)[0]
+
+    def _need(self, *kinds: str) -> None:
+        if self.kind not in kinds:
+            raise AttributeError(f"a {self.kind} address has no such part (only {', '.join(kinds)} addresses do)")
+
+    # ---- serial ------------------------------------------------------------------------------
+    @property
+    def serial_path(self) -> str:
+        """The device path (``/dev/u2sa/gps``), or the pyserial URL for ``serial+X://`` forms."""
+        self._need("serial")
+        return self.location
+
+    @property
+    def is_serial_url(self) -> bool:
+        """True for ``serial+X://`` addresses opened with pyserial's serial_for_url."""
+        self._need("serial")
+        return self.backend != "path"
+
+    @property
+    def baud(self) -> int:
+        """Bit rate (default 9600)."""
+        self._need("serial")
+        return int(self.params.get("baud", "9600"))
+
+    @property
+    def bytesize(self) -> int:
+        """Data bits (default 8)."""
+        self._need("serial")
+        return int(self.params.get("bytesize", "8"))
+
+    @property
+    def parity(self) -> str:
+        """Parity letter N/E/O/M/S (default N)."""
+        self._need("serial")
+        return self.params.get("parity", "N").upper()
+
+    @property
+    def stopbits(self) -> float:
+        """Stop bits 1, 1.5 or 2 (default 1)."""
+        self._need("serial")
+        return float(self.params.get("stopbits", "1"))
+
+    @property
+    def framing(self) -> str:
+        """``8N1``-style framing."""
+        return f"{self.bytesize}{self.parity}{self.stopbits:g}"
+
+    @property
+    def usb_id(self) -> tuple[str, str] | None:
+        """``(vendor, product)`` in 4-digit lower-case hex from ``usb=VID:PID``, or None."""
+        self._need("serial")
+        text = self.params.get("usb")
+        if not text:
+            return None
+        vendor, _, product = text.lower().partition(":")
+        return vendor, product
+
+    @property
+    def usb_serial(self) -> str | None:
+        """The USB serial number from ``serial=...``, or None."""
+        self._need("serial")
+        return self.params.get("serial") or None
+
+    # ---- CAN ---------------------------------------------------------------------------------
+    @property
+    def can_interface(self) -> str:
+        """The python-can interface (``socketcan``, ``virtual``, ``udp_multicast``...)."""
+        self._need("can")
+        return self.backend
+
+    @property
+    def can_channel(self) -> str:
+        """The python-can channel (``can0``, a virtual bus name, a multicast group)."""
+        self._need("can")
+        return self.location
+
+    @property
+    def bitrate(self) -> int | None:
+        """``bitrate=`` in bit/s, or None (leave the interface as configured)."""
+        self._need("can")
+        text = self.params.get("bitrate")
+        return int(text) if text and int(text) > 0 else None
+
+    @property
+    def udp_port(self) -> int | None:
+        """``port=`` of a udp_multicast bus, or None (python-can's default)."""
+        self._need("can")
+        text = self.params.get("port")
+        return int(text) if text and int(text) > 0 else None
+
+    @property
+    def bus_options(self) -> dict[str, Any]:
+        """Every parameter except ``bitrate``, typed, for ``can.Bus``."""
+        self._need("can")
+        return {k: _typed_option(v) for k, v in self.params.items() if k != "bitrate"}
+
+    # ---- I2C and PCA9685 ---------------------------------------------------------------------
+    @property
+    def i2c_bus(self) -> int | str:
+        """The adapter number (1 -> /dev/i2c-1), or for mocks ``"mock:/path/to/bus.sock"``."""
+        self._need("i2c", "pca9685")
+        return f"mock:{self.location}" if self.mock else int(self.location)
+
+    @property
+    def chip_address(self) -> int:
+        """The chip's 7-bit I2C address."""
+        self._need("i2c", "pca9685")
+        return self.numbers[0]
+
+    # ---- GPIO --------------------------------------------------------------------------------
+    @property
+    def gpio_chip(self) -> str:
+        """``/dev/gpiochipN``, or for mocks ``"mock:/path/to/chip.sock"``."""
+        self._need("gpio")
+        return f"mock:{self.location}" if self.mock else self.location
+
+    @property
+    def lines(self) -> tuple[int, ...]:
+        """The line offsets the device uses (empty: not listed)."""
+        self._need("gpio")
+        return self.numbers
+
+    # ---- PWM ---------------------------------------------------------------------------------
+    @property
+    def pwm_chip(self) -> str:
+        """The sysfs chip directory (``/sys/class/pwm/pwmchip0`` or a mock directory)."""
+        self._need("pwm")
+        return self.location
+
+    @property
+    def pwm_channel(self) -> int:
+        """The PWM channel (sysfs ``pwmN``, PCA9685 output 0..15)."""
+        self._need("pwm", "pca9685")
+        return self.numbers[-1]
+
+    @property
+    def pwm_legacy_address(self) -> str:
+        """The address string ``open_pwm`` takes (a chip directory or ``pca9685:<bus>:<addr>``)."""
+        self._need("pwm", "pca9685")
+        if self.kind == "pwm":
+            return self.location
+        return f"pca9685:{self.i2c_bus}:0x{self.chip_address:02x}"
+
+    # ---- derived forms -----------------------------------------------------------------------
+    def with_params(self, **changes: Any) -> DeviceAddress:
+        """A copy with query parameters set (None removes one), e.g. another baud."""
+        params = dict(self.params)
+        for key, value in changes.items():
+            if value is None:
+                params.pop(key, None)
+            else:
+                params[key] = str(value)
+        return make_address(self.kind, self.location, self.numbers, params=params, mock=self.mock,
+                            backend=self.backend, device="(derived)")
+
+
+def _typed_option(text: str) -> Any:
+    lowered = text.lower()
+    if lowered in ("true", "false"):
+        return lowered == "true"
+    try:
+        return int(text, 0)
+    except ValueError:
+        pass
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
+def _number(text: str, what: str, fail: Any) -> int:
+    try:
+        return int(text, 0)
+    except ValueError:
+        raise fail(f"{what} {text!r} is not a number") from None
+
+
+def _check_params(kind: str, params: dict[str, str], fail: Any) -> None:
+    allowed = PARAMS[kind]
+    if allowed is None:
+        return
+    for key in params:
+        if key not in allowed:
+            close = difflib.get_close_matches(key, allowed, n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            known = ", ".join(allowed) if allowed else "none"
+            raise fail(f"unknown parameter '{key}'{hint}; {kind} addresses take: {known}")
+
+
+def _check_serial(params: dict[str, str], fail: Any) -> None:
+    if "baud" in params:
+        baud = _number(params["baud"], "baud", fail)
+        if baud not in BAUDRATES:
+            raise fail(f"baud {baud} is not a serial rate; use one of {', '.join(map(str, BAUDRATES))}")
+    if "bytesize" in params and _number(params["bytesize"], "bytesize", fail) not in BYTESIZES:
+        raise fail(f"bytesize {params['bytesize']} must be 5, 6, 7 or 8")
+    if "parity" in params and params["parity"].upper() not in PARITIES:
+        raise fail(f"parity {params['parity']!r} must be N, E, O, M or S")
+    if "stopbits" in params:
+        try:
+            stop = float(params["stopbits"])
+        except ValueError:
+            stop = -1.0
+        if stop not in STOPBITS:
+            raise fail(f"stopbits {params['stopbits']!r} must be 1, 1.5 or 2")
+    usb = params.get("usb")
+    if usb is not None:
+        vendor, sep, product = usb.partition(":")
+        if not sep or not all(len(p) == 4 and all(c in "0123456789abcdefABCDEF" for c in p) for p in (vendor, product)):
+            raise fail(f"usb={usb!r} must be VENDOR:PRODUCT in 4-digit hex as lsusb prints it, e.g. usb=1546:01a7")
+    if "serial" in params and not params["serial"].strip():
+        raise fail("serial= (the USB serial number) is empty")
+
+
+def _chip_address(text: str, fail: Any) -> int:
+    value = _number(text, "I2C chip address", fail)
+    if not 0x03 <= value <= 0x77:
+        raise fail(f"I2C chip address {text} is not a 7-bit device address (0x03..0x77)")
+    return value
+
+
+def _channel(text: str, fail: Any, limit: int | None = None) -> int:
+    if not text.isdigit():
+        raise fail(f"channel {text!r} is not a channel number")
+    value = int(text)
+    if limit is not None and value >= limit:
+        raise fail(f"channel {value} is beyond the chip's {limit} channels (0..{limit - 1})")
+    return value
+
+
+def _split_last(path: str, count: int, what: str, fail: Any) -> tuple[str, list[str]]:
+    """``/a/b.sock/0x40/3`` with count 2 -> ("/a/b.sock", ["0x40", "3"])."""
+    parts = path.rstrip("/").split("/")
+    if len(parts) < count + 2 or not all(parts[-count:]):   # leading "" of an absolute path + location
+        raise fail(f"expected {what}")
+    return "/".join(parts[:-count]), parts[-count:]
+
+
+def parse_address(text: str, *, device: str) -> DeviceAddress:
+    """Parse device *device*'s address *text*; AddressError (one line, with the fix) when it is wrong."""
+    if not isinstance(text, str):
+        raise AddressError(device, repr(text), f"an address is a string, not {type(text).__name__}")
+    url = text.strip()
+    scheme, sep, rest = url.partition("://")
+    if not sep:
+        guess = "serial" if url.startswith("/dev/") else "pwm" if url.startswith(SYSFS_PWM) else None
+        if url.startswith("pca9685:"):
+            guess = "pca9685"
+        meant = {"serial": f" (did you mean 'serial://{url}'?)",
+                 "pwm": f" (did you mean 'pwm://{url[len(SYSFS_PWM) + 1:]}/CHANNEL'?)"}.get(guess or "", "")
+        raise AddressError(device, text, f"not a URL (no scheme://){meant}", kind=guess)
+    mock = scheme.startswith(MOCK_PREFIX)
+    base = scheme[len(MOCK_PREFIX):] if mock else scheme
+    kind, plus, serial_scheme = base.partition("+")
+    if kind not in KINDS:
+        close = difflib.get_close_matches(base, [*KINDS, *(MOCK_PREFIX + k for k in KINDS)], n=1)
+        hint = f" (did you mean '{close[0]}'?)" if close else ""
+        raise AddressError(device, text, f"unknown scheme '{scheme}'{hint}; known: "
+                           f"{', '.join(KINDS)}, their mock+ forms and serial+<pyserial scheme>")
+    kind_hint = kind
+
+    def fail(problem: str) -> AddressError:
+        return AddressError(device, text, problem, kind=kind_hint)
+
+    if plus and (kind != "serial" or mock or not serial_scheme):
+        raise fail(f"'{scheme}': only serial takes a pyserial scheme after '+' (serial+socket://host:port)")
+    body, _, query = rest.partition("?")
+    try:
+        params = dict(parse_qsl(query, keep_blank_values=True, strict_parsing=bool(query)))
+    except ValueError:
+        raise fail(f"bad query string {query!r} (use key=value&key=value)") from None
+    _check_params(kind, params, fail)
+    netloc, slash, path = body.partition("/")
+    path = slash + path
+    numbers: tuple[int, ...] = ()
+    if kind == "serial":
+        _check_serial(params, fail)
+        if plus:
+            backend, location = serial_scheme, f"{serial_scheme}://{body}"
+        else:
+            if netloc or not path.strip("/"):
+                raise fail("a serial address is serial:// followed by an absolute device path (three slashes)")
+            backend, location = "path", path
+    elif kind == "can":
+        if not netloc or not path.strip("/"):
+            raise fail("expected can://INTERFACE/CHANNEL")
+        backend, location = netloc, path.strip("/")
+        for key in ("bitrate", "port"):
+            if key in params and (not params[key].isdigit()):
+                raise fail(f"{key}={params[key]!r} must be a whole number")
+    elif kind in ("i2c", "pca9685"):
+        count = 1 if kind == "i2c" else 2
+        what = "BUS/CHIP" if kind == "i2c" else "BUS/CHIP/CHANNEL"
+        if mock:
+            if netloc:
+                raise fail(f"a mock {kind} address is {MOCK_PREFIX}{kind}:///path/to/bus.sock/{what[4:]}")
+            backend = "mock"
+            location, tail = _split_last(path, count, f"/path/to/bus.sock/{what[4:]}", fail)
+        else:
+            tail = path.strip("/").split("/") if path.strip("/") else []
+            if not netloc.isdigit() or len(tail) != count:
+                raise fail(f"expected {kind}://{what} with BUS the adapter number (1 for /dev/i2c-1)")
+            backend, location = "smbus", netloc
+        numbers = (_chip_address(tail[0], fail),)
+        if kind == "pca9685":
+            numbers += (_channel(tail[1], fail, 16),)
+    elif kind == "gpio":
+        full = (f"/dev/{netloc}" if netloc else "") + path
+        chip, _, last = full.rstrip("/").rpartition("/")
+        if last and all(p.strip().isdigit() for p in last.split(",")):
+            numbers = tuple(int(p) for p in last.split(","))
+            if len(set(numbers)) != len(numbers):
+                raise fail(f"line list {last!r} repeats a line")
+        elif last and "," in last:
+            raise fail(f"line list {last!r} must be line numbers separated by commas")
+        else:
+            chip = full.rstrip("/")
+        if not chip or chip == "/dev":
+            raise fail("expected gpio://CHIP/LINE,LINE (CHIP as gpiodetect names it)")
+        if mock and netloc:
+            raise fail("a mock gpio address is mock+gpio:///path/to/chip.sock/LINES")
+        backend, location = ("mock" if mock else "gpiod"), chip
+    else:  # pwm
+        full = (f"{SYSFS_PWM}/{netloc}" if netloc else "") + path
+        if mock and netloc:
+            raise fail("a mock pwm address is mock+pwm:///path/to/chipdir/CHANNEL")
+        location, tail = _split_last(full, 1, "CHIP/CHANNEL", fail)
+        numbers = (_channel(tail[0], fail),)
+        backend = "mock" if mock else "sysfs"
+        if not mock and not location.startswith(SYSFS_PWM + "/"):
+            raise fail(f"a real pwm chip lives under {SYSFS_PWM}; a directory elsewhere is mock+pwm:///DIR/CHANNEL")
+    return DeviceAddress(url=url, kind=kind, mock=mock, params=MappingProxyType(params), backend=backend,
+                         location=location, numbers=numbers)
+
+
+def make_address(kind: str, location: str, numbers: tuple[int, ...] | list[int] = (), *,
+                 params: Mapping[str, Any] | None = None, mock: bool = False, backend: str | None = None,
+                 device: str = "(built)") -> DeviceAddress:
+    """Build (and check) an address from parts: the inverse of the fields ``parse_address`` fills.
+
+    *location* is what the kind's ``location`` holds: a device path or pyserial URL, a CAN
+    channel (with *backend* the interface), an I2C adapter number or mock socket path, a
+    GPIO chip path or mock socket path, a PWM chip directory.
+    """
+    prefix = MOCK_PREFIX if mock else ""
+    query = urlencode({k: str(v) for k, v in (params or {}).items()}, safe=":/")
+    suffix = f"?{query}" if query else ""
+    nums = list(numbers)
+    if kind == "serial":
+        if backend and backend != "path":
+            rest = location.split("://", 1)[1] if "://" in location else location
+            url = f"serial+{backend}://{rest}"
+        else:
+            url = f"{prefix}serial://{quote(location, safe='/:@')}"
+    elif kind == "can":
+        url = f"{prefix}can://{backend or 'socketcan'}/{location}"
+    elif kind == "i2c":
+        url = f"{prefix}i2c://{'' if mock else location}{location if mock else ''}/0x{nums[0]:02x}"
+    elif kind == "pca9685":
+        url = f"{prefix}pca9685://{'' if mock else location}{location if mock else ''}/0x{nums[0]:02x}/{nums[1]}"
+    elif kind == "gpio":
+        chip = location
+        if not mock and chip.startswith("/dev/") and chip.count("/") == 2:
+            where = chip[len("/dev/"):]
+        else:
+            where = chip if chip.startswith("/") else f"/{chip}"
+        lines = ",".join(str(n) for n in nums)
+        url = f"{prefix}gpio://{where}" + (f"/{lines}" if lines else "")
+    elif kind == "pwm":
+        where = location[len(SYSFS_PWM) + 1:] if not mock and location.startswith(SYSFS_PWM + "/") else location
+        url = f"{prefix}pwm://{where}/{nums[0]}"
+    else:
+        raise AddressError(device, location, f"unknown kind {kind!r}")
+    return parse_address(url + suffix, device=device)
