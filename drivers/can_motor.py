@@ -97,15 +97,10 @@ class CanMotorService(Actuator):
     def _fail(self, text: str) -> ConfigError:
         return ConfigError(f"service '{self.name}': {text}")
 
-    def validate_config(self, name: str, value: Any) -> str | None:
-        """Refuse a change over the bus that would leave a config this driver cannot run with."""
-        if name in ("command_timeout_s", "rc_gating"):
-            return super().validate_config(name, value)
-        try:
-            self.check_settings(lambda key: value if key == name else self.config.get(key))
-        except ConfigError as exc:
-            return str(exc)
-        return None
+    def check_config(self) -> None:
+        """Refuse a config this driver cannot run with (the dead-man as every actuator)."""
+        super().check_config()
+        self.check_settings(self.config.get)
 
     def check_settings(self, get: Callable[[str], Any]) -> None:
         """Raise ConfigError (naming the field and the fix) unless the values *get* returns can run."""

@@ -26,7 +26,7 @@ from collections import Counter
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-from drivers.gpio_lines import (GpioLineSet, check_chip, config_problem, note_restart_needed, parse_levels,
+from drivers.gpio_lines import (GpioLineSet, check_chip, note_restart_needed, parse_levels,
                                 parse_line_map, parse_names, parse_positions)
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
@@ -71,11 +71,10 @@ class GpioOutputDriver(Actuator):
         safe = parse_levels(c["safe_levels"], known=list(lines), service=self.name, key="safe_levels")
         return lines, {n: safe.get(n, 0) for n in lines}
 
-    def validate_config(self, name: str, value: Any) -> str | None:
-        """Refuse a change that would leave the service unable to start (the dead-man as every actuator)."""
-        if name in ("command_timeout_s", "rc_gating"):
-            return super().validate_config(name, value)
-        return config_problem(self, name, value, self.parse_config)
+    def check_config(self) -> None:
+        """Refuse a config the service cannot start with (the dead-man as every actuator)."""
+        super().check_config()
+        self.parse_config(self.config)
 
     @classmethod
     def declared_actuators(cls, name: str, config: Mapping[str, Any]) -> set[str]:
@@ -215,9 +214,9 @@ class GpioInputDriver(ExteroceptiveSensor):
                 parse_names(c["failsafe_on"], known=known, service=self.name, key="failsafe_on"),
                 parse_positions(c["positions"], known=known, service=self.name, key="positions"))
 
-    def validate_config(self, name: str, value: Any) -> str | None:
-        """Refuse a change that would leave the service unable to start."""
-        return config_problem(self, name, value, self.parse_config)
+    def check_config(self) -> None:
+        """Refuse a config the service cannot start with."""
+        self.parse_config(self.config)
 
     def _read_levels(self, port: GpioPort) -> None:
         """After every (re)open: the present levels, since edges before the open are not seen."""

@@ -106,21 +106,6 @@ def check_chip(chip: str, *, service: str) -> None:
                           "(gpiodetect lists the chips) or a mock chip address \"mock:/path/to.sock\"")
 
 
-def config_problem(service: U2SAService, name: str, value: Any, parse: Callable[[Mapping[str, Any]], object]
-                   ) -> str | None:
-    """Why the config with *name* set to *value* cannot run (*parse* raises ConfigError), or None.
-
-    For ``validate_config``: a value refused here never reaches the file, so it cannot stop
-    the next start."""
-    values = {n: v for n, _, v in service.config.enumerate()}
-    values[name] = value
-    try:
-        parse(values)
-    except ConfigError as exc:
-        return str(exc)
-    return None
-
-
 def note_restart_needed(service: U2SAService, name: str, *, live: Sequence[str] = ()) -> None:
     """Log that a changed field of the driver's own CONFIG applies at the next start (lines, chip,
     thresholds are not switched under a running vehicle); fields in *live* are read as they go."""

@@ -41,7 +41,7 @@ import threading
 import time
 from typing import Any, Mapping, NamedTuple
 
-from drivers.gpio_lines import GpioLineSet, check_chip, config_problem, note_restart_needed, parse_line_map
+from drivers.gpio_lines import GpioLineSet, check_chip, note_restart_needed, parse_line_map
 from drivers.rc_manual import ManualSticks
 from drivers.rc_pulse import MODE_AUTONOMOUS, MODE_MANUAL, MODE_NAMES, MODE_NO_SIGNAL, PulseMeter, RcModeFilter
 from u2sa_hw import channels as ch
@@ -153,9 +153,9 @@ class RcMuxDriver(Sensor):
         except ValueError as exc:
             raise ConfigError(f"service '{name}': {exc}") from None
 
-    def validate_config(self, name: str, value: Any) -> str | None:
-        """Refuse a change that would leave the service unable to start."""
-        return config_problem(self, name, value, self.parse_config)
+    def check_config(self) -> None:
+        """Refuse a config the service cannot start with."""
+        self.parse_config(self.config)
 
     def on_config_change(self, name: str, value: Any) -> None:
         """require_rearm and select_mismatch_ms apply at once; lines and thresholds at the next start."""

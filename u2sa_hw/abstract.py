@@ -84,7 +84,7 @@ class Actuator(U2SAService):
         field("command_timeout_s", 0.25, "dead-man: no obeyed command for this long -> neutral (0 < s <= 0.5; "
                                          "0 = off, allowed only with rc_gating = false)"),
         field("rc_gating", True, "obey commands only as the pilot's RC switch allows; false only on a bench "
-                                 "without an RC receiver, never on a vehicle"),
+                                 "without an RC receiver, never on a vehicle", remote=False),
     )
     MAX_COMMAND_TIMEOUT_S: ClassVar[float] = 0.5
 
@@ -129,17 +129,13 @@ class Actuator(U2SAService):
                 f"(0, {self.MAX_COMMAND_TIMEOUT_S}] s (default 0.25); only a bench with rc_gating = false may turn "
                 "it off with 0")
 
-    def validate_config(self, name: str, value: Any) -> str | None:
-        """Refuse a dead-man outside (0, 0.5] s; other fields as the subclass checks them."""
-        if name == "command_timeout_s":
-            return self._dead_man_problem(value)
-        if name == "rc_gating":
-            gate = getattr(self, "gate", None)
-            if gate is not None and bool(value) == gate.rc_gating:
-                return None   # no change
-            return (f"service '{self.name}': rc_gating is not changed over the bus (a remote switch for the "
-                    "software RC mux would defeat it); set it in the profile and restart the service")
-        return super().validate_config(name, value)
+    def check_config(self) -> None:
+        """Refuse a dead-man outside (0, 0.5] s (rc_gating is ``remote=False``: a remote switch for the
+        software RC mux would defeat it); subclasses add their checks and call this."""
+        problem = self._dead_man_problem(self.config["command_timeout_s"])
+        if problem:
+            raise ConfigError(problem)
+        super().check_config()
 
     # -- for subclasses -------------------------------------------------------------------
     def actuator_names(self) -> set[str]:

@@ -1,13 +1,18 @@
 """Configurator (requirement C1, C7): a per-service TOML file of typed variables.
 
 A service declares its fields with defaults (the default's type is the field's type:
-int, float, bool or str) and, where only some values make sense, the allowed ``choices``.
+int, float, bool, str or list) and what values make sense: ``choices``, bounds
+(``ge``/``gt``/``le``/``lt``, for a list field each number in it), ``item_type`` for a list.
+Non-finite numbers (inf, -inf, nan) are refused unless a field says ``allow_nonfinite``.
 A missing file means defaults; the file is created, with every field, on the first change.
-A change is checked against the declared type; a wrong type is refused with a message
-naming the field, the expected and the given type (a value outside ``choices``: the field
-and the allowed values). Writes are atomic (temp file in the same directory, fsync, rename),
-so a crash or a full disk never leaves a half-written file; an unwritable file makes ``set``
-return False and logs why.
+Every value -- from the file, from the profile's settings, from a change over the bus -- is
+checked against its field; a refusal names the field, the rule (expected type, allowed
+values, bound) and the value, and for a file or the profile the file. A change is refused
+before anything is written, so the file is untouched. Writes are atomic (temp file in the
+same directory, fsync, rename), so a crash or a full disk never leaves a half-written file;
+an unwritable file makes ``set`` return False and logs why. An unknown key in the profile's
+settings is an error with a did-you-mean; in the file it is a warning and kept (a field of a
+newer version).
 
 Text (what ``u2sa param set`` sends) is read as a TOML literal: ``42``, ``2.5``, ``true``,
 ``"text"``. For a string field a TOML string literal (``"passthrough"`` or ``'passthrough'``)
@@ -18,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import os
 import tempfile
 import threading
@@ -28,7 +34,10 @@ from typing import Any, Callable, Iterable, Iterator
 
 import tomli_w
 
+from u2sa_hw.config_keys import did_you_mean, known_text, unknown_key_problem
+
 TYPE_NAMES = {int: "int", float: "float", bool: "bool", str: "str"}
+Bound = int | float
 
 
 class ConfigError(ValueError):
@@ -37,12 +46,26 @@ class ConfigError(ValueError):
 
 @dataclass(frozen=True)
 class ConfigField:
-    """One declared variable: its name, default (whose type is the field's type) and help."""
+    """One declared variable: its name, default (whose type is the field's type), help, and the values allowed.
+
+    ``choices``: the only values allowed. ``ge``/``gt``/``le``/``lt``: bounds (>=, >, <=, <) of a
+    number, or of every number in a list. ``allow_nonfinite``: inf, -inf and nan are refused
+    unless this is set. ``item_type``: the type of every item of a list field (None: any).
+    ``remote``: False for a field a change over the bus must not touch (set in the profile or
+    the file, read at the next start); setting it to the value it has is not a change.
+    """
 
     name: str
     default: Any
     help: str = ""
     choices: tuple[Any, ...] = ()
+    ge: Bound | None = None
+    gt: Bound | None = None
+    le: Bound | None = None
+    lt: Bound | None = None
+    allow_nonfinite: bool = False
+    item_type: type | None = None
+    remote: bool = True
 
     @property
     def type(self) -> type:
@@ -51,19 +74,52 @@ class ConfigField:
 
     @property
     def type_name(self) -> str:
-        """``int``, ``float``, ``bool`` or ``str``."""
+        """``int``, ``float``, ``bool``, ``str`` or ``list``."""
         return TYPE_NAMES.get(self.type, self.type.__name__)
+
+    @property
+    def bounds(self) -> list[tuple[str, Bound]]:
+        """The declared bounds as ``(operator, limit)``: ``(">", 0)``, ``("<=", 100)``."""
+        return [(op, limit) for op, limit in ((">=", self.ge), (">", self.gt), ("<=", self.le), ("<", self.lt))
+                if limit is not None]
+
+    def range_text(self) -> str:
+        """The allowed range in words: ``> 0``, ``>= 0 and <= 100``, or "" when unbounded."""
+        return " and ".join(f"{op} {limit:g}" for op, limit in self.bounds)
+
+
+_BOUND_TESTS: dict[str, Callable[[Bound, Bound], bool]] = {
+    ">=": lambda v, b: v >= b, ">": lambda v, b: v > b, "<=": lambda v, b: v <= b, "<": lambda v, b: v < b}
 
 
 def field(name: str, default: Any, help: str = "", *,  # noqa: A002 - reads well at call sites
-          choices: Iterable[Any] = ()) -> ConfigField:
-    """Declare a config variable (shorthand for :class:`ConfigField`); *choices*: the only values allowed."""
+          choices: Iterable[Any] = (), ge: Bound | None = None, gt: Bound | None = None,
+          le: Bound | None = None, lt: Bound | None = None, allow_nonfinite: bool = False,
+          item_type: type | None = None, remote: bool = True) -> ConfigField:
+    """Declare a config variable (shorthand for :class:`ConfigField`).
+
+    *choices*: the only values allowed; *ge*, *gt*, *le*, *lt*: bounds of a number (or of each
+    number of a list); *allow_nonfinite*: accept inf and nan (refused otherwise); *item_type*:
+    the type of a list's items; *remote*: False when a change over the bus is refused. A default that breaks its own declaration is a TypeError or
+    ValueError at import, so a wrong declaration never reaches a vehicle.
+    """
     if type(default) not in TYPE_NAMES and not isinstance(default, list):
         raise TypeError(f"config field {name}: default must be int, float, bool, str or list, not {type(default).__name__}")
-    allowed = tuple(choices)
-    if allowed and default not in allowed:
-        raise ValueError(f"config field {name}: default {default!r} is not one of its choices {allowed!r}")
-    return ConfigField(name, default, help, allowed)
+    numeric = type(default) in (int, float) or (isinstance(default, list) and item_type in (int, float))
+    bounds = [b for b in (ge, gt, le, lt) if b is not None]
+    if bounds and not numeric:
+        raise TypeError(f"config field {name}: bounds need a number (or a list with item_type int or float), "
+                        f"not {type(default).__name__}")
+    if any(isinstance(b, bool) or not isinstance(b, (int, float)) or not math.isfinite(b) for b in bounds):
+        raise TypeError(f"config field {name}: bounds must be finite numbers")
+    f = ConfigField(name, default, help, tuple(choices), ge, gt, le, lt, allow_nonfinite, item_type, remote)
+    if f.choices and default not in f.choices:
+        raise ValueError(f"config field {name}: default {default!r} is not one of its choices {f.choices!r}")
+    try:
+        coerce(f, default)
+    except ConfigError as exc:
+        raise ValueError(f"config field {name}: its default breaks its own declaration: {exc}") from None
+    return f
 
 
 def choices_text(f: ConfigField) -> str:
@@ -71,22 +127,53 @@ def choices_text(f: ConfigField) -> str:
     return ", ".join(to_text(c) for c in f.choices)
 
 
+def _type_name(value: Any) -> str:
+    return TYPE_NAMES.get(type(value), type(value).__name__)
+
+
+def _checked_number(f: ConfigField, value: Any, *, what: str) -> None:
+    """Raise ConfigError when the number *value* is non-finite (unless allowed) or out of *f*'s bounds."""
+    if isinstance(value, float) and not math.isfinite(value):
+        if f.allow_nonfinite:
+            return
+        raise ConfigError(f"{what} must be a finite number{' ' + f.range_text() if f.bounds else ''}; "
+                          f"got {to_text(value)}")
+    for op, limit in f.bounds:
+        if not _BOUND_TESTS[op](value, limit):
+            raise ConfigError(f"{what} must be {f.range_text()}; got {to_text(value)}")
+
+
+def _scalar(expected: type, value: Any) -> Any:
+    """*value* as *expected* (an int passes as a float), or None when it is not one."""
+    if type(value) is expected:
+        return value
+    if expected is float and type(value) is int:
+        return float(value)
+    return None
+
+
 def coerce(f: ConfigField, value: Any) -> Any:
-    """*value* as *f*'s type, or ConfigError naming the field, the expected and the given type.
+    """*value* as *f*'s type within its choices and bounds, or ConfigError naming the field, the rule and the value.
 
     An int is accepted for a float field; nothing else is converted (a bool is not an int).
     """
     expected = f.type
-    given = type(value)
-    if given is expected:
-        result = value
-    elif expected is float and given is int:
-        result = float(value)
-    else:
-        raise ConfigError(f"field '{f.name}' expects {f.type_name}, got {TYPE_NAMES.get(given, given.__name__)} "
-                          f"{value!r}")
+    result = list(value) if expected is list and type(value) is list else _scalar(expected, value)
+    if result is None:
+        raise ConfigError(f"field '{f.name}' expects {f.type_name}, got {_type_name(value)} {value!r}")
     if f.choices and result not in f.choices:
         raise ConfigError(f"field '{f.name}' must be one of {choices_text(f)}; got {to_text(result)}")
+    if expected in (int, float):
+        _checked_number(f, result, what=f"field '{f.name}'")
+    elif expected is list and f.item_type is not None:
+        for i, item in enumerate(result):
+            checked = _scalar(f.item_type, item)
+            if checked is None:
+                raise ConfigError(f"field '{f.name}' item {i} expects {TYPE_NAMES.get(f.item_type, f.item_type.__name__)}, "
+                                  f"got {_type_name(item)} {item!r}")
+            if f.item_type in (int, float):
+                _checked_number(f, checked, what=f"field '{f.name}' item {i}")
+            result[i] = checked
     return result
 
 
@@ -121,23 +208,30 @@ class Configurator:
     def __init__(self, path: Path | str | None, fields: Iterable[ConfigField], *,
                  logger: logging.Logger | None = None, initial: dict[str, Any] | None = None,
                  initial_source: str = "the vehicle profile",
-                 validator: Callable[[str, Any], str | None] | None = None) -> None:
+                 validator: Callable[[str, Any], str | None] | None = None,
+                 passthrough: Iterable[str] = ()) -> None:
         self.path = Path(path) if path else None
         self.validator = validator
+        self.passthrough = frozenset(passthrough)
         self.fields: dict[str, ConfigField] = {f.name: f for f in fields}
         self._log = logger or logging.getLogger("u2sa_hw.config")
         self._lock = threading.RLock()
         self._values: dict[str, Any] = {n: f.default for n, f in self.fields.items()}
         self._extra: dict[str, Any] = {}
         for name, value in (initial or {}).items():
-            self._load_value(name, value, source=initial_source)
+            if name not in self.passthrough:
+                self._load_value(name, value, source=initial_source, strict=True)
         if self.path is not None and self.path.exists():
             self._load_file()
 
     def _load_file(self) -> None:
         assert self.path is not None
         try:
-            data = tomllib.loads(self.path.read_text())
+            text = self.path.read_bytes().decode("utf-8")
+            data = tomllib.loads(text)
+        except UnicodeDecodeError as exc:
+            raise ConfigError(f"{self.path}: not a text file (byte {exc.start} is 0x{exc.object[exc.start]:02x}, "
+                              "not UTF-8); fix the file or delete it to use defaults") from None
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"{self.path}: not valid TOML ({exc}); fix the file or delete it to use defaults") from None
         except OSError as exc:
@@ -145,18 +239,21 @@ class Configurator:
         for name, value in data.items():
             self._load_value(name, value, source=str(self.path))
 
-    def _load_value(self, name: str, value: Any, *, source: str) -> None:
+    def _load_value(self, name: str, value: Any, *, source: str, strict: bool = False) -> None:
         f = self.fields.get(name)
         if f is None:
+            if strict:   # the profile's settings: a typo there is an error (the profile is checked as a whole)
+                raise ConfigError(unknown_key_problem(name, self.fields, where=source))
             # Kept and written back unchanged: a field of a newer version, or a typo we report.
             self._extra[name] = value
-            self._log.warning("%s: unknown config field '%s' ignored (known: %s)", source, name,
-                              ", ".join(sorted(self.fields)))
+            hint = did_you_mean(name, self.fields)
+            self._log.warning("%s: unknown config field '%s' ignored%s (known: %s)", source, name,
+                              f"; {hint}" if hint else "", known_text(self.fields))
             return
         try:
-            self._values[name] = coerce(f, value) if not isinstance(f.default, list) else list(value)
+            self._values[name] = coerce(f, value)
         except ConfigError as exc:
-            raise ConfigError(f"{source}: {exc}") from None
+            raise ConfigError(f"{source}: {exc}; fix it there") from None
 
     def get(self, name: str) -> Any:
         """The current value of *name* (KeyError names the known fields)."""

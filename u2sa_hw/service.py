@@ -7,6 +7,9 @@ stop (all or by name), config enumeration and change over the bus, periodic heal
 systemd notification (READY, WATCHDOG from the service's own loop, STATUS, STOPPING)
 and clean exit on SIGTERM/SIGINT.
 
+Config: fields are declared with :func:`~u2sa_hw.config.field` (type, choices, bounds); the
+one validation hook is :meth:`U2SAService.check_config`, for what a single field cannot say.
+
 A run loop is written as ``while self.wait(period): ...``: ``wait`` returns False once
 the service is stopping and pings systemd's watchdog (every half ``$WATCHDOG_USEC``, however
 long the period), so a hung loop is a dead service but a slow one is not.
@@ -38,7 +41,7 @@ from u2sa_hw.transport import Transport
 from u2sa_hw.vehicle import VehicleProfile
 
 BASE_CONFIG: tuple[ConfigField, ...] = (
-    field("health_interval_s", 1.0, "seconds between health messages"),
+    field("health_interval_s", 1.0, "seconds between health messages", gt=0, le=60),
     field("log_level", "", "debug, info, warn or error; empty: the vehicle profile's log_level",
           choices=("", *LEVEL_NAMES)),
 )
@@ -177,18 +180,34 @@ class U2SAService:
         return {}
 
     def check_config(self) -> None:
-        """Raise ConfigError (or ValueError) when the current config cannot work (override).
+        """THE validation hook: raise ConfigError (or ValueError) naming the field and the fix when the
+        config, as ``self.config`` reads it, cannot work (override; call ``super().check_config()``).
 
-        Called by :meth:`validate_config` with a proposed change in place; a service may also
-        call it at start-up to refuse a bad file with a clear message.
+        Each field's own rules -- type, ``choices``, bounds (``ge``/``gt``/``le``/``lt``), finite
+        numbers, ``remote`` -- are declared on :func:`~u2sa_hw.config.field` and checked before
+        this, for the file, the profile's settings and every change over the bus. This hook is for
+        what one field cannot say: a combination (one wheel radius per actuator), a value a
+        device must support (a baud rate), text to parse (a line map). The base calls it:
+
+        - in :meth:`start`, before ``setup()``: a file that cannot work stops the service with
+          the reason before it touches a device (a service may also call it in ``__init__``);
+        - before every change over the bus (``ConfigChange``, ``u2sa param set``), with the
+          proposed value in place (:meth:`Configurator.trial`): a refused value never reaches
+          the file, and the requester gets the reason.
+
+        It must not change the service's state: it may run with a value that is then refused.
         """
 
     def validate_config(self, name: str, value: Any) -> str | None:
-        """The reason to refuse changing *name* to *value*, or None (called before writing).
+        """Why changing *name* to *value* (already of the field's type and range) is refused, or None.
 
-        The default runs :meth:`check_config` with the value tried in place; override for
-        checks that need more than the config.
+        Not a hook (override :meth:`check_config`): a field declared ``remote=False`` is not changed
+        over the bus, and :meth:`check_config` runs with the value tried in place.
         """
+        f = self.config.fields.get(name)
+        if f is not None and not f.remote and value != self.config.get(name):
+            return (f"service '{self.name}': {name} is not changed over the bus ({f.help}); set it in the "
+                    "profile and restart the service")
         with self.config.trial(name, value):
             try:
                 self.check_config()
@@ -328,6 +347,7 @@ class U2SAService:
     def start(self) -> None:
         """Set up, start the transport and health, mark running, tell systemd READY."""
         self.running = True
+        self.check_config()
         self.setup()
         self.transport.start()
         self.status = "ok" if self.status == "starting" else self.status
