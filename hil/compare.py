@@ -4,15 +4,17 @@ A *stream* is one channel from one source service (``STATE_INFO [gps]``): only t
 services the replay ran are compared, and never the contract channels (``U2SA_*``: health
 carries uptime and CPU) or raw device I/O (``RAW.*``). For each stream:
 
-- counts: recorded and replayed messages. A stream of a service the recording has nothing
+- alignment (hil/stream_align.py): the two streams are paired as ``diff`` pairs lines, in
+  order and by content, so one extra or missing message is one *insertion* or *deletion*
+  (reported with its time in the recording) and the rest still pair. Paired messages
+  *match* or *differ* in named fields. A stream of a service the recording has nothing
   from at all (it was not running) is shown as ``new``, with nothing to compare. A
   recording cuts its devices' input at both ends (the recorder starts and stops while
-  drivers run), so up to ``edge`` messages at each end of a stream may go unmatched; they
-  are reported as notes, more is a difference.
-  The two sequences are aligned at the start by trying the skips up to ``edge`` on either
-  side and keeping the one that matches best.
+  drivers run), so insertions or deletions among the first or last ``edge`` messages of a
+  stream are notes; elsewhere they are differences.
 - fields: every field from ``enumerate_fields`` except the header's ``timestamp_us`` and
-  ``sequence`` (and ``ignore`` patterns), floats equal within ``tolerance`` (absolute, or
+  ``sequence`` (and ``ignore`` patterns), floats equal within their field's tolerance
+  (:class:`Tolerances`: a default and per-field globs, from ``--tolerances FILE``; absolute, or
   relative 1e-9), everything else exactly.
 - timing: each message's time since the stream's first, replayed (times the rate) against
   recorded; the median and largest offset are shown and a largest offset above
@@ -26,7 +28,7 @@ and ``RawPwmWrite`` (a GPIO or PWM driver's outputs), compared like any stream u
 
 State channels (``STATE_CHANNELS``: ``RC_MODE``, ``MANUAL_CMD``) are published on a timer as well as on
 every change, so which messages exist depends on the timer's phase. With a clock (``--rate``)
-they are compared as states over time: each replayed message's time is mapped onto the
+they are compared as states over time (hil/compare_states.py): each replayed message's time is mapped onto the
 log's clock (the playback started at log time ``start_ns``), and every field value (each
 element of a list on its own) of every message must also be found on the other side within
 ``time_tolerance_s`` of it (the state then held counts). The first and last ``edge``
@@ -43,19 +45,19 @@ against the replay's own enable decision). They are compared, and a difference i
 
 from __future__ import annotations
 
-import bisect
 import fnmatch
 import math
 import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Union
 
 from u2sa_hw.channels import base_type
 from u2sa_hw.messages import REGISTRY, MalformedMessage, enumerate_fields
 from u2sa_hw.recording.log_reader import LogFile
 
 from hil.player import header_source
+from hil.stream_align import Pair, align_streams, content_key
 
 HEADER_FIELDS = ("*header.timestamp_us", "*header.sequence")
 STATE_CHANNELS = ("RC_MODE", "MANUAL_CMD")         # published on a timer and on every change
@@ -65,7 +67,6 @@ SYSTEM_FIELDS: dict[str, tuple[str, ...]] = {
     "RC_MODE": ("autonomy_enabled", "armed", "hold", "blocked_by", "select_mismatch"),
 }
 OUTPUT_RAW_TYPES = ("RawGpioWrite", "RawPwmWrite")  # raw records of what a driver drives
-ALIGN_WINDOW = 10
 SHOWN_FIELDS = 8
 
 
@@ -100,6 +101,65 @@ def load_streams(path: Path | str, *, sources: set[str], start_ns: int | None = 
     return streams
 
 
+class Tolerances:
+    """Float tolerance per field: a default and ``glob -> tolerance`` overrides (first match wins).
+
+    A file (``--tolerances FILE``, TOML) holds ``default = 1e-6``, a ``[fields]`` table of
+    glob patterns (``"*sigma*" = 1e-3``, ``"x" = 0.01``) and ``ignore = ["psi_sigma"]``.
+    """
+
+    def __init__(self, default: float = 1e-6, fields: dict[str, float] | None = None,
+                 ignore: tuple[str, ...] = ()) -> None:
+        self.default = float(default)
+        self.fields = dict(fields or {})
+        self.ignore = tuple(ignore)
+        self._cache: dict[str, float] = {}
+
+    def of(self, name: str) -> float:
+        """The tolerance of the field *name*."""
+        tol = self._cache.get(name)
+        if tol is None:
+            tol = next((t for pattern, t in self.fields.items() if fnmatch.fnmatchcase(name, pattern)), self.default)
+            self._cache[name] = tol
+        return tol
+
+    @classmethod
+    def load(cls, path: Path | str, *, default: float = 1e-6, ignore: tuple[str, ...] = ()) -> "Tolerances":
+        """Read a tolerance file; ValueError naming the file, the key and the fix when it is wrong."""
+        import tomllib
+        try:
+            data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+        except OSError as exc:
+            raise ValueError(f"{path}: cannot read the tolerance file: {exc.strerror or exc}") from None
+        except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+            raise ValueError(f"{path}: not a TOML tolerance file ({exc}); "
+                             'expected e.g. default = 1e-6, [fields] "x" = 0.01, ignore = ["psi_sigma"]') from None
+        unknown = set(data) - {"default", "fields", "ignore"}
+        if unknown:
+            raise ValueError(f"{path}: unknown key(s) {', '.join(sorted(unknown))}; allowed: default, fields, ignore")
+
+        def number(key: str, value: Any) -> float:
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+                raise ValueError(f"{path}: {key} = {value!r}: a tolerance is a finite number >= 0")
+            return float(value)
+
+        fields = data.get("fields", {})
+        if not isinstance(fields, dict):
+            raise ValueError(f"{path}: fields must be a table of \"glob\" = tolerance")
+        ignored = data.get("ignore", [])
+        if not isinstance(ignored, list) or not all(isinstance(g, str) for g in ignored):
+            raise ValueError(f"{path}: ignore must be a list of field globs")
+        return cls(number("default", data.get("default", default)),
+                   {str(k): number(f"fields.{k}", v) for k, v in fields.items()}, (*ignore, *ignored))
+
+
+ToleranceLike = Union[float, Tolerances]
+
+
+def _tolerances(t: ToleranceLike) -> Tolerances:
+    return t if isinstance(t, Tolerances) else Tolerances(t)
+
+
 def values_equal(a: Any, b: Any, tolerance: float) -> bool:
     """Floats within *tolerance* (NaN equals NaN), lists element-wise, the rest exactly."""
     if isinstance(a, float) or isinstance(b, float):
@@ -115,12 +175,13 @@ def values_equal(a: Any, b: Any, tolerance: float) -> bool:
     return a == b
 
 
-def differing_fields(a: Sample, b: Sample, tolerance: float) -> list[str]:
+def differing_fields(a: Sample, b: Sample, tolerance: ToleranceLike) -> list[str]:
     """Names of the fields that differ (``_type`` when the types do)."""
     if a.type_name != b.type_name:
         return ["_type"]
+    tol = _tolerances(tolerance)
     names = sorted(set(a.fields) | set(b.fields))
-    return [n for n in names if not values_equal(a.fields.get(n), b.fields.get(n), tolerance)]
+    return [n for n in names if not values_equal(a.fields.get(n), b.fields.get(n), tol.of(n))]
 
 
 @dataclass
@@ -130,7 +191,17 @@ class FieldDiff:
     name: str
     count: int = 0
     max_abs: float = 0.0
-    first: tuple[int, Any, Any] | None = None   # (index, recorded, replayed)
+    first: tuple[int, Any, Any] | None = None   # (recorded index, recorded, replayed)
+    first_t_ns: int | None = None               # log time of that recorded message
+
+
+@dataclass
+class Event:
+    """A message only on one side: ``deleted`` (recorded, not replayed) or ``inserted`` (replayed only)."""
+
+    kind: str
+    index: int          # in its own stream
+    t_ns: int           # log time: the recorded message's, or for an insertion the recorded one before it
 
 
 @dataclass
@@ -142,8 +213,9 @@ class StreamReport:
     replayed: int
     matched: int = 0
     differing: int = 0
-    head_skipped: tuple[int, int] = (0, 0)        # (recorded, replayed) unmatched at the start
-    tail_unmatched: tuple[int, int] = (0, 0)      # ... and at the end
+    inserted: int = 0
+    deleted: int = 0
+    events: list[Event] = field(default_factory=list)
     fields: dict[str, FieldDiff] = field(default_factory=dict)
     time_p50_s: float | None = None
     time_max_s: float | None = None
@@ -156,40 +228,60 @@ class StreamReport:
         return not self.problems
 
 
-def align(rec: list[Sample], rep: list[Sample], *, edge: int, tolerance: float) -> tuple[int, int]:
-    """The (recorded, replayed) head skips, each up to *edge*, under which the next messages match best."""
-    best: tuple[tuple[int, int], tuple[int, int]] | None = None
-    for i in range(min(edge, len(rec)) + 1):
-        for j in range(min(edge, len(rep)) + 1):
-            n = min(ALIGN_WINDOW, len(rec) - i, len(rep) - j)
-            bad = ALIGN_WINDOW + 1 if n <= 0 else sum(
-                bool(differing_fields(rec[i + k], rep[j + k], tolerance)) for k in range(n))
-            score = (bad, i + j)
-            if best is None or score < best[0]:
-                best = (score, (i, j))
-    return best[1] if best else (0, 0)
+def align(rec: list[Sample], rep: list[Sample], *, tolerance: ToleranceLike) -> list[Pair]:
+    """Pair the two streams' messages in order (hil/stream_align.py): match, differ, deleted, inserted."""
+    tol = _tolerances(tolerance)
+    rec_keys = [content_key(s.type_name, s.fields, tol.of) for s in rec]
+    rep_keys = [content_key(s.type_name, s.fields, tol.of) for s in rep]
+
+    def pair_cost(i: int, j: int) -> float:
+        a, b = rec[i], rep[j]
+        if a.type_name != b.type_name:
+            return 1.0
+        names = set(a.fields) | set(b.fields)
+        return len(differing_fields(a, b, tol)) / max(1, len(names))
+
+    return align_streams(rec_keys, rep_keys, pair_cost=pair_cost)
 
 
-def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance: float, edge: int,
+def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance: ToleranceLike, edge: int,
                    rate: float | None, time_tolerance_s: float, replay_start_ns: int | None = None) -> StreamReport:
     """Compare one stream (see the module docstring); *replay_start_ns*: when the playback began."""
     r = StreamReport(key, len(rec), len(rep))
     if not rec or not rep:
         r.problems.append("only in the replay" if rep else "not reproduced by the replay")
         return r
-    i0, j0 = align(rec, rep, edge=edge, tolerance=tolerance)
-    n = min(len(rec) - i0, len(rep) - j0)
-    r.head_skipped, r.matched = (i0, j0), n
-    r.tail_unmatched = (len(rec) - i0 - n, len(rep) - j0 - n)
+    tol = _tolerances(tolerance)
+    pairs = align(rec, rep, tolerance=tol)
+    paired = [(p.rec, p.rep) for p in pairs if p.rec is not None and p.rep is not None]
+    at_edges: list[str] = []
+    last_rec_t = rec[0].t_ns
+    for p in pairs:
+        if p.rec is not None:
+            last_rec_t = rec[p.rec].t_ns
+        if p.kind in ("match", "differ"):
+            continue
+        own, index = (rec, p.rec) if p.kind == "deleted" else (rep, p.rep)
+        assert index is not None
+        if index < edge or index >= len(own) - edge:
+            at_edges.append(p.kind)
+            continue
+        if p.kind == "deleted":
+            r.deleted += 1
+        else:
+            r.inserted += 1
+        r.events.append(Event(p.kind, index, last_rec_t))
     offsets: list[float] = []
     k0 = 0   # the timing reference: the first pair whose replayed message came after the playback began
     if replay_start_ns is not None:
-        k0 = next((k for k in range(n) if rep[j0 + k].t_ns >= replay_start_ns), n)
-    for k in range(n):
-        a, b = rec[i0 + k], rep[j0 + k]
-        names = differing_fields(a, b, tolerance)
+        k0 = next((k for k, (_, j) in enumerate(paired) if rep[j].t_ns >= replay_start_ns), len(paired))
+    for k, (i, j) in enumerate(paired):
+        a, b = rec[i], rep[j]
+        names = differing_fields(a, b, tol)
         if names:
             r.differing += 1
+        else:
+            r.matched += 1
         for name in names:
             d = r.fields.setdefault(name, FieldDiff(name))
             d.count += 1
@@ -198,170 +290,42 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
                 if math.isfinite(va) and math.isfinite(vb):
                     d.max_abs = max(d.max_abs, abs(float(va) - float(vb)))
             if d.first is None:
-                d.first = (k, va if name != "_type" else a.type_name, vb if name != "_type" else b.type_name)
-        if rate is not None and k >= k0:
-            rec_s = (a.t_ns - rec[i0 + k0].t_ns) / 1e9
-            rep_s = (b.t_ns - rep[j0 + k0].t_ns) / 1e9 * rate
-            offsets.append(abs(rep_s - rec_s))
+                d.first = (i, va if name != "_type" else a.type_name, vb if name != "_type" else b.type_name)
+                d.first_t_ns = a.t_ns
+        if rate is not None and k >= k0 and k0 < len(paired):
+            i0, j0 = paired[k0]
+            offsets.append(abs((b.t_ns - rep[j0].t_ns) / 1e9 * rate - (a.t_ns - rec[i0].t_ns) / 1e9))
     if offsets:
         r.time_p50_s, r.time_max_s = statistics.median(offsets), max(offsets)
         if r.time_max_s > time_tolerance_s:
             r.problems.append(f"timing: a message is {r.time_max_s:.3f} s off its recorded time "
                               f"(tolerance {time_tolerance_s:g} s)")
     if r.differing:
-        r.problems.append(f"{r.differing} of {n} matched messages differ")
-    for where, (a_n, b_n) in (("start", r.head_skipped), ("end", r.tail_unmatched)):
-        for count, what in ((a_n, "recorded message(s) not reproduced"), (b_n, "replayed message(s) not recorded")):
-            if not count:
-                continue
-            text = f"{count} {what} at the {where}"
-            (r.notes if count <= edge else r.problems).append(
-                text + (" (the recording cuts the input there)" if count <= edge else ""))
-    return r
-
-
-def _missing_fields(s: Sample, times: list[int], others: list[Sample], *, window_ns: int,
-                    tolerance: float) -> tuple[list[str], Sample | None]:
-    """Fields of *s* whose value no message of *others* (sorted by time) had within *window_ns* of it,
-    counting the one then held; and the nearest of those messages."""
-    lo = bisect.bisect_left(times, s.t_ns - window_ns)
-    hi = bisect.bisect_right(times, s.t_ns + window_ns)
-    near = others[max(0, lo - 1):hi]
-    if not near:
-        return ["_type"], None
-    nearest = min(near, key=lambda o: abs(o.t_ns - s.t_ns))
-    missing = [] if any(o.type_name == s.type_name for o in near) else ["_type"]
-    missing += [name for name, value in s.fields.items()
-                if not any(values_equal(value, o.fields.get(name), tolerance) for o in near)]
-    return missing, nearest
-
-
-def _elements(fields: dict[str, Any]) -> dict[str, Any]:
-    """*fields* with every list split into its elements (``pulse_us[0]``, ...): each element is a state of its own."""
-    out: dict[str, Any] = {}
-    for name, value in fields.items():
-        if isinstance(value, (list, tuple)):
-            out[f"{name}.len"] = len(value)
-            out.update((f"{name}[{i}]", v) for i, v in enumerate(value))
-        else:
-            out[name] = value
-    return out
-
-
-def compare_states(key: str, rec: list[Sample], rep: list[Sample], *, tolerance: float, edge: int,
-                   time_tolerance_s: float, start_ns: int, end_ns: int, rate: float,
-                   replay_start_ns: int) -> StreamReport:
-    """Compare a state stream over time (see the module docstring)."""
-    rec = [Sample(s.t_ns, s.type_name, _elements(s.fields)) for s in rec]
-    mapped = sorted((Sample(start_ns + int((s.t_ns - replay_start_ns) * rate), s.type_name, _elements(s.fields))
-                     for s in rep), key=lambda s: s.t_ns)
-    # only while the recorded stream ran: before it the recorded service was not up (or not recorded yet)
-    first, last = (max(start_ns, rec[0].t_ns), min(end_ns, rec[-1].t_ns)) if rec else (start_ns, end_ns)
-    inside = [s for s in mapped if first <= s.t_ns <= last]
-    r = StreamReport(key, len(rec), len(inside))
-    r.notes.append("a state stream: compared over time (every field value found on the other side within "
-                   f"{time_tolerance_s:g} s), not message by message")
-    if not rec or not inside:
-        r.problems.append("only in the replay" if inside else "not reproduced by the replay")
-        return r
-    window = int(time_tolerance_s * 1e9)
-    sides = ((rec, mapped, "recorded"), (inside, rec, "replayed"))
-    unmatched = {"recorded": 0, "replayed": 0}
-    at_edges = 0
-    system = SYSTEM_FIELDS.get(key.split(" [", 1)[0], ())
-    decided: dict[str, int] = {}
-    for samples, others, side in sides:
-        times = [o.t_ns for o in others]
-        for i, s in enumerate(samples):
-            missing, nearest = _missing_fields(s, times, others, window_ns=window, tolerance=tolerance)
-            for name in [m for m in missing if m in system]:
-                decided[name] = decided.get(name, 0) + 1
-            missing = [m for m in missing if m not in system]
-            if not missing:
-                if side == "recorded":
-                    r.matched += 1
-                continue
-            if i < edge or i >= len(samples) - edge:
-                at_edges += 1
-                continue
-            unmatched[side] += 1
-            for name in missing:
-                d = r.fields.setdefault(name, FieldDiff(name))
-                d.count += 1
-                if d.first is None:
-                    mine = s.type_name if name == "_type" else s.fields.get(name)
-                    other = None if nearest is None else (nearest.type_name if name == "_type"
-                                                          else nearest.fields.get(name))
-                    d.first = (i, mine, other) if side == "recorded" else (i, other, mine)
-    r.differing = unmatched["recorded"] + unmatched["replayed"]
-    if r.differing:
-        r.problems.append(f"{unmatched['recorded']} recorded and {unmatched['replayed']} replayed messages hold a "
-                          f"field value the other side did not have within {time_tolerance_s:g} s")
+        r.problems.append(f"{r.differing} of {len(paired)} paired messages differ")
+    if r.deleted:
+        r.problems.append(f"{r.deleted} recorded message(s) not reproduced (deleted)")
+    if r.inserted:
+        r.problems.append(f"{r.inserted} replayed message(s) not in the recording (inserted)")
     if at_edges:
-        r.notes.append(f"{at_edges} message(s) at the start or end of the window without a counterpart "
-                       "(the recording cuts the input there)")
-    if decided:
-        r.notes.append("decided from the whole system's health, which a driver-level replay does not reproduce "
-                       f"(not a difference): {', '.join(f'{n} in {c}' for n, c in sorted(decided.items()))}")
+        r.notes.append(f"{len(at_edges)} message(s) without a counterpart among the first or last {edge} of a "
+                       "stream (the recording cuts the input there)")
     return r
-
-
-@dataclass
-class CompareReport:
-    """Every stream's comparison."""
-
-    recorded: Path
-    replayed: Path
-    streams: list[StreamReport]
-    tolerance: float
-    timed: bool
-
-    @property
-    def ok(self) -> bool:
-        """True when no stream differs."""
-        return all(s.ok for s in self.streams)
-
-    def format(self) -> str:
-        """The printed report."""
-        lines = [f"compare: recorded {self.recorded} vs replayed {self.replayed} (tolerance {self.tolerance:g}; "
-                 f"header timestamp and sequence not compared{'' if self.timed else '; timing not checked (--fast)'})",
-                 f"{'STREAM':32} {'RECORDED':>8} {'REPLAYED':>8} {'MATCHED':>7} {'DIFFER':>6} "
-                 f"{'TIME p50/max s':>15}  RESULT"]
-        for s in self.streams:
-            timing = "-" if s.time_max_s is None else f"{s.time_p50_s:.3f}/{s.time_max_s:.3f}"
-            result = "DIFFERENT" if not s.ok else "same" if s.recorded else "new"
-            lines.append(f"{s.key:32} {s.recorded:>8} {s.replayed:>8} {s.matched:>7} {s.differing:>6} "
-                         f"{timing:>15}  {result}")
-        for s in self.streams:
-            for problem in s.problems:
-                lines.append(f"  {s.key}: {problem}")
-            for d in sorted(s.fields.values(), key=lambda d: -d.count)[:SHOWN_FIELDS]:
-                k, va, vb = d.first or (0, None, None)
-                size = f", max |d| {d.max_abs:.6g}" if d.max_abs else ""
-                lines.append(f"    {d.name}: differs in {d.count} of {s.matched}{size}; first at #{k}: "
-                             f"recorded {va!r}, replayed {vb!r}")
-            if len(s.fields) > SHOWN_FIELDS:
-                lines.append(f"    ... and {len(s.fields) - SHOWN_FIELDS} more fields")
-            for note in s.notes:
-                lines.append(f"  {s.key}: note: {note}")
-        bad = sum(not s.ok for s in self.streams)
-        if not self.streams:
-            lines.append("result: no streams to compare (the replayed services published nothing, "
-                         "and the recording has nothing from them)")
-        else:
-            lines.append(f"result: {'no differences' if not bad else f'{bad} of {len(self.streams)} streams differ'}")
-        return "\n".join(lines)
 
 
 def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[str], start_ns: int | None = None,
-                 end_ns: int | None = None, rate: float | None = 1.0, tolerance: float = 1e-6, edge: int = 1,
+                 end_ns: int | None = None, rate: float | None = 1.0, tolerance: ToleranceLike = 1e-6, edge: int = 1,
                  time_tolerance_s: float = 0.5, ignore: tuple[str, ...] = (),
-                 replay_start_ns: int | None = None) -> CompareReport:
+                 replay_start_ns: int | None = None) -> "CompareReport":
     """Compare the streams of *services* in *recorded* (within the window) and *replayed*; ``rate=None``: no timing.
 
     *replay_start_ns*: the wall-clock time the playback began (log time *start_ns* was played
     then); with a rate and the window it lets state channels be compared over time.
     """
+    from hil.compare_report import CompareReport
+    from hil.compare_states import compare_states
+
+    tol = _tolerances(tolerance)
+    ignore = (*ignore, *tol.ignore)
     rec = load_streams(recorded, sources=services, start_ns=start_ns, end_ns=end_ns, ignore=ignore)
     rep = load_streams(replayed, sources=services, ignore=ignore)
     reports = []
@@ -369,10 +333,10 @@ def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[st
         a, b = rec.get(key, []), rep.get(key, [])
         timed = rate is not None and replay_start_ns is not None and start_ns is not None and end_ns is not None
         if timed and key.split(" [", 1)[0] in STATE_CHANNELS:
-            reports.append(compare_states(key, a, b, tolerance=tolerance, edge=edge, time_tolerance_s=time_tolerance_s,
+            reports.append(compare_states(key, a, b, tolerance=tol, edge=edge, time_tolerance_s=time_tolerance_s,
                                           start_ns=start_ns, end_ns=end_ns, rate=rate, replay_start_ns=replay_start_ns))
         else:
-            reports.append(compare_stream(key, a, b, tolerance=tolerance, edge=edge, rate=rate,
+            reports.append(compare_stream(key, a, b, tolerance=tol, edge=edge, rate=rate,
                                           time_tolerance_s=time_tolerance_s, replay_start_ns=replay_start_ns))
     recorded_sources = {key.rsplit(" [", 1)[1] for key in rec}
     for r in reports:
@@ -380,4 +344,5 @@ def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[st
             # a service that was not running (or not recorded) in the log: nothing to compare with
             r.problems.clear()
             r.notes.append("the recording has nothing from this service to compare with")
-    return CompareReport(Path(recorded), Path(replayed), reports, tolerance, rate is not None)
+    origin = start_ns if start_ns is not None else min((v[0].t_ns for v in rec.values() if v), default=0)
+    return CompareReport(Path(recorded), Path(replayed), reports, tol, rate is not None, origin)

@@ -23,11 +23,13 @@ COMMAND_MODULES = [
     "u2sa_hw.cli.record_cmd",
     "u2sa_hw.cli.run_cmd",
     "u2sa_hw.cli.health_cmd",
+    "u2sa_hw.cli.foxglove_cmd",
     "u2sa_hw.cli.install_cmd",
     "u2sa_hw.cli.key_cmd",
     "u2sa_hw.cli.mock_cmd",
     "u2sa_hw.cli.sim_cmd",
     "u2sa_hw.cli.replay_cmd",
+    "u2sa_hw.cli.replay_check_cmd",
 ]
 
 EPILOG = """\

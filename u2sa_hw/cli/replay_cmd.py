@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 from typing import Any
@@ -62,6 +63,10 @@ def register(sub: Any) -> None:
                    help="unmatched messages allowed at each end of a stream (default 1)")
     p.add_argument("--ignore", action="append", default=[], metavar="GLOB",
                    help="fields not compared, e.g. --ignore 'psi_sigma' (repeatable)")
+    p.add_argument("--tolerances", metavar="FILE",
+                   help='per-field float tolerances, TOML: default = 1e-6, [fields] "*sigma*" = 1e-3, '
+                        'ignore = ["psi_sigma"] (docs/replay.md)')
+    p.add_argument("--json", action="store_true", help="with --compare: print the comparison as JSON on stdout")
     p.add_argument("--keep", action="store_true", help="keep the run directory (configs, service logs)")
     p.add_argument("--verbose", action="store_true", help="show the services' output")
     p.set_defaults(func=cmd_replay)
@@ -84,6 +89,7 @@ def cmd_replay(args: Any) -> int:
 
     if args.rate <= 0:
         raise CliError(f"--rate must be > 0, got {args.rate:g}", 2)
+    tolerances = load_tolerances(args)
     options = ReplayOptions(rate=args.rate, fast=args.fast, start_s=args.start, end_s=args.end,
                             services=args.services, overrides=args.overrides,
                             out=Path(args.out) if args.out else None,
@@ -99,22 +105,41 @@ def cmd_replay(args: Any) -> int:
         result = replay.run()
     except (ReplayError, RuntimeError) as exc:
         raise CliError(f"{exc}\n(replay files kept in {replay.run_dir})", failed) from None
-    print(result.summary(fast=replay.fast, rate=replay.rate))
+    out = sys.stderr if args.json else sys.stdout   # --json keeps stdout for the JSON alone
+    print(result.summary(fast=replay.fast, rate=replay.rate), file=out)
     for name, report in result.devices.items():
         if report.get("divergences"):
             print(f"u2sa: note: device {name}: {report.get('divergence', 'diverged from the recording')}",
                   file=sys.stderr)
     if result.run_dir is not None:
-        print(f"run directory kept: {result.run_dir}")
+        print(f"run directory kept: {result.run_dir}", file=out)
     if not args.compare:
         return 0
     report = compare_logs(result.plan.log, result.out, services=set(result.plan.services),
                           start_ns=result.plan.start_ns, end_ns=result.plan.end_ns,
-                          rate=None if replay.fast else replay.rate, tolerance=args.tolerance, edge=args.edge,
+                          rate=None if replay.fast else replay.rate, tolerance=tolerances, edge=args.edge,
                           time_tolerance_s=args.time_tolerance, ignore=tuple(args.ignore),
                           replay_start_ns=result.play.started_ns or None)
-    print(report.format())
+    if args.json:
+        print(json.dumps(report.to_dict(), indent=1))
+    else:
+        print(report.format())
     if result.lost:
         print(f"note: {result.lost} messages of the replayed services were lost on the replay bus; "
-              "count differences may come from that rather than from the drivers")
+              "count differences may come from that rather than from the drivers", file=sys.stderr)
     return 0 if report.ok else 1
+
+
+def load_tolerances(args: Any) -> Any:
+    """The ``Tolerances`` of ``--tolerance`` and ``--tolerances FILE``; CliError (exit 2) naming the file."""
+    from hil.compare import Tolerances
+    from u2sa_hw.cli import CliError
+
+    if args.tolerance < 0 or args.tolerance != args.tolerance:
+        raise CliError(f"--tolerance must be a number >= 0, got {args.tolerance!r}", 2)
+    if not args.tolerances:
+        return Tolerances(args.tolerance)
+    try:
+        return Tolerances.load(args.tolerances, default=args.tolerance)
+    except ValueError as exc:
+        raise CliError(str(exc), 2) from None

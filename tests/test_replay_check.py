@@ -1,0 +1,136 @@
+"""``u2sa replay --compare`` on an edited log and ``u2sa replay-check DIR``: a GPS epoch cut out of a
+recorded log is reported as exactly one deletion (the other fixes still match), and the gate
+replays a directory of logs with a progress line per log, one table, and the exit status."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+from typing import Callable, Iterator
+
+import pytest
+from conftest import REPO
+from mcap.reader import make_reader
+from mcap.writer import Writer
+from test_replay import record_driver_log
+
+from u2sa_hw.channels import base_type
+from u2sa_hw.lcmtypes import RawSerial
+from u2sa_hw.messages import REGISTRY
+
+U2SA = [sys.executable, "-m", "u2sa_hw.cli"]
+SENTENCE = re.compile(rb"\$[A-Z]{2}([A-Z]{3}),([0-9.]*)[^\r\n]*\r?\n")
+
+
+@pytest.fixture(scope="module")
+def driver_log(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    yield record_driver_log(tmp_path_factory.mktemp("recorded"), gps_epochs=25, compass_epochs=40)
+
+
+def copy_log(src: Path, dst: Path, edit: Callable[[str, bytes], bytes]) -> None:
+    """Copy an MCAP record by record (schemas, channels, messages, attachments, metadata); *edit*
+    gets each message's channel and data and returns the data to write."""
+    with src.open("rb") as f_in, dst.open("wb") as f_out:
+        reader = make_reader(f_in)
+        header = reader.get_header()
+        writer = Writer(f_out)
+        writer.start(profile=header.profile, library=header.library)
+        summary = reader.get_summary()
+        assert summary is not None
+        schema_ids = {sid: writer.register_schema(s.name, s.encoding, s.data) for sid, s in summary.schemas.items()}
+        channel_ids = {cid: writer.register_channel(c.topic, c.message_encoding, schema_ids.get(c.schema_id, 0),
+                                                    dict(c.metadata)) for cid, c in summary.channels.items()}
+        for _schema, channel, message in reader.iter_messages(log_time_order=False):
+            writer.add_message(channel_ids[channel.id], message.log_time, edit(channel.topic, message.data),
+                               message.publish_time, message.sequence)
+        for attachment in reader.iter_attachments():
+            writer.add_attachment(attachment.create_time, attachment.log_time, attachment.name,
+                                  attachment.media_type, attachment.data)
+        for metadata in reader.iter_metadata():
+            writer.add_metadata(metadata.name, dict(metadata.metadata))
+        writer.finish()
+
+
+def gps_times(log: Path) -> list[bytes]:
+    """The UTC times of the GGA sentences the GPS sent in *log*, in order."""
+    times: list[bytes] = []
+    with log.open("rb") as f:
+        for _s, channel, message in make_reader(f).iter_messages():
+            if channel.topic == "RAW.gps":
+                raw, _ = REGISTRY.decode(message.data, base_type("RAW.gps"))
+                times += [m.group(2) for m in SENTENCE.finditer(bytes(raw.data)) if m.group(1) == b"GGA"]
+    return times
+
+
+def without_epoch(log: Path, out: Path, utc: bytes) -> int:
+    """Copy *log* with every GPS sentence stamped *utc* removed; returns how many were removed."""
+    removed = 0
+
+    def edit(topic: str, data: bytes) -> bytes:
+        nonlocal removed
+        if topic != "RAW.gps":
+            return data
+        raw, _ = REGISTRY.decode(data, base_type("RAW.gps"))
+        assert isinstance(raw, RawSerial)
+        kept = SENTENCE.sub(lambda m: b"" if m.group(2) == utc else m.group(0), bytes(raw.data))
+        if kept == bytes(raw.data):
+            return data
+        removed += len(SENTENCE.findall(bytes(raw.data))) - len(SENTENCE.findall(kept))
+        raw.data, raw.length = kept, len(kept)
+        return raw.encode()
+
+    copy_log(log, out, edit)
+    return removed
+
+
+def run(*args: str, cwd: Path, timeout: float = 240) -> subprocess.CompletedProcess:
+    return subprocess.run([*U2SA, *args], cwd=cwd, capture_output=True, text=True, timeout=timeout,
+                          env={**os.environ, "PYTHONPATH": str(REPO)})
+
+
+def test_a_gps_epoch_removed_from_the_log_is_one_deletion_and_the_rest_match(driver_log: Path, tmp_path: Path) -> None:
+    times = gps_times(driver_log)
+    assert len(times) >= 20
+    edited = tmp_path / "edited.mcap"
+    assert without_epoch(driver_log, edited, times[len(times) // 2]) >= 1
+    res = run("replay", str(edited), "--fast", "--compare", "--json", "-o", str(tmp_path / "out.mcap"), cwd=tmp_path)
+    assert res.returncode == 1, res.stdout + res.stderr
+    report = json.loads(res.stdout)
+    gps = next(s for s in report["streams"] if s["stream"] == "STATE_INFO [gps]")
+    assert (gps["deleted"], gps["inserted"], gps["different"]) == (1, 0, 0), gps
+    assert gps["matched"] >= 15 and gps["events"][0]["kind"] == "deleted"
+    compass = next(s for s in report["streams"] if s["stream"] == "STATE_INFO [compass]")
+    assert compass["ok"], compass
+
+
+def test_replay_check_replays_a_directory_with_progress_a_table_and_the_exit_status(driver_log: Path,
+                                                                                     tmp_path: Path) -> None:
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    copy_log(driver_log, logs / "a-clean.mcap", lambda _t, d: d)
+    times = gps_times(driver_log)
+    without_epoch(driver_log, logs / "b-cut.mcap", times[len(times) // 2])
+    (logs / "c-damaged.mcap").write_bytes(b"\x89MCAP0\r\n" + b"\0" * 40)
+    res = run("replay-check", str(logs), cwd=tmp_path, timeout=400)
+    assert res.returncode == 2, res.stdout + res.stderr      # a log that cannot be replayed wins
+    assert re.search(r"\[1/3\] .*a-clean\.mcap: same", res.stderr), res.stderr
+    assert re.search(r"\[2/3\] .*b-cut\.mcap: DIFFERENT", res.stderr), res.stderr
+    assert re.search(r"\[3/3\] .*c-damaged\.mcap: FAILED", res.stderr), res.stderr
+    assert "replay-check: 3 logs: 1 same, 1 different, 1 could not be replayed" in res.stdout
+
+    (logs / "c-damaged.mcap").unlink()
+    res = run("replay-check", str(logs), "--json", cwd=tmp_path, timeout=400)
+    assert res.returncode == 1, res.stdout + res.stderr
+    results = {Path(r["log"]).name: r for r in json.loads(res.stdout)}
+    assert results["a-clean.mcap"]["status"] == "same" and results["b-cut.mcap"]["status"] == "DIFFERENT"
+
+
+def test_replay_check_refuses_a_directory_without_logs(tmp_path: Path) -> None:
+    res = run("replay-check", str(tmp_path), cwd=tmp_path, timeout=60)
+    assert res.returncode == 2 and "no .mcap logs" in res.stderr
+    res = run("replay-check", str(tmp_path / "nope"), cwd=tmp_path, timeout=60)
+    assert res.returncode == 2 and "not a directory" in res.stderr
