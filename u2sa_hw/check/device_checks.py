@@ -18,9 +18,8 @@ import re
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
-from u2sa_hw.check.problem import Collector, did_you_mean, type_name
+from u2sa_hw.check.problem import WARNING, Collector, did_you_mean, type_name
 
-DEVICE_KEYS = ("address", "mock", "service", "options", "sides", "drives")
 UDEV_RULES_DIRS = (Path("/etc/udev/rules.d"), Path("/run/udev/rules.d"), Path("/lib/udev/rules.d"),
                    Path("/usr/lib/udev/rules.d"))
 UDEV_DIRS_ENV = "U2SA_UDEV_RULES_DIRS"   # colon-separated directories instead of the above (tests, staged roots)
@@ -39,6 +38,9 @@ def check_devices(path: Path, data: Mapping[str, Any], out: Collector, *, profil
     services = data.get("services", {}) if isinstance(data.get("services"), dict) else {}
     if not isinstance(devices, dict):
         return
+    from u2sa_hw.devices import DEVICE_KEYS, LEGACY_DEVICE_KEYS
+
+    known_keys = (*DEVICE_KEYS, *LEGACY_DEVICE_KEYS)
     catalog = _mock_catalog()
     mocked: set[str] = set()
     for name, table in devices.items():
@@ -47,7 +49,7 @@ def check_devices(path: Path, data: Mapping[str, Any], out: Collector, *, profil
             out.error(key, f"must be a table, got {type_name(table)}", f"write [devices.{name}] with address = \"...\"")
             continue
         for k in table:
-            if k not in DEVICE_KEYS:
+            if k not in known_keys:
                 out.error(f"{key}.{k}", f"unknown key '{k}'{did_you_mean(k, DEVICE_KEYS)}",
                           f"a device table has {', '.join(DEVICE_KEYS)}")
         service = table.get("service", name)
@@ -82,17 +84,21 @@ def _mock_catalog() -> Mapping[str, Any] | None:
 
 
 def _check_addresses(profile: Any, out: Collector, *, for_sim: bool) -> None:
-    """Each device's address parses (through u2sa_hw.devices when the profile carries addresses)."""
+    """Each device's address parses and belongs to a service; the old form (service settings) is a warning."""
+    from u2sa_hw.devices import profile_devices
+    from u2sa_hw.vehicle import ProfileError
+
     if profile is None:
         return
+    notices: list[str] = []
     try:
-        from u2sa_hw.devices import profile_devices
-    except ImportError:
-        return
-    try:
-        profile_devices(profile)
-    except (ValueError, LookupError) as exc:
+        profile_devices(profile, warn=notices.append)
+    except ProfileError as exc:
+        if any(p.is_error and p.key.startswith("devices.") for p in out.problems):
+            return   # the table errors above are what it stopped at
         out.from_text(str(exc), key="devices", fix="write the address as docs/ports.md shows")
+    for text in notices:
+        out.from_text(text, key="services", fix="", severity=WARNING)
 
 
 def _check_mocks(services: Mapping[str, Any], mocked: set[str], out: Collector) -> None:
@@ -114,41 +120,24 @@ def _check_mocks(services: Mapping[str, Any], mocked: set[str], out: Collector) 
                   f"in [services.{name}]")
 
 
-def serial_paths(profile: Any) -> Iterable[tuple[str, str, str]]:
-    """``(device or service name, key, path)`` of every serial device node the profile names."""
-    try:
-        from u2sa_hw.devices import profile_devices
-    except ImportError:
-        profile_devices = None
-    if profile_devices is not None:
-        try:
-            entries = profile_devices(profile)
-        except (ValueError, LookupError):
-            return []   # reported by _check_addresses
-        found = []
-        for name, entry in entries.items():
-            address = getattr(entry, "address", entry)
-            if getattr(address, "kind", "") == "serial":
-                found.append((name, f"devices.{name}.address", str(getattr(address, "path", ""))))
-        return found
-    # Profiles from before device addresses name the port in the service's settings.
-    return [(name, f"services.{name}.settings.port", str(spec.settings["port"]))
-            for name, spec in profile.services.items()
-            if spec.enabled and isinstance(spec.settings.get("port"), str)]
+def serial_devices(profile: Any) -> list[tuple[str, str, Any]]:
+    """``(device name, key, address)`` of every real serial device node of the enabled services."""
+    from u2sa_hw.devices import profile_devices
+    from u2sa_hw.vehicle import ProfileError
 
-
-def _usb_identified(profile: Any, name: str) -> bool:
-    """Whether device *name*'s address carries a USB id or serial number (install writes its udev rule)."""
     try:
-        from u2sa_hw.devices import profile_devices
-    except ImportError:
-        return False
-    try:
-        entry = profile_devices(profile).get(name)
-    except (ValueError, LookupError):
-        return False
-    address = getattr(entry, "address", entry)
-    return any(getattr(address, attr, None) for attr in ("usb", "usb_id", "usb_serial", "serial_number"))
+        entries = profile_devices(profile, warn=lambda _text: None)
+    except ProfileError:
+        return []   # reported by _check_addresses
+    found = []
+    for name, entry in entries.items():
+        spec = profile.services.get(entry.service)
+        address = entry.address
+        if spec is not None and spec.enabled and address.kind == "serial" and not address.mock \
+                and not address.is_serial_url:
+            key = f"services.{entry.service}.settings.port" if entry.legacy else f"devices.{name}.address"
+            found.append((name, key, address))
+    return found
 
 
 def rules_dirs() -> list[Path]:
@@ -186,17 +175,19 @@ def udev_line(link: str) -> str:
 
 
 def _check_device_nodes(profile: Any, out: Collector) -> None:
-    """Each ``/dev/u2sa/NAME`` path is created by an installed udev rule or by the address's USB id."""
+    """Each ``/dev/u2sa/NAME`` path is created by the address's USB identity or an installed udev rule."""
     dirs = rules_dirs()
-    for name, key, path in serial_paths(profile):
+    for name, key, address in serial_devices(profile):
+        path = address.serial_path
         if not path.startswith(U2SA_DEV):
             continue
         link = path[len("/dev/"):]
-        if _usb_identified(profile, name) or rule_creates(link, dirs):
+        if address.usb_id or address.usb_serial or rule_creates(link, dirs):
             continue
         out.error(key, f"nothing creates {path}: the address has no USB id or serial number and no installed "
                   "udev rule makes that link",
-                  f"give the address the adapter's USB id (docs/ports.md), or add to "
+                  f"give the address the adapter's identity, e.g. {address.url}{'&' if '?' in address.url else '?'}"
+                  f"usb=VID:PID&serial=SERIAL (u2sa install writes the rule), or add to "
                   f"/etc/udev/rules.d/65-u2sa-vehicle.rules: {udev_line(link)} "
                   "(udevadm info -a -n /dev/ttyUSB0 shows the values)")
 

@@ -207,18 +207,15 @@ def _check_config(name: str, cls: Any, settings: Any, config_path: Path, *, expl
 
 def _check_semantics(name: str, cls: Any, values: dict[str, Any], config_path: Path, fields: Mapping[str, Any], *,
                      profile: Any, out: Collector) -> None:
-    """The kind's own validation (ranges, combinations) of the whole effective config."""
+    """The kind's own validation (ranges, combinations) of the whole effective config.
+
+    The per-value rules (type, choices, bounds) were checked above through config.coerce;
+    this runs the kind's ``validate_config`` hook on an instance that has only its name and
+    config (nothing opened, no bus), as a change over the bus would.
+    """
     from u2sa_hw.config import ConfigError, Configurator
 
     key = f"services.{name}.settings"
-    try:
-        from u2sa_hw.config_validate import validate_settings   # the typed fields' ranges and the kind's hook
-    except ImportError:
-        validate_settings = None
-    if validate_settings is not None:
-        for text in validate_settings(cls_kind(cls, values), values, where=f"services.{name}"):
-            out.from_text(text, key=key, fix="see the service's settings (u2sa service KIND --help-config)")
-        return
     config = Configurator(None, fields.values(), logger=_quiet, initial=values)
     service = cls.__new__(cls)   # the kind's checks read only its name and config; nothing is opened
     service.name, service.config, service.logger = name, config, _quiet
@@ -238,14 +235,6 @@ def _check_semantics(name: str, cls: Any, values: dict[str, Any], config_path: P
         text = reason.split(": ", 1)[1] if reason.startswith(("service '", f"{name}: ")) else reason
         out.error(key, text, "change the value in the profile's settings or the service's config file "
                   f"{config_path}")
-
-
-def cls_kind(cls: Any, values: Mapping[str, Any]) -> str:
-    """The registry kind of service class *cls* (for validate_settings, which takes a kind)."""
-    from u2sa_hw.registry import known_kinds
-
-    target = f"{cls.__module__}:{cls.__qualname__}"
-    return next((k for k, v in known_kinds().items() if v == target), cls.__name__)
 
 
 def _check_files(name: str, values: Mapping[str, Any], fields: Mapping[str, Any], *, base: Path, profile: Any,

@@ -16,6 +16,7 @@ from u2sa_hw import __version__
 
 COMMAND_MODULES = [
     "u2sa_hw.cli.service_cmd",
+    "u2sa_hw.cli.check_cmd",
     "u2sa_hw.cli.bus_cmds",
     "u2sa_hw.cli.param_cmd",
     "u2sa_hw.cli.mission_cmd",
