@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 import random
 
-from mock_devices.i2c_bus import RegisterChip, RestingVehicle, Vehicle
+from mock_devices.i2c_chip import RegisterChip, RestingVehicle, Vehicle
 from u2sa_hw.ports.i2c_port import OP_READ, STATUS_NACK
 from u2sa_hw.protocols import mpu9250 as mpu
 
