@@ -112,7 +112,10 @@ def test_restart_policy_doubles_caps_decays_and_gives_up() -> None:
         RestartPolicy(initial_backoff_s=5.0, max_backoff_s=1.0)
 
 
-SLOW_CRASH = ("import os, sys, time\n"
+SLOW_CRASH = ("import os, socket, sys, time\n"
+              "addr = os.environ['NOTIFY_SOCKET']\n"
+              "with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as s:\n"
+              "    s.sendto(b'READY=1', '\\0' + addr[1:] if addr.startswith('@') else addr)\n"
               "time.sleep(float(os.environ['CRASH_AFTER_S']))\n"
               "print('crashing now', flush=True)\n"
               "sys.exit(3)\n")
@@ -140,6 +143,32 @@ def test_a_service_that_crashes_after_a_healthy_looking_start_is_given_up(tmp_pa
     assert status.state == "failed" and status.quick_deaths == 0 and status.failures == 3
     assert status.reason == "3 failed exits within 120 s, last exited with status 3"
     assert lines.count(("slow", "crashing now")) == 3
+
+
+NEVER_READY_CRASH = ("import time, sys\n"
+                     "time.sleep(0.3)\n"   # longer than quick_death_s: a slow start on a busy machine
+                     "sys.exit(4)\n")
+
+
+def test_a_run_that_dies_before_it_is_ready_is_a_quick_death_however_long_it_took(tmp_path: Path,
+                                                                                   lcm_url: str) -> None:
+    # Healthy uptime counts from READY=1: a child that never came up backs off and is given up on
+    # by the quick-death rule, whatever a loaded machine made its start cost.
+    profile = load_profile(write_profile(tmp_path, lcm_url, {"slow": "state_estimator"}))
+    lines: list[tuple[str, str]] = []
+    policy = RestartPolicy(initial_backoff_s=0.05, quick_death_s=0.1, give_up_after=3, max_failures=0)
+    launcher = Launcher(profile, policy=policy, control=False, output=lambda n, line: lines.append((n, line)),
+                        command=lambda spec: [sys.executable, "-c", NEVER_READY_CRASH])
+    launcher.start()
+    try:
+        assert launcher.wait(60), "the launcher never gave up on a service that never became ready"
+    finally:
+        launcher.stop(timeout=10)
+    said = [line for name, line in lines if name == "launcher"]
+    delays = [float(d) for d in re.findall(r"slow exited with status 4 .*never ready.*restarting in ([0-9.]+) s",
+                                            "\n".join(said))]
+    assert delays == [0.05, 0.1], said
+    assert any("giving up after 3 quick deaths in a row" in line for line in said), said
 
 
 def test_failures_outside_the_window_are_forgotten() -> None:

@@ -367,6 +367,7 @@ class Launcher:
             self.say("stopping now: SIGKILL")
             for p in self.processes.values():
                 p.signal(signal.SIGKILL)
+        self._on_notifications()   # a READY sent before a death counts before that death is judged
         for p in self.processes.values():
             account = p.poll()
             if account is not None:

@@ -3,7 +3,9 @@
 A :class:`SupervisedProcess` keeps the *desired* state (running or stopped) apart from
 the *observed* one (running, stopping, backoff, exited, stopped, failed). Every start is
 an edge with a new run id. A death is judged by :class:`RestartPolicy`: a quick death
-(uptime below ``quick_death_s``) doubles the respawn delay, healthy uptime makes it decay,
+(healthy uptime below ``quick_death_s``; healthy uptime counts from the run's READY=1, so a
+run that died before it came up is a quick death however slowly it started) doubles the
+respawn delay, healthy uptime makes it decay,
 and the process is given up (state ``failed``) after too many quick deaths in a row or
 too many failed exits within a window (a service that crashes every few seconds after a
 healthy-looking start would otherwise restart forever).
@@ -159,6 +161,7 @@ class SupervisedProcess:
         self.last_exit = ""
         self.reason = ""
         self.ready = False            # the current run said READY=1
+        self.ready_at = 0.0           # ... at this time: healthy uptime counts from here
         self.status_text = ""         # ... and its latest STATUS=
         self.watchdog = WatchdogTimer(watchdog or WatchdogSetting(timeout_s=0.0))
         self.watchdog_kills = 0
@@ -244,7 +247,11 @@ class SupervisedProcess:
         if code == 0 and not self.watchdog.fired:
             self.state = EXITED
             return f"{self.last_exit} after {uptime:.1f} s; not restarted (a clean exit is deliberate)"
-        return self._judge_death(uptime=uptime, prefix=f"{self.last_exit} after {uptime:.1f} s")
+        # Healthy uptime counts from READY: a run that died before it came up is a quick death however
+        # long it took to start (on a loaded machine an import can take seconds).
+        healthy = self.clock() - self.ready_at if self.ready else 0.0
+        return self._judge_death(uptime=healthy, prefix=f"{self.last_exit} after {uptime:.1f} s"
+                                 f"{'' if self.ready else ' (never ready)'}")
 
     def failures_in_window(self) -> int:
         """Failed exits within the policy's ``failure_window_s`` up to now."""
@@ -280,6 +287,7 @@ class SupervisedProcess:
         self.watchdog.on_fields(fields, self.clock())
         if fields.get("READY") == "1" and not self.ready:
             self.ready = True
+            self.ready_at = self.clock()
             return True
         return False
 
