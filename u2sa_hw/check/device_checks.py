@@ -188,7 +188,7 @@ def _check_device_nodes(profile: Any, out: Collector) -> None:
                   "udev rule makes that link",
                   f"give the address the adapter's identity, e.g. {address.url}{'&' if '?' in address.url else '?'}"
                   f"usb=VID:PID&serial=SERIAL (u2sa install writes the rule), or add to "
-                  f"/etc/udev/rules.d/65-u2sa-vehicle.rules: {udev_line(link)} "
+                  f"/etc/udev/rules.d/66-u2sa-local.rules (install rewrites 65-u2sa-vehicle.rules): {udev_line(link)} "
                   "(udevadm info -a -n /dev/ttyUSB0 shows the values)")
 
 
