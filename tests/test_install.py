@@ -6,6 +6,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -31,7 +32,6 @@ kind = "state_estimator"
 [services.gps]
 kind = "gps_nmea"
 config = "elsewhere/gps.toml"
-settings = { port = "/dev/u2sa/gps" }
 
 [services.hsm]
 kind = "hsm"
@@ -44,11 +44,18 @@ enabled = false
 kind = "pwm_servo"
 settings = { channels = [{ name = "rudder", address = "/sys/class/pwm/pwmchip0", channel = 0 }] }
 
-[devices.gps]
-usb = { vendor = "1546", product = "01A7", serial = "A1B2" }
+[services.wheels]
+kind = "odrive_can"
 
-[devices.motors]
-can = { channel = "can0", bitrate = 1000000 }
+[devices.gps]
+address = "serial:///dev/u2sa/gps?baud=9600&usb=1546:01A7&serial=A1B2"
+
+[devices.rudder]
+address = "pwm://pwmchip0/0"
+service = "rudder"
+
+[devices.wheels]
+address = "can://socketcan/can0?bitrate=1000000"
 """
 
 
@@ -58,7 +65,7 @@ def vehicle(tmp_path: Path) -> Path:
     (src / "params").mkdir(parents=True)
     (src / "elsewhere").mkdir()
     (src / "params" / "estimator.toml").write_text("sensor_timeout_s = 3.0\n")
-    (src / "elsewhere" / "gps.toml").write_text("baudrate = 9600\n")
+    (src / "elsewhere" / "gps.toml").write_text("stale_after_s = 2.0\n")
     path = src / "vehicle.toml"
     path.write_text(PROFILE)
     return path
@@ -92,8 +99,8 @@ def test_install_stages_units_configs_rules_users_and_links(vehicle: Path, root:
     assert not (units / "u2sa@recorder.service.d").exists()  # this vehicle has no recorder
     wants = units / "u2sa.target.wants"
     assert sorted(os.listdir(wants)) == ["u2sa-hsm.service", "u2sa@estimator.service", "u2sa@gps.service",
-                                         "u2sa@rudder.service"]
-    # Only the sysfs PWM service gets a writable /sys.
+                                         "u2sa@rudder.service", "u2sa@wheels.service"]
+    # Only the service whose device address is a sysfs PWM chip gets a writable /sys.
     assert os.listdir(units / "u2sa@rudder.service.d") == ["50-pwm-sysfs.conf"]
     assert "ProtectKernelTunables=no" in (units / "u2sa@rudder.service.d/50-pwm-sysfs.conf").read_text()
     assert not (units / "u2sa@gps.service.d").exists()
@@ -106,13 +113,15 @@ def test_install_stages_units_configs_rules_users_and_links(vehicle: Path, root:
     text = installed.read_text()
     assert "a comment that" not in text and "installed by `u2sa install`" in text
     prof = load_profile(installed)
-    assert (prof.config_dir, prof.log_dir, prof.data_dir) == (Path("/etc/u2sa/config"), Path("/var/log/u2sa"),
+    # config_dir stays relative: /etc/u2sa/config on the vehicle, inside the tree when staged.
+    assert (prof.config_dir, prof.log_dir, prof.data_dir) == (installed.parent / "config", Path("/var/log/u2sa"),
                                                              Path("/var/lib/u2sa"))
-    assert prof.config_path_for("gps") == Path("/etc/u2sa/config/gps.toml")
-    assert prof.services["gps"].settings == {"port": "/dev/u2sa/gps"} and prof.system_id == 3
+    assert tomllib.loads(text)["vehicle"]["config_dir"] == "config"
+    assert prof.config_path_for("gps") == installed.parent / "config/gps.toml"
+    assert prof.system_id == 3 and prof.devices["gps"]["address"].startswith("serial:///dev/u2sa/gps")
     cfg = root / "etc/u2sa/config"
     assert (cfg / "estimator.toml").read_text() == "sensor_timeout_s = 3.0\n"
-    assert (cfg / "gps.toml").read_text() == "baudrate = 9600\n"
+    assert (cfg / "gps.toml").read_text() == "stale_after_s = 2.0\n"
     # Users and groups in the staged tree; the config dir belongs to group u2sa, setgid, group-writable.
     passwd, group = entries(root / "etc/passwd"), entries(root / "etc/group")
     assert passwd["u2sa"][5:] == ["/var/lib/u2sa", "/usr/sbin/nologin"]
@@ -120,7 +129,7 @@ def test_install_stages_units_configs_rules_users_and_links(vehicle: Path, root:
         assert "u2sa" in group[g][3].split(","), g
     st = cfg.stat()
     assert st.st_gid == int(group["u2sa"][2]) and st.st_mode & 0o7777 == 0o2770
-    # udev rules: static ones and the profile's devices.
+    # udev rules: static ones and the profile's device addresses.
     rules = (root / "etc/udev/rules.d/65-u2sa-vehicle.rules").read_text()
     assert ('SUBSYSTEM=="tty", ATTRS{idVendor}=="1546", ATTRS{idProduct}=="01a7", ATTRS{serial}=="A1B2", '
             'SYMLINK+="u2sa/gps"') in rules
@@ -135,7 +144,7 @@ def test_install_stages_units_configs_rules_users_and_links(vehicle: Path, root:
     manifest = load_manifest(root)
     assert manifest is not None and "u2sa" in manifest.users
     assert manifest.units_enabled == sorted(["u2sa.target", "u2sa@estimator.service", "u2sa@gps.service",
-                                             "u2sa@rudder.service", "u2sa-hsm.service"])
+                                             "u2sa@rudder.service", "u2sa@wheels.service", "u2sa-hsm.service"])
 
 
 def test_second_install_changes_nothing_and_says_so(vehicle: Path, root: Path) -> None:
@@ -201,24 +210,24 @@ def test_the_log_directory_exists_for_the_services_and_the_hsm_before_any_unit_s
 def test_a_config_the_user_changed_is_kept_and_the_new_default_goes_beside_it(vehicle: Path, root: Path) -> None:
     install(vehicle=vehicle, root=root)
     cfg = root / "etc/u2sa/config"
-    (cfg / "gps.toml").write_text("baudrate = 38400\n")  # the user's change (e.g. u2sa param set)
-    (vehicle.parent / "elsewhere/gps.toml").write_text("baudrate = 4800\n")  # a new default
+    (cfg / "gps.toml").write_text("stale_after_s = 3.0\n")  # the user's change (e.g. u2sa param set)
+    (vehicle.parent / "elsewhere/gps.toml").write_text("stale_after_s = 4.0\n")  # a new default
     (vehicle.parent / "params/estimator.toml").write_text("sensor_timeout_s = 5.0\n")  # untouched by the user
     tree = install(vehicle=vehicle, root=root)
-    assert (cfg / "gps.toml").read_text() == "baudrate = 38400\n"
-    assert (cfg / "gps.toml.new").read_text() == "baudrate = 4800\n"
+    assert (cfg / "gps.toml").read_text() == "stale_after_s = 3.0\n"
+    assert (cfg / "gps.toml.new").read_text() == "stale_after_s = 4.0\n"
     assert (cfg / "estimator.toml").read_text() == "sensor_timeout_s = 5.0\n"
     assert not (cfg / "estimator.toml.new").exists()
     assert any(c.action == "kept" and c.path == "/etc/u2sa/config/gps.toml" for c in tree.changes)
     # Again: nothing changes; the user's file still wins.
     assert not install(vehicle=vehicle, root=root).changed
     # The user adopts the default: the .new file goes away and the config is install's again.
-    (cfg / "gps.toml").write_text("baudrate = 4800\n")
+    (cfg / "gps.toml").write_text("stale_after_s = 4.0\n")
     install(vehicle=vehicle, root=root)
     assert not (cfg / "gps.toml.new").exists()
-    (vehicle.parent / "elsewhere/gps.toml").write_text("baudrate = 115200\n")
+    (vehicle.parent / "elsewhere/gps.toml").write_text("stale_after_s = 5.0\n")
     install(vehicle=vehicle, root=root)
-    assert (cfg / "gps.toml").read_text() == "baudrate = 115200\n"
+    assert (cfg / "gps.toml").read_text() == "stale_after_s = 5.0\n"
 
 
 def test_every_recorder_gets_the_recorder_dropin_whatever_its_name(vehicle: Path, root: Path) -> None:
@@ -275,9 +284,9 @@ def test_uninstall_keeps_configs_and_purge_removes_everything(vehicle: Path, roo
     assert "u2sa" in entries(root / "etc/passwd")
     with pytest.raises(InstallError, match="nothing to uninstall"):
         uninstall(root=root)
-    (root / "etc/u2sa/config/gps.toml").write_text("baudrate = 57600\n")
+    (root / "etc/u2sa/config/gps.toml").write_text("stale_after_s = 6.0\n")
     install(vehicle=vehicle, root=root)  # still knows the config was changed by the user
-    assert (root / "etc/u2sa/config/gps.toml").read_text() == "baudrate = 57600\n"
+    assert (root / "etc/u2sa/config/gps.toml").read_text() == "stale_after_s = 6.0\n"
     uninstall(root=root, purge=True)
     assert not (root / "etc/u2sa").exists() and not (root / "var/log/u2sa").exists()
     assert "u2sa" not in entries(root / "etc/passwd")
@@ -289,8 +298,8 @@ def test_uninstall_keeps_configs_and_purge_removes_everything(vehicle: Path, roo
 
 @pytest.mark.parametrize("change, message", [
     ('[services.hsm]\nkind = "hsm"', "[services.monitor]\nkind = \"hsm\"", ),
-    ('vendor = "1546"', 'vendor = "15x6"'),
-    ("bitrate = 1000000", 'bitrate = "fast"'),
+    ("usb=1546:01A7", "usb=15x6:01A7"),
+    ("bitrate=1000000", "bitrate=fast"),
     ("[services.spare]", "[services.'bad name']"),
 ])
 def test_a_bad_profile_is_refused_before_anything_is_written(vehicle: Path, root: Path, change: str,

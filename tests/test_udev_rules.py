@@ -1,5 +1,5 @@
-"""The udev rules parse, the generated rule names /dev/u2sa/NAME for the right device, and
-the CAN rule brings the profile's interface up at its bitrate.
+"""The udev rules parse, the rule generated from a device address names /dev/u2sa/NAME for the
+right device, and the CAN rule brings the address's interface up at its bitrate.
 
 Two judges. Everywhere: a Python parser of udev(7)'s syntax (tests/udev_rules_syntax.py)
 checks every rules file -- the static ones of udev/ and the 65-u2sa-vehicle.rules that
@@ -23,7 +23,8 @@ from pathlib import Path
 import pytest
 from udev_rules_syntax import RulesSyntaxError, matches, parse_rules
 
-from u2sa_hw.install.units import render_vehicle_rules
+from u2sa_hw.devices import profile_devices
+from u2sa_hw.install.udev import plan_devices, render_rules
 from u2sa_hw.vehicle import load_profile
 
 UDEV_DIR = Path(__file__).resolve().parent.parent / "udev"
@@ -70,13 +71,37 @@ def run_udevadm(tmp_path: Path, rules: dict[str, str]) -> dict[str, str]:
     return {"can0": can0, "can1": can1}
 
 
+PROFILE = """\
+[vehicle]
+name = "r"
+
+[services.gps]
+kind = "gps_nmea"
+
+[devices.gps]
+address = "serial:///dev/u2sa/gps?baud=9600&usb=1546:01A7&serial=GPS-1"
+
+[services.compass]
+kind = "compass_serial"
+
+[devices.compass]
+address = "serial:///dev/u2sa/compass?baud=4800&serial=FT4XYZ"
+
+[services.motors]
+kind = "odrive_can"
+
+[devices.motors]
+address = "can://socketcan/can0?bitrate=250000"
+"""
+
+
 def our_rules(tmp_path: Path) -> dict[str, str]:
+    """The static rules and the vehicle rules install generates from PROFILE's device addresses."""
     profile = tmp_path / "vehicle.toml"
-    profile.write_text("[vehicle]\nname = \"r\"\n[devices.gps]\n"
-                       "usb = { vendor = \"1546\", product = \"01a7\", serial = \"GPS-1\", interface = \"00\" }\n"
-                       "[devices.motors]\ncan = { channel = \"can0\", bitrate = 250000 }\n")
+    profile.write_text(PROFILE)
+    plan = plan_devices(profile_devices(load_profile(profile), warn=lambda _: None), profile_path=profile)
     rules = {p.name: p.read_text() for p in sorted(UDEV_DIR.glob("*.rules"))}
-    rules["65-u2sa-vehicle.rules"] = render_vehicle_rules(load_profile(profile)).decode()
+    rules["65-u2sa-vehicle.rules"] = render_rules(plan, profile="/etc/u2sa/vehicle.toml").decode()
     return rules
 
 
@@ -126,19 +151,21 @@ def test_every_rules_file_has_valid_syntax(tmp_path: Path) -> None:
 def test_the_generated_rule_links_u2sa_name_to_that_adapter_only(tmp_path: Path) -> None:
     rules = parse_rules(our_rules(tmp_path)["65-u2sa-vehicle.rules"], file="65-u2sa-vehicle.rules")
     links = [r for r in rules if r.assignments("SYMLINK")]
-    assert len(links) == 1
-    gps = links[0]
+    assert len(links) == 2
+    compass, gps = links   # sorted by device name
     assert [(e.op, e.value) for e in gps.assignments("SYMLINK")] == [("+=", "u2sa/gps")]   # /dev/u2sa/gps
     assert [e.value for e in gps.assignments("GROUP")] == ["dialout"]
     assert [e.value for e in gps.assignments("MODE")] == ["0660"]
-    adapter = {"SUBSYSTEM": "tty", "ATTRS": {"idVendor": "1546", "idProduct": "01a7", "serial": "GPS-1",
-                                            "bInterfaceNumber": "00"}}
+    adapter = {"SUBSYSTEM": "tty", "ATTRS": {"idVendor": "1546", "idProduct": "01a7", "serial": "GPS-1"}}
     assert matches(gps, adapter)
     for other in ({**adapter, "ATTRS": {**adapter["ATTRS"], "serial": "GPS-2"}},          # a second receiver
-                  {**adapter, "ATTRS": {**adapter["ATTRS"], "bInterfaceNumber": "01"}},   # its other interface
                   {**adapter, "ATTRS": {**adapter["ATTRS"], "idVendor": "0403"}},
                   {**adapter, "SUBSYSTEM": "usb"}):
         assert not matches(gps, other), other
+    # A serial number alone identifies the adapter (whatever its make): /dev/u2sa/compass.
+    assert [e.value for e in compass.assignments("SYMLINK")] == ["u2sa/compass"]
+    ftdi = {"SUBSYSTEM": "tty", "ATTRS": {"idVendor": "0403", "idProduct": "6001", "serial": "FT4XYZ"}}
+    assert matches(compass, ftdi) and not matches(compass, {**ftdi, "ATTRS": {**ftdi["ATTRS"], "serial": "X"}})
     can = next(r for r in rules if any(e.key == "ENV" for e in r.expressions))
     assert matches(can, {"SUBSYSTEM": "net", "KERNEL": "can0"}) and not matches(can, {"SUBSYSTEM": "net",
                                                                                        "KERNEL": "can1"})

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -12,12 +13,23 @@ from u2sa_hw.cli.common import add_timeout_option, add_vehicle_option, profile_f
 INSTALL_HELP = """\
 Deploy the vehicle profile FILE on this SBC: the user u2sa and the device groups, a
 venv under /opt/u2sa, the profile and configs under /etc/u2sa (a config you changed is
-never overwritten; a newer default goes beside it as .new), the systemd units and udev
-rules, then enable u2sa.target and one u2sa@NAME.service per service of the profile.
-Drop-ins follow a service's kind, not its name: every service of kind recorder gets
-u2sa@NAME.service.d/10-recorder.conf (lower CPU and I/O priority, a longer stop), every
-service that drives PWM through sysfs 50-pwm-sysfs.conf. Running it again changes only what differs, and says so. Needs root, unless --root DIR
-stages everything into DIR instead (for packages, images and tests).
+never overwritten; a newer default goes beside it as .new) with every file the services
+name (missions, a-priori objects...) beside the profile, the systemd units and udev rules,
+then enable u2sa.target and one u2sa@NAME.service per service of the profile.
+
+First the offline check (u2sa check) runs; install refuses, writing nothing, when it finds
+errors or when the vehicle could not run (a /dev/u2sa/NAME that nothing creates, a named
+file that is missing). --force installs anyway: the check's errors are printed as warnings,
+and install exits 1 when something the profile asks for could not be done.
+
+From the device addresses: a serial address /dev/u2sa/NAME with usb=VID:PID (and
+serial=...) gets a udev rule making that link; a SocketCAN address with bitrate= gets its
+interface set to that bitrate and brought up whenever it appears (at boot, on replug); a
+sysfs PWM address gets its service a 50-pwm-sysfs.conf drop-in. Every service of kind
+recorder gets u2sa@NAME.service.d/10-recorder.conf (lower CPU and I/O priority, a longer
+stop). Running it again changes only what differs, and says so. Needs root, unless
+--root DIR stages everything into DIR instead (made if missing; for packages, images and
+tests). u2sa uninstall undoes it.
 """
 
 VENV_HELP = ("how to make /opt/u2sa/venv: build (venv + pip install of the project; the default on a "
@@ -36,6 +48,8 @@ def register(sub: Any) -> None:
                    "/usr/bin/python3.X when this one lives under /root or /home)")
     p.add_argument("--source", metavar="DIR", help="the u2sa-hw checkout to deploy (default: the one this "
                    "u2sa runs from)")
+    p.add_argument("--force", action="store_true", help="install even when the offline check finds errors (they "
+                   "are printed as warnings; install still exits 1 when something could not be done)")
     p.add_argument("-v", "--verbose", action="store_true", help="also list what was already up to date")
     p.set_defaults(func=cmd_install)
 
@@ -75,10 +89,18 @@ def cmd_install(args: Any) -> int:
 
     try:
         tree = install(vehicle=args.vehicle, root=Path(args.root), venv=args.venv, python=args.python,
-                       source=args.source)
+                       source=args.source, force=args.force)
     except (InstallError, ProfileError) as exc:
         raise CliError(str(exc)) from None
+    for warning in tree.warnings:
+        print(f"warning: {warning}", file=sys.stderr)
     _print_changes(tree, verbose=args.verbose, done="everything is already installed as this profile wants")
+    if tree.failures:
+        for failure in tree.failures:
+            print(f"u2sa install: not done: {failure}", file=sys.stderr)
+        print(f"u2sa install: {len(tree.failures)} thing(s) the profile asks for could not be done; the vehicle "
+              "will not run as the profile says until they are fixed", file=sys.stderr)
+        return 1
     if tree.changed and tree.root == Path("/"):
         print("start the services with: systemctl start u2sa.target   (they start at boot from now on)")
     return 0

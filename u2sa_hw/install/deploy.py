@@ -33,10 +33,13 @@ from u2sa_hw.install.manifest import MANAGED, MANIFEST_PATH, Manifest, host_path
 from u2sa_hw.install.system import (SERVICE_USER, VENV_MODES, InstallError, apply_sysctl, apply_tmpfiles, ensure_users,
                                     ensure_venv, owner_ids, project_source, reload_systemd, reload_udev,
                                     remove_users, user_ids)
+from u2sa_hw.install.preflight import preflight
+from u2sa_hw.install.referenced import rewrites
+from u2sa_hw.install.udev import VEHICLE_RULES, render_rules
 from u2sa_hw.install.units import (CONFIG_DIR, DOC, ETC_DIR, HSM_LOG, LOG_DIR, LOG_DIR_MODE, PROFILE, STATE_DIR, SYSUSERS,
-                                   SYSCTL, TARGET, TMPFILES, UDEV_DIR, UNIT_DIR, VEHICLE_RULES, render_profile,
-                                   render_vehicle_rules, service_configs, service_units, sysctl_conf, sysusers_conf,
-                                   tmpfiles_conf, udev_sources, unit_dropins, unit_sources, wants_links)
+                                   SYSCTL, TARGET, TMPFILES, UDEV_DIR, UNIT_DIR, render_profile, service_configs,
+                                   service_units, sysctl_conf, sysusers_conf, tmpfiles_conf, udev_sources,
+                                   unit_dropins, unit_sources, wants_links)
 from u2sa_hw.safety.wiring import check_wiring
 from u2sa_hw.vehicle import load_profile
 
@@ -46,38 +49,58 @@ KEPT_DIRS = (ETC_DIR, CONFIG_DIR, OPT_DIR, LOG_DIR)
 BUS_KEY = f"{ETC_DIR}/bus.key"
 
 
-def _check_root(root: Path) -> Path:
+def _check_root(root: Path, *, create: bool = False) -> Path:
+    """*root* resolved; refused when it is this system and we are not root; made when *create*."""
     root = root.resolve()
     if root == Path("/") and os.geteuid() != 0:
         raise InstallError("installing on this system needs root: run `sudo u2sa install ...`, "
                            "or stage into a directory with --root DIR")
+    if root != Path("/") and not root.is_dir():
+        if not create:
+            raise InstallError(f"--root {root}: no such directory (nothing was installed there)")
+        try:
+            root.mkdir(parents=True)
+        except OSError as exc:
+            raise InstallError(f"--root {root}: cannot create it ({exc.strerror}); pick a directory you can "
+                               "write to") from None
     return root
 
 
 def install(*, vehicle: Path | str, root: Path | str = "/", venv: str | None = None,
-            python: str | None = None, source: str | None = None) -> InstallTree:
-    """Install (or update) the deployment of the profile *vehicle* under *root*; the tree lists the changes."""
-    root = _check_root(Path(root))
+            python: str | None = None, source: str | None = None, force: bool = False) -> InstallTree:
+    """Install (or update) the deployment of the profile *vehicle* under *root*; the tree lists the changes.
+
+    Refuses (InstallError, nothing written) when the offline check finds errors or install
+    could not make a runnable vehicle of the profile, unless *force*; then what could not be
+    done is in ``tree.failures`` and the check's errors in ``tree.warnings``.
+    """
     profile = load_profile(vehicle)
     if profile.path is None:
         raise InstallError("install needs a vehicle profile: pass --vehicle FILE")
-    mode = venv or ("build" if root == Path("/") else "shared")
+    if Path(root).resolve() == Path("/"):
+        _check_root(Path(root))   # not root: refused before the check runs
+    mode = venv or ("build" if Path(root).resolve() == Path("/") else "shared")
     if mode not in VENV_MODES:
         raise InstallError(f"--venv {mode}: use one of {', '.join(VENV_MODES)}")
     src = project_source(source)
     # Everything that can be refused is checked before anything is written.
     check_wiring(profile)  # the [safety] table: a vehicle whose safety chain is mis-declared is not installed
     units = service_units(profile)
-    profile_text = render_profile(profile)
-    configs = service_configs(profile)
-    vehicle_rules = render_vehicle_rules(profile)
+    root_path = Path(root).resolve()
+    configs_plain = service_configs(profile)
+    found = preflight(profile, root=root_path, force=force, taken={PROFILE, BUS_KEY, *configs_plain})
+    profile_text = render_profile(profile, settings=rewrites(found.references, in_config=False))
+    configs = service_configs(profile, rewrites=rewrites(found.references, in_config=True))
+    vehicle_rules = render_rules(found.plan, profile=PROFILE)
+    root = _check_root(Path(root), create=True)
 
     tree = InstallTree(root=root, old=load_manifest(root))
+    tree.warnings, tree.failures = found.warnings, found.failures
     ensure_users(tree)
     owner = owner_ids(root)
     ensure_venv(tree, mode=mode, source=src, python=python)
 
-    unit_files = {**unit_sources(src), **unit_dropins(profile)}
+    unit_files = {**unit_sources(src), **unit_dropins(profile, pwm_services=found.plan.pwm_services)}
     unit_actions = [tree.put_managed(dest, data) for dest, data in unit_files.items()]
     unit_actions += [tree.link(dest, target) for dest, target in wants_links(units).items()]
     rule_actions = [tree.put_managed(dest, data) for dest, data in udev_sources(src).items()]
@@ -95,6 +118,10 @@ def install(*, vehicle: Path | str, root: Path | str = "/", venv: str | None = N
     _ensure_bus_key(tree, owner=owner)
     for dest, data in configs.items():
         tree.put_config(dest, data, mode=0o660, owner=owner)
+    for ref in found.references:   # missions, objects...: the user's once installed, like the configs
+        tree.put_config(ref.dest, ref.source.read_bytes(), mode=0o644)
+    for item in found.plan.can_without_bitrate:
+        tree.note("skipped", f"CAN {item}", "the address has no bitrate=: the interface is left as configured")
     _ensure_log_dir(tree)
 
     before = len(tree.changes)
@@ -103,7 +130,8 @@ def install(*, vehicle: Path | str, root: Path | str = "/", venv: str | None = N
     tree.new.units_enabled = [TARGET, *(u.unit for u in units)]
     tree.new.profile_source = str(profile.path.resolve())
     reload_systemd(tree, units_changed=pruned or any(a != "unchanged" for a in unit_actions))
-    reload_udev(tree, rules_changed=any(a != "unchanged" for a in rule_actions))
+    reload_udev(tree, rules_changed=any(a != "unchanged" for a in rule_actions),
+                can_channels=list(found.plan.can_channels))
     apply_sysctl(tree, SYSCTL, changed=sysctl_action != "unchanged")
     if save_manifest(root, tree.new) and tree.old.files == {}:
         tree.note("created", MANIFEST_PATH)

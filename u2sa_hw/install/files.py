@@ -45,6 +45,8 @@ class InstallTree:
         self.old = old or Manifest()
         self.new = Manifest()
         self.changes: list[Change] = []
+        self.warnings: list[str] = []   # said and gone past (the check's errors under --force)
+        self.failures: list[str] = []   # asked for by the profile, not done: install exits 1
 
     @property
     def changed(self) -> bool:

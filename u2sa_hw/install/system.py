@@ -251,8 +251,9 @@ def reload_systemd(tree: InstallTree, *, units_changed: bool) -> None:
     tree.note("updated", "systemd", "daemon-reload")
 
 
-def reload_udev(tree: InstallTree, *, rules_changed: bool) -> None:
-    """``udevadm control --reload`` and a change trigger for the device classes the rules cover."""
+def reload_udev(tree: InstallTree, *, rules_changed: bool, can_channels: list[str] = ()) -> None:
+    """``udevadm control --reload`` and a change trigger for the device classes the rules cover; an add
+    trigger for each CAN interface of the profile that is there, so it comes up at its bitrate now."""
     if tree.root != Path("/") or not rules_changed:
         return
     if shutil.which("udevadm") is None or not Path("/run/udev/control").exists():
@@ -262,3 +263,25 @@ def reload_udev(tree: InstallTree, *, rules_changed: bool) -> None:
     _run(["udevadm", "trigger", "--action=change", "--subsystem-match=tty", "--subsystem-match=i2c-dev",
           "--subsystem-match=gpio", "--subsystem-match=pwm"], what="applying udev rules to present devices")
     tree.note("updated", "udev", "rules reloaded and triggered")
+    for channel in can_channels:
+        if not Path("/sys/class/net", channel).exists():
+            tree.note("skipped", f"CAN {channel}", "not present now; it comes up at its bitrate when it appears")
+            continue
+        if _link_up(channel):
+            # Never touch a live bus: motor controllers may be listening. The rule applies at the next boot or replug.
+            tree.note("skipped", f"CAN {channel}", "up already, left alone; the profile's bitrate applies at the "
+                      f"next boot (or now: ip link set {channel} down && udevadm trigger --action=add "
+                      f"--sysname-match={channel})")
+            continue
+        # 70-u2sa-can.rules acts on "add": set the bitrate (the interface is down) and bring it up.
+        _run(["udevadm", "trigger", "--action=add", "--settle", f"--sysname-match={channel}",
+              "--subsystem-match=net"], what=f"bringing {channel} up at its bitrate")
+        tree.note("updated", f"CAN {channel}", "set to the profile's bitrate and up")
+
+
+def _link_up(interface: str) -> bool:
+    """Whether the network interface is administratively up (IFF_UP in /sys/class/net/IF/flags)."""
+    try:
+        return bool(int(Path("/sys/class/net", interface, "flags").read_text(), 16) & 0x1)
+    except (OSError, ValueError):
+        return False

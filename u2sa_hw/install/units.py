@@ -7,14 +7,13 @@
   ``u2sa-hsm.service``, which may restart the others.
 - Drop-ins by what a service is, whatever its name: every service of kind ``recorder``
   gets ``u2sa@NAME.service.d/10-recorder.conf`` (lower CPU and I/O priority, a longer
-  stop), every service that drives PWM through sysfs ``50-pwm-sysfs.conf``.
+  stop), every service whose device address is a sysfs PWM chip ``50-pwm-sysfs.conf``.
 - The profile is installed as ``/etc/u2sa/vehicle.toml`` with its directories pointed at
   the vehicle's (``/etc/u2sa/config``, ``/var/log/u2sa``, ``/var/lib/u2sa``) and every
   service config as ``/etc/u2sa/config/NAME.toml``.
-- ``65-u2sa-vehicle.rules`` is generated from the profile's ``[devices.NAME]`` tables:
-  ``usb = { vendor = "1546", product = "01a7", serial = "...", interface = "00" }``
-  makes ``/dev/u2sa/NAME``; ``can = { channel = "can0", bitrate = 500000 }`` sets the
-  bitrate that ``70-u2sa-can.rules`` brings the interface up at.
+- ``65-u2sa-vehicle.rules`` and the sysfs PWM drop-ins come from the device addresses
+  (:mod:`u2sa_hw.install.udev`); the files the services' settings name (missions, objects)
+  are found by :mod:`u2sa_hw.install.referenced`.
 """
 
 from __future__ import annotations
@@ -23,7 +22,7 @@ import re
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import tomli_w
 
@@ -45,7 +44,6 @@ TMPFILES = "/etc/tmpfiles.d/u2sa.conf"
 SYSCTL = "/etc/sysctl.d/60-u2sa-lcm.conf"
 HSM_LOG = "/var/log/u2sa/hsm.log"
 LOG_DIR_MODE = 0o770
-VEHICLE_RULES = "65-u2sa-vehicle.rules"
 TARGET = "u2sa.target"
 TEMPLATE = "u2sa@.service"
 HSM_UNIT = "u2sa-hsm.service"
@@ -53,9 +51,6 @@ HSM_KIND = "hsm"
 HSM_NAME = "hsm"
 
 _NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
-_HEX4 = re.compile(r"^[0-9a-fA-F]{4}$")
-_CAN = re.compile(r"^can[0-9]+$")
-_RULE_VALUE = re.compile(r'^[^"\n\\]*$')
 
 
 @dataclass(frozen=True)
@@ -104,7 +99,6 @@ IOSchedulingPriority=7
 TimeoutStopSec=15s
 """
 
-PWM_SYSFS = "/sys/class/pwm"
 PWM_DROPIN = """\
 # Written by `u2sa install`: this service drives PWM through sysfs ({path}), whose files
 # udev gives to group gpio (60-u2sa-permissions.rules). The template's
@@ -112,16 +106,6 @@ PWM_DROPIN = """\
 [Service]
 ProtectKernelTunables=no
 """
-
-
-def _strings(value: Any) -> list[str]:
-    if isinstance(value, str):
-        return [value]
-    if isinstance(value, dict):
-        return [s for v in value.values() for s in _strings(v)]
-    if isinstance(value, list):
-        return [s for v in value for s in _strings(v)]
-    return []
 
 
 AFTER_RECORDER_DROPIN = """\
@@ -134,9 +118,9 @@ After={recorders}
 """
 
 
-def unit_dropins(profile: VehicleProfile) -> dict[str, bytes]:
+def unit_dropins(profile: VehicleProfile, *, pwm_services: Mapping[str, str]) -> dict[str, bytes]:
     """Per-service drop-ins the profile calls for: a recorder's priorities, the others ordered after it,
-    sysfs PWM's writable /sys."""
+    a writable /sys for each service in *pwm_services* (service -> the sysfs PWM chip its address names)."""
     dropins = {}
     units = service_units(profile)
     recorders = [u.unit for u in units if profile.services[u.name].kind == RECORDER_KIND]
@@ -147,9 +131,9 @@ def unit_dropins(profile: VehicleProfile) -> dict[str, bytes]:
         elif recorders:
             dropins[f"{UNIT_DIR}/{unit.unit}.d/20-after-recorder.conf"] = AFTER_RECORDER_DROPIN.format(
                 name=unit.unit, recorders=" ".join(recorders)).encode()
-        pwm = [s for s in _strings(spec.settings) if s.startswith(PWM_SYSFS)]
-        if pwm and unit.unit != HSM_UNIT:
-            dropins[f"{UNIT_DIR}/{unit.unit}.d/50-pwm-sysfs.conf"] = PWM_DROPIN.format(path=pwm[0]).encode()
+        chip = pwm_services.get(unit.name)
+        if chip and unit.unit != HSM_UNIT:
+            dropins[f"{UNIT_DIR}/{unit.unit}.d/50-pwm-sysfs.conf"] = PWM_DROPIN.format(path=chip).encode()
     return dropins
 
 
@@ -173,33 +157,54 @@ def wants_links(units: list[ServiceUnit]) -> dict[str, str]:
     return links
 
 
-def render_profile(profile: VehicleProfile) -> bytes:
-    """The profile as installed: same content, directories pointed at the vehicle's."""
+CONFIG_DIR_NAME = "config"   # config_dir in the installed profile: /etc/u2sa/config, relative to it
+
+
+def render_profile(profile: VehicleProfile, *, settings: Mapping[str, Mapping[str, str]] | None = None) -> bytes:
+    """The profile as installed: same content, directories pointed at the vehicle's, and each setting
+    in *settings* (service -> {setting: value}) naming its installed file.
+
+    ``config_dir`` stays relative (``config``, i.e. /etc/u2sa/config) so that a staged tree is
+    a profile that ``u2sa check`` reads as it will be on the vehicle; a ``bus_key`` path is
+    dropped, since the vehicle's key is /etc/u2sa/bus.key (made by install or ``u2sa key import``).
+    """
     assert profile.path is not None
     data: dict[str, Any] = tomllib.loads(profile.path.read_text())
     vehicle = data.setdefault("vehicle", {})
-    vehicle.update(config_dir=CONFIG_DIR, log_dir=LOG_DIR, data_dir=STATE_DIR)
-    for table in data.get("services", {}).values():
+    vehicle.update(config_dir=CONFIG_DIR_NAME, log_dir=LOG_DIR, data_dir=STATE_DIR)
+    vehicle.pop("bus_key", None)
+    for name, table in data.get("services", {}).items():
         if isinstance(table, dict):
             table.pop("config", None)  # every config is <config_dir>/<name>.toml on the vehicle
+            for key, value in (settings or {}).get(name, {}).items():
+                table.setdefault("settings", {})[key] = value
     header = (f"# Vehicle profile installed by `u2sa install` from {profile.path.resolve()}.\n"
               "# Edit it here if you like: install never overwrites a profile or config you changed\n"
               "# (a newer default lands beside it as vehicle.toml.new). Directories point at the\n"
-              f"# vehicle's: configs {CONFIG_DIR}, logs {LOG_DIR}, data {STATE_DIR}.\n\n")
+              f"# vehicle's: configs {CONFIG_DIR}, logs {LOG_DIR}, data {STATE_DIR}; files the\n"
+              "# services name are beside this profile.\n\n")
     return (header + tomli_w.dumps(data)).encode()
 
 
-def service_configs(profile: VehicleProfile) -> dict[str, bytes]:
-    """Each service config file that exists next to the profile, keyed by its vehicle path."""
+def service_configs(profile: VehicleProfile, *, rewrites: Mapping[str, Mapping[str, str]] | None = None
+                    ) -> dict[str, bytes]:
+    """Each service config file that exists next to the profile, keyed by its vehicle path; a config with
+    settings in *rewrites* (service -> {setting: value}) is rewritten to name the installed files."""
     configs = {}
     for spec in profile.services.values():
         if spec.config_path.is_file():
             data = spec.config_path.read_bytes()
             try:
-                tomllib.loads(data.decode())
+                table = tomllib.loads(data.decode())
             except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
                 raise InstallError(f"{spec.config_path}: config of service '{spec.name}' is not valid TOML "
                                    f"({exc}); fix it before installing") from None
+            changes = {k: v for k, v in (rewrites or {}).get(spec.name, {}).items() if table.get(k) != v}
+            if changes:
+                table.update(changes)
+                data = (f"# Config of {spec.name}, installed by `u2sa install` from {spec.config_path.resolve()}\n"
+                        f"# ({', '.join(sorted(changes))} now naming the installed copies).\n\n"
+                        + tomli_w.dumps(table)).encode()
             configs[f"{CONFIG_DIR}/{spec.name}.toml"] = data
     return configs
 
@@ -233,43 +238,3 @@ def sysctl_conf() -> bytes:
     return ("# u2sa-hw: let LCM's UDP receive buffers grow to 4 MiB (written by u2sa install;\n"
             "# see docs/deployment.md). The default cap, 208 KiB, drops packets in bursts.\n"
             f"net.core.rmem_max = {DEFAULT_RECV_BUF_SIZE}\n").encode()
-
-
-def _rule_value(value: Any, where: str, *, pattern: re.Pattern[str] = _RULE_VALUE, hint: str = "") -> str:
-    if not isinstance(value, (str, int)) or isinstance(value, bool) or not pattern.match(str(value)):
-        raise InstallError(f"{where}: {value!r} is not usable in a udev rule{hint}")
-    return str(value)
-
-
-def render_vehicle_rules(profile: VehicleProfile) -> bytes:
-    """``65-u2sa-vehicle.rules`` from the profile's ``[devices.NAME]`` usb/can tables."""
-    lines = [f"# Generated by `u2sa install` from {PROFILE}: do not edit, edit the profile's",
-             "# [devices.NAME] tables and install again (or write your own rules in another file,",
-             "# e.g. 66-u2sa-local.rules, which install never touches). See docs/deployment.md."]
-    for name, table in sorted(profile.devices.items()):
-        where = f"{profile.path} [devices.{name}]"
-        usb, can = table.get("usb"), table.get("can")
-        if usb is not None:
-            if not isinstance(usb, dict):
-                raise InstallError(f'{where}: usb must be a table like usb = {{ vendor = "1546", product = "01a7" }}')
-            _rule_value(name, where, pattern=_NAME, hint=" as /dev/u2sa/NAME; use letters, digits, '_', '.', '-'")
-            vendor = _rule_value(usb.get("vendor"), f"{where} usb.vendor", pattern=_HEX4,
-                                 hint=' (4 hex digits, e.g. "1546")')
-            product = _rule_value(usb.get("product"), f"{where} usb.product", pattern=_HEX4,
-                                  hint=' (4 hex digits, e.g. "01a7")')
-            match = ['SUBSYSTEM=="tty"', f'ATTRS{{idVendor}}=="{vendor.lower()}"',
-                     f'ATTRS{{idProduct}}=="{product.lower()}"']
-            if "serial" in usb:
-                match.append(f'ATTRS{{serial}}=="{_rule_value(usb["serial"], f"{where} usb.serial")}"')
-            if "interface" in usb:
-                match.append(f'ATTRS{{bInterfaceNumber}}=="{_rule_value(usb["interface"], f"{where} usb.interface")}"')
-            lines.append(", ".join(match) + f', SYMLINK+="u2sa/{name}", GROUP="dialout", MODE="0660"')
-        if can is not None:
-            if not isinstance(can, dict):
-                raise InstallError(f'{where}: can must be a table like can = {{ channel = "can0", bitrate = 500000 }}')
-            channel = _rule_value(can.get("channel"), f"{where} can.channel", pattern=_CAN, hint=" (canN)")
-            bitrate = can.get("bitrate")
-            if not isinstance(bitrate, int) or isinstance(bitrate, bool) or not 0 < bitrate <= 8_000_000:
-                raise InstallError(f"{where}: can.bitrate must be an integer in bit/s, e.g. 500000; got {bitrate!r}")
-            lines.append(f'SUBSYSTEM=="net", KERNEL=="{channel}", ENV{{U2SA_CAN_BITRATE}}="{bitrate}"')
-    return ("\n".join(lines) + "\n").encode()

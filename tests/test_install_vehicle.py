@@ -1,0 +1,190 @@
+"""`u2sa install` yields a vehicle that runs: the files its services name, udev rules and CAN bring-up from
+device addresses, the offline check first, and `u2sa uninstall` undoing exactly what install did."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from u2sa_hw.install.deploy import install, uninstall
+from u2sa_hw.install.system import InstallError
+from u2sa_hw.vehicle import load_profile
+
+U2SA = Path(sys.executable).with_name("u2sa")
+REPO = Path(__file__).resolve().parent.parent
+EXAMPLES = sorted(p.parent.name for p in (REPO / "examples").glob("*/vehicle.toml"))
+MISSION = (REPO / "examples/ground_vehicle/mission.xml").read_text()
+OBJECTS = (REPO / "examples/ground_vehicle/objects.xml").read_text()
+
+PROFILE = """\
+[vehicle]
+name = "rover"
+origin = { lat = 29.1895, lon = -81.0483, alt = 10.0 }
+
+[services.gps]
+kind = "gps_nmea"
+
+[devices.gps]
+address = "serial:///dev/u2sa/gps?baud=9600&usb=1546:01a7&serial=A1B2"
+
+[services.mission]
+kind = "mission_manager"
+
+[services.world]
+kind = "world_modeler"
+
+[services.hsm]
+kind = "hsm"
+"""
+
+
+def u2sa(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([str(U2SA), *args], capture_output=True, text=True, timeout=180,
+                          env={**os.environ, **(env or {})})
+
+
+def staged_check_env(root: Path) -> dict[str, str]:
+    """`u2sa check` looking at the staged tree's udev rules instead of this machine's."""
+    dirs = [root / d for d in ("etc/udev/rules.d", "run/udev/rules.d", "lib/udev/rules.d", "usr/lib/udev/rules.d")]
+    return {"U2SA_UDEV_RULES_DIRS": ":".join(map(str, dirs))}
+
+
+@pytest.fixture()
+def vehicle(tmp_path: Path) -> Path:
+    """A profile whose mission is beside it and whose a-priori objects are outside its directory."""
+    src = tmp_path / "src"
+    (src / "config").mkdir(parents=True)
+    (tmp_path / "shared").mkdir()
+    (src / "missions").mkdir()
+    (src / "missions" / "harbour.xml").write_text(MISSION)
+    (tmp_path / "shared" / "objects.xml").write_text(OBJECTS)
+    (src / "config" / "mission.toml").write_text('# the mission\nmission_file = "missions/harbour.xml"\n')
+    (src / "config" / "world.toml").write_text('objects_file = "../shared/objects.xml"\n')
+    path = src / "vehicle.toml"
+    path.write_text(PROFILE)
+    return path
+
+
+def test_root_is_created_and_the_named_files_are_installed_and_named_by_the_installed_configs(
+        vehicle: Path, tmp_path: Path) -> None:
+    root = tmp_path / "not" / "yet" / "there"
+    done = u2sa("install", "--vehicle", str(vehicle), "--root", str(root))
+    assert done.returncode == 0, done.stderr
+    etc = root / "etc/u2sa"
+    # Beside the profile at the same relative place: the config keeps its text, comments too.
+    assert (etc / "missions/harbour.xml").read_text() == MISSION
+    assert (etc / "config/mission.toml").read_text() == '# the mission\nmission_file = "missions/harbour.xml"\n'
+    # Outside the profile's directory: under files/SERVICE, and the installed config names that copy.
+    assert (etc / "files/world/objects.xml").read_text() == OBJECTS
+    assert tomllib.loads((etc / "config/world.toml").read_text()) == {"objects_file": "files/world/objects.xml"}
+    installed = load_profile(etc / "vehicle.toml")
+    assert installed.resolve_path("files/world/objects.xml") == etc / "files/world/objects.xml"
+    # The services resolve them in the staged tree as they will on the vehicle: the check loads both.
+    check = u2sa("check", "--vehicle", str(etc / "vehicle.toml"), env=staged_check_env(root))
+    assert check.returncode == 0, check.stdout + check.stderr
+    # Once installed, a file is the user's like a config: changed on the vehicle, it is kept.
+    (etc / "missions/harbour.xml").write_text(MISSION + "<!-- changed on the vehicle -->\n")
+    again = u2sa("install", "--vehicle", str(vehicle), "--root", str(root))
+    assert again.returncode == 0 and "kept      /etc/u2sa/missions/harbour.xml" in again.stdout
+    assert "changed on the vehicle" in (etc / "missions/harbour.xml").read_text()
+
+
+def test_a_missing_named_file_is_refused_and_force_installs_the_rest_and_exits_1(vehicle: Path,
+                                                                                 tmp_path: Path) -> None:
+    (vehicle.parent / "missions/harbour.xml").unlink()
+    root = tmp_path / "root"
+    refused = u2sa("install", "--vehicle", str(vehicle), "--root", str(root))
+    assert refused.returncode == 1 and "refusing to install" in refused.stderr and "--force" in refused.stderr
+    assert "mission_file" in refused.stderr and "harbour.xml" in refused.stderr
+    assert not root.exists()                       # nothing written, not even the root
+    forced = u2sa("install", "--vehicle", str(vehicle), "--root", str(root), "--force")
+    assert forced.returncode == 1, forced.stdout + forced.stderr
+    assert "not done:" in forced.stderr and "harbour.xml" in forced.stderr
+    assert (root / "etc/u2sa/vehicle.toml").is_file() and (root / "etc/u2sa/files/world/objects.xml").is_file()
+
+
+def test_a_dev_u2sa_link_nothing_creates_is_refused_with_the_rule_line_and_a_local_rule_makes_it(
+        vehicle: Path, tmp_path: Path) -> None:
+    vehicle.write_text(PROFILE.replace("?baud=9600&usb=1546:01a7&serial=A1B2", "?baud=9600"))
+    root = tmp_path / "root"
+    with pytest.raises(InstallError) as err:
+        install(vehicle=vehicle, root=root)
+    text = str(err.value)
+    assert "/dev/u2sa/gps" in text and 'SYMLINK+="u2sa/gps"' in text and "66-u2sa-local.rules" in text
+    forced = install(vehicle=vehicle, root=root, force=True)
+    assert any("/dev/u2sa/gps" in f for f in forced.failures)
+    rules = (root / "etc/udev/rules.d/65-u2sa-vehicle.rules").read_text()
+    assert "u2sa/gps" not in rules
+    # The user's own rule (as the error says) makes the link: install goes through, and leaves the rule alone.
+    local = root / "etc/udev/rules.d/66-u2sa-local.rules"
+    local.write_text('SUBSYSTEM=="tty", ATTRS{idVendor}=="0403", ATTRS{idProduct}=="6001", SYMLINK+="u2sa/gps"\n')
+    tree = install(vehicle=vehicle, root=root)
+    assert tree.failures == []
+    uninstall(root=root, purge=True)
+    assert local.read_text().startswith('SUBSYSTEM=="tty"')
+
+
+def test_can_interfaces_get_their_bitrate_from_the_address(vehicle: Path, tmp_path: Path) -> None:
+    vehicle.write_text(PROFILE + '\n[services.wheels]\nkind = "odrive_can"\n\n'
+                       '[devices.wheels]\naddress = "can://socketcan/can1?bitrate=250000"\n')
+    root = tmp_path / "root"
+    tree = install(vehicle=vehicle, root=root)
+    rules = (root / "etc/udev/rules.d/65-u2sa-vehicle.rules").read_text().splitlines()
+    assert 'SUBSYSTEM=="net", KERNEL=="can1", ENV{U2SA_CAN_BITRATE}="250000"' in rules
+    assert ('SUBSYSTEM=="tty", ATTRS{idVendor}=="1546", ATTRS{idProduct}=="01a7", ATTRS{serial}=="A1B2", '
+            'SYMLINK+="u2sa/gps", GROUP="dialout", MODE="0660"') in rules
+    bringup = (root / "etc/udev/rules.d/70-u2sa-can.rules").read_text()
+    assert "bitrate $env{U2SA_CAN_BITRATE}" in bringup and "ip link set $name up" in bringup
+    assert not tree.failures
+    # Without a bitrate the interface is left as configured, and install says so.
+    vehicle.write_text(vehicle.read_text().replace("?bitrate=250000", ""))
+    tree = install(vehicle=vehicle, root=root)
+    assert "can1" not in (root / "etc/udev/rules.d/65-u2sa-vehicle.rules").read_text()
+    assert any(c.action == "skipped" and "can1" in c.path for c in tree.changes)
+
+
+def _tree(root: Path) -> dict[str, tuple[str, bytes | str]]:
+    out: dict[str, tuple[str, bytes | str]] = {}
+    for p in sorted(root.rglob("*")):
+        rel = str(p.relative_to(root))
+        if p.is_symlink():
+            out[rel] = ("link", os.readlink(p))
+        elif p.is_file():
+            out[rel] = ("file", p.read_bytes())
+        else:
+            out[rel] = ("dir", "")
+    return out
+
+
+def test_uninstall_undoes_exactly_what_install_did(vehicle: Path, tmp_path: Path) -> None:
+    """What was there before stays byte for byte; what install made goes; configs and named files stay
+    until --purge."""
+    root = tmp_path / "root"
+    (root / "etc/udev/rules.d").mkdir(parents=True)
+    (root / "etc/udev/rules.d/99-other.rules").write_text('SUBSYSTEM=="tty", GROUP="dialout"\n')
+    (root / "etc/systemd/system").mkdir(parents=True)
+    (root / "etc/systemd/system/other.service").write_text("[Service]\nExecStart=/bin/true\n")
+    (root / "opt/other").mkdir(parents=True)
+    before = _tree(root)
+    assert u2sa("install", "--vehicle", str(vehicle), "--root", str(root)).returncode == 0
+    assert (root / "etc/u2sa/missions/harbour.xml").is_file()
+    done = u2sa("uninstall", "--root", str(root))
+    assert done.returncode == 0, done.stderr
+    after = _tree(root)
+    assert {k: v for k, v in after.items() if k in before} == before
+    kept = sorted(set(after) - set(before))
+    assert "etc/u2sa/missions/harbour.xml" in kept and "etc/u2sa/config/world.toml" in kept
+    assert not [k for k in kept if k.startswith(("etc/systemd", "etc/udev", "etc/sysctl", "opt/u2sa/venv"))], kept
+    purged = u2sa("uninstall", "--root", str(root), "--purge")
+    assert purged.returncode == 0, purged.stderr
+    assert _tree(root) == before
+
+
+def test_uninstall_of_a_root_that_does_not_exist_says_so(tmp_path: Path) -> None:
+    done = u2sa("uninstall", "--root", str(tmp_path / "nowhere"))
+    assert done.returncode == 1 and "no such directory" in done.stderr and "Traceback" not in done.stderr
