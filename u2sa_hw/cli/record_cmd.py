@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import signal
 import sys
 import threading
@@ -199,34 +200,76 @@ def bus_summary(meta: dict[str, str], record: dict[str, str] | None) -> dict[str
 
 
 def cmd_echo(args: Any) -> int:
-    """``u2sa log echo``."""
+    """``u2sa log echo``: decoded LCM messages; JSON-encoded channels of other tools as their JSON;
+    anything else named with its encoding and size. A channel pattern that matches nothing lists
+    the log's channels and exits 1."""
     from u2sa_hw.channels import base_type
+    from u2sa_hw.cli import CliError
     from u2sa_hw.messages import REGISTRY, MalformedMessage, enumerate_fields, to_dict
 
     log = _open(args.file)
+    try:
+        re.compile(args.channel or "")
+    except re.error as exc:
+        raise CliError(f"{args.channel!r} is not a valid regular expression ({exc}); "
+                       "quote it, e.g. 'STATE_.*'") from None
     n = 0
+    encodings: dict[str, str] = {}
     for msg in log.messages(args.channel):
-        try:
-            decoded, _ = REGISTRY.decode(msg.data, base_type(msg.channel))
-        except MalformedMessage as exc:
-            print(f"{msg.channel} @{msg.log_time_ns}: undecodable ({exc})", file=sys.stderr)
-            continue
-        if args.json:
-            print(json.dumps({"channel": msg.channel, "log_time_ns": msg.log_time_ns, **to_dict(decoded)}))
+        if msg.channel not in encodings:   # channels are read as the file goes
+            encodings = {ch.topic: ch.message_encoding for ch in log.contents.channels.values()}
+        encoding = encodings.get(msg.channel, "lcm")
+        if encoding.lower() not in ("lcm", ""):
+            print_foreign(msg, encoding, json_out=args.json)
         else:
-            print(f"--- {msg.channel} {type(decoded).__name__} @ {msg.log_time_ns / 1e9:.6f}")
-            for name, value in enumerate_fields(decoded):
-                print(f"  {name}: {value}")
+            try:
+                decoded, _ = REGISTRY.decode(msg.data, base_type(msg.channel))
+            except MalformedMessage as exc:
+                print(f"{msg.channel} @{msg.log_time_ns}: undecodable as LCM ({exc})", file=sys.stderr)
+                continue
+            if args.json:
+                print(json.dumps({"channel": msg.channel, "log_time_ns": msg.log_time_ns, **to_dict(decoded)}))
+            else:
+                print(f"--- {msg.channel} {type(decoded).__name__} @ {msg.log_time_ns / 1e9:.6f}")
+                for name, value in enumerate_fields(decoded):
+                    print(f"  {name}: {value}")
         n += 1
         if args.count and n >= args.count:
             break
     if log.contents.problem:
         print(f"u2sa: warning: {log.path}: {log.contents.problem}", file=sys.stderr)
+    if n == 0 and args.channel:
+        topics = sorted({ch.topic for ch in log.contents.channels.values()})
+        if not any(re.fullmatch(args.channel, t) for t in topics):
+            raise CliError(f"{log.path}: no channel matches {args.channel!r}; the log's channels: "
+                           f"{', '.join(topics) or 'none'}")
     return 0
 
 
+def print_foreign(msg: Any, encoding: str, *, json_out: bool) -> None:
+    """A message of another tool's encoding: JSON printed as JSON, anything else by encoding and size."""
+    if encoding.lower() == "json":
+        try:
+            body = json.loads(msg.data)
+        except (UnicodeDecodeError, ValueError) as exc:
+            print(f"{msg.channel} @{msg.log_time_ns}: invalid JSON ({exc})", file=sys.stderr)
+            return
+        if json_out:
+            print(json.dumps({"channel": msg.channel, "log_time_ns": msg.log_time_ns, "json": body}))
+        else:
+            print(f"--- {msg.channel} {msg.type_name} (json) @ {msg.log_time_ns / 1e9:.6f}")
+            print(f"  {json.dumps(body)}")
+        return
+    text = f"{len(msg.data)} bytes of {encoding} (u2sa decodes LCM and JSON only)"
+    if json_out:
+        print(json.dumps({"channel": msg.channel, "log_time_ns": msg.log_time_ns, "encoding": encoding,
+                          "bytes": len(msg.data), "hex": msg.data[:64].hex()}))
+    else:
+        print(f"--- {msg.channel} {msg.type_name} @ {msg.log_time_ns / 1e9:.6f}: {text}")
+
+
 def cmd_recover(args: Any) -> int:
-    """``u2sa log recover``."""
+    """``u2sa log recover``: exit 1 when nothing could be recovered."""
     from u2sa_hw.cli import CliError
     from u2sa_hw.recording.log_reader import LogError, recover
 
@@ -237,6 +280,10 @@ def cmd_recover(args: Any) -> int:
     except LogError as exc:
         raise CliError(str(exc)) from None
     print(f"wrote {count} messages to {dst}" + (f" ({src}: {problem})" if problem else f" ({src} was complete)"))
+    if count == 0:
+        print(f"u2sa: no message could be recovered from {src}; {dst} holds only its metadata and attachments",
+              file=sys.stderr)
+        return 1
     return 0
 
 

@@ -53,6 +53,7 @@ class LogContents:
     library: str = ""
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
     attachments: dict[str, bytes] = field(default_factory=dict)
+    attachment_records: list[Attachment] = field(default_factory=list)   # with their times and media types
     schemas: dict[int, Schema] = field(default_factory=dict)
     channels: dict[int, Channel] = field(default_factory=dict)
     complete: bool = False
@@ -96,6 +97,7 @@ class LogFile:
                         c.metadata[record.name] = dict(record.metadata)
                     elif isinstance(record, Attachment):
                         c.attachments[record.name] = bytes(record.data)
+                        c.attachment_records.append(record)
                     elif isinstance(record, Header):
                         c.profile, c.library = record.profile, record.library
                     elif isinstance(record, Footer):
@@ -116,7 +118,8 @@ class LogFile:
     def scan(self) -> "LogSummary":
         """Read the whole log once and summarise it."""
         per: dict[tuple[str, str], ChannelSummary] = {}
-        first = last = 0
+        first: int | None = None    # a log time of 0 is a time like any other (other tools' logs start there)
+        last = 0
         total = 0
         for msg in self.messages():
             key = (msg.channel, msg.type_name)
@@ -125,10 +128,10 @@ class LogFile:
                 s = per[key] = ChannelSummary(msg.channel, msg.type_name, first_ns=msg.log_time_ns)
             s.count += 1
             s.last_ns = msg.log_time_ns
-            first = msg.log_time_ns if not first else min(first, msg.log_time_ns)
+            first = msg.log_time_ns if first is None else min(first, msg.log_time_ns)
             last = max(last, msg.log_time_ns)
             total += 1
-        return LogSummary(self.contents, sorted(per.values(), key=lambda s: s.channel), first, last, total)
+        return LogSummary(self.contents, sorted(per.values(), key=lambda s: s.channel), first or 0, last, total)
 
 
 @dataclass
@@ -160,39 +163,68 @@ def _describe(exc: Exception) -> str:
 
 
 def recover(src: Path | str, dst: Path | str) -> tuple[int, str]:
-    """Rewrite *src* (possibly truncated) as a valid indexed log at *dst*; return (messages, problem)."""
+    """Rewrite *src* (possibly truncated) as a valid indexed log at *dst*; return (messages, problem).
+
+    Every readable record is kept: schemas (a channel without one, schema id 0, stays
+    schemaless), channels with their metadata, messages with their log/publish times and
+    sequence numbers, attachments with their times and media types, and metadata (a
+    ``recovered_from`` entry added), also when the file holds no message at all. The output
+    is written to a temporary file beside *dst* and renamed when complete, so a failure never
+    leaves an invalid file at *dst*.
+    """
+    import os
+    import tempfile
+
     from mcap.writer import CompressionType, Writer
 
     log = LogFile(src)
     dst = Path(dst)
     if dst.resolve() == log.path.resolve():
         raise LogError(f"{dst}: recover writes a new file; give an output path other than the input")
+    if not dst.parent.is_dir():
+        raise LogError(f"{dst}: the directory {dst.parent} does not exist")
     count = 0
-    with open(dst, "wb") as out:
-        writer = Writer(out, compression=CompressionType.ZSTD)
-        started = False
-        schema_ids: dict[int, int] = {}
-        channel_ids: dict[int, int] = {}
-        for msg_rec in log.records():
-            c = log.contents
-            if not started:
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{dst.name}.", suffix=".part", dir=dst.parent)
+    tmp = Path(tmp_name)
+    try:
+        with os.fdopen(fd, "wb") as out:
+            writer = Writer(out, compression=CompressionType.ZSTD)
+            started = False
+            schema_ids: dict[int, int] = {0: 0}     # 0: no schema
+            channel_ids: dict[int, int] = {}
+
+            def start() -> None:
+                c = log.contents
                 writer.start(profile=c.profile, library=c.library or "u2sa-hw recover")
                 for name, meta in c.metadata.items():
                     writer.add_metadata(name, {**meta, "recovered_from": str(log.path)})
-                for name, data in c.attachments.items():
-                    writer.add_attachment(create_time=0, log_time=0, name=name, media_type="application/toml",
-                                          data=data)
-                started = True
-            ch = c.channels[msg_rec.channel_id]
-            if ch.schema_id not in schema_ids:
-                s = c.schemas[ch.schema_id]
-                schema_ids[ch.schema_id] = writer.register_schema(s.name, s.encoding, s.data)
-            if ch.id not in channel_ids:
-                channel_ids[ch.id] = writer.register_channel(ch.topic, ch.message_encoding,
-                                                             schema_ids[ch.schema_id], dict(ch.metadata))
-            writer.add_message(channel_ids[ch.id], msg_rec.log_time, msg_rec.data, msg_rec.publish_time)
-            count += 1
-        if not started:
-            writer.start(profile=log.contents.profile, library="u2sa-hw recover")
-        writer.finish()
+                for a in c.attachment_records:
+                    writer.add_attachment(create_time=a.create_time, log_time=a.log_time, name=a.name,
+                                          media_type=a.media_type, data=bytes(a.data))
+
+            for msg_rec in log.records():
+                c = log.contents
+                if not started:
+                    start()
+                    started = True
+                ch = c.channels[msg_rec.channel_id]
+                if ch.schema_id not in schema_ids:
+                    s = c.schemas.get(ch.schema_id)
+                    if s is None:
+                        raise LogError(f"{log.path}: channel {ch.topic!r} names schema {ch.schema_id}, which the file "
+                                       "does not hold; the file is damaged before its first message")
+                    schema_ids[ch.schema_id] = writer.register_schema(s.name, s.encoding, s.data)
+                if ch.id not in channel_ids:
+                    channel_ids[ch.id] = writer.register_channel(ch.topic, ch.message_encoding,
+                                                                 schema_ids[ch.schema_id], dict(ch.metadata))
+                writer.add_message(channel_ids[ch.id], msg_rec.log_time, msg_rec.data, msg_rec.publish_time,
+                                   msg_rec.sequence)
+                count += 1
+            if not started:
+                start()   # no message: the metadata and attachments are still worth keeping
+            writer.finish()
+        tmp.replace(dst)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     return count, log.contents.problem
