@@ -185,3 +185,15 @@ def test_recover_never_leaves_an_invalid_file(tmp_path: Path) -> None:
     res = u2sa("log", "recover", str(f), "-o", str(out), cwd=tmp_path)
     assert res.returncode == 1 and "names schema 7" in res.stderr, res
     assert not out.exists() and not list(tmp_path.glob(".out.mcap.*"))
+
+
+def test_lcm_self_test_packets_are_named_not_unknown(tmp_path: Path) -> None:
+    from u2sa_hw.recording.mcap_log import McapLogWriter
+
+    writer = McapLogWriter(tmp_path, path=tmp_path / "selftest.mcap")
+    writer.write("LCM_SELF_TEST", b"lcm self test", 5)
+    writer.write("STATE_INFO", state(1.0), 6)
+    writer.close()
+    res = u2sa("log", "info", str(tmp_path / "selftest.mcap"), "--json", cwd=tmp_path)
+    types = {r["channel"]: r["type"] for r in json.loads(res.stdout)["channels"]}
+    assert types == {"LCM_SELF_TEST": "lcm_self_test", "STATE_INFO": "StateInformation"}, types

@@ -23,6 +23,9 @@ from u2sa_hw.messages import REGISTRY
 from u2sa_hw.recording.schemas import MESSAGE_ENCODING, SCHEMA_ENCODING, schema_text
 
 PROFILE = "u2sa"
+# Packets on the bus that are not LCM types, by their first 8 bytes: LCM's own self-test
+# (lcm_create sends "lcm self test" on LCM_SELF_TEST to check that multicast loops back).
+FOREIGN_PACKETS = {b"lcm self": "lcm_self_test"}
 BUS_METADATA = "u2sa_bus"   # metadata record written as each file is finished (BusCapture.bus_metadata)
 COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
@@ -77,6 +80,8 @@ class McapFile:
             cls = REGISTRY.by_fingerprint(fingerprint)
             if cls is not None:
                 sid = self._writer.register_schema(cls.__name__, SCHEMA_ENCODING, schema_text(cls).encode())
+            elif fingerprint in FOREIGN_PACKETS:   # not an LCM type: a packet LCM itself sends
+                sid = self._writer.register_schema(FOREIGN_PACKETS[fingerprint], SCHEMA_ENCODING, b"")
             else:  # a type this build does not know: keep the bytes, name the fingerprint
                 sid = self._writer.register_schema(f"unknown_{fingerprint.hex()}", SCHEMA_ENCODING, b"")
             self._schemas[fingerprint] = sid
