@@ -64,7 +64,8 @@ def test_crash_looping_required_service_raises_the_failsafe(tmp_path: Path, lcm_
                       '[services.broken]\nkind = "state_estimator"\n'
                       "[services.broken.supervision]\nstartup_grace_s = 2.0\n", startup_grace_s=10.0)
     break_config(tmp_path, "broken")                         # it exits 1 at every start
-    lp = launch(vehicle, "--give-up-after", "0", "--max-failures", "0", "--backoff", "0.2", "--max-backoff", "1")
+    lp = launch(vehicle, "--force", "--give-up-after", "0", "--max-failures", "0", "--backoff", "0.2",
+                "--max-backoff", "1")   # --force: past u2sa check, which sees the broken config
     failsafe = wait_until(lambda: next((f for f in list(watch.failsafes) if f.active), None), timeout=60,
                           message="an active FAILSAFE")
     assert failsafe.service == "broken" and failsafe.header.source == "hsm"

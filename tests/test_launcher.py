@@ -79,7 +79,7 @@ def test_killed_child_restarts_with_new_run_id_and_sigint_stops_all(tmp_path: Pa
 def test_crash_looping_service_backs_off_then_launcher_gives_up(tmp_path: Path, lcm_url: str, launch: Any) -> None:
     profile = write_profile(tmp_path, lcm_url, {"est": "state_estimator", "broken": "state_estimator"})
     break_config(tmp_path, "broken")
-    lp = launch(profile, "--backoff", "0.05", "--give-up-after", "4", "--grace", "5")
+    lp = launch(profile, "--force", "--backoff", "0.05", "--give-up-after", "4", "--grace", "5")   # past u2sa check
     assert lp.proc.wait(timeout=60) == 1
     out = lp.output
     delays = [float(d) for d in re.findall(r"broken exited with status 1 .*restarting in ([0-9.]+) s", out)]
@@ -195,7 +195,7 @@ def test_run_gives_up_by_failures_within_the_window_with_quick_deaths_off(tmp_pa
                                                                          launch: Any) -> None:
     profile = write_profile(tmp_path, lcm_url, {"broken": "state_estimator"})
     break_config(tmp_path, "broken")
-    lp = launch(profile, "--backoff", "0.05", "--give-up-after", "0", "--max-failures", "3",
+    lp = launch(profile, "--force", "--backoff", "0.05", "--give-up-after", "0", "--max-failures", "3",
                 "--failure-window", "600")
     assert lp.proc.wait(timeout=60) == 1
     out = lp.output

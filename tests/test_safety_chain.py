@@ -295,7 +295,7 @@ def test_run_and_install_refuse_a_mis_declared_safety_chain_before_anything_star
     for args in (["run", "--vehicle", str(path)], ["install", "--vehicle", str(path), "--root", str(tmp_path / "root")]):
         done = services.cli(*args)
         assert done.returncode == 1 and done.stderr.count("\n") == 1, done.stderr
-        assert "[safety].manual_mixer: throttle = 'esc2' is not an actuator" in done.stderr
+        assert "manual_mixer" in done.stderr and "throttle = 'esc2' is not an actuator" in done.stderr
     assert not (tmp_path / "root" / "etc").exists(), "install wrote nothing"
     bad_syntax = write_vehicle(tmp_path, safety={"hardware_mux": ["steer"]})
     with pytest.raises(ProfileError, match=r"\[safety\]: 'hardware_mux' must be a table"):

@@ -99,7 +99,7 @@ def _check_vehicle(path: Path, vehicle: dict[str, Any], out: Collector) -> None:
                       f"write {key} = {_example(want)}")
     level = vehicle.get("log_level")
     if isinstance(level, str) and level not in LEVEL_NAMES:
-        out.error("vehicle.log_level", f"'{level}' is not a log level{did_you_mean(level, LEVEL_NAMES)}",
+        out.error("vehicle.log_level", f"unknown log level '{level}'{did_you_mean(level, LEVEL_NAMES)}",
                   f"use one of {', '.join(LEVEL_NAMES)}")
     security = vehicle.get("bus_security")
     if isinstance(security, str) and security not in ("signed", "open"):

@@ -82,11 +82,12 @@ class Collector:
             if text.startswith(prefix):
                 text = text[len(prefix):].lstrip(": ")
                 break
-        found = re.match(r"\[([^\]]+)\]:?\s*(.*)", text, re.S)
+        found = re.match(r"\[([^\]]+)\]((?:\.[\w.]+)?)\s*:?\s*(.*)", text, re.S)
         if found:
-            if not key or found.group(1).startswith(key):
-                key = found.group(1)   # the more precise of the two
-            text = found.group(2)
+            table = found.group(1) + found.group(2)   # "[safety].manual_mixer" -> safety.manual_mixer
+            if not key or table.startswith(key):
+                key = table   # the more precise of the two
+            text = found.group(3)
         message, sep, given_fix = text.partition("; ")
         if sep and len(message) > 12:
             text, fix = message, given_fix

@@ -263,10 +263,11 @@ def _read_referenced(field_name: str, path: Path, profile: Any) -> str | None:
             from u2sa_hw.services.mission.xml import load_mission
 
             load_mission(path)
-        elif field_name == "objects_file" and profile is not None:
+        elif field_name == "objects_file":
             from u2sa_hw.services.world.xml import load_objects
+            from u2sa_hw.vehicle import Origin
 
-            load_objects(path, origin=profile.origin)
+            load_objects(path, origin=profile.origin if profile is not None else Origin())
         else:
             path.read_bytes()
     except (OSError, ValueError) as exc:

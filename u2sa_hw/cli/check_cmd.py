@@ -61,8 +61,8 @@ def register(sub: Any) -> None:
     p.set_defaults(func=cmd_check)
 
 
-def profile_path(args: Any) -> Path:
-    """The profile --vehicle names, else $U2SA_VEHICLE, else /etc/u2sa/vehicle.toml."""
+def profile_path(args: Any, *, command: str = "check") -> Path:
+    """The profile --vehicle names, else $U2SA_VEHICLE, else /etc/u2sa/vehicle.toml (CliError 2 without one)."""
     import os
 
     from u2sa_hw.cli import CliError
@@ -73,7 +73,7 @@ def profile_path(args: Any) -> Path:
         return Path(text)
     if SYSTEM_PROFILE.exists():
         return SYSTEM_PROFILE
-    raise CliError("check: give the vehicle profile with --vehicle PATH (or set $U2SA_VEHICLE)", 2)
+    raise CliError(f"{command}: give the vehicle profile with --vehicle PATH (or set $U2SA_VEHICLE)", 2)
 
 
 def cmd_check(args: Any) -> int:
@@ -119,10 +119,12 @@ def refuse_on_errors(path: Path, *, command: str, for_sim: bool = False) -> None
 
     problems = check_profile(path, for_sim=for_sim)
     errors = errors_of(problems)
-    for problem in problems:
-        if not problem.is_error:
+    if not errors:
+        for problem in problems:   # warnings: shown, and the command goes on
             print(f"u2sa {command}: {problem}", file=sys.stderr)
-    if errors:
-        lines = "\n".join(f"  {p}" for p in errors)
-        raise CliError(f"{command}: {path} has {len(errors)} error(s); nothing was started:\n{lines}\n"
-                       f"(u2sa check --vehicle {path} lists them again)", 1)
+        return
+    if len(errors) == 1:
+        raise CliError(f"{command}: {errors[0]} (nothing was started)", 1)
+    lines = "\n".join(f"  {p}" for p in errors)
+    raise CliError(f"{command}: {path} has {len(errors)} error(s); nothing was started:\n{lines}\n"
+                   f"(u2sa check --vehicle {path} lists them again)", 1)

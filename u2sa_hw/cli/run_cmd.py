@@ -33,6 +33,11 @@ for every service (0 turns the watchdog off).
 
 The HSM (a service of kind "hsm") asks the launcher to restart services through
 the control socket <data_dir>/launcher.sock. See docs/supervision.md.
+
+Before anything starts, the profile is checked as u2sa check does (docs/check.md):
+with any error the launcher lists every one and starts nothing. --force starts
+anyway (to watch the supervision handle a service that cannot start), except
+for [safety] errors, which always refuse: a wrong safety wiring is never run.
 """
 
 
@@ -65,6 +70,8 @@ def register(sub: Any) -> None:
     p.add_argument("--keep-going", action="store_true",
                    help="keep the other services running when one is given up")
     p.add_argument("--no-color", action="store_true", help="never colour the service names")
+    p.add_argument("--force", action="store_true",
+                   help="start even when u2sa check finds errors (they are printed); [safety] errors still refuse")
     p.set_defaults(func=cmd_run)
 
 
@@ -73,9 +80,11 @@ def cmd_run(args: Any) -> int:
     from u2sa_hw.cli import CliError
     from u2sa_hw.launcher import PrefixedOutput, RestartPolicy, select_services
 
+    from u2sa_hw.cli.check_cmd import profile_path
+
+    path = profile_path(args, command="run")
+    _check_profile(path, force=args.force)   # before loading: the loader stops at the first problem
     profile = profile_from(args)
-    if profile.path is None:
-        raise CliError("run: give the vehicle profile with --vehicle PATH (or set $U2SA_VEHICLE)", 2)
     only = [n.strip() for item in args.only or [] for n in item.split(",") if n.strip()] or None
     if args.grace < 0:
         raise CliError("run: --grace must be >= 0", 2)
@@ -141,6 +150,21 @@ def _run_key(profile: Any, output: Any) -> Iterator[None]:
             yield
         finally:
             os.environ.pop(KEY_ENV, None)
+
+
+def _check_profile(path: Any, *, force: bool) -> None:
+    """The offline check (u2sa check): refuse with every error listed, or with --force print them and go on."""
+    import sys
+
+    from u2sa_hw.cli import CliError
+    from u2sa_hw.cli.check_cmd import refuse_on_errors
+
+    try:
+        refuse_on_errors(path, command="run")
+    except CliError as exc:
+        if not force:
+            raise
+        print(f"u2sa {exc}\n(--force: starting anyway)", file=sys.stderr)
 
 
 def _check_safety(profile: Any) -> None:

@@ -36,6 +36,12 @@ level) went neutral and moved again, and the RC_MODE states heard.
 The pilot hands over only once the IMU has calibrated at rest. A profile whose
 devices do not drive every input of its [simulation] model is refused.
 
+Before anything starts the profile is checked as u2sa check --sim does
+(docs/check.md): every error is listed and nothing starts. A service that
+drives a device needs a mock ([devices.NAME] mock = "..."); the error names the
+service and the mock kind to add. A service that reports a device or config
+error while starting is named on the console with its error text.
+
 Keys, when stdin is a terminal (the pilot's RC transmitter):
   w / s     throttle stick up / down (steps of 10 %)
   a / d     steering stick left / right
@@ -85,6 +91,9 @@ def cmd_sim(args: Any) -> int:
     if not args.vehicle.exists():
         raise CliError(f"sim: {args.vehicle}: vehicle profile not found (run from the repository root for the "
                        "default, or pass --vehicle PATH)", 2)
+    from u2sa_hw.cli.check_cmd import refuse_on_errors
+
+    refuse_on_errors(args.vehicle, command="sim", for_sim=True)
     lcm_url, can_port = _private_bus(args)
     options = SimOptions(vehicle=args.vehicle, out=args.out, mission=args.mission, timeout_s=args.timeout,
                          record=args.record, lcm_url=lcm_url, can_port=can_port, scenario=args.scenario)

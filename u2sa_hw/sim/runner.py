@@ -99,6 +99,7 @@ class SimRun:
         self._services_log: Any = None
         self._tmp_device_dir: Path | None = None
         self._stopping = False
+        self._said: dict[str, str] = {}   # service -> the health error last shown on the console
 
     # -- steps ---------------------------------------------------------------------------
     def start(self) -> None:
@@ -364,12 +365,21 @@ class SimRun:
             raise SimFailure(f"timeout after {timeout:g} s waiting for {waiting_for}", "timeout")
         time.sleep(TICK_S)
 
+    def _say_errors(self, snap: BusSnapshot) -> None:
+        """Show each service's health error (a missing device and its fix) on the console once, as it changes."""
+        for name, (status, error, _t) in sorted(snap.health.items()):
+            if status != "ok" and error and self._said.get(name) != error and name in self.launcher.processes:
+                self._said[name] = error
+                self.progress.event(f"  ! {name} {status}: {error}")
+
     def _not_ready(self, snap: BusSnapshot) -> list[str]:
         missing = []
         names = list(self.launcher.processes)
+        self._say_errors(snap)
         up = [n for n in names if n in snap.health and snap.health[n][0] not in ("starting", "stopping")]
         if len(up) < len(names):
-            waiting = [n for n in names if n not in up]
+            waiting = [n + (f" ({snap.health[n][1]})" if n in snap.health and snap.health[n][1] else "")
+                       for n in names if n not in up]
             missing.append(f"{len(up)}/{len(names)} services up (waiting: {', '.join(waiting)})")
         waited = time.monotonic() - self.record.t_start
         calibrating = [n for n in self.imus if n in up and snap.health[n][0] != "ok"]

@@ -1,0 +1,245 @@
+"""`u2sa check` offline: every problem of a profile at once, one line each, and the exit codes.
+
+Real files in a temporary directory, the real service registry and the real CLI in a
+subprocess. Nothing is opened but files.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from conftest import REPO, U2SA
+from u2sa_hw.check import ERROR, WARNING, Problem, check_profile, errors_of
+
+
+CLEAN = """\
+[vehicle]
+name = "bench"
+log_level = "info"
+config_dir = "config"
+
+[services.estimator]
+kind = "state_estimator"
+settings = { publish_rate_hz = 20.0 }
+
+[services.world]
+kind = "world_modeler"
+
+[services.hsm]
+kind = "hsm"
+"""
+
+MISTAKES = """\
+[vehicle]
+name = "bad"
+log_levle = "info"
+log_level = "loud"
+config_dir = "config"
+origin = { lat = 129.0, lon = 0.0 }
+
+[services.planner]
+kind = "path_planer"
+
+[services.gps]
+kind = "compass_serial"
+prot = "/dev/ttyUSB0"
+settings = { port = "/dev/ttyUSB0", baudrate = "9600", health_interval_s = inf }
+
+[services.gps.supervision]
+heartbeat_timout_s = 3.0
+data_channel = "STATE_INFOO"
+
+[services.compass]
+kind = "compass_serial"
+settings = { port = "/dev/ttyUSB1" }
+
+[services.imu]
+kind = "state_estimator"
+
+[services.mission]
+kind = "mission_manager"
+settings = { mission_file = "missing.xml" }
+
+[services.world]
+kind = "world_modeler"
+settings = { objects_file = "objects.xml" }
+
+[services.est]
+kind = "state_estimator"
+settings = { mode = "kalmann" }
+
+[simulaton]
+x = 1
+"""
+
+# (file name or "" for the profile, key, a word of the message) for each mistake above
+EXPECTED = [
+    ("", "simulaton", "did you mean 'simulation'"),
+    ("", "vehicle.log_levle", "did you mean 'log_level'"),
+    ("", "vehicle.log_level", "loud"),
+    ("", "vehicle.origin.lat", "129"),
+    ("", "services.planner.kind", "did you mean 'path_planner'"),
+    ("", "services.gps.prot", "did you mean 'port'"),
+    ("", "services.gps.settings.baudrate", "int"),
+    ("", "services.gps.settings.health_interval_s", "inf"),
+    ("", "services.gps.supervision.heartbeat_timout_s", "did you mean 'heartbeat_timeout_s'"),
+    ("", "services.gps.supervision.data_channel", "did you mean 'STATE_INFO'"),
+    ("compass.toml", "baudrate", "fast"),
+    ("compass.toml", "bogus", "bogus"),
+    ("est.toml", "", "not UTF-8"),
+    ("", "services.mission.settings.mission_file", "does not exist"),
+    ("objects.xml", "", ""),
+    ("", "services.est.settings", "kalmann"),
+]
+
+
+def write(tmp: Path, profile: str, files: dict[str, bytes] | None = None) -> Path:
+    """The profile and its side files in *tmp*; returns the profile's path."""
+    (tmp / "config").mkdir(exist_ok=True)
+    for name, data in (files or {}).items():
+        (tmp / name).write_bytes(data)
+    path = tmp / "vehicle.toml"
+    path.write_text(profile)
+    return path
+
+
+def mistakes(tmp: Path) -> Path:
+    return write(tmp, MISTAKES, {"config/compass.toml": b'baudrate = "fast"\nbogus = 1\n',
+                                 "config/est.toml": b"\xff\xfe\x00binary",
+                                 "objects.xml": b"<objects><object>"})
+
+
+def u2sa(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([*U2SA, *args], capture_output=True, text=True, timeout=120, cwd=REPO, env=env)
+
+
+def test_one_profile_with_many_mistakes_lists_every_one(tmp_path: Path) -> None:
+    problems = check_profile(mistakes(tmp_path))
+    for file, key, word in EXPECTED:
+        found = [p for p in problems if p.file.endswith(file or "vehicle.toml") and (p.key == key or key and p.key.startswith(key + "."))
+                 and word in str(p)]
+        assert found, f"no problem for {file or 'the profile'} [{key}] mentioning {word!r}:\n" + \
+            "\n".join(map(str, problems))
+    assert all(p.fix for p in errors_of(problems)), "every error says what to do"
+    assert all("\n" not in str(p) for p in problems)
+    bogus = next(p for p in problems if p.key == "bogus")
+    assert bogus.severity == WARNING   # a config file may hold a newer version's field: kept, reported
+    assert len(errors_of(problems)) >= len(EXPECTED) - 1
+
+
+def test_problem_is_one_line_with_file_key_and_fix() -> None:
+    p = Problem(ERROR, "v.toml", "services.gps.kind", "unknown service kind 'gsp'", "use gps_nmea")
+    assert str(p) == "error: v.toml [services.gps.kind]: unknown service kind 'gsp'; fix: use gps_nmea"
+    assert p.is_error and not Problem(WARNING, "v.toml", "", "x", "y").is_error
+    with pytest.raises(AttributeError):
+        p.key = "other"   # frozen: another module holds these
+
+
+def test_clean_profile_has_no_problem_and_exits_0(tmp_path: Path) -> None:
+    path = write(tmp_path, CLEAN)
+    assert check_profile(path) == []
+    done = u2sa("check", "--vehicle", str(path))
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "0 error(s), 0 warning(s)" in done.stdout
+
+
+def test_errors_exit_1_and_every_error_is_printed(tmp_path: Path) -> None:
+    path = mistakes(tmp_path)
+    done = u2sa("check", "--vehicle", str(path))
+    assert done.returncode == 1
+    lines = [line for line in done.stdout.splitlines() if line.startswith(("error: ", "warning: "))]
+    assert len(lines) == len(check_profile(path))
+    assert any("[services.planner.kind]" in line and "path_planner" in line for line in lines)
+
+
+def test_warnings_do_not_fail(tmp_path: Path) -> None:
+    path = write(tmp_path, CLEAN.replace('config_dir = "config"', 'config_dir = "nowhere"'))
+    problems = check_profile(path)
+    assert [p.key for p in problems] == ["vehicle.config_dir"] and problems[0].severity == WARNING
+    assert u2sa("check", "--vehicle", str(path)).returncode == 0
+
+
+def test_json_lists_the_problems(tmp_path: Path) -> None:
+    done = u2sa("check", "--vehicle", str(mistakes(tmp_path)), "--json")
+    assert done.returncode == 1
+    report = json.loads(done.stdout)
+    assert report["ok"] is False and report["probes"] == []
+    keys = {p["key"] for p in report["problems"]}
+    assert {"services.planner.kind", "vehicle.log_levle"} <= keys
+    assert set(report["problems"][0]) == {"severity", "file", "key", "message", "fix"}
+
+
+def test_unreadable_profiles_are_one_error_each(tmp_path: Path) -> None:
+    missing = check_profile(tmp_path / "none.toml")
+    assert len(missing) == 1 and "not found" in missing[0].message
+    (tmp_path / "bin.toml").write_bytes(b"[vehicle]\nname = \"\xff\"\n")
+    binary = check_profile(tmp_path / "bin.toml")
+    assert len(binary) == 1 and "not UTF-8" in binary[0].message and binary[0].file.endswith("bin.toml")
+    (tmp_path / "bad.toml").write_text("[vehicle\n")
+    assert "not valid TOML" in check_profile(tmp_path / "bad.toml")[0].message
+    assert u2sa("check", "--vehicle", str(tmp_path / "none.toml")).returncode == 1
+
+
+def test_no_profile_given_is_a_usage_error(tmp_path: Path) -> None:
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k != "U2SA_VEHICLE"}
+    done = subprocess.run([*U2SA, "check"], capture_output=True, text=True, timeout=60, cwd=tmp_path, env=env)
+    if Path("/etc/u2sa/vehicle.toml").exists():
+        pytest.skip("this machine has an installed profile, the default")
+    assert done.returncode == 2 and "--vehicle" in done.stderr
+
+
+SERIAL = CLEAN + """
+[services.gps]
+kind = "gps_nmea"
+device = "gps"
+
+[devices.gps]
+address = "{address}"
+service = "gps"
+"""
+
+
+def test_a_dev_u2sa_link_nothing_creates_is_an_error_with_the_rule_line(tmp_path: Path,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    rules = tmp_path / "rules.d"
+    rules.mkdir()
+    monkeypatch.setenv("U2SA_UDEV_RULES_DIRS", str(rules))
+    path = write(tmp_path, SERIAL.replace("{address}", "serial:///dev/u2sa/gps?baud=9600"))
+    errors = [p for p in errors_of(check_profile(path)) if "/dev/u2sa/gps" in p.message]
+    assert len(errors) == 1, "\n".join(map(str, check_profile(path)))
+    assert 'SYMLINK+="u2sa/gps"' in errors[0].fix and "usb=" in errors[0].fix
+    (rules / "65-u2sa-vehicle.rules").write_text('SUBSYSTEM=="tty", ATTRS{idVendor}=="1546", '
+                                                 'ATTRS{idProduct}=="01a7", SYMLINK+="u2sa/gps"\n')
+    assert not [p for p in check_profile(path) if "/dev/u2sa/gps" in p.message]
+    (rules / "65-u2sa-vehicle.rules").unlink()
+    path = write(tmp_path, SERIAL.replace("{address}", "serial:///dev/u2sa/gps?baud=9600&usb=1546:01a7"))
+    assert not [p for p in check_profile(path) if "/dev/u2sa/gps" in p.message]
+
+
+def test_for_sim_a_device_without_a_mock_names_the_service_and_the_mock(tmp_path: Path) -> None:
+    path = write(tmp_path, SERIAL.replace("{address}", "serial:///dev/u2sa/gps?baud=9600"))
+    errors = errors_of(check_profile(path, for_sim=True))
+    assert [p.key for p in errors] == ["services.gps"], "\n".join(map(str, errors))
+    assert 'mock = "nmea_gps"' in errors[0].fix
+    assert not any("/dev/u2sa" in p.message for p in errors)   # the mock stands in: no udev rule needed
+
+
+def test_run_refuses_a_profile_with_errors_and_lists_them(tmp_path: Path) -> None:
+    done = u2sa("run", "--vehicle", str(mistakes(tmp_path)))
+    assert done.returncode == 1
+    assert "nothing was started" in done.stderr
+    assert "[services.planner.kind]" in done.stderr and "[vehicle.log_levle]" in done.stderr
+
+
+def test_sim_refuses_a_device_without_a_mock_at_start(tmp_path: Path) -> None:
+    path = write(tmp_path, SERIAL.replace("{address}", "serial:///dev/u2sa/gps?baud=9600"))
+    done = u2sa("sim", "--vehicle", str(path), "--out", str(tmp_path / "out"), "--timeout", "30")
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert "[services.gps]" in done.stderr and 'mock = "nmea_gps"' in done.stderr
+    assert not (tmp_path / "out" / "services.log").exists()   # refused before anything started
