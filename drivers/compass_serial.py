@@ -1,7 +1,8 @@
-"""A compass on a serial port: NMEA 0183 HDG/HDM/HDT (+ XDR pitch/roll) or the OceanServer OS5000 ``$C`` format.
+"""A compass on a serial port: NMEA 0183 heading/attitude sentences or the OceanServer OS5000 ``$C`` format.
 
 Publishes psi (true heading, rad in [-pi, pi), clockwise from north) and, when the device
-reports them, phi (roll) and theta (pitch), each with its configured sigma.
+reports them, phi (roll), theta (pitch) and psi_dot (rate of turn), each with its
+configured sigma (or the device's own accuracy, PASHR).
 
 Magnetic to true (east positive, as on charts)::
 
@@ -9,124 +10,88 @@ Magnetic to true (east positive, as on charts)::
     true     = magnetic + declination          (declination_deg, or HDG's variation field
                                                 when use_hdg_variation and it is present)
 
-``format = "nmea"``: sentences are grouped into bursts (a repeated heading sentence or
-``epoch_gap_s`` of silence ends one) and each burst is one message; when a burst has more
-than one heading sentence, HDT wins over HDG over HDM. XDR angle transducers named
-``PITCH``/``PTCH`` and ``ROLL`` in degrees give theta and phi.
+``format = "nmea"``: the sentences of drivers/compass_sentences.py (HDG, HDM, HDT, THS,
+ROT, XDR pitch/roll/heel/trim, PASHR, PTNTHTM, PTNTHPR), grouped into bursts by sentence
+order and time (drivers/compass_bursts.py); each burst is one message.
 ``format = "os5000"``: every ``$C`` line is one message (``drivers.os5000_format``).
+Every value is checked against its physical range and the configured device range
+(``pitch_range_deg``, ``roll_range_deg``) before it is published; an impossible value is
+dropped, counted per kind in health (``out_of_range_kinds``) and logged once.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Any
 
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.config import ConfigError, field
 from u2sa_hw.geo import wrap_angle
 
-from drivers.nmea_fields import BadChecksum, Epoch, EpochCollector, SentenceError, number, parse_sentence, signed, text
-from drivers.os5000_format import Os5000BadChecksum, Os5000Error, is_os5000_line, parse_os5000
+from drivers.compass_bursts import Burst, BurstGrouper, CompassReading, reading_from_parts
+from drivers.compass_sentences import AttitudeLimits, parse_compass_line
+from drivers.nmea_fields import BadChecksum, SentenceError
+from drivers.os5000_format import OS5000_RANGES, Os5000BadChecksum, Os5000Error, is_os5000_line, parse_os5000
 from drivers.serial_sensor import SerialLineSensor
+from drivers.value_ranges import ValueDrops
 
 FORMATS = ("nmea", "os5000")
-HEADING_KINDS = ("HDT", "HDG", "HDM")  # preference order within one burst
-COMPASS_KINDS = frozenset({*HEADING_KINDS, "XDR"})
-PITCH_IDS = frozenset({"PITCH", "PTCH"})
-ROLL_IDS = frozenset({"ROLL"})
+BITS_PER_CHAR = 10  # start, 8 data, stop
 
 
-@dataclass(frozen=True)
-class CompassReading:
-    """One measurement in degrees: true and magnetic heading, pitch, roll (None when not reported)."""
-
-    source: str                       # "HDT", "HDG", "HDM", "$C" or "" (attitude only)
-    true_heading: float | None = None
-    magnetic_heading: float | None = None
-    pitch: float | None = None
-    roll: float | None = None
-    temperature: float | None = None
-
-
-def xdr_attitude(msgs: list[Any]) -> tuple[float | None, float | None]:
-    """(pitch, roll) in degrees from XDR angle transducers named PITCH/PTCH and ROLL."""
-    pitch = roll = None
-    for msg in msgs:
-        n = 1
-        while hasattr(msg, f"tdrid_{n:02d}"):
-            ident = text(msg, f"tdrid_{n:02d}").upper()
-            unit = text(msg, f"dataunit_{n:02d}").upper()
-            value = number(msg, f"data_{n:02d}")
-            if value is not None and unit in ("D", ""):
-                if ident in PITCH_IDS:
-                    pitch = value
-                elif ident in ROLL_IDS:
-                    roll = value
-            n += 1
-    return pitch, roll
-
-
-def reading_from_epoch(epoch: Epoch, *, declination_deg: float, use_hdg_variation: bool) -> CompassReading:
-    """The heading, pitch and roll one NMEA burst says (see the module docstring for the rules)."""
-    pitch, roll = xdr_attitude(epoch.all("XDR"))
-    for kind in HEADING_KINDS:
-        msg = epoch.first(kind)
-        if msg is None:
-            continue
-        if kind == "HDT":
-            heading = number(msg, "headingT")
-            if heading is not None:
-                return CompassReading("HDT", true_heading=heading, pitch=pitch, roll=roll)
-            continue
-        sensor = number(msg, "headingM")
-        if sensor is None:
-            continue
-        declination = declination_deg
-        if kind == "HDG":
-            sensor += signed(number(msg, "deviation"), text(msg, "deviationEW")) or 0.0
-            variation = signed(number(msg, "variation"), text(msg, "variationEW"))
-            if use_hdg_variation and variation is not None:
-                declination = variation
-        return CompassReading(kind, true_heading=sensor + declination, magnetic_heading=sensor, pitch=pitch, roll=roll)
-    return CompassReading("", pitch=pitch, roll=roll)
-
-
-def state_from_reading(reading: CompassReading, *, heading_sigma_deg: float,
-                       attitude_sigma_deg: float) -> t.StateInformation | None:
-    """psi (and phi, theta) in radians with their sigmas; None when the reading has none of them."""
+def state_from_reading(reading: CompassReading, *, heading_sigma_deg: float, attitude_sigma_deg: float,
+                       rate_sigma_deg_s: float = 1.0) -> t.StateInformation | None:
+    """psi, phi, theta, psi_dot in radians with their sigmas; None when the reading has none of them
+    (or any value is not finite: never published)."""
+    values = (reading.true_heading, reading.roll, reading.pitch, reading.rate_deg_s)
+    if any(v is not None and not math.isfinite(v) for v in values):
+        return None
     msg = t.StateInformation()
     msg.reference_frame = "NED"
     if reading.true_heading is not None:
-        msg.set(psi=wrap_angle(math.radians(reading.true_heading)), psi_sigma=math.radians(heading_sigma_deg))
-    attitude_sigma = math.radians(attitude_sigma_deg)
+        msg.set(psi=wrap_angle(math.radians(reading.true_heading)),
+                psi_sigma=math.radians(reading.heading_sigma or heading_sigma_deg))
     if reading.roll is not None:
-        msg.set(phi=math.radians(reading.roll), phi_sigma=attitude_sigma)
+        msg.set(phi=math.radians(reading.roll), phi_sigma=math.radians(reading.roll_sigma or attitude_sigma_deg))
     if reading.pitch is not None:
-        msg.set(theta=math.radians(reading.pitch), theta_sigma=attitude_sigma)
+        msg.set(theta=math.radians(reading.pitch),
+                theta_sigma=math.radians(reading.pitch_sigma or attitude_sigma_deg))
+    if reading.rate_deg_s is not None:
+        msg.set(psi_dot=math.radians(reading.rate_deg_s), psi_dot_sigma=math.radians(rate_sigma_deg_s))
     return msg if msg.presence_vector else None
 
 
 class SerialCompassDriver(SerialLineSensor):
-    """A serial compass (NMEA heading sentences or an OceanServer OS5000) as a proprioceptive sensor."""
+    """A serial compass (NMEA heading/attitude sentences or an OceanServer OS5000) as a proprioceptive sensor."""
 
     EXAMPLE_PORT = "/dev/u2sa/compass"
     CONFIG = (
         field("baudrate", 19200, "one of 4800 .. 115200 (19200: the OS5000's factory rate; NMEA compasses often 4800)"),
-        field("format", "nmea", "nmea: HDG/HDM/HDT (+ XDR pitch/roll); os5000: OceanServer $C sentences"),
-        field("declination_deg", 0.0, "magnetic declination, east positive: true = magnetic + declination"),
+        field("format", "nmea", "nmea: HDG/HDM/HDT/THS, ROT, XDR, PASHR, PTNTHTM/HPR; os5000: OceanServer $C sentences"),
+        field("declination_deg", 0.0, "magnetic declination, east positive: true = magnetic + declination", ge=-180, le=180),
         field("use_hdg_variation", True, "nmea: use HDG's variation field instead of declination_deg when present"),
-        field("heading_sigma_deg", 1.0, "sigma of psi (deg)"),
-        field("attitude_sigma_deg", 0.5, "sigma of phi and theta (deg)"),
+        field("heading_sigma_deg", 1.0, "sigma of psi (deg)", gt=0),
+        field("attitude_sigma_deg", 0.5, "sigma of phi and theta (deg)", gt=0),
+        field("rate_sigma_deg_s", 1.0, "sigma of psi_dot from ROT (deg/s)", gt=0),
+        field("pitch_range_deg", 90.0, "the device's pitch range (deg, 0..90): |pitch| beyond it is dropped "
+                                       "(OS5000 90, HMR3300 60, HMR3000 40)", ge=0, le=90),
+        field("roll_range_deg", 180.0, "the device's roll range (deg, 0..180): |roll| beyond it is dropped "
+                                       "(OS5000 180, HMR3300 60, HMR3000 40)", ge=0, le=180),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
-        self.epochs = EpochCollector()
+        self.bursts = self._new_grouper()
         self.reading: CompassReading | None = None
+        self.out_of_range = ValueDrops(self.logger, device=self.device_name, what="out-of-range")
+        self.not_valid = ValueDrops(self.logger, device=self.device_name, what="not-valid (by their status)")
+
+    def _new_grouper(self) -> BurstGrouper:
+        return BurstGrouper(gap_s=self.config.get("epoch_gap_s"),
+                            char_time_s=BITS_PER_CHAR / self.config.get("baudrate"))
 
     def check_config(self) -> None:
-        """The serial fields, plus the format, declination and sigmas."""
+        """The serial fields, plus the format, declination, sigmas and attitude ranges."""
         super().check_config()
         cfg = self.config
         if cfg.get("format").lower() not in FORMATS:
@@ -134,14 +99,29 @@ class SerialCompassDriver(SerialLineSensor):
         if not -180.0 <= cfg.get("declination_deg") <= 180.0:
             raise ConfigError(f"service '{self.name}': declination_deg must be within -180..180 (east positive), "
                               f"got {cfg.get('declination_deg')!r}")
-        for key in ("heading_sigma_deg", "attitude_sigma_deg"):
+        for key in ("heading_sigma_deg", "attitude_sigma_deg", "rate_sigma_deg_s"):
             if not cfg.get(key) > 0:
                 raise ConfigError(f"service '{self.name}': {key} must be > 0, got {cfg.get(key)!r}")
+        for key, top in (("pitch_range_deg", 90.0), ("roll_range_deg", 180.0)):
+            if not 0 < cfg.get(key) <= top:
+                raise ConfigError(f"service '{self.name}': {key} must be within 0..{top:g} (the compass's "
+                                  f"documented range), got {cfg.get(key)!r}")
+
+    def on_config_change(self, name: str, value: Any) -> None:
+        """The serial fields reopen the port (which also starts burst learning afresh)."""
+        super().on_config_change(name, value)
+        if name in ("epoch_gap_s", "baudrate"):
+            self.bursts = self._new_grouper()
 
     @property
     def format(self) -> str:
         """``"nmea"`` or ``"os5000"``."""
         return self.config.get("format").lower()
+
+    @property
+    def limits(self) -> AttitudeLimits:
+        """The configured pitch and roll ranges."""
+        return AttitudeLimits(pitch_deg=self.config.get("pitch_range_deg"), roll_deg=self.config.get("roll_range_deg"))
 
     # -- lines ---------------------------------------------------------------------------------
     def handle_line(self, line: bytes, received: float) -> None:
@@ -167,48 +147,53 @@ class SerialCompassDriver(SerialLineSensor):
             self.count_malformed(str(exc))
             return
         self.count_valid(noise_bytes=noise)
-        self._publish(CompassReading("$C", true_heading=os5000.heading + self.config.get("declination_deg"),
-                                     magnetic_heading=os5000.heading, pitch=os5000.pitch, roll=os5000.roll,
-                                     temperature=os5000.temperature), received)
+        check, limits = self.out_of_range.check, self.limits
+        heading = check("heading", os5000.heading, *OS5000_RANGES["heading"], unit=" deg")
+        pitch_max, roll_max = min(limits.pitch_deg, OS5000_RANGES["pitch"][1]), min(limits.roll_deg,
+                                                                                     OS5000_RANGES["roll"][1])
+        self._publish(CompassReading(
+            "$C" if heading is not None else "",
+            true_heading=None if heading is None else heading + self.config.get("declination_deg"),
+            magnetic_heading=heading, pitch=check("pitch", os5000.pitch, -pitch_max, pitch_max, unit=" deg"),
+            roll=check("roll", os5000.roll, -roll_max, roll_max, unit=" deg"),
+            temperature=check("temperature", os5000.temperature, *OS5000_RANGES["temperature"], unit=" C")),
+            received)
 
     def _nmea_line(self, line: bytes, received: float) -> None:
         try:
-            sentence = parse_sentence(line)
+            part = parse_compass_line(line, limits=self.limits, drops=self.out_of_range, not_valid=self.not_valid)
         except BadChecksum as exc:
             self.count_bad_checksum(exc.kind, str(exc))
-            done = self.epochs.dropped(exc.kind)
-            if done is not None:
-                self._publish_epoch(done)
             return
         except SentenceError as exc:
             self.count_malformed(str(exc))
             return
-        if sentence is None or sentence.kind not in COMPASS_KINDS:
+        if part is None:
             self.ignored += 1
             return
-        self.count_valid(noise_bytes=sentence.noise_bytes)
-        done = self.epochs.add(sentence, received=received)
-        if done is not None:
-            self._publish_epoch(done)
+        self.count_valid(noise_bytes=part.noise_bytes)
+        for burst in self.bursts.add(part, received=received, chars=len(line)):
+            self._publish_burst(burst)
 
     def handle_idle(self) -> None:
-        """The end of an NMEA burst."""
-        done = self.epochs.flush()
+        """The line went quiet: the end of an NMEA burst."""
+        done = self.bursts.flush()
         if done is not None:
-            self._publish_epoch(done)
+            self._publish_burst(done)
 
     def on_port_lost(self) -> None:
-        """Drop a half-received burst."""
-        self.epochs.flush()
+        """Drop a half-received burst and what was learned about the device's bursts."""
+        self.bursts.reset()
 
-    def _publish_epoch(self, epoch: Epoch) -> None:
-        reading = reading_from_epoch(epoch, declination_deg=self.config.get("declination_deg"),
+    def _publish_burst(self, burst: Burst) -> None:
+        reading = reading_from_parts(burst.parts, declination_deg=self.config.get("declination_deg"),
                                      use_hdg_variation=self.config.get("use_hdg_variation"))
-        self._publish(reading, epoch.received)
+        self._publish(reading, burst.received)
 
     def _publish(self, reading: CompassReading, received: float) -> None:
         msg = state_from_reading(reading, heading_sigma_deg=self.config.get("heading_sigma_deg"),
-                                 attitude_sigma_deg=self.config.get("attitude_sigma_deg"))
+                                 attitude_sigma_deg=self.config.get("attitude_sigma_deg"),
+                                 rate_sigma_deg_s=self.config.get("rate_sigma_deg_s"))
         if msg is None:
             self.ignored += 1
             return
@@ -217,20 +202,31 @@ class SerialCompassDriver(SerialLineSensor):
 
     # -- health ----------------------------------------------------------------------------------
     def sensor_details(self) -> dict[str, Any]:
-        """The latest heading (true and magnetic), pitch, roll and temperature, in degrees."""
+        """The latest heading (true and magnetic), pitch, roll, rate of turn and temperature, in degrees;
+        dropped values by kind; how bursts are grouped."""
         r = self.reading
-        details: dict[str, Any] = {"format": self.format, "declination_deg": self.config.get("declination_deg")}
+        details: dict[str, Any] = {"format": self.format, "declination_deg": self.config.get("declination_deg"),
+                                   **self.out_of_range.details("out_of_range"),
+                                   **self.not_valid.details("not_valid")}
+        if self.format == "nmea":
+            details["burst_rule"] = self.bursts.rule
         if r is not None:
             details.update({
                 "source": r.source,
                 "heading_deg": _deg360(r.true_heading),
                 "magnetic_heading_deg": _deg360(r.magnetic_heading),
-                "pitch_deg": "" if r.pitch is None else f"{r.pitch:.1f}",
-                "roll_deg": "" if r.roll is None else f"{r.roll:.1f}",
-                "temperature_c": "" if r.temperature is None else f"{r.temperature:.1f}",
+                "pitch_deg": _one(r.pitch),
+                "roll_deg": _one(r.roll),
+                "rate_of_turn_deg_s": _one(r.rate_deg_s),
+                "heading_mode": r.mode,
+                "temperature_c": _one(r.temperature),
             })
         return details
 
 
 def _deg360(value: float | None) -> str:
     return "" if value is None else f"{value % 360.0:.1f}"
+
+
+def _one(value: float | None) -> str:
+    return "" if value is None else f"{value:.1f}"

@@ -33,6 +33,14 @@ OS5000_FIELDS: dict[str, tuple[str, str]] = {
     "Ay": ("accel_y", "g"),
     "Az": ("accel_z", "g"),
 }
+# the documented ranges (OS5000 series manual, specifications): heading 0..360, pitch +-90,
+# roll +-180 (deg); operating temperature -40..85 C. A value outside is not a measurement.
+OS5000_RANGES: dict[str, tuple[float, float]] = {
+    "heading": (0.0, 360.0),
+    "pitch": (-90.0, 90.0),
+    "roll": (-180.0, 180.0),
+    "temperature": (-40.0, 85.0),
+}
 OS5000_BAUDRATES = (4800, 9600, 14400, 19200, 38400, 57600, 115200)  # <esc>B 0..6
 _LINE = re.compile(r"^\$(C[^*]*)\*([0-9A-Fa-f]{2})\s*$")
 _FIELD = re.compile(r"([A-Z][a-z]?)([-+]?\d+(?:\.\d*)?|[-+]?\.\d+)")
