@@ -169,7 +169,8 @@ def root(tmp_path_factory: pytest.TempPathFactory, url: str) -> Path:
     base = tmp_path_factory.mktemp("systemd_hsm")
     profile = write_profile(base / "vehicle.toml", url)
     staged = stage_root(base / "root")
-    done = subprocess.run([str(U2SA), "install", "--vehicle", str(profile), "--root", str(staged)],
+    # --force: the check rightly refuses the service 'broken', which is there to crash-loop.
+    done = subprocess.run([str(U2SA), "install", "--vehicle", str(profile), "--root", str(staged), "--force"],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert (staged / "etc/systemd/system/u2sa.target.wants/u2sa-hsm.service").is_symlink()
