@@ -83,8 +83,8 @@ def test_error_names_decode_both_firmware_lines() -> None:
     ({"node_ids": [1]}, "one entry per actuator"),
     ({"node_ids": [1, 1]}, "distinct integers"),
     ({"directions": [1, 2]}, "1 or -1"),
-    ({"max_turns_per_s": 0.0}, "max_turns_per_s must be > 0"),
-    ({"firmware": "0.4"}, "firmware must be one of"),
+    ({"max_turns_per_s": 0.0}, "field 'max_turns_per_s' must be > 0; got 0.0"),
+    ({"firmware": "0.4"}, "field 'firmware' must be one of"),
     ({"odometry_left": "port"}, "is not one of the actuators"),
 ])
 def test_a_bad_config_is_refused_with_the_field_named(lcm_url: str, settings: dict, words: str) -> None:

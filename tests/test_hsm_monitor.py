@@ -168,7 +168,7 @@ def test_rules_from_profile(tmp_path: Path) -> None:
     (tmp_path / "vehicle.toml").write_text(
         '[services.gps]\nkind = "gps_nmea"\nsettings = { health_interval_s = 0.5 }\n'
         '[services.gps.supervision]\ndata_channel = "STATE_INFO"\nstale_after_s = 2\nrequire_details = ["fix"]\n'
-        '[services.cam]\nkind = "camera"\nrequired = false\n'
+        '[services.cam]\nkind = "world_modeler"\nrequired = false\n'
         '[services.old]\nkind = "camera"\nenabled = false\n'
         '[services.hsm]\nkind = "hsm"\n')
     rules = {r.name: r for r in rules_from_profile(load_profile(tmp_path / "vehicle.toml"), own_name="hsm")}

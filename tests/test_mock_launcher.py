@@ -111,7 +111,6 @@ def test_u2sa_mock_prints_the_addresses_and_cleans_up_on_ctrl_c(tmp_path: Path) 
 @pytest.mark.parametrize("change, error", [
     (('mock = "nmea_gps"', 'mock = "sextant"'), r"\[devices.gps\]: mock = 'sextant' is not a mock kind; known: .*nmea_gps"),
     (('[devices.gps]\n', '[devices.gps]\nservice = "gnss"\n'), r"service = 'gnss' is not a service of the profile"),
-    (("can_udp_port = 43000", "can_port = 43000"), r"\[simulation\]: unknown key\(s\) can_port"),
     (('address = 0x69', 'address = 0x40'), None),
     (('options = { horizontal_sigma_m = 0.1, rate_hz = 5 }', 'options = { sigma = 1 }'),
      r"unknown option\(s\) sigma for NmeaGpsDevice; valid: .*horizontal_sigma_m"),

@@ -82,7 +82,7 @@ class Actuator(U2SAService):
     SERVICE_TYPE: ClassVar[str] = "actuator"
     CONFIG = (
         field("command_timeout_s", 0.25, "dead-man: no obeyed command for this long -> neutral (0 < s <= 0.5; "
-                                         "0 = off, allowed only with rc_gating = false)"),
+                                         "0 = off, allowed only with rc_gating = false)", ge=0),
         field("rc_gating", True, "obey commands only as the pilot's RC switch allows; false only on a bench "
                                  "without an RC receiver, never on a vehicle", remote=False),
     )

@@ -255,15 +255,30 @@ class Configurator:
         except ConfigError as exc:
             raise ConfigError(f"{source}: {exc}; fix it there") from None
 
-    def get(self, name: str) -> Any:
-        """The current value of *name* (KeyError names the known fields)."""
+    def get(self, name: str, *default: Any) -> Any:
+        """The current value of *name*; for an unknown name *default* if given, else KeyError naming the known fields.
+
+        With a default it reads like a mapping's ``get``, so code that takes a plain settings dict
+        takes a Configurator too.
+        """
         try:
             return self._values[name]
         except KeyError:
+            if default:
+                return default[0]
             raise KeyError(f"no config field '{name}' (known: {', '.join(sorted(self.fields))})") from None
 
     def __getitem__(self, name: str) -> Any:
         return self.get(name)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._values
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(list(self._values))
+
+    def __len__(self) -> int:
+        return len(self._values)
 
     @contextlib.contextmanager
     def trial(self, name: str, value: Any) -> Iterator[None]:

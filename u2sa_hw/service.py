@@ -60,7 +60,7 @@ class U2SAService:
         self.profile = profile or VehicleProfile(path=None)
         self.logger = logger or logging.getLogger(f"u2sa.{name}")
         path = config_path if config_path is not None else self.profile.config_path_for(name)
-        where = f"{self.profile.path} [services.{name}] settings" if self.profile.path else f"settings of '{name}'"
+        where = f"{self.profile.path} [services.{name}] settings" if self.profile.path else f"service '{name}' settings"
         self.config = Configurator(path, (*BASE_CONFIG, *self.config_fields()), logger=self.logger, initial=settings,
                                    initial_source=where, validator=self.validate_config)
         self.transport = transport or Transport(self.profile.lcm_url, name=name,

@@ -36,6 +36,19 @@ from typing import Any
 
 from u2sa_hw.service_log import level_number
 
+# Every key a table of the profile may hold; any other is an error with a did-you-mean (a typo
+# must not leave a setting silently at its default). [safety] and [devices.*] are checked by
+# their own modules (u2sa_hw.safety.config, u2sa_hw.devices), supervision by the HSM's rules.
+TOP_TABLES = ("vehicle", "services", "devices", "safety", "simulation")
+VEHICLE_KEYS = ("name", "system_id", "lcm_url", "bus_security", "bus_key", "bus_interface", "config_dir",
+                "log_dir", "data_dir", "log_level", "origin")
+ORIGIN_KEYS = ("lat", "lon", "alt")
+SERVICE_KEYS = ("kind", "config", "settings", "enabled", "required", "supervision", "device")
+# The mock launcher's SimulationSettings (mock_devices/launcher.py) reads these; a test keeps them equal.
+SIMULATION_KEYS = ("model", "track_width", "wheel_base", "max_speed", "start", "rate_hz", "can_udp_port", "seed",
+                   "timeout_s")
+SIMULATION_START_KEYS = ("north", "east", "heading_deg")
+
 VEHICLE_ENV = "U2SA_VEHICLE"
 SYSTEM_PROFILE = Path("/etc/u2sa/vehicle.toml")
 
@@ -119,6 +132,56 @@ def _typed(table: dict[str, Any], key: str, kind: type, default: Any, where: str
     return value
 
 
+def key_problems(path: Path, data: dict[str, Any]) -> list[str]:
+    """Unknown keys and service kinds of the profile *data* read from *path*, one line each with a did-you-mean."""
+    from u2sa_hw.config_keys import unknown_key_problems
+    from u2sa_hw.config_validate import kind_problem
+
+    problems = unknown_key_problems(data, TOP_TABLES, where=str(path), what="table")
+    v = data.get("vehicle")
+    if isinstance(v, dict):
+        problems += unknown_key_problems(v, VEHICLE_KEYS, where=f"{path} [vehicle]")
+        if isinstance(v.get("origin"), dict):
+            problems += unknown_key_problems(v["origin"], ORIGIN_KEYS, where=f"{path} [vehicle] origin")
+    services = data.get("services")
+    supervision_keys: list[str] | None = None
+    for name, s in (services.items() if isinstance(services, dict) else ()):
+        if not isinstance(s, dict):
+            continue
+        where = f"{path} [services.{name}]"
+        problems += unknown_key_problems(s, SERVICE_KEYS, where=where)
+        if isinstance(s.get("kind"), str) and s["kind"] and s.get("enabled", True) is not False:
+            problem = kind_problem(s["kind"], where=f"{where} kind")
+            if problem:
+                problems.append(problem)
+        if isinstance(s.get("supervision"), dict):
+            if supervision_keys is None:
+                from u2sa_hw.services.hsm.rules import SUPERVISION_KEYS
+                supervision_keys = list(SUPERVISION_KEYS)
+            problems += unknown_key_problems(s["supervision"], supervision_keys,
+                                             where=f"{path} [services.{name}.supervision]")
+    sim = data.get("simulation")
+    if isinstance(sim, dict):
+        problems += unknown_key_problems(sim, SIMULATION_KEYS, where=f"{path} [simulation]")
+        if isinstance(sim.get("start"), dict):
+            problems += unknown_key_problems(sim["start"], SIMULATION_START_KEYS, where=f"{path} [simulation] start")
+    return problems
+
+
+def read_profile_text(path: Path) -> str:
+    """The profile's text; ProfileError naming the file when it is missing, unreadable or not UTF-8."""
+    try:
+        return path.read_bytes().decode("utf-8")
+    except FileNotFoundError:
+        raise ProfileError(f"{path}: vehicle profile not found; pass --vehicle with the path of your vehicle.toml "
+                           "(examples/ has complete ones)") from None
+    except UnicodeDecodeError as exc:
+        raise ProfileError(f"{path}: not a text file (byte {exc.start} is 0x{exc.object[exc.start]:02x}, not "
+                           "UTF-8); pass the vehicle.toml itself, or fix the file") from None
+    except OSError as exc:
+        raise ProfileError(f"{path}: cannot read the vehicle profile ({exc.strerror or exc})") from None
+
+
 def load_profile(path: Path | str | None) -> VehicleProfile:
     """Parse the profile at *path* (None: ``$U2SA_VEHICLE``, then /etc/u2sa/vehicle.toml, else defaults)."""
     if path is None:
@@ -131,12 +194,12 @@ def load_profile(path: Path | str | None) -> VehicleProfile:
             return VehicleProfile(path=None)
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise ProfileError(f"{path}: vehicle profile not found; pass --vehicle with the path of your vehicle.toml "
-                           "(examples/ has complete ones)") from None
+        data = tomllib.loads(read_profile_text(path))
     except tomllib.TOMLDecodeError as exc:
         raise ProfileError(f"{path}: not valid TOML: {exc}") from None
+    problems = key_problems(path, data)
+    if problems:
+        raise ProfileError("\n".join(problems))
     base = path.resolve().parent
     v = data.get("vehicle", {})
     where = f"{path} [vehicle]"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import tomllib
 from typing import Any
@@ -11,18 +12,23 @@ from typing import Any
 from u2sa_hw.cli.common import add_timeout_option, add_vehicle_option, bus_client, no_answer_error
 
 
+_NEGATIVE_LITERAL = re.compile(r"^-(?:\d[\d_]*(?:\.\d[\d_]*)?(?:[eE][+-]?\d+)?|\.\d+|inf|nan)$")
+
+
 def register(sub: Any) -> None:
     """Add the ``param`` subcommand group."""
     p = sub.add_parser("param", help="list, get or set a service's config over the bus",
                        formatter_class=argparse.RawDescriptionHelpFormatter,
                        description="Read and change a running service's typed config. A change is checked "
-                       "against the field's type (and allowed values) by the service and written to its TOML "
-                       "file atomically. VALUE is a TOML literal: 42, 2.5, true, \"text\". For a text field "
+                       "against the field's type, allowed values and range by the service (a value out of range, or "
+                       "inf/nan where the field needs a finite number, is refused with the bound and the value) "
+                       "and written to its TOML file atomically; a refused change leaves the file untouched. VALUE is a TOML literal: 42, 2.5, true, \"text\". For a text field "
                        "a quoted string gives its contents and anything else is taken as it is, so "
                        "mode passthrough and mode '\"passthrough\"' both set passthrough.",
                        epilog="examples:\n  u2sa param list state_estimator --json\n"
                        "  u2sa param set gps baudrate 38400\n  u2sa param set state_estimator mode passthrough\n"
                        "  u2sa param set state_estimator log_level debug\n"
+                       "  u2sa param set compass declination_deg -6.5   (a negative value needs no quoting)\n"
                        "  u2sa param set state_estimator log_level '\"\"'     (empty: the profile's level)")
     psub = p.add_subparsers(dest="param_command", metavar="ACTION", required=True)
     lp = psub.add_parser("list", help="every field with its type and value")
@@ -34,8 +40,12 @@ def register(sub: Any) -> None:
     sp = psub.add_parser("set", help="change one field (persisted); exits 1 with the reason when refused")
     sp.add_argument("service")
     sp.add_argument("field")
-    sp.add_argument("value", help="a TOML literal (42, 2.5, true, \"text\"); for a text field a quoted "
-                    "string gives its contents and a bare word is itself")
+    sp.add_argument("value", help="a TOML literal (42, 2.5, -5, -inf, true, \"text\"); for a text field a quoted "
+                    "string gives its contents and a bare word is itself; a value starting with '-' (a negative "
+                    "number, -inf) is a value, not an option")
+    # argparse takes "-inf" and "-1e3" for options (only "-5" and "-.5" look like numbers to it); this
+    # parser has no option that looks like a number, so every TOML number literal is a value.
+    sp._negative_number_matcher = _NEGATIVE_LITERAL
     for q in (lp, gp, sp):
         add_vehicle_option(q)
         add_timeout_option(q, 2.0)

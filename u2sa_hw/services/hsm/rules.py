@@ -67,6 +67,7 @@ class MonitorPolicy:
 
 
 _KEYS = {f.name: f for f in fields(WatchRule) if f.name not in ("name", "required")}
+SUPERVISION_KEYS = tuple(_KEYS)   # the keys of [services.NAME.supervision] (the profile loader checks them)
 
 
 def health_interval_of(spec: ServiceSpec) -> float:
