@@ -1,24 +1,33 @@
-"""One GNSS epoch (GGA, RMC, VTG, GSA, GST, GNS, ZDA, HDT from any talker) to a fix and a State Information.
+"""One GNSS epoch (GGA, GNS, RMC, GLL, VTG, GSA, GST, ZDA, HDT from any talkers) to a fix and a State Information.
 
-Pure functions, no I/O: :func:`fix_from_epoch` reads what the epoch's sentences say into
+Pure functions, no I/O: :func:`fix_from_epoch` merges what the epoch's sentences say into
 a :class:`GpsFix`; :func:`state_from_fix` turns a fix into the message the driver publishes.
+Every value is range-checked on the way in (``drivers.gps_limits``); what was dropped is
+in ``GpsFix.rejects``. docs/drivers-serial.md lists these rules beside gpsd's.
 
-Which sentence wins:
+Merging the sentences of one epoch (one UTC time):
 
-- position: GGA, else GNS, else RMC (RMC has no altitude); pynmeagps gives lat/lon in
-  signed degrees (S and W negative). A fix needs a usable GGA quality (1 GPS, 2 DGPS,
-  3 PPS, 4 RTK fixed, 5 RTK float, 8 simulator; 0 invalid, 6 dead reckoning and 7 manual
-  are not a measurement), a GNS mode letter in ``ADPRFS``, or RMC status ``A`` with a
-  mode other than ``N``/``E``; and numeric lat/lon.
-- fix dimension: the highest GSA ``navMode`` (one GSA per constellation); without GSA,
-  3-D when the position sentence gives an altitude.
-- ground velocity: RMC speed and course, else VTG (knots, else km/h; true course).
-  A course left empty at zero speed means velocity (0, 0).
-- sigmas: GST ``stdLat``/``stdLong``/``stdAlt`` (m, 1 sigma) when present, else from the
-  dilution of precision: per axis ``HDOP * uere / sqrt(2)`` (HDOP^2 uere^2 is the sum of
-  the north and east variances), vertical ``VDOP * uere`` (``2 * HDOP * uere`` without GSA).
-- true heading: HDT (dual-antenna receivers) goes into psi. Course over ground is never
-  heading: it is published only as the direction of (x_dot, y_dot).
+- *status*: each position sentence is read on its own (``drivers.gps_reports``). The
+  epoch has a GNSS fix when any of them has one; the richest of those is the *primary*
+  (an altitude, then more satellites, then GGA > GNS > RMC > GLL), so a later sentence with
+  less content (a second talker's GGA without altitude, an RMC) never downgrades the fix.
+  Without a GNSS fix the status is dead reckoning, simulator or manual when a sentence
+  says so (none of them is a measurement: no position is published), else no fix.
+  Every GSA saying "no fix" (navMode 1) vetoes the fix (fail safe).
+- *position*: latitude and longitude of the primary, or of another fix sentence of the
+  epoch that gives the same position with more decimals (an RMC with 5 decimals beside a
+  GGA with 4); altitude, satellites and HDOP of the primary.
+- *dimension*: 3-D when the primary has an altitude and either at least 4 satellites in
+  use (gpsd's rule) or a GSA says 3-D; a GSA saying 2-D does not take the altitude away
+  from such a GGA (gpsd keeps 3-D). Otherwise 2-D: no altitude is published.
+- *geoid*: the receiver's geoid separation, else the built-in EGM96 table
+  (``drivers.geoid``), so the ellipsoid height is right with any receiver.
+- *velocity*: speed and course are separate fields: speed from RMC, else VTG (knots,
+  else km/h); course from RMC, else VTG (true). VTG or RMC marked not valid, estimated or
+  simulated gives neither.
+- *sigmas*: GST ``stdLat``/``stdLong``/``stdAlt`` (m, 1 sigma), else per axis
+  ``HDOP * uere / sqrt(2)`` and vertically ``VDOP * uere`` (``2 * HDOP * uere`` without VDOP).
+- *heading*: HDT (dual-antenna receivers) goes into psi. Course over ground is never heading.
 """
 
 from __future__ import annotations
@@ -31,13 +40,17 @@ from u2sa_hw import lcmtypes as t
 from u2sa_hw.geo import GeoOrigin, geodetic_to_ned, wrap_angle
 from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence setters
 
+from drivers import gps_limits as lim
+from drivers.geoid import geoid_separation
+from drivers.gps_reports import (MIN_SATELLITES_3D, POSITION_KINDS, PositionReport, checked, checked_int, dop,
+                                 indicator_status, num, read_report)
 from drivers.nmea_fields import Epoch, number, text, utc_time
 
 KNOT_MPS = 1852.0 / 3600.0
 GGA_QUALITY = {0: "invalid", 1: "gps", 2: "dgps", 3: "pps", 4: "rtk", 5: "float rtk", 6: "dead reckoning",
                7: "manual", 8: "simulator"}
-USABLE_GGA_QUALITY = frozenset({1, 2, 3, 4, 5, 8})
-GNS_FIX_MODES = frozenset("ADPRFS")
+STATUS_NAMES = {"dr": "DR", "simulator": "simulator", "manual": "manual"}
+VELOCITY_INVALID_MODES = frozenset("NESM")
 POSITION_FRAMES = ("NED", "GEODETIC")
 ALTITUDE_DATUMS = ("msl", "ellipsoid")
 
@@ -47,12 +60,15 @@ class GpsFix:
     """What one epoch says. Absent values are None; ``has_fix`` False means no position."""
 
     has_fix: bool = False
+    status: str = "none"                 # gnss, dr, simulator, manual, none
+    reported: bool = False               # the epoch held a position sentence (else it says nothing of the fix)
     quality: int | None = None           # GGA quality (None without GGA)
     fix_dim: int = 0                     # 0 no fix, 2, 3
     lat: float | None = None             # degrees
     lon: float | None = None
     alt_msl: float | None = None         # m above the geoid (GGA/GNS altitude)
     geoid_sep: float | None = None       # m, ellipsoid minus geoid
+    geoid_source: str = ""               # "receiver" or "EGM96 table"
     satellites: int | None = None
     hdop: float | None = None
     vdop: float | None = None
@@ -67,6 +83,7 @@ class GpsFix:
     utc_date: dt.date | None = None
     talkers: set[str] = field(default_factory=set)
     kinds: list[str] = field(default_factory=list)
+    rejects: list[str] = field(default_factory=list)   # kinds of values dropped as out of range
 
     def altitude(self, datum: str) -> float | None:
         """Altitude in m up: above the geoid (``msl``) or the WGS84 ellipsoid (``ellipsoid``)."""
@@ -78,91 +95,119 @@ class GpsFix:
 
     @property
     def fix_name(self) -> str:
-        """``"no fix"``, ``"2D"`` or ``"3D"``."""
-        return f"{self.fix_dim}D" if self.has_fix and self.fix_dim else "no fix"
+        """``"no fix"``, ``"2D"``, ``"3D"``, or ``"DR"``, ``"simulator"``, ``"manual"`` (not measurements)."""
+        if self.has_fix and self.fix_dim:
+            return f"{self.fix_dim}D"
+        return STATUS_NAMES.get(self.status, "no fix")
+
+
+def _finer_position(primary: PositionReport, reports: list[PositionReport]) -> tuple[float, float]:
+    """The primary's lat/lon, or the same position with more decimals from another fix sentence."""
+    lat, lon = primary.lat, primary.lon
+    assert lat is not None and lon is not None
+    best = primary
+    for rep in reports:
+        if rep.is_fix and rep.decimals > best.decimals and rep.lat is not None and rep.lon is not None:
+            tolerance = 1.5 * 10.0 ** -primary.decimals / 60.0   # a unit of the primary's last digit, in degrees
+            if abs(rep.lat - lat) <= tolerance and abs(rep.lon - lon) <= tolerance:
+                best = rep
+    assert best.lat is not None and best.lon is not None
+    return best.lat, best.lon
 
 
 def _position(epoch: Epoch, fix: GpsFix) -> None:
-    gga, gns, rmc = epoch.first("GGA"), epoch.first("GNS"), epoch.first("RMC")
-    lat = lon = None
-    if gga is not None:
-        q = number(gga, "quality")
-        fix.quality = None if q is None else int(q)
-        fix.satellites = _int(number(gga, "numSV"))
-        fix.hdop = number(gga, "HDOP")
-        lat, lon = number(gga, "lat"), number(gga, "lon")
-        usable = fix.quality in USABLE_GGA_QUALITY
-        fix.alt_msl, fix.geoid_sep = number(gga, "alt"), number(gga, "sep")
-    elif gns is not None:
-        usable = any(c in GNS_FIX_MODES for c in text(gns, "posMode").upper())
-        fix.satellites = _int(number(gns, "numSV"))
-        fix.hdop = number(gns, "HDOP")
-        lat, lon = number(gns, "lat"), number(gns, "lon")
-        fix.alt_msl, fix.geoid_sep = number(gns, "alt"), number(gns, "sep")
-    elif rmc is not None:
-        usable = text(rmc, "status").upper() == "A" and text(rmc, "posMode").upper() not in ("N", "E")
-        lat, lon = number(rmc, "lat"), number(rmc, "lon")
+    reports = [read_report(s) for s in epoch.sentences if s.kind in POSITION_KINDS]
+    for rep in reports:
+        fix.rejects.extend(rep.rejects)
+    fix.reported = bool(reports)
+    ggas = [r for r in reports if r.kind == "GGA"]
+    fix.quality = ggas[0].quality if ggas else None
+    fixes = [r for r in reports if r.is_fix]
+    if not fixes:
+        statuses = {r.status for r in reports}
+        fix.status = next((s for s in ("dr", "simulator", "manual") if s in statuses), "none")
+        fix.satellites = next((r.satellites for r in reports if r.satellites is not None), None)
+        return
+    primary = max(fixes, key=PositionReport.richness)   # max keeps the first of equals: arrival order
+    fix.has_fix, fix.status = True, "gnss"
+    fix.quality = primary.quality if primary.kind == "GGA" else fix.quality
+    fix.lat, fix.lon = _finer_position(primary, fixes)
+    fix.alt_msl, fix.satellites = primary.alt_msl, primary.satellites
+    fix.hdop = primary.hdop if primary.hdop is not None else next((r.hdop for r in fixes if r.hdop), None)
+    if primary.geoid_sep is not None:
+        fix.geoid_sep, fix.geoid_source = primary.geoid_sep, "receiver"
     else:
-        usable = False
-    fix.has_fix = usable and lat is not None and lon is not None
-    if fix.has_fix:
-        fix.lat, fix.lon = lat, lon
-    else:
-        fix.alt_msl = fix.geoid_sep = None
-
-
-def _int(value: float | None) -> int | None:
-    return None if value is None else int(value)
+        fix.geoid_sep, fix.geoid_source = geoid_separation(fix.lat, fix.lon), "EGM96 table"
 
 
 def _dilution(epoch: Epoch, fix: GpsFix) -> None:
-    modes = [m for m in (number(g, "navMode") for g in epoch.all("GSA")) if m is not None]
+    modes: list[int] = []
     for g in epoch.all("GSA"):
-        fix.pdop = fix.pdop if fix.pdop is not None else number(g, "PDOP")
-        fix.hdop = fix.hdop if fix.hdop is not None else number(g, "HDOP")
-        fix.vdop = fix.vdop if fix.vdop is not None else number(g, "VDOP")
+        mode = checked_int(num(g, "navMode", "gsa mode", fix.rejects), lim.Limit(1.0, 3.0), "gsa mode", fix.rejects)
+        if mode is not None:
+            modes.append(mode)
+        fix.pdop = fix.pdop if fix.pdop is not None else dop(num(g, "PDOP", "pdop", fix.rejects), "pdop", fix.rejects)
+        fix.hdop = fix.hdop if fix.hdop is not None else dop(num(g, "HDOP", "hdop", fix.rejects), "hdop", fix.rejects)
+        fix.vdop = fix.vdop if fix.vdop is not None else dop(num(g, "VDOP", "vdop", fix.rejects), "vdop", fix.rejects)
+    if fix.has_fix and modes and max(modes) == 1:
+        fix.has_fix, fix.status = False, "none"     # the receiver says no fix in every GSA: fail safe
     if not fix.has_fix:
         fix.fix_dim = 0
-    elif modes:
-        fix.fix_dim = 3 if max(modes) >= 3 else 2
-    else:
-        fix.fix_dim = 3 if fix.alt_msl is not None else 2
+        fix.lat = fix.lon = fix.alt_msl = fix.geoid_sep = None
+        fix.geoid_source = ""
+        return
+    enough = (fix.satellites or 0) >= MIN_SATELLITES_3D or (bool(modes) and max(modes) == 3)
+    fix.fix_dim = 3 if fix.alt_msl is not None and enough else 2
     if fix.fix_dim != 3:
         fix.alt_msl = None
 
 
 def _velocity(epoch: Epoch, fix: GpsFix) -> None:
-    rmc, vtg = epoch.first("RMC"), epoch.first("VTG")
     speed = course = None
-    if rmc is not None and text(rmc, "status").upper() == "A":
-        knots = number(rmc, "spd")
-        speed, course = (None if knots is None else knots * KNOT_MPS), number(rmc, "cog")
-    if speed is None and vtg is not None and text(vtg, "posMode").upper() != "N":
-        knots, kmh = number(vtg, "sogn"), number(vtg, "sogk")
-        speed = knots * KNOT_MPS if knots is not None else (kmh / 3.6 if kmh is not None else None)
-        course = number(vtg, "cogt")
-    if speed is None or (course is None and speed > 0.0):
-        return
-    fix.speed_mps, fix.course_deg = speed, (course if course is not None else 0.0)
+    for rmc in epoch.all("RMC"):
+        if indicator_status(text(rmc, "status").upper(), text(rmc, "posMode").upper()[:1]) != "gnss":
+            continue
+        knots = num(rmc, "spd", "speed", fix.rejects)
+        speed = speed if speed is not None or knots is None else knots * KNOT_MPS
+        course = course if course is not None else num(rmc, "cog", "course", fix.rejects)
+    for vtg in epoch.all("VTG"):
+        if text(vtg, "posMode").upper()[:1] in VELOCITY_INVALID_MODES:
+            continue
+        if speed is None:
+            knots, kmh = num(vtg, "sogn", "speed", fix.rejects), num(vtg, "sogk", "speed", fix.rejects)
+            speed = knots * KNOT_MPS if knots is not None else (kmh / 3.6 if kmh is not None else None)
+        course = course if course is not None else num(vtg, "cogt", "course", fix.rejects)
+    fix.speed_mps = checked(speed, lim.SPEED_MPS, "speed", fix.rejects)
+    course = checked(course, lim.ANGLE_DEG, "course", fix.rejects)
+    fix.course_deg = None if course is None else course % 360.0
 
 
 def _errors(epoch: Epoch, fix: GpsFix) -> None:
     gst = epoch.first("GST")
-    if gst is not None:
-        fix.std_lat, fix.std_lon, fix.std_alt = number(gst, "stdLat"), number(gst, "stdLong"), number(gst, "stdAlt")
+    if gst is None:
+        return
+    values = []
+    for name, kind in (("stdLat", "sigma lat"), ("stdLong", "sigma lon"), ("stdAlt", "sigma alt")):
+        value = num(gst, name, kind, fix.rejects)
+        values.append(None if value == 0.0 else checked(value, lim.SIGMA_M, kind, fix.rejects, open_low=True))
+    fix.std_lat, fix.std_lon, fix.std_alt = values
 
 
 def _time(epoch: Epoch, fix: GpsFix) -> None:
     fix.utc_time = epoch.time or next((w for w in (utc_time(s.msg) for s in epoch.sentences) if w), None)
-    zda, rmc = epoch.first("ZDA"), epoch.first("RMC")
-    if zda is not None:
-        d, m, y = (_int(number(zda, k)) for k in ("day", "month", "year"))
-        try:
-            fix.utc_date = dt.date(y, m, d) if None not in (d, m, y) else None
-        except ValueError:
-            fix.utc_date = None
-    if fix.utc_date is None and rmc is not None and isinstance(getattr(rmc, "date", None), dt.date):
-        fix.utc_date = rmc.date
+    for zda in epoch.all("ZDA"):
+        d, m = (checked_int(num(zda, k, "date", fix.rejects), lim.Limit(1.0, 31.0), "date", fix.rejects)
+                for k in ("day", "month"))
+        y = checked_int(num(zda, "year", "date", fix.rejects), lim.DATE_YEAR, "date", fix.rejects)
+        if None not in (d, m, y):
+            try:
+                fix.utc_date = dt.date(y, m, d)  # type: ignore[arg-type]
+                break
+            except (ValueError, OverflowError):
+                fix.rejects.append("date")
+    if fix.utc_date is None:
+        fix.utc_date = next((r.date for r in epoch.all("RMC") if isinstance(getattr(r, "date", None), dt.date)),
+                            None)
 
 
 def fix_from_epoch(epoch: Epoch) -> GpsFix:
@@ -173,9 +218,11 @@ def fix_from_epoch(epoch: Epoch) -> GpsFix:
     if fix.has_fix:
         _velocity(epoch, fix)
         _errors(epoch, fix)
-    hdt = epoch.first("HDT")
-    if hdt is not None:
-        fix.heading_deg = number(hdt, "headingT")
+    for hdt in epoch.all("HDT"):
+        heading = checked(num(hdt, "headingT", "heading", fix.rejects), lim.ANGLE_DEG, "heading", fix.rejects)
+        if heading is not None:
+            fix.heading_deg = heading % 360.0
+            break
     _time(epoch, fix)
     return fix
 
@@ -213,6 +260,20 @@ def horizontal_sigma(fix: GpsFix, uere_m: float) -> float | None:
     return None if sx is None or sy is None else math.hypot(sx, sy)
 
 
+def _set_velocity(msg: t.StateInformation, fix: GpsFix, sigma: float) -> None:
+    speed = fix.speed_mps
+    if speed is None:
+        return
+    if fix.course_deg is not None:
+        course = math.radians(fix.course_deg)
+        msg.set(x_dot=speed * math.cos(course), y_dot=speed * math.sin(course), x_dot_sigma=sigma, y_dot_sigma=sigma)
+    else:
+        # A speed without a course (a receiver at rest leaves the course empty): the direction is
+        # unknown, so each axis is 0 with the spread of a vector of that length in any direction.
+        spread = math.hypot(sigma, speed / math.sqrt(2.0))
+        msg.set(x_dot=0.0, y_dot=0.0, x_dot_sigma=spread, y_dot_sigma=spread)
+
+
 def state_from_fix(fix: GpsFix, settings: StateSettings) -> t.StateInformation | None:
     """The State Information for *fix*, or None when it measures nothing (no fix and no heading)."""
     msg = t.StateInformation()
@@ -235,10 +296,7 @@ def state_from_fix(fix: GpsFix, settings: StateSettings) -> t.StateInformation |
                 msg.set(**{name: sigma})
         if alt is not None and sz is not None and sz > 0:
             msg.set(z_sigma=sz)
-        if fix.speed_mps is not None and fix.course_deg is not None:
-            course = math.radians(fix.course_deg)
-            msg.set(x_dot=fix.speed_mps * math.cos(course), y_dot=fix.speed_mps * math.sin(course),
-                    x_dot_sigma=settings.speed_sigma_mps, y_dot_sigma=settings.speed_sigma_mps)
+        _set_velocity(msg, fix, settings.speed_sigma_mps)
     if fix.heading_deg is not None:
         msg.set(psi=wrap_angle(math.radians(fix.heading_deg)), psi_sigma=math.radians(settings.heading_sigma_deg))
         msg.reference_frame = msg.reference_frame or "NED"

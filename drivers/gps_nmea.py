@@ -1,29 +1,36 @@
 """GPS over serial NMEA 0183: a proprioceptive sensor publishing one State Information per fix.
 
 Each line is parsed by pynmeagps (checksums enforced: a bad one is counted per sentence
-kind and dropped). Sentences are grouped into epochs (``drivers.nmea_fields``: a new UTC
-time, a repeated sentence kind, or ``epoch_gap_s`` of silence ends one; once the driver has
-learned what a complete epoch holds, its last sentence ends it at once), and each epoch
-becomes one message (``drivers.gps_fix``): position about the profile origin in the
-configured ``position_frame``, NED ground velocity from speed and course, psi from HDT,
-sigmas from GST or HDOP. No fix: no position and no velocity (an HDT heading still goes
-out), status ``degraded`` with ``degraded_reason = "no fix"``.
+kind and dropped; blank lines and AIS ``!AIVDM`` are ignored). Sentences are grouped into
+epochs by their UTC times (``drivers.gps_epochs``), and each epoch becomes one message
+(``drivers.gps_fix``): position about the profile origin in the configured
+``position_frame``, NED ground velocity from speed and course, psi from HDT, sigmas from
+GST or HDOP. Sentences that come after their epoch was published are merged into it and
+only what they add is published (never the position twice). Values outside their
+physical range are dropped, counted (``out_of_range``) and logged once per kind. No fix,
+dead reckoning or simulator: no position and no velocity (an HDT heading still goes out),
+status ``degraded`` with the reason. An epoch without a position sentence (a lone ZDA or
+HDT) says nothing about the fix; the fix expires after ``stale_after_s`` without one.
 
 See docs/drivers-serial.md for the config, frames and faults.
 """
 
 from __future__ import annotations
 
+import math
+import time
 from typing import Any
 
 from u2sa_hw.config import ConfigError, field
 
+from drivers.gps_epochs import GpsEpochCollector
 from drivers.gps_fix import (ALTITUDE_DATUMS, GGA_QUALITY, POSITION_FRAMES, GpsFix, StateSettings, fix_from_epoch,
                              horizontal_sigma, state_from_fix)
-from drivers.nmea_fields import BadChecksum, Epoch, EpochCollector, SentenceError, parse_sentence
+from drivers.nmea_fields import BadChecksum, Epoch, SentenceError, parse_sentence
 from drivers.serial_sensor import SerialLineSensor
+from drivers.value_ranges import ValueDrops
 
-GPS_KINDS = frozenset({"GGA", "RMC", "VTG", "GSA", "GST", "GNS", "ZDA", "HDT"})
+GPS_KINDS = frozenset({"GGA", "RMC", "GLL", "VTG", "GSA", "GST", "GNS", "ZDA", "HDT"})
 
 
 class GpsNmeaDriver(SerialLineSensor):
@@ -33,19 +40,24 @@ class GpsNmeaDriver(SerialLineSensor):
         field("position_frame", "NED", "NED: x north, y east, z down (m) about the profile origin; "
                                        "GEODETIC: x = lat, y = lon (deg), z = altitude (m up)"),
         field("altitude_datum", "msl", "msl: the GGA altitude (above the geoid); ellipsoid: plus the geoid separation"),
-        field("uere_m", 3.0, "user equivalent range error (m): sigmas from HDOP/VDOP when there is no GST"),
-        field("speed_sigma_mps", 0.1, "sigma of x_dot, y_dot (m/s)"),
-        field("heading_sigma_deg", 0.5, "sigma of psi from HDT (deg)"),
+        field("uere_m", 3.0, "user equivalent range error (m): sigmas from HDOP/VDOP when there is no GST", gt=0),
+        field("speed_sigma_mps", 0.1, "sigma of x_dot, y_dot (m/s)", gt=0),
+        field("heading_sigma_deg", 0.5, "sigma of psi from HDT (deg)", gt=0),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
-        self.epochs = EpochCollector(end_on_complete=True)
+        self.epochs = GpsEpochCollector()
         self._epoch_mode = self.epochs.mode
         self.epoch_count = 0
-        self.fix: GpsFix | None = None       # the latest epoch's reading
+        self.supplements = 0
+        self.fix: GpsFix | None = None       # the latest epoch's reading that said something of the fix
         self.last_fix: GpsFix | None = None  # the latest epoch with a position
+        self._fix_at: float | None = None    # monotonic time self.fix was read
+        self._last_epoch: Epoch | None = None            # the latest epoch published (supplements merge into it)
+        self._published: set[str] = set()                # the fields published for it
         self.talkers: set[str] = set()
+        self.drops = ValueDrops(self.logger, device=name)
         self._data_said = ""   # the ``data`` detail as last published on a change ("" before any)
 
     def check_config(self) -> None:
@@ -76,7 +88,7 @@ class GpsNmeaDriver(SerialLineSensor):
             sentence = parse_sentence(line)
         except BadChecksum as exc:
             self.count_bad_checksum(exc.kind, str(exc))
-            done = self.epochs.dropped(exc.kind)
+            done = self.epochs.dropped(exc.kind, exc.talker)
             if done is not None:
                 self.publish_epoch(done)
             return
@@ -88,21 +100,23 @@ class GpsNmeaDriver(SerialLineSensor):
             return
         self.count_valid(noise_bytes=sentence.noise_bytes)
         self.talkers.add(sentence.talker)
-        done = self.epochs.add(sentence, received=received)
+        ended = self.epochs.add(sentence, received=received)
         if self.epochs.mode != self._epoch_mode:
             self._log_epoch_mode(sentence.kind)
-        if done is not None:
+        for done in ended:
             self.publish_epoch(done)
 
     def _log_epoch_mode(self, kind: str) -> None:
         """Say once how epochs end now (*kind*: the sentence that changed it)."""
         mode, self._epoch_mode = self.epochs.mode, self.epochs.mode
-        if mode == "on completion":
-            expected = ",".join(f"{k}x{n}" if n > 1 else k for k, n in sorted(self.epochs.expected.items()))
+        if mode == "on completion" and self.epochs.expected is not None:
+            expected = ",".join(f"{t}{k}x{n}" if n > 1 else f"{t}{k}"
+                                for (t, k), n in sorted(self.epochs.expected.items()))
             self.logger.info("%s: epochs hold %s: each ends with its last sentence", self.name, expected)
-        elif mode == "on silence":
+        elif mode == "on time or silence":
             self.logger.info("%s: a %s came after its epoch looked complete: the receiver's epochs vary, so they "
-                             "end on epoch_gap_s of silence from now on (the late sentence is dropped)", self.name, kind)
+                             "end on the next time or epoch_gap_s of silence from now on (the late sentence is "
+                             "merged into its epoch)", self.name, kind or "sentence")
 
     def handle_idle(self) -> None:
         """The receiver finished its burst: publish the epoch."""
@@ -116,24 +130,60 @@ class GpsNmeaDriver(SerialLineSensor):
         """A half-received epoch is dropped, and what a complete epoch holds is learned again."""
         self.epochs.reset()
         self._epoch_mode = self.epochs.mode
+        self._last_epoch, self._published = None, set()
 
     def publish_epoch(self, epoch: Epoch) -> None:
-        """Turn one epoch into at most one State Information and publish it."""
+        """Turn one epoch into at most one State Information and publish it.
+
+        A supplement (sentences of an epoch already published) is merged into that epoch, and
+        only the fields not yet published for it go out, stamped like the epoch."""
+        last = self._last_epoch
+        if epoch.supplement and last is not None and last.time == epoch.time:
+            epoch = Epoch(received=last.received, time=last.time, sentences=last.sentences + epoch.sentences)
+            self.supplements += 1
+            already = self._published
+        else:
+            self.epoch_count += 1
+            already = set()
         fix = fix_from_epoch(epoch)
-        self.epoch_count += 1
-        had_fix = self.fix is not None and self.fix.has_fix
-        fix_name = self.fix.fix_name if self.fix is not None else None
-        self.fix = fix
+        for kind in fix.rejects:
+            self.drops.drop(kind, f"a {kind} value outside its physical range in {','.join(fix.kinds)}")
+        self._last_epoch = epoch
+        if fix.reported:   # an epoch of ZDA or HDT alone says nothing of the fix
+            self._take_fix(fix)
+        msg = state_from_fix(fix, self.settings())
+        if msg is None:
+            self._published = already
+            return
+        for name in msg.present_fields():
+            if name in already or not math.isfinite(msg.get(name)):
+                if name not in already:
+                    self.drops.drop(name, f"{name} = {msg.get(name)!r} is not finite")
+                msg.clear(name)
+        self._published = already | set(msg.present_fields())
+        if msg.presence_vector:
+            self.publish_measurement(msg, received=epoch.received)
+
+    def _take_fix(self, fix: GpsFix) -> None:
+        """*fix* is the latest word on the fix: log and say a change at once."""
+        old = self.current_fix()
+        self.fix, self._fix_at = fix, time.monotonic()
         if fix.has_fix:
             self.last_fix = fix
-        if had_fix != fix.has_fix:
-            self.logger.info("%s: %s", self.name, f"{fix.fix_name} fix" if fix.has_fix else "lost the fix")
-        msg = state_from_fix(fix, self.settings())
-        if msg is not None:
-            self.publish_measurement(msg, received=epoch.received)
-        if fix.fix_name != fix_name:
+        if (old is not None and old.has_fix) != fix.has_fix:
+            self.logger.info("%s: %s", self.name, f"{fix.fix_name} fix" if fix.has_fix else f"lost the fix "
+                             f"({fix.fix_name})")
+        if old is None or fix.fix_name != old.fix_name:
             # The pre-arm GPS check reads the fix type from health: say a change now, not at the next interval.
             self.publish_health()
+
+    def current_fix(self) -> GpsFix | None:
+        """The latest fix reading, or None when there is none or no position sentence came for
+        ``stale_after_s`` (a receiver sending only ZDA or HDT has no fix to show: fail safe)."""
+        at = self._fix_at
+        if self.fix is None or at is None or time.monotonic() - at > self.config.get("stale_after_s"):
+            return None
+        return self.fix
 
     # -- health ----------------------------------------------------------------------------------
     def refresh_status(self) -> str:
@@ -150,14 +200,18 @@ class GpsNmeaDriver(SerialLineSensor):
         return reason
 
     def problem(self) -> str:
-        """``"no fix"`` while the latest epoch has no position."""
-        if self.fix is None:
+        """``"no fix"`` (or ``"dead reckoning"``, ``"simulator"``, ``"manual"``) while the latest
+        epoch has no GNSS position; ``"no fix"`` too when position sentences stopped coming."""
+        fix = self.current_fix()
+        if fix is None:
+            return "" if self.fix is None else "no fix"
+        if fix.has_fix:
             return ""
-        return "" if self.fix.has_fix else "no fix"
+        return {"DR": "dead reckoning"}.get(fix.fix_name, fix.fix_name)
 
     def sensor_details(self) -> dict[str, Any]:
         """Fix, quality, satellites, dilution and the latest position and motion."""
-        fix, last = self.fix, self.last_fix
+        fix, last = self.current_fix(), self.last_fix
         quality = fix.quality if fix else None
         details: dict[str, Any] = {
             "fix": bool(fix and fix.has_fix),
@@ -170,13 +224,16 @@ class GpsNmeaDriver(SerialLineSensor):
             "epochs": self.epoch_count,
             "epoch_end": self.epochs.mode,
             "late_sentences": self.epochs.late,
+            "supplements": self.supplements,
+            **self.drops.details("out_of_range"),
             "talkers": ",".join(sorted(self.talkers)),
             "position_frame": self.config.get("position_frame").upper(),
         }
         if last is not None:
             details.update({"lat": _show(last.lat, ".8f"), "lon": _show(last.lon, ".8f"),
                             "alt": _show(last.altitude(self.config.get("altitude_datum").lower()), ".2f"),
-                            "speed_mps": _show(last.speed_mps, ".3f"), "course_deg": _show(last.course_deg, ".2f")})
+                            "speed_mps": _show(last.speed_mps, ".3f"), "course_deg": _show(last.course_deg, ".2f"),
+                            "geoid_sep_m": _show(last.geoid_sep, ".2f"), "geoid_source": last.geoid_source})
         if fix is not None:
             details["heading_deg"] = _show(fix.heading_deg, ".2f")
             details["utc"] = " ".join(str(v) for v in (fix.utc_date, fix.utc_time) if v is not None)

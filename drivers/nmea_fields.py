@@ -7,11 +7,14 @@ checksum validation); this module decides what a line *is* before and after that
   and are dropped; the sentence after them is still used;
 - a sentence without ``*HH`` or with non-ASCII bytes is :class:`MalformedSentence`;
 - a wrong checksum is :class:`BadChecksum` (it names the sentence kind, e.g. ``GGA``);
-- a sentence pynmeagps does not know (or a proprietary ``$P...`` one) parses to ``None``.
+- a sentence pynmeagps does not know (or a proprietary ``$P...`` one) parses to ``None``,
+  and so do a blank line and an encapsulated sentence (``!AIVDM`` AIS data sharing the
+  line): they are not errors, just not for these drivers.
 
 pynmeagps turns an unparseable field into ``""`` and leaves fields missing from a short
 sentence unset, so fields are read with :func:`number` / :func:`text`, which give ``None``
-/ ``""`` for both and never a stale or zero value.
+/ ``""`` for both and never a stale or zero value; :func:`number` also gives None for a
+value that is no finite float (a 400-digit field, ``inf``), so no caller meets an overflow.
 
 An *epoch* is the burst of sentences a receiver sends for one solution.
 :class:`EpochCollector` ends an epoch when a sentence carries a different UTC time than
@@ -43,9 +46,10 @@ REPEATABLE_KINDS = frozenset({"GSA", "GSV", "XDR", "TXT"})
 class SentenceError(ValueError):
     """A line that is not a usable sentence; ``kind`` is its sentence id (``GGA``) or ``"?"``."""
 
-    def __init__(self, message: str, *, kind: str = "?") -> None:
+    def __init__(self, message: str, *, kind: str = "?", talker: str = "") -> None:
         super().__init__(message)
         self.kind = kind
+        self.talker = talker
 
 
 class BadChecksum(SentenceError):
@@ -64,6 +68,7 @@ class Sentence:
     kind: str
     msg: NMEAMessage
     noise_bytes: int = 0  # bytes of line noise dropped before the ``$``
+    fields: tuple[str, ...] = ()  # the raw field texts after the address (``fields[1]`` is GGA's latitude)
 
 
 def sentence_text(line: bytes) -> tuple[str, int]:
@@ -79,33 +84,51 @@ def sentence_text(line: bytes) -> tuple[str, int]:
 
 
 def address_of(text: str) -> tuple[str, str]:
-    """``(talker, kind)`` of ``$GPGGA,...``; proprietary ``$PXXX`` gives ``("P", "XXX")``."""
+    """``(talker, kind)`` of ``$GPGGA,...``; proprietary ``$PXXX`` gives ``("P", "XXX")``.
+
+    An address that is no talker and kind (garbage, ``$095625``) gives kind ``"?"``, so
+    counters keyed by kind stay a handful of names whatever the line noise."""
     address = text[1:].split(",", 1)[0].split("*", 1)[0]
     if address.startswith("P"):
-        return "P", address[1:]
-    return address[:2], address[2:]
+        talker, kind = "P", address[1:]
+    else:
+        talker, kind = address[:2], address[2:]
+    if not (1 <= len(kind) <= 8 and kind.isascii() and kind.isalnum() and kind.isupper()):
+        return talker, "?"
+    return talker, kind
 
 
 def checked_body(text: str) -> str:
     """The content between ``$`` and ``*`` after checking the checksum; raises BadChecksum/MalformedSentence."""
-    _, kind = address_of(text)
+    talker, kind = address_of(text)
     match = _CHECKSUM.search(text)
     if match is None:
-        raise MalformedSentence(f"no *HH checksum in {text[:40]!r}", kind=kind or "?")
+        raise MalformedSentence(f"no *HH checksum in {text[:40]!r}", kind=kind or "?", talker=talker)
     body = text[1:match.start()]
     expected = calc_checksum(body)
     if match.group(1).upper() != expected:
-        raise BadChecksum(f"checksum {match.group(1)} should be {expected} in {text[:60]!r}", kind=kind or "?")
+        raise BadChecksum(f"checksum {match.group(1)} should be {expected} in {text[:60]!r}", kind=kind or "?",
+                          talker=talker)
     return body
+
+
+def is_foreign(line: bytes) -> bool:
+    """True for a line that is no error but not for an NMEA sentence driver: blank, or an
+    encapsulated sentence (``!AIVDM``/``!AIVDO`` AIS) sharing the port."""
+    stripped = line.strip()
+    return not stripped or (stripped[:1] == b"!" and b"$" not in stripped)
 
 
 def parse_sentence(line: bytes) -> Sentence | None:
     """Parse one line with pynmeagps; None for a well-formed sentence it does not know.
 
     Raises BadChecksum or MalformedSentence; never anything else for any input bytes.
+    A blank line and an encapsulated ``!`` sentence (AIS) give None (:func:`is_foreign`).
     """
+    if is_foreign(line):
+        return None
     text, noise = sentence_text(line)
-    checked_body(text)
+    body = checked_body(text)
     talker, kind = address_of(text)
     if talker == "P" or len(talker) != 2 or kind not in NMEA_PAYLOADS_GET:
         return None  # proprietary, or a sentence pynmeagps has no field table for
@@ -115,7 +138,7 @@ def parse_sentence(line: bytes) -> Sentence | None:
         raise MalformedSentence(f"{talker}{kind}: {exc}", kind=kind) from None
     if msg is None:
         return None
-    return Sentence(talker=talker, kind=kind, msg=msg, noise_bytes=noise)
+    return Sentence(talker=talker, kind=kind, msg=msg, noise_bytes=noise, fields=tuple(body.split(",")[1:]))
 
 
 def number(msg: Any, name: str) -> float | None:
@@ -123,7 +146,10 @@ def number(msg: Any, name: str) -> float | None:
     value = getattr(msg, name, None)
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return None
-    value = float(value)
+    try:
+        value = float(value)
+    except OverflowError:   # pynmeagps makes an int of a digit string of any length
+        return None
     return value if math.isfinite(value) else None
 
 
@@ -153,6 +179,7 @@ class Epoch:
     received: float
     time: dt.time | None = None
     sentences: list[Sentence] = field(default_factory=list)
+    supplement: bool = False   # sentences that came after their epoch (same time) was handed out
 
     def kinds(self) -> list[str]:
         """The sentence kinds, in arrival order (repeats kept)."""

@@ -14,7 +14,8 @@ from pynmeagps.nmeahelpers import calc_checksum
 from serial_driver_harness import ORIGIN, SIM_ORIGIN, DriverProbe, start_driver, write_profile
 
 from drivers.gps_fix import KNOT_MPS, StateSettings, fix_from_epoch, horizontal_sigma, state_from_fix
-from drivers.nmea_fields import (BadChecksum, Epoch, EpochCollector, MalformedSentence, Sentence, parse_sentence)
+from drivers.gps_epochs import GpsEpochCollector
+from drivers.nmea_fields import BadChecksum, Epoch, MalformedSentence, Sentence, parse_sentence
 from drivers.gps_nmea import GpsNmeaDriver
 from mock_devices.nmea_gps import NmeaGpsDevice
 from mock_devices.pty_serial import LineSettings
@@ -86,9 +87,12 @@ def test_checksums_are_enforced_and_bad_input_never_raises_anything_else() -> No
         parse_sentence(bad)
     assert err.value.kind == "GGA"
     for line in (b"\x00\xff\xfe garbage\r\n", b"$GPGGA,120000.00,,,,,0,00,,,,,,,\r\n", b"$GPHDT,1.0,T*zz\r\n",
-                 "$GPHDT,\u00e91.0,T*00\r\n".encode("latin-1"), b"", b"\r\n", b"*4F$"):
+                 "$GPHDT,\u00e91.0,T*00\r\n".encode("latin-1"), b"*4F$"):
         with pytest.raises(MalformedSentence):
             parse_sentence(line)
+    # blank lines and AIS sentences sharing the port are not errors: not for this driver
+    for line in (b"", b"\r\n", b"  \r\n", b"!AIVDM,1,1,,B,177KQJ5000G?tO`K>RA1wUbN0TKH,0*5C\r\n"):
+        assert parse_sentence(line) is None
     # noise glued to the front of a sentence (a garbage burst without a newline) is dropped, not the sentence
     s = parse_sentence(b"\x8a\x13$$\x02junk" + good)
     assert s is not None and s.kind == "GGA" and s.noise_bytes == 9
@@ -97,19 +101,19 @@ def test_checksums_are_enforced_and_bad_input_never_raises_anything_else() -> No
     assert parse_sentence(nmea("PGRMZ,246,f,3")) is None
 
 
-def test_epochs_split_on_a_new_utc_time_or_a_repeated_kind_but_not_on_gsa_per_constellation() -> None:
-    col = EpochCollector()
+def test_epochs_split_on_a_new_utc_time_or_a_repeated_talker_and_kind_but_not_on_gsa_per_constellation() -> None:
+    col = GpsEpochCollector(end_on_complete=False)
     first = [gga(29.19, -81.05, talker="GN"), "GNRMC,120000.00,A,2911.37000,N,08103.00000,W,0.0,,140326,,,A,V",
              "GPGSA,A,3,02,05,,,,,,,,,,,1.70,0.90,1.40", "GLGSA,A,3,70,71,,,,,,,,,,,1.70,0.90,1.40",
              "GNVTG,,T,,M,0.000,N,0.000,K,A"]
-    assert all(col.add(parsed(b), received=1.0) is None for b in first)
-    done = col.add(parsed(gga(29.19, -81.05, talker="GN", time="120000.20")), received=1.2)
-    assert done is not None and done.kinds() == ["GGA", "RMC", "GSA", "GSA", "VTG"]
+    assert all(col.add(parsed(b), received=1.0) == [] for b in first)
+    [done] = col.add(parsed(gga(29.19, -81.05, talker="GN", time="120000.20")), received=1.2)
+    assert done.kinds() == ["GGA", "RMC", "GSA", "GSA", "VTG"]
     assert done.time == dt.time(12, 0, 0) and done.talkers() == {"GN", "GP", "GL"} and done.received == 1.0
-    # a receiver that sends no time: the second VTG starts the next epoch
-    assert col.add(parsed("GNVTG,10.0,T,,M,1.0,N,1.852,K,A"), received=1.3) is None
-    done = col.add(parsed("GNVTG,11.0,T,,M,1.0,N,1.852,K,A"), received=1.4)
-    assert done is not None and done.kinds() == ["GGA", "VTG"] and done.time == dt.time(12, 0, 0, 200000)
+    # a receiver that sends no time: the second VTG of the same talker starts the next epoch
+    assert col.add(parsed("GNVTG,10.0,T,,M,1.0,N,1.852,K,A"), received=1.3) == []
+    [done] = col.add(parsed("GNVTG,11.0,T,,M,1.0,N,1.852,K,A"), received=1.4)
+    assert done.kinds() == ["GGA", "VTG"] and done.time == dt.time(12, 0, 0, 200000)
     assert col.flush().kinds() == ["VTG"] and col.flush() is None
 
 
@@ -123,76 +127,108 @@ def burst(time: str) -> list[str]:
             "GLGSA,A,3,70,71,,,,,,,,,,,1.70,0.90,1.40", "GNVTG,,T,,M,0.000,N,0.000,K,A"]
 
 
-def feed(col: EpochCollector, bodies: list[str], *, at: float = 0.0) -> list[Epoch | None]:
+def feed(col: GpsEpochCollector, bodies: list[str], *, at: float = 0.0) -> list[list[Epoch]]:
     return [col.add(parsed(b), received=at) for b in bodies]
 
 
-def test_an_epoch_ends_with_its_last_sentence_once_two_alike_have_been_seen() -> None:
-    col = EpochCollector(end_on_complete=True)
-    assert col.mode == "learning"
-    for k, time in enumerate(("120000.00", "120000.20")):
-        assert feed(col, burst(time)) == [None] * 5           # still learning: the silence ends these
+def stamp(k: int) -> str:
+    """Epoch k of a 5 Hz receiver as hhmmss.ss."""
+    return f"1200{k // 5:02d}.{(k % 5) * 20:02d}"
+
+
+def learn(col: GpsEpochCollector, epochs: int = 11, *, rate_hz: float = 5.0) -> None:
+    """*epochs* alike bursts, each ended by the silence after it, 1 / rate_hz apart."""
+    for k in range(epochs):
+        assert feed(col, burst(stamp(k)), at=k / rate_hz) == [[]] * 5
         assert col.flush().kinds() == ["GGA", "RMC", "GSA", "GSA", "VTG"]
-        assert col.mode == ("on completion" if k else "learning")
-    assert col.expected == {"GGA": 1, "RMC": 1, "GSA": 2, "VTG": 1} and col.first_kind == "GGA"
-    *early, last = feed(col, burst("120000.40"), at=3.0)
-    assert early == [None] * 4 and last is not None       # the second GSA alone does not complete it
-    assert last.kinds() == ["GGA", "RMC", "GSA", "GSA", "VTG"] and last.received == 3.0
+
+
+def test_an_epoch_ends_with_its_last_sentence_once_alike_epochs_spanned_two_seconds() -> None:
+    col = GpsEpochCollector()
+    assert col.mode == "learning"
+    learn(col, 10)                                        # 0 .. 1.8 s: not yet
+    assert col.mode == "learning"
+    learn_more = burst(stamp(10))
+    assert feed(col, learn_more, at=2.0) == [[]] * 5 and col.flush() is not None
+    assert col.mode == "on completion"
+    assert col.expected == {("GN", "GGA"): 1, ("GN", "RMC"): 1, ("GP", "GSA"): 1, ("GL", "GSA"): 1, ("GN", "VTG"): 1}
+    *early, last = feed(col, burst(stamp(11)), at=3.0)
+    assert early == [[]] * 4 and len(last) == 1           # the second GSA alone does not complete it
+    assert last[0].kinds() == ["GGA", "RMC", "GSA", "GSA", "VTG"] and last[0].received == 3.0
     assert col.pending is None and col.flush() is None and col.completed == 1
-    # a sentence missing from an epoch (a bad checksum): it ends the ordinary way, nothing is learned from it
-    partial = burst("120000.60")
+    # a sentence missing from an epoch (a bad checksum): it ends the ordinary way, on the next epoch's time
+    partial = burst(stamp(12))
     del partial[1]
-    assert feed(col, partial) == [None] * 4
-    done = feed(col, burst("120000.80"))
-    assert done[0].kinds() == ["GGA", "GSA", "GSA", "VTG"]    # ended by the new time
-    assert done[-1].kinds() == ["GGA", "RMC", "GSA", "GSA", "VTG"] and col.mode == "on completion"
+    assert feed(col, partial) == [[]] * 4
+    done = feed(col, burst(stamp(13)))
+    assert done[0][0].kinds() == ["GGA", "GSA", "GSA", "VTG"]
+    assert done[-1][0].kinds() == ["GGA", "RMC", "GSA", "GSA", "VTG"] and col.mode == "on completion"
     # back-to-back bursts (no silence between them) still end on completion
-    assert feed(col, burst("120001.00"))[-1] is not None and feed(col, burst("120001.20"))[-1] is not None
+    assert feed(col, burst(stamp(14)))[-1] and feed(col, burst(stamp(15)))[-1]
     assert col.late == 0
 
 
-def test_a_dropped_sentence_of_a_kind_already_held_ends_the_pending_epoch() -> None:
-    col = EpochCollector()
-    assert feed(col, burst("120000.00")) == [None] * 5
-    assert col.dropped("GSA") is None                # repeatable: a second GSA belongs to the same epoch
-    assert col.dropped("ZDA") is None                # not in the epoch yet: it may still belong to it
-    done = col.dropped("GGA")                        # a corrupted GGA: the receiver has started the next epoch
+def test_epochs_whose_content_varies_within_two_seconds_are_never_learned() -> None:
+    """10 Hz GGA with RMC and ZDA once a second: every epoch ends on the next time, none loses a sentence."""
+    col = GpsEpochCollector()
+    ended: list[Epoch] = []
+    for k in range(60):
+        time = f"1200{k // 10:02d}.{k % 10}0"
+        bodies = [gga(29.19, -81.05, talker="GN", time=time)]
+        if k % 10 == 0:
+            bodies += [rmc(time), f"GNZDA,{time},14,03,2026,00,00"]
+        for b in bodies:
+            ended += col.add(parsed(b), received=k / 10)
+    assert col.mode == "learning" and col.late == 0
+    assert len(ended) == 59 and all(not e.supplement for e in ended)
+    assert [e.kinds() for e in ended[:2]] == [["GGA", "RMC", "ZDA"], ["GGA"]]
+
+
+def test_a_dropped_sentence_of_a_talker_and_kind_already_held_ends_the_pending_epoch() -> None:
+    col = GpsEpochCollector()
+    assert feed(col, burst("120000.00")) == [[]] * 5
+    assert col.dropped("GSA", "GP") is None          # repeatable: a second GSA belongs to the same epoch
+    assert col.dropped("ZDA", "GN") is None          # not in the epoch yet: it may still belong to it
+    assert col.dropped("GGA", "GA") is None          # another talker's GGA of the same epoch
+    done = col.dropped("GGA", "GN")                  # a corrupted GGA: the receiver has started the next epoch
     assert done is not None and done.kinds() == ["GGA", "RMC", "GSA", "GSA", "VTG"]
-    assert col.pending is None and col.dropped("GGA") is None and col.flush() is None
+    assert col.pending is None and col.dropped("GGA", "GN") is None and col.flush() is None
 
 
-def test_a_late_sentence_is_dropped_and_switches_back_to_ending_on_silence() -> None:
-    col = EpochCollector(end_on_complete=True)
-    for time in ("120000.00", "120000.20"):
-        feed(col, burst(time))
-        col.flush()
-    done = feed(col, [*burst("120001.00"), "GNZDA,120001.00,14,03,2026,00,00", "GNVTG,,T,,M,0.000,N,0.000,K,A"])
-    assert done[4] is not None and done[5:] == [None, None]
-    # the ZDA carries the ended epoch's time, the VTG none and is not what epochs start with: both were late
-    assert col.late == 2 and col.varying and col.mode == "on silence"
-    assert col.flush() is None
-    assert feed(col, [*burst("120001.20"), "GNZDA,120001.20,14,03,2026,00,00"]) == [None] * 6
-    assert col.flush().kinds() == ["GGA", "RMC", "GSA", "GSA", "VTG", "ZDA"]
+def test_a_sentence_after_its_epoch_completed_is_a_supplement_and_switches_completion_off() -> None:
+    col = GpsEpochCollector()
+    learn(col)
+    ended = feed(col, [*burst("120003.00"), "GNZDA,120003.00,14,03,2026,00,00", "GNVTG,,T,,M,0.000,N,0.000,K,A"],
+                 at=4.0)
+    assert ended[4] and ended[5] == []
+    assert col.varying and col.mode == "on time or silence"
+    # the ZDA carries the ended epoch's time: it opened a supplement, which the next epoch's VTG (no time,
+    # a talker and kind the epoch already held) ended
+    [supplement] = ended[6]
+    assert supplement.supplement and supplement.kinds() == ["ZDA"] and supplement.time == dt.time(12, 0, 3)
+    assert col.late == 1
+    assert col.add(parsed(gga(29.19, -81.05, talker="GN", time="120003.20")), received=4.2) == []
+    assert col.flush().kinds() == ["VTG", "GGA"]
     col.reset()                                                # a reopened port learns again
-    assert col.mode == "learning" and col.late == 2
+    assert col.mode == "learning" and col.late == 1
 
 
-def test_epoch_learning_ignores_a_split_burst_and_whole_second_time_stamps() -> None:
-    col = EpochCollector(end_on_complete=True)
+def test_epoch_learning_ignores_a_split_burst_and_handles_whole_second_time_stamps() -> None:
+    col = GpsEpochCollector()
     head, tail = burst("120000.00")[:2], burst("120000.00")[2:]
     feed(col, head)
     col.flush()                                                # a stall mid-burst: the silence split it
     feed(col, tail)
     assert col.flush().kinds() == ["GSA", "GSA", "VTG"]
-    feed(col, burst("120000.20"))
+    feed(col, burst("120000.20"), at=3.0)
     assert col.flush().kinds() == ["GGA", "RMC", "GSA", "GSA", "VTG"]
     assert col.mode == "learning"                              # the halves and the whole: no two alike yet
     # a receiver that stamps whole seconds at 5 Hz: the next epoch's first sentence repeats the time
-    col = EpochCollector(end_on_complete=True)
-    for _ in range(2):
-        feed(col, burst("120000"))
-        col.flush()
-    assert feed(col, burst("120000"))[-1] is not None and feed(col, burst("120000"))[-1] is not None
+    col = GpsEpochCollector()
+    for k in range(11):
+        feed(col, burst("120000"), at=k / 5)
+        assert not col.flush().supplement
+    assert feed(col, burst("120000"), at=3.0)[-1] and feed(col, burst("120000"), at=3.2)[-1]
     assert col.late == 0 and col.mode == "on completion"
 
 
@@ -234,7 +270,7 @@ def test_sigmas_fall_back_to_hdop_and_the_geodetic_frame_keeps_lat_lon() -> None
 
 
 def test_2d_fix_has_no_altitude_and_vtg_gives_velocity_in_kmh() -> None:
-    fix = fix_from_epoch(epoch_of(gga(29.19, -81.05), "GPGSA,A,2,02,05,07,,,,,,,,,,3.00,2.00,2.20",
+    fix = fix_from_epoch(epoch_of(gga(29.19, -81.05, alt=""), "GPGSA,A,2,02,05,07,,,,,,,,,,3.00,2.00,2.20",
                                   "GPVTG,180.0,T,,M,,N,7.200,K,D"))
     assert fix.fix_dim == 2 and fix.alt_msl is None
     msg = state_from_fix(fix, StateSettings(origin=GEO))
@@ -242,16 +278,16 @@ def test_2d_fix_has_no_altitude_and_vtg_gives_velocity_in_kmh() -> None:
     assert msg.x_dot == pytest.approx(-2.0) and msg.y_dot == pytest.approx(0.0, abs=1e-9)
 
 
-@pytest.mark.parametrize("bodies", [
-    (gga(29.19, -81.05, quality=0),),                              # invalid
-    (gga(29.19, -81.05, quality=6),),                              # dead reckoning is no measurement
-    ("GPGGA,120000.00,,,,,0,00,99.99,,,,,,",),                     # empty position
-    ("GPRMC,120000.00,V,,,,,,,140326,,,N,V", "GPVTG,,T,,M,,N,,K,N"),
-    ("GNGNS,120000.00,2911.37000,N,08103.00000,W,NN,00,99.9,,,,,V",),
+@pytest.mark.parametrize(("bodies", "name"), [
+    ((gga(29.19, -81.05, quality=0),), "no fix"),                  # invalid
+    ((gga(29.19, -81.05, quality=6),), "DR"),                      # dead reckoning is no measurement
+    (("GPGGA,120000.00,,,,,0,00,99.99,,,,,,",), "no fix"),         # empty position
+    (("GPRMC,120000.00,V,,,,,,,140326,,,N,V", "GPVTG,,T,,M,,N,,K,N"), "no fix"),
+    (("GNGNS,120000.00,2911.37000,N,08103.00000,W,NN,00,99.9,,,,,V",), "no fix"),
 ])
-def test_no_fix_gives_no_position_and_no_velocity(bodies: tuple[str, ...]) -> None:
+def test_no_fix_gives_no_position_and_no_velocity(bodies: tuple[str, ...], name: str) -> None:
     fix = fix_from_epoch(epoch_of(*bodies))
-    assert not fix.has_fix and fix.fix_name == "no fix"
+    assert not fix.has_fix and fix.fix_name == name
     assert state_from_fix(fix, StateSettings(origin=GEO)) is None
     with_heading = fix_from_epoch(epoch_of(*bodies, "GPHDT,90.0,T"))
     msg = state_from_fix(with_heading, StateSettings(origin=GEO))
@@ -263,7 +299,7 @@ def test_gns_and_rmc_alone_give_a_fix() -> None:
     assert gns.has_fix and gns.satellites == 14 and gns.fix_dim == 3
     rmc = fix_from_epoch(epoch_of("GPRMC,120000.00,A,2911.37000,S,08103.00000,E,0.0,,140326,,,A,V"))
     assert rmc.has_fix and rmc.fix_dim == 2 and rmc.lat < 0 < rmc.lon
-    assert rmc.speed_mps == 0.0 and rmc.course_deg == 0.0   # empty course at rest: velocity (0, 0)
+    assert rmc.speed_mps == 0.0 and rmc.course_deg is None   # speed and course are separate fields
     assert rmc.utc_date == dt.date(2026, 3, 14)
 
 
@@ -318,13 +354,13 @@ def test_gps_service_publishes_one_ned_fix_per_epoch_matching_the_vehicle(
         assert abs(msg.x_dot - truth.v_north) < 0.3 and abs(msg.y_dot - truth.v_east) < 0.3
         assert abs(math.degrees(msg.psi - truth.yaw)) < 1.5                     # HDT true heading
         assert (msg.x_sigma, msg.y_sigma, msg.z_sigma) == (H_SIGMA, H_SIGMA, 0.5)  # from GST
-    details = probe.wait_health(lambda d, s: int(d["epochs"]) >= 5)
+    # the receiver's epochs are alike: after two seconds each ends with its last sentence, not after the silence
+    details = probe.wait_health(lambda d, s: int(d["epochs"]) >= 5 and d["epoch_end"] == "on completion")
     assert details["status"] == "ok" and details["degraded_reason"] == ""
     assert details["fix"] == "True" and details["fix_type"] == "3D" and details["fix_quality"] == "1 (gps)"
     assert details["satellites"] == "10" and details["hdop"] == "0.9" and details["talkers"] == "GN"
     assert details["port"] == "open" and details["bad_checksums"] == "0"
-    # the receiver's epochs are alike: each ends with its last sentence, not after the silence
-    assert details["epoch_end"] == "on completion" and details["late_sentences"] == "0"
+    assert details["late_sentences"] == "0" and details["out_of_range"] == "0"
     # one publication per epoch of seven sentences, not one per sentence
     assert int(details["published"]) == int(details["epochs"]) and int(details["lines"]) >= 6 * int(details["epochs"])
     lat, lon = float(details["lat"]), float(details["lon"])
@@ -444,7 +480,7 @@ def test_gps_reports_silence_and_recovers_from_a_disconnect(services: ServicePro
 
     gps.disconnect()
     details = probe.wait_health(lambda d, s: d["port"] == "down", message="the port down in health")
-    assert details["status"] == "degraded" and details["degraded_reason"] == "port down"
+    assert details["status"] == "degraded" and "down" in details["degraded_reason"]
     assert int(details["port_losses"]) >= 1 and details["port_error"] and details["last_error"]
     assert proc.poll() is None
     gps.reconnect()
