@@ -170,13 +170,13 @@ class GpioInputDriver(ExteroceptiveSensor):
         _CHIP,
         field("inputs", "", "name=line,... e.g. estop=4,bump_front=22"),
         field("active_low", "", "names of inputs that are active at level 0 (e.g. normally-closed e-stops)"),
-        field("bias", "as-is", "as-is, pull-up, pull-down or disabled (every line)"),
-        field("debounce_ms", 10.0, "a level must hold this long before it counts"),
+        field("bias", "as-is", "as-is, pull-up, pull-down or disabled (every line)", choices=BIASES),
+        field("debounce_ms", 10.0, "a level must hold this long before it counts", ge=0),
         field("failsafe_on", "", "names of inputs that command a FAILSAFE while active (e-stops)"),
-        field("failsafe_repeat_s", 1.0, "re-send the active failsafe this often while held"),
+        field("failsafe_repeat_s", 1.0, "re-send the active failsafe this often while held", ge=0),
         field("clear_on_release", True, "publish a cleared failsafe when every e-stop is released"),
         field("positions", "", "name=x:y:z,... body-frame (FRD, m) place of each bumper; these publish OBJECTS"),
-        field("bumper_repeat_s", 0.5, "re-send a held bumper's object this often"),
+        field("bumper_repeat_s", 0.5, "re-send a held bumper's object this often", ge=0),
         _DEVICE, _RAW,
     )
     def __init__(self, name: str, **kwargs: Any) -> None:

@@ -56,14 +56,14 @@ class Bno055ImuDriver(I2cImuDriver):
 
     DEFAULT_ADDRESS: ClassVar[int] = bno.I2C_ADDRESS
     CONFIG = (
-        field("address", bno.I2C_ADDRESS, "7-bit I2C address: 0x28 (COM3 low) or 0x29"),
-        field("mode", "ndof", "fusion mode: ndof, ndof_fmc_off or imu (no magnetometer: no heading)"),
-        field("axis_map_config", 0x24, "AXIS_MAP_CONFIG: remap so chip x = forward, y = left, z = up"),
-        field("axis_map_sign", 0x00, "AXIS_MAP_SIGN for the remap"),
+        field("address", bno.I2C_ADDRESS, "7-bit I2C address: 0x28 (COM3 low) or 0x29", ge=0x03, le=0x77),
+        field("mode", "ndof", "fusion mode: ndof, ndof_fmc_off or imu (no magnetometer: no heading)", choices=MODES),
+        field("axis_map_config", 0x24, "AXIS_MAP_CONFIG: remap so chip x = forward, y = left, z = up", ge=0, le=0xFF),
+        field("axis_map_sign", 0x00, "AXIS_MAP_SIGN for the remap", ge=0, le=0xFF),
         field("reset_on_start", False, "reset the chip (SYS_TRIGGER.RST_SYS) on every open"),
-        field("min_heading_calibration", 1, "publish psi once CALIB_STAT.SYS reaches this (0..3)"),
-        field("attitude_sigma", 0.02, "rad, sigma of phi and theta"),
-        field("heading_sigma", 0.05, "rad, sigma of psi"),
+        field("min_heading_calibration", 1, "publish psi once CALIB_STAT.SYS reaches this (0..3)", ge=0, le=3),
+        field("attitude_sigma", 0.02, "rad, sigma of phi and theta", gt=0),
+        field("heading_sigma", 0.05, "rad, sigma of psi", gt=0),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:

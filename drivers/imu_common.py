@@ -163,11 +163,11 @@ class I2cImuDriver(ProprioceptiveSensor):
     DEFAULT_ADDRESS: ClassVar[int] = 0x68
     CONFIG = (
         field("bus", "1", 'I2C adapter number ("1" = /dev/i2c-1) or "mock:/path/to/bus.sock"'),
-        field("rate_hz", 100.0, "samples published per second"),
-        field("retries", 2, "immediate retries of a failed I2C transaction"),
-        field("reinit_after_errors", 10, "failed samples in a row before the chip is reopened and set up again"),
-        field("rate_sigma", 0.005, "rad/s, sigma of phi_dot/theta_dot/psi_dot"),
-        field("accel_sigma", 0.3, "m/s^2, sigma of x_ddot/y_ddot/z_ddot"),
+        field("rate_hz", 100.0, "samples published per second", gt=0, le=1000),
+        field("retries", 2, "immediate retries of a failed I2C transaction", ge=0),
+        field("reinit_after_errors", 10, "failed samples in a row before the chip is reopened and set up again", ge=1),
+        field("rate_sigma", 0.005, "rad/s, sigma of phi_dot/theta_dot/psi_dot", gt=0),
+        field("accel_sigma", 0.3, "m/s^2, sigma of x_ddot/y_ddot/z_ddot", gt=0),
         field("record_raw", False, "publish every I2C transaction on RAW.<service name>"),
     )
 

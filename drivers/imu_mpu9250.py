@@ -68,17 +68,17 @@ class Mpu9250ImuDriver(I2cImuDriver):
 
     DEFAULT_ADDRESS: ClassVar[int] = mpu.I2C_ADDRESS
     CONFIG = (
-        field("address", mpu.I2C_ADDRESS, "7-bit I2C address: 0x68 (AD0 low) or 0x69"),
+        field("address", mpu.I2C_ADDRESS, "7-bit I2C address: 0x68 (AD0 low) or 0x69", ge=0x03, le=0x77),
         field("chip", "auto", "auto, mpu6050, mpu6500 or mpu9250 (checked against WHO_AM_I)"),
-        field("gyro_range_dps", 500, "gyro full scale: 250, 500, 1000 or 2000 deg/s"),
-        field("accel_range_g", 4, "accelerometer full scale: 2, 4, 8 or 16 g"),
-        field("dlpf_cfg", 3, "CONFIG.DLPF_CFG 0..6 (3: about 42 Hz bandwidth, 1 kHz gyro rate)"),
+        field("gyro_range_dps", 500, "gyro full scale: 250, 500, 1000 or 2000 deg/s", choices=(250, 500, 1000, 2000)),
+        field("accel_range_g", 4, "accelerometer full scale: 2, 4, 8 or 16 g", choices=(2, 4, 8, 16)),
+        field("dlpf_cfg", 3, "CONFIG.DLPF_CFG 0..6 (3: about 42 Hz bandwidth, 1 kHz gyro rate)", ge=0, le=6),
         field("mounting", "x,-y,-z", "body forward,right,down as signed chip axes (chip flat, x fwd, y left, z up)"),
-        field("calibrate_samples", 200, "gyro bias window at rest after start (0: no calibration)"),
-        field("rest_max_std_dps", 0.5, "a window whose gyro std exceeds this is not at rest"),
-        field("rest_max_rate_dps", 10.0, "a window whose mean rate exceeds this is turning, not bias"),
-        field("uncalibrated_rate_sigma", 0.1, "rad/s, rate sigma until the bias is calibrated"),
-        field("gravity", "rest", "what x_ddot..z_ddot lose: rest, level or none (no accelerations)"),
+        field("calibrate_samples", 200, "gyro bias window at rest after start (0: no calibration)", ge=0),
+        field("rest_max_std_dps", 0.5, "a window whose gyro std exceeds this is not at rest", gt=0),
+        field("rest_max_rate_dps", 10.0, "a window whose mean rate exceeds this is turning, not bias", gt=0),
+        field("uncalibrated_rate_sigma", 0.1, "rad/s, rate sigma until the bias is calibrated", gt=0),
+        field("gravity", "rest", "what x_ddot..z_ddot lose: rest, level or none (no accelerations)", choices=GRAVITY_MODES),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:

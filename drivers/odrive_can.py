@@ -63,25 +63,25 @@ class OdriveCanMotor(CanMotorService):
     ID_FIELD = "node_ids"
     ID_MAX = cs.MAX_NODE_ID - 1  # 0x3F is the 0.6 "unaddressed" id
     CONFIG = (
-        field("node_ids", [0, 1], "CANSimple node id per actuator (0..62)"),
-        field("firmware", "0.6", "0.6 (ODrive Pro, S1, Micro) or 0.5 (ODrive v3.x)"),
-        field("max_turns_per_s", 2.0, "motor speed at 100 % (rev/s); commands are limited to it"),
-        field("input_mode", "passthrough", "passthrough or vel_ramp (the ramp rate is the ODrive's vel_ramp_rate)"),
+        field("node_ids", [0, 1], "CANSimple node id per actuator (0..62)", item_type=int, ge=0, le=62),
+        field("firmware", "0.6", "0.6 (ODrive Pro, S1, Micro) or 0.5 (ODrive v3.x)", choices=cs.FIRMWARES),
+        field("max_turns_per_s", 2.0, "motor speed at 100 % (rev/s); commands are limited to it", gt=0),
+        field("input_mode", "passthrough", "passthrough or vel_ramp (the ramp rate is the ODrive's vel_ramp_rate)", choices=INPUT_MODES),
         field("set_limits", False, "send Set_Limits(max_turns_per_s, current_limit_a) when arming"),
-        field("current_limit_a", 10.0, "current limit sent with set_limits (A)"),
-        field("encoder_poll_hz", 0.0, "0: use the node's cyclic encoder estimates; > 0: request them by RTR this often"),
-        field("status_poll_s", 1.0, "bus voltage/current, temperatures and error details requested this often (0: never)"),
-        field("arm_retry_s", 0.5, "first wait before an arming attempt is retried (doubles up to 5 s)"),
+        field("current_limit_a", 10.0, "current limit sent with set_limits (A)", gt=0),
+        field("encoder_poll_hz", 0.0, "0: use the node's cyclic encoder estimates; > 0: request them by RTR this often", ge=0),
+        field("status_poll_s", 1.0, "bus voltage/current, temperatures and error details requested this often (0: never)", ge=0),
+        field("arm_retry_s", 0.5, "first wait before an arming attempt is retried (doubles up to 5 s)", gt=0),
         field("clear_errors_on_start", True, "send Clear_Errors before the first arming of each axis"),
         field("rearm_on_error", False, "clear an axis error by itself and re-arm (else wait for clear_errors)"),
         field("clear_errors", False, "set true to clear every axis's errors and re-arm (resets itself to false)"),
         field("estop_on_failsafe", False, "on FAILSAFE send Estop as well as 0 rev/s (cleared when it ends)"),
         field("idle_on_stop", True, "put the axes in IDLE when the service stops (else hold 0 rev/s)"),
         field("hw_watchdog", True, "turn on each axis's own watchdog (it disarms when this driver dies or hangs)"),
-        field("hw_watchdog_timeout_s", 0.3, "axis watchdog timeout (s); more than twice command_period_s"),
+        field("hw_watchdog_timeout_s", 0.3, "axis watchdog timeout (s); more than twice command_period_s", gt=0),
         field("watchdog_timeout_endpoint", 0, "0.6: endpoint id of axis0.config.watchdog_timeout in the "
-                                               "flat_endpoints.json of endpoints_fw (0: unknown)"),
-        field("enable_watchdog_endpoint", 0, "0.6: endpoint id of axis0.config.enable_watchdog (0: unknown)"),
+                                               "flat_endpoints.json of endpoints_fw (0: unknown)", ge=0),
+        field("enable_watchdog_endpoint", 0, "0.6: endpoint id of axis0.config.enable_watchdog (0: unknown)", ge=0),
         field("endpoints_fw", "", "0.6: the firmware (Get_Version, e.g. 0.6.10) the endpoint ids are from"),
     )
 

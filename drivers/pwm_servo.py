@@ -205,7 +205,7 @@ class PwmServoDriver(Actuator):
     CONFIG = (
         field("channels", [], "list of tables: name, address, channel, min_us, neutral_us, max_us, reverse, "
                               "frame_hz, slew_percent_per_s (applied at the next start)"),
-        field("update_hz", 50.0, "how often slewed outputs step and lost channels are retried"),
+        field("update_hz", 50.0, "how often slewed outputs step and lost channels are retried", gt=0),
         field("release_on_exit", False, "stop the pulses after the final neutral (default: hold neutral)"),
         field("record_raw", False, "publish every PWM write on RAW.<channel name>"),
     )

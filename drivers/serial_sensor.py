@@ -42,8 +42,8 @@ class SerialLineSensor(ProprioceptiveSensor):
         field("stopbits", 1.0, "stop bits: 1, 1.5 or 2", choices=STOPBITS),
         field("device_name", "", "device name in errors and RAW.<device> (empty: the service name)"),
         field("record_raw", False, "publish every chunk read as RawSerial on RAW.<device>"),
-        field("stale_after_s", 2.0, "no valid sentence for this long -> degraded, data stale"),
-        field("epoch_gap_s", 0.05, "this much silence on the line ends a burst of sentences (and is the read timeout)"),
+        field("stale_after_s", 2.0, "no valid sentence for this long -> degraded, data stale", gt=0),
+        field("epoch_gap_s", 0.05, "this much silence on the line ends a burst of sentences (and is the read timeout)", gt=0),
     )
     EXAMPLE_PORT: ClassVar[str] = "/dev/u2sa/gps"
 

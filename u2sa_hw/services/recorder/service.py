@@ -40,11 +40,11 @@ class Recorder(U2SAService):
         field("include", ".*", "regex of channels to record"),
         field("exclude", "", "regex of channels not to record"),
         field("compression", "zstd", "zstd, lz4 or none"),
-        field("rotate_size_mb", 512.0, "start a new file past this size (0: never)"),
-        field("rotate_duration_s", 3600.0, "start a new file after this long (0: never)"),
-        field("flush_interval_s", 1.0, "close a chunk at least this often (at most 1 s)"),
-        field("min_free_mb", 200.0, "stop recording below this much free disk"),
-        field("queue_size", 20000, "messages buffered between the bus and the disk"),
+        field("rotate_size_mb", 512.0, "start a new file past this size (0: never)", ge=0),
+        field("rotate_duration_s", 3600.0, "start a new file after this long (0: never)", ge=0),
+        field("flush_interval_s", 1.0, "close a chunk at least this often (at most 1 s)", gt=0),
+        field("min_free_mb", 200.0, "stop recording below this much free disk", ge=0),
+        field("queue_size", 20000, "messages buffered between the bus and the disk", ge=1),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:

@@ -29,12 +29,12 @@ class WorldModeler(U2SAService):
     SERVICE_TYPE: ClassVar[str] = "world_modeler"
     CONFIG = (
         field("objects_file", "", "a-priori objects XML; a relative path is relative to the vehicle profile"),
-        field("expiry_s", 5.0, "an observed object not seen for this long is dropped (0: never)"),
-        field("association_radius_m", 1.0, "objects without a UID from one source merge within this distance"),
-        field("publish_rate_hz", 2.0, "WORLD and WORLD_SUMMARY publications per second"),
-        field("max_pose_age_s", 1.0, "a body-frame object needs a STATE_ESTIMATE at most this old"),
+        field("expiry_s", 5.0, "an observed object not seen for this long is dropped (0: never)", ge=0),
+        field("association_radius_m", 1.0, "objects without a UID from one source merge within this distance", ge=0),
+        field("publish_rate_hz", 2.0, "WORLD and WORLD_SUMMARY publications per second", gt=0),
+        field("max_pose_age_s", 1.0, "a body-frame object needs a STATE_ESTIMATE at most this old", gt=0),
         field("default_radius_m", 0.0, "radius of an a-priori <Circle>/<Sphere> written without <radius> "
-              "(the thesis's example has none), m; 0: a point"),
+              "(the thesis's example has none), m; 0: a point", ge=0),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:
