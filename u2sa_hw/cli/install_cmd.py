@@ -42,7 +42,8 @@ def register(sub: Any) -> None:
     p = sub.add_parser("install", help="install the vehicle's services under systemd", description=INSTALL_HELP,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--vehicle", metavar="FILE", required=True, help="the vehicle profile to deploy")
-    p.add_argument("--root", metavar="DIR", default="/", help="stage into DIR instead of this system")
+    p.add_argument("--root", metavar="DIR", default="/", help="stage into DIR instead of this system (made if "
+                   "missing)")
     p.add_argument("--venv", choices=["build", "shared", "none"], help=VENV_HELP)
     p.add_argument("--python", metavar="PATH", help="interpreter for the venv (default: this one's, or "
                    "/usr/bin/python3.X when this one lives under /root or /home)")
@@ -54,9 +55,11 @@ def register(sub: Any) -> None:
     p.set_defaults(func=cmd_install)
 
     p = sub.add_parser("uninstall", help="remove what u2sa install added",
-                       description="Stop the services and remove the units, rules, venv and links that "
-                       "u2sa install recorded in /opt/u2sa/install-manifest.json. Configs (/etc/u2sa), logs "
-                       "(/var/log/u2sa) and recordings (/var/lib/u2sa) stay, unless --purge.")
+                       description="Undo what u2sa install did, as it recorded in /opt/u2sa/install-manifest.json "
+                       "and nothing else: stop the services, remove the units, udev rules (so the /dev/u2sa links "
+                       "and CAN bitrates go too), venv, links and the directories install made. Configs and the "
+                       "files the services name (/etc/u2sa), logs (/var/log/u2sa) and recordings (/var/lib/u2sa) "
+                       "stay, unless --purge.")
     p.add_argument("--root", metavar="DIR", default="/", help="the staging directory install used")
     p.add_argument("--purge", action="store_true", help="also delete configs, logs, recordings, and the user "
                    "and groups that install created")
