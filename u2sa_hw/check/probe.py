@@ -125,8 +125,8 @@ def socketcan_state(interface: str, *, run: Callable[..., Any] | None = None) ->
     counters = re.search(r"berr-counter tx (\d+) rx (\d+)", shown)
     if counters:
         parts.append(f"tx/rx error counters {counters.group(1)}/{counters.group(2)}")
-    restarts = re.search(r"re-started bus-errors arbit-lost error-warn error-pass bus-off\s+(\d+) (\d+) (\d+) (\d+) "
-                         r"(\d+) (\d+)", shown)
+    restarts = re.search(r"re-started\s+bus-errors\s+arbit-lost\s+error-warn\s+error-pass\s+bus-off"
+                         + r"\s+(\d+)" * 6, shown)
     if restarts:
         parts.append(f"bus errors {restarts.group(2)}, bus-off {restarts.group(6)}")
     healthy = operstate in ("up", "unknown") and (state is None or state.group(1) == "ERROR-ACTIVE")

@@ -54,10 +54,9 @@ class StreamReport:
         """``NMEA``, ``OS5000``, ``binary``, ``garbage`` or ``silent``."""
         if self.nbytes == 0:
             return "silent"
-        if self.os5000_good + self.os5000_bad > self.nmea_good + self.nmea_bad and self.os5000_good:
-            return "OS5000"
-        if self.nmea_good:
-            return "NMEA"
+        os5000, nmea = self.os5000_good + self.os5000_bad, self.nmea_good + self.nmea_bad
+        if max(os5000, nmea) * 2 >= self.lines > 0:   # most lines are sentences, good checksums or not
+            return "OS5000" if os5000 > nmea else "NMEA"
         return "binary" if self.binary else "garbage"
 
     @property
