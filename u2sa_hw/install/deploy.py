@@ -118,8 +118,9 @@ def install(*, vehicle: Path | str, root: Path | str = "/", venv: str | None = N
     _ensure_bus_key(tree, owner=owner)
     for dest, data in configs.items():
         tree.put_config(dest, data, mode=0o660, owner=owner)
-    for ref in found.references:   # missions, objects...: the user's once installed, like the configs
-        tree.put_config(ref.dest, ref.source.read_bytes(), mode=0o644)
+    # Missions, objects...: the user's once installed, like the configs (one file may be named twice).
+    for dest, source in sorted({ref.dest: ref.source for ref in found.references}.items()):
+        tree.put_config(dest, source.read_bytes(), mode=0o644)
     for item in found.plan.can_without_bitrate:
         tree.note("skipped", f"CAN {item}", "the address has no bitrate=: the interface is left as configured")
     _ensure_log_dir(tree)
