@@ -265,3 +265,50 @@ def test_socketcan_state_reads_state_bitrate_and_counters() -> None:
     assert "bus errors 41, bus-off 1" in text
     missing, why = socketcan_state("can-none-here")
     assert not missing and "no interface can-none-here" in why
+
+
+def test_probe_reads_device_addresses_of_every_kind(tmp_path: Path) -> None:
+    """A profile of the new form: each [devices.NAME] address opened by its scheme (mock+i2c, mock+gpio, mock+pwm)."""
+    from mock_devices.mpu9250_chip import Mpu9250Chip
+
+    bus = MockI2cBus(socket_path=str(tmp_path / "i2c-1.sock"))
+    bus.add(Mpu9250Chip(address=0x68))
+    chip = MockGpioChip(socket_path=str(tmp_path / "gpiochip0.sock"), num_lines=32)
+    pwm = make_sysfs_pwm_tree(tmp_path / "pwmchip0", npwm=4)
+    profile = tmp_path / "vehicle.toml"
+    profile.write_text(f"""\
+[vehicle]
+name = "bench"
+
+[services.imu]
+kind = "imu_mpu9250"
+
+[services.lamp]
+kind = "gpio_output"
+
+[services.pan]
+kind = "pwm_servo"
+
+[devices.imu]
+address = "mock+i2c://{tmp_path}/i2c-1.sock/0x68"
+service = "imu"
+
+[devices.lamp]
+address = "mock+gpio://{tmp_path}/gpiochip0.sock/17,27"
+service = "lamp"
+
+[devices.pan]
+address = "mock+pwm://{pwm}/3"
+service = "pan"
+""")
+    chip.start()
+    try:
+        with bus:
+            results = {r.device: r for r in probe_profile(load_profile(profile), seconds=0.2)}
+    finally:
+        chip.stop()
+    assert set(results) == {"imu", "lamp", "pan"}, results
+    assert results["imu"].ok and "WHO_AM_I 0x71 as expected" in results["imu"].text
+    assert results["lamp"].ok and "line(s) 17, 27 exist and are free" in results["lamp"].text
+    assert results["pan"].ok and "channel 3 of 4 exists" in results["pan"].text
+    assert all(r.address.startswith("mock+") for r in results.values())
