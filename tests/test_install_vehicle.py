@@ -188,3 +188,30 @@ def test_uninstall_undoes_exactly_what_install_did(vehicle: Path, tmp_path: Path
 def test_uninstall_of_a_root_that_does_not_exist_says_so(tmp_path: Path) -> None:
     done = u2sa("uninstall", "--root", str(tmp_path / "nowhere"))
     assert done.returncode == 1 and "no such directory" in done.stderr and "Traceback" not in done.stderr
+
+
+def test_only_existing_files_are_references_and_a_name_clash_goes_under_files(tmp_path: Path) -> None:
+    """Device nodes, directories, URLs and plain words are not files; a file outside the profile's directory
+    whose place is taken goes under files/SERVICE."""
+    from u2sa_hw.install.referenced import find_references
+
+    src = tmp_path / "src"
+    (src / "config").mkdir(parents=True)
+    (src / "data").mkdir()
+    (src / "mission.xml").write_text(MISSION)
+    (tmp_path / "mission.xml").write_text(MISSION + "<!-- another -->\n")
+    (src / "config/mission.toml").write_text('mission_file = "mission.xml"\n')
+    (src / "config/world.toml").write_text(f'objects_file = "{tmp_path / "mission.xml"}"\n')
+    (src / "config/gps.toml").write_text('port = "/dev/null"\nsource = "file:///etc/passwd"\nplace = "data"\n'
+                                         'word = "ekf"\n')
+    (src / "vehicle.toml").write_text(PROFILE)
+    refs, missing = find_references(load_profile(src / "vehicle.toml"), taken=set())
+    assert missing == []
+    assert sorted((r.service, r.key, r.dest, r.value) for r in refs) == [
+        ("mission", "mission_file", "/etc/u2sa/mission.xml", "mission.xml"),
+        ("world", "objects_file", "/etc/u2sa/files/world/mission.xml", "files/world/mission.xml")]
+    # A *_file setting naming nothing is a problem that names the file and the setting.
+    (src / "config/world.toml").write_text('objects_file = "nowhere.xml"\n')
+    refs, missing = find_references(load_profile(src / "vehicle.toml"), taken={"/etc/u2sa/mission.xml"})
+    assert len(missing) == 1 and "objects_file" in missing[0] and "nowhere.xml" in missing[0]
+    assert [(r.dest, r.value) for r in refs] == [("/etc/u2sa/files/mission/mission.xml", "files/mission/mission.xml")]
