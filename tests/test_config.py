@@ -170,3 +170,109 @@ def test_a_value_outside_the_choices_is_refused_naming_the_field_and_the_allowed
         Configurator(path, fields)
     with pytest.raises(ValueError, match="not one of its choices"):
         field("level", "chatty", choices=("debug", "info"))
+
+
+# ---------------------------------------------------------------- ranges and non-finite numbers -----
+RANGED = (field("timeout_s", 2.0, gt=0), field("fraction", 0.5, ge=0, le=1), field("count", 3, ge=1, lt=10),
+          field("offset", 0.0), field("limit", 1.0, allow_nonfinite=True),
+          field("ids", [1, 2], item_type=int, ge=0, le=62), field("names", ["a"], item_type=str))
+
+
+@pytest.mark.parametrize("name, text, message", [
+    ("timeout_s", "-5", "field 'timeout_s' must be > 0; got -5.0"),
+    ("timeout_s", "0", "field 'timeout_s' must be > 0; got 0.0"),
+    ("timeout_s", "inf", "field 'timeout_s' must be a finite number > 0; got inf"),
+    ("timeout_s", "-inf", "field 'timeout_s' must be a finite number > 0; got -inf"),
+    ("timeout_s", "nan", "field 'timeout_s' must be a finite number > 0; got nan"),
+    ("offset", "inf", "field 'offset' must be a finite number; got inf"),
+    ("fraction", "1.5", "field 'fraction' must be >= 0 and <= 1; got 1.5"),
+    ("count", "10", "field 'count' must be >= 1 and < 10; got 10"),
+    ("count", "0", "field 'count' must be >= 1 and < 10; got 0"),
+    ("ids", "[1, 63]", "field 'ids' item 1 must be >= 0 and <= 62; got 63"),
+    ("ids", "[1, 2.0]", "field 'ids' item 1 expects int, got float 2.0"),
+    ("names", '["a", 3]', "field 'names' item 1 expects str, got int 3"),
+    ("ids", '"1,2"', "field 'ids' expects list, got str '1,2'"),
+])
+def test_a_value_out_of_range_is_refused_with_the_field_the_bound_and_the_value(
+        tmp_path: Path, name: str, text: str, message: str) -> None:
+    path = tmp_path / "c.toml"
+    cfg = Configurator(path, RANGED)
+    assert cfg.set("count", 4)
+    before = path.read_bytes()
+    ok, reason = cfg.try_set(name, text)
+    assert not ok and reason == message
+    assert path.read_bytes() == before and cfg.get("count") == 4
+
+
+def test_values_inside_the_range_and_allowed_non_finite_ones_are_taken(tmp_path: Path) -> None:
+    cfg = Configurator(tmp_path / "c.toml", RANGED)
+    for name, text, value in (("timeout_s", "1e-3", 0.001), ("fraction", "0", 0.0), ("fraction", "1", 1.0),
+                              ("count", "9", 9), ("offset", "-1e3", -1000.0), ("limit", "inf", float("inf")),
+                              ("limit", "-inf", float("-inf")), ("ids", "[0, 62]", [0, 62])):
+        ok, reason = cfg.try_set(name, text)
+        assert ok, reason
+        assert cfg.get(name) == value
+    assert tomllib.loads((tmp_path / "c.toml").read_text())["limit"] == float("-inf")
+
+
+def test_an_out_of_range_value_in_the_file_or_the_profile_names_its_source(tmp_path: Path) -> None:
+    path = tmp_path / "est.toml"
+    path.write_text("timeout_s = inf\n")
+    with pytest.raises(ConfigError, match=r"est\.toml: field 'timeout_s' must be a finite number > 0; got inf"):
+        Configurator(path, RANGED)
+    path.write_text("timeout_s = -5\n")
+    with pytest.raises(ConfigError, match=r"est\.toml: field 'timeout_s' must be > 0; got -5\.0"):
+        Configurator(path, RANGED)
+    with pytest.raises(ConfigError, match=r"^v\.toml \[services\.est\] settings: field 'ids' item 0 must be >= 0"):
+        Configurator(None, RANGED, initial={"ids": [-1]}, initial_source="v.toml [services.est] settings")
+    assert path.read_text() == "timeout_s = -5\n"
+
+
+def test_an_unknown_key_in_the_profile_settings_is_an_error_with_a_did_you_mean(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"v\.toml \[services\.gps\] settings: unknown key 'prot'; did you mean "
+                                          r"'port'\?"):
+        Configurator(None, FIELDS, initial={"prot": "/dev/x"}, initial_source="v.toml [services.gps] settings")
+    cfg = Configurator(None, FIELDS, initial={"device": "gps"}, passthrough=("device",))
+    assert "device" not in cfg
+
+
+def test_a_declaration_that_breaks_its_own_bounds_fails_at_import() -> None:
+    with pytest.raises(ValueError, match="its default breaks its own declaration: field 'x' must be > 0; got 0.0"):
+        field("x", 0.0, gt=0)
+    with pytest.raises(TypeError, match="bounds need a number"):
+        field("x", "text", ge=0)
+    with pytest.raises(TypeError, match="bounds must be finite"):
+        field("x", 1.0, le=float("inf"))
+
+
+def test_a_binary_config_file_is_an_error_naming_the_file(tmp_path: Path) -> None:
+    path = tmp_path / "gps.toml"
+    path.write_bytes(b"rate_hz = 5\n\xff\xfe\x00garbage")
+    with pytest.raises(ConfigError) as err:
+        Configurator(path, FIELDS)
+    assert str(err.value).startswith(f"{path}: not a text file (byte 12 is 0xff, not UTF-8)")
+    assert "delete it to use defaults" in str(err.value)
+
+
+def test_a_remote_false_field_is_not_changed_over_the_bus(tmp_path: Path, lcm_url: str) -> None:
+    from u2sa_hw.service import U2SAService
+
+    class Gated(U2SAService):
+        CONFIG = (field("gating", True, "the pilot's switch", remote=False),)
+
+    svc = Gated("gated", config_path=tmp_path / "gated.toml")
+    try:
+        ok, reason = svc.config.try_set("gating", "false")
+        assert not ok and "gating is not changed over the bus (the pilot's switch)" in reason
+        assert not (tmp_path / "gated.toml").exists()
+        assert svc.config.try_set("gating", "true")[0]   # the value it has: not a change
+    finally:
+        svc.transport.stop()
+
+
+def test_a_configurator_reads_like_a_mapping(tmp_path: Path) -> None:
+    cfg = Configurator(tmp_path / "c.toml", FIELDS)
+    assert "rate_hz" in cfg and "nope" not in cfg and len(cfg) == 4 and list(cfg)[0] == "rate_hz"
+    assert cfg.get("nope", 7) == 7
+    with pytest.raises(KeyError, match="no config field 'nope'"):
+        cfg.get("nope")
