@@ -216,3 +216,36 @@ def test_a_duplicate_service_refuses_to_start_naming_the_other(services: Service
     assert "Traceback" not in out
     assert services.procs[0].poll() is None
     assert bus.discover(timeout=1.0, name=SERVICE)[0].pid == first.pid
+
+
+def test_a_key_holder_with_another_system_id_is_dropped_as_foreign_and_shown(services: ServiceProcesses,
+                                                                            bus: BusClient) -> None:
+    # A second stack signed with the same key (a fleet sharing one, a sim given --bus-key) but
+    # another vehicle's system id: its stop and config change are dropped, counted and shown.
+    health = HealthLog(bus)
+    first = start_estimator(services, bus)     # the default profile: system id 1
+    other = Transport(services.url, name="vehicle-2")    # the session's key
+    stop = t.StopCommand()
+    stop.all = True
+    change = t.ConfigChange()
+    change.request_id, change.target, change.field, change.value = "other", SERVICE, "health_interval_s", "0.25"
+    for msg, channel in ((stop, ch.STOP), (change, ch.CONFIG_CHANGE)):
+        msg.header.system_id, msg.header.source = 2, "vehicle-2"
+        assert other.publish(channel, msg)
+    other.stop()
+    expected = {"U2SA_STOP: foreign 1", "U2SA_CONFIG_SET: foreign 1"}
+    wait_until(lambda: expected <= set(health.details(SERVICE).get("bus_rejected", "").split("; ")), timeout=30,
+               message="the estimator's health to count the foreign packets")
+    assert services.procs[0].poll() is None, "another vehicle's stop stopped the service"
+    config = bus.get_config(SERVICE)
+    assert config is not None and {f.name: f.value for f in config.fields}["health_interval_s"] != "0.25"
+    assert bus.discover(timeout=1.0, name=SERVICE)[0].pid == first.pid
+
+    listed = services.cli("services", "--json")
+    assert listed.returncode == 0, listed.stderr
+    row = {s["name"]: s for s in json.loads(listed.stdout)}[SERVICE]
+    assert row["foreign"] == 2 and row["bad_signature"] == 0, row
+    table = services.cli("services")
+    header, line = table.stdout.splitlines()[0], next(x for x in table.stdout.splitlines() if x.startswith(SERVICE))
+    assert "BAD SIG" in header and "FOREIGN" in header
+    assert line.split()[5:8] == ["signed", "0", "2"], line     # BUS, BAD SIG, FOREIGN

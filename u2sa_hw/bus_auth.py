@@ -31,7 +31,7 @@ import struct
 import threading
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 from u2sa_hw.bus_key import BusKeyError, key_id, read_key
 
@@ -42,7 +42,10 @@ SENDER_BYTES = 8
 MAC_BYTES = 16
 KEY_ID_BYTES = 4
 TRAILER_LEN = SENDER_BYTES + 8 + KEY_ID_BYTES + MAC_BYTES + len(TAG)
-_COUNTER = struct.Struct(">Q")
+_TAIL = struct.Struct(">8sQ4s")                   # the signed part of the trailer: sender, counter, key id
+_TRAILER = struct.Struct(">8sQ4s16s4s")           # all of it: ... mac, tag
+SIGNED_TAIL = _TAIL.size
+MAX_CACHED_CHANNELS = 1024
 
 WINDOW_US = 20_000_000             # a sender never heard before: its first counter at most 20 s old
 OVERLAP_S = 30.0                   # a rotated-out key is still accepted this long
@@ -54,13 +57,16 @@ MAX_COUNTER = 2 ** 53                   # about the year 2255: anything above is
 
 # Verification results (also the names of the drop counters).
 OK, UNSIGNED, FORGED, REPLAYED = "ok", "unsigned", "forged", "replayed"
-REJECTIONS = (UNSIGNED, FORGED, REPLAYED)
+# A verified (or, on an open bus, any) message whose header names another vehicle's system id.
+FOREIGN = "foreign"
+REJECTIONS = (UNSIGNED, FORGED, REPLAYED, FOREIGN)
 
 LCM_SELF_TEST = "LCM_SELF_TEST"
 REJECTION_WHY = {
     "unsigned": "no valid signature trailer: a sender without the bus key, or one with bus_security = \"open\"",
     "forged": "signed with another key: another vehicle or simulation, or a forgery",
     "replayed": "its counter is not newer than the sender's last or is outside the window: a replay",
+    "foreign": "its header names another vehicle's system id: another stack sharing this bus and key",
 }
 
 SECURITY_ENV = "U2SA_BUS_SECURITY"
@@ -77,18 +83,30 @@ def resolve_security(profile_value: str | None = None) -> str:
     return value
 
 
-def _wall_us() -> int:
-    return time.time_ns() // 1000
-
-
 class BusKey:
-    """One key with its HMAC inner and outer states precomputed (each message copies them)."""
+    """One key with its HMAC inner and outer states precomputed (each message copies them).
+
+    The inner state after a channel's name is kept per channel too, so a message costs one
+    copy and one update less; OpenSSL 3's one-shot ``hmac.digest`` fetches its algorithm on
+    every call and measured slower than these copies (bench/transport.py, docs/security.md).
+    """
 
     def __init__(self, key: bytes) -> None:
         self.id = key_id(key)
         block = key.ljust(64, b"\0")   # a 32-byte key is shorter than SHA-256's block: HMAC pads it
         self._inner = hashlib.sha256(bytes(b ^ 0x36 for b in block))
         self._outer = hashlib.sha256(bytes(b ^ 0x5C for b in block))
+        self._by_channel: dict[str, Any] = {}
+
+    def inner_after(self, channel: str) -> Any:
+        """The inner hash state having absorbed *channel* NUL (do not update it: copy it)."""
+        state = self._by_channel.get(channel)
+        if state is None:
+            state = self._inner.copy()
+            state.update(channel.encode() + b"\0")
+            if len(self._by_channel) < MAX_CACHED_CHANNELS:   # a flood of invented names cannot grow it
+                self._by_channel[channel] = state
+        return state
 
     def mac(self, channel: bytes, signed: bytes | memoryview) -> bytes:
         """The truncated HMAC-SHA256 of *channel* (NUL-terminated) and *signed*."""
@@ -188,26 +206,20 @@ class BusAuth:
     """
 
     def __init__(self, keyring: Keyring, *, sender: bytes | None = None,
-                 wall_us: Callable[[], int] = _wall_us) -> None:
+                 wall_us: Callable[[], int] | None = None) -> None:
         self.keyring = keyring
         self.sender = sender or secrets.token_bytes(SENDER_BYTES)
         self.last_sender = b""          # the verified sender of the packet being dispatched
-        self._wall_us = wall_us
+        # The wall clock in ns: time.time_ns itself unless a test gives its own (in µs).
+        self._wall_ns: Callable[[], int] = time.time_ns if wall_us is None else (lambda: wall_us() * 1000)
         self._offset = 0
         self._last_sent = 0
         self._peers: dict[bytes, int] = {}
-        self._channels: dict[str, bytes] = {}
         self._prune_at = 0
 
     def now(self) -> int:
         """The signing clock in µs: the wall clock, moved forward to the newest verified counter."""
-        return self._wall_us() + self._offset
-
-    def _channel(self, channel: str) -> bytes:
-        encoded = self._channels.get(channel)
-        if encoded is None:
-            encoded = self._channels[channel] = channel.encode() + b"\0"
-        return encoded
+        return self._wall_ns() // 1000 + self._offset
 
     def sign(self, channel: str, payload: bytes) -> bytes:
         """*payload* with its trailer."""
@@ -215,42 +227,41 @@ class BusAuth:
         if ring._clock() >= ring._next_check:
             ring.poll()
         key = ring.current
-        counter = self._wall_us() + self._offset
+        counter = self._wall_ns() // 1000 + self._offset
         if counter <= self._last_sent:
             counter = self._last_sent + 1
         self._last_sent = counter
-        signed = b"".join((payload, self.sender, _COUNTER.pack(counter), key.id))
-        inner = key._inner.copy()
-        inner.update(self._channels.get(channel) or self._channel(channel))
-        inner.update(signed)
+        tail = _TAIL.pack(self.sender, counter, key.id)
+        inner = (key._by_channel.get(channel) or key.inner_after(channel)).copy()
+        inner.update(payload)
+        inner.update(tail)
         outer = key._outer.copy()
         outer.update(inner.digest())
-        return b"".join((signed, outer.digest()[:MAC_BYTES], TAG))
+        return b"".join((payload, tail, outer.digest()[:MAC_BYTES], TAG))
 
     def verify(self, channel: str, data: bytes) -> str:
-        """OK, or why *data* is dropped: UNSIGNED, FORGED or REPLAYED. Never raises."""
-        # The receive path of every packet: BusKey.mac and Keyring.lookup are inlined.
-        n = len(data)
-        if n < TRAILER_LEN or not data.endswith(TAG):
+        """OK, or why *data* is dropped: UNSIGNED, FORGED or REPLAYED. Never raises.
+
+        The MAC is checked (in constant time) before anything of the trailer is believed.
+        """
+        end = len(data) - TRAILER_LEN
+        if end < 0:
             return UNSIGNED
-        end = n - TRAILER_LEN
-        kid_at = end + SENDER_BYTES + 8
-        mac_at = kid_at + KEY_ID_BYTES
+        sender, counter, kid, mac, tag = _TRAILER.unpack_from(data, end)
+        if tag != TAG:
+            return UNSIGNED
         key = self.keyring.current
-        if data[kid_at:mac_at] != key.id:
-            key = self.keyring.lookup(data[kid_at:mac_at])
+        if kid != key.id:
+            key = self.keyring.lookup(kid)
             if key is None:
                 return FORGED
-        inner = key._inner.copy()
-        inner.update(self._channels.get(channel) or self._channel(channel))
-        inner.update(memoryview(data)[:mac_at])
+        inner = (key._by_channel.get(channel) or key.inner_after(channel)).copy()
+        inner.update(memoryview(data)[:end + SIGNED_TAIL])
         outer = key._outer.copy()
         outer.update(inner.digest())
-        if not hmac.compare_digest(outer.digest()[:MAC_BYTES], data[mac_at:mac_at + MAC_BYTES]):
+        if not hmac.compare_digest(outer.digest()[:MAC_BYTES], mac):
             return FORGED
-        sender = data[end:end + SENDER_BYTES]
-        counter = _COUNTER.unpack_from(data, end + SENDER_BYTES)[0]
-        now = self._wall_us() + self._offset
+        now = self._wall_ns() // 1000 + self._offset
         if counter > MAX_COUNTER or (counter > now + MAX_AHEAD_US and now >= SANE_CLOCK_US):
             return REPLAYED
         last = self._peers.get(sender)

@@ -27,7 +27,9 @@ class BusClient:
         self.name = name or f"u2sa-cli-{os.getpid()}"
         self.system_id = system_id
         # The key is found as a service finds it (u2sa_hw.bus_key.key_path); a TransportError says how to get it.
-        self.transport = Transport(url, name=self.name, security=security, key_file=key_file, interface=interface)
+        # With a vehicle's system id (from its profile), another vehicle's messages are dropped as foreign.
+        self.transport = Transport(url, name=self.name, security=security, key_file=key_file, interface=interface,
+                                   system_id=system_id or None)
         self.transport.start()
         self._seq = 0
 

@@ -65,7 +65,8 @@ class U2SAService:
                                    initial_source=where, validator=self.validate_config)
         self.transport = transport or Transport(self.profile.lcm_url, name=name,
                                                 security=self.profile.bus_security, key_file=self.profile.bus_key,
-                                                interface=self.profile.bus_interface)
+                                                interface=self.profile.bus_interface,
+                                                system_id=self.profile.system_id)
         self.running = False
         self.status = "starting"
         self.last_error = ""

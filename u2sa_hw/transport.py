@@ -19,9 +19,11 @@ another program) with many lines on stderr; those are caught and folded into the
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import re
+import struct
 import threading
 import time
 from collections import defaultdict, deque
@@ -31,8 +33,8 @@ from typing import Any, Callable
 
 import lcm
 
-from u2sa_hw.bus_auth import (LCM_SELF_TEST, OK, OPEN, REJECTION_WHY, REJECTIONS, TRAILER_LEN, BusAuth, keyring_for,
-                              resolve_security, strip_trailer)
+from u2sa_hw.bus_auth import (FOREIGN, LCM_SELF_TEST, OK, OPEN, REJECTION_WHY, REJECTIONS, TRAILER_LEN, BusAuth,
+                              keyring_for, resolve_security, strip_trailer)
 from u2sa_hw.bus_key import BusKeyError, key_path
 from u2sa_hw.bus_listen import interface_index, listen_interface, receive_on, send_via, socket_fds
 from u2sa_hw.lcm_open import MULTICAST_FIX, URL_HELP, captured_c_stderr, open_error, reemit  # noqa: F401 - re-exported
@@ -52,6 +54,8 @@ DEFAULT_RECV_BUF_SIZE = 4 * 1024 * 1024
 RMEM_MAX_FILE = "/proc/sys/net/core/rmem_max"
 
 Callback = Callable[[str, Any], None]
+_SYSTEM_ID = struct.Struct(">i")
+_ANY_SYSTEM = _SYSTEM_ID.pack(0)   # unset (a tool without a profile): not another vehicle
 log = logging.getLogger("u2sa_hw.transport")
 
 
@@ -88,10 +92,11 @@ class ChannelCounters:
     unsigned: int = 0    # received only: dropped by verification (bus_auth.REJECTIONS)
     forged: int = 0
     replayed: int = 0
+    foreign: int = 0     # received only: another vehicle's system id in the header
 
     def rejected(self) -> int:
-        """Packets verification dropped on this channel."""
-        return self.unsigned + self.forged + self.replayed
+        """Packets verification (or the system id check) dropped on this channel."""
+        return self.unsigned + self.forged + self.replayed + self.foreign
 
 
 @dataclass
@@ -111,10 +116,13 @@ class Transport:
     *security* is ``signed`` or ``open`` (None: ``$U2SA_BUS_SECURITY``, else signed); the key
     comes from ``$U2SA_BUS_KEY_FILE``, else *key_file* (the profile's ``bus_key``), else
     /etc/u2sa/bus.key. A key that cannot be used is a one-line :class:`TransportError`.
+    With *system_id* (the vehicle's), a message whose header carries another non-zero system
+    id is dropped and counted as ``foreign``: a second stack sharing the bus and the key.
     """
 
     def __init__(self, url: str | None = None, *, name: str = "u2sa", security: str | None = None,
-                 key_file: Path | str | None = None, interface: str | None = None) -> None:
+                 key_file: Path | str | None = None, interface: str | None = None,
+                 system_id: int | None = None) -> None:
         self.url = resolve_url(url)
         self.name = name
         # ttl=0: loopback only; ttl>=1: the profile's bus_interface, if any (u2sa_hw.bus_listen).
@@ -128,6 +136,10 @@ class Transport:
             raise TransportError(str(exc)) from None
         self._verdict = OK
         self._payload = b""
+        # Every u2sa message starts with its Header (extensions with their base, which does):
+        # the system id is the big-endian int32 right after the 8-byte fingerprint.
+        self.system_id = system_id
+        self._own_system = None if system_id is None else _SYSTEM_ID.pack(system_id)
         self._pending_unsubscribe: deque[Any] = deque()
         self._rejection_logged: set[tuple[str, str]] = set()
         with captured_c_stderr() as printed:
@@ -206,7 +218,7 @@ class Transport:
         """
         sub = _Subscription(channel, base, callback, raw)
         pattern = channel if _is_regex(channel) else re.escape(channel)
-        handler = lambda ch, data, s=sub: self._dispatch(s, ch, data)  # noqa: E731
+        handler = functools.partial(self._dispatch, sub)   # no Python frame of its own per packet
         if self._lc is None:
             raise TransportError(f"cannot subscribe to {channel}: the transport on {self.url} is stopped")
         self._open_receiver()
@@ -261,15 +273,14 @@ class Transport:
     def _dispatch(self, sub: _Subscription, channel: str, data: bytes) -> None:
         if not sub.active:
             return
-        counters = self.rx[channel]
         generation = self._generation
         if self._bytes_counted != generation:   # the packet's first dispatch: verify it once
             self._bytes_counted = generation
-            self._verdict = self._verify(channel, data, counters)
-            counters.bytes += len(self._payload) if self._verdict is OK else len(data)
+            self._verdict = self._verify(channel, data)
         if self._verdict is not OK:
             return
         data = self._payload
+        counters = self.rx[channel]
         if sub.raw:
             if self._messages_counted != generation:
                 self._messages_counted = generation
@@ -296,17 +307,30 @@ class Transport:
             self._messages_counted = generation
             counters.messages += 1
         counters.type_name = type(msg).__name__
-        self._call(sub, channel, msg)
+        try:   # _call, inlined on the path of every message
+            sub.callback(channel, msg)
+        except Exception as exc:  # noqa: BLE001 - a failing callback must not kill the handler thread
+            counters.dropped += 1
+            self._error(f"callback for {channel} failed: {type(exc).__name__}: {exc}", exc_info=True)
 
-    def _verify(self, channel: str, data: bytes, counters: ChannelCounters) -> str:
+    def _verify(self, channel: str, data: bytes) -> str:
+        """OK (the payload is in ``self._payload``) or why the packet is dropped, counted and logged once."""
         auth = self.auth
         if auth is None:
-            self._payload = strip_trailer(data)
-            return OK
-        verdict = auth.verify(channel, data)
+            payload = strip_trailer(data)
+            verdict = OK
+        else:
+            verdict = auth.verify(channel, data)
+            payload = data[:-TRAILER_LEN]
         if verdict is OK:
-            self._payload = data[:-TRAILER_LEN]
-            return OK
+            own = self._own_system
+            if own is None or payload[8:12] in (own, _ANY_SYSTEM) or len(payload) < 12:
+                self._payload = payload
+                self.rx[channel].bytes += len(payload)
+                return OK
+            verdict = FOREIGN
+        counters = self.rx[channel]
+        counters.bytes += len(data)
         if channel == LCM_SELF_TEST:   # LCM's own probe at start-up, never ours: not a rejection
             return verdict
         setattr(counters, verdict, getattr(counters, verdict) + 1)
@@ -331,7 +355,7 @@ class Transport:
         return self.auth.keyring.current.id.hex() if self.auth else ""
 
     def rejected(self) -> dict[str, dict[str, int]]:
-        """``{channel: {"unsigned": n, "forged": n, "replayed": n}}`` for channels with drops."""
+        """``{channel: {"unsigned": n, "forged": n, "replayed": n, "foreign": n}}`` for channels with drops."""
         return {ch: {r: getattr(c, r) for r in REJECTIONS} for ch, c in sorted(self.rx.items()) if c.rejected()}
 
     def _call(self, sub: _Subscription, channel: str, payload: Any) -> None:

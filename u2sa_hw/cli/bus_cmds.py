@@ -81,34 +81,59 @@ def cmd_services(args: Any) -> int:
     rows = []
     for r in found:
         details = {kv.key: kv.value for kv in health[r.name].details} if r.name in health else {}
+        dropped = details.get("bus_rejected", "")
         rows.append({"name": r.name, "type": r.service_type, "status": r.status, "host": r.host, "pid": r.pid,
-                     "bus": details.get("bus_security", "?"), "rejected": rejected_total(details.get("bus_rejected", "")),
-                     "rejected_by_channel": details.get("bus_rejected", ""), "publishes": _channel_list(r.publishes),
+                     "bus": details.get("bus_security", "?"), "rejected": rejected_total(dropped),
+                     "bad_signature": bad_signature_total(dropped), "foreign": rejected_counts(dropped)["foreign"],
+                     "rejected_by_channel": dropped, "publishes": _channel_list(r.publishes),
                      "subscribes": _channel_list(r.subscribes)})
     if args.json:
         print(json.dumps(rows, indent=2))
     else:
         if found:
-            print(f"{'NAME':22} {'TYPE':18} {'STATUS':9} {'HOST':14} {'PID':>7} {'BUS':8} {'DROPPED':>7}  PUBLISHES")
+            print(f"{'NAME':22} {'TYPE':18} {'STATUS':9} {'HOST':14} {'PID':>7} {'BUS':8} {'BAD SIG':>7} "
+                  f"{'FOREIGN':>7}  PUBLISHES")
         for row, r in zip(rows, found):
             pubs = ", ".join(i.channel for i in r.publishes)
             print(f"{r.name:22} {r.service_type:18} {r.status:9} {r.host:14} {r.pid:>7} {row['bus'].split()[0]:8} "
-                  f"{row['rejected']:>7}  {pubs}")
+                  f"{row['bad_signature']:>7} {row['foreign']:>7}  {pubs}")
     if own_drops:
         from u2sa_hw.service_bus import rejected_text
 
         print(f"u2sa: dropped while listening: {rejected_text(own_drops)} (unsigned: a sender without the key; "
-              "forged: another key, e.g. a second stack or vehicle on this port; u2sa health shows each "
-              "service's counts)", file=sys.stderr)
+              "forged: another key, e.g. a second stack or vehicle on this port; foreign: another vehicle's "
+              "system id under this key; u2sa health shows each service's counts)", file=sys.stderr)
     if not found:
         raise no_answer_error(args, f"no service answered discovery within {args.timeout:g} s "
                               "(are services running, and on the same LCM URL and bus key?)")
     return 0
 
 
+def rejected_counts(text: str) -> dict[str, int]:
+    """Packets per reason (every one of ``bus_auth.REJECTIONS``) in a health ``bus_rejected`` text.
+
+    The text is ``CHANNEL: unsigned 2, forged 1; CHANNEL: foreign 3`` (``service_bus.rejected_text``).
+    """
+    from u2sa_hw.bus_auth import REJECTIONS
+
+    counts = dict.fromkeys(REJECTIONS, 0)
+    for part in text.split(";"):
+        for item in part.rpartition(":")[2].split(","):
+            why, _, n = item.strip().partition(" ")
+            if why in counts and n.isdigit():
+                counts[why] += int(n)
+    return counts
+
+
 def rejected_total(text: str) -> int:
-    """The number of packets in a health ``rejected`` text (``CHANNEL: unsigned 2, forged 1; ...``)."""
-    return sum(int(word) for word in text.replace(",", " ").replace(";", " ").split() if word.isdigit())
+    """The number of packets in a health ``bus_rejected`` text, whatever the reason."""
+    return sum(rejected_counts(text).values())
+
+
+def bad_signature_total(text: str) -> int:
+    """Packets a health ``bus_rejected`` text counts as unsigned, forged or replayed (not foreign)."""
+    counts = rejected_counts(text)
+    return counts["unsigned"] + counts["forged"] + counts["replayed"]
 
 
 def cmd_topics(args: Any) -> int:

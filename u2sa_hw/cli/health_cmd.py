@@ -53,7 +53,7 @@ def cmd_health(args: Any) -> int:
     from u2sa_hw import channels as ch
     from u2sa_hw import lcmtypes as t
     from u2sa_hw.cli import CliError
-    from u2sa_hw.cli.bus_cmds import rejected_total
+    from u2sa_hw.cli.bus_cmds import bad_signature_total, rejected_counts, rejected_total
 
     got: list[Any] = []
     arrived = threading.Event()
@@ -90,6 +90,8 @@ def cmd_health(args: Any) -> int:
         s["bus"] = details.get("bus_security", "?")
         s["rejected_by_channel"] = details.get("bus_rejected", "")
         s["rejected"] = rejected_total(s["rejected_by_channel"])
+        s["bad_signature"] = bad_signature_total(s["rejected_by_channel"])
+        s["foreign"] = rejected_counts(s["rejected_by_channel"])["foreign"]
         s["reason"] = service_reason(s, health.get(s["name"]))
     report["autonomy"] = autonomy_report(health)
     if args.json:
@@ -98,11 +100,12 @@ def cmd_health(args: Any) -> int:
     print(f"{'FAILSAFE ACTIVE' if report['failsafe'] else 'failsafe off'} -- {report['summary']} "
           f"(from {report['source'] or 'hsm'})")
     if report["services"]:
-        print(f"{'SERVICE':22} {'STATE':11} {'RESTARTS':>8} {'HEARTBEAT':>9} {'DATA AGE':>8} {'DROPPED':>7}  "
+        print(f"{'SERVICE':22} {'STATE':11} {'RESTARTS':>8} {'HEARTBEAT':>9} {'DATA AGE':>8} {'BAD SIG':>7} "
+              f"{'FOREIGN':>7}  "
               "REASON / LAST ERROR")
     for s, row in zip(got[0].services, report["services"]):
         print(f"{s.name:22} {s.state:11} {s.restarts:>8} {_age(s.heartbeat_age_s):>9} {_age(s.data_age_s):>8} "
-              f"{row['rejected']:>7}  {row['reason'] or s.last_error}")
+              f"{row['bad_signature']:>7} {row['foreign']:>7}  {row['reason'] or s.last_error}")
     for rc in report["autonomy"]:
         state = "GRANTED" if rc["granted"] else f"refused: {rc['blocked_by'] or 'unknown'}"
         print(f"autonomy ({rc['service']}, RC {rc['mode']}, {'armed' if rc['armed'] else 'not armed'}): {state}")
