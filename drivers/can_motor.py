@@ -28,14 +28,15 @@ from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Actuator
 from u2sa_hw.config import ConfigError, field
 from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence setters
-from u2sa_hw.ports import PortClosed, PortError, PortIOError, PortUnavailable, ReconnectingPort
-from u2sa_hw.ports.can_port import CanPort, open_can
-from u2sa_hw.ports.tap import raw_channel
+from u2sa_hw.ports import PortClosed, PortError, PortIOError, PortUnavailable
+from u2sa_hw.ports.can_port import CanPort
+from u2sa_hw.ports.device_link import DeviceLink, device_setting
+from u2sa_hw.ports.legacy import can_address
 
 from drivers.diff_drive_odometry import SOURCES, BodyMotion, DiffDriveOdometry
 
 TICK_S = 0.01
-_PORT_FIELDS = frozenset({"interface", "channel", "bitrate", "udp_port", "device_name"})
+_PORT_FIELDS = frozenset({"device", "interface", "channel", "bitrate", "udp_port", "device_name"})
 _ODOMETRY_FIELDS = frozenset({"odometry", "odometry_left", "odometry_right", "track_width_m", "odometry_source",
                               "odometry_window_s", "wheel_radius_m", "directions"})
 
@@ -56,11 +57,13 @@ class CanMotorService(Actuator):
     ID_FIELD: ClassVar[str] = "node_ids"
     ID_MAX: ClassVar[int] = 0x3F
     CONFIG = (
-        field("interface", "socketcan", "python-can interface: socketcan on a vehicle; virtual, udp_multicast in tests"),
+        field("device", "", "the bus: its [devices.NAME] table (address) and RAW.<device> (empty: the service name)"),
+        field("interface", "socketcan", "old form of the address (without [devices.NAME] address): python-can "
+                                        "interface: socketcan on a vehicle; virtual, udp_multicast in tests"),
         field("channel", "can0", "python-can channel: can0, a virtual bus name, or a multicast group"),
         field("bitrate", 0, "bit/s given to python-can (0: leave the interface as configured, e.g. by udev)", ge=0),
         field("udp_port", 0, "udp_multicast only: UDP port of the bus (0: python-can's default 43113)", ge=0, le=65535),
-        field("device_name", "", "device name in errors and RAW.<device> (empty: the service name)"),
+        field("device_name", "", "old name of the device setting"),
         field("record_raw", False, "publish every frame sent and received as RawCanFrame on RAW.<device>"),
         field("actuators", ["left", "right"], "actuator names, one per controller (Percentage Commands address them)", item_type=str),
         field("directions", [1, 1], "+1 or -1 per controller: -1 where forward means turning the motor backwards", item_type=int),
@@ -84,7 +87,9 @@ class CanMotorService(Actuator):
         self.frames_rx = self.frames_tx = self.dropped = self.tx_failed = 0
         self.odometry_published = 0
         self.odometry: DiffDriveOdometry | None = None
-        self._port: ReconnectingPort[CanPort] | None = None
+        self._link: DeviceLink[CanPort] = DeviceLink(
+            self, device=lambda: device_setting(self.config, self.name), raw_type=t.RawCanFrame,
+            legacy=lambda: self.legacy_address(self.config))
         self._current: CanPort | None = None
         self._reopen = False
         self.started_at = time.monotonic()  # since when a controller never heard counts as silent
@@ -101,6 +106,9 @@ class CanMotorService(Actuator):
         """Refuse a config this driver cannot run with (the dead-man as every actuator)."""
         super().check_config()
         self.check_settings(self.config.get)
+        problem = self._link.check()
+        if problem:
+            raise self._fail(f"{problem} (e.g. \"can://socketcan/can0?bitrate=500000\")")
 
     def check_settings(self, get: Callable[[str], Any]) -> None:
         """Raise ConfigError (naming the field and the fix) unless the values *get* returns can run."""
@@ -141,8 +149,19 @@ class CanMotorService(Actuator):
 
     @property
     def device_name(self) -> str:
-        """The bus's name in port errors and taps (``device_name``, else the service name)."""
-        return self.config.get("device_name").strip() or self.name
+        """The bus's name in port errors and taps (``device``, else the service name)."""
+        return device_setting(self.config, self.name)
+
+    @classmethod
+    def legacy_address(cls, config: Mapping[str, Any]) -> str | None:
+        """The address the old-form settings (``interface``, ``channel``, ``bitrate``, ``udp_port``) give."""
+        return can_address(str(config.get("interface", "socketcan")), str(config.get("channel", "can0")),
+                           bitrate=config.get("bitrate") or None, udp_port=config.get("udp_port") or None)
+
+    @classmethod
+    def used_devices(cls, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
+        """The one CAN bus this service drives (see DeviceLink)."""
+        return {device_setting(config, service): cls.legacy_address(config)}
 
     def actuator_names(self) -> set[str]:
         """The configured actuator names."""
@@ -161,30 +180,13 @@ class CanMotorService(Actuator):
             if name in _ODOMETRY_FIELDS:
                 self._build()
             if name == "record_raw" and value:
-                self.register_publisher(raw_channel(self.device_name), t.RawCanFrame)
+                self._link.record_changed()
 
     # -- the bus -------------------------------------------------------------------------------
-    def _open(self) -> CanPort:
-        cfg = self.config
-        options: dict[str, Any] = {}
-        if cfg.get("interface") == "udp_multicast" and cfg.get("udp_port"):
-            options["port"] = cfg.get("udp_port")
-        return open_can(device=self.device_name, interface=cfg.get("interface"), channel=cfg.get("channel"),
-                        bitrate=cfg.get("bitrate") or None, tap=self._tap, **options)
-
-    def _tap(self, record: t.RawCanFrame) -> None:
-        if self.config.get("record_raw"):
-            self.publish(raw_channel(self.device_name), record)
-
-    def _new_port(self) -> None:
-        if self._port is not None:
-            self._port.close()
-        self._port = ReconnectingPort(self._open, device=self.device_name)
-
     def send(self, msg: can.Message) -> bool:
         """Send one frame if the bus is open; False (counted) when it is not or the send failed."""
-        port_holder = self._port
-        if port_holder is None or port_holder.state != "open":
+        port_holder = self._link
+        if port_holder.state != "open":
             self.tx_failed += 1
             return False
         try:
@@ -204,12 +206,10 @@ class CanMotorService(Actuator):
         return True
 
     def setup(self) -> None:
-        """Create the reconnecting port (opened by the run loop) and declare what we publish."""
-        if self.config.get("record_raw"):
-            self.register_publisher(raw_channel(self.device_name), t.RawCanFrame)
+        """Resolve the bus's address (opened by the run loop) and declare what we publish."""
         self.register_publisher(ch.STATE_INFO, t.StateInformation)
         self.started_at = time.monotonic()
-        self._new_port()
+        self._link.start()
 
     def run(self) -> None:
         """Receive frames and tick the controllers until stopped; survive bus loss and bad frames."""
@@ -219,9 +219,8 @@ class CanMotorService(Actuator):
                 self._reopen = False
                 with self.lock:
                     self.on_port_lost()
-                self._new_port()
-            holder = self._port
-            assert holder is not None, "setup() creates the port"
+                self._link.refresh(force=True)
+            holder = self._link
             try:
                 port = holder.get()
             except PortUnavailable:
@@ -253,9 +252,8 @@ class CanMotorService(Actuator):
         with self.lock:
             self.tick(now)
             reasons = self.problems(now)
-        port = self._port
-        if port is not None and port.state != "open":
-            reasons.insert(0, f"CAN bus {port.state}")
+        if self._link.state not in ("open", "none"):
+            reasons.insert(0, f"CAN bus {self._link.state}")
         if self.failsafe_active:
             reasons.insert(0, "failsafe")
         self._reason = "; ".join(reasons)
@@ -287,8 +285,7 @@ class CanMotorService(Actuator):
             with self.lock:
                 self.release()
         finally:
-            if self._port is not None:
-                self._port.close()
+            self._link.close()
 
     # -- actuator --------------------------------------------------------------------------------
     def on_percentage(self, actuator: str, percent: float) -> None:
@@ -336,14 +333,12 @@ class CanMotorService(Actuator):
     # -- health -------------------------------------------------------------------------------------
     def health_details(self) -> dict[str, Any]:
         """Command state, bus state and counters, per-controller details, odometry counters."""
-        port = self._port
         details: dict[str, Any] = {
             **super().health_details(),
             "degraded_reason": self._reason,
-            "bus": port.state if port else "none",
-            "address": f"{self.config.get('interface')}:{self.config.get('channel')}",
-            "bus_error": str(port.last_error) if port and port.state != "open" and port.last_error else "",
-            "bus_losses": port.losses if port else 0,
+            **(link := self._link.health()),
+            # the same under the CAN names earlier versions published
+            "bus": link["port"], "bus_error": link["port_error"], "bus_losses": link["port_losses"],
             "frames_rx": self.frames_rx,
             "frames_tx": self.frames_tx,
             "tx_failed": self.tx_failed,

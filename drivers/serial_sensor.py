@@ -1,9 +1,11 @@
-"""The part every line-oriented serial sensor shares: port, reconnect, taps, counters, health.
+"""The part every line-oriented serial sensor shares: the device link, counters, health.
 
-:class:`SerialLineSensor` opens its port through :class:`~u2sa_hw.ports.ReconnectingPort`
-(so an unplugged device is reported in health and reopened with backoff while the service
-keeps running), reads whole lines, and hands each to :meth:`handle_line`; when the line
-stays quiet for ``epoch_gap_s`` it calls :meth:`handle_idle` (the end of a burst). With
+:class:`SerialLineSensor` holds a :class:`~u2sa_hw.ports.device_link.DeviceLink` for its
+device (``device`` setting, default the service name; its address is the profile's
+``[devices.NAME] address``, or for old profiles ``port`` + ``baudrate`` + framing), so an
+unplugged device is reported in health and reopened with backoff while the service keeps
+running. It reads whole lines and hands each to :meth:`handle_line`; when the line stays
+quiet for ``epoch_gap_s`` it calls :meth:`handle_idle` (the end of a burst). With
 ``record_raw`` every chunk read is published as ``RawSerial`` on ``RAW.<device>``.
 
 Its status is ``ok`` or ``degraded``; the reason (port down, no data, or the subclass's
@@ -15,32 +17,36 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Mapping
 
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import ProprioceptiveSensor
 from u2sa_hw.config import ConfigError, field
-from u2sa_hw.ports import PortClosed, PortIOError, PortUnavailable, ReconnectingPort
-from u2sa_hw.ports.serial_port import SerialPort, open_serial
-from u2sa_hw.ports.tap import raw_channel
+from u2sa_hw.ports import PortClosed, PortIOError, PortUnavailable
+from u2sa_hw.ports.device_link import DeviceLink, device_setting
+from u2sa_hw.ports.legacy import serial_address
+from u2sa_hw.ports.serial_port import SerialPort
 
 BAUDRATES = (4800, 9600, 19200, 38400, 57600, 115200)
 BYTESIZES = (5, 6, 7, 8)
 PARITIES = ("N", "E", "O", "M", "S")  # none, even, odd, mark, space (pyserial's letters)
 STOPBITS = (1.0, 1.5, 2.0)
-_PORT_FIELDS = ("port", "baudrate", "bytesize", "parity", "stopbits", "device_name", "epoch_gap_s")
+_PORT_FIELDS = ("device", "port", "baudrate", "bytesize", "parity", "stopbits", "device_name", "epoch_gap_s")
 
 
 class SerialLineSensor(ProprioceptiveSensor):
     """A proprioceptive sensor that reads NMEA-style lines from one serial device."""
 
     CONFIG = (
-        field("port", "", "device path (/dev/u2sa/NAME) or pyserial URL"),
-        field("baudrate", 9600, "one of 4800, 9600, 19200, 38400, 57600, 115200"),
-        field("bytesize", 8, "data bits: 5, 6, 7 or 8", choices=BYTESIZES),
-        field("parity", "N", "parity: N (none), E (even), O (odd), M (mark) or S (space)", choices=PARITIES),
-        field("stopbits", 1.0, "stop bits: 1, 1.5 or 2", choices=STOPBITS),
-        field("device_name", "", "device name in errors and RAW.<device> (empty: the service name)"),
+        field("device", "", "the device: its [devices.NAME] table (address) and RAW.<device> (empty: the service name)"),
+        field("port", "", "old form of the address: device path (/dev/u2sa/NAME) or pyserial URL; "
+                          "[devices.NAME] address wins"),
+        field("baudrate", 9600, "old form (with port): one of 4800, 9600, 19200, 38400, 57600, 115200"),
+        field("bytesize", 8, "old form (with port): data bits: 5, 6, 7 or 8", choices=BYTESIZES),
+        field("parity", "N", "old form (with port): parity: N (none), E (even), O (odd), M (mark) or S (space)",
+              choices=PARITIES),
+        field("stopbits", 1.0, "old form (with port): stop bits: 1, 1.5 or 2", choices=STOPBITS),
+        field("device_name", "", "old name of the device setting"),
         field("record_raw", False, "publish every chunk read as RawSerial on RAW.<device>"),
         field("stale_after_s", 2.0, "no valid sentence for this long -> degraded, data stale", gt=0),
         field("epoch_gap_s", 0.05, "this much silence on the line ends a burst of sentences (and is the read timeout)", gt=0),
@@ -49,6 +55,10 @@ class SerialLineSensor(ProprioceptiveSensor):
 
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
+        self._link: DeviceLink[SerialPort] = DeviceLink(
+            self, device=lambda: device_setting(self.config, self.name), raw_type=t.RawSerial,
+            legacy=lambda: self.legacy_address(self.config),
+            options=lambda: {"timeout": self.config.get("epoch_gap_s")})
         self.check_config()
         self.lines = 0
         self.malformed = 0
@@ -61,87 +71,84 @@ class SerialLineSensor(ProprioceptiveSensor):
         self.bad_checksums: dict[str, int] = {}
         self.last_valid: float | None = None  # monotonic time of the last sentence that parsed
         self._started = time.monotonic()
-        self._port: ReconnectingPort[SerialPort] | None = None
         self._reopen = False
         self._problem = ""
 
     # -- config ------------------------------------------------------------------------------
+    @classmethod
+    def legacy_address(cls, config: Mapping[str, Any]) -> str | None:
+        """The address the old-form settings (``port``, ``baudrate``, framing) give, or None."""
+        stopbits = config.get("stopbits", 1.0)
+        return serial_address(str(config.get("port", "")), baudrate=config.get("baudrate", 9600),
+                              bytesize=config.get("bytesize", 8), parity=config.get("parity", "N"),
+                              stopbits=stopbits)
+
+    @classmethod
+    def used_devices(cls, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
+        """The one device this service reads (see DeviceLink)."""
+        return {device_setting(config, service): cls.legacy_address(config)}
+
     def check_config(self) -> None:
         """Refuse a config this driver cannot run with (ConfigError names the field and the fix)."""
-        port, baud = self.config.get("port"), self.config.get("baudrate")
-        if not port.strip():
-            raise ConfigError(f"service '{self.name}': no serial port configured; set port = \"{self.EXAMPLE_PORT}\" "
-                              "(or a pyserial URL) in the profile's settings or the service config")
+        baud = self.config.get("baudrate")
         if baud not in BAUDRATES:
             raise ConfigError(f"service '{self.name}': baudrate {baud} is not supported; use one of "
                               f"{', '.join(map(str, BAUDRATES))} (the device's configured rate)")
+        problem = self._link.check()
+        if problem:
+            raise ConfigError(f"service '{self.name}': {problem} (e.g. \"serial://{self.EXAMPLE_PORT}?baud=9600\"; "
+                              "an old profile sets port = \"...\" in the service's settings)")
         for key in ("stale_after_s", "epoch_gap_s"):
             if not self.config.get(key) > 0:
                 raise ConfigError(f"service '{self.name}': {key} must be > 0, got {self.config.get(key)!r}")
 
     @property
     def framing(self) -> str:
-        """The configured framing as data bits, parity, stop bits (``8N1``, ``7E2``, ``8N1.5``)."""
+        """The framing as data bits, parity, stop bits (``8N1``, ``7E2``, ``8N1.5``) of the address."""
+        address = self._link.address
+        if address is not None:
+            return address.framing
         stopbits = self.config.get("stopbits")
         return f"{self.config.get('bytesize')}{self.config.get('parity')}{stopbits:g}"
 
     @property
     def device_name(self) -> str:
-        """The device's name in port errors and taps (``device_name``, else the service name)."""
-        return self.config.get("device_name").strip() or self.name
+        """The device's name in port errors and taps (``device``, else the service name)."""
+        return device_setting(self.config, self.name)
 
     def on_config_change(self, name: str, value: Any) -> None:
-        """Check the new config; a port, framing, device name or gap change reopens the port."""
+        """Check the new config; a device, address, framing or gap change reopens the port."""
         self.check_config()
         if name in _PORT_FIELDS:
             self._reopen = True
         if name == "record_raw" and value:
-            self.register_publisher(raw_channel(self.device_name), t.RawSerial)
+            self._link.record_changed()
 
     # -- port ----------------------------------------------------------------------------------
-    def _open(self) -> SerialPort:
-        stopbits = self.config.get("stopbits")
-        return open_serial(self.config.get("port"), device=self.device_name, baudrate=self.config.get("baudrate"),
-                           bytesize=self.config.get("bytesize"), parity=self.config.get("parity"),
-                           stopbits=int(stopbits) if stopbits.is_integer() else stopbits,
-                           timeout=self.config.get("epoch_gap_s"), tap=self._tap)
-
-    def _tap(self, record: t.RawSerial) -> None:
-        if self.config.get("record_raw"):
-            self.publish(raw_channel(self.device_name), record)
-
-    def _new_port(self) -> None:
-        if self._port is not None:
-            self._port.close()
-        self._port = ReconnectingPort(self._open, device=self.device_name)
-
     def setup(self) -> None:
-        """Create the reconnecting port (opened by the run loop)."""
-        if self.config.get("record_raw"):
-            self.register_publisher(raw_channel(self.device_name), t.RawSerial)
-        self._new_port()
+        """Resolve the device's address (the port is opened by the run loop)."""
+        self._link.start()
 
     def run(self) -> None:
         """Read lines until stopped; survive port loss, bad bytes and silence."""
-        assert self._port is not None, "setup() creates the port"
+        link = self._link
         while self.wait(0.0):
             if self._reopen:
                 self._reopen = False
                 self.on_port_lost()
-                self._new_port()
-            reconnecting = self._port
+                link.refresh(force=True)
             try:
-                port = reconnecting.get()
+                port = link.get()
             except PortUnavailable:
                 self.refresh_status()
-                self.wait(min(0.5, max(0.02, reconnecting.retry_in())))
+                self.wait(min(0.5, max(0.02, link.retry_in())))
                 continue
             except PortClosed:
                 break  # closed by kill()
             try:
                 line = port.readline()
             except (PortClosed, PortIOError) as exc:
-                reconnecting.lost(exc, port=port)
+                link.lost(exc, port=port)
                 self.error(str(exc))
                 self.on_port_lost()
                 continue
@@ -149,7 +156,7 @@ class SerialLineSensor(ProprioceptiveSensor):
                 self.lines += 1
                 self._handle(line)
             else:
-                self.handle_idle()
+                self._idle()
             self.refresh_status()
 
     def _handle(self, line: bytes) -> None:
@@ -159,10 +166,15 @@ class SerialLineSensor(ProprioceptiveSensor):
             self.malformed += 1
             self.logger.exception("%s: line %r could not be handled: %s", self.name, line[:80], exc)
 
+    def _idle(self) -> None:
+        try:
+            self.handle_idle()
+        except Exception as exc:  # noqa: BLE001 - ending a burst must not end the driver either
+            self.logger.exception("%s: ending a burst failed: %s", self.name, exc)
+
     def kill(self) -> None:
         """Close the port, then stop."""
-        if self._port is not None:
-            self._port.close()
+        self._link.close()
         super().kill()
 
     # -- for subclasses ----------------------------------------------------------------------
@@ -212,11 +224,11 @@ class SerialLineSensor(ProprioceptiveSensor):
     def refresh_status(self) -> str:
         """Recompute ``status`` ("ok"/"degraded") and the reason; returns the reason."""
         reason = ""
-        port = self._port
+        link = self._link
         age = self.data_age()
         limit = self.config.get("stale_after_s")
-        if port is not None and port.state != "open":
-            reason = f"port {port.state}"  # the error itself is the port_error detail
+        if link.state not in ("open", "none"):
+            reason = link.reason()
         elif age is None and time.monotonic() - self._started > limit:
             reason = "no data"
         elif age is not None and age > limit:
@@ -240,18 +252,16 @@ class SerialLineSensor(ProprioceptiveSensor):
     def health_details(self) -> dict[str, Any]:
         """Port state, counters, data freshness and the subclass's details."""
         reason = self.refresh_status()
-        port = self._port
+        link = self._link
         age = self.data_age()
         stale = age is None or age > self.config.get("stale_after_s")
-        open_port = port.port if port else None  # the framing pyserial applied, once open
+        open_port = link.port  # the framing pyserial applied, once open
+        address = link.address
         details: dict[str, Any] = {
             "degraded_reason": reason,
-            "port": port.state if port else "none",
-            "address": self.config.get("port"),
-            "baudrate": self.config.get("baudrate"),
+            **link.health(),
+            "baudrate": address.baud if address is not None else self.config.get("baudrate"),
             "framing": open_port.framing if open_port is not None else self.framing,
-            "port_losses": port.losses if port else 0,
-            "port_error": str(port.last_error) if port and port.state != "open" and port.last_error else "",
             "data": "none yet" if age is None else ("stale" if stale else "ok"),
             "last_data_age_s": "" if age is None else f"{age:.2f}",
             "stale_events": self.stale_events,
