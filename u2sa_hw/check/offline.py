@@ -17,12 +17,11 @@ from pathlib import Path
 from typing import Any
 
 from u2sa_hw.check.problem import Collector, Problem, did_you_mean, type_name
+from u2sa_hw.vehicle import TOP_TABLES
+from u2sa_hw.vehicle import VEHICLE_KEYS as VEHICLE_KEY_NAMES
 
-TOP_TABLES = ("vehicle", "services", "devices", "safety", "simulation")
-VEHICLE_KEYS: dict[str, type] = {
-    "name": str, "system_id": int, "lcm_url": str, "bus_security": str, "bus_key": str, "bus_interface": str,
-    "config_dir": str, "log_dir": str, "data_dir": str, "log_level": str, "origin": dict,
-}
+VEHICLE_KEYS: dict[str, type] = {   # the loader's keys (u2sa_hw.vehicle), with the type each takes
+    name: {"system_id": int, "origin": dict}.get(name, str) for name in VEHICLE_KEY_NAMES}
 ORIGIN_RANGES = {"lat": (-90.0, 90.0), "lon": (-180.0, 180.0), "alt": (-1000.0, 10000.0)}
 
 

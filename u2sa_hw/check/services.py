@@ -17,12 +17,11 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from u2sa_hw.check.problem import Collector, did_you_mean, type_name
+from u2sa_hw.vehicle import SERVICE_KEYS
 
-SERVICE_KEYS = ("kind", "config", "settings", "enabled", "required", "supervision", "device", "devices")
-SERVICE_KEY_TYPES: dict[str, type | tuple[type, ...]] = {
-    "kind": str, "config": str, "settings": dict, "enabled": bool, "required": bool, "supervision": dict,
-    "device": str, "devices": (list, dict),
-}
+_TYPES: dict[str, type] = {"settings": dict, "enabled": bool, "required": bool, "supervision": dict}
+SERVICE_KEY_TYPES: dict[str, type | tuple[type, ...]] = {   # the loader's keys, with the type each takes
+    name: _TYPES.get(name, str) for name in SERVICE_KEYS}
 _quiet = logging.getLogger("u2sa_hw.check")
 _quiet.addHandler(logging.NullHandler())
 _quiet.propagate = False
@@ -61,9 +60,10 @@ def check_services(path: Path, data: Mapping[str, Any], services: Mapping[str, A
             continue
         if not isinstance(kind, str):
             continue
-        if kind not in kinds:
-            out.error(f"{key}.kind", f"unknown service kind '{kind}'{did_you_mean(kind, kinds)}",
-                      f"use one of {', '.join(sorted(kinds))}")
+        if kind not in kinds:   # a disabled service is not started: its unknown kind is only a warning
+            report = out.error if table.get("enabled", True) is not False else out.warning
+            report(f"{key}.kind", f"unknown service kind '{kind}'{did_you_mean(kind, kinds)}",
+                   f"use one of {', '.join(sorted(kinds))}")
             continue
         cls = _service_class(kind, key, out)
         if cls is None:
