@@ -120,8 +120,8 @@ def u2sa(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedP
 def test_one_profile_with_many_mistakes_lists_every_one(tmp_path: Path) -> None:
     problems = check_profile(mistakes(tmp_path))
     for file, key, word in EXPECTED:
-        found = [p for p in problems if p.file.endswith(file or "vehicle.toml") and (p.key == key or key and p.key.startswith(key + "."))
-                 and word in str(p)]
+        found = [p for p in problems if p.file.endswith(file or "vehicle.toml") and word in str(p)
+                 and (p.key == key or key and p.key.startswith(key + "."))]
         assert found, f"no problem for {file or 'the profile'} [{key}] mentioning {word!r}:\n" + \
             "\n".join(map(str, problems))
     assert all(p.fix for p in errors_of(problems)), "every error says what to do"

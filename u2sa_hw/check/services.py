@@ -295,7 +295,8 @@ def _check_supervision(name: str, table: Any, out: Collector) -> None:
             out.from_text(str(exc), key=f"{key}.{k}", fix="see docs/supervision.md")
     channel = table.get("data_channel")
     if isinstance(channel, str) and channel and channel not in BASE_TYPES:
-        out.error(f"{key}.data_channel", f"'{channel}' is not a channel of the system{did_you_mean(channel, BASE_TYPES)}",
+        hint = did_you_mean(channel, BASE_TYPES)
+        out.error(f"{key}.data_channel", f"'{channel}' is not a channel of the system{hint}",
                   "name the channel the service publishes its data on (docs/supervision.md)")
     stale = table.get("stale_after_s", 0)
     if isinstance(stale, (int, float)) and stale > 0 and not table.get("data_channel"):

@@ -87,7 +87,8 @@ def _gpio(name: str, kind: str, cfg: Mapping[str, Any]) -> list[Target]:
 def _can(name: str, kind: str, cfg: Mapping[str, Any]) -> list[Target]:
     interface, channel = str(cfg["interface"]), str(cfg["channel"])
     options = {"port": int(cfg["udp_port"])} if interface == "udp_multicast" and cfg.get("udp_port") else {}
-    protocol, ids = ("odrive", cfg.get("node_ids", [])) if kind == "odrive_can" else ("vesc", cfg.get("controller_ids", []))
+    odrive = kind == "odrive_can"
+    protocol, ids = ("odrive", cfg.get("node_ids", [])) if odrive else ("vesc", cfg.get("controller_ids", []))
     return [Target(name, name, "can", f"{interface}/{channel}", {"interface": interface, "channel": channel,
                                                                  "bus_options": options, "protocol": protocol,
                                                                  "nodes": list(ids)})]
