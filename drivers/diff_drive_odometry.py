@@ -14,7 +14,8 @@ of ``window_s`` (encoder deltas; a longer window trades latency for less timing 
 with ``source="velocity"`` the controller's own speed estimate is used as it is. A travel
 jump no wheel could make (faster than ``max_wheel_speed_mps``, e.g. a controller that
 rebooted and zeroed its position) restarts that wheel's window and is counted in
-``resets`` rather than turned into a speed spike.
+``resets`` rather than turned into a speed spike; a speed (either source) beyond it or not finite is
+dropped and counted in ``rejected``: the body motion is only made of speeds a wheel can have.
 """
 
 from __future__ import annotations
@@ -94,7 +95,9 @@ class DiffDriveOdometry:
         self.track_width_m = track_width_m
         self.source = source
         self.max_skew_s = max_skew_s
+        self.max_wheel_speed_mps = max_wheel_speed_mps
         self.emitted = 0
+        self.rejected = 0  # speeds no wheel can turn at (non-finite or beyond max_wheel_speed_mps)
         self.unpaired = 0  # samples dropped because the other side's was too old
         self._travel = {side: WheelTravel(window_s=window_s, max_wheel_speed_mps=max_wheel_speed_mps)
                         for side in SIDES}
@@ -114,7 +117,10 @@ class DiffDriveOdometry:
             speed = None if position_m is None else self._travel[side].add(t, position_m)
         else:
             speed = speed_mps
-        if speed is None or not math.isfinite(speed):
+        if speed is None:
+            return None
+        if not (math.isfinite(speed) and abs(speed) <= self.max_wheel_speed_mps):
+            self.rejected += 1
             return None
         self._latest[side] = (t, speed)
         left, right = self._latest["left"], self._latest["right"]

@@ -17,7 +17,8 @@ name (``actuators``/``node_ids``/``directions``/``wheel_radius_m``). For every a
   ``silent_after_s`` makes the node 'silent' (degraded); when it comes back the axis is
   re-armed if it needs to be;
 - reads encoder estimates (cyclic, or RTR-polled at ``encoder_poll_hz``) into the wheel
-  odometry, and polls bus voltage/current, temperatures and error details every
+  odometry -- a velocity beyond ``max_motor_rpm`` or a position beyond float32's whole-turn
+  range is impossible, dropped and counted (``out_of_range_kinds``) -- and polls bus voltage/current, temperatures and error details every
   ``status_poll_s`` for health.
 
 The ODrive watchdog (``axis.config.enable_watchdog``/``watchdog_timeout``) disarms the axis
@@ -47,6 +48,7 @@ from u2sa_hw.protocols.odrive_cansimple import AxisState, Cmd, ControlMode, Inpu
 from drivers.can_motor import CanMotorService, WatchdogStep, check_hw_watchdog, watchdog_summary
 from drivers.odrive_axis import OdriveAxis, enum_name, error_names
 from drivers.odrive_watchdog import WATCHDOG_FIELDS, OdriveWatchdogSetup, check_watchdog_endpoints
+from drivers.value_ranges import ValueDrops
 
 INPUT_MODES = {"passthrough": InputMode.PASSTHROUGH, "vel_ramp": InputMode.VEL_RAMP}
 MAX_ARM_BACKOFF_S = 5.0
@@ -83,6 +85,8 @@ class OdriveCanMotor(CanMotorService):
                                                "flat_endpoints.json of endpoints_fw (0: unknown)", ge=0),
         field("enable_watchdog_endpoint", 0, "0.6: endpoint id of axis0.config.enable_watchdog (0: unknown)", ge=0),
         field("endpoints_fw", "", "0.6: the firmware (Get_Version, e.g. 0.6.10) the endpoint ids are from"),
+        field("max_motor_rpm", 6000.0, "the fastest a motor can turn (rpm): an encoder estimate beyond it is "
+                                       "impossible, dropped and counted (out_of_range in health)", gt=0),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:
@@ -91,6 +95,7 @@ class OdriveCanMotor(CanMotorService):
         self._estopped = False
         self.axes: dict[str, OdriveAxis] = {}
         self._by_node: dict[int, OdriveAxis] = {}
+        self.out_of_range = ValueDrops(self.logger, device=self.device_name, what="impossible")
         self._watchdog_setup = OdriveWatchdogSetup(config=self.config, send=self.send, label=self._label,
                                                    report_error=self.error, logger=self.logger)
         self._make_axes()
@@ -102,7 +107,7 @@ class OdriveCanMotor(CanMotorService):
             raise self._fail(f"firmware must be one of {', '.join(cs.FIRMWARES)}, got {get('firmware')!r}")
         if get("input_mode") not in INPUT_MODES:
             raise self._fail(f"input_mode must be one of {', '.join(INPUT_MODES)}, got {get('input_mode')!r}")
-        for key in ("max_turns_per_s", "arm_retry_s", "current_limit_a"):
+        for key in ("max_turns_per_s", "arm_retry_s", "current_limit_a", "max_motor_rpm"):
             if not get(key) > 0:
                 raise self._fail(f"{key} must be > 0, got {get(key)!r}")
         for key in ("encoder_poll_hz", "status_poll_s"):
@@ -151,10 +156,7 @@ class OdriveCanMotor(CanMotorService):
         if cmd == Cmd.HEARTBEAT:
             self._heartbeat(axis, cs.decode_heartbeat(data, firmware=self.firmware), now)
         elif cmd == Cmd.GET_ENCODER_ESTIMATES:
-            axis.pos_turns, axis.vel_turns_s = cs.decode_encoder_estimates(data)
-            metres_per_turn = 2.0 * math.pi * axis.spec.radius_m * axis.spec.direction
-            self.wheel_sample(axis.spec.name, self.frame_time(msg), position_m=axis.pos_turns * metres_per_turn,
-                              speed_mps=axis.vel_turns_s * metres_per_turn)
+            self._encoder_estimates(axis, *cs.decode_encoder_estimates(data), stamp=self.frame_time(msg))
         elif cmd == Cmd.GET_BUS_VOLTAGE_CURRENT:
             axis.bus = cs.decode_bus_voltage_current(data)
         elif self.firmware == "0.6" and cmd == Cmd.GET_VERSION:
@@ -170,6 +172,19 @@ class OdriveCanMotor(CanMotorService):
         elif cmd in (Cmd.GET_ENCODER_ERROR, Cmd.GET_CONTROLLER_ERROR):  # 0.5
             key = "encoder_error" if cmd == Cmd.GET_ENCODER_ERROR else "controller_error"
             axis.errors[key] = cs.decode_u32(data, what=cs.command_name(cmd, firmware="0.5"))
+
+    def _encoder_estimates(self, axis: OdriveAxis, pos_turns: float, vel_turns_s: float, *, stamp: float) -> None:
+        """Position and velocity within what an axis can report (else dropped, counted) into the odometry."""
+        top = self.config.get("max_motor_rpm") / 60.0
+        vel = self.out_of_range.check("encoder velocity", vel_turns_s, -top, top, unit=" turns/s")
+        pos = self.out_of_range.check("encoder position", pos_turns, -cs.MAX_POSITION_TURNS, cs.MAX_POSITION_TURNS,
+                                      unit=" turns")
+        if vel is None and pos is None:
+            return
+        axis.pos_turns, axis.vel_turns_s = pos, vel
+        metres_per_turn = 2.0 * math.pi * axis.spec.radius_m * axis.spec.direction
+        self.wheel_sample(axis.spec.name, stamp, position_m=None if pos is None else pos * metres_per_turn,
+                          speed_mps=None if vel is None else vel * metres_per_turn)
 
     def _heartbeat(self, axis: OdriveAxis, hb: cs.Heartbeat, now: float) -> None:
         prev = axis.heartbeat
@@ -351,6 +366,8 @@ class OdriveCanMotor(CanMotorService):
         """Per axis (keys ``<actuator>.<what>``): state, errors, setpoint, estimates, bus, temperatures."""
         now = time.monotonic()
         details: dict[str, Any] = {"firmware": self.firmware, "estopped": self._estopped,
+                                   **self.out_of_range.details("out_of_range"),
+                                   "odometry_rejected": self.odometry.rejected if self.odometry else 0,
                                    "hw_watchdog": watchdog_summary({n: a.wd.text for n, a in self.axes.items()})}
         for name, axis in self.axes.items():
             hb = axis.heartbeat

@@ -23,7 +23,9 @@ so a motor that is commanded (at least ``stall_percent``) but turns slower than
 
 Wheel odometry: speed from STATUS ERPM (``odometry_source = "velocity"``) or travel from the
 STATUS_5 tachometer (``"position"``), with ``pole_pairs`` and ``gear_ratio`` (motor turns
-per wheel turn). See docs/drivers-can.md.
+per wheel turn). A STATUS with an ERPM beyond ``max_motor_erpm`` or a duty cycle outside
+-1..1 is impossible: dropped, counted (``out_of_range_kinds``) and logged once. See
+docs/drivers-can.md.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ from u2sa_hw.protocols import vesc_can as vc
 from u2sa_hw.protocols.vesc_can import PacketId
 
 from drivers.can_motor import CanMotorService, MotorSpec, WatchdogStep, check_hw_watchdog, watchdog_summary
+from drivers.value_ranges import ValueDrops
 
 MODES = {"duty": PacketId.SET_DUTY, "rpm": PacketId.SET_RPM}
 _BUFFER_PACKETS = frozenset({PacketId.FILL_RX_BUFFER, PacketId.FILL_RX_BUFFER_LONG, PacketId.PROCESS_RX_BUFFER,
@@ -94,6 +97,8 @@ class VescCanMotor(CanMotorService):
                                    "driver dies or hangs)"),
         field("hw_watchdog_timeout_s", 0.3, "VESC command timeout (s); more than twice command_period_s", gt=0),
         field("host_id", 254, "this driver's CAN id: the VESCs answer configuration reads to it (not a VESC's id)", ge=0, le=254),
+        field("max_motor_erpm", 100000.0, "the fastest a motor can turn (ERPM; the firmware's default l_max_erpm): "
+                                          "a STATUS beyond it is impossible, dropped and counted", gt=0),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:
@@ -101,6 +106,7 @@ class VescCanMotor(CanMotorService):
         self.vescs: dict[str, VescMotor] = {}
         self._by_id: dict[int, VescMotor] = {}
         self._assembler = vc.BufferAssembler()
+        self.out_of_range = ValueDrops(self.logger, device=self.device_name, what="impossible")
         self._wd_busy: VescMotor | None = None  # the one VESC a configuration request is out to
         self._wd_deadline = 0.0
         self._make_vescs()
@@ -114,7 +120,7 @@ class VescCanMotor(CanMotorService):
             raise self._fail(f"neutral must be one of {', '.join(NEUTRALS)}, got {get('neutral')!r}")
         if not 0 < get("max_duty") <= 1:
             raise self._fail(f"max_duty must be in (0, 1], got {get('max_duty')!r}")
-        for key in ("max_erpm", "pole_pairs", "gear_ratio"):
+        for key in ("max_erpm", "pole_pairs", "gear_ratio", "max_motor_erpm"):
             if not get(key) > 0:
                 raise self._fail(f"{key} must be > 0, got {get(key)!r}")
         for key in ("stall_after_s", "stall_percent", "stall_erpm"):
@@ -158,6 +164,8 @@ class VescCanMotor(CanMotorService):
         if motor is None or packet not in vc.STATUS_NUMBER:
             return
         status = vc.decode_status(packet, bytes(msg.data))
+        if isinstance(status, vc.Status1) and not self._plausible(status):
+            return
         number = vc.STATUS_NUMBER[PacketId(packet)]
         motor.status[number] = status
         motor.last_status = now
@@ -176,6 +184,13 @@ class VescCanMotor(CanMotorService):
             motor.tacho_raw = status.tachometer
             self.wheel_sample(motor.spec.name, self.frame_time(msg),
                               position_m=motor.tacho_total / TACHO_COUNTS_PER_EREV * metres_per_erev)
+
+    def _plausible(self, status: vc.Status1) -> bool:
+        """A STATUS whose ERPM the motor can turn at and whose duty cycle is one (else dropped, counted)."""
+        top = self.config.get("max_motor_erpm")
+        drops = self.out_of_range
+        return drops.check("erpm", status.erpm, -top, top, unit=" ERPM") is not None \
+            and drops.check("duty", status.duty, *vc.DUTY_RANGE) is not None
 
     def _check_stall(self, motor: VescMotor, erpm: float, now: float) -> None:
         cfg = self.config
@@ -340,7 +355,9 @@ class VescCanMotor(CanMotorService):
     def motor_details(self) -> dict[str, Any]:
         """Per controller (keys ``<actuator>.<what>``): setpoint and the latest STATUS values."""
         now = time.monotonic()
-        details: dict[str, Any] = {"mode": self.config.get("mode"), "hw_watchdog": watchdog_summary(
+        details: dict[str, Any] = {"mode": self.config.get("mode"), **self.out_of_range.details("out_of_range"),
+                                   "odometry_rejected": self.odometry.rejected if self.odometry else 0,
+                                   "hw_watchdog": watchdog_summary(
             {n: m.wd.text for n, m in self.vescs.items()})}
         for name, motor in self.vescs.items():
             d: dict[str, Any] = {

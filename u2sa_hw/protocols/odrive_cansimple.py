@@ -31,6 +31,9 @@ MAX_NODE_ID = 0x3F
 UNADDRESSED_NODE_ID = 0x3F  # 0.6.x address discovery
 FIRMWARES = ("0.5", "0.6")
 FRAME_DLC = 8  # every data-carrying frame per the DBC (the firmware accepts shorter Set_Axis_State)
+# pos_estimate is a float32 in turns: beyond 2**24 turns it cannot count single turns any more,
+# so a larger value is no position an axis reports (it is a corrupted or mis-addressed frame)
+MAX_POSITION_TURNS = float(2 ** 24)
 
 
 class CanSimpleError(ValueError):

@@ -25,6 +25,7 @@ from u2sa_hw.protocols.vesc_enums import CommPacket, FaultCode, PacketId  # noqa
 BROADCAST_ID = 255
 MAX_CONTROLLER_ID = 255
 STATUS_DLC = 8
+DUTY_RANGE = (-1.0, 1.0)  # STATUS duty cycle: a fraction; the int16 x 1000 field can carry +-32.767
 
 
 class VescCanError(ValueError):
