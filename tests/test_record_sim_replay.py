@@ -66,7 +66,7 @@ def recordings(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SimRecordin
         sim = subprocess.Popen([*U2SA, "sim", "--out", str(sim_out), "--lcm-url", url, "--can-port",
                                 str(private_udp_port()), "--record", "--timeout", "90",
                                 "--bus-key", os.environ["U2SA_BUS_KEY_FILE"]], cwd=REPO, env=env,
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                               stdout=(workdir / "sim.stdout").open("w"), stderr=subprocess.DEVNULL)
         wait_until(lambda: _autonomous_messages(killed) >= AUTONOMOUS_MESSAGES or sim.poll() is not None,
                    timeout=120, interval=1.0, message="the simulated rover driving autonomously")
         assert sim.poll() is None, "the simulation ended before the recorder could be killed mid-run"
@@ -93,6 +93,8 @@ def cli(*args: str, cwd: Path, timeout: float = 120) -> subprocess.CompletedProc
 def test_sim_record_writes_a_complete_log_of_the_run(recordings: SimRecordings) -> None:
     files = sorted((recordings.sim_out / "recording").glob("*.mcap"))
     assert len(files) == 1, files
+    printed = (recordings.workdir / "sim.stdout").read_text()
+    assert f"recording: {files[0]} (" in printed, printed     # u2sa sim --record names the file it wrote
     log = LogFile(files[0])
     summary = log.scan()
     assert log.contents.complete and not log.contents.problem

@@ -113,12 +113,24 @@ def cmd_sim(args: Any) -> int:
     finally:
         if keys is not None:
             keys.stop()
+    if args.record:
+        print_recordings(args.out / "recording")
     if summary["result"] == "completed":
         return 0
     where = f"(summary: {args.out / 'summary.txt'})"
     if summary["result"] == "timeout":
         raise CliError(f"sim: {summary['reason']} {where}", EXIT_TIMEOUT)
     raise CliError(f"sim failed: {summary['reason']} {where}", EXIT_FAILED)
+
+
+def print_recordings(directory: Path) -> None:
+    """Name the MCAP files the recorder wrote (``u2sa sim --record``), or say that it wrote none."""
+    files = sorted(directory.rglob("*.mcap")) if directory.is_dir() else []
+    if not files:
+        print(f"recording: no MCAP file in {directory} (see the recorder's log under the run directory)",
+              file=sys.stderr)
+    for f in files:
+        print(f"recording: {f} ({f.stat().st_size / 1e6:.1f} MB; u2sa log info {f})")
 
 
 def _private_bus(args: Any) -> tuple[str, int]:
