@@ -72,11 +72,15 @@ def register(sub: Any) -> None:
     rp.add_argument("file", help="the truncated (or complete) log")
     rp.add_argument("-o", "--output", metavar="FILE", help="output (default: <file>.recovered.mcap)")
     rp.set_defaults(func=cmd_recover)
-    xp = lsub.add_parser("export", help="write a copy Foxglove can open (JSON messages, JSON schemas)",
+    xp = lsub.add_parser("export", help="write a copy Foxglove can open (map, 3D scene, health, logs, every channel)",
                          description="Foxglove cannot decode LCM: this writes every message as JSON with a JSON "
-                         "schema, plus foxglove.LocationFix tracks for the Map panel.")
+                         "schema per (channel, type), plus the well-known messages of u2sa foxglove's live view: "
+                         "foxglove.LocationFix (map), FrameTransform/PoseInFrame and SceneUpdate (3D), the "
+                         "health table and the service log lines (foxglove.Log). See docs/foxglove.md.")
     xp.add_argument("file", help="an MCAP log written by u2sa")
     xp.add_argument("--foxglove", required=True, metavar="OUT.mcap", help="output file")
+    xp.add_argument("--logs", metavar="DIR", help="the run's service log directory for /log (default: a logs/ "
+                    "directory beside the log's directory, as u2sa sim writes, if there is one)")
     xp.set_defaults(func=cmd_export)
     pp = lsub.add_parser("plot", help="PNG of track, heading, speed and actuator commands over time")
     pp.add_argument("file", help="an MCAP log written by u2sa")
@@ -289,13 +293,22 @@ def cmd_recover(args: Any) -> int:
 
 def cmd_export(args: Any) -> int:
     """``u2sa log export --foxglove``."""
+    from u2sa_hw.cli import CliError
     from u2sa_hw.recording.foxglove import export_foxglove
 
     _open(args.file)  # clear error for a missing or foreign file
-    counts = export_foxglove(args.file, args.foxglove)
-    total = sum(counts.values())
-    fixes = sum(n for c, n in counts.items() if c.startswith("/location/"))
-    print(f"wrote {total} JSON messages on {len(counts)} channels to {args.foxglove} ({fixes} location fixes)")
+    log_dir = Path(args.logs) if args.logs else Path(args.file).resolve().parent.parent / "logs"
+    if args.logs and not log_dir.is_dir():
+        raise CliError(f"{log_dir}: no such directory (--logs names the run's service log directory)")
+    report = export_foxglove(args.file, args.foxglove, log_dir=log_dir if log_dir.is_dir() else None)
+    total = sum(report.counts.values())
+    fixes = sum(n for c, n in report.counts.items() if c.startswith("/location/"))
+    print(f"wrote {total} JSON messages on {len(report.counts)} topics to {args.foxglove} ({fixes} location fixes, "
+          f"{report.counts.get('/log', 0)} log lines" + (f" from {log_dir}" if log_dir.is_dir() else "") + ")")
+    for note in report.notes:
+        print(f"note: {note}")
+    if report.undecodable:
+        print(f"note: {report.undecodable} undecodable messages skipped")
     return 0
 
 
