@@ -41,6 +41,7 @@ from typing import Any
 
 from u2sa_hw.health import health_reason, join_reasons
 from u2sa_hw.services.hsm.rules import MonitorPolicy, WatchRule
+from u2sa_hw.services.hsm.senders import ServiceSenders
 from u2sa_hw.services.hsm.stamps import SenderClock
 from u2sa_hw.services.hsm.verdicts import (Cancelled, Failed, FailsafeChange, Problem, Recovered, Restart,
                                            ServiceView, Stalled)
@@ -69,6 +70,7 @@ class _Track:
     cancelled: str = ""                   # why a pending problem was dropped (reported once)
     problem_evidence: str = ""            # what would disprove the current problem
     pid: int | None = None
+    senders: ServiceSenders = field(default_factory=ServiceSenders)   # whose signed Health speaks for it
     status: str = ""
     health_error: str = ""
     incarnation: float | None = None
@@ -120,11 +122,17 @@ class HealthMonitor:
             else:
                 tr.rule, tr.problem = None, reason
 
-    def on_health(self, msg: Any, now: float) -> None:
-        """A Health message arrived (``name``, ``pid``, ``status``, ``last_error``, ``details``)."""
+    def on_health(self, msg: Any, now: float, *, sender: str = "") -> None:
+        """A Health message arrived (``name``, ``pid``, ``status``, ``last_error``, ``details``).
+
+        *sender* is the verified sender id of its signature (``Transport.last_sender``; empty
+        on an open bus): a restart is counted only when the service's own sender is replaced.
+        """
         tr = self._tracks.get(msg.name)
         if tr is None:
             tr = self._tracks[msg.name] = _Track(rule=None, watch_since=now)
+        if sender and not tr.senders.admit(sender, msg, now, self._timeout(tr)):
+            return
         if tr.pid is not None and msg.pid != tr.pid:
             if tr.last_restart is None or now - tr.last_restart > self._grace(tr):
                 tr.restarts += 1   # restarted by systemd or the launcher on its own
@@ -379,6 +387,7 @@ class HealthMonitor:
                 # The service's own words from its latest Health, kept after it died: the silent
                 # sensor, the missing device and its fix.
                 error = join_reasons(error, health_reason(tr.details, tr.health_error))
+            error = join_reasons(error, tr.senders.note(now, self._timeout(tr)))
             rows.append(ServiceView(
                 name=name, state=tr.state, restarts=tr.restarts, last_error=error,
                 heartbeat_age_s=now - tr.last_heartbeat if tr.last_heartbeat is not None else -1.0,

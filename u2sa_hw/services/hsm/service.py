@@ -97,7 +97,7 @@ class HealthStatusMonitor(U2SAService):
         if msg.name == self.name:
             return
         with self._lock:
-            self.monitor.on_health(msg, time.monotonic())
+            self.monitor.on_health(msg, time.monotonic(), sender=self.transport.last_sender)
 
     def _on_failsafe(self, msg: t.Failsafe) -> None:
         source = msg.header.source or "?"
