@@ -91,7 +91,7 @@ class ReplayI2cDevice:
                 continue
             if type(rec).__name__ != "RawI2c":
                 continue
-            key = (int(rec.address), int(rec.register))
+            key = (int(rec.address), int(rec.register_address))
             if rec.op == OP_READ:
                 if m.log_time_ns < start_ns:
                     self._before[key] = (bool(rec.ok), bytes(rec.data))

@@ -206,7 +206,7 @@ def test_mpu9250_counts_and_survives_eio_and_nack(tmp_path: Path, services: Serv
         probe.wait_states(20, since=count)
         raw = list(raw_records)  # every transaction on RAW.imu, failed ones included
         assert raw and all(r.device == "imu" and r.address == 0x68 for r in raw)
-        bursts = [r for r in raw if r.register == mpu.BURST_START and r.op == 0]
+        bursts = [r for r in raw if r.register_address == mpu.BURST_START and r.op == 0]
         assert any(not r.ok for r in bursts) and any(r.ok and r.length == 14 for r in bursts)
 
         chip.nack(True)  # the chip stops answering: samples missed, then the chip is reopened with backoff

@@ -125,3 +125,57 @@ def test_regeneration_check_detects_a_difference(tmp_path: Path) -> None:
     target.write_text(target.read_text().replace("int64_t", "int32_t", 1))
     generated = message_codegen.generate(tmp_path / "fresh")
     assert message_codegen.differences(generated, copy) == ["Header.py"]
+
+
+def test_presence_methods_are_generated_into_the_classes_not_patched_at_import() -> None:
+    code = textwrap.dedent("""\
+        import sys
+        from u2sa_hw.lcmtypes import StateInformation, Waypoint
+        s = StateInformation().set(x=1.0).set_psi(0.5)
+        assert s.present_fields() == ["x", "psi"] and not s.has("y") and s.get("y", 7) == 7
+        assert Waypoint().set_time(3).present_fields() == ["time"]
+        assert "u2sa_hw.messages" not in sys.modules   # nothing was installed by importing it
+        """)
+    subprocess.run([sys.executable, "-c", code], check=True)
+    source = (message_codegen.GENERATED_DIR / "StateInformation.py").read_text()
+    assert "    def set_psi(self, value):" in source and "PRESENCE_FIELDS = (" in source
+    assert m.StateInformation.PRESENCE_FIELDS == m.STATE_FIELDS and m.Waypoint.PRESENCE_FIELDS == m.WAYPOINT_FIELDS
+
+
+def test_a_presence_list_naming_a_field_the_struct_lacks_is_refused() -> None:
+    from u2sa_hw.message_presence_gen import add_presence
+
+    source = (message_codegen.GENERATED_DIR / "Waypoint.py").read_text()
+    with pytest.raises(ValueError, match="Waypoint: presence fields not in the .lcm struct: speed"):
+        add_presence(source, "Waypoint", ("x", "speed"))
+
+
+def _old_raw_i2c(register: int, data: bytes, *, op: int = 0) -> bytes:
+    """A RawI2c as a log made before the rename holds it: the old fingerprint, the same layout."""
+    rec = m.RawI2c()
+    rec.device, rec.bus, rec.address, rec.register_address, rec.op, rec.ok = "imu", 1, 0x68, register, op, True
+    rec.data, rec.length = data, len(data)
+    return bytes.fromhex("0e61df589a1e329c") + rec.encode()[8:]
+
+
+def test_raw_i2c_recorded_with_its_old_field_name_still_decodes() -> None:
+    assert "register" not in m.RawI2c.__slots__ and "register_address" in m.RawI2c.__slots__
+    old = _old_raw_i2c(0x75, b"\x71")
+    assert old[:8] != m.RawI2c._get_packed_fingerprint()
+    rec, known = m.REGISTRY.decode(old)
+    assert known and type(rec) is m.RawI2c and rec.register_address == 0x75 and rec.data == b"\x71"
+
+
+def test_an_old_mcap_log_replays_its_i2c_reads(tmp_path: Path) -> None:
+    from hil.replay_buses import ReplayI2cDevice
+    from u2sa_hw.recording.mcap_log import McapFile, RunInfo
+
+    log = tmp_path / "old.mcap"
+    f = McapFile(log, compression="none", chunk_size=1024, run=RunInfo(vehicle="old"))
+    f.write("RAW.imu", _old_raw_i2c(0x75, b"\x71"), 1_000)
+    f.write("RAW.imu", _old_raw_i2c(0x3B, b"\x01\x02"), 2_000)
+    f.close()
+    device = ReplayI2cDevice(name="imu", socket_path=tmp_path / "i2c.sock", fast=False, declares_rate=False)
+    device.preload(log, start_ns=0, end_ns=10_000)
+    assert device.transact(0x68, 0, 0x75, 1, b"") == (0, b"\x71")
+    assert device.transact(0x68, 0, 0x3B, 2, b"") == (0, b"\x01\x02")

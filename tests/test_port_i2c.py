@@ -162,7 +162,7 @@ class TestI2cContract:
         assert port.read_byte(mpu.SMPLRT_DIV) == 9
         port.write_block(mpu.SMPLRT_DIV, bytes([4, 3, 0x18]))  # SMPLRT_DIV, CONFIG, GYRO_CONFIG in one go
         assert port.read_block(mpu.SMPLRT_DIV, 3) == bytes([4, 3, 0x18])
-        assert [(r.op, r.register, r.ok) for r in records[:4]] == [
+        assert [(r.op, r.register_address, r.ok) for r in records[:4]] == [
             (1, mpu.SMPLRT_DIV, True), (0, mpu.SMPLRT_DIV, True), (1, mpu.SMPLRT_DIV, True), (0, mpu.SMPLRT_DIV, True)]
         assert records[3].data == bytes([4, 3, 0x18]) and records[3].length == 3
         assert all(r.device == "imu" and r.address == 0x68 and r.bus == backend.bus_number for r in records)

@@ -1,5 +1,8 @@
 """Regenerate ``u2sa_hw/lcmtypes`` from the ``.lcm`` files with ``lcm-gen -p``.
 
+The classes with a presence vector (``u2sa_hw.messages.presence.PRESENCE``) get their
+presence setters and readers generated into them (``u2sa_hw.message_presence_gen``).
+
 Run ``python -m u2sa_hw.message_codegen`` after editing a ``.lcm`` file, and commit
 the result. ``python -m u2sa_hw.message_codegen --check`` exits 1 when the committed
 code differs from what lcm-gen makes now (the test suite runs this check).
@@ -36,11 +39,22 @@ def find_lcm_gen() -> str:
     return found
 
 
+def lcm_sources() -> list[Path]:
+    """Every ``.lcm`` file of the message types."""
+    return sorted(MESSAGES_DIR.glob("*.lcm"))
+
+
 def generate(out_dir: Path) -> Path:
-    """Run lcm-gen on every ``.lcm`` file into *out_dir*; return the generated package dir."""
-    sources = sorted(str(p) for p in MESSAGES_DIR.glob("*.lcm"))
-    subprocess.run([find_lcm_gen(), "-p", "--ppath", str(out_dir), *sources], check=True)
-    return out_dir.joinpath(*LCM_PACKAGE.split("."))
+    """Run lcm-gen on every ``.lcm`` file into *out_dir*, add the presence methods; return the package dir."""
+    from u2sa_hw.message_presence_gen import add_presence
+    from u2sa_hw.messages.presence import PRESENCE
+
+    subprocess.run([find_lcm_gen(), "-p", "--ppath", str(out_dir), *map(str, lcm_sources())], check=True)
+    package = out_dir.joinpath(*LCM_PACKAGE.split("."))
+    for cls, fields in PRESENCE.items():
+        path = package / f"{cls}.py"
+        path.write_text(add_presence(path.read_text(), cls, fields))
+    return package
 
 
 def _normalised(path: Path) -> str:

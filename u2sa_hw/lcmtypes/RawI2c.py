@@ -10,9 +10,13 @@ import struct
 import u2sa_hw.lcmtypes
 
 class RawI2c(object):
-    """ One register transaction: op 0 read, 1 write; ok false when the bus returned an error. """
+    """
+    One register transaction: op 0 read, 1 write; ok false when the bus returned an error.
+    register_address was called register (a C/C++ keyword) until 2026-11; logs written with
+    the old name still decode (u2sa_hw/messages/registry.py, LEGACY_FINGERPRINTS).
+    """
 
-    __slots__ = ["header", "device", "bus", "address", "register", "op", "ok", "length", "data"]
+    __slots__ = ["header", "device", "bus", "address", "register_address", "op", "ok", "length", "data"]
 
     __typenames__ = ["u2sa_hw.lcmtypes.Header", "string", "int32_t", "int16_t", "int16_t", "int8_t", "boolean", "int32_t", "byte"]
 
@@ -27,10 +31,14 @@ class RawI2c(object):
         """ LCM Type: int32_t """
         self.address = 0
         """ LCM Type: int16_t """
-        self.register = 0
+        self.register_address = 0
         """ LCM Type: int16_t """
         self.op = 0
-        """ LCM Type: int8_t """
+        """
+        the chip's register the transaction starts at
+        LCM Type: int8_t
+        """
+
         self.ok = False
         """ LCM Type: boolean """
         self.length = 0
@@ -51,7 +59,7 @@ class RawI2c(object):
         buf.write(struct.pack('>I', len(__device_encoded)+1))
         buf.write(__device_encoded)
         buf.write(b"\0")
-        buf.write(struct.pack(">ihhbbi", self.bus, self.address, self.register, self.op, self.ok, self.length))
+        buf.write(struct.pack(">ihhbbi", self.bus, self.address, self.register_address, self.op, self.ok, self.length))
         buf.write(bytearray(self.data[:self.length]))
 
     @staticmethod
@@ -70,7 +78,7 @@ class RawI2c(object):
         self.header = u2sa_hw.lcmtypes.Header._decode_one(buf)
         __device_len = struct.unpack('>I', buf.read(4))[0]
         self.device = buf.read(__device_len)[:-1].decode('utf-8', 'replace')
-        self.bus, self.address, self.register, self.op = struct.unpack(">ihhb", buf.read(9))
+        self.bus, self.address, self.register_address, self.op = struct.unpack(">ihhb", buf.read(9))
         self.ok = bool(struct.unpack('b', buf.read(1))[0])
         self.length = struct.unpack(">i", buf.read(4))[0]
         self.data = buf.read(self.length)
@@ -80,7 +88,7 @@ class RawI2c(object):
     def _get_hash_recursive(parents):
         if RawI2c in parents: return 0
         newparents = parents + [RawI2c]
-        tmphash = (0x9f8aa29f58a7b973+ u2sa_hw.lcmtypes.Header._get_hash_recursive(newparents)) & 0xffffffffffffffff
+        tmphash = (0x80be8e65fd90b858+ u2sa_hw.lcmtypes.Header._get_hash_recursive(newparents)) & 0xffffffffffffffff
         tmphash  = (((tmphash<<1)&0xffffffffffffffff) + (tmphash>>63)) & 0xffffffffffffffff
         return tmphash
     _packed_fingerprint = None

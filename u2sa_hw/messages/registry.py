@@ -15,6 +15,15 @@ from typing import Any
 
 from u2sa_hw import lcmtypes
 
+# Fingerprints of types as they were before a field was renamed: the bytes are laid out the
+# same (LCM hashes the field names into the fingerprint, not into the encoding), so a message
+# recorded with the old fingerprint decodes as today's type. Never remove an entry: old logs
+# must keep replaying.
+LEGACY_FINGERPRINTS: dict[bytes, tuple[type, str]] = {
+    # RawI2c.register (a C/C++ keyword: lcm-gen's C and C++ output did not compile) became register_address
+    bytes.fromhex("0e61df589a1e329c"): (lcmtypes.RawI2c, "RawI2c with its field 'register' (before 2026-11)"),
+}
+
 
 class MalformedMessage(ValueError):
     """Bytes on a channel that do not decode as the channel's type (or any descendant)."""
@@ -52,6 +61,13 @@ class TypeRegistry:
         self._by_name[cls.__name__] = cls
         self._by_name[f"{cls.__module__.rsplit('.', 1)[0]}.{cls.__name__}"] = cls
         return cls
+
+    def register_legacy(self, fp: bytes, cls: type) -> None:
+        """Decode the old fingerprint *fp* of *cls* (a field renamed, the bytes the same) as *cls*."""
+        other = self._by_fp.get(fp)
+        if other is not None and other is not cls:
+            raise ValueError(f"legacy fingerprint {fp.hex()} of {cls.__name__} is {other.__name__}'s")
+        self._by_fp[fp] = cls
 
     def by_fingerprint(self, fp: bytes) -> type | None:
         """The class whose fingerprint is *fp*, or None."""
@@ -140,6 +156,8 @@ def _build_default() -> TypeRegistry:
     for _, cls in inspect.getmembers(lcmtypes, inspect.isclass):
         if hasattr(cls, "_get_packed_fingerprint"):
             reg.register(cls)
+    for fp, (cls, _what) in LEGACY_FINGERPRINTS.items():
+        reg.register_legacy(fp, cls)
     return reg
 
 

@@ -131,7 +131,7 @@ class I2cPort:
         rec.device = self.device
         rec.bus = self._bus_number
         rec.address = self.i2c_address
-        rec.register = register
+        rec.register_address = register
         rec.op = op
         rec.ok = ok
         rec.data = bytes(data)
