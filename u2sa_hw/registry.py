@@ -20,6 +20,7 @@ SERVICE_KINDS: dict[str, str] = {
     "control": "u2sa_hw.services.control.service:ControlSystem",
     "hsm": "u2sa_hw.services.hsm.service:HealthStatusMonitor",
     "recorder": "u2sa_hw.services.recorder.service:Recorder",
+    "foxglove_bridge": "u2sa_hw.foxglove.service:FoxgloveBridgeService",
     "gps_nmea": "drivers.gps_nmea:GpsNmeaDriver",
     "compass_serial": "drivers.compass_serial:SerialCompassDriver",
     "gpio_output": "drivers.gpio_io:GpioOutputDriver",
