@@ -306,6 +306,11 @@ def test_the_log_holds_verified_payloads_and_says_the_bus_was_signed(services: S
 
         wait_until(recorded, timeout=20, interval=0.2, message="the record command to write a signed message")
         subprocess.run([sys.executable, "-c", forger, services.url], env=keyless, check=True, timeout=60)
+        other = Transport(services.url, name="vehicle-2")   # the key, another vehicle's system id: foreign
+        foreign = _state(777)
+        foreign.header.system_id = 2
+        other.publish(ch.STATE_INFO, foreign)
+        other.stop()
         bus.publish(ch.STATE_INFO, _state(2))   # after the forgery on the wire: recorded once it is through
         wait_until(lambda: any(t.StateInformation.decode(m.data).x == 2.0 for m in LogFile(out).messages()
                                if m.channel == ch.STATE_INFO), timeout=20, interval=0.2, message="the message after the forgery")
@@ -316,9 +321,18 @@ def test_the_log_holds_verified_payloads_and_says_the_bus_was_signed(services: S
         if proc.poll() is None:
             proc.kill()
     messages = list(LogFile(out).messages())
-    assert all(t.StateInformation.decode(m.data).x != 666.0 for m in messages)
+    assert all(t.StateInformation.decode(m.data).x not in (666.0, 777.0) for m in messages)
     assert all(t.StateInformation.decode(m.data).encode() == m.data for m in messages)   # no trailer in the log
     info = json.loads(services.cli("log", "info", str(out), "--json").stdout)
     assert info["bus"]["security"] == "signed" and info["bus"]["dropped"]["unsigned"] == 1
+    assert info["bus"]["dropped"]["foreign"] == 1
+    # Who signed: each MCAP channel names its signer; the file's u2sa_signers record names its sources.
+    with open(out, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    signers = {c.metadata.get("signer") for c in summary.channels.values() if c.topic == ch.STATE_INFO}
+    assert signers == {bus.transport.sender}
+    assert info["bus"]["signers"] == {bus.transport.sender: bus.name}
     text = services.cli("log", "info", str(out)).stdout
-    assert "bus:         signed (key " in text and "STATE_INFO: unsigned 1" in text
+    assert "bus:         signed (key " in text and "STATE_INFO: unsigned 1, foreign 1" in text
+    assert f"signers:     1 ({bus.transport.sender} {bus.name})" in text

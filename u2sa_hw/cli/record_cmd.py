@@ -13,12 +13,14 @@ from pathlib import Path
 from typing import Any
 
 from u2sa_hw.cli.common import add_vehicle_option, profile_from
-from u2sa_hw.recording.mcap_log import BUS_METADATA
+from u2sa_hw.recording.mcap_log import BUS_METADATA, SIGNERS_METADATA
 
 RECORD_HELP = """\
 Record the bus into an MCAP log until Ctrl-C (or --duration). The LCM bytes of every
 verified packet are stored (without the signature trailer: the log replays with any
-key) with each type's .lcm definition as its schema, plus the vehicle profile and
+key), each with its signer (an MCAP channel per channel and signer); packets dropped as
+unsigned, forged, replayed or foreign are counted in the log (u2sa log info), with each
+type's .lcm definition as its schema, plus the vehicle profile and
 service configs, so the log says everything about the run. Chunks are closed every
 second: a kill or power cut loses at most the last second (u2sa log recover repairs it).
 Below --min-free-mb of free disk space in the log's directory the recording stops, the
@@ -101,7 +103,7 @@ def cmd_record(args: Any) -> int:
     out = Path(args.output) if args.output else None
     try:
         transport = Transport(profile.lcm_url, name="u2sa-record", security=profile.bus_security,
-                              key_file=profile.bus_key, interface=profile.bus_interface)
+                              key_file=profile.bus_key, interface=profile.bus_interface, system_id=profile.system_id)
     except TransportError as exc:
         raise CliError(str(exc)) from None
     if args.queue_size < 1 or args.min_free_mb < 0:
@@ -160,6 +162,7 @@ def cmd_info(args: Any) -> int:
     c = summary.contents
     meta = c.metadata.get("u2sa", {})
     bus = bus_summary(meta, c.metadata.get(BUS_METADATA))
+    bus["signers"] = c.metadata.get(SIGNERS_METADATA, {})
     rows = [{"channel": s.channel, "type": s.type_name, "count": s.count,
              "rate_hz": s.count / summary.duration_s if summary.duration_s else 0.0} for s in summary.channels]
     if args.json:
@@ -174,6 +177,9 @@ def cmd_info(args: Any) -> int:
           f"{meta.get('host', '?')}, started {meta.get('started', '?')}")
     print(f"duration:    {summary.duration_s:.1f} s, {summary.messages} messages")
     print(f"bus:         {bus['text']}")
+    if bus["signers"]:
+        print(f"signers:     {len(bus['signers'])} (" + "; ".join(f"{sig} {who or '?'}" for sig, who in
+                                                        bus["signers"].items()) + ")")
     print(f"state:       {'complete' if c.complete else 'NOT COMPLETE: ' + (c.problem or 'no summary')}"
           + ("" if c.complete else f" (u2sa log recover {log.path})"))
     print(f"devices:     {', '.join(summary.devices) or 'none (no RAW.* channels)'}")
@@ -187,7 +193,7 @@ def cmd_info(args: Any) -> int:
 def bus_summary(meta: dict[str, str], record: dict[str, str] | None) -> dict[str, Any]:
     """Whether the recorded bus was signed, and the packets the recorder dropped, from the log's metadata."""
     security = (record or {}).get("security") or meta.get("bus_security") or ""
-    dropped = {why: int((record or {}).get(why, "0") or 0) for why in ("unsigned", "forged", "replayed")}
+    dropped = {why: int((record or {}).get(why, "0") or 0) for why in ("unsigned", "forged", "replayed", "foreign")}
     if not security:
         text = "not recorded (a log from before the bus was signed)"
     elif security == "open":

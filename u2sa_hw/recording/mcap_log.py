@@ -1,10 +1,16 @@
 """Writing LCM traffic into MCAP logs: chunked (zstd or lz4), indexed, with statistics.
 
-LCM bytes are stored unchanged (message encoding ``lcm``), each type's ``.lcm``
+LCM bytes are stored unchanged (message encoding ``lcm``; on a signed bus the verified
+payload, without its trailer), each type's ``.lcm``
 definition is its schema, and the vehicle profile and configs travel as attachments
 and metadata. :meth:`McapLogWriter.flush` closes the chunk in progress and fsyncs, so
 calling it every second bounds what a SIGKILL or power cut can lose to that second.
 Files rotate by size and duration with timestamped names.
+
+Who signed each message: an MCAP channel per (topic, type, signer), whose metadata
+``signer`` is the sender id (16 hex digits) of the process that signed it; each finished
+file gets a ``u2sa_signers`` metadata record naming, per signer, the header sources it
+signed as (``gps``, ``u2sa-cli-1234``). See docs/recording.md.
 """
 
 from __future__ import annotations
@@ -27,6 +33,8 @@ PROFILE = "u2sa"
 # (lcm_create sends "lcm self test" on LCM_SELF_TEST to check that multicast loops back).
 FOREIGN_PACKETS = {b"lcm self": "lcm_self_test"}
 BUS_METADATA = "u2sa_bus"   # metadata record written as each file is finished (BusCapture.bus_metadata)
+SIGNERS_METADATA = "u2sa_signers"   # signer id -> the header sources it signed as, per file
+SIGNER_KEY = "signer"               # channel metadata: the sender id that signed its messages
 COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
 
@@ -49,6 +57,17 @@ class RunInfo:
                 "bus_key_id": self.bus_key_id}
 
 
+def header_source(data: bytes) -> str:
+    """The ``header.source`` of an encoded u2sa message ("" when it is not one): every type starts with its Header."""
+    at = 8 + 12   # fingerprint, system_id (int32), timestamp_us (int64)
+    if len(data) < at + 4:
+        return ""
+    n = int.from_bytes(data[at:at + 4], "big")
+    if n < 1 or at + 4 + n > len(data):
+        return ""
+    return data[at + 4:at + 3 + n].decode("utf-8", "replace")
+
+
 def timestamped_name(prefix: str, *, when: float | None = None) -> str:
     """``<prefix>-YYYYmmdd-HHMMSS.mcap`` in local time (a second file in the same second gets ``_001``,
     ``_002``, ... before ``.mcap``, so the names sort in recording order)."""
@@ -64,7 +83,8 @@ class McapFile:
         self._writer = Writer(self._fh, chunk_size=chunk_size, compression=COMPRESSION[compression])
         self._writer.start(profile=PROFILE, library=f"u2sa-hw {__version__}")
         self._schemas: dict[bytes, int] = {}
-        self._channels: dict[tuple[str, int], int] = {}
+        self._channels: dict[tuple[str, int, str], int] = {}
+        self.signers: dict[str, set[str]] = {}    # signer -> header sources seen from it
         self.messages = 0
         self.opened = time.monotonic()
         self._writer.add_metadata("u2sa", run.metadata())
@@ -87,14 +107,17 @@ class McapFile:
             self._schemas[fingerprint] = sid
         return sid
 
-    def write(self, channel: str, data: bytes, log_time_ns: int) -> None:
-        """Append one LCM message."""
+    def write(self, channel: str, data: bytes, log_time_ns: int, signer: str = "") -> None:
+        """Append one LCM message (*signer*: the verified sender id that signed it, "" on an open bus)."""
         sid = self._schema_id(data[:8]) if len(data) >= 8 else self._schema_id(b"")
-        key = (channel, sid)
+        key = (channel, sid, signer)
         cid = self._channels.get(key)
         if cid is None:
-            cid = self._writer.register_channel(topic=channel, message_encoding=MESSAGE_ENCODING, schema_id=sid)
+            cid = self._writer.register_channel(topic=channel, message_encoding=MESSAGE_ENCODING, schema_id=sid,
+                                                metadata={SIGNER_KEY: signer} if signer else {})
             self._channels[key] = cid
+            if signer:
+                self.signers.setdefault(signer, set()).add(header_source(data))
         self._writer.add_message(channel_id=cid, log_time=log_time_ns, data=data, publish_time=log_time_ns)
         self.messages += 1
 
@@ -108,6 +131,9 @@ class McapFile:
         """Write *metadata* records (what is known only at the end), the summary (indexes, statistics), and close."""
         for name, record in (metadata or {}).items():
             self._writer.add_metadata(name, record)
+        if self.signers:
+            self._writer.add_metadata(SIGNERS_METADATA, {signer: ", ".join(sorted(s for s in sources if s))
+                                                         for signer, sources in sorted(self.signers.items())})
         self._writer.finish()
         self._fh.flush()
         os.fsync(self._fh.fileno())
@@ -155,14 +181,14 @@ class McapLogWriter:
         self.files.append(path)
         return McapFile(path, compression=self.compression, chunk_size=self.chunk_size, run=self.run)
 
-    def write(self, channel: str, data: bytes, log_time_ns: int) -> None:
-        """Append one message, rotating first when the current file is full or old."""
+    def write(self, channel: str, data: bytes, log_time_ns: int, signer: str = "") -> None:
+        """Append one message (signed by *signer*), rotating first when the current file is full or old."""
         if self.current is None:
             self.current = self._open()
         elif self._due_for_rotation(self.current):
             self.current.close(self._closing())
             self.current = self._open()
-        self.current.write(channel, data, log_time_ns)
+        self.current.write(channel, data, log_time_ns, signer)
         self.messages += 1
 
     def _due_for_rotation(self, f: McapFile) -> bool:

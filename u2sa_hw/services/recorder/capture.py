@@ -1,6 +1,7 @@
 """Capture from the bus into an MCAP writer without ever blocking the bus.
 
-The LCM handler thread only appends ``(channel, bytes, time)`` to a bounded queue; a
+The LCM handler thread only appends ``(channel, bytes, time, signer)`` to a bounded queue
+(the verified payload and the sender id that signed it, ``Transport.last_sender``); a
 writer thread drains it into :class:`McapLogWriter`, closing a chunk every
 ``flush_interval_s`` and checking the free disk space. A full queue drops the message and
 counts it; a disk below the floor (or a failing write) stops the recording cleanly: the
@@ -72,7 +73,7 @@ class BusCapture:
         self.min_free = min_free_mb * 1e6
         self.disk_usage = disk_usage
         self.stats = CaptureStats()
-        self._queue: queue.Queue[tuple[str, bytes, int] | None] = queue.Queue(maxsize=queue_size)
+        self._queue: queue.Queue[tuple[str, bytes, int, str] | None] = queue.Queue(maxsize=queue_size)
         self._finish = threading.Event()   # stop() asked: write what is queued, then finish the file
         self._thread: threading.Thread | None = None
         self._sub: Any = None
@@ -90,12 +91,12 @@ class BusCapture:
             self.stats.filtered += 1
             return
         try:
-            self._queue.put_nowait((channel, data, time.time_ns()))
+            self._queue.put_nowait((channel, data, time.time_ns(), self.transport.last_sender))
         except queue.Full:
             self.stats.dropped += 1
 
     def bus_metadata(self) -> dict[str, dict[str, str]]:
-        """The ``u2sa_bus`` record: the bus's security and the packets dropped as unsigned, forged, replayed."""
+        """The ``u2sa_bus`` record: the bus's security and the packets dropped as unsigned, forged, replayed, foreign."""
         rejected = self.transport.rejected()
         totals = {why: sum(c[why] for c in rejected.values()) for why in REJECTIONS}
         by_channel = "; ".join(f"{ch}: " + ", ".join(f"{why} {n}" for why, n in c.items() if n)
@@ -162,9 +163,9 @@ class BusCapture:
             if item is None:
                 break
             if item:
-                channel, data, t_ns = item
+                channel, data, t_ns, signer = item
                 try:
-                    self.writer.write(channel, data, t_ns)
+                    self.writer.write(channel, data, t_ns, signer)
                 except OSError as exc:
                     self._halt(f"cannot write {self.writer.directory}: {exc}; recording stopped")
                     return
