@@ -26,7 +26,8 @@ from conftest import ServiceProcesses, wait_until
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus_client import BusClient
-from u2sa_hw.bus_key import KEY_ENV, new_key, write_key
+from u2sa_hw.bus_auth import TAG, TRAILER_LEN, BusAuth, keyring_for
+from u2sa_hw.bus_key import KEY_ENV, key_path, new_key, write_key
 from u2sa_hw.transport import Transport
 
 SERVICE = "state_estimator"
@@ -249,3 +250,28 @@ def test_a_key_holder_with_another_system_id_is_dropped_as_foreign_and_shown(ser
     header, line = table.stdout.splitlines()[0], next(x for x in table.stdout.splitlines() if x.startswith(SERVICE))
     assert "BAD SIG" in header and "FOREIGN" in header
     assert line.split()[5:8] == ["signed", "0", "2"], line     # BUS, BAD SIG, FOREIGN
+
+
+def test_garbage_truncated_and_huge_counter_trailers_are_counted_never_raised(services: ServiceProcesses,
+                                                                              bus: BusClient) -> None:
+    health = HealthLog(bus)
+    first = start_estimator(services, bus)
+    stop = t.StopCommand()
+    stop.all = True
+    payload = stop.encode()
+    signer = BusAuth(keyring_for(key_path(None)))                         # the vehicle's key: a real signature
+    future = BusAuth(keyring_for(key_path(None)), wall_us=lambda: 2 ** 64 - 10)   # ... on a counter out of range
+    packets = [payload + os.urandom(TRAILER_LEN - len(TAG)) + TAG,       # a garbage trailer: forged
+               signer.sign(ch.STOP, payload)[:-7],                       # a truncated one: unsigned
+               b"\x01\x02\x03",                                          # not even a fingerprint: unsigned
+               future.sign(ch.STOP, payload)]                            # a huge counter: replayed
+    wire = Transport(services.url, name="garbage", security="open")     # sends the bytes as they are
+    for packet in packets:
+        assert wire.publish_bytes(ch.STOP, packet)
+    wire.stop()
+    wait_until(lambda: "U2SA_STOP: unsigned 2, forged 1, replayed 1" in health.details(SERVICE).get("bus_rejected", ""),
+               timeout=30, message="the estimator to count the damaged packets")
+    assert services.procs[0].poll() is None
+    assert bus.discover(timeout=1.0, name=SERVICE)[0].pid == first.pid
+    log = (services.workdir / ".u2sa" / "logs" / f"{SERVICE}.log").read_text()
+    assert "Traceback" not in log and log.count("dropping unsigned message on U2SA_STOP") == 1
