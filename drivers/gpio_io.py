@@ -26,19 +26,32 @@ from collections import Counter
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-from drivers.gpio_lines import (GpioLineSet, check_chip, note_restart_needed, parse_levels,
-                                parse_line_map, parse_names, parse_positions)
+from drivers.gpio_lines import (GpioLineSet, check_gpio_device, legacy_gpio_address, note_restart_needed,
+                                parse_levels, parse_line_map, parse_names, parse_positions)
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Actuator, ExteroceptiveSensor
 from u2sa_hw.config import ConfigError, field
+from u2sa_hw.ports.device_link import device_setting
 from u2sa_hw.ports.gpio_port import BIASES, GpioPort
 
 ON_THRESHOLD_PERCENT = 50.0
 BUMPER_LEVEL = 3  # ObjectDescription level: avoid at all costs (we are touching it)
 
-_CHIP = field("chip", "", '"/dev/gpiochipN" (gpiodetect lists them) or "mock:/path/to.sock"')
-_DEVICE = field("device_name", "", "device name in port errors and RAW.<device> (empty: the service name)")
+_CHIP = field("chip", "", 'old form of the address: "/dev/gpiochipN" (gpiodetect lists them) or "mock:/path/to.sock"')
+_DEVICE = (field("device", "", "the chip's lines: its [devices.NAME] table (address gpio://CHIP/LINES) and "
+                               "RAW.<device> (empty: the service name)"),
+           field("device_name", "", "old name of the device setting"))
+
+
+def _used_gpio(service: str, config: Mapping[str, Any], key: str) -> dict[str, str | None]:
+    """The one GPIO device of a gpio_output/gpio_input service; old form: ``chip`` and its *key* lines."""
+    try:
+        lines = list(parse_line_map(str(config.get(key, "")), service=service, key=key).values())
+    except ConfigError:
+        lines = []
+    legacy = legacy_gpio_address(config, lines) if str(config.get("chip", "")).strip() else None
+    return {device_setting(config, service): legacy}
 _RAW = field("record_raw", False, "publish every edge and write as RawGpioEdge/RawGpioWrite on RAW.<device>")
 
 
@@ -49,7 +62,7 @@ class GpioOutputDriver(Actuator):
         _CHIP,
         field("outputs", "", "name=line,... each name is an actuator name"),
         field("safe_levels", "", "name=level,... the neutral level of each output (unlisted: 0)"),
-        _DEVICE, _RAW,
+        *_DEVICE, _RAW,
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:
@@ -58,16 +71,16 @@ class GpioOutputDriver(Actuator):
         self.lines_by_name, self.safe_levels = self.parse_config(c)
         self.levels = dict(self.safe_levels)  # what each line was last driven to (or opened with)
         self.unapplied = 0  # writes (commands or neutral) that could not reach the chip
-        self.device = c["device_name"].strip() or name
-        self.gpio = GpioLineSet(self, chip=c["chip"], device=self.device, initial_outputs=self._initial_outputs,
-                                record_raw=c["record_raw"], on_open=self._on_open)
+        self.gpio = GpioLineSet(self, initial_outputs=self._initial_outputs, record_raw=c["record_raw"],
+                                on_open=self._on_open)
+        self.device = self.gpio.device
 
     def parse_config(self, c: Mapping[str, Any]) -> tuple[dict[str, int], dict[str, int]]:
         """Lines by name and the safe level of each; ConfigError names the field and the fix."""
-        check_chip(c["chip"], service=self.name)
         lines = parse_line_map(c["outputs"], service=self.name, key="outputs")
         if not lines:
             raise ConfigError(f"service '{self.name}': no output lines configured; set outputs = \"lamp=17\"")
+        check_gpio_device(self, c, list(lines.values()))
         safe = parse_levels(c["safe_levels"], known=list(lines), service=self.name, key="safe_levels")
         return lines, {n: safe.get(n, 0) for n in lines}
 
@@ -75,6 +88,11 @@ class GpioOutputDriver(Actuator):
         """Refuse a config the service cannot start with (the dead-man as every actuator)."""
         super().check_config()
         self.parse_config(self.config)
+
+    @classmethod
+    def used_devices(cls, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
+        """The output lines' GPIO device (see DeviceLink)."""
+        return _used_gpio(service, config, "outputs")
 
     @classmethod
     def declared_actuators(cls, name: str, config: Mapping[str, Any]) -> set[str]:
@@ -177,8 +195,9 @@ class GpioInputDriver(ExteroceptiveSensor):
         field("clear_on_release", True, "publish a cleared failsafe when every e-stop is released"),
         field("positions", "", "name=x:y:z,... body-frame (FRD, m) place of each bumper; these publish OBJECTS"),
         field("bumper_repeat_s", 0.5, "re-send a held bumper's object this often", ge=0),
-        _DEVICE, _RAW,
+        *_DEVICE, _RAW,
     )
+
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
         c = self.config
@@ -192,17 +211,17 @@ class GpioInputDriver(ExteroceptiveSensor):
         self.edge_counts: Counter[str] = Counter()
         if self.estops:
             self.register_publisher(ch.FAILSAFE, t.Failsafe)
-        self.device = c["device_name"].strip() or name
-        self.gpio = GpioLineSet(self, chip=c["chip"], device=self.device, inputs=list(self.lines_by_name.values()),
-                                bias=c["bias"], record_raw=c["record_raw"], on_open=self._read_levels)
+        self.gpio = GpioLineSet(self, inputs=list(self.lines_by_name.values()), bias=c["bias"],
+                                record_raw=c["record_raw"], on_open=self._read_levels)
+        self.device = self.gpio.device
 
     def parse_config(self, c: Mapping[str, Any]) -> tuple[dict[str, int], set[str], list[str],
                                                            dict[str, tuple[float, float, float]]]:
         """Lines by name, active-low names, e-stop names, bumper positions; ConfigError names the field."""
-        check_chip(c["chip"], service=self.name)
         lines = parse_line_map(c["inputs"], service=self.name, key="inputs")
         if not lines:
             raise ConfigError(f"service '{self.name}': no input lines configured; set inputs = \"estop=4\"")
+        check_gpio_device(self, c, list(lines.values()))
         if c["bias"] not in BIASES:
             raise ConfigError(f"service '{self.name}': config 'bias' must be one of {', '.join(BIASES)}, "
                               f"got {c['bias']!r}")
@@ -217,6 +236,11 @@ class GpioInputDriver(ExteroceptiveSensor):
     def check_config(self) -> None:
         """Refuse a config the service cannot start with."""
         self.parse_config(self.config)
+
+    @classmethod
+    def used_devices(cls, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
+        """The input lines' GPIO device (see DeviceLink)."""
+        return _used_gpio(service, config, "inputs")
 
     def _read_levels(self, port: GpioPort) -> None:
         """After every (re)open: the present levels, since edges before the open are not seen."""

@@ -7,8 +7,10 @@ Config strings (one TOML string each, so they can be changed over the bus like a
 - a level map ``"brake=1,horn=0"``;
 - a position map ``"bump_front=0.45:0:0.1"``: name -> x:y:z metres in the body frame (FRD).
 
-:class:`GpioLineSet` owns the service's :class:`~u2sa_hw.ports.ReconnectingPort` over
-``open_gpio``: a lost chip is reported in health and re-requested with backoff while the
+:class:`GpioLineSet` owns the service's :class:`~u2sa_hw.ports.device_link.DeviceLink`
+(the ``device`` setting, default the service name; its address ``gpio://CHIP/LINES`` from the
+profile's ``[devices.NAME]``, or for old profiles the ``chip`` setting and the lines the
+driver uses): a lost chip is reported in health and re-requested with backoff while the
 service keeps running. Writes and reads from several threads (the run loop, a FAILSAFE
 callback, ``kill``) are serialised by one lock. With ``record_raw`` every edge and write is
 published as ``RawGpioEdge`` / ``RawGpioWrite`` on ``RAW.<device>``.
@@ -21,9 +23,11 @@ from typing import Any, Callable, Mapping, Sequence
 
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.config import ConfigError
-from u2sa_hw.ports import PortClosed, PortIOError, PortTimeout, PortUnavailable, ReconnectingPort
-from u2sa_hw.ports.gpio_port import EdgeEvent, GpioPort, open_gpio
-from u2sa_hw.ports.tap import raw_channel
+from u2sa_hw.ports import PortClosed, PortIOError, PortTimeout, PortUnavailable
+from u2sa_hw.ports.address import AddressError
+from u2sa_hw.ports.device_link import DeviceLink, device_setting
+from u2sa_hw.ports.gpio_port import EdgeEvent, GpioPort
+from u2sa_hw.ports.legacy import gpio_address
 from u2sa_hw.service import U2SAService
 
 _PORT_FAULTS = (PortClosed, PortIOError, PortTimeout)
@@ -99,11 +103,28 @@ def parse_positions(text: str, *, known: Sequence[str], service: str,
     return positions
 
 
-def check_chip(chip: str, *, service: str) -> None:
-    """ConfigError unless a chip address is configured."""
-    if not chip.strip():
-        raise ConfigError(f"service '{service}': no GPIO chip configured; set chip = \"/dev/gpiochip0\" "
-                          "(gpiodetect lists the chips) or a mock chip address \"mock:/path/to.sock\"")
+def legacy_gpio_address(config: Mapping[str, Any], lines: Sequence[int]) -> str | None:
+    """The address the old-form ``chip`` setting and the driver's *lines* give, or None."""
+    try:
+        return gpio_address(str(config.get("chip", "")), lines)
+    except AddressError:
+        return None   # check_gpio_device names the bad chip
+
+
+def check_gpio_device(service: U2SAService, config: Mapping[str, Any], lines: Sequence[int]) -> None:
+    """ConfigError unless the service's GPIO device has an address (``[devices.NAME]`` or ``chip``)."""
+    from u2sa_hw.devices import device_address
+
+    device = device_setting(config, service.name)
+    chip = str(config.get("chip", "")).strip()
+    try:
+        address = device_address(service.profile, device, legacy_gpio_address(config, lines) if chip else None)
+    except AddressError as exc:
+        raise ConfigError(f"service '{service.name}': {exc} (e.g. \"gpio://gpiochip0/{','.join(map(str, lines))}\"; "
+                          "gpiodetect lists the chips; an old profile sets chip = \"/dev/gpiochip0\")") from None
+    if address.kind != "gpio":
+        raise ConfigError(f"service '{service.name}': device '{device}' has the {address.kind} address "
+                          f"{address.url}; a GPIO driver needs a gpio:// address")
 
 
 def note_restart_needed(service: U2SAService, name: str, *, live: Sequence[str] = ()) -> None:
@@ -122,34 +143,25 @@ class GpioLineSet:
     *on_open* is called with the new port right after it opened (in the opening thread).
     """
 
-    def __init__(self, service: U2SAService, *, chip: str, device: str, inputs: Sequence[int] = (),
+    def __init__(self, service: U2SAService, *, inputs: Sequence[int] = (),
                  initial_outputs: Callable[[], Mapping[int, int]] = dict, edge: str = "both", bias: str = "as-is",
                  record_raw: bool = False, on_open: Callable[[GpioPort], None] | None = None) -> None:
-        check_chip(chip, service=service.name)
-        self.service, self.chip, self.device = service, chip, device
+        config = service.config
+        self.service = service
         self.inputs, self.edge, self.bias = tuple(inputs), edge, bias
-        self._initial_outputs, self._on_open = initial_outputs, on_open
-        self._record_raw = record_raw
+        self._initial_outputs = initial_outputs
         self._lock = threading.RLock()
         self.write_errors = 0
-        if record_raw:
-            service.register_publisher(raw_channel(device), t.RawGpioEdge)
-            service.register_publisher(raw_channel(device), t.RawGpioWrite)
-        self.reconnecting: ReconnectingPort[GpioPort] = ReconnectingPort(self._open, device=device)
-
-    def _tap(self, record: Any) -> None:
-        self.service.publish(raw_channel(self.device), record)
-
-    def _open(self) -> GpioPort:
-        port = open_gpio(device=self.device, chip=self.chip, inputs=self.inputs, outputs=dict(self._initial_outputs()),
-                         edge=self.edge, bias=self.bias, tap=self._tap if self._record_raw else None)
-        if self._on_open is not None:
-            try:
-                self._on_open(port)
-            except BaseException:
-                port.close()
-                raise
-        return port
+        lines = [*self.inputs, *initial_outputs()]
+        check_gpio_device(service, config, lines)
+        self.reconnecting: DeviceLink[GpioPort] = DeviceLink(
+            service, device=lambda: device_setting(config, service.name), raw_type=(t.RawGpioEdge, t.RawGpioWrite),
+            legacy=lambda: legacy_gpio_address(config, lines), on_open=on_open, record=lambda: record_raw,
+            options=lambda: {"inputs": self.inputs, "outputs": dict(self._initial_outputs()), "edge": self.edge,
+                             "bias": self.bias})
+        self.reconnecting.start()
+        self.device = self.reconnecting.device
+        self.chip = self.reconnecting.address.gpio_chip if self.reconnecting.address is not None else ""
 
     @property
     def is_open(self) -> bool:
@@ -211,6 +223,4 @@ class GpioLineSet:
 
     def health(self) -> dict[str, Any]:
         """Port state, address, losses, write errors and the last port error while down."""
-        rp = self.reconnecting
-        return {"port": rp.state, "chip": self.chip, "port_losses": rp.losses, "write_errors": self.write_errors,
-                "port_error": str(rp.last_error) if rp.state != "open" and rp.last_error else ""}
+        return {**self.reconnecting.health(), "chip": self.chip, "write_errors": self.write_errors}

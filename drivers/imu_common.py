@@ -1,7 +1,9 @@
 """What the I2C IMU drivers share: the sample loop, retries, reconnection, mounting, rest calibration.
 
-:class:`I2cImuDriver` is a Proprioceptive Sensor that reaches one chip through
-``open_i2c`` wrapped in a ``ReconnectingPort``. A subclass writes ``init_chip`` (identify
+:class:`I2cImuDriver` is a Proprioceptive Sensor that reaches one chip through a
+:class:`~u2sa_hw.ports.device_link.DeviceLink` (the ``device`` setting, default the service
+name; its address ``i2c://BUS/CHIP`` from the profile's ``[devices.NAME]``, or for old
+profiles the ``bus`` and ``address`` settings). A subclass writes ``init_chip`` (identify
 and configure the chip on every open) and ``read_sample`` (one burst read turned into a
 State Information); this class paces the loop at ``rate_hz``, retries failed transactions,
 counts every fault and reopens the chip after a loss:
@@ -24,16 +26,17 @@ import math
 import statistics
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, ClassVar, Sequence, TypeVar
+from typing import Any, Callable, ClassVar, Mapping, Sequence, TypeVar
 
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.config import ConfigError, field
 from u2sa_hw.abstract import ProprioceptiveSensor
 from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence setters
 from u2sa_hw.ports.errors import PortClosed, PortError, PortIOError, PortTimeout, PortUnavailable
-from u2sa_hw.ports.i2c_port import I2cPort, open_i2c, parse_bus
-from u2sa_hw.ports.reconnect import ReconnectingPort
-from u2sa_hw.ports.tap import raw_channel
+from u2sa_hw.ports.address import AddressError
+from u2sa_hw.ports.device_link import DeviceLink, device_setting
+from u2sa_hw.ports.i2c_port import I2cPort
+from u2sa_hw.ports.legacy import i2c_address
 
 T = TypeVar("T")
 Vector = tuple[float, float, float]
@@ -162,13 +165,16 @@ class I2cImuDriver(ProprioceptiveSensor):
 
     DEFAULT_ADDRESS: ClassVar[int] = 0x68
     CONFIG = (
-        field("bus", "1", 'I2C adapter number ("1" = /dev/i2c-1) or "mock:/path/to/bus.sock"'),
+        field("device", "", "the chip: its [devices.NAME] table (address i2c://BUS/CHIP) and RAW.<device> "
+                            "(empty: the service name)"),
+        field("bus", "1", 'old form of the address (with address): I2C adapter number ("1" = /dev/i2c-1) or '
+                          '"mock:/path/to/bus.sock"'),
         field("rate_hz", 100.0, "samples published per second", gt=0, le=1000),
         field("retries", 2, "immediate retries of a failed I2C transaction", ge=0),
         field("reinit_after_errors", 10, "failed samples in a row before the chip is reopened and set up again", ge=1),
         field("rate_sigma", 0.005, "rad/s, sigma of phi_dot/theta_dot/psi_dot", gt=0),
         field("accel_sigma", 0.3, "m/s^2, sigma of x_ddot/y_ddot/z_ddot", gt=0),
-        field("record_raw", False, "publish every I2C transaction on RAW.<service name>"),
+        field("record_raw", False, "publish every I2C transaction on RAW.<device>"),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:
@@ -182,7 +188,9 @@ class I2cImuDriver(ProprioceptiveSensor):
         self._identified = False
         self._rate_window: tuple[float, int] = (time.monotonic(), 0)
         self.measured_rate_hz = 0.0
-        self.port: ReconnectingPort[I2cPort] | None = None
+        self.port: DeviceLink[I2cPort] = DeviceLink(
+            self, device=lambda: device_setting(self.config, self.name), raw_type=t.RawI2c,
+            legacy=lambda: self.legacy_address(self.config), on_open=self._on_open)
         self._calibrated_said = False   # the ``calibrated`` detail as last published on a change
 
     # -- for subclasses -------------------------------------------------------------------
@@ -205,43 +213,49 @@ class I2cImuDriver(ProprioceptiveSensor):
         """False while the chip's data is usable but not trustworthy yet (e.g. uncalibrated)."""
         return True
 
+    # -- the device ------------------------------------------------------------------------
+    @classmethod
+    def legacy_address(cls, config: Mapping[str, Any]) -> str | None:
+        """The address the old-form settings (``bus``, ``address``) give (``i2c://1/0x68``), or None."""
+        try:
+            return i2c_address(config.get("bus", "1"), int(config.get("address", cls.DEFAULT_ADDRESS)))
+        except (AddressError, ValueError, TypeError):
+            return None   # the driver's own check names the bad setting
+
+    @classmethod
+    def used_devices(cls, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
+        """The one chip this service reads (see DeviceLink)."""
+        return {device_setting(config, service): cls.legacy_address(config)}
+
+    def _check_device(self) -> None:
+        c = self.config
+        bus = str(c["bus"]).strip()
+        if not (bus.isdigit() or (bus.startswith("mock:") and len(bus) > len("mock:"))):
+            raise ConfigError(f"{self.name}: config 'bus': unknown I2C bus {c['bus']!r}; use an adapter number "
+                              '(1 for /dev/i2c-1) or "mock:/path/to/bus.sock"')
+        problem = self.port.check()
+        if problem:
+            raise ConfigError(f"{self.name}: {problem}")
+
     # -- setup and loop -------------------------------------------------------------------
     def setup(self) -> None:
         """Check the config (a bad one stops the service with the reason) and prepare the port."""
-        c = self.config
-        try:
-            self.bus = parse_bus(c["bus"], device=self.name)
-        except PortUnavailable as exc:
-            raise ConfigError(f"{self.name}: config 'bus': {exc}") from None
-        self.i2c_address = int(c["address"])
-        if not 0x03 <= self.i2c_address <= 0x77:
-            raise ConfigError(f"{self.name}: config 'address' {self.i2c_address:#x} is not a 7-bit I2C address "
-                              f"(0x03..0x77); the chip's is 0x{self.DEFAULT_ADDRESS:02x}")
-        if not 0 < float(c["rate_hz"]) <= 1000:
-            raise ConfigError(f"{self.name}: config 'rate_hz' must be in (0, 1000], got {c['rate_hz']}")
-        if int(c["retries"]) < 0 or int(c["reinit_after_errors"]) < 1:
-            raise ConfigError(f"{self.name}: config needs retries >= 0 and reinit_after_errors >= 1")
+        self._check_device()
         self.check_config()
-        self.where = f"0x{self.i2c_address:02x} on {self.bus if isinstance(self.bus, str) else f'/dev/i2c-{self.bus}'}"
-        tap = self._publish_raw if c["record_raw"] else None
-        self.port = ReconnectingPort(lambda: self._open(tap), device=self.name)
+        self.port.start()
+        address = self.port.address
+        assert address is not None
+        self.i2c_address = address.chip_address
+        bus = address.i2c_bus
+        self.where = f"0x{self.i2c_address:02x} on {bus if isinstance(bus, str) else f'/dev/i2c-{bus}'}"
         self.status = "degraded"  # until the chip is open and sampling
 
-    def _publish_raw(self, record: Any) -> None:
-        self.publish(raw_channel(self.name), record)
-
-    def _open(self, tap: Any) -> I2cPort:
-        port = open_i2c(device=self.name, bus=self.bus, address=self.i2c_address, tap=tap)
-        try:
-            self.init_chip(RetryingI2c(port, self.with_retries), first=not self._identified)
-        except BaseException:
-            port.close()
-            raise
+    def _on_open(self, port: I2cPort) -> None:
+        self.init_chip(RetryingI2c(port, self.with_retries), first=not self._identified)
         if self._identified:
             self.reinits += 1
         self._identified = True
         self._failures_in_row = 0
-        return port
 
     def with_retries(self, fn: Callable[[], T]) -> T:
         """Run *fn*, retrying it ``retries`` times after PortIOError (each failure counted)."""
@@ -257,7 +271,6 @@ class I2cImuDriver(ProprioceptiveSensor):
 
     def run(self) -> None:
         """Sample at ``rate_hz`` on a fixed schedule until stopped."""
-        assert self.port is not None
         next_at = time.monotonic()
         while self.wait(max(0.0, next_at - time.monotonic())):
             period = 1.0 / float(self.config["rate_hz"])
@@ -269,7 +282,6 @@ class I2cImuDriver(ProprioceptiveSensor):
 
     def sample_once(self) -> None:
         """Read, convert and publish one sample; every port fault is counted and survived."""
-        assert self.port is not None
         try:
             port = self.port.get()
         except PortUnavailable:
@@ -320,12 +332,13 @@ class I2cImuDriver(ProprioceptiveSensor):
         if now - start >= 0.5:
             self.measured_rate_hz = (self.samples - count) / (now - start)
             self._rate_window = (now, self.samples)
-        port = self.port
-        last = port.last_error if port is not None else None
+        link = self.port
+        last = link.last_error
         return {
-            "address": getattr(self, "where", ""), "port": port.state if port else "not set up",
+            **link.health(),
+            "where": getattr(self, "where", ""),
             "port_error": str(last) if isinstance(last, PortError) else "",
-            "port_losses": port.losses if port else 0, "reinits": self.reinits,
+            "reinits": self.reinits,
             "samples": self.samples, "rate_hz": f"{self.measured_rate_hz:.1f}", "i2c_errors": self.i2c_errors,
             "retried_samples": self.retried_samples, "missed_samples": self.missed_samples,
             "calibrated": self.healthy(),
@@ -334,8 +347,7 @@ class I2cImuDriver(ProprioceptiveSensor):
 
     def kill(self) -> None:
         """Close the port, then stop."""
-        if self.port is not None:
-            self.port.close()
+        self.port.close()
         super().kill()
 
 

@@ -41,7 +41,8 @@ import threading
 import time
 from typing import Any, Mapping, NamedTuple
 
-from drivers.gpio_lines import GpioLineSet, check_chip, note_restart_needed, parse_line_map
+from drivers.gpio_lines import (GpioLineSet, check_gpio_device, legacy_gpio_address, note_restart_needed,
+                                parse_line_map)
 from drivers.rc_manual import ManualSticks
 from drivers.rc_pulse import MODE_AUTONOMOUS, MODE_MANUAL, MODE_NAMES, MODE_NO_SIGNAL, PulseMeter, RcModeFilter
 from u2sa_hw import channels as ch
@@ -49,6 +50,7 @@ from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Sensor
 from u2sa_hw.config import ConfigError, field
 from u2sa_hw.failsafe import FailsafeSources
+from u2sa_hw.ports.device_link import device_setting
 from u2sa_hw.ports.gpio_port import GpioPort
 from u2sa_hw.safety.config import load_safety
 from u2sa_hw.safety.prearm import CheckFailure, PrearmChecks
@@ -70,7 +72,9 @@ class RcMuxDriver(Sensor):
     """RC pulse measurement, mux mode on RC_MODE, and the autonomy-enable line into the mux."""
 
     CONFIG = (
-        field("chip", "", '"/dev/gpiochipN" (gpiodetect lists them) or "mock:/path/to.sock"'),
+        field("device", "", "the chip's lines: its [devices.NAME] table (address gpio://CHIP/LINES) and "
+                            "RAW.<device> (empty: the service name)"),
+        field("chip", "", 'old form of the address: "/dev/gpiochipN" (gpiodetect lists them) or "mock:/path/to.sock"'),
         field("channels", "throttle=5,steering=6,mode=13",
               "name=line,... the receiver channels (RcMode.pulse_us order)"),
         field("mode_channel", "mode", "the channel of the pilot's manual/autonomous switch"),
@@ -87,7 +91,7 @@ class RcMuxDriver(Sensor):
         field("publish_hz", 20.0, "RcMode messages per second (plus one on every change); actuators go neutral "
                                   "when the newest is older than [safety] rc_mode_timeout_ms", gt=0),
         field("manual_hz", 25.0, "MANUAL_CMD commands per second in manual (with a [safety.manual_mixer])", gt=0),
-        field("device_name", "", "device name in port errors and RAW.<device> (empty: the service name)"),
+        field("device_name", "", "old name of the device setting"),
         field("record_raw", False, "publish every edge and write as RawGpioEdge/RawGpioWrite on RAW.<device>"),
     )
 
@@ -117,10 +121,9 @@ class RcMuxDriver(Sensor):
         self._enable_lock = threading.RLock()
         self._changed = threading.Event()  # something a subscriber should hear about at once
         inputs = list(self.channels.values()) + ([self.select_line] if self.select_line >= 0 else [])
-        self.device = c["device_name"].strip() or name
-        self.gpio = GpioLineSet(self, chip=c["chip"], device=self.device, inputs=inputs,
-                                initial_outputs=lambda: {self.enable_line: 0}, record_raw=c["record_raw"],
-                                on_open=self._on_open)
+        self.gpio = GpioLineSet(self, inputs=inputs, initial_outputs=lambda: {self.enable_line: 0},
+                                record_raw=c["record_raw"], on_open=self._on_open)
+        self.device = self.gpio.device
         self.register_publisher(ch.RC_MODE, t.RcMode)
         if self.sticks is not None:
             self.register_publisher(ch.MANUAL_CMD, t.PercentageCommand)
@@ -133,7 +136,6 @@ class RcMuxDriver(Sensor):
     def parse_config(self, c: Mapping[str, Any]) -> RcSetup:
         """Check the config and build the pulse meter and mode filter; ConfigError names the field."""
         name = self.name
-        check_chip(c["chip"], service=name)
         channels = parse_line_map(c["channels"], service=name, key="channels")
         if c["mode_channel"] not in channels:
             raise ConfigError(f"service '{name}': mode_channel {c['mode_channel']!r} is not one of the channels "
@@ -144,6 +146,7 @@ class RcMuxDriver(Sensor):
                               f"lines, not RC channel lines {sorted(used)}; enable_line is required")
         if c["publish_hz"] <= 0 or c["select_mismatch_ms"] <= 0 or c["manual_hz"] <= 0:
             raise ConfigError(f"service '{name}': publish_hz, manual_hz and select_mismatch_ms must be > 0")
+        check_gpio_device(self, c, [*used, enable, *([select] if select >= 0 else [])])
         try:
             return RcSetup(channels, enable, select,
                            PulseMeter(lines=used, min_us=c["min_pulse_us"], max_us=c["max_pulse_us"]),
@@ -156,6 +159,17 @@ class RcMuxDriver(Sensor):
     def check_config(self) -> None:
         """Refuse a config the service cannot start with."""
         self.parse_config(self.config)
+
+    @classmethod
+    def used_devices(cls, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
+        """The GPIO lines of the receiver and the mux (see DeviceLink); old form: ``chip`` and the lines."""
+        try:
+            lines = [*parse_line_map(str(config.get("channels", "")), service=service, key="channels").values(),
+                     int(config.get("enable_line", -1)), int(config.get("select_line", -1))]
+        except (ConfigError, TypeError, ValueError):
+            lines = []
+        legacy = legacy_gpio_address(config, lines) if str(config.get("chip", "")).strip() else None
+        return {device_setting(config, service): legacy}
 
     def on_config_change(self, name: str, value: Any) -> None:
         """require_rearm and select_mismatch_ms apply at once; lines and thresholds at the next start."""

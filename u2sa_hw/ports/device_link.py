@@ -47,7 +47,10 @@ def device_setting(config: Mapping[str, Any], service: str) -> str:
     """The device a single-device driver uses: its ``device`` setting, else the old
     ``device_name``, else the service's name."""
     for key in ("device", "device_name"):
-        value = config.get(key)
+        try:
+            value = config.get(key)
+        except KeyError:   # a Configurator without the field
+            continue
         if isinstance(value, str) and value.strip():
             return value.strip()
     return service
@@ -59,12 +62,12 @@ class DeviceLink(Generic[P]):
     *owner* is the service (``profile``, ``config``, ``publish``, ``register_publisher``);
     *device* and *legacy* are called on each (re)resolve: the device's name, and the address
     the driver's old-form settings give (or None). *options* returns ``open_port``'s keyword
-    options (read timeout, GPIO lines, PWM period). *raw_type* is the LCM type of the records
-    the port hands its tap; *record* says whether to publish them (default: the owner's
+    options (read timeout, GPIO lines, PWM period). *raw_type* is the LCM type (or types) of
+    the records the port hands its tap; *record* says whether to publish them (default: the owner's
     ``record_raw`` setting).
     """
 
-    def __init__(self, owner: Any, *, device: Callable[[], str], raw_type: type,
+    def __init__(self, owner: Any, *, device: Callable[[], str], raw_type: type | tuple[type, ...],
                  legacy: Callable[[], str | None] | None = None,
                  options: Callable[[], Mapping[str, Any]] | None = None,
                  on_open: Callable[[P], None] | None = None, record: Callable[[], bool] | None = None,
@@ -129,7 +132,8 @@ class DeviceLink(Generic[P]):
         """Declare the ``RAW.<device>`` publisher once recording is on."""
         channel = raw_channel(self.device)
         if self._record() and channel not in self._registered:
-            self.owner.register_publisher(channel, self.raw_type)
+            for raw_type in self.raw_type if isinstance(self.raw_type, tuple) else (self.raw_type,):
+                self.owner.register_publisher(channel, raw_type)
             self._registered.add(channel)
 
     def _open(self) -> P:
@@ -138,7 +142,7 @@ class DeviceLink(Generic[P]):
         if self._on_open is not None:
             try:
                 self._on_open(port)
-            except PortError:
+            except BaseException:   # a PortError counts as a failed open; anything else propagates
                 _close_quietly(port)
                 raise
         return port
