@@ -5,12 +5,15 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import time
 from pathlib import Path
 
 import jsonschema
 import pytest
+from conftest import REPO
 from mcap.reader import make_reader
+from recorded_sim import recorded_sim
 
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.recording.foxglove import export_foxglove
@@ -206,3 +209,37 @@ def test_without_an_origin_the_export_says_why_there_is_no_map(tmp_path: Path) -
     report = export_foxglove(path, tmp_path / "fox.mcap")
     assert "/location/STATE_ESTIMATE" not in report.counts and report.counts["/tf"] == 1
     assert "recorded without --vehicle" in report.notes[0]
+
+
+def _layout_topics() -> set[str]:
+    """Every topic the shipped Foxglove layout reads."""
+    layout = json.loads((REPO / "examples" / "foxglove" / "u2sa-layout.json").read_text())
+    topics: set[str] = set()
+    for panel, config in layout["configById"].items():
+        kind = panel.split("!")[0]
+        if kind == "Map":
+            topics.add(config["followTopic"])
+        elif kind == "3D":
+            topics.update(config["topics"])
+        elif kind == "Plot":
+            topics.update(re.split(r"[.{]", p["value"], maxsplit=1)[0] for p in config["paths"])
+        elif kind == "Table":
+            topics.add(config["topicPath"].split(".")[0])
+        elif kind == "Log":
+            topics.add(config["topicToRender"])
+    return topics
+
+
+@pytest.mark.timeout(300)
+def test_every_message_of_a_recorded_simulation_is_valid_and_the_layout_finds_its_topics(
+        tmp_path_factory: pytest.TempPathFactory, tmp_path: Path) -> None:
+    sim = recorded_sim(tmp_path_factory)
+    out = tmp_path / "fox.mcap"
+    report = export_foxglove(sim.log, out, log_dir=sim.logs)
+    topics = _validated(out)
+    assert sum(len(v) for v in topics.values()) == sum(report.counts.values())
+    assert {"RAW.rc/RawGpioEdge", "/location/STATE_ESTIMATE", "/location/STATE_INFO", "/tf", "/scene/world",
+            "/scene/mission", "/log", "/health"} <= set(topics)
+    missing = _layout_topics() - set(topics)
+    assert not missing, f"the layout reads topics the export of the example rover lacks: {missing}"
+    assert report.notes == [] and report.undecodable == 0

@@ -1,69 +1,222 @@
-"""``u2sa log plot``: track, heading, speed and actuator commands of a log over time."""
+"""``u2sa log plot``: a log's run on one page.
+
+Left, the map view (east right, north up, metres about the origin) as the simulation
+draws it: the track, the waypoints with their threshold circles, the obstacles of
+``WORLD`` (their last known shape). Right, over time: the heading (unwrapped, so a turn
+through north is a slope, not a jump of 360 degrees), the speed, every actuator's
+commands (``ACTUATOR_CMD`` solid, the pilot's ``MANUAL_CMD`` dashed) and a panel with the
+RC mode (autonomy shaded) and the failsafes. Legends sit beside their panels, never on
+the track. The title names the vehicle, the mission and the file.
+"""
 
 from __future__ import annotations
 
 import math
 from collections import defaultdict
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
+from u2sa_hw import channels as ch
+from u2sa_hw import lcmtypes as t
 from u2sa_hw.channels import base_type
-from u2sa_hw.messages import REGISTRY, MalformedMessage
+from u2sa_hw.geo import geodetic_to_ned
+from u2sa_hw.messages import REGISTRY, MalformedMessage, as_type
 from u2sa_hw.recording.log_reader import LogFile
 
+WAYPOINT_COLOUR = "#1f618d"
+FAILSAFE_COLOUR = "#c0392b"
+AUTONOMY_COLOUR = "#27ae60"
 
-def plot_log(src: Path | str, out: Path | str, *, channel: str = "STATE_ESTIMATE") -> dict[str, int]:
-    """Draw *channel*'s track, heading and speed and every actuator's commands into a PNG."""
-    import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+@dataclass
+class RunData:
+    """What the plot needs from a log (times in s from the first message)."""
+
+    vehicle: str = ""
+    mission: str = ""
+    track: list[tuple[float, float, float]] = field(default_factory=list)     # t, north, east
+    heading: list[tuple[float, float]] = field(default_factory=list)          # t, rad (wrapped)
+    speed: list[tuple[float, float]] = field(default_factory=list)
+    commands: dict[tuple[str, str], list[tuple[float, float]]] = field(default_factory=lambda: defaultdict(list))
+    waypoints: dict[str, Any] = field(default_factory=dict)                   # uid -> last Waypoint
+    obstacles: dict[str, Any] = field(default_factory=dict)                   # uid -> last WORLD object
+    rc_modes: list[tuple[float, str, bool]] = field(default_factory=list)     # t, mode name, autonomy enabled
+    failsafes: list[tuple[float, bool, str]] = field(default_factory=list)    # t, active, reason
+    end: float = 0.0
+
+
+def read_run(src: Path | str, *, channel: str = ch.STATE_ESTIMATE) -> RunData:
+    """Collect the plotted series from log *src*."""
+    from u2sa_hw.recording.foxglove import log_origin
 
     log = LogFile(src)
+    run = RunData()
     t0: int | None = None
-    track: list[tuple[float, float, float]] = []
-    heading: list[tuple[float, float]] = []
-    speed: list[tuple[float, float]] = []
-    commands: dict[str, list[tuple[float, float]]] = defaultdict(list)
-    for m in log.messages(f"{channel}|ACTUATOR_CMD"):
-        t0 = m.log_time_ns if t0 is None else t0
-        t = (m.log_time_ns - t0) / 1e9
+    origin = None
+    wanted = {channel, ch.ACTUATOR_CMD, ch.MANUAL_CMD, ch.GOALS, ch.WORLD, ch.RC_MODE, ch.FAILSAFE, ch.MISSION_STATUS}
+    for m in log.messages():
+        if t0 is None:
+            t0, origin = m.log_time_ns, log_origin(log)[0]
+            run.vehicle = log.contents.metadata.get("u2sa", {}).get("vehicle", "")
+        tm = (m.log_time_ns - t0) / 1e9
+        run.end = max(run.end, tm)
+        if m.channel not in wanted:
+            continue
         try:
             msg, _ = REGISTRY.decode(m.data, base_type(m.channel))
         except MalformedMessage:
             continue
-        if m.channel == channel:
-            if msg.has("x") and msg.has("y"):
-                track.append((t, msg.x, msg.y))
-            if msg.has("psi"):
-                heading.append((t, math.degrees(msg.psi) % 360.0))
-            if msg.has("x_dot") and msg.has("y_dot"):
-                speed.append((t, math.hypot(msg.x_dot, msg.y_dot)))
-        elif hasattr(msg, "percentage"):
-            commands[msg.base.actuator_name].append((t, msg.percentage))
-    fig, axes = plt.subplots(2, 2, figsize=(12, 9))
-    ax = axes[0][0]
-    if track:
-        ax.plot([p[2] for p in track], [p[1] for p in track], "-", lw=1.5)
-        ax.plot(track[0][2], track[0][1], "go", label="start")
-        ax.plot(track[-1][2], track[-1][1], "rs", label="end")
-        ax.legend()
-    ax.set(title=f"track ({channel})", xlabel="east (m)", ylabel="north (m)")
+        if m.channel == channel and isinstance(msg, t.StateInformation):
+            _state(run, msg, tm)
+        elif m.channel in (ch.ACTUATOR_CMD, ch.MANUAL_CMD) and hasattr(msg, "percentage"):
+            run.commands[(msg.base.actuator_name, m.channel)].append((tm, msg.percentage))
+        elif m.channel == ch.GOALS and isinstance(msg, t.Waypoint):
+            if msg.reference_frame == "GLOBAL" and origin is not None:
+                msg.x, msg.y, _ = geodetic_to_ned(msg.x, msg.y, None, origin=origin)
+                msg.reference_frame = "LOCAL"
+            if msg.reference_frame != "GLOBAL":
+                run.waypoints[msg.base.uid] = msg
+        elif m.channel == ch.WORLD:
+            try:
+                base = as_type(msg, t.ObjectDescription)
+            except TypeError:
+                continue
+            if base.reference_frame in ("NED", ""):
+                run.obstacles[base.uid] = msg
+        elif m.channel == ch.RC_MODE and isinstance(msg, t.RcMode):
+            if not run.rc_modes or run.rc_modes[-1][1:] != (msg.mode_name, msg.autonomy_enabled):
+                run.rc_modes.append((tm, msg.mode_name or str(msg.mode), msg.autonomy_enabled))
+        elif m.channel == ch.FAILSAFE and isinstance(msg, t.Failsafe):
+            if not run.failsafes or run.failsafes[-1][1] != msg.active:
+                run.failsafes.append((tm, msg.active, msg.reason))
+        elif m.channel == ch.MISSION_STATUS and isinstance(msg, t.MissionStatus) and msg.mission_name:
+            run.mission = msg.mission_name
+    return run
+
+
+def _state(run: RunData, msg: Any, tm: float) -> None:
+    if msg.reference_frame not in ("NED", ""):
+        return
+    if msg.has("x") and msg.has("y") and math.isfinite(msg.x) and math.isfinite(msg.y):
+        run.track.append((tm, msg.x, msg.y))
+    if msg.has("psi") and math.isfinite(msg.psi):
+        run.heading.append((tm, msg.psi))
+    if msg.has("x_dot") and msg.has("y_dot"):
+        run.speed.append((tm, math.hypot(msg.x_dot, msg.y_dot)))
+
+
+def unwrapped_degrees(angles: list[float]) -> list[float]:
+    """Headings in degrees without the jumps at +-180: each step is the shortest turn."""
+    out: list[float] = []
+    for a in angles:
+        d = math.degrees(a)
+        if out:
+            d = out[-1] + ((d - out[-1] + 180.0) % 360.0 - 180.0)
+        out.append(d)
+    return out
+
+
+def build_figure(run: RunData, *, title: str, channel: str = ch.STATE_ESTIMATE) -> Any:
+    """The matplotlib Figure of *run* (Agg backend)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib import patches
+
+    from u2sa_hw.sim.plot import _obstacle_patch
+
+    fig = plt.figure(figsize=(15, 10), dpi=100)
+    grid = fig.add_gridspec(4, 2, width_ratios=(1.15, 1.0), hspace=0.45, wspace=0.28)
+    ax = fig.add_subplot(grid[:, 0])
+    for obj in run.obstacles.values():
+        ax.add_patch(_obstacle_patch(obj, patches))
+        base = as_type(obj, t.ObjectDescription)
+        ax.annotate(base.uid, (base.y, base.x), ha="center", va="center", fontsize=8, color="#7b241c")
+    if run.obstacles:
+        ax.plot([], [], "s", color="#c0392b", alpha=0.5, label="obstacles (WORLD)")
+    for number, (uid, wp) in enumerate(run.waypoints.items(), start=1):
+        if wp.horizontal_threshold > 0:
+            ax.add_patch(patches.Circle((wp.y, wp.x), wp.horizontal_threshold, fill=False, edgecolor=WAYPOINT_COLOUR,
+                                        linestyle="--", linewidth=1))
+        ax.plot(wp.y, wp.x, "x", color=WAYPOINT_COLOUR if not wp.base.completed else "0.5", markersize=9,
+                markeredgewidth=2, label="waypoints (threshold dashed)" if number == 1 else None)
+        ax.annotate(f"{number} {uid}", (wp.y, wp.x), textcoords="offset points", xytext=(6, 6), fontsize=9,
+                    color=WAYPOINT_COLOUR)
+    if run.track:
+        ax.plot([p[2] for p in run.track], [p[1] for p in run.track], "-", lw=1.8, color="#2e86c1",
+                label=f"track ({channel})")
+        ax.plot(run.track[0][2], run.track[0][1], "go", label="start")
+        ax.plot(run.track[-1][2], run.track[-1][1], "ks", label="end")
+    ax.set(title="map (m about the origin)", xlabel="east (m)", ylabel="north (m)")
     ax.set_aspect("equal", adjustable="datalim")
-    ax.grid(True)
-    for ax, series, title, unit in ((axes[0][1], heading, "heading", "deg"), (axes[1][0], speed, "speed", "m/s")):
-        ax.plot([p[0] for p in series], [p[1] for p in series], ".", ms=2)
-        ax.set(title=title, xlabel="time (s)", ylabel=unit)
-        ax.grid(True)
-    ax = axes[1][1]
-    for name, series in sorted(commands.items()):
-        ax.plot([p[0] for p in series], [p[1] for p in series], "-", lw=1, label=name)
-    if commands:
-        ax.legend()
-    ax.set(title="actuator commands", xlabel="time (s)", ylabel="%", ylim=(-105, 105))
-    ax.grid(True)
-    fig.suptitle(str(Path(src).name))
-    fig.tight_layout()
-    fig.savefig(out, dpi=100)
+    ax.autoscale_view()
+    ax.margins(0.08)
+    ax.grid(True, linewidth=0.4, alpha=0.6)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.07), ncol=3, fontsize=8, frameon=False)
+    _series(fig.add_subplot(grid[0, 1]), [([p[0] for p in run.heading], unwrapped_degrees([p[1] for p in run.heading]),
+                                           "estimate")], "heading (unwrapped)", "deg", run.end)
+    _series(fig.add_subplot(grid[1, 1]), [([p[0] for p in run.speed], [p[1] for p in run.speed], "estimate")],
+            "speed", "m/s", run.end)
+    cmd = fig.add_subplot(grid[2, 1])
+    _series(cmd, [([p[0] for p in s], [p[1] for p in s], f"{name} ({'manual' if chan == ch.MANUAL_CMD else 'auto'})")
+                  for (name, chan), s in sorted(run.commands.items())], "actuator commands", "%", run.end,
+            dashed={ch.MANUAL_CMD})
+    cmd.set_ylim(-105, 105)
+    _modes(fig.add_subplot(grid[3, 1]), run)
+    fig.suptitle(title, fontsize=13)
+    fig.subplots_adjust(left=0.05, right=0.86, top=0.93, bottom=0.1)
+    return fig
+
+
+def _series(ax: Any, lines: list[tuple[list[float], list[float], str]], title: str, unit: str, end: float, *,
+            dashed: set[str] | None = None) -> None:
+    for xs, ys, label in lines:
+        style = "--" if dashed and "(manual)" in label else "-"
+        ax.plot(xs, ys, style, lw=1.1, label=label)
+    ax.set(title=title, ylabel=unit, xlim=(0, max(end, 1e-3)))
+    ax.grid(True, linewidth=0.4, alpha=0.6)
+    if len(lines) > 1:
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, frameon=False)
+
+
+def _modes(ax: Any, run: RunData) -> None:
+    """RC mode as steps (autonomy granted shaded green) and failsafes as red spans with their reasons."""
+    names = sorted({m for _t, m, _a in run.rc_modes})
+    level = {n: i for i, n in enumerate(names)}
+    bounds = [tm for tm, _m, _a in run.rc_modes] + [run.end]
+    for (tm, mode, auto), nxt in zip(run.rc_modes, bounds[1:]):
+        ax.hlines(level[mode], tm, nxt, color="#34495e", lw=2)
+        if auto:
+            ax.axvspan(tm, nxt, color=AUTONOMY_COLOUR, alpha=0.15, lw=0)
+    fs_bounds = [tm for tm, _a, _r in run.failsafes] + [run.end]
+    for (tm, active, reason), nxt in zip(run.failsafes, fs_bounds[1:]):
+        if active:
+            ax.axvspan(tm, nxt, color=FAILSAFE_COLOUR, alpha=0.3, lw=0)
+            ax.annotate(reason[:40], (tm, max(len(names) - 0.6, 0.4)), fontsize=7, color=FAILSAFE_COLOUR)
+    ax.set_yticks(range(len(names)), names)
+    ax.set_ylim(-0.6, max(len(names) - 0.4, 0.6))
+    ax.set(title="RC mode (autonomy granted: green) and failsafes (red)", xlabel="time (s)",
+           xlim=(0, max(run.end, 1e-3)))
+    ax.plot([], [], color=AUTONOMY_COLOUR, alpha=0.4, lw=8, label="autonomy granted")
+    ax.plot([], [], color=FAILSAFE_COLOUR, alpha=0.5, lw=8, label=f"failsafe ({sum(a for _t, a, _r in run.failsafes)})")
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, frameon=False)
+    ax.grid(True, axis="x", linewidth=0.4, alpha=0.6)
+
+
+def plot_log(src: Path | str, out: Path | str, *, channel: str = ch.STATE_ESTIMATE) -> dict[str, int]:
+    """Draw the run in log *src* into the PNG *out*; return how many items each part holds."""
+    run = read_run(src, channel=channel)
+    title = (f"{run.vehicle or 'unknown vehicle'} -- mission {run.mission or '(none in the log)'} -- "
+             f"{Path(src).name} ({run.end:.0f} s)")
+    fig = build_figure(run, title=title, channel=channel)   # selects matplotlib's Agg backend first
+    import matplotlib.pyplot as plt
+
+    fig.savefig(out)
     plt.close(fig)
-    return {"track": len(track), "heading": len(heading), "speed": len(speed),
-            "commands": sum(len(s) for s in commands.values())}
+    return {"track": len(run.track), "heading": len(run.heading), "speed": len(run.speed),
+            "commands": sum(len(s) for s in run.commands.values()), "waypoints": len(run.waypoints),
+            "obstacles": len(run.obstacles), "rc_modes": len(run.rc_modes),
+            "failsafes": sum(1 for _t, a, _r in run.failsafes if a)}
