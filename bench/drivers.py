@@ -128,6 +128,9 @@ def health_watch(bus: BusClient, name: str) -> dict[str, str]:
 
 
 # ---------------------------------------------------------------- (a) GPS ----------------------
+GPS_FLOOR_PER_S = 8500   # sentences/s the GPS driver must keep (issue 13: before range checks and merging)
+
+
 def nmea_epochs(workdir: Path, epochs: int) -> tuple[list[bytes], int]:
     """*epochs* receiver epochs (7 sentences each, distinct UTC times 10 ms apart) as bytes."""
     clock = [datetime(2026, 3, 14, 12, 0, 0, tzinfo=timezone.utc)]
@@ -172,9 +175,11 @@ def bench_gps(services: Services, bus: BusClient, epochs: int) -> None:
     elapsed = done - start
     print(f"(a) NMEA sentences/s through the GPS driver: {sentences} sentences ({epochs} epochs x "
           f"{sentences // epochs}) in {elapsed:.2f} s")
-    print(f"    {sentences / elapsed:.0f} sentences/s parsed   {published[0] / elapsed:.0f} State Information/s "
+    rate = sentences / elapsed
+    print(f"    {rate:.0f} sentences/s parsed   {published[0] / elapsed:.0f} State Information/s "
           f"published   {published[0]}/{epochs} epochs published   (writer done after {written - start:.2f} s; "
           f"includes one epoch_gap_s for the last epoch)")
+    print(f"    floor {GPS_FLOOR_PER_S}/s (issue 13): {'held' if rate >= GPS_FLOOR_PER_S else 'NOT held'}")
     os.close(master)
     os.close(slave)
 

@@ -10,7 +10,8 @@ The rules, in order (docs/drivers-serial.md lists them beside gpsd's):
    epoch (a multi-constellation receiver's per-system sentences); the same talker and kind
    again starts the next epoch (a receiver that stamps whole seconds at 5 Hz). GSA, GSV,
    TXT (one per constellation) and ZDA (a repeated ZDA says nothing new) never do.
-3. *Silence* (the caller's :meth:`GpsEpochCollector.flush`) ends the pending epoch.
+3. *Silence* (the caller's :meth:`GpsEpochCollector.flush`) ends the pending epoch, and
+   so does a 65th sentence (no receiver sends that many for one solution).
 4. *Completion.* Once the receiver's epochs have held the same talkers and kinds for at
    least ``learn_span_s`` of wall time (two epochs at least), that content is *expected*
    and an epoch that holds all of it ends with its last sentence, without waiting for the
@@ -23,7 +24,9 @@ The rules, in order (docs/drivers-serial.md lists them beside gpsd's):
    to and publishes only what is new (a velocity, a date), never the position again. A
    supplement after completion also switches completion off (``varying``) until
    :meth:`reset`, so the receiver's later epochs come whole. An HDT (no time) that finds
-   no epoch pending belongs to the preceding epoch, never to the following one.
+   no epoch pending belongs to the preceding epoch, never to the following one; so do
+   sentences without a time that never meet one (a GSA alone between two silences), and
+   an epoch that began without a time and then meets the published epoch's time.
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ from drivers.nmea_fields import Epoch, Sentence, utc_time
 Key = tuple[str, str]   # (talker, kind)
 GPS_REPEATABLE = frozenset({"GSA", "GSV", "TXT", "ZDA"})
 LEARN_SPAN_S = 2.0
+MAX_EPOCH_SENTENCES = 64   # more in one epoch is no receiver's output (a flood of one repeatable kind): end it
 
 
 @dataclass
@@ -103,6 +107,8 @@ class GpsEpochCollector:
     def _starts_new(self, cur: Epoch, key: Key, when: dt.time | None) -> bool:
         if when is not None and cur.time is not None and when != cur.time:
             return True
+        if len(cur.sentences) >= MAX_EPOCH_SENTENCES:
+            return True
         if key[1] in self.repeatable:
             return False
         # a supplement also ends on a repeat of what its epoch already held (the next epoch's VTG)
@@ -153,6 +159,14 @@ class GpsEpochCollector:
             self.late += len(epoch.sentences) - 1
             held = before.keys if before is not None and before.time == epoch.time else frozenset()
             self._ended = _Ended(epoch.time, held | frozenset(keys), False)
+            return epoch
+        if epoch.time is None and before is not None and before.time is not None and not any(
+                k in before.keys and k[1] not in self.repeatable for k in keys):
+            # sentences without a time that never met one (a GSA alone between two silences) belong
+            # to the preceding epoch
+            epoch.supplement, epoch.time = True, before.time
+            self.late += len(epoch.sentences)
+            self._ended = _Ended(before.time, before.keys | frozenset(keys), False)
             return epoch
         self._ended = _Ended(epoch.time, frozenset(keys), False)
         if self.end_on_complete and not self.varying:

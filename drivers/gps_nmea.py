@@ -17,9 +17,12 @@ See docs/drivers-serial.md for the config, frames and faults.
 
 from __future__ import annotations
 
+import datetime as dt
 import math
 import time
 from typing import Any
+
+from pynmeagps.nmeatypes_get import NMEA_PAYLOADS_GET
 
 from u2sa_hw.config import ConfigError, field
 
@@ -30,6 +33,7 @@ from drivers.nmea_fields import BadChecksum, Epoch, SentenceError, parse_sentenc
 from drivers.serial_sensor import SerialLineSensor
 from drivers.value_ranges import ValueDrops
 
+MAX_MERGED_SENTENCES = 128   # an epoch with its supplements; beyond, a receiver is repeating itself
 GPS_KINDS = frozenset({"GGA", "RMC", "GLL", "VTG", "GSA", "GST", "GNS", "ZDA", "HDT"})
 
 
@@ -51,6 +55,9 @@ class GpsNmeaDriver(SerialLineSensor):
         self._epoch_mode = self.epochs.mode
         self.epoch_count = 0
         self.supplements = 0
+        self.repeated_fixes = 0
+        self._date: tuple[dt.date, dt.time] | None = None   # the latest date a sentence gave, and its time
+        self._fix_key: tuple[object, ...] | None = None   # time and position of the latest fix published
         self.fix: GpsFix | None = None       # the latest epoch's reading that said something of the fix
         self.last_fix: GpsFix | None = None  # the latest epoch with a position
         self._fix_at: float | None = None    # monotonic time self.fix was read
@@ -87,7 +94,8 @@ class GpsNmeaDriver(SerialLineSensor):
         try:
             sentence = parse_sentence(line)
         except BadChecksum as exc:
-            self.count_bad_checksum(exc.kind, str(exc))
+            # a kind no receiver sends (line noise that kept its shape) is counted as "?": the counts stay few
+            self.count_bad_checksum(exc.kind if exc.kind in NMEA_PAYLOADS_GET else "?", str(exc))
             done = self.epochs.dropped(exc.kind, exc.talker)
             if done is not None:
                 self.publish_epoch(done)
@@ -130,7 +138,7 @@ class GpsNmeaDriver(SerialLineSensor):
         """A half-received epoch is dropped, and what a complete epoch holds is learned again."""
         self.epochs.reset()
         self._epoch_mode = self.epochs.mode
-        self._last_epoch, self._published = None, set()
+        self._last_epoch, self._published, self._fix_key = None, set(), None
 
     def publish_epoch(self, epoch: Epoch) -> None:
         """Turn one epoch into at most one State Information and publish it.
@@ -138,7 +146,10 @@ class GpsNmeaDriver(SerialLineSensor):
         A supplement (sentences of an epoch already published) is merged into that epoch, and
         only the fields not yet published for it go out, stamped like the epoch."""
         last = self._last_epoch
-        if epoch.supplement and last is not None and last.time == epoch.time:
+        supplement = epoch.supplement and last is not None and last.time == epoch.time
+        if supplement and last is not None:
+            if len(last.sentences) >= MAX_MERGED_SENTENCES:
+                return   # a receiver repeating one epoch's sentences without end: nothing new in them
             epoch = Epoch(received=last.received, time=last.time, sentences=last.sentences + epoch.sentences)
             self.supplements += 1
             already = self._published
@@ -146,11 +157,20 @@ class GpsNmeaDriver(SerialLineSensor):
             self.epoch_count += 1
             already = set()
         fix = fix_from_epoch(epoch)
+        if not supplement and fix.has_fix and self._same_fix(fix):
+            # The same time and position again (a receiver whose timestamp stopped advancing, gpsd's
+            # "latch"): not a new measurement. It is not published again, and it does not keep the fix
+            # alive: after stale_after_s of repeats the fix is lost (fail safe).
+            self.repeated_fixes += 1
+            return
         for kind in fix.rejects:
             self.drops.drop(kind, f"a {kind} value outside its physical range in {','.join(fix.kinds)}")
         self._last_epoch = epoch
+        self._carry_date(fix)
         if fix.reported:   # an epoch of ZDA or HDT alone says nothing of the fix
             self._take_fix(fix)
+        if fix.has_fix:
+            self._fix_key = (fix.utc_time, fix.lat, fix.lon, fix.alt_msl)
         msg = state_from_fix(fix, self.settings())
         if msg is None:
             self._published = already
@@ -163,6 +183,20 @@ class GpsNmeaDriver(SerialLineSensor):
         self._published = already | set(msg.present_fields())
         if msg.presence_vector:
             self.publish_measurement(msg, received=epoch.received)
+
+    def _carry_date(self, fix: GpsFix) -> None:
+        """Remember the latest date (ZDA, RMC); give it to an epoch without one (GGA alone), a day
+        later when its time is earlier (past midnight). Only health shows the date."""
+        if fix.utc_time is None:
+            return
+        if fix.utc_date is not None:
+            self._date = (fix.utc_date, fix.utc_time)
+        elif self._date is not None:
+            date, time_of_day = self._date
+            fix.utc_date = date if fix.utc_time >= time_of_day else date + dt.timedelta(days=1)
+
+    def _same_fix(self, fix: GpsFix) -> bool:
+        return fix.utc_time is not None and self._fix_key == (fix.utc_time, fix.lat, fix.lon, fix.alt_msl)
 
     def _take_fix(self, fix: GpsFix) -> None:
         """*fix* is the latest word on the fix: log and say a change at once."""
@@ -225,6 +259,7 @@ class GpsNmeaDriver(SerialLineSensor):
             "epoch_end": self.epochs.mode,
             "late_sentences": self.epochs.late,
             "supplements": self.supplements,
+            "repeated_fixes": self.repeated_fixes,
             **self.drops.details("out_of_range"),
             "talkers": ",".join(sorted(self.talkers)),
             "position_frame": self.config.get("position_frame").upper(),

@@ -33,7 +33,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any, Iterable
 
-from pynmeagps import NMEAMessage, NMEAReader
+from pynmeagps import VALMSGID, NMEAMessage, NMEAReader
 from pynmeagps.exceptions import NMEAMessageError, NMEAParseError, NMEATypeError
 from pynmeagps.nmeahelpers import calc_checksum
 from pynmeagps.nmeatypes_get import NMEA_PAYLOADS_GET
@@ -133,7 +133,8 @@ def parse_sentence(line: bytes) -> Sentence | None:
     if talker == "P" or len(talker) != 2 or kind not in NMEA_PAYLOADS_GET:
         return None  # proprietary, or a sentence pynmeagps has no field table for
     try:
-        msg = NMEAReader.parse(text.encode("ascii"))  # validates the checksum again: pynmeagps owns the parse
+        # the checksum is checked above (and names the sentence kind); pynmeagps need not do it again
+        msg = NMEAReader.parse(text.encode("ascii"), validate=VALMSGID)
     except (NMEAParseError, NMEAMessageError, NMEATypeError, ValueError, IndexError, TypeError) as exc:
         raise MalformedSentence(f"{talker}{kind}: {exc}", kind=kind) from None
     if msg is None:

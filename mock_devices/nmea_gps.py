@@ -10,6 +10,11 @@ Supported sentences: GGA, RMC, VTG, GSA, GST, ZDA, HDT (dual-antenna true headin
 Without a fix (``set_fix(False)``) the receiver still sends every sentence with the time,
 but empty position fields, GGA quality 0, RMC/GLL status V, mode N and GSA 1 (no fix).
 
+``set_quality(q)`` makes the fix a GGA quality *q* with the matching mode letter in
+RMC/GNS/GLL/VTG (6 dead reckoning: ``E``, 8 simulator: ``S``, 2 DGPS: ``D``, 4 RTK: ``R``,
+5 float RTK: ``F``); ``geoid_separation_m=None`` leaves the GGA/GNS geoid field empty (older
+SiRF and MTK receivers); ``inject(line)`` writes any line between epochs (a crafted sentence).
+
 Magnetic fields (RMC variation, VTG magnetic course) use ``declination_deg``: east positive,
 true = magnetic + declination. With ``declination_deg=None`` they are left empty, as most
 receivers do.
@@ -32,6 +37,7 @@ from mock_devices.vehicle_sim import SimVehicle, VehicleTruth, ned_to_geodetic
 GPS_SENTENCES = ("GGA", "RMC", "VTG", "GSA", "GST", "ZDA", "HDT", "GNS", "GLL")
 KNOT_MPS = 1852.0 / 3600.0
 _SATELLITES = (2, 5, 7, 9, 13, 15, 18, 20, 24, 27, 29, 30)  # PRNs reported as used in GSA
+MODE_LETTERS = {1: "A", 2: "D", 3: "P", 4: "R", 5: "F", 6: "E", 7: "M", 8: "S"}  # GGA quality -> NMEA mode
 
 
 def nmea_sentence(talker: str, msg_id: str, fields: list[str]) -> bytes:
@@ -63,7 +69,7 @@ class NmeaGpsDevice(PeriodicSerialDevice):
                  talker: str = "GP", sentences: tuple[str, ...] = ("GGA", "RMC", "VTG", "GSA", "GST", "ZDA", "HDT"),
                  horizontal_sigma_m: float = 1.5, vertical_sigma_m: float = 3.0, speed_sigma_mps: float = 0.05,
                  heading_sigma_deg: float = 0.2, declination_deg: float | None = None, num_satellites: int = 10,
-                 hdop: float = 0.9, vdop: float = 1.4, geoid_separation_m: float = 0.0, seed: int = 0,
+                 hdop: float = 0.9, vdop: float = 1.4, geoid_separation_m: float | None = 0.0, seed: int = 0,
                  fix: bool = True, utc_clock: Callable[[], datetime] | None = None, name: str = "gps") -> None:
         unknown = [s for s in sentences if s not in GPS_SENTENCES]
         if unknown:
@@ -84,7 +90,8 @@ class NmeaGpsDevice(PeriodicSerialDevice):
         self.declination_deg = declination_deg
         self.num_satellites = max(0, min(len(_SATELLITES), int(num_satellites)))
         self.hdop, self.vdop = float(hdop), float(vdop)
-        self.geoid_separation_m = float(geoid_separation_m)
+        self.geoid_separation_m = None if geoid_separation_m is None else float(geoid_separation_m)
+        self.quality = 1
         self.utc_clock = utc_clock or (lambda: datetime.now(timezone.utc))
         self._fix = bool(fix)
 
@@ -92,6 +99,24 @@ class NmeaGpsDevice(PeriodicSerialDevice):
     def set_fix(self, on: bool) -> None:
         """Have a position fix (True) or report no fix (False: GGA quality 0, RMC status V)."""
         self._fix = bool(on)
+
+    def set_quality(self, quality: int) -> None:
+        """Report the fix with GGA quality *quality* (1-8) and its mode letter (6: dead reckoning, 8: simulator)."""
+        if quality not in MODE_LETTERS:
+            raise ValueError(f"{self.name}: GGA quality must be one of 1-8, got {quality!r}")
+        self.quality = int(quality)
+
+    def inject(self, line: bytes) -> int:
+        """Write *line* (a complete sentence of the test's making) now, between epochs."""
+        return self.link.write(line)
+
+    @property
+    def _mode(self) -> str:
+        return MODE_LETTERS[self.quality]
+
+    @property
+    def _sep(self) -> str:
+        return "" if self.geoid_separation_m is None else f"{self.geoid_separation_m:.1f}"
 
     @property
     def has_fix(self) -> bool:
@@ -135,15 +160,15 @@ class NmeaGpsDevice(PeriodicSerialDevice):
     def _gga(self, sol: GpsSolution, now: datetime, fix: bool) -> list[str]:
         if not fix:
             return [time2str(now.time()), "", "", "", "", "0", "00", "99.99", "", "", "", "", "", ""]
-        return [time2str(now.time()), *self._latlon(sol, fix), "1", f"{self.num_satellites:02d}",
-                f"{self.hdop:.2f}", f"{sol.alt:.1f}", "M", f"{self.geoid_separation_m:.1f}", "M", "", ""]
+        return [time2str(now.time()), *self._latlon(sol, fix), str(self.quality), f"{self.num_satellites:02d}",
+                f"{self.hdop:.2f}", f"{sol.alt:.1f}", "M", self._sep, "M", "", ""]
 
     def _rmc(self, sol: GpsSolution, now: datetime, fix: bool) -> list[str]:
         dec = self.declination_deg
         mv = ["", ""] if dec is None else [f"{abs(dec):.1f}", "E" if dec >= 0 else "W"]
         motion = [f"{sol.speed / KNOT_MPS:.3f}", f"{sol.course_deg:.2f}"] if fix else ["", ""]
         return [time2str(now.time()), "A" if fix else "V", *self._latlon(sol, fix), *motion,
-                now.strftime("%d%m%y"), *mv, "A" if fix else "N", "V"]
+                now.strftime("%d%m%y"), *mv, self._mode if fix else "N", "V"]
 
     def _vtg(self, sol: GpsSolution, now: datetime, fix: bool) -> list[str]:
         if not fix:
@@ -151,7 +176,7 @@ class NmeaGpsDevice(PeriodicSerialDevice):
         dec = self.declination_deg
         cogm = "" if dec is None else f"{heading_360(sol.course_deg - dec, decimals=2):.2f}"
         return [f"{sol.course_deg:.2f}", "T", cogm, "M", f"{sol.speed / KNOT_MPS:.3f}", "N",
-                f"{sol.speed * 3.6:.3f}", "K", "A"]
+                f"{sol.speed * 3.6:.3f}", "K", self._mode]
 
     def _gsa(self, sol: GpsSolution, now: datetime, fix: bool) -> list[str]:
         used = [f"{prn:02d}" for prn in _SATELLITES[:self.num_satellites]] if fix else []
@@ -176,8 +201,8 @@ class NmeaGpsDevice(PeriodicSerialDevice):
     def _gns(self, sol: GpsSolution, now: datetime, fix: bool) -> list[str]:
         if not fix:
             return [time2str(now.time()), "", "", "", "", "N", "00", "99.99", "", "", "", "", "V"]
-        return [time2str(now.time()), *self._latlon(sol, fix), "A", f"{self.num_satellites:02d}",
-                f"{self.hdop:.2f}", f"{sol.alt:.1f}", f"{self.geoid_separation_m:.1f}", "", "", "V"]
+        return [time2str(now.time()), *self._latlon(sol, fix), self._mode, f"{self.num_satellites:02d}",
+                f"{self.hdop:.2f}", f"{sol.alt:.1f}", self._sep, "", "", "V"]
 
     def _gll(self, sol: GpsSolution, now: datetime, fix: bool) -> list[str]:
-        return [*self._latlon(sol, fix), time2str(now.time()), "A" if fix else "V", "A" if fix else "N"]
+        return [*self._latlon(sol, fix), time2str(now.time()), "A" if fix else "V", self._mode if fix else "N"]

@@ -529,6 +529,6 @@ def test_bad_framing_is_refused_naming_the_field_and_the_allowed_values(tmp_path
         with pytest.raises(ConfigError) as err:
             GpsNmeaDriver("gps", config_path=tmp_path / "gps.toml", transport=transport,
                           settings={"port": "/dev/u2sa/gps", key: value})
-        assert expected in str(err.value) and "settings of 'gps'" in str(err.value)
+        assert expected in str(err.value) and "'gps'" in str(err.value)   # names the service and the field
     finally:
         transport.stop()
