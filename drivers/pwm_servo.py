@@ -7,14 +7,21 @@ enumerated and changed over the bus like every other field; a change applies at 
 next start)::
 
     channels = [
-      { name = "rudder", address = "pca9685:1:0x40", channel = 0, min_us = 1100, max_us = 1900 },
-      { name = "throttle", address = "/sys/class/pwm/pwmchip0", channel = 1, reverse = true,
-        slew_percent_per_s = 50 },
+      { name = "rudder", min_us = 1100, max_us = 1900 },            # device "rudder"
+      { name = "throttle", device = "esc", reverse = true, slew_percent_per_s = 50 },
     ]
 
-Keys: ``name``, ``address`` (as ``open_pwm`` takes it), ``channel`` (required);
-``min_us`` 1000, ``neutral_us`` 1500, ``max_us`` 2000, ``reverse`` false, ``frame_hz``
-50, ``slew_percent_per_s`` 0 (no limit) (optional).
+with each channel's output a device of the profile (``device``, default the channel's name)::
+
+    [devices.rudder]
+    address = "pca9685://1/0x40/0"      # I2C adapter 1, chip 0x40, output 0
+    [devices.esc]
+    address = "pwm://pwmchip0/1"        # /sys/class/pwm/pwmchip0, channel 1
+
+Keys: ``name`` (required), ``device``; ``min_us`` 1000, ``neutral_us`` 1500, ``max_us``
+2000, ``reverse`` false, ``frame_hz`` 50, ``slew_percent_per_s`` 0 (no limit) (optional).
+Old profiles give ``address`` (``pca9685:<bus>:<chip>`` or a sysfs chip directory) and
+``channel`` in the table instead; they keep working.
 
 -100..100 % maps piecewise linearly: 0 % is ``neutral_us``, +100 % ``max_us``, -100 %
 ``min_us`` (reversed with ``reverse``), so an ESC with an off-centre neutral still stops
@@ -25,8 +32,9 @@ slewed: on start, on stop and kill, on a failsafe and when commands stop arrivin
 pulse (an ESC stays armed at stop, a servo holds centre) unless ``release_on_exit``.
 
 A channel whose chip goes away is reopened with backoff and set to the output it should
-have; the others keep working. With ``record_raw`` each channel's writes are published as
-``RawPwmWrite`` on ``RAW.<name>``.
+have; the others keep working (each output holds a
+:class:`~u2sa_hw.ports.device_link.DeviceLink`). With ``record_raw`` each channel's writes
+are published as ``RawPwmWrite`` on ``RAW.<device>``.
 """
 
 from __future__ import annotations
@@ -38,29 +46,46 @@ import typing
 from dataclasses import dataclass
 from typing import Any
 
+from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Actuator
 from u2sa_hw.config import ConfigError, field
+from u2sa_hw.ports.address import AddressError
+from u2sa_hw.ports.device_link import DeviceLink
 from u2sa_hw.ports.errors import PortError, PortUnavailable
-from u2sa_hw.ports.pwm_port import PwmChannel, open_pwm
-from u2sa_hw.ports.reconnect import ReconnectingPort
-from u2sa_hw.ports.tap import raw_channel
+from u2sa_hw.ports.legacy import pwm_address
+from u2sa_hw.ports.pwm_port import PwmChannel
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class ServoChannelSpec:
-    """One output: its actuator name, PWM address and channel, pulse limits (µs) and behaviour."""
+    """One output: its actuator name, its device (or old-form PWM address and channel), pulse limits (µs)
+    and behaviour."""
 
     name: str
-    address: str
-    channel: int
+    device: str = ""
+    address: str = ""
+    channel: int = 0
     min_us: float = 1000.0
     neutral_us: float = 1500.0
     max_us: float = 2000.0
     reverse: bool = False
     frame_hz: float = 50.0
     slew_percent_per_s: float = 0.0
+
+    @property
+    def device_name(self) -> str:
+        """The output's device: ``device``, else the channel's name."""
+        return self.device or self.name
+
+    @property
+    def legacy_address(self) -> str | None:
+        """The address the old-form ``address`` and ``channel`` give, or None."""
+        try:
+            return pwm_address(self.address, self.channel) if self.address else None
+        except (AddressError, ValueError):
+            return None
 
     @property
     def period_ns(self) -> int:
@@ -83,7 +108,7 @@ class ServoChannelSpec:
         unknown = sorted(set(table) - set(known))
         if unknown:
             raise ConfigError(f"{where}: unknown key(s) {', '.join(unknown)} (known: {', '.join(known)})")
-        missing = [k for k in ("name", "address", "channel") if k not in table]
+        missing = [k for k in ("name",) if k not in table]
         if missing:
             raise ConfigError(f"{where}: missing {', '.join(missing)}")
         values: dict[str, Any] = {}
@@ -99,8 +124,12 @@ class ServoChannelSpec:
         return spec
 
     def _check(self, where: str) -> None:
-        if not self.name or not self.address:
-            raise ConfigError(f"{where}: 'name' and 'address' must not be empty")
+        if not self.name:
+            raise ConfigError(f"{where}: 'name' must not be empty")
+        if self.address and self.legacy_address is None:
+            raise ConfigError(f"{where}: 'address' {self.address!r} is neither \"pca9685:<bus>:<chip address>\" nor "
+                              "a PWM chip directory; better, name a device whose [devices.NAME] address is "
+                              "\"pca9685://1/0x40/0\" or \"pwm://pwmchip0/0\"")
         if self.channel < 0:
             raise ConfigError(f"{where}: 'channel' must be >= 0, got {self.channel}")
         if not 0 < self.frame_hz <= 2000:
@@ -122,12 +151,19 @@ def parse_channels(tables: Any, *, service: str) -> list[ServoChannelSpec]:
                           '[{ name = "rudder", address = "pca9685:1:0x40", channel = 0 }]')
     specs = [ServoChannelSpec.from_table(tab, where=f"{service}: channels[{i}]") for i, tab in enumerate(tables)]
     names: set[str] = set()
+    devices: dict[str, str] = {}
     outputs: dict[tuple[str, int], str] = {}
     frames: dict[str, ServoChannelSpec] = {}
     for s in specs:
         if s.name in names:
             raise ConfigError(f"{service}: two channels are called '{s.name}'; actuator names must be unique")
         names.add(s.name)
+        other_device = devices.setdefault(s.device_name, s.name)
+        if other_device != s.name:
+            raise ConfigError(f"{service}: channels '{other_device}' and '{s.name}' both use device '{s.device_name}'; "
+                              "give each actuator its own device")
+        if not s.address:
+            continue
         other_name = outputs.setdefault((s.address, s.channel), s.name)
         if other_name != s.name:
             raise ConfigError(f"{service}: channels '{other_name}' and '{s.name}' both use channel {s.channel} of "
@@ -142,27 +178,31 @@ def parse_channels(tables: Any, *, service: str) -> list[ServoChannelSpec]:
 class ServoOutput:
     """One channel at run time: its port (reopened with backoff), the command and the slewed output."""
 
-    def __init__(self, spec: ServoChannelSpec, *, tap: Any) -> None:
+    def __init__(self, spec: ServoChannelSpec, *, service: Any, record: bool) -> None:
         self.spec = spec
         self.target = 0.0  # commanded percent
         self.output = 0.0  # percent being output (slewed toward target)
         self.pulse_us: float | None = None  # pulse last written
         self.write_errors = 0
         self.last_error = ""  # the latest write or open failure, kept after recovery
-        self._tap = tap
-        self.port: ReconnectingPort[PwmChannel] = ReconnectingPort(self._open, device=spec.name)
+        self.port: DeviceLink[PwmChannel] = DeviceLink(
+            service, device=lambda: spec.device_name, raw_type=t.RawPwmWrite, legacy=lambda: spec.legacy_address,
+            options=lambda: {"period_ns": spec.period_ns}, on_open=self._on_open, record=lambda: record)
+        problem = self.port.check()
+        if problem:
+            raise ConfigError(f"{service.name}: channel '{spec.name}': {problem} (e.g. \"pca9685://1/0x40/0\" or "
+                              "\"pwm://pwmchip0/0\")")
+        self.port.start()
+        address = self.port.address
+        if address is not None and address.kind not in ("pwm", "pca9685"):
+            raise ConfigError(f"{service.name}: channel '{spec.name}': device '{spec.device_name}' has the "
+                              f"{address.kind} address {address.url}; a PWM output needs pwm:// or pca9685://")
 
-    def _open(self) -> PwmChannel:
-        s = self.spec
-        pwm = open_pwm(device=s.name, address=s.address, channel=s.channel, period_ns=s.period_ns, tap=self._tap)
-        try:
-            pwm.set_pulse_us(s.pulse_us(self.output))
-            pwm.enable(True)
-        except BaseException:
-            pwm.close()
-            raise
-        self.pulse_us = s.pulse_us(self.output)
-        return pwm
+    def _on_open(self, pwm: PwmChannel) -> None:
+        pulse = self.spec.pulse_us(self.output)
+        pwm.set_pulse_us(pulse)
+        pwm.enable(True)
+        self.pulse_us = pulse
 
     def step(self, dt: float) -> None:
         """Move the output toward the target, by at most the slew limit over *dt* seconds."""
@@ -207,7 +247,7 @@ class PwmServoDriver(Actuator):
                               "frame_hz, slew_percent_per_s (applied at the next start)"),
         field("update_hz", 50.0, "how often slewed outputs step and lost channels are retried", gt=0),
         field("release_on_exit", False, "stop the pulses after the final neutral (default: hold neutral)"),
-        field("record_raw", False, "publish every PWM write on RAW.<channel name>"),
+        field("record_raw", False, "publish every PWM write on RAW.<device> (default device: the channel name)"),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:
@@ -224,6 +264,15 @@ class PwmServoDriver(Actuator):
         """The channel names of ``channels``."""
         return {spec.name for spec in parse_channels(config["channels"], service=name)}
 
+    @classmethod
+    def used_devices(cls, service: str, config: typing.Mapping[str, Any]) -> dict[str, str | None]:
+        """One device per channel (``device``, else its name; old form: its ``address`` and ``channel``)."""
+        try:
+            specs = parse_channels(config.get("channels", []), service=service)
+        except ConfigError:
+            return {}
+        return {spec.device_name: spec.legacy_address for spec in specs}
+
     def setup(self) -> None:
         """Check the channels (a bad config stops the service with the reason) and output neutral."""
         if not 0 < float(self.config["update_hz"]) <= 1000:
@@ -231,8 +280,7 @@ class PwmServoDriver(Actuator):
         specs = parse_channels(self.config["channels"], service=self.name)
         record = bool(self.config["record_raw"])
         for spec in specs:
-            tap = (lambda rec, ch=raw_channel(spec.name): self.publish(ch, rec)) if record else None
-            self.outputs[spec.name] = ServoOutput(spec, tap=tap)
+            self.outputs[spec.name] = ServoOutput(spec, service=self, record=record)
         self.neutral()
         self._update_status()
 
