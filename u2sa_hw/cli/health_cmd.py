@@ -29,6 +29,9 @@ def register(sub: Any) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object (failsafe, summary, services)")
     p.add_argument("--timeout", type=float, default=3.0, metavar="S",
                    help="seconds to wait for the HSM (default 3; it publishes every second)")
+    from u2sa_hw.cli.health_watch import add_options
+
+    add_options(p)   # --watch: a live table (u2sa_hw/cli/health_watch.py)
     p.set_defaults(func=cmd_health)
 
 
@@ -50,6 +53,10 @@ def as_dict(msg: Any) -> dict[str, Any]:
 
 def cmd_health(args: Any) -> int:
     """Print the next SystemHealth; exit 1 naming the problem when no HSM answers."""
+    if args.watch:
+        from u2sa_hw.cli.health_watch import watch
+
+        return watch(args)
     from u2sa_hw import channels as ch
     from u2sa_hw import lcmtypes as t
     from u2sa_hw.cli import CliError

@@ -56,7 +56,7 @@ class HealthTable:
         for name in names:
             st, seen = states.get(name), self.services.get(name)
             h = seen.health if seen else None
-            reason = (st.last_error if st is not None else "") or (h.last_error if h is not None else "")
+            reason = _reason(st, h)
             out.append({
                 "name": name,
                 "state": st.state if st is not None else (h.status if h is not None else "?"),
@@ -78,6 +78,17 @@ class HealthTable:
         return {"failsafe": bool(sysh.failsafe) if sysh is not None else False,
                 "summary": sysh.summary if sysh is not None else "no HSM heard (no U2SA_SYSTEM_HEALTH)",
                 "services": self.rows()}
+
+
+def _reason(state: Any, health: Any) -> str:
+    """Why a service is not ok, in the words ``u2sa health`` uses (``u2sa_hw.health``); its last error when ok."""
+    from u2sa_hw.health import health_reason, join_reasons
+
+    own = health_reason({kv.key: kv.value for kv in health.details}, health.last_error) if health is not None else ""
+    hsm = state.last_error if state is not None else ""
+    if (state.state if state is not None else health.status) == "ok":
+        return hsm or (health.last_error if health is not None else "")
+    return join_reasons(hsm, own)
 
 
 _CELL_NUM = {"type": ["number", "null"]}
