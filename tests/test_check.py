@@ -15,6 +15,8 @@ import pytest
 from conftest import REPO, U2SA
 from u2sa_hw.check import ERROR, WARNING, Problem, check_profile, errors_of
 
+EXAMPLES = sorted((REPO / "examples").glob("*/vehicle.toml"))
+
 
 CLEAN = """\
 [vehicle]
@@ -228,6 +230,28 @@ def test_for_sim_a_device_without_a_mock_names_the_service_and_the_mock(tmp_path
     assert [p.key for p in errors] == ["services.gps"], "\n".join(map(str, errors))
     assert 'mock = "nmea_gps"' in errors[0].fix
     assert not any("/dev/u2sa" in p.message for p in errors)   # the mock stands in: no udev rule needed
+
+
+@pytest.mark.parametrize("example", EXAMPLES, ids=lambda p: p.parent.name)
+def test_each_example_profile_checks_clean(example: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Clean for u2sa sim; on a vehicle whose udev rules make /dev/u2sa/gps and /dev/u2sa/compass, clean too.
+
+    The examples name no USB identity for their serial adapters (they cannot know the reader's),
+    so without such rules exactly those two links are errors, each with the rule line to add.
+    """
+    assert errors_of(check_profile(example, for_sim=True)) == []
+    rules = tmp_path / "rules.d"
+    rules.mkdir()
+    monkeypatch.setenv("U2SA_UDEV_RULES_DIRS", str(rules))   # this machine's own rules do not matter
+    unmade = errors_of(check_profile(example))
+    assert sorted(p.message.split()[2].rstrip(":") for p in unmade) == ["/dev/u2sa/compass", "/dev/u2sa/gps"], \
+        "\n".join(map(str, unmade))
+    assert all('SYMLINK+="u2sa/' in p.fix for p in unmade)
+    (rules / "66-u2sa-local.rules").write_text(
+        'SUBSYSTEM=="tty", ATTRS{idVendor}=="1546", ATTRS{idProduct}=="01a7", SYMLINK+="u2sa/gps"\n'
+        'SUBSYSTEM=="tty", ATTRS{idVendor}=="0403", ATTRS{idProduct}=="6001", SYMLINK+="u2sa/compass"\n')
+    errors = errors_of(check_profile(example))
+    assert errors == [], "\n".join(map(str, errors))
 
 
 def test_run_refuses_a_profile_with_errors_and_lists_them(tmp_path: Path) -> None:
