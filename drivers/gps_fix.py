@@ -44,7 +44,7 @@ from drivers import gps_limits as lim
 from drivers.geoid import geoid_separation
 from drivers.gps_reports import (MIN_SATELLITES_3D, POSITION_KINDS, PositionReport, checked, checked_int, dop,
                                  indicator_status, num, read_report)
-from drivers.nmea_fields import Epoch, number, text, utc_time
+from drivers.nmea_fields import Epoch, text, utc_time
 
 KNOT_MPS = 1852.0 / 3600.0
 GGA_QUALITY = {0: "invalid", 1: "gps", 2: "dgps", 3: "pps", 4: "rtk", 5: "float rtk", 6: "dead reckoning",

@@ -61,6 +61,7 @@ class GpsNmeaDriver(SerialLineSensor):
         self.fix: GpsFix | None = None       # the latest epoch's reading that said something of the fix
         self.last_fix: GpsFix | None = None  # the latest epoch with a position
         self._fix_at: float | None = None    # monotonic time self.fix was read
+        self._expiry_said = False                # the expiry of self.fix has been logged and published
         self._last_epoch: Epoch | None = None            # the latest epoch published (supplements merge into it)
         self._published: set[str] = set()                # the fields published for it
         self.talkers: set[str] = set()
@@ -201,7 +202,7 @@ class GpsNmeaDriver(SerialLineSensor):
     def _take_fix(self, fix: GpsFix) -> None:
         """*fix* is the latest word on the fix: log and say a change at once."""
         old = self.current_fix()
-        self.fix, self._fix_at = fix, time.monotonic()
+        self.fix, self._fix_at, self._expiry_said = fix, time.monotonic(), False
         if fix.has_fix:
             self.last_fix = fix
         if (old is not None and old.has_fix) != fix.has_fix:
@@ -231,6 +232,12 @@ class GpsNmeaDriver(SerialLineSensor):
             changed, self._data_said = bool(self._data_said), data
             if changed:
                 self.publish_health()
+        if self.fix is not None and self._fix_at is not None and self.current_fix() is None and not self._expiry_said:
+            # the fix expired (no position sentence for stale_after_s): say it now, as a change of fix
+            self._expiry_said = True
+            self.logger.info("%s: lost the fix (no position sentence for %.1f s)", self.name,
+                             self.config.get("stale_after_s"))
+            self.publish_health()
         return reason
 
     def problem(self) -> str:
@@ -249,7 +256,7 @@ class GpsNmeaDriver(SerialLineSensor):
         quality = fix.quality if fix else None
         details: dict[str, Any] = {
             "fix": bool(fix and fix.has_fix),
-            "fix_type": fix.fix_name if fix else "no data",
+            "fix_type": fix.fix_name if fix else ("no fix" if self.fix is not None else "no data"),
             "h_sigma_m": _show(horizontal_sigma(fix, self.config.get("uere_m")) if fix else None, ".2f"),
             "fix_quality": "" if quality is None else f"{quality} ({GGA_QUALITY.get(quality, 'unknown')})",
             "satellites": _show(fix.satellites if fix else None),

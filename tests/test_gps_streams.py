@@ -17,6 +17,7 @@ from typing import Callable, Iterator
 import pytest
 from gps_stream_builder import GAP_S, Part, Receiver, Solution, printed, stream, trajectory
 
+from drivers.geoid import geoid_separation
 from drivers.gps_limits import SPEED_MPS
 from drivers.gps_nmea import GpsNmeaDriver
 from u2sa_hw import lcmtypes as t
@@ -194,7 +195,6 @@ def test_quirks_blank_lines_ais_duplicate_zda_late_heading_and_empty_geoid_field
     for msg in headings:                                                     # ... for the epoch it followed
         k = epoch_of(msg, 2.0)
         assert math.degrees(msg.psi) % 360.0 == pytest.approx(round(sol(k).heading, 2), abs=1e-6)
-    from drivers.geoid import geoid_separation
     for msg in positions:
         s = sol(epoch_of(msg, 2.0))
         assert msg.z == pytest.approx(s.alt + geoid_separation(msg.x, msg.y), abs=0.006)
