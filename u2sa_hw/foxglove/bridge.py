@@ -111,7 +111,7 @@ class FoxgloveBridge:
             self.stats.undecodable += 1
             return
         try:
-            outputs = self.mapper.map(channel, msg, t_ns)
+            outputs = self.mapper.map(channel, msg, t_ns, wanted=lambda topic: self._channel(topic).has_sinks())
         except Exception:  # noqa: BLE001 - one odd message must not end the live view
             self.stats.undecodable += 1
             log.exception("mapping a %s on %s failed", type(msg).__name__, channel)
@@ -119,12 +119,17 @@ class FoxgloveBridge:
         for topic, payload in outputs:
             self._log(topic, payload, t_ns)
 
-    def _log(self, topic: Topic, payload: dict[str, Any], t_ns: int) -> None:
+    def _channel(self, topic: Topic) -> Any:
+        """The SDK channel of *topic*, advertised to clients when first seen."""
         chan = self._channels.get(topic.name)
         if chan is None:
             schema = self._fox.Schema(name=topic.schema_name, encoding="jsonschema", data=topic.schema)
             chan = self._channels[topic.name] = self._fox.Channel(topic.name, schema=schema, message_encoding="json",
                                                                   context=self._context)
+        return chan
+
+    def _log(self, topic: Topic, payload: dict[str, Any], t_ns: int) -> None:
+        chan = self._channel(topic)
         if chan.has_sinks():
             chan.log(json.dumps(payload, allow_nan=False).encode(), log_time=t_ns)
             self.stats.published += 1

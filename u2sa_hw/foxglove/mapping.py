@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
@@ -115,11 +115,15 @@ class FoxgloveMapper:
     def _note(self, why: str) -> None:
         self.notes[why] = self.notes.get(why, 0) + 1
 
-    def map(self, channel: str, msg: Any, t_ns: int) -> list[Output]:
-        """Every (topic, payload) that *msg*, received on *channel* at *t_ns*, gives."""
+    def map(self, channel: str, msg: Any, t_ns: int, *, wanted: Callable[[Topic], bool] | None = None) -> list[Output]:
+        """Every (topic, payload) that *msg*, received on *channel* at *t_ns*, gives.
+
+        *wanted* (the live bridge: does a client listen?) skips building the JSON copy of the
+        message itself when it says no; the well-known outputs are built always (they keep state).
+        """
         cls = type(msg)
-        out: list[Output] = [(Topic(topic_for(channel, cls), f"u2sa.{cls.__name__}", schema_bytes(cls)),
-                              finite(to_dict(msg)))]
+        own = Topic(topic_for(channel, cls), f"u2sa.{cls.__name__}", schema_bytes(cls))
+        out: list[Output] = [(own, finite(to_dict(msg)))] if wanted is None or wanted(own) else []
         if isinstance(msg, t.StateInformation) and channel in LOCATION_CHANNELS:
             fix = location_fix(msg, self.origin, t_ns)
             if fix is not None:
