@@ -201,3 +201,26 @@ def test_network_exposure_needs_a_token_and_the_gate_checks_it(services: Service
             asyncio.run(connect(wrong))
         assert exc.value.response.status_code == 401
     assert asyncio.run(connect(f"?token={token}")) == "serverInfo"
+
+
+@pytest.mark.timeout(60)
+def test_a_full_queue_drops_and_counts_instead_of_slowing_the_bus(services: ServiceProcesses, bus: Any) -> None:
+    proc, err = start_bridge(services, "--queue-size", "1")
+    bridge_port(proc, err)
+    seen: dict[str, Any] = {}
+    bus.transport.subscribe("U2SA_HEALTH", t.Health, lambda _c, m: seen.update(
+        {"status": m.status, **{kv.key: kv.value for kv in m.details}}) if m.name == "foxglove" else None)
+    edge = t.RawGpioEdge()
+    edge.device, edge.line = "rc", 3
+    burst = [0]
+
+    def dropped() -> bool:
+        if burst[0] < 10:   # a few bursts of back-to-back packets: far more than one queue slot can take
+            burst[0] += 1
+            for _ in range(500):
+                bus.publish("RAW.rc", edge)
+        return int(seen.get("dropped", 0)) > 0 and seen.get("status") == "degraded"
+
+    wait_until(dropped, timeout=30, interval=0.3, message="the bridge's health to count drops")
+    assert int(seen["received"]) >= int(seen["dropped"]) > 0
+    assert proc.poll() is None
