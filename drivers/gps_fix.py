@@ -12,7 +12,9 @@ Merging the sentences of one epoch (one UTC time):
   (an altitude, then more satellites, then GGA > GNS > RMC > GLL), so a later sentence with
   less content (a second talker's GGA without altitude, an RMC) never downgrades the fix.
   Without a GNSS fix the status is dead reckoning, simulator or manual when a sentence
-  says so (none of them is a measurement: no position is published), else no fix.
+  says so (none of them is a measurement: no position is published), else no fix. When
+  the epoch has GGA or GNS and none of them has a GNSS fix, they decide: an RMC or GLL
+  status A beside them does not make a fix (fail safe; they carry the quality).
   Every GSA saying "no fix" (navMode 1) vetoes the fix (fail safe).
 - *position*: latitude and longitude of the primary, or of another fix sentence of the
   epoch that gives the same position with more decimals (an RMC with 5 decimals beside a
@@ -123,6 +125,11 @@ def _position(epoch: Epoch, fix: GpsFix) -> None:
     ggas = [r for r in reports if r.kind == "GGA"]
     fix.quality = ggas[0].quality if ggas else None
     fixes = [r for r in reports if r.is_fix]
+    rich = [r for r in reports if r.kind in ("GGA", "GNS")]
+    if rich and not any(r.is_fix for r in rich):
+        # GGA/GNS carry the fix quality: when they all say no GNSS fix (0, dead reckoning, too few
+        # satellites), an RMC/GLL status A (NMEA 2.0 has no mode letter for DR) does not make one
+        fixes, reports = [], rich
     if not fixes:
         statuses = {r.status for r in reports}
         fix.status = next((s for s in ("dr", "simulator", "manual") if s in statuses), "none")

@@ -144,6 +144,19 @@ def test_an_empty_geoid_separation_is_taken_from_the_egm96_table_so_both_heights
 
 
 # ------------------------------------------------------------------ 8: disagreeing sentences -------
+@pytest.mark.parametrize(("gga_quality", "name"), [(0, "no fix"), (6, "DR"), (8, "simulator")])
+def test_an_rmc_saying_valid_beside_a_gga_saying_otherwise_does_not_make_a_fix(gga_quality: int, name: str) -> None:
+    """An NMEA 2.0 receiver in dead reckoning: GGA quality 6, RMC status A without a mode letter."""
+    la, ns = dm(SOL.lat, lat=True)
+    lo, ew = dm(SOL.lon, lat=False)
+    old_rmc = nmea(f"GPRMC,{hhmmss(SOL.when)},A,{la},{ns},{lo},{ew},5.8,45.0,140326,,")
+    fix = fix_from_epoch(epoch(gga(SOL, quality=gga_quality), old_rmc))
+    assert not fix.has_fix and fix.fix_name == name and fix.speed_mps is None
+    # one talker's GGA with a fix is enough (another constellation's may say 0)
+    assert fix_from_epoch(epoch(gga(SOL, talker="GL", quality=0), gga(SOL), old_rmc)).fix_name == "3D"
+
+
+
 def test_gsa_2d_does_not_take_the_altitude_from_a_gga_with_four_satellites() -> None:
     assert fix_from_epoch(epoch(gga(SOL), gsa(SOL, mode=2))).fix_name == "3D"
     # three satellites cannot give 3-D on their own, but the receiver's GSA says it has it
