@@ -5,7 +5,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: test test-stress sim bench venv clean regen-messages
+.PHONY: test test-stress sim bench fuzz venv clean regen-messages
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -27,6 +27,13 @@ sim: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) bench/transport.py
+
+# Long fuzzing of every parser (bench/fuzz.py): atheris (coverage-guided) where it installs,
+# else the seeded mutator the tests use briefly. FUZZ_SECONDS per target.
+FUZZ_SECONDS ?= 60
+fuzz: $(STAMP)
+	$(PY) -m pip install --quiet atheris || echo "atheris does not install here: the seeded mutator runs instead"
+	$(PY) bench/fuzz.py --seconds $(FUZZ_SECONDS)
 
 regen-messages: $(STAMP)
 	$(PY) -m u2sa_hw.message_codegen

@@ -24,6 +24,8 @@ from drivers.compass_serial import SerialCompassDriver
 from drivers.odrive_can import OdriveCanMotor
 from drivers.vesc_can import VescCanMotor
 from u2sa_hw import lcmtypes as t
+from u2sa_hw.bus_auth import OK, TRAILER_LEN
+from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.protocols import odrive_cansimple as cs
 from u2sa_hw.protocols import vesc_can as vc
 from u2sa_hw.transport import Transport
@@ -303,14 +305,65 @@ class CanTarget(Target):
         self.transport.stop()
 
 
+def lcm_corpus() -> list[bytes]:
+    """Encoded messages of several types (strings, arrays, nested headers)."""
+    state = t.StateInformation()
+    state.sensor_name, state.reference_frame = "compass", "NED"
+    state.set(psi=1.0, psi_sigma=0.01, x=3.0, x_sigma=0.5)
+    health = t.Health()
+    health.name, health.status = "gps", "ok"
+    raw = t.RawSerial()
+    raw.device, raw.data = "gps", b"$GPGGA,1*00\r\n"
+    raw.length = len(raw.data)
+    return [m.encode() for m in (state, health, t.PercentageCommand(), raw, t.Failsafe(), t.StopCommand())]
+
+
+class LcmTarget(Target):
+    """The receive path's decode in process: the signature check, then the type registry's decode.
+
+    Half the inputs are signed as they are (so they reach decode), half go in as packets.
+    """
+
+    name = "lcm"
+
+    def __init__(self, *, lcm_url: str) -> None:
+        self.registry, self.malformed = REGISTRY, MalformedMessage
+        self.transport = Transport(lcm_url, name="fuzz-lcm")
+        auth = self.transport.auth
+        assert auth is not None, "a bus key is needed (use_run_key)"
+        self.auth = auth
+        payloads = lcm_corpus()
+        self.corpus = payloads + [auth.sign("FUZZ", p) for p in payloads]
+        self.flip = False
+
+    def run(self, data: bytes) -> None:
+        self.flip = not self.flip
+        try:
+            packet = self.auth.sign("FUZZ", data) if self.flip else data
+            verdict = self.auth.verify("FUZZ", packet)
+            if verdict != OK and self.flip:
+                return   # replayed/forged by the mutation of an already signed packet
+            try:
+                self.registry.decode(data if self.flip else packet[:-TRAILER_LEN], None)
+            except self.malformed:
+                pass
+        except Exception as exc:  # noqa: BLE001 - nothing but MalformedMessage may come out of decode
+            raise FuzzViolation(f"{type(exc).__name__}: {exc} escaped the LCM receive path for {data!r}") from exc
+
+    def close(self) -> None:
+        self.transport.stop()
+
+
 def make_target(name: str, *, workdir: Path, lcm_url: str) -> Target:
-    """``compass-nmea``, ``compass-os5000``, ``odrive`` or ``vesc``."""
+    """``compass-nmea``, ``compass-os5000``, ``odrive``, ``vesc`` or ``lcm``."""
     if name.startswith("compass-"):
         return CompassTarget(name.split("-", 1)[1], workdir=workdir, lcm_url=lcm_url)
+    if name == "lcm":
+        return LcmTarget(lcm_url=lcm_url)
     return CanTarget(name, workdir=workdir, lcm_url=lcm_url)
 
 
-TARGETS = ("compass-nmea", "compass-os5000", "odrive", "vesc")
+TARGETS = ("compass-nmea", "compass-os5000", "odrive", "vesc", "lcm")
 
 
 def run_seeded(target: Target, *, seed: int, count: int) -> int:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import random
 
 from conftest import wait_until
-from fuzz_targets import Mutator
+from fuzz_targets import LcmTarget, Mutator, lcm_corpus, run_seeded
 
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus_auth import OK
@@ -24,24 +24,10 @@ from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.transport import Transport
 
 
-def corpus() -> list[bytes]:
-    """Encoded messages of several types, with strings, arrays and nested headers."""
-    state = t.StateInformation()
-    state.sensor_name, state.reference_frame = "compass", "NED"
-    state.set(psi=1.0, psi_sigma=0.01, x=3.0, x_sigma=0.5)
-    health = t.Health()
-    health.name, health.status = "gps", "ok"
-    cmd = t.PercentageCommand()
-    raw = t.RawSerial()
-    raw.device, raw.data = "gps", b"$GPGGA,1*00\r\n"
-    raw.length = len(raw.data)
-    return [m.encode() for m in (state, health, cmd, raw, t.Failsafe(), t.StopCommand())]
-
-
 def test_the_registry_decode_raises_only_malformed_message() -> None:
-    mutator = Mutator(corpus(), seed=76, nmea=False)
+    mutator = Mutator(lcm_corpus(), seed=76, nmea=False)
     decoded = malformed = 0
-    for _ in range(30000):
+    for _ in range(150000):
         data = mutator.next()
         try:
             msg, _known = REGISTRY.decode(data, None)
@@ -58,16 +44,16 @@ def test_the_signature_check_never_raises_and_passes_only_intact_packets(lcm_url
     try:
         auth = tx.auth
         assert auth is not None, "the test session signs (conftest sets a bus key)"
-        signed = [auth.sign("FUZZ", payload) for payload in corpus()]
+        signed = [auth.sign("FUZZ", payload) for payload in lcm_corpus()]
         mutator = Mutator(signed, seed=77)
         verdicts: dict[str, int] = {}
-        for _ in range(20000):
+        for _ in range(100000):
             data = mutator.next()
             verdict = auth.verify("FUZZ", data)
             verdicts[verdict] = verdicts.get(verdict, 0) + 1
             if verdict == OK:
                 assert any(data == s for s in signed), "a mutated packet passed the signature check"
-        assert sum(n for v, n in verdicts.items() if v != OK) > 15000
+        assert sum(n for v, n in verdicts.items() if v != OK) > 75000
     finally:
         tx.stop()
 
@@ -80,7 +66,7 @@ def test_the_transport_counts_every_mutated_packet_and_delivers_only_well_typed_
     try:
         rx.subscribe("FUZZ_STATE", t.StateInformation, lambda _ch, msg: got.append(msg))
         assert signer.auth is not None
-        payloads = corpus()
+        payloads = lcm_corpus()
         payload_mutator = Mutator(payloads[:1], seed=78)   # StateInformation: the subscribed type
         packet_mutator = Mutator([signer.auth.sign("FUZZ_STATE", p) for p in payloads], seed=79)
         rng = random.Random(80)
@@ -109,3 +95,12 @@ def test_the_transport_counts_every_mutated_packet_and_delivers_only_well_typed_
         rx.stop()
         signer.stop()
         raw.stop()
+
+
+def test_the_bench_target_runs_decode_and_verify_on_mutations(lcm_url: str) -> None:
+    """bench/fuzz.py's in-process LCM target: bounded here, long there."""
+    target = LcmTarget(lcm_url=lcm_url)
+    try:
+        assert run_seeded(target, seed=81, count=20000) == 20000 + len(target.corpus)
+    finally:
+        target.close()
