@@ -8,6 +8,7 @@ must say so and must not claim that another baud works.
 
 from __future__ import annotations
 
+import json
 import signal
 import subprocess
 import threading
@@ -74,7 +75,7 @@ def mock_process(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Pat
 EXPECTED = {   # example -> device -> words its probe line must hold
     "ground_vehicle": {"gps": ["NMEA", "100% good checksums"], "compass": ["NMEA", "100% good checksums"],
                        "imu": ["MPU-9250", "WHO_AM_I 0x71 as expected"], "wheels": ["simulated", "node(s) 0, 1"],
-                       "pan:pca9685": ["PCA9685 answers", "MODE1"], "rc": ["exist and are free"]},
+                       "pan": ["PCA9685 answers", "MODE1"], "rc": ["exist and are free"]},
     "boat": {"gps": ["NMEA", "100% good checksums"], "compass": ["OS5000", "100% good checksums"],
              "imu": ["BNO055", "CHIP_ID 0xa0 as expected"], "thrusters": ["simulated", "VESC status frames"],
              "rc": ["exist and are free"]},
@@ -92,6 +93,12 @@ def test_probe_of_an_example_against_its_mocks(mock_process: Path, request: pyte
         assert all(word in line for word in words), f"{line} lacks one of {words}"
     can = next(r for r in results.values() if r.port == "can")
     assert can.details["nodes"], can
+    # the command line: the offline check of the simulation profile is clean, then one probe per device
+    done = subprocess.run([*U2SA, "check", "--vehicle", str(mock_process), "--probe", "--json", "--seconds",
+                           str(WINDOW_S)], capture_output=True, text=True, timeout=120, cwd=REPO)
+    report = json.loads(done.stdout)
+    assert done.returncode == 0 and report["ok"] and report["problems"] == [], done.stdout + done.stderr
+    assert {p["device"] for p in report["probes"]} == set(EXPECTED[example])
     # a node the profile would name but no controller answers as: not heard, the probe fails
     target = next(t for t in _targets(mock_process) if t.port == "can")
     missing = probe_target(replace(target, params={**target.params, "nodes": [*target.params["nodes"], 9]}),

@@ -65,7 +65,7 @@ def _pwm(name: str, kind: str, cfg: Mapping[str, Any]) -> list[Target]:
             key = (bus, chip)
             if key not in seen:
                 seen.add(key)
-                targets.append(Target(f"{name}:pca9685", name, "i2c", f"{bus}/{chip}",
+                targets.append(Target(label, name, "i2c", f"{bus}/{chip}",
                                       {"bus": bus, "address": int(chip, 0), "chip": "pca9685"}))
         elif address:
             channel = int(table.get("channel", 0))
