@@ -215,3 +215,35 @@ def test_only_existing_files_are_references_and_a_name_clash_goes_under_files(tm
     refs, missing = find_references(load_profile(src / "vehicle.toml"), taken={"/etc/u2sa/mission.xml"})
     assert len(missing) == 1 and "objects_file" in missing[0] and "nowhere.xml" in missing[0]
     assert [(r.dest, r.value) for r in refs] == [("/etc/u2sa/files/mission/mission.xml", "files/mission/mission.xml")]
+
+
+@pytest.mark.parametrize("example", EXAMPLES)
+def test_a_staged_install_of_each_example_passes_u2sa_check_against_the_staged_tree(example: str,
+                                                                                    tmp_path: Path) -> None:
+    """As on a vehicle: where the example's serial addresses carry no USB id, the user's rule makes the link
+    (the line the check asks for); then install goes through and the installed profile checks clean."""
+    from u2sa_hw.devices import profile_devices
+    from u2sa_hw.install.udev import links_made, plan_devices
+
+    source = REPO / "examples" / example / "vehicle.toml"
+    root = tmp_path / "root"
+    plan = plan_devices(profile_devices(load_profile(source), warn=lambda _: None), profile_path=source,
+                        made_elsewhere=links_made([]))
+    if plan.unmade:
+        (root / "etc/udev/rules.d").mkdir(parents=True)
+        (root / "etc/udev/rules.d/66-u2sa-local.rules").write_text("".join(
+            f'SUBSYSTEM=="tty", ATTRS{{idVendor}}=="0403", ATTRS{{idProduct}}=="6001", ATTRS{{serial}}=="{name}", '
+            f'SYMLINK+="{path[len("/dev/"):]}"\n' for name, path in plan.unmade))
+    done = u2sa("install", "--vehicle", str(source), "--root", str(root))
+    assert done.returncode == 0, done.stdout + done.stderr
+    installed = root / "etc/u2sa/vehicle.toml"
+    check = u2sa("check", "--vehicle", str(installed), env=staged_check_env(root))
+    assert check.returncode == 0, check.stdout + check.stderr
+    # Every CAN interface comes up at its bitrate (the issue: can0 never came up).
+    assert not plan.can_without_bitrate
+    rules = (root / "etc/udev/rules.d/65-u2sa-vehicle.rules").read_text()
+    for channel, bitrate in plan.can_channels.items():
+        assert f'SUBSYSTEM=="net", KERNEL=="{channel}", ENV{{U2SA_CAN_BITRATE}}="{bitrate}"' in rules
+    # The mission and objects the example's services name are on the staged vehicle.
+    for name in ("mission.xml", "objects.xml"):
+        assert (root / "etc/u2sa" / name).read_bytes() == (source.parent / name).read_bytes()
