@@ -135,7 +135,11 @@ def links_made(rules_dirs: Iterable[Path], *, skip: str = VEHICLE_RULES) -> set[
         for file in sorted(directory.glob("*.rules")) if directory.is_dir() else ():
             if file.name == skip:
                 continue
-            for line in file.read_text(errors="replace").splitlines():
+            try:
+                text = file.read_text(errors="replace")
+            except OSError:
+                continue   # unreadable: udev reads it as root, but we cannot tell what it makes
+            for line in text.splitlines():
                 if not line.lstrip().startswith("#"):
                     found.update(link for m in pattern.finditer(line) for link in m.group(1).split())
     return found
