@@ -131,6 +131,14 @@ class BurstGrouper:
         self._previous = held
         return burst
 
+    def dropped(self, kind: str) -> Burst | None:
+        """A *kind* sentence was dropped (bad checksum). When the pending burst already holds one (not
+        XDR, whose transducers may differ), it was the next burst's: end the pending one now."""
+        cur = self._pending
+        if cur is None or kind == "XDR" or all(p.kind != kind for p in cur.parts):
+            return None
+        return self._end()
+
     def flush(self) -> Burst | None:
         """The line went quiet: end the pending burst (None when there is none)."""
         self._after_silence = True

@@ -164,6 +164,9 @@ class SerialCompassDriver(SerialLineSensor):
             part = parse_compass_line(line, limits=self.limits, drops=self.out_of_range, not_valid=self.not_valid)
         except BadChecksum as exc:
             self.count_bad_checksum(exc.kind, str(exc))
+            done = self.bursts.dropped(exc.kind)
+            if done is not None:
+                self._publish_burst(done)
             return
         except SentenceError as exc:
             self.count_malformed(str(exc))

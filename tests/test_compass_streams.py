@@ -290,3 +290,16 @@ def test_os5000_values_outside_the_documented_ranges_are_dropped(tmp_path: Path,
     assert [sorted(m.present_fields()) for m in driver.sent] == [
         ["phi", "phi_sigma", "theta", "theta_sigma"], ["psi", "psi_sigma"],
         ["phi", "phi_sigma", "psi", "psi_sigma", "theta", "theta_sigma"]]
+
+
+def test_a_corrupted_heading_of_the_next_burst_ends_the_pending_one_at_once(tmp_path: Path,
+                                                                          transport: Transport) -> None:
+    driver = make_driver(tmp_path, transport)
+    feed(driver, compose(("HDG", "XDR"), bursts=4, rate_hz=5.0))   # learned: HDG first, HDG + XDR complete
+    assert driver.bursts.rule == "complete, first HDG (silence)"
+    before = len(driver.sent)
+    driver.handle_line(sentence("HDG", truth_of(10)), 10.0)        # a burst whose XDR is lost ...
+    corrupted = sentence("HDG", truth_of(11)).replace(b"*", b"0*", 1)
+    driver.handle_line(corrupted, 10.03)                            # ... and the next one's HDG corrupted
+    assert [burst_of(m) for m in driver.sent[before:]] == [(10, None)]
+    assert driver.bad_checksums == {"HDG": 1}
