@@ -81,14 +81,12 @@ def preflight(profile: VehicleProfile, *, root: Path, taken: set[str], force: bo
         devices = profile_devices(profile, warn=notices.append)
         plan = plan_devices(devices, profile_path=profile.path, made_elsewhere=links_made(rules_dirs(root)))
     except (ProfileError, InstallError) as exc:
-        if not force:
-            raise InstallError(f"{exc}; u2sa check --vehicle {profile.path} lists every problem") from None
-        plan, unreadable = DevicePlan(), [f"no udev rules, CAN bring-up or PWM drop-ins: {exc}"]
+        plan, unreadable = DevicePlan(), [f"no udev rules, CAN bring-up or PWM drop-ins from the devices: {exc}"]
     references, missing = find_references(profile, taken=taken)
     # What install itself cannot do for the vehicle; a link the check already named is not said twice.
     cannot = [*unreadable, *unmade_text(plan), *missing]
     own = [line for (_, path), line in zip(plan.unmade, unmade_text(plan)) if not any(path in e for e in errors)]
-    own += missing
+    own += [*unreadable, *missing]
     if (errors or own) and not force:
         lines = "\n  ".join([*errors, *own])
         raise InstallError(f"refusing to install {profile.path}: {len(errors) + len(own)} problem(s); fix them "
