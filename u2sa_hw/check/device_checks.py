@@ -52,27 +52,39 @@ def check_devices(path: Path, data: Mapping[str, Any], out: Collector, *, profil
             if k not in known_keys:
                 out.error(f"{key}.{k}", f"unknown key '{k}'{did_you_mean(k, DEVICE_KEYS)}",
                           f"a device table has {', '.join(DEVICE_KEYS)}")
-        service = table.get("service", name)
-        if not isinstance(service, str) or service not in services:
+        service = table.get("service")   # default: the service that names the device (profile_devices)
+        if service is not None and (not isinstance(service, str) or service not in services):
             out.error(f"{key}.service", f"'{service}' is not a service of the profile"
                       f"{did_you_mean(service, services)}", "name the service that uses this device "
                       f"(services: {', '.join(services) or 'none'})")
         mock = table.get("mock")
-        if mock is not None:
-            if catalog is not None and mock not in catalog:
-                out.error(f"{key}.mock", f"'{mock}' is not a mock kind{did_you_mean(mock, catalog)}",
-                          f"use one of {', '.join(sorted(catalog))}")
-            else:
-                mocked.add(str(service))
+        if mock is not None and catalog is not None and mock not in catalog:
+            out.error(f"{key}.mock", f"'{mock}' is not a mock kind{did_you_mean(mock, catalog)}",
+                      f"use one of {', '.join(sorted(catalog))}")
         for k, want in (("options", dict), ("sides", list), ("drives", dict)):
             if k in table and not isinstance(table[k], want):
                 out.error(f"{key}.{k}", f"must be a {'table' if want is dict else 'list'}, got {type_name(table[k])}",
                           "see docs/simulation.md")
+    mocked.update(_mocked_services(profile))
     _check_addresses(profile, out, for_sim=for_sim)
     if for_sim:
         _check_mocks(services, mocked, out)
     elif profile is not None:
         _check_device_nodes(profile, out)
+
+
+def _mocked_services(profile: Any) -> set[str]:
+    """The services whose devices have a mock (``u2sa_hw.devices.profile_devices``)."""
+    from u2sa_hw.devices import profile_devices
+    from u2sa_hw.vehicle import ProfileError
+
+    if profile is None:
+        return set()
+    try:
+        entries = profile_devices(profile, warn=lambda _text: None)
+    except ProfileError:
+        return set()   # _check_addresses reports it
+    return {entry.service for entry in entries.values() if entry.mock is not None and entry.service}
 
 
 def _mock_catalog() -> Mapping[str, Any] | None:
