@@ -44,6 +44,6 @@ def test_a_service_refuses_to_start_with_an_out_of_range_file(services: ServiceP
     cfg_file.write_text("health_interval_s = inf\n")
     r = services.cli("service", "state_estimator", timeout=30)
     assert r.returncode != 0
-    assert r.stderr.strip().splitlines()[-1] == ("u2sa: .u2sa/config/state_estimator.toml: field 'health_interval_s' must be a finite "
-                                                 "number > 0 and <= 60; got inf; fix it there")
+    assert r.stderr.strip().splitlines()[-1] == ("u2sa: .u2sa/config/state_estimator.toml: field 'health_interval_s' "
+                                                 "must be a finite number > 0 and <= 60; got inf; fix it there")
     assert cfg_file.read_text() == "health_interval_s = inf\n"

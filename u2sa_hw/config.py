@@ -100,11 +100,13 @@ def field(name: str, default: Any, help: str = "", *,  # noqa: A002 - reads well
 
     *choices*: the only values allowed; *ge*, *gt*, *le*, *lt*: bounds of a number (or of each
     number of a list); *allow_nonfinite*: accept inf and nan (refused otherwise); *item_type*:
-    the type of a list's items; *remote*: False when a change over the bus is refused. A default that breaks its own declaration is a TypeError or
-    ValueError at import, so a wrong declaration never reaches a vehicle.
+    the type of a list's items; *remote*: False when a change over the bus is refused. A
+    default that breaks its own declaration is a TypeError or ValueError at import, so a wrong
+    declaration never reaches a vehicle.
     """
     if type(default) not in TYPE_NAMES and not isinstance(default, list):
-        raise TypeError(f"config field {name}: default must be int, float, bool, str or list, not {type(default).__name__}")
+        raise TypeError(f"config field {name}: default must be int, float, bool, str or list, "
+                        f"not {type(default).__name__}")
     numeric = type(default) in (int, float) or (isinstance(default, list) and item_type in (int, float))
     bounds = [b for b in (ge, gt, le, lt) if b is not None]
     if bounds and not numeric:
@@ -169,8 +171,8 @@ def coerce(f: ConfigField, value: Any) -> Any:
         for i, item in enumerate(result):
             checked = _scalar(f.item_type, item)
             if checked is None:
-                raise ConfigError(f"field '{f.name}' item {i} expects {TYPE_NAMES.get(f.item_type, f.item_type.__name__)}, "
-                                  f"got {_type_name(item)} {item!r}")
+                wanted = TYPE_NAMES.get(f.item_type, f.item_type.__name__)
+                raise ConfigError(f"field '{f.name}' item {i} expects {wanted}, got {_type_name(item)} {item!r}")
             if f.item_type in (int, float):
                 _checked_number(f, checked, what=f"field '{f.name}' item {i}")
             result[i] = checked
@@ -203,7 +205,12 @@ def to_text(value: Any) -> str:
 
 
 class Configurator:
-    """Typed get/set/enumerate over one service's TOML file."""
+    """Typed get/set/enumerate over one service's TOML file (read-only, it is also a Mapping).
+
+    *initial*: the profile's settings, checked strictly (an unknown key is an error), except
+    keys in *passthrough* (settings some other layer reads, not fields). *validator*: called
+    with a type-checked change before it is written; a returned text refuses it.
+    """
 
     def __init__(self, path: Path | str | None, fields: Iterable[ConfigField], *,
                  logger: logging.Logger | None = None, initial: dict[str, Any] | None = None,

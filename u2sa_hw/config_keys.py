@@ -41,7 +41,7 @@ def known_text(choices: Iterable[str]) -> str:
 
 
 def unknown_key_problem(key: str, known: Iterable[str], *, where: str, what: str = "key") -> str:
-    """One line: *where*, the unknown *key* (a *what*: "key", "service kind"...), the did-you-mean and the known ones."""
+    """One line: *where*, the unknown *key* (a *what*: "key", "service kind"...), a did-you-mean, the known ones."""
     options = list(known)
     hint = did_you_mean(key, options)
     return f"{where}: unknown {what} '{key}'" + (f"; {hint}" if hint else "") + f" (known: {known_text(options)})"

@@ -22,7 +22,8 @@ def register(sub: Any) -> None:
                        description="Read and change a running service's typed config. A change is checked "
                        "against the field's type, allowed values and range by the service (a value out of range, or "
                        "inf/nan where the field needs a finite number, is refused with the bound and the value) "
-                       "and written to its TOML file atomically; a refused change leaves the file untouched. VALUE is a TOML literal: 42, 2.5, true, \"text\". For a text field "
+                       "and written to its TOML file atomically; a refused change leaves the file untouched. "
+                       "VALUE is a TOML literal: 42, 2.5, -5, true, \"text\". For a text field "
                        "a quoted string gives its contents and anything else is taken as it is, so "
                        "mode passthrough and mode '\"passthrough\"' both set passthrough.",
                        epilog="examples:\n  u2sa param list state_estimator --json\n"
