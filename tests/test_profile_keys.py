@@ -123,3 +123,13 @@ def test_validate_config_file_names_a_binary_or_out_of_range_file(tmp_path: Path
     path.write_bytes(b"\x89PNG\r\n")
     assert validate_config_file("state_estimator", path) == [
         f"{path}: not a text file (byte 0 is 0x89, not UTF-8); fix the file or delete it to use defaults"]
+
+
+def test_unknown_safety_keys_get_a_did_you_mean(tmp_path: Path) -> None:
+    from u2sa_hw.safety.prearm_table import parse_prearm
+
+    with pytest.raises(ProfileError, match=r"\[safety\]: unknown key 'hardware_mx'; did you mean 'hardware_mux'\?"):
+        _load(tmp_path, GOOD + '\n[safety]\nhardware_mx = { steering = "steering" }\n')
+    profile = _load(tmp_path, GOOD + "\n[safety.prearm]\ngsp = false\n")
+    with pytest.raises(ProfileError, match=r"gsp.*is not a pre-arm check; did you mean 'gps'\?"):
+        parse_prearm(profile)

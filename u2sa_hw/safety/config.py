@@ -33,6 +33,8 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, Mapping
 
+from u2sa_hw.config_keys import unknown_key_problems
+
 if TYPE_CHECKING:
     from u2sa_hw.services.control.mixers import Mixer
     from u2sa_hw.vehicle import VehicleProfile
@@ -51,6 +53,12 @@ MAX_RC_MODE_TIMEOUT_MS = 1000.0
 def _error(where: str, text: str) -> Exception:
     from u2sa_hw.vehicle import ProfileError
     return ProfileError(f"{where}: {text}")
+
+
+def _error_lines(lines: list[str]) -> Exception:
+    """One ProfileError of whole lines (an unknown key each, with a did-you-mean)."""
+    from u2sa_hw.vehicle import ProfileError
+    return ProfileError("\n".join(lines))
 
 
 @dataclass(frozen=True)
@@ -121,9 +129,9 @@ def _name(table: Mapping[str, Any], key: str, where: str) -> str:
 def _parse_mixer(table: Any, where: str) -> ManualMixerSpec:
     if not isinstance(table, dict):
         raise _error(where, "must be a table with kind, the actuator names and the stick channels")
-    unknown = sorted(set(table) - _MIXER_KEYS)
+    unknown = unknown_key_problems(table, _MIXER_KEYS, where=where)
     if unknown:
-        raise _error(where, f"unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(_MIXER_KEYS))}")
+        raise _error_lines(unknown)
     kind = str(table.get("kind", "")).strip().lower()
     if kind not in MIXER_OUTPUTS:
         raise _error(where, f"'kind' = {table.get('kind')!r}; use one of {', '.join(MIXER_OUTPUTS)}")
@@ -151,9 +159,9 @@ def parse_safety(data: Any, *, where: str) -> SafetyConfig:
         return SafetyConfig()
     if not isinstance(data, dict):
         raise _error(where, "must be a table")
-    unknown = sorted(set(data) - _TOP_KEYS)
+    unknown = unknown_key_problems(data, _TOP_KEYS, where=where)
     if unknown:
-        raise _error(where, f"unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(_TOP_KEYS))}")
+        raise _error_lines(unknown)
     mux = data.get("hardware_mux", {})
     if not isinstance(mux, dict) or not all(isinstance(k, str) and isinstance(v, str) and v.strip()
                                             for k, v in mux.items()):

@@ -27,6 +27,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Mapping
 
+from u2sa_hw.config_keys import did_you_mean
 from u2sa_hw.vehicle import ProfileError, VehicleProfile
 
 TABLE = "prearm"
@@ -151,8 +152,9 @@ class _Reader:
                                     f"got {value!r}")
         unknown = sorted(set(value) - keys)
         if unknown:
-            raise self.error(f"{check}.{unknown[0]}", f"is not a key of the {check} check (known: "
-                                                       f"{', '.join(sorted(keys))})")
+            hint = did_you_mean(unknown[0], keys)
+            raise self.error(f"{check}.{unknown[0]}", f"is not a key of the {check} check{'; ' + hint if hint else ''} "
+                                                       f"(known: {', '.join(sorted(keys))})")
         return dict(value)
 
     def default_service(self, check: str, data: Mapping[str, Any], table: dict[str, Any],
@@ -176,7 +178,9 @@ def parse_prearm(profile: VehicleProfile) -> PrearmTable:
         raise ProfileError(f"{r.where}: must be a table of checks (see docs/safety.md)")
     unknown = sorted(set(data) - _TOP_KEYS)
     if unknown:
-        raise r.error(unknown[0], f"is not a pre-arm check (known: {', '.join(sorted(_TOP_KEYS))})")
+        hint = did_you_mean(unknown[0], _TOP_KEYS)
+        raise r.error(unknown[0], f"is not a pre-arm check{'; ' + hint if hint else ''} "
+                                  f"(known: {', '.join(sorted(_TOP_KEYS))})")
     flags = {}
     for key in ("rc_link", "no_failsafe"):
         value = data.get(key, True)
