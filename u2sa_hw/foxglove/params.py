@@ -19,8 +19,8 @@ from typing import Any, Callable
 from u2sa_hw.config import to_text
 
 log = logging.getLogger("u2sa_hw.foxglove")
-DISCOVERY_TIMEOUT_S = 0.5
-CONFIG_TIMEOUT_S = 1.0
+DISCOVERY_TIMEOUT_S = 1.0
+CONFIG_TIMEOUT_S = 3.0
 
 
 def _native(text: str) -> Any:
