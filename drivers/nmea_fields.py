@@ -98,9 +98,11 @@ def address_of(text: str) -> tuple[str, str]:
     return talker, kind
 
 
-def checked_body(text: str) -> str:
-    """The content between ``$`` and ``*`` after checking the checksum; raises BadChecksum/MalformedSentence."""
-    talker, kind = address_of(text)
+def checked_body(text: str, address: tuple[str, str] | None = None) -> str:
+    """The content between ``$`` and ``*`` after checking the checksum; raises BadChecksum/MalformedSentence.
+
+    *address* is :func:`address_of` *text* when the caller has it already."""
+    talker, kind = address if address is not None else address_of(text)
     match = _CHECKSUM.search(text)
     if match is None:
         raise MalformedSentence(f"no *HH checksum in {text[:40]!r}", kind=kind or "?", talker=talker)
@@ -128,8 +130,8 @@ def parse_sentence(line: bytes) -> Sentence | None:
     if is_foreign(line):
         return None
     text, noise = sentence_text(line)
-    body = checked_body(text)
     talker, kind = address_of(text)
+    body = checked_body(text, (talker, kind))
     if talker == "P" or len(talker) != 2 or kind not in NMEA_PAYLOADS_GET:
         return None  # proprietary, or a sentence pynmeagps has no field table for
     try:
