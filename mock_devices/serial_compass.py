@@ -11,8 +11,12 @@ so a compass in a place with 10 deg E declination reads 350 deg when the vehicle
 true north.
 
 ``NmeaCompassDevice`` sends any of HDG (sensor heading with deviation and variation
-fields), HDM (magnetic), HDT (true) and XDR (pitch and roll as angle transducers
-"PITCH"/"ROLL", degrees), talker "HC" by default, built and checksummed by pynmeagps.
+fields), HDM (magnetic), HDT (true), THS (true, mode A), ROT (the yaw rate in deg/min),
+XDR (pitch and roll as angle transducers "PITCH"/"ROLL", degrees), PASHR (true heading,
+roll, pitch, heave 0 and the sigmas as accuracies) and PTNTHTM/PTNTHPR (the magnetic
+heading as a TNT/HMR3000 without variation programmed sends it, status N), in the order
+given -- e.g. ``("XDR", "HDM")`` for a compass that sends its attitude first; talker "HC"
+by default, built and checksummed by pynmeagps.
 
 ``Os5000CompassDevice`` sends the OS5000's default ASCII output
 ``$C<heading>P<pitch>R<roll>T<temp>*<checksum>`` CR LF: magnetic heading, pitch and roll in
@@ -35,7 +39,7 @@ from mock_devices.nmea_gps import heading_360, nmea_sentence
 from mock_devices.pty_serial import PeriodicSerialDevice
 from mock_devices.vehicle_sim import SimVehicle, VehicleTruth
 
-COMPASS_SENTENCES = ("HDG", "HDM", "HDT", "XDR")
+COMPASS_SENTENCES = ("HDG", "HDM", "HDT", "THS", "ROT", "XDR", "PASHR", "PTNTHTM", "PTNTHPR")
 
 
 def one_decimal(value: float) -> str:
@@ -101,12 +105,31 @@ class NmeaCompassDevice(_CompassBase):
                           f"{abs(var):.1f}", "E" if var >= 0 else "W"]
             elif s == "HDM":
                 fields = [f"{magnetic:.1f}", "M"]
-            elif s == "HDT":
-                fields = [f"{heading_360(magnetic + self.declination_deg, decimals=1):.1f}", "T"]
-            else:
+            elif s in ("HDT", "THS"):
+                fields = [f"{heading_360(magnetic + self.declination_deg, decimals=1):.1f}", "T" if s == "HDT" else "A"]
+            elif s == "ROT":
+                fields = [one_decimal(math.degrees(truth.yaw_rate) * 60.0), "A"]
+            elif s == "XDR":
                 fields = ["A", one_decimal(pitch), "D", "PITCH", "A", one_decimal(roll), "D", "ROLL"]
+            elif s == "PASHR":
+                lines.append(proprietary("PASHR", [
+                    f"{truth.t % 86400 // 3600:02.0f}{truth.t % 3600 // 60:02.0f}{truth.t % 60:05.2f}",
+                    f"{heading_360(magnetic + self.declination_deg, decimals=2):.2f}", "T", f"{roll:.2f}",
+                    f"{pitch:.2f}", "0.00", f"{self.attitude_sigma_deg:.3f}", f"{self.attitude_sigma_deg:.3f}",
+                    f"{self.heading_sigma_deg:.3f}", "1", "1"]))
+                continue
+            else:   # PTNTHTM / PTNTHPR: heading, mag status, pitch, status, roll, status[, dip, field]
+                tnt = [f"{magnetic:.1f}", "N", one_decimal(pitch), "N", one_decimal(roll), "N"]
+                lines.append(proprietary(s, tnt + (["60.0", "2500"] if s == "PTNTHTM" else [])))
+                continue
             lines.append(nmea_sentence(self.talker, s, fields))
         return lines
+
+
+def proprietary(address: str, fields: list[str]) -> bytes:
+    """``$<address>,<fields>*HH`` CR LF (a proprietary sentence has no talker id)."""
+    body = ",".join([address, *fields])
+    return f"${body}*{calc_checksum(body)}\r\n".encode("ascii")
 
 
 def os5000_line(heading: float, pitch: float, roll: float, temperature: float) -> bytes:

@@ -121,18 +121,20 @@ def vehicle() -> Iterator[SimVehicle]:
     v.stop()
 
 
-def check_heading(probe: DriverProbe, count: int, *, since: int = 0, attitude: bool = True) -> None:
+def check_heading(probe: DriverProbe, count: int, *, since: int = 0, attitude: bool = True,
+                  rate: bool | None = False) -> None:
     for msg, truth in probe.wait_states(count, since=since, timeout=20):
+        assert rate is None or msg.has("psi_dot") == rate
         assert msg.sensor_name == "compass" and msg.reference_frame == "NED"
         # a burst cut short while the driver learns the device's burst order (at the start of a stream) is
         # published with what it holds: attitude only, or a heading without it
-        assert msg.has("psi") or msg.has("theta")
+        assert msg.has("psi") or msg.has("theta") or msg.has("psi_dot")
         # 0.5 deg noise, 0.1 deg rounding and up to one epoch gap of turning (0.2 rad/s x 0.05 s)
         assert not msg.has("psi") or angle_error_deg(msg.psi, truth.yaw) < 3.5
         assert -math.pi <= msg.psi < math.pi
         if attitude and msg.has("theta"):
             assert abs(msg.phi) < math.radians(1.5) and abs(msg.theta) < math.radians(1.5)
-        assert not msg.has("x") and not msg.has("psi_dot")
+        assert not msg.has("x")
 
 
 def make_compass(fmt: str, vehicle: SimVehicle, tmp_path: Path) -> NmeaCompassDevice | Os5000CompassDevice:
@@ -248,5 +250,28 @@ def test_hdm_compass_service_applies_the_configured_declination(services: Servic
         start_driver(services, profile, "compass")
         check_heading(probe, 5, attitude=False)
         assert not probe.states_since(0)[-1][0].has("phi")
+    finally:
+        dev.stop()
+
+
+@pytest.mark.parametrize("sentences", [("XDR", "HDM"), ("XDR", "THS", "ROT"), ("PASHR",), ("PTNTHTM", "ROT")])
+def test_attitude_first_tnt_pashr_and_rot_compasses_as_a_service(services: ServiceProcesses, bus: BusClient,
+                                                                 tmp_path: Path, vehicle: SimVehicle,
+                                                                 sentences: tuple[str, ...]) -> None:
+    dev = NmeaCompassDevice(vehicle, link_path=tmp_path / "dev" / "compass", rate_hz=20.0, sentences=sentences,
+                            talker="HE", declination_deg=DECLINATION, seed=4)
+    dev.start()
+    try:
+        profile = write_profile(tmp_path, name="compass", kind="compass_serial",
+                                settings={"port": dev.address, "declination_deg": DECLINATION})
+        probe = DriverProbe(bus, "compass", on_state=vehicle.snapshot)
+        start_driver(services, profile, "compass")
+        check_heading(probe, 30, rate=None)
+        later = probe.states_since(15)
+        assert all(m.has("psi") and m.has("theta") for m, _ in later)   # in step once the burst order is learned
+        if "ROT" in sentences:   # the rover turns right at 0.2 rad/s
+            assert all(m.has("psi_dot") and abs(m.psi_dot - truth.yaw_rate) < 0.01 for m, truth in later)
+        details = probe.wait_health(lambda d, s: s == "ok" and d["out_of_range"] == "0")
+        assert details["source"] in sentences or (details["source"] == "HDM" and "HDM" in sentences)
     finally:
         dev.stop()
