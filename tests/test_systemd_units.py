@@ -87,10 +87,10 @@ def staged(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     port = private_udp_port()
     profile = write_profile(base / "vehicle.toml", port, recorder=True)
     root = stage_root(base / "root")
-    # --force: the check rightly refuses the service 'broken' (an unknown kind), which is there to crash-loop.
-    done = subprocess.run([str(U2SA), "install", "--vehicle", str(profile), "--root", str(root), "--force"],
+    done = subprocess.run([str(U2SA), "install", "--vehicle", str(profile), "--root", str(root)],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
+    # The check's word on the disabled service 'broken' (an unknown kind, there to crash-loop) is a warning.
     assert "warning: " in done.stderr and "no_such_kind" in done.stderr
     return {"root": root, "url": f"udpm://239.255.76.67:{port}?ttl=0"}
 
@@ -308,8 +308,8 @@ def test_offline_vehicle_gets_multicast_on_lo_and_its_services_talk(tmp_path: Pa
     port = private_udp_port()
     profile = write_profile(tmp_path / "vehicle.toml", port)
     root = stage_root(tmp_path / "root")
-    subprocess.run([str(U2SA), "install", "--vehicle", str(profile), "--root", str(root), "--force"], check=True,
-                   capture_output=True, timeout=120)   # --force: past the deliberately broken service
+    subprocess.run([str(U2SA), "install", "--vehicle", str(profile), "--root", str(root)], check=True,
+                   capture_output=True, timeout=120)
     with SystemdNamespace(root, private_network=True) as offline:
         assert offline.state("u2sa-multicast-lo.service") == "active/exited"
         assert "224.0.0.0/4 dev lo" in offline.run("ip", "-4", "route", "show").stdout
@@ -327,14 +327,17 @@ def test_install_and_uninstall_on_a_running_system(tmp_path: Path) -> None:
     port = private_udp_port()
     root = stage_root(tmp_path / "root")
     (root / "opt/src").mkdir()
-    write_profile(root / "opt/src/vehicle.toml", port)
+    good = write_profile(root / "opt/src/vehicle.toml", port)
+    (root / "opt/src/bad.toml").write_text(good.read_text() + '[services.bad]\nkind = "state_estimator"\n'
+                                           "settings = { sensor_timeout_s = -5.0 }\n")
     u2sa = [str(U2SA)]
     with SystemdNamespace(root, unit="multi-user.target") as live:
-        refused = live.run(*u2sa, "install", "--vehicle", "/opt/src/vehicle.toml", "--venv", "shared",
+        refused = live.run(*u2sa, "install", "--vehicle", "/opt/src/bad.toml", "--venv", "shared",
                            check=False, timeout=120)
-        assert refused.returncode == 1 and "refusing to install" in refused.stderr and "no_such_kind" in refused.stderr
+        assert refused.returncode == 1 and "refusing to install" in refused.stderr, refused.stderr
+        assert "sensor_timeout_s" in refused.stderr
         assert not (root / "etc/u2sa/vehicle.toml").exists()   # the check ran before anything was written
-        first = live.run(*u2sa, "install", "--vehicle", "/opt/src/vehicle.toml", "--venv", "shared", "--force",
+        first = live.run(*u2sa, "install", "--vehicle", "/opt/src/vehicle.toml", "--venv", "shared",
                          check=False, timeout=120)
         assert first.returncode == 0, first.stderr
         assert "created   user u2sa" in first.stdout and "daemon-reload" in first.stdout
@@ -349,8 +352,7 @@ def test_install_and_uninstall_on_a_running_system(tmp_path: Path) -> None:
         live.systemctl("start", "u2sa.target")
         for name in SERVICES:
             live.wait_active(f"u2sa@{name}.service")
-        again = live.run(*u2sa, "install", "--vehicle", "/opt/src/vehicle.toml", "--venv", "shared", "--force",
-                         check=False)
+        again = live.run(*u2sa, "install", "--vehicle", "/opt/src/vehicle.toml", "--venv", "shared", check=False)
         assert again.stdout.strip() == "nothing to do: everything is already installed as this profile wants"
         gone = live.run(*u2sa, "uninstall", check=False, timeout=120)
         assert gone.returncode == 0, gone.stderr
