@@ -19,7 +19,11 @@ tests; this script is the control system and the stopwatch. It prints:
     A point not reached within 1 s of the command is counted as missed, per point, and
     left out of that point's figures (a missed Set_Input_Vel is not hidden in a late status).
 
-Usage: ``python bench/drivers.py [--quick] [--only gps|can]``. Not a test: nothing asserts.
+(c) compass: NMEA sentences/s through the compass driver (drivers/compass_serial.py), bursts
+    of XDR, THS and ROT written back to back as fast as it reads, and the State Information
+    messages published against the bursts written (one per burst expected).
+
+Usage: ``python bench/drivers.py [--quick] [--only gps|can|compass]``. Not a test: nothing asserts.
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from mock_devices.nmea_gps import NmeaGpsDevice  # noqa: E402
+from mock_devices.serial_compass import NmeaCompassDevice  # noqa: E402
 from mock_devices.vehicle_sim import SimVehicle  # noqa: E402
 from u2sa_hw.bus_key import use_run_key  # noqa: E402
 from u2sa_hw import channels as ch  # noqa: E402
@@ -184,6 +189,45 @@ def bench_gps(services: Services, bus: BusClient, epochs: int) -> None:
     os.close(slave)
 
 
+# ---------------------------------------------------------------- (c) compass -----------------
+def bench_compass(services: Services, bus: BusClient, bursts: int) -> None:
+    """Feed the NMEA compass driver attitude-first bursts (XDR, THS, ROT) as fast as it reads."""
+    vehicle = SimVehicle(origin_lat=29.1895, origin_lon=-81.0483)
+    compass = NmeaCompassDevice(vehicle, link_path=services.workdir / "unused-compass", talker="HE",
+                                sentences=("XDR", "THS", "ROT"))
+    chunks = [b"".join(compass.epoch_lines(vehicle.snapshot())) for _ in range(bursts)]
+    sentences = 3 * bursts
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    link = services.workdir / "compass"
+    link.symlink_to(os.ttyname(slave))
+    published = [0]
+
+    def on_state(_c: str, msg: t.StateInformation) -> None:
+        if msg.sensor_name == "compass":
+            published[0] += 1
+
+    bus.transport.subscribe(ch.STATE_INFO, t.StateInformation, on_state)
+    health = health_watch(bus, "compass")
+    services.start("compass", "compass_serial", {"port": str(link), "baudrate": 115200})
+    wait_for(lambda: health.get("port") == "open", 20, "the compass driver to open its port")
+    start = time.monotonic()
+    for chunk in chunks:
+        os.write(master, chunk)  # back to back, no pause between bursts: grouped by order, not silence
+    last, last_change = published[0], time.monotonic()
+    while published[0] < bursts and time.monotonic() - last_change < 2.0:
+        time.sleep(0.005)
+        if published[0] != last:
+            last, last_change = published[0], time.monotonic()
+    elapsed = (time.monotonic() if published[0] >= bursts else last_change) - start
+    print(f"(c) NMEA sentences/s through the compass driver: {sentences} sentences ({bursts} bursts of XDR, "
+          f"THS, ROT, no pause between them) in {elapsed:.2f} s")
+    print(f"    {sentences / elapsed:.0f} sentences/s parsed   {published[0] / elapsed:.0f} State Information/s "
+          f"published   {published[0]}/{bursts} bursts published")
+    os.close(master)
+    os.close(slave)
+
+
 # ---------------------------------------------------------------- (b) CAN round trip -----------
 def start_mock_odrives(services: Services, port: int) -> list[subprocess.Popen]:
     """Two mock ODrive nodes (1 left, 2 right), each in its own process with its own vehicle."""
@@ -289,7 +333,7 @@ def main() -> None:
     use_run_key()   # without an installed key, a fresh one for this run and the services it starts
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer samples")
-    parser.add_argument("--only", choices=("gps", "can"), help="run one part")
+    parser.add_argument("--only", choices=("gps", "can", "compass"), help="run one part")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="u2sa-bench-") as tmp:
         services = Services(Path(tmp))
@@ -297,6 +341,8 @@ def main() -> None:
         try:
             if args.only in (None, "gps"):
                 bench_gps(services, bus, 300 if args.quick else 2000)
+            if args.only in (None, "compass"):
+                bench_compass(services, bus, 300 if args.quick else 2000)
             if args.only in (None, "can"):
                 port = private_udp_port()
                 start_mock_odrives(services, port)
