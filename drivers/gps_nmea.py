@@ -171,7 +171,7 @@ class GpsNmeaDriver(SerialLineSensor):
         if fix.reported:   # an epoch of ZDA or HDT alone says nothing of the fix
             self._take_fix(fix)
         if fix.has_fix:
-            self._fix_key = (fix.utc_time, fix.lat, fix.lon, fix.alt_msl)
+            self._fix_key = (fix.utc_time, fix.lat, fix.lon)
         msg = state_from_fix(fix, self.settings())
         if msg is None:
             self._published = already
@@ -197,7 +197,7 @@ class GpsNmeaDriver(SerialLineSensor):
             fix.utc_date = date if fix.utc_time >= time_of_day else date + dt.timedelta(days=1)
 
     def _same_fix(self, fix: GpsFix) -> bool:
-        return fix.utc_time is not None and self._fix_key == (fix.utc_time, fix.lat, fix.lon, fix.alt_msl)
+        return self._fix_key == (fix.utc_time, fix.lat, fix.lon)
 
     def _take_fix(self, fix: GpsFix) -> None:
         """*fix* is the latest word on the fix: log and say a change at once."""

@@ -52,24 +52,29 @@ def make_driver(tmp_path: Path, transport: Transport) -> RecordingGps:
                                   "altitude_datum": "ellipsoid"})
 
 
-@pytest.mark.parametrize("line", [
-    nmea("GPZDA,120000.00,14,03," + "9" * 20 + ",00,00"),
-    nmea("GPGGA,120000.00,2911.000,N,08103.000,W," + "1" * 400 + ",09,0.9,12.0,M,-30.5,M,,"),
-    nmea("GPGGA," + "9" * 40 + ",2911.000,N,08103.000,W,1,09,0.9,12.0,M,-30.5,M,,"),
-    nmea("GPRMC,120000.00,A,2911.000,N,08103.000,W," + "9" * 400 + ",,140326,,,A"),
-    nmea("GPGST,120000.00,1.0,inf,inf,0.0,1e309,nan,-0"),
-    nmea("GPGSA,A," + "3" * 300 + ",02,05,07,09,,,,,,,,,1.7,0.9,1.4"),
+@pytest.mark.parametrize(("line", "kind"), [
+    (nmea("GPZDA,120000.00,14,03," + "9" * 20 + ",00,00"), "date"),
+    (nmea("GPGGA,120000.00,2911.000,N,08103.000,W," + "1" * 400 + ",09,0.9,12.0,M,-30.5,M,,"), "quality"),
+    (nmea("GPGGA," + "9" * 40 + ",2911.000,N,08103.000,W,1,09,0.9,12.0,M,-30.5,M,,"), "time"),
+    (nmea("GPRMC,120000.00,A,2911.000,N,08103.000,W," + "9" * 400 + ",,140326,,,A"), "speed"),
+    (nmea("GPGST,120000.00,1.0,inf,inf,0.0,1e309,nan,-0"), "sigma lat"),
+    (nmea("GPGSA,A," + "3" * 300 + ",02,05,07,09,,,,,,,,,1.7,0.9,1.4"), "gsa mode"),
 ])
 def test_the_sentences_that_crashed_the_service_are_read_without_an_exception(
-        line: bytes, tmp_path: Path, transport: Transport) -> None:
+        line: bytes, kind: str, tmp_path: Path, transport: Transport) -> None:
     driver = make_driver(tmp_path, transport)
-    valid = nmea("GPGGA,120000.00,2911.000,N,08103.000,W,1,09,0.9,12.0,M,-30.5,M,,")
-    for received, data in enumerate((valid, line, line, valid)):
+    before = nmea("GPGGA,120000.00,2911.000,N,08103.000,W,1,09,0.9,12.0,M,-30.5,M,,")
+    after = nmea("GPGGA,120001.00,2911.100,N,08103.000,W,1,09,0.9,12.0,M,-30.5,M,,")
+    for received, data in enumerate((before, line, line, after)):
         driver.handle_line(data, float(received))
         driver.handle_idle()
+    positions = [round(msg.x, 6) for msg in driver.sent if msg.has("x")]
+    # the fixes around it, each once; a GGA whose time is unreadable is a fix of no known time (once)
+    assert positions == [29.183333, 29.183333, 29.185] if kind == "time" else [29.183333, 29.185]
     for msg in driver.sent:
         check_message(msg)
-    assert driver.health_details()["malformed"] == driver.malformed
+    if kind != "time":
+        assert driver.drops.counts.get(kind, 0) >= 1, driver.drops.counts
 
 
 def test_seeded_mutations_never_escape_the_parser_and_fix_logic() -> None:
