@@ -23,6 +23,7 @@ from conftest import U2SA, ServiceProcesses, wait_until
 from u2sa_hw import lcmtypes as t
 
 websockets = pytest.importorskip("websockets")
+InvalidStatus = pytest.importorskip("websockets.exceptions").InvalidStatus
 pytest.importorskip("foxglove")
 
 SUBPROTOCOL = "foxglove.sdk.v1"
@@ -197,7 +198,7 @@ def test_network_exposure_needs_a_token_and_the_gate_checks_it(services: Service
             return json.loads(await ws.recv())["op"]
 
     for wrong in ("", "?token=guess"):
-        with pytest.raises(websockets.exceptions.InvalidStatus) as exc:
+        with pytest.raises(InvalidStatus) as exc:
             asyncio.run(connect(wrong))
         assert exc.value.response.status_code == 401
     assert asyncio.run(connect(f"?token={token}")) == "serverInfo"

@@ -179,8 +179,9 @@ def test_mixed_channels_get_one_schema_per_type_and_the_scene(tmp_path: Path) ->
     out = tmp_path / "fox.mcap"
     report = export_foxglove(path, out, log_dir=logs)
     topics = _validated(out)
-    assert {s for s, _ in topics["RAW.rc/RawGpioEdge"]} == {"u2sa.RawGpioEdge"} and len(topics["RAW.rc/RawGpioEdge"]) == 6
-    assert {s for s, _ in topics["RAW.rc/RawGpioWrite"]} == {"u2sa.RawGpioWrite"} and len(topics["RAW.rc/RawGpioWrite"]) == 2
+    edges, writes = topics["RAW.rc/RawGpioEdge"], topics["RAW.rc/RawGpioWrite"]
+    assert {s for s, _ in edges} == {"u2sa.RawGpioEdge"} and len(edges) == 6
+    assert {s for s, _ in writes} == {"u2sa.RawGpioWrite"} and len(writes) == 2
     assert {"WORLD/Circle", "WORLD/Rectangle", "WORLD/Polygon"} <= set(topics)
     scene = [p for _s, p in topics["/scene/world"]]
     kinds = {e["id"]: [k for k in ("cylinders", "cubes", "lines") if e[k]] for p in scene for e in p["entities"]}

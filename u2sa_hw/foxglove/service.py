@@ -9,7 +9,6 @@ token is checked by ``u2sa_hw.foxglove.gate``). See docs/foxglove.md.
 from __future__ import annotations
 
 import ipaddress
-from pathlib import Path
 from typing import Any, ClassVar
 
 from u2sa_hw.config import ConfigError, field
@@ -91,7 +90,8 @@ class FoxgloveBridgeService(U2SAService):
         self.params = params
         if gated:
             self.gate = TokenGate(host=self.host, port=int(c["port"]), upstream_port=self.bridge.port, token=token,
-                                  tls_cert=p.resolve_path(str(c["tls_cert"])), tls_key=p.resolve_path(str(c["tls_key"])))
+                                  tls_cert=p.resolve_path(str(c["tls_cert"])),
+                                  tls_key=p.resolve_path(str(c["tls_key"])))
             self.gate.start()
         self.bridge.start()
         if self.origin() is None:
