@@ -72,6 +72,16 @@ def test_odometry_pairs_one_fresh_sample_per_side() -> None:
         DiffDriveOdometry(track_width_m=0.0)
 
 
+def test_odometry_refuses_speeds_no_wheel_has_and_counts_them() -> None:
+    odo = DiffDriveOdometry(track_width_m=0.5, source="velocity", max_wheel_speed_mps=20.0)
+    for t0, speed in ((1.0, 1.9e38), (1.01, float("inf")), (1.02, float("nan")), (1.03, -20.5)):
+        assert odo.update("left", t0, speed_mps=speed) is None
+    assert odo.rejected == 4
+    assert odo.update("left", 1.04, speed_mps=20.0) is None   # the limit itself is a speed a wheel can have
+    motion = odo.update("right", 1.05, speed_mps=-20.0)
+    assert motion is not None and motion.speed_mps == 0.0 and motion.yaw_rate_rad_s == pytest.approx(80.0)
+
+
 def test_error_names_decode_both_firmware_lines() -> None:
     bits = int(OdriveError.ESTOP_REQUESTED | OdriveError.DRV_FAULT) | 0x80000000
     assert error_names(bits, firmware="0.6") == "DRV_FAULT|ESTOP_REQUESTED|0x80000000"
