@@ -5,10 +5,13 @@ non-finite or outside its range. Bounded (a few seconds); bench/fuzz.py runs the
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
-from fuzz_targets import CompassTarget, run_seeded
+from fuzz_targets import CompassTarget, FuzzViolation, check_compass_message, run_seeded
+
+from u2sa_hw import lcmtypes as t
 
 
 @pytest.mark.parametrize(("fmt", "count"), [("nmea", 50000), ("os5000", 50000)])
@@ -24,3 +27,13 @@ def test_mutated_compass_lines_never_escape_or_publish_impossible_values(tmp_pat
             assert drv.out_of_range.total > 0 and drv.not_valid.total > 0
     finally:
         target.close()
+
+
+@pytest.mark.parametrize("field, value", [("psi", math.nan), ("psi", math.pi), ("theta", 1.0e304), ("phi", -4.0),
+                                          ("psi_dot", math.inf), ("psi_sigma", 0.0)])
+def test_the_fuzz_check_catches_what_the_issue_saw_published(field: str, value: float) -> None:
+    """The check the fuzz applies fails on the values once published (a NaN heading, a pitch of 1e304 rad)."""
+    msg = t.StateInformation()
+    msg.set(**{field: value})
+    with pytest.raises(FuzzViolation):
+        check_compass_message(msg)
