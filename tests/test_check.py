@@ -76,6 +76,9 @@ settings = { mode = "kalmann" }
 
 [simulaton]
 x = 1
+
+[safety]
+hardware_mux = { rudder = "steering" }
 """
 
 # (file name or "" for the profile, key, a word of the message) for each mistake above
@@ -96,6 +99,7 @@ EXPECTED = [
     ("", "services.mission.settings.mission_file", "does not exist"),
     ("objects.xml", "", ""),
     ("", "services.est.settings", "kalmann"),
+    ("", "safety", "'rudder'"),   # checked too, although the loader stops at the unknown keys above
 ]
 
 

@@ -76,13 +76,12 @@ def check_devices(path: Path, data: Mapping[str, Any], out: Collector, *, profil
 def _mocked_services(profile: Any) -> set[str]:
     """The services whose devices have a mock (``u2sa_hw.devices.profile_devices``)."""
     from u2sa_hw.devices import profile_devices
-    from u2sa_hw.vehicle import ProfileError
 
     if profile is None:
         return set()
     try:
         entries = profile_devices(profile, warn=lambda _text: None)
-    except ProfileError:
+    except ValueError:   # ProfileError or a service's ConfigError:
         return set()   # _check_addresses reports it
     return {entry.service for entry in entries.values() if entry.mock is not None and entry.service}
 
@@ -105,9 +104,10 @@ def _check_addresses(profile: Any, out: Collector, *, for_sim: bool) -> None:
     notices: list[str] = []
     try:
         profile_devices(profile, warn=notices.append)
-    except ProfileError as exc:
-        if any(p.is_error and p.key.startswith("devices.") for p in out.problems):
-            return   # the table errors above are what it stopped at
+    except ValueError as exc:   # ProfileError, or a service's ConfigError while reading its devices
+        stopped_at = "devices." if isinstance(exc, ProfileError) else "services."
+        if any(p.is_error and p.key.startswith(stopped_at) for p in out.problems):
+            return   # the table or setting errors above are what it stopped at
         out.from_text(str(exc), key="devices", fix="write the address as docs/ports.md shows")
     for text in notices:
         out.from_text(text, key="services", fix="", severity=WARNING)
@@ -135,11 +135,10 @@ def _check_mocks(services: Mapping[str, Any], mocked: set[str], out: Collector) 
 def serial_devices(profile: Any) -> list[tuple[str, str, Any]]:
     """``(device name, key, address)`` of every real serial device node of the enabled services."""
     from u2sa_hw.devices import profile_devices
-    from u2sa_hw.vehicle import ProfileError
 
     try:
         entries = profile_devices(profile, warn=lambda _text: None)
-    except ProfileError:
+    except ValueError:   # ProfileError or a service's ConfigError:
         return []   # reported by _check_addresses
     found = []
     for name, entry in entries.items():

@@ -3,7 +3,7 @@
 :func:`check_profile` reads the profile itself (so a table ``load_profile`` would stop at
 does not hide the others), then checks in turn: the top-level tables and ``[vehicle]``
 (unknown keys with a did-you-mean, types, choices, ranges, the directories and files it
-names), every service (:mod:`u2sa_hw.check.services`: kind, settings, config file,
+names), then loads the profile (past those mistakes, :mod:`u2sa_hw.check.lenient`), every service (:mod:`u2sa_hw.check.services`: kind, settings, config file,
 referenced files, supervision), the device tables and addresses
 (:mod:`u2sa_hw.check.device_checks`), ``[simulation]``, and ``[safety]`` against the
 services (:func:`u2sa_hw.safety.wiring.check_wiring`). Nothing is opened but files:
@@ -70,6 +70,10 @@ def check_profile(path: Path, *, for_sim: bool = False) -> list[Problem]:
     vehicle = data.get("vehicle", {}) if isinstance(data.get("vehicle", {}), dict) else {}
     _check_vehicle(path, vehicle, out)
     profile = _load(path, out)
+    if profile is None and any(p.is_error for p in out.problems):
+        from u2sa_hw.check.lenient import lenient_profile
+
+        profile = lenient_profile(path, data)   # past the mistakes reported so far: the rest is checked too
     from u2sa_hw.check.services import check_services
 
     services = data.get("services", {}) if isinstance(data.get("services"), dict) else {}
@@ -79,8 +83,7 @@ def check_profile(path: Path, *, for_sim: bool = False) -> list[Problem]:
     check_devices(path, data, out, profile=profile, for_sim=for_sim)
     if "simulation" in data or for_sim:
         check_simulation(path, data, out)
-    if profile is not None and not any(p.is_error and p.key.startswith("services.") and ".kind" in p.key
-                                       for p in out.problems):
+    if profile is not None:
         _check_safety(profile, out)
     return _unique(out.problems)
 
@@ -159,9 +162,12 @@ def _check_safety(profile: Any, out: Collector) -> None:
     try:
         check_wiring(profile)
     except (ProfileError, ConfigError) as exc:
-        if any(p.is_error and p.key.startswith("services.") for p in out.problems):
-            return   # a service error above already explains why the wiring cannot be read
-        out.from_text(str(exc), key="safety", fix="see docs/safety.md")
+        text = str(exc)
+        if "[safety" not in text and any(p.is_error and p.key.startswith("services.") for p in out.problems):
+            return   # a service's own error above: it is why its actuators cannot be read
+        left_out = any(p.is_error and p.key.endswith(".kind") for p in out.problems)
+        out.from_text(text, key="safety", fix="see docs/safety.md" + (
+            " (the services with an unknown kind above were left out of this check)" if left_out else ""))
 
 
 def _unique(problems: list[Problem]) -> list[Problem]:
