@@ -104,7 +104,7 @@ def file_service_config(profile: VehicleProfile, service: str) -> dict[str, Any]
     if spec.config_path.exists():
         try:
             values.update(tomllib.loads(spec.config_path.read_text()))
-        except (OSError, tomllib.TOMLDecodeError) as exc:
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
             raise DeviceError(f"{spec.config_path}: cannot read the config of service '{service}': {exc}") from None
     return values
 

@@ -133,3 +133,18 @@ def test_unknown_safety_keys_get_a_did_you_mean(tmp_path: Path) -> None:
     profile = _load(tmp_path, GOOD + "\n[safety.prearm]\ngsp = false\n")
     with pytest.raises(ProfileError, match=r"gsp.*is not a pre-arm check; did you mean 'gps'\?"):
         parse_prearm(profile)
+
+
+def test_the_hsm_reads_no_heartbeat_interval_from_a_binary_or_infinite_config(tmp_path: Path) -> None:
+    from u2sa_hw.services.hsm.rules import DEFAULT_HEALTH_INTERVAL_S, health_interval_of
+
+    profile = _load(tmp_path, GOOD)
+    spec = profile.services["gps"]
+    spec.config_path.parent.mkdir(parents=True, exist_ok=True)
+    spec.config_path.write_bytes(b"health_interval_s = 0.5\n\xff")
+    assert health_interval_of(spec) == DEFAULT_HEALTH_INTERVAL_S
+    for text in ("health_interval_s = inf\n", "health_interval_s = nan\n"):
+        spec.config_path.write_text(text)
+        assert health_interval_of(spec) == DEFAULT_HEALTH_INTERVAL_S
+    spec.config_path.write_text("health_interval_s = 0.5\n")
+    assert health_interval_of(spec) == 0.5

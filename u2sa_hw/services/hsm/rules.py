@@ -75,9 +75,9 @@ def health_interval_of(spec: ServiceSpec) -> float:
     value: Any = spec.settings.get("health_interval_s", DEFAULT_HEALTH_INTERVAL_S)
     try:
         value = tomllib.loads(spec.config_path.read_text()).get("health_interval_s", value)
-    except (OSError, tomllib.TOMLDecodeError):
-        pass   # no file yet or a broken one: the service itself reports the broken file
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or value <= 0:
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        pass   # no file yet or a broken (or binary) one: the service itself reports the broken file
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < float("inf"):
         return DEFAULT_HEALTH_INTERVAL_S
     return float(value)
 
