@@ -126,7 +126,8 @@ def _summary(target: object) -> str:
     if driver is None:
         return "decode and signature check only"
     details = driver.health_details()
-    dropped = f"{details.get('out_of_range', 0)} impossible values dropped ({details.get('out_of_range_kinds') or 'none'})"
+    kinds = details.get("out_of_range_kinds") or "none"
+    dropped = f"{details.get('out_of_range', 0)} impossible values dropped ({kinds})"
     counted = ", ".join(f"{k} {details[k]}" for k in ("published", "malformed", "bad_checksums", "dropped",
                                                       "odometry_published") if k in details)
     return f"{dropped}; {counted}"

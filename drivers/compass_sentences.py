@@ -11,16 +11,19 @@ value is checked against its physical range and the configured device range
 A value the sentence itself marks not valid (a status letter) is dropped and counted in
 the second counter (``not_valid``).
 
-| sentence | fields used | heading reference |
-|---|---|---|
-| ``--HDG,h,d,E/W,v,E/W`` | sensor heading, deviation, variation | sensor (+ deviation = magnetic) |
-| ``--HDM,h,M`` | magnetic heading | magnetic |
-| ``--HDT,h,T`` | true heading | true |
-| ``--THS,h,m`` | true heading; mode A autonomous, E estimated (dead reckoning) used; M manual, S simulator, V not valid dropped | true |
-| ``--ROT,r,A`` | rate of turn, deg/min, negative = bow to port; status V dropped | -- |
-| ``--XDR,A,x,D,PITCH,...`` | angle transducers: PITCH/PTCH/TRIM -> pitch, ROLL/HEEL -> roll (degrees) | -- |
-| ``PASHR,t,h,T,r,p,heave,sr,sp,sh,q,i`` | true heading, roll, pitch and their 1-sigma accuracies (OxTS, Hemisphere, NovAtel) | true |
-| ``PTNTHTM,h,s,p,s,r,s,dip,b`` / ``PTNTHPR,h,s,p,s,r,s`` | heading, pitch, roll with status letters (TNT Revolution, Honeywell HMR3000); an alarm letter (L, P, C, V) drops its value, any alarm drops the heading | device (the compass applies its own deviation/variation) |
+- ``--HDG,h,d,E/W,v,E/W``: sensor heading, deviation, variation (reference "sensor");
+- ``--HDM,h,M``: magnetic heading; ``--HDT,h,T``: true heading;
+- ``--THS,h,m``: true heading; mode A (autonomous) and E (estimated, dead reckoning) are
+  used, M (manual), S (simulator) and V (not valid) dropped;
+- ``--ROT,r,A``: rate of turn, deg/min, negative = bow to port; status V dropped;
+- ``--XDR,A,x,D,NAME,...``: angle transducers in degrees, PITCH/PTCH/TRIM -> pitch,
+  ROLL/HEEL -> roll;
+- ``PASHR,t,h,T,r,p,heave,sr,sp,sh,q,i`` (OxTS, Hemisphere, NovAtel): true heading, roll,
+  pitch and their 1-sigma accuracies;
+- ``PTNTHTM,h,s,p,s,r,s,dip,b`` / ``PTNTHPR,h,s,p,s,r,s`` (TNT Revolution, Honeywell
+  HMR3000): heading (reference "device": the compass applies its own deviation and
+  variation), pitch, roll with status letters; an alarm letter (L, P, C, V) drops its
+  value, and any alarm drops the heading.
 
 Signs: pitch positive nose (bow) up, roll positive right (starboard) side down, so a trim
 reading is a pitch and a heel reading a roll.

@@ -67,7 +67,7 @@ class SerialCompassDriver(SerialLineSensor):
     EXAMPLE_PORT = "/dev/u2sa/compass"
     CONFIG = (
         field("baudrate", 19200, "one of 4800 .. 115200 (19200: the OS5000's factory rate; NMEA compasses often 4800)"),
-        field("format", "nmea", "nmea: HDG/HDM/HDT/THS, ROT, XDR, PASHR, PTNTHTM/HPR; os5000: OceanServer $C sentences"),
+        field("format", "nmea", "nmea: HDG/HDM/HDT/THS, ROT, XDR, PASHR, PTNTHTM/HPR; os5000: OceanServer $C lines"),
         field("declination_deg", 0.0, "magnetic declination, east positive: true = magnetic + declination", ge=-180, le=180),
         field("use_hdg_variation", True, "nmea: use HDG's variation field instead of declination_deg when present"),
         field("heading_sigma_deg", 1.0, "sigma of psi (deg)", gt=0),

@@ -18,8 +18,8 @@ name (``actuators``/``node_ids``/``directions``/``wheel_radius_m``). For every a
   re-armed if it needs to be;
 - reads encoder estimates (cyclic, or RTR-polled at ``encoder_poll_hz``) into the wheel
   odometry -- a velocity beyond ``max_motor_rpm`` or a position beyond float32's whole-turn
-  range is impossible, dropped and counted (``out_of_range_kinds``) -- and polls bus voltage/current, temperatures and error details every
-  ``status_poll_s`` for health.
+  range is impossible, dropped and counted (``out_of_range_kinds``) -- and polls bus
+  voltage/current, temperatures and error details every ``status_poll_s`` for health.
 
 The ODrive watchdog (``axis.config.enable_watchdog``/``watchdog_timeout``) disarms the axis
 when no CAN frame reaches it for ``hw_watchdog_timeout_s``: the last line of defence when this
