@@ -156,3 +156,38 @@ def test_a_single_board_vehicle_listens_on_loopback_only(hosts: TwoHosts, tmp_pa
             service.kill()
             service.wait()
         log.close()
+
+
+def test_a_multi_board_vehicle_listens_on_the_interface_its_profile_names(hosts: TwoHosts, tmp_path: Path) -> None:
+    """ttl=1 and bus_interface = "lo" on host A: host B, with the key, on the veth, neither hears it nor is heard."""
+    key = tmp_path / "vehicle.key"
+    write_key(key, new_key(), group=None)
+    _ip("-n", hosts.ns["a"], "link", "set", "lo", "multicast", "on")
+    profile = tmp_path / "vehicle.toml"
+    profile.write_text(f'[vehicle]\nname = "two-boards"\nlcm_url = "{hosts.url}"\nbus_interface = "lo"\n'
+                       f'[services.{SERVICE}]\nkind = "{SERVICE}"\n')
+    log = open(tmp_path / "a.stderr", "wb")
+    service = subprocess.Popen(hosts.command("a", *U2SA, "service", SERVICE, "--vehicle", str(profile)),
+                               cwd=tmp_path, env=hosts.env(key), stdout=log, stderr=subprocess.STDOUT)
+    try:
+        def found_on_a() -> list[dict[str, object]]:
+            r = subprocess.run(hosts.command("a", *U2SA, "services", "--json", "--vehicle", str(profile)),
+                               env=hosts.env(key), capture_output=True, text=True, timeout=60)
+            return json.loads(r.stdout) if r.returncode == 0 else []
+
+        first = wait_until(found_on_a, timeout=60, message="the service on A to answer on A's lo")
+        from_b = hosts.services("b", key)          # the same key and URL, on the veth: not the vehicle's network
+        assert from_b.returncode == 1 and "no service answered discovery" in from_b.stderr
+        stop = subprocess.run(hosts.command("b", *U2SA, "stop", "--all", "--timeout", "1"), env=hosts.env(key),
+                              capture_output=True, text=True, timeout=60)
+        assert "Traceback" not in stop.stderr
+        again = found_on_a()
+        assert service.poll() is None and [s["pid"] for s in again] == [s["pid"] for s in first]
+    finally:
+        service.terminate()
+        try:
+            service.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            service.kill()
+            service.wait()
+        log.close()

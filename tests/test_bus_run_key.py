@@ -1,0 +1,53 @@
+"""``u2sa run`` without an installed key signs the run with a fresh one and says where (issue 11, "Keys").
+
+Real processes: the launcher and its service on a private bus; the key file the launcher
+printed lets ``u2sa services`` in; the test session's own key is a stranger to that run.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+from pathlib import Path
+
+from conftest import U2SA, wait_until
+
+from u2sa_hw.bus_key import KEY_ENV, read_key
+
+SERVICE = "state_estimator"
+
+
+def test_run_without_an_installed_key_makes_one_for_the_run(tmp_path: Path, lcm_url: str) -> None:
+    profile = tmp_path / "vehicle.toml"
+    profile.write_text(f'[vehicle]\nname = "bench"\nlcm_url = "{lcm_url}"\nbus_key = "{tmp_path / "none.key"}"\n'
+                       f'[services.{SERVICE}]\nkind = "{SERVICE}"\n')
+    env = {k: v for k, v in os.environ.items() if k != KEY_ENV}    # no key in the environment, none at bus_key
+    out_path = tmp_path / "run.out"
+    with open(out_path, "wb") as out:
+        run = subprocess.Popen([*U2SA, "run", "--vehicle", str(profile), "--no-color"], cwd=tmp_path, env=env,
+                               stdout=out, stderr=subprocess.STDOUT)
+    try:
+        said = wait_until(lambda: re.search(r"signs with a fresh key (\S+) ", out_path.read_text(errors="replace")),
+                          timeout=60, message="the launcher to say which key the run signs with")
+        key = Path(said.group(1))
+        assert read_key(key) and not (tmp_path / "none.key").exists()
+
+        def listed(with_key: str) -> list[dict[str, object]]:
+            r = subprocess.run([*U2SA, "services", "--json", "--vehicle", str(profile), "--timeout", "1"],
+                               env={**env, KEY_ENV: with_key}, capture_output=True, text=True, timeout=60)
+            return json.loads(r.stdout) if r.returncode == 0 else []
+
+        found = wait_until(lambda: listed(str(key)), timeout=60, message="the run's service, with the run's key")
+        assert [s["name"] for s in found] == [SERVICE] and str(found[0]["bus"]).startswith("signed")
+        assert listed(os.environ[KEY_ENV]) == []    # the session's key is another one
+    finally:
+        run.send_signal(signal.SIGINT)
+        try:
+            run.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            run.kill()
+            run.wait()
+    assert not key.exists()    # the run's key goes with the run
