@@ -32,14 +32,16 @@ simulation, run it against the profile u2sa mock writes):
            of good checksums; on garbage, the other common bauds are tried and
            the one that works is named
   I2C      the chip's identity register against what the driver expects
-           (MPU-9250 WHO_AM_I 0x71/0x73, AK8963 WIA 0x48, BNO055 CHIP_ID 0xA0,
-           PCA9685 MODE1 answers)
+           (MPU-6050/6500/9250 WHO_AM_I 0x68/0x70/0x71, AK8963 WIA 0x48,
+           BNO055 CHIP_ID 0xA0, PCA9685 MODE1 answers)
   CAN      interface state, bitrate and error counters (socketcan), and the node
            ids heard in the window (ODrive heartbeats, VESC status frames)
   GPIO     the lines exist and are free
   PWM      the channel exists
-A device that cannot be opened or does not answer as expected fails the probe
-(exit 1). See docs/check.md.
+The probe runs after a clean offline check, on every device at once (about one
+--seconds window in all), and only reads: stop the services first, a device a
+service holds is reported busy. A device that cannot be opened or does not
+answer as expected fails the probe (exit 1). See docs/check.md.
 """
 
 
