@@ -21,8 +21,9 @@ CRASHERS = (
     nmea("GPZDA,120000.00,14,03," + "9" * 20 + ",00,00"),                                   # a 20-digit year
     nmea("GNGGA,120000.00,2911.000,N,08103.000,W," + "1" * 400 + ",09,0.9,12.0,M,-30.5,M,,"),   # 400-digit quality
     nmea("GNGGA,120000.00,9940.670,N,18212.000,W,1,09,0.9,12.0,M,-30.5,M,,"),                # lat 99.7, lon 182.2
-    nmea("GNRMC,120000.00,A,2911.000,N,08103.000,W," + "9" * 400 + ",,140326,,,A"),            # speed 1e399 knots
-    nmea("GNGST,120000.00,1.0,inf,inf,0.0,1e309,1e309,1e309"),                               # sigma inf
+    # an epoch of its own (another time): an RMC fix whose speed and sigmas are impossible
+    nmea("GNRMC,120001.00,A,2911.000,N,08103.000,W," + "9" * 400 + ",,140326,,,A"),            # speed 1e399 knots
+    nmea("GNGST,120001.00,1.0,inf,inf,0.0,1e309,1e309,1e309"),                               # sigma inf
 )
 
 
