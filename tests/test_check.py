@@ -228,11 +228,11 @@ def test_a_dev_u2sa_link_nothing_creates_is_an_error_with_the_rule_line(tmp_path
     assert not [p for p in check_profile(path) if "/dev/u2sa/gps" in p.message]
 
 
-def test_for_sim_a_device_without_a_mock_names_the_service_and_the_mock(tmp_path: Path) -> None:
+def test_for_sim_a_device_without_a_mock_names_the_device_and_the_mock(tmp_path: Path) -> None:
     path = write(tmp_path, SERIAL.replace("{address}", "serial:///dev/u2sa/gps?baud=9600"))
     errors = errors_of(check_profile(path, for_sim=True))
-    assert [p.key for p in errors] == ["services.gps"], "\n".join(map(str, errors))
-    assert 'mock = "nmea_gps"' in errors[0].fix
+    assert [p.key for p in errors] == ["devices.gps"], "\n".join(map(str, errors))
+    assert "device 'gps' of service 'gps'" in errors[0].message and 'mock = "nmea_gps"' in errors[0].fix
     assert not any("/dev/u2sa" in p.message for p in errors)   # the mock stands in: no udev rule needed
 
 
@@ -269,7 +269,7 @@ def test_sim_refuses_a_device_without_a_mock_at_start(tmp_path: Path) -> None:
     path = write(tmp_path, SERIAL.replace("{address}", "serial:///dev/u2sa/gps?baud=9600"))
     done = u2sa("sim", "--vehicle", str(path), "--out", str(tmp_path / "out"), "--timeout", "30")
     assert done.returncode == 1, done.stdout + done.stderr
-    assert "[services.gps]" in done.stderr and 'mock = "nmea_gps"' in done.stderr
+    assert "[devices.gps]" in done.stderr and 'mock = "nmea_gps"' in done.stderr
     assert not (tmp_path / "out" / "services.log").exists()   # refused before anything started
 
 

@@ -42,7 +42,6 @@ def check_devices(path: Path, data: Mapping[str, Any], out: Collector, *, profil
 
     known_keys = (*DEVICE_KEYS, *LEGACY_DEVICE_KEYS)
     catalog = _mock_catalog()
-    mocked: set[str] = set()
     for name, table in devices.items():
         key = f"devices.{name}"
         if not isinstance(table, dict):
@@ -65,25 +64,23 @@ def check_devices(path: Path, data: Mapping[str, Any], out: Collector, *, profil
             if k in table and not isinstance(table[k], want):
                 out.error(f"{key}.{k}", f"must be a {'table' if want is dict else 'list'}, got {type_name(table[k])}",
                           "see docs/simulation.md")
-    mocked.update(_mocked_services(profile))
     _check_addresses(profile, out, for_sim=for_sim)
     if for_sim:
-        _check_mocks(services, mocked, out)
+        _check_mocks(profile, services, out)
     elif profile is not None:
         _check_device_nodes(profile, out)
 
 
-def _mocked_services(profile: Any) -> set[str]:
-    """The services whose devices have a mock (``u2sa_hw.devices.profile_devices``)."""
+def _device_entries(profile: Any) -> dict[str, Any] | None:
+    """``profile_devices(profile)``, or None when the profile or its device list cannot be read."""
     from u2sa_hw.devices import profile_devices
 
     if profile is None:
-        return set()
+        return None
     try:
-        entries = profile_devices(profile, warn=lambda _text: None)
-    except ValueError:   # ProfileError or a service's ConfigError:
-        return set()   # _check_addresses reports it
-    return {entry.service for entry in entries.values() if entry.mock is not None and entry.service}
+        return profile_devices(profile, warn=lambda _text: None)
+    except ValueError:   # ProfileError or a service's ConfigError: _check_addresses reports it
+        return None
 
 
 def _mock_catalog() -> Mapping[str, Any] | None:
@@ -113,23 +110,27 @@ def _check_addresses(profile: Any, out: Collector, *, for_sim: bool) -> None:
         out.from_text(text, key="services", fix="", severity=WARNING)
 
 
-def _check_mocks(services: Mapping[str, Any], mocked: set[str], out: Collector) -> None:
-    """Simulation: every enabled driver service has a mock device."""
+def _check_mocks(profile: Any, services: Mapping[str, Any], out: Collector) -> None:
+    """Simulation: every device of an enabled service has a mock; the error names the device and the mock kind."""
     from u2sa_hw.registry import known_kinds
 
     kinds = known_kinds()
-    for name, table in services.items():
-        if not isinstance(table, dict) or table.get("enabled", True) is False:
+    entries = _device_entries(profile)
+    if entries is None:   # the device list cannot be read (reported): judge by the driver services instead
+        entries = {name: None for name, table in services.items() if isinstance(table, dict)
+                   and str(kinds.get(table.get("kind"), "")).startswith(DRIVER_PREFIX)}
+    for device, entry in entries.items():
+        service = entry.service if entry is not None else device
+        table = services.get(service)
+        if not isinstance(table, dict) or table.get("enabled", True) is False or getattr(entry, "mock", None):
             continue
         kind = table.get("kind")
-        target = kinds.get(kind) if isinstance(kind, str) else None
-        if target is None or not target.startswith(DRIVER_PREFIX) or name in mocked:
-            continue
         mock = MOCK_FOR_KIND.get(kind, "...")
-        out.error(f"services.{name}", f"service '{name}' ({kind}) drives a device but no [devices] table gives it a "
-                  "mock, so in simulation it would wait for hardware that is not there",
-                  f"add [devices.{name}] with mock = \"{mock}\" (u2sa mock --list-kinds), or enabled = false "
-                  f"in [services.{name}]")
+        key = f"devices.{device}" if entry is not None and entry.table else f"services.{service}"
+        out.error(key, f"device '{device}' of service '{service}' ({kind}) has no mock, so in simulation the "
+                  "service would wait for hardware that is not there",
+                  f"add mock = \"{mock}\" to [devices.{device}] (u2sa mock --list-kinds), or enabled = false "
+                  f"in [services.{service}]")
 
 
 def serial_devices(profile: Any) -> list[tuple[str, str, Any]]:
