@@ -39,7 +39,7 @@ devices do not drive every input of its [simulation] model is refused.
 Before anything starts the profile is checked as u2sa check --sim does
 (docs/check.md): every error is listed and nothing starts. A service that
 drives a device needs a mock ([devices.NAME] mock = "..."); the error names the
-service and the mock kind to add. A service that reports a device or config
+device, its service and the mock kind to add. A service that reports a device or config
 error while starting is named on the console with its error text.
 
 Keys, when stdin is a terminal (the pilot's RC transmitter):
