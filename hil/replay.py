@@ -306,6 +306,7 @@ class Replay:
         capture: BusCapture | None = None
         try:
             changes: dict[str, dict[str, Any]] = {}
+            addresses: dict[str, str] = {}
             rigs: dict[str, Any] = {}
             for dev in self.plan.devices.values():
                 if dev.service:
@@ -314,8 +315,10 @@ class Replay:
                     preload = getattr(devices[dev.name], "preload", None)
                     if preload is not None:
                         preload(self.plan.log, start_ns=self.plan.start_ns, end_ns=self.plan.end_ns)
+                    addresses[dev.name] = devices[dev.name].mock_address(dev.address)
                     changes.setdefault(dev.service, {}).update(devices[dev.name].config_changes())
-            profile_path = write_run_profile(self.plan, self.run_dir, lcm_url=url, changes=changes)
+            profile_path = write_run_profile(self.plan, self.run_dir, lcm_url=url, changes=changes,
+                                             addresses=addresses)
             profile = load_profile(profile_path)
             transport = Transport(url, name="u2sa-replay")
             self.out.parent.mkdir(parents=True, exist_ok=True)

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from u2sa_hw.messages import REGISTRY, MalformedMessage
+from u2sa_hw.ports.address import DeviceAddress, make_address
 from u2sa_hw.ports.i2c_port import OP_READ, OP_WRITE, STATUS_EIO, STATUS_OK
 from u2sa_hw.ports.tap import TX
 from u2sa_hw.recording.log_reader import LogFile
@@ -73,9 +74,16 @@ class ReplayI2cDevice:
         self.counts = {"reads": 0, "from_before_window": 0, "unrecorded_reads": 0, "length_mismatches": 0,
                        "writes": 0, "write_mismatches": 0, "unrecorded_writes": 0}
 
+    def mock_address(self, real: DeviceAddress | None) -> str:
+        """``mock+i2c://<the replay bus socket>/<the recorded chip address>``."""
+        if real is None or real.kind != "i2c":
+            raise ReplayError(f"RAW.{self.name}: the log's profile gives no I2C address for this device "
+                              f"({real.url if real else 'none'}); give the profile with --vehicle FILE")
+        return make_address("i2c", str(self.socket_path), (real.chip_address,), mock=True, device=self.name).url
+
     def config_changes(self) -> dict[str, Any]:
-        """``bus`` -> the replay bus socket; with --fast also ``rate_hz`` -> FAST_I2C_RATE_HZ."""
-        changes: dict[str, Any] = {"bus": f"mock:{self.socket_path}"}
+        """With --fast, ``rate_hz`` -> FAST_I2C_RATE_HZ."""
+        changes: dict[str, Any] = {}
         if self.fast and self.declares_rate:
             changes["rate_hz"] = FAST_I2C_RATE_HZ
         return changes
@@ -217,9 +225,14 @@ class ReplayCanDevice:
         self._lock = threading.Lock()
         self.counts = {"fed": 0, "echoes_skipped": 0, "recorded_tx": 0, "driver_tx": 0}
 
+    def mock_address(self, real: DeviceAddress | None) -> str:
+        """``mock+can://udp_multicast/<group>?port=<the private port>``."""
+        return make_address("can", CAN_GROUP, params={"port": self.port}, mock=True, backend="udp_multicast",
+                            device=self.name).url
+
     def config_changes(self) -> dict[str, Any]:
-        """The CAN motor drivers' bus fields -> the private udp_multicast bus."""
-        return {"interface": "udp_multicast", "channel": CAN_GROUP, "udp_port": self.port, "bitrate": 0}
+        """Nothing besides the address."""
+        return {}
 
     def start(self) -> None:
         """Join the bus and count what the driver sends."""

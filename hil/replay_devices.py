@@ -28,6 +28,7 @@ import tty
 from pathlib import Path
 from typing import Any, Protocol
 
+from u2sa_hw.ports.address import DeviceAddress, make_address
 from u2sa_hw.ports.tap import RX, TX
 
 
@@ -41,8 +42,11 @@ class ReplayDevice(Protocol):
     name: str
     kind: str
 
+    def mock_address(self, real: DeviceAddress | None) -> str:
+        """The ``mock+`` address the driver opens instead of the recorded *real* one (same kind)."""
+
     def config_changes(self) -> dict[str, Any]:
-        """Config fields that point the driver at this device."""
+        """Config fields the replay needs changed besides the address (e.g. a faster rate)."""
 
     def start(self) -> None:
         """Open the device (before the driver starts)."""
@@ -106,9 +110,14 @@ class ReplaySerialDevice:
         """The path the driver opens."""
         return str(self.link_path)
 
+    def mock_address(self, real: DeviceAddress | None) -> str:
+        """``mock+serial://<the pty symlink>`` with the recorded address's framing."""
+        params = {k: v for k, v in real.params.items() if k not in ("usb", "serial")} if real is not None else {}
+        return make_address("serial", self.address, params=params, mock=True, device=self.name).url
+
     def config_changes(self) -> dict[str, Any]:
-        """``port`` -> the pty symlink."""
-        return {"port": self.address}
+        """Nothing besides the address."""
+        return {}
 
     def start(self) -> None:
         """Create the pty (raw mode, non-blocking master), the symlink and the reader of driver writes."""

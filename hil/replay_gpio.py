@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from u2sa_hw.messages import REGISTRY, MalformedMessage
+from u2sa_hw.ports.address import DeviceAddress, make_address
 from u2sa_hw.recording.log_reader import LogFile
 
 from hil.replay_plan import ReplayError
@@ -64,9 +65,14 @@ class ReplayGpioDevice:
         """The chip address the driver's config names."""
         return f"mock:{self.socket_path}"
 
+    def mock_address(self, real: DeviceAddress | None) -> str:
+        """``mock+gpio://<this replay chip>/<the recorded address's lines>``."""
+        lines = real.lines if real is not None and real.kind == "gpio" else ()
+        return make_address("gpio", str(self.socket_path), lines, mock=True, device=self.name).url
+
     def config_changes(self) -> dict[str, Any]:
-        """``chip`` -> this replay chip."""
-        return {"chip": self.address}
+        """Nothing besides the address."""
+        return {}
 
     def preload(self, log_path: Path, *, start_ns: int, end_ns: int) -> None:
         """Read the device's records once: start levels, the lines used, the taps' lag, whether edges are timed."""
@@ -172,48 +178,28 @@ class PwmReplayRig:
     """The mock PWM outputs of one servo service: one sysfs-shaped tree per recorded sysfs chip,
     one mock I2C bus with a mock PCA9685 per recorded PCA9685 bus. Shared by the service's devices."""
 
-    def __init__(self, *, service: str, channels: Any, run_dir: Path) -> None:
-        from u2sa_hw.ports.errors import PortError
-        from u2sa_hw.ports.pca9685_pwm import SCHEME, parse_address
-
-        if not isinstance(channels, list) or not channels:
-            raise ReplayError(f"service '{service}': its config has no 'channels' list to point at replay outputs")
+    def __init__(self, *, service: str, run_dir: Path) -> None:
         self.service = service
-        self._trees: dict[str, tuple[Path, int]] = {}          # recorded address -> (mock tree, channels)
+        self.run_dir = run_dir
+        self._trees: dict[str, tuple[Path, int]] = {}          # recorded chip directory -> (mock tree, channels)
         self._buses: dict[str, tuple[Path, set[int]]] = {}     # recorded bus -> (socket, chip addresses)
-        self._addresses: dict[str, str] = {}                   # recorded address -> replay address
         self._objects: list[Any] = []
         self._started = False
-        self.channels: list[Any] = []
-        for i, table in enumerate(channels):
-            if not isinstance(table, dict) or not isinstance(table.get("address"), str):
-                self.channels.append(table)   # the driver refuses it with the reason when it starts
-                continue
-            address = table["address"]
-            if address not in self._addresses:
-                if address.startswith(SCHEME):
-                    try:
-                        bus, chip_address = parse_address(address, device=str(table.get("name", service)))
-                    except PortError as exc:
-                        raise ReplayError(f"service '{service}': channels[{i}]: {exc}") from None
-                    key = str(bus)
-                    sock, chips = self._buses.setdefault(key, (run_dir / f"pwm-i2c-{len(self._buses)}.sock", set()))
-                    chips.add(chip_address)
-                    self._addresses[address] = f"{SCHEME}mock:{sock}:0x{chip_address:02x}"
-                else:
-                    tree = run_dir / "pwm" / f"pwmchip{len(self._trees)}"
-                    self._trees[address] = (tree, 0)
-                    self._addresses[address] = str(tree)
-            if address in self._trees:
-                tree, npwm = self._trees[address]
-                channel = table.get("channel")
-                size = channel + 1 if isinstance(channel, int) and not isinstance(channel, bool) else 0
-                self._trees[address] = (tree, max(npwm, size, 16))
-            self.channels.append({**table, "address": self._addresses[address]})
 
-    def config_changes(self) -> dict[str, Any]:
-        """``channels`` with every address pointed at its replay output."""
-        return {"channels": self.channels}
+    def add(self, device: str, real: DeviceAddress | None) -> str:
+        """The replay address of output *device*, recorded at *real* (a pwm:// or pca9685:// address)."""
+        if real is None or real.kind not in ("pwm", "pca9685"):
+            raise ReplayError(f"service '{self.service}': output '{device}' has no PWM address in the log's profile "
+                              f"({real.url if real else 'none'}); give the profile with --vehicle FILE")
+        channel = real.pwm_channel
+        if real.kind == "pca9685":
+            key = str(real.i2c_bus)
+            sock, chips = self._buses.setdefault(key, (self.run_dir / f"pwm-i2c-{len(self._buses)}.sock", set()))
+            chips.add(real.chip_address)
+            return make_address("pca9685", str(sock), (real.chip_address, channel), mock=True, device=device).url
+        tree, npwm = self._trees.get(real.pwm_chip, (self.run_dir / "pwm" / f"pwmchip{len(self._trees)}", 0))
+        self._trees[real.pwm_chip] = (tree, max(npwm, channel + 1, 16))
+        return make_address("pwm", str(tree), (channel,), mock=True, device=device).url
 
     def start(self) -> None:
         """Create the trees and start the buses (once for all the service's devices)."""
@@ -251,9 +237,13 @@ class ReplayPwmDevice:
         self.rig = rig
         self.counts = {"recorded_writes": 0}
 
+    def mock_address(self, real: DeviceAddress | None) -> str:
+        """The replay output standing in for the recorded one (shared chips per service)."""
+        return self.rig.add(self.name, real)
+
     def config_changes(self) -> dict[str, Any]:
-        """The service's ``channels``, pointed at the replay outputs."""
-        return self.rig.config_changes()
+        """Nothing besides the address."""
+        return {}
 
     def start(self) -> None:
         """Start the service's replay outputs (shared)."""
@@ -288,6 +278,6 @@ def make_device(kind: str, name: str, run_dir: Path, *, service: str, config: di
     if kind == "pwm":
         rig = rigs.get(service)
         if rig is None:
-            rig = rigs[service] = PwmReplayRig(service=service, channels=config.get("channels"), run_dir=run_dir)
+            rig = rigs[service] = PwmReplayRig(service=service, run_dir=run_dir)
         return ReplayPwmDevice(name=name, rig=rig)
     raise ReplayError(f"RAW.{name}: replaying {kind} devices is not supported")

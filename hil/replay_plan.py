@@ -3,12 +3,11 @@ the ``--set`` overrides, and the private run directory the services are started 
 
 A log says everything about its run: ``vehicle.toml`` and ``config/<service>.toml`` are
 attachments, and every tapped device has a ``RAW.<device>`` channel. A service *claims* a
-device when the device name is
-
-1. the service's name,
-2. its config's ``device_name`` (serial sensors, CAN motors, GPIO drivers), or
-3. the ``name`` of an entry in one of its config's lists of tables (the PWM servo driver's
-   ``channels``, which tap each output under its own name).
+device when its driver says it uses it (the driver's ``used_devices``: its ``device``
+setting, default the service's name; a PWM servo service one device per channel), or when
+the device has the service's own name. The device's recorded address is its ``[devices.NAME]
+address`` in the log's profile, else the one the driver derives from its old-form settings;
+the replay gives the device a ``mock+`` address of the same kind and changes nothing else.
 
 Each device must be claimed by exactly one service of the profile; a device nobody claims
 is left out (and said so), two claimants are an error.
@@ -24,6 +23,7 @@ from typing import Any
 import tomli_w
 
 from u2sa_hw.config import ConfigError, parse_text
+from u2sa_hw.ports.address import AddressError, DeviceAddress, parse_address
 from u2sa_hw.recording.log_reader import LogFile, LogSummary
 from u2sa_hw.registry import resolve_kind
 
@@ -50,6 +50,7 @@ class DevicePlan:
     records: int
     service: str = ""              # the service that claims it ("" when none)
     types: set[str] = field(default_factory=set)   # raw record types in the log (RawGpioEdge, ...)
+    address: DeviceAddress | None = None   # the recorded (real) address, when the profile gives one
 
 
 @dataclass
@@ -87,16 +88,41 @@ class ReplayPlan:
         return max(0.0, (self.end_ns - self.start_ns) / 1e9)
 
 
-def claimed_devices(service: str, config: dict[str, Any]) -> set[str]:
-    """The device names *service* with *config* taps under (see the module docstring)."""
-    names = {service}
-    device_name = config.get("device_name")
-    if isinstance(device_name, str) and device_name.strip():
-        names.add(device_name.strip())
-    for value in config.values():
-        if isinstance(value, list):
-            names.update(v["name"] for v in value if isinstance(v, dict) and isinstance(v.get("name"), str))
+def service_devices(service: str, kind: str | None, config: dict[str, Any]) -> dict[str, str | None]:
+    """The devices *service* of *kind* with *config* uses: name -> its old-form address (or None)."""
+    from u2sa_hw.devices import service_devices as declared
+
+    used: dict[str, str | None] = {}
+    if kind:
+        try:
+            used = declared(resolve_kind(kind), service, config)
+        except (LookupError, ImportError):
+            used = {}
+    return used
+
+
+def claimed_devices(service: str, config: dict[str, Any], kind: str | None = None) -> set[str]:
+    """The device names *service* (of *kind*) with *config* taps under (see the module docstring)."""
+    names = {service, *service_devices(service, kind, config)}
+    if kind is None:   # no kind to ask: the names the drivers' settings give
+        device = config.get("device") or config.get("device_name")
+        if isinstance(device, str) and device.strip():
+            names.add(device.strip())
+        for value in config.values():
+            if isinstance(value, list):
+                names.update(str(v.get("device") or v["name"]) for v in value
+                             if isinstance(v, dict) and isinstance(v.get("name"), str))
     return names
+
+
+def recorded_address(profile: dict[str, Any], device: str, legacy: str | None) -> DeviceAddress | None:
+    """The device's address in the log's profile (``[devices.NAME] address``, else *legacy*), or None."""
+    table = (profile.get("devices") or {}).get(device)
+    text = table.get("address") if isinstance(table, dict) else None
+    try:
+        return parse_address(text or legacy, device=device) if (text or legacy) else None
+    except AddressError:
+        return None
 
 
 def _toml(data: bytes, where: str) -> dict[str, Any]:
@@ -206,16 +232,19 @@ def build_plan(path: Path | str, *, extra_services: list[str] = (), overrides: l
             dev.kind = dev.kind or kind
         dev.types.add(ch.type_name)
     plan = ReplayPlan(Path(path), summary, dict(profile.get("vehicle") or {}), {}, devices)
+    kinds = {n: t["kind"] for n, t in services_table.items() if isinstance(t, dict) and isinstance(t.get("kind"), str)}
     blocked: set[str] = set()   # services that drive a device replay cannot stand in for
     for dev in devices.values():
-        owners = sorted(n for n, cfg in configs.items() if dev.name in claimed_devices(n, cfg))
+        owners = sorted(n for n, cfg in configs.items() if dev.name in claimed_devices(n, cfg, kinds.get(n)))
         if len(owners) > 1:
             raise ReplayError(f"{log.path}: device '{dev.name}' is claimed by services {', '.join(owners)}; "
-                              "give each service its own device_name")
+                              "give each service its own device (device = \"...\")")
         if not owners:
             plan.notes.append(f"RAW.{dev.name}: no service of the profile names device '{dev.name}' "
-                              "(as its name, device_name or a channels entry); not replayed")
+                              "(as its name, its device setting or a channel's device); not replayed")
             continue
+        legacy = service_devices(owners[0], kinds.get(owners[0]), configs[owners[0]]).get(dev.name)
+        dev.address = recorded_address(profile, dev.name, legacy)
         if dev.kind not in REPLAYABLE:
             what = f"{dev.kind} devices cannot be replayed yet" if dev.kind else "unknown raw type"
             plan.notes.append(f"RAW.{dev.name}: {what}; service '{owners[0]}' is not replayed")
@@ -269,13 +298,15 @@ def _add_service(plan: ReplayPlan, name: str, table: dict[str, Any], configs: di
 
 
 def write_run_profile(plan: ReplayPlan, run_dir: Path, *, lcm_url: str,
-                      changes: dict[str, dict[str, Any]]) -> Path:
+                      changes: dict[str, dict[str, Any]], addresses: dict[str, str] | None = None) -> Path:
     """Write ``vehicle.toml`` and ``config/<service>.toml`` for the replay into *run_dir*.
 
     Each config is the recorded one with ``record_raw`` off (on for GPIO and PWM drivers, whose
-    taps are their outputs), the ``--set`` overrides, and then *changes* (the replay device
-    addresses, which no override may move back to real hardware); the profile points every directory into
-    *run_dir* and the LCM URL at the private replay bus.
+    taps are their outputs), the ``--set`` overrides, and then *changes* (what a replay device
+    needs besides its address, e.g. a faster rate). *addresses* (device -> replay address) become
+    the profile's ``[devices.NAME] address`` tables, which win over any address in a service's
+    settings, so no override moves a device back to real hardware; the profile points every
+    directory into *run_dir* and the LCM URL at the private replay bus.
     """
     (run_dir / "config").mkdir(parents=True, exist_ok=True)
     vehicle = {**plan.vehicle, "lcm_url": lcm_url, "config_dir": "config", "log_dir": "logs", "data_dir": "data"}
@@ -296,7 +327,9 @@ def write_run_profile(plan: ReplayPlan, run_dir: Path, *, lcm_url: str,
         services[name] = {"kind": other["kind"], "config": f"config/{name}.toml", "enabled": other["enabled"],
                           "required": other["required"]}
     path = run_dir / "vehicle.toml"
+    devices = {name: {"address": address} for name, address in (addresses or {}).items()}
     path.write_text(tomli_w.dumps({"vehicle": vehicle, "services": services,
+                                   **({"devices": devices} if devices else {}),
                                    **({"safety": plan.safety} if plan.safety else {})}))
     return path
 

@@ -1,29 +1,32 @@
 """Mock kinds a vehicle profile's ``[devices.NAME]`` tables can name, and how each is built.
 
-A device table names a mock kind and the service that uses the device::
+A device table gives the device's real address, the mock kind that stands in for it and,
+when it cannot be found from the services, the service that uses it::
 
     [devices.gps]
+    address = "serial:///dev/u2sa/gps?baud=9600"
     mock = "nmea_gps"            # a kind below
-    service = "gps"              # default: the device's own name
     options = { rate_hz = 5 }    # the mock class's keyword options (lists become tuples)
     sides = ["left", "right"]    # CAN motor mocks only: which side of the vehicle each controller drives
     drives = { rudder = "steering" }   # PWM and GPIO outputs: actuator name -> the vehicle model input it moves
 
-The mock mirrors the service's own effective config (its defaults, the profile's
-``settings``, its config file): the ODrive mocks take the service's ``node_ids``,
-``directions`` and ``wheel_radius_m``, the RC receiver its ``channels`` and
-``enable_line``, an I2C chip the service's ``address``. The service's *real* device
-address picks the mock's address under the simulation's device directory
-(``/dev/u2sa/gps`` -> ``<dir>/gps``, I2C bus 1 -> ``<dir>/i2c-1.sock`` shared by every chip
-on bus 1, ``/dev/gpiochip0`` -> ``<dir>/gpiochip0.sock``, CAN ``can0`` -> python-can
-``udp_multicast`` on the simulation's UDP port, ``/sys/class/pwm/pwmchip0`` -> the
-directory ``<dir>/pwmchip0``) and each build returns the settings that point the service
-at it (``overrides``). Every actuator output is logged and moves the vehicle through
-:mod:`mock_devices.actuation`: CAN motors by their side, PWM outputs named like a model
-input (``steering``, ``throttle``, ``left``, ``right``) or listed in ``drives``, GPIO
-outputs listed in ``drives`` (``enable``: a motor contactor). A pwm_servo service with
-both PCA9685 and sysfs channels takes one
-table of each kind; the second builds on the channels the first rewrote.
+Each builder works from the device's real address (a :class:`~u2sa_hw.devices.DeviceEntry`)
+and returns the device's *mock address*, which is all the simulation changes in its copy of
+the profile (docs/ports.md): ``serial:///dev/u2sa/gps`` -> ``mock+serial://<dir>/gps`` (a
+pty), ``i2c://1/0x68`` -> ``mock+i2c://<dir>/i2c-1.sock/0x68`` (one mock bus per real bus,
+shared by every chip on it), ``gpio://gpiochip0/...`` -> ``mock+gpio://<dir>/gpiochip0.sock/...``,
+``can://socketcan/can0`` -> ``mock+can://udp_multicast/<group>?port=N`` (one UDP port per real
+bus), ``pwm://pwmchip0/N`` -> ``mock+pwm://<dir>/pwmchip0/N`` (a sysfs-shaped directory),
+``pca9685://1/0x40/N`` -> ``mock+pca9685://<dir>/i2c-1.sock/0x40/N``. An address that is
+already a mock is used as it is.
+
+The mock mirrors its service's wiring from the service's effective config (what only the
+driver and the device know between them: the ODrive mocks take ``node_ids``,
+``directions`` and ``wheel_radius_m``, the RC receiver its ``channels`` and ``enable_line``,
+a PWM output the pulse range of its channel). Every actuator output is logged and moves the
+vehicle through :mod:`mock_devices.actuation`: CAN motors by their side, PWM outputs named
+like a model input (``steering``, ``throttle``, ``left``, ``right``) or listed in ``drives``,
+GPIO outputs listed in ``drives`` (``enable``: a motor contactor).
 """
 
 from __future__ import annotations
@@ -45,7 +48,7 @@ from mock_devices.serial_compass import NmeaCompassDevice, Os5000CompassDevice
 from mock_devices.sim_context import CAN_GROUP, MODEL_INPUTS, DeviceError, MockContext
 from mock_devices.sysfs_pwm import SysfsPwmChip
 from mock_devices.vesc_node import VescCanNode
-from u2sa_hw.ports.pwm_port import is_real_sysfs
+from u2sa_hw.ports.address import DeviceAddress, make_address
 
 SERIAL_KINDS = {"nmea_gps": NmeaGpsDevice, "nmea_compass": NmeaCompassDevice, "os5000_compass": Os5000CompassDevice}
 COMPASS_FORMATS = {"nmea_compass": "nmea", "os5000_compass": "os5000"}
@@ -53,12 +56,13 @@ COMPASS_FORMATS = {"nmea_compass": "nmea", "os5000_compass": "os5000"}
 
 @dataclass(frozen=True)
 class DeviceSpec:
-    """One ``[devices.NAME]`` table with the effective config of the service that uses it."""
+    """One device (its real address and mock kind) with the effective config of the service that uses it."""
 
     name: str
     mock: str
     service: str
     service_config: Mapping[str, Any]
+    address: DeviceAddress
     options: dict[str, Any] = field(default_factory=dict)
     sides: tuple[str, ...] = ()
     drives: dict[str, str] = field(default_factory=dict)
@@ -78,13 +82,12 @@ class DeviceSpec:
 
 @dataclass
 class MockDevice:
-    """A built mock: what it is, where the driver finds it, the settings that point the service there."""
+    """A built mock: what it is, its mock address (where the driver finds it) and the parts to start."""
 
     name: str
     mock: str
     service: str
     address: str
-    overrides: dict[str, Any]
     parts: list[Any]
     detail: str = ""
 
@@ -114,26 +117,39 @@ def _seeded(spec: DeviceSpec, ctx: MockContext) -> DeviceSpec:
 
 # ---- serial ---------------------------------------------------------------------------------
 def build_serial(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
-    """A GPS or compass on a pty: ``<dir>/<basename of the service's port>``."""
-    port = str(spec.setting("port")).strip()
-    if not port:
-        raise spec.fail(f"service '{spec.service}' has an empty 'port'; set the real device path "
-                        "(e.g. /dev/u2sa/gps) in its settings")
+    """A GPS or compass on a pty: ``<dir>/<basename of the real device path>``."""
+    address = _need(spec, "serial")
     expected = COMPASS_FORMATS.get(spec.mock)
     if expected and spec.service_config.get("format", expected) != expected:
         raise spec.fail(f"mock {spec.mock} speaks '{expected}' but service '{spec.service}' has "
                         f"format = {spec.service_config.get('format')!r}; make them agree")
-    link = ctx.path(os.path.basename(port.rstrip("/")) or spec.name)
+    real = address.serial_path
+    if address.mock:
+        link = real
+    else:
+        base = os.path.basename(real.rstrip("/")) if not address.is_serial_url else ""
+        link = ctx.path(base or spec.name)
     spec = _seeded(spec, ctx)
     device = construct(spec, SERIAL_KINDS[spec.mock], ctx.vehicle, link_path=link, name=spec.name)
-    return MockDevice(spec.name, spec.mock, spec.service, link, {"port": link}, [device], f"pty for {port}")
+    params = {k: v for k, v in address.params.items() if k not in ("usb", "serial")}
+    mock = make_address("serial", link, params=params, mock=True, device=spec.name)
+    return MockDevice(spec.name, spec.mock, spec.service, mock.url, [device], f"pty for {real}")
+
+
+def _need(spec: DeviceSpec, *kinds: str) -> DeviceAddress:
+    """The device's address, if it is of one of *kinds*; DeviceError says which the mock needs."""
+    if spec.address.kind not in kinds:
+        raise spec.fail(f"mock {spec.mock} stands in for a {' or '.join(kinds)} device, but the address is "
+                        f"{spec.address.url}; pick the mock of that kind (u2sa mock --list-kinds)")
+    return spec.address
 
 
 # ---- I2C ------------------------------------------------------------------------------------
 def build_imu_chip(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
-    """An MPU-60x0/9250 (+ AK8963) or BNO055 on the mock bus standing in for the service's ``bus``."""
-    bus: MockI2cBus = ctx.i2c_bus(str(spec.setting("bus")))
-    address = int(spec.setting("address"))
+    """An MPU-60x0/9250 (+ AK8963) or BNO055 on the mock bus standing in for the device's I2C bus."""
+    real = _need(spec, "i2c")
+    bus: MockI2cBus = ctx.i2c_bus(str(real.i2c_bus))
+    address = real.chip_address
     spec = _seeded(spec, ctx)
     if spec.mock == "bno055":
         chip = construct(spec, Bno055Chip, address=address, vehicle=ctx.vehicle)
@@ -146,84 +162,71 @@ def build_imu_chip(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
             parts.append(Ak8963Chip(parent=chip, seed=int(spec.options["seed"])))
     for part in parts:
         ctx.add_chip(bus, part, device=spec.name)
-    return MockDevice(spec.name, spec.mock, spec.service, bus.address, {"bus": bus.address}, [],
-                      f"chip 0x{address:02x} on {bus.address}")
+    mock = make_address("i2c", bus.socket_path, (address,), mock=True, device=spec.name)
+    return MockDevice(spec.name, spec.mock, spec.service, mock.url, [], f"chip 0x{address:02x} on {bus.address}")
 
 
-def _pwm_channels(spec: DeviceSpec, ctx: MockContext, what: str) -> list[dict[str, Any]]:
-    """The service's channels, as an earlier PWM mock of the same service left them (mixed chips)."""
-    channels = ctx.pwm_channels.get(spec.service, spec.setting("channels"))
-    if not isinstance(channels, list) or not channels:
-        raise spec.fail(f"service '{spec.service}' has no 'channels' to put on {what}")
-    return [dict(table) if isinstance(table, dict) else table for table in channels]
+# ---- PWM ------------------------------------------------------------------------------------
+def _channel_table(spec: DeviceSpec) -> dict[str, Any]:
+    """The service's channel table whose output is this device (``device``, else its ``name``)."""
+    channels = spec.service_config.get("channels")
+    tables = [t for t in channels if isinstance(t, dict)] if isinstance(channels, list) else []
+    for table in tables:
+        if str(table.get("device") or table.get("name", "")) == spec.name:
+            return table
+    raise spec.fail(f"no channel of service '{spec.service}' uses device '{spec.name}' (channels: "
+                    f"{', '.join(str(t.get('name')) for t in tables) or 'none'}); set device = \"{spec.name}\" "
+                    "in the channel's table")
+
+
+def _check_pwm_drives(spec: DeviceSpec) -> None:
+    channels = spec.service_config.get("channels")
+    names = [str(t.get("name", "")) for t in channels if isinstance(t, dict)] if isinstance(channels, list) else []
+    _check_drives(spec, names)
 
 
 def build_pca9685(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
-    """PCA9685 chips for every ``pca9685:<bus>:<addr>`` channel of a pwm_servo service."""
-    channels = _pwm_channels(spec, ctx, "a PCA9685")
-    rewritten, chips, made = [], [], {}
-    _check_drives(spec, [str(t.get("name", "")) for t in channels if isinstance(t, dict)])
-    for index, table in enumerate(channels):
-        table = dict(table)
-        address = str(table.get("address", ""))
-        if address.startswith("pca9685:"):
-            bus_text, _, chip_text = address[len("pca9685:"):].rpartition(":")
-            try:
-                chip_address = int(chip_text, 0)
-            except ValueError:
-                raise spec.fail(f"channels[{index}].address {address!r}: the chip address after the last ':' "
-                                "must be a number like 0x40") from None
-            bus = ctx.i2c_bus(bus_text)
-            key = (bus.socket_path, chip_address)
-            if key not in made:   # channels of one chip share it
-                made[key] = ctx.add_chip(bus, construct(spec, Pca9685Chip, address=chip_address), device=spec.name)
-                chips.append(made[key])
-            table["address"] = f"pca9685:{bus.address}:0x{chip_address:02x}"
-            chip = made[key]
-            _pwm_feed(spec, ctx, table, index, lambda chip=chip, n=int(table.get("channel", 0)): chip.pulse_width_us(n))
-        rewritten.append(table)
-    if not chips and not any(str(t.get("address", "")).startswith("pca9685:mock:") for t in rewritten):
-        raise spec.fail(f"no channel of service '{spec.service}' has a pca9685:<bus>:<address> address")
-    ctx.pwm_chips[spec.name] = chips
-    ctx.pwm_channels[spec.service] = rewritten
-    addresses = sorted({t["address"] for t in rewritten if str(t["address"]).startswith("pca9685:")})
-    return MockDevice(spec.name, spec.mock, spec.service, ", ".join(addresses), {"channels": rewritten}, [],
-                      f"{len(rewritten)} channel(s)")
+    """The PCA9685 chip (one per bus and chip address, shared by its outputs) for one pwm_servo output."""
+    real = _need(spec, "pca9685")
+    table = _channel_table(spec)
+    _check_pwm_drives(spec)
+    bus = ctx.i2c_bus(str(real.i2c_bus))
+    key = (bus.socket_path, real.chip_address)
+    parts: list[Any] = []
+    chip = ctx.pca9685_chips.get(key)
+    if chip is None:   # outputs of one chip share it
+        chip = ctx.pca9685_chips[key] = ctx.add_chip(bus, construct(spec, Pca9685Chip, address=real.chip_address),
+                                                     device=spec.name)
+    ctx.pwm_chips.setdefault(spec.name, []).append(chip)
+    channel = real.pwm_channel
+    _pwm_feed(spec, ctx, table, lambda chip=chip, n=channel: chip.pulse_width_us(n))
+    mock = make_address("pca9685", bus.socket_path, (real.chip_address, channel), mock=True, device=spec.name)
+    return MockDevice(spec.name, spec.mock, spec.service, mock.url, parts,
+                      f"output {channel} of 0x{real.chip_address:02x} on {bus.address}")
 
 
 def build_sysfs_pwm(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
-    """Sysfs-shaped chip directories for every sysfs channel (``/sys/class/pwm/pwmchipN``) of a pwm_servo
-    service: ``<dir>/pwmchipN``; a path outside /sys is already a mock chip and is used as it is."""
-    channels = _pwm_channels(spec, ctx, "a sysfs PWM chip")
-    rewritten, wanted, feeds = [], {}, []
-    _check_drives(spec, [str(t.get("name", "")) for t in channels if isinstance(t, dict)])
-    for index, table in enumerate(channels):
-        address = str(table.get("address", "")).strip() if isinstance(table, dict) else ""
-        if not address:
-            raise spec.fail(f"channels[{index}] of service '{spec.service}' has no address")
-        if not address.startswith("pca9685:"):
-            path = ctx.path(os.path.basename(address.rstrip("/"))) if is_real_sysfs(address) else address
-            channel = table.get("channel", 0)
-            if isinstance(channel, bool) or not isinstance(channel, int) or channel < 0:
-                raise spec.fail(f"channels[{index}].channel must be a channel number, got {channel!r}")
-            wanted[path] = max(wanted.get(path, 0), channel + 1)
-            table = {**table, "address": path}
-            feeds.append((table, index, path, channel))
-        rewritten.append(table)
-    if not wanted:
-        raise spec.fail(f"no channel of service '{spec.service}' has a sysfs PWM address "
-                        "(/sys/class/pwm/pwmchipN); PCA9685 channels take mock = \"pca9685\"")
-    npwm = spec.options.get("npwm")
-    chips = [construct(replace(spec, options={k: v for k, v in spec.options.items() if k != "npwm"}), SysfsPwmChip,
-                       path=path, npwm=max(int(npwm or 0), count), name=f"{spec.name}:{os.path.basename(path)}")
-             for path, count in sorted(wanted.items())]
-    by_path = {str(chip.path): chip for chip in chips}
-    for table, index, path, channel in feeds:
-        _pwm_feed(spec, ctx, table, index, lambda chip=by_path[path], n=channel: chip.pulse_width_us(n))
-    ctx.pwm_chips.setdefault(spec.name, []).extend(chips)
-    ctx.pwm_channels[spec.service] = rewritten
-    return MockDevice(spec.name, spec.mock, spec.service, ", ".join(sorted(wanted)), {"channels": rewritten}, chips,
-                      f"{sum(1 for t in rewritten if not str(t['address']).startswith('pca9685:'))} channel(s)")
+    """A sysfs-shaped chip directory (``<dir>/pwmchipN``, shared by its outputs) for one pwm_servo output;
+    a mock directory is used as it is."""
+    real = _need(spec, "pwm")
+    table = _channel_table(spec)
+    _check_pwm_drives(spec)
+    path = real.pwm_chip if real.mock else ctx.path(os.path.basename(real.pwm_chip.rstrip("/")))
+    channel = real.pwm_channel
+    parts: list[Any] = []
+    chip = ctx.sysfs_chips.get(path)
+    if chip is None:   # as many channels as its outputs use (or options.npwm)
+        npwm = max(int(spec.options.get("npwm") or 0), channel + 1)
+        options = {k: v for k, v in spec.options.items() if k != "npwm"}
+        chip = ctx.sysfs_chips[path] = construct(replace(spec, options=options), SysfsPwmChip, path=path,
+                                                 npwm=npwm, name=f"{spec.name}:{os.path.basename(path)}")
+        parts.append(chip)
+    elif channel >= chip.npwm:   # built, not started yet: another output of the chip widens it
+        chip.npwm = channel + 1
+    ctx.pwm_chips.setdefault(spec.name, []).append(chip)
+    _pwm_feed(spec, ctx, table, lambda chip=chip, n=channel: chip.pulse_width_us(n))
+    mock = make_address("pwm", path, (channel,), mock=True, device=spec.name)
+    return MockDevice(spec.name, spec.mock, spec.service, mock.url, parts, f"channel {channel} of {path}")
 
 
 def _model_input(spec: DeviceSpec, ctx: MockContext, actuator: str) -> str | None:
@@ -240,9 +243,9 @@ def _check_drives(spec: DeviceSpec, actuators: list[str]) -> None:
                         f"its outputs are {', '.join(actuators) or 'none'}")
 
 
-def _pwm_feed(spec: DeviceSpec, ctx: MockContext, table: dict[str, Any], index: int, read: Any) -> None:
-    """Log a PWM channel's output and, when it drives a model input, move the vehicle with it."""
-    name = str(table.get("name", f"channel{index}"))
+def _pwm_feed(spec: DeviceSpec, ctx: MockContext, table: dict[str, Any], read: Any) -> None:
+    """Log a PWM output and, when it drives a model input, move the vehicle with it."""
+    name = str(table.get("name", spec.name))
     drives = _model_input(spec, ctx, name)
     if drives is not None:
         ctx.feed(drives, device=spec.name)
@@ -251,7 +254,7 @@ def _pwm_feed(spec: DeviceSpec, ctx: MockContext, table: dict[str, Any], index: 
                        neutral_us=float(table.get("neutral_us", 1500.0)), max_us=float(table.get("max_us", 2000.0)),
                        reverse=bool(table.get("reverse", False)), drives=drives)
     except (TypeError, ValueError):
-        raise spec.fail(f"channels[{index}]: min_us, neutral_us and max_us must be numbers") from None
+        raise spec.fail(f"channel '{name}': min_us, neutral_us and max_us must be numbers") from None
     ctx.feeds.pwm.append(feed)
 
 
@@ -267,10 +270,15 @@ def parse_lines(text: str, spec: DeviceSpec) -> dict[str, int]:
     return result
 
 
+def _gpio_mock(spec: DeviceSpec, chip: Any, real: DeviceAddress) -> str:
+    return make_address("gpio", chip.socket_path, real.lines, mock=True, device=spec.name).url
+
+
 def build_rc_receiver(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
-    """An RC receiver with real pulse trains on the service's chip, and the mux on its enable line."""
-    chip = ctx.gpio_chip(str(spec.setting("chip")))
-    lines = parse_lines(spec.setting("channels"), spec)
+    """An RC receiver with real pulse trains on the device's chip, and the mux on its enable line."""
+    real = _need(spec, "gpio")
+    chip = ctx.gpio_chip(real.gpio_chip)
+    lines = parse_lines(spec.service_config.get("channels", ""), spec)
     mode_channel = str(spec.service_config.get("mode_channel", "mode"))
     rc = construct(spec, RcReceiverMock, chip, lines=lines, mode_channel=mode_channel)
     parts: list[Any] = [rc]
@@ -283,12 +291,13 @@ def build_rc_receiver(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
         ctx.attach_mux(rc, mux)
         detail += f"; mux enable line {enable}" + (f", select line {select}" if select >= 0 else "")
     ctx.rc_receivers[spec.name] = rc
-    return MockDevice(spec.name, spec.mock, spec.service, chip.address, {"chip": chip.address}, parts, detail)
+    return MockDevice(spec.name, spec.mock, spec.service, _gpio_mock(spec, chip, real), parts, detail)
 
 
 def build_gpio_chip(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     """A bare mock chip for gpio_input/gpio_output services (drive inputs from Python)."""
-    chip = ctx.gpio_chip(str(spec.setting("chip")))
+    real = _need(spec, "gpio")
+    chip = ctx.gpio_chip(real.gpio_chip)
     outputs = parse_lines(spec.service_config.get("outputs", ""), spec)
     _check_drives(spec, list(outputs))
     safe = parse_lines(spec.service_config.get("safe_levels", ""), spec)
@@ -301,7 +310,7 @@ def build_gpio_chip(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
             ctx.feed_enable(device=spec.name)
         ctx.feeds.gpio.append(GpioFeed(name, chip, line, safe_level=safe.get(name, 0), drives=drives))
     detail = ", ".join(f"{n}={line}" + (" (enable)" if spec.drives.get(n) else "") for n, line in outputs.items())
-    return MockDevice(spec.name, spec.mock, spec.service, chip.address, {"chip": chip.address}, [], detail)
+    return MockDevice(spec.name, spec.mock, spec.service, _gpio_mock(spec, chip, real), [], detail)
 
 
 # ---- CAN ------------------------------------------------------------------------------------
@@ -317,9 +326,9 @@ def _sides(spec: DeviceSpec, names: list[str]) -> list[str]:
 
 
 def build_can_motors(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
-    """One ODrive or VESC node per controller of the service, on the simulated CAN bus."""
-    interface, channel = str(spec.setting("interface")), str(spec.setting("channel"))
-    port = ctx.can_port(f"{interface}:{channel}")
+    """One ODrive or VESC node per controller of the service, on the simulated bus of the device's CAN bus."""
+    real = _need(spec, "can")
+    port = ctx.can_port(f"{real.can_interface}:{real.can_channel}")
     names = list(spec.setting("actuators"))
     ids_key = "node_ids" if spec.mock == "odrive" else "controller_ids"
     ids = list(spec.setting(ids_key))
@@ -347,29 +356,28 @@ def build_can_motors(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
                              direction=int(direction), wheel_radius_m=float(radius), **bus, **defaults)
         nodes.append(node)
         ctx.can_nodes[name] = node
-    overrides = {"interface": "udp_multicast", "channel": CAN_GROUP, "udp_port": port, "bitrate": 0}
+    mock = make_address("can", CAN_GROUP, params={"port": port}, mock=True, backend="udp_multicast", device=spec.name)
     detail = ", ".join(f"{n} id {i} {s}" for n, i, s in zip(names, ids, sides))
-    return MockDevice(spec.name, spec.mock, spec.service, f"udp_multicast:{CAN_GROUP} port {port}", overrides,
-                      nodes, detail)
+    return MockDevice(spec.name, spec.mock, spec.service, mock.url, nodes, detail)
 
 
 CATALOG: dict[str, tuple[Builder, str]] = {
-    "nmea_gps": (build_serial, "NMEA 0183 GNSS receiver on a pty (port)"),
-    "nmea_compass": (build_serial, "NMEA HDG/HDM/HDT compass on a pty (port)"),
-    "os5000_compass": (build_serial, "OceanServer OS5000 compass on a pty (port)"),
-    "mpu9250": (build_imu_chip, "MPU-9250 + AK8963 on the mock I2C bus (bus, address)"),
-    "mpu6500": (build_imu_chip, "MPU-6500 on the mock I2C bus (bus, address)"),
-    "mpu6050": (build_imu_chip, "MPU-6050 on the mock I2C bus (bus, address)"),
-    "bno055": (build_imu_chip, "BNO055 on the mock I2C bus (bus, address)"),
-    "pca9685": (build_pca9685, "PCA9685 PWM chips for the pca9685: channels of a pwm_servo service (channels)"),
-    "sysfs_pwm": (build_sysfs_pwm, "sysfs-shaped PWM chip directories for the /sys/class/pwm channels of a "
-                                   "pwm_servo service (channels)"),
+    "nmea_gps": (build_serial, "NMEA 0183 GNSS receiver on a pty (serial:// address)"),
+    "nmea_compass": (build_serial, "NMEA HDG/HDM/HDT compass on a pty (serial:// address)"),
+    "os5000_compass": (build_serial, "OceanServer OS5000 compass on a pty (serial:// address)"),
+    "mpu9250": (build_imu_chip, "MPU-9250 + AK8963 on the mock I2C bus (i2c:// address)"),
+    "mpu6500": (build_imu_chip, "MPU-6500 on the mock I2C bus (i2c:// address)"),
+    "mpu6050": (build_imu_chip, "MPU-6050 on the mock I2C bus (i2c:// address)"),
+    "bno055": (build_imu_chip, "BNO055 on the mock I2C bus (i2c:// address)"),
+    "pca9685": (build_pca9685, "a PCA9685 output of a pwm_servo channel (pca9685:// address)"),
+    "sysfs_pwm": (build_sysfs_pwm, "a sysfs-shaped PWM chip directory standing in for /sys/class/pwm/pwmchipN, "
+                                   "for a pwm_servo channel (pwm:// address)"),
     "rc_receiver": (build_rc_receiver, "RC receiver pulse trains and the RC mux on a mock GPIO chip "
-                                       "(chip, channels, mode_channel, enable_line, select_line)"),
-    "gpio_chip": (build_gpio_chip, "a mock GPIO chip (chip)"),
-    "odrive": (build_can_motors, "ODrive CANSimple nodes, one per controller (interface, channel, actuators, "
+                                       "(gpio:// address; the service's channels, mode_channel, enable_line, select_line)"),
+    "gpio_chip": (build_gpio_chip, "a mock GPIO chip (gpio:// address; the service's outputs)"),
+    "odrive": (build_can_motors, "ODrive CANSimple nodes, one per controller (can:// address; actuators, "
                                  "node_ids, directions, wheel_radius_m, firmware)"),
-    "vesc": (build_can_motors, "VESC nodes, one per controller (interface, channel, actuators, controller_ids, "
+    "vesc": (build_can_motors, "VESC nodes, one per controller (can:// address; actuators, controller_ids, "
                                "directions, max_erpm)"),
 }
 

@@ -6,7 +6,7 @@ library::
     profile = load_profile("examples/ground_vehicle/vehicle.toml")
     mocks = MockLauncher(profile, device_dir=Path("/tmp/sim"), service_configs=configs)
     mocks.start()
-    mocks.overrides       # {"gps": {"port": "/tmp/sim/gps"}, "wheels": {"interface": "udp_multicast", ...}}
+    mocks.addresses       # {"gps": "mock+serial:///tmp/sim/gps?baud=9600", "wheels": "mock+can://udp_multicast/..."}
     mocks.set_mode_switch(True)   # the pilot flips the RC mode switch to autonomous
     mocks.stop()
 
@@ -110,32 +110,29 @@ def file_service_config(profile: VehicleProfile, service: str) -> dict[str, Any]
 
 
 def device_specs(profile: VehicleProfile, configs: Mapping[str, Mapping[str, Any]] | None = None) -> list[DeviceSpec]:
-    """Every ``[devices.NAME]`` table of *profile* that names a mock, checked."""
+    """Every device of *profile* (``u2sa_hw.devices.profile_devices``) that names a mock, checked."""
+    from u2sa_hw.devices import profile_devices
+    from u2sa_hw.vehicle import ProfileError
+
+    try:
+        entries = profile_devices(profile, configs=configs)
+    except ProfileError as exc:
+        raise DeviceError(str(exc)) from None
     specs = []
-    for name, table in profile.devices.items():
-        where = f"{profile.path} [devices.{name}]"
-        unknown = sorted(set(table) - {"mock", "service", "options", "sides", "drives"})
-        if unknown:
-            raise DeviceError(f"{where}: unknown key(s) {', '.join(unknown)}; a device table has mock, service, "
-                              "options, (CAN motors) sides and (PWM, GPIO outputs) drives")
-        mock, service = table.get("mock"), table.get("service", name)
-        if mock is None:
-            continue   # a device described for documentation only
-        if not isinstance(mock, str) or mock not in CATALOG:
-            raise DeviceError(f"{where}: mock = {mock!r} is not a mock kind; known: {', '.join(sorted(CATALOG))}")
-        if not isinstance(service, str) or service not in profile.services:
-            raise DeviceError(f"{where}: service = {service!r} is not a service of the profile "
-                              f"({', '.join(profile.services) or 'none'}); name the service that uses this device")
-        options, sides, drives = table.get("options", {}), table.get("sides", []), table.get("drives", {})
-        if not isinstance(options, dict) or not isinstance(sides, list):
-            raise DeviceError(f"{where}: options must be a table and sides a list like [\"left\", \"right\"]")
-        if not isinstance(drives, dict) or not all(isinstance(v, str) for v in drives.values()):
-            raise DeviceError(f"{where}: drives must be a table of actuator name -> vehicle input, like "
-                              "drives = { rudder = \"steering\" }")
+    for entry in entries.values():
+        where = f"{profile.path} [devices.{entry.table or entry.name}]"
+        if entry.mock is None:
+            continue   # a device with no stand-in: its service cannot run in simulation
+        if entry.mock not in CATALOG:
+            raise DeviceError(f"{where}: mock = {entry.mock!r} is not a mock kind; known: {', '.join(sorted(CATALOG))}")
+        if not entry.service:
+            continue   # no service opens it: nothing to stand in for
+        service = entry.service
         config = configs[service] if configs is not None and service in configs else file_service_config(profile,
                                                                                                            service)
-        specs.append(DeviceSpec(name=name, mock=mock, service=service, service_config=config, options=dict(options),
-                                sides=tuple(sides), drives=dict(drives), where=where))
+        specs.append(DeviceSpec(name=entry.name, mock=entry.mock, service=service, service_config=config,
+                                address=entry.address, options=dict(entry.options), sides=entry.sides,
+                                drives=dict(entry.drives), where=where))
     return specs
 
 
@@ -199,12 +196,9 @@ class MockLauncher:
         self._started: list[Any] = []
 
     @property
-    def overrides(self) -> dict[str, dict[str, Any]]:
-        """Service name -> the settings that point it at its mocks."""
-        result: dict[str, dict[str, Any]] = {}
-        for device in self.devices:
-            result.setdefault(device.service, {}).update(device.overrides)
-        return result
+    def addresses(self) -> dict[str, str]:
+        """Device name -> its mock address (what the simulation copy of the profile gives it)."""
+        return {device.name: device.address for device in self.devices}
 
     @property
     def outputs(self) -> Any:

@@ -142,8 +142,9 @@ class MockContext:
         self.rc_receivers: dict[str, RcReceiverMock] = {}
         self.muxes: list[tuple[RcReceiverMock, MuxMock]] = []
         self.can_nodes: dict[str, Any] = {}
-        self.pwm_chips: dict[str, list[Any]] = {}
-        self.pwm_channels: dict[str, list[dict[str, Any]]] = {}   # service -> its channels as rewritten so far
+        self.pwm_chips: dict[str, list[Any]] = {}   # device -> the mock PWM chip(s) its output is on
+        self.pca9685_chips: dict[tuple[str, int], Any] = {}   # (bus socket, chip address) -> the chip model
+        self.sysfs_chips: dict[str, Any] = {}   # directory -> the sysfs-shaped chip
         self._chip_owner: dict[tuple[str, int], str] = {}
         self._seed = int(seed)
 

@@ -24,13 +24,17 @@ ORIGIN = {"lat": 29.1895, "lon": -81.0483, "alt": 10.0}
 SIM_ORIGIN = {"origin_lat": ORIGIN["lat"], "origin_lon": ORIGIN["lon"], "origin_alt": ORIGIN["alt"]}
 
 
-def write_profile(tmp_path: Path, *, name: str, kind: str, settings: dict[str, Any]) -> Path:
-    """A vehicle profile with one service *name* of *kind* configured by *settings*."""
-    profile = {
+def write_profile(tmp_path: Path, *, name: str, kind: str, settings: dict[str, Any],
+                  devices: dict[str, str] | None = None) -> Path:
+    """A vehicle profile with one service *name* of *kind* configured by *settings*, and *devices*
+    (device name -> address) as ``[devices.NAME] address = ...`` tables."""
+    profile: dict[str, Any] = {
         "vehicle": {"name": "testrover", "system_id": 7, "origin": dict(ORIGIN), "config_dir": "config",
                     "log_dir": "logs", "data_dir": "data"},
         "services": {name: {"kind": kind, "settings": {"health_interval_s": 0.2, **settings}}},
     }
+    if devices:
+        profile["devices"] = {device: {"address": address} for device, address in devices.items()}
     path = tmp_path / "vehicle.toml"
     path.write_text(tomli_w.dumps(profile))
     return path

@@ -60,9 +60,9 @@ def profile_file(tmp_path: Path, text: str) -> Path:
 def test_drivers_read_the_mocks_through_the_simulation_profile(tmp_path: Path, lcm_url: str) -> None:
     profile = load_profile(profile_file(tmp_path, SENSORS))
     mocks = MockLauncher(profile, device_dir=tmp_path / "dev", service_configs=effective_configs(profile))
-    assert mocks.overrides == {"gps": {"port": str(tmp_path / "dev" / "gps")},
-                               "imu": {"bus": f"mock:{tmp_path / 'dev' / 'i2c-1.sock'}"}}
-    sim_path = write_sim_profile(profile, run_dir=tmp_path / "run", overrides=mocks.overrides, lcm_url=lcm_url)
+    assert mocks.addresses == {"gps": f"mock+serial://{tmp_path / 'dev' / 'gps'}?baud=9600",
+                               "imu": f"mock+i2c://{tmp_path / 'dev' / 'i2c-1.sock'}/0x69"}
+    sim_path = write_sim_profile(profile, run_dir=tmp_path / "run", addresses=mocks.addresses, lcm_url=lcm_url)
     seen: dict[str, t.StateInformation] = {}
     bus = Transport(lcm_url, name="test")
     bus.subscribe(ch.STATE_INFO, t.StateInformation, lambda _c, m: seen.__setitem__(m.header.source, m))
@@ -97,11 +97,12 @@ def test_u2sa_mock_prints_the_addresses_and_cleans_up_on_ctrl_c(tmp_path: Path) 
         wait_until(lambda: any(line.startswith("run the stack on it") for line in lines), timeout=30,
                    message="u2sa mock to print its addresses")
         text = "".join(lines)
-        assert f"{run_dir / 'dev' / 'gps'}  (pty for /dev/u2sa/gps)" in text
-        assert f"mock:{run_dir / 'dev' / 'i2c-1.sock'}" in text
+        assert f"mock+serial://{run_dir / 'dev' / 'gps'}?baud=9600  (pty for /dev/u2sa/gps)" in text
+        assert f"mock+i2c://{run_dir / 'dev' / 'i2c-1.sock'}/0x69" in text
         assert (run_dir / "dev" / "gps").is_symlink()
-        sim_profile = load_profile(run_dir / "vehicle.toml")
-        assert sim_profile.services["gps"].settings["port"] == str(run_dir / "dev" / "gps")
+        sim_profile = load_profile(run_dir / "vehicle.toml")   # only the device's address changes
+        assert sim_profile.devices["gps"]["address"] == f"mock+serial://{run_dir / 'dev' / 'gps'}?baud=9600"
+        assert sim_profile.services["gps"].settings["port"] == "/dev/u2sa/gps"
     finally:
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=15) == 0
@@ -135,11 +136,12 @@ def test_simulation_copy_points_config_files_at_the_mocks_and_keeps_the_original
     text = SENSORS + '\n[services.mission]\nkind = "mission_manager"\n'
     profile = load_profile(profile_file(tmp_path, text))
     mocks = MockLauncher(profile, device_dir=tmp_path / "dev", service_configs=effective_configs(profile))
-    assert mocks.overrides["gps"] == {"port": str(tmp_path / "dev" / "ttyUSB3")}   # named after the real device
-    sim = load_profile(write_sim_profile(profile, run_dir=tmp_path / "run", overrides=mocks.overrides,
+    mock_gps = f"mock+serial://{tmp_path / 'dev' / 'ttyUSB3'}?baud=9600"   # named after the real device
+    assert mocks.addresses["gps"] == mock_gps
+    sim = load_profile(write_sim_profile(profile, run_dir=tmp_path / "run", addresses=mocks.addresses,
                                          lcm_url="udpm://239.255.76.67:7001?ttl=0"))
     copied = effective_configs(sim)
-    assert copied["gps"]["port"] == str(tmp_path / "dev" / "ttyUSB3") and copied["gps"]["uere_m"] == 4.0
+    assert sim.devices["gps"]["address"] == mock_gps and copied["gps"]["uere_m"] == 4.0
     assert copied["mission"]["mission_file"] == str(tmp_path / "missions" / "loop.xml")
     assert sim.lcm_url == "udpm://239.255.76.67:7001?ttl=0" and sim.data_dir == tmp_path / "run" / "data"
     assert (config / "gps.toml").read_text() == 'port = "/dev/ttyUSB3"\nuere_m = 4.0\n'   # the user's file untouched

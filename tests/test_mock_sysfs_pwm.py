@@ -82,7 +82,8 @@ def test_a_service_with_no_sysfs_channel_is_refused_naming_the_table(tmp_path: P
                                                                                     '"pca9685:1:0x42"')
     (tmp_path / "vehicle.toml").write_text(text)
     profile = load_profile(tmp_path / "vehicle.toml")
-    with pytest.raises(DeviceError, match=r"\[devices.servos\]: no channel of service 'servos' has a sysfs PWM"):
+    with pytest.raises(DeviceError, match=r"\[devices.servos\]: mock sysfs_pwm stands in for a pwm device, but the "
+                                          r"address is pca9685://1/0x41/0"):
         MockLauncher(profile, device_dir=tmp_path / "dev", service_configs=effective_configs(profile))
 
 
@@ -98,21 +99,23 @@ def test_the_driver_drives_sysfs_and_pca9685_mocks_of_one_service(tmp_path: Path
     profile = load_profile(tmp_path / "vehicle.toml")
     dev = tmp_path / "dev"
     mocks = MockLauncher(profile, device_dir=dev, service_configs=effective_configs(profile))
-    channels = mocks.overrides["servos"]["channels"]
-    # both tables rewrote their own channels of the one service
-    assert [c["address"] for c in channels] == [str(dev / "pwmchip0"), str(dev / "pwmchip1"),
-                                                f"pca9685:mock:{dev / 'i2c-1.sock'}:0x40"]
-    sysfs0, sysfs1 = mocks.context.pwm_chips["servos"]
+    addresses = mocks.addresses
+    # each output is a device; both tables gave their mock to the outputs of their kind
+    assert addresses == {"rudder": f"mock+pwm://{dev / 'pwmchip0'}/0", "esc": f"mock+pwm://{dev / 'pwmchip1'}/1",
+                         "pan": f"mock+pca9685://{dev / 'i2c-1.sock'}/0x40/0"}
+    (sysfs0,), (sysfs1,) = mocks.context.pwm_chips["rudder"], mocks.context.pwm_chips["esc"]
     assert (sysfs0.npwm, sysfs1.npwm) == (1, 2)    # as many channels as the service uses on each
     pca = mocks.context.pwm_chips["pan"][0]
-    servos_line = mocks.describe()[0]
-    assert "sysfs_pwm" in servos_line and str(dev / "pwmchip0") in servos_line and "2 channel(s)" in servos_line
+    rudder_line = next(line for line in mocks.describe() if line.startswith("rudder"))
+    assert "sysfs_pwm" in rudder_line and str(dev / "pwmchip0") in rudder_line
+    channels = [{"name": "rudder"}, {"name": "esc", "neutral_us": 1400.0}, {"name": "pan"}]   # the new form
     mocks.start()
     try:
         assert sysfs0.bound and sysfs1.bound
         probe = DriverProbe(bus, "servos")
         driver_profile = write_profile(tmp_path, name="servos", kind="pwm_servo",
-                                       settings={"channels": channels, "command_timeout_s": 0.0, "rc_gating": False})
+                                       settings={"channels": channels, "command_timeout_s": 0.0, "rc_gating": False},
+                                       devices=addresses)
         proc = start_driver(services, driver_profile, "servos")
         wait_until(lambda: sysfs0.pulse_width_us(0) == 1500.0 and sysfs1.pulse_width_us(1) == 1400.0,
                    message="neutral on start on both sysfs chips", timeout=30)

@@ -17,8 +17,7 @@ import pytest
 from conftest import REPO, U2SA, wait_until
 from mock_devices.launcher import MockLauncher
 from mock_devices.sim_context import DeviceError
-from u2sa_hw.ports.gpio_port import open_gpio
-from u2sa_hw.ports.pwm_port import open_pwm
+from u2sa_hw.ports.opener import open_port
 from u2sa_hw.vehicle import load_profile
 
 ACKERMANN = """
@@ -72,11 +71,11 @@ def test_the_mux_switches_only_the_pwm_outputs_wired_through_it(tmp_path: Path) 
     mocks = profile(tmp_path, ACKERMANN)
     mocks.start()
     vehicle, outputs = mocks.vehicle, mocks.outputs
-    chip = mocks.overrides["drive"]["channels"]
-    steering = open_pwm(device="steering", address=chip[0]["address"], channel=0)
-    throttle = open_pwm(device="throttle", address=chip[1]["address"], channel=1)
-    pan = open_pwm(device="pan", address=chip[2]["address"], channel=0)
-    power = open_gpio(device="contactor", chip=mocks.overrides["contactor"]["chip"], outputs={4: 1})
+    addresses = mocks.addresses   # each device's mock address: what a driver would open
+    steering = open_port(addresses["steering"], device="steering")
+    throttle = open_port(addresses["throttle"], device="throttle")
+    pan = open_port(addresses["pan"], device="pan")
+    power = open_port(addresses["contactor"], device="contactor", outputs={4: 1})
     try:
         for channel, us in ((steering, 1900), (throttle, 1800), (pan, 1700)):
             channel.set_pulse_us(us)
@@ -86,7 +85,7 @@ def test_the_mux_switches_only_the_pwm_outputs_wired_through_it(tmp_path: Path) 
         wait_until(lambda: outputs.current("steering").value == -100.0, message="the pilot's steering at the servo")
         assert outputs.current("throttle").neutral and outputs.current("pan").value == 40.0
         assert vehicle.snapshot().speed == 0.0
-        enable = open_gpio(device="rc", chip=mocks.overrides["rc"]["chip"], outputs={21: 1})
+        enable = open_port(addresses["rc"], device="rc", outputs={21: 1})
         mocks.set_mode_switch(True)
         wait_until(lambda: abs(outputs.current("throttle").value - 60.0) < 1,
                    message="the SBC's throttle through the mux")
@@ -167,9 +166,8 @@ drives = { left_thruster = "left", right_thruster = "right" }
 def test_a_servo_driven_boat_moves_under_its_sysfs_pwm_thrusters(tmp_path: Path) -> None:
     mocks = profile(tmp_path, BOAT)
     mocks.start()
-    channels = mocks.overrides["thrusters"]["channels"]
-    left = open_pwm(device="left", address=channels[0]["address"], channel=0)
-    right = open_pwm(device="right", address=channels[1]["address"], channel=1)
+    left = open_port(mocks.addresses["left_thruster"], device="left")
+    right = open_port(mocks.addresses["right_thruster"], device="right")
     try:
         left.set_pulse_us(2000)    # full ahead
         right.set_pulse_us(1000)   # full ahead too: the right ESC is mounted reversed (reverse = true)

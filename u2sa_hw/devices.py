@@ -189,14 +189,15 @@ def profile_devices(profile: VehicleProfile, *, configs: Mapping[str, Mapping[st
         except AddressError as exc:
             raise ProfileError(f"{where}: {exc}") from None
         if from_legacy:
+            named = ("" if device == service else
+                     f" and name it in the service (device = \"{device}\"; a pwm_servo: in its channel's table)")
             warn(f"{profile.path} [services.{service}]: device '{device}' is given in the old form (service "
-                 f"settings); write [devices.{device}] address = \"{address.url}\" and device = \"{device}\" "
-                 "in the service")
+                 f"settings); write [devices.{device}] address = \"{address.url}\"{named}")
         entries[device] = _entry(device, address, service, table, from_legacy, group_name or
                                  (device if device in tables else ""))
     for name, table in tables.items():
-        if name in entries or name in groups and _group_used(entries, name):
-            continue
+        if name in entries or name in groups and _serves(entries, groups[name].get("service", name)):
+            continue   # a device, or an old-form table lending its mock to the devices of its service
         if "address" not in table:
             if "mock" not in table and any(k in table for k in LEGACY_DEVICE_KEYS):
                 continue   # an old-form udev/CAN table of a device no service names: nothing to open
@@ -228,8 +229,8 @@ def _group_for(groups: Mapping[str, Mapping[str, Any]], service: str, legacy: st
     return table, name
 
 
-def _group_used(entries: Mapping[str, DeviceEntry], group: str) -> bool:
-    return any(e.table == group for e in entries.values())
+def _serves(entries: Mapping[str, DeviceEntry], service: str) -> bool:
+    return any(e.service == service for e in entries.values())
 
 
 def _entry(name: str, address: DeviceAddress, service: str, table: Mapping[str, Any], legacy: bool,

@@ -17,9 +17,11 @@ origin = { lat = 29.1895, lon = -81.0483, alt = 10.0 }   # local NED frame origi
 [services.gps]           # one table per service; the table name is the service name
 kind = "gps_nmea"        # the service registry name (u2sa service --list-kinds)
 config = "config/gps.toml"   # optional; default <config_dir>/<name>.toml
-settings = { port = "/dev/u2sa/gps", baudrate = 9600 }   # optional initial values
+device = "gps"           # optional; the device it uses (default: its own name)
+settings = { uere_m = 4.0 }   # optional initial values
 
-[devices.gps]            # optional: what stands in for each device in simulation/replay
+[devices.gps]            # one address per device (docs/ports.md); mock: its stand-in in simulation
+address = "serial:///dev/u2sa/gps?baud=9600"
 mock = "nmea_gps"
 ```
 
@@ -226,6 +228,9 @@ def load_profile(path: Path | str | None) -> VehicleProfile:
         cfg = s.get("config")
         cfg_path = (base / cfg) if isinstance(cfg, str) else config_dir / f"{name}.toml"
         settings = _typed(s, "settings", dict, {}, w)
+        device = _typed(s, "device", str, None, w)
+        if device is not None:   # `device = "gps"` beside kind: the device setting (docs/ports.md)
+            settings = {**settings, "device": device}
         services[name] = ServiceSpec(name=name, kind=kind, config_path=cfg_path, settings=settings,
                                      enabled=_typed(s, "enabled", bool, True, w),
                                      required=_typed(s, "required", bool, True, w))

@@ -83,7 +83,7 @@ def cmd_mock(args: Any) -> int:
         raise CliError(f"mock: {exc}") from None
     keys = None
     try:
-        sim_profile = write_sim_profile(profile, run_dir=run_dir, overrides=mocks.overrides)
+        sim_profile = write_sim_profile(profile, run_dir=run_dir, addresses=mocks.addresses)
         s = mocks.settings
         print(f"simulated {s.model} vehicle at {profile.origin.lat:.6f}, {profile.origin.lon:.6f} "
               f"(start {s.start_north:g} m N, {s.start_east:g} m E, heading {s.start_heading_deg:g} deg)")

@@ -1,12 +1,13 @@
 """The simulation's copy of a vehicle profile: the same services, pointed at the mock devices.
 
-A vehicle profile names the real device addresses (``/dev/u2sa/gps``, ``can0``, I2C bus 1,
-``/dev/gpiochip0``). In simulation every service whose device has a mock gets settings
-that point it at the mock instead (the mock launcher's ``overrides``). Rather than edit
-the user's files, :func:`write_sim_profile` writes a complete copy under the run
-directory: ``vehicle.toml`` with the overrides in each service's ``settings``, and a
-copy of each service's config file (a config file wins over the profile's settings, so
-the overrides go into the copy too). Paths the services read relative to the profile
+A vehicle profile names each device's real address (``[devices.gps] address =
+"serial:///dev/u2sa/gps?baud=9600"``). In simulation only that address changes: every
+device with a mock gets its mock address (the mock launcher's ``addresses``, e.g.
+``mock+serial:///run/sim/dev/gps?baud=9600``). Rather than edit the user's files,
+:func:`write_sim_profile` writes a complete copy under the run directory: ``vehicle.toml``
+with each device's address replaced (a ``[devices.NAME]`` table is added for a device an
+old-form profile gives in its service settings; the address there wins over them), and a
+copy of each service's config file (with any other setting *overrides*, e.g. ``record_raw``). Paths the services read relative to the profile
 (mission and objects files) are made absolute, so the copy runs from anywhere, and what
 a ``u2sa param set`` changes during a simulation stays in the run directory.
 """
@@ -14,40 +15,19 @@ a ``u2sa param set`` changes during a simulation stays in the run directory.
 from __future__ import annotations
 
 import copy
-import logging
 import tomllib
 from pathlib import Path
 from typing import Any, Mapping
 
 import tomli_w
 
-from u2sa_hw.config import Configurator
+from u2sa_hw.devices import effective_config
 from u2sa_hw.registry import RECORDER_KIND
-from u2sa_hw.service import BASE_CONFIG
 from u2sa_hw.vehicle import ProfileError, VehicleProfile
 
 PROFILE_RELATIVE_FIELDS = ("mission_file", "objects_file")   # relative to the profile's directory
 SIM_PROFILE_NAME = "vehicle.toml"
-_quiet = logging.getLogger("u2sa_hw.sim.profile")
-_quiet.addHandler(logging.NullHandler())
-_quiet.propagate = False
-
-
-def effective_config(profile: VehicleProfile, name: str) -> dict[str, Any]:
-    """What service *name* will run with: its kind's defaults, the profile settings, its config file.
-
-    The kind is imported through the service registry (as ``u2sa service`` does).
-    """
-    from u2sa_hw.registry import resolve_kind
-
-    spec = profile.service(name)
-    try:
-        cls = resolve_kind(spec.kind)
-    except LookupError as exc:
-        raise ProfileError(f"{profile.path} [services.{name}]: {exc}") from None
-    config = Configurator(spec.config_path, (*BASE_CONFIG, *cls.config_fields()), logger=_quiet,
-                          initial=spec.settings)
-    return {field_name: value for field_name, _type, value in config.enumerate()}
+__all__ = ["effective_config", "effective_configs", "write_sim_profile"]
 
 
 def effective_configs(profile: VehicleProfile) -> dict[str, dict[str, Any]]:
@@ -70,12 +50,14 @@ def _read_config(path: Path) -> dict[str, Any]:
         raise ProfileError(f"{path}: cannot read this service config ({exc}); fix or delete it") from None
 
 
-def write_sim_profile(profile: VehicleProfile, *, run_dir: Path, overrides: Mapping[str, Mapping[str, Any]],
+def write_sim_profile(profile: VehicleProfile, *, run_dir: Path, addresses: Mapping[str, str],
+                      overrides: Mapping[str, Mapping[str, Any]] | None = None,
                       log_dir: Path | None = None, lcm_url: str | None = None, mission: Path | None = None,
                       record_dir: Path | None = None) -> Path:
     """Write the simulation copy of *profile* into *run_dir*; returns the new ``vehicle.toml``.
 
-    *overrides* maps a service to the settings that point it at its mocks; *mission*
+    *addresses* maps a device to its mock address; *overrides* maps a service to other
+    settings to change (e.g. ``record_raw``); *mission*
     replaces every mission manager's ``mission_file``; *record_dir* adds (or enables) a
     recorder service writing there; *lcm_url* isolates the run's bus.
     """
@@ -91,6 +73,15 @@ def write_sim_profile(profile: VehicleProfile, *, run_dir: Path, overrides: Mapp
                    log_dir=str((log_dir or run_dir / "logs").resolve()))
     if lcm_url:
         vehicle["lcm_url"] = lcm_url
+    devices = data.setdefault("devices", {})
+    for device, address in addresses.items():
+        table = devices.setdefault(device, {})
+        if not isinstance(table, dict):
+            raise ProfileError(f"{profile.path} [devices.{device}]: must be a table")
+        table["address"] = str(address)
+    if not devices:
+        del data["devices"]
+    overrides = overrides or {}
     services = data.setdefault("services", {})
     if record_dir is not None:
         recorders = [n for n, s in profile.services.items() if s.kind == RECORDER_KIND]

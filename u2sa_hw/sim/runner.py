@@ -119,12 +119,12 @@ class SimRun:
         self.deadline = self.record.t_start + timeout
         self.mocks.start()
         record_dir = self.out / "recording" if self.options.record else None
-        overrides = self.mocks.overrides
+        overrides: dict[str, dict[str, Any]] = {}
         if record_dir is not None:   # the drivers tap their ports too, so the recording can be replayed
             for name in (n for n, c in self.configs.items() if "record_raw" in c):
                 overrides.setdefault(name, {})["record_raw"] = True
-        sim_profile_path = write_sim_profile(self.profile, run_dir=run_dir, overrides=overrides,
-                                             log_dir=self.out / "logs", lcm_url=self.options.lcm_url,
+        sim_profile_path = write_sim_profile(self.profile, run_dir=run_dir, addresses=self.mocks.addresses,
+                                             overrides=overrides, log_dir=self.out / "logs", lcm_url=self.options.lcm_url,
                                              mission=self.scenario.mission_file, record_dir=record_dir)
         sim_profile = load_profile(sim_profile_path)
         self.monitor = BusMonitor(sim_profile.lcm_url)
