@@ -22,6 +22,20 @@ What is published (reference_frame "FRD"):
   one assumed (true of ground vehicles and boats, within g*sin(tilt)); say so with
   ``accel_sigma``. Use the BNO055, whose fusion removes gravity at any attitude, when it
   matters.
+- psi (MPU-9250 only, once the magnetometer is calibrated): the tilt-compensated true
+  heading from the AK8963 (drivers/ak8963_mag.py; its axes differ from the accel/gyro's:
+  x<->y swapped, z inverted) and the accelerometer's roll and pitch, plus
+  ``declination_deg``, with ``heading_sigma_deg``. An uncalibrated magnetometer gives no
+  heading: hard iron alone can turn it by tens of degrees.
+
+Calibration (docs/calibration.md, ``u2sa calibrate compass|imu``): ``mag_offset`` (µT) /
+``mag_matrix`` and ``accel_offset`` (m/s^2) / ``accel_matrix`` correct the body-FRD vectors
+as ``matrix @ (raw - offset)``; zero/identity means uncalibrated (health ``mag_calibrated``,
+``accel_calibrated``). Setting ``calibration_stream_s`` over the bus publishes the raw
+(uncorrected) body-FRD vectors on ``CAL.<service>`` for that many seconds (State
+Information: x, y, z = magnetic field in µT when a new one was read; x_ddot, y_ddot,
+z_ddot = specific force in m/s^2), so a dead ``u2sa calibrate`` leaves no stream running;
+0 stops it, and it never starts from the file at start.
 """
 
 from __future__ import annotations
@@ -33,8 +47,11 @@ from typing import Any, ClassVar
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.config import ConfigError, field
 from u2sa_hw.ports.errors import PortIOError, PortUnavailable
+from u2sa_hw.calibration.correction import IDENTITY9, ZERO3, Correction, tilt_compensated_heading
+from u2sa_hw.geo import wrap_angle
 from u2sa_hw.protocols import mpu9250 as mpu
 
+from drivers.ak8963_mag import Ak8963, to_chip_axes
 from drivers.imu_common import (ACCEL_FIELDS, RATE_FIELDS, ChipIdentityError, I2cImuDriver, Mounting,
                                 RestCalibration, RetryingI2c, Vector, set_vector)
 
@@ -44,6 +61,8 @@ CHIP_NAMES = {"mpu6050": "MPU-6050", "mpu6500": "MPU-6500", "mpu9250": "MPU-9250
 GRAVITY_MODES = ("rest", "level", "none")
 RESET_WAIT_S = 0.1  # PWR_MGMT_1.DEVICE_RESET takes up to 100 ms [RM6050]
 WAKE_WAIT_S = 0.01
+CAL_PREFIX = "CAL."
+MAG_MAX_AGE_S = 0.1   # a heading needs a field read this recently
 
 
 def identify(who_am_i: int) -> tuple[str, str] | None:
@@ -79,6 +98,19 @@ class Mpu9250ImuDriver(I2cImuDriver):
         field("rest_max_rate_dps", 10.0, "a window whose mean rate exceeds this is turning, not bias", gt=0),
         field("uncalibrated_rate_sigma", 0.1, "rad/s, rate sigma until the bias is calibrated", gt=0),
         field("gravity", "rest", "what x_ddot..z_ddot lose: rest, level or none (no accelerations)", choices=GRAVITY_MODES),
+        field("mag_offset", list(ZERO3), "magnetometer hard iron (µT, body FRD); set by u2sa calibrate compass",
+              item_type=float),
+        field("mag_matrix", list(IDENTITY9), "magnetometer soft iron/scale, 9 numbers row-major; corrected = "
+              "matrix @ (raw - offset); identity with a zero offset = uncalibrated (no heading)", item_type=float),
+        field("accel_offset", list(ZERO3), "accelerometer offset (m/s^2, body FRD); set by u2sa calibrate imu",
+              item_type=float),
+        field("accel_matrix", list(IDENTITY9), "accelerometer scale/misalignment, 9 numbers row-major",
+              item_type=float),
+        field("declination_deg", 0.0, "magnetic declination, east positive: true = magnetic + declination",
+              ge=-180, le=180),
+        field("heading_sigma_deg", 3.0, "sigma of psi from the magnetometer (deg)", gt=0),
+        field("calibration_stream_s", 0.0, "seconds to publish raw vectors on CAL.<service> for u2sa calibrate "
+              "(0: off; only a change over the bus starts it)", ge=0, le=3600),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:
@@ -92,6 +124,11 @@ class Mpu9250ImuDriver(I2cImuDriver):
         self.calibrated = False
         self.calibration_state = "not started"
         self.calibration: RestCalibration | None = None
+        self.mag: Ak8963 | None = None
+        self.mag_correction = Correction((0.0, 0.0, 0.0), tuple(IDENTITY9))
+        self.accel_correction = Correction((0.0, 0.0, 0.0), tuple(IDENTITY9))
+        self.stream_until = 0.0     # monotonic time the CAL stream ends
+        self.heading_deg: float | None = None
 
     def check_config(self) -> None:
         """Ranges, DLPF, chip, mounting and gravity mode; ConfigError names the field."""
@@ -109,6 +146,21 @@ class Mpu9250ImuDriver(I2cImuDriver):
         if c["gravity"] not in GRAVITY_MODES:
             raise ConfigError(f"{self.name}: config 'gravity' must be one of {GRAVITY_MODES}, got {c['gravity']!r}")
         self.mounting = Mounting.parse(c["mounting"])
+        self._corrections()   # only checked here: this also runs with a value being tried
+
+    def _corrections(self) -> tuple[Correction, Correction]:
+        c = self.config
+        try:
+            return (Correction.from_config(c["mag_offset"], c["mag_matrix"], what="mag_offset/mag_matrix"),
+                    Correction.from_config(c["accel_offset"], c["accel_matrix"], what="accel_offset/accel_matrix"))
+        except ValueError as exc:
+            raise ConfigError(f"{self.name}: {exc}") from None
+
+    def setup(self) -> None:
+        """Check the config, prepare the port and the gyro bias window."""
+        super().setup()
+        c = self.config
+        self.mag_correction, self.accel_correction = self._corrections()
         if int(c["calibrate_samples"]) > 0:
             self.calibration = RestCalibration(samples=int(c["calibrate_samples"]),
                                                max_std_dps=float(c["rest_max_std_dps"]),
@@ -116,6 +168,23 @@ class Mpu9250ImuDriver(I2cImuDriver):
             self.calibration_state = "calibrating"
         else:
             self.calibrated, self.calibration_state = True, "off"
+        self.register_publisher(self.cal_channel, t.StateInformation)
+
+    @property
+    def cal_channel(self) -> str:
+        """``CAL.<service>``: raw vectors while ``calibration_stream_s`` runs."""
+        return CAL_PREFIX + self.name
+
+    def on_config_change(self, name: str, value: Any) -> None:
+        """The calibration fields apply at once; the stream starts or stops."""
+        super().on_config_change(name, value)
+        if name == "calibration_stream_s":
+            self.stream_until = time.monotonic() + float(value) if float(value) > 0 else 0.0
+            self.logger.info("%s: calibration stream on %s %s", self.name, self.cal_channel,
+                             f"for {float(value):g} s" if value else "off")
+        elif name.startswith(("mag_", "accel_")):
+            self.mag_correction, self.accel_correction = self._corrections()
+            self.logger.info("%s: %s = %s applied", self.name, name, value)
 
     # -- chip set-up ----------------------------------------------------------------------
     def init_chip(self, port: RetryingI2c, *, first: bool) -> None:
@@ -139,6 +208,13 @@ class Mpu9250ImuDriver(I2cImuDriver):
             raise PortIOError(self.name, f"configuration did not take: wrote {wanted.hex()} to 0x19.., read "
                                          f"{got.hex()}", address=self.where,
                               fix="check the chip's power and wiring; the driver retries")
+        if variant.has_magnetometer:
+            address = self.port.address
+            assert address is not None
+            if self.mag is None:
+                self.mag = Ak8963(device=self.name, bus=address.i2c_bus, retries=lambda: int(self.config["retries"]))
+            if not self.mag.setup(port):
+                self.logger.warning("%s: magnetometer: %s; no heading", self.name, self.mag.state)
 
     def _check_identity(self, who: int, *, first: bool) -> None:
         found = identify(who)
@@ -167,19 +243,58 @@ class Mpu9250ImuDriver(I2cImuDriver):
         assert variant is not None
         g_per_count = mpu.STANDARD_GRAVITY / mpu.ACCEL_LSB_PER_G[self.accel_fs]
         rad_per_count = math.radians(1.0 / mpu.GYRO_LSB_PER_DPS[self.gyro_fs])
-        force = self.mounting.to_body([c * g_per_count for c in (raw.ax, raw.ay, raw.az)])
+        raw_force = self.mounting.to_body([c * g_per_count for c in (raw.ax, raw.ay, raw.az)])
+        force = self.accel_correction.apply(raw_force)
         gyro = self.mounting.to_body([c * rad_per_count for c in (raw.gx, raw.gy, raw.gz)])
         self.temperature_c = raw.temp / variant.temp_lsb_per_c + variant.temp_offset_c
         if not self.calibrated and self.calibration is not None:
-            self._calibrate(gyro, force)
+            self._calibrate(gyro, raw_force)
         rates = [w - b for w, b in zip(gyro, self.gyro_bias)]
         sigma = float(self.config["rate_sigma" if self.calibrated else "uncalibrated_rate_sigma"])
         set_vector(msg, RATE_FIELDS, rates, sigma)
         mode = self.config["gravity"]
         if mode != "none":
-            reference = self.rest_force if mode == "rest" else (0.0, 0.0, -RestCalibration.GRAVITY)
+            # the rest window holds raw readings, so a calibration saved later corrects it too
+            reference = (self.accel_correction.apply(self.rest_force) if mode == "rest"
+                         else (0.0, 0.0, -RestCalibration.GRAVITY))
             set_vector(msg, ACCEL_FIELDS, [f - r for f, r in zip(force, reference)], float(self.config["accel_sigma"]))
+        raw_mag = self._read_mag()
+        if raw_mag is not None or (self.mag is not None and time.monotonic() - self.mag.last_at < MAG_MAX_AGE_S):
+            self._heading(msg, force, raw_mag)
+        if self.stream_until and time.monotonic() < self.stream_until:
+            self._stream(msg.header.timestamp_us, raw_force, raw_mag)
+        elif self.stream_until:
+            self.stream_until = 0.0
+            self.logger.info("%s: calibration stream ended (its time ran out)", self.name)
         return msg
+
+    def _read_mag(self) -> Vector | None:
+        """The newest field in body FRD (µT, uncorrected), or None when none new."""
+        if self.mag is None:
+            return None
+        got = self.mag.read()
+        return None if got is None else self.mounting.to_body(to_chip_axes(got))
+
+    def _heading(self, msg: t.StateInformation, force: Vector, raw_mag: Vector | None) -> None:
+        if not self.mag_correction.calibrated or self.mag is None or self.mag.last is None:
+            self.heading_deg = None
+            return
+        body = raw_mag if raw_mag is not None else self.mounting.to_body(to_chip_axes(self.mag.last))
+        heading = tilt_compensated_heading(force, self.mag_correction.apply(body))
+        if heading is None:
+            return
+        psi = wrap_angle(heading + math.radians(float(self.config["declination_deg"])))
+        self.heading_deg = math.degrees(psi) % 360.0
+        msg.set(psi=psi, psi_sigma=math.radians(float(self.config["heading_sigma_deg"])))
+
+    def _stream(self, timestamp_us: int, raw_force: Vector, raw_mag: Vector | None) -> None:
+        cal = t.StateInformation()
+        cal.header.timestamp_us = timestamp_us
+        cal.sensor_name, cal.reference_frame = self.name, "FRD"
+        cal.set(x_ddot=raw_force[0], y_ddot=raw_force[1], z_ddot=raw_force[2])
+        if raw_mag is not None:
+            cal.set(x=raw_mag[0], y=raw_mag[1], z=raw_mag[2])
+        self.publish(self.cal_channel, cal)
 
     def _calibrate(self, gyro: Vector, force: Vector) -> None:
         assert self.calibration is not None
@@ -209,7 +324,28 @@ class Mpu9250ImuDriver(I2cImuDriver):
             "calibration": self.calibration_state,
             "gyro_bias_dps": _fmt(math.degrees(b) for b in self.gyro_bias),
             "gravity": self.config["gravity"],
+            "mag_calibrated": _yes(self.mag_correction.calibrated),
+            "accel_calibrated": _yes(self.accel_correction.calibrated),
+            **self._mag_health(),
         }
+
+    def _mag_health(self) -> dict[str, Any]:
+        if self.mag is None:
+            return {}
+        return {"magnetometer": self.mag.state, "mag_samples": self.mag.samples, "mag_overflows": self.mag.overflows,
+                "mag_errors": self.mag.errors, "mag_asa": ",".join(map(str, self.mag.asa or ())),
+                "heading_deg": "" if self.heading_deg is None else f"{self.heading_deg:.1f}",
+                "calibration_stream": "on" if self.stream_until else "off"}
+
+    def kill(self) -> None:
+        """Close the magnetometer's port too."""
+        if self.mag is not None:
+            self.mag.close()
+        super().kill()
+
+
+def _yes(flag: bool) -> str:
+    return "yes" if flag else "no"
 
 
 def _fmt(values: Any) -> str:

@@ -9,7 +9,10 @@ forward, chip y = body left, chip z = up. With the vehicle's FRD specific force
 (accel_x, accel_y, accel_z) and body rates (p, q, r):
     chip accel = (accel_x, -accel_y, -accel_z) / g   -> +1 g on z at rest
     chip gyro  = (p, -q, -r) in deg/s + a constant per-axis bias (chip axes) + noise
-Noise is Gaussian, seeded. While PWR_MGMT_1.SLEEP is set the sample registers are not
+The accelerometer's errors are modelled in chip axes and g, ``measured = accel_matrix @ true
++ accel_offset_g`` (scales on the diagonal, misalignment off it; defaults identity and zero),
+so a calibration can be checked against a known truth. Noise is Gaussian, seeded.
+While PWR_MGMT_1.SLEEP is set the sample registers are not
 updated: they hold their last value, which is 0 after power-up or DEVICE_RESET.
 """
 
@@ -17,11 +20,16 @@ from __future__ import annotations
 
 import math
 import random
+import threading
+import time
+from types import SimpleNamespace
+from typing import Sequence
 
 from mock_devices.i2c_chip import RegisterChip, RestingVehicle, Vehicle
 from u2sa_hw.ports.i2c_port import OP_READ, STATUS_NACK
 from u2sa_hw.protocols import mpu9250 as mpu
 
+IDENTITY = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 _SAMPLE_SPAN = range(mpu.INT_STATUS, mpu.GYRO_ZOUT_L + 1)  # reads here see a fresh sample
 
 
@@ -32,7 +40,9 @@ class Mpu9250Chip(RegisterChip):
 
     def __init__(self, *, address: int = mpu.I2C_ADDRESS, variant: str = "mpu9250", vehicle: Vehicle | None = None,
                  seed: int = 0, gyro_bias_dps: tuple[float, float, float] = (0.8, -0.5, 0.3),
-                 gyro_noise_dps: float = 0.05, accel_noise_g: float = 0.002, temperature_c: float = 25.0) -> None:
+                 gyro_noise_dps: float = 0.05, accel_noise_g: float = 0.002, temperature_c: float = 25.0,
+                 accel_offset_g: Sequence[float] = (0.0, 0.0, 0.0),
+                 accel_matrix: Sequence[Sequence[float]] = IDENTITY) -> None:
         if variant not in mpu.VARIANTS:
             raise ValueError(f"unknown MPU variant {variant!r}: use one of {sorted(mpu.VARIANTS)}")
         self.variant = mpu.VARIANTS[variant]
@@ -41,6 +51,8 @@ class Mpu9250Chip(RegisterChip):
         self.gyro_bias_dps = tuple(gyro_bias_dps)
         self.gyro_noise_dps = gyro_noise_dps
         self.accel_noise_g = accel_noise_g
+        self.accel_offset_g = _vector("accel_offset_g", accel_offset_g)
+        self.accel_matrix = _matrix("accel_matrix", accel_matrix)
         self.temperature_c = temperature_c
         self._rng = random.Random(seed)
         self.samples = 0  # how many times the sample registers were refreshed
@@ -92,7 +104,9 @@ class Mpu9250Chip(RegisterChip):
         with self._lock:
             truth = self.vehicle.snapshot()
             g = mpu.STANDARD_GRAVITY
-            accel_g = (truth.accel_x / g, -truth.accel_y / g, -truth.accel_z / g)
+            true_g = (truth.accel_x / g, -truth.accel_y / g, -truth.accel_z / g)
+            accel_g = tuple(o + sum(k * a for k, a in zip(row, true_g))
+                            for row, o in zip(self.accel_matrix, self.accel_offset_g))
             rates = (truth.roll_rate, -truth.pitch_rate, -truth.yaw_rate)
             gyro_dps = tuple(math.degrees(w) + b for w, b in zip(rates, self.gyro_bias_dps))
             a_scale, g_scale = self.accel_lsb_per_g, self.gyro_lsb_per_dps
@@ -114,6 +128,11 @@ class Ak8963Chip(RegisterChip):
     AK8963's own axes (mag x = chip y, mag y = chip x, mag z = -chip z). Output is 16-bit
     (0.15 µT/LSB) or 14-bit (0.6 µT/LSB) little-endian, divided by the fuse-ROM sensitivity
     adjustment so a driver must apply ASA to get the field back.
+
+    The vehicle's iron is modelled in the AK8963's axes: ``measured = soft_iron @ field +
+    hard_iron_ut`` (defaults identity and zero). A symmetric soft-iron matrix is what an
+    ellipsoid fit can undo fully (a rotation part cannot be told from the mounting). A count
+    beyond the 16-bit range (+-32760, 4912 µT) sets ST2.HOFL, as the chip does.
     """
 
     read_only = frozenset({mpu.AK8963_WIA, 0x01, mpu.AK8963_ST1, *range(mpu.AK8963_HXL, mpu.AK8963_ST2 + 1),
@@ -125,8 +144,12 @@ class Ak8963Chip(RegisterChip):
 
     def __init__(self, *, parent: Mpu9250Chip, address: int = mpu.AK8963_ADDRESS,
                  earth_field_ut: tuple[float, float, float] = (20.0, 0.0, 45.0),
-                 asa: tuple[int, int, int] = (176, 177, 165), noise_ut: float = 0.3, seed: int = 0) -> None:
+                 asa: tuple[int, int, int] = (176, 177, 165), noise_ut: float = 0.3, seed: int = 0,
+                 hard_iron_ut: Sequence[float] = (0.0, 0.0, 0.0),
+                 soft_iron: Sequence[Sequence[float]] = IDENTITY) -> None:
         self.parent = parent
+        self.hard_iron_ut = _vector("hard_iron_ut", hard_iron_ut)
+        self.soft_iron = _matrix("soft_iron", soft_iron)
         self.earth_field_ut = tuple(earth_field_ut)
         self.asa = tuple(asa)
         self.noise_ut = noise_ut
@@ -172,17 +195,22 @@ class Ak8963Chip(RegisterChip):
         truth = self.parent.vehicle.snapshot()
         body = ned_to_body(self.earth_field_ut, truth.roll, truth.pitch, truth.yaw)
         chip = (body[0], -body[1], -body[2])
-        mag_axes = (chip[1], chip[0], -chip[2])
+        ideal = (chip[1], chip[0], -chip[2])
+        mag_axes = tuple(b + sum(k * f for k, f in zip(row, ideal)) for row, b in zip(self.soft_iron, self.hard_iron_ut))
         sixteen = bool(self.peek(mpu.AK8963_CNTL1) & 0x10)
         scale = mpu.AK8963_UT_PER_LSB_16BIT if sixteen else mpu.AK8963_UT_PER_LSB_14BIT
         out = bytearray()
+        overflow = False
+        limit = 32760 if sixteen else 8190
         for field, asa in zip(mag_axes, self.asa):
-            adjust = (asa - 128) * 0.5 / 128 + 1
-            count = mpu.clamp_int16((field + self._rng.gauss(0.0, self.noise_ut)) / adjust / scale)
+            value = (field + self._rng.gauss(0.0, self.noise_ut)) / mpu.ak8963_adjustment(asa) / scale
+            overflow = overflow or abs(value) > limit
+            count = mpu.clamp_int16(value)
             out += count.to_bytes(2, "little", signed=True)
         self._regs[mpu.AK8963_HXL:mpu.AK8963_HXL + 6] = out
-        self._regs[mpu.AK8963_ST1] = 0x01
-        self._regs[mpu.AK8963_ST2] = 0x10 if sixteen else 0x00
+        self._regs[mpu.AK8963_ST1] = mpu.AK8963_ST1_DRDY
+        self._regs[mpu.AK8963_ST2] = ((mpu.AK8963_ST2_BITM if sixteen else 0x00)
+                                      | (mpu.AK8963_ST2_HOFL if overflow else 0x00))
 
 
 def ned_to_body(v: tuple[float, float, float], roll: float, pitch: float, yaw: float) -> tuple[float, float, float]:
@@ -194,3 +222,40 @@ def ned_to_body(v: tuple[float, float, float], roll: float, pitch: float, yaw: f
     y = (sr * sp * cy - cr * sy) * n + (sr * sp * sy + cr * cy) * e + sr * cp * d
     z = (cr * sp * cy + sr * sy) * n + (cr * sp * sy - sr * cy) * e + cr * cp * d
     return x, y, z
+
+
+def _vector(name: str, v: Sequence[float]) -> tuple[float, float, float]:
+    out = tuple(float(x) for x in v)
+    if len(out) != 3 or not all(math.isfinite(x) for x in out):
+        raise ValueError(f"{name} must be three finite numbers, got {v!r}")
+    return out  # type: ignore[return-value]
+
+
+def _matrix(name: str, m: Sequence[Sequence[float]]) -> tuple[tuple[float, float, float], ...]:
+    rows = tuple(_vector(name, row) for row in m)
+    if len(rows) != 3:
+        raise ValueError(f"{name} must be a 3x3 matrix (three rows of three), got {m!r}")
+    return rows
+
+
+class OrientedVehicle:
+    """A test hook: a vehicle held still at an attitude the test sets (``orient``), e.g. to turn a
+    board through the orientations of a calibration. Its specific force is gravity's reaction
+    at that attitude (FRD: ``(0, 0, -g)`` level), its rates are zero."""
+
+    def __init__(self, *, roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0) -> None:
+        self._lock = threading.Lock()
+        self._attitude = (roll, pitch, yaw)
+
+    def orient(self, *, roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0) -> None:
+        """Hold the vehicle at this attitude (radians, aerospace yaw-pitch-roll)."""
+        with self._lock:
+            self._attitude = (float(roll), float(pitch), float(yaw))
+
+    def snapshot(self) -> SimpleNamespace:
+        """A VehicleTruth-shaped record of the attitude held now."""
+        with self._lock:
+            roll, pitch, yaw = self._attitude
+        fx, fy, fz = ned_to_body((0.0, 0.0, -mpu.STANDARD_GRAVITY), roll, pitch, yaw)
+        return SimpleNamespace(t=time.monotonic(), roll=roll, pitch=pitch, yaw=yaw, roll_rate=0.0, pitch_rate=0.0,
+                               yaw_rate=0.0, accel_x=fx, accel_y=fy, accel_z=fz)

@@ -53,11 +53,11 @@ class MagCalibration:
         v = np.asarray(self.matrix) @ (np.asarray(raw, dtype=float) - np.asarray(self.offset))
         return float(v[0]), float(v[1]), float(v[2])
 
-    def problems(self) -> list[str]:
+    def problems(self, *, min_coverage: float = MIN_COVERAGE) -> list[str]:
         """Why this result should not be saved (empty when it is good)."""
         out = []
-        if self.coverage < MIN_COVERAGE:
-            out.append(f"coverage {self.coverage:.0%} is below {MIN_COVERAGE:.0%}: turn the vehicle through more "
+        if self.coverage < min_coverage:
+            out.append(f"coverage {self.coverage:.0%} is below {min_coverage:.0%}: turn the vehicle through more "
                        "orientations (roll and pitch it too, not only a level turn)")
         if self.residual > MAX_RESIDUAL:
             out.append(f"residual {self.residual:.3f} is above {MAX_RESIDUAL}: the field changed while turning "

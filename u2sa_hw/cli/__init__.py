@@ -19,6 +19,7 @@ COMMAND_MODULES = [
     "u2sa_hw.cli.check_cmd",
     "u2sa_hw.cli.bus_cmds",
     "u2sa_hw.cli.param_cmd",
+    "u2sa_hw.cli.calibrate_cmd",
     "u2sa_hw.cli.mission_cmd",
     "u2sa_hw.cli.failsafe_cmd",
     "u2sa_hw.cli.record_cmd",

@@ -160,7 +160,7 @@ def clamp_int16(value: float) -> int:
     return max(-32768, min(32767, int(round(value))))
 
 
-# AK8963 magnetometer inside the MPU-9250 (reach it with INT_PIN_CFG bypass) [RM9250 s.5]
+# AK8963 magnetometer inside the MPU-9250 (reach it with INT_PIN_CFG bypass) [RM9250 s.5, AK8963 datasheet s.8]
 AK8963_ADDRESS = 0x0C
 AK8963_WIA = 0x00
 AK8963_WIA_VALUE = 0x48
@@ -172,3 +172,44 @@ AK8963_CNTL2 = 0x0B
 AK8963_ASAX = 0x10
 AK8963_UT_PER_LSB_16BIT = 0.15
 AK8963_UT_PER_LSB_14BIT = 0.6
+AK8963_ST1_DRDY = 0x01          # a new measurement is in HXL..HZH
+AK8963_ST2_HOFL = 0x08          # magnetic sensor overflow: |field| beyond the range, the sample is invalid
+AK8963_ST2_BITM = 0x10          # output is 16-bit
+AK8963_CNTL1_BIT_16 = 0x10
+AK8963_MODE_POWER_DOWN = 0x00
+AK8963_MODE_CONTINUOUS_1 = 0x02  # 8 Hz
+AK8963_MODE_CONTINUOUS_2 = 0x06  # 100 Hz
+AK8963_MODE_FUSE_ROM = 0x0F
+AK8963_CNTL2_SRST = 0x01
+AK8963_MODE_WAIT_S = 0.0001     # >= 100 us after a mode change
+AK8963_SAMPLE_START = AK8963_ST1
+AK8963_SAMPLE_LENGTH = AK8963_ST2 - AK8963_ST1 + 1   # ST1, HXL..HZH, ST2 in one read (ST2 ends the read cycle)
+
+
+def ak8963_adjustment(asa: int) -> float:
+    """Sensitivity factor from one fuse-ROM ASA byte: ``H_adj = H * ((ASA - 128) * 0.5 / 128 + 1)``."""
+    return (asa - 128) * 0.5 / 128 + 1
+
+
+@dataclass(frozen=True)
+class MagSample:
+    """One AK8963 read of ST1..ST2: counts per AK8963 axis, whether it is new, whether it overflowed."""
+
+    hx: int
+    hy: int
+    hz: int
+    ready: bool
+    overflow: bool
+    sixteen_bit: bool
+
+
+_MAG = struct.Struct("<B3hB")
+
+
+def decode_mag(data: bytes) -> MagSample:
+    """Decode the 8 bytes read from ST1 (little-endian signed 16-bit counts between ST1 and ST2)."""
+    if len(data) != AK8963_SAMPLE_LENGTH:
+        raise ValueError(f"AK8963 sample must be {AK8963_SAMPLE_LENGTH} bytes, got {len(data)}")
+    st1, hx, hy, hz, st2 = _MAG.unpack(data)
+    return MagSample(hx, hy, hz, bool(st1 & AK8963_ST1_DRDY), bool(st2 & AK8963_ST2_HOFL),
+                     bool(st2 & AK8963_ST2_BITM))

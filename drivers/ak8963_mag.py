@@ -1,0 +1,126 @@
+"""The AK8963 magnetometer inside an MPU-9250, reached through the MPU's I2C bypass.
+
+Set-up (after every MPU set-up, since the MPU's reset clears its bypass bit): the MPU's
+INT_PIN_CFG.BYPASS_EN connects the AK8963 (0x0C) to the main bus; WIA must read 0x48; a
+soft reset; fuse-ROM mode to read the factory sensitivity adjustment ASA (one byte per
+axis, ``H_adj = H * ((ASA - 128) / 256 + 1)``); power-down; then continuous measurement
+mode 2 (100 Hz) with 16-bit output (0.15 µT/LSB). Each sample is one 8-byte read of ST1,
+HXL..HZH and ST2 (reading ST2 ends the read cycle). A sample without ST1.DRDY is not new
+(the previous one is kept); one with ST2.HOFL (field beyond +-4912 µT: a magnet next to the
+board) is dropped and counted.
+
+Axes: the AK8963's axes are not the MPU's. With the MPU's chip axes x, y, z, the
+magnetometer's x is chip y, its y is chip x and its z is -chip z (MPU-9250 product
+specification, section 9.1); :func:`to_chip_axes` turns a reading into chip axes, after
+which the driver's ``mounting`` applies as to the accel and gyro.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+from u2sa_hw.ports.errors import PortError, PortIOError
+from u2sa_hw.ports.i2c_port import I2cPort, open_i2c
+from u2sa_hw.protocols import mpu9250 as mpu
+
+Vector = tuple[float, float, float]
+
+
+def to_chip_axes(mag: Vector) -> Vector:
+    """An AK8963-axes vector in the MPU's chip axes (x<->y swapped, z inverted)."""
+    return mag[1], mag[0], -mag[2]
+
+
+class Ak8963:
+    """The magnetometer's own port, set-up and sample reads; every fault is counted, none raised."""
+
+    def __init__(self, *, device: str, bus: int | str, retries: Callable[[], int]) -> None:
+        self.device = device
+        self.bus = bus
+        self._retries = retries
+        self.port: I2cPort | None = None
+        self.adjust: Vector = (1.0, 1.0, 1.0)
+        self.asa: tuple[int, int, int] | None = None
+        self.state = "not set up"
+        self.samples = 0
+        self.overflows = 0
+        self.errors = 0
+        self.last: Vector | None = None      # µT, AK8963 axes, ASA applied
+        self.last_at = 0.0
+
+    def setup(self, mpu_port: object) -> bool:
+        """Enable the bypass through *mpu_port* (a RetryingI2c), identify and start the AK8963; False if absent."""
+        self.close()
+        try:
+            mpu_port.write_byte(mpu.INT_PIN_CFG, mpu.INT_PIN_CFG_BYPASS_EN)  # type: ignore[attr-defined]
+            port = open_i2c(device=f"{self.device}-mag", bus=self.bus, address=mpu.AK8963_ADDRESS)
+            self.port = port
+            who = self._call(lambda: port.read_byte(mpu.AK8963_WIA))
+            if who != mpu.AK8963_WIA_VALUE:
+                self.state = f"no AK8963 at 0x0c (WIA 0x{who:02x}, expected 0x48)"
+                self.close()
+                return False
+            self._call(lambda: port.write_byte(mpu.AK8963_CNTL2, mpu.AK8963_CNTL2_SRST))
+            self._mode(port, mpu.AK8963_MODE_FUSE_ROM)
+            asa = self._call(lambda: port.read_block(mpu.AK8963_ASAX, 3))
+            self.asa = (asa[0], asa[1], asa[2])
+            self.adjust = tuple(mpu.ak8963_adjustment(a) for a in self.asa)  # type: ignore[assignment]
+            self._mode(port, mpu.AK8963_MODE_POWER_DOWN)
+            self._mode(port, mpu.AK8963_CNTL1_BIT_16 | mpu.AK8963_MODE_CONTINUOUS_2)
+        except PortError as exc:
+            self.errors += 1
+            self.state = f"not answering ({exc})"
+            self.close()
+            return False
+        self.state = "continuous 100 Hz, 16-bit"
+        return True
+
+    def _call(self, fn: Callable[[], object]) -> object:
+        """*fn* retried ``retries()`` times after an I/O error (counted in ``errors``, not the MPU's counters)."""
+        tries = self._retries() + 1
+        while True:
+            try:
+                return fn()
+            except PortIOError:
+                tries -= 1
+                if tries <= 0:
+                    raise
+                self.errors += 1
+
+    def _mode(self, port: I2cPort, mode: int) -> None:
+        self._call(lambda: port.write_byte(mpu.AK8963_CNTL1, mode))
+        time.sleep(mpu.AK8963_MODE_WAIT_S)
+
+    def read(self) -> Vector | None:
+        """The newest field (µT, AK8963 axes), or None when there is none new and valid."""
+        port = self.port
+        if port is None:
+            return None
+        try:
+            raw = mpu.decode_mag(self._call(lambda: port.read_block(mpu.AK8963_SAMPLE_START,  # type: ignore[arg-type]
+                                                                    mpu.AK8963_SAMPLE_LENGTH)))
+        except PortError as exc:
+            self.errors += 1
+            self.state = f"lost ({exc}); set up again with the MPU"
+            self.close()
+            return None
+        if not raw.ready:
+            return None
+        if raw.overflow:
+            self.overflows += 1
+            return None
+        scale = mpu.AK8963_UT_PER_LSB_16BIT if raw.sixteen_bit else mpu.AK8963_UT_PER_LSB_14BIT
+        self.last = (raw.hx * scale * self.adjust[0], raw.hy * scale * self.adjust[1], raw.hz * scale * self.adjust[2])
+        self.last_at = time.monotonic()
+        self.samples += 1
+        return self.last
+
+    def close(self) -> None:
+        """Release the magnetometer's port (set up again by the next ``setup``)."""
+        if self.port is not None:
+            try:
+                self.port.close()
+            except (OSError, PortError):
+                pass
+            self.port = None
