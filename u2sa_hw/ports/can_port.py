@@ -64,7 +64,7 @@ def _open_fix(interface: str, channel: str, bitrate: int | None, exc: BaseExcept
     if interface == "udp_multicast":
         return (f"cannot join multicast group '{channel}': check the group address, the port option "
                 "and that the host has a multicast route (ip route add 224.0.0.0/4 dev lo for one host)")
-    return f"check interface '{interface}' and channel '{channel}' in the service config"
+    return f"check interface '{interface}' and channel '{channel}' in the device's address (can://INTERFACE/CHANNEL)"
 
 
 def _record(device: str, direction: int, msg: can.Message) -> RawCanFrame:

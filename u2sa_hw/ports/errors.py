@@ -45,9 +45,10 @@ def fix_for_errno(errno_value: int | None, path: str) -> str:
     import errno
 
     if errno_value == errno.ENOENT:
-        return f"{path} does not exist: check the cable, the udev rule, or the address in the service config"
+        return (f"{path} does not exist: check the cable, the udev rule, or the device's address "
+                "([devices.NAME] address in the vehicle profile)")
     if errno_value in (errno.EACCES, errno.EPERM):
         return f"no permission on {path}: add the service user to the device's group (u2sa install does this)"
     if errno_value == errno.EBUSY:
         return f"{path} is in use by another process: stop it (fuser {path})"
-    return "check the device and its address in the service config"
+    return "check the device and its address ([devices.NAME] address in the vehicle profile)"

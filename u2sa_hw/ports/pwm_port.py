@@ -275,7 +275,7 @@ def _open_sysfs(*, device: str, address: str, channel: int, period_ns: int, tap:
         npwm = None
     if channel < 0 or (npwm is not None and channel >= npwm):
         raise PortUnavailable(device, f"channel {channel} does not exist (chip has {npwm} channels)",
-                              address=address, fix=f"use a channel 0..{(npwm or 1) - 1} in the service config")
+                              address=address, fix=f"use a channel 0..{(npwm or 1) - 1} in the device's address")
     _export(device=device, chip=chip, channel=channel)
     pwm = SysfsPwmChannel(device=device, chip=chip, channel=channel, tap=tap)
     pwm.configure(period_ns=period_ns, duty_ns=min(pwm.duty_ns, period_ns))

@@ -1,0 +1,243 @@
+"""DeviceLink (one device lifecycle) on real ptys, and profile_devices (one address per device, old profiles)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from conftest import wait_until
+from u2sa_hw import lcmtypes as t
+from u2sa_hw.devices import profile_devices
+from u2sa_hw.ports import PortClosed, PortUnavailable
+from u2sa_hw.ports.address import AddressError
+from u2sa_hw.ports.device_link import DeviceLink, device_setting
+from u2sa_hw.ports.tap import raw_channel
+from u2sa_hw.vehicle import ProfileError, VehicleProfile, load_profile
+
+
+class Pty:
+    """A pty whose slave is reached through a symlink, as a mock device or udev makes one."""
+
+    def __init__(self, link: Path) -> None:
+        self.link = link
+        self.master, self.slave = os.openpty()
+        if link.is_symlink():
+            link.unlink()
+        link.symlink_to(os.ttyname(self.slave))
+
+    def unplug(self) -> None:
+        os.close(self.master)
+        os.close(self.slave)
+        self.link.unlink()
+
+
+class Owner:
+    """What a DeviceLink needs of its driver: profile, config, publish, register_publisher."""
+
+    def __init__(self, profile: VehicleProfile, *, record_raw: bool = True, legacy: str | None = None) -> None:
+        self.name = "gps"
+        self.profile = profile
+        self.config: dict[str, Any] = {"record_raw": record_raw}
+        self.published: list[tuple[str, Any]] = []
+        self.registered: list[tuple[str, type]] = []
+        self.legacy = legacy
+
+    def publish(self, channel: str, msg: Any) -> None:
+        self.published.append((channel, msg))
+
+    def register_publisher(self, channel: str, kind: type) -> None:
+        self.registered.append((channel, kind))
+
+
+def profile_with(tmp_path: Path, devices: dict[str, str]) -> VehicleProfile:
+    return VehicleProfile(path=tmp_path / "vehicle.toml", devices={n: {"address": a} for n, a in devices.items()})
+
+
+def link_for(owner: Owner, device: str = "gps") -> DeviceLink:
+    return DeviceLink(owner, device=lambda: device, raw_type=t.RawSerial, legacy=lambda: owner.legacy,
+                      options=lambda: {"timeout": 0.2}, initial_backoff=0.05, max_backoff=0.2)
+
+
+def opened(link: DeviceLink) -> Any:
+    """The open port, once the link (re)opened it (pyserial drops what arrived before the open, as a UART does)."""
+    def attempt() -> Any:
+        try:
+            return link.get()
+        except PortUnavailable:
+            return None
+    return wait_until(attempt, timeout=10, message="the link to open its device")
+
+
+def read_line(link: DeviceLink) -> bytes:
+    """The next line through the link, reopening as the link allows."""
+    def attempt() -> bytes:
+        try:
+            return link.call(lambda port: port.readline())
+        except (PortUnavailable, PortClosed):
+            return b""
+    return wait_until(attempt, timeout=10, message="a line through the link")
+
+
+def test_unplug_and_replug_a_pty_under_the_link(tmp_path: Path) -> None:
+    pty = Pty(tmp_path / "gps")
+    owner = Owner(profile_with(tmp_path, {"gps": f"mock+serial://{tmp_path / 'gps'}?baud=4800"}))
+    link = link_for(owner)
+    link.start()
+    try:
+        assert owner.registered == [(raw_channel("gps"), t.RawSerial)]
+        opened(link)
+        os.write(pty.master, b"$GPGGA,1*00\r\n")
+        assert read_line(link) == b"$GPGGA,1*00\r\n"
+        assert link.health()["port"] == "open" and link.health()["address"].endswith("?baud=4800")
+        assert [c for c, _ in owner.published] == ["RAW.gps"]     # the tap, under the one naming rule
+        pty.unplug()
+        with pytest.raises((PortClosed, PortUnavailable)):
+            link.call(lambda port: port.readline())
+        down = link.health()
+        assert down["port"] == "down" and down["port_losses"] == 1 and "fix:" in down["port_error"]
+        assert link.reason() == "port down"
+        pty = Pty(tmp_path / "gps")                                # replugged: a new pty at the same link
+        opened(link)
+        os.write(pty.master, b"$GPGGA,3*00\r\n")
+        assert read_line(link).startswith(b"$GPGGA,")
+        assert link.health()["reconnects"] >= 1 and link.health()["port_error"] == ""
+    finally:
+        link.close()
+        pty.unplug()
+
+
+def test_an_address_change_reopens_on_the_new_device(tmp_path: Path) -> None:
+    first, second = Pty(tmp_path / "a"), Pty(tmp_path / "b")
+    owner = Owner(VehicleProfile(path=None), legacy=f"serial://{tmp_path / 'a'}?baud=9600")
+    link = link_for(owner)
+    link.start()
+    try:
+        opened(link)
+        os.write(first.master, b"from a\n")
+        assert read_line(link) == b"from a\n"
+        assert link.refresh() is False                             # nothing changed: the port stays
+        owner.legacy = f"serial://{tmp_path / 'b'}?baud=9600"      # e.g. `u2sa param set gps port ...`
+        assert link.refresh() is True and link.address.serial_path == str(tmp_path / "b")
+        opened(link)
+        os.write(second.master, b"from b\n")
+        assert read_line(link) == b"from b\n"
+        owner.profile = profile_with(tmp_path, {"gps": f"serial://{tmp_path / 'a'}?baud=9600"})
+        assert link.refresh() is True, "the profile's [devices.gps] address wins over old settings"
+        opened(link)
+        os.write(first.master, b"a again\n")
+        assert read_line(link) == b"a again\n"
+    finally:
+        link.close()
+        first.unplug()
+        second.unplug()
+
+
+def test_no_address_is_one_line_naming_the_device_and_the_table(tmp_path: Path) -> None:
+    link = link_for(Owner(VehicleProfile(path=None)), device="compass")
+    assert "device 'compass'" in link.check() and "[devices.compass] address" in link.check()
+    with pytest.raises(AddressError):
+        link.start()
+
+
+def test_recording_off_publishes_nothing(tmp_path: Path) -> None:
+    pty = Pty(tmp_path / "gps")
+    owner = Owner(profile_with(tmp_path, {"gps": f"serial://{tmp_path / 'gps'}"}), record_raw=False)
+    link = link_for(owner)
+    link.start()
+    try:
+        opened(link)
+        os.write(pty.master, b"x\n")
+        assert read_line(link) == b"x\n" and owner.published == [] and owner.registered == []
+    finally:
+        link.close()
+        pty.unplug()
+
+
+def test_device_setting_order() -> None:
+    assert device_setting({"device": " wheels ", "device_name": "x"}, "svc") == "wheels"
+    assert device_setting({"device": "", "device_name": "old"}, "svc") == "old"
+    assert device_setting({}, "svc") == "svc"
+
+
+# ---- profile_devices ----------------------------------------------------------------------------
+OLD = """
+[vehicle]
+name = "old"
+
+[services.gps]
+kind = "gps_nmea"
+settings = { port = "/dev/ttyUSB0", baudrate = 4800, device_name = "gnss" }
+
+[services.wheels]
+kind = "odrive_can"
+settings = { interface = "socketcan", channel = "can1", bitrate = 250000 }
+
+[services.imu]
+kind = "imu_mpu9250"
+settings = { bus = "3", address = 0x69 }
+
+[services.rc]
+kind = "rc_mux"
+settings = { chip = "/dev/gpiochip2", channels = "throttle=5,mode=13", mode_channel = "mode", enable_line = 21 }
+
+[services.drive]
+kind = "pwm_servo"
+settings = { channels = [ { name = "rudder", address = "pca9685:1:0x40", channel = 2 },
+                          { name = "esc", address = "/sys/class/pwm/pwmchip0", channel = 1 } ] }
+
+[devices.drive]
+mock = "pca9685"
+
+[devices.drive_sysfs]
+mock = "sysfs_pwm"
+service = "drive"
+"""
+
+
+def test_old_profiles_keep_loading_with_one_notice_per_device(tmp_path: Path) -> None:
+    (tmp_path / "vehicle.toml").write_text(OLD)
+    notices: list[str] = []
+    entries = profile_devices(load_profile(tmp_path / "vehicle.toml"), warn=notices.append)
+    assert {n: (e.address.url, e.service) for n, e in entries.items()} == {
+        "gnss": ("serial:///dev/ttyUSB0?baud=4800", "gps"),
+        "wheels": ("can://socketcan/can1?bitrate=250000", "wheels"),
+        "imu": ("i2c://3/0x69", "imu"),
+        "rc": ("gpio://gpiochip2/5,13,21", "rc"),
+        "rudder": ("pca9685://1/0x40/2", "drive"),
+        "esc": ("pwm://pwmchip0/1", "drive"),
+    }
+    assert (entries["rudder"].mock, entries["esc"].mock) == ("pca9685", "sysfs_pwm")   # matched by address kind
+    assert all(e.legacy for e in entries.values()) and len(notices) == len(entries)
+    assert all("\n" not in n and "[devices." in n and "address = " in n for n in notices)
+
+
+def test_the_new_form_wins_and_needs_no_notice(tmp_path: Path) -> None:
+    (tmp_path / "vehicle.toml").write_text(OLD + '\n[devices.gnss]\naddress = "serial:///dev/u2sa/gps?baud=9600"\n'
+                                           'mock = "nmea_gps"\n')
+    notices: list[str] = []
+    entries = profile_devices(load_profile(tmp_path / "vehicle.toml"), warn=notices.append)
+    assert entries["gnss"].address.baud == 9600 and not entries["gnss"].legacy and entries["gnss"].mock == "nmea_gps"
+    assert not any("'gnss'" in n for n in notices)
+
+
+@pytest.mark.parametrize("table,error", [
+    ('address = "serial:///dev/x"\nmokc = "nmea_gps"', r"\[devices.gnss\]: unknown key 'mokc'; did you mean 'mock'\?"),
+    ('address = "/dev/ttyUSB0"', r"\[devices.gnss\]: device 'gnss': address '/dev/ttyUSB0': not a URL .*"
+                                 r"did you mean 'serial:///dev/ttyUSB0'"),
+    ('address = 5', r"\[devices.gnss\]: address must be a str, not int"),
+])
+def test_a_bad_device_table_is_one_line_with_the_fix(tmp_path: Path, table: str, error: str) -> None:
+    (tmp_path / "vehicle.toml").write_text(OLD + f"\n[devices.gnss]\n{table}\n")
+    with pytest.raises(ProfileError, match=error) as info:
+        profile_devices(load_profile(tmp_path / "vehicle.toml"), warn=lambda _t: None)
+    assert "\n" not in str(info.value)
+
+
+def test_a_device_no_address_gives_names_the_line_to_add(tmp_path: Path) -> None:
+    (tmp_path / "vehicle.toml").write_text('[vehicle]\nname = "x"\n[services.gps]\nkind = "gps_nmea"\n')
+    with pytest.raises(ProfileError, match=r"device 'gps' of service 'gps' has no address; add \[devices.gps\] "
+                                           r"address = "):
+        profile_devices(load_profile(tmp_path / "vehicle.toml"))
