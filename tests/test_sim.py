@@ -70,12 +70,14 @@ def test_a_service_that_keeps_failing_stops_the_run_with_its_name(tmp_path: Path
     vehicle = tmp_path / "vehicle"
     shutil.copytree(GROUND, vehicle, ignore=shutil.ignore_patterns("data", "logs"))
     control = vehicle / "config" / "control.toml"
-    control.write_text(control.read_text().replace('mixer = "differential"', 'mixer = "tank"'))
+    # an empty actuator name: the control system refuses it when it starts (u2sa check, and the config's
+    # types and choices, let it pass, so the run starts and the service fails)
+    control.write_text(control.read_text().replace('left_actuator = "left_wheel"', 'left_actuator = ""'))
     proc, out = run_sim(tmp_path, lcm_url, "--vehicle", str(vehicle / "vehicle.toml"), "--timeout", "90",
                         timeout=110)
     assert proc.returncode == 1, proc.stdout + proc.stderr
     assert "u2sa: sim failed: service control keeps failing" in proc.stderr
-    assert "tank" in (out / "services.log").read_text()   # the service's own refusal, as it printed it
+    assert "actuator name left is empty" in (out / "services.log").read_text()   # its own refusal, as printed
 
 
 def test_summary_measures_arrivals_cross_track_and_clearance() -> None:

@@ -114,13 +114,22 @@ def cmd_check(args: Any) -> int:
     return 0 if ok else 1
 
 
-def refuse_on_errors(path: Path, *, command: str, for_sim: bool = False) -> None:
-    """Run the offline check for *command* (run, sim): print warnings, CliError listing every error."""
+def refuse_on_errors(path: Path, *, command: str, for_sim: bool = False, force: bool = False) -> None:
+    """Run the offline check for *command* (run, sim): print warnings, CliError listing every error.
+
+    *force*: print the errors and go on, unless one is in ``[safety]`` (a wrong safety wiring never runs).
+    """
     from u2sa_hw.check import check_profile, errors_of
     from u2sa_hw.cli import CliError
 
     problems = check_profile(path, for_sim=for_sim)
     errors = errors_of(problems)
+    if force and not any(p.key.split(".")[0] == "safety" for p in errors):
+        for problem in problems:
+            print(f"u2sa {command}: {problem}", file=sys.stderr)
+        if errors:
+            print(f"u2sa {command}: --force: starting despite {len(errors)} error(s)", file=sys.stderr)
+        return
     if not errors:
         for problem in problems:   # warnings: shown, and the command goes on
             print(f"u2sa {command}: {problem}", file=sys.stderr)

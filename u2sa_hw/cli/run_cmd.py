@@ -154,17 +154,9 @@ def _run_key(profile: Any, output: Any) -> Iterator[None]:
 
 def _check_profile(path: Any, *, force: bool) -> None:
     """The offline check (u2sa check): refuse with every error listed, or with --force print them and go on."""
-    import sys
-
-    from u2sa_hw.cli import CliError
     from u2sa_hw.cli.check_cmd import refuse_on_errors
 
-    try:
-        refuse_on_errors(path, command="run")
-    except CliError as exc:
-        if not force:
-            raise
-        print(f"u2sa {exc}\n(--force: starting anyway)", file=sys.stderr)
+    refuse_on_errors(path, command="run", force=force)
 
 
 def _check_safety(profile: Any) -> None:

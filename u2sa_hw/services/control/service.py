@@ -27,7 +27,7 @@ from u2sa_hw import lcmtypes as t
 from u2sa_hw.config import ConfigError, field
 from u2sa_hw.service import U2SAService
 from u2sa_hw.services.control.controller import RC_NAMES, ControlSettings, VehicleController
-from u2sa_hw.services.control.mixers import Mixer, build_mixer
+from u2sa_hw.services.control.mixers import MIXERS, Mixer, build_mixer
 from u2sa_hw.services.control.pid import PidGains
 
 _MIXER_FIELDS = ("mixer", "left_actuator", "right_actuator", "steering_actuator", "throttle_actuator")
@@ -39,7 +39,7 @@ class ControlSystem(U2SAService):
     SERVICE_TYPE: ClassVar[str] = "control"
     CONFIG = (
         field("control_rate_hz", 20.0, "the least ACTUATOR_CMD cycles per second (each NAV_POINT makes one too)", gt=0),
-        field("mixer", "differential", "differential, ackermann or twin_thruster"),
+        field("mixer", "differential", "differential, ackermann or twin_thruster", choices=tuple(MIXERS)),
         field("left_actuator", "left_wheel", "differential/twin_thruster: the left wheel or thruster's actuator name"),
         field("right_actuator", "right_wheel", "differential/twin_thruster: the right one's actuator name"),
         field("steering_actuator", "steering", "ackermann: the steering servo's actuator name (+100 % = full right)"),
