@@ -293,3 +293,9 @@ def test_sim_shows_a_service_device_error_on_the_console_once() -> None:
     run._say_errors(snap)
     assert out.getvalue().count("! gps error: " + error) == 1
     assert "imu" not in out.getvalue() and "other" not in out.getvalue()
+
+
+def test_run_force_goes_past_errors_but_never_past_a_safety_error(tmp_path: Path) -> None:
+    done = u2sa("run", "--vehicle", str(mistakes(tmp_path)), "--force")   # MISTAKES has a [safety] error too
+    assert done.returncode == 1 and "nothing was started" in done.stderr
+    assert "[safety]: hardware_mux: no service has an actuator 'rudder'" in done.stderr, done.stderr
