@@ -137,7 +137,8 @@ class Transport:
         self._verdict = OK
         self._payload = b""
         # Every u2sa message starts with its Header (extensions with their base, which does):
-        # the system id is the big-endian int32 right after the 8-byte fingerprint.
+        # the system id is the big-endian int32 right after the 8-byte fingerprint. A packet of
+        # an unknown fingerprint is not checked (it is malformed, or a raw subscriber's bytes).
         self.system_id = system_id
         self._own_system = None if system_id is None else _SYSTEM_ID.pack(system_id)
         self._pending_unsubscribe: deque[Any] = deque()
@@ -324,7 +325,8 @@ class Transport:
             payload = data[:-TRAILER_LEN]
         if verdict is OK:
             own = self._own_system
-            if own is None or payload[8:12] in (own, _ANY_SYSTEM) or len(payload) < 12:
+            # Only a u2sa type's bytes 8..12 are its system id: anything else is left to decoding (malformed).
+            if own is None or payload[8:12] in (own, _ANY_SYSTEM) or REGISTRY.by_fingerprint(payload[:8]) is None:
                 self._payload = payload
                 self.rx[channel].bytes += len(payload)
                 return OK

@@ -43,7 +43,9 @@ def bus_client(args: Any, *, name: str | None = None) -> Iterator[Any]:
 
     profile = profile_from(args)
     try:
-        client = BusClient(profile.lcm_url, system_id=profile.system_id, security=profile.bus_security,
+        # Without a profile file the CLI is no vehicle: system id 0, which every vehicle accepts (docs/security.md).
+        client = BusClient(profile.lcm_url, system_id=profile.system_id if profile.path else 0,
+                           security=profile.bus_security,
                            key_file=profile.bus_key, interface=profile.bus_interface,
                            **({"name": name} if name else {}))
     except TransportError as exc:

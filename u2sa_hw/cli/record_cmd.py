@@ -104,7 +104,8 @@ def cmd_record(args: Any) -> int:
     out = Path(args.output) if args.output else None
     try:
         transport = Transport(profile.lcm_url, name="u2sa-record", security=profile.bus_security,
-                              key_file=profile.bus_key, interface=profile.bus_interface, system_id=profile.system_id)
+                              key_file=profile.bus_key, interface=profile.bus_interface,
+                              system_id=profile.system_id if profile.path else None)
     except TransportError as exc:
         raise CliError(str(exc)) from None
     if args.queue_size < 1 or args.min_free_mb < 0:
