@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+from staged_code import u2sa_command  # noqa: E402
 from systemd_ns import SystemdNamespace, cannot_boot_reason, stage_root, wait_until  # noqa: E402
 
 from u2sa_hw.bus_key import use_run_key  # noqa: E402
@@ -133,8 +134,7 @@ def stage(base: Path, url: str, services: dict[str, str]) -> Path:
     profile.write_text(f'[vehicle]\nname = "bench"\nlcm_url = "{url}"\n\n' + "".join(
         f'[services.{name}]\nkind = "{kind}"\n\n' for name, kind in services.items()))
     root = stage_root(base / "root")
-    u2sa = Path(sys.executable).with_name("u2sa")
-    subprocess.run([str(u2sa), "install", "--vehicle", str(profile), "--root", str(root)], check=True,
+    subprocess.run([*u2sa_command(root), "install", "--vehicle", str(profile), "--root", str(root)], check=True,
                    stdout=subprocess.DEVNULL)
     for name in services:
         if name.endswith("_vehicle"):

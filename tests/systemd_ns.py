@@ -32,6 +32,8 @@ import uuid
 from pathlib import Path
 from typing import Callable
 
+from staged_code import code_hidden, stage_code
+
 SYSTEMD = Path("/lib/systemd/systemd")
 SUPPORT_DIR = "etc/systemd/u2sa-test-support"
 # What systemd needs beyond our units to boot into a target and power off cleanly.
@@ -58,25 +60,20 @@ def cannot_boot_reason() -> str | None:
         return f"{SYSTEMD} is not installed"
     if cgroup2_mount() is None:
         return "no cgroup2 (unified) hierarchy is mounted"
-    return code_hidden_reason()
+    return interpreter_hidden_reason()
 
 
-# The units run with PrivateTmp= and ProtectHome=, so code that lives below one of these is
-# invisible to the services (a shared venv points at this checkout and its .venv).
-HIDDEN_FROM_UNITS = ("/tmp/", "/var/tmp/", "/home/", "/root/", "/run/user/")
+def interpreter_hidden_reason() -> str | None:
+    """Why no shared venv the sandboxed services can run could be made here, or None.
 
+    A checkout or venv that the units' PrivateTmp=/ProtectHome= hide is staged into the
+    root (tests/staged_code.py); only the interpreter must be one they can reach."""
+    from u2sa_hw.install.system import InstallError, choose_python
 
-def code_hidden_reason() -> str | None:
-    """Why the services under test could not see this checkout's code, or None."""
-    import sysconfig
-
-    import u2sa_hw
-
-    for what, path in (("the checkout", Path(u2sa_hw.__file__).resolve().parent.parent),
-                       ("the environment's site-packages", Path(sysconfig.get_paths()["purelib"]).resolve())):
-        if any(str(path).startswith(prefix) for prefix in HIDDEN_FROM_UNITS):
-            return (f"{what} is at {path}, which the units' PrivateTmp=/ProtectHome= hide from the services; "
-                    "run the tests from a checkout and venv outside /tmp, /var/tmp and home directories")
+    try:
+        choose_python(None)
+    except InstallError as exc:
+        return str(exc)
     return None
 
 
@@ -91,7 +88,10 @@ def cgroup2_mount() -> Path | None:
 
 def stage_root(root: Path) -> Path:
     """Prepare *root* for install --root and a boot: a copy of the host's /etc (users,
-    libraries' config) without any unit, an empty var/ tree, and the support units."""
+    libraries' config) without any unit, an empty var/ tree, and the support units; and,
+    when the units could not see this checkout or its venv (under /tmp or a home), the
+    code staged into its /opt (``staged_code.stage_code``: run install with
+    ``u2sa_command(root)``, and ``u2sa_inside(root)`` in the namespace)."""
     root.mkdir(parents=True, exist_ok=True)
     subprocess.run(["cp", "-a", "/etc", str(root / "etc")], check=True)
     units = root / "etc/systemd/system"
@@ -118,6 +118,8 @@ def stage_root(root: Path) -> Path:
         (root / d).mkdir(parents=True, exist_ok=True)
     (root / "var/run").symlink_to("/run")
     (root / "var/lock").symlink_to("/run/lock")
+    if code_hidden():
+        stage_code(root)
     return root
 
 

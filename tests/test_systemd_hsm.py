@@ -31,6 +31,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 from conftest import wait_until  # noqa: E402
+from staged_code import u2sa_command  # noqa: E402
 from systemd_ns import SystemdNamespace, cannot_boot_reason, stage_root  # noqa: E402
 
 from u2sa_hw import channels as ch  # noqa: E402
@@ -41,7 +42,6 @@ from u2sa_hw.udp_ports import private_lcm_url  # noqa: E402
 REASON = cannot_boot_reason()
 pytestmark = pytest.mark.skipif(REASON is not None, reason=f"systemd cannot boot here: {REASON}")
 
-U2SA = Path(sys.executable).with_name("u2sa")
 MAX_RESTARTS = 2
 # Beats every 0.2 s, 10 may be missed (2 s): a loaded 2-core machine must not look like a hang.
 # The grace covers the estimators' imports while the crash loop competes for the CPU.
@@ -170,7 +170,8 @@ def root(tmp_path_factory: pytest.TempPathFactory, url: str) -> Path:
     profile = write_profile(base / "vehicle.toml", url)
     staged = stage_root(base / "root")
     # --force: the check rightly refuses the service 'broken', which is there to crash-loop.
-    done = subprocess.run([str(U2SA), "install", "--vehicle", str(profile), "--root", str(staged), "--force"],
+    done = subprocess.run([*u2sa_command(staged), "install", "--vehicle", str(profile), "--root", str(staged),
+                           "--force"],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert (staged / "etc/systemd/system/u2sa.target.wants/u2sa-hsm.service").is_symlink()

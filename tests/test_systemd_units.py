@@ -25,7 +25,8 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 from mcap.reader import make_reader  # noqa: E402
-from systemd_ns import HIDDEN_FROM_UNITS, SystemdNamespace, cannot_boot_reason, stage_root, wait_until  # noqa: E402
+from staged_code import HIDDEN_FROM_UNITS, u2sa_command, u2sa_inside  # noqa: E402
+from systemd_ns import SystemdNamespace, cannot_boot_reason, stage_root, wait_until  # noqa: E402
 
 from u2sa_hw import channels as ch  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
@@ -35,7 +36,6 @@ from u2sa_hw.udp_ports import private_udp_port  # noqa: E402
 REASON = cannot_boot_reason()
 pytestmark = pytest.mark.skipif(REASON is not None, reason=f"systemd cannot boot here: {REASON}")
 
-U2SA = Path(sys.executable).with_name("u2sa")
 SERVICES = ("est_a", "est_b", "est_c")
 RECORDER = "rec"
 KINDS = {**{name: "state_estimator" for name in SERVICES}, RECORDER: "recorder"}
@@ -87,7 +87,7 @@ def staged(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     port = private_udp_port()
     profile = write_profile(base / "vehicle.toml", port, recorder=True)
     root = stage_root(base / "root")
-    done = subprocess.run([str(U2SA), "install", "--vehicle", str(profile), "--root", str(root)],
+    done = subprocess.run([*u2sa_command(root), "install", "--vehicle", str(profile), "--root", str(root)],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     # The check's word on the disabled service 'broken' (an unknown kind, there to crash-loop) is a warning.
@@ -125,6 +125,18 @@ def test_systemd_analyze_verify_passes_on_every_unit(staged: dict[str, Any]) -> 
     done = subprocess.run(["unshare", "--mount", "sh", "-c", script], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     assert "u2sa" not in done.stderr, done.stderr  # warnings about our units are failures too
+
+
+def test_the_shared_venv_imports_code_the_sandboxed_units_can_see(staged: dict[str, Any]) -> None:
+    """From a checkout under /tmp or a home, what the venv imports is the copy staged in /opt."""
+    probe = ("import u2sa_hw, drivers, hil, mock_devices, lcm; "
+             "print('\\n'.join(m.__file__ for m in (u2sa_hw, drivers, hil, mock_devices, lcm)))")
+    script = f'mount --bind "{staged["root"]}/opt" /opt && cd / && exec /opt/u2sa/venv/bin/python -c "{probe}"'
+    done = subprocess.run(["unshare", "--mount", "--propagation", "private", "sh", "-c", script],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    files = done.stdout.split()
+    assert len(files) == 5 and not [f for f in files if f.startswith(HIDDEN_FROM_UNITS)], files
 
 
 def test_every_unit_reaches_active_through_ready_as_u2sa(ns: SystemdNamespace, staged: dict[str, Any],
@@ -308,7 +320,7 @@ def test_offline_vehicle_gets_multicast_on_lo_and_its_services_talk(tmp_path: Pa
     port = private_udp_port()
     profile = write_profile(tmp_path / "vehicle.toml", port)
     root = stage_root(tmp_path / "root")
-    subprocess.run([str(U2SA), "install", "--vehicle", str(profile), "--root", str(root)], check=True,
+    subprocess.run([*u2sa_command(root), "install", "--vehicle", str(profile), "--root", str(root)], check=True,
                    capture_output=True, timeout=120)
     with SystemdNamespace(root, private_network=True) as offline:
         assert offline.state("u2sa-multicast-lo.service") == "active/exited"
@@ -330,7 +342,7 @@ def test_install_and_uninstall_on_a_running_system(tmp_path: Path) -> None:
     good = write_profile(root / "opt/src/vehicle.toml", port)
     (root / "opt/src/bad.toml").write_text(good.read_text() + '[services.bad]\nkind = "state_estimator"\n'
                                            "settings = { sensor_timeout_s = -5.0 }\n")
-    u2sa = [str(U2SA)]
+    u2sa = [u2sa_inside(root)]  # the namespace has its own /tmp: a checkout there is staged in /opt
     with SystemdNamespace(root, unit="multi-user.target") as live:
         refused = live.run(*u2sa, "install", "--vehicle", "/opt/src/bad.toml", "--venv", "shared",
                            check=False, timeout=120)
