@@ -38,7 +38,8 @@ class SerialLineSensor(ProprioceptiveSensor):
     """A proprioceptive sensor that reads NMEA-style lines from one serial device."""
 
     CONFIG = (
-        field("device", "", "the device: its [devices.NAME] table (address) and RAW.<device> (empty: the service name)"),
+        field("device", "", "the device: its [devices.NAME] table (address) and RAW.<device> "
+                            "(empty: the service name)"),
         field("port", "", "old form of the address: device path (/dev/u2sa/NAME) or pyserial URL; "
                           "[devices.NAME] address wins"),
         field("baudrate", 9600, "old form (with port): one of 4800, 9600, 19200, 38400, 57600, 115200"),

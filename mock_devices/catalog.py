@@ -373,7 +373,8 @@ CATALOG: dict[str, tuple[Builder, str]] = {
     "sysfs_pwm": (build_sysfs_pwm, "a sysfs-shaped PWM chip directory standing in for /sys/class/pwm/pwmchipN, "
                                    "for a pwm_servo channel (pwm:// address)"),
     "rc_receiver": (build_rc_receiver, "RC receiver pulse trains and the RC mux on a mock GPIO chip "
-                                       "(gpio:// address; the service's channels, mode_channel, enable_line, select_line)"),
+                                       "(gpio:// address; the service's channels, mode_channel, enable_line, "
+                                       "select_line)"),
     "gpio_chip": (build_gpio_chip, "a mock GPIO chip (gpio:// address; the service's outputs)"),
     "odrive": (build_can_motors, "ODrive CANSimple nodes, one per controller (can:// address; actuators, "
                                  "node_ids, directions, wheel_radius_m, firmware)"),
