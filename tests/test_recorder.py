@@ -292,8 +292,10 @@ def test_the_log_holds_verified_payloads_and_says_the_bus_was_signed(services: S
                                                                      tmp_path: Path) -> None:
     """A packet from a process without the key is not recorded but counted; the payloads carry no trailer."""
     out = services.workdir / "signed.mcap"
+    vehicle = _profile(tmp_path, services.url)     # system id 7: a message naming another is foreign
     proc = subprocess.Popen([sys.executable, "-m", "u2sa_hw.cli", "record", "-o", str(out), "--include",
-                             "STATE_INFO", "--duration", "60"], env=services.env(), stdout=subprocess.PIPE,
+                             "STATE_INFO", "--duration", "60", "--vehicle", str(vehicle)], env=services.env(),
+                            stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     keyless = {k: v for k, v in services.env().items() if k != "U2SA_BUS_KEY_FILE"}
     forger = ("import sys; from u2sa_hw.transport import Transport; from u2sa_hw import lcmtypes as t; "
