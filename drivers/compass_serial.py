@@ -28,6 +28,7 @@ from u2sa_hw import lcmtypes as t
 from u2sa_hw.config import ConfigError, field
 from u2sa_hw.geo import wrap_angle
 
+from drivers import compass_mag
 from drivers.compass_bursts import Burst, BurstGrouper, CompassReading, reading_from_parts
 from drivers.compass_sentences import AttitudeLimits, parse_compass_line
 from drivers.nmea_fields import BadChecksum, SentenceError
@@ -77,6 +78,7 @@ class SerialCompassDriver(SerialLineSensor):
                                        "(OS5000 90, HMR3300 60, HMR3000 40)", ge=0, le=90),
         field("roll_range_deg", 180.0, "the device's roll range (deg, 0..180): |roll| beyond it is dropped "
                                        "(OS5000 180, HMR3300 60, HMR3000 40)", ge=0, le=180),
+        *compass_mag.CONFIG,   # os5000 raw_field: heading from the corrected Mx/My/Mz (drivers/compass_mag.py)
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:
@@ -85,6 +87,7 @@ class SerialCompassDriver(SerialLineSensor):
         self.reading: CompassReading | None = None
         self.out_of_range = ValueDrops(self.logger, device=self.device_name, what="out-of-range")
         self.not_valid = ValueDrops(self.logger, device=self.device_name, what="not-valid (by their status)")
+        self.field_heading = compass_mag.CompassFieldHeading(self)
 
     def _new_grouper(self) -> BurstGrouper:
         return BurstGrouper(gap_s=self.config.get("epoch_gap_s"),
@@ -106,10 +109,17 @@ class SerialCompassDriver(SerialLineSensor):
             if not 0 < cfg.get(key) <= top:
                 raise ConfigError(f"service '{self.name}': {key} must be within 0..{top:g} (the compass's "
                                   f"documented range), got {cfg.get(key)!r}")
+        compass_mag.CompassFieldHeading(self).load()   # checked only: this also runs with a value being tried
+
+    def setup(self) -> None:
+        """The serial set-up, then the field calibration."""
+        super().setup()
+        self.field_heading.load()
 
     def on_config_change(self, name: str, value: Any) -> None:
         """The serial fields reopen the port (which also starts burst learning afresh)."""
         super().on_config_change(name, value)
+        self.field_heading.on_config_change(name, value)
         if name in ("epoch_gap_s", "baudrate"):
             self.bursts = self._new_grouper()
 
@@ -151,8 +161,11 @@ class SerialCompassDriver(SerialLineSensor):
         heading = check("heading", os5000.heading, *OS5000_RANGES["heading"], unit=" deg")
         pitch_max, roll_max = min(limits.pitch_deg, OS5000_RANGES["pitch"][1]), min(limits.roll_deg,
                                                                                      OS5000_RANGES["roll"][1])
+        from_field = self.field_heading.heading(os5000, pitch=os5000.pitch, roll=os5000.roll)
+        if from_field is not None:
+            heading = from_field
         self._publish(CompassReading(
-            "$C" if heading is not None else "",
+            ("$C field" if from_field is not None else "$C") if heading is not None else "",
             true_heading=None if heading is None else heading + self.config.get("declination_deg"),
             magnetic_heading=heading, pitch=check("pitch", os5000.pitch, -pitch_max, pitch_max, unit=" deg"),
             roll=check("roll", os5000.roll, -roll_max, roll_max, unit=" deg"),
@@ -210,7 +223,7 @@ class SerialCompassDriver(SerialLineSensor):
         r = self.reading
         details: dict[str, Any] = {"format": self.format, "declination_deg": self.config.get("declination_deg"),
                                    **self.out_of_range.details("out_of_range"),
-                                   **self.not_valid.details("not_valid")}
+                                   **self.not_valid.details("not_valid"), **self.field_heading.details()}
         if self.format == "nmea":
             details["burst_rule"] = self.bursts.rule
         if r is not None:

@@ -196,7 +196,8 @@ class Ak8963Chip(RegisterChip):
         body = ned_to_body(self.earth_field_ut, truth.roll, truth.pitch, truth.yaw)
         chip = (body[0], -body[1], -body[2])
         ideal = (chip[1], chip[0], -chip[2])
-        mag_axes = tuple(b + sum(k * f for k, f in zip(row, ideal)) for row, b in zip(self.soft_iron, self.hard_iron_ut))
+        mag_axes = tuple(b + sum(k * f for k, f in zip(row, ideal))
+                         for row, b in zip(self.soft_iron, self.hard_iron_ut))
         sixteen = bool(self.peek(mpu.AK8963_CNTL1) & 0x10)
         scale = mpu.AK8963_UT_PER_LSB_16BIT if sixteen else mpu.AK8963_UT_PER_LSB_14BIT
         out = bytearray()

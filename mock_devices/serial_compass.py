@@ -24,6 +24,11 @@ degrees with one decimal, board temperature in degrees C, and the NMEA-style che
 of the characters between ``$`` and ``*``, two hex digits). Its configuration commands
 (ESC sequences) are not modelled; what a driver writes is kept in ``link.history``.
 
+With ``raw_field=True`` the OS5000 also sends ``Mx``/``My``/``Mz``: the Earth field
+``earth_field_mg`` (NED, mG) rotated into the body (FRD) by the vehicle's attitude and
+distorted by the vehicle's iron, ``soft_iron @ field + hard_iron_mg`` (defaults identity and
+zero), so a calibration can be checked against a known truth.
+
 Pitch is positive nose up and roll positive right side down; the SimVehicle is level, so
 both are 0 plus noise.
 """
@@ -132,9 +137,13 @@ def proprietary(address: str, fields: list[str]) -> bytes:
     return f"${body}*{calc_checksum(body)}\r\n".encode("ascii")
 
 
-def os5000_line(heading: float, pitch: float, roll: float, temperature: float) -> bytes:
-    """One OS5000 output line ``$C<h>P<p>R<r>T<t>*HH`` CR LF (degrees, degrees C, one decimal)."""
+def os5000_line(heading: float, pitch: float, roll: float, temperature: float,
+                field_mg: tuple[float, float, float] | None = None) -> bytes:
+    """One OS5000 output line ``$C<h>P<p>R<r>T<t>[Mx<x>My<y>Mz<z>]*HH`` CR LF (degrees, degrees C, one decimal;
+    the field in mG with two)."""
     body = f"C{one_decimal(heading)}P{one_decimal(pitch)}R{one_decimal(roll)}T{one_decimal(temperature)}"
+    if field_mg is not None:
+        body += "".join(f"M{axis}{value:.2f}" for axis, value in zip("xyz", field_mg))
     return f"${body}*{calc_checksum(body)}\r\n".encode("ascii")
 
 
@@ -143,12 +152,27 @@ class Os5000CompassDevice(_CompassBase):
 
     def __init__(self, vehicle: SimVehicle, *, link_path: str | os.PathLike[str], rate_hz: float = 10.0,
                  declination_deg: float = 0.0, heading_sigma_deg: float = 0.5, attitude_sigma_deg: float = 0.2,
-                 temperature_c: float = 25.0, seed: int = 0, name: str = "compass") -> None:
+                 temperature_c: float = 25.0, seed: int = 0, name: str = "compass", raw_field: bool = False,
+                 earth_field_mg: tuple[float, float, float] = (200.0, 0.0, 450.0),
+                 hard_iron_mg: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                 soft_iron: tuple[tuple[float, float, float], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0),
+                                                                      (0.0, 0.0, 1.0)),
+                 field_noise_mg: float = 2.0) -> None:
         super().__init__(vehicle, link_path=link_path, rate_hz=rate_hz, name=name, declination_deg=declination_deg,
                          heading_sigma_deg=heading_sigma_deg, attitude_sigma_deg=attitude_sigma_deg, seed=seed)
         self.temperature_c = float(temperature_c)
+        self.raw_field = raw_field
+        self.earth_field_mg, self.hard_iron_mg, self.soft_iron = earth_field_mg, hard_iron_mg, soft_iron
+        self.field_noise_mg = field_noise_mg
 
     def epoch_lines(self, truth: VehicleTruth) -> list[bytes]:
         """One ``$C...`` line for this epoch."""
         magnetic, pitch, roll = self.measure(truth)
-        return [os5000_line(magnetic, pitch, roll, self.temperature_c)]
+        return [os5000_line(magnetic, pitch, roll, self.temperature_c, self._field(truth) if self.raw_field else None)]
+
+    def _field(self, truth: VehicleTruth) -> tuple[float, float, float]:
+        from mock_devices.mpu9250_chip import ned_to_body
+
+        body = ned_to_body(self.earth_field_mg, truth.roll, truth.pitch, truth.yaw)
+        return tuple(b + sum(k * f for k, f in zip(row, body)) + self.rng.gauss(0.0, self.field_noise_mg)
+                     for row, b in zip(self.soft_iron, self.hard_iron_mg))  # type: ignore[return-value]

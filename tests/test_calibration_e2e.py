@@ -184,3 +184,65 @@ def test_accelerometer_six_poses_fit_the_mock_errors(services: ServiceProcesses,
     count = probe.state_count()
     states = probe.wait_states(30, since=count)[-30:]
     assert abs(np.mean([m.x_ddot for m, _ in states])) < 0.05
+
+
+# ---------------------------------------------------------------- the serial compass (OS5000 raw field) -------
+OS5000_HARD_IRON_MG = (120.0, -80.0, 40.0)                # body FRD: the compass's axes
+OS5000_SOFT_IRON = ((1.08, -0.04, 0.0), (-0.04, 0.93, 0.02), (0.0, 0.02, 1.0))
+
+
+def test_os5000_raw_field_calibration_and_the_heading_from_the_corrected_field(
+        services: ServiceProcesses, bus, tmp_path: Path) -> None:
+    from mock_devices.serial_compass import Os5000CompassDevice
+
+    vehicle = OrientedVehicle()
+    dev = Os5000CompassDevice(vehicle, link_path=tmp_path / "dev" / "compass", rate_hz=50.0, seed=2, raw_field=True,
+                              heading_sigma_deg=0.0, attitude_sigma_deg=0.0,
+                              hard_iron_mg=OS5000_HARD_IRON_MG, soft_iron=OS5000_SOFT_IRON)
+    dev.start()
+    try:
+        profile = write_profile(tmp_path, name="compass", kind="compass_serial",
+                                settings={"port": dev.address, "format": "os5000", "raw_field": True})
+        probe = DriverProbe(bus, "compass")
+        start_driver(services, profile, "compass")
+        probe.wait_health(lambda d, s: s == "ok" and d.get("mag_calibrated") == "no", message="the compass running")
+        rng = random.Random(8)
+        proc = calibrate(services, profile, "compass", "compass", "--timeout", "60")
+        out, err = turn_while(proc, lambda: vehicle.orient(roll=rng.uniform(-math.pi, math.pi),
+                                                           pitch=math.asin(rng.uniform(-1, 1)),
+                                                           yaw=rng.uniform(-math.pi, math.pi)))
+        assert proc.returncode == 0, err
+        cfg = tomllib.loads((tmp_path / "config" / "compass.toml").read_text())
+        assert cfg["mag_offset"] == pytest.approx(list(OS5000_HARD_IRON_MG), abs=4.0)
+        undone = np.array(cfg["mag_matrix"]).reshape(3, 3) @ np.array(OS5000_SOFT_IRON)
+        assert undone / np.trace(undone) * 3 == pytest.approx(np.eye(3), abs=0.02)
+        probe.wait_health(lambda d, s: d.get("mag_calibrated") == "yes" and d.get("source") == "$C field",
+                          message="the heading from the corrected field")
+        for roll, pitch, yaw in ((0.0, 0.0, 1.0), (0.3, -0.2, -2.0)):
+            vehicle.orient(roll=roll, pitch=pitch, yaw=yaw)
+            wait_until(lambda: probe.states and abs(math.remainder(probe.states[-1][0].psi - yaw, math.tau)) < 0.03,
+                       message=f"the heading to follow yaw {yaw}")
+            assert abs(math.remainder(latest(probe, "psi", 10) - yaw, math.tau)) < math.radians(1.0)
+    finally:
+        dev.stop()
+
+
+def test_a_compass_without_raw_field_values_is_not_offered_calibration(
+        services: ServiceProcesses, bus, tmp_path: Path) -> None:
+    from mock_devices.serial_compass import NmeaCompassDevice
+
+    dev = NmeaCompassDevice(OrientedVehicle(), link_path=tmp_path / "dev" / "compass", rate_hz=20.0)
+    dev.start()
+    try:
+        profile = write_profile(tmp_path, name="compass", kind="compass_serial", settings={"port": dev.address,
+                                                                                           "baudrate": 4800})
+        probe = DriverProbe(bus, "compass")
+        start_driver(services, profile, "compass")
+        probe.wait_health(lambda d, s: s == "ok", message="the compass running")
+        result = services.cli("calibrate", "compass", "compass", "--vehicle", str(profile))
+        assert result.returncode == 1
+        assert "reports no raw field values" in result.stderr and 'format = "os5000"' in result.stderr
+        imu = services.cli("calibrate", "imu", "compass", "--vehicle", str(profile))
+        assert imu.returncode == 1 and "has no accelerometer calibration" in imu.stderr
+    finally:
+        dev.stop()

@@ -112,7 +112,8 @@ def fit_six_pose(means: dict[str, Sequence[float]]) -> AccelCalibration:
     """Fit offset, scales and misalignment to the mean reading of each of the six poses."""
     missing = [p for p in POSES if p not in means]
     if missing:
-        raise CalibrationError(f"poses missing: {', '.join(missing)}; hold the vehicle still with each axis up and down")
+        raise CalibrationError(f"poses missing: {', '.join(missing)}; "
+                               "hold the vehicle still with each axis up and down")
     rows, rhs = [], []
     for pose in POSES:
         t = _truth(pose)

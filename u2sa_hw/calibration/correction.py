@@ -66,13 +66,16 @@ def tilt_compensated_heading(force: Sequence[float], mag: Sequence[float]) -> fl
     sustained acceleration a tilts the estimate by about atan(a / g).
     """
     fx, fy, fz = force
+    if not all(math.isfinite(v) for v in (fx, fy, fz)) or fx * fx + fy * fy + fz * fz == 0.0:
+        return None
+    return heading_at_attitude(math.atan2(-fy, -fz), math.atan2(fx, math.hypot(fy, fz)), mag)
+
+
+def heading_at_attitude(roll: float, pitch: float, mag: Sequence[float]) -> float | None:
+    """Magnetic heading (rad in [-pi, pi)) of a body FRD field *mag* levelled by *roll* and *pitch* (rad)."""
     mx, my, mz = mag
-    if not all(math.isfinite(v) for v in (fx, fy, fz, mx, my, mz)):
+    if not all(math.isfinite(v) for v in (roll, pitch, mx, my, mz)) or mx * mx + my * my + mz * mz == 0.0:
         return None
-    if fx * fx + fy * fy + fz * fz == 0.0 or mx * mx + my * my + mz * mz == 0.0:
-        return None
-    roll = math.atan2(-fy, -fz)
-    pitch = math.atan2(fx, math.hypot(fy, fz))
     cr, sr, cp, sp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
     north = mx * cp + my * sr * sp + mz * cr * sp
     east = my * cr - mz * sr

@@ -35,9 +35,11 @@ class ProbeResult:
     ok: bool
     text: str
     details: Mapping[str, Any] = field(default_factory=dict)
+    warnings: tuple[str, ...] = ()      # it works, but not as well as it could (an uncalibrated sensor)
 
     def __str__(self) -> str:
-        return f"probe {'ok  ' if self.ok else 'FAIL'} {self.device}: {self.port} {self.address}: {self.text}"
+        line = f"probe {'ok  ' if self.ok else 'FAIL'} {self.device}: {self.port} {self.address}: {self.text}"
+        return "\n".join([line, *(f"probe warn {self.device}: {w}" for w in self.warnings)])
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready."""
@@ -58,7 +60,10 @@ def probe_profile(profile: Any, *, seconds: float = 3.0) -> list[ProbeResult]:
     if not targets:
         return []
     with ThreadPoolExecutor(max_workers=len(targets), thread_name_prefix="probe") as pool:
-        return list(pool.map(lambda target: probe_target(target, seconds=seconds), targets))
+        results = list(pool.map(lambda target: probe_target(target, seconds=seconds), targets))
+    from u2sa_hw.check.probe_calibration import with_calibration_warnings
+
+    return [with_calibration_warnings(profile, target, result) for target, result in zip(targets, results)]
 
 
 def probe_target(target: Target, *, seconds: float) -> ProbeResult:

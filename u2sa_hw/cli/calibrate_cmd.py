@@ -264,9 +264,15 @@ def cmd_calibrate(args: Any) -> int:
         if resp is None:
             raise no_answer_error(args, f"service '{args.service}' did not answer within {args.bus_timeout:g} s "
                                   "(u2sa services lists the live ones)")
-        names = {f.name for f in resp.fields}
-        if not all(n in names for n in needed):
+        values = {f.name: f.value for f in resp.fields}
+        if not all(n in values for n in needed):
             raise CliError(f"{args.service} {missing_text}")
+        if args.kind == "compass" and "raw_field" in values and (
+                values["raw_field"] != "true" or values.get("format", "").strip("\"'").lower() != "os5000"):
+            raise CliError(f"{args.service} reports no raw field values to calibrate: calibration needs "
+                           f'format = "os5000" with the compass\'s Mx/My/Mz outputs enabled and raw_field = true '
+                           f"(now format = {values.get('format', '?')}, raw_field = {values['raw_field']}); "
+                           "otherwise use the compass's own calibration (see its manual)")
         collector = make_collector()
         print(f"calibrating {args.kind} of {args.service}: "
               + ("turn the vehicle through every orientation" if args.kind == "compass"
