@@ -24,8 +24,34 @@ def test_missing_file_means_defaults_and_is_created_on_first_change(tmp_path: Pa
     cfg = Configurator(path, FIELDS)
     assert cfg.get("rate_hz") == 50.0 and not path.exists()
     assert cfg.set("retries", 5)
-    assert tomllib.loads(path.read_text()) == {"rate_hz": 50.0, "retries": 5, "enabled": True, "port": "/dev/ttyUSB0"}
+    assert tomllib.loads(path.read_text()) == {"retries": 5}    # only what changed: defaults stay defaults
     assert Configurator(path, FIELDS).get("retries") == 5
+
+
+def test_a_change_never_freezes_the_profiles_values_into_the_file(tmp_path: Path) -> None:
+    # A bench profile's setting must not outlive the switch to another profile because of an
+    # unrelated change over the bus (the file overrides the profile).
+    path = tmp_path / "wheels.toml"
+    path.write_text("retries = 4\n")
+    bench = Configurator(path, FIELDS, initial={"enabled": False, "rate_hz": 5.0})
+    assert bench.get("enabled") is False and bench.get("retries") == 4
+    assert bench.set("port", "/dev/ttyACM0")
+    assert tomllib.loads(path.read_text()) == {"retries": 4, "port": "/dev/ttyACM0"}
+    vehicle = Configurator(path, FIELDS, initial={"enabled": True})
+    assert vehicle.get("enabled") is True and vehicle.get("rate_hz") == 50.0 and vehicle.get("port") == "/dev/ttyACM0"
+
+
+def test_a_trial_value_is_seen_only_by_the_thread_that_validates_it(tmp_path: Path) -> None:
+    import threading
+
+    cfg = Configurator(tmp_path / "c.toml", FIELDS)
+    seen: list[float] = []
+    with cfg.trial("rate_hz", 0.5):
+        assert cfg.get("rate_hz") == 0.5
+        t = threading.Thread(target=lambda: seen.append(cfg.get("rate_hz")))
+        t.start()
+        t.join()
+    assert seen == [50.0] and cfg.get("rate_hz") == 50.0 and not (tmp_path / "c.toml").exists()
 
 
 def test_int_accepted_for_float_text_parsed_by_type(tmp_path: Path) -> None:

@@ -4,7 +4,11 @@ A service declares its fields with defaults (the default's type is the field's t
 int, float, bool, str or list) and what values make sense: ``choices``, bounds
 (``ge``/``gt``/``le``/``lt``, for a list field each number in it), ``item_type`` for a list.
 Non-finite numbers (inf, -inf, nan) are refused unless a field says ``allow_nonfinite``.
-A missing file means defaults; the file is created, with every field, on the first change.
+A missing file means defaults; the file is created on the first change over the bus. The
+file holds only what was read from it or changed over the bus, never a value that came from
+the profile's settings or a default: otherwise one unrelated change would freeze the profile's
+values into the file, which overrides the profile (a bench profile's ``rc_gating = false``
+would outlive the switch to the vehicle profile).
 Every value -- from the file, from the profile's settings, from a change over the bus -- is
 checked against its field; a refusal names the field, the rule (expected type, allowed
 values, bound) and the value, and for a file or the profile the file. A change is refused
@@ -225,6 +229,8 @@ class Configurator:
         self._lock = threading.RLock()
         self._values: dict[str, Any] = {n: f.default for n, f in self.fields.items()}
         self._extra: dict[str, Any] = {}
+        self._persisted: set[str] = set()   # fields the file holds: read from it or changed over the bus
+        self._trial = threading.local()      # a proposed value, seen only by the thread validating it
         for name, value in (initial or {}).items():
             if name not in self.passthrough:
                 self._load_value(name, value, source=initial_source, strict=True)
@@ -245,6 +251,8 @@ class Configurator:
             raise ConfigError(f"{self.path}: cannot read ({exc.strerror})") from None
         for name, value in data.items():
             self._load_value(name, value, source=str(self.path))
+            if name in self.fields:
+                self._persisted.add(name)
 
     def _load_value(self, name: str, value: Any, *, source: str, strict: bool = False) -> None:
         f = self.fields.get(name)
@@ -268,6 +276,9 @@ class Configurator:
         With a default it reads like a mapping's ``get``, so code that takes a plain settings dict
         takes a Configurator too.
         """
+        trial = getattr(self._trial, "values", None)
+        if trial and name in trial:
+            return trial[name]
         try:
             return self._values[name]
         except KeyError:
@@ -289,17 +300,20 @@ class Configurator:
 
     @contextlib.contextmanager
     def trial(self, name: str, value: Any) -> Iterator[None]:
-        """Let :meth:`get` return *value* for *name* inside the block, writing nothing.
+        """Let :meth:`get` return *value* for *name* inside the block, in this thread only, writing nothing.
 
-        For a validator that checks the whole config as it would be after a change.
+        For a validator that checks the whole config as it would be after a change. Other
+        threads keep seeing the live value: a proposal that is then refused (a dead-man timeout
+        of 0) never takes effect, not even for the moment it is checked.
         """
-        with self._lock:
-            old = self._values[name]
-            self._values[name] = value
-            try:
-                yield
-            finally:
-                self._values[name] = old
+        if name not in self._values:
+            raise KeyError(f"no config field '{name}' (known: {', '.join(sorted(self.fields))})")
+        previous = getattr(self._trial, "values", None)
+        self._trial.values = {**(previous or {}), name: value}
+        try:
+            yield
+        finally:
+            self._trial.values = previous
 
     def enumerate(self) -> list[tuple[str, str, Any]]:
         """``(name, type name, value)`` for every declared field."""
@@ -340,11 +354,15 @@ class Configurator:
             return False, f"field '{name}': {problem}"
         with self._lock:
             old = self._values[name]
+            was_persisted = name in self._persisted
             self._values[name] = coerced
+            self._persisted.add(name)
             try:
                 warning = self._write()
             except OSError as exc:
                 self._values[name] = old
+                if not was_persisted:
+                    self._persisted.discard(name)
                 reason = f"cannot write {self.path}: {exc.strerror or exc}; the file is unchanged"
                 self._log.error("config change of '%s' not saved: %s", name, reason)
                 return False, reason
@@ -359,7 +377,7 @@ class Configurator:
         if self.path is None:
             return ""
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        data = {**self._extra, **self._values}
+        data = {**self._extra, **{n: v for n, v in self._values.items() if n in self._persisted}}
         fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent)
         try:
             with os.fdopen(fd, "wb") as fh:
