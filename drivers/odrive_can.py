@@ -79,8 +79,10 @@ class OdriveCanMotor(CanMotorService):
         field("clear_errors", False, "set true to clear every axis's errors and re-arm (resets itself to false)"),
         field("estop_on_failsafe", False, "on FAILSAFE send Estop as well as 0 rev/s (cleared when it ends)"),
         field("idle_on_stop", True, "put the axes in IDLE when the service stops (else hold 0 rev/s)"),
-        field("hw_watchdog", True, "turn on each axis's own watchdog (it disarms when this driver dies or hangs)"),
-        field("hw_watchdog_timeout_s", 0.3, "axis watchdog timeout (s); more than twice command_period_s", gt=0),
+        field("hw_watchdog", True, "turn on each axis's own watchdog (it disarms when this driver dies or hangs)",
+              remote=False),
+        field("hw_watchdog_timeout_s", 0.3, "axis watchdog timeout (s); more than twice command_period_s", gt=0,
+              le=1.0),
         field("watchdog_timeout_endpoint", 0, "0.6: endpoint id of axis0.config.watchdog_timeout in the "
                                                "flat_endpoints.json of endpoints_fw (0: unknown)", ge=0),
         field("enable_watchdog_endpoint", 0, "0.6: endpoint id of axis0.config.enable_watchdog (0: unknown)", ge=0),

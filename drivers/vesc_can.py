@@ -94,8 +94,9 @@ class VescCanMotor(CanMotorService):
         field("stall_percent", 10.0, "commands below this |%| are never a stall", ge=0, le=100),
         field("stall_erpm", 50.0, "slower than this |ERPM| counts as not turning", ge=0),
         field("hw_watchdog", True, "set and check each VESC's timeout_msec (it releases the motor when this "
-                                   "driver dies or hangs)"),
-        field("hw_watchdog_timeout_s", 0.3, "VESC command timeout (s); more than twice command_period_s", gt=0),
+                                   "driver dies or hangs)", remote=False),
+        field("hw_watchdog_timeout_s", 0.3, "VESC command timeout (s); more than twice command_period_s", gt=0,
+              le=1.0),
         field("host_id", 254, "this driver's CAN id: the VESCs answer configuration reads to it (not a VESC's id)", ge=0, le=254),
         field("max_motor_erpm", 100000.0, "the fastest a motor can turn (ERPM; the firmware's default l_max_erpm): "
                                           "a STATUS beyond it is impossible, dropped and counted", gt=0),
