@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import random
+import signal
 import shutil
 import subprocess
 import tempfile
@@ -79,8 +80,11 @@ def turn_while(proc: subprocess.Popen, step) -> tuple[str, str]:
 
 
 def saved(profile: Path) -> dict:
+    """The imu's config file, with the calibration defaults for fields it does not hold."""
     path = profile.parent / "config" / "imu.toml"
-    return tomllib.loads(path.read_text()) if path.exists() else {}
+    defaults = {"mag_offset": [0.0] * 3, "mag_matrix": [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0], "accel_offset": [0.0] * 3,
+                "calibration_stream_s": 0.0}
+    return {**defaults, **(tomllib.loads(path.read_text()) if path.exists() else {})}
 
 
 def latest(probe: DriverProbe, name: str, n: int = 20) -> float:
@@ -150,7 +154,7 @@ def test_a_level_turn_only_is_refused_and_nothing_is_saved(services: ServiceProc
     out, err = turn_while(proc, turn)
     assert proc.returncode == 1, out
     assert "nothing saved" in err and ("coverage" in err or "ellipsoid" in err or "plane" in err), err
-    cfg = saved(profile)          # written with every field when the stream was turned on and off
+    cfg = saved(profile)
     assert cfg["mag_offset"] == [0.0, 0.0, 0.0] and cfg["mag_matrix"] == [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0]
     assert cfg["calibration_stream_s"] == 0.0
     health = probe.wait_health(lambda d, s: d.get("calibration_stream") == "off", message="the stream off")
@@ -246,3 +250,31 @@ def test_a_compass_without_raw_field_values_is_not_offered_calibration(
         assert imu.returncode == 1 and "has no accelerometer calibration" in imu.stderr
     finally:
         dev.stop()
+
+
+def test_dry_run_shows_the_fit_and_saves_nothing_and_a_singular_matrix_is_refused(
+        services: ServiceProcesses, rig) -> None:
+    vehicle, probe, profile = rig
+    rng = random.Random(4)
+    proc = calibrate(services, profile, "compass", "imu", "--timeout", "60", "--dry-run")
+    out, err = turn_while(proc, lambda: vehicle.orient(roll=rng.uniform(-math.pi, math.pi),
+                                                       pitch=math.asin(rng.uniform(-1, 1)),
+                                                       yaw=rng.uniform(-math.pi, math.pi)))
+    assert proc.returncode == 0, err
+    assert "offset (hard iron)" in out and "dry run: not saved" in out
+    assert saved(profile)["mag_offset"] == [0.0, 0.0, 0.0]
+    refused = services.cli("param", "set", "imu", "mag_matrix", "[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0]",
+                           "--vehicle", str(profile))
+    assert refused.returncode == 1 and "determinant" in refused.stderr
+    assert saved(profile)["mag_matrix"] == [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0]
+
+
+def test_ctrl_c_turns_the_stream_off_and_saves_nothing(services: ServiceProcesses, rig) -> None:
+    _vehicle, probe, profile = rig
+    proc = calibrate(services, profile, "compass", "imu", "--timeout", "60")
+    probe.wait_health(lambda d, s: d.get("calibration_stream") == "on", message="the stream on")
+    proc.send_signal(signal.SIGINT)
+    _out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130 and "interrupted: nothing saved" in err
+    probe.wait_health(lambda d, s: d.get("calibration_stream") == "off", message="the stream off again")
+    assert saved(profile)["mag_offset"] == [0.0, 0.0, 0.0] and saved(profile)["calibration_stream_s"] == 0.0
