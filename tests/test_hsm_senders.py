@@ -4,12 +4,14 @@ Real processes over real multicast: ``u2sa run`` starts an estimator and the HSM
 process holding the same key (another stack's service of the same name, as a second
 simulation given the vehicle's key would be) sends Health as that estimator from its own
 pid. The HSM shows it and counts no restart. Then the real estimator is killed: the
-launcher starts it again and the HSM counts exactly that one restart.
+launcher starts it again and the HSM counts exactly that one restart. Last, the other
+stack's stop and one without the key are dropped, and ``u2sa health`` shows both.
 The rules themselves, with a clock of the test's own: a faster impostor never takes over.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -20,14 +22,22 @@ from typing import Any
 from conftest import wait_until
 from supervision_helpers import Watch, hsm_profile, launch  # noqa: F401 - launch is a fixture
 
+from u2sa_hw import channels as ch
+from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus_client import BusClient
+from u2sa_hw.launcher.launcher import u2sa_command
 from u2sa_hw.services.hsm.senders import ServiceSenders
+from u2sa_hw.transport import Transport
 
 OTHER_STACK = """\
 import os, sys, time
 from u2sa_hw import channels as ch, lcmtypes as t
+from u2sa_hw import channels as ch
+from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus_client import BusClient
+from u2sa_hw.launcher.launcher import u2sa_command
 from u2sa_hw.services.hsm.senders import ServiceSenders
+from u2sa_hw.transport import Transport
 
 bus = BusClient(sys.argv[1], name="est_a", system_id=1)   # the session's key, the vehicle's system id
 end = time.monotonic() + float(sys.argv[2])
@@ -69,6 +79,27 @@ def test_health_from_another_process_of_the_name_is_no_restart_and_a_real_one_is
     wait_until(lambda: "another process" not in watch.service_state("est_a").last_error, timeout=60,
                message="the other process's note to go once it is silent")
     assert watch.service_state("est_a").restarts == 1
+
+    # The other stack's stop (the key, another system id) and a stop without the key: u2sa health shows both.
+    other_vehicle = BusClient(lcm_url, name="vehicle-2", system_id=2)
+    stop = t.StopCommand()
+    stop.all = True
+    other_vehicle.publish(ch.STOP, stop)
+    other_vehicle.close()
+    Transport(lcm_url, name="laptop", security="open").publish(ch.STOP, stop)
+
+    def shown_by_health() -> dict[str, Any] | None:
+        r = subprocess.run([*u2sa_command(), "health", "--vehicle", str(vehicle), "--json"], capture_output=True,
+                           text=True, timeout=60)
+        rows = {s["name"]: s for s in json.loads(r.stdout)["services"]} if r.returncode == 0 else {}
+        est = rows.get("est_a")
+        return est if est and est["foreign"] >= 1 and est["bad_signature"] >= 1 else None
+
+    est = wait_until(shown_by_health, timeout=60, message="u2sa health to show est_a's foreign and unsigned stop")
+    assert "U2SA_STOP: unsigned 1, foreign 1" in est["rejected_by_channel"] and est["state"] == "ok"
+    table = subprocess.run([*u2sa_command(), "health", "--vehicle", str(vehicle)], capture_output=True, text=True,
+                           timeout=60)
+    assert "BAD SIG" in table.stdout and "FOREIGN" in table.stdout
 
 
 class _Health:
