@@ -38,20 +38,14 @@ from u2sa_hw.bus_auth import (FOREIGN, LCM_SELF_TEST, OK, OPEN, REJECTION_WHY, R
 from u2sa_hw.bus_key import BusKeyError, key_path
 from u2sa_hw.bus_listen import interface_index, listen_interface, receive_on, send_via, socket_fds
 from u2sa_hw.lcm_open import MULTICAST_FIX, URL_HELP, captured_c_stderr, open_error, reemit  # noqa: F401 - re-exported
+from u2sa_hw.lcm_url import (DEFAULT_LCM_URL, DEFAULT_RECV_BUF_SIZE, LCM_URL_ENV,  # noqa: F401 - re-exported
+                              RMEM_MAX_FILE, resolve_url, with_receive_buffer)
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 
-DEFAULT_LCM_URL = "udpm://239.255.76.67:7667?ttl=0"
 # LCM queues at most 30 messages per subscription by default and drops the rest without a
 # word; a burst (a log replay, a recorder catching up, 50 Hz from several sensors while the
 # handler thread is busy) needs more.
 DEFAULT_QUEUE_CAPACITY = 10_000
-LCM_URL_ENV = "U2SA_LCM_URL"
-# The kernel's default UDP receive buffer (about 208 KiB) holds a few hundred packets: a
-# receiver that loses the CPU for a few ms at 20,000 msg/s drops packets before LCM sees
-# them. A udpm URL without its own recv_buf_size asks for this much, capped at what the
-# kernel allows (net.core.rmem_max: LCM warns on stderr when it gets less than it asked).
-DEFAULT_RECV_BUF_SIZE = 4 * 1024 * 1024
-RMEM_MAX_FILE = "/proc/sys/net/core/rmem_max"
 
 Callback = Callable[[str, Any], None]
 _SYSTEM_ID = struct.Struct(">i")
@@ -61,23 +55,6 @@ log = logging.getLogger("u2sa_hw.transport")
 
 class TransportError(RuntimeError):
     """The LCM transport cannot start; the message says why and how to fix it."""
-
-
-def resolve_url(profile_url: str | None = None) -> str:
-    """The LCM URL: the vehicle profile's, else ``$U2SA_LCM_URL``, else the default (ttl=0)."""
-    return profile_url or os.environ.get(LCM_URL_ENV) or DEFAULT_LCM_URL
-
-
-def with_receive_buffer(url: str, *, rmem_max_file: str = RMEM_MAX_FILE) -> str:
-    """*url* with ``recv_buf_size`` added when it is a udpm URL without one (see DEFAULT_RECV_BUF_SIZE)."""
-    if not url.startswith("udpm://") or "recv_buf_size=" in url:
-        return url
-    try:
-        with open(rmem_max_file) as f:
-            size = min(DEFAULT_RECV_BUF_SIZE, int(f.read()))
-    except (OSError, ValueError):
-        return url   # not Linux, or no /proc: leave the kernel's default
-    return f"{url}{'&' if '?' in url else '?'}recv_buf_size={size}"
 
 
 @dataclass
