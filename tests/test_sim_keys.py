@@ -92,10 +92,14 @@ def test_the_pilot_waits_for_the_imu_and_says_when_it_never_calibrates() -> None
     health = {"imu": ("degraded", "gyro bias: waiting for rest (moving)", 0.0), "gps": ("ok", "", 0.0)}
     snap = BusSnapshot(estimate=(0.0, 0.0, 0.0, 0.1, 0.0), status=SimpleNamespace(finished=False, num_goals=2),
                        rc=SimpleNamespace(mode=0, mode_name="MANUAL"), health=health)
+    said: list[str] = []
     run = SimpleNamespace(launcher=SimpleNamespace(processes={"imu": 1, "gps": 2}), imus=["imu"],
-                          record=SimpleNamespace(t_start=time.monotonic()))
+                          record=SimpleNamespace(t_start=time.monotonic()), _said={},
+                          progress=SimpleNamespace(event=said.append))
+    run._say_errors = lambda s: SimRun._say_errors(run, s)
     missing = SimRun._not_ready(run, snap)
     assert missing == ["IMU calibrating at rest: imu (gyro bias: waiting for rest (moving))"]
+    assert said == ["  ! imu degraded: gyro bias: waiting for rest (moving)"]   # said once on the console
     run.record.t_start -= 60   # a minute later, still not calibrated
     with pytest.raises(SimFailure, match=r"IMU imu did not calibrate at rest within 45 s \(health: gyro bias"):
         SimRun._not_ready(run, snap)
