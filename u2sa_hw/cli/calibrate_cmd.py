@@ -48,8 +48,11 @@ compass: hard and soft iron of a magnetometer (MPU-9250's AK8963, or an OS5000 t
 imu: accelerometer offsets and scales from six still poses: hold the vehicle (or the
   board) still for a second with each axis up and then down (+x -x +y -y +z -z).
 
+Calibrate imu first: the heading is levelled with the accelerometer's tilt.
 The result is refused, and nothing saved, when the fit's residual or the coverage is
 bad; otherwise it is checked and saved by the service (atomic write, applied at once).
+Ctrl-C stops without saving; the service's raw stream is turned off in every case.
+Procedure and numbers: docs/calibration.md.
 """
 
 EPILOG = """\
@@ -57,6 +60,7 @@ examples:
   u2sa calibrate compass imu                 turn the vehicle until coverage is full
   u2sa calibrate compass imu --dry-run       fit and show, save nothing
   u2sa calibrate imu imu --timeout 180       six poses, three minutes to do them
+  u2sa calibrate compass compass             an OS5000 with raw_field = true (Mx/My/Mz on)
   u2sa param list imu                        mag_offset/mag_matrix, accel_offset/accel_matrix
 """
 
