@@ -25,6 +25,7 @@ from u2sa_hw.config import ConfigError, field
 from drivers.os5000_format import Os5000Reading
 
 CAL_PREFIX = "CAL."
+MAX_FIELD_MG = 1e6    # 100 G: far beyond any compass's range (the Earth's field is 250-650 mG)
 CONFIG = (
     field("raw_field", False, "os5000: heading from the sentence's Mx/My/Mz corrected by mag_offset/mag_matrix "
                               "(u2sa calibrate compass) instead of the compass's own C heading"),
@@ -73,6 +74,8 @@ class CompassFieldHeading:
         if abs(pitch or 0.0) > 90.0 or abs(roll or 0.0) > 180.0:
             return None    # an impossible attitude (dropped and counted by the driver) cannot level the field
         raw = (float(reading.mag_x), float(reading.mag_y), float(reading.mag_z))  # type: ignore[arg-type]
+        if not all(abs(v) < MAX_FIELD_MG for v in raw):
+            return None    # not a field reading (the parser already refused non-finite values)
         self._stream(raw)
         if not self.correction.calibrated:
             return None

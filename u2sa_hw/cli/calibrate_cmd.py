@@ -12,6 +12,7 @@ written atomically, applied live), offset last. See docs/calibration.md.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import threading
 import time
@@ -115,7 +116,7 @@ class MagCollector:
 
     def add(self, msg: t.StateInformation) -> None:
         """Take a CAL message's field (x, y, z), when it has one."""
-        if msg.has("x") and msg.has("y") and msg.has("z"):
+        if msg.has("x") and msg.has("y") and msg.has("z") and all(map(math.isfinite, (msg.x, msg.y, msg.z))):
             self.samples.append((msg.x, msg.y, msg.z))
 
     def coverage(self) -> float:
