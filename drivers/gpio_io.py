@@ -209,6 +209,7 @@ class GpioInputDriver(ExteroceptiveSensor):
         self.held_bumpers = {n: _Announce() for n in self.bumpers}
         self.failsafes_sent = self.objects_sent = 0
         self.edge_counts: Counter[str] = Counter()
+        self.clock_ns: int | None = None   # the device clock: the latest time judged
         if self.estops:
             self.register_publisher(ch.FAILSAFE, t.Failsafe)
         self.gpio = GpioLineSet(self, inputs=list(self.lines_by_name.values()), bias=c["bias"],
@@ -244,7 +245,7 @@ class GpioInputDriver(ExteroceptiveSensor):
 
     def _read_levels(self, port: GpioPort) -> None:
         """After every (re)open: the present levels, since edges before the open are not seen."""
-        now, debounce = time.monotonic_ns(), int(self.config["debounce_ms"] * 1e6)
+        now, debounce = port.now_ns() or time.monotonic_ns(), int(self.config["debounce_ms"] * 1e6)
         self.inputs = {name: DebouncedInput(level=port.get(line), debounce_ns=debounce, at_ns=now)
                        for name, line in self.lines_by_name.items()}
         self.logger.info("inputs of %s: %s", self.device,
@@ -260,24 +261,37 @@ class GpioInputDriver(ExteroceptiveSensor):
         return state is not None and bool(state.level) != (name in self.active_low)
 
     def run(self) -> None:
-        """Read edges, settle them, publish failsafes and bumper hits until stopped."""
+        """Read edges, settle them, publish failsafes and bumper hits until stopped.
+
+        Time is the port's device clock (``GpioPort.now_ns``: CLOCK_MONOTONIC on a real chip, the
+        edge and tick stamps on a replay chip), and each edge is taken in order with the debounce
+        settled at its own stamp first, so what is published does not depend on read batching.
+        """
         while self.wait(0.0):
             port = self.gpio.port()
             if port is None:
                 self.inputs = {}
                 self.wait(min(0.1, max(0.02, self.gpio.retry_in())))
+                self._step(time.monotonic_ns())
             else:
-                for edge in self.gpio.read_edges(port, 0.02):
-                    name = self.names_by_line.get(edge.line, "")
+                for event in self.gpio.read_events(port, 0.02):
+                    self._step(event.timestamp_ns)
+                    name = self.names_by_line.get(getattr(event, "line", -1), "")
                     if name in self.inputs:
                         self.edge_counts[name] += 1
-                        self.inputs[name].edge(edge.rising, edge.timestamp_ns)
-                now_ns = time.monotonic_ns()
-                for name, state in list(self.inputs.items()):
-                    if state.settle(now_ns):
-                        self.logger.info("%s %s", name, "active" if self.is_active(name) else "inactive")
-            self._announce(time.monotonic())
+                        self.inputs[name].edge(event.rising, event.timestamp_ns)
+                self._step(port.now_ns() if port.is_open else time.monotonic_ns())
             self.status = "ok" if self.gpio.is_open else "degraded"
+
+    def _step(self, now_ns: int | None) -> None:
+        """Settle every input and announce at *now_ns* on the device clock (None, a replay chip that has
+        sent nothing yet: the wall clock, so a held e-stop is repeated whatever the chip does)."""
+        now_ns = time.monotonic_ns() if now_ns is None else now_ns
+        self.clock_ns = now_ns if self.clock_ns is None else max(self.clock_ns, now_ns)
+        for name, state in list(self.inputs.items()):
+            if state.settle(self.clock_ns):
+                self.logger.info("%s %s", name, "active" if self.is_active(name) else "inactive")
+        self._announce(self.clock_ns / 1e9)
 
     def _announce(self, now: float) -> None:
         active = [n for n in self.estops if self.is_active(n)]

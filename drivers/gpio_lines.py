@@ -24,9 +24,9 @@ from typing import Any, Callable, Mapping, Sequence
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.config import ConfigError
 from u2sa_hw.ports import PortClosed, PortIOError, PortTimeout, PortUnavailable
-from u2sa_hw.ports.address import AddressError
+from u2sa_hw.ports.address import AddressError, make_address
 from u2sa_hw.ports.device_link import DeviceLink, device_setting
-from u2sa_hw.ports.gpio_port import EdgeEvent, GpioPort
+from u2sa_hw.ports.gpio_port import ClockTick, EdgeEvent, GpioPort
 from u2sa_hw.ports.legacy import gpio_address
 from u2sa_hw.service import U2SAService
 
@@ -112,7 +112,8 @@ def legacy_gpio_address(config: Mapping[str, Any], lines: Sequence[int]) -> str 
 
 
 def check_gpio_device(service: U2SAService, config: Mapping[str, Any], lines: Sequence[int]) -> None:
-    """ConfigError unless the service's GPIO device has an address (``[devices.NAME]`` or ``chip``)."""
+    """ConfigError unless the service's GPIO device has an address (``[devices.NAME]`` or ``chip``) that
+    lists every one of *lines* (or lists none); the error names the missing lines and the address to write."""
     from u2sa_hw.devices import device_address
 
     device = device_setting(config, service.name)
@@ -125,6 +126,13 @@ def check_gpio_device(service: U2SAService, config: Mapping[str, Any], lines: Se
     if address.kind != "gpio":
         raise ConfigError(f"service '{service.name}': device '{device}' has the {address.kind} address "
                           f"{address.url}; a GPIO driver needs a gpio:// address")
+    missing = sorted(set(lines) - set(address.lines)) if address.lines else []
+    if missing:   # the port would refuse them at every open: an e-stop or enable line never requested
+        full = make_address("gpio", address.location, sorted({*address.lines, *lines}), mock=address.mock,
+                            device=device)
+        raise ConfigError(f"service '{service.name}': device '{device}' address {address.url} does not list "
+                          f"line(s) {', '.join(map(str, missing))} that the service uses; list every line: "
+                          f"[devices.{device}] address = \"{full.url}\"")
 
 
 def note_restart_needed(service: U2SAService, name: str, *, live: Sequence[str] = ()) -> None:
@@ -199,6 +207,14 @@ class GpioLineSet:
         """Edges from *port* within *timeout* s (not under the lock: writes must not wait for it)."""
         try:
             return port.read_edges(timeout)
+        except _PORT_FAULTS as exc:
+            self.lost(exc, port)
+            return []
+
+    def read_events(self, port: GpioPort, timeout: float) -> list[EdgeEvent | ClockTick]:
+        """Edges and device-clock ticks from *port*, in order (see read_edges)."""
+        try:
+            return port.read_events(timeout)
         except _PORT_FAULTS as exc:
             self.lost(exc, port)
             return []

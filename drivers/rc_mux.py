@@ -51,7 +51,7 @@ from u2sa_hw.abstract import Sensor
 from u2sa_hw.config import ConfigError, field
 from u2sa_hw.failsafe import FailsafeSources
 from u2sa_hw.ports.device_link import device_setting
-from u2sa_hw.ports.gpio_port import GpioPort
+from u2sa_hw.ports.gpio_port import EdgeEvent, GpioPort
 from u2sa_hw.safety.config import load_safety
 from u2sa_hw.safety.prearm import CheckFailure, PrearmChecks
 from u2sa_hw.safety.wiring import check_wiring
@@ -120,6 +120,8 @@ class RcMuxDriver(Sensor):
         self.mismatch, self._mismatch_since = False, None
         self.mismatches = self.enable_changes = 0
         self.signal_losses = 0  # times the mode went from manual/autonomous to no signal
+        self.clock_ns: int | None = None   # the device clock: the latest time judged (GpioPort.now_ns)
+        self._next_publish_ns = self._next_manual_ns = 0
         self._stopping = False
         self._enable_lock = threading.RLock()
         self._changed = threading.Event()  # something a subscriber should hear about at once
@@ -282,34 +284,46 @@ class RcMuxDriver(Sensor):
         self.logger.info("%s; manual mixer: %s; on a lost check: %s", self.prearm.describe(),
                          f"{self.sticks.spec.kind} -> {', '.join(self.sticks.spec.actuators)}" if self.sticks else "none",
                          self.safety.on_check_lost)
-        period = 1.0 / self.config["publish_hz"]
-        manual_period = 1.0 / self.config["manual_hz"]
-        next_publish = next_manual = time.monotonic()
         last_loop_ns = time.monotonic_ns()
         while self.wait(0.0):
             port = self.gpio.port()
             if port is None:
                 self.wait(min(0.05, max(0.01, self.gpio.retry_in())))
             else:
-                for edge in self.gpio.read_edges(port, 0.02):
-                    self._on_edge(edge.line, edge.rising, edge.timestamp_ns)
+                # each edge (and a replay chip's tick) in order, timers first at its time: what is
+                # published depends on the edge stamps, not on how the reads batched them
+                for event in self.gpio.read_events(port, 0.02):
+                    self._step(event.timestamp_ns)
+                    if isinstance(event, EdgeEvent):
+                        self._on_edge(event.line, event.rising, event.timestamp_ns)
             # after the wait, before anything is published: a stall anywhere in the loop is caught here
             last_loop_ns = self._check_stall(last_loop_ns)
-            now_ns = time.monotonic_ns()
-            if self.filter.check_signal(now_ns):
+            # the device clock (CLOCK_MONOTONIC on a real chip; the port down: the wall clock)
+            self._step(port.now_ns() if port is not None and port.is_open else time.monotonic_ns())
+
+    def _step(self, now_ns: int | None) -> None:
+        """Everything judged by time, at *now_ns* on the device clock (None: a replay chip's clock has
+        not started): signal timeout, read-back, pre-arm, the enable line, the timed messages."""
+        if now_ns is not None:
+            self.clock_ns = now_ns if self.clock_ns is None else max(self.clock_ns, now_ns)
+        now = self.clock_ns
+        if now is not None:
+            if self.filter.check_signal(now):
                 self._mode_changed()
-            self._check_select(now_ns)
-            self._check_prearm(now_ns / 1e9)
-            self.update_enable()
-            self._refresh_status()
-            now = time.monotonic()
-            if self._changed.is_set() or now >= next_publish:
-                self._changed.clear()
-                self.publish_mode()
-                next_publish = max(next_publish + period, now)
-            if self.sticks is not None and self.filter.mode == MODE_MANUAL and now >= next_manual:
-                self.publish_manual()
-                next_manual = max(next_manual + manual_period, now)
+            self._check_select(now)
+        self._check_prearm(time.monotonic())   # health ages on the wall clock: it comes over the bus
+        self.update_enable()
+        self._refresh_status()
+        period_ns = int(1e9 / self.config["publish_hz"])
+        if self._changed.is_set() or (now is not None and now >= self._next_publish_ns):
+            self._changed.clear()
+            self.publish_mode()
+            if now is not None:
+                self._next_publish_ns = max(self._next_publish_ns + period_ns, now)
+        if (self.sticks is not None and self.filter.mode == MODE_MANUAL and now is not None
+                and now >= self._next_manual_ns):
+            self.publish_manual()
+            self._next_manual_ns = max(self._next_manual_ns + int(1e9 / self.config["manual_hz"]), now)
 
     def _check_stall(self, last_loop_ns: int) -> int:
         """A loop gap longer than the signal timeout, or long enough that the actuators may have seen
@@ -392,7 +406,7 @@ class RcMuxDriver(Sensor):
 
     def pulse_widths_us(self) -> list[int]:
         """Each channel's last valid width (us, config order); 0 when none within the signal timeout."""
-        now_ns, widths = time.monotonic_ns(), []
+        now_ns, widths = self.clock_ns if self.clock_ns is not None else time.monotonic_ns(), []
         for name in self.channels:
             last = self.widths.get(name)
             widths.append(round(last[0]) if last and now_ns - last[1] <= self.filter.signal_timeout_ns else 0)

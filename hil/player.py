@@ -82,7 +82,15 @@ class Player:
     # -- the recorded stream -------------------------------------------------------------------
     def events(self) -> Iterator[tuple[int, str, Any]]:
         """``(log time ns, target, payload)`` in log order: target a device name, or ``"bus:<channel>"``
-        with the recorded bytes."""
+        with the recorded bytes; a device's clock ticks (a GPIO replay chip's, through recorded
+        silences) are merged in at their log times."""
+        ticks = [((t, name, tick) for t, tick in device.clock_ticks()) for name, device in self.devices.items()
+                 if hasattr(device, "clock_ticks")]
+        if not ticks:
+            return self._recorded()
+        return heapq.merge(self._recorded(), *ticks, key=lambda e: e[0])
+
+    def _recorded(self) -> Iterator[tuple[int, str, Any]]:
         for m in LogFile(self.log_path).messages():
             if m.log_time_ns < self.start_ns:
                 continue

@@ -157,8 +157,7 @@ class Replay:
         self.options = options
         self.plan = build_plan(path, extra_services=options.services, overrides=options.overrides,
                                start_s=options.start_s, end_s=options.end_s, vehicle=options.vehicle)
-        self.fast, self.rate = options.fast, options.rate   # as played (see _real_time_devices)
-        self._real_time_devices()
+        self.fast, self.rate = options.fast, options.rate   # as played
         self.out = options.out or self.plan.log.with_suffix(".replay.mcap")
         if self.out.resolve() == self.plan.log.resolve():
             raise ReplayError(f"--out {self.out}: the output must not be the log being replayed")
@@ -172,21 +171,6 @@ class Replay:
         self._published: dict[str, int] = {}   # service -> its outputs by its own count (latest health)
         self._last_output = time.monotonic()
         self.run_dir: Path | None = None   # made by run(); kept after a failure for its logs
-
-    def _real_time_devices(self) -> None:
-        """A GPIO device with recorded edges is played at --rate 1, and with it the whole replay.
-
-        Its driver compares the edge stamps with its own clock (signal timeouts, debounce), so
-        played faster (or slower) it would see a world that never happened.
-        """
-        timed = sorted(d.name for d in self.plan.devices.values() if d.service and d.kind == "gpio"
-                       and "RawGpioEdge" in d.types)
-        if timed and (self.fast or self.rate != 1.0):
-            asked = "--fast" if self.fast else f"--rate {self.rate:g}"
-            self.plan.notes.append(f"{', '.join('RAW.' + n for n in timed)}: GPIO edges are played in real time, "
-                                   f"so the replay runs at --rate 1 instead of {asked} (the GPIO drivers time the "
-                                   "edges against their own clock: pulse widths, debounce, signal timeouts)")
-            self.fast, self.rate = False, 1.0
 
     def _log_of(self, service: str) -> Path:
         return (self.run_dir or Path(".")) / "logs" / f"{service}.log"
@@ -354,11 +338,13 @@ class Replay:
                 bar.close()
             self._settle()
             self._stopping = True
-            launcher.stop(timeout=10.0)
-            launcher = None
+            # the capture first, as a recording ends: what a driver says while it is being stopped
+            # (the RC mux's last RcMode, "stopping") is not part of the run
             capture.stop()
             s = capture.stats
             capture = None
+            launcher.stop(timeout=10.0)
+            launcher = None
             received = sum(self._received.values())
             lost = max(0, sum(self._published.values()) - received)
             return ReplayResult(self.plan, self.out, stats, startup_s, received, lost, s.written, s.dropped,

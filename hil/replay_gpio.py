@@ -11,9 +11,15 @@ width, a bounce) is the recorded one to the nanosecond. The offset is fixed at t
 edge so that the edge stamps keep their recorded lag behind the driver's clock (the time
 between an edge and its tap, taken from each record's header). Lines start at the level the
 recording implies (the level before the window, or the opposite of a line's first edge).
-The drivers compare these stamps with their own clock (rc_mux's signal timeout, gpio_input's
-debounce), so a device with recorded edges is played in real time: the replay forces
-``--rate 1`` (hil/replay.py). What the driver writes to its output lines is compared by
+The chip keeps a clock of its own (``device_clock``): the drivers judge their signal
+timeouts, debounce, pulse ageing and timed messages by the stamps of the edges they take
+(``GpioPort.now_ns``), never by when the edges arrive, so the recorded edges can be played at
+any rate or with ``--fast`` and the drivers see the recorded timing. Through a recorded
+silence (no edges: an RC signal loss, the end of the window) the device sends clock ticks
+every ``TICK_NS`` of recorded time, derived from the edges' own kernel stamps (never ahead
+of the next recorded edge), so a timeout expires at the recorded moment. In --fast the
+player waits while ``GPIO_BACKLOG`` frames are queued for the driver, so nothing is dropped.
+What the driver writes to its output lines is compared by
 ``--compare`` as the ``RawGpioWrite`` records it taps (the replay keeps ``record_raw`` on).
 
 PWM. A PWM output's input is not on the device at all: the driver is commanded over the
@@ -30,7 +36,7 @@ import re
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.ports.address import DeviceAddress, make_address
@@ -39,6 +45,18 @@ from u2sa_hw.recording.log_reader import LogFile
 from hil.replay_plan import ReplayError
 
 GPIO_MIN_LINES = 64   # lines of the replay chip (more when the log names higher offsets)
+TICK_NS = 10_000_000  # the device clock's step through recorded silences (recorded time)
+GPIO_BACKLOG = 512    # --fast: frames queued for the driver before the player waits
+
+
+class ClockTickRecord:
+    """A tick of the replay chip's clock at recorded kernel time ``kernel_timestamp_ns`` (made by the
+    replay, not recorded)."""
+
+    __slots__ = ("kernel_timestamp_ns",)
+
+    def __init__(self, kernel_timestamp_ns: int) -> None:
+        self.kernel_timestamp_ns = kernel_timestamp_ns
 
 
 class ReplayGpioDevice:
@@ -51,14 +69,17 @@ class ReplayGpioDevice:
         self.name = name
         self.socket_path = Path(socket_path)
         self.chip: Any = None
-        self.timed = False                        # the window holds edges: play in real time
+        self.timed = False                        # the window holds edges
+        self.backlog_limit = GPIO_BACKLOG
+        self._edge_times: list[tuple[int, int]] = []   # (log time, kernel stamp) of the window's edges
+        self._end_ns = 0
         self._levels: dict[int, int] = {}         # line -> level at the window's start
         self._num_lines = GPIO_MIN_LINES
         self._min_lag_ns: int | None = None       # smallest (tap time - kernel stamp) in the window
         self._offset_ns: int | None = None
         self._lock = threading.Lock()
         self.counts = {"edges": 0, "edges_on_outputs": 0, "repeated_levels": 0, "recorded_writes": 0,
-                       "output_changes": 0}
+                       "output_changes": 0, "ticks": 0}
 
     @property
     def address(self) -> str:
@@ -96,12 +117,33 @@ class ReplayGpioDevice:
                 self._levels[line] = level
                 continue
             self.timed = True
+            self._edge_times.append((m.log_time_ns, int(rec.kernel_timestamp_ns)))
             first_in_window.setdefault(line, level)
             lag = _tap_lag_ns(rec)
             if lag is not None and (self._min_lag_ns is None or lag < self._min_lag_ns):
                 self._min_lag_ns = lag
         for line, first in first_in_window.items():
             self._levels.setdefault(line, 1 - first)   # an edge to *first* means the line was at the other level
+        self._end_ns = end_ns
+
+    def clock_ticks(self) -> Iterator[tuple[int, ClockTickRecord]]:
+        """``(log time, tick)`` through every recorded silence longer than TICK_NS, in log order.
+
+        A tick's stamp is a previous edge's kernel stamp plus whole steps, and it stays before the
+        next edge's stamp, so the clock never runs ahead of an edge still to come; its log time is
+        the previous edge's plus the same steps (before the next edge's), which places it in the
+        play order. After the last edge the ticks run to the window's end.
+        """
+        times = self._edge_times
+        for i, (log_ns, kernel_ns) in enumerate(times):
+            if i + 1 < len(times):
+                next_log, next_kernel = times[i + 1]
+            else:
+                next_log, next_kernel = self._end_ns + 1, kernel_ns + (self._end_ns + 1 - log_ns)
+            step = TICK_NS
+            while kernel_ns + step < next_kernel:
+                yield min(log_ns + step, next_log - 1), ClockTickRecord(kernel_ns + step)
+                step += TICK_NS
 
     def start(self) -> None:
         """Serve the replay chip with every recorded input line at its starting level."""
@@ -109,7 +151,7 @@ class ReplayGpioDevice:
 
         self.socket_path.parent.mkdir(parents=True, exist_ok=True)
         self.chip = MockGpioChip(socket_path=str(self.socket_path), num_lines=self._num_lines,
-                                 label=f"replay-{self.name}", release_level=None)
+                                 label=f"replay-{self.name}", release_level=None, device_clock=True)
         for line, level in self._levels.items():
             self.chip.drive_input(line, level)
         self.chip.on_output(self._on_output)
@@ -131,6 +173,11 @@ class ReplayGpioDevice:
         if kind == "RawGpioWrite":
             self.counts["recorded_writes"] += 1
             return
+        if kind == "ClockTickRecord":
+            if self._offset_ns is not None:   # the clock starts with the first edge
+                self.chip.tick(record.kernel_timestamp_ns + self._offset_ns)
+                self.counts["ticks"] += 1
+            return
         if kind != "RawGpioEdge":
             return
         kernel_ns = int(record.kernel_timestamp_ns)
@@ -148,8 +195,8 @@ class ReplayGpioDevice:
             self.counts["repeated_levels"] += 1
 
     def pending(self) -> int:
-        """Nothing waits: an edge is on the line (and in the driver's socket) once fed."""
-        return 0
+        """Edges and ticks queued for the driver and not yet sent to it."""
+        return self.chip.backlog() if self.chip is not None else 0
 
     def _on_output(self, line: int, value: int, timestamp_ns: int) -> None:
         with self._lock:

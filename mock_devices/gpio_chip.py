@@ -11,7 +11,11 @@ with per-request sequence numbers. Closing the connection releases the lines.
 The chip side is for simulations and tests: ``drive_input`` sets an input level (the
 edge timestamp is the one given, else CLOCK_MONOTONIC now), ``read_output``,
 ``history`` (timestamped level changes), ``on_output`` callbacks, and faults:
-``disconnect`` and ``stop_edges``. The wire protocol lives in
+``disconnect`` and ``stop_edges``. A chip made with ``device_clock=True`` (a replay chip)
+keeps a clock of its own: its request reply says ``"clock": "device"``, ``tick`` sends its
+time to the clients during silences, and the driver's port judges time by the edges and ticks
+it takes (``GpioPort.now_ns``); ``backlog`` counts frames not yet sent, so a player can
+wait instead of overflowing a client that reads slowly. The wire protocol lives in
 ``u2sa_hw.ports.gpio_port`` (driver and mock share it) and is documented in
 ``docs/gpio-and-rc.md``.
 """
@@ -31,8 +35,8 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from u2sa_hw.ports.gpio_port import (BIASES, EDGE_FALLING, EDGE_RISING, EDGES, MOCK_EDGE, MOCK_EDGE_RECORD, MOCK_JSON,
-                                     MOCK_PREFIX, MockFrameReader, MockProtocolError, encode_mock_frame,
-                                     encode_mock_json)
+                                     MOCK_PREFIX, MOCK_TICK, MOCK_TICK_RECORD, MockFrameReader, MockProtocolError,
+                                     encode_mock_frame, encode_mock_json)
 
 log = logging.getLogger("mock_devices.gpio_chip")
 
@@ -76,7 +80,8 @@ class MockGpioChip:
     """
 
     def __init__(self, *, socket_path: str, num_lines: int = 32, label: str = "mock-gpiochip",
-                 release_level: int | None = 0, history_size: int = 100_000) -> None:
+                 release_level: int | None = 0, history_size: int = 100_000, device_clock: bool = False) -> None:
+        self.device_clock = device_clock
         self.socket_path = str(socket_path)
         self.num_lines = num_lines
         self.label = label
@@ -155,6 +160,22 @@ class MockGpioChip:
             if owner is not None:
                 self._deliver_edge(owner, line, value, stamp)
             return True
+
+    def tick(self, timestamp_ns: int) -> None:
+        """A device-clock chip's time during a silence: sent to every client holding input lines."""
+        frame = encode_mock_frame(MOCK_TICK, MOCK_TICK_RECORD.pack(int(timestamp_ns)))
+        with self._lock:
+            for client in self._clients:
+                if any(s["direction"] == "input" for s in client.lines.values()):
+                    try:
+                        client.outbox.put_nowait(frame)
+                    except queue.Full:
+                        self.dropped_edges += 1
+
+    def backlog(self) -> int:
+        """Frames (edges, ticks, replies) queued for the clients and not yet sent."""
+        with self._lock:
+            return sum(client.outbox.qsize() for client in self._clients)
 
     def read_output(self, line: int) -> int:
         """The level of *line* as the chip drives it (the last value a client set)."""
@@ -318,6 +339,7 @@ class MockGpioChip:
             raise ChipRefusal("EBUSY", "lines in use: " + ", ".join(f"{n} by '{c}'" for n, c in busy.items()),
                               consumers=busy)
         client.consumer = str(req.get("consumer") or client.consumer)
+        reply = {"clock": "device"} if self.device_clock else {}
         for line, settings in lines.items():
             client.lines[line] = settings
             self._owners[line] = client
@@ -326,7 +348,7 @@ class MockGpioChip:
                 self._set_output(line, settings["value"], fired)
             else:
                 self._levels[line] = self._input_level(line)
-        return {}
+        return reply
 
     def _op_get(self, client: _Client, req: dict, fired: list) -> dict:
         values = []

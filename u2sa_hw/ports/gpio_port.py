@@ -9,8 +9,19 @@ chip) took when the edge happened, never a time taken when the event was read, b
 an RC pulse width is the difference of two such timestamps.
 
 Mock chip wire protocol: frames ``kind:u8 length:u32be payload``; kind ``J`` is a JSON
-request or reply, kind ``E`` a binary edge event (``MOCK_EDGE_RECORD``). The codec is here
-because driver and mock share it; docs/gpio-and-rc.md documents the requests.
+request or reply, kind ``E`` a binary edge event (``MOCK_EDGE_RECORD``), kind ``T`` a clock
+tick (``MOCK_TICK_RECORD``: the chip's time, sent only by a chip that keeps a clock of its
+own). The codec is here because driver and mock share it; docs/gpio-and-rc.md documents
+the requests.
+
+The device clock. :meth:`GpioPort.now_ns` is the time the driver judges timeouts, debounce
+and ageing against, on the clock of the edge stamps. A kernel chip stamps edges with
+CLOCK_MONOTONIC, so its ``now_ns`` is CLOCK_MONOTONIC now, and so is a mock chip's unless it
+says in its request reply that it keeps its own clock (``"clock": "device"``: a replay chip,
+hil/replay_gpio.py). Then ``now_ns`` is the latest edge or tick time the driver has taken,
+so recorded edges played at any speed are judged as they happened; and it is never held by a
+chip that goes quiet: once nothing came from the chip for ``DEVICE_CLOCK_GRACE_S`` of wall
+time, the clock runs on with the wall clock from there (a signal timeout then expires).
 """
 
 from __future__ import annotations
@@ -20,6 +31,7 @@ import json
 import socket
 import struct
 import threading
+import time
 from collections import deque
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -32,9 +44,11 @@ from u2sa_hw.ports.tap import Tap, call_tap
 MOCK_PREFIX = "mock:"
 EDGES = ("both", "rising", "falling", "none")
 BIASES = ("as-is", "pull-up", "pull-down", "disabled")
-MOCK_JSON, MOCK_EDGE = b"J", b"E"  # frame kinds: a JSON request/reply, a binary edge event
+MOCK_JSON, MOCK_EDGE, MOCK_TICK = b"J", b"E", b"T"  # frame kinds: JSON request/reply, edge event, clock tick
 MOCK_FRAME_HEADER = struct.Struct(">cI")
 MOCK_EDGE_RECORD = struct.Struct(">BIQQQ")
+MOCK_TICK_RECORD = struct.Struct(">Q")
+DEVICE_CLOCK_GRACE_S = 2.0  # a device clock silent this long (wall) runs on with the wall clock
 MOCK_MAX_FRAME = 1 << 20
 EDGE_RISING, EDGE_FALLING = 1, 2  # gpiod EdgeEvent.Type values
 EVENT_BUFFER = 1024  # edges kept unread per port; the oldest is dropped first, as the kernel does
@@ -46,6 +60,13 @@ class EdgeEvent:
 
     line: int
     rising: bool
+    timestamp_ns: int
+
+
+@dataclass(frozen=True)
+class ClockTick:
+    """The chip's clock reached ``timestamp_ns`` (a chip with a clock of its own, in recorded silences)."""
+
     timestamp_ns: int
 
 
@@ -75,7 +96,7 @@ class MockFrameReader:
         frames = []
         while len(self._buffer) >= MOCK_FRAME_HEADER.size:
             kind, length = MOCK_FRAME_HEADER.unpack_from(self._buffer)
-            if kind not in (MOCK_JSON, MOCK_EDGE) or length > MOCK_MAX_FRAME:
+            if kind not in (MOCK_JSON, MOCK_EDGE, MOCK_TICK) or length > MOCK_MAX_FRAME:
                 raise MockProtocolError(f"bad frame header kind={kind!r} length={length}")
             end = MOCK_FRAME_HEADER.size + length
             if len(self._buffer) < end:
@@ -112,10 +133,21 @@ class GpioPort:
 
     def read_edges(self, timeout: float) -> list[EdgeEvent]:
         """Edges that happened since the last call; waits up to *timeout* s for the first one."""
+        return [e for e in self.read_events(timeout) if isinstance(e, EdgeEvent)]
+
+    def now_ns(self) -> int | None:
+        """The device clock (see the module docstring): CLOCK_MONOTONIC unless the chip keeps its own;
+        None while a chip with its own clock has sent nothing yet."""
+        return time.monotonic_ns()
+
+    def read_events(self, timeout: float) -> list[EdgeEvent | ClockTick]:
+        """Edges (and a device-clock chip's ticks) in the order the chip sent them; waits up to *timeout* s."""
         self._check_open()
         events = self._read_edges(timeout)
         if self._tap is not None:
             for event in events:
+                if not isinstance(event, EdgeEvent):
+                    continue
                 record = m.RawGpioEdge()
                 record.device, record.line = self.device, event.line
                 record.edge, record.kernel_timestamp_ns = int(event.rising), event.timestamp_ns
@@ -147,7 +179,7 @@ class GpioPort:
     # backend hooks
     def _get(self, line: int) -> int: raise NotImplementedError  # noqa: E704
     def _set(self, line: int, value: int) -> None: raise NotImplementedError  # noqa: E704
-    def _read_edges(self, timeout: float) -> list[EdgeEvent]: raise NotImplementedError  # noqa: E704
+    def _read_edges(self, timeout: float) -> list[EdgeEvent | ClockTick]: raise NotImplementedError  # noqa: E704
     def _release(self) -> None: raise NotImplementedError  # noqa: E704
 
 
@@ -168,9 +200,12 @@ class MockGpioPort(GpioPort):
                                   address=self.address, fix="start the mock chip (mock_devices.gpio_chip."
                                                             "MockGpioChip) or correct the address") from exc
         self._cond, self._send_lock = threading.Condition(), threading.Lock()
-        self._edges: deque[EdgeEvent] = deque(maxlen=EVENT_BUFFER)
+        self._edges: deque[EdgeEvent | ClockTick] = deque()
         self._replies: dict[int, dict[str, Any]] = {}
         self._next_id, self._lost = 0, ""  # _lost: why the connection is gone, once it is
+        self.device_clock = False          # the chip keeps its own clock (a replay chip)
+        self._taken_ns: int | None = None  # the latest edge/tick time handed to the driver
+        self._heard_at = time.monotonic()  # wall time the chip last sent an edge or tick
         self._reader = threading.Thread(target=self._read_loop, name=f"gpio-mock-{device}", daemon=True)
         self._reader.start()
         lines: dict[str, dict[str, Any]] = {str(n): {"direction": "input", "edge": edge, "bias": bias} for n in inputs}
@@ -188,8 +223,20 @@ class MockGpioPort(GpioPort):
             else:
                 message, fix = f"mock chip refused the request: {reply.get('message')}", "check lines and settings"
             raise PortUnavailable(device, message, address=self.address, fix=fix + " in this service's config")
+        self.device_clock = reply.get("clock") == "device"
         for n, value in outputs.items():
             self._tap_write(n, value)
+
+    def now_ns(self) -> int | None:
+        """CLOCK_MONOTONIC, or on a device-clock chip the latest time taken, run on by the wall clock
+        once the chip has been silent for DEVICE_CLOCK_GRACE_S (a stopped clock never holds a timeout)."""
+        if not self.device_clock:
+            return time.monotonic_ns()
+        with self._cond:
+            if self._taken_ns is None:
+                return None
+            silent_s = time.monotonic() - self._heard_at
+            return self._taken_ns + max(0, int((silent_s - DEVICE_CLOCK_GRACE_S) * 1e9))
 
     def _read_loop(self) -> None:
         frames = MockFrameReader()
@@ -210,11 +257,20 @@ class MockGpioPort(GpioPort):
             self._cond.notify_all()
 
     def _dispatch(self, kind: bytes, payload: bytes) -> None:
-        if kind == MOCK_EDGE:
-            event_type, line, timestamp_ns, _global, _line_seq = MOCK_EDGE_RECORD.unpack(payload)
-            event = EdgeEvent(line=line, rising=event_type == EDGE_RISING, timestamp_ns=timestamp_ns)
+        if kind in (MOCK_EDGE, MOCK_TICK):
+            if kind == MOCK_EDGE:
+                event_type, line, timestamp_ns, _global, _line_seq = MOCK_EDGE_RECORD.unpack(payload)
+                event: EdgeEvent | ClockTick = EdgeEvent(line=line, rising=event_type == EDGE_RISING,
+                                                         timestamp_ns=timestamp_ns)
+            else:
+                event = ClockTick(MOCK_TICK_RECORD.unpack(payload)[0])
             with self._cond:
+                if self.device_clock:   # a replay: hold the chip back rather than lose an edge
+                    self._cond.wait_for(lambda: len(self._edges) < EVENT_BUFFER or self._closed)
+                elif len(self._edges) >= EVENT_BUFFER:
+                    self._edges.popleft()   # the oldest is dropped first, as the kernel does
                 self._edges.append(event)
+                self._heard_at = time.monotonic()
                 self._cond.notify_all()
         else:
             reply = json.loads(payload)
@@ -258,13 +314,16 @@ class MockGpioPort(GpioPort):
     def _set(self, line: int, value: int) -> None:
         self._transaction({"op": "set", "values": {str(line): value}})
 
-    def _read_edges(self, timeout: float) -> list[EdgeEvent]:
+    def _read_edges(self, timeout: float) -> list[EdgeEvent | ClockTick]:
         with self._cond:
             self._cond.wait_for(lambda: self._edges or self._lost or self._closed, timeout)
             events = list(self._edges)
             self._edges.clear()
+            self._cond.notify_all()   # room again for a held-back reader
             if not events and self._lost:
                 raise self._lost_error(self._lost)
+            if events and self.device_clock:
+                self._taken_ns = max(self._taken_ns or 0, max(e.timestamp_ns for e in events))
         return events
 
     def _release(self) -> None:
