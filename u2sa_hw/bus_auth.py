@@ -18,6 +18,12 @@ board that booted without an RTC adopts the vehicle's time from the first packet
 A restarted service is a new sender with a current counter: accepted at once. A packet
 captured and replayed a minute later is either not above its sender's last counter or,
 for a receiver that never heard that sender, outside the window.
+
+Failsafe raises: a packet refused as REPLAYED only for its counter's age or range (its MAC
+checked, its counter above its sender's last) may still be accepted by the transport through
+:meth:`BusAuth.admit_stale` when it is a signed ``Failsafe`` with ``active = true``: a replayed
+raise can only make the vehicle safer, and an operator's laptop whose clock is behind must
+never lose one. Everything else, a failsafe clear included, stays refused.
 """
 
 from __future__ import annotations
@@ -46,6 +52,7 @@ _TAIL = struct.Struct(">8sQ4s")                   # the signed part of the trail
 _SENDER_COUNTER = struct.Struct(">8sQ")          # read once the MAC is checked
 SIGNED_TAIL = _TAIL.size
 MAX_CACHED_CHANNELS = 1024
+MAX_STALE_RAISERS = 1024           # senders of admitted stale failsafe raises remembered (BusAuth.admit_stale)
 
 WINDOW_US = 20_000_000             # a sender never heard before: its first counter at most 20 s old
 OVERLAP_S = 30.0                   # a rotated-out key is still accepted this long
@@ -216,6 +223,10 @@ class BusAuth:
         self._last_sent = 0
         self._peers: dict[bytes, int] = {}
         self._prune_at = 0
+        self._stale: tuple[bytes, int] | None = None   # sender and counter of the last packet refused as too old
+        # The last counter of each sender whose raise was admitted though stale: kept apart from
+        # _peers, so that admitting a raise never makes its sender's other packets acceptable.
+        self._stale_raises: dict[bytes, int] = {}
 
     def now(self) -> int:
         """The signing clock in µs: the wall clock, moved forward to the newest verified counter."""
@@ -243,6 +254,7 @@ class BusAuth:
         """OK, or why *data* is dropped: UNSIGNED, FORGED or REPLAYED. Never raises.
 
         The MAC is checked (in constant time) before anything of the trailer is believed.
+        A packet REPLAYED only for its counter's age or range can be admitted with :meth:`admit_stale`.
         """
         end = len(data) - TRAILER_LEN
         if end < 0 or not data.endswith(TAG):
@@ -262,11 +274,11 @@ class BusAuth:
         sender, counter = _SENDER_COUNTER.unpack_from(data, end)
         now = self._wall_ns() // 1000 + self._offset
         if counter > MAX_COUNTER or (counter > now + MAX_AHEAD_US and now >= SANE_CLOCK_US):
-            return REPLAYED
+            return self._outside(sender, counter)
         last = self._peers.get(sender)
         if last is None:
             if counter < now - WINDOW_US:
-                return REPLAYED
+                return self._outside(sender, counter)
             if now >= self._prune_at:
                 self._prune(now)
         elif counter <= last:
@@ -275,6 +287,33 @@ class BusAuth:
         self.last_sender = sender
         if counter > now:
             self._offset += counter - now
+        return OK
+
+    def _outside(self, sender: bytes, counter: int) -> str:
+        # Not above the sender's last counter (in the window, or of an admitted raise): a replay whatever it carries.
+        if counter <= max(self._peers.get(sender, -1), self._stale_raises.get(sender, -1)):
+            return REPLAYED
+        self._stale = (sender, counter)
+        return REPLAYED
+
+    def admit_stale(self, data: bytes) -> str:
+        """OK: accept *data*, just refused as REPLAYED, if only its counter's age or range refused it; else REPLAYED.
+
+        The caller (the transport) has found it a failsafe raise.
+
+        Its counter becomes the last of its sender's admitted raises, so the same packet sent
+        again is REPLAYED while that is remembered (up to :data:`MAX_STALE_RAISERS` senders; a
+        raise replayed after that only holds a failsafe again). The sender does not become
+        known: its other packets still meet the window. The signing clock is never moved by it.
+        """
+        stale, self._stale = self._stale, None
+        if len(data) < TRAILER_LEN or stale != _SENDER_COUNTER.unpack_from(data, len(data) - TRAILER_LEN):
+            return REPLAYED
+        sender, counter = stale
+        if len(self._stale_raises) >= MAX_STALE_RAISERS and sender not in self._stale_raises:
+            self._stale_raises.clear()
+        self._stale_raises[sender] = counter
+        self.last_sender = sender
         return OK
 
     def _prune(self, now: int) -> None:

@@ -2,6 +2,12 @@
 
 Used by the ``u2sa`` command, the HSM and the tests. It is a plain transport user, not a
 service: it answers no discovery and publishes no health.
+
+A command that acts on the vehicle (``u2sa failsafe``, ``u2sa stop``) calls :meth:`BusClient.sync_clock`
+before it publishes: a new sender's first packet is refused as a replay by every receiver
+when its counter is more than the window (20 s) behind theirs, which a laptop without NTP
+easily is; one verified packet heard first moves this process's signing clock to the
+vehicle's (docs/security.md, "Replays and the window").
 """
 
 from __future__ import annotations
@@ -119,6 +125,31 @@ class BusClient:
         cmd = t.StopCommand()
         cmd.all, cmd.name = all_services, name
         self.transport.publish(ch.STOP, self._stamp(cmd))
+
+    def sync_clock(self, *, timeout: float = 1.5) -> bool:
+        """Wait up to *timeout* s for one verified packet from another sender; True once heard (or on an open bus).
+
+        Verifying it moves this transport's signing clock forward to the sender's, so what this
+        client publishes next is inside every receiver's replay window. False: nothing signed
+        with our key was heard (an empty bus, another key, no multicast); publishing still works
+        for receivers whose clocks are not ahead of ours.
+        """
+        transport = self.transport
+        if transport.auth is None:
+            return True
+        heard = threading.Event()
+        own = transport.sender
+
+        def on_any(_c: str, _data: bytes) -> None:
+            if transport.last_sender != own:   # our own packets loop back: they teach us nothing
+                heard.set()
+
+        sub = transport.subscribe(".*", None, on_any, raw=True)
+        try:
+            heard.wait(timeout)
+        finally:
+            transport.unsubscribe(sub)
+        return heard.is_set()
 
     def wait_for(self, predicate: Any, *, timeout: float, interval: float = 0.05) -> bool:
         """Poll *predicate* until true or *timeout*; True if it became true."""

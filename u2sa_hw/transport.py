@@ -12,6 +12,12 @@ docs/security.md): unsigned, forged and replayed packets are counted per channel
 once per channel and reason, and never reach a callback. Raw subscribers get the verified
 payload without its trailer. ``security="open"`` (a bench) signs and verifies nothing.
 
+A failsafe raise (a signed ``Failsafe`` with ``active = true`` on ``FAILSAFE``) fails safe, so
+it is accepted where anything else is dropped: outside the replay window (an operator's
+laptop whose clock is behind) and from another non-zero system id (a ground station, another
+vehicle's profile). Each such acceptance is counted (``raise_stale``, ``raise_foreign``) and
+logged once per channel. A clear, and every other message, keeps every check.
+
 The LCM C library reports a failure to open (no multicast route, a bad URL, a port held by
 another program) with many lines on stderr; those are caught and folded into the one-line
 :class:`TransportError` (``u2sa_hw.lcm_open``).
@@ -33,13 +39,15 @@ from typing import Any, Callable
 
 import lcm
 
-from u2sa_hw.bus_auth import (FOREIGN, LCM_SELF_TEST, OK, OPEN, REJECTION_WHY, REJECTIONS, TRAILER_LEN, BusAuth,
-                              keyring_for, resolve_security, strip_trailer)
+from u2sa_hw.bus_auth import (FOREIGN, LCM_SELF_TEST, OK, OPEN, REJECTION_WHY, REJECTIONS, REPLAYED, TRAILER_LEN,
+                              BusAuth, keyring_for, resolve_security, strip_trailer)
 from u2sa_hw.bus_key import BusKeyError, key_path
 from u2sa_hw.bus_listen import interface_index, listen_interface, receive_on, send_via, socket_fds
 from u2sa_hw.lcm_open import MULTICAST_FIX, URL_HELP, captured_c_stderr, open_error, reemit  # noqa: F401 - re-exported
 from u2sa_hw.lcm_url import (DEFAULT_LCM_URL, DEFAULT_RECV_BUF_SIZE, LCM_URL_ENV,  # noqa: F401 - re-exported
                               RMEM_MAX_FILE, resolve_url, with_receive_buffer)
+from u2sa_hw.channels import FAILSAFE as FAILSAFE_CHANNEL
+from u2sa_hw.lcmtypes import Failsafe
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 
 # LCM queues at most 30 messages per subscription by default and drops the rest without a
@@ -50,6 +58,7 @@ DEFAULT_QUEUE_CAPACITY = 10_000
 Callback = Callable[[str, Any], None]
 _SYSTEM_ID = struct.Struct(">i")
 _ANY_SYSTEM = _SYSTEM_ID.pack(0)   # unset (a tool without a profile): not another vehicle
+_FAILSAFE_FP = Failsafe._get_packed_fingerprint()
 log = logging.getLogger("u2sa_hw.transport")
 
 
@@ -70,6 +79,8 @@ class ChannelCounters:
     forged: int = 0
     replayed: int = 0
     foreign: int = 0     # received only: another vehicle's system id in the header
+    raise_stale: int = 0     # received only: failsafe raises accepted though outside the replay window
+    raise_foreign: int = 0   # received only: failsafe raises accepted though from another system id
 
     def rejected(self) -> int:
         """Packets verification (or the system id check) dropped on this channel."""
@@ -95,6 +106,8 @@ class Transport:
     /etc/u2sa/bus.key. A key that cannot be used is a one-line :class:`TransportError`.
     With *system_id* (the vehicle's), a message whose header carries another non-zero system
     id is dropped and counted as ``foreign``: a second stack sharing the bus and the key.
+    A failsafe raise is the exception to both the replay window and the system id check
+    (module docstring).
     """
 
     def __init__(self, url: str | None = None, *, name: str = "u2sa", security: str | None = None,
@@ -300,10 +313,17 @@ class Transport:
         else:
             verdict = auth.verify(channel, data)
             payload = data[:-TRAILER_LEN]
+            if verdict is REPLAYED and channel == FAILSAFE_CHANNEL:
+                verdict = self._admit_stale_raise(auth, channel, data)
         if verdict is OK:
             own = self._own_system
             # Only a u2sa type's bytes 8..12 are its system id: anything else is left to decoding (malformed).
             if own is None or payload[8:12] in (own, _ANY_SYSTEM) or REGISTRY.by_fingerprint(payload[:8]) is None:
+                self._payload = payload
+                self.rx[channel].bytes += len(payload)
+                return OK
+            if _is_failsafe_raise(channel, payload):
+                self._accepted_raise(channel, "raise_foreign", "from another system id than this vehicle's")
                 self._payload = payload
                 self.rx[channel].bytes += len(payload)
                 return OK
@@ -318,6 +338,29 @@ class Transport:
             log.warning("%s: dropping %s message on %s (%s); further ones are only counted", self.name, verdict,
                         channel, REJECTION_WHY[verdict])
         return verdict
+
+    def _admit_stale_raise(self, auth: BusAuth, channel: str, data: bytes) -> str:
+        """OK for a failsafe raise refused only for its age (it fails safe), REPLAYED for anything else."""
+        if not _is_failsafe_raise(channel, data[:-TRAILER_LEN]):
+            return REPLAYED
+        verdict = auth.admit_stale(data)
+        if verdict is OK:
+            self._accepted_raise(channel, "raise_stale", "outside the replay window (a sender whose clock is behind, "
+                                 "or a replay)")
+        return verdict
+
+    def _accepted_raise(self, channel: str, counter: str, why: str) -> None:
+        counters = self.rx[channel]
+        setattr(counters, counter, getattr(counters, counter) + 1)
+        if (channel, counter) not in self._rejection_logged:
+            self._rejection_logged.add((channel, counter))
+            log.warning("%s: accepting a failsafe raise on %s %s: a raise fails safe, so it is never dropped for "
+                        "that; further ones are only counted", self.name, channel, why)
+
+    def accepted_raises(self) -> dict[str, dict[str, int]]:
+        """``{channel: {"raise_stale": n, "raise_foreign": n}}`` for channels where a raise was let through."""
+        return {ch: {"raise_stale": c.raise_stale, "raise_foreign": c.raise_foreign}
+                for ch, c in sorted(self.rx.items()) if c.raise_stale or c.raise_foreign}
 
     @property
     def sender(self) -> str:
@@ -420,6 +463,17 @@ class Transport:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+def _is_failsafe_raise(channel: str, payload: bytes) -> bool:
+    """True for a Failsafe with ``active = true`` on FAILSAFE (only read on the rare paths that drop otherwise)."""
+    if channel != FAILSAFE_CHANNEL or payload[:8] != _FAILSAFE_FP:
+        return False
+    try:
+        msg, _ = REGISTRY.decode(payload, Failsafe)
+    except MalformedMessage:
+        return False
+    return bool(msg.active)
 
 
 def _is_regex(channel: str) -> bool:

@@ -12,6 +12,9 @@ from typing import Any
 
 from u2sa_hw.cli.common import add_timeout_option, add_vehicle_option, bus_client, no_answer_error
 
+ECHO_TIMEOUT_S = 5.0   # echo: how long to wait for a channel's first message
+STOP_SYNC_S = 1.5      # stop: how long to listen for a signed packet before sending (clock sync)
+
 
 def register(sub: Any) -> None:
     """Add the bus subcommands."""
@@ -35,8 +38,11 @@ def register(sub: Any) -> None:
     p.add_argument("channel")
     add_vehicle_option(p)
     p.add_argument("--count", type=int, default=0, metavar="N", help="exit after N messages (default: run until Ctrl-C)")
-    p.add_argument("--timeout", type=float, default=0.0, metavar="S",
-                   help="exit 1 if no message arrives within S seconds (default: wait forever)")
+    first = p.add_mutually_exclusive_group()
+    first.add_argument("--timeout", type=float, default=ECHO_TIMEOUT_S, metavar="S",
+                       help="exit 1, naming the channels heard, if no message arrives within S seconds "
+                       f"(default {ECHO_TIMEOUT_S:g}); once one has arrived, run until --count or Ctrl-C")
+    first.add_argument("--wait", action="store_true", help="wait for the first message as long as it takes")
     p.add_argument("--json", action="store_true", help="one JSON object per line with the fields by name")
     p.set_defaults(func=cmd_echo)
 
@@ -55,7 +61,9 @@ def register(sub: Any) -> None:
     p.set_defaults(func=cmd_pub)
 
     p = sub.add_parser("stop", help="stop a service by name, or all services",
-                       description="Send the contract's stop command and wait until the service(s) are gone.")
+                       description="Send the contract's stop command and wait until the service(s) are gone. "
+                       "It first listens up to 1.5 s for one signed packet (so a laptop whose clock is behind "
+                       "the vehicle's is not taken for a replay), and exits 1 when nothing answered.")
     p.add_argument("name", nargs="?", help="service to stop")
     p.add_argument("--all", action="store_true", help="stop every service on the bus")
     add_vehicle_option(p)
@@ -186,10 +194,13 @@ def cmd_echo(args: Any) -> int:
 
     printed = 0
     done = threading.Event()
+    first = threading.Event()
     lock = threading.Lock()
+    heard: set[str] = set()
 
     def on_raw(channel: str, data: bytes) -> None:
         nonlocal printed
+        first.set()
         try:
             msg, _ = REGISTRY.decode(data, base_type(channel))
         except MalformedMessage as exc:
@@ -209,11 +220,18 @@ def cmd_echo(args: Any) -> int:
             if args.count and printed >= args.count:
                 done.set()
 
+    if not args.wait and args.timeout <= 0:
+        raise CliError("echo: --timeout must be > 0 seconds (--wait waits for the first message as long as it "
+                       "takes)", 2)
     with bus_client(args) as bus:
         bus.transport.subscribe(args.channel, None, on_raw, raw=True)
-        done.wait(args.timeout if args.timeout > 0 else None)
-    if printed == 0 and args.timeout > 0:
-        raise CliError(f"no message on {args.channel} within {args.timeout:g} s")
+        others = bus.transport.subscribe(".*", None, lambda c, _d: heard.add(c), raw=True)
+        if not first.wait(None if args.wait else args.timeout):
+            heard_now = sorted(heard)
+            hint = f"; heard: {', '.join(heard_now)} (--wait to wait for it)" if heard_now else ""
+            raise CliError(f"no message on {args.channel} within {args.timeout:g} s{hint}")
+        bus.transport.unsubscribe(others)
+        done.wait()
     return 0
 
 
@@ -256,11 +274,13 @@ def cmd_stop(args: Any) -> int:
     if not args.all and not args.name:
         raise CliError("stop: give a service NAME or --all", 2)
     with bus_client(args) as bus:
+        synced = bus.sync_clock(timeout=STOP_SYNC_S)   # else a laptop behind the vehicle's clock is a "replay"
         before = bus.discover(timeout=min(1.0, args.timeout), name="" if args.all else args.name)
         if not before:
-            target = "no service" if args.all else f"service '{args.name}'"
-            raise no_answer_error(args, f"{target} answered discovery within {min(1.0, args.timeout):g} s; "
-                                  "nothing to stop")
+            target = "no service" if args.all else f"no service '{args.name}'"
+            heard = "" if synced else f", and nothing signed with this bus key was heard in {STOP_SYNC_S:g} s"
+            raise no_answer_error(args, f"nothing answered: {target} answered discovery within "
+                                  f"{min(1.0, args.timeout):g} s{heard}; nothing to stop")
         names = {r.name for r in before}
         bus.stop(name=args.name or "", all_services=args.all)
         deadline = time.monotonic() + args.timeout

@@ -10,6 +10,13 @@ again at its next repeat, within a second, and ``status`` shows that.
 re-sent every second by their holders), to the services' health (each actuator, the RC mux,
 control and the HSM report the sources they hold) and to ``RC_MODE`` (why autonomy is not
 granted).
+
+``raise`` and ``clear`` first listen (up to :data:`SYNC_S`) for one signed packet, which moves
+this process's signing clock to the vehicle's: a laptop whose clock is behind would otherwise
+send a packet every receiver takes for a replay (receivers accept a raise even then, but not
+a clear; docs/security.md). ``raise`` then waits for evidence that the failsafe is held (the
+HSM's relay, or a service's health listing ``operator``), sends it again up to
+:data:`RAISE_SENDS` times, and exits 1 naming what did not answer when nothing confirms it.
 """
 
 from __future__ import annotations
@@ -22,8 +29,11 @@ from typing import Any
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.cli.common import add_timeout_option, add_vehicle_option, bus_client
+from u2sa_hw.cli.common import add_vehicle_option, bus_client, no_answer_error
 from u2sa_hw.failsafe import ALL_SOURCES, OPERATOR_SOURCE
+
+SYNC_S = 1.5        # how long raise/clear listen for a signed packet to sync the signing clock
+RAISE_SENDS = 3     # raise: sends, each followed by up to --timeout s of waiting for evidence
 
 HELP = """\
 Raise, clear or show failsafes. Every actuator goes neutral and autonomy drops while any
@@ -40,6 +50,11 @@ clear any.
 The HSM (kind "hsm") re-sends the operator's failsafe every second until the operator
 clears it, so a service that restarts, or missed the one packet, still hears it; without
 an HSM in the profile only the services that heard the raise hold it. See docs/safety.md.
+
+raise confirms: it waits up to --timeout seconds for the HSM's relay or a service's health
+listing the operator's failsafe, sends again (3 sends in all), and exits 1 naming what did
+not answer if nothing confirmed it. Before sending, raise and clear listen up to 1.5 s for
+one signed packet, so a laptop whose clock is behind the vehicle's is heard.
 """
 
 
@@ -56,7 +71,9 @@ def register(sub: Any) -> None:
     who.add_argument("--all", action="store_true", help="clear: lower every source's failsafe")
     p.add_argument("--json", action="store_true", help="status: print JSON")
     add_vehicle_option(p)
-    add_timeout_option(p, 1.5)
+    p.add_argument("--timeout", type=float, default=1.5, metavar="S",
+                   help="status: seconds to listen; raise: seconds to wait for confirmation after each of "
+                   "its 3 sends (default 1.5)")
     p.set_defaults(func=cmd_failsafe)
 
 
@@ -136,21 +153,88 @@ def cmd_failsafe(args: Any) -> int:
                 listener.close()
             print(json.dumps(snap, indent=2) if args.json else "\n".join(status_lines(snap)))
             return 1 if snap["active"] or any(snap["held_by"].values()) else 0
+        synced = bus.sync_clock(timeout=SYNC_S)
         msg = t.Failsafe()
         msg.header.source = OPERATOR_SOURCE
         if args.action == "raise":
             msg.active, msg.reason = True, args.reason
-        else:
-            msg.active, msg.reason = False, "cleared by the operator"
-            msg.service = ALL_SOURCES if args.all else (args.source or "")
+            print(raise_confirmed(bus, msg, args, synced=synced))
+            return 0
+        msg.active, msg.reason = False, "cleared by the operator"
+        msg.service = ALL_SOURCES if args.all else (args.source or "")
         if not bus.publish(ch.FAILSAFE, msg):
             raise CliError(f"failsafe {args.action}: could not publish on {bus.transport.url}")
-        if args.action == "clear":
-            # the HSM relays the operator's failsafe every second: a relay already in flight when the
-            # first clear lands would raise it again, so the clear goes out once more after it
-            time.sleep(0.3)
-            bus.publish(ch.FAILSAFE, msg)
+        # the HSM relays the operator's failsafe every second: a relay already in flight when the
+        # first clear lands would raise it again, so the clear goes out once more after it
+        time.sleep(0.3)
+        bus.publish(ch.FAILSAFE, msg)
     target = "every source's" if args.all else (f"{args.source}'s" if args.source else "the operator's")
-    print("failsafe raised by the operator: every actuator neutral, autonomy off"
-          if args.action == "raise" else f"cleared {target} failsafe (u2sa failsafe status shows who still holds one)")
+    print(f"cleared {target} failsafe (u2sa failsafe status shows who still holds one)")
     return 0
+
+
+class RaiseEvidence:
+    """Listens for proof that the operator's failsafe is held: the HSM's relay or a holder's health."""
+
+    def __init__(self, bus: Any) -> None:
+        self.confirmed_by: list[str] = []         # e.g. "the HSM's relay", "drive's health"
+        self.not_holding: set[str] = set()        # holders whose health did not list the operator
+        self.event = threading.Event()
+        self._bus, self._own = bus, bus.transport.sender
+        self._subs = [bus.transport.subscribe(ch.FAILSAFE, t.Failsafe, self._on_failsafe),
+                      bus.transport.subscribe(ch.HEALTH, t.Health, self._on_health)]
+
+    def close(self) -> None:
+        """Stop listening."""
+        for sub in self._subs:
+            self._bus.transport.unsubscribe(sub)
+
+    def _on_failsafe(self, _c: str, msg: t.Failsafe) -> None:
+        # our own packet loops back to us: it proves nothing; another sender's copy is the HSM's relay
+        if msg.active and msg.header.source == OPERATOR_SOURCE and self._bus.transport.last_sender != self._own:
+            self._confirm("the HSM's relay on FAILSAFE")
+
+    def _on_health(self, _c: str, msg: t.Health) -> None:
+        details = {kv.key: kv.value for kv in msg.details}
+        if "failsafe_sources" not in details:
+            return
+        name = msg.name or msg.header.source
+        if OPERATOR_SOURCE in details["failsafe_sources"].split(","):
+            self.not_holding.discard(name)
+            self._confirm(f"{name}'s health")
+        elif not self.event.is_set():
+            self.not_holding.add(name)
+
+    def _confirm(self, what: str) -> None:
+        if what not in self.confirmed_by:
+            self.confirmed_by.append(what)
+        self.event.set()
+
+
+def raise_confirmed(bus: Any, msg: t.Failsafe, args: Any, *, synced: bool) -> str:
+    """Send the raise until something confirms it is held; the line to print, or CliError naming who did not answer."""
+    from u2sa_hw.cli import CliError
+
+    evidence = RaiseEvidence(bus)
+    try:
+        for _ in range(RAISE_SENDS):
+            if not bus.publish(ch.FAILSAFE, msg):
+                raise CliError(f"failsafe raise: could not publish on {bus.transport.url}: {bus.transport.last_error}")
+            if evidence.event.wait(args.timeout):
+                break
+    finally:
+        evidence.close()
+    if evidence.event.is_set():
+        return (f"failsafe raised by the operator: every actuator neutral, autonomy off "
+                f"(confirmed by {', '.join(evidence.confirmed_by)})")
+    waited = f"{RAISE_SENDS} sends over {RAISE_SENDS * args.timeout:g} s"
+    text = (f"failsafe raise NOT confirmed after {waited}: the HSM did not relay it on FAILSAFE and no actuator, "
+            "RC mux or control service reported holding it in its health")
+    if evidence.not_holding:
+        raise CliError(f"{text} ({', '.join(sorted(evidence.not_holding))} answered without it: their bus drops "
+                       "show why, u2sa services); treat the vehicle as NOT safe")
+    if not synced:
+        raise no_answer_error(args, f"{text}, and nothing signed with this bus key was heard "
+                              f"(no service running, another key or LCM URL); treat the vehicle as NOT safe")
+    raise CliError(f"{text} (services are on the bus, but none holds failsafes: is the HSM or an actuator "
+                   "running?); treat the vehicle as NOT safe")
