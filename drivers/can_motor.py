@@ -58,9 +58,11 @@ class CanMotorService(Actuator):
     ID_MAX: ClassVar[int] = 0x3F
     CONFIG = (
         field("device", "", "the bus: its [devices.NAME] table (address) and RAW.<device> (empty: the service name)"),
-        field("interface", "socketcan", "old form of the address (without [devices.NAME] address): python-can "
-                                        "interface: socketcan on a vehicle; virtual, udp_multicast in tests"),
-        field("channel", "can0", "python-can channel: can0, a virtual bus name, or a multicast group"),
+        field("interface", "", "old form of the address (without [devices.NAME] address): python-can "
+                               "interface: socketcan on a vehicle; virtual, udp_multicast in tests (empty: "
+                               "socketcan when channel is set; both empty: the address is [devices.NAME]'s only)"),
+        field("channel", "", "old form: python-can channel: can0, a virtual bus name, or a multicast group "
+                             "(empty: can0 when interface is set)"),
         field("bitrate", 0, "bit/s given to python-can (0: leave the interface as configured, e.g. by udev)", ge=0),
         field("udp_port", 0, "udp_multicast only: UDP port of the bus (0: python-can's default 43113)", ge=0, le=65535),
         field("device_name", "", "old name of the device setting"),
@@ -89,7 +91,7 @@ class CanMotorService(Actuator):
         self.odometry: DiffDriveOdometry | None = None
         self._link: DeviceLink[CanPort] = DeviceLink(
             self, device=lambda: device_setting(self.config, self.name), raw_type=t.RawCanFrame,
-            legacy=lambda: self.legacy_address(self.config))
+            legacy=lambda: self.legacy_address(self.config), before_close=self._park_old_bus)
         self._current: CanPort | None = None
         self._reopen = False
         self.started_at = time.monotonic()  # since when a controller never heard counts as silent
@@ -154,8 +156,13 @@ class CanMotorService(Actuator):
 
     @classmethod
     def legacy_address(cls, config: Mapping[str, Any]) -> str | None:
-        """The address the old-form settings (``interface``, ``channel``, ``bitrate``, ``udp_port``) give."""
-        return can_address(str(config.get("interface", "socketcan")), str(config.get("channel", "can0")),
+        """The address the old-form settings (``interface``, ``channel``, ``bitrate``, ``udp_port``) give, or
+        None when neither ``interface`` nor ``channel`` is set: a device without a ``[devices.NAME]`` address
+        is then an error, never a silent ``can0`` (a winch's setpoints must not reach a wheel's node)."""
+        interface, channel = (str(config.get(k) or "").strip() for k in ("interface", "channel"))
+        if not interface and not channel:
+            return None
+        return can_address(interface or "socketcan", channel or "can0",
                            bitrate=config.get("bitrate") or None, udp_port=config.get("udp_port") or None)
 
     @classmethod
@@ -217,9 +224,9 @@ class CanMotorService(Actuator):
         while self.wait(0.0):
             if self._reopen:
                 self._reopen = False
+                self._link.refresh(force=True)   # _park_old_bus first: the old controllers get zero/idle
                 with self.lock:
                     self.on_port_lost()
-                self._link.refresh(force=True)
             holder = self._link
             try:
                 port = holder.get()
@@ -245,6 +252,15 @@ class CanMotorService(Actuator):
             if time.monotonic() >= next_tick:
                 next_tick = time.monotonic() + TICK_S
                 self._tick_and_status()
+
+    def _park_old_bus(self, port: CanPort) -> None:
+        """Before a changed bus (``device``, ``channel``...) is closed: zero (then, as on stop, idle) to the
+        controllers on it, which would otherwise hold their last setpoint until their own watchdog fires,
+        or for ever with it off. The new bus starts from zero too: a command must come again."""
+        with self.lock:
+            self.zero_outputs()
+            self.release()
+        self.logger.info("%s: outputs zeroed on the old bus before reopening", self.device_name)
 
     def _tick_and_status(self) -> None:
         self.check_command_timeout()

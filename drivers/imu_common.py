@@ -167,8 +167,8 @@ class I2cImuDriver(ProprioceptiveSensor):
     CONFIG = (
         field("device", "", "the chip: its [devices.NAME] table (address i2c://BUS/CHIP) and RAW.<device> "
                             "(empty: the service name)"),
-        field("bus", "1", 'old form of the address (with address): I2C adapter number ("1" = /dev/i2c-1) or '
-                          '"mock:/path/to/bus.sock"'),
+        field("bus", "", 'old form of the address (with address): I2C adapter number ("1" = /dev/i2c-1) or '
+                         '"mock:/path/to/bus.sock" (empty: the address is [devices.NAME]\'s only)'),
         field("rate_hz", 100.0, "samples published per second", gt=0, le=1000),
         field("retries", 2, "immediate retries of a failed I2C transaction", ge=0),
         field("reinit_after_errors", 10, "failed samples in a row before the chip is reopened and set up again", ge=1),
@@ -216,9 +216,14 @@ class I2cImuDriver(ProprioceptiveSensor):
     # -- the device ------------------------------------------------------------------------
     @classmethod
     def legacy_address(cls, config: Mapping[str, Any]) -> str | None:
-        """The address the old-form settings (``bus``, ``address``) give (``i2c://1/0x68``), or None."""
+        """The address the old-form settings (``bus``, ``address``) give (``i2c://1/0x68``), or None when
+        ``bus`` is not set: a device without a ``[devices.NAME]`` address is then an error, never a silent
+        ``i2c-1``."""
+        bus = str(config.get("bus") or "").strip()
+        if not bus:
+            return None
         try:
-            return i2c_address(config.get("bus", "1"), int(config.get("address", cls.DEFAULT_ADDRESS)))
+            return i2c_address(bus, int(config.get("address", cls.DEFAULT_ADDRESS)))
         except (AddressError, ValueError, TypeError):
             return None   # the driver's own check names the bad setting
 
@@ -230,7 +235,7 @@ class I2cImuDriver(ProprioceptiveSensor):
     def _check_device(self) -> None:
         c = self.config
         bus = str(c["bus"]).strip()
-        if not (bus.isdigit() or (bus.startswith("mock:") and len(bus) > len("mock:"))):
+        if bus and not (bus.isdigit() or (bus.startswith("mock:") and len(bus) > len("mock:"))):
             raise ConfigError(f"{self.name}: config 'bus': unknown I2C bus {c['bus']!r}; use an adapter number "
                               '(1 for /dev/i2c-1) or "mock:/path/to/bus.sock"')
         problem = self.port.check()

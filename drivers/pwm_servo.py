@@ -49,7 +49,7 @@ from typing import Any
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Actuator
 from u2sa_hw.config import ConfigError, field
-from u2sa_hw.ports.address import AddressError
+from u2sa_hw.ports.address import AddressError, DeviceAddress
 from u2sa_hw.ports.device_link import DeviceLink
 from u2sa_hw.ports.errors import PortError, PortUnavailable
 from u2sa_hw.ports.legacy import pwm_address
@@ -175,6 +175,40 @@ def parse_channels(tables: Any, *, service: str) -> list[ServoChannelSpec]:
     return specs
 
 
+def resolve_outputs(specs: list[ServoChannelSpec], *, service: str, profile: Any) -> list[DeviceAddress]:
+    """Each channel's address (``[devices.NAME]`` or its old form), checked across every output of the
+    service: a PWM kind, no output (sysfs chip/channel, PCA9685 chip/channel) used twice, one frame rate per
+    PCA9685. ConfigError names the channel, the address and the fix (sysfs has no exclusivity: two
+    writers on one pin would fight over an ESC line)."""
+    from u2sa_hw.devices import device_address
+
+    addresses: list[DeviceAddress] = []
+    outputs: dict[tuple[Any, ...], tuple[ServoChannelSpec, DeviceAddress]] = {}
+    frames: dict[tuple[Any, ...], ServoChannelSpec] = {}
+    for spec in specs:
+        where = f"{service}: channel '{spec.name}'"
+        try:
+            address = device_address(profile, spec.device_name, spec.legacy_address)
+        except AddressError as exc:
+            raise ConfigError(f"{where}: {exc} (e.g. \"pca9685://1/0x40/0\" or \"pwm://pwmchip0/0\")") from None
+        if address.kind not in ("pwm", "pca9685"):
+            raise ConfigError(f"{where}: device '{spec.device_name}' has the {address.kind} address {address.url}; "
+                              "a PWM output needs pwm:// or pca9685://")
+        other, other_address = outputs.setdefault(address.output_id, (spec, address))
+        if other is not spec:
+            raise ConfigError(f"{service}: channels '{other.name}' and '{spec.name}' are one output "
+                              f"({other_address.url} and {address.url}); give each actuator its own output")
+        frame = address.shared_frame_id
+        if frame is not None:
+            first = frames.setdefault(frame, spec)
+            if first.period_ns != spec.period_ns:
+                raise ConfigError(f"{service}: channels '{first.name}' and '{spec.name}' are on one PCA9685 "
+                                  f"({address.url}) but ask {first.frame_hz} and {spec.frame_hz} Hz; all its "
+                                  "channels share one frame")
+        addresses.append(address)
+    return addresses
+
+
 class ServoOutput:
     """One channel at run time: its port (reopened with backoff), the command and the slewed output."""
 
@@ -245,7 +279,7 @@ class PwmServoDriver(Actuator):
     CONFIG = (
         field("channels", [], "list of tables: name, address, channel, min_us, neutral_us, max_us, reverse, "
                               "frame_hz, slew_percent_per_s (applied at the next start)"),
-        field("update_hz", 50.0, "how often slewed outputs step and lost channels are retried", gt=0),
+        field("update_hz", 50.0, "how often slewed outputs step and lost channels are retried", gt=0, le=1000),
         field("release_on_exit", False, "stop the pulses after the final neutral (default: hold neutral)"),
         field("record_raw", False, "publish every PWM write on RAW.<device> (default device: the channel name)"),
     )
@@ -273,11 +307,18 @@ class PwmServoDriver(Actuator):
             return {}
         return {spec.device_name: spec.legacy_address for spec in specs}
 
-    def setup(self) -> None:
-        """Check the channels (a bad config stops the service with the reason) and output neutral."""
-        if not 0 < float(self.config["update_hz"]) <= 1000:
-            raise ConfigError(f"{self.name}: config 'update_hz' must be in (0, 1000], got {self.config['update_hz']}")
+    def check_config(self) -> None:
+        """Refuse channels that cannot run (each channel's table, its device's address, one output and one
+        PCA9685 frame per channel across the service) and the dead-man as every actuator; runs at start,
+        in ``u2sa check`` and before every change over the bus, so a bad ``channels`` is never saved."""
+        super().check_config()
         specs = parse_channels(self.config["channels"], service=self.name)
+        resolve_outputs(specs, service=self.name, profile=self.profile)
+
+    def setup(self) -> None:
+        """Open the channels (checked by check_config) and output neutral."""
+        specs = parse_channels(self.config["channels"], service=self.name)
+        resolve_outputs(specs, service=self.name, profile=self.profile)
         record = bool(self.config["record_raw"])
         for spec in specs:
             self.outputs[spec.name] = ServoOutput(spec, service=self, record=record)

@@ -17,7 +17,8 @@ API (stable; ``u2sa check``, install, udev generation, the simulation and replay
 - :func:`profile_devices` ``(profile) -> dict[str, DeviceEntry]``: every device, with its
   parsed :class:`~u2sa_hw.ports.address.DeviceAddress`, the service that uses it, its mock.
 - :class:`DeviceEntry`: ``name``, ``address``, ``service``, ``mock``, ``options``, ``sides``,
-  ``drives``, ``legacy`` (True when the address came from old-form service settings).
+  ``drives``, ``legacy`` (True when the address came from old-form service settings), ``used``
+  (False for an address no enabled service opens: ``u2sa check`` warns about it).
 - :func:`service_devices` ``(kind_class, service, config)``: the devices one service uses.
 - :func:`effective_config` ``(profile, service)``: the config a service will run with.
 
@@ -35,7 +36,7 @@ from __future__ import annotations
 
 import difflib
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Mapping
 
 from u2sa_hw.ports.address import AddressError, DeviceAddress, parse_address
@@ -62,6 +63,7 @@ class DeviceEntry:
     drives: dict[str, str] = field(default_factory=dict)   # actuator -> vehicle model input
     legacy: bool = False                   # the address came from old-form service settings
     table: str = ""                        # the [devices.X] table it was read from ("" when none)
+    used: bool = True                      # an enabled service opens it (False: an address nothing opens)
 
 
 def effective_config(profile: VehicleProfile, name: str) -> dict[str, Any]:
@@ -181,7 +183,7 @@ def profile_devices(profile: VehicleProfile, *, configs: Mapping[str, Mapping[st
         if not text:
             raise ProfileError(f"{where}: device '{device}' of service '{service}' has no address; add "
                                f"[devices.{device}] address = \"...\" (docs/ports.md lists the forms, e.g. "
-                               f"\"serial:///dev/u2sa/{device}?baud=9600\")")
+                               f"\"serial:///dev/u2sa/{device}?baud=9600\"){_did_you_mean(device, tables)}")
         try:
             if from_legacy:
                 text = _fold_legacy_keys(text, table, device)
@@ -209,7 +211,7 @@ def profile_devices(profile: VehicleProfile, *, configs: Mapping[str, Mapping[st
             address = parse_address(table["address"], device=name)
         except AddressError as exc:
             raise ProfileError(f"{_where(profile, name)}: {exc}") from None
-        entries[name] = _entry(name, address, str(table.get("service", "")), table, False, name)
+        entries[name] = replace(_entry(name, address, str(table.get("service", "")), table, False, name), used=False)
     return entries
 
 
@@ -227,6 +229,14 @@ def _group_for(groups: Mapping[str, Mapping[str, Any]], service: str, legacy: st
         return None
     name, table = candidates[0]
     return table, name
+
+
+def _did_you_mean(device: str, tables: Mapping[str, Any]) -> str:
+    """`` or set device = "winch" (a [devices.winch] table exists)`` for a near miss, else ``""``."""
+    close = difflib.get_close_matches(device, [n for n, t in tables.items() if isinstance(t, dict)
+                                               and t.get("address")], n=1)
+    return (f", or name the device that has one (did you mean device = \"{close[0]}\"? [devices.{close[0]}] "
+            "has an address)") if close else ""
 
 
 def _serves(entries: Mapping[str, DeviceEntry], service: str) -> bool:
@@ -254,5 +264,5 @@ def device_address(profile: VehicleProfile, device: str, legacy: str | None) -> 
         text = legacy
     if not text:
         raise AddressError(device, "", f"no address: add [devices.{device}] address = \"...\" to the vehicle "
-                           "profile")
+                           f"profile{_did_you_mean(device, profile.devices or {})}")
     return parse_address(text, device=device)

@@ -108,6 +108,42 @@ def _check_addresses(profile: Any, out: Collector, *, for_sim: bool) -> None:
         out.from_text(str(exc), key="devices", fix="write the address as docs/ports.md shows")
     for text in notices:
         out.from_text(text, key="services", fix="", severity=WARNING)
+    entries = _device_entries(profile)
+    if entries is not None:
+        _check_unused(entries, profile, out)
+        _check_shared_outputs(entries, out)
+
+
+def _check_unused(entries: Mapping[str, Any], profile: Any, out: Collector) -> None:
+    """A ``[devices.NAME]`` address no enabled service opens: most likely a misspelt ``device`` setting
+    (a table named after a disabled service, or naming one, is that service's and no warning)."""
+    import difflib
+
+    disabled = {name for name, spec in profile.services.items() if not spec.enabled}
+    for name, entry in entries.items():
+        if entry.used or name in disabled or entry.service in disabled:
+            continue
+        users = [f"{e.service} (device '{e.name}')" for e in entries.values() if e.used and e.service]
+        close = difflib.get_close_matches(name, [e.name for e in entries.values() if e.used], n=1)
+        hint = f"; did a service mean device = \"{name}\" instead of '{close[0]}'?" if close else ""
+        out.warning(f"devices.{name}", f"address {entry.address.url} is used by no enabled service{hint}",
+                    f"set device = \"{name}\" in the service that drives it, or remove the table "
+                    f"(services with devices: {', '.join(users) or 'none'})")
+
+
+def _check_shared_outputs(entries: Mapping[str, Any], out: Collector) -> None:
+    """Two devices (of any services) on one PWM output: sysfs and a PCA9685 have no exclusivity, so two
+    drivers would fight over one ESC line."""
+    seen: dict[tuple[Any, ...], Any] = {}
+    for name, entry in entries.items():
+        if entry.address.kind not in ("pwm", "pca9685") or not entry.used:
+            continue
+        key = entry.address.output_id
+        other = seen.setdefault(key, entry)
+        if other is not entry:
+            out.error(f"devices.{name}", f"device '{name}' (service '{entry.service}') and device '{other.name}' "
+                      f"(service '{other.service}') are one output: {entry.address.url} and {other.address.url}",
+                      "give each actuator its own channel")
 
 
 def _check_mocks(profile: Any, services: Mapping[str, Any], out: Collector) -> None:

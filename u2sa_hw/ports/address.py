@@ -26,7 +26,8 @@ API (stable; ``u2sa check``, install and udev generation build on it):
   ``ValueError``) names the device, the bad text and the fix with an example.
 - :class:`DeviceAddress`: ``url``, ``kind`` (:data:`KINDS`), ``mock``, ``params``, and typed
   properties per kind (``serial_path``, ``baud``..., ``can_interface``..., ``i2c_bus``,
-  ``chip_address``, ``gpio_chip``, ``lines``, ``pwm_chip``, ``pwm_channel``, ``usb_id``...).
+  ``chip_address``, ``gpio_chip``, ``lines``, ``pwm_chip``, ``pwm_channel``, ``output_id``,
+  ``usb_id``...).
 - :func:`make_address` builds one from parts (used by the legacy conversion and the mocks).
 
 Opening is :func:`u2sa_hw.ports.opener.open_port`; this module imports no port library.
@@ -254,6 +255,19 @@ class DeviceAddress:
         if self.kind == "pwm":
             return self.location
         return f"pca9685:{self.i2c_bus}:0x{self.chip_address:02x}"
+
+    @property
+    def output_id(self) -> tuple[Any, ...]:
+        """What makes two PWM addresses one output pin (sysfs chip + channel; PCA9685 bus + chip + channel),
+        however the chip address is spelt: sysfs and a PCA9685 let two writers share a pin unnoticed."""
+        self._need("pwm", "pca9685")
+        return (self.kind, self.mock, self.location, *self.numbers)
+
+    @property
+    def shared_frame_id(self) -> tuple[Any, ...] | None:
+        """The chip whose outputs share one frame period (a PCA9685's prescaler), or None (sysfs channels)."""
+        self._need("pwm", "pca9685")
+        return (self.kind, self.mock, self.location, self.numbers[0]) if self.kind == "pca9685" else None
 
     # ---- derived forms -----------------------------------------------------------------------
     def with_params(self, **changes: Any) -> DeviceAddress:

@@ -11,7 +11,13 @@ A :class:`DeviceLink` owns what every driver family used to wire by itself:
 - **the tap**: every raw record is published on ``RAW.<device>`` (the one naming rule,
   :func:`~u2sa_hw.ports.tap.raw_channel`) while the owner's ``record_raw`` is on;
 - **reopen on an address change**: ``refresh()`` re-resolves the device and its address and
-  reopens when either changed (or when asked to, e.g. after a framing change);
+  reopens when either changed (or when asked to, e.g. after a framing change); an actuator's
+  ``before_close`` hook runs first on the old, still open port, so the controllers there get
+  their neutral/idle before the driver lets go of them (fail safe: they would otherwise hold
+  their last setpoint until their own watchdog, if any, fires);
+- **an address a port refuses** (a GPIO line the address does not list): an ``AddressError``
+  from the opener is a failed open (``PortUnavailable`` with the fix) in health, never an
+  exception out of the driver's loop;
 - **port health**: :meth:`health` gives ``port`` (open/down/closed), ``address``,
   ``port_error`` (the last error with its fix), ``port_losses`` and ``reconnects``, which the
   driver puts into its Health, so ``u2sa health`` shows why a device is down.
@@ -32,7 +38,7 @@ import logging
 from typing import Any, Callable, Generic, Mapping, TypeVar
 
 from u2sa_hw.ports.address import AddressError, DeviceAddress
-from u2sa_hw.ports.errors import PortError
+from u2sa_hw.ports.errors import PortError, PortUnavailable
 from u2sa_hw.ports.opener import open_port
 from u2sa_hw.ports.reconnect import ReconnectingPort
 from u2sa_hw.ports.tap import raw_channel
@@ -62,7 +68,9 @@ class DeviceLink(Generic[P]):
     *owner* is the service (``profile``, ``config``, ``publish``, ``register_publisher``);
     *device* and *legacy* are called on each (re)resolve: the device's name, and the address
     the driver's old-form settings give (or None). *options* returns ``open_port``'s keyword
-    options (read timeout, GPIO lines, PWM period). *raw_type* is the LCM type (or types) of
+    options (read timeout, GPIO lines, PWM period). *before_close* is called with the open port
+    before ``refresh()`` closes it for a reopen (an actuator writes its neutral/idle there; its
+    errors are logged, never stop the reopen). *raw_type* is the LCM type (or types) of
     the records the port hands its tap; *record* says whether to publish them (default: the owner's
     ``record_raw`` setting).
     """
@@ -71,12 +79,14 @@ class DeviceLink(Generic[P]):
                  legacy: Callable[[], str | None] | None = None,
                  options: Callable[[], Mapping[str, Any]] | None = None,
                  on_open: Callable[[P], None] | None = None, record: Callable[[], bool] | None = None,
+                 before_close: Callable[[P], None] | None = None,
                  initial_backoff: float = 0.1, max_backoff: float = 5.0, healthy_after: float = 10.0) -> None:
         self.owner = owner
         self._device_of = device
         self._legacy = legacy or (lambda: None)
         self._options = options or (lambda: {})
         self._on_open = on_open
+        self._before_close = before_close
         self._record = record or (lambda: bool(owner.config.get("record_raw")))
         self.raw_type = raw_type
         self._backoff = dict(initial_backoff=initial_backoff, max_backoff=max_backoff, healthy_after=healthy_after)
@@ -118,6 +128,7 @@ class DeviceLink(Generic[P]):
             return False
         old = self._holder
         if old is not None:
+            self._park(old)
             self.total_losses += old.losses
             self.total_reconnects += old.reopen_attempts
             old.close()
@@ -136,9 +147,22 @@ class DeviceLink(Generic[P]):
                 self.owner.register_publisher(channel, raw_type)
             self._registered.add(channel)
 
+    def _park(self, holder: ReconnectingPort[P]) -> None:
+        """Before a reopen: the driver's ``before_close`` on the old port while it is still open."""
+        port = holder.port if holder.state == "open" else None
+        if self._before_close is None or port is None:
+            return
+        try:
+            self._before_close(port)
+        except Exception as exc:  # noqa: BLE001 - the reopen goes on; the old port may already be failing
+            log.warning("%s: neutral on the old port before the reopen failed: %s", self.device, exc)
+
     def _open(self) -> P:
         assert self.address is not None, "start() resolves the address"
-        port = open_port(self.address, device=self.device, tap=self._tap, **dict(self._options()))
+        try:
+            port = open_port(self.address, device=self.device, tap=self._tap, **dict(self._options()))
+        except AddressError as exc:   # e.g. a GPIO line the address does not list: a port fault, with the fix
+            raise PortUnavailable(self.device, exc.problem, address=self.address.url, fix=exc.fix) from None
         if self._on_open is not None:
             try:
                 self._on_open(port)

@@ -1,0 +1,275 @@
+"""Findings of the device-address safety review, each against the real parts: profiles on disk read by
+``u2sa check``'s own code, drivers built as the service builds them, DeviceLinks opening real (mock) ports,
+and mock ODrive axes on a python-can virtual bus.
+
+1. a gpio:// address that does not list every line the driver uses (an e-stop, the mux's enable line);
+2. a device name with no [devices] address silently opening can0 / i2c-1;
+3. two new-form PWM devices on one output (within a service and across services);
+4. a pwm_servo change over the bus (channels, update_hz) saved although the next start would fail;
+5. a CAN motor's bus changed live without zero/idle on the old controllers.
+"""
+
+from __future__ import annotations
+
+import random
+import threading
+from pathlib import Path
+from typing import Any
+
+import pytest
+from conftest import wait_until
+
+from drivers.gpio_io import GpioInputDriver
+from drivers.imu_mpu9250 import Mpu9250ImuDriver
+from drivers.odrive_can import OdriveCanMotor
+from drivers.pwm_servo import PwmServoDriver
+from drivers.rc_mux import RcMuxDriver
+from mock_devices.odrive_node import OdriveCanNode
+from mock_devices.vehicle_sim import SimVehicle
+from u2sa_hw import lcmtypes as t
+from u2sa_hw.check.offline import check_profile
+from u2sa_hw.check.problem import errors_of
+from u2sa_hw.config import ConfigError
+from u2sa_hw.devices import effective_config, profile_devices
+from u2sa_hw.ports import PortUnavailable
+from u2sa_hw.ports.device_link import DeviceLink
+from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
+from u2sa_hw.protocols.odrive_cansimple import AxisState
+from u2sa_hw.vehicle import ProfileError, VehicleProfile, load_profile
+
+
+def write(tmp_path: Path, body: str) -> Path:
+    path = tmp_path / "vehicle.toml"
+    path.write_text('[vehicle]\nname = "review"\n' + body)
+    return path
+
+
+def problems_about(path: Path, word: str, *, for_sim: bool = False) -> list[Any]:
+    return [p for p in check_profile(path, for_sim=for_sim) if word in str(p)]
+
+
+# ---- 1: every line the driver uses is in its gpio:// address ------------------------------------------
+ESTOP = """
+[services.estop]
+kind = "gpio_input"
+settings = { inputs = "bump=5,estop=4", failsafe_on = "estop" }
+
+[devices.estop]
+address = "gpio://gpiochip0/5"
+"""
+
+
+def test_an_estop_line_missing_from_the_address_is_an_error_in_check_and_at_start(tmp_path: Path,
+                                                                                  lcm_url: str) -> None:
+    path = write(tmp_path, ESTOP)
+    found = [p for p in errors_of(check_profile(path)) if "line(s) 4" in p.message]
+    assert len(found) >= 1, check_profile(path)
+    assert all('[devices.estop] address = "gpio://gpiochip0/4,5"' in p.message for p in found)
+    with pytest.raises(ConfigError, match=r"service 'estop': device 'estop' address gpio://gpiochip0/5 does not "
+                                          r"list line\(s\) 4 .*\[devices.estop\] address = \"gpio://gpiochip0/4,5\""
+                       ) as info:
+        profile = load_profile(path)
+        GpioInputDriver("estop", profile=profile, settings=profile.service("estop").settings)
+    assert "\n" not in str(info.value)
+    path.write_text(path.read_text().replace("gpiochip0/5", "gpiochip0/4,5"))
+    assert not [p for p in errors_of(check_profile(path)) if "line(s)" in p.message]
+
+
+def test_the_rc_mux_enable_line_missing_from_the_address_is_refused(tmp_path: Path, lcm_url: str) -> None:
+    profile = VehicleProfile(path=None, devices={"rc": {"address": "mock+gpio:///run/x/chip.sock/5,13"}})
+    with pytest.raises(ConfigError, match=r"line\(s\) 21 .*\[devices.rc\] address = "
+                                          r"\"mock\+gpio:///run/x/chip.sock/5,13,21\""):
+        RcMuxDriver("rc", profile=profile, settings={"channels": "throttle=5,mode=13", "mode_channel": "mode",
+                                                     "enable_line": 21})
+
+
+class Owner:
+    """What a DeviceLink needs of its driver."""
+
+    def __init__(self, profile: VehicleProfile) -> None:
+        self.name, self.profile, self.config = "estop", profile, {"record_raw": False}
+
+    def publish(self, channel: str, msg: Any) -> None:
+        pass
+
+    def register_publisher(self, channel: str, kind: type) -> None:
+        pass
+
+
+def test_a_line_the_address_refuses_at_open_is_a_port_fault_in_health_not_an_exception(tmp_path: Path) -> None:
+    profile = VehicleProfile(path=None, devices={"estop": {"address": f"mock+gpio://{tmp_path}/chip.sock/5"}})
+    link: DeviceLink[Any] = DeviceLink(Owner(profile), device=lambda: "estop", raw_type=t.RawGpioEdge,
+                                       options=lambda: {"inputs": [4, 5]})
+    link.start()
+    try:
+        with pytest.raises(PortUnavailable, match=r"line\(s\) 4 are used but not listed"):
+            link.get()
+        health = link.health()
+        assert health["port"] == "down" and "line(s) 4" in health["port_error"] and "fix:" in health["port_error"]
+        assert link.reason() == "port down"
+    finally:
+        link.close()
+
+
+# ---- 2: no address is an error, never a default bus -----------------------------------------------------
+WINCH = """
+[services.winch]
+kind = "odrive_can"
+device = "winc"
+settings = { actuators = ["winch"], node_ids = [0], directions = [1], wheel_radius_m = [0.05], odometry = false }
+
+[devices.winch]
+address = "can://socketcan/can1?bitrate=500000"
+"""
+
+
+def test_a_can_device_without_an_address_is_an_error_not_can0(tmp_path: Path, lcm_url: str) -> None:
+    path = write(tmp_path, WINCH)
+    profile = load_profile(path)
+    assert OdriveCanMotor.used_devices("winch", effective_config(profile, "winch")) == {"winc": None}
+    with pytest.raises(ProfileError, match=r"device 'winc' of service 'winch' has no address; .*did you mean "
+                                           r"device = \"winch\""):
+        profile_devices(profile, warn=lambda _t: None)
+    assert [p for p in errors_of(check_profile(path)) if "'winc'" in p.message], check_profile(path)
+    svc = OdriveCanMotor("winch", profile=profile, settings={"device": "winc", "actuators": ["winch"],
+                                                              "node_ids": [0], "directions": [1],
+                                                              "wheel_radius_m": [0.05], "odometry": False})
+    try:
+        with pytest.raises(ConfigError, match=r"service 'winch': device 'winc': .*no address: add \[devices.winc\] "
+                                              r"address = .*did you mean device = \"winch\"") as info:
+            svc.check_config()
+        assert "\n" not in str(info.value)
+    finally:
+        svc.transport.stop()
+
+
+def test_old_form_settings_still_give_the_address_and_only_when_present() -> None:
+    assert OdriveCanMotor.legacy_address({"interface": "", "channel": "", "bitrate": 500000}) is None
+    assert OdriveCanMotor.legacy_address({"interface": "", "channel": "can1"}) == "can://socketcan/can1"
+    assert OdriveCanMotor.legacy_address({"interface": "virtual", "channel": ""}) == "can://virtual/can0"
+    assert Mpu9250ImuDriver.used_devices("imu", {"bus": "", "address": 0x68}) == {"imu": None}
+    assert Mpu9250ImuDriver.used_devices("imu", {"bus": "3", "address": 0x69}) == {"imu": "i2c://3/0x69"}
+
+
+def test_an_imu_naming_no_device_with_an_address_is_refused_at_start(tmp_path: Path, lcm_url: str) -> None:
+    svc = Mpu9250ImuDriver("imu", profile=VehicleProfile(path=None, devices={"imu2": {"address": "i2c://1/0x68"}}))
+    try:
+        with pytest.raises(ConfigError, match=r"imu: device 'imu': .*no address: add \[devices.imu\] address"):
+            svc.setup()
+    finally:
+        svc.transport.stop()
+
+
+def test_an_address_no_service_uses_is_a_warning(tmp_path: Path) -> None:
+    path = write(tmp_path, WINCH.replace('device = "winc"', 'device = "winch"')
+                 + '\n[devices.winch_spare]\naddress = "can://socketcan/can2"\n')
+    found = problems_about(path, "winch_spare")
+    assert found and all(not p.is_error for p in found) and "used by no enabled service" in found[0].message
+    assert not errors_of(check_profile(path))
+    path.write_text(path.read_text() + '\n[services.winch_spare]\nkind = "vesc_can"\nenabled = false\n')
+    assert not problems_about(path, "winch_spare"), "a disabled service's own device is no warning"
+
+
+# ---- 3 and 4: one output per channel; pwm_servo's check_config ------------------------------------------
+def pwm_profile(tmp_path: Path, devices: dict[str, str]) -> VehicleProfile:
+    return VehicleProfile(path=None, devices={n: {"address": a} for n, a in devices.items()})
+
+
+@pytest.mark.parametrize("first, second", [
+    ("pwm://pwmchip0/1", "pwm://pwmchip0/1"),
+    ("pca9685://1/0x40/0", "pca9685://1/64/0"),            # one chip, spelt two ways
+])
+def test_two_new_form_devices_on_one_output_are_refused(tmp_path: Path, lcm_url: str, first: str,
+                                                        second: str) -> None:
+    svc = PwmServoDriver("drive", profile=pwm_profile(tmp_path, {"rudder": first, "esc": second}),
+                         settings={"channels": [{"name": "rudder"}, {"name": "esc"}]})
+    try:
+        with pytest.raises(ConfigError, match=r"channels 'rudder' and 'esc' are one output"):
+            svc.check_config()
+    finally:
+        svc.transport.stop()
+
+
+def test_one_pca9685_frame_per_chip_in_the_new_form(tmp_path: Path, lcm_url: str) -> None:
+    svc = PwmServoDriver("drive", profile=pwm_profile(tmp_path, {"a": "pca9685://1/0x40/0", "b": "pca9685://1/0x40/1"}),
+                         settings={"channels": [{"name": "a"}, {"name": "b", "frame_hz": 100.0}]})
+    try:
+        with pytest.raises(ConfigError, match=r"are on one PCA9685 .* share one frame"):
+            svc.check_config()
+    finally:
+        svc.transport.stop()
+
+
+def test_two_services_on_one_output_are_an_error_in_check(tmp_path: Path) -> None:
+    path = write(tmp_path, """
+[services.left]
+kind = "pwm_servo"
+settings = { channels = [{ name = "rudder" }] }
+
+[services.right]
+kind = "pwm_servo"
+settings = { channels = [{ name = "esc" }] }
+
+[devices.rudder]
+address = "pwm://pwmchip0/1"
+
+[devices.esc]
+address = "pwm://pwmchip0/1"
+""")
+    found = [p for p in errors_of(check_profile(path)) if "one output" in p.message]
+    assert found and "service 'right'" in found[0].message and "service 'left'" in found[0].message
+
+
+def test_a_channels_or_update_hz_change_the_next_start_would_refuse_is_not_saved(tmp_path: Path,
+                                                                                 lcm_url: str) -> None:
+    chip = make_sysfs_pwm_tree(tmp_path / "pwmchip0", npwm=4)
+    profile = pwm_profile(tmp_path, {"rudder": f"mock+pwm://{chip}/0", "spare": f"mock+pwm://{chip}/0"})
+    svc = PwmServoDriver("drive", profile=profile, config_path=tmp_path / "drive.toml",
+                         settings={"channels": [{"name": "rudder"}]})
+    try:
+        svc.check_config()
+        ok, reason = svc.config.try_set("channels", [{"name": "rudder"}, {"name": "winch"}])
+        assert not ok and "channel 'winch'" in reason and "[devices.winch] address" in reason
+        ok, reason = svc.config.try_set("channels", [{"name": "rudder"}, {"name": "spare"}])
+        assert not ok and "one output" in reason
+        ok, reason = svc.config.try_set("update_hz", 5000.0)
+        assert not ok and "update_hz" in reason
+        assert svc.config["channels"] == [{"name": "rudder"}] and svc.config["update_hz"] == 50.0
+        assert not (tmp_path / "drive.toml").exists() or "winch" not in (tmp_path / "drive.toml").read_text()
+        ok, _ = svc.config.try_set("update_hz", 200.0)
+        assert ok
+    finally:
+        svc.transport.stop()
+
+
+# ---- 5: a live bus change parks the old controllers first ----------------------------------------------
+def test_a_bus_change_sends_zero_and_idle_to_the_old_controllers_before_closing(tmp_path: Path,
+                                                                               lcm_url: str) -> None:
+    old, new = (f"review-{name}-{random.randint(0, 1 << 30)}" for name in ("old", "new"))
+    vehicle = SimVehicle(origin_lat=0.0, origin_lon=0.0)
+    node = OdriveCanNode(vehicle, side="left", node_id=3, interface="virtual", channel=old, vel_limit=10.0)
+    svc = OdriveCanMotor("winch", config_path=tmp_path / "winch.toml", settings={
+        "interface": "virtual", "channel": old, "actuators": ["winch"], "node_ids": [3], "directions": [1],
+        "wheel_radius_m": [0.1], "odometry": False, "status_poll_s": 0.0, "rc_gating": False,
+        "hw_watchdog": False, "idle_on_stop": True, "command_timeout_s": 0.5})
+    runner = threading.Thread(target=svc.run, daemon=True)
+    vehicle.start()
+    node.start()
+    try:
+        svc.start()
+        runner.start()
+        wait_until(lambda: svc.health_details().get("winch.phase") == "armed", timeout=20, message="axis armed")
+        svc.on_percentage("winch", 50.0)
+        wait_until(lambda: node.input_vel > 0.0, timeout=10, message="the winch turning")
+        assert svc.config.set("channel", new)
+        svc.on_config_change("channel", new)
+        wait_until(lambda: svc.health_details()["address"].endswith(new), timeout=10, message="the new bus")
+        wait_until(lambda: node.input_vel == 0.0 and node.axis_state == AxisState.IDLE, timeout=10,
+                   message="zero and IDLE on the old bus (its watchdog is off: nothing else would stop it)")
+    finally:
+        svc.stop()
+        runner.join(timeout=10)
+        svc.kill()
+        svc.transport.stop()
+        node.stop()
+        vehicle.stop()
