@@ -11,6 +11,7 @@ and mock ODrive axes on a python-can virtual bus.
 
 from __future__ import annotations
 
+import os
 import random
 import threading
 from pathlib import Path
@@ -243,6 +244,43 @@ def test_a_channels_or_update_hz_change_the_next_start_would_refuse_is_not_saved
 
 
 # ---- 5: a live bus change parks the old controllers first ----------------------------------------------
+def test_before_close_gets_the_old_port_still_open_and_a_failing_hook_does_not_stop_the_reopen(
+        tmp_path: Path) -> None:
+    ptys = {name: os.openpty() for name in ("a", "b")}
+    for name, (_master, slave) in ptys.items():
+        (tmp_path / name).symlink_to(os.ttyname(slave))
+    profile = VehicleProfile(path=None, devices={"gps": {"address": f"mock+serial://{tmp_path / 'a'}?baud=9600"}})
+    owner = Owner(profile)
+    parked: list[tuple[str, bool]] = []
+
+    def park(port: Any) -> None:
+        parked.append((port.address, port.is_open))
+        port.write(b"neutral\n")
+        raise OSError("and then the hook fails")
+
+    link: DeviceLink[Any] = DeviceLink(owner, device=lambda: "gps", raw_type=t.RawSerial, before_close=park)
+    link.start()
+    try:
+        wait_until(lambda: _opened(link), message="the first port open")
+        owner.profile = VehicleProfile(path=None, devices={"gps": {"address": f"mock+serial://{tmp_path / 'b'}"}})
+        assert link.refresh() is True
+        assert parked == [(str(tmp_path / "a"), True)]
+        assert os.read(ptys["a"][0], 100).endswith(b"neutral\n")      # written on the old port, before its close
+        assert wait_until(lambda: _opened(link), message="the new port open").address == str(tmp_path / "b")
+    finally:
+        link.close()
+        for master, slave in ptys.values():
+            os.close(master)
+            os.close(slave)
+
+
+def _opened(link: DeviceLink[Any]) -> Any:
+    try:
+        return link.get()
+    except PortUnavailable:
+        return None
+
+
 def test_a_bus_change_sends_zero_and_idle_to_the_old_controllers_before_closing(tmp_path: Path,
                                                                                lcm_url: str) -> None:
     old, new = (f"review-{name}-{random.randint(0, 1 << 30)}" for name in ("old", "new"))
