@@ -5,18 +5,26 @@ carry no time, often back to back with no silence between them. A burst must hol
 sentences of *one* measurement: the heading published with its own burst's pitch and roll,
 never with the next one's. :class:`BurstGrouper` ends a burst (rules in order):
 
-1. *Silence*: a line that comes ``gap_s`` or more after the previous one (or after the
-   driver saw the line go quiet) starts a new burst; the sentence that starts a burst after
-   a silence, twice in a row, is learned as the device's *first sentence*.
+1. *Silence*: a line whose idle time -- the time since the previous line less its own
+   transmission time (characters x ``char_time_s``) -- is ``gap_s`` or more (or that comes
+   after the driver saw the line go quiet) starts a new burst; the sentence that starts a
+   burst after a silence, twice in a row, is learned as the device's *first sentence*.
 2. *Repeat*: a sentence whose signature (its kind; for XDR its transducer names) is already
    in the burst starts a new one -- a burst never holds two readings of one quantity.
 3. *First sentence*: once learned (by rule 1, or by timing: the signature that follows the
-   longest pause -- idle time after the transmission time of the line at ``baudrate`` --
-   by a margin well above the jitter, over at least 8 bursts), its arrival starts a new burst.
+   longest idle time by a margin well above the jitter, over at least 8 bursts), its
+   arrival starts a new burst.
 4. *Complete*: once two bursts in a row held the same signatures, a burst that holds them
    all ends at once, without waiting for the next sentence or the silence.
 5. With no first sentence known yet, a heading sentence ends its burst (the common
    order: attitude transducers, then the heading).
+
+Fail safe while learning: until the first sentence is known, the order of the device's
+sentences is a guess (``HDM, XDR, XDR`` evenly spaced looks the same as ``XDR, XDR, HDM``),
+so a burst that began then is published one sentence at a time (:meth:`Burst.pieces`):
+a heading, a pitch or a roll is never combined with another burst's values. A device that
+spaces its sentences evenly, with neither silence nor a longer pause between bursts,
+keeps publishing one message per sentence.
 
 A stream that only sends XDR pitch/roll (no heading) thus gives one reading per XDR
 (rule 2), not one message per silence.
@@ -36,14 +44,24 @@ HEADING_PREFERENCE = ("THS", "HDT", "PASHR", "PTNTHTM", "PTNTHPR", "HDG", "HDM")
 
 @dataclass
 class Burst:
-    """The parts of one burst in arrival order; ``received`` is the wall time (s) of its first line."""
+    """The parts of one burst in arrival order; ``received`` is the wall time (s) of its first line,
+    ``arrivals`` that of each part; ``ordered``: the device's first sentence was known when it began."""
 
     received: float
     parts: list[CompassPart] = field(default_factory=list)
+    arrivals: list[float] = field(default_factory=list)
+    ordered: bool = False
 
     def signatures(self) -> frozenset[str]:
         """The signatures the burst holds."""
         return frozenset(p.signature for p in self.parts)
+
+    def pieces(self) -> list[Burst]:
+        """The burst as it is published: whole when ordered (or of one sentence); otherwise one piece per
+        sentence, each stamped with its own arrival -- its sentences may belong to two of the device's bursts."""
+        if self.ordered or len(self.parts) <= 1:
+            return [self]
+        return [Burst(received=at, parts=[part], arrivals=[at]) for part, at in zip(self.parts, self.arrivals)]
 
 
 @dataclass
@@ -66,7 +84,7 @@ class BurstGrouper:
 
     def __init__(self, *, gap_s: float, char_time_s: float = 0.0) -> None:
         self.gap_s = gap_s
-        self.char_time_s = char_time_s      # 10 bits / baudrate: how long one character takes on the wire
+        self.char_time_s = char_time_s      # how long one character takes on the wire (frame bits / baud)
         self.first: str | None = None       # the learned first signature of a burst
         self.first_from = ""                # "silence" or "timing"
         self.complete: frozenset[str] | None = None
@@ -80,22 +98,24 @@ class BurstGrouper:
     def add(self, part: CompassPart, *, received: float, chars: int = 0) -> list[Burst]:
         """Add one part read at *received* (a line of *chars* characters); returns the bursts it ended."""
         done: list[Burst] = []
-        gap = None if self._last_received is None else received - self._last_received
+        # idle: how long the line was quiet before this line's first character (it arrived with its last)
+        idle = None if self._last_received is None else received - self._last_received - chars * self.char_time_s
         self._last_received = received
-        silence = self._after_silence or gap is None or gap >= self.gap_s
+        silence = self._after_silence or idle is None or idle >= self.gap_s
         self._after_silence = False
         cur = self._pending
         if silence:
             self._learn_from_silence(part.signature)
-        elif gap is not None:
-            self._learn_from_timing(part.signature, gap - chars * self.char_time_s)
+        elif idle is not None:
+            self._learn_from_timing(part.signature, idle)
         if cur is not None and (silence or part.signature in cur.signatures()
                                 or (part.signature == self.first and cur.parts)):
             done.append(self._end())
             cur = None
         if cur is None:
-            cur = self._pending = Burst(received=received)
+            cur = self._pending = Burst(received=received, ordered=self.first is not None)
         cur.parts.append(part)
+        cur.arrivals.append(received)
         held = cur.signatures()
         if self.complete is not None and held >= self.complete:
             done.append(self._end())
@@ -150,14 +170,13 @@ class BurstGrouper:
 
     @property
     def rule(self) -> str:
-        """How bursts end now, for health: ``complete``, ``first sentence (silence|timing)`` or ``learning``."""
-        if self.complete is not None and self.first is not None:
-            return f"complete, first {self.first} ({self.first_from})"
+        """How bursts end now, for health: ``complete, first X (silence|timing)``, ``first X (...)``, or
+        ``learning`` / ``complete, learning`` while the first sentence is not known (one message per sentence)."""
+        if self.first is None:
+            return "complete, learning" if self.complete is not None else "learning"
         if self.complete is not None:
-            return "complete"
-        if self.first is not None:
-            return f"first {self.first} ({self.first_from})"
-        return "learning"
+            return f"complete, first {self.first} ({self.first_from})"
+        return f"first {self.first} ({self.first_from})"
 
 
 @dataclass(frozen=True)

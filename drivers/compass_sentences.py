@@ -34,7 +34,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from drivers.nmea_fields import MalformedSentence, checked_body, sentence_text
+from drivers.nmea_fields import MalformedSentence, checked_body, is_foreign, sentence_text
 from drivers.value_ranges import ValueDrops
 
 HEADING_DEG = (-360.0, 360.0)       # a direction; devices send 0..360 (a few -180..180)
@@ -118,10 +118,14 @@ def _signed(value: float | None, letter: str) -> float | None:
 
 def parse_compass_line(line: bytes, *, limits: AttitudeLimits, drops: ValueDrops,
                        not_valid: ValueDrops) -> CompassPart | None:
-    """The :class:`CompassPart` of one line; None for a valid sentence that is no compass sentence.
+    """The :class:`CompassPart` of one line; None for a valid sentence that is no compass sentence, and
+    for a line that is no error but no sentence for this driver (blank, or AIS ``!AIVDM``: the GPS
+    driver's rule, :func:`~drivers.nmea_fields.is_foreign`).
 
     Raises :class:`~drivers.nmea_fields.BadChecksum` or ``MalformedSentence``; never anything else.
     """
+    if is_foreign(line):
+        return None
     text, noise = sentence_text(line)
     body = checked_body(text)
     address = body.split(",", 1)[0]

@@ -12,7 +12,10 @@ Magnetic to true (east positive, as on charts)::
 
 ``format = "nmea"``: the sentences of drivers/compass_sentences.py (HDG, HDM, HDT, THS,
 ROT, XDR pitch/roll/heel/trim, PASHR, PTNTHTM, PTNTHPR), grouped into bursts by sentence
-order and time (drivers/compass_bursts.py); each burst is one message.
+order and time (drivers/compass_bursts.py); each burst is one message (one per sentence while
+the device's burst order is being learned: never a heading with another burst's attitude).
+Silence and burst timing are judged on the line's idle time, less each line's own time on the
+wire at the address's baud rate and framing (a 25-character line takes 52 ms at 4800 8N1).
 ``format = "os5000"``: every ``$C`` line is one message (``drivers.os5000_format``).
 Every value is checked against its physical range and the configured device range
 (``pitch_range_deg``, ``roll_range_deg``) before it is published; an impossible value is
@@ -31,13 +34,18 @@ from u2sa_hw.geo import wrap_angle
 from drivers import compass_mag
 from drivers.compass_bursts import Burst, BurstGrouper, CompassReading, reading_from_parts
 from drivers.compass_sentences import AttitudeLimits, parse_compass_line
-from drivers.nmea_fields import BadChecksum, SentenceError
+from drivers.nmea_fields import BadChecksum, SentenceError, is_foreign
 from drivers.os5000_format import OS5000_RANGES, Os5000BadChecksum, Os5000Error, is_os5000_line, parse_os5000
 from drivers.serial_sensor import SerialLineSensor
 from drivers.value_ranges import ValueDrops
 
 FORMATS = ("nmea", "os5000")
-BITS_PER_CHAR = 10  # start, 8 data, stop
+
+
+def char_time_s(*, baud: int, bytesize: int = 8, parity: str = "N", stopbits: float = 1.0) -> float:
+    """How long one character takes on the wire (s): a start bit, the data bits, a parity bit unless
+    *parity* is N, and the stop bits, at *baud* (10 bits at 4800 baud 8N1: 2.08 ms)."""
+    return (1 + bytesize + (parity.upper() != "N") + stopbits) / baud
 
 
 def state_from_reading(reading: CompassReading, *, heading_sigma_deg: float, attitude_sigma_deg: float,
@@ -90,8 +98,18 @@ class SerialCompassDriver(SerialLineSensor):
         self.field_heading = compass_mag.CompassFieldHeading(self)
 
     def _new_grouper(self) -> BurstGrouper:
-        return BurstGrouper(gap_s=self.config.get("epoch_gap_s"),
-                            char_time_s=BITS_PER_CHAR / self.config.get("baudrate"))
+        return BurstGrouper(gap_s=self.config.get("epoch_gap_s"), char_time_s=self.char_time_s())
+
+    def char_time_s(self) -> float:
+        """One character's time on the wire at the device address's baud rate and framing (before the
+        address is resolved, or without one: the old-form baudrate/bytesize/parity/stopbits settings)."""
+        address = self._link.address
+        if address is not None:
+            return char_time_s(baud=address.baud, bytesize=address.bytesize, parity=address.parity,
+                               stopbits=address.stopbits)
+        cfg = self.config
+        return char_time_s(baud=cfg.get("baudrate"), bytesize=cfg.get("bytesize"), parity=cfg.get("parity"),
+                           stopbits=cfg.get("stopbits"))
 
     def check_config(self) -> None:
         """The serial fields, plus the format, declination, sigmas and attitude ranges."""
@@ -143,8 +161,8 @@ class SerialCompassDriver(SerialLineSensor):
 
     def _os5000_line(self, line: bytes, received: float) -> None:
         if not is_os5000_line(line):
-            if b"$" in line and line.rstrip().rfind(b"*") > line.rfind(b"$"):
-                self.ignored += 1  # another sentence (the compass can also send $OHPR, $HCHDT)
+            if is_foreign(line) or (b"$" in line and line.rstrip().rfind(b"*") > line.rfind(b"$")):
+                self.ignored += 1  # blank, AIS, or another sentence (the compass can also send $OHPR, $HCHDT)
             else:
                 self.count_malformed(f"not a $C sentence: {line[:60]!r}")
             return
@@ -188,6 +206,7 @@ class SerialCompassDriver(SerialLineSensor):
             self.ignored += 1
             return
         self.count_valid(noise_bytes=part.noise_bytes)
+        self.bursts.char_time_s = self.char_time_s()   # the address (and so its baud) may have changed
         for burst in self.bursts.add(part, received=received, chars=len(line)):
             self._publish_burst(burst)
 
@@ -202,9 +221,10 @@ class SerialCompassDriver(SerialLineSensor):
         self.bursts.reset()
 
     def _publish_burst(self, burst: Burst) -> None:
-        reading = reading_from_parts(burst.parts, declination_deg=self.config.get("declination_deg"),
-                                     use_hdg_variation=self.config.get("use_hdg_variation"))
-        self._publish(reading, burst.received)
+        for piece in burst.pieces():   # one per sentence while the burst order is not known
+            reading = reading_from_parts(piece.parts, declination_deg=self.config.get("declination_deg"),
+                                         use_hdg_variation=self.config.get("use_hdg_variation"))
+            self._publish(reading, piece.received)
 
     def _publish(self, reading: CompassReading, received: float) -> None:
         msg = state_from_reading(reading, heading_sigma_deg=self.config.get("heading_sigma_deg"),
