@@ -20,6 +20,7 @@ from __future__ import annotations
 import datetime as dt
 import math
 import time
+from collections import Counter
 from typing import Any
 
 from pynmeagps.nmeatypes_get import NMEA_PAYLOADS_GET
@@ -64,6 +65,7 @@ class GpsNmeaDriver(SerialLineSensor):
         self._expiry_said = False                # the expiry of self.fix has been logged and published
         self._last_epoch: Epoch | None = None            # the latest epoch published (supplements merge into it)
         self._published: set[str] = set()                # the fields published for it
+        self._rejects_counted: Counter[str] = Counter()  # its out-of-range values already counted in health
         self.talkers: set[str] = set()
         self.drops = ValueDrops(self.logger, device=name)
         self._data_said = ""   # the ``data`` detail as last published on a change ("" before any)
@@ -140,6 +142,7 @@ class GpsNmeaDriver(SerialLineSensor):
         self.epochs.reset()
         self._epoch_mode = self.epochs.mode
         self._last_epoch, self._published, self._fix_key = None, set(), None
+        self._rejects_counted = Counter()
 
     def publish_epoch(self, epoch: Epoch) -> None:
         """Turn one epoch into at most one State Information and publish it.
@@ -153,10 +156,10 @@ class GpsNmeaDriver(SerialLineSensor):
                 return   # a receiver repeating one epoch's sentences without end: nothing new in them
             epoch = Epoch(received=last.received, time=last.time, sentences=last.sentences + epoch.sentences)
             self.supplements += 1
-            already = self._published
+            already, counted = self._published, self._rejects_counted
         else:
             self.epoch_count += 1
-            already = set()
+            already, counted = set(), Counter()
         fix = fix_from_epoch(epoch)
         if not supplement and fix.has_fix and self._same_fix(fix):
             # The same time and position again (a receiver whose timestamp stopped advancing, gpsd's
@@ -164,8 +167,12 @@ class GpsNmeaDriver(SerialLineSensor):
             # alive: after stale_after_s of repeats the fix is lost (fail safe).
             self.repeated_fixes += 1
             return
-        for kind in fix.rejects:
-            self.drops.drop(kind, f"a {kind} value outside its physical range in {','.join(fix.kinds)}")
+        # the merged epoch's rejects hold its earlier sentences' again: count only the new ones, once each
+        rejects = Counter(fix.rejects)
+        for kind, n in (rejects - counted).items():
+            for _ in range(n):
+                self.drops.drop(kind, f"a {kind} value outside its physical range in {','.join(fix.kinds)}")
+        self._rejects_counted = counted | rejects
         self._last_epoch = epoch
         self._carry_date(fix)
         if fix.reported:   # an epoch of ZDA or HDT alone says nothing of the fix
@@ -178,7 +185,8 @@ class GpsNmeaDriver(SerialLineSensor):
             return
         for name in msg.present_fields():
             if name in already or not math.isfinite(msg.get(name)):
-                if name not in already:
+                if name not in already and not self._rejects_counted[f"{name} not finite"]:
+                    self._rejects_counted[f"{name} not finite"] = 1   # once per epoch, like the rejects
                     self.drops.drop(name, f"{name} = {msg.get(name)!r} is not finite")
                 msg.clear(name)
         self._published = already | set(msg.present_fields())

@@ -126,3 +126,28 @@ def test_the_collectors_show_coverage_and_poses() -> None:
     for _ in range(60):
         poses.add(level)
     assert "[-z]" in poses.status() and "(1/6" in poses.status() and not poses.finished()
+
+
+def test_the_compass_fit_is_shown_in_the_unit_of_its_source() -> None:
+    """An OS5000's raw field (its service has raw_field) is in mG, the MPU-9250's AK8963 in uT."""
+    import argparse
+
+    from u2sa_hw import lcmtypes as t
+    from u2sa_hw.cli.calibrate_cmd import FITS, mag_unit
+
+    os5000 = {"format": '"os5000"', "raw_field": "true", "mag_offset": "[0.0, 0.0, 0.0]"}
+    mpu9250 = {"mag_offset": "[0.0, 0.0, 0.0]", "accel_offset": "[0.0, 0.0, 0.0]"}
+    assert (mag_unit(os5000), mag_unit(mpu9250)) == ("mG", "uT")
+    make_collector, fit = FITS["compass"]
+    for config, radius, unit, earth in ((os5000, 480.0, "mG", "250..650"), (mpu9250, 48.0, "uT", "25..65")):
+        mags = make_collector()
+        rng = random.Random(3)
+        for _ in range(400):
+            v = [rng.gauss(0, 1) for _ in range(3)]
+            n = math.sqrt(sum(x * x for x in v))
+            msg = t.StateInformation()
+            msg.set(x=radius * v[0] / n + radius / 2, y=radius * v[1] / n, z=radius * v[2] / n)
+            mags.add(msg)
+        _values, problems, lines = fit(mags, argparse.Namespace(min_coverage=0.9), config)
+        assert problems == []
+        assert lines[0].endswith(f" {unit}") and f"{radius:.1f} {unit} (Earth: {earth})" in lines[4], lines

@@ -16,7 +16,7 @@ import math
 import sys
 import threading
 import time
-from typing import Any, Callable, TextIO
+from typing import Any, Callable, Mapping, TextIO
 
 import numpy as np
 
@@ -228,19 +228,30 @@ def _stream_off(bus: Any, args: Any) -> None:
               f"{args.timeout + STREAM_MARGIN_S:g} s", file=sys.stderr)
 
 
-def _fit_compass(collector: MagCollector, args: Any) -> tuple[dict[str, list[float]], list[str], list[str]]:
+EARTH_FIELD = {"uT": "25..65", "mG": "250..650"}   # the Earth's field strength in each unit
+
+
+def mag_unit(config: Mapping[str, str]) -> str:
+    """The unit of the raw field a service streams on CAL.<service>: ``mG`` for a serial compass (an
+    OS5000's Mx/My/Mz; its service has ``raw_field``), ``uT`` for the MPU-9250's AK8963."""
+    return "mG" if "raw_field" in config else "uT"
+
+
+def _fit_compass(collector: MagCollector, args: Any,
+                 config: Mapping[str, str]) -> tuple[dict[str, list[float]], list[str], list[str]]:
     result = magcal.fit_ellipsoid(collector.samples)
-    m = result.matrix
-    lines = [f"offset (hard iron)   {', '.join(f'{v:.2f}' for v in result.offset)} uT",
+    m, unit = result.matrix, mag_unit(config)
+    lines = [f"offset (hard iron)   {', '.join(f'{v:.2f}' for v in result.offset)} {unit}",
              *(f"matrix (soft iron)   {'  '.join(f'{v:8.4f}' for v in row)}" for row in m),
-             f"field strength       {result.field_strength:.1f} uT (Earth: 25..65)",
+             f"field strength       {result.field_strength:.1f} {unit} (Earth: {EARTH_FIELD[unit]})",
              f"residual             {result.residual:.4f} (at most {magcal.MAX_RESIDUAL})",
              f"coverage             {result.coverage:.0%} (at least {args.min_coverage:.0%})",
              f"samples              {result.samples}"]
     return result.as_config(), result.problems(min_coverage=args.min_coverage), lines
 
 
-def _fit_imu(collector: AccelCollector, _args: Any) -> tuple[dict[str, list[float]], list[str], list[str]]:
+def _fit_imu(collector: AccelCollector, _args: Any,
+             _config: Mapping[str, str]) -> tuple[dict[str, list[float]], list[str], list[str]]:
     result = acc.fit_six_pose(collector.poses.means)
     lines = [f"offset               {', '.join(f'{v:.4f}' for v in result.offset)} m/s^2",
              *(f"matrix               {'  '.join(f'{v:8.5f}' for v in row)}" for row in result.matrix),
@@ -269,14 +280,14 @@ def cmd_calibrate(args: Any) -> int:
         if resp is None:
             raise no_answer_error(args, f"service '{args.service}' did not answer within {args.bus_timeout:g} s "
                                   "(u2sa services lists the live ones)")
-        values = {f.name: f.value for f in resp.fields}
-        if not all(n in values for n in needed):
+        config = {f.name: f.value for f in resp.fields}
+        if not all(n in config for n in needed):
             raise CliError(f"{args.service} {missing_text}")
-        if args.kind == "compass" and "raw_field" in values and (
-                values["raw_field"] != "true" or values.get("format", "").strip("\"'").lower() != "os5000"):
+        if args.kind == "compass" and "raw_field" in config and (
+                config["raw_field"] != "true" or config.get("format", "").strip("\"'").lower() != "os5000"):
             raise CliError(f"{args.service} reports no raw field values to calibrate: calibration needs "
                            f'format = "os5000" with the compass\'s Mx/My/Mz outputs enabled and raw_field = true '
-                           f"(now format = {values.get('format', '?')}, raw_field = {values['raw_field']}); "
+                           f"(now format = {config.get('format', '?')}, raw_field = {config['raw_field']}); "
                            "otherwise use the compass's own calibration (see its manual)")
         collector = make_collector()
         print(f"calibrating {args.kind} of {args.service}: "
@@ -287,7 +298,7 @@ def cmd_calibrate(args: Any) -> int:
         except KeyboardInterrupt:
             raise CliError("interrupted: nothing saved", code=130) from None
         try:
-            values, problems, lines = fit(collector, args)
+            values, problems, lines = fit(collector, args, config)
         except (magcal.CalibrationError, acc.CalibrationError) as exc:
             raise CliError(f"{args.service}: no calibration: {exc}; nothing saved") from None
         print("\n".join(lines))
