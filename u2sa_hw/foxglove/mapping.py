@@ -13,7 +13,11 @@ Every message goes out as JSON on its (channel, type) topic with our own JSON Sc
 - ``/scene/world``, ``/scene/mission``, ``/scene/nav`` (``foxglove.SceneUpdate``, 3D panel):
   world objects (gone from ``WORLD_SUMMARY``: deleted), waypoints with their threshold
   circles, and the planned navigation point.
-- ``/health`` (``u2sa.HealthTable``): a row per service (``health_table``), for a Table panel.
+- ``/health`` (``u2sa.HealthTable``): a row per service (``health_table``), for a Table panel;
+  sent on every HSM ``SystemHealth``. So that the table fills without an HSM too, a
+  service's own ``Health`` sends it when no ``SystemHealth`` came for :data:`HSM_SILENT_NS`
+  (log time; the HSM's last view is then dropped: "no HSM heard"), at most once per
+  :data:`HEALTH_TABLE_PERIOD_NS`. With an HSM running, the table is its alone.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from u2sa_hw.foxglove import wellknown as wk
 from u2sa_hw.foxglove.lcm_json import finite, schema_bytes, topic_for
 from u2sa_hw.geo import geodetic_to_ned, ned_to_geodetic
 from u2sa_hw.messages import as_type, to_dict
+from u2sa_hw.services.world.model import GEODETIC_FRAMES, place_in_world
 from u2sa_hw.vehicle import Origin
 
 LOCATION_CHANNELS = (ch.STATE_INFO, ch.STATE_ESTIMATE)
@@ -38,6 +43,8 @@ OBSTACLE = wk.rgba(0.75, 0.22, 0.17, 0.45)
 WAYPOINT, WAYPOINT_DONE = wk.rgba(0.12, 0.38, 0.55, 1.0), wk.rgba(0.5, 0.5, 0.5, 0.8)
 NAV = wk.rgba(0.95, 0.55, 0.1, 1.0)
 OBSTACLE_HEIGHT_M = 1.0
+HEALTH_TABLE_PERIOD_NS = 1_000_000_000   # /health from services' own Health: at most this often ...
+HSM_SILENT_NS = 3_000_000_000            # ... and only after this long without a SystemHealth (the HSM sends 1/s)
 
 
 @dataclass(frozen=True)
@@ -108,6 +115,8 @@ class FoxgloveMapper:
     def __init__(self, *, origin: Origin | None) -> None:
         self.origin = origin
         self.health = health_table.HealthTable()
+        self._health_sent_ns: int | None = None   # log time of the latest /health
+        self._hsm_heard_ns: int | None = None     # ... of the latest SystemHealth (or the first Health, before one)
         self._objects: set[str] = set()
         # Why a well-known topic stayed empty, counted: {"no origin: local estimate without a map position": n}
         self.notes: dict[str, int] = {}
@@ -156,10 +165,26 @@ class FoxgloveMapper:
                 out.append((SCENE_NAV, {"deletions": [], "entities": [finite(ent)]}))
         elif channel == ch.HEALTH and isinstance(msg, t.Health):
             self.health.on_health(msg)
+            if self._table_from_services(t_ns):
+                out.append(self._health_table(t_ns))
         elif channel == ch.SYSTEM_HEALTH and isinstance(msg, t.SystemHealth):
             self.health.on_system(msg)
-            out.append((HEALTH, finite(self.health.message())))
+            self._hsm_heard_ns = t_ns
+            out.append(self._health_table(t_ns))
         return out
+
+    def _table_from_services(self, t_ns: int) -> bool:
+        """Whether a service's Health at *t_ns* sends /health: the HSM silent, and none sent for a period."""
+        if self._hsm_heard_ns is None:
+            self._hsm_heard_ns = t_ns   # the silence is counted from the first Health
+        if t_ns - self._hsm_heard_ns < HSM_SILENT_NS:
+            return False
+        self.health.system = None   # the HSM's last view is stale: its rows fall back to each service's own
+        return self._health_sent_ns is None or not 0 <= t_ns - self._health_sent_ns < HEALTH_TABLE_PERIOD_NS
+
+    def _health_table(self, t_ns: int) -> Output:
+        self._health_sent_ns = t_ns
+        return HEALTH, finite(self.health.message())
 
     def _estimate(self, msg: Any, t_ns: int) -> list[Output]:
         if not (msg.has("x") and msg.has("y")):
@@ -199,6 +224,9 @@ class FoxgloveMapper:
 
     def _object(self, msg: Any, t_ns: int) -> dict[str, Any] | None:
         base = as_type(msg, t.ObjectDescription)
+        if base.reference_frame.strip().upper() in GEODETIC_FRAMES and self.origin is not None:
+            msg = place_in_world(msg, pose=None, origin=self.origin)   # a polygon's vertices too, as the world does
+            base = as_type(msg, t.ObjectDescription)
         place = self._enu(base.reference_frame, base.x, base.y, base.z if math.isfinite(base.z) else 0.0)
         if place is None or not _finite_all(*place[1:]):
             return None

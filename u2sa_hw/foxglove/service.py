@@ -1,21 +1,32 @@
 """The Foxglove bridge as a service (kind ``foxglove_bridge``), so a vehicle can run it as a unit.
 
 ``u2sa foxglove`` runs the same service from the command line. It listens on 127.0.0.1
-unless ``host`` says otherwise, and a non-loopback ``host`` needs a ``token_file``: the
-service refuses to start without one (the SDK server itself has no authentication; the
-token is checked by ``u2sa_hw.foxglove.gate``). See docs/foxglove.md.
+unless ``host`` says otherwise, and a non-loopback ``host`` needs a ``token_file`` holding
+a token of 16 characters or more: :meth:`FoxgloveBridgeService.check_config` refuses
+anything else, so ``u2sa check`` reports it and the service does not start (the SDK server
+itself has no authentication; the token is checked by ``u2sa_hw.foxglove.gate``).
+
+The settings that decide who can reach the bridge and what it may do (``host``, ``port``,
+``token_file``, ``tls_cert``, ``tls_key``, ``allow_parameter_writes``) are ``remote=False``:
+no Foxglove client and no ``u2sa param set`` can open the bridge to the network; they
+change in the profile, with a restart. See docs/foxglove.md.
 """
 
 from __future__ import annotations
 
 import ipaddress
+import ssl
+from pathlib import Path
 from typing import Any, ClassVar
 
 from u2sa_hw.config import ConfigError, field
+from u2sa_hw.foxglove.gate import GateError, read_token
 from u2sa_hw.service import U2SAService
 from u2sa_hw.vehicle import Origin
 
 LOOPBACK_NAMES = ("localhost", "ip6-localhost")
+NO_ORIGIN = ("the profile has no [vehicle] origin: local positions are not on the map "
+             "(add origin = { lat = ..., lon = ..., alt = ... } to [vehicle])")
 
 
 def is_loopback(host: str) -> bool:
@@ -33,30 +44,65 @@ class FoxgloveBridgeService(U2SAService):
 
     SERVICE_TYPE: ClassVar[str] = "foxglove_bridge"
     CONFIG = (
-        field("host", "127.0.0.1", "address to listen on; anything but loopback needs token_file"),
-        field("port", 8765, "WebSocket port (0: any free port)"),
-        field("token_file", "", "file holding the token clients must send (?token=...) when host is not loopback"),
-        field("tls_cert", "", "PEM certificate: the network listener speaks TLS (wss://)"),
-        field("tls_key", "", "PEM private key of tls_cert"),
-        field("queue_size", 5000, "messages buffered between the bus and the server; beyond, drops are counted"),
-        field("allow_parameter_writes", False, "let Foxglove clients change service configs (signed ConfigChange)"),
+        field("host", "127.0.0.1", "address to listen on; anything but loopback needs token_file", remote=False),
+        field("port", 8765, "WebSocket port (0: any free port)", ge=0, le=65535, remote=False),
+        field("token_file", "", "file holding the token clients must send (?token=...) when host is not loopback",
+              remote=False),
+        field("tls_cert", "", "PEM certificate: the network listener speaks TLS (wss://)", remote=False),
+        field("tls_key", "", "PEM private key of tls_cert", remote=False),
+        field("queue_size", 5000, "messages buffered between the bus and the server; beyond, drops are counted",
+              ge=1),
+        field("allow_parameter_writes", False, "let Foxglove clients change service configs (signed ConfigChange)",
+              remote=False),
         field("tail_logs", True, "send the service log lines of the profile's log_dir on /log"),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
-        c = self.config
-        self.host = str(c["host"]).strip() or "127.0.0.1"
-        if not 0 <= int(c["port"]) <= 65535 or int(c["queue_size"]) < 1:
-            raise ConfigError(f"{name}: port must be 0-65535 and queue_size at least 1")
-        self.token_path = self.profile.resolve_path(str(c["token_file"]))
-        if not is_loopback(self.host) and self.token_path is None:
-            raise ConfigError(f"{name}: host {self.host!r} would expose the bus to the network without "
-                              "authentication: set token_file (u2sa foxglove --token-file FILE), or keep host = "
-                              "\"127.0.0.1\" and reach it through an SSH tunnel (docs/foxglove.md)")
+        self.host = str(self.config["host"]).strip() or "127.0.0.1"
+        self.token_path = self._path("token_file")
+        self.token = self._network_token()   # ConfigError (one line from the CLI) before anything opens
         self.bridge: Any = None
         self.gate: Any = None
         self.bus: Any = None
+
+    def _path(self, field_name: str) -> Path | None:
+        text = str(self.config[field_name])
+        profile = getattr(self, "profile", None)   # `u2sa check` may run the checks without a profile
+        if profile is not None:
+            return profile.resolve_path(text)
+        return Path(text.strip()).expanduser() if text.strip() else None
+
+    def _network_token(self) -> str:
+        """The token a network listener needs ("" on loopback); ConfigError naming the fix when it cannot be had."""
+        host = str(self.config["host"]).strip() or "127.0.0.1"
+        if is_loopback(host):
+            return ""
+        path = self._path("token_file")
+        if path is None:
+            raise ConfigError(f"{self.name}: host {host!r} would expose the bus to the network without "
+                              "authentication: set token_file (u2sa foxglove --token-file FILE), or keep host = "
+                              "\"127.0.0.1\" and reach it through an SSH tunnel (docs/foxglove.md)")
+        try:
+            token = read_token(path)
+        except GateError as exc:
+            raise ConfigError(f"{self.name}: {exc}") from None
+        cert, key = self._path("tls_cert"), self._path("tls_key")
+        if cert is None and key is not None:
+            raise ConfigError(f"{self.name}: tls_key is set without tls_cert; set both or neither")
+        if cert is not None:
+            try:
+                ssl.create_default_context(ssl.Purpose.CLIENT_AUTH).load_cert_chain(cert, key)
+            except (OSError, ssl.SSLError) as exc:
+                raise ConfigError(f"{self.name}: cannot load the TLS certificate {cert} (key {key or 'in it'}): "
+                                  f"{exc}") from None
+        return token
+
+    def check_config(self) -> None:
+        """Refuse a listener beyond loopback without a readable token of 16+ characters (``token_file``) or
+        with a TLS certificate/key that does not load."""
+        self._network_token()
+        super().check_config()
 
     def origin(self) -> Origin | None:
         """The profile's origin, None when it declares none (no map of local positions then)."""
@@ -71,12 +117,11 @@ class FoxgloveBridgeService(U2SAService):
                 from None
         from u2sa_hw.bus_client import BusClient
         from u2sa_hw.foxglove.bridge import FoxgloveBridge
-        from u2sa_hw.foxglove.gate import TokenGate, read_token
+        from u2sa_hw.foxglove.gate import TokenGate
         from u2sa_hw.foxglove.params import ParameterBridge
 
         c = self.config
         gated = not is_loopback(self.host)
-        token = read_token(self.token_path) if gated and self.token_path is not None else ""
         p = self.profile
         self.bus = BusClient(p.lcm_url, name=f"{self.name}-params", system_id=p.system_id, security=p.bus_security,
                              key_file=p.bus_key, interface=p.bus_interface)
@@ -89,13 +134,13 @@ class FoxgloveBridgeService(U2SAService):
                                      name=f"u2sa {p.name}")
         self.params = params
         if gated:
-            self.gate = TokenGate(host=self.host, port=int(c["port"]), upstream_port=self.bridge.port, token=token,
-                                  tls_cert=p.resolve_path(str(c["tls_cert"])),
-                                  tls_key=p.resolve_path(str(c["tls_key"])))
+            self.gate = TokenGate(host=self.host, port=int(c["port"]), upstream_port=self.bridge.port,
+                                  token=self.token, tls_cert=self._path("tls_cert"), tls_key=self._path("tls_key"))
             self.gate.start()
         self.bridge.start()
         if self.origin() is None:
-            self.logger.warning("the profile has no [vehicle] origin: local positions are not on the map")
+            self.logger.warning("%s", NO_ORIGIN)
+            self.last_error = NO_ORIGIN   # in its health too: `u2sa health` says why the Map stays empty
         self.logger.info("Foxglove: open %s", self.url)
 
     @property
@@ -118,13 +163,14 @@ class FoxgloveBridgeService(U2SAService):
     def run(self) -> None:
         """Serve until stopped; degraded while messages are being dropped."""
         dropped = 0
+        note = NO_ORIGIN if self.origin() is None else ""
         while self.wait(1.0):
             now = self.bridge.stats.dropped
             if now > dropped:
                 self.status = "degraded"
                 self.last_error = f"dropped {now - dropped} messages: the bridge cannot keep up (queue_size)"
             elif self.status == "degraded":
-                self.status, self.last_error = "ok", ""
+                self.status, self.last_error = "ok", note
             dropped = now
 
     def kill(self) -> None:
@@ -141,6 +187,8 @@ class FoxgloveBridgeService(U2SAService):
         """Drops, queue depth, counts, clients let through and refused."""
         out: dict[str, Any] = self.bridge.describe() if self.bridge is not None else {}
         out["url"] = self.url
+        if self.origin() is None:
+            out["map"] = NO_ORIGIN
         if self.gate is not None:
             out["gate_accepted"], out["gate_refused"] = self.gate.stats.accepted, self.gate.stats.refused
         if getattr(self, "params", None) is not None:

@@ -7,6 +7,12 @@ through north is a slope, not a jump of 360 degrees), the speed, every actuator'
 commands (``ACTUATOR_CMD`` solid, the pilot's ``MANUAL_CMD`` dashed) and a panel with the
 RC mode (autonomy shaded) and the failsafes. Legends sit beside their panels, never on
 the track. The title names the vehicle, the mission and the file.
+
+The failsafes are rebuilt as every holder keeps them (:class:`u2sa_hw.failsafe.FailsafeSources`):
+per source, a source clears only its own and the operator clears one by name or all with
+``*``; a red span lasts while any source holds one. Objects and waypoints in geodetic
+coordinates are placed about the log's origin (the ``vehicle.toml`` it carries), as the
+export places them; without an origin they are left out.
 """
 
 from __future__ import annotations
@@ -20,9 +26,11 @@ from typing import Any
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.channels import base_type
+from u2sa_hw.failsafe import FailsafeSources
 from u2sa_hw.geo import geodetic_to_ned
 from u2sa_hw.messages import REGISTRY, MalformedMessage, as_type
 from u2sa_hw.recording.log_reader import LogFile
+from u2sa_hw.services.world.model import GEODETIC_FRAMES, NED_FRAMES, PlacementError, place_in_world
 
 WAYPOINT_COLOUR = "#1f618d"
 FAILSAFE_COLOUR = "#c0392b"
@@ -42,7 +50,7 @@ class RunData:
     waypoints: dict[str, Any] = field(default_factory=dict)                   # uid -> last Waypoint
     obstacles: dict[str, Any] = field(default_factory=dict)                   # uid -> last WORLD object
     rc_modes: list[tuple[float, str, bool]] = field(default_factory=list)     # t, mode name, autonomy enabled
-    failsafes: list[tuple[float, bool, str]] = field(default_factory=list)    # t, active, reason
+    failsafes: list[tuple[float, dict[str, str]]] = field(default_factory=list)  # t, source -> reason held after
     end: float = 0.0
 
 
@@ -52,6 +60,7 @@ def read_run(src: Path | str, *, channel: str = ch.STATE_ESTIMATE) -> RunData:
 
     log = LogFile(src)
     run = RunData()
+    held = FailsafeSources()
     t0: int | None = None
     origin = None
     wanted = {channel, ch.ACTUATOR_CMD, ch.MANUAL_CMD, ch.GOALS, ch.WORLD, ch.RC_MODE, ch.FAILSAFE, ch.MISSION_STATUS}
@@ -72,27 +81,65 @@ def read_run(src: Path | str, *, channel: str = ch.STATE_ESTIMATE) -> RunData:
         elif m.channel in (ch.ACTUATOR_CMD, ch.MANUAL_CMD) and hasattr(msg, "percentage"):
             run.commands[(msg.base.actuator_name, m.channel)].append((tm, msg.percentage))
         elif m.channel == ch.GOALS and isinstance(msg, t.Waypoint):
-            if msg.reference_frame == "GLOBAL" and origin is not None:
+            geodetic = msg.reference_frame.strip().upper() in GEODETIC_FRAMES
+            if geodetic and origin is not None:
                 msg.x, msg.y, _ = geodetic_to_ned(msg.x, msg.y, None, origin=origin)
-                msg.reference_frame = "LOCAL"
-            if msg.reference_frame != "GLOBAL":
+                msg.reference_frame, geodetic = "LOCAL", False
+            if not geodetic:
                 run.waypoints[msg.base.uid] = msg
         elif m.channel == ch.WORLD:
             try:
                 base = as_type(msg, t.ObjectDescription)
             except TypeError:
                 continue
-            if base.reference_frame in ("NED", ""):
-                run.obstacles[base.uid] = msg
+            placed = _placed(msg, base, origin)
+            if placed is not None:
+                run.obstacles[base.uid] = placed
         elif m.channel == ch.RC_MODE and isinstance(msg, t.RcMode):
             if not run.rc_modes or run.rc_modes[-1][1:] != (msg.mode_name, msg.autonomy_enabled):
                 run.rc_modes.append((tm, msg.mode_name or str(msg.mode), msg.autonomy_enabled))
         elif m.channel == ch.FAILSAFE and isinstance(msg, t.Failsafe):
-            if not run.failsafes or run.failsafes[-1][1] != msg.active:
-                run.failsafes.append((tm, msg.active, msg.reason))
+            change = held.apply_message(msg)
+            if change.raised or change.cleared:   # a repeat of a held failsafe changes nothing
+                run.failsafes.append((tm, held.held()))
         elif m.channel == ch.MISSION_STATUS and isinstance(msg, t.MissionStatus) and msg.mission_name:
             run.mission = msg.mission_name
     return run
+
+
+def _placed(msg: Any, base: Any, origin: Any) -> Any:
+    """*msg* (a WORLD object) in local NED, or None: geodetic ones need *origin*, body-frame ones a pose."""
+    frame = base.reference_frame.strip().upper()
+    if frame in NED_FRAMES:
+        return msg
+    if origin is None:
+        return None
+    try:
+        return place_in_world(msg, pose=None, origin=origin)
+    except PlacementError:   # FRD: relative to a pose the log's world modeler had; its own output is NED
+        return None
+
+
+def failsafe_spans(run: RunData) -> list[tuple[float, float, str]]:
+    """(start, end, who held it) of every stretch in which any source held a failsafe."""
+    spans: list[tuple[float, float, str]] = []
+    start: float | None = None
+    holders: dict[str, str] = {}
+    for tm, held in run.failsafes:
+        if held and start is None:
+            start, holders = tm, {}
+        for src, why in held.items():
+            holders.setdefault(src, why)
+        if not held and start is not None:
+            spans.append((start, tm, _holders_text(holders)))
+            start = None
+    if start is not None:
+        spans.append((start, run.end, _holders_text(holders)))
+    return spans
+
+
+def _holders_text(holders: dict[str, str]) -> str:
+    return "; ".join(f"{src}: {why or 'no reason given'}" for src, why in holders.items())
 
 
 def _state(run: RunData, msg: Any, tm: float) -> None:
@@ -183,7 +230,7 @@ def _series(ax: Any, lines: list[tuple[list[float], list[float], str]], title: s
 
 
 def _modes(ax: Any, run: RunData) -> None:
-    """RC mode as steps (autonomy granted shaded green) and failsafes as red spans with their reasons."""
+    """RC mode as steps (autonomy granted shaded green) and failsafes as red spans naming their holders."""
     names = sorted({m for _t, m, _a in run.rc_modes})
     level = {n: i for i, n in enumerate(names)}
     bounds = [tm for tm, _m, _a in run.rc_modes] + [run.end]
@@ -191,27 +238,35 @@ def _modes(ax: Any, run: RunData) -> None:
         ax.hlines(level[mode], tm, nxt, color="#34495e", lw=2)
         if auto:
             ax.axvspan(tm, nxt, color=AUTONOMY_COLOUR, alpha=0.15, lw=0)
-    fs_bounds = [tm for tm, _a, _r in run.failsafes] + [run.end]
-    for (tm, active, reason), nxt in zip(run.failsafes, fs_bounds[1:]):
-        if active:
-            ax.axvspan(tm, nxt, color=FAILSAFE_COLOUR, alpha=0.3, lw=0)
-            ax.annotate(reason[:40], (tm, max(len(names) - 0.6, 0.4)), fontsize=7, color=FAILSAFE_COLOUR)
+    spans = failsafe_spans(run)
+    for start, end, holders in spans:
+        ax.axvspan(start, end, color=FAILSAFE_COLOUR, alpha=0.3, lw=0)
+        ax.annotate(holders[:60], (start, max(len(names) - 0.6, 0.4)), fontsize=7, color=FAILSAFE_COLOUR)
     ax.set_yticks(range(len(names)), names)
     ax.set_ylim(-0.6, max(len(names) - 0.4, 0.6))
     ax.set(title="RC mode (autonomy granted: green) and failsafes (red)", xlabel="time (s)",
            xlim=(0, max(run.end, 1e-3)))
     ax.plot([], [], color=AUTONOMY_COLOUR, alpha=0.4, lw=8, label="autonomy granted")
-    ax.plot([], [], color=FAILSAFE_COLOUR, alpha=0.5, lw=8, label=f"failsafe ({sum(a for _t, a, _r in run.failsafes)})")
+    ax.plot([], [], color=FAILSAFE_COLOUR, alpha=0.5, lw=8, label=f"failsafe ({len(spans)})")
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, frameon=False)
     ax.grid(True, axis="x", linewidth=0.4, alpha=0.6)
 
 
+def plot_title(run: RunData, src: Path | str) -> str:
+    """The page's title: the vehicle, the mission, the file and how long the log runs."""
+    return (f"{run.vehicle or 'unknown vehicle'} -- mission {run.mission or '(none in the log)'} -- "
+            f"{Path(src).name} ({run.end:.0f} s)")
+
+
+def log_figure(src: Path | str, *, channel: str = ch.STATE_ESTIMATE) -> tuple[Any, RunData]:
+    """The figure ``u2sa log plot`` saves for log *src*, and the run it draws."""
+    run = read_run(src, channel=channel)
+    return build_figure(run, title=plot_title(run, src), channel=channel), run
+
+
 def plot_log(src: Path | str, out: Path | str, *, channel: str = ch.STATE_ESTIMATE) -> dict[str, int]:
     """Draw the run in log *src* into the PNG *out*; return how many items each part holds."""
-    run = read_run(src, channel=channel)
-    title = (f"{run.vehicle or 'unknown vehicle'} -- mission {run.mission or '(none in the log)'} -- "
-             f"{Path(src).name} ({run.end:.0f} s)")
-    fig = build_figure(run, title=title, channel=channel)   # selects matplotlib's Agg backend first
+    fig, run = log_figure(src, channel=channel)   # build_figure selects matplotlib's Agg backend first
     import matplotlib.pyplot as plt
 
     fig.savefig(out)
@@ -219,4 +274,4 @@ def plot_log(src: Path | str, out: Path | str, *, channel: str = ch.STATE_ESTIMA
     return {"track": len(run.track), "heading": len(run.heading), "speed": len(run.speed),
             "commands": sum(len(s) for s in run.commands.values()), "waypoints": len(run.waypoints),
             "obstacles": len(run.obstacles), "rc_modes": len(run.rc_modes),
-            "failsafes": sum(1 for _t, a, _r in run.failsafes if a)}
+            "failsafes": len(failsafe_spans(run))}
