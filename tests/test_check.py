@@ -7,6 +7,7 @@ subprocess. Nothing is opened but files.
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 from pathlib import Path
 
@@ -238,23 +239,31 @@ def test_for_sim_a_device_without_a_mock_names_the_device_and_the_mock(tmp_path:
 
 @pytest.mark.parametrize("example", EXAMPLES, ids=lambda p: p.parent.name)
 def test_each_example_profile_checks_clean(example: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Clean for u2sa sim; on a vehicle whose udev rules make /dev/u2sa/gps and /dev/u2sa/compass, clean too.
+    """Clean for u2sa sim, and on a vehicle with no udev rules of its own: the examples' serial addresses
+    carry their adapters' USB ids, from which install writes the rules that make /dev/u2sa/gps and compass.
 
-    The examples name no USB identity for their serial adapters (they cannot know the reader's),
-    so without such rules exactly those two links are errors, each with the rule line to add.
+    Without those ids exactly those two links are errors, each with the rule line to add, until an
+    installed rule makes them.
     """
     assert errors_of(check_profile(example, for_sim=True)) == []
     rules = tmp_path / "rules.d"
     rules.mkdir()
     monkeypatch.setenv("U2SA_UDEV_RULES_DIRS", str(rules))   # this machine's own rules do not matter
-    unmade = errors_of(check_profile(example))
+    errors = errors_of(check_profile(example))
+    assert errors == [], "\n".join(map(str, errors))
+    copy = tmp_path / "example"
+    shutil.copytree(example.parent, copy)
+    text = (copy / "vehicle.toml").read_text()
+    assert "&usb=1546:01a7" in text and "&usb=0403:6001" in text
+    (copy / "vehicle.toml").write_text(text.replace("&usb=1546:01a7", "").replace("&usb=0403:6001", ""))
+    unmade = errors_of(check_profile(copy / "vehicle.toml"))
     assert sorted(p.message.split()[2].rstrip(":") for p in unmade) == ["/dev/u2sa/compass", "/dev/u2sa/gps"], \
         "\n".join(map(str, unmade))
     assert all('SYMLINK+="u2sa/' in p.fix for p in unmade)
     (rules / "66-u2sa-local.rules").write_text(
         'SUBSYSTEM=="tty", ATTRS{idVendor}=="1546", ATTRS{idProduct}=="01a7", SYMLINK+="u2sa/gps"\n'
         'SUBSYSTEM=="tty", ATTRS{idVendor}=="0403", ATTRS{idProduct}=="6001", SYMLINK+="u2sa/compass"\n')
-    errors = errors_of(check_profile(example))
+    errors = errors_of(check_profile(copy / "vehicle.toml"))
     assert errors == [], "\n".join(map(str, errors))
 
 

@@ -319,3 +319,66 @@ service = "pan"
     assert results["lamp"].ok and "line(s) 17, 27 exist and are free" in results["lamp"].text
     assert results["pan"].ok and "channel 3 of 4 exists" in results["pan"].text
     assert all(r.address.startswith("mock+") for r in results.values())
+
+
+class UartAt:
+    """A serial port opened at *rate* on a line whose device sends NMEA at *device_baud*: at the right rate
+    the sentences, at any other the framing garbage a UART makes of them (no line ends, high bytes).
+
+    ``read`` behaves like pyserial's with a timeout: one chunk per call, paced by the port's timeout.
+    """
+
+    def __init__(self, rate: int, *, device_baud: int, opened: list[int], closed: list[int]) -> None:
+        self.rate, self.device_baud, self.closed = rate, device_baud, closed
+        self._tick = threading.Event()   # never set: read() waits its timeout, as a quiet port does
+        self._n = 0
+        opened.append(rate)
+
+    def read(self, size: int) -> bytes:
+        self._tick.wait(0.01)
+        self._n += 1
+        if self.rate == self.device_baud:
+            return sentence(f"GPGGA,1235{self._n % 60:02d},4807.038,N,01131.000,E,1,08,0.9,545.4,M,46.9,M,,")
+        return bytes((0x80 + (self._n * 37 + i * 11) % 127) for i in range(48))
+
+    def close(self) -> None:
+        self.closed.append(self.rate)
+
+
+def test_the_serial_probe_names_the_baud_that_works_when_the_configured_one_sees_garbage(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A pty ignores the baud, so a fake opener plays the UART: the receiver talks at 38400, the address says 9600."""
+    import u2sa_hw.ports
+
+    opened: list[int] = []
+    closed: list[int] = []
+
+    def open_serial(path: str, *, device: str, baudrate: int, timeout: float) -> UartAt:
+        assert (path, device) == ("/dev/u2sa/gps", "gps")
+        return UartAt(baudrate, device_baud=38400, opened=opened, closed=closed)
+
+    monkeypatch.setattr(u2sa_hw.ports, "open_serial", open_serial, raising=False)
+    target = Target("gps", "gps", "serial", "serial:///dev/u2sa/gps?baud=9600",
+                    {"path": "/dev/u2sa/gps", "baud": 9600, "protocol": "NMEA"})
+    result = probe_target(target, seconds=0.3)
+    assert not result.ok   # it does not work as configured
+    assert result.text.startswith("9600 baud: binary: ") and "no sentence; " in result.text, result.text
+    assert "; at 38400 baud: NMEA" in result.text and "100% good checksums" in result.text, result.text
+    assert result.text.endswith("set baud=38400 in the address"), result.text
+    assert opened == [9600, 4800, 19200, 38400] and closed == opened   # each baud opened afresh, each closed
+    assert str(result).startswith("probe FAIL gps: serial serial:///dev/u2sa/gps?baud=9600: 9600 baud: binary")
+
+
+@pytest.mark.parametrize("chip, words", [
+    ("/dev/gpiochip9", ["device 'rc': no GPIO chip /dev/gpiochip9 (No such file or directory)", "gpiodetect",
+                        "[devices.rc] address, e.g. gpio://gpiochip0/5,6"]),
+    ("mock:{tmp}/nochip.sock", ["device 'rc': no mock GPIO chip at {tmp}/nochip.sock", "u2sa mock"]),
+])
+def test_a_missing_gpio_chip_names_the_device_the_chip_and_the_fix(tmp_path: Path, chip: str,
+                                                                    words: list[str]) -> None:
+    target = Target("rc", "rc", "gpio", "gpio://gpiochip9/5,6", {"chip": chip.format(tmp=tmp_path), "lines": [5, 6]})
+    result = probe_target(target, seconds=0.1)
+    assert not result.ok
+    for word in words:
+        assert word.format(tmp=tmp_path) in result.text, result.text
+    assert "fix: " in result.text

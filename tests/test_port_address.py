@@ -72,6 +72,9 @@ BAD = [
     ("mock+serial+socket://h:1", "only serial takes a pyserial scheme"),
     ("can://socketcan", "expected can://INTERFACE/CHANNEL"),
     ("can://socketcan/can0?bitrate=fast", "bitrate='fast' must be a whole number"),
+    ("can://socketcan/can0?bitrat=500000", "unknown parameter 'bitrat' (did you mean 'bitrate'?)"),
+    ("mock+can://udp_multicast/239.74.163.2?prot=17270", "unknown parameter 'prot' (did you mean 'port'?)"),
+    ("mock+can://virtual/bus?receive_own_messages=yes", "receive_own_messages='yes' must be true or false"),
     ("i2c://1/0x99", "not a 7-bit device address"),
     ("i2c://one/0x68", "adapter number"),
     ("i2c://1/0x68?speed=4", "unknown parameter 'speed'"),
@@ -99,3 +102,19 @@ def test_bad_address_is_one_line_with_device_text_and_fix(text: str, problem: st
 def test_non_string_address_is_an_address_error() -> None:
     with pytest.raises(AddressError, match="an address is a string, not int"):
         parse_address(9600, device="gps")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("text", ["serial:///dev/x?baudd=9600", "can://socketcan/can0?bitrat=500000",
+                                  "i2c://1/0x68?bus=2", "gpio://gpiochip0/17?bias=up", "pwm://pwmchip0/0?hz=50",
+                                  "pca9685://1/0x40/3?freq=50", "mock+can://virtual/x?recieve_own_messages=true"])
+def test_every_scheme_refuses_a_parameter_it_does_not_take(text: str) -> None:
+    """A misspelt parameter is never handed on (a CAN one used to go to can.Bus, and install set no bitrate)."""
+    with pytest.raises(AddressError, match=r"unknown parameter '\w+'.*addresses take: "):
+        parse_address(text, device="dev")
+
+
+def test_the_can_bus_options_an_address_may_carry_reach_can_bus_typed() -> None:
+    address = parse_address("can://socketcan/can0?bitrate=500000&fd=true&data_bitrate=2000000&local_loopback=false",
+                            device="wheels")
+    assert address.bitrate == 500000
+    assert address.bus_options == {"fd": True, "data_bitrate": 2000000, "local_loopback": False}

@@ -98,7 +98,8 @@ def test_the_simulation_keys_are_those_the_mock_launcher_reads() -> None:
     ({"prot": "/dev/x"}, "v.toml [services.gps] settings: unknown key 'prot'; did you mean 'port'?"),
     ({"baudrate": "9600"}, "v.toml [services.gps] settings: field 'baudrate' expects int, got str '9600'; "
                            "fix 'baudrate' (default 9600)"),
-    ({"stale_after_s": -1.0}, "v.toml [services.gps] settings: field 'stale_after_s' must be > 0; got -1.0"),
+    ({"stale_after_s": -1.0}, "v.toml [services.gps] settings: field 'stale_after_s' must be > 0 and <= 30; "
+                              "got -1.0"),
     ({"health_interval_s": float("inf")}, "field 'health_interval_s' must be a finite number > 0 and <= 60; got inf"),
     ({"bytesize": 9}, "field 'bytesize' must be one of 5, 6, 7, 8; got 9"),
 ])

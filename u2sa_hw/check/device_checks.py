@@ -5,10 +5,18 @@ a USB id or serial number in the device's address (``u2sa install`` writes the u
 from it) or an installed udev rule that makes that link; otherwise the service would wait
 for a device node that never appears, and the check prints the rule line to add.
 
+On the vehicle a real SocketCAN address without ``bitrate=`` is a warning: install cannot
+set the interface's bitrate, so CAN does not come up at boot unless something else does it.
+
 For ``u2sa sim`` (*for_sim*) every service with a device (a driver) must have a mock: a
 ``[devices]`` table with ``mock = "..."`` for it; the error names the mock kind to use.
 Mock kinds and ``[simulation]`` are read through :mod:`mock_devices` when it is installed
-(imported only here, only then).
+(imported only here, only then); ``[simulation]``'s keys are checked either way.
+
+Every device table's address is parsed on its own, so each wrong one is its own line; the
+checks that need the whole device list (unused addresses, shared PWM outputs, mocks, device
+nodes, CAN bitrates) then read it past those mistakes (:func:`u2sa_hw.check.lenient.lenient_devices`,
+services with a wrong setting at their defaults), so one bad table or setting does not hide the rest.
 """
 
 from __future__ import annotations
@@ -64,23 +72,33 @@ def check_devices(path: Path, data: Mapping[str, Any], out: Collector, *, profil
             if k in table and not isinstance(table[k], want):
                 out.error(f"{key}.{k}", f"must be a {'table' if want is dict else 'list'}, got {type_name(table[k])}",
                           "see docs/simulation.md")
-    _check_addresses(profile, out, for_sim=for_sim)
+        _check_address_text(name, table.get("address"), out)
+    if profile is None:   # not even a lenient copy loads: judge the mocks by the tables alone
+        if for_sim:
+            _check_mocks(None, profile, devices, services, out)
+        return
+    from u2sa_hw.check.lenient import lenient_devices, readable_configs
+
+    configs = readable_configs(profile)
+    readable, _ = lenient_devices(profile, configs)
+    entries = _check_addresses(readable, configs, out)
     if for_sim:
-        _check_mocks(profile, services, out)
-    elif profile is not None:
-        _check_device_nodes(profile, out)
+        _check_mocks(entries, profile, devices, services, out)
+    elif entries is not None:
+        _check_device_nodes(entries, readable, out)
+        _check_can_bitrates(entries, readable, out)
 
 
-def _device_entries(profile: Any) -> dict[str, Any] | None:
-    """``profile_devices(profile)``, or None when the profile or its device list cannot be read."""
-    from u2sa_hw.devices import profile_devices
+def _check_address_text(name: str, text: Any, out: Collector) -> None:
+    """The table's own address parses (each wrong one is its own line, with the fix)."""
+    from u2sa_hw.ports.address import AddressError, parse_address
 
-    if profile is None:
-        return None
+    if not isinstance(text, str):
+        return   # missing (the device list says whether one is needed) or of the wrong type (above)
     try:
-        return profile_devices(profile, warn=lambda _text: None)
-    except ValueError:   # ProfileError or a service's ConfigError: _check_addresses reports it
-        return None
+        parse_address(text, device=name)
+    except AddressError as exc:
+        out.from_text(f"[devices.{name}]: {exc}", key=f"devices.{name}", fix="write the address as docs/ports.md shows")
 
 
 def _mock_catalog() -> Mapping[str, Any] | None:
@@ -91,27 +109,28 @@ def _mock_catalog() -> Mapping[str, Any] | None:
     return CATALOG
 
 
-def _check_addresses(profile: Any, out: Collector, *, for_sim: bool) -> None:
-    """Each device's address parses and belongs to a service; the old form (service settings) is a warning."""
+def _check_addresses(profile: Any, configs: Mapping[str, Any], out: Collector) -> dict[str, Any] | None:
+    """Every device of the profile (read past the mistakes reported above); None when even that stops.
+
+    The old form (an address in service settings) is a warning each; the list's own errors (a service
+    with no address, two services on one device) are reported here.
+    """
     from u2sa_hw.devices import profile_devices
     from u2sa_hw.vehicle import ProfileError
 
-    if profile is None:
-        return
     notices: list[str] = []
     try:
-        profile_devices(profile, warn=notices.append)
+        entries = profile_devices(profile, configs=configs, warn=notices.append)
     except ValueError as exc:   # ProfileError, or a service's ConfigError while reading its devices
         stopped_at = "devices." if isinstance(exc, ProfileError) else "services."
-        if any(p.is_error and p.key.startswith(stopped_at) for p in out.problems):
-            return   # the table or setting errors above are what it stopped at
-        out.from_text(str(exc), key="devices", fix="write the address as docs/ports.md shows")
+        if not any(p.is_error and p.key.startswith(stopped_at) for p in out.problems):
+            out.from_text(str(exc), key="devices", fix="write the address as docs/ports.md shows")
+        return None
     for text in notices:
         out.from_text(text, key="services", fix="", severity=WARNING)
-    entries = _device_entries(profile)
-    if entries is not None:
-        _check_unused(entries, profile, out)
-        _check_shared_outputs(entries, out)
+    _check_unused(entries, profile, out)
+    _check_shared_outputs(entries, out)
+    return entries
 
 
 def _check_unused(entries: Mapping[str, Any], profile: Any, out: Collector) -> None:
@@ -146,37 +165,72 @@ def _check_shared_outputs(entries: Mapping[str, Any], out: Collector) -> None:
                       "give each actuator its own channel")
 
 
-def _check_mocks(profile: Any, services: Mapping[str, Any], out: Collector) -> None:
-    """Simulation: every device of an enabled service has a mock; the error names the device and the mock kind."""
+def _check_mocks(entries: Mapping[str, Any] | None, profile: Any, devices: Any, services: Mapping[str, Any],
+                 out: Collector) -> None:
+    """Simulation: every device of an enabled service has a mock; the error names the device and the mock kind.
+
+    When the device list cannot be read at all, each driver service is judged by the device tables
+    that belong to it (its own name, its ``device``, a table naming it with ``service =``): only a
+    service none of whose tables has a mock is said to have none.
+    """
     from u2sa_hw.registry import known_kinds
 
-    kinds = known_kinds()
-    entries = _device_entries(profile)
-    if entries is None:   # the device list cannot be read (reported): judge by the driver services instead
-        entries = {name: None for name, table in services.items() if isinstance(table, dict)
-                   and str(kinds.get(table.get("kind"), "")).startswith(DRIVER_PREFIX)}
+    if entries is None:
+        kinds = known_kinds()
+        tables = devices if isinstance(devices, dict) else {}
+        for service, table in services.items():
+            if not isinstance(table, dict) or table.get("enabled", True) is False or \
+                    not str(kinds.get(table.get("kind"), "")).startswith(DRIVER_PREFIX):
+                continue
+            device = table.get("device") if isinstance(table.get("device"), str) else service
+            own = [t for n, t in tables.items() if isinstance(t, dict) and (n in (device, service)
+                                                                            or t.get("service") == service)]
+            if not any(t.get("mock") for t in own):
+                _no_mock(out, device, service, table.get("kind"), key=f"devices.{device}" if device in tables
+                         else f"services.{service}")
+        return
     for device, entry in entries.items():
-        service = entry.service if entry is not None else device
-        table = services.get(service)
-        if not isinstance(table, dict) or table.get("enabled", True) is False or getattr(entry, "mock", None):
+        spec = profile.services.get(entry.service)
+        if spec is None or not spec.enabled or entry.mock or not entry.used:
             continue
-        kind = table.get("kind")
-        mock = MOCK_FOR_KIND.get(kind, "...")
-        key = f"devices.{device}" if entry is not None and entry.table else f"services.{service}"
-        out.error(key, f"device '{device}' of service '{service}' ({kind}) has no mock, so in simulation the "
-                  "service would wait for hardware that is not there",
-                  f"add mock = \"{mock}\" to [devices.{device}] (u2sa mock --list-kinds), or enabled = false "
-                  f"in [services.{service}]")
+        _no_mock(out, device, entry.service, spec.kind,
+                 key=f"devices.{device}" if entry.table else f"services.{entry.service}")
 
 
-def serial_devices(profile: Any) -> list[tuple[str, str, Any]]:
-    """``(device name, key, address)`` of every real serial device node of the enabled services."""
+def _no_mock(out: Collector, device: str, service: str, kind: Any, *, key: str) -> None:
+    mock = MOCK_FOR_KIND.get(str(kind), "...")
+    out.error(key, f"device '{device}' of service '{service}' ({kind}) has no mock, so in simulation the "
+              "service would wait for hardware that is not there",
+              f"add mock = \"{mock}\" to [devices.{device}] (u2sa mock --list-kinds), or enabled = false "
+              f"in [services.{service}]")
+
+
+def _check_can_bitrates(entries: Mapping[str, Any], profile: Any, out: Collector) -> None:
+    """A real SocketCAN address without ``bitrate=``: install cannot bring the interface up at boot."""
+    for name, entry in entries.items():
+        address = entry.address
+        spec = profile.services.get(entry.service)
+        if address.kind != "can" or address.mock or address.can_interface != "socketcan" or address.bitrate \
+                or not entry.used or spec is None or not spec.enabled:
+            continue
+        key = f"services.{entry.service}.settings" if entry.legacy else f"devices.{name}.address"
+        out.warning(key, f"CAN interface {address.can_channel} has no bitrate: u2sa install cannot set it, so "
+                    f"{address.can_channel} does not come up at boot (the service waits for it) unless something "
+                    "else configures it",
+                    f"add the bus's bit rate to the address, e.g. {address.with_params(bitrate=500000).url} "
+                    "(every node on the bus uses the same one; docs/deployment.md)")
+
+
+def serial_devices(profile: Any, entries: Mapping[str, Any] | None = None) -> list[tuple[str, str, Any]]:
+    """``(device name, key, address)`` of every real serial device node of the enabled services
+    (*entries*: the profile's device list when already read)."""
     from u2sa_hw.devices import profile_devices
 
-    try:
-        entries = profile_devices(profile, warn=lambda _text: None)
-    except ValueError:   # ProfileError or a service's ConfigError:
-        return []   # reported by _check_addresses
+    if entries is None:
+        try:
+            entries = profile_devices(profile, warn=lambda _text: None)
+        except ValueError:   # ProfileError or a service's ConfigError:
+            return []   # reported by _check_addresses
     found = []
     for name, entry in entries.items():
         spec = profile.services.get(entry.service)
@@ -222,10 +276,10 @@ def udev_line(link: str) -> str:
             f'ATTRS{{serial}}=="SERIAL", SYMLINK+="{link}"')
 
 
-def _check_device_nodes(profile: Any, out: Collector) -> None:
+def _check_device_nodes(entries: Mapping[str, Any], profile: Any, out: Collector) -> None:
     """Each ``/dev/u2sa/NAME`` path is created by the address's USB identity or an installed udev rule."""
     dirs = rules_dirs()
-    for name, key, address in serial_devices(profile):
+    for name, key, address in serial_devices(profile, entries):
         path = address.serial_path
         if not path.startswith(U2SA_DEV):
             continue
@@ -241,13 +295,28 @@ def _check_device_nodes(profile: Any, out: Collector) -> None:
 
 
 def check_simulation(path: Path, data: Mapping[str, Any], out: Collector) -> None:
-    """``[simulation]`` as the mock launcher reads it."""
+    """``[simulation]``: each unknown key (with a did-you-mean), then the rest as the mock launcher reads it."""
+    from u2sa_hw.vehicle import SIMULATION_KEYS, SIMULATION_START_KEYS
+
+    table = data.get("simulation")
+    if isinstance(table, dict):
+        table = _known_keys(table, SIMULATION_KEYS, "simulation", out)
+        if isinstance(table.get("start"), dict):
+            table["start"] = _known_keys(table["start"], SIMULATION_START_KEYS, "simulation.start", out)
     try:
         from mock_devices.launcher import SimulationSettings
         from mock_devices.sim_context import DeviceError
     except ImportError:
         return
     try:
-        SimulationSettings.from_table(data.get("simulation"), where=str(path))
+        SimulationSettings.from_table(table, where=str(path))
     except DeviceError as exc:
         out.from_text(str(exc), key="simulation", fix="see docs/simulation.md")
+
+
+def _known_keys(table: Mapping[str, Any], known: tuple[str, ...], key: str, out: Collector) -> dict[str, Any]:
+    """*table* without its unknown keys, each reported once with a did-you-mean."""
+    for name in table:
+        if name not in known:
+            out.error(f"{key}.{name}", f"unknown key '{name}'{did_you_mean(name, known)}", f"known: {', '.join(known)}")
+    return {name: value for name, value in table.items() if name in known}

@@ -1,24 +1,36 @@
 """A profile read past its mistakes, so the checks that need a loaded profile still run.
 
 ``load_profile`` stops at the first kind of mistake (unknown keys, a wrong type, an unknown
-log level). ``u2sa check`` has already reported those one by one; to check the device
-addresses and the ``[safety]`` wiring too, in the same run, it loads a copy of the profile
-with the reported mistakes left out: unknown tables and keys, values of the wrong type or
-outside their choices, services whose kind is unknown. Relative paths are made absolute
-first, so the copy (written to a temporary directory) names the same files; the result
-carries the real path, so every message names the real profile.
+log level, a ``[safety]`` typo), and ``profile_devices`` at the first bad device table.
+``u2sa check`` has already reported those one by one; to check the device addresses and the
+``[safety]`` wiring too, in the same run, it reads a copy of the profile with the reported
+mistakes left out:
+
+- :func:`lenient_profile`: unknown tables and keys, values of the wrong type or outside their
+  choices, services whose kind is unknown, and the ``[safety]`` table (checked from the raw
+  table by :mod:`u2sa_hw.check.safety_checks`) are left out; a device table keeps only the
+  keys it may have. Relative paths are made absolute first, so the copy (written to a
+  temporary directory) names the same files; the result carries the real path, so every
+  message names the real profile.
+- :func:`readable_configs`: each service's config, a wrong setting or config-file value left
+  at its default, so the devices of a service with a bad ``baudrate`` are still known.
+- :func:`lenient_devices`: the device tables without bad keys and without the devices whose
+  address does not parse (the services that use those are left out too).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import tempfile
+import tomllib
 from pathlib import Path
 from typing import Any, Mapping
 
 import tomli_w
 
 PATH_KEYS = ("config_dir", "log_dir", "data_dir", "bus_key")
+DEVICE_KEY_TYPES: dict[str, type] = {"address": str, "mock": str, "service": str, "options": dict, "sides": list,
+                                     "drives": dict}   # u2sa_hw.devices.check_table's types
 
 
 def _vehicle(table: Mapping[str, Any], base: Path) -> dict[str, Any]:
@@ -70,8 +82,9 @@ def lenient_profile(path: Path, data: Mapping[str, Any]) -> Any:
     clean: dict[str, Any] = {k: v for k, v in data.items() if k in TOP_TABLES and isinstance(v, dict)}
     clean["vehicle"] = _vehicle(clean.get("vehicle", {}), base)
     clean["services"] = _services(clean.get("services", {}), base)
-    if isinstance(clean.get("simulation"), dict):
-        clean.pop("simulation")   # the mock launcher's table: checked on its own, not needed here
+    clean["devices"] = clean_device_tables(clean.get("devices", {}), services=clean["services"])
+    clean.pop("simulation", None)   # the mock launcher's table: checked on its own, not needed here
+    clean.pop("safety", None)       # checked from the raw table, key by key (check.safety_checks)
     with tempfile.TemporaryDirectory(prefix="u2sa-check-") as tmp:
         copy = Path(tmp) / path.name
         copy.write_bytes(tomli_w.dumps(clean).encode())
@@ -80,3 +93,96 @@ def lenient_profile(path: Path, data: Mapping[str, Any]) -> Any:
         except (ProfileError, ValueError):
             return None
     return dataclasses.replace(profile, path=path)
+
+
+def clean_device_tables(tables: Any, *, services: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    """Each ``[devices.NAME]`` table with only the keys a device table takes, of the right type, and a
+    ``service`` that is one of *services* (the device check reports the rest)."""
+    from u2sa_hw.devices import LEGACY_DEVICE_KEYS
+
+    kept: dict[str, dict[str, Any]] = {}
+    for name, table in (tables.items() if isinstance(tables, dict) else ()):
+        if not isinstance(table, dict):
+            continue
+        kept[name] = {k: v for k, v in table.items() if k in LEGACY_DEVICE_KEYS
+                      or k in DEVICE_KEY_TYPES and isinstance(v, DEVICE_KEY_TYPES[k])}
+        if kept[name].get("service") is not None and kept[name]["service"] not in services:
+            del kept[name]["service"]
+    return kept
+
+
+def readable_configs(profile: Any) -> dict[str, dict[str, Any]]:
+    """service -> the config it runs with, for every enabled service of a known kind; a value that is
+    wrong (in the settings or the config file) is left at its default, as if it were not written."""
+    from u2sa_hw.devices import effective_config
+
+    configs: dict[str, dict[str, Any]] = {}
+    for name, spec in profile.services.items():
+        if not spec.enabled:
+            continue
+        try:
+            configs[name] = effective_config(profile, name)
+        except ValueError:   # a wrong value (ConfigError), an unknown kind (ProfileError)
+            values = _config_past_mistakes(spec)
+            if values is not None:
+                configs[name] = values
+    return configs
+
+
+def _config_past_mistakes(spec: Any) -> dict[str, Any] | None:
+    from u2sa_hw.config import ConfigError, coerce
+    from u2sa_hw.registry import resolve_kind
+    from u2sa_hw.service import BASE_CONFIG
+
+    try:
+        cls = resolve_kind(spec.kind)
+    except (LookupError, ImportError, AttributeError):
+        return None
+    fields = {f.name: f for f in (*BASE_CONFIG, *cls.config_fields())}
+    values = {name: f.default for name, f in fields.items()}
+    file_values: dict[str, Any] = {}
+    if spec.config_path.is_file():
+        try:
+            file_values = tomllib.loads(spec.config_path.read_bytes().decode("utf-8"))
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+            file_values = {}
+    for source in (spec.settings, file_values):   # the file wins, as in the service
+        for key, value in source.items():
+            if key in fields:
+                try:
+                    values[key] = coerce(fields[key], value)
+                except ConfigError:
+                    continue
+    return values
+
+
+def lenient_devices(profile: Any, configs: Mapping[str, Mapping[str, Any]]) -> tuple[Any, set[str]]:
+    """(*profile* with clean device tables and without the devices whose address does not parse, the names
+    of those devices). A service that uses such a device is disabled in the copy, so the other devices
+    are still read; *configs* are :func:`readable_configs`."""
+    from u2sa_hw.devices import service_devices
+    from u2sa_hw.ports.address import AddressError, parse_address
+    from u2sa_hw.registry import resolve_kind
+
+    tables = clean_device_tables(profile.devices, services=profile.services)
+    bad: set[str] = set()
+    for name, table in tables.items():
+        if "address" in table:
+            try:
+                parse_address(table["address"], device=name)
+            except AddressError:
+                bad.add(name)
+    if not bad:
+        return dataclasses.replace(profile, devices=tables), bad
+    services = dict(profile.services)
+    for name, spec in profile.services.items():
+        if not spec.enabled or name not in configs:
+            continue
+        try:
+            used = service_devices(resolve_kind(spec.kind), name, configs[name])
+        except (LookupError, ImportError, AttributeError, ValueError):
+            continue
+        if bad & set(used) or any(tables[b].get("service") == name for b in bad):
+            services[name] = dataclasses.replace(spec, enabled=False)
+    kept = {name: table for name, table in tables.items() if name not in bad}
+    return dataclasses.replace(profile, devices=kept, services=services), bad

@@ -3,11 +3,13 @@
 :func:`check_profile` reads the profile itself (so a table ``load_profile`` would stop at
 does not hide the others), then checks in turn: the top-level tables and ``[vehicle]``
 (unknown keys with a did-you-mean, types, choices, ranges, the directories and files it
-names), then loads the profile (past those mistakes, :mod:`u2sa_hw.check.lenient`), every service (:mod:`u2sa_hw.check.services`: kind, settings, config file,
-referenced files, supervision), the device tables and addresses
-(:mod:`u2sa_hw.check.device_checks`), ``[simulation]``, and ``[safety]`` against the
-services (:func:`u2sa_hw.safety.wiring.check_wiring`). Nothing is opened but files:
-``u2sa check --probe`` looks at the devices.
+names), then loads the profile (past those mistakes, :mod:`u2sa_hw.check.lenient`), every
+service (:mod:`u2sa_hw.check.services`: kind, settings, config file, referenced files,
+supervision), the device tables and addresses (:mod:`u2sa_hw.check.device_checks`),
+``[simulation]``, and ``[safety]`` key by key and against the services
+(:mod:`u2sa_hw.check.safety_checks`). A reason ``load_profile`` gives that none of these
+names is reported as it says it. Nothing is opened but files: ``u2sa check --probe`` looks
+at the devices.
 """
 
 from __future__ import annotations
@@ -69,11 +71,11 @@ def check_profile(path: Path, *, for_sim: bool = False) -> list[Problem]:
             out.error(key, f"'{key}' must be a table, got {type_name(data[key])}", f"write it as [{key}]")
     vehicle = data.get("vehicle", {}) if isinstance(data.get("vehicle", {}), dict) else {}
     _check_vehicle(path, vehicle, out)
-    profile = _load(path, out)
-    if profile is None and any(p.is_error for p in out.problems):
+    profile, load_error = _load(path)
+    if profile is None:
         from u2sa_hw.check.lenient import lenient_profile
 
-        profile = lenient_profile(path, data)   # past the mistakes reported so far: the rest is checked too
+        profile = lenient_profile(path, data)   # past the mistakes load_profile stops at: the rest is checked too
     from u2sa_hw.check.services import check_services
 
     services = data.get("services", {}) if isinstance(data.get("services"), dict) else {}
@@ -84,7 +86,13 @@ def check_profile(path: Path, *, for_sim: bool = False) -> list[Problem]:
     if "simulation" in data or for_sim:
         check_simulation(path, data, out)
     if profile is not None:
-        _check_safety(profile, out)
+        from u2sa_hw.check.safety_checks import check_safety
+
+        check_safety(profile, data.get("safety"), out)
+    if load_error and not any(p.is_error for p in out.problems):
+        # load_profile refused the profile for a reason none of the checks above names: say it as it said it
+        for line in load_error.splitlines():
+            out.from_text(line, key="", fix="see the example profiles in examples/")
     return _unique(out.problems)
 
 
@@ -141,33 +149,14 @@ def _example(kind: type) -> str:
     return {str: '"text"', int: "1", float: "1.0", bool: "true", dict: "{ ... }"}.get(kind, "...")
 
 
-def _load(path: Path, out: Collector) -> Any:
-    """The parsed profile, or None with load_profile's own error added when the checks above missed it."""
+def _load(path: Path) -> tuple[Any, str]:
+    """(the parsed profile, "") or (None, load_profile's error): the checks report its reasons one by one."""
     from u2sa_hw.vehicle import ProfileError, load_profile
 
     try:
-        return load_profile(path)
+        return load_profile(path), ""
     except ProfileError as exc:
-        if not any(p.is_error for p in out.problems):
-            out.from_text(str(exc), key="", fix="see the example profiles in examples/")
-        return None
-
-
-def _check_safety(profile: Any, out: Collector) -> None:
-    """[safety] (its syntax, the pre-arm table, the wiring against the services): the first problem."""
-    from u2sa_hw.config import ConfigError
-    from u2sa_hw.safety.wiring import check_wiring
-    from u2sa_hw.vehicle import ProfileError
-
-    try:
-        check_wiring(profile)
-    except (ProfileError, ConfigError) as exc:
-        text = str(exc)
-        if "[safety" not in text and any(p.is_error and p.key.startswith("services.") for p in out.problems):
-            return   # a service's own error above: it is why its actuators cannot be read
-        left_out = any(p.is_error and p.key.endswith(".kind") for p in out.problems)
-        out.from_text(text, key="safety", fix="see docs/safety.md" + (
-            " (the services with an unknown kind above were left out of this check)" if left_out else ""))
+        return None, str(exc)
 
 
 def _unique(problems: list[Problem]) -> list[Problem]:

@@ -14,7 +14,9 @@ service (or probe before starting it) to look at it.
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 import socket
 import time
 from dataclasses import asdict, dataclass, field
@@ -223,9 +225,11 @@ def _gpio_info(chip: str) -> tuple[int, dict[int, str]]:
         info = _mock_gpio_info(chip[len("mock:"):])
         used = {int(n): str(v.get("consumer", "?")) for n, v in info.get("lines", {}).items()}
         return int(info["num_lines"]), used
+    path = chip if chip.startswith("/") else f"/dev/{chip}"
+    if not Path(path).exists():   # said before gpiod is needed: the address is what is wrong
+        raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), path)
     import gpiod   # libgpiod v2, only on a vehicle
 
-    path = chip if chip.startswith("/") else f"/dev/{chip}"
     with gpiod.Chip(path) as handle:
         count = handle.get_info().num_lines
         used = {}
@@ -243,6 +247,8 @@ def _probe_gpio(target: Target, seconds: float) -> tuple[bool, str, dict[str, An
         count, used = _gpio_info(chip)
     except ImportError:
         return False, "python gpiod (libgpiod v2) is not installed: pip install gpiod", {}
+    except OSError as exc:
+        return False, _gpio_chip_problem(target, chip, exc), {}
     missing = [n for n in lines if not 0 <= n < count]
     busy = {n: used[n] for n in lines if n in used}
     parts = [f"{count} lines"]
@@ -253,6 +259,22 @@ def _probe_gpio(target: Target, seconds: float) -> tuple[bool, str, dict[str, An
     if not missing and not busy:
         parts.append(f"line(s) {', '.join(map(str, lines)) or 'none'} exist and are free")
     return not missing and not busy, "; ".join(parts), {"lines": lines, "busy": busy}
+
+
+def _gpio_chip_problem(target: Target, chip: str, exc: OSError) -> str:
+    """Why the chip of *target* cannot be looked at, with the fix (not a bare "No such file or directory")."""
+    reason = exc.strerror or str(exc)
+    lines = ",".join(str(n) for n in target.params.get("lines", [])) or "LINES"
+    if chip.startswith("mock:"):
+        return (f"device '{target.name}': no mock GPIO chip at {chip[len('mock:'):]} ({reason}); fix: start the "
+                "mocks first (u2sa mock --vehicle ...) and probe the profile it writes, or correct the socket path")
+    path = chip if chip.startswith("/") else f"/dev/{chip}"
+    if isinstance(exc, PermissionError):
+        return (f"device '{target.name}': cannot open GPIO chip {path} ({reason}); fix: run as a member of the gpio "
+                "group (u2sa install adds the service user to it) or as root")
+    return (f"device '{target.name}': no GPIO chip {path} ({reason}); fix: list the chips with gpiodetect and write "
+            f"the right one in [devices.{target.name}] address, e.g. gpio://gpiochip0/{lines} (docs/ports.md), "
+            "or enable the GPIO controller (its device-tree overlay)")
 
 
 # ---- PWM ------------------------------------------------------------------------------------

@@ -18,13 +18,16 @@ Checked: the tables and their keys (a typo gets a did-you-mean), each service's
 kind, every setting in the profile and in the service's config file (type,
 choices, range, finite numbers, the kind's own rules), the files a service
 reads (mission and objects XML: present and parsed), config_dir and bus_key,
-the supervision tables, the device tables and addresses (a /dev/u2sa/NAME link
-that nothing creates is an error with the udev line to add), [simulation] and
-[safety] against the services' actuators and RC channels.
+the supervision tables, the device tables and addresses (a query parameter the
+scheme does not take is an error with a did-you-mean; a /dev/u2sa/NAME link that
+nothing creates is an error with the udev line to add; a SocketCAN address
+without bitrate= is a warning: the interface would not come up at boot),
+[simulation], and [safety] key by key and against the services' actuators and
+RC channels. One mistake does not hide another: each is its own line.
 
 Exit status: 0 when there is no error (warnings are printed but do not fail),
-1 with any error, 2 on a usage error. u2sa run and u2sa sim run the same check
-first and refuse to start on errors.
+1 with any error, 2 on a usage error. u2sa run, u2sa sim and u2sa install run
+the same check first and refuse to go on with errors.
 
 --probe then opens each device, one line per device (the vehicle's own; for a
 simulation, run it against the profile u2sa mock writes):

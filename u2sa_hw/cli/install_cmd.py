@@ -17,10 +17,12 @@ never overwritten; a newer default goes beside it as .new) with every file the s
 name (missions, a-priori objects...) beside the profile, the systemd units and udev rules,
 then enable u2sa.target and one u2sa@NAME.service per service of the profile.
 
-First the offline check (u2sa check) runs; install refuses, writing nothing, when it finds
-errors or when the vehicle could not run (a /dev/u2sa/NAME that nothing creates, a named
-file that is missing). --force installs anyway: the check's errors are printed as warnings,
-and install exits 1 when something the profile asks for could not be done.
+First the offline check (u2sa check) runs on the file as written; install refuses, writing
+nothing and listing every problem with its file, key and fix, when it finds errors or when
+the vehicle could not run (a /dev/u2sa/NAME that nothing creates, a named file that is
+missing). --force installs anyway: the check's errors are printed as warnings, and install
+exits 1 when something the profile asks for could not be done. Not even --force installs a
+profile that does not load (every service would refuse it) or one with a [safety] error.
 
 From the device addresses: a serial address /dev/u2sa/NAME with usb=VID:PID (and
 serial=...) gets a udev rule making that link; a SocketCAN address with bitrate= gets its
@@ -50,7 +52,8 @@ def register(sub: Any) -> None:
     p.add_argument("--source", metavar="DIR", help="the u2sa-hw checkout to deploy (default: the one this "
                    "u2sa runs from)")
     p.add_argument("--force", action="store_true", help="install even when the offline check finds errors (they "
-                   "are printed as warnings; install still exits 1 when something could not be done)")
+                   "are printed as warnings; install still exits 1 when something could not be done); never "
+                   "past a [safety] error or a profile that does not load")
     p.add_argument("-v", "--verbose", action="store_true", help="also list what was already up to date")
     p.set_defaults(func=cmd_install)
 

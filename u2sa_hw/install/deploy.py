@@ -33,15 +33,13 @@ from u2sa_hw.install.manifest import MANAGED, MANIFEST_PATH, Manifest, host_path
 from u2sa_hw.install.system import (SERVICE_USER, VENV_MODES, InstallError, apply_sysctl, apply_tmpfiles, ensure_users,
                                     ensure_venv, owner_ids, project_source, reload_systemd, reload_udev,
                                     remove_users, user_ids)
-from u2sa_hw.install.preflight import preflight
+from u2sa_hw.install.preflight import load_for_install, offline_check, preflight
 from u2sa_hw.install.referenced import rewrites
 from u2sa_hw.install.udev import VEHICLE_RULES, render_rules
 from u2sa_hw.install.units import (CONFIG_DIR, DOC, ETC_DIR, HSM_LOG, LOG_DIR, LOG_DIR_MODE, PROFILE, STATE_DIR, SYSUSERS,
                                    SYSCTL, TARGET, TMPFILES, UDEV_DIR, UNIT_DIR, render_profile, service_configs,
                                    service_units, sysctl_conf, sysusers_conf, tmpfiles_conf, udev_sources,
                                    unit_dropins, unit_sources, wants_links)
-from u2sa_hw.safety.wiring import check_wiring
-from u2sa_hw.vehicle import load_profile
 
 OPT_DIR = "/opt/u2sa"
 # Directories uninstall (without --purge) leaves, with what is in them.
@@ -70,25 +68,30 @@ def install(*, vehicle: Path | str, root: Path | str = "/", venv: str | None = N
             python: str | None = None, source: str | None = None, force: bool = False) -> InstallTree:
     """Install (or update) the deployment of the profile *vehicle* under *root*; the tree lists the changes.
 
-    Refuses (InstallError, nothing written) when the offline check finds errors or install
+    The offline check (``u2sa check``) runs first, on the file as written. Refuses
+    (InstallError listing every problem, nothing written) when it finds errors or install
     could not make a runnable vehicle of the profile, unless *force*; then what could not be
-    done is in ``tree.failures`` and the check's errors in ``tree.warnings``.
+    done is in ``tree.failures`` and the check's errors in ``tree.warnings``. Not even *force*
+    installs a profile that does not load or has a ``[safety]`` error.
     """
-    profile = load_profile(vehicle)
-    if profile.path is None:
+    if not vehicle:
         raise InstallError("install needs a vehicle profile: pass --vehicle FILE")
+    path = Path(vehicle)
     if Path(root).resolve() == Path("/"):
         _check_root(Path(root))   # not root: refused before the check runs
     mode = venv or ("build" if Path(root).resolve() == Path("/") else "shared")
     if mode not in VENV_MODES:
         raise InstallError(f"--venv {mode}: use one of {', '.join(VENV_MODES)}")
     src = project_source(source)
-    # Everything that can be refused is checked before anything is written.
-    check_wiring(profile)  # the [safety] table: a vehicle whose safety chain is mis-declared is not installed
-    units = service_units(profile)
     root_path = Path(root).resolve()
+    # Everything that can be refused is checked before anything is written, the offline check first: on
+    # the file as written, so a refusal has its whole list with file, key and fix ([safety] included).
+    checked = offline_check(path, root=root_path)
+    profile = load_for_install(path, checked)
+    units = service_units(profile)
     configs_plain = service_configs(profile)
-    found = preflight(profile, root=root_path, force=force, taken={PROFILE, BUS_KEY, *configs_plain})
+    found = preflight(profile, root=root_path, force=force, taken={PROFILE, BUS_KEY, *configs_plain},
+                      checked=checked)
     profile_text = render_profile(profile, settings=rewrites(found.references, in_config=False))
     configs = service_configs(profile, rewrites=rewrites(found.references, in_config=True))
     vehicle_rules = render_rules(found.plan, profile=PROFILE)

@@ -1,12 +1,17 @@
 """Before ``u2sa install`` writes anything: the offline check, the devices, the referenced files.
 
-:func:`preflight` runs ``u2sa check``'s offline half on the profile (against the udev rules
-of the target: the staged root's with ``--root``), reads the device addresses into a
-:class:`~u2sa_hw.install.udev.DevicePlan`, and finds the files the services name. Every
-problem is gathered first; install then refuses with all of them, one line each, unless
-``--force``. With ``--force`` the check's errors become warnings, and what install cannot do
-for the vehicle (a ``/dev/u2sa`` link nothing creates, a named file that is missing) is a
-failure: install does the rest and exits 1.
+:func:`offline_check` runs ``u2sa check``'s offline half on the profile file as written
+(against the udev rules of the target: the staged root's with ``--root``), before the
+profile is loaded, so a refusal lists every problem with its file, key and fix.
+:func:`load_for_install` then loads the profile; it refuses, with the check's lines and
+whatever ``--force`` says, a profile that does not load (every service would refuse it too)
+and one with a ``[safety]`` error. :func:`preflight` reads the device
+addresses into a :class:`~u2sa_hw.install.udev.DevicePlan` (past a service's wrong
+setting) and finds the files the services name. Every problem is gathered first; install
+then refuses with all of them, one line each, unless ``--force``. With ``--force`` the
+check's errors become warnings, and what install cannot do for the vehicle (a ``/dev/u2sa``
+link nothing creates, a named file that is missing) is a failure: install does the rest and
+exits 1.
 """
 
 from __future__ import annotations
@@ -21,10 +26,19 @@ from u2sa_hw.devices import profile_devices
 from u2sa_hw.install.referenced import Reference, find_references
 from u2sa_hw.install.system import InstallError
 from u2sa_hw.install.udev import DevicePlan, links_made, plan_devices, unmade_text
-from u2sa_hw.vehicle import ProfileError, VehicleProfile
+from u2sa_hw.vehicle import ProfileError, VehicleProfile, load_profile
 
 RULES_DIRS = ("/etc/udev/rules.d", "/run/udev/rules.d", "/lib/udev/rules.d", "/usr/lib/udev/rules.d")
 UDEV_DIRS_ENV = "U2SA_UDEV_RULES_DIRS"   # where u2sa check looks for installed rules
+
+
+@dataclass
+class CheckResult:
+    """The offline check's findings, one line each (``error: FILE [KEY]: what; fix: ...``)."""
+
+    errors: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    safety_errors: list[str] = field(default_factory=list)   # the errors in [safety]: never installed
 
 
 @dataclass
@@ -59,28 +73,65 @@ def _check_sees(root: Path) -> Iterator[None]:
             os.environ[UDEV_DIRS_ENV] = old
 
 
-def offline_check(profile_path: Path, *, root: Path) -> tuple[list[str], list[str]]:
-    """``u2sa check``'s offline half: (errors, warnings), one line each."""
+def offline_check(profile_path: Path, *, root: Path) -> CheckResult:
+    """``u2sa check``'s offline half on the file *profile_path*, as the vehicle under *root* would see it."""
     from u2sa_hw.check.offline import check_profile
 
     with _check_sees(root):
         problems = check_profile(profile_path)
-    return [str(p) for p in problems if p.is_error], [str(p) for p in problems if not p.is_error]
+    return CheckResult(errors=[str(p) for p in problems if p.is_error],
+                       warnings=[str(p) for p in problems if not p.is_error],
+                       safety_errors=[str(p) for p in problems if p.is_error and p.key.split(".")[0] == "safety"])
 
 
-def preflight(profile: VehicleProfile, *, root: Path, taken: set[str], force: bool) -> Preflight:
+def refusal(path: Path, lines: list[str], *, unforceable: str = "") -> InstallError:
+    """The InstallError that refuses *path* for *lines*: one line for one problem, else a list.
+
+    *unforceable*: why ``--force`` does not go past these (empty: it does, and the text says so).
+    """
+    how = f"--force does not go past {'it' if len(lines) == 1 else 'them'}: {unforceable}" if unforceable \
+        else "pass --force to install anyway"
+    if len(lines) == 1:
+        return InstallError(f"refusing to install {path}: {lines[0]} (u2sa check --vehicle {path}; {how})")
+    body = "\n  ".join(lines)
+    joint = "; " if unforceable else " or "
+    return InstallError(f"refusing to install {path}: {len(lines)} problem(s); fix them "
+                        f"(u2sa check --vehicle {path}){joint}{how}:\n  {body}")
+
+
+def load_for_install(path: Path, checked: CheckResult) -> VehicleProfile:
+    """The profile at *path*, once the check said it may be installed (a refusal lists every error).
+
+    Refused whatever ``--force`` says: a profile that does not load (the services load it too
+    and would refuse it at every start), and one with a ``[safety]`` error (a vehicle whose
+    safety chain is mis-declared is not installed).
+    """
+    if checked.safety_errors:
+        raise refusal(path, checked.errors, unforceable="a vehicle whose [safety] table is wrong is never installed")
+    try:
+        return load_profile(path)
+    except ProfileError as exc:
+        raise refusal(path, checked.errors or [str(exc)],
+                      unforceable="the profile does not load, and every service loads it") from None
+
+
+def preflight(profile: VehicleProfile, *, root: Path, taken: set[str], force: bool,
+              checked: CheckResult) -> Preflight:
     """Check *profile* for installing under *root*; InstallError with every problem unless *force*.
 
-    *taken*: vehicle paths the install writes otherwise (a referenced file must not land on one).
+    *checked*: :func:`offline_check` of the profile. *taken*: vehicle paths the install writes
+    otherwise (a referenced file must not land on one).
     """
+    from u2sa_hw.check.lenient import readable_configs
+
     assert profile.path is not None
-    errors, warnings = offline_check(profile.path, root=root)
+    errors, warnings = checked.errors, checked.warnings
     notices: list[str] = []
     unreadable: list[str] = []
-    try:
-        devices = profile_devices(profile, warn=notices.append)
+    try:   # a service's wrong setting (an error above) does not hide the devices of the others
+        devices = profile_devices(profile, configs=readable_configs(profile), warn=notices.append)
         plan = plan_devices(devices, profile_path=profile.path, made_elsewhere=links_made(rules_dirs(root)))
-    except (ProfileError, InstallError) as exc:
+    except (ValueError, InstallError) as exc:
         plan, unreadable = DevicePlan(), [f"no udev rules, CAN bring-up or PWM drop-ins from the devices: {exc}"]
     references, missing = find_references(profile, taken=taken)
     # What install itself cannot do for the vehicle; a link the check already named is not said twice.
@@ -88,7 +139,5 @@ def preflight(profile: VehicleProfile, *, root: Path, taken: set[str], force: bo
     own = [line for (_, path), line in zip(plan.unmade, unmade_text(plan)) if not any(path in e for e in errors)]
     own += [*unreadable, *missing]
     if (errors or own) and not force:
-        lines = "\n  ".join([*errors, *own])
-        raise InstallError(f"refusing to install {profile.path}: {len(errors) + len(own)} problem(s); fix them "
-                           f"(u2sa check --vehicle {profile.path}) or pass --force to install anyway:\n  {lines}")
+        raise refusal(profile.path, [*errors, *own])
     return Preflight(plan=plan, references=references, warnings=[*warnings, *notices, *errors], failures=cannot)

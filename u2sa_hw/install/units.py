@@ -189,16 +189,19 @@ def render_profile(profile: VehicleProfile, *, settings: Mapping[str, Mapping[st
 def service_configs(profile: VehicleProfile, *, rewrites: Mapping[str, Mapping[str, str]] | None = None
                     ) -> dict[str, bytes]:
     """Each service config file that exists next to the profile, keyed by its vehicle path; a config with
-    settings in *rewrites* (service -> {setting: value}) is rewritten to name the installed files."""
+    settings in *rewrites* (service -> {setting: value}) is rewritten to name the installed files.
+
+    A config that is not TOML is the offline check's error (install refuses it without ``--force``);
+    forced, it is installed as it is, and the service says what is wrong with it when it starts."""
     configs = {}
     for spec in profile.services.values():
         if spec.config_path.is_file():
             data = spec.config_path.read_bytes()
             try:
                 table = tomllib.loads(data.decode())
-            except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-                raise InstallError(f"{spec.config_path}: config of service '{spec.name}' is not valid TOML "
-                                   f"({exc}); fix it before installing") from None
+            except (tomllib.TOMLDecodeError, UnicodeDecodeError):
+                configs[f"{CONFIG_DIR}/{spec.name}.toml"] = data
+                continue
             changes = {k: v for k, v in (rewrites or {}).get(spec.name, {}).items() if table.get(k) != v}
             if changes:
                 table.update(changes)

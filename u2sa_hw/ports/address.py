@@ -5,7 +5,8 @@ The grammar (docs/ports.md has the table)::
     serial:///dev/u2sa/gps?baud=9600              a device path; optional bytesize, parity, stopbits,
                                                    usb=VID:PID and serial=SERIALNO (the udev identity)
     serial+socket://host:7000?baud=9600           any pyserial URL after "serial+" (socket, rfc2217, loop, spy)
-    can://socketcan/can0?bitrate=500000           python-can interface / channel; other params go to can.Bus
+    can://socketcan/can0?bitrate=500000           python-can interface / channel; the other can.Bus options
+                                                   an address may carry are listed in address_schemes.CAN_PARAMS
     i2c://1/0x68                                  adapter number (/dev/i2c-1) / 7-bit chip address
     gpio://gpiochip0/17,27                        /dev/gpiochip0, the lines the device uses (may be empty)
     pwm://pwmchip0/0                              /sys/class/pwm/pwmchip0, channel 0
@@ -30,7 +31,10 @@ API (stable; ``u2sa check``, install and udev generation build on it):
   ``usb_id``...).
 - :func:`make_address` builds one from parts (used by the legacy conversion and the mocks).
 
-Opening is :func:`u2sa_hw.ports.opener.open_port`; this module imports no port library.
+A query parameter the kind does not take is an error with a did-you-mean (``bitrat=`` is
+not handed on). The per-scheme parsers and parameter tables are in
+:mod:`u2sa_hw.ports.address_schemes`. Opening is :func:`u2sa_hw.ports.opener.open_port`;
+neither module imports a port library.
 """
 
 from __future__ import annotations
@@ -41,8 +45,14 @@ from types import MappingProxyType
 from typing import Any, Mapping
 from urllib.parse import parse_qsl, quote, urlencode
 
+from u2sa_hw.ports.address_schemes import (BAUDRATES, BYTESIZES, CAN_PARAMS, MOCK_PREFIX, PARAMS, PARITIES, PARSERS,
+                                           SERIAL_PARAMS, STOPBITS, SYSFS_PWM, UrlParts, check_params, typed_option)
+
+__all__ = ["KINDS", "MOCK_PREFIX", "EXAMPLES", "MOCK_EXAMPLES", "SERIAL_PARAMS", "CAN_PARAMS", "PARAMS", "BAUDRATES",
+           "PARITIES", "BYTESIZES", "STOPBITS", "SYSFS_PWM", "AddressError", "DeviceAddress", "parse_address",
+           "make_address"]
+
 KINDS = ("serial", "can", "i2c", "gpio", "pwm", "pca9685")
-MOCK_PREFIX = "mock+"
 
 EXAMPLES = {
     "serial": "serial:///dev/u2sa/gps?baud=9600",
@@ -60,16 +70,6 @@ MOCK_EXAMPLES = {
     "pwm": "mock+pwm:///run/sim/pwmchip0/0",
     "pca9685": "mock+pca9685:///run/sim/i2c-1.sock/0x40/3",
 }
-
-SERIAL_PARAMS = ("baud", "bytesize", "parity", "stopbits", "usb", "serial")
-PARAMS: dict[str, tuple[str, ...] | None] = {   # None: any parameter (CAN ones go to can.Bus)
-    "serial": SERIAL_PARAMS, "can": None, "i2c": (), "gpio": (), "pwm": (), "pca9685": (),
-}
-BAUDRATES = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
-PARITIES = ("N", "E", "O", "M", "S")
-BYTESIZES = (5, 6, 7, 8)
-STOPBITS = (1.0, 1.5, 2.0)
-SYSFS_PWM = "/sys/class/pwm"
 
 
 class AddressError(ValueError):
@@ -207,7 +207,7 @@ class DeviceAddress:
     def bus_options(self) -> dict[str, Any]:
         """Every parameter except ``bitrate``, typed, for ``can.Bus``."""
         self._need("can")
-        return {k: _typed_option(v) for k, v in self.params.items() if k != "bitrate"}
+        return {k: typed_option(v) for k, v in self.params.items() if k != "bitrate"}
 
     # ---- I2C and PCA9685 ---------------------------------------------------------------------
     @property
@@ -282,88 +282,6 @@ class DeviceAddress:
                             backend=self.backend, device="(derived)")
 
 
-def _typed_option(text: str) -> Any:
-    lowered = text.lower()
-    if lowered in ("true", "false"):
-        return lowered == "true"
-    try:
-        return int(text, 0)
-    except ValueError:
-        pass
-    try:
-        return float(text)
-    except ValueError:
-        return text
-
-
-def _number(text: str, what: str, fail: Any) -> int:
-    try:
-        return int(text, 0)
-    except ValueError:
-        raise fail(f"{what} {text!r} is not a number") from None
-
-
-def _check_params(kind: str, params: dict[str, str], fail: Any) -> None:
-    allowed = PARAMS[kind]
-    if allowed is None:
-        return
-    for key in params:
-        if key not in allowed:
-            close = difflib.get_close_matches(key, allowed, n=1)
-            hint = f" (did you mean '{close[0]}'?)" if close else ""
-            known = ", ".join(allowed) if allowed else "none"
-            raise fail(f"unknown parameter '{key}'{hint}; {kind} addresses take: {known}")
-
-
-def _check_serial(params: dict[str, str], fail: Any) -> None:
-    if "baud" in params:
-        baud = _number(params["baud"], "baud", fail)
-        if baud not in BAUDRATES:
-            raise fail(f"baud {baud} is not a serial rate; use one of {', '.join(map(str, BAUDRATES))}")
-    if "bytesize" in params and _number(params["bytesize"], "bytesize", fail) not in BYTESIZES:
-        raise fail(f"bytesize {params['bytesize']} must be 5, 6, 7 or 8")
-    if "parity" in params and params["parity"].upper() not in PARITIES:
-        raise fail(f"parity {params['parity']!r} must be N, E, O, M or S")
-    if "stopbits" in params:
-        try:
-            stop = float(params["stopbits"])
-        except ValueError:
-            stop = -1.0
-        if stop not in STOPBITS:
-            raise fail(f"stopbits {params['stopbits']!r} must be 1, 1.5 or 2")
-    usb = params.get("usb")
-    if usb is not None:
-        vendor, sep, product = usb.partition(":")
-        if not sep or not all(len(p) == 4 and all(c in "0123456789abcdefABCDEF" for c in p) for p in (vendor, product)):
-            raise fail(f"usb={usb!r} must be VENDOR:PRODUCT in 4-digit hex as lsusb prints it, e.g. usb=1546:01a7")
-    if "serial" in params and not params["serial"].strip():
-        raise fail("serial= (the USB serial number) is empty")
-
-
-def _chip_address(text: str, fail: Any) -> int:
-    value = _number(text, "I2C chip address", fail)
-    if not 0x03 <= value <= 0x77:
-        raise fail(f"I2C chip address {text} is not a 7-bit device address (0x03..0x77)")
-    return value
-
-
-def _channel(text: str, fail: Any, limit: int | None = None) -> int:
-    if not text.isdigit():
-        raise fail(f"channel {text!r} is not a channel number")
-    value = int(text)
-    if limit is not None and value >= limit:
-        raise fail(f"channel {value} is beyond the chip's {limit} channels (0..{limit - 1})")
-    return value
-
-
-def _split_last(path: str, count: int, what: str, fail: Any) -> tuple[str, list[str]]:
-    """``/a/b.sock/0x40/3`` with count 2 -> ("/a/b.sock", ["0x40", "3"])."""
-    parts = path.rstrip("/").split("/")
-    if len(parts) < count + 2 or not all(parts[-count:]):   # leading "" of an absolute path + location
-        raise fail(f"expected {what}")
-    return "/".join(parts[:-count]), parts[-count:]
-
-
 def parse_address(text: str, *, device: str) -> DeviceAddress:
     """Parse device *device*'s address *text*; AddressError (one line, with the fix) when it is wrong."""
     if not isinstance(text, str):
@@ -397,66 +315,11 @@ def parse_address(text: str, *, device: str) -> DeviceAddress:
         params = dict(parse_qsl(query, keep_blank_values=True, strict_parsing=bool(query)))
     except ValueError:
         raise fail(f"bad query string {query!r} (use key=value&key=value)") from None
-    _check_params(kind, params, fail)
+    check_params(kind, params, fail)
     netloc, slash, path = body.partition("/")
-    path = slash + path
-    numbers: tuple[int, ...] = ()
-    if kind == "serial":
-        _check_serial(params, fail)
-        if plus:
-            backend, location = serial_scheme, f"{serial_scheme}://{body}"
-        else:
-            if netloc or not path.strip("/"):
-                raise fail("a serial address is serial:// followed by an absolute device path (three slashes)")
-            backend, location = "path", path
-    elif kind == "can":
-        if not netloc or not path.strip("/"):
-            raise fail("expected can://INTERFACE/CHANNEL")
-        backend, location = netloc, path.strip("/")
-        for key in ("bitrate", "port"):
-            if key in params and (not params[key].isdigit()):
-                raise fail(f"{key}={params[key]!r} must be a whole number")
-    elif kind in ("i2c", "pca9685"):
-        count = 1 if kind == "i2c" else 2
-        what = "BUS/CHIP" if kind == "i2c" else "BUS/CHIP/CHANNEL"
-        if mock:
-            if netloc:
-                raise fail(f"a mock {kind} address is {MOCK_PREFIX}{kind}:///path/to/bus.sock/{what[4:]}")
-            backend = "mock"
-            location, tail = _split_last(path, count, f"/path/to/bus.sock/{what[4:]}", fail)
-        else:
-            tail = path.strip("/").split("/") if path.strip("/") else []
-            if not netloc.isdigit() or len(tail) != count:
-                raise fail(f"expected {kind}://{what} with BUS the adapter number (1 for /dev/i2c-1)")
-            backend, location = "smbus", netloc
-        numbers = (_chip_address(tail[0], fail),)
-        if kind == "pca9685":
-            numbers += (_channel(tail[1], fail, 16),)
-    elif kind == "gpio":
-        full = (f"/dev/{netloc}" if netloc else "") + path
-        chip, _, last = full.rstrip("/").rpartition("/")
-        if last and all(p.strip().isdigit() for p in last.split(",")):
-            numbers = tuple(int(p) for p in last.split(","))
-            if len(set(numbers)) != len(numbers):
-                raise fail(f"line list {last!r} repeats a line")
-        elif last and "," in last:
-            raise fail(f"line list {last!r} must be line numbers separated by commas")
-        else:
-            chip = full.rstrip("/")
-        if not chip or chip == "/dev":
-            raise fail("expected gpio://CHIP/LINE,LINE (CHIP as gpiodetect names it)")
-        if mock and netloc:
-            raise fail("a mock gpio address is mock+gpio:///path/to/chip.sock/LINES")
-        backend, location = ("mock" if mock else "gpiod"), chip
-    else:  # pwm
-        full = (f"{SYSFS_PWM}/{netloc}" if netloc else "") + path
-        if mock and netloc:
-            raise fail("a mock pwm address is mock+pwm:///path/to/chipdir/CHANNEL")
-        location, tail = _split_last(full, 1, "CHIP/CHANNEL", fail)
-        numbers = (_channel(tail[0], fail),)
-        backend = "mock" if mock else "sysfs"
-        if not mock and not location.startswith(SYSFS_PWM + "/"):
-            raise fail(f"a real pwm chip lives under {SYSFS_PWM}; a directory elsewhere is mock+pwm:///DIR/CHANNEL")
+    parts = UrlParts(kind=kind, mock=mock, serial_scheme=serial_scheme if plus else "", body=body, netloc=netloc,
+                     path=slash + path, params=params)
+    backend, location, numbers = PARSERS[kind](parts, fail)
     return DeviceAddress(url=url, kind=kind, mock=mock, params=MappingProxyType(params), backend=backend,
                          location=location, numbers=numbers)
 
