@@ -245,6 +245,8 @@ class GpioInputDriver(ExteroceptiveSensor):
 
     def _read_levels(self, port: GpioPort) -> None:
         """After every (re)open: the present levels, since edges before the open are not seen."""
+        if getattr(port, "device_clock", False):   # a replay chip: its clock, not the wall clock's time so far
+            self.clock_ns = None
         now, debounce = port.now_ns() or time.monotonic_ns(), int(self.config["debounce_ms"] * 1e6)
         self.inputs = {name: DebouncedInput(level=port.get(line), debounce_ns=debounce, at_ns=now)
                        for name, line in self.lines_by_name.items()}

@@ -57,6 +57,14 @@ from u2sa_hw.safety.prearm import CheckFailure, PrearmChecks
 from u2sa_hw.safety.wiring import check_wiring
 
 
+def _next_due(due_ns: int, period_ns: int, now_ns: int) -> int:
+    """The next time a timed message is due: one period on, or one period from now when more than a
+    period behind (no burst after a stall); always after *now_ns*, so a second look at the same time
+    never sends it twice."""
+    following = due_ns + period_ns
+    return following if following > now_ns else now_ns + period_ns
+
+
 class RcSetup(NamedTuple):
     """What the config says, checked: channel lines by name, enable and select lines, the pulse meter
     and the mode filter."""
@@ -276,6 +284,8 @@ class RcMuxDriver(Sensor):
         if self.config["require_rearm"]:
             self.armed = False  # the lines were lost (or never held): the pilot re-arms
         self.meter.reset()
+        if getattr(port, "device_clock", False):   # a replay chip: its clock, not the wall clock's time so far
+            self.clock_ns, self._next_publish_ns, self._next_manual_ns = None, 0, 0
         self.select_level = port.get(self.select_line) if self.select_line >= 0 else None
 
     # -- the loop ------------------------------------------------------------------------
@@ -319,11 +329,11 @@ class RcMuxDriver(Sensor):
             self._changed.clear()
             self.publish_mode()
             if now is not None:
-                self._next_publish_ns = max(self._next_publish_ns + period_ns, now)
+                self._next_publish_ns = _next_due(self._next_publish_ns, period_ns, now)
         if (self.sticks is not None and self.filter.mode == MODE_MANUAL and now is not None
                 and now >= self._next_manual_ns):
             self.publish_manual()
-            self._next_manual_ns = max(self._next_manual_ns + int(1e9 / self.config["manual_hz"]), now)
+            self._next_manual_ns = _next_due(self._next_manual_ns, int(1e9 / self.config["manual_hz"]), now)
 
     def _check_stall(self, last_loop_ns: int) -> int:
         """A loop gap longer than the signal timeout, or long enough that the actuators may have seen

@@ -57,6 +57,12 @@ def header_source(msg: Any) -> str:
     return ""
 
 
+def _targeted(target: str, items: Iterator[tuple[int, Any]]) -> Iterator[tuple[int, str, Any]]:
+    """``(t, payload)`` items as ``(t, target, payload)`` events."""
+    for t_ns, payload in items:
+        yield t_ns, target, payload
+
+
 class Player:
     """Plays the window [start_ns, end_ns] of a log into devices and onto the replay bus."""
 
@@ -84,7 +90,7 @@ class Player:
         """``(log time ns, target, payload)`` in log order: target a device name, or ``"bus:<channel>"``
         with the recorded bytes; a device's clock ticks (a GPIO replay chip's, through recorded
         silences) are merged in at their log times."""
-        ticks = [((t, name, tick) for t, tick in device.clock_ticks()) for name, device in self.devices.items()
+        ticks = [_targeted(name, device.clock_ticks()) for name, device in self.devices.items()
                  if hasattr(device, "clock_ticks")]
         if not ticks:
             return self._recorded()

@@ -170,6 +170,7 @@ class Replay:
         self._received: dict[str, int] = {}    # service -> its outputs the replay bus delivered here
         self._published: dict[str, int] = {}   # service -> its outputs by its own count (latest health)
         self._last_output = time.monotonic()
+        self._clocked = False   # a GPIO replay chip with edges: the drivers' timers stop with its clock
         self.run_dir: Path | None = None   # made by run(); kept after a failure for its logs
 
     def _log_of(self, service: str) -> Path:
@@ -197,7 +198,9 @@ class Replay:
         source = raw_source(data)
         if source in self.plan.services:
             self._received[source] = self._received.get(source, 0) + 1
-            if channel not in STATE_CHANNELS:   # published on a timer too: never quiet, so not waited for
+            # state channels are published on a timer too, so they are waited for only when that timer
+            # runs on a replay chip's clock, which stops with the recorded edges (GPIO logs)
+            if channel not in STATE_CHANNELS or self._clocked:
                 self._last_output = time.monotonic()
 
     def _note_health(self, data: bytes) -> None:
@@ -313,6 +316,7 @@ class Replay:
             transport.subscribe(".*", None, self._on_message, raw=True)
             capture.start()
             transport.start()
+            self._clocked = any(getattr(d, "timed", False) for d in devices.values())
             for device in devices.values():
                 device.start()
             started = time.monotonic()

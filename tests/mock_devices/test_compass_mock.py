@@ -186,7 +186,7 @@ def test_disconnect_and_reconnect(compass: tuple[PeriodicSerialDevice, Callable]
 
 def test_bad_options_are_refused(tmp_path: Path) -> None:
     v = vehicle_heading(0.0)
-    with pytest.raises(ValueError, match=r"unsupported sentence\(s\) \['VHW'\]; choose from HDG, HDM, HDT, XDR"):
+    with pytest.raises(ValueError, match=r"unsupported sentence\(s\) \['VHW'\]; choose from HDG, HDM, HDT, THS, ROT, XDR, PASHR, PTNTHTM, PTNTHPR"):
         NmeaCompassDevice(v, link_path=tmp_path / "x", sentences=("VHW",))
     with pytest.raises(ValueError, match="declination_deg must be a finite number"):
         Os5000CompassDevice(v, link_path=tmp_path / "x", declination_deg=float("nan"))

@@ -32,8 +32,8 @@ Devices replayed: serial (bytes into a pty), I2C (register reads answered), CAN 
 onto a private bus), GPIO (edges on a mock chip, with their recorded spacing) and PWM
 (a sysfs-shaped directory or a mock PCA9685; the driver's recorded commands are played
 on the bus and its pulse writes compared). --fast plays each device as fast as its
-driver reads (no clock; silences are not reproduced); a log with GPIO edges is always
-played at --rate 1, because the GPIO drivers time the edges against their own clock.
+driver reads (no clock; silences are not reproduced); GPIO edges carry their recorded
+kernel timestamps and the GPIO drivers judge time by them, so GPIO logs play at any speed.
 See docs/replay.md for what each mode means for each driver.
 """
 
@@ -45,7 +45,7 @@ def register(sub: Any) -> None:
     p.add_argument("file", help="an MCAP log recorded with record_raw = true in the driver configs")
     speed = p.add_mutually_exclusive_group()
     speed.add_argument("--rate", type=float, default=1.0, metavar="X", help="play X times real time (default 1)")
-    speed.add_argument("--fast", action="store_true", help="as fast as the drivers take their input (GPIO edges: always --rate 1)")
+    speed.add_argument("--fast", action="store_true", help="as fast as the drivers take their input (GPIO included)")
     p.add_argument("--start", type=float, default=0.0, metavar="S", help="begin S seconds into the log")
     p.add_argument("--end", type=float, default=None, metavar="S", help="stop S seconds into the log")
     p.add_argument("--services", nargs="+", default=[], metavar="NAME",

@@ -265,9 +265,10 @@ class MockGpioPort(GpioPort):
             else:
                 event = ClockTick(MOCK_TICK_RECORD.unpack(payload)[0])
             with self._cond:
-                if self.device_clock:   # a replay: hold the chip back rather than lose an edge
-                    self._cond.wait_for(lambda: len(self._edges) < EVENT_BUFFER or self._closed)
-                elif len(self._edges) >= EVENT_BUFFER:
+                # a replay chip's edges are all kept (its player paces them by what the chip still has
+                # to send); holding this reader back instead would also hold back the reply to a
+                # write the driver waits for behind them
+                if not self.device_clock and len(self._edges) >= EVENT_BUFFER:
                     self._edges.popleft()   # the oldest is dropped first, as the kernel does
                 self._edges.append(event)
                 self._heard_at = time.monotonic()
@@ -319,7 +320,6 @@ class MockGpioPort(GpioPort):
             self._cond.wait_for(lambda: self._edges or self._lost or self._closed, timeout)
             events = list(self._edges)
             self._edges.clear()
-            self._cond.notify_all()   # room again for a held-back reader
             if not events and self._lost:
                 raise self._lost_error(self._lost)
             if events and self.device_clock:
