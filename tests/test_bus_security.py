@@ -3,9 +3,11 @@
 A state estimator runs as its own process with the session's key. Another process without
 the key (an open transport, as a laptop on the WiFi would be) and one with the wrong key
 send a stop, a config change, a failsafe clear, an actuator command and a STATE_INFO: the
-service obeys none, counts each per channel in its health and keeps running. A captured
-signed packet sent again is dropped as replayed; a rotated key is picked up without a
-restart; a restarted service is heard at once.
+service obeys none, counts each per channel in its health and keeps running. The services
+that act are sent the same: a ``pwm_servo`` actuator on a sysfs-shaped PWM tree moves nothing
+for a forged or unsigned ACTUATOR_CMD, and keeps a raised failsafe through a forged and an
+unsigned clear. A captured signed packet sent again is dropped as replayed; a rotated key is
+picked up without a restart; a restarted service is heard at once; a duplicate refuses to start.
 """
 
 from __future__ import annotations
@@ -22,12 +24,16 @@ from typing import Any
 import lcm
 import pytest
 from conftest import ServiceProcesses, wait_until
+from gpio_driver_harness import BusCollector
+from serial_driver_harness import start_driver
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus_client import BusClient
-from u2sa_hw.bus_auth import TAG, TRAILER_LEN, BusAuth, keyring_for
+from u2sa_hw.bus_auth import TAG, TRAILER_LEN, BusAuth, Keyring, keyring_for
 from u2sa_hw.bus_key import KEY_ENV, key_path, new_key, write_key
+from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
+from u2sa_hw.service_bus import PROBE_ENV
 from u2sa_hw.transport import Transport
 
 SERVICE = "state_estimator"
@@ -208,8 +214,9 @@ def test_an_open_bus_is_said_at_start_and_in_discovery(services: ServiceProcesse
 
 
 def test_a_duplicate_service_refuses_to_start_naming_the_other(services: ServiceProcesses, bus: BusClient) -> None:
-    first = start_estimator(services, bus)
-    second = services.start(SERVICE)
+    first = start_estimator(services, bus)     # discoverable before the second starts
+    # The second listens as long as a loaded machine may take the first to answer: the check is the same one.
+    second = services.start(SERVICE, **{PROBE_ENV: "20"})
     assert second.wait(timeout=60) == 3
     out = (services.workdir / f"{SERVICE}.stderr").read_text()
     line = next(x for x in out.splitlines() if "already runs on this bus" in x)
@@ -275,3 +282,79 @@ def test_garbage_truncated_and_huge_counter_trailers_are_counted_never_raised(se
     assert bus.discover(timeout=1.0, name=SERVICE)[0].pid == first.pid
     log = (services.workdir / ".u2sa" / "logs" / f"{SERVICE}.log").read_text()
     assert "Traceback" not in log and log.count("dropping unsigned message on U2SA_STOP") == 1
+
+
+# ------------------------------------------------------------------ the services that act ---------
+class Forger:
+    """A laptop on the network: unsigned packets, and packets signed with a key that is not the vehicle's."""
+
+    def __init__(self, url: str, wrong_key: Path) -> None:
+        write_key(wrong_key, new_key(), group=None)
+        self.wire = Transport(url, name="laptop", security="open")      # sends the bytes as they are
+        self.wrong = BusAuth(Keyring(wrong_key))
+
+    def send(self, channel: str, msg: Any) -> None:
+        payload = msg.encode()
+        assert self.wire.publish_bytes(channel, payload)                          # unsigned
+        assert self.wire.publish_bytes(channel, self.wrong.sign(channel, payload))   # forged
+
+    def close(self) -> None:
+        self.wire.stop()
+
+
+def test_an_actuator_moves_for_no_forged_command_and_keeps_its_failsafe_through_forged_clears(
+        services: ServiceProcesses, bus: BusClient, tmp_path: Path) -> None:
+    pwm = make_sysfs_pwm_tree(tmp_path / "pwmchip0", npwm=1)
+    profile = tmp_path / "vehicle.toml"          # a bench: no RC gating, no dead-man, so a command would stick
+    profile.write_text(f'[vehicle]\nname = "bench"\nlcm_url = "{services.url}"\nlog_dir = "logs"\n'
+                       '[services.drive]\nkind = "pwm_servo"\nsettings = { health_interval_s = 0.2, '
+                       f'command_timeout_s = 0.0, rc_gating = false, channels = [{{ name = "esc", address = "{pwm}", '
+                       'channel = 0 }] }\n')
+    col = BusCollector(bus).listen(ch.HEALTH, t.Health)
+
+    def duty_us() -> float:
+        try:
+            return int((pwm / "pwm0" / "duty_cycle").read_text()) / 1000.0
+        except (OSError, ValueError):
+            return -1.0
+
+    def drive(predicate: Any, message: str) -> dict[str, str]:
+        return col.health_of("drive", predicate, since=col.count(ch.HEALTH), timeout=30, message=message)
+
+    proc = start_driver(services, profile, "drive")
+    forger = Forger(services.url, tmp_path / "laptop.key")
+    command = t.PercentageCommand()
+    command.base.actuator_name, command.percentage = "esc", 100.0
+    try:
+        wait_until(lambda: duty_us() == 1500.0, timeout=30, message="the ESC neutral at start")
+        drive(lambda d: d["failsafe"] == "False", "the actuator's health")
+
+        forger.send(ch.ACTUATOR_CMD, command)
+        dropped = drive(lambda d: "ACTUATOR_CMD: unsigned 1, forged 1" in d.get("bus_rejected", ""),
+                        "the actuator to count the forged and unsigned commands")
+        assert (dropped["commands"], dropped["ignored"]) == ("0", "0"), "a forged command reached the gate"
+        assert duty_us() == 1500.0, "a forged 100 % moved the ESC"
+        bus.publish(ch.ACTUATOR_CMD, command)      # the vehicle's key: obeyed (the path works)
+        wait_until(lambda: duty_us() == 2000.0, timeout=30, message="the signed command to move the ESC")
+
+        raised = t.Failsafe()
+        raised.active, raised.reason, raised.header.source = True, "swimmer near the vehicle", "operator"
+        bus.publish(ch.FAILSAFE, raised)
+        drive(lambda d: d["failsafe"] == "True" and d["failsafe_sources"] == "operator", "the failsafe held")
+        wait_until(lambda: duty_us() == 1500.0, timeout=30, message="neutral on the failsafe")
+
+        clear = t.Failsafe()                        # the operator's clear of every source, forged and unsigned
+        clear.active, clear.service, clear.header.source = False, "*", "operator"
+        forger.send(ch.FAILSAFE, clear)
+        held = drive(lambda d: "FAILSAFE: unsigned 1, forged 1" in d.get("bus_rejected", ""),
+                     "the actuator to count the forged and unsigned clears")
+        assert held["failsafe"] == "True" and held["failsafe_sources"] == "operator", held
+        forger.send(ch.ACTUATOR_CMD, command)
+        drive(lambda d: "ACTUATOR_CMD: unsigned 2, forged 2" in d.get("bus_rejected", ""), "the second forgeries")
+        assert duty_us() == 1500.0
+
+        bus.publish(ch.FAILSAFE, clear)             # signed: obeyed
+        drive(lambda d: d["failsafe"] == "False", "the signed clear lowering the failsafe")
+        assert proc.poll() is None
+    finally:
+        forger.close()

@@ -21,6 +21,8 @@ from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus_client import BusClient
 from u2sa_hw.launcher import Launcher, LauncherBusy, LauncherClient, LauncherError, RestartPolicy, SupervisedProcess
 from u2sa_hw.launcher.launcher import u2sa_command
+from u2sa_hw.launcher.process import REFUSED_EXIT
+from u2sa_hw.service_bus import DUPLICATE_EXIT, PROBE_ENV
 from u2sa_hw.vehicle import load_profile
 
 
@@ -118,7 +120,7 @@ SLOW_CRASH = ("import os, socket, sys, time\n"
               "    s.sendto(b'READY=1', '\\0' + addr[1:] if addr.startswith('@') else addr)\n"
               "time.sleep(float(os.environ['CRASH_AFTER_S']))\n"
               "print('crashing now', flush=True)\n"
-              "sys.exit(3)\n")
+              "sys.exit(5)\n")
 
 
 def test_a_service_that_crashes_after_a_healthy_looking_start_is_given_up(tmp_path: Path, lcm_url: str) -> None:
@@ -136,12 +138,12 @@ def test_a_service_that_crashes_after_a_healthy_looking_start_is_given_up(tmp_pa
         launcher.stop(timeout=10)
     assert launcher.exit_code == 1 and launcher.failed == ["slow"]
     said = [line for name, line in lines if name == "launcher"]
-    assert sum("slow exited with status 3" in line for line in said) == 3
+    assert sum("slow exited with status 5" in line for line in said) == 3
     assert any("restarting in 0.05 s (quick deaths: 0, failures: 2/3 within 120 s)" in line for line in said), said
     assert any("giving up after 3 failed exits within 120 s" in line for line in said), said
     (status,) = launcher.status()
     assert status.state == "failed" and status.quick_deaths == 0 and status.failures == 3
-    assert status.reason == "3 failed exits within 120 s, last exited with status 3"
+    assert status.reason == "3 failed exits within 120 s, last exited with status 5"
     assert lines.count(("slow", "crashing now")) == 3
 
 
@@ -305,3 +307,61 @@ def test_a_first_service_that_never_gets_ready_holds_the_others_only_for_first_w
         assert ("launcher", "rec not ready after 2 s: starting the others anyway") in lines
     finally:
         launcher.stop(timeout=30)
+
+
+REFUSES = ("import sys\n"
+           "print('another one of my name is on the bus', flush=True)\n"
+           "sys.exit(3)\n")
+
+
+def test_a_service_that_refuses_to_start_is_never_restarted(tmp_path: Path, lcm_url: str) -> None:
+    # Exit status 3 is a refusal (u2sa_hw.service_bus): a restart would find the same, as under
+    # systemd's RestartPreventExitStatus=3. Its line is printed once and the launcher stops.
+    assert REFUSED_EXIT == DUPLICATE_EXIT == 3
+    profile = load_profile(write_profile(tmp_path, lcm_url, {"dup": "state_estimator", "est": "state_estimator"}))
+    lines: list[tuple[str, str]] = []
+    policy = RestartPolicy(initial_backoff_s=0.0, quick_death_s=5.0, give_up_after=5, max_failures=10)
+    launcher = Launcher(profile, policy=policy, control=False, grace_s=1.0,
+                        output=lambda n, line: lines.append((n, line)),
+                        command=lambda spec: [sys.executable, "-c", REFUSES if spec.name == "dup" else
+                                              "import time; time.sleep(60)"])
+    launcher.start()
+    try:
+        assert launcher.wait(60), "the launcher kept going after a refusal"
+    finally:
+        launcher.stop(timeout=10)
+    assert launcher.exit_code == 1 and launcher.failed == ["dup"]
+    assert lines.count(("dup", "another one of my name is on the bus")) == 1
+    said = [line for name, line in lines if name == "launcher"]
+    assert sum(line.startswith("dup started") for line in said) == 1
+    assert any(line.startswith("dup exited with status 3") and "refused to start" in line and "not restarted" in line
+               for line in said), said
+    assert not any("restarting in" in line for line in said), said
+    status = {s.name: s for s in launcher.status()}
+    assert status["dup"].state == "failed" and status["dup"].reason.startswith("refused to start")
+    assert status["dup"].run_id == 1 and status["est"].state == "stopped"
+
+
+def test_the_unit_file_prevents_the_restart_of_a_refusal_too() -> None:
+    unit = (Path(__file__).resolve().parents[1] / "systemd" / "u2sa@.service").read_text()
+    assert f"RestartPreventExitStatus={REFUSED_EXIT}" in unit.splitlines()
+
+
+def test_a_second_run_of_the_vehicle_on_its_bus_refuses_once(tmp_path: Path, lcm_url: str, launch: Any,
+                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same profile from a second directory (its own data_dir, so its own control socket): its service
+    finds the first run's one on the bus, says so once, and nothing is restarted."""
+    monkeypatch.setenv(PROBE_ENV, "20")      # a loaded machine may take the first run's service long to answer
+    (tmp_path / "one").mkdir()
+    (tmp_path / "two").mkdir()
+    first = launch(write_profile(tmp_path / "one", lcm_url, {"est": "state_estimator"}))
+    pid = wait_until(lambda: (s := first.status()) and s["est"]["ready"] and s["est"]["pid"], timeout=60,
+                     message="the first run's service ready")
+    second = launch(write_profile(tmp_path / "two", lcm_url, {"est": "state_estimator"}))
+    assert second.proc.wait(timeout=120) == 1
+    out = second.output
+    assert out.count("already runs on this bus") == 1 and f"pid {pid}" in out, out
+    assert re.search(r"^launcher +\| est exited with status 3 .*refused to start.*not restarted", out, re.MULTILINE)
+    assert out.count("est started, pid") == 1 and "restarting in" not in out
+    assert "exit 1: est refused to start" in out
+    assert first.proc.poll() is None and first.status()["est"]["pid"] == pid

@@ -19,6 +19,10 @@ A restarted service is a new sender with a current counter: accepted at once. A 
 captured and replayed a minute later is either not above its sender's last counter or,
 for a receiver that never heard that sender, outside the window.
 
+Restarts: a receiver's window never starts below the signing time the board saved before a
+reboot (``u2sa_hw.bus_clock``; the transport calls :meth:`BusAuth.adopt`), so a board that
+boots without a real-time clock does not accept a packet captured before it went down.
+
 Failsafe raises: a packet refused as REPLAYED only for its counter's age or range (its MAC
 checked, its counter above its sender's last) may still be accepted by the transport through
 :meth:`BusAuth.admit_stale` when it is a signed ``Failsafe`` with ``active = true``: a replayed
@@ -231,6 +235,25 @@ class BusAuth:
     def now(self) -> int:
         """The signing clock in µs: the wall clock, moved forward to the newest verified counter."""
         return self._wall_ns() // 1000 + self._offset
+
+    def high_water(self) -> int:
+        """The highest signing time this sender reached: its clock, or its last counter if that is larger."""
+        return max(self.now(), self._last_sent)
+
+    def adopt(self, at_least_us: int) -> bool:
+        """Move the signing clock forward to *at_least_us* (a saved time, ``u2sa_hw.bus_clock``); True if it moved.
+
+        Refused (False) like a counter out of range: above :data:`MAX_COUNTER`, or more than
+        :data:`MAX_AHEAD_US` ahead of a wall clock that is set. Never moves the clock back.
+        """
+        now = self.now()
+        if at_least_us <= now:
+            return False
+        if at_least_us > MAX_COUNTER or (at_least_us > now + MAX_AHEAD_US and now >= SANE_CLOCK_US):
+            log.warning("ignoring a saved bus clock of %d µs: out of range for this clock (%d µs)", at_least_us, now)
+            return False
+        self._offset += at_least_us - now
+        return True
 
     def sign(self, channel: str, payload: bytes) -> bytes:
         """*payload* with its trailer."""

@@ -12,24 +12,36 @@ IP_MULTICAST_ALL off, and points the send socket at the same interface (IP_MULTI
 
 Only the sockets LCM made for this transport are touched (the fds that appeared while it
 opened). LCM's own self test, when the receiver opens, sends on the default route: the send
-socket is pointed back there for it. When the interface cannot carry multicast (``lo``
-without its MULTICAST flag), the transport keeps LCM's default and says once how to fix it.
+socket is pointed back there for it.
+
+Linux's ``lo`` has no MULTICAST flag by default. :func:`prepare_interface` sets it
+(``SIOCSIFFLAGS``, what ``ip link set lo multicast on`` does) when the process may (root, or
+CAP_NET_ADMIN: ``u2sa run`` as root; the ``u2sa-multicast-lo`` unit does it for installed
+units). When it may not, the transport stays on LCM's default interface and
+:func:`prepare_interface` says so in one line (``bus listens on eth0, not lo: sudo ip link
+set lo multicast on``): the transport keeps it as ``listen_problem``, every service's health
+carries it (``bus_listen``), and a service signed with the vehicle's key refuses to start
+(``u2sa_hw.service_bus.listen_refusal``, docs/security.md "Where the vehicle listens").
 """
 
 from __future__ import annotations
 
 import errno
+import fcntl
 import logging
 import os
 import socket
 import struct
-from pathlib import Path
 from urllib.parse import parse_qs, urlsplit
 
 log = logging.getLogger("u2sa_hw.bus_listen")
 
 IP_MULTICAST_ALL = getattr(socket, "IP_MULTICAST_ALL", 49)
 IFF_MULTICAST = 0x1000
+SIOCGIFFLAGS = 0x8913
+SIOCSIFFLAGS = 0x8914
+_IFREQ_FLAGS = struct.Struct("16sH22x")          # struct ifreq: the name, then ifr_flags (40 bytes in all)
+ROUTE_FILE = "/proc/net/route"
 ANY_INTERFACE_ENV = "U2SA_BUS_ANY_INTERFACE"   # set: LCM's default interface even for ttl=0 (diagnosis)
 _warned: set[str] = set()
 
@@ -46,12 +58,25 @@ def socket_fds() -> set[int]:
     return fds
 
 
+def is_local(url: str) -> bool:
+    """True for a ``udpm://`` URL with ``ttl=0`` (or none): a bus that must stay on this board."""
+    if not url.startswith("udpm://"):
+        return False
+    return parse_qs(urlsplit(url).query).get("ttl", ["0"])[0].strip() in ("", "0")
+
+
 def listen_interface(url: str, interface: str | None) -> str | None:
     """The interface a transport on *url* should use: ``lo`` for ttl=0, *interface* otherwise (None: LCM's)."""
     if not url.startswith("udpm://") or os.environ.get(ANY_INTERFACE_ENV):
         return None
-    ttl = parse_qs(urlsplit(url).query).get("ttl", ["0"])[0]
-    return "lo" if ttl.strip() in ("", "0") else interface
+    return "lo" if is_local(url) else interface
+
+
+def forced_default_problem(url: str) -> str:
+    """The line health carries when ``$U2SA_BUS_ANY_INTERFACE`` keeps a ttl=0 bus on LCM's default ("" otherwise)."""
+    if not os.environ.get(ANY_INTERFACE_ENV) or not is_local(url):
+        return ""
+    return f"bus listens on {route_interface(url)}, not lo: ${ANY_INTERFACE_ENV} is set (diagnosis only); unset it"
 
 
 def _group_and_port(url: str) -> tuple[bytes, int]:
@@ -59,28 +84,76 @@ def _group_and_port(url: str) -> tuple[bytes, int]:
     return socket.inet_aton(where.hostname or "239.255.76.67"), where.port or 7667
 
 
-def _multicast_capable(interface: str) -> bool:
+def interface_flags(interface: str) -> int | None:
+    """The kernel's flags of *interface* in this network namespace (SIOCGIFFLAGS), None when unknown."""
     try:
-        return int(Path(f"/sys/class/net/{interface}/flags").read_text(), 16) & IFF_MULTICAST != 0
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            reply = fcntl.ioctl(sock.fileno(), SIOCGIFFLAGS, _IFREQ_FLAGS.pack(interface.encode()[:15], 0))
+    except OSError:
+        return None
+    return _IFREQ_FLAGS.unpack(reply)[1]
+
+
+def set_multicast_flag(interface: str) -> None:
+    """Turn *interface*'s MULTICAST flag on (``ip link set IF multicast on``); OSError (EPERM) without CAP_NET_ADMIN."""
+    flags = interface_flags(interface)
+    if flags is None:
+        raise OSError(errno.ENODEV, f"no interface {interface}")
+    if flags & IFF_MULTICAST:
+        return
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        fcntl.ioctl(sock.fileno(), SIOCSIFFLAGS, _IFREQ_FLAGS.pack(interface.encode()[:15], flags | IFF_MULTICAST))
+
+
+def route_interface(url: str, *, route_file: str = ROUTE_FILE) -> str:
+    """The interface the kernel routes *url*'s multicast group to (where LCM joins it), or a description."""
+    group = struct.unpack("<I", _group_and_port(url)[0])[0]   # /proc/net/route is in host (little-endian) order
+    best: tuple[int, str] | None = None
+    try:
+        with open(route_file) as f:
+            next(f, None)
+            for line in f:
+                fields = line.split()
+                if len(fields) < 8:
+                    continue
+                dest, mask = int(fields[1], 16), int(fields[7], 16)
+                if group & mask == dest and (best is None or bin(mask).count("1") > best[0]):
+                    best = (bin(mask).count("1"), fields[0])
     except (OSError, ValueError):
-        return False
+        pass
+    return best[1] if best else "the default route's interface"
 
 
-def interface_index(interface: str) -> int | None:
-    """The index of *interface*, or None when it cannot carry multicast (said once); OSError when unknown."""
+def prepare_interface(url: str, interface: str) -> tuple[int | None, str]:
+    """``(index, "")`` when the bus can be kept on *interface*; ``(None, why and the fix)`` when it cannot.
+
+    ``lo`` without its MULTICAST flag gets it when this process may set it (root); otherwise the
+    transport stays on LCM's default interface and the second item says so in one line, logged
+    once per interface. OSError when *interface* does not exist.
+    """
     try:
         index = socket.if_nametoindex(interface)
     except OSError:
         raise OSError(f"bus_interface {interface!r}: no such network interface "
                       f"(the interfaces here: {', '.join(n for _i, n in socket.if_nameindex())})") from None
-    if not _multicast_capable(interface):
-        if interface not in _warned:
-            _warned.add(interface)
-            log.warning("%s has no MULTICAST flag: the bus listens on the default route's interface too; "
-                        "'sudo ip link set %s multicast on' (the u2sa-multicast-lo unit does it for lo)",
-                        interface, interface)
-        return None
-    return index
+    flags = interface_flags(interface)
+    if flags is not None and not flags & IFF_MULTICAST and interface == "lo":
+        try:
+            set_multicast_flag(interface)
+        except OSError as exc:
+            log.debug("cannot set %s's MULTICAST flag: %s", interface, exc)
+        else:
+            log.info("set %s's MULTICAST flag (ip link set %s multicast on): the bus stays on %s",
+                     interface, interface, interface)
+            flags = interface_flags(interface)
+    if flags is not None and flags & IFF_MULTICAST:
+        return index, ""
+    problem = (f"bus listens on {route_interface(url)}, not {interface}: sudo ip link set {interface} multicast on "
+               f"({interface} has no MULTICAST flag and this process may not set it)")
+    if interface not in _warned:
+        _warned.add(interface)
+        log.warning("%s", problem)
+    return None, problem
 
 
 def _inet_dgram(fds: set[int]) -> list[socket.socket]:

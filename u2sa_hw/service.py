@@ -339,6 +339,8 @@ class U2SAService:
         rejected = rejected_text(self.transport.rejected())
         if rejected:
             details["bus_rejected"] = rejected
+        if self.transport.listen_problem:   # a ttl=0 bus heard beyond this board (u2sa_hw.bus_listen)
+            details["bus_listen"] = self.transport.listen_problem
         last_error = self.last_error or self.transport.last_error
         msg = build_health(name=self.name, service_type=self.SERVICE_TYPE, status=self.status, stats=self._stats,
                            transport=self.transport, last_error=last_error, details=details)

@@ -1,18 +1,30 @@
-"""What a service says about its bus, and the check that keeps two of one name apart (issue 11).
+"""What a service says about its bus, and the checks that refuse a start (issue 11).
 
 * :func:`bus_text` and :func:`rejected_text` fill the ``bus_security`` and ``bus_rejected``
-  details of every Health message (``u2sa services`` and ``u2sa health`` show them).
+  details of every Health message (``u2sa services`` and ``u2sa health`` show them); the
+  transport's ``listen_problem`` fills ``bus_listen``.
 * :func:`find_duplicate` runs as a service process starts, before ``setup()`` opens any
-  device: a live service of the same name that answers discovery on this bus means this
-  one refuses to start (exit :data:`DUPLICATE_EXIT`) with one line naming the other's pid
-  and host and the fix. Only a process with the bus key can answer, so another stack
-  signed with another key is no duplicate.
+  device, and says why it must not start, in one line; the service then exits
+  :data:`DUPLICATE_EXIT` (3), which neither ``u2sa run`` nor systemd
+  (``RestartPreventExitStatus=3``) restarts, since a restart would find the same:
+
+  - :func:`listen_refusal`: a ``ttl=0`` bus that cannot be kept on ``lo`` (its MULTICAST flag
+    is off and the service may not set it) with a key other hosts may hold (the installed
+    ``/etc/u2sa/bus.key`` or the profile's ``bus_key``) or on an open bus: any host on the
+    network that has the key (or, open, any host) could command it. A key the run made for
+    itself (``$U2SA_BUS_KEY_FILE``: ``u2sa sim``, ``u2sa run`` without an installed key, the
+    tests) is held by no other host: the service starts and its health says where it listens.
+  - a live service of the same name that answers discovery on this bus: the line names the
+    other's pid and host and the fix. Only a process with the bus key can answer, so another
+    stack signed with another key is no duplicate. The probe lasts :data:`DUPLICATE_PROBE_S`
+    (``$U2SA_DUPLICATE_PROBE_S`` to wait longer, e.g. on a loaded test machine).
 """
 
 from __future__ import annotations
 
 import os
 import time
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from u2sa_hw import channels as ch
@@ -24,7 +36,8 @@ if TYPE_CHECKING:
     from u2sa_hw.transport import Transport
 
 DUPLICATE_PROBE_S = 0.25   # how long a starting service listens for another of its name
-DUPLICATE_EXIT = 3         # exit status of a service that refused to start beside its duplicate
+PROBE_ENV = "U2SA_DUPLICATE_PROBE_S"
+DUPLICATE_EXIT = 3         # exit status of a service that refused to start (a duplicate, a bus off the board)
 
 
 def bus_text(transport: "Transport") -> str:
@@ -38,11 +51,58 @@ def rejected_text(rejected: dict[str, dict[str, int]]) -> str:
                      for channel, counts in rejected.items())
 
 
-def find_duplicate(service: "U2SAService", *, timeout: float = DUPLICATE_PROBE_S) -> str | None:
-    """Why *service* must not start (another of its name answers discovery), or None.
+def run_key(key_file: Path, profile_key: Path | None, *, env: dict[str, str] | None = None) -> bool:
+    """True when *key_file* is a key this run chose (``$U2SA_BUS_KEY_FILE``), not the vehicle's.
+
+    The vehicle's key is the installed ``/etc/u2sa/bus.key`` or the profile's ``bus_key``: the
+    key a ground station or another board may hold.
+    """
+    from u2sa_hw.bus_key import KEY_ENV, SYSTEM_KEY
+
+    if not (os.environ if env is None else env).get(KEY_ENV):
+        return False
+    vehicle_keys = {SYSTEM_KEY.resolve(), *([Path(profile_key).resolve()] if profile_key else [])}
+    return Path(key_file).resolve() not in vehicle_keys
+
+
+def listen_refusal(service: "U2SAService") -> str | None:
+    """Why *service* must not start because its bus cannot be kept where it belongs, or None.
+
+    Only a bus the transport could not keep on its interface (``lo`` for ``ttl=0``, else the
+    profile's ``bus_interface``) is refused, and only when a host on the network could command
+    the service: with the vehicle's key, or on an open bus.
+    """
+    transport = service.transport
+    problem = transport.listen_problem
+    if not problem or transport.interface is None:   # fine, or $U2SA_BUS_ANY_INTERFACE asked for it
+        return None
+    auth = transport.auth
+    if auth is not None and run_key(auth.keyring.path, service.profile.bus_key):
+        return None   # a key no other host has: it starts, and its health says where it listens
+    who = ("any host on that network (the bus is open)" if auth is None else
+           f"any host on that network that has the vehicle's key {auth.keyring.path}")
+    return (f"refusing to start '{service.name}': {problem}; until then {who} could command it "
+            "(docs/security.md, 'Where the vehicle listens'); 'u2sa run' as root sets the flag itself")
+
+
+def probe_seconds(default: float = DUPLICATE_PROBE_S) -> float:
+    """How long the duplicate probe listens: ``$U2SA_DUPLICATE_PROBE_S`` if set (and a number > 0), else *default*."""
+    try:
+        value = float(os.environ.get(PROBE_ENV, ""))
+    except ValueError:
+        return default
+    return value if value > 0 else default
+
+
+def find_duplicate(service: "U2SAService", *, timeout: float | None = None) -> str | None:
+    """Why *service* must not start, in one line, or None: :func:`listen_refusal`, or another of its name answers.
 
     The transport's handler thread has not started yet, so this thread pumps it.
     """
+    refused = listen_refusal(service)
+    if refused is not None:
+        return refused
+    timeout = probe_seconds() if timeout is None else timeout
     found: list[t.DiscoveryResponse] = []
     me = (HOSTNAME, os.getpid())
 

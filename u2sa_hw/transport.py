@@ -40,9 +40,11 @@ from typing import Any, Callable
 import lcm
 
 from u2sa_hw.bus_auth import (FOREIGN, LCM_SELF_TEST, OK, OPEN, REJECTION_WHY, REJECTIONS, REPLAYED, TRAILER_LEN,
-                              BusAuth, keyring_for, resolve_security, strip_trailer)
+                              WINDOW_US, BusAuth, keyring_for, resolve_security, strip_trailer)
+from u2sa_hw.bus_clock import ClockStore, store_from_env
 from u2sa_hw.bus_key import BusKeyError, key_path
-from u2sa_hw.bus_listen import interface_index, listen_interface, receive_on, send_via, socket_fds
+from u2sa_hw.bus_listen import (forced_default_problem, listen_interface, prepare_interface, receive_on, send_via,
+                                socket_fds)
 from u2sa_hw.lcm_open import MULTICAST_FIX, URL_HELP, captured_c_stderr, open_error, reemit  # noqa: F401 - re-exported
 from u2sa_hw.lcm_url import (DEFAULT_LCM_URL, DEFAULT_RECV_BUF_SIZE, LCM_URL_ENV,  # noqa: F401 - re-exported
                               RMEM_MAX_FILE, resolve_url, with_receive_buffer)
@@ -108,15 +110,21 @@ class Transport:
     id is dropped and counted as ``foreign``: a second stack sharing the bus and the key.
     A failsafe raise is the exception to both the replay window and the system id check
     (module docstring).
+
+    ``listen_problem`` is "" when the bus stays where the URL and *interface* say (ttl=0: ``lo``),
+    else one line saying where it listens instead and the fix (``u2sa_hw.bus_listen``).
+    With ``$STATE_DIRECTORY`` (*clock_store*), the signing clock starts no lower than the
+    board's saved one and is saved every minute and at stop (``u2sa_hw.bus_clock``).
     """
 
     def __init__(self, url: str | None = None, *, name: str = "u2sa", security: str | None = None,
                  key_file: Path | str | None = None, interface: str | None = None,
-                 system_id: int | None = None) -> None:
+                 system_id: int | None = None, clock_store: ClockStore | None = None) -> None:
         self.url = resolve_url(url)
         self.name = name
         # ttl=0: loopback only; ttl>=1: the profile's bus_interface, if any (u2sa_hw.bus_listen).
         self.interface = listen_interface(self.url, interface)
+        self.listen_problem = forced_default_problem(self.url)
         self._if_index: int | None = None
         sockets_before = socket_fds() if self.interface else set()
         try:
@@ -124,6 +132,12 @@ class Transport:
             self.auth = BusAuth(keyring_for(key_path(key_file))) if self.security != OPEN else None
         except BusKeyError as exc:
             raise TransportError(str(exc)) from None
+        self._clock_store = (clock_store or store_from_env()) if self.auth is not None else None
+        self._clock_saving: threading.Thread | None = None
+        if self._clock_store is not None:
+            start = self._clock_store.start_at(WINDOW_US)
+            if start is not None and self.auth.adopt(start):
+                log.info("%s: signing clock starts at the saved %d µs (%s)", name, start, self._clock_store.path)
         self._verdict = OK
         self._payload = b""
         # Every u2sa message starts with its Header (extensions with their base, which does):
@@ -145,7 +159,8 @@ class Transport:
         self._send_fds = socket_fds() - sockets_before if self.interface else set()
         if self.interface:
             try:
-                self._if_index = interface_index(self.interface)
+                self._if_index, problem = prepare_interface(self.url, self.interface)
+                self.listen_problem = problem or self.listen_problem
                 if self._if_index is not None:
                     send_via(self.url, self._send_fds, self._if_index)
             except OSError as exc:
@@ -422,7 +437,17 @@ class Transport:
                 time.sleep(0.01)
             self._generation += 1
             self._unsubscribe_pending()
+            if self._clock_store is not None and self._clock_store.due():
+                self._save_clock_soon()
         self._unsubscribe_pending()
+
+    def _save_clock_soon(self) -> None:
+        """Save the signing clock on a thread of its own: an fsync on an SD card must not hold up handling."""
+        if self._clock_saving is not None and self._clock_saving.is_alive():
+            return
+        self._clock_saving = threading.Thread(target=self._clock_store.save, args=(self.auth.high_water(),),
+                                              name=f"bus-clock-{self.name}", daemon=True)
+        self._clock_saving.start()
 
     def _unsubscribe_pending(self) -> None:
         while self._pending_unsubscribe:
@@ -450,6 +475,8 @@ class Transport:
                 except Exception:  # noqa: BLE001 - tearing down
                     pass
             self._subs.clear()
+        if self._clock_store is not None and self._lc is not None:
+            self._clock_store.save(self.auth.high_water())   # the latest time, for a restart or a reboot
         if not still_handling and self._lc is not None:
             self._unsubscribe_pending()
             # LCM holds our handlers and we hold LCM: a cycle the garbage collector cannot see through

@@ -18,6 +18,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+from u2sa_hw.check.bus_checks import check_bus
 from u2sa_hw.check.problem import Collector, Problem, did_you_mean, type_name
 from u2sa_hw.vehicle import TOP_TABLES
 from u2sa_hw.vehicle import VEHICLE_KEYS as VEHICLE_KEY_NAMES
@@ -71,6 +72,7 @@ def check_profile(path: Path, *, for_sim: bool = False) -> list[Problem]:
             out.error(key, f"'{key}' must be a table, got {type_name(data[key])}", f"write it as [{key}]")
     vehicle = data.get("vehicle", {}) if isinstance(data.get("vehicle", {}), dict) else {}
     _check_vehicle(path, vehicle, out)
+    check_bus(vehicle, out)   # where the bus listens: u2sa_hw/check/bus_checks.py
     profile, load_error = _load(path)
     if profile is None:
         from u2sa_hw.check.lenient import lenient_profile

@@ -23,7 +23,7 @@ def register(sub: Any) -> None:
     add_vehicle_option(p)
     add_timeout_option(p)
     p.add_argument("--json", action="store_true", help="print a JSON list of objects (name, type, status, "
-                   "host, pid, publishes, subscribes)")
+                   "host, pid, bus, rejected counts, listen, publishes, subscribes)")
     p.set_defaults(func=cmd_services)
 
     p = sub.add_parser("topics", help="channels seen on the bus: rate, bandwidth, type",
@@ -93,7 +93,8 @@ def cmd_services(args: Any) -> int:
         rows.append({"name": r.name, "type": r.service_type, "status": r.status, "host": r.host, "pid": r.pid,
                      "bus": details.get("bus_security", "?"), "rejected": rejected_total(dropped),
                      "bad_signature": bad_signature_total(dropped), "foreign": rejected_counts(dropped)["foreign"],
-                     "rejected_by_channel": dropped, "publishes": _channel_list(r.publishes),
+                     "rejected_by_channel": dropped, "listen": details.get("bus_listen", ""),
+                     "publishes": _channel_list(r.publishes),
                      "subscribes": _channel_list(r.subscribes)})
     if args.json:
         print(json.dumps(rows, indent=2))
@@ -105,6 +106,9 @@ def cmd_services(args: Any) -> int:
             pubs = ", ".join(i.channel for i in r.publishes)
             print(f"{r.name:22} {r.service_type:18} {r.status:9} {r.host:14} {r.pid:>7} {row['bus'].split()[0]:8} "
                   f"{row['bad_signature']:>7} {row['foreign']:>7}  {pubs}")
+    for row in rows:   # a ttl=0 bus heard beyond the board: never only a log line of the service's
+        if row["listen"]:
+            print(f"u2sa: {row['name']}: {row['listen']}", file=sys.stderr)
     if own_drops:
         from u2sa_hw.service_bus import rejected_text
 

@@ -100,6 +100,7 @@ def cmd_health(args: Any) -> int:
         s["bad_signature"] = bad_signature_total(s["rejected_by_channel"])
         s["foreign"] = rejected_counts(s["rejected_by_channel"])["foreign"]
         s["reason"] = service_reason(s, health.get(s["name"]))
+        s["bus_listen"] = details.get("bus_listen", "")   # a ttl=0 bus heard beyond the board
     report["autonomy"] = autonomy_report(health)
     if args.json:
         print(json.dumps(report, indent=2))
@@ -112,7 +113,8 @@ def cmd_health(args: Any) -> int:
               "REASON / LAST ERROR")
     for s, row in zip(got[0].services, report["services"]):
         print(f"{s.name:22} {s.state:11} {s.restarts:>8} {_age(s.heartbeat_age_s):>9} {_age(s.data_age_s):>8} "
-              f"{row['bad_signature']:>7} {row['foreign']:>7}  {row['reason'] or s.last_error}")
+              f"{row['bad_signature']:>7} {row['foreign']:>7}  "
+              f"{'; '.join(x for x in (row['reason'] or s.last_error, row['bus_listen']) if x)}")
     for rc in report["autonomy"]:
         state = "GRANTED" if rc["granted"] else f"refused: {rc['blocked_by'] or 'unknown'}"
         print(f"autonomy ({rc['service']}, RC {rc['mode']}, {'armed' if rc['armed'] else 'not armed'}): {state}")

@@ -17,12 +17,20 @@ restart a crashed service with a backoff that doubles on quick deaths and decays
 after healthy uptime, and stop everything on Ctrl-C or SIGTERM (SIGTERM to each
 service, SIGKILL after the grace period; a second Ctrl-C kills at once).
 
-A service that exits with status 0 stopped on purpose and is not restarted. A
-service is given up when it dies quickly --give-up-after times in a row, or when
-it fails --max-failures times within --failure-window seconds however long each
-run lasted (a service that crashes every 6 s looks healthy to the quick-death
-rule but is not). Then the launcher stops everything and exits 1 (with
+A service that exits with status 0 stopped on purpose and is not restarted; one
+that exits with status 3 refused to start (another of its name already runs on
+the bus, or its bus cannot be kept on this board: its line says which) and is
+not restarted either, as RestartPreventExitStatus=3 does under systemd. A service
+is given up when it dies quickly --give-up-after times in a row, or when it fails
+--max-failures times within --failure-window seconds however long each run lasted
+(a service that crashes every 6 s looks healthy to the quick-death rule but is
+not). After a refusal or a give-up the launcher stops everything and exits 1 (with
 --keep-going the others keep running and the exit status is 1 at the end).
+
+Bus key: $U2SA_BUS_KEY_FILE, else the profile's bus_key (which must exist), else
+/etc/u2sa/bus.key; without any, the run signs with a fresh key of its own and
+prints where. Run as root, the services set lo's MULTICAST flag, so a ttl=0 bus
+stays on this board (docs/security.md, "Where the vehicle listens").
 
 Like systemd, the launcher watches each service's watchdog: a service pings
 WATCHDOG=1 from its own loop; one silent for WatchdogSec of its unit file
@@ -113,9 +121,13 @@ def _launch(args: Any, profile: Any, *, only: list[str] | None, policy: Any, out
         code = launcher.run()
     except LauncherError as exc:
         raise CliError(str(exc)) from None
-    if launcher.failed:
-        output("launcher", f"exit 1: given up on {', '.join(launcher.failed)}")
-    else:
+    refused = [s.name for s in launcher.status() if s.name in launcher.failed and s.reason.startswith("refused")]
+    given_up = [n for n in launcher.failed if n not in refused]
+    if refused:   # exit status 3: not restarted, its own line said why (u2sa_hw.service_bus)
+        output("launcher", f"exit 1: {', '.join(refused)} refused to start (the line above says why)")
+    if given_up:
+        output("launcher", f"exit 1: given up on {', '.join(given_up)}")
+    if not launcher.failed:
         output("launcher", "all services stopped")
     return code
 
@@ -124,7 +136,9 @@ def _launch(args: Any, profile: Any, *, only: list[str] | None, policy: Any, out
 def _run_key(profile: Any, output: Any) -> Iterator[None]:
     """Without an installed bus key, a fresh one for this run in $U2SA_BUS_KEY_FILE (the services inherit it).
 
-    A key that exists but cannot be read is an error naming the file and the fix.
+    A key that exists but cannot be read, and a ``bus_key`` the profile names that does not
+    exist, are errors naming the file and the fix: the profile asked for that key, and a fresh
+    one would leave every other computer holding it unheard.
     """
     from u2sa_hw.bus_auth import OPEN, resolve_security
     from u2sa_hw.bus_key import KEY_ENV, BusKeyError, fresh_key_file, key_path, read_key
@@ -135,6 +149,11 @@ def _run_key(profile: Any, output: Any) -> Iterator[None]:
             yield
             return
         path = key_path(profile.bus_key)
+        if KEY_ENV not in os.environ and profile.bus_key is not None and not path.exists():
+            raise CliError(f"run: {profile.path}: bus_key = \"{path}\" does not exist: make one there with "
+                           f"'u2sa key rotate --file {path}' (or copy the vehicle's: 'u2sa key show' there, "
+                           f"'u2sa key import FILE --file {path}' here), or remove bus_key from [vehicle] to sign "
+                           "this run with a fresh key")
         if path.exists() or KEY_ENV in os.environ:
             read_key(path)
             yield

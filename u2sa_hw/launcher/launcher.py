@@ -13,6 +13,12 @@ and restarted like any dead one, its death counted and logged as a watchdog time
 Services of kind ``recorder`` start first and the others once they are ready (or after
 ``first_wait_s``): a recording then holds every service's start-up I/O (an IMU's
 identification reads, a motor controller's arming), which replay needs.
+
+A child that exits 3 refused to start (another of its name already answers on the bus, or
+its bus cannot be kept on this board): it is not restarted, as ``RestartPreventExitStatus=3``
+keeps systemd from restarting the unit, and the launcher stops like for a service given up.
+Children get ``$STATE_DIRECTORY`` (the profile's ``data_dir``), as systemd's ``StateDirectory=``
+gives the units: the bus clock survives restarts there (``u2sa_hw.bus_clock``).
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+from u2sa_hw.bus_clock import STATE_ENV
 from u2sa_hw.launcher.control import SOCKET_ENV, ControlServer, LauncherError, default_socket_path
 from u2sa_hw.launcher.notify import NotifyListener
 from u2sa_hw.launcher.output import LineSink, LineSplitter, PrefixedOutput
@@ -91,8 +98,10 @@ class Launcher:
         self.socket_path = (socket_path or default_socket_path(profile.data_dir)) if control else None
         self.notify = NotifyListener()
         # PYTHONFAULTHANDLER as in the units: a child killed by the watchdog's SIGABRT prints its stacks.
-        child_env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONFAULTHANDLER="1", **(env or {}),
-                         NOTIFY_SOCKET=self.notify.address)
+        # STATE_DIRECTORY as systemd's StateDirectory= gives it: the bus clock is saved there (u2sa_hw.bus_clock).
+        child_env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONFAULTHANDLER": "1",
+                     STATE_ENV: str(Path(profile.data_dir).resolve()), **(env or {}),
+                     "NOTIFY_SOCKET": self.notify.address}
         if self.socket_path is not None:
             child_env[SOCKET_ENV] = str(self.socket_path)
         vehicle = str(profile.path.resolve())

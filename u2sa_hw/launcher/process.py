@@ -8,7 +8,10 @@ run that died before it came up is a quick death however slowly it started) doub
 respawn delay, healthy uptime makes it decay,
 and the process is given up (state ``failed``) after too many quick deaths in a row or
 too many failed exits within a window (a service that crashes every few seconds after a
-healthy-looking start would otherwise restart forever).
+healthy-looking start would otherwise restart forever). An exit status in
+``RestartPolicy.final_statuses`` (3: the service refused to start, e.g. another of its name
+already runs on the bus) is final at once, as ``RestartPreventExitStatus=3`` makes it under
+systemd: a restart would find the same, and each one would print the same line again.
 
 The launcher's event loop drives it: ``spawn`` and ``poll`` run on the loop thread only
 (the child's parent-death signal is tied to the thread that forked it).
@@ -32,7 +35,8 @@ STOPPING = "stopping"
 BACKOFF = "backoff"
 EXITED = "exited"      # exited with status 0 on its own: not restarted (like systemd's on-failure)
 STOPPED = "stopped"    # stopped because we asked
-FAILED = "failed"      # given up: too many quick deaths in a row, or failed exits within the window
+FAILED = "failed"      # given up: too many quick deaths in a row, failed exits within the window, a refusal
+REFUSED_EXIT = 3       # service_bus.DUPLICATE_EXIT: refused to start (RestartPreventExitStatus=3 in u2sa@.service)
 
 _PR_SET_PDEATHSIG = 1
 try:
@@ -54,7 +58,8 @@ class RestartPolicy:
 
     Two give-up rules: ``give_up_after`` quick deaths in a row, and ``max_failures``
     failed exits (non-zero status, a signal, a failed exec) within ``failure_window_s``,
-    whatever the uptime before each. 0 turns a rule off.
+    whatever the uptime before each. 0 turns a rule off. An exit status in ``final_statuses``
+    is never restarted (systemd's ``RestartPreventExitStatus=``).
     """
 
     initial_backoff_s: float = 0.5
@@ -63,6 +68,7 @@ class RestartPolicy:
     give_up_after: int = 5
     max_failures: int = 10
     failure_window_s: float = 300.0
+    final_statuses: tuple[int, ...] = (REFUSED_EXIT,)
 
     def __post_init__(self) -> None:
         if self.initial_backoff_s < 0 or self.max_backoff_s < self.initial_backoff_s:
@@ -247,6 +253,11 @@ class SupervisedProcess:
         if code == 0 and not self.watchdog.fired:
             self.state = EXITED
             return f"{self.last_exit} after {uptime:.1f} s; not restarted (a clean exit is deliberate)"
+        if code in self.policy.final_statuses and not self.watchdog.fired:
+            self.state = FAILED
+            self.reason = f"refused to start ({self.last_exit}; its own line says why)"
+            return (f"{self.last_exit} after {uptime:.1f} s: it refused to start (its line above says why: another "
+                    "of its name on the bus, or a bus it cannot keep on this board); not restarted")
         # Healthy uptime counts from READY: a run that died before it came up is a quick death however
         # long it took to start (on a loaded machine an import can take seconds).
         healthy = self.clock() - self.ready_at if self.ready else 0.0
