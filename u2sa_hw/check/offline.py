@@ -143,8 +143,10 @@ def _check_vehicle(path: Path, vehicle: dict[str, Any], out: Collector) -> None:
     if isinstance(bus_key, str) and bus_key.strip():
         key_path = base / Path(bus_key).expanduser()
         if not key_path.exists():
-            out.warning("vehicle.bus_key", f"bus key {key_path} does not exist (u2sa run signs with a fresh key; "
-                        "the installed services need this one)", "u2sa key new, or u2sa install creates it")
+            out.warning("vehicle.bus_key", f"bus key {key_path} does not exist (u2sa run refuses to start without "
+                        "it; u2sa sim signs with a key of its own)",
+                        f"u2sa key rotate --file {key_path} makes one there, or copy the vehicle's with "
+                        f"u2sa key import FILE --file {key_path}")
 
 
 def _example(kind: type) -> str:
