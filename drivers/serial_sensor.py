@@ -8,6 +8,12 @@ running. It reads whole lines and hands each to :meth:`handle_line`; when the li
 quiet for ``epoch_gap_s`` it calls :meth:`handle_idle` (the end of a burst). With
 ``record_raw`` every chunk read is published as ``RawSerial`` on ``RAW.<device>``.
 
+In a replay the port has a *device clock* (``mock+serial://...?clock=stamped``,
+:mod:`u2sa_hw.ports.serial_clock`): a line's time is the recorded read time and a silence is
+one of the recording, so the lines and silences the driver sees, and what it publishes, do
+not depend on how fast or how loaded the replay is. A wall-clock read timeout then counts as
+a silence only once the replay has sent nothing for ``DEVICE_CLOCK_GRACE_S`` (fail safe).
+
 Its status is ``ok`` or ``degraded``; the reason (port down, no data, or the subclass's
 :meth:`problem`, e.g. "no fix") is the ``degraded_reason`` health detail.
 """
@@ -155,14 +161,14 @@ class SerialLineSensor(ProprioceptiveSensor):
                 continue
             if line:
                 self.lines += 1
-                self._handle(line)
-            else:
+                self._handle(line, received=line_time(port))
+            elif port.went_quiet():   # a replay's device clock says whether the device fell silent
                 self._idle()
             self.refresh_status()
 
-    def _handle(self, line: bytes) -> None:
+    def _handle(self, line: bytes, *, received: float) -> None:
         try:
-            self.handle_line(line, time.time())
+            self.handle_line(line, received)
         except Exception as exc:  # noqa: BLE001 - one unexpected line must not end the driver
             self.malformed += 1
             self.logger.exception("%s: line %r could not be handled: %s", self.name, line[:80], exc)
@@ -180,11 +186,12 @@ class SerialLineSensor(ProprioceptiveSensor):
 
     # -- for subclasses ----------------------------------------------------------------------
     def handle_line(self, line: bytes, received: float) -> None:
-        """One complete line from the device; *received* is the wall time (s) it was read."""
+        """One complete line from the device; *received* is the wall time (s) it was read (in a replay,
+        the time the recorded driver read it: the port's device clock, see :func:`line_time`)."""
         raise NotImplementedError
 
     def handle_idle(self) -> None:
-        """The line was quiet for ``epoch_gap_s`` (the end of a burst)."""
+        """The line was quiet for ``epoch_gap_s`` (the end of a burst; in a replay, on the device clock)."""
 
     def on_port_lost(self) -> None:
         """The port went away (or is being reopened): drop partial state."""
@@ -285,3 +292,10 @@ class SerialLineSensor(ProprioceptiveSensor):
             self.published += 1
         return ok
 
+
+def line_time(port: SerialPort) -> float:
+    """When the line *port* just returned was read, in wall seconds: now, or for a port with a device
+    clock (a replay's stamped pty) the recorded read time, so grouping by time does not depend on
+    how fast the replay runs."""
+    stamp = port.line_time_ns() if port.device_clock else None
+    return time.time() if stamp is None else stamp / 1e9

@@ -106,7 +106,7 @@ def make_device(dev: DevicePlan, run_dir: Path, service: ServicePlan, *, fast: b
     if dev.kind == "serial":
         gap = config.get("epoch_gap_s", 0.05)
         return ReplaySerialDevice(name=dev.name, link_path=run_dir / "dev" / dev.name,
-                                  burst_gap_s=float(gap) if isinstance(gap, (int, float)) else 0.05)
+                                  burst_gap_s=float(gap) if isinstance(gap, (int, float)) else 0.05, stamped=True)
     if dev.kind in ("gpio", "pwm"):
         from hil import replay_gpio
 

@@ -5,7 +5,10 @@ the recorded ``RAW.<device>`` records by the player (hil/player.py):
 
 - :class:`ReplaySerialDevice`: a pty at a symlink (like ``mock_devices.pty_serial``);
   recorded RX bytes are written into it, with backpressure instead of drops; what the
-  driver writes is kept and checked against the recorded TX bytes.
+  driver writes is kept and checked against the recorded TX bytes. Stamped (the replay's
+  mode), each recorded chunk goes as a frame with its recorded read time, and a clock tick
+  marks each recorded silence, so the driver times lines and silences by the recording
+  (:mod:`u2sa_hw.ports.serial_clock`), not by when the replay delivers them.
 - CAN and I2C replay devices live in :mod:`hil.replay_buses`, GPIO and PWM in
   :mod:`hil.replay_gpio`.
 
@@ -20,16 +23,21 @@ from __future__ import annotations
 import array
 import fcntl
 import os
+import re
 import select
 import termios
 import threading
 import time
 import tty
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Iterator, Protocol
 
+from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.ports.address import DeviceAddress, make_address
+from u2sa_hw.ports.serial_clock import encode_frame
 from u2sa_hw.ports.tap import RX, TX
+from u2sa_hw.recording.log_reader import LogFile
 
 
 class ReplayStalled(RuntimeError):
@@ -85,14 +93,42 @@ def fd_open_by(pid: int | None, target: str) -> bool:
     return False
 
 
+def record_stamp_ns(record: Any, *, previous: int = 0) -> int:
+    """The device-clock time (ns) of a recorded RX chunk: its header stamp, which the driver's tap set
+    when the chunk was read (wall clock, like the driver's own line times); *previous* without one."""
+    stamp_us = int(getattr(getattr(record, "header", None), "timestamp_us", 0) or 0)
+    return stamp_us * 1000 if stamp_us > 0 else previous
+
+
+@dataclass
+class StampedChunks:
+    """RX chunks with their device-clock stamps, written as one (``--fast`` merges a burst); a chunk
+    without bytes is a clock tick (the recorded line was silent until then)."""
+
+    chunks: list[tuple[int, bytes]] = field(default_factory=list)
+    direction: int = RX
+
+    @property
+    def length(self) -> int:
+        """Data bytes held."""
+        return sum(len(data) for _, data in self.chunks)
+
+
 class ReplaySerialDevice:
-    """A pty at *link_path*; recorded RX bytes go to the driver, its writes are compared with TX."""
+    """A pty at *link_path*; recorded RX bytes go to the driver, its writes are compared with TX.
+
+    *stamped*: every chunk is written as a stamped frame and the driver's address says
+    ``clock=stamped`` (module docstring); ``preload`` then finds the recorded silences.
+    """
 
     kind = "serial"
 
     def __init__(self, *, name: str, link_path: Path | str, burst_gap_s: float = 0.05,
-                 write_timeout_s: float = 10.0) -> None:
+                 write_timeout_s: float = 10.0, stamped: bool = False) -> None:
         self.name = name
+        self.stamped = stamped
+        self._ticks: list[tuple[int, int]] = []   # (log time, stamp) of a tick after each recorded silence
+        self._last_stamp = 0
         self.burst_gap_s = burst_gap_s  # records closer than this are one burst (the driver's epoch_gap_s)
         self.link_path = Path(link_path)
         self.write_timeout_s = write_timeout_s
@@ -111,13 +147,51 @@ class ReplaySerialDevice:
         return str(self.link_path)
 
     def mock_address(self, real: DeviceAddress | None) -> str:
-        """``mock+serial://<the pty symlink>`` with the recorded address's framing."""
-        params = {k: v for k, v in real.params.items() if k not in ("usb", "serial")} if real is not None else {}
+        """``mock+serial://<the pty symlink>`` with the recorded address's framing (and ``clock=stamped``)."""
+        params = ({k: v for k, v in real.params.items() if k not in ("usb", "serial", "clock")}
+                  if real is not None else {})
+        if self.stamped:
+            params["clock"] = "stamped"
         return make_address("serial", self.address, params=params, mock=True, device=self.name).url
 
     def config_changes(self) -> dict[str, Any]:
         """Nothing besides the address."""
         return {}
+
+    def preload(self, log_path: Path, *, start_ns: int, end_ns: int) -> None:
+        """Stamped: note a clock tick ``burst_gap_s`` after each recorded RX chunk that the next one follows
+        later than that on the device clock (and after the last one, when the window goes on that long),
+        so the driver ends a burst on the recorded silence, at once and at any replay speed."""
+        if not self.stamped:
+            return
+        gap = max(1, int(self.burst_gap_s * 1e9))
+        ticks: list[tuple[int, int]] = []
+        prev: tuple[int, int] | None = None   # (log time, stamp) of the previous RX chunk
+        for m in LogFile(log_path).messages(rf"RAW\.{re.escape(self.name)}"):
+            if m.log_time_ns > end_ns:
+                break
+            if m.log_time_ns < start_ns:
+                continue
+            try:
+                rec, _ = REGISTRY.decode(m.data)
+            except MalformedMessage:
+                continue
+            if getattr(rec, "direction", None) != RX or not bytes(getattr(rec, "data", b"")):
+                continue
+            stamp = record_stamp_ns(rec, previous=prev[1] if prev else m.log_time_ns)
+            if prev is not None and stamp - prev[1] >= gap:
+                ticks.append((max(prev[0], min(prev[0] + gap - 1, m.log_time_ns - 1)), prev[1] + gap))
+            prev = (m.log_time_ns, stamp)
+        if prev is not None and end_ns - prev[0] >= gap:
+            ticks.append((prev[0] + gap - 1, prev[1] + gap))
+        self._ticks = ticks
+
+    def clock_ticks(self) -> Iterator[tuple[int, StampedChunks]]:
+        """``(log time, tick)`` of each recorded silence (see :meth:`preload`), in log order; the player
+        merges them into the stream. A tick is placed within the burst gap of the chunk before it, so
+        ``--fast`` writes it with that burst."""
+        for log_ns, stamp in self._ticks:
+            yield log_ns, StampedChunks([(stamp, b"")])
 
     def start(self) -> None:
         """Create the pty (raw mode, non-blocking master), the symlink and the reader of driver writes."""
@@ -160,13 +234,23 @@ class ReplaySerialDevice:
             return health["port"] == "open" and fd_open_by(pid, self.slave_name)
         return fd_open_by(pid, self.slave_name)
 
+    def _encoded(self, record: Any) -> tuple[bytes, int]:
+        """What goes into the pty for an RX *record* (stamped: its frames) and how many data bytes it holds."""
+        if not self.stamped:
+            return bytes(record.data), len(record.data)
+        chunks = self._chunks(record) if isinstance(record, StampedChunks) or record.data else []
+        return b"".join(encode_frame(stamp, data) for stamp, data in chunks), sum(len(d) for _, d in chunks)
+
     def feed(self, record: Any) -> None:
-        """Write an RX record's bytes into the pty (waiting while the driver's buffer is full); note TX."""
-        data = bytes(record.data)
+        """Write an RX record's bytes (stamped: its frames) into the pty, waiting while the driver's
+        buffer is full; note TX."""
         if record.direction == TX:
-            self._expected_tx += data
+            self._expected_tx += bytes(record.data)
             return
-        if record.direction != RX or not data:
+        if record.direction != RX:
+            return
+        data, size = self._encoded(record)
+        if not data:
             return
         view = memoryview(data)
         deadline = time.monotonic() + self.write_timeout_s
@@ -181,19 +265,28 @@ class ReplaySerialDevice:
                 raise ReplayStalled(f"{self.name}: the driver has not read its serial input for "
                                     f"{self.write_timeout_s:g} s ({self.address}); is the service still running?")
             select.select([], [self._master], [], 0.05)
-        self.fed_bytes += len(data)
-        self.fed_chunks += 1
+        self.fed_bytes += size
+        self.fed_chunks += 1 if size else 0
 
-    @staticmethod
-    def merge(first: Any, second: Any, *, limit: int = 4096) -> Any | None:
-        """One RX record holding both chunks (``--fast`` feeds runs at once), or None when they cannot merge."""
+    def merge(self, first: Any, second: Any, *, limit: int = 4096) -> Any | None:
+        """One RX record holding both chunks (``--fast`` feeds runs at once), or None when they cannot merge.
+        Stamped, the chunks keep their own stamps (:class:`StampedChunks`)."""
         if first.direction != RX or second.direction != RX or first.length + second.length > limit:
             return None
+        if self.stamped or isinstance(first, StampedChunks) or isinstance(second, StampedChunks):
+            return StampedChunks(self._chunks(first) + self._chunks(second))
         merged = type(first)()
         merged.device, merged.direction = first.device, RX
         merged.data = bytes(first.data) + bytes(second.data)
         merged.length = len(merged.data)
         return merged
+
+    def _chunks(self, record: Any) -> list[tuple[int, bytes]]:
+        if isinstance(record, StampedChunks):
+            return list(record.chunks)
+        stamp = record_stamp_ns(record, previous=self._last_stamp)
+        self._last_stamp = stamp
+        return [(stamp, bytes(record.data))]
 
     def pending(self) -> int:
         """Bytes in the pty the driver has not read yet."""

@@ -13,6 +13,7 @@ The grammar (docs/ports.md has the table)::
     pca9685://1/0x40/3                            I2C adapter / chip address / channel 0..15
 
     mock+serial:///run/sim/gps?baud=9600          a pty (symlink) whose other end a mock device holds
+                                                   (clock=stamped: it sends stamped frames, a replay's clock)
     mock+can://udp_multicast/239.74.163.2?port=17270   python-can across processes (also virtual, u2sa_unpluggable)
     mock+i2c:///run/sim/i2c-1.sock/0x68           the mock I2C bus server's Unix socket / chip address
     mock+gpio:///run/sim/gpiochip0.sock/5,6       the mock GPIO chip's Unix socket / lines
@@ -159,6 +160,13 @@ class DeviceAddress:
     def framing(self) -> str:
         """``8N1``-style framing."""
         return f"{self.bytesize}{self.parity}{self.stopbits:g}"
+
+    @property
+    def device_clock(self) -> bool:
+        """True for ``mock+serial://...?clock=stamped``: the pty carries stamped frames (a replay's device
+        clock, :mod:`u2sa_hw.ports.serial_clock`); never for a real address (the parser refuses it)."""
+        self._need("serial")
+        return self.mock and self.params.get("clock") == "stamped"
 
     @property
     def usb_id(self) -> tuple[str, str] | None:

@@ -20,7 +20,8 @@ from typing import Any, Callable, Mapping
 SYSFS_PWM = "/sys/class/pwm"
 MOCK_PREFIX = "mock+"
 
-SERIAL_PARAMS = ("baud", "bytesize", "parity", "stopbits", "usb", "serial")
+SERIAL_PARAMS = ("baud", "bytesize", "parity", "stopbits", "usb", "serial", "clock")
+SERIAL_CLOCKS = ("stamped",)   # clock=stamped: a replay's pty writes stamped frames (mock+serial only)
 # python-can bus options (can.Bus keyword arguments) an address may carry; bitrate is the interface's
 # bit rate (SocketCAN: set by u2sa install at boot), port/hop_limit are udp_multicast's, the rest
 # socketcan's and virtual's (python-can 4.x).
@@ -115,8 +116,18 @@ def _check_serial_params(params: Mapping[str, str], fail: Fail) -> None:
 
 
 def parse_serial(parts: UrlParts, fail: Fail) -> Parsed:
-    """``serial:///dev/PATH`` (backend ``path``) or ``serial+X://...`` (backend X, location the pyserial URL)."""
+    """``serial:///dev/PATH`` (backend ``path``) or ``serial+X://...`` (backend X, location the pyserial URL).
+
+    ``clock=stamped`` (the device sends stamped frames: a replay's device clock) is taken only by
+    ``mock+serial`` addresses, so a real device can never set the time its driver sees.
+    """
     _check_serial_params(parts.params, fail)
+    if "clock" in parts.params:
+        if not parts.mock:
+            raise fail("clock= is only for mock+serial addresses (a replay's pty that sends stamped frames); "
+                       "a real serial device is timed by its reader: remove clock=")
+        if parts.params["clock"] not in SERIAL_CLOCKS:
+            raise fail(f"clock={parts.params['clock']!r}: the one device clock is clock=stamped")
     if parts.serial_scheme:
         return parts.serial_scheme, f"{parts.serial_scheme}://{parts.body}", ()
     if parts.netloc or not parts.path.strip("/"):

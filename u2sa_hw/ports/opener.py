@@ -79,7 +79,7 @@ def _open_serial(address: DeviceAddress, *, device: str, tap: Tap | None, **opti
     stop = address.stopbits
     return open_serial(address.serial_path, device=device, baudrate=address.baud, bytesize=address.bytesize,
                        parity=address.parity, stopbits=int(stop) if stop.is_integer() else stop,
-                       timeout=options.get("timeout", 0.1), tap=tap)
+                       timeout=options.get("timeout", 0.1), tap=tap, device_clock=address.device_clock)
 
 
 def _open_can(address: DeviceAddress, *, device: str, tap: Tap | None, **options: Any) -> Any:

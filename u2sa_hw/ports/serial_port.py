@@ -88,7 +88,12 @@ class SerialPort:
     ``read`` and ``readline`` return ``b""`` when nothing arrives within the timeout.
     ``readline`` returns only complete lines: a partial line stays buffered for the next
     call (and for ``read``), so a driver never sees half an NMEA sentence as a line.
+    ``device_clock`` is False: an empty ``readline`` is a silence of the device
+    (:meth:`went_quiet`), and a line's time is the reader's clock (a replay's
+    :class:`~u2sa_hw.ports.serial_clock.StampedSerialPort` says otherwise).
     """
+
+    device_clock = False
 
     def __init__(self, handle: serial.SerialBase, *, device: str, address: str, tap: Tap | None = None) -> None:
         self.device = device
@@ -142,8 +147,8 @@ class SerialPort:
             call_tap(self._tap, _record(self.device, RX, data))
         return data
 
-    def _read_available(self) -> bytes:
-        """Wait up to the timeout for one byte, then take whatever else is waiting."""
+    def _read_waiting(self) -> bytes:
+        """Wait up to the timeout for one byte, then take whatever else is waiting (not tapped)."""
         data = self._read_raw(1)
         if data:
             try:
@@ -152,7 +157,19 @@ class SerialPort:
                 raise self._lost(exc, "read") from exc
             if waiting:
                 data += self._read_raw(waiting)
-        return self._tapped(data)
+        return data
+
+    def _read_available(self) -> bytes:
+        """What :meth:`_read_waiting` gives, tapped."""
+        return self._tapped(self._read_waiting())
+
+    def line_time_ns(self) -> int | None:
+        """The device's time of the last line: None, a real port has no device clock."""
+        return None
+
+    def went_quiet(self) -> bool:
+        """True: an empty ``readline`` of a real port is the device falling silent for the timeout."""
+        return True
 
     def read(self, size: int = 1) -> bytes:
         """Up to *size* bytes, buffered ones first; like pyserial it waits up to the timeout
@@ -224,8 +241,12 @@ def _record(device: str, direction: int, data: bytes) -> RawSerial:
 
 
 def open_serial(address: str, *, device: str, baudrate: int = 9600, bytesize: int = 8, parity: str = "N",
-                stopbits: float = 1, timeout: float = 0.1, tap: Tap | None = None) -> SerialPort:
+                stopbits: float = 1, timeout: float = 0.1, tap: Tap | None = None,
+                device_clock: bool = False) -> SerialPort:
     """Open the serial device at *address* (a path or a pyserial URL) as *device*.
+
+    *device_clock*: the other end writes stamped frames (a replay's pty, ``clock=stamped`` on a
+    ``mock+serial`` address; :mod:`u2sa_hw.ports.serial_clock`).
 
     Raises PortUnavailable naming the device, the address and the fix when it cannot be
     opened (missing, no permission, busy, unknown URL scheme).
@@ -249,5 +270,9 @@ def open_serial(address: str, *, device: str, baudrate: int = 9600, bytesize: in
         if code in _BUSY_ERRNOS:
             reason = f"busy: another process holds it ({exc})"
         raise PortUnavailable(device, reason, address=address, fix=fix) from exc
-    log.debug("%s: opened %s", device, address)
+    log.debug("%s: opened %s%s", device, address, " (stamped frames: device clock)" if device_clock else "")
+    if device_clock:
+        from u2sa_hw.ports.serial_clock import StampedSerialPort
+
+        return StampedSerialPort(handle, device=device, address=address, tap=tap, timeout=timeout)
     return SerialPort(handle, device=device, address=address, tap=tap)
