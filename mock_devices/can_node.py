@@ -7,6 +7,11 @@ that receives frames, hands those the device accepts to ``_handle`` and calls ``
 fixed rate for the device's control loop and cyclic messages; it keeps the history and the
 faults every node has (``stop_answering``, ``inject_garbage``, ``send_error_frames``).
 
+The device's time (what its handlers and ticks are given: timeouts, watchdogs, cyclic
+messages, history stamps) comes from its *clock*, ``time.monotonic`` unless a test injects
+one it steps itself: the thread still ticks at ``tick_hz`` of real time, but what the device
+sees as the gap between two frames is then the test's, whatever the machine's load.
+
 python-can's ``udp_multicast`` bus delivers a process's own datagrams back to it (the
 socket joins the group with multicast loop on), unlike a real CAN controller. The node
 therefore remembers what it sent for a second and drops the matching echoes, so its own
@@ -25,7 +30,7 @@ import time
 from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import can
 
@@ -42,7 +47,7 @@ BUS_ERROR_ID = 0x080
 
 @dataclass(frozen=True)
 class FrameRecord:
-    """One frame the node sent (tx) or accepted (rx); ``t`` is time.monotonic(), ``note`` e.g. "garbage"."""
+    """One frame the node sent (tx) or accepted (rx); ``t`` is the node's clock, ``note`` e.g. "garbage"."""
 
     t: float
     direction: str
@@ -51,11 +56,12 @@ class FrameRecord:
 
 
 class PeriodicSchedule:
-    """Says when a cyclic message is due at *hz* (0 = never), without bursts after a stall."""
+    """Says when a cyclic message is due at *hz* (0 = never), without bursts after a stall; the first
+    time is *start* (the owner's clock now; default time.monotonic())."""
 
-    def __init__(self, hz: float) -> None:
+    def __init__(self, hz: float, *, start: float | None = None) -> None:
         self.period = 1.0 / hz if hz > 0 else math.inf
-        self._next = time.monotonic()
+        self._next = time.monotonic() if start is None else start
 
     def due(self, now: float) -> bool:
         """True once per period; the next deadline is kept on the grid unless we fell a period behind."""
@@ -107,10 +113,14 @@ def _frame_key(msg: can.Message) -> tuple:
 
 
 class MockCanNode(ABC):
-    """A device on a python-can bus: receive loop, control tick, history and common faults."""
+    """A device on a python-can bus: receive loop, control tick, history and common faults.
+
+    *clock*: the device's time in seconds (module docstring); ``time.monotonic`` by default.
+    """
 
     def __init__(self, *, name: str, interface: str, channel: str, bus_options: Mapping[str, Any] | None = None,
-                 tick_hz: float = 100.0, history_size: int = 10_000) -> None:
+                 tick_hz: float = 100.0, history_size: int = 10_000,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         if tick_hz <= 0:
             raise ValueError(f"{name}: tick_hz must be > 0, got {tick_hz!r}")
         self.name = name
@@ -118,6 +128,7 @@ class MockCanNode(ABC):
         self.channel = channel
         self.bus_options: dict[str, Any] = dict(bus_options or {})
         self.tick_period = 1.0 / tick_hz
+        self.clock = clock
         self.rx_errors = 0  # receive failures (undecodable datagrams, bus errors)
         self.dropped = 0  # accepted frames the device could not use (bad length, bad value)
         self._history: deque[FrameRecord] = deque(maxlen=history_size)
@@ -224,7 +235,7 @@ class MockCanNode(ABC):
         """Send *msg* unless the node is cut off (force: fault injection sends anyway)."""
         if (self._silent and not force) or self._bus is None:
             return
-        now = time.monotonic()
+        now = self.clock()
         if self._filter_echoes:
             self._echoes.append((now, _frame_key(msg)))
         try:
@@ -246,7 +257,7 @@ class MockCanNode(ABC):
         return False
 
     def _receive(self, msg: can.Message) -> None:
-        now = time.monotonic()
+        now = self.clock()
         with self._lock:
             if self._filter_echoes and self._is_echo(msg, now):
                 return
@@ -275,11 +286,11 @@ class MockCanNode(ABC):
                 self._stop.wait(0.01)  # a broken socket must not spin the CPU
             if msg is not None:
                 self._receive(msg)
-            now = time.monotonic()
+            now = time.monotonic()   # the thread's schedule is real time; the device's time is its clock
             if now >= next_tick:
                 with self._lock:
                     try:
-                        self._tick(now)
+                        self._tick(self.clock())
                     except Exception:  # the device must keep running; the log says what broke
                         log.exception("%s: control tick failed", self.name)
                 next_tick = next_tick + self.tick_period if now - next_tick < 1.0 else now + self.tick_period

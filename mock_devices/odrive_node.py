@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import time
 from typing import Any, Callable, Mapping
 
 import can
@@ -60,10 +61,10 @@ class OdriveCanNode(MockCanNode):
                  control_mode: int = ControlMode.POSITION_CONTROL, input_mode: int = InputMode.PASSTHROUGH,
                  watchdog_timeout_s: float | None = None, bus_voltage_v: float = 24.0, encoder_cpr: int = 8192,
                  fet_temp_c: float = 30.0, motor_temp_c: float = 30.0, tick_hz: float = 100.0,
-                 history_size: int = 10_000) -> None:
+                 history_size: int = 10_000, clock: Callable[[], float] = time.monotonic) -> None:
         name = f"odrive-{side}-{node_id}"
         super().__init__(name=name, interface=interface, channel=channel, bus_options=bus_options,
-                         tick_hz=tick_hz, history_size=history_size)
+                         tick_hz=tick_hz, history_size=history_size, clock=clock)
         if getattr(vehicle, "model", "differential") != "differential":
             raise ValueError(f"{name}: an ODrive wheel needs a 'differential' vehicle, not {vehicle.model!r}")
         if direction not in (1, -1):
@@ -87,7 +88,7 @@ class OdriveCanNode(MockCanNode):
                                      vel_limit=vel_limit, current_limit=current_limit, vel_ramp_rate=vel_ramp_rate,
                                      pos_gain=pos_gain, watchdog_timeout=watchdog_timeout_s or 0.0,
                                      enable_watchdog=watchdog_timeout_s is not None)
-        self.watchdog_trips: list[float] = []  # time.monotonic() of each expiry
+        self.watchdog_trips: list[float] = []  # the node's clock at each expiry
         self.sdo_log: list[tuple[float, int, int, bytes]] = []  # (t, opcode, endpoint, value bytes)
         self._saved = dataclasses.replace(self._factory)
         self._odometer = WheelOdometer(vehicle, side)
@@ -112,8 +113,8 @@ class OdriveCanNode(MockCanNode):
         self._traj_done = True
         self._last_feed = self._last_tick = 0.0
         self._odometer.rebase()
-        self._heartbeat = PeriodicSchedule(self._heartbeat_hz)
-        self._encoder = PeriodicSchedule(self._encoder_hz)
+        self._heartbeat = PeriodicSchedule(self._heartbeat_hz, start=self.clock())
+        self._encoder = PeriodicSchedule(self._encoder_hz, start=self.clock())
         self._drive(0.0)
 
     @property

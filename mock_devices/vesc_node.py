@@ -28,7 +28,8 @@ from __future__ import annotations
 import argparse
 import math
 import struct
-from typing import Any, Iterable, Mapping
+import time
+from typing import Any, Callable, Iterable, Mapping
 
 import can
 
@@ -63,10 +64,10 @@ class VescCanNode(MockCanNode):
                  max_erpm: float = 7000.0, max_current_a: float = 50.0, timeout_s: float = 0.5,
                  status_hz: float = 50.0, status_messages: Iterable[int] = (1, 4, 5), voltage_in_v: float = 24.0,
                  temp_fet_c: float = 30.0, temp_motor_c: float = 28.0, tick_hz: float = 100.0,
-                 history_size: int = 10_000) -> None:
+                 history_size: int = 10_000, clock: Callable[[], float] = time.monotonic) -> None:
         name = f"vesc-{side}-{controller_id}"
         super().__init__(name=name, interface=interface, channel=channel, bus_options=bus_options,
-                         tick_hz=tick_hz, history_size=history_size)
+                         tick_hz=tick_hz, history_size=history_size, clock=clock)
         if drive is None:
             drive = "thruster" if getattr(vehicle, "model", "differential") == "twin_thruster" else "wheel"
         if drive not in DRIVES:
@@ -105,9 +106,9 @@ class VescCanNode(MockCanNode):
         self._erpm_target = 0.0
         self._tacho_counts = 0.0  # integrated from the commanded speed (thruster drive)
         self._last_tick = 0.0
-        self._status = PeriodicSchedule(status_hz)
+        self._status = PeriodicSchedule(status_hz, start=self.clock())
         self._assembler = vc.BufferAssembler()
-        self.timeouts: list[float] = []  # time.monotonic() of each command timeout that released the motor
+        self.timeouts: list[float] = []  # the node's clock at each command timeout that released the motor
         self.appconf_writes = 0
         self.answer_comm = True
         self._odometer = WheelOdometer(vehicle, side) if drive == "wheel" else None

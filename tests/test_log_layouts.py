@@ -2,15 +2,18 @@
 allows are built with the ``mcap`` library's own writer (chunked or not, compressed or not,
 with or without message indexes and summary, an unknown record and a padded record,
 schemaless JSON channels, attachments or metadata only, a first message at log time 0) and
-``u2sa log info``, ``echo`` and ``recover`` give a correct answer or one clear line."""
+``u2sa log info``, ``echo``, ``recover`` and ``export`` give a correct answer or one clear line
+(and a non-zero exit when there is nothing to show, recover or export)."""
 
 from __future__ import annotations
 
 import io
 import json
+import os
 import struct
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -197,3 +200,95 @@ def test_lcm_self_test_packets_are_named_not_unknown(tmp_path: Path) -> None:
     res = u2sa("log", "info", str(tmp_path / "selftest.mcap"), "--json", cwd=tmp_path)
     types = {r["channel"]: r["type"] for r in json.loads(res.stdout)["channels"]}
     assert types == {"LCM_SELF_TEST": "lcm_self_test", "STATE_INFO": "StateInformation"}, types
+
+
+def cdr_only(path: Path) -> None:
+    """Another stack's log: five ROS 2 CDR messages, nothing u2sa can decode."""
+    with path.open("wb") as fh:
+        w = Writer(fh)
+        w.start(profile="ros2", library="x")
+        cid = w.register_channel("/scan", "cdr", w.register_schema("sensor_msgs/msg/LaserScan", "ros2msg", b""))
+        for i in range(5):
+            w.add_message(cid, i * SECOND, b"\0\1\0\0" + b"\7" * 20, i * SECOND)
+        w.finish()
+
+
+def lcm_garbage(path: Path) -> None:
+    """A channel that says lcm, holding bytes that are not LCM."""
+    with path.open("wb") as fh:
+        w = Writer(fh)
+        w.start(profile="", library="x")
+        cid = w.register_channel("FOO", "lcm", w.register_schema("Bar", "lcm", b""))
+        w.add_message(cid, 0, b"hello world, not lcm at all", 0)
+        w.add_message(cid, 10, b"\x01\x02", 10)
+        w.finish()
+
+
+@pytest.mark.parametrize("make, says", [
+    (cdr_only, "nothing to export: 5 cdr messages (5 on /scan): u2sa turns LCM into JSON and copies JSON, it "
+               "cannot convert cdr"),
+    (lcm_garbage, "nothing to export: 2 LCM messages could not be decoded"),
+    (lambda p: write(p, messages=False), "nothing to export: the log holds no messages"),
+])
+def test_export_of_a_log_with_nothing_to_convert_exits_1_with_one_line_and_writes_nothing(
+        make: Callable[[Path], None], says: str, tmp_path: Path) -> None:
+    f, out = tmp_path / "in.mcap", tmp_path / "fox.mcap"
+    make(f)
+    out.write_bytes(b"an earlier export")
+    res = u2sa("log", "export", str(f), "--foxglove", str(out), cwd=tmp_path)
+    assert res.returncode == 1 and says in res.stderr, res
+    assert len(res.stderr.strip().splitlines()) == 1 and "wrote" not in res.stdout
+    assert out.read_bytes() == b"an earlier export" and sorted(p.name for p in tmp_path.iterdir()) == ["fox.mcap",
+                                                                                                    "in.mcap"]
+
+
+def test_export_copies_json_channels_and_converts_lcm_from_log_time_0(tmp_path: Path) -> None:
+    f, out = tmp_path / "mixed.mcap", tmp_path / "fox.mcap"
+    write(f, json_channel=True, t0=0)
+    res = u2sa("log", "export", str(f), "--foxglove", str(out), cwd=tmp_path)
+    assert res.returncode == 0, res
+    with out.open("rb") as fh:
+        got: dict[str, list[tuple[int, bytes]]] = {}
+        for _s, c, m in make_reader(fh).iter_messages(log_time_order=False):
+            got.setdefault(c.topic, []).append((m.log_time, m.data))
+    assert got["/odom"] == [(i * SECOND, json.dumps({"v": i}).encode()) for i in range(3)]   # as they were
+    assert [(t, json.loads(d)["x"]) for t, d in got["STATE_INFO"]] == [(i * SECOND, float(i)) for i in range(3)]
+    umask = os.umask(0)
+    os.umask(umask)
+    assert out.stat().st_mode & 0o777 == 0o666 & ~umask   # a new file's usual mode, not the temporary's 0600
+
+
+def test_export_takes_a_log_starting_at_time_0_as_starting_there_for_its_service_log_lines(tmp_path: Path) -> None:
+    from u2sa_hw.recording.foxglove import export_foxglove
+
+    f = tmp_path / "t0.mcap"
+    with f.open("wb") as fh:
+        w = Writer(fh)
+        w.start(profile="", library="x")
+        cid = w.register_channel("STATE_INFO", "lcm", w.register_schema("StateInformation", "lcm", b""))
+        for t in (0, 1000 * SECOND):    # a first message at 0, the next long after
+            w.add_message(cid, t, state(1.0), t)
+        w.finish()
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    stamp = time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(3))   # 3 s into the log
+    (logs / "gps.log").write_text(f"{stamp}.000 INFO     gps [1] opened the port\n")
+    report = export_foxglove(f, tmp_path / "fox.mcap", log_dir=logs)
+    assert report.counts.get("/log") == 1, report
+
+
+def test_echo_of_a_channel_none_of_whose_messages_decode_exits_1(tmp_path: Path) -> None:
+    f = tmp_path / "garbage.mcap"
+    lcm_garbage(f)
+    res = u2sa("log", "echo", str(f), "FOO", cwd=tmp_path)
+    assert res.returncode == 1 and res.stdout == ""
+    assert "none of the 2 messages on FOO could be decoded as LCM" in res.stderr.splitlines()[-1]
+
+
+def test_recover_keeps_the_mode_of_the_file_it_recovers(tmp_path: Path) -> None:
+    f, out = tmp_path / "run.mcap", tmp_path / "out.mcap"
+    write(f)
+    f.chmod(0o640)
+    res = u2sa("log", "recover", str(f), "-o", str(out), cwd=tmp_path)
+    assert res.returncode == 0, res
+    assert out.stat().st_mode & 0o777 == 0o640

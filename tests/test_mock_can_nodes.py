@@ -18,6 +18,7 @@ import can
 import pytest
 
 from conftest import REPO, wait_until
+from mock_devices.can_node import RX
 from mock_devices.odrive_node import OdriveCanNode
 from mock_devices.vehicle_sim import SimVehicle
 from mock_devices.vesc_node import VescCanNode
@@ -147,6 +148,30 @@ def start_node() -> Iterator[Callable]:
         node.stop()
 
 
+class SteppedClock:
+    """A node's clock that stands still until the test advances it (the node's thread still runs), then,
+    after :meth:`run`, goes on with real time from where it stood."""
+
+    def __init__(self) -> None:
+        self._at = 1000.0
+        self._since: float | None = None
+
+    def __call__(self) -> float:
+        return self._at if self._since is None else self._at + time.monotonic() - self._since
+
+    def advance(self, seconds: float) -> None:
+        assert self._since is None, "the clock runs with real time now"
+        self._at += seconds
+
+    def run(self) -> None:
+        self._since = time.monotonic()
+
+
+def received(node) -> int:
+    """Frames the node has taken from the bus."""
+    return sum(1 for r in node.history if r.direction == RX)
+
+
 def odrive(vehicle: SimVehicle, channel: str, **options) -> OdriveCanNode:
     options = {"side": "left", "node_id": 1, **options}
     return OdriveCanNode(vehicle, interface="virtual", channel=channel, **options)
@@ -218,17 +243,24 @@ def test_odrive_position_control_reaches_the_target(vehicle, channel, client, st
 
 
 def test_odrive_watchdog_is_fed_by_any_frame_and_disarms_when_starved(vehicle, channel, client, start_node) -> None:
-    node = start_node(odrive(vehicle, channel, watchdog_timeout_s=0.4))
+    clock = SteppedClock()   # the node's time moves only when the test moves it: load cannot starve the watchdog
+    node = start_node(odrive(vehicle, channel, watchdog_timeout_s=0.4, clock=clock))
     client.arm_velocity(1, 1.0)
-    client.heartbeat(1, until=lambda hb: hb.axis_state == AxisState.CLOSED_LOOP_CONTROL)
-    # as in can_simple.cpp, RTR requests feed it too: poll for over twice the timeout, still armed
-    while vehicle.snapshot().wheel_left_m < 0.9:
-        client.send(cs.make_request(1, Cmd.GET_ENCODER_ESTIMATES))
-        time.sleep(0.05)
+    wait_until(lambda: node.axis_state == AxisState.CLOSED_LOOP_CONTROL, message="the axis armed")
+    # as in can_simple.cpp, RTR requests feed it too: one every 0.35 s for over twice the timeout, still armed
+    for _ in range(3):
+        client.drain()
+        clock.advance(0.35)
+        client.encoder(1)   # a cyclic frame: the control tick (watchdog first) ran 0.35 s after the last feed
         assert node.axis_state == AxisState.CLOSED_LOOP_CONTROL and node.axis_error == 0
+        client.request(1, Cmd.GET_BUS_VOLTAGE_CURRENT)   # an RTR, answered: the node has taken it
+    wait_until(lambda: vehicle.snapshot().wheel_left_m > 0, message="the wheel driven")
+    client.drain()
+    clock.advance(0.41)   # then nothing for just over the timeout
     hb = client.heartbeat(1, until=lambda hb: hb.axis_state == AxisState.IDLE)
     assert hb.axis_error == cs.OdriveError.WATCHDOG_TIMER_EXPIRED
-    assert node.wheel_speed_mps == 0.0
+    assert node.watchdog_trips == [clock()] and node.wheel_speed_mps == 0.0
+    clock.run()
     client.encoder(1, until=lambda pos, vel: vel == 0.0)
 
 
@@ -394,13 +426,26 @@ def test_vesc_duty_and_rpm_drive_the_wheel_and_status_follows_the_odometer(vehic
 
 
 def test_vesc_command_timeout_releases_the_motor(vehicle, channel, client, start_node) -> None:
-    node = start_node(vesc(vehicle, channel, timeout_s=0.4))
-    while vehicle.snapshot().wheel_left_m < 1.2:  # over twice the timeout while commanding
+    clock = SteppedClock()   # the node's time moves only when the test moves it: load cannot starve it
+    node = start_node(vesc(vehicle, channel, timeout_s=0.4, clock=clock))
+
+    def command() -> None:
+        heard = received(node)
         client.vesc(5, PacketId.SET_DUTY, 0.1)
-        time.sleep(0.05)
+        wait_until(lambda: received(node) > heard, message="the node to take the command")
+
+    command()
+    for _ in range(3):   # a command every 0.35 s for over twice the timeout: never released
+        client.drain()
+        clock.advance(0.35)
+        client.status(5, PacketId.STATUS)   # a cyclic frame: the control tick (timeout first) ran 0.35 s on
         assert node.mode == "duty"
+        command()
+    wait_until(lambda: vehicle.snapshot().wheel_left_m > 0, message="the wheel driven")
+    clock.advance(0.41)   # then no command for just over the timeout
     wait_until(lambda: node.mode == "released", message="the VESC timeout")
-    assert node.output == 0.0
+    assert node.timeouts == [clock()] and node.output == 0.0
+    clock.run()
     client.status(5, PacketId.STATUS, until=lambda s: s.erpm == 0 and s.duty == 0)
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -11,6 +12,7 @@ import threading
 from pathlib import Path
 from types import SimpleNamespace
 
+import pytest
 import tomli_w
 from conftest import ServiceProcesses, wait_until
 from gpio_driver_harness import BusCollector
@@ -338,3 +340,122 @@ def test_the_log_holds_verified_payloads_and_says_the_bus_was_signed(services: S
     text = services.cli("log", "info", str(out)).stdout
     assert "bus:         signed (key " in text and "STATE_INFO: unsigned 1, foreign 1" in text
     assert f"signers:     1 ({bus.transport.sender} {bus.name})" in text
+
+
+# ---------------------------------------------------------------- a full disk (min_free_mb = 0) ----
+# A child process fills its "disk": a file-size limit (RLIMIT_FSIZE, SIGXFSZ ignored: a write past it
+# fails with EFBIG), or a real 256 kB tmpfs in a mount namespace of its own (ENOSPC; the file is
+# copied out before the namespace goes). argv: mode, directory, output copy, then the job's own.
+FULL_DISK_CHILD = r"""
+import json, os, resource, shutil, signal, sys, time
+from pathlib import Path
+mode, disk, copy = sys.argv[1], Path(sys.argv[2]), Path(sys.argv[3])
+if mode == "rlimit":
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000))
+from u2sa_hw import lcmtypes as t
+from u2sa_hw.recording.mcap_log import McapLogWriter
+
+def state(i):
+    s = t.StateInformation().set(x=float(i), psi=0.5)
+    s.sensor_name = "gps"
+    return s
+
+path = disk / "full.mcap"
+report = {}
+if sys.argv[4] == "writer":        # flush every 25 messages: what is flushed before the error must stay
+    writer = McapLogWriter(disk, path=path, chunk_size=4096)
+    n = flushed = 0
+    try:
+        for n in range(10**6):
+            writer.write("STATE_INFO", state(n).encode(), 10**9 + n * 10**6)
+            if n % 25 == 24:
+                writer.flush()
+                flushed = n + 1
+    except OSError as exc:
+        report["error"] = str(exc)
+    writer.close()
+    report.update(taken=writer.messages, flushed=flushed, lost=writer.lost, cut=writer.cut_short)
+else:                              # the recorder's capture, fed over the bus
+    from u2sa_hw.services.recorder.capture import BusCapture
+    from u2sa_hw.transport import Transport
+    url = sys.argv[5]
+    transport = Transport(url, name="full-disk-recorder")
+    capture = BusCapture(transport, McapLogWriter(disk, path=path, chunk_size=4096), min_free_mb=0,
+                         flush_interval_s=0.05)
+    capture.start()
+    transport.start()
+    publisher = Transport(url, name="full-disk-publisher")
+    sent, deadline = 0, time.monotonic() + 120
+    while not capture.stats.stopped_reason and time.monotonic() < deadline:
+        publisher.publish("STATE_INFO", state(sent))
+        sent += 1
+        if sent % 100 == 0:   # let the recorder keep up (a lost UDP packet only ends this wait early)
+            until = time.monotonic() + 2
+            while capture.stats.received < sent - 50 and time.monotonic() < until:
+                time.sleep(0.005)
+    capture.stop()
+    transport.stop()
+    publisher.stop()
+    s = capture.stats
+    report.update(sent=sent, received=s.received, written=s.written, dropped=s.dropped, reason=s.stopped_reason)
+shutil.copyfile(path, copy)
+print(json.dumps(report))
+"""
+
+
+def _fill_the_disk(tmp_path: Path, mode: str, *job: str) -> tuple[dict, Path]:
+    """Run FULL_DISK_CHILD; its report and the copy of the file it left."""
+    disk, copy = tmp_path / "disk", tmp_path / "full.mcap"
+    disk.mkdir()
+    argv = [sys.executable, "-c", FULL_DISK_CHILD, mode, str(disk), str(copy), *job]
+    if mode == "tmpfs":
+        if shutil.which("unshare") is None:
+            pytest.skip("no unshare: cannot mount a small tmpfs")
+        probe = subprocess.run(["unshare", "-rm", "mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(disk)],
+                               capture_output=True, text=True, timeout=30)
+        if probe.returncode != 0:
+            pytest.skip(f"cannot mount a tmpfs in a mount namespace here: {probe.stderr.strip()}")
+        argv = ["unshare", "-rm", "sh", "-c", 'mount -t tmpfs -o size=256k tmpfs "$0" && exec "$@"', str(disk), *argv]
+    r = subprocess.run(argv, capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert r.returncode == 0, r.stdout + r.stderr
+    return json.loads(r.stdout.splitlines()[-1]), copy
+
+
+def _complete_and_indexed(path: Path) -> list[float]:
+    """The x of every message of a log that is complete and indexed (its statistics agree)."""
+    log = LogFile(path)
+    xs = [t.StateInformation.decode(m.data).x for m in log.messages(ch.STATE_INFO)]
+    assert log.contents.complete and not log.contents.problem, log.contents.problem
+    with open(path, "rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        assert summary is not None and summary.chunk_indexes
+        assert summary.statistics.message_count == len(xs)
+        indexed = [t.StateInformation.decode(m.data).x for _s, _c, m in reader.iter_messages()]
+    assert indexed == xs
+    return xs
+
+
+@pytest.mark.parametrize("mode", ["rlimit", "tmpfs"])
+def test_a_full_disk_ends_the_log_at_its_last_complete_chunk_with_every_flushed_message(tmp_path: Path,
+                                                                                         mode: str) -> None:
+    report, path = _fill_the_disk(tmp_path, mode, "writer")
+    assert ("File too large" if mode == "rlimit" else "No space left") in report["error"]
+    xs = _complete_and_indexed(path)
+    # every message flushed before the error reads back, in order, and none after a gap
+    assert len(xs) >= report["flushed"] > 0 and xs == [float(i) for i in range(len(xs))]
+    assert report["taken"] - report["lost"] == len(xs)
+    assert report["cut"] and "ends at its last complete chunk" in report["cut"][0]
+    info = subprocess.run([sys.executable, "-m", "u2sa_hw.cli", "log", "info", str(path), "--json"],
+                          capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert json.loads(info.stdout)["complete"] and json.loads(info.stdout)["messages"] == len(xs)
+
+
+def test_recorder_without_a_disk_floor_stops_at_a_full_disk_with_a_complete_log(tmp_path: Path, lcm_url: str) -> None:
+    report, path = _fill_the_disk(tmp_path, "rlimit", "capture", lcm_url)
+    assert "File too large; recording stopped" in report["reason"], report
+    assert "ends at its last complete chunk" in report["reason"], report
+    xs = _complete_and_indexed(path)
+    assert report["written"] == len(xs) > 0 and xs == sorted(xs)
+    assert report["written"] + report["dropped"] == report["received"]   # every message in the file or counted

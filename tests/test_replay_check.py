@@ -1,6 +1,7 @@
 """``u2sa replay --compare`` on an edited log and ``u2sa replay-check DIR``: a GPS epoch cut out of a
 recorded log is reported as exactly one deletion (the other fixes still match), and the gate
-replays a directory of logs with a progress line per log, one table, and the exit status."""
+replays a directory of logs with a progress line per log, one table, and the exit status; a log
+that fails in any way is that log's result, and --vehicle gives logs without a profile one."""
 
 from __future__ import annotations
 
@@ -19,8 +20,9 @@ from mcap.writer import Writer
 from test_replay import record_driver_log
 
 from u2sa_hw.channels import base_type
-from u2sa_hw.lcmtypes import RawSerial
+from u2sa_hw.lcmtypes import RawSerial, StateInformation
 from u2sa_hw.messages import REGISTRY
+from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo
 
 U2SA = [sys.executable, "-m", "u2sa_hw.cli"]
 SENTENCE = re.compile(rb"\$[A-Z]{2}([A-Z]{3}),([0-9A-Z.]*)[^\r\n]*\r?\n")
@@ -32,9 +34,9 @@ def driver_log(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     yield record_driver_log(tmp_path_factory.mktemp("recorded"), gps_epochs=25, compass_epochs=40)
 
 
-def copy_log(src: Path, dst: Path, edit: Callable[[str, bytes], bytes]) -> None:
-    """Copy an MCAP record by record (schemas, channels, messages, attachments, metadata); *edit*
-    gets each message's channel and data and returns the data to write."""
+def copy_log(src: Path, dst: Path, edit: Callable[[str, bytes], bytes], *, attachments: bool = True) -> None:
+    """Copy an MCAP record by record (schemas, channels, messages, attachments unless not *attachments*,
+    metadata); *edit* gets each message's channel and data and returns the data to write."""
     with src.open("rb") as f_in, dst.open("wb") as f_out:
         reader = make_reader(f_in)
         header = reader.get_header()
@@ -48,7 +50,7 @@ def copy_log(src: Path, dst: Path, edit: Callable[[str, bytes], bytes]) -> None:
         for _schema, channel, message in reader.iter_messages(log_time_order=False):
             writer.add_message(channel_ids[channel.id], message.log_time, edit(channel.topic, message.data),
                                message.publish_time, message.sequence)
-        for attachment in reader.iter_attachments():
+        for attachment in reader.iter_attachments() if attachments else ():
             writer.add_attachment(attachment.create_time, attachment.log_time, attachment.name,
                                   attachment.media_type, attachment.data)
         for metadata in reader.iter_metadata():
@@ -125,18 +127,31 @@ def test_replay_check_replays_a_directory_with_progress_a_table_and_the_exit_sta
     times = gps_times(driver_log)
     without_epoch(driver_log, logs / "b-cut.mcap", times[len(times) // 2])
     (logs / "c-damaged.mcap").write_bytes(b"\x89MCAP0\r\n" + b"\0" * 40)
+    copy_log(driver_log, logs / "d-no-profile.mcap", lambda _t, d: d, attachments=False)   # u2sa record, no --vehicle
+    # A profile the replay does not expect ([services] a number): whatever error that raises is this log's
+    # result, and the logs after it are still checked.
+    writer = McapLogWriter(logs, path=logs / "0-odd-profile.mcap", run=RunInfo(attachments={"vehicle.toml":
+                                                                                               b"services = 5\n"}))
+    writer.write("STATE_INFO", StateInformation().encode(), 1)
+    writer.close()
     res = run("replay-check", str(logs), cwd=tmp_path, timeout=400)
     assert res.returncode == 2, res.stdout + res.stderr      # a log that cannot be replayed wins
-    assert re.search(r"\[1/3\] .*a-clean\.mcap: same", res.stderr), res.stderr
-    assert re.search(r"\[2/3\] .*b-cut\.mcap: DIFFERENT", res.stderr), res.stderr
-    assert re.search(r"\[3/3\] .*c-damaged\.mcap: FAILED", res.stderr), res.stderr
-    assert "replay-check: 3 logs: 1 same, 1 different, 1 could not be replayed" in res.stdout
+    assert re.search(r"\[1/5\] .*0-odd-profile\.mcap: FAILED in [\d.]+ s: \S", res.stderr), res.stderr
+    assert re.search(r"\[2/5\] .*a-clean\.mcap: same", res.stderr), res.stderr
+    assert re.search(r"\[3/5\] .*b-cut\.mcap: DIFFERENT", res.stderr), res.stderr
+    assert re.search(r"\[4/5\] .*c-damaged\.mcap: FAILED", res.stderr), res.stderr
+    assert re.search(r"\[5/5\] .*d-no-profile\.mcap: FAILED .*give the profile with --vehicle FILE", res.stderr)
+    assert "replay-check: 5 logs: 1 same, 1 different, 3 could not be replayed" in res.stdout
 
-    (logs / "c-damaged.mcap").unlink()
-    res = run("replay-check", str(logs), "--json", cwd=tmp_path, timeout=400)
+    # --vehicle FILE (the profile the log was recorded with) replays the log that carries none
+    for name in ("0-odd-profile.mcap", "c-damaged.mcap"):
+        (logs / name).unlink()
+    res = run("replay-check", str(logs), "--json", "--vehicle", str(driver_log.parent / "vehicle.toml"),
+              cwd=tmp_path, timeout=400)
     assert res.returncode == 1, res.stdout + res.stderr
     results = {Path(r["log"]).name: r for r in json.loads(res.stdout)}
     assert results["a-clean.mcap"]["status"] == "same" and results["b-cut.mcap"]["status"] == "DIFFERENT"
+    assert results["d-no-profile.mcap"]["status"] == "same", results["d-no-profile.mcap"]
 
 
 def test_replay_check_refuses_a_directory_without_logs(tmp_path: Path) -> None:
@@ -144,3 +159,5 @@ def test_replay_check_refuses_a_directory_without_logs(tmp_path: Path) -> None:
     assert res.returncode == 2 and "no .mcap logs" in res.stderr
     res = run("replay-check", str(tmp_path / "nope"), cwd=tmp_path, timeout=60)
     assert res.returncode == 2 and "not a directory" in res.stderr
+    res = run("replay-check", str(tmp_path), "--vehicle", str(tmp_path / "none.toml"), cwd=tmp_path, timeout=60)
+    assert res.returncode == 2 and "none.toml: no such file" in res.stderr

@@ -214,7 +214,7 @@ def bus_summary(meta: dict[str, str], record: dict[str, str] | None) -> dict[str
 def cmd_echo(args: Any) -> int:
     """``u2sa log echo``: decoded LCM messages; JSON-encoded channels of other tools as their JSON;
     anything else named with its encoding and size. A channel pattern that matches nothing lists
-    the log's channels and exits 1."""
+    the log's channels and exits 1; so does a log in which no matching message could be decoded."""
     from u2sa_hw.channels import base_type
     from u2sa_hw.cli import CliError
     from u2sa_hw.messages import REGISTRY, MalformedMessage, enumerate_fields, to_dict
@@ -225,7 +225,7 @@ def cmd_echo(args: Any) -> int:
     except re.error as exc:
         raise CliError(f"{args.channel!r} is not a valid regular expression ({exc}); "
                        "quote it, e.g. 'STATE_.*'") from None
-    n = 0
+    n = undecodable = 0
     encodings: dict[str, str] = {}
     for msg in log.messages(args.channel):
         if msg.channel not in encodings:   # channels are read as the file goes
@@ -238,6 +238,7 @@ def cmd_echo(args: Any) -> int:
                 decoded, _ = REGISTRY.decode(msg.data, base_type(msg.channel))
             except MalformedMessage as exc:
                 print(f"{msg.channel} @{msg.log_time_ns}: undecodable as LCM ({exc})", file=sys.stderr)
+                undecodable += 1
                 continue
             if args.json:
                 print(json.dumps({"channel": msg.channel, "log_time_ns": msg.log_time_ns, **to_dict(decoded)}))
@@ -255,6 +256,9 @@ def cmd_echo(args: Any) -> int:
         if not any(re.fullmatch(args.channel, t) for t in topics):
             raise CliError(f"{log.path}: no channel matches {args.channel!r}; the log's channels: "
                            f"{', '.join(topics) or 'none'}")
+    if n == 0 and undecodable:
+        raise CliError(f"{log.path}: none of the {undecodable} messages on {args.channel} could be decoded as LCM "
+                       "(a type this build does not know, or bytes that are not LCM)")
     return 0
 
 
@@ -300,7 +304,10 @@ def cmd_recover(args: Any) -> int:
 
 
 def cmd_export(args: Any) -> int:
-    """``u2sa log export --foxglove``."""
+    """``u2sa log export --foxglove``: exit 1, writing nothing, when nothing in the log could be exported."""
+    import os
+    import tempfile
+
     from u2sa_hw.cli import CliError
     from u2sa_hw.recording.foxglove import export_foxglove
 
@@ -308,16 +315,45 @@ def cmd_export(args: Any) -> int:
     log_dir = Path(args.logs) if args.logs else Path(args.file).resolve().parent.parent / "logs"
     if args.logs and not log_dir.is_dir():
         raise CliError(f"{log_dir}: no such directory (--logs names the run's service log directory)")
-    report = export_foxglove(args.file, args.foxglove, log_dir=log_dir if log_dir.is_dir() else None)
+    out = Path(args.foxglove)
+    if not out.parent.is_dir():
+        raise CliError(f"{out}: the directory {out.parent} does not exist")
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".part", dir=out.parent)
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:   # written beside OUT and renamed when there is something in it: a failure never touches OUT
+        report = export_foxglove(args.file, tmp, log_dir=log_dir if log_dir.is_dir() else None)
+        if not any(n for topic, n in report.counts.items() if topic != "/log"):   # service log lines alone: no
+            raise CliError(f"{args.file}: nothing to export: {_unexported(report)}")
+        umask = os.umask(0)
+        os.umask(umask)
+        tmp.chmod(0o666 & ~umask)   # a new file's usual mode, not mkstemp's 0600
+        tmp.replace(out)
+    finally:
+        tmp.unlink(missing_ok=True)
     total = sum(report.counts.values())
     fixes = sum(n for c, n in report.counts.items() if c.startswith("/location/"))
-    print(f"wrote {total} JSON messages on {len(report.counts)} topics to {args.foxglove} ({fixes} location fixes, "
+    print(f"wrote {total} JSON messages on {len(report.counts)} topics to {out} ({fixes} location fixes, "
           f"{report.counts.get('/log', 0)} log lines" + (f" from {log_dir}" if log_dir.is_dir() else "") + ")")
     for note in report.notes:
         print(f"note: {note}")
-    if report.undecodable:
-        print(f"note: {report.undecodable} undecodable messages skipped")
+    if report.undecodable or report.skipped:
+        print(f"note: not exported: {_unexported(report)}")
     return 0
+
+
+def _unexported(report: Any) -> str:
+    """What an export left out and why, in one line: LCM it could not decode, encodings it cannot convert."""
+    parts = []
+    if report.undecodable:
+        parts.append(f"{report.undecodable} LCM messages could not be decoded (a type this build does not know, "
+                     "or damaged bytes)")
+    for encoding in sorted({e for e, _topic in report.skipped}):
+        where = {topic: n for (e, topic), n in sorted(report.skipped.items()) if e == encoding}
+        parts.append(f"{sum(where.values())} {encoding} messages (" + ", ".join(f"{n} on {topic}" for topic, n in
+                     where.items()) + f"): u2sa turns LCM into JSON and copies JSON, it cannot convert {encoding} "
+                     "(Foxglove opens such a file directly)")
+    return "; ".join(parts) or "the log holds no messages (u2sa log info shows what it holds)"
 
 
 def cmd_plot(args: Any) -> int:

@@ -18,9 +18,14 @@ progress line per log, then one summary table. Use it as a regression gate on a 
 field logs (docs/replay.md has a sample CI job): record with record_raw = true, keep the
 logs that matter in a directory, run this on every change.
 
+Logs recorded without a vehicle profile (u2sa record without --vehicle) carry no
+vehicle.toml: give the profile with --vehicle FILE, used for every log of the run (as
+u2sa replay --vehicle does for one).
+
 Exit status: 0 when every log replayed and matched; 1 when a comparison found a difference;
-2 when a log could not be replayed (damaged, no raw device channels, a driver that never
-opened its device) or DIR holds no logs. Every log is tried whatever the others did.
+2 when a log could not be replayed (damaged, no raw device channels, no profile, a driver
+that never opened its device, or any other error, reported as that log's result) or DIR
+holds no logs. Every log is tried whatever the others did.
 """
 
 EPILOG = """\
@@ -28,6 +33,7 @@ examples:
   u2sa replay-check field-logs/                      all logs, --fast, default tolerances
   u2sa replay-check field-logs/ --tolerances tol.toml --json > report.json
   u2sa replay-check field-logs/ --services state_estimator --keep-outputs out/
+  u2sa replay-check bench-logs/ --vehicle rover/vehicle.toml   logs recorded without a profile
 """
 
 
@@ -51,6 +57,8 @@ def register(sub: Any) -> None:
     p.add_argument("--recursive", action="store_true", help="also logs in subdirectories")
     p.add_argument("--rate", type=float, default=None, metavar="X",
                    help="play at X times real time and check timing too (default: --fast, no clock)")
+    p.add_argument("--vehicle", metavar="FILE", help="the vehicle profile for every log, instead of the one each "
+                   "log carries (needed for logs recorded without one)")
     p.add_argument("--services", nargs="+", default=[], metavar="NAME",
                    help="also run these services of each log's profile (e.g. state_estimator)")
     p.add_argument("--tolerance", type=float, default=1e-6, metavar="D", help="float difference allowed (default 1e-6)")
@@ -71,19 +79,27 @@ def find_logs(directory: Path, *, recursive: bool) -> list[Path]:
 
 
 def check_one(log: Path, out: Path, args: Any, tolerances: Any) -> LogResult:
-    """Replay and compare one log; never raises for a log that cannot be replayed."""
+    """Replay and compare one log; never raises: whatever goes wrong is this log's FAILED result."""
+    began = time.monotonic()
+    try:
+        return _replay_and_compare(log, out, args, tolerances, began)
+    except Exception as exc:  # noqa: BLE001 - one log's failure, of any kind, must not stop the gate
+        from hil.replay_plan import ReplayError
+
+        expected = isinstance(exc, (ReplayError, RuntimeError, OSError, ValueError))
+        first = (str(exc).splitlines() or [""])[0]
+        why = first if expected and first else f"unexpected {type(exc).__name__}: {first}"
+        return LogResult(log, "FAILED", time.monotonic() - began, summary=why)
+
+
+def _replay_and_compare(log: Path, out: Path, args: Any, tolerances: Any, began: float) -> LogResult:
     from hil.compare import compare_logs
     from hil.replay import Replay, ReplayOptions
-    from hil.replay_plan import ReplayError
 
-    began = time.monotonic()
     fast = args.rate is None
-    try:
-        replay = Replay(log, ReplayOptions(rate=args.rate or 1.0, fast=fast, services=args.services, out=out,
-                                           progress=False))
-        result = replay.run()
-    except (ReplayError, RuntimeError, OSError, ValueError) as exc:
-        return LogResult(log, "FAILED", time.monotonic() - began, summary=str(exc).splitlines()[0])
+    replay = Replay(log, ReplayOptions(rate=args.rate or 1.0, fast=fast, services=args.services, out=out,
+                                       vehicle=Path(args.vehicle) if args.vehicle else None, progress=False))
+    result = replay.run()
     report = compare_logs(result.plan.log, result.out, services=set(result.plan.services),
                           start_ns=result.plan.start_ns, end_ns=result.plan.end_ns,
                           rate=None if fast else args.rate, tolerance=tolerances, edge=args.edge,
@@ -119,6 +135,8 @@ def cmd_replay_check(args: Any) -> int:
         raise CliError(f"{root}: not a directory (give the directory that holds the .mcap logs)", 2)
     if args.rate is not None and args.rate <= 0:
         raise CliError(f"--rate must be > 0, got {args.rate:g}", 2)
+    if args.vehicle and not Path(args.vehicle).is_file():
+        raise CliError(f"{args.vehicle}: no such file (--vehicle names a vehicle profile, vehicle.toml)", 2)
     tolerances = load_tolerances(args)
     logs = find_logs(root, recursive=args.recursive)
     if not logs:

@@ -30,11 +30,13 @@ LOG_MARGIN_NS = 5_000_000_000
 
 @dataclass
 class ExportReport:
-    """What an export wrote: messages per topic, why some well-known topics are empty, undecodable count."""
+    """What an export wrote: messages per topic, why some well-known topics are empty, undecodable count,
+    and the messages of encodings it cannot turn into JSON, per (encoding, topic)."""
 
     counts: dict[str, int] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
     undecodable: int = 0
+    skipped: dict[tuple[str, str], int] = field(default_factory=dict)
 
 
 def log_origin(log: LogFile) -> tuple[Origin | None, str]:
@@ -74,12 +76,27 @@ def export_foxglove(src: Path | str, dst: Path | str, *, log_dir: Path | None = 
 
         mapper: FoxgloveMapper | None = None
         no_origin = ""
-        first = last = 0
+        first: int | None = None   # a log time of 0 is a time like any other
+        last = 0
+        passed: dict[str, int] = {}   # JSON channels of other tools, copied as they are: topic -> channel id
         for m in log.messages():
             if mapper is None:   # the attachments precede the first message
                 origin, no_origin = log_origin(log)
                 mapper = FoxgloveMapper(origin=origin)
-            first, last = first or m.log_time_ns, max(last, m.log_time_ns)
+            first, last = m.log_time_ns if first is None else min(first, m.log_time_ns), max(last, m.log_time_ns)
+            if m.encoding.lower() == "json":
+                if m.channel not in passed:
+                    schema = log.contents.schemas.get(m.schema_id)
+                    sid = (writer.register_schema(schema.name, schema.encoding, schema.data)
+                           if schema is not None and schema.encoding == "jsonschema" else 0)
+                    passed[m.channel] = writer.register_channel(m.channel, "json", sid)
+                writer.add_message(passed[m.channel], m.log_time_ns, m.data, m.log_time_ns)
+                report.counts[m.channel] = report.counts.get(m.channel, 0) + 1
+                continue
+            if m.encoding.lower() not in ("lcm", ""):   # cdr, protobuf, ...: nothing here decodes them
+                key = (m.encoding, m.channel)
+                report.skipped[key] = report.skipped.get(key, 0) + 1
+                continue
             try:
                 msg, _ = REGISTRY.decode(m.data, base_type(m.channel))
             except MalformedMessage:
@@ -87,7 +104,7 @@ def export_foxglove(src: Path | str, dst: Path | str, *, log_dir: Path | None = 
                 continue
             for topic, payload in mapper.map(m.channel, msg, m.log_time_ns):
                 emit(topic, payload, m.log_time_ns)
-        if log_dir is not None and first:
+        if log_dir is not None and first is not None:
             for t_ns, entry in read_log_dir(log_dir, start_ns=first - LOG_MARGIN_NS, end_ns=last + LOG_MARGIN_NS):
                 emit(LOG, entry, t_ns)
         for name, meta in log.contents.metadata.items():

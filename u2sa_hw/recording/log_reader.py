@@ -8,6 +8,7 @@ second). :func:`recover` rewrites such a file as a valid, indexed log.
 from __future__ import annotations
 
 import re
+import stat
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,12 +26,14 @@ class LogError(ValueError):
 
 @dataclass(frozen=True)
 class LogMessage:
-    """One recorded LCM message."""
+    """One recorded message (LCM in u2sa logs; another tool's file may hold JSON, CDR, ...)."""
 
     channel: str
     log_time_ns: int
     data: bytes
     type_name: str
+    encoding: str = "lcm"     # the MCAP channel's message encoding
+    schema_id: int = 0        # the channel's schema (0: none), in ``LogFile.contents.schemas``
 
 
 @dataclass
@@ -113,7 +116,8 @@ class LogFile:
             ch = c.channels[record.channel_id]
             if pattern is None or pattern.fullmatch(ch.topic):
                 schema = c.schemas.get(ch.schema_id)
-                yield LogMessage(ch.topic, record.log_time, record.data, schema.name if schema else "?")
+                yield LogMessage(ch.topic, record.log_time, record.data, schema.name if schema else "?",
+                                 ch.message_encoding, ch.schema_id)
 
     def scan(self) -> "LogSummary":
         """Read the whole log once and summarise it."""
@@ -170,7 +174,7 @@ def recover(src: Path | str, dst: Path | str) -> tuple[int, str]:
     sequence numbers, attachments with their times and media types, and metadata (a
     ``recovered_from`` entry added), also when the file holds no message at all. The output
     is written to a temporary file beside *dst* and renamed when complete, so a failure never
-    leaves an invalid file at *dst*.
+    leaves an invalid file at *dst*; it gets *src*'s permission bits.
     """
     import os
     import tempfile
@@ -223,6 +227,7 @@ def recover(src: Path | str, dst: Path | str) -> tuple[int, str]:
             if not started:
                 start()   # no message: the metadata and attachments are still worth keeping
             writer.finish()
+        tmp.chmod(stat.S_IMODE(log.path.stat().st_mode))   # mkstemp made it 0600
         tmp.replace(dst)
     except BaseException:
         tmp.unlink(missing_ok=True)

@@ -11,21 +11,27 @@ Who signed each message: an MCAP channel per (topic, type, signer), whose metada
 ``signer`` is the sender id (16 hex digits) of the process that signed it; each finished
 file gets a ``u2sa_signers`` metadata record naming, per signer, the header sources it
 signed as (``gps``, ``u2sa-cli-1234``). See docs/recording.md.
+
+A full disk never leaves a cut file: the summary's space is reserved ahead of the data, and
+after a write error :meth:`McapFile.close` ends the file at its last complete chunk with a
+summary indexing what stays (:mod:`u2sa_hw.recording.mcap_stream`).
 """
 
 from __future__ import annotations
 
-import os
+import errno
 import socket
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any, Callable
+from typing import Any, Callable
 
+from mcap.records import Channel, Schema
 from mcap.writer import CompressionType, Writer
 
 from u2sa_hw import __version__
 from u2sa_hw.messages import REGISTRY
+from u2sa_hw.recording.mcap_stream import TrackedMcapStream
 from u2sa_hw.recording.schemas import MESSAGE_ENCODING, SCHEMA_ENCODING, schema_text
 
 PROFILE = "u2sa"
@@ -75,74 +81,145 @@ def timestamped_name(prefix: str, *, when: float | None = None) -> str:
 
 
 class McapFile:
-    """One open MCAP file with schema/channel ids per (channel, type)."""
+    """One open MCAP file with schema/channel ids per (channel, type).
+
+    Fails safe: after a write error (a full disk, at a write, a flush or while finishing) the
+    file is not left cut inside a record: :meth:`close` cuts it back to its last complete chunk
+    and ends it there with a summary indexing what stays. :attr:`error` is the error,
+    :attr:`lost` the messages :meth:`write` took that are not in the file, :attr:`cut_short`
+    says what happened ("" when the file was finished normally).
+    """
 
     def __init__(self, path: Path, *, compression: str, chunk_size: int, run: RunInfo) -> None:
         self.path = path
-        self._fh: IO[bytes] = open(path, "wb")
-        self._writer = Writer(self._fh, chunk_size=chunk_size, compression=COMPRESSION[compression])
-        self._writer.start(profile=PROFILE, library=f"u2sa-hw {__version__}")
+        self._stream = TrackedMcapStream(path)
+        self._writer = Writer(self._stream, chunk_size=chunk_size, compression=COMPRESSION[compression])
         self._schemas: dict[bytes, int] = {}
         self._channels: dict[tuple[str, int, str], int] = {}
         self.signers: dict[str, set[str]] = {}    # signer -> header sources seen from it
         self.messages = 0
+        self.lost = 0
+        self.error: OSError | None = None
+        self.cut_short = ""
+        self._closed = False
         self.opened = time.monotonic()
-        self._writer.add_metadata("u2sa", run.metadata())
-        now = time.time_ns()
-        for name, data in run.attachments.items():
-            self._writer.add_attachment(create_time=now, log_time=now, name=name,
-                                        media_type="application/toml", data=data)
-        self._fh.flush()  # a reader sees a valid (if empty) log from the first moment
+        try:
+            self._writer.start(profile=PROFILE, library=f"u2sa-hw {__version__}")
+            self._writer.add_metadata("u2sa", run.metadata())
+            now = time.time_ns()
+            for name, data in run.attachments.items():
+                self._writer.add_attachment(create_time=now, log_time=now, name=name,
+                                            media_type="application/toml", data=data)
+        except OSError as exc:   # a full disk already: leave a valid (empty) file, not a cut one
+            self.error = exc
+            try:
+                self.close()
+            except OSError:
+                pass
+            raise
 
     def _schema_id(self, fingerprint: bytes) -> int:
         sid = self._schemas.get(fingerprint)
         if sid is None:
             cls = REGISTRY.by_fingerprint(fingerprint)
             if cls is not None:
-                sid = self._writer.register_schema(cls.__name__, SCHEMA_ENCODING, schema_text(cls).encode())
+                name, text = cls.__name__, schema_text(cls).encode()
             elif fingerprint in FOREIGN_PACKETS:   # not an LCM type: a packet LCM itself sends
-                sid = self._writer.register_schema(FOREIGN_PACKETS[fingerprint], SCHEMA_ENCODING, b"")
+                name, text = FOREIGN_PACKETS[fingerprint], b""
             else:  # a type this build does not know: keep the bytes, name the fingerprint
-                sid = self._writer.register_schema(f"unknown_{fingerprint.hex()}", SCHEMA_ENCODING, b"")
+                name, text = f"unknown_{fingerprint.hex()}", b""
+            sid = self._writer.register_schema(name, SCHEMA_ENCODING, text)
+            self._stream.add_summary_record(Schema(id=sid, name=name, encoding=SCHEMA_ENCODING, data=text))
             self._schemas[fingerprint] = sid
         return sid
 
     def write(self, channel: str, data: bytes, log_time_ns: int, signer: str = "") -> None:
         """Append one LCM message (*signer*: the verified sender id that signed it, "" on an open bus)."""
-        sid = self._schema_id(data[:8]) if len(data) >= 8 else self._schema_id(b"")
-        key = (channel, sid, signer)
-        cid = self._channels.get(key)
-        if cid is None:
-            cid = self._writer.register_channel(topic=channel, message_encoding=MESSAGE_ENCODING, schema_id=sid,
-                                                metadata={SIGNER_KEY: signer} if signer else {})
-            self._channels[key] = cid
-            if signer:
-                self.signers.setdefault(signer, set()).add(header_source(data))
-        self._writer.add_message(channel_id=cid, log_time=log_time_ns, data=data, publish_time=log_time_ns)
+        if self.error is not None:
+            raise OSError(self.error.errno, f"{self.path}: not writable after an earlier error ({self.error})")
+        try:
+            sid = self._schema_id(data[:8]) if len(data) >= 8 else self._schema_id(b"")
+            key = (channel, sid, signer)
+            cid = self._channels.get(key)
+            if cid is None:
+                meta = {SIGNER_KEY: signer} if signer else {}
+                cid = self._writer.register_channel(topic=channel, message_encoding=MESSAGE_ENCODING, schema_id=sid,
+                                                    metadata=meta)
+                self._stream.add_summary_record(Channel(id=cid, topic=channel, message_encoding=MESSAGE_ENCODING,
+                                                        schema_id=sid, metadata=meta))
+                self._channels[key] = cid
+                if signer:
+                    self.signers.setdefault(signer, set()).add(header_source(data))
+            self._writer.add_message(channel_id=cid, log_time=log_time_ns, data=data, publish_time=log_time_ns)
+        except OSError as exc:
+            self.error = exc
+            raise
         self.messages += 1
 
     def flush(self) -> None:
         """Close the chunk in progress, write it out and fsync."""
-        self._writer.flush()
-        self._fh.flush()
-        os.fsync(self._fh.fileno())
+        try:
+            self._writer.flush()
+            self._stream.sync()
+        except OSError as exc:
+            self.error = exc
+            raise
 
     def close(self, metadata: dict[str, dict[str, str]] | None = None) -> None:
-        """Write *metadata* records (what is known only at the end), the summary (indexes, statistics), and close."""
-        for name, record in (metadata or {}).items():
-            self._writer.add_metadata(name, record)
+        """Write *metadata* records (what is known only at the end), the summary (indexes, statistics), and close.
+
+        After a write error (earlier, or now) the file ends at its last complete chunk instead
+        (:meth:`_end_early`); OSError only when even that could not be written.
+        """
+        if self._closed:
+            return
+        self._closed = True
+        records = dict(metadata or {})
         if self.signers:
-            self._writer.add_metadata(SIGNERS_METADATA, {signer: ", ".join(sorted(s for s in sources if s))
-                                                         for signer, sources in sorted(self.signers.items())})
-        self._writer.finish()
-        self._fh.flush()
-        os.fsync(self._fh.fileno())
-        self._fh.close()
+            records[SIGNERS_METADATA] = {signer: ", ".join(sorted(s for s in sources if s))
+                                         for signer, sources in sorted(self.signers.items())}
+        try:
+            if self.error is None:
+                try:
+                    for name, record in records.items():
+                        self._writer.add_metadata(name, record)
+                    self._writer.finish()
+                    self._stream.trim()
+                    self._stream.sync()
+                    return
+                except OSError as exc:
+                    self.error = exc
+            written = {m.name for m in self._stream.metadata}
+            self._end_early({name: r for name, r in records.items() if name not in written})
+        finally:
+            self._stream.close()
+
+    def _end_early(self, metadata: dict[str, dict[str, str]]) -> None:
+        """End the file after a write error: cut back to the last complete chunk, then write the closing
+        *metadata* and a full summary there, else the summary alone, else only the footer (a valid
+        file readers scan); when not even that fits, drop the last chunk to make room and try again."""
+        s, dropped = self._stream, 0
+        while True:
+            for meta, summary in ((metadata, True), ({}, True), ({}, False)):
+                try:
+                    s.rewrite_end(s.tail(meta, summary=summary))
+                except OSError:
+                    continue
+                self.lost = self.messages - s.messages
+                self.cut_short = (f"{self.path}: {self.error}; the file ends at its last complete chunk: "
+                                  f"{s.messages} messages kept, {self.lost} lost"
+                                  + (f" ({dropped} complete chunks dropped to make room)" if dropped else "")
+                                  + ("" if summary else "; no room for its summary: readers scan it"))
+                return
+            if not s.drop_last_chunk():
+                self.lost = self.messages - s.messages
+                raise OSError(errno.ENOSPC, f"{self.path}: no room even for a footer after {self.error}")
+            dropped += 1
 
     @property
     def size(self) -> int:
         """Bytes written so far."""
-        return self._fh.tell()
+        return self._stream.pos
 
 
 class McapLogWriter:
@@ -164,6 +241,8 @@ class McapLogWriter:
         self.files: list[Path] = []
         self.current: McapFile | None = None
         self.messages = 0
+        self.lost = 0                     # messages write() took that a write error cut off (in no file)
+        self.cut_short: list[str] = []    # a line per file a write error ended early (McapFile.cut_short)
         # Metadata written into each file as it is finished (the recorder's bus drop counts).
         self.closing_metadata: Callable[[], dict[str, dict[str, str]]] | None = None
 
@@ -186,7 +265,9 @@ class McapLogWriter:
         if self.current is None:
             self.current = self._open()
         elif self._due_for_rotation(self.current):
-            self.current.close(self._closing())
+            old = self._finish()
+            if old.error is not None:
+                raise old.error   # the disk is full: no new file
             self.current = self._open()
         self.current.write(channel, data, log_time_ns, signer)
         self.messages += 1
@@ -202,10 +283,20 @@ class McapLogWriter:
             self.current.flush()
 
     def close(self) -> None:
-        """Finish the current file."""
+        """Finish the current file (after a write error: end it at its last complete chunk, see McapFile)."""
         if self.current is not None:
-            self.current.close(self._closing())
-            self.current = None
+            self._finish()
+
+    def _finish(self) -> McapFile:
+        f, self.current = self.current, None
+        assert f is not None
+        try:
+            f.close(self._closing())
+        finally:
+            self.lost += f.lost
+            if f.cut_short:
+                self.cut_short.append(f.cut_short)
+        return f
 
     def _closing(self) -> dict[str, dict[str, str]]:
         return self.closing_metadata() if self.closing_metadata is not None else {}

@@ -6,6 +6,9 @@ writer thread drains it into :class:`McapLogWriter`, closing a chunk every
 ``flush_interval_s`` and checking the free disk space. A full queue drops the message and
 counts it; a disk below the floor (or a failing write) stops the recording cleanly: the
 writer thread finishes the file (summary, indexes) and says why in ``stats.stopped_reason``.
+A write that fails (a full disk with ``min_free_mb = 0``) ends the file at its last complete
+chunk, still indexed (:class:`~u2sa_hw.recording.mcap_log.McapFile`); the messages of the
+chunk in progress are counted as dropped, not written.
 :meth:`BusCapture.stop` never blocks on the queue, whatever state the writer thread is in.
 """
 
@@ -38,7 +41,7 @@ class CaptureStats:
 
     received: int = 0
     written: int = 0
-    dropped: int = 0          # queue full, or still queued when the recording stopped on an error
+    dropped: int = 0          # queue full, still queued when the recording stopped on an error, or cut off by it
     filtered: int = 0
     stopped_reason: str = ""
     per_channel: dict[str, int] = field(default_factory=dict)
@@ -75,6 +78,8 @@ class BusCapture:
         self.stats = CaptureStats()
         self._queue: queue.Queue[tuple[str, bytes, int, str] | None] = queue.Queue(maxsize=queue_size)
         self._finish = threading.Event()   # stop() asked: write what is queued, then finish the file
+        self._lost_seen = 0                # writer.lost already moved from written to dropped
+        self._cuts_seen = 0                # writer.cut_short lines already reported
         self._thread: threading.Thread | None = None
         self._sub: Any = None
         self.active = False
@@ -132,6 +137,11 @@ class BusCapture:
         if reason:
             self.stats.stopped_reason = reason
         log.error(self.stats.stopped_reason)
+        self._count_unwritten()
+        self._close_writer()
+
+    def _count_unwritten(self) -> None:
+        """Empty the queue, counting its messages as dropped."""
         while True:
             try:
                 item = self._queue.get_nowait()
@@ -139,13 +149,24 @@ class BusCapture:
                 break
             if item is not None:
                 self.stats.dropped += 1
-        self._close_writer()
 
     def _close_writer(self) -> None:
+        """Finish the current file; what a write error cut off moves from written to dropped, and is said."""
         try:
             self.writer.close()
         except OSError as exc:
-            log.error("finishing %s failed: %s", self.writer.directory, exc)
+            self._say(f"cannot finish the file in {self.writer.directory} ({exc}): repair it with u2sa log recover")
+        lost, self._lost_seen = self.writer.lost - self._lost_seen, self.writer.lost
+        self.stats.written -= lost
+        self.stats.dropped += lost
+        for line in self.writer.cut_short[self._cuts_seen:]:
+            self._say(line)
+        self._cuts_seen = len(self.writer.cut_short)
+
+    def _say(self, what: str) -> None:
+        """Log *what* and add it to the stopped reason (a file finished early stops the recording too)."""
+        log.error(what)
+        self.stats.stopped_reason = f"{self.stats.stopped_reason}; {what}" if self.stats.stopped_reason else what
 
     def _drain(self) -> None:
         if not self._space_ok():
@@ -167,6 +188,7 @@ class BusCapture:
                 try:
                     self.writer.write(channel, data, t_ns, signer)
                 except OSError as exc:
+                    self.stats.dropped += 1   # this message: in no file
                     self._halt(f"cannot write {self.writer.directory}: {exc}; recording stopped")
                     return
                 self.stats.written += 1
@@ -201,6 +223,7 @@ class BusCapture:
                 log.error("the recorder's writer did not finish %s within %g s (disk stalled?); the file is left "
                           "unfinished: repair it with u2sa log recover", self.writer.directory, JOIN_TIMEOUT_S)
                 return
+        self._count_unwritten()   # put by a handler that ran as the writer stopped on an error
         self._close_writer()   # nothing open when the writer thread finished it already
 
     @property
