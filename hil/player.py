@@ -10,9 +10,10 @@ Timing:
 - fast (``--fast``, ``rate=None``): no clock. A device's next record goes out as soon as its
   driver has taken the previous one (the pty is empty), each burst of a device (records closer
   than its driver's ``epoch_gap_s``) is written at once, and silences between bursts are not
-  reproduced. Output is the same wherever a
-  driver's result depends only on the bytes, which holds for the NMEA drivers as long as a
-  new UTC time or a repeated sentence marks each burst's start (see docs/replay.md).
+  reproduced in wall time: a serial device carries each chunk's recorded read time and a tick
+  after each recorded silence in the pty (the serial device clock, hil/replay_devices.py), and
+  a GPIO replay chip its edges' kernel stamps (hil/replay_gpio.py), so the drivers group and
+  time by the recorded times at any speed (see docs/replay.md).
 
 The player streams the log (a long one is never loaded whole) and stops early when the
 ``abort`` event is set, raising the reason the orchestration stored.

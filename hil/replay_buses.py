@@ -126,7 +126,14 @@ class ReplayI2cDevice:
             self._bus = None
 
     def ready(self, pid: int | None, health: dict[str, str]) -> bool:
-        """The driver's port is open (its identification and setup reads were answered)."""
+        """The driver's port is open (its identification and setup reads were answered), or the driver
+        has already taken every recorded read of its data register: an I2C driver pulls its reads on its
+        own timer from its start (with --fast at FAST_I2C_RATE_HZ), so on a loaded machine it can reach
+        the end of a short recording, and lose its port to the EIO that follows, before the other
+        services are ready; its outputs are captured all the same."""
+        with self._lock:
+            if self._main is not None and not self._reads.get(self._main) and self.counts["reads"]:
+                return True
         return health.get("port", "open") == "open"
 
     def feed(self, record: Any) -> None:

@@ -118,3 +118,23 @@ def test_a_huge_unequal_gap_still_aligns_in_order_without_the_quadratic_search()
     rep = [fix(i, alt=1.0) for i in range(n - 3)]
     pairs = align(rec, rep, tolerance=1e-6)
     assert [p.kind for p in pairs].count("differ") == n - 3 and [p.kind for p in pairs].count("deleted") == 3
+
+
+def rc_mode(i: int, *, pulse_us: int = 1900, blocked_by: str = "") -> Sample:
+    """An RC_MODE state #i at 20 Hz."""
+    return Sample(1_000_000_000 + i * 50_000_000, "RcMode",
+                  {"mode": 2, "pulse_us": pulse_us, "armed": not blocked_by, "blocked_by": blocked_by})
+
+
+def test_rc_mode_fields_decided_from_the_rest_of_the_system_are_notes_and_its_own_fields_are_differences() -> None:
+    rec = [rc_mode(i) for i in range(40)]
+    system_only = [rc_mode(i, blocked_by="pre-arm check failed: imu: degraded" if i > 10 else "") for i in range(40)]
+    r = compare_stream("RC_MODE [rc]", rec, system_only, tolerance=1e-6, edge=1, rate=None, time_tolerance_s=1)
+    assert r.ok and (r.matched, r.differing) == (40, 0), r.problems
+    assert any("armed differs in 29" in n and "blocked_by differs in 29" in n for n in r.notes), r.notes
+    own = [rc_mode(i, pulse_us=1500) for i in range(40)]
+    r = compare_stream("RC_MODE [rc]", rec, own, tolerance=1e-6, edge=1, rate=None, time_tolerance_s=1)
+    assert not r.ok and r.differing == 40 and set(r.fields) == {"pulse_us"}
+    # the same field names on another channel are the service's own
+    r = compare_stream("STATE_INFO [x]", rec, system_only, tolerance=1e-6, edge=1, rate=None, time_tolerance_s=1)
+    assert not r.ok and r.differing == 29

@@ -116,7 +116,10 @@ def test_killed_recorder_log_recovers_and_replays_with_no_differences(recordings
     log = LogFile(fixed)
     summary = log.scan()
     assert log.contents.complete and DRIVERS <= set(summary.devices), summary.devices
-    res = cli("replay", str(fixed), "--fast", "--compare", "-o", str(work / "replayed.mcap"), cwd=work, timeout=240)
+    # RC_MODE's pulse_us in the one timed message due at a switch edge follows the live driver's edge delivery
+    # latency, which the recording does not hold (docs/replay.md, Determinism): left out here, mode is compared
+    res = cli("replay", str(fixed), "--fast", "--compare", "--ignore", "pulse_us", "-o", str(work / "replayed.mcap"),
+              cwd=work, timeout=240)
     assert res.returncode == 0, res.stdout + res.stderr
     assert "compare: OK" in res.stdout
     compared = {line.split(" [", 1)[1].split("]", 1)[0] for line in res.stdout.splitlines() if " [" in line
@@ -129,8 +132,8 @@ def test_the_simulations_own_recording_replays_with_no_differences(recordings: S
     """The launcher starts the recorder first and the drivers once it is ready, so its log holds their start-up."""
     files = sorted((recordings.sim_out / "recording").glob("*.mcap"))
     work = recordings.workdir
-    res = cli("replay", str(files[0]), "--fast", "--compare", "-o", str(work / "sim-replayed.mcap"), cwd=work,
-              timeout=240)
+    res = cli("replay", str(files[0]), "--fast", "--compare", "--ignore", "pulse_us", "-o",
+              str(work / "sim-replayed.mcap"), cwd=work, timeout=240)   # pulse_us: see the test above
     assert res.returncode == 0, res.stdout + res.stderr
     assert "compare: OK" in res.stdout
     compared = {line.split(" [", 1)[1].split("]", 1)[0] for line in res.stdout.splitlines() if " [" in line
