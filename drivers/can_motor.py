@@ -12,6 +12,11 @@ One thread runs the bus: it receives frames (handed to :meth:`handle_frame`) and
 :meth:`tick` every ``TICK_S`` for the controller's own work (re-sending setpoints, arming,
 polling). Bus callbacks (commands, failsafe) run on the transport's thread; both paths take
 ``self.lock``. The vendor subclasses are ``drivers.odrive_can`` and ``drivers.vesc_can``.
+
+The driver's time (:meth:`CanMotorService.now`: frame handling, ticks, silence, setpoint timing)
+is the port's clock: ``time.monotonic()`` on a real bus, the recorded frames' times on a replay's
+stamped bus (``clock=stamped``, :mod:`u2sa_hw.ports.can_clock`), so a replayed node is silent,
+and its odometry restarted, only where the recording says so, however fast the replay runs.
 """
 
 from __future__ import annotations
@@ -95,6 +100,7 @@ class CanMotorService(Actuator):
         self._current: CanPort | None = None
         self._reopen = False
         self.started_at = time.monotonic()  # since when a controller never heard counts as silent
+        self._clock_seen = False             # a stamped port's first frame has restarted started_at
         self._reason = ""
         self._logged_drops: set[str] = set()
         self.check_settings(self.config.get)
@@ -190,6 +196,12 @@ class CanMotorService(Actuator):
                 self._link.record_changed()
 
     # -- the bus -------------------------------------------------------------------------------
+    def now(self) -> float:
+        """The driver's time (s, ``time.monotonic()`` base): the open port's clock (a replay's recorded
+        frame times on a stamped bus), else the wall clock."""
+        port = self._current
+        return port.now() if port is not None and port.is_open else time.monotonic()
+
     def send(self, msg: can.Message) -> bool:
         """Send one frame if the bus is open; False (counted) when it is not or the send failed."""
         port_holder = self._link
@@ -215,7 +227,7 @@ class CanMotorService(Actuator):
     def setup(self) -> None:
         """Resolve the bus's address (opened by the run loop) and declare what we publish."""
         self.register_publisher(ch.STATE_INFO, t.StateInformation)
-        self.started_at = time.monotonic()
+        self.started_at = self.now()
         self._link.start()
 
     def run(self) -> None:
@@ -238,7 +250,8 @@ class CanMotorService(Actuator):
                 break  # closed by kill()
             if port is not self._current:  # (re)opened: controllers get silent_after_s to be heard
                 self._current = port
-                self.started_at = time.monotonic()
+                self._clock_seen = False
+                self.started_at = self.now()
             try:
                 msg = port.recv(max(0.0, min(next_tick - time.monotonic(), TICK_S)))
             except (PortClosed, PortIOError) as exc:
@@ -248,6 +261,9 @@ class CanMotorService(Actuator):
                     self.on_port_lost()
                 continue
             if msg is not None:
+                if port.clock is not None and port.clock.started and not self._clock_seen:   # it starts here
+                    self._clock_seen = True
+                    self.started_at = self.now()
                 self._dispatch(msg)
             if time.monotonic() >= next_tick:
                 next_tick = time.monotonic() + TICK_S
@@ -264,7 +280,7 @@ class CanMotorService(Actuator):
 
     def _tick_and_status(self) -> None:
         self.check_command_timeout()
-        now = time.monotonic()
+        now = self.now()
         with self.lock:
             self.tick(now)
             reasons = self.problems(now)
@@ -282,7 +298,7 @@ class CanMotorService(Actuator):
             return
         try:
             with self.lock:
-                self.handle_frame(msg, time.monotonic())
+                self.handle_frame(msg, self.now())
         except ValueError as exc:  # the protocol modules' decode errors
             self.count_drop(type(exc).__name__, str(exc))
 

@@ -36,7 +36,6 @@ axes are put in IDLE when ``idle_on_stop`` is set. See docs/drivers-can.md.
 from __future__ import annotations
 
 import math
-import time
 from typing import Any, Callable
 
 import can
@@ -321,14 +320,14 @@ class OdriveCanMotor(CanMotorService):
         limit = self.config.get("max_turns_per_s")
         axis.target = max(-limit, min(limit, percent / 100.0 * limit)) * axis.spec.direction
         if axis.armed and not axis.silent:
-            self._send_setpoint(axis, time.monotonic())
+            self._send_setpoint(axis, self.now())
 
     def zero_outputs(self) -> None:
         """0 rev/s on every axis that is heard, sent now."""
         for axis in self.axes.values():
             axis.target = 0.0
             if axis.heartbeat is not None and not axis.silent:
-                self._send_setpoint(axis, time.monotonic())
+                self._send_setpoint(axis, self.now())
 
     def release(self) -> None:
         """IDLE on every heard axis when idle_on_stop (the motor no longer holds 0 rev/s)."""
@@ -366,7 +365,7 @@ class OdriveCanMotor(CanMotorService):
 
     def motor_details(self) -> dict[str, Any]:
         """Per axis (keys ``<actuator>.<what>``): state, errors, setpoint, estimates, bus, temperatures."""
-        now = time.monotonic()
+        now = self.now()
         details: dict[str, Any] = {"firmware": self.firmware, "estopped": self._estopped,
                                    **self.out_of_range.details("out_of_range"),
                                    "odometry_rejected": self.odometry.rejected if self.odometry else 0,

@@ -31,7 +31,6 @@ docs/drivers-can.md.
 from __future__ import annotations
 
 import math
-import time
 from typing import Any, Callable
 
 import can
@@ -317,14 +316,14 @@ class VescCanMotor(CanMotorService):
         if (motor.percent == 0.0) != (percent == 0.0):
             motor.stall_since = None
         motor.percent = percent
-        self._send_setpoint(motor, time.monotonic())
+        self._send_setpoint(motor, self.now())
 
     def zero_outputs(self) -> None:
         """Every controller to neutral, sent now."""
         for motor in self.vescs.values():
             motor.percent = 0.0
             motor.stall_since = None
-            self._send_setpoint(motor, time.monotonic())
+            self._send_setpoint(motor, self.now())
 
     def release(self) -> None:
         """SET_CURRENT 0 to every controller: the motors coast whatever ``neutral`` says."""
@@ -355,7 +354,7 @@ class VescCanMotor(CanMotorService):
 
     def motor_details(self) -> dict[str, Any]:
         """Per controller (keys ``<actuator>.<what>``): setpoint and the latest STATUS values."""
-        now = time.monotonic()
+        now = self.now()
         details: dict[str, Any] = {"mode": self.config.get("mode"), **self.out_of_range.details("out_of_range"),
                                    "odometry_rejected": self.odometry.rejected if self.odometry else 0,
                                    "hw_watchdog": watchdog_summary(

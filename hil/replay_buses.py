@@ -210,7 +210,9 @@ class ReplayI2cDevice:
 class ReplayCanDevice:
     """A private udp_multicast CAN bus: recorded RX frames are sent to the driver, its frames are counted.
 
-    Frames the recorded driver received are sent in order, except the echoes of its own
+    Frames the recorded driver received are sent in order, each with its recorded bus timestamp
+    (the driver's port, ``clock=stamped``, keeps it: its clock and its odometry's pairing run on the
+    recorded times, not on when the replay delivered them), except the echoes of its own
     frames (on udp_multicast a node hears what it sends; the replayed driver hears its own
     again). What the driver sends depends on its timers (setpoints re-sent every
     ``command_period_s``), so its frames are counted, not compared frame by frame.
@@ -233,8 +235,8 @@ class ReplayCanDevice:
         self.counts = {"fed": 0, "echoes_skipped": 0, "recorded_tx": 0, "driver_tx": 0}
 
     def mock_address(self, real: DeviceAddress | None) -> str:
-        """``mock+can://udp_multicast/<group>?port=<the private port>``."""
-        return make_address("can", CAN_GROUP, params={"port": self.port}, mock=True, backend="udp_multicast",
+        """``mock+can://udp_multicast/<group>?port=<the private port>&clock=stamped``."""
+        return make_address("can", CAN_GROUP, params={"port": self.port, "clock": "stamped"}, mock=True, backend="udp_multicast",
                             device=self.name).url
 
     def config_changes(self) -> dict[str, Any]:
@@ -279,7 +281,7 @@ class ReplayCanDevice:
             return
         msg = can.Message(arbitration_id=key[0], is_extended_id=bool(record.is_extended_id),
                           is_remote_frame=key[1], is_error_frame=bool(record.is_error_frame),
-                          dlc=int(record.dlc), data=key[2])
+                          dlc=int(record.dlc), data=key[2], timestamp=float(record.bus_timestamp or 0.0))
         with self._lock:
             self._sent[key] += 1
         self._bus.send(msg)

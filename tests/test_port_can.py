@@ -18,6 +18,8 @@ import pytest
 
 from mock_devices import can_adapter
 from u2sa_hw.ports import PortClosed, PortIOError, PortUnavailable, open_can
+from u2sa_hw.ports.address import AddressError, parse_address
+from u2sa_hw.ports.can_clock import CanDeviceClock
 from u2sa_hw.ports.can_port import CanPort
 from u2sa_hw.ports.tap import RX, TX
 from u2sa_hw.udp_ports import private_udp_port
@@ -218,6 +220,57 @@ class TestUdpMulticastSpecifics:
             assert port.is_open
         finally:
             port.close()
+
+
+class TestStampedClock:
+    """clock=stamped (a replay's mock bus): frames keep their senders' stamps and the port's clock follows them."""
+
+    def test_frames_keep_the_recorded_stamps_and_the_clock_follows_them(self) -> None:
+        udp_port = private_udp_port()
+        port = open_can(device="wheels", interface="udp_multicast", channel=GROUP, port=udp_port, clock="stamped")
+        plain = open_can(device="other", interface="udp_multicast", channel=GROUP, port=udp_port)
+        sender = can.Bus(interface="udp_multicast", channel=GROUP, port=udp_port)
+        try:
+            for stamp in (1000.0, 1000.25):
+                sender.send(can.Message(arbitration_id=0x9, data=bytes(8), is_extended_id=False, timestamp=stamp))
+            assert port.clock is not None
+            port.clock = CanDeviceClock(grace_s=1e9)   # no wall-clock run-on, however slow this machine is
+            first = recv_id(port, 0x9)
+            at_first = port.now()
+            second = recv_id(port, 0x9)
+            assert (first.timestamp, second.timestamp) == (1000.0, 1000.25)
+            # the clock moves by the stamps' interval, whatever time the frames took to arrive
+            assert port.now() - at_first == pytest.approx(0.25)
+            # a frame its sender did not stamp (the driver's own, heard back) keeps 0 and leaves the clock
+            at_second = port.now()
+            sender.send(can.Message(arbitration_id=0x9, data=bytes(8), is_extended_id=False))
+            assert recv_id(port, 0x9).timestamp == 0.0
+            assert port.now() == at_second
+            assert recv_id(plain, 0x9).timestamp != 1000.0   # a plain bus stamps its receive time
+            assert plain.clock is None
+        finally:
+            sender.shutdown()
+            port.close()
+            plain.close()
+
+    def test_a_silent_device_clock_runs_on_with_the_wall_clock(self) -> None:
+        held, running = CanDeviceClock(grace_s=1e9), CanDeviceClock(grace_s=0.0)
+        t0 = held.frame(50.0)
+        assert held.frame(50.5) - t0 == pytest.approx(0.5)
+        assert held.now() == held.frame(50.5)             # held at the last stamp while frames keep coming
+        assert held.frame(49.0) == held.now()             # never backwards
+        t1 = running.frame(50.0)
+        assert running.now() >= t1                         # past its grace: the wall clock moves it on
+
+    def test_only_a_mock_udp_multicast_address_takes_a_device_clock(self) -> None:
+        assert parse_address(f"mock+can://udp_multicast/{GROUP}?clock=stamped", device="w").bus_options["clock"] \
+            == "stamped"
+        for url in ("can://socketcan/can0?clock=stamped", f"can://udp_multicast/{GROUP}?clock=stamped",
+                    "mock+can://virtual/x?clock=stamped", f"mock+can://udp_multicast/{GROUP}?clock=wall"):
+            with pytest.raises(AddressError, match="clock"):
+                parse_address(url, device="w")
+        with pytest.raises(PortUnavailable, match="clock"):
+            open_can(device="w", interface="socketcan", channel="can0", clock="stamped")
 
 
 def test_socketcan_without_the_interface_says_how_to_bring_it_up() -> None:

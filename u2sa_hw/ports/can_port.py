@@ -8,6 +8,11 @@ SocketCAN fix (bring the interface up, load the kernel module), a bus that went 
 send or receive (transmit queue full, undecodable datagram) is ``PortIOError``.
 
 Every frame sent is tapped as a ``RawCanFrame`` TX record, every frame received as RX.
+
+``clock=stamped`` (a ``mock+can`` udp_multicast address only: a replay's bus) keeps each
+frame's sender stamp (its recorded bus time) and gives the port a device clock
+(:mod:`u2sa_hw.ports.can_clock`); :meth:`CanPort.now` is then that clock, else
+``time.monotonic()``. A real bus never takes a foreign clock.
 """
 
 from __future__ import annotations
@@ -15,11 +20,13 @@ from __future__ import annotations
 import errno
 import logging
 import threading
+import time
 from typing import Any
 
 import can
 
 from u2sa_hw.messages import RawCanFrame
+from u2sa_hw.ports.can_clock import CAN_CLOCKS, CanDeviceClock, StampedUdpMulticastBus
 from u2sa_hw.ports.errors import PortClosed, PortIOError, PortUnavailable
 from u2sa_hw.ports.tap import RX, TX, Tap, call_tap
 
@@ -86,7 +93,8 @@ class CanPort:
     """An open CAN bus: ``send`` and ``recv`` frames (``can.Message``), tapped, errors mapped."""
 
     def __init__(self, bus: can.BusABC, *, device: str, interface: str, channel: str,
-                 bitrate: int | None = None, tap: Tap | None = None) -> None:
+                 bitrate: int | None = None, tap: Tap | None = None,
+                 clock: CanDeviceClock | None = None) -> None:
         self.device = device
         self.interface = interface
         self.channel = channel
@@ -96,6 +104,11 @@ class CanPort:
         self._tap = tap
         self._closed = False
         self._close_lock = threading.Lock()
+        self.clock = clock   # the replay's device clock (clock=stamped), else None
+
+    def now(self) -> float:
+        """The driver's time (s, ``time.monotonic()`` base): the device clock on a stamped bus."""
+        return self.clock.now() if self.clock is not None else time.monotonic()
 
     @property
     def is_open(self) -> bool:
@@ -142,6 +155,8 @@ class CanPort:
         except (can.CanError, OSError, ValueError) as exc:
             raise self._fail(exc, "receive") from exc
         if msg is not None:
+            if self.clock is not None and msg.timestamp:   # an unstamped frame (an echo) leaves it
+                self.clock.frame(float(msg.timestamp))
             call_tap(self._tap, _record(self.device, RX, msg))
         return msg
 
@@ -170,16 +185,23 @@ def open_can(*, device: str, interface: str, channel: str, bitrate: int | None =
 
     *bus_options* go to ``can.Bus`` unchanged (e.g. ``port=`` for udp_multicast,
     ``receive_own_messages=`` for virtual). Raises PortUnavailable naming the device and
-    the fix when the bus cannot be opened.
+    the fix when the bus cannot be opened. ``clock="stamped"`` (udp_multicast only: a replay's bus)
+    keeps the senders' stamps and gives the port a device clock; any other interface refuses it.
     """
     kwargs = dict(bus_options)
+    clock = kwargs.pop("clock", None)
+    address = f"{interface}:{channel}"
+    if clock is not None and (clock not in CAN_CLOCKS or interface != "udp_multicast"):
+        raise PortUnavailable(device, f"clock={clock!r} is not for this bus", address=address,
+                              fix="clock=stamped is only for a replay's mock+can udp_multicast bus; remove clock=")
     if bitrate is not None:
         kwargs["bitrate"] = bitrate
-    address = f"{interface}:{channel}"
     try:
-        bus = can.Bus(interface=interface, channel=channel, **kwargs)
+        bus = StampedUdpMulticastBus(channel=channel, **kwargs) if clock else \
+            can.Bus(interface=interface, channel=channel, **kwargs)
     except (can.CanError, OSError, ValueError) as exc:
         raise PortUnavailable(device, f"cannot open CAN bus ({exc})", address=address,
                               fix=_open_fix(interface, channel, bitrate, exc)) from exc
     log.debug("%s: opened %s", device, address)
-    return CanPort(bus, device=device, interface=interface, channel=channel, bitrate=bitrate, tap=tap)
+    return CanPort(bus, device=device, interface=interface, channel=channel, bitrate=bitrate, tap=tap,
+                   clock=CanDeviceClock() if clock else None)
