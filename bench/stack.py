@@ -56,8 +56,8 @@ from u2sa_hw.bus_key import use_run_key  # noqa: E402
 from u2sa_hw import channels as ch  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
 from u2sa_hw.protocols import odrive_cansimple as cs  # noqa: E402
-from u2sa_hw.sim.progress import ProgressLine  # noqa: E402
-from u2sa_hw.sim.runner import SimOptions, SimRun  # noqa: E402
+from simulation.progress import ProgressLine  # noqa: E402
+from simulation.runner import SimOptions, SimRun  # noqa: E402
 from u2sa_hw.transport import Transport  # noqa: E402
 from u2sa_hw.udp_ports import private_udp_port  # noqa: E402
 

@@ -287,8 +287,8 @@ def test_sim_shows_a_service_device_error_on_the_console_once() -> None:
     import io
     from types import SimpleNamespace
 
-    from u2sa_hw.sim.progress import BusSnapshot, ProgressLine
-    from u2sa_hw.sim.runner import SimRun
+    from simulation.progress import BusSnapshot, ProgressLine
+    from simulation.runner import SimRun
 
     out = io.StringIO()
     run = SimRun.__new__(SimRun)   # only the console half: no profile, no mocks, no bus

@@ -19,8 +19,8 @@ from conftest import REPO
 from u2sa_hw.registry import resolve_kind
 from u2sa_hw.services.mission.xml import load_mission
 from u2sa_hw.services.world.xml import load_objects
-from u2sa_hw.sim.profile import effective_configs
-from u2sa_hw.sim.scenario import load_scenario
+from simulation.profile import effective_configs
+from simulation.scenario import load_scenario
 from u2sa_hw.transport import Transport
 from u2sa_hw.vehicle import VehicleProfile, load_profile
 

@@ -21,7 +21,7 @@ from mock_devices.sim_context import DeviceError
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.launcher import Launcher
-from u2sa_hw.sim.profile import effective_configs, write_sim_profile
+from simulation.profile import effective_configs, write_sim_profile
 from u2sa_hw.transport import Transport
 from u2sa_hw.vehicle import load_profile
 from u2sa_hw.udp_ports import private_udp_port

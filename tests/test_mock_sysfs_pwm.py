@@ -18,7 +18,7 @@ from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus_client import BusClient
 from u2sa_hw.ports import PortClosed, PortUnavailable, open_pwm
-from u2sa_hw.sim.profile import effective_configs
+from simulation.profile import effective_configs
 from u2sa_hw.vehicle import load_profile
 
 SERVOS = """

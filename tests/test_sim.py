@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 
 from conftest import REPO, U2SA
-from u2sa_hw.sim.progress import StatusChange
-from u2sa_hw.sim.summary import Goal, RunRecord, TrackSample, summarise
+from simulation.progress import StatusChange
+from simulation.summary import Goal, RunRecord, TrackSample, summarise
 from u2sa_hw.udp_ports import private_udp_port
 
 GROUND = REPO / "examples" / "ground_vehicle"

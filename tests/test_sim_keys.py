@@ -18,9 +18,9 @@ import pytest
 
 from conftest import U2SA
 from mock_devices.launcher import MockLauncher
-from u2sa_hw.sim.keys import StickKeys
-from u2sa_hw.sim.progress import BusSnapshot
-from u2sa_hw.sim.runner import SimFailure, SimRun
+from simulation.keys import StickKeys
+from simulation.progress import BusSnapshot
+from simulation.runner import SimFailure, SimRun
 from u2sa_hw.udp_ports import private_udp_port
 from u2sa_hw.vehicle import load_profile
 

@@ -18,8 +18,8 @@ import pytest
 
 from conftest import REPO, U2SA
 from mock_devices.actuation import OutputLog
-from u2sa_hw.sim.effects import event_effects
-from u2sa_hw.sim.events import ScenarioError, ScenarioEvent, load_scenario_file
+from simulation.effects import event_effects
+from simulation.events import ScenarioError, ScenarioEvent, load_scenario_file
 from u2sa_hw.udp_ports import private_udp_port
 
 WHEELS = ("left_wheel", "right_wheel")

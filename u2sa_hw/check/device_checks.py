@@ -10,8 +10,10 @@ set the interface's bitrate, so CAN does not come up at boot unless something el
 
 For ``u2sa sim`` (*for_sim*) every service with a device (a driver) must have a mock: a
 ``[devices]`` table with ``mock = "..."`` for it; the error names the mock kind to use.
-Mock kinds and ``[simulation]`` are read through :mod:`mock_devices` when it is installed
-(imported only here, only then); ``[simulation]``'s keys are checked either way.
+Mock kinds and ``[simulation]`` are read through :mod:`mock_devices` when it is installed,
+behind one lazy boundary (:func:`_mock_support`, imported inside the check, never at module
+level: ``u2sa_hw`` imports none of ``mock_devices``, ``hil``, ``drivers``, ``simulation`` at
+import time); ``[simulation]``'s keys are checked either way.
 
 Every device table's address is parsed on its own, so each wrong one is its own line; the
 checks that need the whole device list (unused addresses, shared PWM outputs, mocks, device
@@ -23,6 +25,7 @@ from __future__ import annotations
 
 import os
 import re
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
@@ -101,12 +104,31 @@ def _check_address_text(name: str, text: Any, out: Collector) -> None:
         out.from_text(f"[devices.{name}]: {exc}", key=f"devices.{name}", fix="write the address as docs/ports.md shows")
 
 
-def _mock_catalog() -> Mapping[str, Any] | None:
+@dataclass(frozen=True)
+class _MockSupport:
+    """What the checks read from :mod:`mock_devices`: its catalog and how it reads ``[simulation]``."""
+
+    catalog: Mapping[str, Any]          # mock kind -> its catalog entry
+    settings: Any                       # mock_devices.launcher.SimulationSettings
+    error: type[Exception]              # mock_devices.sim_context.DeviceError
+
+
+def _mock_support() -> _MockSupport | None:
+    """The lazy boundary to :mod:`mock_devices`; None when it is not installed (any other error surfaces)."""
     try:
         from mock_devices.catalog import CATALOG
-    except ImportError:
+        from mock_devices.launcher import SimulationSettings
+        from mock_devices.sim_context import DeviceError
+    except ModuleNotFoundError as exc:
+        if exc.name != "mock_devices":
+            raise
         return None
-    return CATALOG
+    return _MockSupport(catalog=CATALOG, settings=SimulationSettings, error=DeviceError)
+
+
+def _mock_catalog() -> Mapping[str, Any] | None:
+    support = _mock_support()
+    return None if support is None else support.catalog
 
 
 def _check_addresses(profile: Any, configs: Mapping[str, Any], out: Collector) -> dict[str, Any] | None:
@@ -303,14 +325,12 @@ def check_simulation(path: Path, data: Mapping[str, Any], out: Collector) -> Non
         table = _known_keys(table, SIMULATION_KEYS, "simulation", out)
         if isinstance(table.get("start"), dict):
             table["start"] = _known_keys(table["start"], SIMULATION_START_KEYS, "simulation.start", out)
-    try:
-        from mock_devices.launcher import SimulationSettings
-        from mock_devices.sim_context import DeviceError
-    except ImportError:
+    support = _mock_support()
+    if support is None:
         return
     try:
-        SimulationSettings.from_table(table, where=str(path))
-    except DeviceError as exc:
+        support.settings.from_table(table, where=str(path))
+    except support.error as exc:
         out.from_text(str(exc), key="simulation", fix="see docs/simulation.md")
 
 

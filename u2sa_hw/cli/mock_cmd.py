@@ -66,8 +66,8 @@ def cmd_mock(args: Any) -> int:
         return 0
     from mock_devices.launcher import MockLauncher
     from mock_devices.sim_context import MODEL_INPUTS, DeviceError, device_dir_for
-    from u2sa_hw.sim.keys import HELP, StickKeys
-    from u2sa_hw.sim.profile import effective_configs, write_sim_profile
+    from simulation.keys import HELP, StickKeys
+    from simulation.profile import effective_configs, write_sim_profile
     from u2sa_hw.vehicle import ProfileError
 
     profile = profile_from(args)

@@ -81,10 +81,10 @@ def register(sub: Any) -> None:
 
 def cmd_sim(args: Any) -> int:
     """Run the simulation; CliError with the reason unless the mission completed."""
-    from u2sa_hw.cli import CliError
-    from u2sa_hw.sim.runner import SimOptions, SimRun
     from mock_devices.sim_context import DeviceError
-    from u2sa_hw.sim.events import ScenarioError
+    from simulation.events import ScenarioError
+    from simulation.runner import SimOptions, SimRun
+    from u2sa_hw.cli import CliError
 
     if args.timeout is not None and args.timeout <= 0:
         raise CliError("sim: --timeout must be > 0 seconds", 2)
@@ -101,7 +101,7 @@ def cmd_sim(args: Any) -> int:
     try:
         run = SimRun(options)
         if sys.stdin.isatty() and sys.stdout.isatty():
-            from u2sa_hw.sim.keys import StickKeys
+            from simulation.keys import StickKeys
 
             keys = StickKeys(lambda: run.mocks, say=run.progress.event)
             keys.start()

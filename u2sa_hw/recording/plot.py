@@ -172,7 +172,7 @@ def build_figure(run: RunData, *, title: str, channel: str = ch.STATE_ESTIMATE) 
     import matplotlib.pyplot as plt
     from matplotlib import patches
 
-    from u2sa_hw.sim.plot import _obstacle_patch
+    from simulation.plot import _obstacle_patch
 
     fig = plt.figure(figsize=(15, 10), dpi=100)
     grid = fig.add_gridspec(4, 2, width_ratios=(1.15, 1.0), hspace=0.45, wspace=0.28)

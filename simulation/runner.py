@@ -11,9 +11,9 @@
 
 ``run()`` chains them. The simulated vehicle lives in this process (with the mocks), so
 its true track is sampled here, at ``SAMPLE_HZ``. With a scenario (``SimOptions.scenario``,
-:mod:`u2sa_hw.sim.events`) ``run()`` plays its events instead of waiting for the mission's
+:mod:`simulation.events`) ``run()`` plays its events instead of waiting for the mission's
 end, a failsafe or a loss of autonomy is what the run is about rather than a failure, and
-the summary says what each event did to every actuator output (:mod:`u2sa_hw.sim.effects`).
+the summary says what each event did to every actuator output (:mod:`simulation.effects`).
 
 The pilot hands over only once every IMU has calibrated at rest (its health ``ok``): the
 vehicle stands still in manual with the sticks centred until then.
@@ -29,15 +29,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from simulation.effects import final_outputs
+from simulation.events import Scenario, load_scenario_file
+from simulation.profile import effective_configs, write_sim_profile
+from simulation.progress import (BusMonitor, BusSnapshot, ProgressLine, control_mode, loop_completed,
+                                rc_state_name, status_text)
+from simulation.scenario import load_scenario
+from simulation.script import ScriptRunner
+from simulation.summary import RunRecord, TrackSample, summarise, summary_text, write_summary, write_track_csv
 from u2sa_hw.launcher import Launcher, RestartPolicy
-from u2sa_hw.sim.profile import effective_configs, write_sim_profile
-from u2sa_hw.sim.progress import (BusMonitor, BusSnapshot, ProgressLine, control_mode, loop_completed,
-                                  rc_state_name, status_text)
-from u2sa_hw.sim.effects import final_outputs
-from u2sa_hw.sim.events import Scenario, load_scenario_file
-from u2sa_hw.sim.scenario import load_scenario
-from u2sa_hw.sim.script import ScriptRunner
-from u2sa_hw.sim.summary import RunRecord, TrackSample, summarise, summary_text, write_summary, write_track_csv
 from u2sa_hw.vehicle import load_profile
 
 SAMPLE_HZ = 10.0
@@ -70,7 +70,7 @@ class SimOptions:
     lcm_url: str | None = None          # None: the profile's
     can_port: int | None = None         # None: the profile's [simulation] can_udp_port
     grace_s: float = 3.0
-    scenario: Path | None = None        # a failsafe scenario file (u2sa_hw.sim.events)
+    scenario: Path | None = None        # a failsafe scenario file (simulation.events)
 
 
 class SimRun:
@@ -279,7 +279,7 @@ class SimRun:
         self.out.mkdir(parents=True, exist_ok=True)
         files.append(write_track_csv(self.record.samples, self.out / "track.csv"))
         try:
-            from u2sa_hw.sim.plot import plot_run
+            from simulation.plot import plot_run
 
             files.append(plot_run(self.out / "track.png", samples=self.record.samples, goals=self.scenario.goals,
                                   obstacles=self.scenario.obstacles, t_engage=self.record.t_engage,

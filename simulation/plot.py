@@ -11,9 +11,9 @@ import math
 from pathlib import Path
 from typing import Any, Sequence
 
+from simulation.summary import Goal, TrackSample
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.messages import as_type
-from u2sa_hw.sim.summary import Goal, TrackSample
 
 OBSTACLE_COLOUR = "#c0392b"
 

@@ -20,8 +20,8 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
+from simulation.progress import StatusChange
 from u2sa_hw.services.world.shapes import distance_to_point, segment_distance
-from u2sa_hw.sim.progress import StatusChange
 
 
 @dataclass(frozen=True)

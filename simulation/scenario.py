@@ -11,11 +11,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
+from simulation.summary import Goal
 from u2sa_hw.geo import geodetic_to_ned
 from u2sa_hw.services.mission.xml import GLOBAL, load_mission
 from u2sa_hw.services.world.model import place_in_world
 from u2sa_hw.services.world.xml import load_objects
-from u2sa_hw.sim.summary import Goal
 from u2sa_hw.vehicle import ProfileError, VehicleProfile
 
 

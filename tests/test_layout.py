@@ -1,0 +1,130 @@
+"""The layout's one-way dependency rule (DESIGN.md section 1, docs/ports.md "Where each thing goes").
+
+``drivers``, ``hil``, ``mock_devices`` and ``simulation`` import ``u2sa_hw``; ``u2sa_hw`` imports
+none of them at import time. Only a CLI command (or a check that reads the mock catalog) may
+reach them, inside the function that needs them, and only the modules named in
+``LAZY_BOUNDARIES`` do.
+"""
+
+from __future__ import annotations
+
+import ast
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE = REPO / "u2sa_hw"
+OUTSIDE = ("mock_devices", "hil", "drivers", "simulation")
+LAZY_BOUNDARIES = {   # module -> why it may import one of OUTSIDE inside a function
+    "u2sa_hw.cli.sim_cmd": "u2sa sim runs the simulation package",
+    "u2sa_hw.cli.mock_cmd": "u2sa mock starts the mock devices",
+    "u2sa_hw.cli.replay_cmd": "u2sa replay runs hil's replay",
+    "u2sa_hw.cli.replay_check_cmd": "u2sa replay-check runs hil's replay",
+    "u2sa_hw.check.device_checks": "u2sa check reads the mock catalog and [simulation] through mock_devices",
+    "u2sa_hw.recording.plot": "u2sa log plot draws obstacles as the simulation's plot does",
+}
+
+
+def _modules() -> list[tuple[str, Path]]:
+    """Every module of u2sa_hw (``__main__`` left out: importing it runs the CLI)."""
+    found = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        parts = path.relative_to(REPO).with_suffix("").parts
+        if "__pycache__" in parts or parts[-1] == "__main__":
+            continue
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        found.append((".".join(parts), path))
+    return found
+
+
+def _outside(name: str | None) -> str | None:
+    top = (name or "").split(".")[0]
+    return top if top in OUTSIDE else None
+
+
+def _imported(node: ast.AST) -> list[str]:
+    if isinstance(node, ast.Import):
+        return [alias.name for alias in node.names]
+    if isinstance(node, ast.ImportFrom) and node.level == 0:
+        return [node.module or ""]
+    return []
+
+
+def _is_type_checking(node: ast.If) -> bool:
+    test = node.test
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or \
+        (isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
+
+
+def _module_level(body: list[ast.stmt]) -> list[ast.stmt]:
+    """The statements run at import: the top level, and inside top-level if/try/with (not TYPE_CHECKING)."""
+    out: list[ast.stmt] = []
+    for node in body:
+        out.append(node)
+        if isinstance(node, ast.If):
+            if not _is_type_checking(node):
+                out += _module_level(node.body)
+            out += _module_level(node.orelse)
+        elif isinstance(node, ast.Try):
+            out += _module_level(node.body)
+            for handler in node.handlers:
+                out += _module_level(handler.body)
+            out += _module_level(node.orelse) + _module_level(node.finalbody)
+        elif isinstance(node, (ast.With, ast.For, ast.While)):
+            out += _module_level(node.body)
+    return out
+
+
+def test_no_module_level_import_of_the_outside_packages() -> None:
+    """Static: no u2sa_hw module imports drivers, hil, mock_devices or simulation at module level."""
+    bad = []
+    for name, path in _modules():
+        tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+        for node in _module_level(tree.body):
+            for target in _imported(node):
+                if _outside(target):
+                    bad.append(f"{path.relative_to(REPO)}:{node.lineno}: import {target}")
+    assert not bad, "u2sa_hw must not import these at module level (DESIGN.md section 1):\n" + "\n".join(bad)
+
+
+def test_only_the_lazy_boundaries_reach_the_outside_packages() -> None:
+    """Static: an import of them anywhere in u2sa_hw (a function, TYPE_CHECKING) is in a named boundary."""
+    bad = []
+    for name, path in _modules():
+        if name in LAZY_BOUNDARIES:
+            continue
+        tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+        for node in ast.walk(tree):
+            for target in _imported(node):
+                if _outside(target):
+                    bad.append(f"{path.relative_to(REPO)}:{node.lineno}: import {target}")
+    assert not bad, ("these u2sa_hw modules import a package that lives outside u2sa_hw (move the module "
+                     "out, e.g. to simulation/, or make it a CLI command's lazy import):\n" + "\n".join(bad))
+
+
+IMPORT_EACH = """
+import importlib, json, sys
+outside = {outside!r}
+culprits = {{}}
+for name in {names!r}:
+    before = {{m.split(".")[0] for m in sys.modules}}
+    importlib.import_module(name)
+    new = sorted({{m.split(".")[0] for m in sys.modules}} - before & set(outside))
+    if new:
+        culprits[name] = new
+print(json.dumps(culprits))
+"""
+
+
+def test_importing_u2sa_hw_loads_none_of_the_outside_packages() -> None:
+    """At run time, in a fresh interpreter: importing each u2sa_hw module loads none of them."""
+    names = [name for name, _ in _modules()]
+    code = IMPORT_EACH.format(outside=OUTSIDE, names=names)
+    done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-4000:]
+    culprits = json.loads(done.stdout.strip().splitlines()[-1])
+    assert not culprits, "importing these u2sa_hw modules loaded packages outside u2sa_hw: " + \
+        ", ".join(f"{name} -> {', '.join(pkgs)}" for name, pkgs in culprits.items())
