@@ -14,28 +14,7 @@ from typing import Any, Sequence
 from simulation.summary import Goal, TrackSample
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.messages import as_type
-
-OBSTACLE_COLOUR = "#c0392b"
-
-
-def _obstacle_patch(obj: Any, patches: Any) -> Any:
-    """A matplotlib patch for an object in NED, drawn in (east, north) axes."""
-    base = as_type(obj, t.ObjectDescription)
-    style = {"facecolor": OBSTACLE_COLOUR, "edgecolor": OBSTACLE_COLOUR, "alpha": 0.35, "linewidth": 1.5}
-    if isinstance(obj, (t.Circle, t.Sphere)):
-        radius = obj.radius if isinstance(obj, t.Circle) else obj.sphere_radius
-        return patches.Circle((base.y, base.x), max(radius, 0.3), **style)   # radius 0: a point, drawn as a dot
-    if isinstance(obj, t.Rectangle):
-        c, s = math.cos(obj.heading), math.sin(obj.heading)
-        corners = []
-        for along, across in ((1, 1), (1, -1), (-1, -1), (-1, 1)):
-            a, b = along * obj.length / 2, across * obj.width / 2
-            corners.append((base.y + a * s + b * c, base.x + a * c - b * s))
-        return patches.Polygon(corners, closed=True, **style)
-    if isinstance(obj, t.Polygon):
-        return patches.Polygon(list(zip(obj.vy, obj.vx)), closed=True, **style)
-    return patches.Circle((base.y, base.x), 0.3, **style)
-
+from u2sa_hw.recording.plot import obstacle_patch
 
 def plot_run(path: Path, *, samples: Sequence[TrackSample], goals: Sequence[Goal], obstacles: Sequence[Any],
              title: str, t_engage: float | None = None) -> Path:
@@ -50,7 +29,7 @@ def plot_run(path: Path, *, samples: Sequence[TrackSample], goals: Sequence[Goal
     live = [s for s in samples if t_engage is None or s.t >= t_engage] or list(samples)
     fig, ax = plt.subplots(figsize=(8.5, 7.5), dpi=110)
     for obj in obstacles:
-        ax.add_patch(_obstacle_patch(obj, patches))
+        ax.add_patch(obstacle_patch(obj, patches))
         base = as_type(obj, t.ObjectDescription)
         ax.annotate(base.uid, (base.y, base.x), ha="center", va="center", fontsize=8, color="#7b241c")
     if live:

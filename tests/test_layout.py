@@ -23,7 +23,6 @@ LAZY_BOUNDARIES = {   # module -> why it may import one of OUTSIDE inside a func
     "u2sa_hw.cli.replay_cmd": "u2sa replay runs hil's replay",
     "u2sa_hw.cli.replay_check_cmd": "u2sa replay-check runs hil's replay",
     "u2sa_hw.check.device_checks": "u2sa check reads the mock catalog and [simulation] through mock_devices",
-    "u2sa_hw.recording.plot": "u2sa log plot draws obstacles as the simulation's plot does",
 }
 
 

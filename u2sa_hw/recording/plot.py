@@ -37,6 +37,30 @@ FAILSAFE_COLOUR = "#c0392b"
 AUTONOMY_COLOUR = "#27ae60"
 
 
+OBSTACLE_COLOUR = "#c0392b"
+
+
+def obstacle_patch(obj: Any, patches: Any) -> Any:
+    """A matplotlib patch for an object in NED, drawn in (east, north) axes (*patches*: matplotlib.patches);
+    the simulation's track plot draws its obstacles with it too."""
+    base = as_type(obj, t.ObjectDescription)
+    style = {"facecolor": OBSTACLE_COLOUR, "edgecolor": OBSTACLE_COLOUR, "alpha": 0.35, "linewidth": 1.5}
+    if isinstance(obj, (t.Circle, t.Sphere)):
+        radius = obj.radius if isinstance(obj, t.Circle) else obj.sphere_radius
+        return patches.Circle((base.y, base.x), max(radius, 0.3), **style)   # radius 0: a point, drawn as a dot
+    if isinstance(obj, t.Rectangle):
+        c, s = math.cos(obj.heading), math.sin(obj.heading)
+        corners = []
+        for along, across in ((1, 1), (1, -1), (-1, -1), (-1, 1)):
+            a, b = along * obj.length / 2, across * obj.width / 2
+            corners.append((base.y + a * s + b * c, base.x + a * c - b * s))
+        return patches.Polygon(corners, closed=True, **style)
+    if isinstance(obj, t.Polygon):
+        return patches.Polygon(list(zip(obj.vy, obj.vx)), closed=True, **style)
+    return patches.Circle((base.y, base.x), 0.3, **style)
+
+
+
 @dataclass
 class RunData:
     """What the plot needs from a log (times in s from the first message)."""
@@ -172,13 +196,12 @@ def build_figure(run: RunData, *, title: str, channel: str = ch.STATE_ESTIMATE) 
     import matplotlib.pyplot as plt
     from matplotlib import patches
 
-    from simulation.plot import _obstacle_patch
 
     fig = plt.figure(figsize=(15, 10), dpi=100)
     grid = fig.add_gridspec(4, 2, width_ratios=(1.15, 1.0), hspace=0.45, wspace=0.28)
     ax = fig.add_subplot(grid[:, 0])
     for obj in run.obstacles.values():
-        ax.add_patch(_obstacle_patch(obj, patches))
+        ax.add_patch(obstacle_patch(obj, patches))
         base = as_type(obj, t.ObjectDescription)
         ax.annotate(base.uid, (base.y, base.x), ha="center", va="center", fontsize=8, color="#7b241c")
     if run.obstacles:
