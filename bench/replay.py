@@ -1,24 +1,32 @@
 #!/usr/bin/env python3
 """Replay and recorder benchmark.
 
-1. Replay speed: writes a synthetic driver-level log of ``--minutes`` (default 10) -- the mock
-   GPS's NMEA at 10 Hz (115200 baud) and the mock compass's HDG+XDR at 10 Hz (19200 baud) as
-   ``RawSerial`` chunks, one per line, stamped with when its last byte would arrive at that
-   baud rate, plus the STATE_INFO the drivers publish for them (built with the drivers' own
-   parsing functions) -- then replays it with ``--fast`` against the real drivers and prints
-   the speed-up over real time (aim: 20x) and the comparison with the recorded outputs.
+1. Replay speed, every device class (the default): records ``--minutes`` (default 10;
+   ``--quick``: 1) of ``u2sa sim --record`` driving the example ground vehicle
+   (examples/ground_vehicle/vehicle.toml, every driver's record_raw on, as tests/recorded_sim.py
+   records one) round its block again and again (a mission of more laps than the time allows, cut by the sim's
+   ``--timeout``), so the log holds every device class the replay supports: serial (GPS NMEA,
+   compass HDG/XDR), I2C (the MPU-9250's register reads), CAN (the
+   ODrive's encoder/heartbeat frames and the setpoints sent), GPIO (the RC receiver's pulse
+   edges into the RC mux) and PWM (the pan servo's pulse writes). Then replays it as
+   ``u2sa replay LOG --fast --compare`` does (hil.replay.Replay, hil.compare.compare_logs)
+   and prints the log's length, the wall time, the speed-up over real time (aim: 20x, GPIO
+   included), the records fed per device and compare's summary line. ``--log FILE`` replays
+   an existing recording instead.
+   (The earlier synthetic GPS+compass-only log is gone: the compass driver now groups its
+   bursts itself -- drivers/compass_bursts.py -- so its outputs can no longer be built here.)
 2. Recorder throughput: a publisher process sends the example ground vehicle's channel mix
    at ``--factor`` (default 10) times its nominal rates for ``--seconds``; the recorder's
    BusCapture in this process writes it to MCAP. Prints the rate achieved, what never reached
    the recorder and what it dropped (its queue overflowing).
 
-Usage: ``python bench/replay.py [--minutes 10] [--factor 10] [--seconds 10] [--skip-replay|--skip-recorder]``
+Usage: ``python bench/replay.py [--minutes 10 | --quick] [--log FILE] [--keep DIR]
+[--factor 10] [--seconds 10] [--skip-replay|--skip-recorder]``
 """
 
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import os
 import shutil
 import subprocess
@@ -27,26 +35,12 @@ import tempfile
 import time
 from pathlib import Path
 
-import tomli_w
-
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from drivers.compass_serial import reading_from_epoch, state_from_reading  # noqa: E402
-from drivers.gps_fix import StateSettings, fix_from_epoch, state_from_fix  # noqa: E402
-from drivers.nmea_fields import EpochCollector, parse_sentence  # noqa: E402
-from mock_devices.nmea_gps import NmeaGpsDevice  # noqa: E402
-from mock_devices.serial_compass import NmeaCompassDevice  # noqa: E402
-from mock_devices.vehicle_sim import SimVehicle  # noqa: E402
 from u2sa_hw.bus_key import use_run_key  # noqa: E402
-from u2sa_hw import lcmtypes as t  # noqa: E402
 from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo  # noqa: E402
-from u2sa_hw.vehicle import Origin  # noqa: E402
 from u2sa_hw.udp_ports import private_lcm_url  # noqa: E402
-
-ORIGIN = Origin(29.1895, -81.0483, 10.0)
-GPS_BAUD, COMPASS_BAUD = 115200, 19200
-EPOCH_GAP_S = 0.05  # the drivers' default epoch_gap_s: their output follows a burst by this much
 
 # The example ground vehicle (examples/ground_vehicle) with every driver's record_raw on:
 # channel -> (messages per second, payload bytes). Rates from its configs: gps 5 Hz, compass
@@ -62,119 +56,89 @@ EXAMPLE_RATES: dict[str, tuple[float, int]] = {
 }
 
 
-def _state(source: str, seq: int, msg: t.StateInformation, received: float) -> bytes:
-    msg.sensor_name = source
-    msg.reference_frame = msg.reference_frame or "NED"
-    msg.header.system_id, msg.header.source, msg.header.sequence = 1, source, seq
-    msg.header.timestamp_us = int(received * 1e6)
-    return msg.encode()
+LAP = (("north_gate", 20, 0), ("far_corner", 20, 25), ("east_gate", 0, 25), ("home", 0, 0))
+SIM_STARTUP_S = 15.0   # the sim's --timeout counts from its start: the stack's start-up on top of the log wanted
+ALL_KINDS = ("serial", "i2c", "can", "gpio", "pwm")
 
 
-def _raw(device: str, data: bytes, t_s: float) -> bytes:
-    rec = t.RawSerial()
-    rec.device, rec.direction, rec.data, rec.length = device, 0, data, len(data)
-    rec.header.system_id, rec.header.source, rec.header.timestamp_us = 1, device, int(t_s * 1e6)
-    return rec.encode()
+def lap_mission(path: Path, laps: int = 30) -> None:
+    """The example mission's block loop *laps* times over (each lap ~45 s at the rover's 2 m/s)."""
+    points = "\n".join(f"  <waypoint><name>{name}_{i}</name><reference>Local</reference><x>{x}</x> <y>{y}</y>"
+                       f"<threshold>2.0</threshold></waypoint>" for i in range(laps) for name, x, y in LAP)
+    path.write_text(f'<?xml version="1.0" encoding="UTF-8"?>\n<mission name="bench laps" loop="false">\n'
+                    f"{points}\n</mission>\n")
 
 
-def synthetic_log(path: Path, *, minutes: float, gps_hz: float = 10.0, compass_hz: float = 10.0) -> int:
-    """Write the driver-level log; returns its message count."""
-    tmp = Path(tempfile.mkdtemp(prefix="u2sa-bench-"))
-    vehicle = SimVehicle(origin_lat=ORIGIN.lat, origin_lon=ORIGIN.lon, origin_alt=ORIGIN.alt)
-    vehicle.set_wheel_speed("left", 1.2)
-    vehicle.set_wheel_speed("right", 1.5)   # a wide circle
-    t0 = time.time()
-    clock = [t0]
-    gps = NmeaGpsDevice(vehicle, link_path=tmp / "gps", rate_hz=gps_hz, seed=1,
-                        sentences=("GGA", "RMC", "VTG", "GSA", "GST", "HDT"),
-                        utc_clock=lambda: dt.datetime.fromtimestamp(clock[0], dt.timezone.utc))
-    compass = NmeaCompassDevice(vehicle, link_path=tmp / "compass", rate_hz=compass_hz, sentences=("HDG", "XDR"),
-                                seed=2)
-    profile = {"vehicle": {"name": "bench", "system_id": 1, "origin": {"lat": ORIGIN.lat, "lon": ORIGIN.lon,
-                                                                        "alt": ORIGIN.alt}},
-               "services": {"gps": {"kind": "gps_nmea", "settings": {"port": "/dev/u2sa/gps", "baudrate": GPS_BAUD,
-                                                                     "record_raw": True}},
-                            "compass": {"kind": "compass_serial", "settings": {
-                                "port": "/dev/u2sa/compass", "baudrate": COMPASS_BAUD, "record_raw": True}}}}
-    writer = McapLogWriter(path.parent, path=path, run=RunInfo(
-        vehicle="bench", system_id=1, attachments={"vehicle.toml": tomli_w.dumps(profile).encode()}))
-    settings = StateSettings(origin=ORIGIN)
-    events: list[tuple[float, str, bytes]] = []
-    seq = {"gps": 0, "compass": 0}
-
-    def burst(device: str, lines: list[bytes], start: float, baud: int) -> None:
-        collector = EpochCollector()
-        sent = 0
-        for line in lines:
-            sent += len(line)
-            arrival = start + sent * 10.0 / baud
-            events.append((arrival, f"RAW.{device}", _raw(device, line, arrival)))
-            sentence = parse_sentence(line)
-            if sentence is not None:
-                collector.add(sentence, received=start + len(lines[0]) * 10.0 / baud)
-        epoch = collector.flush()
-        if epoch is None:
-            return
-        if device == "gps":
-            msg = state_from_fix(fix_from_epoch(epoch), settings)
-        else:
-            msg = state_from_reading(reading_from_epoch(epoch, declination_deg=0.0, use_hdg_variation=True),
-                                     heading_sigma_deg=1.0, attitude_sigma_deg=0.5)
-        if msg is not None:
-            seq[device] += 1
-            events.append((start + sent * 10.0 / baud + EPOCH_GAP_S, "STATE_INFO",
-                           _state("gps" if device == "gps" else "compass", seq[device], msg, epoch.received)))
-
-    step = 0.01
-    next_gps, next_compass = t0, t0 + 0.003
-    while clock[0] < t0 + minutes * 60.0:
-        clock[0] += step
-        vehicle.step(step)
-        if clock[0] >= next_gps:
-            burst("gps", gps.epoch_lines(vehicle.snapshot()), clock[0], GPS_BAUD)
-            next_gps += 1.0 / gps_hz
-        if clock[0] >= next_compass:
-            burst("compass", compass.epoch_lines(vehicle.snapshot()), clock[0], COMPASS_BAUD)
-            next_compass += 1.0 / compass_hz
-        if len(events) > 5000:
-            _flush(writer, events, upto=clock[0] - 1.0)
-    _flush(writer, events, upto=float("inf"))
-    writer.close()
-    return writer.messages
+def record_sim(work: Path, minutes: float) -> Path:
+    """``u2sa sim --record`` of the example ground vehicle for *minutes* of driving; the recording's path."""
+    mission = work / "mission.xml"
+    lap_mission(mission, laps=max(4, int(minutes * 60 / 40) + 2))
+    out = work / "sim"
+    env = dict(os.environ, PYTHONPATH=str(REPO), PYTHONUNBUFFERED="1")
+    env.pop("U2SA_LCM_URL", None)   # u2sa sim picks private ports
+    timeout = minutes * 60.0 + SIM_STARTUP_S
+    started = time.monotonic()
+    done = subprocess.run([sys.executable, "-m", "u2sa_hw.cli", "sim", "--out", str(out), "--record",
+                           "--mission", str(mission), "--timeout", f"{timeout:g}"], cwd=REPO, env=env,
+                          capture_output=True, text=True, timeout=timeout + 180)
+    files = sorted((out / "recording").glob("*.mcap"))
+    # exit 3 (the timeout) is the expected end: the mission has more laps than the time allows
+    if not files:
+        raise SystemExit(f"u2sa sim --record wrote no log (status {done.returncode}): "
+                         f"{done.stdout[-2000:]}{done.stderr[-2000:]}")
+    print(f"recorded: u2sa sim --record --timeout {timeout:g} of the example ground vehicle lapping its block "
+          f"(status {done.returncode}; 3 = the timeout, expected) in {time.monotonic() - started:.0f} s", flush=True)
+    return files[0]
 
 
-def _flush(writer: McapLogWriter, events: list[tuple[float, str, bytes]], *, upto: float) -> None:
-    """Write the events before *upto* in time order (bursts of the two devices interleave)."""
-    events.sort(key=lambda e: e[0])
-    keep = [e for e in events if e[0] >= upto]
-    for when, channel, data in (e for e in events if e[0] < upto):
-        writer.write(channel, data, int(when * 1e9))
-    events[:] = keep
+def _load() -> str:
+    one, five, fifteen = os.getloadavg()
+    return f"load average {one:.2f} {five:.2f} {fifteen:.2f} on {os.cpu_count()} cores"
 
 
-def bench_replay(minutes: float) -> None:
-    """Part 1: the synthetic log replayed with --fast."""
+def bench_replay(minutes: float, log: Path | None, keep: Path | None) -> None:
+    """Part 1: a recorded simulation with every device class replayed with --fast, then compared."""
     from hil.compare import compare_logs
     from hil.replay import Replay, ReplayOptions
 
     work = Path(tempfile.mkdtemp(prefix="u2sa-bench-replay-"))
-    log = work / "synthetic.mcap"
-    t_gen = time.monotonic()
-    count = synthetic_log(log, minutes=minutes)
-    print(f"synthetic log: {minutes:g} min, {count} messages, {log.stat().st_size / 1e6:.1f} MB, "
-          f"written in {time.monotonic() - t_gen:.1f} s")
+    if keep is not None:
+        keep.mkdir(parents=True, exist_ok=True)
+        work = keep
+    print(f"before: {_load()}", flush=True)
+    if log is None:
+        log = record_sim(work, minutes)
+    print(f"log: {log} ({log.stat().st_size / 1e6:.1f} MB)", flush=True)
+    print(f"replay: {_load()}", flush=True)
     started = time.monotonic()
-    result = Replay(log, ReplayOptions(fast=True, out=work / "replayed.mcap", progress=False)).run()
+    replay = Replay(log, ReplayOptions(fast=True, out=work / "replayed.mcap", progress=False))
+    result = replay.run()
     total = time.monotonic() - started
-    played = result.plan.duration_s
+    plan = result.plan
+    played = plan.duration_s
+    speed = played / result.play.wall_s if result.play.wall_s > 0 else 0.0
+    print(f"after: {_load()}")
     print(result.summary(fast=True, rate=1.0))
-    print(f"replay --fast: {played:.0f} s of log in {result.play.wall_s:.1f} s of playback = "
-          f"{played / result.play.wall_s:.1f}x real time (aim >= 20x); {total:.1f} s in all with "
-          f"{result.startup_s:.1f} s starting the services and the wait for the last outputs "
-          f"= {played / total:.1f}x end to end; {result.play.records} device writes")
-    report = compare_logs(log, result.out, services=set(result.plan.services), rate=None)
-    print(report.format())
-    shutil.rmtree(work, ignore_errors=True)
+    print(f"log length {played:.1f} s ({played / 60:.1f} min); services replayed: {', '.join(plan.services)}")
+    kinds = sorted({d.kind for d in plan.devices.values() if d.service})
+    missing = [k for k in ALL_KINDS if k not in kinds]
+    print(f"device classes replayed: {', '.join(kinds)}"
+          + (f"; MISSING {', '.join(missing)}" if missing else " (every class the replay supports)"))
+    print(f"{'DEVICE':10} {'KIND':7} {'SERVICE':9} {'RECORDS':>8}  REPLAY DEVICE'S COUNTS")
+    for name, dev in sorted(plan.devices.items()):
+        report = result.devices.get(name, {})
+        counts = ", ".join(f"{k} {v}" for k, v in report.items() if isinstance(v, int) and not isinstance(v, bool))
+        print(f"{name:10} {dev.kind:7} {dev.service or '-':9} {dev.records:>8}  {counts or 'not replayed'}")
+    print(f"replay --fast: {played:.0f} s of log in {result.play.wall_s:.1f} s of playback = {speed:.1f}x real time "
+          f"(aim >= 20x: {'MET' if speed >= 20 else 'NOT MET'}); {total:.1f} s in all with {result.startup_s:.1f} s "
+          f"starting the services and the wait for the last outputs = {played / total:.1f}x end to end; "
+          f"{result.play.records} device records fed")
+    report = compare_logs(plan.log, result.out, services=set(plan.services), start_ns=plan.start_ns,
+                          end_ns=plan.end_ns, rate=None, replay_start_ns=result.play.started_ns or None)
+    text = report.format()
+    print(text if not report.ok else report.summary())
+    if keep is None:
+        shutil.rmtree(work, ignore_errors=True)
 
 
 def publisher(url: str, factor: float, seconds: float) -> None:
@@ -236,15 +200,19 @@ def main() -> int:
         publisher(sys.argv[2], float(sys.argv[3]), float(sys.argv[4]))
         return 0
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--minutes", type=float, default=10.0, help="synthetic log length (default 10)")
+    p.add_argument("--minutes", type=float, default=10.0, help="log length to record (default 10)")
+    p.add_argument("--quick", action="store_true", help="a 1-minute log instead")
+    p.add_argument("--log", type=Path, help="replay this recording (record_raw on) instead of recording one")
+    p.add_argument("--keep", type=Path, help="keep the recording and the replayed log in this directory")
     p.add_argument("--factor", type=float, default=10.0, help="times the example vehicle's rates (default 10)")
     p.add_argument("--seconds", type=float, default=10.0, help="recorder test length (default 10)")
     p.add_argument("--skip-replay", action="store_true")
     p.add_argument("--skip-recorder", action="store_true")
     args = p.parse_args()
     use_run_key()
+    minutes = 1.0 if args.quick else args.minutes
     if not args.skip_replay:
-        bench_replay(args.minutes)
+        bench_replay(minutes, args.log, args.keep)
     if not args.skip_recorder:
         bench_recorder(args.factor, args.seconds)
     return 0
