@@ -238,7 +238,12 @@ def test_fast_replay_reproduces_the_recorded_outputs(driver_log: Path, tmp_path:
     assert "compare: OK" in res.stdout
     assert "STATE_INFO [gps]" in res.stdout and "STATE_INFO [compass]" in res.stdout
     streams = load_streams(out, sources={"gps", "compass"})
-    assert len(streams["STATE_INFO [gps]"]) >= 10 and len(streams["STATE_INFO [compass]"]) >= 20
+    recorded = load_streams(driver_log, sources={"gps", "compass"})
+    # as many as the recording holds, but for the first and last (compare's edge notes); how many that is
+    # depends on the recording machine's load
+    for key in ("STATE_INFO [gps]", "STATE_INFO [compass]"):
+        assert len(recorded[key]) >= 5 and abs(len(streams[key]) - len(recorded[key])) <= 2, \
+            (key, len(streams[key]), len(recorded[key]))
     assert not (tmp_path / "replayed.mcap").with_suffix(".replay.mcap").exists()
 
 
