@@ -7,13 +7,17 @@ subprocess. Nothing is opened but files.
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
+import sys
+import tempfile
+import textwrap
 from pathlib import Path
 
 import pytest
 
-from conftest import REPO, U2SA
+from conftest import REPO, U2SA, unprivileged
 from u2sa_hw.check import ERROR, WARNING, Problem, check_profile, errors_of
 
 EXAMPLES = sorted((REPO / "examples").glob("*/vehicle.toml"))
@@ -144,6 +148,50 @@ def test_problem_is_one_line_with_file_key_and_fix() -> None:
     assert p.is_error and not Problem(WARNING, "v.toml", "", "x", "y").is_error
     with pytest.raises(AttributeError):
         p.key = "other"   # frozen: another module holds these
+
+
+OBJECTS_XML = (REPO / "examples/ground_vehicle/objects.xml").read_text()
+FILES = """\
+[vehicle]
+name = "bench"
+config_dir = "config"
+
+[services.mission]
+kind = "mission_manager"
+settings = { mission_file = 42, loop = "notes.txt" }
+
+[services.world]
+kind = "world_modeler"
+settings = { objects_file = "maps" }
+
+[services.bridge]
+kind = "foxglove_bridge"
+"""
+
+
+def test_the_files_a_kind_declares_are_checked_where_their_value_is(tmp_path: Path) -> None:
+    """A declared file setting (field(..., file=...)) that names no file is an error on the file and key its value
+    is in, with the fix; a non-string value is a type error; a setting not declared a file is not looked at as
+    one (loop = "notes.txt" is the mission manager's own problem, not a missing file)."""
+    (tmp_path / "maps").mkdir()
+    path = write(tmp_path, FILES, {"config/bridge.toml": b'token_file = "secrets/token"\n'})
+    problems = check_profile(path)
+    by_key = {(Path(p.file).name, p.key): p for p in errors_of(problems)}
+    token = by_key[("bridge.toml", "token_file")]
+    assert "secrets/token" in token.message and "does not exist" in token.message and "add the file" in token.fix
+    objects = by_key[("vehicle.toml", "services.world.settings.objects_file")]
+    assert "maps" in objects.message and "not a regular file" in objects.message
+    typed = by_key[("vehicle.toml", "services.mission.settings.mission_file")]
+    assert "str" in typed.message and "42" in typed.message
+    assert not [p for p in problems if "notes.txt" in p.message and "exist" in p.message]
+    (tmp_path / "secrets").mkdir()
+    (tmp_path / "secrets/token").write_text("a-token-of-twenty-four-chars\n")
+    (tmp_path / "maps").rmdir()
+    (tmp_path / "maps").write_text(OBJECTS_XML)
+    fixed = tmp_path / "vehicle.toml"
+    fixed.write_text(FILES.replace("mission_file = 42, ", ""))
+    left = check_profile(fixed)
+    assert not [p for p in left if "maps" in str(p) or "token" in str(p)], "\n".join(map(str, left))
 
 
 def test_clean_profile_has_no_problem_and_exits_0(tmp_path: Path) -> None:
@@ -308,3 +356,32 @@ def test_run_force_goes_past_errors_but_never_past_a_safety_error(tmp_path: Path
     done = u2sa("run", "--vehicle", str(mistakes(tmp_path)), "--force")   # MISTAKES has a [safety] error too
     assert done.returncode == 1 and "nothing was started" in done.stderr
     assert "[safety]: hardware_mux: no service has an actuator 'rudder'" in done.stderr, done.stderr
+
+
+def test_a_secret_file_this_user_cannot_read_is_a_warning_and_a_mission_an_error() -> None:
+    """Installed root:u2sa 0640, a token is unreadable to a user outside the group u2sa: the services read it as
+    u2sa, so the check says it could not look (warning); a mission the user cannot read stays an error."""
+    workdir = Path(tempfile.mkdtemp(prefix="u2sa-secret-"))
+    try:
+        profile = write(workdir, FILES.replace("mission_file = 42, ", 'mission_file = "mission.xml", ')
+                        .replace('objects_file = "maps"', 'objects_file = ""'),
+                        {"config/bridge.toml": b'token_file = "token"\n', "token": b"a-token-of-twenty-four-chars\n",
+                         "mission.xml": (REPO / "examples/ground_vehicle/mission.xml").read_bytes()})
+        for path in (workdir, workdir / "config", profile, workdir / "config/bridge.toml"):
+            os.chmod(path, 0o755 if path.is_dir() else 0o644)
+        os.chmod(workdir / "token", 0o600)
+        os.chmod(workdir / "mission.xml", 0o600)
+        code = textwrap.dedent(f"""\
+            from u2sa_hw.check import check_profile
+            for p in check_profile({str(profile)!r}):
+                print(p.severity, p.file, p.message)
+            """)
+        done = subprocess.run(unprivileged([sys.executable, "-c", code]), capture_output=True, text=True, timeout=120,
+                              env=dict(os.environ, PYTHONPATH=str(REPO)), cwd="/")
+        assert done.returncode == 0, done.stderr
+        lines = done.stdout.splitlines()
+        assert any(line.startswith(f"warning {workdir / 'token'} a secret this user cannot read") for line in lines), \
+            done.stdout
+        assert any(line.startswith(f"error {workdir / 'mission.xml'}") for line in lines), done.stdout
+    finally:
+        shutil.rmtree(workdir, ignore_errors=True)

@@ -302,3 +302,16 @@ def test_a_configurator_reads_like_a_mapping(tmp_path: Path) -> None:
     assert cfg.get("nope", 7) == 7
     with pytest.raises(KeyError, match="no config field 'nope'"):
         cfg.get("nope")
+
+
+def test_a_file_field_is_declared_and_a_wrong_declaration_fails_at_import() -> None:
+    """field(file=True) / file="secret" marks a setting that names a file (install copies it, check looks for it)."""
+    plain, secret, word = field("mission_file", "", file=True), field("token_file", "", file="secret"), \
+        field("loop", "file")
+    assert (plain.names_file, plain.secret_file) == (True, False)
+    assert (secret.names_file, secret.secret_file) == (True, True)
+    assert (word.names_file, word.secret_file) == (False, False)   # a value "file" is not a file field
+    with pytest.raises(ValueError, match="file must be"):
+        field("x_file", "", file="yes")
+    with pytest.raises(TypeError, match="default must be a str"):
+        field("x_file", 0, file=True)

@@ -190,31 +190,87 @@ def test_uninstall_of_a_root_that_does_not_exist_says_so(tmp_path: Path) -> None
     assert done.returncode == 1 and "no such directory" in done.stderr and "Traceback" not in done.stderr
 
 
-def test_only_existing_files_are_references_and_a_name_clash_goes_under_files(tmp_path: Path) -> None:
-    """Device nodes, directories, URLs and plain words are not files; a file outside the profile's directory
-    whose place is taken goes under files/SERVICE."""
+def test_only_declared_file_settings_are_references_and_a_name_clash_goes_under_files(tmp_path: Path) -> None:
+    """What a kind declares a file (field(..., file=...)) is copied, nothing else: the mission manager's
+    loop = "file" and a gps setting are words, even beside an existing file called "file"; a declared file
+    outside the profile's directory whose place is taken goes under files/SERVICE."""
     from u2sa_hw.install.referenced import find_references
 
     src = tmp_path / "src"
     (src / "config").mkdir(parents=True)
-    (src / "data").mkdir()
     (src / "mission.xml").write_text(MISSION)
+    (src / "file").write_text("not a mission\n")
     (tmp_path / "mission.xml").write_text(MISSION + "<!-- another -->\n")
-    (src / "config/mission.toml").write_text('mission_file = "mission.xml"\n')
+    (src / "config/mission.toml").write_text('mission_file = "mission.xml"\nloop = "file"\n')
     (src / "config/world.toml").write_text(f'objects_file = "{tmp_path / "mission.xml"}"\n')
-    (src / "config/gps.toml").write_text('port = "/dev/null"\nsource = "file:///etc/passwd"\nplace = "data"\n'
-                                         'word = "ekf"\n')
+    (src / "config/gps.toml").write_text('port = "file"\nnotes = "mission.xml"\n')
     (src / "vehicle.toml").write_text(PROFILE)
     refs, missing = find_references(load_profile(src / "vehicle.toml"), taken=set())
     assert missing == []
-    assert sorted((r.service, r.key, r.dest, r.value) for r in refs) == [
-        ("mission", "mission_file", "/etc/u2sa/mission.xml", "mission.xml"),
-        ("world", "objects_file", "/etc/u2sa/files/world/mission.xml", "files/world/mission.xml")]
-    # A *_file setting naming nothing is a problem that names the file and the setting.
+    assert sorted((r.service, r.key, r.dest, r.value, r.secret) for r in refs) == [
+        ("mission", "mission_file", "/etc/u2sa/mission.xml", "mission.xml", False),
+        ("world", "objects_file", "/etc/u2sa/files/world/mission.xml", "files/world/mission.xml", False)]
+    # A declared file naming nothing is a problem naming the service, the setting, the path and the fix.
     (src / "config/world.toml").write_text('objects_file = "nowhere.xml"\n')
     refs, missing = find_references(load_profile(src / "vehicle.toml"), taken={"/etc/u2sa/mission.xml"})
-    assert len(missing) == 1 and "objects_file" in missing[0] and "nowhere.xml" in missing[0]
+    assert len(missing) == 1, missing
+    assert all(word in missing[0] for word in ("world.toml", "service world", "objects_file", str(src / "nowhere.xml"),
+                                               "fix:"))
     assert [(r.dest, r.value) for r in refs] == [("/etc/u2sa/files/mission/mission.xml", "files/mission/mission.xml")]
+
+
+def test_a_file_named_by_a_secret_and_a_plain_setting_is_installed_as_a_secret(tmp_path: Path) -> None:
+    from u2sa_hw.install.referenced import Reference, installed_files
+
+    pem = tmp_path / "bridge.pem"
+    refs = [Reference("fox", "tls_cert", False, pem, "/etc/u2sa/bridge.pem", "bridge.pem", secret=False),
+            Reference("fox", "tls_key", False, pem, "/etc/u2sa/bridge.pem", "bridge.pem", secret=True)]
+    assert installed_files(refs) == {"/etc/u2sa/bridge.pem": (pem, True)}
+    assert installed_files(refs[:1]) == {"/etc/u2sa/bridge.pem": (pem, False)}
+
+
+BRIDGE = """
+[services.bridge]
+kind = "foxglove_bridge"
+settings = { token_file = "../secrets/token", tls_cert = "../secrets/bridge.pem", tls_key = "../secrets/bridge.key" }
+"""
+
+
+def test_secret_files_are_installed_root_u2sa_0640_and_the_installed_profile_names_the_copies(
+        vehicle: Path, tmp_path: Path) -> None:
+    """The bridge's token, certificate and key (declared file="secret") land root:u2sa 0640 whatever their mode in
+    the source; a copy loosened on the vehicle is kept but gets its mode back. Missions stay 0644."""
+    secrets = tmp_path / "secrets"
+    secrets.mkdir()
+    for name, text in (("token", "a-token-of-twenty-four-chars\n"), ("bridge.pem", "CERT\n"), ("bridge.key", "KEY\n")):
+        (secrets / name).write_text(text)
+        (secrets / name).chmod(0o644)
+    vehicle.write_text(PROFILE + BRIDGE)
+    root = tmp_path / "root"
+    (root / "etc").mkdir(parents=True)
+    for name in ("passwd", "group", "shadow", "gshadow", "login.defs"):   # useradd --prefix adds u2sa to these
+        if Path("/etc", name).exists():
+            (root / "etc" / name).write_bytes(Path("/etc", name).read_bytes())
+    install(vehicle=vehicle, root=root)
+    etc = root / "etc/u2sa"
+    gid = next(int(line.split(":")[2]) for line in (root / "etc/group").read_text().splitlines()
+               if line.startswith("u2sa:"))
+    for name in ("token", "bridge.pem", "bridge.key"):
+        st = (etc / "files/bridge" / name).stat()
+        assert (st.st_mode & 0o7777, st.st_uid, st.st_gid) == (0o640, 0, gid), name
+    assert (etc / "missions/harbour.xml").stat().st_mode & 0o7777 == 0o644
+    installed = load_profile(etc / "vehicle.toml")
+    assert installed.services["bridge"].settings == {"token_file": "files/bridge/token",
+                                                     "tls_cert": "files/bridge/bridge.pem",
+                                                     "tls_key": "files/bridge/bridge.key"}
+    assert installed.resolve_path(installed.services["bridge"].settings["token_file"]) == etc / "files/bridge/token"
+    token = etc / "files/bridge/token"
+    token.write_text("another-token-of-twenty-four\n")
+    token.chmod(0o644)
+    again = install(vehicle=vehicle, root=root)
+    assert token.stat().st_mode & 0o7777 == 0o640 and token.read_text() == "another-token-of-twenty-four\n"
+    assert any(c.path == "/etc/u2sa/files/bridge/token" and c.action == "updated" for c in again.changes)
+    assert (etc / "files/bridge/token.new").stat().st_mode & 0o7777 == 0o640
 
 
 @pytest.mark.parametrize("example", EXAMPLES)

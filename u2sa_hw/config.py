@@ -41,6 +41,7 @@ import tomli_w
 from u2sa_hw.config_keys import did_you_mean, known_text, unknown_key_problem
 
 TYPE_NAMES = {int: "int", float: "float", bool: "bool", str: "str"}
+SECRET_FILE = "secret"   # field(file=SECRET_FILE): the field names a file holding a secret
 Bound = int | float
 
 
@@ -57,6 +58,11 @@ class ConfigField:
     unless this is set. ``item_type``: the type of every item of a list field (None: any).
     ``remote``: False for a field a change over the bus must not touch (set in the profile or
     the file, read at the next start); setting it to the value it has is not a change.
+    ``file``: True for a str field that names a file (a path relative to the vehicle profile's
+    directory, :meth:`VehicleProfile.resolve_path`), ``"secret"`` for one whose file holds a
+    secret (a token, a private key); False for anything else (a device path is an address,
+    never a file field). ``u2sa check`` and ``u2sa install`` read files from these declarations
+    only (:attr:`names_file`, :attr:`secret_file`).
     """
 
     name: str
@@ -70,6 +76,17 @@ class ConfigField:
     allow_nonfinite: bool = False
     item_type: type | None = None
     remote: bool = True
+    file: bool | str = False
+
+    @property
+    def names_file(self) -> bool:
+        """True when the value is a path to a file (relative to the profile's directory) the service reads."""
+        return self.file is True or self.file == SECRET_FILE
+
+    @property
+    def secret_file(self) -> bool:
+        """True when the file the value names holds a secret: installed root:u2sa 0640, never world-readable."""
+        return self.file == SECRET_FILE
 
     @property
     def type(self) -> type:
@@ -99,13 +116,23 @@ _BOUND_TESTS: dict[str, Callable[[Bound, Bound], bool]] = {
 def field(name: str, default: Any, help: str = "", *,  # noqa: A002 - reads well at call sites
           choices: Iterable[Any] = (), ge: Bound | None = None, gt: Bound | None = None,
           le: Bound | None = None, lt: Bound | None = None, allow_nonfinite: bool = False,
-          item_type: type | None = None, remote: bool = True) -> ConfigField:
+          item_type: type | None = None, remote: bool = True, file: bool | str = False) -> ConfigField:
     """Declare a config variable (shorthand for :class:`ConfigField`).
 
     *choices*: the only values allowed; *ge*, *gt*, *le*, *lt*: bounds of a number (or of each
     number of a list); *allow_nonfinite*: accept inf and nan (refused otherwise); *item_type*:
-    the type of a list's items; *remote*: False when a change over the bus is refused. A
-    default that breaks its own declaration is a TypeError or ValueError at import, so a wrong
+    the type of a list's items; *remote*: False when a change over the bus is refused.
+
+    *file*: declare it on every str setting that names a file the service reads (a mission, an
+    object list, a token, a certificate): ``file=True``, or ``file="secret"`` when the file holds
+    a secret. Its value is then a path relative to the vehicle profile's directory (read it with
+    :meth:`VehicleProfile.resolve_path`; empty: no file). ``u2sa check`` makes a non-empty value
+    naming no file an error, and ``u2sa install`` copies exactly these files beside the installed
+    profile and points the installed profile or config at the copy (a secret one root:u2sa 0640);
+    a setting not declared so is never taken for a file, whatever its value. Device paths
+    (``/dev/...``) are addresses, not file fields.
+
+    A default that breaks its own declaration is a TypeError or ValueError at import, so a wrong
     declaration never reaches a vehicle.
     """
     if type(default) not in TYPE_NAMES and not isinstance(default, list):
@@ -118,7 +145,12 @@ def field(name: str, default: Any, help: str = "", *,  # noqa: A002 - reads well
                         f"not {type(default).__name__}")
     if any(isinstance(b, bool) or not isinstance(b, (int, float)) or not math.isfinite(b) for b in bounds):
         raise TypeError(f"config field {name}: bounds must be finite numbers")
-    f = ConfigField(name, default, help, tuple(choices), ge, gt, le, lt, allow_nonfinite, item_type, remote)
+    if not (type(file) is bool or file == SECRET_FILE):
+        raise ValueError(f"config field {name}: file must be True, False or {SECRET_FILE!r}, not {file!r}")
+    if file is not False and type(default) is not str:
+        raise TypeError(f"config field {name}: a file field's default must be a str (a path, \"\" for none), "
+                        f"not {type(default).__name__}")
+    f = ConfigField(name, default, help, tuple(choices), ge, gt, le, lt, allow_nonfinite, item_type, remote, file)
     if f.choices and default not in f.choices:
         raise ValueError(f"config field {name}: default {default!r} is not one of its choices {f.choices!r}")
     try:

@@ -4,8 +4,8 @@ For each service: its table's keys, its ``kind`` (a registered kind, with a did-
 every value of its ``settings`` and of its config file against the kind's declared fields
 (unknown names, type, choices, non-finite numbers), the whole config through the kind's own
 validation (ranges and combinations the kind checks before it starts), the files its
-config names (``mission_file``, ``objects_file``: present and readable as the service reads
-them), and its ``supervision`` table against the HSM's rules.
+config names (the fields the kind declares ``file=...``: present, and a mission or object
+list readable as the service reads it), and its ``supervision`` table against the HSM's rules.
 """
 
 from __future__ import annotations
@@ -150,6 +150,8 @@ def _value_fix(f: Any, value: Any) -> str:
 
     if f.choices:
         return f"use one of {choices_text(f)}"
+    if getattr(f, "names_file", False) and not isinstance(value, str):
+        return f"write the file's path as a string, relative to the profile's directory: {f.name} = \"FILE\""
     if type(value) is not f.type and not (f.type is float and type(value) is int):
         article = "an" if f.type_name[0] in "aeiou" else "a"
         return f"write {article} {f.type_name} like {f.name} = {to_text(f.default)}"
@@ -202,7 +204,9 @@ def _check_config(name: str, cls: Any, settings: Any, config_path: Path, *, expl
     effective.update({k: v for k, v in settings.items() if k in fields})
     effective.update({k: v for k, v in file_values.items() if k in fields})
     _check_semantics(name, cls, effective, config_path, fields, profile=profile, out=out)
-    _check_files(name, effective, fields, base=base, profile=profile, out=out)
+    in_file = {k for k in file_values if k in fields}
+    _check_files(name, effective, fields, base=base, profile=profile, out=out, config_path=config_path,
+                 in_file=in_file, in_settings={k for k in settings if k in fields})
 
 
 def _check_semantics(name: str, cls: Any, values: dict[str, Any], config_path: Path, fields: Mapping[str, Any], *,
@@ -238,26 +242,38 @@ def _check_semantics(name: str, cls: Any, values: dict[str, Any], config_path: P
 
 
 def _check_files(name: str, values: Mapping[str, Any], fields: Mapping[str, Any], *, base: Path, profile: Any,
-                 out: Collector) -> None:
-    """Every ``*_file`` setting names a file that exists and reads as the service reads it."""
-    for field_name in (n for n in fields if n.endswith("_file")):
+                 out: Collector, config_path: Path, in_file: set[str], in_settings: set[str]) -> None:
+    """Every setting the kind declares a file (``field(..., file=...)``) names a file that exists and reads as
+    the service reads it; the problem is on the file and key the value is in (config file, profile, default)."""
+    for field_name, f in fields.items():
+        if not getattr(f, "names_file", False):
+            continue
         text = values.get(field_name)
         if not isinstance(text, str) or not text.strip():
-            continue
+            continue   # empty: no file; another type: the type error above
         path = Path(text.strip()).expanduser()
-        path = path if path.is_absolute() else base / path
-        key = f"services.{name}.settings.{field_name}"
+        path = path if path.is_absolute() else base / path   # as VehicleProfile.resolve_path
+        if field_name in in_file:
+            key, file, where = field_name, config_path, f"in {config_path.name}"
+        elif field_name in in_settings:
+            key, file, where = f"services.{name}.settings.{field_name}", None, "in the profile's settings"
+        else:
+            key, file, where = f"services.{name}.settings.{field_name}", None, "by default"
         if not path.is_file():
-            out.error(key, f"file {path} does not exist", "correct the path (relative to the profile's directory) "
-                      "or add the file")
+            what = "is not a regular file" if path.exists() else "does not exist"
+            out.error(key, f"file {path} {what} ({field_name} = {text.strip()!r} {where})",
+                      "correct the path (relative to the profile's directory) or add the file", file=file)
             continue
-        problem = _read_referenced(field_name, path, profile)
+        problem, severity = _read_referenced(field_name, path, profile, secret=f.secret_file)
         if problem:
-            out.error("", problem, f"fix the file named by services.{name} {field_name}", file=path)
+            report = out.error if severity == "error" else out.warning
+            report("", problem, f"fix the file named by services.{name} {field_name}", file=path)
 
 
-def _read_referenced(field_name: str, path: Path, profile: Any) -> str | None:
-    """Why the service could not read *path*, or None (missions and object lists are parsed)."""
+def _read_referenced(field_name: str, path: Path, profile: Any, *, secret: bool) -> tuple[str | None, str]:
+    """Why the service could not read *path* and how bad that is, or (None, ""); missions and object lists
+    are parsed. A secret file this user may not read (installed root:u2sa 0640, and the check run by someone
+    outside the group u2sa) is a warning: the services read it as u2sa."""
     try:
         if field_name == "mission_file":
             from u2sa_hw.services.mission.xml import load_mission
@@ -270,9 +286,14 @@ def _read_referenced(field_name: str, path: Path, profile: Any) -> str | None:
             load_objects(path, origin=profile.origin if profile is not None else Origin())
         else:
             path.read_bytes()
+    except PermissionError as exc:
+        if secret:
+            return (f"a secret this user cannot read ({exc.strerror}); the services read it as user u2sa: run "
+                    "u2sa check as root or a member of the group u2sa to check it", "warning")
+        return str(exc).replace(f"{path}: ", ""), "error"
     except (OSError, ValueError) as exc:
-        return str(exc).replace(f"{path}: ", "")
-    return None
+        return str(exc).replace(f"{path}: ", ""), "error"
+    return None, ""
 
 
 def _check_supervision(name: str, table: Any, out: Collector) -> None:

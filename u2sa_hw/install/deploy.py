@@ -6,7 +6,8 @@ Install, on the SBC as root (or staged into ``--root DIR`` for packaging and tes
    the system user u2sa (no login, home /var/lib/u2sa);
 2. makes the venv under /opt/u2sa/venv (see :mod:`u2sa_hw.install.system`);
 3. installs the profile and service configs under /etc/u2sa (never overwriting one the
-   user changed: the new default goes beside it as ``.new``), and makes the vehicle's bus
+   user changed: the new default goes beside it as ``.new``) with the files the services'
+   declared file settings name (a secret one root:u2sa 0640), and makes the vehicle's bus
    key /etc/u2sa/bus.key (root:u2sa 0640) unless one is there (docs/security.md);
 4. makes the log directory /var/log/u2sa (u2sa:u2sa 0770) and declares it in
    /etc/tmpfiles.d/u2sa.conf, so that it exists before any unit starts;
@@ -34,7 +35,7 @@ from u2sa_hw.install.system import (SERVICE_USER, VENV_MODES, InstallError, appl
                                     ensure_venv, owner_ids, project_source, reload_systemd, reload_udev,
                                     remove_users, user_ids)
 from u2sa_hw.install.preflight import load_for_install, offline_check, preflight
-from u2sa_hw.install.referenced import rewrites
+from u2sa_hw.install.referenced import installed_files, rewrites
 from u2sa_hw.install.udev import VEHICLE_RULES, render_rules
 from u2sa_hw.install.units import (CONFIG_DIR, DOC, ETC_DIR, HSM_LOG, LOG_DIR, LOG_DIR_MODE, PROFILE, STATE_DIR, SYSUSERS,
                                    SYSCTL, TARGET, TMPFILES, UDEV_DIR, UNIT_DIR, render_profile, service_configs,
@@ -121,9 +122,13 @@ def install(*, vehicle: Path | str, root: Path | str = "/", venv: str | None = N
     _ensure_bus_key(tree, owner=owner)
     for dest, data in configs.items():
         tree.put_config(dest, data, mode=0o660, owner=owner)
-    # Missions, objects...: the user's once installed, like the configs (one file may be named twice).
-    for dest, source in sorted({ref.dest: ref.source for ref in found.references}.items()):
-        tree.put_config(dest, source.read_bytes(), mode=0o644)
+    # Missions, objects...: the user's once installed, like the configs (one file may be named twice);
+    # a token or key (a setting declared file="secret") root:u2sa 0640, never world-readable.
+    for dest, (source, secret) in sorted(installed_files(found.references).items()):
+        if secret:
+            tree.put_secret(dest, source.read_bytes(), owner=owner)
+        else:
+            tree.put_config(dest, source.read_bytes(), mode=0o644)
     for item in found.plan.can_without_bitrate:
         tree.note("skipped", f"CAN {item}", "the address has no bitrate=: the interface is left as configured")
     _ensure_log_dir(tree)

@@ -5,7 +5,8 @@
 a second install reports nothing. Managed files (units, rules) are replaced when they
 differ. Config files are the user's once installed: one whose content differs from the
 checksum recorded at install time was changed by the user and is never overwritten; a
-changed default is written beside it as ``NAME.new``.
+changed default is written beside it as ``NAME.new``. A file holding a secret (a setting declared
+``file="secret"``) is written like a config but ``root:u2sa`` 0640 (:meth:`InstallTree.put_secret`).
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ from u2sa_hw.install.manifest import (CONFIG, CONFIG_NEW, MANAGED, FileRecord, M
                                       host_path, sha256_bytes, sha256_file)
 
 Owner = tuple[int, int] | None
+
+SECRET_MODE = 0o640   # root:u2sa: the services (group u2sa) read it, nobody else does
 
 # Actions that change the system; "unchanged" and "kept" do not.
 CHANGING = frozenset({"created", "updated", "removed"})
@@ -129,6 +132,20 @@ class InstallTree:
         self.new.files[new_path] = FileRecord(CONFIG_NEW, new_sha)
         self.changes.append(Change("created", new_path, f"new default for your changed {dest}"))
         return "kept"
+
+    def put_secret(self, dest: str, data: bytes, *, owner: Owner) -> str:
+        """Install a file holding a secret (a token, a private key) like a config, readable only by root and
+        the group u2sa: ``root:u2sa`` mode 0640 when *owner* (root, the gid of u2sa) is known, else 0600.
+
+        Fail-safe: the mode is set on the temp file before it takes the name (never readable by others,
+        not even for a moment), and put back on a copy the user changed since install (kept, not rewritten),
+        as install does for the bus key.
+        """
+        mode = SECRET_MODE if owner is not None else 0o600
+        action = self.put_config(dest, data, mode=mode, owner=owner)
+        if action == "kept" and self._apply_mode(self.path(dest), mode, owner):
+            self.changes.append(Change("updated", dest, f"a secret: mode {mode:04o} again"))
+        return action
 
     def link(self, dest: str, target: str) -> str:
         """Make *dest* a symlink to *target* (a vehicle path, not rooted: it resolves on the vehicle)."""

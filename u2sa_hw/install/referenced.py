@@ -1,17 +1,22 @@
-"""The files a profile's services name (missions, a-priori objects, whatever else), to install beside it.
+"""The files a profile's services name (missions, a-priori objects, tokens, certificates), to install beside it.
 
-A service setting names a file when its value, a path relative to the profile's directory
-(as every service resolves it, :meth:`VehicleProfile.resolve_path`), is an existing regular
-file on this machine; nothing here knows which settings those are. A setting whose name ends
-in ``_file`` and whose file is missing is a problem (install cannot ship it). Settings are
-read where the services read them: the profile's ``settings`` and the service's config file
-(which wins). Values that are device nodes or kernel files (``/dev``, ``/sys``, ``/proc``,
-``/run``) or URLs are never files to copy.
+Which settings name files is what each service kind declares, nothing else: a field declared
+``field(..., file=True)`` (or ``file="secret"``) is a path relative to the profile's
+directory (as every service resolves it, :meth:`VehicleProfile.resolve_path`), and every
+such setting of an enabled service with a non-empty value names a file install copies. A
+setting not declared so is never a file, whatever its value (a word that happens to be the
+name of a file beside the profile stays a word). A declared file that is missing (or is not
+a regular file) is a problem naming the service, the setting, the path and the fix: install
+cannot put it on the vehicle. Values are read where the services read them: the service's
+config file wins over the profile's ``settings``, which win over the field's default. A value
+that is not a string is left to ``u2sa check`` (a type error there).
 
 Each file goes to ``/etc/u2sa`` at the same place relative to the profile as in the source
 (``mission.xml`` stays ``mission.xml``), or, when it lies outside the profile's directory or
 that place is taken, to ``/etc/u2sa/files/SERVICE/NAME``; the installed profile or config
-then names it by that relative path, so the installed vehicle reads the installed copy.
+then names it by that relative path, so the installed vehicle reads the installed copy. A file
+any ``file="secret"`` setting names is :attr:`Reference.secret`: install writes it root:u2sa
+0640 (see :meth:`u2sa_hw.install.files.InstallTree.put_secret`).
 """
 
 from __future__ import annotations
@@ -21,11 +26,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
-from u2sa_hw.vehicle import VehicleProfile
+from u2sa_hw.vehicle import ServiceSpec, VehicleProfile
 
 ETC_DIR = "/etc/u2sa"
-NOT_FILES = ("/dev/", "/sys/", "/proc/", "/run/")
-FILE_SUFFIX = "_file"   # settings named so must name a file that exists
 
 
 @dataclass(frozen=True)
@@ -34,19 +37,12 @@ class Reference:
 
     service: str
     key: str
-    in_config: bool     # the value is in the service's config file (else in the profile's settings)
+    in_config: bool     # the value is in the service's config file (else the profile's settings or the default)
     source: Path
     dest: str           # vehicle path
     value: str          # the setting's value in the installed profile or config
-
-
-def _candidate(value: Any) -> str | None:
-    if not isinstance(value, str):
-        return None
-    text = value.strip()
-    if not text or "://" in text or text.startswith(NOT_FILES) or "\n" in text:
-        return None
-    return text
+    text: str = ""      # the setting's value as the source profile or config gives it
+    secret: bool = False   # declared file="secret": installed root:u2sa 0640
 
 
 def _config_values(path: Path) -> dict[str, Any]:
@@ -57,9 +53,33 @@ def _config_values(path: Path) -> dict[str, Any]:
     return data if isinstance(data, dict) else {}
 
 
+def file_fields(kind: str) -> dict[str, Any]:
+    """The fields of service *kind* declared to name a file (``field(..., file=...)``), by name.
+
+    Read through the service registry (the kind's class is imported, nothing is started);
+    LookupError for an unknown kind, ImportError or AttributeError for one that does not import.
+    """
+    from u2sa_hw.config_validate import declared_fields
+
+    return {name: f for name, f in declared_fields(kind).items() if f.names_file}
+
+
+def _values(spec: ServiceSpec, fields: Mapping[str, Any]) -> list[tuple[str, Any, bool]]:
+    """(key, value, in_config) of each declared file field of *spec*, where the service reads it."""
+    config = _config_values(spec.config_path) if spec.config_path.is_file() else {}
+    out = []
+    for key, f in fields.items():
+        if key in config:
+            out.append((key, config[key], True))
+        else:
+            out.append((key, spec.settings.get(key, f.default), False))
+    return out
+
+
 def find_references(profile: VehicleProfile, *, taken: set[str]) -> tuple[list[Reference], list[str]]:
-    """Every file the enabled services' settings name, and one problem line per ``*_file`` setting whose
-    file is missing. *taken*: vehicle paths other files of the install occupy."""
+    """Every file the enabled services' declared file settings name, and one problem line per such file
+    that is missing (or per service whose kind cannot be read). *taken*: vehicle paths other files of the
+    install occupy."""
     assert profile.path is not None
     base = profile.path.resolve().parent
     refs: list[Reference] = []
@@ -68,28 +88,33 @@ def find_references(profile: VehicleProfile, *, taken: set[str]) -> tuple[list[R
     for name, spec in profile.services.items():
         if not spec.enabled:
             continue
-        config = _config_values(spec.config_path) if spec.config_path.is_file() else {}
-        values = [(k, v, False) for k, v in spec.settings.items() if k not in config]
-        values += [(k, v, True) for k, v in config.items()]
-        for key, raw, in_config in values:
-            text = _candidate(raw)
-            if text is None:
-                continue
+        try:
+            fields = file_fields(spec.kind)
+        except (LookupError, ImportError, AttributeError) as exc:
+            problems.append(f"{profile.path} [services.{name}]: cannot read which files service {name} (kind "
+                            f"'{spec.kind}') names ({exc}); fix the kind (u2sa check --vehicle {profile.path})")
+            continue
+        for key, raw, in_config in _values(spec, fields):
+            if not isinstance(raw, str) or not raw.strip():
+                continue   # empty: no file; not a str: u2sa check's type error
+            text = raw.strip()
             path = profile.resolve_path(text)
-            if path is None:
-                continue
-            where = spec.config_path if in_config else f"{profile.path} [services.{name}] settings"
+            assert path is not None
             if not path.is_file():
-                if key.endswith(FILE_SUFFIX):
-                    problems.append(f"{where}: {key} = {text!r} names {path}, which is not a file; install "
-                                    "cannot put it on the vehicle (fix the path or create the file)")
+                where = f"{spec.config_path} [{key}]" if in_config else \
+                    f"{profile.path} [services.{name}.settings.{key}]"
+                what = "is not a regular file" if path.exists() else "does not exist"
+                problems.append(f"{where}: service {name}: {key} = {text!r} names {path}, which {what}: install "
+                                "cannot put it on the vehicle; fix: correct the path (relative to the profile's "
+                                "directory) or create the file")
                 continue
             source = path.resolve()
             if source in (profile.path.resolve(), spec.config_path.resolve()):
                 continue
             dest, value = _place(source, base, name, placed, taken)
             placed[dest] = source
-            refs.append(Reference(name, key, in_config, source, dest, value))
+            refs.append(Reference(name, key, in_config, source, dest, value, text=text,
+                                  secret=fields[key].secret_file))
     return refs, problems
 
 
@@ -111,10 +136,21 @@ def _place(source: Path, base: Path, service: str, placed: Mapping[str, Path], t
     return dest, rel
 
 
+def installed_files(refs: list[Reference]) -> dict[str, tuple[Path, bool]]:
+    """Vehicle path -> (source, secret) of every file to install; a file any secret setting names is secret."""
+    out: dict[str, tuple[Path, bool]] = {}
+    for ref in refs:
+        source, secret = out.get(ref.dest, (ref.source, False))
+        out[ref.dest] = (source, secret or ref.secret)
+    return out
+
+
 def rewrites(refs: list[Reference], *, in_config: bool) -> dict[str, dict[str, str]]:
-    """service -> {setting: installed value} for the references in configs (or in the profile's settings)."""
+    """service -> {setting: installed value} for the references in configs (or in the profile's settings)
+    whose installed value differs from the one written (a default is written into the profile's settings
+    only then)."""
     out: dict[str, dict[str, str]] = {}
     for ref in refs:
-        if ref.in_config == in_config:
+        if ref.in_config == in_config and ref.value != ref.text:
             out.setdefault(ref.service, {})[ref.key] = ref.value
     return out

@@ -44,7 +44,8 @@ class MissionManagerService(U2SAService):
 
     SERVICE_TYPE: ClassVar[str] = "mission_manager"
     CONFIG = (
-        field("mission_file", "", "mission XML; a relative path is relative to the vehicle profile's directory"),
+        field("mission_file", "", "mission XML; a relative path is relative to the vehicle profile's directory",
+              file=True),
         field("default_threshold_m", 2.0, "horizontal completion radius of goals without <threshold>, m", gt=0),
         field("loop", "file", "file: as the mission's loop attribute says; true or false: override it"),
         field("publish_interval_s", 1.0, "republish the current goals and the status this often, s", gt=0),

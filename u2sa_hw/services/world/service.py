@@ -28,7 +28,8 @@ class WorldModeler(U2SAService):
 
     SERVICE_TYPE: ClassVar[str] = "world_modeler"
     CONFIG = (
-        field("objects_file", "", "a-priori objects XML; a relative path is relative to the vehicle profile"),
+        field("objects_file", "", "a-priori objects XML; a relative path is relative to the vehicle profile",
+              file=True),
         field("expiry_s", 5.0, "an observed object not seen for this long is dropped (0: never)", ge=0),
         field("association_radius_m", 1.0, "objects without a UID from one source merge within this distance", ge=0),
         field("publish_rate_hz", 2.0, "WORLD and WORLD_SUMMARY publications per second", gt=0),
