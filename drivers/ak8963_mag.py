@@ -13,6 +13,14 @@ Axes: the AK8963's axes are not the MPU's. With the MPU's chip axes x, y, z, the
 magnetometer's x is chip y, its y is chip x and its z is -chip z (MPU-9250 product
 specification, section 9.1); :func:`to_chip_axes` turns a reading into chip axes, after
 which the driver's ``mounting`` applies as to the accel and gyro.
+
+Address: the AK8963 sits on the MPU's own bus, so its address is the MPU device's with chip
+address 0x0c (:func:`mag_address`: ``i2c://1/0x68`` -> ``i2c://1/0x0c``, and the same for a
+mock or replay bus socket), opened through ``open_port`` like every device. It is set up
+again on every open of the MPU, from the MPU device's address at that moment, so it follows
+an address change. Its transactions go to the tap the driver gives (the MPU device's
+``RAW.<device>``, where the chip address 0x0c tells them apart), so they are recorded and a
+replay answers them like the MPU's (docs/replay.md).
 """
 
 from __future__ import annotations
@@ -20,8 +28,11 @@ from __future__ import annotations
 import time
 from typing import Callable
 
+from u2sa_hw.ports.address import DeviceAddress
 from u2sa_hw.ports.errors import PortError, PortIOError
-from u2sa_hw.ports.i2c_port import I2cPort, open_i2c
+from u2sa_hw.ports.i2c_port import I2cPort
+from u2sa_hw.ports.opener import open_port
+from u2sa_hw.ports.tap import Tap
 from u2sa_hw.protocols import mpu9250 as mpu
 
 Vector = tuple[float, float, float]
@@ -32,13 +43,23 @@ def to_chip_axes(mag: Vector) -> Vector:
     return mag[1], mag[0], -mag[2]
 
 
-class Ak8963:
-    """The magnetometer's own port, set-up and sample reads; every fault is counted, none raised."""
+def mag_address(mpu_address: DeviceAddress) -> DeviceAddress:
+    """The AK8963's address beside the MPU at *mpu_address*: the same adapter or bus socket, chip 0x0c."""
+    return mpu_address.with_chip_address(mpu.AK8963_ADDRESS)
 
-    def __init__(self, *, device: str, bus: int | str, retries: Callable[[], int]) -> None:
-        self.device = device
-        self.bus = bus
+
+class Ak8963:
+    """The magnetometer's own port, set-up and sample reads; every fault is counted, none raised.
+
+    *tap* gets every transaction (the driver's ``RAW.<device>`` tap); *retries* gives the
+    number of immediate retries of a failed transaction.
+    """
+
+    def __init__(self, *, retries: Callable[[], int], tap: Tap | None = None) -> None:
         self._retries = retries
+        self._tap = tap
+        self.device = ""
+        self.address: DeviceAddress | None = None   # where the latest set-up opened it
         self.port: I2cPort | None = None
         self.adjust: Vector = (1.0, 1.0, 1.0)
         self.asa: tuple[int, int, int] | None = None
@@ -49,16 +70,18 @@ class Ak8963:
         self.last: Vector | None = None      # µT, AK8963 axes, ASA applied
         self.last_at = 0.0
 
-    def setup(self, mpu_port: object) -> bool:
-        """Enable the bypass through *mpu_port* (a RetryingI2c), identify and start the AK8963; False if absent."""
+    def setup(self, mpu_port: object, *, device: str, mpu_address: DeviceAddress) -> bool:
+        """Enable the bypass through *mpu_port* (a RetryingI2c), open the AK8963 beside the MPU at
+        *mpu_address* as *device* (closing the one opened before), identify and start it; False if absent."""
         self.close()
+        self.device, self.address = device, mag_address(mpu_address)
         try:
             mpu_port.write_byte(mpu.INT_PIN_CFG, mpu.INT_PIN_CFG_BYPASS_EN)  # type: ignore[attr-defined]
-            port = open_i2c(device=f"{self.device}-mag", bus=self.bus, address=mpu.AK8963_ADDRESS)
+            port: I2cPort = open_port(self.address, device=device, tap=self._tap)
             self.port = port
             who = self._call(lambda: port.read_byte(mpu.AK8963_WIA))
             if who != mpu.AK8963_WIA_VALUE:
-                self.state = f"no AK8963 at 0x0c (WIA 0x{who:02x}, expected 0x48)"
+                self.state = f"no AK8963 at {self.address} (WIA 0x{who:02x}, expected 0x48)"
                 self.close()
                 return False
             self._call(lambda: port.write_byte(mpu.AK8963_CNTL2, mpu.AK8963_CNTL2_SRST))
@@ -116,8 +139,10 @@ class Ak8963:
         self.samples += 1
         return self.last
 
-    def close(self) -> None:
-        """Release the magnetometer's port (set up again by the next ``setup``)."""
+    def close(self, why: str = "") -> None:
+        """Release the magnetometer's port (set up again by the next ``setup``); *why*, if given, is its state."""
+        if why:
+            self.state = why
         if self.port is not None:
             try:
                 self.port.close()

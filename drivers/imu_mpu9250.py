@@ -47,6 +47,7 @@ from typing import Any, ClassVar
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.config import ConfigError, field
 from u2sa_hw.ports.errors import PortIOError, PortUnavailable
+from u2sa_hw.ports.tap import raw_channel
 from u2sa_hw.calibration.correction import IDENTITY9, ZERO3, Correction, tilt_compensated_heading
 from u2sa_hw.geo import wrap_angle
 from u2sa_hw.protocols import mpu9250 as mpu
@@ -209,12 +210,22 @@ class Mpu9250ImuDriver(I2cImuDriver):
                                          f"{got.hex()}", address=self.where,
                               fix="check the chip's power and wiring; the driver retries")
         if variant.has_magnetometer:
+            # on every open, from the device's address now: the same bus as the MPU (a mock or replay
+            # socket too), so a reopen on an address change takes the magnetometer along
             address = self.port.address
             assert address is not None
             if self.mag is None:
-                self.mag = Ak8963(device=self.name, bus=address.i2c_bus, retries=lambda: int(self.config["retries"]))
-            if not self.mag.setup(port):
+                self.mag = Ak8963(retries=lambda: int(self.config["retries"]), tap=self._mag_tap)
+            if not self.mag.setup(port, device=self.port.device, mpu_address=address):
                 self.logger.warning("%s: magnetometer: %s; no heading", self.name, self.mag.state)
+        elif self.mag is not None:
+            self.mag.close(f"none: the chip is now an {self.part}")
+
+    def _mag_tap(self, record: Any) -> None:
+        """The magnetometer's transactions on the MPU device's ``RAW.<device>`` (its DeviceLink's rule:
+        while ``record_raw`` is on); the records' chip address 0x0c tells them from the MPU's."""
+        if self.config["record_raw"]:
+            self.publish(raw_channel(self.port.device), record)
 
     def _check_identity(self, who: int, *, first: bool) -> None:
         found = identify(who)
@@ -235,6 +246,13 @@ class Mpu9250ImuDriver(I2cImuDriver):
         raise PortUnavailable(self.name, problem, address=self.where, fix=fix)
 
     # -- samples --------------------------------------------------------------------------
+    def sample_once(self) -> None:
+        """As the base does, after closing a magnetometer port left from an MPU port that is no longer
+        open (lost, or replaced on an address change): the MPU's next open sets it up again."""
+        if self.mag is not None and self.mag.port is not None and self.port.state != "open":
+            self.mag.close("closed with the MPU's port; set up again when it reopens")
+        super().sample_once()
+
     def read_sample(self, port: RetryingI2c) -> t.StateInformation | None:
         """One burst: scale, rotate into FRD, calibrate, build the message."""
         raw = mpu.decode_burst(port.read_block(mpu.BURST_START, mpu.BURST_LENGTH))
@@ -332,7 +350,8 @@ class Mpu9250ImuDriver(I2cImuDriver):
     def _mag_health(self) -> dict[str, Any]:
         if self.mag is None:
             return {}
-        return {"magnetometer": self.mag.state, "mag_samples": self.mag.samples, "mag_overflows": self.mag.overflows,
+        return {"magnetometer": self.mag.state, "mag_address": str(self.mag.address or ""),
+                "mag_samples": self.mag.samples, "mag_overflows": self.mag.overflows,
                 "mag_errors": self.mag.errors, "mag_asa": ",".join(map(str, self.mag.asa or ())),
                 "heading_deg": "" if self.heading_deg is None else f"{self.heading_deg:.1f}",
                 "calibration_stream": "on" if self.stream_until else "off"}

@@ -15,6 +15,7 @@ from mock_devices.i2c_bus import MockI2cBus
 from mock_devices.mpu9250_chip import Ak8963Chip, Mpu9250Chip, OrientedVehicle, ned_to_body
 from u2sa_hw.calibration.correction import IDENTITY9, ZERO3, Correction, tilt_compensated_heading
 from u2sa_hw.cli.calibrate_cmd import AccelCollector, MagCollector, Progress
+from u2sa_hw.ports.address import DeviceAddress, parse_address
 from u2sa_hw.ports.i2c_port import open_i2c
 from u2sa_hw.protocols import mpu9250 as mpu
 
@@ -48,7 +49,12 @@ def _mag_rig(tmp_path: Path, **chip: object) -> tuple[MockI2cBus, Ak8963Chip, Ak
     bus = MockI2cBus(socket_path=str(tmp_path / "bus.sock"))
     imu = bus.add(Mpu9250Chip(vehicle=OrientedVehicle(yaw=0.7, roll=0.2)))
     ak = bus.add(Ak8963Chip(parent=imu, noise_ut=0.0, **chip))  # type: ignore[arg-type]
-    return bus, ak, Ak8963(device="imu", bus=bus.address, retries=lambda: 1)
+    return bus, ak, Ak8963(retries=lambda: 1)
+
+
+def _mpu_address(bus: MockI2cBus) -> DeviceAddress:
+    """The MPU device's address on *bus*; the magnetometer opens beside it."""
+    return parse_address(f"mock+i2c://{bus.socket_path}/0x68", device="imu")
 
 
 class _Direct:
@@ -65,7 +71,7 @@ def test_ak8963_set_up_applies_asa_and_gives_the_field_in_chip_axes(tmp_path: Pa
     bus, ak, mag = _mag_rig(tmp_path, asa=(176, 100, 140))
     with bus:
         mpu_port = open_i2c(device="imu", bus=bus.address, address=0x68)
-        assert mag.setup(_Direct(mpu_port)), mag.state
+        assert mag.setup(_Direct(mpu_port), device="imu", mpu_address=_mpu_address(bus)), mag.state
         assert mag.asa == (176, 100, 140) and mag.state == "continuous 100 Hz, 16-bit"
         field = mag.read()
         assert field is not None
@@ -81,7 +87,7 @@ def test_ak8963_overflow_drops_the_sample_and_counts_it(tmp_path: Path) -> None:
     bus, _, mag = _mag_rig(tmp_path, hard_iron_ut=(6000.0, 0.0, 0.0))   # a magnet on the board
     with bus:
         mpu_port = open_i2c(device="imu", bus=bus.address, address=0x68)
-        assert mag.setup(_Direct(mpu_port))
+        assert mag.setup(_Direct(mpu_port), device="imu", mpu_address=_mpu_address(bus))
         assert mag.read() is None and mag.read() is None
         assert mag.overflows == 2 and mag.samples == 0
         mpu_port.close()
@@ -91,10 +97,10 @@ def test_ak8963_overflow_drops_the_sample_and_counts_it(tmp_path: Path) -> None:
 def test_ak8963_absent_is_reported_not_raised(tmp_path: Path) -> None:
     bus = MockI2cBus(socket_path=str(tmp_path / "bus.sock"))
     bus.add(Mpu9250Chip(variant="mpu9250"))
-    mag = Ak8963(device="imu", bus=bus.address, retries=lambda: 1)
+    mag = Ak8963(retries=lambda: 1)
     with bus:
         mpu_port = open_i2c(device="imu", bus=bus.address, address=0x68)
-        assert not mag.setup(_Direct(mpu_port))
+        assert not mag.setup(_Direct(mpu_port), device="imu", mpu_address=_mpu_address(bus))
         assert mag.state.startswith("not answering") and mag.read() is None
         mpu_port.close()
 

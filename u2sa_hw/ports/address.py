@@ -29,7 +29,7 @@ API (stable; ``u2sa check``, install and udev generation build on it):
 - :class:`DeviceAddress`: ``url``, ``kind`` (:data:`KINDS`), ``mock``, ``params``, and typed
   properties per kind (``serial_path``, ``baud``..., ``can_interface``..., ``i2c_bus``,
   ``chip_address``, ``gpio_chip``, ``lines``, ``pwm_chip``, ``pwm_channel``, ``output_id``,
-  ``usb_id``...).
+  ``usb_id``...) and derived copies (``with_params``, ``with_chip_address``: another chip on the same bus).
 - :func:`make_address` builds one from parts (used by the legacy conversion and the mocks).
 
 A query parameter the kind does not take is an error with a did-you-mean (``bitrat=`` is
@@ -288,6 +288,13 @@ class DeviceAddress:
                 params[key] = str(value)
         return make_address(self.kind, self.location, self.numbers, params=params, mock=self.mock,
                             backend=self.backend, device="(derived)")
+
+    def with_chip_address(self, chip: int) -> DeviceAddress:
+        """The same bus (adapter, mock or replay socket, parameters) with another 7-bit chip address, e.g.
+        an MPU-9250's AK8963 at 0x0c beside ``i2c://1/0x68``; AddressError outside 0x03..0x77."""
+        self._need("i2c", "pca9685")
+        return make_address(self.kind, self.location, (chip, *self.numbers[1:]), params=self.params,
+                            mock=self.mock, backend=self.backend, device="(derived)")
 
 
 def parse_address(text: str, *, device: str) -> DeviceAddress:
