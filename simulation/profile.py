@@ -22,11 +22,11 @@ from typing import Any, Mapping
 
 import tomli_w
 
+from u2sa_hw.config_validate import declared_fields
 from u2sa_hw.devices import effective_config
 from u2sa_hw.registry import RECORDER_KIND
 from u2sa_hw.vehicle import ProfileError, VehicleProfile
 
-PROFILE_RELATIVE_FIELDS = ("mission_file", "objects_file")   # relative to the profile's directory
 SIM_PROFILE_NAME = "vehicle.toml"
 __all__ = ["effective_config", "effective_configs", "write_sim_profile"]
 
@@ -98,7 +98,7 @@ def write_sim_profile(profile: VehicleProfile, *, run_dir: Path, addresses: Mapp
             changes["mission_file"] = str(mission.resolve())
         settings = dict(table.get("settings", {}))
         original = _read_config(spec.config_path) if spec is not None else {}
-        for key in PROFILE_RELATIVE_FIELDS:
+        for key in _file_fields(spec.kind if spec is not None else table.get("kind")):
             for values in (settings, original):
                 if key in values:
                     values[key] = _absolute(values[key], base)
@@ -113,3 +113,11 @@ def write_sim_profile(profile: VehicleProfile, *, run_dir: Path, addresses: Mapp
               "# Device addresses point at the mock devices; edit the original, not this file.\n")
     path.write_text(header + tomli_w.dumps(data))
     return path
+
+
+def _file_fields(kind: Any) -> list[str]:
+    """The settings a service of *kind* declares as files (``field(file=...)``): relative to the profile's directory."""
+    try:
+        return [name for name, f in declared_fields(str(kind)).items() if f.names_file]
+    except LookupError:   # an unknown kind: u2sa check reports it before a simulation starts
+        return []

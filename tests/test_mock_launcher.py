@@ -133,7 +133,8 @@ def test_simulation_copy_points_config_files_at_the_mocks_and_keeps_the_original
     config.mkdir()
     (config / "gps.toml").write_text('port = "/dev/ttyUSB3"\nuere_m = 4.0\n')   # an address in the config file
     (config / "mission.toml").write_text('mission_file = "missions/loop.xml"\n')
-    text = SENSORS + '\n[services.mission]\nkind = "mission_manager"\n'
+    text = SENSORS + '\n[services.mission]\nkind = "mission_manager"\n' \
+        '\n[services.view]\nkind = "foxglove_bridge"\nsettings = { token_file = "keys/view.token" }\n'
     profile = load_profile(profile_file(tmp_path, text))
     mocks = MockLauncher(profile, device_dir=tmp_path / "dev", service_configs=effective_configs(profile))
     mock_gps = f"mock+serial://{tmp_path / 'dev' / 'ttyUSB3'}?baud=9600"   # named after the real device
@@ -143,5 +144,7 @@ def test_simulation_copy_points_config_files_at_the_mocks_and_keeps_the_original
     copied = effective_configs(sim)
     assert sim.devices["gps"]["address"] == mock_gps and copied["gps"]["uere_m"] == 4.0
     assert copied["mission"]["mission_file"] == str(tmp_path / "missions" / "loop.xml")
+    # every setting declared a file (field(file=...)) follows the profile, not only the mission's
+    assert copied["view"]["token_file"] == str(tmp_path / "keys" / "view.token")
     assert sim.lcm_url == "udpm://239.255.76.67:7001?ttl=0" and sim.data_dir == tmp_path / "run" / "data"
     assert (config / "gps.toml").read_text() == 'port = "/dev/ttyUSB3"\nuere_m = 4.0\n'   # the user's file untouched
