@@ -37,7 +37,7 @@ from u2sa_hw.install.system import (SERVICE_USER, VENV_MODES, InstallError, appl
 from u2sa_hw.install.preflight import load_for_install, offline_check, preflight
 from u2sa_hw.install.referenced import installed_files, rewrites
 from u2sa_hw.install.udev import VEHICLE_RULES, render_rules
-from u2sa_hw.install.units import (CONFIG_DIR, DOC, ETC_DIR, HSM_LOG, LOG_DIR, LOG_DIR_MODE, PROFILE, STATE_DIR, SYSUSERS,
+from u2sa_hw.install.units import (CONFIG_DIR, DOC, ETC_DIR, HSM_LOG, HSM_STATE_DIR, LOG_DIR, LOG_DIR_MODE, PROFILE, STATE_DIR, SYSUSERS,
                                    SYSCTL, TARGET, TMPFILES, UDEV_DIR, UNIT_DIR, render_profile, service_configs,
                                    service_units, sysctl_conf, sysusers_conf, tmpfiles_conf, udev_sources,
                                    unit_dropins, unit_sources, wants_links)
@@ -223,7 +223,7 @@ def uninstall(*, root: Path | str = "/", purge: bool = False) -> InstallTree:
     if purge:
         host_path(root, MANIFEST_PATH).unlink(missing_ok=True)
         tree.note("removed", MANIFEST_PATH)
-        for directory in (ETC_DIR, LOG_DIR, STATE_DIR):
+        for directory in (ETC_DIR, LOG_DIR, STATE_DIR, HSM_STATE_DIR):
             tree.remove_tree(directory)
         remove_users(tree)
         tree.remove_empty_dirs()

@@ -38,6 +38,7 @@ CONFIG_DIR = "/etc/u2sa/config"
 PROFILE = "/etc/u2sa/vehicle.toml"
 LOG_DIR = "/var/log/u2sa"
 STATE_DIR = "/var/lib/u2sa"
+HSM_STATE_DIR = "/var/lib/u2sa-hsm"   # u2sa-hsm.service's StateDirectory= (its saved signing time)
 DOC = "/opt/u2sa/doc/deployment.md"
 SYSUSERS = "/etc/sysusers.d/u2sa.conf"
 TMPFILES = "/etc/tmpfiles.d/u2sa.conf"
