@@ -47,7 +47,6 @@ from typing import Any, ClassVar
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.config import ConfigError, field
 from u2sa_hw.ports.errors import PortIOError, PortUnavailable
-from u2sa_hw.ports.tap import raw_channel
 from u2sa_hw.calibration.correction import IDENTITY9, ZERO3, Correction, tilt_compensated_heading
 from u2sa_hw.geo import wrap_angle
 from u2sa_hw.protocols import mpu9250 as mpu
@@ -215,17 +214,11 @@ class Mpu9250ImuDriver(I2cImuDriver):
             address = self.port.address
             assert address is not None
             if self.mag is None:
-                self.mag = Ak8963(retries=lambda: int(self.config["retries"]), tap=self._mag_tap)
+                self.mag = Ak8963(retries=lambda: int(self.config["retries"]), tap=self.port.tap)
             if not self.mag.setup(port, device=self.port.device, mpu_address=address):
                 self.logger.warning("%s: magnetometer: %s; no heading", self.name, self.mag.state)
         elif self.mag is not None:
             self.mag.close(f"none: the chip is now an {self.part}")
-
-    def _mag_tap(self, record: Any) -> None:
-        """The magnetometer's transactions on the MPU device's ``RAW.<device>`` (its DeviceLink's rule:
-        while ``record_raw`` is on); the records' chip address 0x0c tells them from the MPU's."""
-        if self.config["record_raw"]:
-            self.publish(raw_channel(self.port.device), record)
 
     def _check_identity(self, who: int, *, first: bool) -> None:
         found = identify(who)

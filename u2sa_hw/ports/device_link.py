@@ -160,7 +160,7 @@ class DeviceLink(Generic[P]):
     def _open(self) -> P:
         assert self.address is not None, "start() resolves the address"
         try:
-            port = open_port(self.address, device=self.device, tap=self._tap, **dict(self._options()))
+            port = open_port(self.address, device=self.device, tap=self.tap, **dict(self._options()))
         except AddressError as exc:   # e.g. a GPIO line the address does not list: a port fault, with the fix
             raise PortUnavailable(self.device, exc.problem, address=self.address.url, fix=exc.fix) from None
         if self._on_open is not None:
@@ -171,7 +171,9 @@ class DeviceLink(Generic[P]):
                 raise
         return port
 
-    def _tap(self, record: Any) -> None:
+    def tap(self, record: Any) -> None:
+        """Publish *record* on ``RAW.<device>`` while recording is on: the port's tap, and the one a
+        second port of the same device (an MPU-9250's magnetometer) hands its records to."""
         if self._record():
             self.owner.publish(raw_channel(self.device), record)
 
