@@ -38,6 +38,7 @@ from u2sa_hw.ports.can_port import CanPort
 from u2sa_hw.ports.device_link import DeviceLink, device_setting
 from u2sa_hw.ports.legacy import can_address
 
+from drivers.declarations import CanMotorDeclarations
 from drivers.diff_drive_odometry import SOURCES, BodyMotion, DiffDriveOdometry
 
 TICK_S = 0.01
@@ -56,7 +57,7 @@ class MotorSpec:
     radius_m: float
 
 
-class CanMotorService(Actuator):
+class CanMotorService(CanMotorDeclarations, Actuator):
     """Base of the CAN motor drivers (see the module docstring)."""
 
     ID_FIELD: ClassVar[str] = "node_ids"

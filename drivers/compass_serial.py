@@ -25,11 +25,12 @@ dropped, counted per kind in health (``out_of_range_kinds``) and logged once.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Mapping
 
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.config import ConfigError, field
 from u2sa_hw.geo import wrap_angle
+from u2sa_hw.ports.declared import SOURCES
 
 from drivers import compass_mag
 from drivers.compass_bursts import Burst, BurstGrouper, CompassReading, reading_from_parts
@@ -74,6 +75,7 @@ class SerialCompassDriver(SerialLineSensor):
     """A serial compass (NMEA heading/attitude sentences or an OceanServer OS5000) as a proprioceptive sensor."""
 
     EXAMPLE_PORT = "/dev/u2sa/compass"
+    MOCK_KINDS = ("nmea_compass", "os5000_compass")
     CONFIG = (
         field("baudrate", 19200, "one of 4800 .. 115200 (19200: the OS5000's factory rate; NMEA compasses often 4800)"),
         field("format", "nmea", "nmea: HDG/HDM/HDT/THS, ROT, XDR, PASHR, PTNTHTM/HPR; os5000: OceanServer $C lines"),
@@ -96,6 +98,16 @@ class SerialCompassDriver(SerialLineSensor):
         self.out_of_range = ValueDrops(self.logger, device=self.device_name, what="out-of-range")
         self.not_valid = ValueDrops(self.logger, device=self.device_name, what="not-valid (by their status)")
         self.field_heading = compass_mag.CompassFieldHeading(self)
+
+    @classmethod
+    def protocol(cls, config: Mapping[str, Any]) -> str:
+        """``format``: nmea or os5000."""
+        return str(config.get("format", "nmea")).lower()
+
+    @classmethod
+    def mock_wiring(cls, service: str, device: str, config: Mapping[str, Any]) -> dict[str, Any]:
+        """The protocol, from ``format`` (u2sa_hw/ports/declared.py)."""
+        return {**super().mock_wiring(service, device, config), SOURCES: {"protocol": "format"}}
 
     def _new_grouper(self) -> BurstGrouper:
         return BurstGrouper(gap_s=self.config.get("epoch_gap_s"), char_time_s=self.char_time_s())

@@ -58,6 +58,7 @@ _RAW = field("record_raw", False, "publish every edge and write as RawGpioEdge/R
 class GpioOutputDriver(Actuator):
     """Digital output lines, each an actuator: >= 50 % on, else off; neutral = its safe level."""
 
+    MOCK_KINDS = ("gpio_chip",)   # u2sa_hw/ports/declared.py
     CONFIG = (
         _CHIP,
         field("outputs", "", "name=line,... each name is an actuator name"),
@@ -98,6 +99,18 @@ class GpioOutputDriver(Actuator):
     def declared_actuators(cls, name: str, config: Mapping[str, Any]) -> set[str]:
         """The output names of ``outputs``."""
         return set(parse_line_map(config["outputs"], service=name, key="outputs"))
+
+    @classmethod
+    def mock_wiring(cls, service: str, device: str, config: Mapping[str, Any]) -> dict[str, Any]:
+        """``outputs`` (name -> line) and each one's ``safe_levels``; a ConfigError names the setting."""
+        lines = parse_line_map(str(config["outputs"]), service=service, key="outputs")
+        safe = parse_levels(str(config["safe_levels"]), known=list(lines), service=service, key="safe_levels")
+        return {"outputs": lines, "safe_levels": {n: safe.get(n, 0) for n in lines}}
+
+    @classmethod
+    def probe_expectation(cls, config: Mapping[str, Any]) -> dict[str, Any]:
+        """Nothing: a GPIO chip has no identity to read."""
+        return {}
 
     def _initial_outputs(self) -> dict[int, int]:
         return {self.lines_by_name[n]: v for n, v in self.safe_levels.items()}  # a (re)opened port starts safe
@@ -184,6 +197,7 @@ class _Announce:
 class GpioInputDriver(ExteroceptiveSensor):
     """Digital inputs with edge events: e-stops command the failsafe, bumpers report contacts."""
 
+    MOCK_KINDS = ("gpio_chip",)   # u2sa_hw/ports/declared.py
     CONFIG = (
         _CHIP,
         field("inputs", "", "name=line,... e.g. estop=4,bump_front=22"),
@@ -242,6 +256,16 @@ class GpioInputDriver(ExteroceptiveSensor):
     def used_devices(cls, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
         """The input lines' GPIO device (see DeviceLink)."""
         return _used_gpio(service, config, "inputs")
+
+    @classmethod
+    def mock_wiring(cls, service: str, device: str, config: Mapping[str, Any]) -> dict[str, Any]:
+        """No outputs: a test drives the mock chip's inputs."""
+        return {"outputs": {}}
+
+    @classmethod
+    def probe_expectation(cls, config: Mapping[str, Any]) -> dict[str, Any]:
+        """Nothing: a GPIO chip has no identity to read."""
+        return {}
 
     def _read_levels(self, port: GpioPort) -> None:
         """After every (re)open: the present levels, since edges before the open are not seen."""

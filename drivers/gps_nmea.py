@@ -41,6 +41,8 @@ GPS_KINDS = frozenset({"GGA", "RMC", "GLL", "VTG", "GSA", "GST", "GNS", "ZDA", "
 class GpsNmeaDriver(SerialLineSensor):
     """A GNSS receiver speaking NMEA 0183 on a serial port (any talker: GP, GN, GL, GA, GB, GQ ...)."""
 
+    MOCK_KINDS = ("nmea_gps",)
+
     CONFIG = (
         field("position_frame", "NED", "NED: x north, y east, z down (m) about the profile origin; "
                                        "GEODETIC: x = lat, y = lon (deg), z = altitude (m up)"),

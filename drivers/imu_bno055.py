@@ -27,7 +27,7 @@ makes x forward, y left, z up, see docs/i2c-devices.md):
 from __future__ import annotations
 
 import time
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Mapping
 
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.config import ConfigError, field
@@ -55,6 +55,7 @@ class Bno055ImuDriver(I2cImuDriver):
     """BNO055 over I2C: attitude, body rates and gravity-free acceleration in FRD."""
 
     DEFAULT_ADDRESS: ClassVar[int] = bno.I2C_ADDRESS
+    MOCK_KINDS = ("bno055",)
     CONFIG = (
         field("address", bno.I2C_ADDRESS, "7-bit I2C address: 0x28 (COM3 low) or 0x29", ge=0x03, le=0x77),
         field("mode", "ndof", "fusion mode: ndof, ndof_fmc_off or imu (no magnetometer: no heading)", choices=MODES),
@@ -74,6 +75,11 @@ class Bno055ImuDriver(I2cImuDriver):
         self.temperature_c: float | None = None
         self.software = ""
         self._since_status = 0
+
+    @classmethod
+    def probe_expectation(cls, config: Mapping[str, Any]) -> dict[str, Any]:
+        """A BNO055 (one variant)."""
+        return {"chip": "bno055", "variant": "auto"}
 
     def check_config(self) -> None:
         """Mode, axis map and calibration threshold; ConfigError names the field."""

@@ -164,6 +164,7 @@ class I2cImuDriver(ProprioceptiveSensor):
     """
 
     DEFAULT_ADDRESS: ClassVar[int] = 0x68
+    MOCK_KINDS: ClassVar[tuple[str, ...]] = ("mpu9250", "mpu6500", "mpu6050")   # u2sa_hw/ports/declared.py
     CONFIG = (
         field("device", "", "the chip: its [devices.NAME] table (address i2c://BUS/CHIP) and RAW.<device> "
                             "(empty: the service name)"),
@@ -231,6 +232,16 @@ class I2cImuDriver(ProprioceptiveSensor):
     def used_devices(cls, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
         """The one chip this service reads (see DeviceLink)."""
         return {device_setting(config, service): cls.legacy_address(config)}
+
+    @classmethod
+    def mock_wiring(cls, service: str, device: str, config: Mapping[str, Any]) -> dict[str, Any]:
+        """Nothing: a chip mock needs only its address (its variant is the mock kind or its options)."""
+        return {}
+
+    @classmethod
+    def probe_expectation(cls, config: Mapping[str, Any]) -> dict[str, Any]:
+        """The chip family and the variant the ``chip`` setting names (the MPU's; a BNO055 overrides it)."""
+        return {"chip": "mpu", "variant": str(config.get("chip", "auto"))}
 
     def _check_device(self) -> None:
         c = self.config

@@ -45,6 +45,7 @@ from u2sa_hw.protocols import odrive_cansimple as cs
 from u2sa_hw.protocols.odrive_cansimple import AxisState, Cmd, ControlMode, InputMode, ProcedureResult
 
 from drivers.can_motor import CanMotorService, WatchdogStep, check_hw_watchdog, watchdog_summary
+from drivers.declarations import OdriveDeclarations
 from drivers.odrive_axis import OdriveAxis, enum_name, error_names
 from drivers.odrive_watchdog import WATCHDOG_FIELDS, OdriveWatchdogSetup, check_watchdog_endpoints
 from drivers.value_ranges import ValueDrops
@@ -58,7 +59,7 @@ _REPLIES_05 = frozenset({Cmd.HEARTBEAT, Cmd.GET_ENCODER_ESTIMATES, Cmd.GET_BUS_V
                          Cmd.GET_MOTOR_ERROR, Cmd.GET_ENCODER_ERROR, Cmd.GET_CONTROLLER_ERROR})
 
 
-class OdriveCanMotor(CanMotorService):
+class OdriveCanMotor(OdriveDeclarations, CanMotorService):
     """ODrive axes on CAN (CANSimple) as actuators, with heartbeat/error monitoring and odometry."""
 
     ID_FIELD = "node_ids"

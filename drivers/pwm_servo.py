@@ -276,6 +276,7 @@ class ServoOutput:
 class PwmServoDriver(Actuator):
     """Servos and ESCs on sysfs PWM or PCA9685 channels; see the module docstring."""
 
+    MOCK_KINDS = ("pca9685", "sysfs_pwm")   # u2sa_hw/ports/declared.py
     CONFIG = (
         field("channels", [], "list of tables: name, address, channel, min_us, neutral_us, max_us, reverse, "
                               "frame_hz, slew_percent_per_s (applied at the next start)"),
@@ -306,6 +307,23 @@ class PwmServoDriver(Actuator):
         except ConfigError:
             return {}
         return {spec.device_name: spec.legacy_address for spec in specs}
+
+    @classmethod
+    def mock_wiring(cls, service: str, device: str, config: typing.Mapping[str, Any]) -> dict[str, Any]:
+        """The ``actuator`` whose output *device* is, its pulse range (``min_us``, ``neutral_us``, ``max_us``,
+        ``reverse``) and every channel's name (``actuators``); a ConfigError names the table and the fix."""
+        specs = parse_channels(config["channels"], service=service)
+        for s in specs:
+            if s.device_name == device:
+                return {"actuator": s.name, "actuators": [c.name for c in specs], "min_us": s.min_us,
+                        "neutral_us": s.neutral_us, "max_us": s.max_us, "reverse": s.reverse}
+        raise ConfigError(f"no channel of service '{service}' uses device '{device}' (channels: "
+                          f"{', '.join(s.name for s in specs)}); set device = \"{device}\" in the channel's table")
+
+    @classmethod
+    def probe_expectation(cls, config: typing.Mapping[str, Any]) -> dict[str, Any]:
+        """A PCA9685 behind a pca9685:// address (a sysfs chip has no identity to read)."""
+        return {"chip": "pca9685"}
 
     def check_config(self) -> None:
         """Refuse channels that cannot run (each channel's table, its device's address, one output and one

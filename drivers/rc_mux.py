@@ -41,6 +41,7 @@ import threading
 import time
 from typing import Any, Mapping, NamedTuple
 
+from drivers.declarations import RcMuxDeclarations
 from drivers.gpio_lines import (GpioLineSet, check_gpio_device, legacy_gpio_address, note_restart_needed,
                                 parse_line_map)
 from drivers.rc_manual import ManualSticks
@@ -76,7 +77,7 @@ class RcSetup(NamedTuple):
     filter: RcModeFilter
 
 
-class RcMuxDriver(Sensor):
+class RcMuxDriver(RcMuxDeclarations, Sensor):
     """RC pulse measurement, mux mode on RC_MODE, and the autonomy-enable line into the mux."""
 
     CONFIG = (

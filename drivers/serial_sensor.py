@@ -59,6 +59,7 @@ class SerialLineSensor(ProprioceptiveSensor):
         field("epoch_gap_s", 0.05, "this much silence on the line ends a burst of sentences (and is the read timeout)", gt=0),
     )
     EXAMPLE_PORT: ClassVar[str] = "/dev/u2sa/gps"
+    MOCK_KINDS: ClassVar[tuple[str, ...]] = ()   # u2sa_hw/ports/declared.py: the mocks that stand in
 
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
@@ -94,6 +95,26 @@ class SerialLineSensor(ProprioceptiveSensor):
     def used_devices(cls, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
         """The one device this service reads (see DeviceLink)."""
         return {device_setting(config, service): cls.legacy_address(config)}
+
+    @classmethod
+    def protocol(cls, config: Mapping[str, Any]) -> str:
+        """What the device speaks (``nmea``; a compass: its ``format``)."""
+        return "nmea"
+
+    @classmethod
+    def mock_wiring(cls, service: str, device: str, config: Mapping[str, Any]) -> dict[str, Any]:
+        """What its mock mirrors: the protocol (u2sa_hw/ports/declared.py)."""
+        return {"protocol": cls.protocol(config)}
+
+    @classmethod
+    def probe_expectation(cls, config: Mapping[str, Any]) -> dict[str, Any]:
+        """The protocol the probe listens for (``NMEA``, ``OS5000``)."""
+        return {"protocol": cls.protocol(config).upper()}
+
+    @classmethod
+    def replay_options(cls, device: str, config: Mapping[str, Any]) -> dict[str, Any]:
+        """A replay groups the recorded reads into bursts by the driver's ``epoch_gap_s``."""
+        return {"burst_gap_s": config.get("epoch_gap_s")}
 
     def check_config(self) -> None:
         """Refuse a config this driver cannot run with (ConfigError names the field and the fix)."""

@@ -40,6 +40,7 @@ from u2sa_hw.protocols import vesc_can as vc
 from u2sa_hw.protocols.vesc_can import PacketId
 
 from drivers.can_motor import CanMotorService, MotorSpec, WatchdogStep, check_hw_watchdog, watchdog_summary
+from drivers.declarations import VescDeclarations
 from drivers.value_ranges import ValueDrops
 
 MODES = {"duty": PacketId.SET_DUTY, "rpm": PacketId.SET_RPM}
@@ -76,7 +77,7 @@ class VescMotor:
         self.wrote = False  # the app configuration was written once this session
 
 
-class VescCanMotor(CanMotorService):
+class VescCanMotor(VescDeclarations, CanMotorService):
     """VESCs on CAN as actuators, with STATUS monitoring and odometry."""
 
     ID_FIELD = "controller_ids"

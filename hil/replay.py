@@ -100,21 +100,34 @@ def make_device(dev: DevicePlan, run_dir: Path, service: ServicePlan, *, fast: b
                 rigs: dict[str, Any] | None = None) -> ReplayDevice:
     """The replay device for *dev*, driven by *service* (ReplayError for a kind that cannot be replayed).
 
-    *rigs* holds what the devices of one service share (the PWM outputs of a servo service).
+    *rigs* holds what the devices of one service share (the PWM outputs of a servo service). What a
+    device needs of its driver's config (a serial device's burst gap) the driver declares
+    (``replay_options``, :mod:`u2sa_hw.ports.declared`).
     """
-    config = {**service.config, **service.overrides}
     if dev.kind == "serial":
-        gap = config.get("epoch_gap_s", 0.05)
-        return ReplaySerialDevice(name=dev.name, link_path=run_dir / "dev" / dev.name,
-                                  burst_gap_s=float(gap) if isinstance(gap, (int, float)) else 0.05, stamped=True)
+        options = _replay_options(dev, service)
+        gap = options.get("burst_gap_s")
+        return ReplaySerialDevice(name=dev.name, link_path=run_dir / "dev" / dev.name, stamped=True,
+                                  **({"burst_gap_s": float(gap)} if isinstance(gap, (int, float)) else {}))
     if dev.kind in ("gpio", "pwm"):
         from hil import replay_gpio
 
-        return replay_gpio.make_device(dev.kind, dev.name, run_dir, service=service.name, config=config,
+        return replay_gpio.make_device(dev.kind, dev.name, run_dir, service=service.name,
                                        rigs=rigs if rigs is not None else {})
     from hil import replay_buses
 
     return replay_buses.make_device(dev, run_dir, fast=fast, fields=declared_fields(service.kind))
+
+
+def _replay_options(dev: DevicePlan, service: ServicePlan) -> dict[str, Any]:
+    """What the driver of *service* declares a replay of *dev* needs, from the recorded config and the overrides."""
+    from u2sa_hw.ports.declared import declared_class, replay_options
+
+    try:
+        cls = declared_class(service.kind)
+    except (LookupError, ImportError) as exc:   # reported, as typed_overrides does
+        raise ReplayError(f"service '{service.name}': cannot load kind '{service.kind}' ({exc})") from None
+    return replay_options(cls, dev.name, {**service.config, **service.overrides})
 
 
 def raw_source(data: bytes) -> str:

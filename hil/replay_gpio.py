@@ -24,9 +24,9 @@ What the driver writes to its output lines is compared by
 
 PWM. A PWM output's input is not on the device at all: the driver is commanded over the
 bus (``ACTUATOR_CMD``, ``FAILSAFE``), and the replay republishes the recorded commands
-(hil/replay.py). The device only has to be there: every channel's ``address`` in the
-service's ``channels`` is pointed at a sysfs-shaped directory (``make_sysfs_pwm_tree``) or,
-for a PCA9685, at a mock PCA9685 on a mock I2C bus, so the same port code runs and taps
+(hil/replay.py). The device only has to be there: every output's device address is pointed
+at a sysfs-shaped directory (``make_sysfs_pwm_tree``) or, for a PCA9685, at a mock PCA9685
+on a mock I2C bus (from the recorded address alone), so the same port code runs and taps
 the same ``RawPwmWrite`` records, which ``--compare`` compares with the recorded ones.
 """
 
@@ -317,9 +317,10 @@ class ReplayPwmDevice:
         return {"kind": self.kind, **self.counts, "divergences": 0}
 
 
-def make_device(kind: str, name: str, run_dir: Path, *, service: str, config: dict[str, Any],
+def make_device(kind: str, name: str, run_dir: Path, *, service: str,
                 rigs: dict[str, PwmReplayRig]) -> ReplayGpioDevice | ReplayPwmDevice:
-    """The replay device for a GPIO or PWM device of *service* (with *config*); *rigs* shares PWM outputs."""
+    """The replay device for a GPIO or PWM device of *service*; *rigs* shares PWM outputs. It needs nothing
+    of the driver's config: the lines and outputs come from the recorded address and records."""
     if kind == "gpio":
         return ReplayGpioDevice(name=name, socket_path=run_dir / f"gpio-{name}.sock")
     if kind == "pwm":

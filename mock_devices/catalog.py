@@ -20,10 +20,13 @@ bus), ``pwm://pwmchip0/N`` -> ``mock+pwm://<dir>/pwmchip0/N`` (a sysfs-shaped di
 ``pca9685://1/0x40/N`` -> ``mock+pca9685://<dir>/i2c-1.sock/0x40/N``. An address that is
 already a mock is used as it is.
 
-The mock mirrors its service's wiring from the service's effective config (what only the
-driver and the device know between them: the ODrive mocks take ``node_ids``,
-``directions`` and ``wheel_radius_m``, the RC receiver its ``channels`` and ``enable_line``,
-a PWM output the pulse range of its channel). Every actuator output is logged and moves the
+The mock mirrors its service's wiring as the service's driver declares it (what only the
+driver and the device know between them; :mod:`u2sa_hw.ports.declared`): the driver class,
+found by the service's kind through the registry, names the mock kinds that stand in for its
+device (``MOCK_KINDS``) and gives ``mock_wiring(service, device, config)`` in the mocks'
+vocabulary (a CAN motor's controllers with their ids, directions and wheel radii, the RC
+receiver's channel lines and mux lines, a PWM output's pulse range), so nothing here reads a
+driver's setting names. Every actuator output is logged and moves the
 vehicle through :mod:`mock_devices.actuation`: CAN motors by their side, PWM outputs named
 like a model input (``steering``, ``throttle``, ``left``, ``right``) or listed in ``drives``,
 GPIO outputs listed in ``drives`` (``enable``: a motor contactor).
@@ -48,21 +51,24 @@ from mock_devices.serial_compass import NmeaCompassDevice, Os5000CompassDevice
 from mock_devices.sim_context import CAN_GROUP, MODEL_INPUTS, DeviceError, MockContext
 from mock_devices.sysfs_pwm import SysfsPwmChip
 from mock_devices.vesc_node import VescCanNode
+from u2sa_hw.ports import declared
 from u2sa_hw.ports.address import DeviceAddress, make_address
 
 SERIAL_KINDS = {"nmea_gps": NmeaGpsDevice, "nmea_compass": NmeaCompassDevice, "os5000_compass": Os5000CompassDevice}
-COMPASS_FORMATS = {"nmea_compass": "nmea", "os5000_compass": "os5000"}
+COMPASS_PROTOCOLS = {"nmea_compass": "nmea", "os5000_compass": "os5000"}
+NODE_SPEED_MARGIN = 1.25   # an ODrive node's own vel_limit over the speed its driver limits commands to
 
 
 @dataclass(frozen=True)
 class DeviceSpec:
-    """One device (its real address and mock kind) with the effective config of the service that uses it."""
+    """One device (its real address and mock kind) with the kind and effective config of the service that uses it."""
 
     name: str
     mock: str
     service: str
     service_config: Mapping[str, Any]
     address: DeviceAddress
+    kind: str = ""                         # the service's kind: its driver declares the wiring
     options: dict[str, Any] = field(default_factory=dict)
     sides: tuple[str, ...] = ()
     drives: dict[str, str] = field(default_factory=dict)
@@ -72,12 +78,23 @@ class DeviceSpec:
         """A DeviceError prefixed with where the table is."""
         return DeviceError(f"{self.where or 'devices.' + self.name}: {text}")
 
-    def setting(self, key: str) -> Any:
-        """The service's value of *key*; DeviceError when the service has no such setting."""
-        if key not in self.service_config:
-            raise self.fail(f"service '{self.service}' has no setting '{key}' (is it the right service for a "
-                            f"{self.mock} mock? set service = \"...\" in the table)")
-        return self.service_config[key]
+    def wiring(self) -> dict[str, Any]:
+        """What the service's driver declares a mock of this device mirrors (``mock_wiring``); DeviceError
+        when the mock kind is not one that stands in for the driver's device, or the driver refuses its config."""
+        try:
+            cls = declared.declared_class(self.kind)
+        except LookupError as exc:
+            raise self.fail(f"service '{self.service}': {exc}") from None
+        kinds = declared.mock_kinds(cls)
+        if self.mock not in kinds:
+            stands = (f"its device's mock is {' or '.join(kinds)}" if kinds else "its driver declares no mock")
+            fix = f" or mock = \"{kinds[0]}\"" if kinds else ""
+            raise self.fail(f"mock {self.mock} does not stand in for service '{self.service}' ({self.kind}: {stands}); "
+                            f"is it the right service for a {self.mock} mock? set service = \"...\" in the table{fix}")
+        try:
+            return declared.mock_wiring(cls, self.service, self.name, self.service_config)
+        except ValueError as exc:   # the driver's ConfigError: names the setting and the fix
+            raise self.fail(str(exc)) from None
 
 
 @dataclass
@@ -119,10 +136,11 @@ def _seeded(spec: DeviceSpec, ctx: MockContext) -> DeviceSpec:
 def build_serial(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     """A GPS or compass on a pty: ``<dir>/<basename of the real device path>``."""
     address = _need(spec, "serial")
-    expected = COMPASS_FORMATS.get(spec.mock)
-    if expected and spec.service_config.get("format", expected) != expected:
+    wiring = spec.wiring()
+    expected, speaks = COMPASS_PROTOCOLS.get(spec.mock), wiring.get("protocol")
+    if expected and speaks is not None and speaks != expected:
         raise spec.fail(f"mock {spec.mock} speaks '{expected}' but service '{spec.service}' has "
-                        f"format = {spec.service_config.get('format')!r}; make them agree")
+                        f"{declared.source_of(wiring, 'protocol')} = {speaks!r}; make them agree")
     real = address.serial_path
     if address.mock:
         link = real
@@ -148,6 +166,7 @@ def _need(spec: DeviceSpec, *kinds: str) -> DeviceAddress:
 def build_imu_chip(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     """An MPU-60x0/9250 (+ AK8963) or BNO055 on the mock bus standing in for the device's I2C bus."""
     real = _need(spec, "i2c")
+    spec.wiring()   # the mock kind stands in for the service's chip
     bus: MockI2cBus = ctx.i2c_bus(str(real.i2c_bus))
     address = real.chip_address
     spec = _seeded(spec, ctx)
@@ -167,29 +186,18 @@ def build_imu_chip(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
 
 
 # ---- PWM ------------------------------------------------------------------------------------
-def _channel_table(spec: DeviceSpec) -> dict[str, Any]:
-    """The service's channel table whose output is this device (``device``, else its ``name``)."""
-    channels = spec.service_config.get("channels")
-    tables = [t for t in channels if isinstance(t, dict)] if isinstance(channels, list) else []
-    for table in tables:
-        if str(table.get("device") or table.get("name", "")) == spec.name:
-            return table
-    raise spec.fail(f"no channel of service '{spec.service}' uses device '{spec.name}' (channels: "
-                    f"{', '.join(str(t.get('name')) for t in tables) or 'none'}); set device = \"{spec.name}\" "
-                    "in the channel's table")
-
-
-def _check_pwm_drives(spec: DeviceSpec) -> None:
-    channels = spec.service_config.get("channels")
-    names = [str(t.get("name", "")) for t in channels if isinstance(t, dict)] if isinstance(channels, list) else []
-    _check_drives(spec, names)
+def _pwm_output(spec: DeviceSpec) -> dict[str, Any]:
+    """The output this device is, as the servo driver declares it (its actuator and pulse range), with
+    ``drives`` checked against the service's actuators."""
+    wiring = spec.wiring()
+    _check_drives(spec, [str(name) for name in wiring.get("actuators", ())])
+    return wiring
 
 
 def build_pca9685(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     """The PCA9685 chip (one per bus and chip address, shared by its outputs) for one pwm_servo output."""
     real = _need(spec, "pca9685")
-    table = _channel_table(spec)
-    _check_pwm_drives(spec)
+    table = _pwm_output(spec)
     bus = ctx.i2c_bus(str(real.i2c_bus))
     key = (bus.socket_path, real.chip_address)
     parts: list[Any] = []
@@ -209,8 +217,7 @@ def build_sysfs_pwm(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     """A sysfs-shaped chip directory (``<dir>/pwmchipN``, shared by its outputs) for one pwm_servo output;
     a mock directory is used as it is."""
     real = _need(spec, "pwm")
-    table = _channel_table(spec)
-    _check_pwm_drives(spec)
+    table = _pwm_output(spec)
     path = real.pwm_chip if real.mock else ctx.path(os.path.basename(real.pwm_chip.rstrip("/")))
     channel = real.pwm_channel
     parts: list[Any] = []
@@ -244,8 +251,9 @@ def _check_drives(spec: DeviceSpec, actuators: list[str]) -> None:
 
 
 def _pwm_feed(spec: DeviceSpec, ctx: MockContext, table: dict[str, Any], read: Any) -> None:
-    """Log a PWM output and, when it drives a model input, move the vehicle with it."""
-    name = str(table.get("name", spec.name))
+    """Log a PWM output (*table*: its declared actuator and pulse range) and, when it drives a model input,
+    move the vehicle with it."""
+    name = str(table.get("actuator", spec.name))
     drives = _model_input(spec, ctx, name)
     if drives is not None:
         ctx.feed(drives, device=spec.name)
@@ -259,17 +267,6 @@ def _pwm_feed(spec: DeviceSpec, ctx: MockContext, table: dict[str, Any], read: A
 
 
 # ---- GPIO -----------------------------------------------------------------------------------
-def parse_lines(text: str, spec: DeviceSpec) -> dict[str, int]:
-    """``"throttle=5,mode=13"`` -> ``{"throttle": 5, "mode": 13}``."""
-    result = {}
-    for item in filter(None, (p.strip() for p in str(text).split(","))):
-        name, sep, line = item.partition("=")
-        if not sep or not line.strip().isdigit():
-            raise spec.fail(f"service '{spec.service}': channels item {item!r} must be name=line")
-        result[name.strip()] = int(line)
-    return result
-
-
 def _gpio_mock(spec: DeviceSpec, chip: Any, real: DeviceAddress) -> str:
     return make_address("gpio", chip.socket_path, real.lines, mock=True, device=spec.name).url
 
@@ -277,19 +274,18 @@ def _gpio_mock(spec: DeviceSpec, chip: Any, real: DeviceAddress) -> str:
 def build_rc_receiver(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     """An RC receiver with real pulse trains on the device's chip, and the mux on its enable line."""
     real = _need(spec, "gpio")
+    wiring = spec.wiring()
     chip = ctx.gpio_chip(real.gpio_chip)
-    lines = parse_lines(spec.service_config.get("channels", ""), spec)
-    mode_channel = str(spec.service_config.get("mode_channel", "mode"))
-    rc = construct(spec, RcReceiverMock, chip, lines=lines, mode_channel=mode_channel)
+    lines = {str(n): int(line) for n, line in dict(wiring.get("lines", {})).items()}
+    rc = construct(spec, RcReceiverMock, chip, lines=lines, mode_channel=str(wiring.get("mode_channel", "mode")))
     parts: list[Any] = [rc]
     detail = ", ".join(f"{n}={line}" for n, line in lines.items())
-    enable = spec.service_config.get("enable_line")
-    if enable is not None and int(enable) >= 0:
-        select = int(spec.service_config.get("select_line", -1))
-        mux = MuxMock(chip, rc, enable_line=int(enable), select_line=select if select >= 0 else None)
+    enable, select = wiring.get("enable_line"), wiring.get("select_line")
+    if enable is not None:
+        mux = MuxMock(chip, rc, enable_line=int(enable), select_line=None if select is None else int(select))
         parts.append(mux)
         ctx.attach_mux(rc, mux)
-        detail += f"; mux enable line {enable}" + (f", select line {select}" if select >= 0 else "")
+        detail += f"; mux enable line {enable}" + (f", select line {select}" if select is not None else "")
     ctx.rc_receivers[spec.name] = rc
     return MockDevice(spec.name, spec.mock, spec.service, _gpio_mock(spec, chip, real), parts, detail)
 
@@ -297,10 +293,11 @@ def build_rc_receiver(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
 def build_gpio_chip(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     """A bare mock chip for gpio_input/gpio_output services (drive inputs from Python)."""
     real = _need(spec, "gpio")
+    wiring = spec.wiring()
     chip = ctx.gpio_chip(real.gpio_chip)
-    outputs = parse_lines(spec.service_config.get("outputs", ""), spec)
+    outputs = {str(n): int(line) for n, line in dict(wiring.get("outputs", {})).items()}
     _check_drives(spec, list(outputs))
-    safe = parse_lines(spec.service_config.get("safe_levels", ""), spec)
+    safe = dict(wiring.get("safe_levels", {}))
     for name, line in outputs.items():
         drives = spec.drives.get(name)
         if drives is not None and drives != "enable":
@@ -328,12 +325,12 @@ def _sides(spec: DeviceSpec, names: list[str]) -> list[str]:
 def build_can_motors(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     """One ODrive or VESC node per controller of the service, on the simulated bus of the device's CAN bus."""
     real = _need(spec, "can")
+    wiring = spec.wiring()
     port = ctx.can_port(f"{real.can_interface}:{real.can_channel}")
-    names = list(spec.setting("actuators"))
-    ids_key = "node_ids" if spec.mock == "odrive" else "controller_ids"
-    ids = list(spec.setting(ids_key))
-    directions = list(spec.service_config.get("directions", [1] * len(names)))
-    radii = list(spec.service_config.get("wheel_radius_m", [0.1] * len(names)))
+    names = [str(n) for n in wiring["actuators"]]
+    ids = list(wiring["ids"])
+    directions = list(wiring.get("directions", [1] * len(names)))
+    radii = list(wiring.get("wheel_radius_m", [0.1] * len(names)))
     sides = _sides(spec, names)
     bus = {"interface": "udp_multicast", "channel": CAN_GROUP, "bus_options": {"port": port}}
     nodes = []
@@ -342,16 +339,16 @@ def build_can_motors(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     for name, can_id, side, direction, radius in zip(names, ids, sides, directions, radii):
         ctx.feed(side, device=spec.name)
         if spec.mock == "odrive":
-            # the driver limits its commands to max_turns_per_s; the node's own limit sits above it
-            defaults = {"firmware": str(spec.service_config.get("firmware", "0.6")),
-                        "vel_limit": float(spec.service_config.get("max_turns_per_s", 2.0)) * 1.25}
+            # the driver limits its commands to its declared speed; the node's own limit sits above it
+            defaults = {"firmware": str(wiring.get("firmware", "0.6")),
+                        "vel_limit": float(wiring.get("command_limit_turns_per_s", 2.0)) * NODE_SPEED_MARGIN}
             node = construct(spec, OdriveCanNode, ctx.motor_input(name), side=side, node_id=int(can_id),
                              direction=int(direction),
                              wheel_radius_m=float(radius), **bus, **defaults)
         else:
-            defaults = {"max_erpm": float(spec.service_config.get("max_erpm", 7000.0)),
-                        "pole_pairs": int(spec.service_config.get("pole_pairs", 7)),
-                        "gear_ratio": float(spec.service_config.get("gear_ratio", 1.0))}
+            defaults = {"max_erpm": float(wiring.get("max_erpm", 7000.0)),
+                        "pole_pairs": int(wiring.get("pole_pairs", 7)),
+                        "gear_ratio": float(wiring.get("gear_ratio", 1.0))}
             node = construct(spec, VescCanNode, ctx.motor_input(name), side=side, controller_id=int(can_id),
                              direction=int(direction), wheel_radius_m=float(radius), **bus, **defaults)
         nodes.append(node)
@@ -373,13 +370,12 @@ CATALOG: dict[str, tuple[Builder, str]] = {
     "sysfs_pwm": (build_sysfs_pwm, "a sysfs-shaped PWM chip directory standing in for /sys/class/pwm/pwmchipN, "
                                    "for a pwm_servo channel (pwm:// address)"),
     "rc_receiver": (build_rc_receiver, "RC receiver pulse trains and the RC mux on a mock GPIO chip "
-                                       "(gpio:// address; the service's channels, mode_channel, enable_line, "
-                                       "select_line)"),
-    "gpio_chip": (build_gpio_chip, "a mock GPIO chip (gpio:// address; the service's outputs)"),
-    "odrive": (build_can_motors, "ODrive CANSimple nodes, one per controller (can:// address; actuators, "
-                                 "node_ids, directions, wheel_radius_m, firmware)"),
-    "vesc": (build_can_motors, "VESC nodes, one per controller (can:// address; actuators, controller_ids, "
-                               "directions, max_erpm)"),
+                                       "(gpio:// address; the rc_mux service's channel, enable and select lines)"),
+    "gpio_chip": (build_gpio_chip, "a mock GPIO chip (gpio:// address; a gpio_output service's outputs)"),
+    "odrive": (build_can_motors, "ODrive CANSimple nodes, one per controller (can:// address; the service's "
+                                 "actuators, node ids, directions, wheel radii, firmware)"),
+    "vesc": (build_can_motors, "VESC nodes, one per controller (can:// address; the service's actuators, "
+                               "controller ids, directions, ERPM scale)"),
 }
 
 

@@ -132,7 +132,7 @@ def device_specs(profile: VehicleProfile, configs: Mapping[str, Mapping[str, Any
                                                                                                            service)
         specs.append(DeviceSpec(name=entry.name, mock=entry.mock, service=service, service_config=config,
                                 address=entry.address, options=dict(entry.options), sides=entry.sides,
-                                drives=dict(entry.drives), where=where))
+                                drives=dict(entry.drives), where=where, kind=profile.services[service].kind))
     return specs
 
 

@@ -9,7 +9,8 @@ On the vehicle a real SocketCAN address without ``bitrate=`` is a warning: insta
 set the interface's bitrate, so CAN does not come up at boot unless something else does it.
 
 For ``u2sa sim`` (*for_sim*) every service with a device (a driver) must have a mock: a
-``[devices]`` table with ``mock = "..."`` for it; the error names the mock kind to use.
+``[devices]`` table with ``mock = "..."`` for it; the error names the mock kind to use, the
+first of those the driver declares (``MOCK_KINDS``, :mod:`u2sa_hw.ports.declared`).
 Mock kinds and ``[simulation]`` are read through :mod:`mock_devices` when it is installed,
 behind one lazy boundary (:func:`_mock_support`, imported inside the check, never at module
 level: ``u2sa_hw`` imports none of ``mock_devices``, ``hil``, ``drivers``, ``simulation`` at
@@ -36,11 +37,6 @@ UDEV_RULES_DIRS = (Path("/etc/udev/rules.d"), Path("/run/udev/rules.d"), Path("/
 UDEV_DIRS_ENV = "U2SA_UDEV_RULES_DIRS"   # colon-separated directories instead of the above (tests, staged roots)
 U2SA_DEV = "/dev/u2sa/"
 DRIVER_PREFIX = "drivers."               # registry targets of hardware drivers: each has a device
-MOCK_FOR_KIND = {   # the mock kind that stands in for each driver's device (u2sa mock --list-kinds)
-    "gps_nmea": "nmea_gps", "compass_serial": "nmea_compass", "imu_mpu9250": "mpu9250", "imu_bno055": "bno055",
-    "pwm_servo": "pca9685", "rc_mux": "rc_receiver", "gpio_output": "gpio_chip", "gpio_input": "gpio_chip",
-    "odrive_can": "odrive", "vesc_can": "vesc",
-}
 
 
 def check_devices(path: Path, data: Mapping[str, Any], out: Collector, *, profile: Any, for_sim: bool) -> None:
@@ -219,8 +215,20 @@ def _check_mocks(entries: Mapping[str, Any] | None, profile: Any, devices: Any, 
                  key=f"devices.{device}" if entry.table else f"services.{entry.service}")
 
 
+def mock_for_kind(kind: Any) -> str:
+    """The mock kind that usually stands in for the device of a service of *kind*, as its driver declares
+    (``"..."`` when it declares none, or the kind is unknown: the profile check reports that)."""
+    from u2sa_hw.ports.declared import declared_class, mock_kinds
+
+    try:
+        kinds = mock_kinds(declared_class(str(kind)))
+    except LookupError:
+        return "..."
+    return kinds[0] if kinds else "..."
+
+
 def _no_mock(out: Collector, device: str, service: str, kind: Any, *, key: str) -> None:
-    mock = MOCK_FOR_KIND.get(str(kind), "...")
+    mock = mock_for_kind(kind)
     out.error(key, f"device '{device}' of service '{service}' ({kind}) has no mock, so in simulation the "
               "service would wait for hardware that is not there",
               f"add mock = \"{mock}\" to [devices.{device}] (u2sa mock --list-kinds), or enabled = false "

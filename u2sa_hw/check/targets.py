@@ -3,8 +3,9 @@
 A target is the port kind, the address text shown, the parameters the probe opens it with,
 and what the service's driver expects there (the protocol of a serial device, the chip
 behind an I2C address, the CAN node ids). Where each device is comes from its address
-(:func:`u2sa_hw.devices.profile_devices`); what the driver expects there from the service
-kind (:func:`expectation`: a compass's ``format``, an MPU's ``chip``, the CAN node ids).
+(:func:`u2sa_hw.devices.profile_devices`); what the driver expects there, the driver declares
+(:func:`expectation`: its ``probe_expectation``, :mod:`u2sa_hw.ports.declared`): a protocol,
+a chip family and variant, the CAN node ids. Nothing here reads a driver's setting names.
 """
 
 from __future__ import annotations
@@ -25,18 +26,11 @@ class Target:
 
 
 def expectation(kind: str, cfg: Mapping[str, Any]) -> dict[str, Any]:
-    """What the driver of *kind* expects at its device, from its effective config *cfg*."""
-    if kind in ("gps_nmea", "compass_serial"):
-        os5000 = kind == "compass_serial" and str(cfg.get("format", "")).lower() == "os5000"
-        return {"protocol": "OS5000" if os5000 else "NMEA"}
-    if kind in ("imu_mpu9250", "imu_bno055"):
-        return {"chip": "bno055" if kind == "imu_bno055" else "mpu", "variant": str(cfg.get("chip", "auto"))}
-    if kind == "pwm_servo":
-        return {"chip": "pca9685"}
-    if kind in ("odrive_can", "vesc_can"):
-        ids = cfg.get("node_ids" if kind == "odrive_can" else "controller_ids", [])
-        return {"protocol": "odrive" if kind == "odrive_can" else "vesc", "nodes": list(ids)}
-    return {}
+    """What the driver of *kind* expects at its device, from its effective config *cfg*, as the driver
+    declares it (``protocol``, ``chip`` and ``variant``, ``nodes``); empty for a kind that declares nothing."""
+    from u2sa_hw.ports.declared import declared_class, probe_expectation
+
+    return probe_expectation(declared_class(kind), cfg)
 
 
 def _from_address(name: str, service: str, address: Any, expect: Mapping[str, Any]) -> Target | None:
