@@ -41,6 +41,7 @@ from u2sa_hw.ports.legacy import i2c_address
 T = TypeVar("T")
 Vector = tuple[float, float, float]
 AXES = ("x", "y", "z")
+PORT_FIELDS = ("device", "bus", "address")   # where the chip is: a change reopens it there
 
 
 class ChipIdentityError(RuntimeError):
@@ -193,6 +194,7 @@ class I2cImuDriver(ProprioceptiveSensor):
             self, device=lambda: device_setting(self.config, self.name), raw_type=t.RawI2c,
             legacy=lambda: self.legacy_address(self.config), on_open=self._on_open)
         self._calibrated_said = False   # the ``calibrated`` detail as last published on a change
+        self._reopen = False            # a device or address setting changed over the bus
 
     # -- for subclasses -------------------------------------------------------------------
     def check_config(self) -> None:
@@ -259,12 +261,23 @@ class I2cImuDriver(ProprioceptiveSensor):
         self._check_device()
         self.check_config()
         self.port.start()
+        self._note_address()
+        self.status = "degraded"  # until the chip is open and sampling
+
+    def _note_address(self) -> None:
         address = self.port.address
         assert address is not None
         self.i2c_address = address.chip_address
         bus = address.i2c_bus
         self.where = f"0x{self.i2c_address:02x} on {bus if isinstance(bus, str) else f'/dev/i2c-{bus}'}"
-        self.status = "degraded"  # until the chip is open and sampling
+
+    def on_config_change(self, name: str, value: Any) -> None:
+        """A change of the device or its old-form address reopens the chip there at the next sample
+        (DeviceLink.refresh: the old port is closed first); ``record_raw`` starts the tap at once."""
+        if name in PORT_FIELDS:
+            self._reopen = True
+        if name == "record_raw" and value:
+            self.port.record_changed()
 
     def _on_open(self, port: I2cPort) -> None:
         self.init_chip(RetryingI2c(port, self.with_retries), first=not self._identified)
@@ -298,6 +311,10 @@ class I2cImuDriver(ProprioceptiveSensor):
 
     def sample_once(self) -> None:
         """Read, convert and publish one sample; every port fault is counted and survived."""
+        if self._reopen:
+            self._reopen = False
+            if self.port.refresh():
+                self._note_address()
         try:
             port = self.port.get()
         except PortUnavailable:

@@ -219,3 +219,28 @@ def test_a_recorded_mpu9250_replays_into_the_same_magnetometer_values(lcm_url: s
     assert all(math.isfinite(psi) for _, psi in replayed)
     report = device.report()
     assert report["divergences"] == 0 and report["recorded_reads_left"] == 0, report
+
+
+def test_a_device_setting_changed_over_the_bus_reopens_the_imu_and_its_magnetometer_there(
+        lcm_url: str, socket_dir: Path) -> None:
+    bus_a, _ak_a = mpu_bus(socket_dir / "a.sock", yaw=0.0)
+    bus_b, ak_b = mpu_bus(socket_dir / "b.sock", yaw=1.5)
+    with bus_a, bus_b:
+        driver = Driver(f"mock+i2c://{bus_a.socket_path}/0x68")
+        driver.profile.devices["ins2"] = {"address": f"mock+i2c://{bus_b.socket_path}/0x68"}
+        try:
+            driver.sample(1)
+            # what a ConfigChange for `device` does (u2sa param set imu device ins2), saved in the test's directory
+            driver.svc.config.path = socket_dir / "imu.toml"
+            assert driver.svc.config.set("device", "ins2")
+            driver.svc.on_config_change("device", "ins2")
+            wait_until(lambda: (driver.svc.sample_once(), driver.svc.port.state == "open")[1]
+                       and driver.svc.port.device == "ins2", timeout=10, message="the IMU reopened on device ins2")
+            (field, psi), = driver.sample(1)
+            health = driver.svc.health_details()
+        finally:
+            driver.close()
+    assert health["mag_address"] == f"mock+i2c://{bus_b.socket_path}/0x0c"
+    assert any(t.op == OP_READ and t.register == mpu.AK8963_SAMPLE_START for t in ak_b.history)
+    assert psi == pytest.approx(1.5, abs=0.03)
+    assert driver.svc.where.endswith("b.sock")
