@@ -241,6 +241,11 @@ class I2cImuDriver(ProprioceptiveSensor):
         return {}
 
     @classmethod
+    def replay_options(cls, device: str, config: Mapping[str, Any]) -> dict[str, Any]:
+        """A ``--fast`` replay samples at the highest rate this driver allows (its reads pace the replay)."""
+        return {"fast_settings": {"rate_hz": 1000.0}}
+
+    @classmethod
     def probe_expectation(cls, config: Mapping[str, Any]) -> dict[str, Any]:
         """The chip family and the variant the ``chip`` setting names (the MPU's; a BNO055 overrides it)."""
         return {"chip": "mpu", "variant": str(config.get("chip", "auto"))}

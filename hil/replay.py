@@ -36,7 +36,7 @@ from hil.compare import STATE_CHANNELS
 from hil.player import PlayStats, Player
 from hil.progress import ProgressBar
 from hil.replay_devices import ReplayDevice, ReplaySerialDevice, ReplayStalled
-from hil.replay_plan import (DevicePlan, ReplayError, ReplayPlan, ServicePlan, build_plan, declared_fields,
+from hil.replay_plan import (DevicePlan, ReplayError, ReplayPlan, ServicePlan, build_plan,
                              write_run_profile)
 
 CONTRACT_PREFIX = "U2SA_"
@@ -116,7 +116,7 @@ def make_device(dev: DevicePlan, run_dir: Path, service: ServicePlan, *, fast: b
                                        rigs=rigs if rigs is not None else {})
     from hil import replay_buses
 
-    return replay_buses.make_device(dev, run_dir, fast=fast, fields=declared_fields(service.kind))
+    return replay_buses.make_device(dev, run_dir, fast=fast, options=_replay_options(dev, service))
 
 
 def _replay_options(dev: DevicePlan, service: ServicePlan) -> dict[str, Any]:

@@ -11,7 +11,7 @@ starts later), else refused with EIO; both are counted. Writes are checked, in o
 against the recorded writes to the same chip, and every difference is counted.
 
 A driver that writes a register differently from the recording (a changed setting, or
-``rate_hz`` raised for --fast) and reads it back to verify gets its own value back: a
+its sample rate raised for --fast, as it declares) and reads it back to verify gets its own value back: a
 recorded read byte that equals what the recorded driver last wrote to that register is
 answered with what the replayed driver wrote there (registers auto-increment, as on the
 supported chips). The chip's data registers are never written, so the samples stay as recorded.
@@ -24,7 +24,7 @@ import re
 import threading
 from collections import Counter, deque
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.ports.address import DeviceAddress, make_address
@@ -35,7 +35,6 @@ from u2sa_hw.udp_ports import private_udp_port
 
 from hil.replay_plan import DevicePlan, ReplayError
 
-FAST_I2C_RATE_HZ = 1000.0   # --fast: the IMU drivers' highest rate_hz, so they pull their reads quickly
 CAN_GROUP = "239.74.163.2"  # python-can's default IPv4 group for udp_multicast; the port is the replay's own
 CAN_BACKLOG_BYTES = 32_768  # --fast: unread bytes allowed in the driver's CAN socket (its buffer is ~200 kB)
 
@@ -58,11 +57,12 @@ class ReplayI2cDevice:
     kind = "i2c"
     streamed = False   # loaded before the start (preload); the player does not feed it
 
-    def __init__(self, *, name: str, socket_path: Path | str, fast: bool, declares_rate: bool) -> None:
+    def __init__(self, *, name: str, socket_path: Path | str, fast: bool,
+                 fast_settings: Mapping[str, Any] | None = None) -> None:
         self.name = name
         self.socket_path = Path(socket_path)
         self.fast = fast
-        self.declares_rate = declares_rate
+        self.fast_settings = dict(fast_settings or {})   # the driver's declaration (replay_options)
         self._lock = threading.Lock()
         self._reads: dict[tuple[int, int], deque[tuple[bool, bytes]]] = {}
         self._before: dict[tuple[int, int], tuple[bool, bytes]] = {}
@@ -82,11 +82,8 @@ class ReplayI2cDevice:
         return make_address("i2c", str(self.socket_path), (real.chip_address,), mock=True, device=self.name).url
 
     def config_changes(self) -> dict[str, Any]:
-        """With --fast, ``rate_hz`` -> FAST_I2C_RATE_HZ."""
-        changes: dict[str, Any] = {}
-        if self.fast and self.declares_rate:
-            changes["rate_hz"] = FAST_I2C_RATE_HZ
-        return changes
+        """With --fast, the settings the driver declares for it (an IMU: its highest sample rate)."""
+        return dict(self.fast_settings) if self.fast else {}
 
     def preload(self, log_path: Path, *, start_ns: int, end_ns: int) -> None:
         """Load the device's recorded transactions: reads in the window queued per register."""
@@ -128,7 +125,7 @@ class ReplayI2cDevice:
     def ready(self, pid: int | None, health: dict[str, str]) -> bool:
         """The driver's port is open (its identification and setup reads were answered), or the driver
         has already taken every recorded read of its data register: an I2C driver pulls its reads on its
-        own timer from its start (with --fast at FAST_I2C_RATE_HZ), so on a loaded machine it can reach
+        own timer from its start (with --fast at the rate its driver declares), so on a loaded machine it can reach
         the end of a short recording, and lose its port to the EIO that follows, before the other
         services are ready; its outputs are captured all the same."""
         with self._lock:
@@ -202,9 +199,13 @@ class ReplayI2cDevice:
             out["divergence"] = (f"{c['unrecorded_reads']} reads with no recorded answer, {c['length_mismatches']} "
                                  f"of another length, {c['write_mismatches']} writes unlike the recorded ones, "
                                  f"{c['unrecorded_writes']} writes beyond them"
-                                 + (f" (rate_hz was raised to {FAST_I2C_RATE_HZ:g} for --fast)"
-                                    if self.fast and self.declares_rate else ""))
+                                 + (f" (--fast replayed with {self._fast_text()})"
+                                    if self.fast and self.fast_settings else ""))
         return out
+
+
+    def _fast_text(self) -> str:
+        return ", ".join(f"{k} = {v!r}" for k, v in self.fast_settings.items())
 
 
 class ReplayCanDevice:
@@ -346,11 +347,12 @@ def udp_backlog(pid: int | None, port: int, inodes: set[str]) -> int:
     return total
 
 
-def make_device(dev: DevicePlan, run_dir: Path, *, fast: bool, fields: set[str]) -> Any:
-    """The replay device for a bus device (*fields*: the config fields its driver declares)."""
+def make_device(dev: DevicePlan, run_dir: Path, *, fast: bool, options: Mapping[str, Any]) -> Any:
+    """The replay device for a bus device (*options*: what its driver declares a replay needs)."""
     if dev.kind == "i2c":
+        fast_settings = options.get("fast_settings")
         return ReplayI2cDevice(name=dev.name, socket_path=run_dir / f"i2c-{dev.name}.sock", fast=fast,
-                               declares_rate="rate_hz" in fields)
+                               fast_settings=fast_settings if isinstance(fast_settings, Mapping) else None)
     if dev.kind == "can":
         return ReplayCanDevice(name=dev.name, port=private_udp_port())
     raise ReplayError(f"RAW.{dev.name}: replaying {dev.kind or 'unknown'} devices is not supported here; "

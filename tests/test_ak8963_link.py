@@ -200,7 +200,7 @@ def test_a_recorded_mpu9250_replays_into_the_same_magnetometer_values(lcm_url: s
     log.close()
     assert len({field for field, _ in recorded}) == 12 and all(psi is not None for _, psi in recorded)
 
-    device = ReplayI2cDevice(name="ins", socket_path=socket_dir / "replay.sock", fast=False, declares_rate=True)
+    device = ReplayI2cDevice(name="ins", socket_path=socket_dir / "replay.sock", fast=False, fast_settings={"rate_hz": 1000.0})
     device.preload(tmp_path / "imu.mcap", start_ns=0, end_ns=2 ** 63 - 1)
     device.start()
     try:

@@ -172,3 +172,19 @@ def test_a_bad_line_map_is_the_drivers_own_error(tmp_path: Path) -> None:
     spec = _spec("gpio_output", "gpio_chip", "gpio://gpiochip0", {"outputs": "lamp"}, service="lights")
     with pytest.raises(DeviceError, match=r"service 'lights': config 'outputs' item 'lamp' is not name=value"):
         build(spec, _context(tmp_path))
+
+
+def test_an_imu_declares_the_settings_a_fast_replay_runs_it_with() -> None:
+    """Replay raises an I2C driver's sample rate for --fast because the driver says so, not by a setting name."""
+    from hil.replay_buses import ReplayI2cDevice, make_device
+    from hil.replay_plan import DevicePlan
+    from u2sa_hw.ports.declared import declared_class, replay_options
+
+    options = replay_options(declared_class("imu_mpu9250"), "imu", {})
+    assert options["fast_settings"] == {"rate_hz": 1000.0}
+    dev = DevicePlan(name="imu", kind="i2c", records=0)
+    fast = make_device(dev, Path("/nonexistent"), fast=True, options=options)
+    slow = make_device(dev, Path("/nonexistent"), fast=False, options=options)
+    assert isinstance(fast, ReplayI2cDevice)
+    assert fast.config_changes() == {"rate_hz": 1000.0} and slow.config_changes() == {}
+    assert make_device(dev, Path("/nonexistent"), fast=True, options={}).config_changes() == {}

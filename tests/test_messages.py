@@ -175,7 +175,7 @@ def test_an_old_mcap_log_replays_its_i2c_reads(tmp_path: Path) -> None:
     f.write("RAW.imu", _old_raw_i2c(0x75, b"\x71"), 1_000)
     f.write("RAW.imu", _old_raw_i2c(0x3B, b"\x01\x02"), 2_000)
     f.close()
-    device = ReplayI2cDevice(name="imu", socket_path=tmp_path / "i2c.sock", fast=False, declares_rate=False)
+    device = ReplayI2cDevice(name="imu", socket_path=tmp_path / "i2c.sock", fast=False)
     device.preload(log, start_ns=0, end_ns=10_000)
     assert device.transact(0x68, 0, 0x75, 1, b"") == (0, b"\x71")
     assert device.transact(0x68, 0, 0x3B, 2, b"") == (0, b"\x01\x02")
