@@ -93,7 +93,7 @@ def _probe_serial(target: Target, seconds: float) -> tuple[bool, str, dict[str, 
                                  baud=baud, seconds=seconds)
     expect = target.params.get("protocol")
     if ok and expect and expect.upper() not in text:
-        return False, f"{text}; the driver expects {expect} (format setting)", {}
+        return False, f"{text}; the driver expects {expect} (from its service's config)", {}
     return ok, text, {}
 
 
