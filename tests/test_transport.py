@@ -232,3 +232,31 @@ def test_an_unknown_child_from_another_process_arrives_as_its_base_and_is_logged
         assert rx.rx[ch.OBJECTS].messages == 3 and rx.rx[ch.OBJECTS].malformed == 0
     finally:
         rx.stop()
+
+
+def test_raw_lcm_is_the_transports_own_lcm_unsigned_and_on_its_sockets(lcm_url: str) -> None:
+    """What bench/transport.py measures as plain LCM: the transport's own LCM, which neither signs nor verifies."""
+    rx = Transport(lcm_url, name="rx")
+    tx = Transport(lcm_url, name="tx")
+    plain: list[bytes] = []
+    try:
+        lc = rx.raw_lcm()
+        assert lc is rx.raw_lcm()   # one LCM, its receive socket opened once
+        lc.subscribe(ch.STATE_INFO, lambda _c, data: plain.append(data))
+        verified: list[Any] = []
+        rx.subscribe(ch.STATE_INFO, t.StateInformation, lambda _c, m: verified.append(m))
+        rx.start()
+        msg = t.StateInformation().set(x=1.5)
+        tx.raw_lcm().publish(ch.STATE_INFO, msg.encode())   # bypasses signing: the bytes as they are
+        tx.publish(ch.STATE_INFO, msg)                      # signed: the payload then the trailer
+        wait_until(lambda: len(plain) >= 2, timeout=10, message="both packets on the raw subscription")
+        assert plain[0] == msg.encode() and plain[1].startswith(msg.encode()) and len(plain[1]) > len(plain[0])
+        # the transport's own subscribers verify: the unsigned one is dropped and counted
+        wait_until(lambda: rx.rx[ch.STATE_INFO].unsigned == 1 and verified, timeout=10,
+                   message="the unsigned packet counted, the signed one delivered")
+        assert len(verified) == 1 and verified[0].x == 1.5
+    finally:
+        tx.stop()
+        rx.stop()
+    with pytest.raises(TransportError, match="stopped"):
+        rx.raw_lcm()

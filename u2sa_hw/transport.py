@@ -377,6 +377,17 @@ class Transport:
         return {ch: {"raise_stale": c.raise_stale, "raise_foreign": c.raise_foreign}
                 for ch, c in sorted(self.rx.items()) if c.raise_stale or c.raise_foreign}
 
+    def raw_lcm(self) -> Any:
+        """The ``lcm.LCM`` under this transport, its receive socket open on the bus's interface.
+
+        For tools that measure plain LCM on exactly the sockets a transport uses (bench/transport.py):
+        what is published or received on it directly is neither signed nor verified.
+        """
+        if self._lc is None:
+            raise TransportError(f"the transport on {self.url} is stopped")
+        self._open_receiver()
+        return self._lc
+
     @property
     def sender(self) -> str:
         """This transport's sender id in the trailers it signs (hex; empty on an open bus)."""
