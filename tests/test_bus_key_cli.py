@@ -2,19 +2,22 @@
 
 ``u2sa key show|import|rotate`` as real processes on real files; a key that cannot be used
 (missing, of the wrong length, not hex, unreadable) stops a service and the CLI at start
-with one line naming the file and the fix, never a traceback.
+with one line naming the file and the fix, never a traceback. ``u2sa key`` finds the key through
+``$U2SA_VEHICLE`` as the services do; a key pasted into ``bus_key`` is refused without being
+printed; a user outside the key's group is told, end to end, how to get access.
 """
 
 from __future__ import annotations
 
 import os
 import subprocess
+import tempfile
 from pathlib import Path
 
 import pytest
-from conftest import U2SA
+from conftest import U2SA, unprivileged
 
-from u2sa_hw.bus_key import KEY_ENV, BusKeyError, key_id, read_key
+from u2sa_hw.bus_key import KEY_ENV, BusKeyError, key_id, key_path, read_key
 
 
 def u2sa(*args: str, key: Path | None = None, stdin: str | None = None, **env: str) -> subprocess.CompletedProcess:
@@ -77,3 +80,97 @@ def test_a_key_without_permission_says_how_to_get_access(tmp_path: Path, monkeyp
     with pytest.raises(BusKeyError) as err:
         read_key(key)
     assert str(key) in str(err.value) and "usermod -aG u2sa" in str(err.value) and "\n" not in str(err.value)
+
+
+# ------------------------------------------------- the key the services use (issue 11 audit) ---------
+KEY_HEX = "0123456789abcdef" * 4
+
+
+def profile_naming(tmp: Path, bus_key: str, lcm_url: str = "") -> Path:
+    profile = tmp / "vehicle.toml"
+    url = f'lcm_url = "{lcm_url}"\n' if lcm_url else ""
+    profile.write_text(f'[vehicle]\nname = "rover"\n{url}bus_key = "{bus_key}"\n'
+                       '[services.state_estimator]\nkind = "state_estimator"\n')
+    return profile
+
+
+def without_key_env() -> dict[str, str]:
+    return {k: v for k, v in os.environ.items() if k != KEY_ENV}
+
+
+def run_u2sa(args: list[str], env: dict[str, str], *, stdin: str | None = None,
+             as_user: bool = False) -> subprocess.CompletedProcess:
+    cmd = [*U2SA, *args]
+    return subprocess.run(unprivileged(cmd) if as_user else cmd, env=env, input=stdin, capture_output=True,
+                          text=True, timeout=60)
+
+
+def test_the_key_command_acts_on_the_key_of_the_profile_in_U2SA_VEHICLE(tmp_path: Path) -> None:
+    # The services find the key through the profile $U2SA_VEHICLE names; so does `u2sa key`,
+    # not /etc/u2sa/bus.key (which a test must never touch).
+    from u2sa_hw.vehicle import load_profile
+
+    profile = profile_naming(tmp_path, "keys/rover.key")          # relative to the profile's directory
+    env = {**without_key_env(), "U2SA_VEHICLE": str(profile)}
+    system_key = Path("/etc/u2sa/bus.key")
+    before = system_key.read_bytes() if system_key.exists() else None
+    services_use = key_path(load_profile(profile).bus_key, env=env)    # what Transport and bus_client open
+    assert services_use == tmp_path / "keys" / "rover.key"
+
+    made = run_u2sa(["key", "rotate"], env)
+    assert made.returncode == 0, made.stderr
+    assert str(services_use) in made.stdout and services_use.exists()
+    shown = run_u2sa(["key", "show", "--id"], env)
+    assert shown.returncode == 0, shown.stderr
+    assert shown.stdout.strip() == key_id(read_key(services_use)).hex()
+    imported = run_u2sa(["key", "import", "-"], env, stdin=KEY_HEX + "\n")
+    assert imported.returncode == 0, imported.stderr
+    assert read_key(services_use) == bytes.fromhex(KEY_HEX)
+    assert run_u2sa(["key", "show"], env).stdout.strip() == KEY_HEX
+    assert (system_key.read_bytes() if system_key.exists() else None) == before
+
+
+def test_a_key_pasted_into_bus_key_is_refused_at_load_without_printing_it(tmp_path: Path, lcm_url: str) -> None:
+    from u2sa_hw.vehicle import ProfileError, load_profile
+
+    profile = profile_naming(tmp_path, KEY_HEX, lcm_url)
+    with pytest.raises(ProfileError) as err:
+        load_profile(profile)
+    assert KEY_HEX not in str(err.value) and "\n" not in str(err.value)
+    env = {**without_key_env(), "U2SA_VEHICLE": str(profile)}
+    for args in (["service", "state_estimator"], ["services"], ["key", "show", "--id"]):
+        r = run_u2sa(args, env)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode != 0 and "Traceback" not in r.stderr, (args, r.stderr)
+        assert len(lines) == 1 and KEY_HEX not in r.stderr + r.stdout, (args, r.stderr)
+        assert "bus_key holds a key" in lines[0] and "u2sa key import" in lines[0] and str(profile) in lines[0]
+    # The fix the line gives works with the profile still broken (--file names the file, not the profile).
+    stored = tmp_path / "stored.key"
+    fixed = run_u2sa(["key", "import", "-", "--file", str(stored)], env, stdin=KEY_HEX + "\n")
+    assert fixed.returncode == 0, fixed.stderr
+    assert read_key(stored) == bytes.fromhex(KEY_HEX)
+
+
+def test_a_user_outside_the_keys_group_is_told_how_to_get_access(tmp_path: Path, lcm_url: str) -> None:
+    # End to end: the key root:root 0640 (as /etc/u2sa/bus.key is root:u2sa), the CLI run as nobody.
+    if os.geteuid() != 0:
+        pytest.skip("needs root to make a key file another user cannot read")
+    with tempfile.TemporaryDirectory(prefix="u2sa-denied-") as tmp:
+        directory = Path(tmp)
+        directory.chmod(0o755)
+        key = directory / "bus.key"
+        key.write_text(KEY_HEX + "\n")
+        os.chown(key, 0, 0)
+        key.chmod(0o640)
+        profile = profile_naming(directory, str(key), lcm_url)
+        profile.chmod(0o644)
+        env = {**without_key_env(), "U2SA_VEHICLE": str(profile)}
+        for args in (["key", "show", "--id"], ["services"]):
+            r = run_u2sa(args, env, as_user=True)
+            lines = r.stderr.strip().splitlines()
+            assert r.returncode == 1 and "Traceback" not in r.stderr, (args, r.stderr)
+            assert len(lines) == 1, (args, r.stderr)
+            assert f"cannot read the bus key {key} (permission denied)" in lines[0], lines[0]
+            assert "sudo usermod -aG u2sa $USER" in lines[0] and "or use sudo" in lines[0], lines[0]
+            assert KEY_HEX not in r.stdout + r.stderr
+        assert run_u2sa(["key", "show", "--id"], env).returncode == 0     # root reads it: the file is fine

@@ -6,7 +6,7 @@ name = "rover"
 system_id = 1
 lcm_url = "udpm://239.255.76.67:7667?ttl=0"   # optional; else $U2SA_LCM_URL, else this default
 bus_security = "signed"  # optional; "open" only for a bench: nothing signed or verified (docs/security.md)
-bus_key = "/etc/u2sa/bus.key"   # optional; $U2SA_BUS_KEY_FILE overrides it; never the key itself
+bus_key = "/etc/u2sa/bus.key"   # optional; $U2SA_BUS_KEY_FILE overrides it; a path, never the key itself
 bus_interface = "eth0"   # optional, for ttl >= 1: the one interface the bus uses (ttl=0 uses lo only)
 config_dir = "config"    # per-service TOML files: <config_dir>/<service>.toml
 log_dir = "logs"         # one log file per service
@@ -134,6 +134,12 @@ def _typed(table: dict[str, Any], key: str, kind: type, default: Any, where: str
     return value
 
 
+def _looks_like_a_key(value: str) -> bool:
+    """True when *value* is a bus key itself (64 hex digits), pasted where the path of its file belongs."""
+    digits = value.strip()
+    return len(digits) == 64 and all(c in "0123456789abcdefABCDEF" for c in digits)
+
+
 def key_problems(path: Path, data: dict[str, Any]) -> list[str]:
     """Unknown keys and service kinds of the profile *data* read from *path*, one line each with a did-you-mean."""
     from u2sa_hw.config_keys import unknown_key_problems
@@ -243,6 +249,11 @@ def load_profile(path: Path | str | None) -> VehicleProfile:
     if bus_security not in (None, "signed", "open"):
         raise ProfileError(f"{where}: bus_security must be \"signed\" (the default) or \"open\", not {bus_security!r}")
     bus_key = _typed(v, "bus_key", str, None, where)
+    if bus_key is not None and _looks_like_a_key(bus_key):   # never echoed: it is a secret in a world-readable file
+        raise ProfileError(f"{where}: bus_key holds a key (64 hex digits), not the path of a key file; a key must "
+                           "not be in the profile, which every user of the board may read: store it with 'sudo u2sa "
+                           "key import - --file /etc/u2sa/bus.key' (paste it on standard input), then remove bus_key "
+                           "or set it to the path of that file")
     from u2sa_hw.safety.config import parse_safety  # the syntax of [safety]; names are checked by check_wiring
 
     parse_safety(data.get("safety"), where=f"{path} [safety]")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -12,7 +13,8 @@ from u2sa_hw.cli.common import add_vehicle_option, profile_from
 HELP = """\
 Every message on the bus is signed with the vehicle's 256-bit key; a process without it
 is not heard. The key is found as the services find it: $U2SA_BUS_KEY_FILE, else the
-profile's bus_key, else /etc/u2sa/bus.key (made by 'sudo u2sa install', root:u2sa 0640).
+bus_key of the profile (--vehicle, else $U2SA_VEHICLE, else /etc/u2sa/vehicle.toml), else
+/etc/u2sa/bus.key (made by 'sudo u2sa install', root:u2sa 0640). --file PATH acts on PATH.
 
   u2sa key show                 print the key (64 hex digits) to copy to a ground station
   u2sa key show --id            print only its public id (compare two machines without the secret)
@@ -44,7 +46,7 @@ def cmd_key(args: Any) -> int:
     from u2sa_hw.bus_key import BusKeyError, key_id, key_path, new_key, read_key, write_key
     from u2sa_hw.cli import CliError
 
-    path = args.file or key_path(profile_from(args).bus_key if args.vehicle else None)
+    path = args.file or _service_key_path(args)
     try:
         if args.action == "show":
             key = read_key(path)
@@ -62,6 +64,21 @@ def cmd_key(args: Any) -> int:
         return 0
     except BusKeyError as exc:
         raise CliError(f"key {args.action}: {exc}") from None
+
+
+def _service_key_path(args: Any) -> Path:
+    """The key file the services of this profile use: the resolution of ``bus_client`` and ``Transport``.
+
+    ``$U2SA_BUS_KEY_FILE``, else the ``bus_key`` of the profile ``--vehicle`` names, or
+    ``$U2SA_VEHICLE``, or /etc/u2sa/vehicle.toml (:func:`~u2sa_hw.cli.common.profile_from`),
+    else /etc/u2sa/bus.key. With the variable set the profile is not read: it would not change
+    the file, and a profile that cannot load must not keep ``u2sa key`` from the key.
+    """
+    from u2sa_hw.bus_key import KEY_ENV, key_path
+
+    if os.environ.get(KEY_ENV):
+        return key_path(None)
+    return key_path(profile_from(args).bus_key)
 
 
 def _read_source(source: str | None) -> bytes:
