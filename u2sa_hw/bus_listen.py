@@ -8,7 +8,8 @@ IP_MULTICAST_ALL off, and points the send socket at the same interface (IP_MULTI
 
 * ``ttl=0``: loopback. Nothing from another host reaches the transport;
 * ``ttl`` >= 1 with the profile's ``bus_interface`` (e.g. ``"eth0"``): that interface;
-* ``ttl`` >= 1 without it: LCM's default (the default route's interface), unchanged.
+* ``ttl`` >= 1 without it: LCM's default (the default route's interface), unchanged; not refused,
+  but a service with the vehicle's key says so in its health (:func:`default_route_note`).
 
 Only the sockets LCM made for this transport are touched (the fds that appeared while it
 opened). LCM's own self test, when the receiver opens, sends on the default route: the send
@@ -44,6 +45,7 @@ _IFREQ_FLAGS = struct.Struct("16sH22x")          # struct ifreq: the name, then 
 ROUTE_FILE = "/proc/net/route"
 ANY_INTERFACE_ENV = "U2SA_BUS_ANY_INTERFACE"   # set: LCM's default interface even for ttl=0 (diagnosis)
 _warned: set[str] = set()
+_UNKNOWN_ROUTE = "the default route's interface"   # route_interface's answer when no route matches
 
 
 def socket_fds() -> set[int]:
@@ -77,6 +79,29 @@ def forced_default_problem(url: str) -> str:
     if not os.environ.get(ANY_INTERFACE_ENV) or not is_local(url):
         return ""
     return f"bus listens on {route_interface(url)}, not lo: ${ANY_INTERFACE_ENV} is set (diagnosis only); unset it"
+
+
+def default_route_note(url: str, interface: str | None) -> str:
+    """Where a ``ttl`` >= 1 bus listens when no interface keeps it on the vehicle's network ("" otherwise).
+
+    Without the profile's ``bus_interface`` (or with ``$U2SA_BUS_ANY_INTERFACE``) LCM joins the
+    group on the default route's interface, which on many boards is the WiFi. Not refused (a
+    multi-board vehicle may mean it), but said: a service with the vehicle's key puts this line in
+    its health (``bus_listen``) and logs it at start (``u2sa_hw.service_bus.listen_state``).
+    """
+    if not url.startswith("udpm://") or is_local(url):
+        return ""
+    forced = bool(os.environ.get(ANY_INTERFACE_ENV))
+    if interface and not forced:
+        return ""
+    where = route_interface(url)
+    if where != _UNKNOWN_ROUTE:
+        where += ", the default route's interface"
+    ttl = parse_qs(urlsplit(url).query).get("ttl", ["?"])[0].strip()
+    if forced:
+        return f"bus listens on {where}: ${ANY_INTERFACE_ENV} is set (diagnosis only); unset it"
+    return (f"bus listens on {where} (ttl={ttl} without bus_interface): every host on that network that has the "
+            "key can command this vehicle; name the vehicle's own network in [vehicle], e.g. bus_interface = \"eth0\"")
 
 
 def _group_and_port(url: str) -> tuple[bytes, int]:
@@ -121,7 +146,7 @@ def route_interface(url: str, *, route_file: str = ROUTE_FILE) -> str:
                     best = (bin(mask).count("1"), fields[0])
     except (OSError, ValueError):
         pass
-    return best[1] if best else "the default route's interface"
+    return best[1] if best else _UNKNOWN_ROUTE
 
 
 def prepare_interface(url: str, interface: str) -> tuple[int | None, str]:

@@ -35,7 +35,7 @@ from u2sa_hw.config import ConfigError, ConfigField, Configurator, field, to_tex
 from u2sa_hw.health import HOSTNAME, ProcessStats, build_health
 from u2sa_hw.messages import type_name
 from u2sa_hw.sdnotify import SystemdNotifier, watchdog_interval
-from u2sa_hw.service_bus import DUPLICATE_EXIT, bus_text, find_duplicate, rejected_text
+from u2sa_hw.service_bus import DUPLICATE_EXIT, bus_text, find_duplicate, listen_state, rejected_text
 from u2sa_hw.service_log import LEVEL_NAMES, level_number, set_level
 from u2sa_hw.transport import Transport
 from u2sa_hw.vehicle import VehicleProfile
@@ -83,6 +83,7 @@ class U2SAService:
         self._last_watchdog = 0.0
         self._last_loop = time.monotonic()
         self._health_thread: threading.Thread | None = None
+        self._bus_listen = ""   # where the bus listens when not where it belongs (set by start())
         self._contract_subscriptions()
 
     @classmethod
@@ -339,8 +340,9 @@ class U2SAService:
         rejected = rejected_text(self.transport.rejected())
         if rejected:
             details["bus_rejected"] = rejected
-        if self.transport.listen_problem:   # a ttl=0 bus heard beyond this board (u2sa_hw.bus_listen)
-            details["bus_listen"] = self.transport.listen_problem
+        listen = self._bus_listen or self.transport.listen_problem   # u2sa_hw.service_bus.listen_state
+        if listen:   # a ttl=0 bus heard beyond this board, a ttl>=1 one on the default route
+            details["bus_listen"] = listen
         last_error = self.last_error or self.transport.last_error
         msg = build_health(name=self.name, service_type=self.SERVICE_TYPE, status=self.status, stats=self._stats,
                            transport=self.transport, last_error=last_error, details=details)
@@ -350,6 +352,9 @@ class U2SAService:
     def start(self) -> None:
         """Set up, start the transport and health, mark running, tell systemd READY."""
         self.running = True
+        self._bus_listen = listen_state(self)
+        if self._bus_listen and not self.transport.listen_problem:   # listen_problem was logged as it was found
+            self.logger.warning("%s", self._bus_listen)
         self.check_config()
         self.setup()
         self.transport.start()

@@ -85,6 +85,27 @@ def listen_refusal(service: "U2SAService") -> str | None:
             "(docs/security.md, 'Where the vehicle listens'); 'u2sa run' as root sets the flag itself")
 
 
+def listen_state(service: "U2SAService") -> str:
+    """The ``bus_listen`` line of *service*'s health: where its bus listens when that is not where it belongs.
+
+    The transport's ``listen_problem`` (a ``ttl=0`` bus off ``lo``), else, for a ``ttl`` >= 1 bus
+    without ``bus_interface`` signed with the vehicle's key (or open), the default route's interface
+    (:func:`~u2sa_hw.bus_listen.default_route_note`): not refused, as a multi-board vehicle may mean
+    it, but visible in ``u2sa services`` and ``u2sa health``. A run's own key (:func:`run_key`) is
+    held by no other host: nothing to say then.
+    """
+    from u2sa_hw.bus_listen import default_route_note
+
+    transport = service.transport
+    if transport.listen_problem:
+        return transport.listen_problem
+    note = default_route_note(transport.url, service.profile.bus_interface)
+    auth = transport.auth
+    if not note or auth is not None and run_key(auth.keyring.path, service.profile.bus_key):
+        return ""
+    return note
+
+
 def probe_seconds(default: float = DUPLICATE_PROBE_S) -> float:
     """How long the duplicate probe listens: ``$U2SA_DUPLICATE_PROBE_S`` if set (and a number > 0), else *default*."""
     try:
