@@ -28,7 +28,7 @@ import math
 from typing import Any, Mapping
 
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config import ConfigError, field
+from u2sa_hw.config import field
 from u2sa_hw.geo import wrap_angle
 from u2sa_hw.ports.declared import SOURCES
 
@@ -37,7 +37,7 @@ from drivers.compass_bursts import Burst, BurstGrouper, CompassReading, reading_
 from drivers.compass_sentences import AttitudeLimits, parse_compass_line
 from drivers.nmea_fields import BadChecksum, SentenceError, is_foreign
 from drivers.os5000_format import OS5000_RANGES, Os5000BadChecksum, Os5000Error, is_os5000_line, parse_os5000
-from drivers.serial_sensor import SerialLineSensor
+from drivers.serial_sensor import BAUDRATES, SerialLineSensor
 from drivers.value_ranges import ValueDrops
 
 FORMATS = ("nmea", "os5000")
@@ -77,17 +77,19 @@ class SerialCompassDriver(SerialLineSensor):
     EXAMPLE_PORT = "/dev/u2sa/compass"
     MOCK_KINDS = ("nmea_compass", "os5000_compass")
     CONFIG = (
-        field("baudrate", 19200, "one of 4800 .. 115200 (19200: the OS5000's factory rate; NMEA compasses often 4800)"),
-        field("format", "nmea", "nmea: HDG/HDM/HDT/THS, ROT, XDR, PASHR, PTNTHTM/HPR; os5000: OceanServer $C lines"),
+        field("baudrate", 19200, "one of 4800 .. 115200 (19200: the OS5000's factory rate; NMEA compasses often 4800)",
+              choices=BAUDRATES),
+        field("format", "nmea", "nmea: HDG/HDM/HDT/THS, ROT, XDR, PASHR, PTNTHTM/HPR; os5000: OceanServer $C lines "
+                                "(any case)", choices=FORMATS, case_insensitive=True),
         field("declination_deg", 0.0, "magnetic declination, east positive: true = magnetic + declination", ge=-180, le=180),
         field("use_hdg_variation", True, "nmea: use HDG's variation field instead of declination_deg when present"),
         field("heading_sigma_deg", 1.0, "sigma of psi (deg)", gt=0),
         field("attitude_sigma_deg", 0.5, "sigma of phi and theta (deg)", gt=0),
         field("rate_sigma_deg_s", 1.0, "sigma of psi_dot from ROT (deg/s)", gt=0),
-        field("pitch_range_deg", 90.0, "the device's pitch range (deg, 0..90): |pitch| beyond it is dropped "
-                                       "(OS5000 90, HMR3300 60, HMR3000 40)", ge=0, le=90),
-        field("roll_range_deg", 180.0, "the device's roll range (deg, 0..180): |roll| beyond it is dropped "
-                                       "(OS5000 180, HMR3300 60, HMR3000 40)", ge=0, le=180),
+        field("pitch_range_deg", 90.0, "the device's pitch range (deg, > 0 and <= 90): |pitch| beyond it is "
+                                       "dropped (OS5000 90, HMR3300 60, HMR3000 40)", gt=0, le=90),
+        field("roll_range_deg", 180.0, "the device's roll range (deg, > 0 and <= 180): |roll| beyond it is "
+                                       "dropped (OS5000 180, HMR3300 60, HMR3000 40)", gt=0, le=180),
         *compass_mag.CONFIG,   # os5000 raw_field: heading from the corrected Mx/My/Mz (drivers/compass_mag.py)
     )
 
@@ -124,21 +126,8 @@ class SerialCompassDriver(SerialLineSensor):
                            stopbits=cfg.get("stopbits"))
 
     def check_config(self) -> None:
-        """The serial fields, plus the format, declination, sigmas and attitude ranges."""
+        """The serial checks, plus the calibration (mag_offset with mag_matrix); the fields' own rules are declared."""
         super().check_config()
-        cfg = self.config
-        if cfg.get("format").lower() not in FORMATS:
-            raise ConfigError(f"service '{self.name}': format {cfg.get('format')!r} is not one of {', '.join(FORMATS)}")
-        if not -180.0 <= cfg.get("declination_deg") <= 180.0:
-            raise ConfigError(f"service '{self.name}': declination_deg must be within -180..180 (east positive), "
-                              f"got {cfg.get('declination_deg')!r}")
-        for key in ("heading_sigma_deg", "attitude_sigma_deg", "rate_sigma_deg_s"):
-            if not cfg.get(key) > 0:
-                raise ConfigError(f"service '{self.name}': {key} must be > 0, got {cfg.get(key)!r}")
-        for key, top in (("pitch_range_deg", 90.0), ("roll_range_deg", 180.0)):
-            if not 0 < cfg.get(key) <= top:
-                raise ConfigError(f"service '{self.name}': {key} must be within 0..{top:g} (the compass's "
-                                  f"documented range), got {cfg.get(key)!r}")
         compass_mag.CompassFieldHeading(self).load()   # checked only: this also runs with a value being tried
 
     def setup(self) -> None:
@@ -156,7 +145,7 @@ class SerialCompassDriver(SerialLineSensor):
     @property
     def format(self) -> str:
         """``"nmea"`` or ``"os5000"``."""
-        return self.config.get("format").lower()
+        return self.config.get("format")
 
     @property
     def limits(self) -> AttitudeLimits:

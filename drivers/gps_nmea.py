@@ -25,7 +25,7 @@ from typing import Any
 
 from pynmeagps.nmeatypes_get import NMEA_PAYLOADS_GET
 
-from u2sa_hw.config import ConfigError, field
+from u2sa_hw.config import field
 
 from drivers.gps_epochs import GpsEpochCollector
 from drivers.gps_fix import (ALTITUDE_DATUMS, GGA_QUALITY, POSITION_FRAMES, GpsFix, StateSettings, fix_from_epoch,
@@ -45,8 +45,10 @@ class GpsNmeaDriver(SerialLineSensor):
 
     CONFIG = (
         field("position_frame", "NED", "NED: x north, y east, z down (m) about the profile origin; "
-                                       "GEODETIC: x = lat, y = lon (deg), z = altitude (m up)"),
-        field("altitude_datum", "msl", "msl: the GGA altitude (above the geoid); ellipsoid: plus the geoid separation"),
+                                       "GEODETIC: x = lat, y = lon (deg), z = altitude (m up) (any case)",
+              choices=POSITION_FRAMES, case_insensitive=True),
+        field("altitude_datum", "msl", "msl: the GGA altitude (above the geoid); ellipsoid: plus the geoid "
+                                       "separation (any case)", choices=ALTITUDE_DATUMS, case_insensitive=True),
         field("uere_m", 3.0, "user equivalent range error (m): sigmas from HDOP/VDOP when there is no GST", gt=0),
         field("speed_sigma_mps", 0.1, "sigma of x_dot, y_dot (m/s)", gt=0),
         field("heading_sigma_deg", 0.5, "sigma of psi from HDT (deg)", gt=0),
@@ -72,25 +74,11 @@ class GpsNmeaDriver(SerialLineSensor):
         self.drops = ValueDrops(self.logger, device=name)
         self._data_said = ""   # the ``data`` detail as last published on a change ("" before any)
 
-    def check_config(self) -> None:
-        """The serial fields, plus the frame, datum and sigma fields."""
-        super().check_config()
-        cfg = self.config
-        if cfg.get("position_frame").upper() not in POSITION_FRAMES:
-            raise ConfigError(f"service '{self.name}': position_frame {cfg.get('position_frame')!r} is not one of "
-                              f"{', '.join(POSITION_FRAMES)}")
-        if cfg.get("altitude_datum").lower() not in ALTITUDE_DATUMS:
-            raise ConfigError(f"service '{self.name}': altitude_datum {cfg.get('altitude_datum')!r} is not one of "
-                              f"{', '.join(ALTITUDE_DATUMS)}")
-        for key in ("uere_m", "speed_sigma_mps", "heading_sigma_deg"):
-            if not cfg.get(key) > 0:
-                raise ConfigError(f"service '{self.name}': {key} must be > 0, got {cfg.get(key)!r}")
-
     def settings(self) -> StateSettings:
         """The config as the fix-to-message settings (read live, so changes apply at the next epoch)."""
         cfg = self.config
-        return StateSettings(origin=self.profile.origin, position_frame=cfg.get("position_frame").upper(),
-                             altitude_datum=cfg.get("altitude_datum").lower(), uere_m=cfg.get("uere_m"),
+        return StateSettings(origin=self.profile.origin, position_frame=cfg.get("position_frame"),
+                             altitude_datum=cfg.get("altitude_datum"), uere_m=cfg.get("uere_m"),
                              speed_sigma_mps=cfg.get("speed_sigma_mps"), heading_sigma_deg=cfg.get("heading_sigma_deg"))
 
     # -- lines and epochs -------------------------------------------------------------------
@@ -279,11 +267,11 @@ class GpsNmeaDriver(SerialLineSensor):
             "repeated_fixes": self.repeated_fixes,
             **self.drops.details("out_of_range"),
             "talkers": ",".join(sorted(self.talkers)),
-            "position_frame": self.config.get("position_frame").upper(),
+            "position_frame": self.config.get("position_frame"),
         }
         if last is not None:
             details.update({"lat": _show(last.lat, ".8f"), "lon": _show(last.lon, ".8f"),
-                            "alt": _show(last.altitude(self.config.get("altitude_datum").lower()), ".2f"),
+                            "alt": _show(last.altitude(self.config.get("altitude_datum")), ".2f"),
                             "speed_mps": _show(last.speed_mps, ".3f"), "course_deg": _show(last.course_deg, ".2f"),
                             "geoid_sep_m": _show(last.geoid_sep, ".2f"), "geoid_source": last.geoid_source})
         if fix is not None:

@@ -81,9 +81,9 @@ class VescCanMotor(VescDeclarations, CanMotorService):
     """VESCs on CAN as actuators, with STATUS monitoring and odometry."""
 
     ID_FIELD = "controller_ids"
-    ID_MAX = vc.BROADCAST_ID - 1
     CONFIG = (
-        field("controller_ids", [0, 1], "VESC CAN id per actuator (0..254)", item_type=int, ge=0, le=254),
+        field("controller_ids", [0, 1], "VESC CAN id per actuator (0..254)", item_type=int, ge=0,
+              le=vc.BROADCAST_ID - 1),
         field("mode", "duty", "duty: SET_DUTY; rpm: SET_RPM (speed control in the VESC)", choices=MODES),
         field("max_duty", 0.95, "duty cycle at 100 % in duty mode (0..1)", gt=0, le=1),
         field("max_erpm", 7000.0, "electrical RPM at 100 % in rpm mode", gt=0),
@@ -113,26 +113,14 @@ class VescCanMotor(VescDeclarations, CanMotorService):
         self._make_vescs()
 
     def check_settings(self, get: Callable[[str], Any]) -> None:
-        """The shared fields, then mode, scales, neutral and the stall thresholds."""
+        """The shared combinations, then the watchdog timeout against the command period and the host id
+        against the VESCs' ids (each field's own choices and bounds are declared)."""
         super().check_settings(get)
-        if get("mode") not in MODES:
-            raise self._fail(f"mode must be one of {', '.join(MODES)}, got {get('mode')!r}")
-        if get("neutral") not in NEUTRALS:
-            raise self._fail(f"neutral must be one of {', '.join(NEUTRALS)}, got {get('neutral')!r}")
-        if not 0 < get("max_duty") <= 1:
-            raise self._fail(f"max_duty must be in (0, 1], got {get('max_duty')!r}")
-        for key in ("max_erpm", "pole_pairs", "gear_ratio", "max_motor_erpm"):
-            if not get(key) > 0:
-                raise self._fail(f"{key} must be > 0, got {get(key)!r}")
-        for key in ("stall_after_s", "stall_percent", "stall_erpm"):
-            if not get(key) >= 0:
-                raise self._fail(f"{key} must be >= 0, got {get(key)!r}")
         check_hw_watchdog(get, self._fail)
         host = get("host_id")
-        if not isinstance(host, int) or isinstance(host, bool) or not 0 <= host < vc.BROADCAST_ID \
-                or host in get("controller_ids"):
+        if host in get("controller_ids"):
             raise self._fail(f"host_id must be a CAN id 0..254 that no VESC uses (controller_ids "
-                             f"{get('controller_ids')!r}), got {host!r}")
+                             f"{get('controller_ids')!r}), got {host!r}; give host_id an unused id (default 254)")
 
     def _make_vescs(self) -> None:
         self.vescs = {n: VescMotor(spec) for n, spec in self.motors.items()}

@@ -198,6 +198,19 @@ def test_a_value_outside_the_choices_is_refused_naming_the_field_and_the_allowed
         field("level", "chatty", choices=("debug", "info"))
 
 
+def test_a_case_insensitive_choice_is_taken_in_any_case_and_kept_in_its_declared_spelling(tmp_path: Path) -> None:
+    # the gps position_frame / compass format rule: "ned" was always accepted, now declared instead of lowered by hand
+    fields = (field("frame", "NED", choices=("NED", "GEODETIC"), case_insensitive=True),)
+    path = tmp_path / "c.toml"
+    cfg = Configurator(path, fields, initial={"frame": "geodetic"})
+    assert cfg.get("frame") == "GEODETIC"
+    assert cfg.set("frame", "ned") and cfg.get("frame") == "NED" and tomllib.loads(path.read_text())["frame"] == "NED"
+    ok, reason = cfg.try_set("frame", "ned2")
+    assert not ok and reason == 'field \'frame\' must be one of "NED", "GEODETIC" (any case); got "ned2"'
+    with pytest.raises(TypeError, match="case_insensitive needs str choices"):
+        field("rate", 9600, choices=(4800, 9600), case_insensitive=True)
+
+
 # ---------------------------------------------------------------- ranges and non-finite numbers -----
 RANGED = (field("timeout_s", 2.0, gt=0), field("fraction", 0.5, ge=0, le=1), field("count", 3, ge=1, lt=10),
           field("offset", 0.0), field("limit", 1.0, allow_nonfinite=True),

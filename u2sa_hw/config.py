@@ -62,7 +62,8 @@ class ConfigField:
     directory, :meth:`VehicleProfile.resolve_path`), ``"secret"`` for one whose file holds a
     secret (a token, a private key); False for anything else (a device path is an address,
     never a file field). ``u2sa check`` and ``u2sa install`` read files from these declarations
-    only (:attr:`names_file`, :attr:`secret_file`).
+    only (:attr:`names_file`, :attr:`secret_file`). ``case_insensitive``: a str value matching a
+    choice in another case is taken as that choice's declared spelling (``"ned"`` -> ``"NED"``).
     """
 
     name: str
@@ -77,6 +78,7 @@ class ConfigField:
     item_type: type | None = None
     remote: bool = True
     file: bool | str = False
+    case_insensitive: bool = False
 
     @property
     def names_file(self) -> bool:
@@ -116,12 +118,14 @@ _BOUND_TESTS: dict[str, Callable[[Bound, Bound], bool]] = {
 def field(name: str, default: Any, help: str = "", *,  # noqa: A002 - reads well at call sites
           choices: Iterable[Any] = (), ge: Bound | None = None, gt: Bound | None = None,
           le: Bound | None = None, lt: Bound | None = None, allow_nonfinite: bool = False,
-          item_type: type | None = None, remote: bool = True, file: bool | str = False) -> ConfigField:
+          item_type: type | None = None, remote: bool = True, file: bool | str = False,
+          case_insensitive: bool = False) -> ConfigField:
     """Declare a config variable (shorthand for :class:`ConfigField`).
 
     *choices*: the only values allowed; *ge*, *gt*, *le*, *lt*: bounds of a number (or of each
     number of a list); *allow_nonfinite*: accept inf and nan (refused otherwise); *item_type*:
-    the type of a list's items; *remote*: False when a change over the bus is refused.
+    the type of a list's items; *remote*: False when a change over the bus is refused;
+    *case_insensitive*: str choices match in any case and the value becomes the declared spelling.
 
     *file*: declare it on every str setting that names a file the service reads (a mission, an
     object list, a token, a certificate): ``file=True``, or ``file="secret"`` when the file holds
@@ -150,7 +154,10 @@ def field(name: str, default: Any, help: str = "", *,  # noqa: A002 - reads well
     if file is not False and type(default) is not str:
         raise TypeError(f"config field {name}: a file field's default must be a str (a path, \"\" for none), "
                         f"not {type(default).__name__}")
-    f = ConfigField(name, default, help, tuple(choices), ge, gt, le, lt, allow_nonfinite, item_type, remote, file)
+    if case_insensitive and not (choices and all(isinstance(c, str) for c in choices)):
+        raise TypeError(f"config field {name}: case_insensitive needs str choices")
+    f = ConfigField(name, default, help, tuple(choices), ge, gt, le, lt, allow_nonfinite, item_type, remote, file,
+                    case_insensitive)
     if f.choices and default not in f.choices:
         raise ValueError(f"config field {name}: default {default!r} is not one of its choices {f.choices!r}")
     try:
@@ -193,14 +200,18 @@ def _scalar(expected: type, value: Any) -> Any:
 def coerce(f: ConfigField, value: Any) -> Any:
     """*value* as *f*'s type within its choices and bounds, or ConfigError naming the field, the rule and the value.
 
-    An int is accepted for a float field; nothing else is converted (a bool is not an int).
+    An int is accepted for a float field; nothing else is converted (a bool is not an int), but a
+    ``case_insensitive`` field's choice in another case becomes its declared spelling.
     """
     expected = f.type
     result = list(value) if expected is list and type(value) is list else _scalar(expected, value)
     if result is None:
         raise ConfigError(f"field '{f.name}' expects {f.type_name}, got {_type_name(value)} {value!r}")
+    if f.case_insensitive and isinstance(result, str):   # the declared spelling of a choice written in another case
+        result = next((c for c in f.choices if c.lower() == result.lower()), result)
     if f.choices and result not in f.choices:
-        raise ConfigError(f"field '{f.name}' must be one of {choices_text(f)}; got {to_text(result)}")
+        any_case = " (any case)" if f.case_insensitive else ""
+        raise ConfigError(f"field '{f.name}' must be one of {choices_text(f)}{any_case}; got {to_text(result)}")
     if expected in (int, float):
         _checked_number(f, result, what=f"field '{f.name}'")
     elif expected is list and f.item_type is not None:
