@@ -277,6 +277,99 @@ def test_a_dev_u2sa_link_nothing_creates_is_an_error_with_the_rule_line(tmp_path
     assert not [p for p in check_profile(path) if "/dev/u2sa/gps" in p.message]
 
 
+TWO_ADAPTERS = CLEAN + """
+[services.gps]
+kind = "gps_nmea"
+
+[devices.gps]
+address = "serial:///dev/u2sa/gps?baud=9600&usb=0403:6001{gps}"
+
+[services.compass]
+kind = "compass_serial"
+settings = { format = "nmea" }
+
+[devices.compass]
+address = "serial:///dev/u2sa/compass?baud=9600&usb=0403:6001{compass}"
+"""
+
+
+def two_adapters(gps: str, compass: str) -> str:
+    return TWO_ADAPTERS.replace("{gps}", gps).replace("{compass}", compass)
+
+
+@pytest.mark.parametrize("gps, compass, to_change", [("", "", ["gps", "compass"]),
+                                                     ("&serial=A1", "", ["compass"]),
+                                                     ("", "&serial=A1", ["gps"]),
+                                                     ("&serial=A1", "&serial=A1", None)])
+def test_two_serial_devices_udev_cannot_tell_apart_are_an_error_naming_both_and_the_fix(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, gps: str, compass: str, to_change: list[str] | None) -> None:
+    """One make of adapter (usb=0403:6001) for the GPS and the compass: without a serial number on each,
+    the two rules install writes both match one adapter and /dev/u2sa/gps may be the compass."""
+    monkeypatch.setenv("U2SA_UDEV_RULES_DIRS", str(tmp_path / "no-rules"))
+    path = write(tmp_path, two_adapters(gps, compass))
+    errors = errors_of(check_profile(path))
+    assert len(errors) == 1, "\n".join(map(str, errors))
+    line = str(errors[0])
+    assert errors[0].key == f"devices.{(to_change or ['compass'])[-1]}.address", line
+    assert (f"devices 'gps' (usb=0403:6001{gps}) and 'compass' (usb=0403:6001{compass}) have "
+            "USB identities that do not tell their adapters apart: the udev rules install writes for /dev/u2sa/gps "
+            "and /dev/u2sa/compass both match one adapter, so either link may point at the wrong device") in line
+    assert "udevadm info -q property -n /dev/ttyUSB0 | grep ID_SERIAL_SHORT" in errors[0].fix
+    if to_change:
+        names = " and ".join(f"'{n}'" for n in to_change)
+        assert f"fix: give each its adapter's own serial number: add &serial=SERIAL to the address of {names}, " \
+               f"e.g. serial:///dev/u2sa/{to_change[0]}?baud=9600&usb=0403:6001&serial=SERIAL" in line
+    else:
+        assert "set serial= of 'gps' and 'compass' to the serial number of each one's own adapter" in line
+
+
+def test_one_make_of_adapter_with_a_serial_number_each_is_fine(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("U2SA_UDEV_RULES_DIRS", str(tmp_path / "no-rules"))
+    path = write(tmp_path, two_adapters("&serial=A1", "&serial=B2"))
+    assert check_profile(path) == []
+    # Each udev rule then matches its own adapter only; and a serial number alone tells adapters apart too.
+    path = write(tmp_path, two_adapters("&serial=A1", "&serial=B2").replace("usb=0403:6001&", ""))
+    assert check_profile(path) == []
+    # A mock (u2sa sim) has no adapter: nothing to tell apart.
+    path = write(tmp_path, two_adapters("", "").replace("serial:///dev/u2sa/", "mock+serial:///run/"))
+    assert errors_of(check_profile(path)) == []
+
+
+OLD_IMU = CLEAN + """
+[services.imu]
+kind = "imu_mpu9250"
+settings = { bus = 1 }
+"""
+
+
+def test_an_old_form_bus_written_as_a_number_shows_the_new_form(tmp_path: Path) -> None:
+    """bus = 1 (the driver reads text, bus = "1"): the type error's fix is the new form, as the old-form warning of
+    bus = "1" is, not 'write a str like bus = ""'; and the device is read as meant (no "has no address" too)."""
+    path = write(tmp_path, OLD_IMU)
+    assert [str(p) for p in check_profile(path)] == [
+        f'error: {path} [services.imu.settings.bus]: expects str, got int 1; fix: write the device\'s address in the '
+        'profile in the new form: [devices.imu] address = "i2c://1/0x68" (in the old form: bus = "1")']
+    path = write(tmp_path, OLD_IMU.replace("bus = 1", 'bus = "1"'))
+    assert [str(p) for p in check_profile(path)] == [
+        f'warning: {path} [services.imu]: device \'imu\' is given in the old form (service settings); fix: write '
+        '[devices.imu] address = "i2c://1/0x68"']
+    # In the service's config file: the line is on that file.
+    path = write(tmp_path, OLD_IMU.replace("settings = { bus = 1 }\n", ""), {"config/imu.toml": b"bus = 2\n"})
+    problems = check_profile(path)
+    assert [(p.file, p.key) for p in problems] == [(str(tmp_path / "config/imu.toml"), "bus")], problems
+    assert problems[0].fix.startswith('write the device\'s address in the profile in the new form: [devices.imu] '
+                                      'address = "i2c://2/0x68"'), problems[0]
+
+
+def test_a_number_for_a_text_setting_that_makes_no_address_keeps_its_fix(tmp_path: Path) -> None:
+    path = write(tmp_path, CLEAN + '\n[services.imu]\nkind = "imu_mpu9250"\nsettings = { bus = 1, mounting = 5 }\n'
+                 '\n[devices.imu]\naddress = "i2c://1/0x68"\n')
+    fixes = {p.key: p.fix for p in check_profile(path)}
+    assert fixes["services.imu.settings.mounting"] == 'write a str like mounting = "x,-y,-z"'
+    # The device's address is in [devices.imu]: bus is not what makes it, so no new form is offered for it.
+    assert fixes["services.imu.settings.bus"] == 'write a str like bus = ""'
+
+
 def test_for_sim_a_device_without_a_mock_names_the_device_and_the_mock(tmp_path: Path) -> None:
     path = write(tmp_path, SERIAL.replace("{address}", "serial:///dev/u2sa/gps?baud=9600"))
     errors = errors_of(check_profile(path, for_sim=True))

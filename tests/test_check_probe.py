@@ -252,6 +252,45 @@ def test_pwm_probe_checks_the_channel_exists(tmp_path: Path) -> None:
     assert not probe_target(replace(target, params={"chip": str(tmp_path / "none"), "channel": 0}), seconds=0.1).ok
 
 
+def test_a_device_whose_kind_has_no_probe_gets_a_line_saying_so() -> None:
+    """A port kind without a probe (here a made-up spi) is not left out unsaid: one "probe skip" line, not a failure."""
+    result = probe_target(Target("lidar", "lidar", "spi", "spi://0/0"), seconds=0.1)
+    assert result.ok and not result.probed
+    assert str(result) == ("probe skip lidar: spi spi://0/0: no probe for kind spi: not looked at (check it by hand; a "
+                           "probe for the kind goes in u2sa_hw/check/probe.py, see docs/ports.md, 'A new port kind')")
+    assert result.to_dict()["probed"] is False
+
+
+def test_check_probe_says_no_probe_for_a_kind_the_targets_do_not_know(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """targets.py chooses the probe by the address kind; a kind it has no entry for (a new port kind: pwm taken out
+    here) is still a target, and u2sa check --probe prints its "no probe for kind" line beside the others."""
+    from u2sa_hw.check import targets
+    from u2sa_hw.cli import main
+
+    pwm = make_sysfs_pwm_tree(tmp_path / "pwmchip0", npwm=4)
+    gpio = MockGpioChip(socket_path=str(tmp_path / "gpiochip0.sock"), num_lines=8)
+    profile = tmp_path / "vehicle.toml"
+    profile.write_text(f'[vehicle]\nname = "bench"\n\n[services.pan]\nkind = "pwm_servo"\n'
+                       'settings = { channels = [{ name = "pan", device = "pan" }] }\n\n'
+                       '[services.lamp]\nkind = "gpio_output"\nsettings = { outputs = "lamp=5" }\n\n'
+                       f'[devices.pan]\naddress = "mock+pwm://{pwm}/3"\n\n'
+                       f'[devices.lamp]\naddress = "mock+gpio://{tmp_path}/gpiochip0.sock/5"\n')
+    monkeypatch.setattr(targets, "TARGETS", {k: v for k, v in targets.TARGETS.items() if k != "pwm"})
+    gpio.start()
+    try:
+        assert {r.device: r.probed for r in probe_profile(load_profile(profile), seconds=0.1)} == {"pan": False,
+                                                                                                "lamp": True}
+        assert main(["check", "--vehicle", str(profile), "--probe", "--seconds", "0.1"]) == 0
+    finally:
+        gpio.stop()
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("probe ")]
+    assert sorted(lines) == [
+        f"probe ok   lamp: gpio mock+gpio://{tmp_path}/gpiochip0.sock/5: 8 lines; line(s) 5 exist and are free",
+        f"probe skip pan: pwm mock+pwm://{pwm}/3: no probe for kind pwm: not looked at (check it by hand; a probe for "
+        "the kind goes in u2sa_hw/check/probe.py, see docs/ports.md, 'A new port kind')"]
+
+
 IP_SHOW = """\
 3: lo: <NOARP,UP,LOWER_UP,ECHO> mtu 16 qdisc pfifo_fast state UP mode DEFAULT group default qlen 10
     link/can  promiscuity 0 minmtu 0 maxmtu 0

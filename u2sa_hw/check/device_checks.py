@@ -3,7 +3,10 @@
 On the vehicle (the default) a ``/dev/u2sa/NAME`` serial path must be created by something:
 a USB id or serial number in the device's address (``u2sa install`` writes the udev rule
 from it) or an installed udev rule that makes that link; otherwise the service would wait
-for a device node that never appears, and the check prints the rule line to add.
+for a device node that never appears, and the check prints the rule line to add. Two such
+devices whose USB identities do not tell their adapters apart (the same ``usb=VID:PID`` and
+no ``serial=`` on one of them, or the same ``serial=``) are an error: both udev rules would
+match one adapter, and a link could point at the other device.
 
 On the vehicle a real SocketCAN address without ``bitrate=`` is a warning: install cannot
 set the interface's bitrate, so CAN does not come up at boot unless something else does it.
@@ -26,7 +29,7 @@ from __future__ import annotations
 
 import os
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
@@ -76,15 +79,21 @@ def check_devices(path: Path, data: Mapping[str, Any], out: Collector, *, profil
         if for_sim:
             _check_mocks(None, profile, devices, services, out)
         return
-    from u2sa_hw.check.lenient import lenient_devices, readable_configs
+    from u2sa_hw.check.lenient import lenient_devices, old_form_numbers, readable_configs
 
     configs = readable_configs(profile)
+    numbers = old_form_numbers(profile, configs)
+    for number in numbers:   # bus = 1 read as bus = "1": the device is known, and the type error shows the new form
+        configs[number.service] = {**configs[number.service], number.key: str(number.value)}
     readable, _ = lenient_devices(profile, configs)
-    entries = _check_addresses(readable, configs, out)
+    entries = _check_addresses(readable, configs, out,
+                               shown={(n.service, device) for n in numbers for device in n.addresses})
+    _show_new_form(numbers, out)
     if for_sim:
         _check_mocks(entries, profile, devices, services, out)
     elif entries is not None:
         _check_device_nodes(entries, readable, out)
+        _check_usb_identities(entries, out)
         _check_can_bitrates(entries, readable, out)
 
 
@@ -127,10 +136,12 @@ def _mock_catalog() -> Mapping[str, Any] | None:
     return None if support is None else support.catalog
 
 
-def _check_addresses(profile: Any, configs: Mapping[str, Any], out: Collector) -> dict[str, Any] | None:
+def _check_addresses(profile: Any, configs: Mapping[str, Any], out: Collector,
+                     shown: set[tuple[str, str]] = frozenset()) -> dict[str, Any] | None:  # type: ignore[assignment]
     """Every device of the profile (read past the mistakes reported above); None when even that stops.
 
-    The old form (an address in service settings) is a warning each; the list's own errors (a service
+    The old form (an address in service settings) is a warning each, but for the (service, device)
+    pairs in *shown*, whose new form an error's fix already gives; the list's own errors (a service
     with no address, two services on one device) are reported here.
     """
     from u2sa_hw.devices import profile_devices
@@ -145,10 +156,25 @@ def _check_addresses(profile: Any, configs: Mapping[str, Any], out: Collector) -
             out.from_text(str(exc), key="devices", fix="write the address as docs/ports.md shows")
         return None
     for text in notices:
-        out.from_text(text, key="services", fix="", severity=WARNING)
+        if not any(f"[services.{service}]: device '{device}' " in text for service, device in shown):
+            out.from_text(text, key="services", fix="", severity=WARNING)
     _check_unused(entries, profile, out)
     _check_shared_outputs(entries, out)
     return entries
+
+
+def _show_new_form(numbers: Iterable[Any], out: Collector) -> None:
+    """The type error of an old-form address setting written as a number (``bus = 1``: "expects str") gets the
+    new form as its fix, as an old-form warning does, instead of "write a str like bus = \"\""."""
+    for number in numbers:
+        key = number.key if number.file else f"services.{number.service}.settings.{number.key}"
+        new = "; ".join(f'[devices.{device}] address = "{url}"' for device, url in number.addresses.items())
+        for i, problem in enumerate(out.problems):
+            in_file = Path(problem.file).resolve() == Path(number.file).resolve() if number.file \
+                else problem.file == out.profile_path
+            if problem.is_error and problem.key == key and in_file:
+                out.problems[i] = replace(problem, fix=f"write the device's address in the profile in the new form: "
+                                          f"{new} (in the old form: {number.key} = \"{number.value}\")")
 
 
 def _check_unused(entries: Mapping[str, Any], profile: Any, out: Collector) -> None:
@@ -322,6 +348,67 @@ def _check_device_nodes(entries: Mapping[str, Any], profile: Any, out: Collector
                   f"usb=VID:PID&serial=SERIAL (u2sa install writes the rule), or add to "
                   f"/etc/udev/rules.d/66-u2sa-local.rules (install rewrites 65-u2sa-vehicle.rules): {udev_line(link)} "
                   "(udevadm info -a -n /dev/ttyUSB0 shows the values)")
+
+
+SERIAL_NUMBER_HOW = "udevadm info -q property -n /dev/ttyUSB0 | grep ID_SERIAL_SHORT"
+
+
+def _may_be_one_adapter(a: Any, b: Any) -> bool:
+    """Whether the udev rules of serial addresses *a* and *b* can both match one adapter: neither their USB
+    ids nor their serial numbers tell them apart (one with only ``usb=`` and one with only ``serial=``
+    cannot be judged, and are not)."""
+    if a.usb_id and b.usb_id and a.usb_id != b.usb_id:
+        return False
+    if a.usb_serial and b.usb_serial and a.usb_serial != b.usb_serial:
+        return False
+    if (a.usb_id is None) != (b.usb_id is None) and (a.usb_serial is None) != (b.usb_serial is None):
+        return False   # usb= only against serial= only: whether they are one make is not known here
+    return True
+
+
+def _identity(address: Any) -> str:
+    parts = [f"usb={':'.join(address.usb_id)}"] if address.usb_id else []
+    parts += [f"serial={address.usb_serial}"] if address.usb_serial else []
+    return "&".join(parts)
+
+
+def _check_usb_identities(entries: Mapping[str, Any], out: Collector) -> None:
+    """Two ``/dev/u2sa`` serial devices whose USB identities (``usb=VID:PID``, ``serial=``) do not tell their
+    adapters apart: install writes a rule for each (whatever service uses it), both rules match one adapter,
+    and either link may then point at the other device (a compass read as the GPS)."""
+    found: list[tuple[str, Any]] = []
+    for name, entry in entries.items():
+        address = entry.address
+        if address.kind == "serial" and not address.mock and not address.is_serial_url \
+                and address.serial_path.startswith(U2SA_DEV) and (address.usb_id or address.usb_serial):
+            found.append((name, address))
+    reported: set[str] = set()
+    for i, (name, address) in enumerate(found):
+        if name in reported:
+            continue
+        group = [(name, address)] + [(n, a) for n, a in found[i + 1:]
+                                     if n not in reported and _may_be_one_adapter(address, a)]
+        if len(group) < 2:
+            continue
+        reported.update(n for n, _ in group)
+        names = [n for n, _ in group]
+        listed = ", ".join(f"'{n}' ({_identity(a)})" for n, a in group[:-1]) + f" and '{group[-1][0]}' " \
+            f"({_identity(group[-1][1])})"
+        links = " and ".join(a.serial_path for _, a in group)
+        bare = [n for n, a in group if not a.usb_serial]
+        example = next(a for n, a in group if n == (bare or names)[0])
+        how = (f"add &serial=SERIAL to the address of {' and '.join(repr(n) for n in bare)}" if bare else
+               f"set serial= of {' and '.join(repr(n) for n in names)} to the serial number of each one's own "
+               "adapter (one serial number is one adapter)")
+        at = (bare or names)[-1]   # the line is on a device to change
+        entry = entries[at]
+        key = f"services.{entry.service}.settings" if entry.legacy else f"devices.{at}.address"
+        out.error(key, f"devices {listed} have USB identities that do not tell their adapters apart: the udev "
+                  f"rules install writes for {links} {'both' if len(group) == 2 else 'all'} match one adapter, so "
+                  f"{'either' if len(group) == 2 else 'any'} link may point at the wrong device",
+                  f"give each its adapter's own serial number: {how}, e.g. "
+                  f"{example.with_params(serial='SERIAL').url} (the serial of the adapter plugged in as "
+                  f"/dev/ttyUSB0: {SERIAL_NUMBER_HOW})")
 
 
 def check_simulation(path: Path, data: Mapping[str, Any], out: Collector) -> None:

@@ -16,6 +16,10 @@ mistakes left out:
   at its default, so the devices of a service with a bad ``baudrate`` are still known.
 - :func:`lenient_devices`: the device tables without bad keys and without the devices whose
   address does not parse (the services that use those are left out too).
+- :func:`old_form_numbers`: an old-form address setting written as a number where the driver
+  reads text (``bus = 1`` for ``bus = "1"``), read as that text when it gives a device the
+  address the user meant: the device check then reads the devices so, and its type error
+  shows the new form (``[devices.imu] address = "i2c://1/0x68"``) instead of ``bus = ""``.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import tempfile
 import tomllib
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -127,6 +132,74 @@ def readable_configs(profile: Any) -> dict[str, dict[str, Any]]:
             if values is not None:
                 configs[name] = values
     return configs
+
+
+@dataclass(frozen=True)
+class OldFormNumber:
+    """An old-form address setting written as a number where the driver reads text (``bus = 1``)."""
+
+    service: str
+    key: str                    # the setting
+    file: Path | None           # the service's config file when the value is written there, else None (the profile)
+    value: int                  # as written
+    addresses: dict[str, str]   # device -> the address the setting gives it, read as text
+
+
+def _written_values(spec: Any) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(the profile's settings, the config file's values) of *spec* as written (a file that does not read: {})."""
+    file_values: dict[str, Any] = {}
+    if spec.config_path.is_file():
+        try:
+            read = tomllib.loads(spec.config_path.read_bytes().decode("utf-8"))
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+            read = {}
+        file_values = read if isinstance(read, dict) else {}
+    return dict(spec.settings), file_values
+
+
+def old_form_numbers(profile: Any, configs: Mapping[str, Mapping[str, Any]]) -> list[OldFormNumber]:
+    """Each setting of an enabled service written as a whole number where its field is text, that, read as
+    that text, gives a device without a ``[devices.NAME] address`` an address that parses: an old-form
+    address setting (``bus = 1`` -> ``i2c://1/0x68``). The driver declares which settings make an address
+    (``used_devices``); nothing here knows their names. *configs*: :func:`readable_configs`."""
+    from u2sa_hw.devices import service_devices
+    from u2sa_hw.ports.address import AddressError, parse_address
+    from u2sa_hw.registry import resolve_kind
+    from u2sa_hw.service import BASE_CONFIG
+
+    found: list[OldFormNumber] = []
+    tables = profile.devices if isinstance(profile.devices, dict) else {}
+    for name, spec in profile.services.items():
+        if not spec.enabled or name not in configs:
+            continue
+        try:
+            cls = resolve_kind(spec.kind)
+            fields = {f.name: f for f in (*BASE_CONFIG, *cls.config_fields())}
+            before = service_devices(cls, name, configs[name])
+        except (LookupError, ImportError, AttributeError, ValueError):
+            continue
+        settings, file_values = _written_values(spec)
+        for key, value in {**settings, **file_values}.items():   # the file wins, as in the service
+            f = fields.get(key)
+            if f is None or f.type is not str or type(value) is not int:
+                continue
+            try:
+                after = service_devices(cls, name, {**configs[name], key: str(value)})
+            except (ValueError, TypeError):
+                continue
+            gained: dict[str, str] = {}
+            for device, text in after.items():
+                table = tables.get(device)
+                if not text or text == before.get(device) or (isinstance(table, dict) and "address" in table):
+                    continue
+                try:
+                    gained[device] = parse_address(text, device=device).url
+                except AddressError:
+                    continue
+            if gained:
+                found.append(OldFormNumber(name, key, spec.config_path if key in file_values else None, value,
+                                           gained))
+    return found
 
 
 def _config_past_mistakes(spec: Any) -> dict[str, Any] | None:

@@ -5,7 +5,9 @@ that works). I2C: the chip's identity register against what the driver expects
 (:mod:`u2sa_hw.check.chip_ids`). CAN: the interface's state, bitrate and error counters
 (socketcan: ``/sys/class/net`` and ``ip -details -statistics link``; a python-can
 ``udp_multicast``/``virtual`` bus is said to be simulated) and the node ids heard in the
-window. GPIO: the lines exist and no one holds them. PWM: the channel exists.
+window. GPIO: the lines exist and no one holds them. PWM: the channel exists. A device whose
+address kind has no probe (:data:`PROBES`, chosen through :data:`u2sa_hw.check.targets.TARGETS`)
+gets a ``probe skip`` line saying so: never probed without a word, and not a failure.
 
 Nothing is written to a device: a probe only reads (an I2C identity register, the GPIO
 lines' info) and listens. A device held by a running service is reported busy; stop the
@@ -38,9 +40,11 @@ class ProbeResult:
     text: str
     details: Mapping[str, Any] = field(default_factory=dict)
     warnings: tuple[str, ...] = ()      # it works, but not as well as it could (an uncalibrated sensor)
+    probed: bool = True                 # False: no probe for the device's kind (ok, since nothing was found wrong)
 
     def __str__(self) -> str:
-        line = f"probe {'ok  ' if self.ok else 'FAIL'} {self.device}: {self.port} {self.address}: {self.text}"
+        status = "ok  " if self.ok else "FAIL"
+        line = f"probe {status if self.probed else 'skip'} {self.device}: {self.port} {self.address}: {self.text}"
         return "\n".join([line, *(f"probe warn {self.device}: {w}" for w in self.warnings)])
 
     def to_dict(self) -> dict[str, Any]:
@@ -69,10 +73,16 @@ def probe_profile(profile: Any, *, seconds: float = 3.0) -> list[ProbeResult]:
 
 
 def probe_target(target: Target, *, seconds: float) -> ProbeResult:
-    """One device: the probe of its port kind; a port error becomes a failed line with its fix."""
+    """One device: the probe of its port kind (none: a "no probe for kind" line); a port error becomes a failed
+    line with its fix."""
     from u2sa_hw.ports.errors import PortError
 
-    probe = PROBES[target.port]
+    probe = PROBES.get(target.port)
+    if probe is None:
+        kind = target.kind or target.port
+        return ProbeResult(target.name, kind, target.address, True,
+                           f"no probe for kind {kind}: not looked at (check it by hand; a probe for the kind goes in "
+                           "u2sa_hw/check/probe.py, see docs/ports.md, 'A new port kind')", probed=False)
     try:
         ok, text, details = probe(target, seconds)
     except PortError as exc:

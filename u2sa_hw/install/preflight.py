@@ -12,6 +12,11 @@ then refuses with all of them, one line each, unless ``--force``. With ``--force
 check's errors become warnings, and what install cannot do for the vehicle (a ``/dev/u2sa``
 link nothing creates, a named file that is missing) is a failure: install does the rest and
 exits 1.
+
+Each problem is said once, with one severity: the warnings are the check's lines without
+their own ``error:``/``warning:`` (the CLI prints ``warning: `` before each), and what both
+the check and install's own reading find (a missing named file, a link nothing creates) is
+the check's line, in the refusal or as a failure, never also install's.
 """
 
 from __future__ import annotations
@@ -21,9 +26,10 @@ import os
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from u2sa_hw.devices import profile_devices
-from u2sa_hw.install.referenced import Reference, find_references
+from u2sa_hw.install.referenced import MissingFile, Reference, find_references
 from u2sa_hw.install.system import InstallError
 from u2sa_hw.install.udev import DevicePlan, links_made, plan_devices, unmade_text
 from u2sa_hw.vehicle import ProfileError, VehicleProfile, load_profile
@@ -39,6 +45,7 @@ class CheckResult:
     errors: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     safety_errors: list[str] = field(default_factory=list)   # the errors in [safety]: never installed
+    problems: list[Any] = field(default_factory=list)        # the check's Problems (file, key...), in its order
 
 
 @dataclass
@@ -81,7 +88,32 @@ def offline_check(profile_path: Path, *, root: Path) -> CheckResult:
         problems = check_profile(profile_path)
     return CheckResult(errors=[str(p) for p in problems if p.is_error],
                        warnings=[str(p) for p in problems if not p.is_error],
-                       safety_errors=[str(p) for p in problems if p.is_error and p.key.split(".")[0] == "safety"])
+                       safety_errors=[str(p) for p in problems if p.is_error and p.key.split(".")[0] == "safety"],
+                       problems=list(problems))
+
+
+def unlabelled(problem: Any) -> str:
+    """The check's line of *problem* without its severity (``FILE [KEY]: what; fix: ...``), for a line that
+    says its own (``warning: ``, ``not done: ``)."""
+    return str(problem)[len(problem.severity) + 2:]
+
+
+def _same_file(a: Path | str, b: Path | str) -> bool:
+    return Path(a).resolve() == Path(b).resolve()
+
+
+def _check_line_for(failure: str, plan_unmade: dict[str, str], checked: CheckResult) -> Any:
+    """The check's error that says what install's *failure* says (a missing named file, a /dev/u2sa link
+    nothing creates), or None. *plan_unmade*: install's line -> the link it is about."""
+    for problem in checked.problems:
+        if not problem.is_error:
+            continue
+        if isinstance(failure, MissingFile) and problem.key == failure.key and _same_file(problem.file, failure.file):
+            return problem
+        link = plan_unmade.get(failure)
+        if link is not None and problem.message.startswith(f"nothing creates {link}:"):
+            return problem
+    return None
 
 
 def refusal(path: Path, lines: list[str], *, unforceable: str = "") -> InstallError:
@@ -122,22 +154,44 @@ def preflight(profile: VehicleProfile, *, root: Path, taken: set[str], force: bo
     *checked*: :func:`offline_check` of the profile. *taken*: vehicle paths the install writes
     otherwise (a referenced file must not land on one).
     """
-    from u2sa_hw.check.lenient import readable_configs
+    from u2sa_hw.check.lenient import old_form_numbers, readable_configs
 
     assert profile.path is not None
-    errors, warnings = checked.errors, checked.warnings
+    errors = checked.errors
     notices: list[str] = []
     unreadable: list[str] = []
+    numbers: list[Any] = []
     try:   # a service's wrong setting (an error above) does not hide the devices of the others
-        devices = profile_devices(profile, configs=readable_configs(profile), warn=notices.append)
+        configs = readable_configs(profile)
+        numbers = old_form_numbers(profile, configs)
+        for number in numbers:   # bus = 1 read as the check reads it, bus = "1" (its type error gives the new form)
+            configs[number.service] = {**configs[number.service], number.key: str(number.value)}
+        devices = profile_devices(profile, configs=configs, warn=notices.append)
         plan = plan_devices(devices, profile_path=profile.path, made_elsewhere=links_made(rules_dirs(root)))
     except (ValueError, InstallError) as exc:
         plan, unreadable = DevicePlan(), [f"no udev rules, CAN bring-up or PWM drop-ins from the devices: {exc}"]
     references, missing = find_references(profile, taken=taken)
-    # What install itself cannot do for the vehicle; a link the check already named is not said twice.
-    cannot = [*unreadable, *unmade_text(plan), *missing]
-    own = [line for (_, path), line in zip(plan.unmade, unmade_text(plan)) if not any(path in e for e in errors)]
-    own += [*unreadable, *missing]
+    # What install itself cannot do for the vehicle. What the check already said (a link nothing creates, a
+    # missing file) is said once, in the check's line: the refusal lists the check's errors and install's
+    # own others; with --force the check's line is the "not done" one and is not also a warning.
+    unmade = dict(zip(unmade_text(plan), (path for _, path in plan.unmade)))
+    cannot: list[str] = []
+    own: list[str] = []
+    said: list[Any] = []
+    for failure in [*unreadable, *unmade, *missing]:
+        problem = _check_line_for(failure, unmade, checked)
+        if problem is None:
+            own.append(failure)
+            cannot.append(failure)
+        else:
+            said.append(problem)
+            cannot.append(unlabelled(problem))
     if (errors or own) and not force:
         raise refusal(profile.path, [*errors, *own])
-    return Preflight(plan=plan, references=references, warnings=[*warnings, *notices, *errors], failures=cannot)
+    # Said as warnings (the CLI prints "warning: " before each): the check's lines without their own severity,
+    # then the old-form notices of install's own device reading that the check did not already give.
+    gone_past = [unlabelled(p) for p in checked.problems if p not in said]
+    notices = [n for n in notices if not any(n.startswith(f"{p.file} [{p.key}]: {p.message}")
+                                             for p in checked.problems)
+               and not any(f"[services.{k.service}]: device '{d}' " in n for k in numbers for d in k.addresses)]
+    return Preflight(plan=plan, references=references, warnings=[*gone_past, *notices], failures=cannot)

@@ -9,7 +9,9 @@ name of a file beside the profile stays a word). A declared file that is missing
 a regular file) is a problem naming the service, the setting, the path and the fix: install
 cannot put it on the vehicle. Values are read where the services read them: the service's
 config file wins over the profile's ``settings``, which win over the field's default. A value
-that is not a string is left to ``u2sa check`` (a type error there).
+that is not a string is left to ``u2sa check`` (a type error there). A missing file's line
+(:class:`MissingFile`) knows the file and key of its value, so install shows ``u2sa check``'s
+line for it instead when the check named it too.
 
 Each file goes to ``/etc/u2sa`` at the same place relative to the profile as in the source
 (``mission.xml`` stays ``mission.xml``), or, when it lies outside the profile's directory or
@@ -29,6 +31,19 @@ from typing import Any, Mapping
 from u2sa_hw.vehicle import ServiceSpec, VehicleProfile
 
 ETC_DIR = "/etc/u2sa"
+
+
+class MissingFile(str):
+    """The problem line of a declared file that is missing, knowing the file and key its value is in (so install
+    can tell when ``u2sa check`` said the same: its line is then the one shown)."""
+
+    file: Path   # the profile or the service's config file
+    key: str     # the TOML key there: services.NAME.settings.KEY in the profile, KEY in a config file
+
+    def __new__(cls, text: str, *, file: Path, key: str) -> MissingFile:
+        line = super().__new__(cls, text)
+        line.file, line.key = file, key
+        return line
 
 
 @dataclass(frozen=True)
@@ -101,12 +116,12 @@ def find_references(profile: VehicleProfile, *, taken: set[str]) -> tuple[list[R
             path = profile.resolve_path(text)
             assert path is not None
             if not path.is_file():
-                where = f"{spec.config_path} [{key}]" if in_config else \
-                    f"{profile.path} [services.{name}.settings.{key}]"
+                file, at = (spec.config_path, key) if in_config else (profile.path, f"services.{name}.settings.{key}")
                 what = "is not a regular file" if path.exists() else "does not exist"
-                problems.append(f"{where}: service {name}: {key} = {text!r} names {path}, which {what}: install "
-                                "cannot put it on the vehicle; fix: correct the path (relative to the profile's "
-                                "directory) or create the file")
+                problems.append(MissingFile(f"{file} [{at}]: service {name}: {key} = {text!r} names {path}, which "
+                                            f"{what}: install cannot put it on the vehicle; fix: correct the path "
+                                            "(relative to the profile's directory) or create the file",
+                                            file=file, key=at))
                 continue
             source = path.resolve()
             if source in (profile.path.resolve(), spec.config_path.resolve()):
