@@ -35,13 +35,6 @@ WATCHDOG_FIELDS = frozenset({"hw_watchdog", "hw_watchdog_timeout_s", "watchdog_t
                              "enable_watchdog_endpoint", "endpoints_fw", "firmware", "command_period_s"})
 
 
-def check_watchdog_endpoints(get: Callable[[str], Any], fail: Callable[[str], Exception]) -> None:
-    """Raise *fail*(why) unless both endpoint fields hold an endpoint id 0..65535 (0: unknown)."""
-    for key in ("watchdog_timeout_endpoint", "enable_watchdog_endpoint"):
-        if not isinstance(get(key), int) or isinstance(get(key), bool) or not 0 <= get(key) <= 0xFFFF:
-            raise fail(f"{key} must be an endpoint id 0..65535 (0: unknown), got {get(key)!r}")
-
-
 class OdriveWatchdogSetup:
     """Sets up and reads back the axis watchdogs of one ODrive driver, one step at a time.
 

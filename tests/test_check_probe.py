@@ -284,7 +284,9 @@ def test_check_probe_says_no_probe_for_a_kind_the_targets_do_not_know(tmp_path: 
         assert main(["check", "--vehicle", str(profile), "--probe", "--seconds", "0.1"]) == 0
     finally:
         gpio.stop()
-    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("probe ")]
+    out = capsys.readouterr().out
+    assert out.splitlines()[-1].endswith("1 device(s) probed, 0 failed, 1 with no probe for their kind")
+    lines = [line for line in out.splitlines() if line.startswith("probe ")]
     assert sorted(lines) == [
         f"probe ok   lamp: gpio mock+gpio://{tmp_path}/gpiochip0.sock/5: 8 lines; line(s) 5 exist and are free",
         f"probe skip pan: pwm mock+pwm://{pwm}/3: no probe for kind pwm: not looked at (check it by hand; a probe for "

@@ -111,8 +111,10 @@ def cmd_check(args: Any) -> int:
     warnings = len(problems) - len(errors)
     summary = f"{path}: {len(errors)} error(s), {warnings} warning(s)"
     if args.probe:
+        skipped = sum(1 for p in probes if not p.probed)
         summary += (", probe skipped (fix the errors first)" if errors
-                    else f", {len(probes)} device(s) probed, {len(failed)} failed")
+                    else f", {len(probes) - skipped} device(s) probed, {len(failed)} failed"
+                    + (f", {skipped} with no probe for their kind" if skipped else ""))
     print(summary)
     return 0 if ok else 1
 
