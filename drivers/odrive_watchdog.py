@@ -18,7 +18,7 @@ watchdog step is settled (at the latest after ``WD_TRIES * WD_REPLY_S``).
 from __future__ import annotations
 
 import logging
-from typing import Any, Callable
+from typing import Callable
 
 import can
 
