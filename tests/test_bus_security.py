@@ -7,7 +7,8 @@ service obeys none, counts each per channel in its health and keeps running. The
 that act are sent the same: a ``pwm_servo`` actuator on a sysfs-shaped PWM tree moves nothing
 for a forged or unsigned ACTUATOR_CMD, and keeps a raised failsafe through a forged and an
 unsigned clear. A captured signed packet sent again is dropped as replayed; a rotated key is
-picked up without a restart; a restarted service is heard at once; a duplicate refuses to start.
+picked up without a restart; a restarted service is heard at once; a duplicate refuses to start,
+and of two started at once exactly one stays.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from u2sa_hw.bus_client import BusClient
 from u2sa_hw.bus_auth import TAG, TRAILER_LEN, BusAuth, Keyring, keyring_for
 from u2sa_hw.bus_key import KEY_ENV, key_path, new_key, write_key
 from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
-from u2sa_hw.service_bus import PROBE_ENV
+from u2sa_hw.service_bus import PROBE_ENV, Instance, health_instance, process_start_us
 from u2sa_hw.transport import Transport
 
 SERVICE = "state_estimator"
@@ -213,17 +214,109 @@ def test_an_open_bus_is_said_at_start_and_in_discovery(services: ServiceProcesse
     assert "the bus is open" in log
 
 
+def duplicate_line(services: ServiceProcesses, log_name: str) -> str:
+    out = (services.workdir / f"{log_name}.stderr").read_text()
+    assert "Traceback" not in out, out
+    lines = [x for x in out.splitlines() if "already runs on this bus" in x]
+    assert len(lines) == 1, out
+    return lines[0]
+
+
 def test_a_duplicate_service_refuses_to_start_naming_the_other(services: ServiceProcesses, bus: BusClient) -> None:
     first = start_estimator(services, bus)     # discoverable before the second starts
-    # The second listens as long as a loaded machine may take the first to answer: the check is the same one.
-    second = services.start(SERVICE, **{PROBE_ENV: "20"})
-    assert second.wait(timeout=60) == 3
-    out = (services.workdir / f"{SERVICE}.stderr").read_text()
-    line = next(x for x in out.splitlines() if "already runs on this bus" in x)
+    second = services.start(SERVICE)           # the default probe (1 s, its request sent 4 times), then the watch
+    assert second.wait(timeout=30) == 3
+    line = duplicate_line(services, SERVICE)
     assert f"pid {first.pid} on host {first.host}" in line and f"u2sa stop {SERVICE}" in line
-    assert "Traceback" not in out
     assert services.procs[0].poll() is None
     assert bus.discover(timeout=1.0, name=SERVICE)[0].pid == first.pid
+
+
+def test_a_duplicate_the_probe_missed_stops_once_it_hears_the_first(services: ServiceProcesses,
+                                                                   bus: BusClient) -> None:
+    # As on a loaded board where the first answers after the probe: here the second skips its
+    # probe, starts, and hears the first's Health in its watch. The newer stops; the first runs on.
+    first = start_estimator(services, bus)
+    second = services.start(SERVICE, **{PROBE_ENV: "0"})
+    assert second.wait(timeout=30) == 3
+    out = (services.workdir / f"{SERVICE}.stderr").read_text()
+    assert f"started, pid {second.pid}" in out, out          # it did start: the watch found the first
+    line = duplicate_line(services, SERVICE)
+    assert f"pid {first.pid} on host {first.host}, heard after this one started" in line, line
+    assert services.procs[0].poll() is None
+    assert bus.discover(timeout=1.0, name=SERVICE)[0].pid == first.pid
+
+
+AT_THE_BARRIER = """\
+import os, sys
+from pathlib import Path
+from u2sa_hw.cli import main
+Path(sys.argv[1]).touch()      # imported and at the barrier
+os.read(0, 1)                  # the test's go, written to both at once
+sys.exit(main(["service", sys.argv[2]]))
+"""
+
+
+@pytest.mark.parametrize("probe", ["default probe", "no probe"])
+def test_two_of_one_name_started_at_once_leave_exactly_one(services: ServiceProcesses, bus: BusClient,
+                                                           probe: str) -> None:
+    # Neither answers the other's probe (neither runs yet): both start, hear each other's Health,
+    # and the newer (the later process start, then the larger pid, then sender id) stops.
+    heard: dict[int, Any] = {}
+
+    def on_health(_c: str, msg: t.Health) -> None:
+        if msg.name == SERVICE and msg.status != "stopping" and msg.pid not in heard:
+            heard[msg.pid] = health_instance(msg, bus.transport.last_sender)
+
+    bus.transport.subscribe(ch.HEALTH, t.Health, on_health)
+    env = services.env(**({PROBE_ENV: "0"} if probe == "no probe" else {}))
+    procs = []
+    for i in (1, 2):
+        log = open(services.workdir / f"twin{i}.stderr", "wb")
+        procs.append(subprocess.Popen([sys.executable, "-c", AT_THE_BARRIER, str(services.workdir / f"twin{i}.ready"),
+                                       SERVICE], cwd=services.workdir, env=env, stdin=subprocess.PIPE,
+                                      stdout=log, stderr=subprocess.STDOUT))
+    services.procs.extend(procs)
+    wait_until(lambda: all((services.workdir / f"twin{i}.ready").exists() for i in (1, 2)), timeout=30,
+               message="both at the barrier")
+    for p in procs:
+        p.stdin.write(b"g")
+        p.stdin.close()
+    wait_until(lambda: any(p.poll() is not None for p in procs), timeout=30, message="one of the two to stop")
+    stopped = [p for p in procs if p.poll() is not None]
+    assert len(stopped) == 1 and stopped[0].returncode == 3, [p.returncode for p in procs]
+    loser = stopped[0]
+    survivor = procs[1 - procs.index(loser)]
+    line = duplicate_line(services, f"twin{procs.index(loser) + 1}")
+    answers = wait_until(lambda: bus.discover(timeout=0.5, name=SERVICE), timeout=30, message="the survivor")
+    assert [a.pid for a in answers] == [survivor.pid] and survivor.poll() is None
+    assert f"pid {survivor.pid} on host {answers[0].host}" in line, line
+    if "heard after this one started" in line:   # both ran (always without the probe): the newer stopped
+        if {loser.pid, survivor.pid} <= set(heard):   # (each sends a Health as it starts; the test heard them)
+            assert heard[loser.pid] > heard[survivor.pid], heard
+    else:                     # the survivor ran (and sent its Health) before the loser's probe ended
+        assert probe == "default probe", line
+
+
+def test_services_a_launcher_started_take_its_start_so_a_whole_newer_run_gives_way() -> None:
+    # Every child of one `u2sa run` (U2SA_RUN_ID set, the launcher its parent) reports the run's start and
+    # pid: of two runs of one profile started together, all of the newer run's duplicates are the newer.
+    show = ("from u2sa_hw.service_bus import own_instance\n"
+            "class T: sender = 'ab'\n"
+            "i = own_instance(T()); print(i.started_us, i.stack_pid, i.pid)")
+    env = {k: v for k, v in os.environ.items() if k != "U2SA_RUN_ID"}
+    for run_id, stack_is_parent in ((None, False), ("1", True)):
+        out = subprocess.run([sys.executable, "-c", show], env={**env, **({"U2SA_RUN_ID": run_id} if run_id else {})},
+                             capture_output=True, text=True, check=True, timeout=60).stdout.split()
+        started, stack, pid = (int(x) for x in out)
+        if stack_is_parent:
+            assert stack == os.getpid() and started == process_start_us(os.getpid())
+        else:
+            assert stack == pid != os.getpid() and started >= process_start_us(os.getpid())
+    newer, older = Instance(2_000_000, 10, "aa"), Instance(1_000_000, 99, "ff")
+    assert newer > older                                   # the later start
+    assert Instance(1, 11, "") > Instance(1, 10, "ff")     # then the larger stack pid
+    assert Instance(1, 10, "ab") > Instance(1, 10, "aa")   # then the larger sender id
 
 
 def test_a_key_holder_with_another_system_id_is_dropped_as_foreign_and_shown(services: ServiceProcesses,

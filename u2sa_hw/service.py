@@ -35,7 +35,7 @@ from u2sa_hw.config import ConfigError, ConfigField, Configurator, field, to_tex
 from u2sa_hw.health import HOSTNAME, ProcessStats, build_health
 from u2sa_hw.messages import type_name
 from u2sa_hw.sdnotify import SystemdNotifier, watchdog_interval
-from u2sa_hw.service_bus import DUPLICATE_EXIT, bus_text, find_duplicate, listen_state, rejected_text
+from u2sa_hw.service_bus import DUPLICATE_EXIT, DuplicateWatch, bus_text, listen_state, rejected_text
 from u2sa_hw.service_log import LEVEL_NAMES, level_number, set_level
 from u2sa_hw.transport import Transport
 from u2sa_hw.vehicle import VehicleProfile
@@ -84,6 +84,7 @@ class U2SAService:
         self._last_loop = time.monotonic()
         self._health_thread: threading.Thread | None = None
         self._bus_listen = ""   # where the bus listens when not where it belongs (set by start())
+        self._duplicates = DuplicateWatch(self)   # another of this name on the bus: refuse, or the newer stops
         self._contract_subscriptions()
 
     @classmethod
@@ -274,7 +275,7 @@ class U2SAService:
 
     def _on_discovery(self, req: t.DiscoveryRequest) -> None:
         if (req.name_filter and req.name_filter != self.name) or not self.running:
-            return   # not yet started (find_duplicate pumps the transport before start()) or stopping
+            return   # not yet started (the duplicate probe pumps the transport before start()) or stopping
         resp = t.DiscoveryResponse()
         resp.request_id = req.request_id
         resp.name, resp.service_type, resp.status = self.name, self.SERVICE_TYPE, self.status
@@ -337,6 +338,7 @@ class U2SAService:
         except Exception as exc:  # noqa: BLE001 - health must still go out
             details = {"health_details_error": str(exc)}
         details["bus_security"] = bus_text(self.transport)
+        details.update(self._duplicates.details())   # started_us, stack_pid: which of two of this name is newer
         rejected = rejected_text(self.transport.rejected())
         if rejected:
             details["bus_rejected"] = rejected
@@ -384,7 +386,7 @@ class U2SAService:
         self.thread_id = threading.get_ident()
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: self.stop())
-        other = find_duplicate(self)
+        other = self._duplicates.probe()
         if other is not None:   # before setup(): no device opened, no health published
             self.logger.error("%s", other)
             self.transport.stop()
@@ -393,6 +395,7 @@ class U2SAService:
         code = 0
         try:
             self.start()
+            self._duplicates.arm()   # for a while, the newer of two of this name (started together) stops
             self.run()
         except Exception as exc:  # noqa: BLE001 - log the reason before dying with non-zero
             self.logger.exception("%s failed: %s", self.name, exc)
@@ -409,10 +412,11 @@ class U2SAService:
             except Exception as exc:  # noqa: BLE001
                 self.logger.error("kill() of %s failed: %s", self.name, exc)
                 code = code or 1
+            self._duplicates.close()
             self.transport.stop()
             self._notifier.close()
             self.logger.info("%s stopped", self.name)
-        return code
+        return DUPLICATE_EXIT if self._duplicates.refusal is not None else code
 
 
 def _root_header(msg: Any) -> t.Header | None:

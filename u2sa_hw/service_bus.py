@@ -3,9 +3,11 @@
 * :func:`bus_text` and :func:`rejected_text` fill the ``bus_security`` and ``bus_rejected``
   details of every Health message (``u2sa services`` and ``u2sa health`` show them); the
   transport's ``listen_problem`` fills ``bus_listen``.
-* :func:`find_duplicate` runs as a service process starts, before ``setup()`` opens any
-  device, and says why it must not start, in one line; the service then exits
-  :data:`DUPLICATE_EXIT` (3), which neither ``u2sa run`` nor systemd
+* :func:`listen_state` fills ``bus_listen``: the transport's ``listen_problem``, or a ``ttl`` >= 1
+  bus with the vehicle's key on the default route's interface.
+* :class:`DuplicateWatch` runs as a service process starts, before ``setup()`` opens any
+  device (:meth:`DuplicateWatch.probe`), and says why it must not start, in one line; the
+  service then exits :data:`DUPLICATE_EXIT` (3), which neither ``u2sa run`` nor systemd
   (``RestartPreventExitStatus=3``) restarts, since a restart would find the same:
 
   - :func:`listen_refusal`: a ``ttl=0`` bus that cannot be kept on ``lo`` (its MULTICAST flag
@@ -14,18 +16,28 @@
     network that has the key (or, open, any host) could command it. A key the run made for
     itself (``$U2SA_BUS_KEY_FILE``: ``u2sa sim``, ``u2sa run`` without an installed key, the
     tests) is held by no other host: the service starts and its health says where it listens.
-  - a live service of the same name that answers discovery on this bus: the line names the
-    other's pid and host and the fix. Only a process with the bus key can answer, so another
-    stack signed with another key is no duplicate. The probe lasts :data:`DUPLICATE_PROBE_S`
-    (``$U2SA_DUPLICATE_PROBE_S`` to wait longer, e.g. on a loaded test machine).
+  - a live service of the same name that answers discovery (or sends its Health) on this
+    bus: the line names the other's pid and host and the fix. Only a process with the bus key
+    can answer, so another stack signed with another key is no duplicate. The probe lasts
+    :data:`DUPLICATE_PROBE_S`, its request sent again every :data:`PROBE_RESEND_S`
+    (``$U2SA_DUPLICATE_PROBE_S`` to change it; 0 skips it).
+
+  Two that start together cannot see each other in the probe (neither answers before it
+  runs), and a loaded board may answer after it: for :data:`DUPLICATE_WATCH_S` after its start
+  the service watches the Health of others of its name, and the newer of two
+  (:class:`Instance`: the later start, then the larger stack pid, then the larger sender id)
+  stops with the same line and the same exit status; the older runs on.
 """
 
 from __future__ import annotations
 
+import math
 import os
+import threading
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
@@ -35,8 +47,12 @@ if TYPE_CHECKING:
     from u2sa_hw.service import U2SAService
     from u2sa_hw.transport import Transport
 
-DUPLICATE_PROBE_S = 0.25   # how long a starting service listens for another of its name
+DUPLICATE_PROBE_S = 1.0    # how long a starting service listens for another of its name
+PROBE_RESEND_S = 0.25      # ... sending its discovery request again this often (one may be lost or answered late)
 PROBE_ENV = "U2SA_DUPLICATE_PROBE_S"
+DUPLICATE_WATCH_S = 10.0   # after start, how long it watches Health for another of its name (started together)
+RUN_ID_ENV = "U2SA_RUN_ID"   # set by the launcher (u2sa run, u2sa sim) for its children
+_STARTED_US = time.time_ns() // 1000   # when /proc cannot say when this process started
 DUPLICATE_EXIT = 3         # exit status of a service that refused to start (a duplicate, a bus off the board)
 
 
@@ -107,49 +123,199 @@ def listen_state(service: "U2SAService") -> str:
 
 
 def probe_seconds(default: float = DUPLICATE_PROBE_S) -> float:
-    """How long the duplicate probe listens: ``$U2SA_DUPLICATE_PROBE_S`` if set (and a number > 0), else *default*."""
+    """How long the duplicate probe listens: ``$U2SA_DUPLICATE_PROBE_S`` if set (a number >= 0), else *default*.
+
+    0 skips the probe (a start a second quicker): the watch after start still finds a duplicate.
+    """
     try:
         value = float(os.environ.get(PROBE_ENV, ""))
     except ValueError:
         return default
-    return value if value > 0 else default
+    return value if value >= 0 and math.isfinite(value) else default
 
 
-def find_duplicate(service: "U2SAService", *, timeout: float | None = None) -> str | None:
-    """Why *service* must not start, in one line, or None: :func:`listen_refusal`, or another of its name answers.
+@dataclass(frozen=True, order=True)
+class Instance:
+    """What orders two live services of one name: the later start, then the larger stack pid, then sender id.
 
-    The transport's handler thread has not started yet, so this thread pumps it.
+    *started_us* is the wall-clock start of the process, or of the ``u2sa run``/``u2sa sim``
+    launcher that started it (``$U2SA_RUN_ID`` set, the launcher its parent): every service of
+    one run then has the run's start, and of two runs of one profile the whole newer run gives
+    way, not half of each (the launcher stops a run when one of its services exits 3). Each
+    side compares the values both report (Health details ``started_us`` and ``stack_pid``, the
+    verified sender id), so both reach the same verdict, whatever their clocks.
     """
-    refused = listen_refusal(service)
-    if refused is not None:
-        return refused
-    timeout = probe_seconds() if timeout is None else timeout
-    found: list[t.DiscoveryResponse] = []
-    me = (HOSTNAME, os.getpid())
 
-    def on_response(_c: str, r: t.DiscoveryResponse) -> None:
-        if r.name == service.name and (r.host, r.pid) != me:
-            found.append(r)
+    started_us: int
+    stack_pid: int
+    sender: str
+    host: str = field(compare=False, default="")
+    pid: int = field(compare=False, default=0)
 
-    transport = service.transport
-    sub = transport.subscribe(ch.DISCOVERY_RESPONSE, t.DiscoveryResponse, on_response)
+
+def own_instance(transport: "Transport") -> Instance:
+    """This process's :class:`Instance`."""
+    sender = getattr(transport, "sender", "")   # "" on an open bus: no sender ids
+    ppid = os.getppid()
+    if os.environ.get(RUN_ID_ENV) and ppid > 1:   # a child of the launcher: the run's start
+        started = process_start_us(ppid)
+        if started is not None:
+            return Instance(started, ppid, sender, HOSTNAME, os.getpid())
+    started = process_start_us(os.getpid())
+    return Instance(_STARTED_US if started is None else started, os.getpid(), sender, HOSTNAME, os.getpid())
+
+
+def process_start_us(pid: int) -> int | None:
+    """When process *pid* started (wall clock, µs; 10 ms resolution), from /proc; None when unknown."""
     try:
+        with open(f"/proc/{pid}/stat") as f:
+            ticks = int(f.read().rsplit(")", 1)[1].split()[19])   # field 22, starttime, after "(comm)"
+        with open("/proc/stat") as f:
+            btime = next(int(line.split()[1]) for line in f if line.startswith("btime "))
+        return btime * 1_000_000 + ticks * 1_000_000 // os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, StopIteration):
+        return None
+
+
+def health_instance(msg: t.Health, sender: str) -> Instance:
+    """The :class:`Instance` a Health reports (its ``started_us`` and ``stack_pid`` details)."""
+    details = {kv.key: kv.value for kv in msg.details}
+    try:
+        started, stack = int(details["started_us"]), int(details["stack_pid"])
+    except (KeyError, ValueError):   # a sender that does not say: its start from its uptime
+        started, stack = msg.header.timestamp_us - int(msg.uptime_s * 1e6), msg.pid
+    return Instance(started, stack, sender, msg.host, msg.pid)
+
+
+def instance_details(me: Instance) -> dict[str, str]:
+    """The Health details that let another of this name order itself against *me*."""
+    return {"started_us": str(me.started_us), "stack_pid": str(me.stack_pid)}
+
+
+class DuplicateWatch:
+    """Finds a live service of the same name on this bus: before start (:meth:`probe`) and for a while after.
+
+    * :meth:`probe` (before ``setup()``): the transport's handler thread has not started, so
+      this thread pumps it. It sends a discovery request, again every :data:`PROBE_RESEND_S`,
+      for :func:`probe_seconds`; a discovery answer or a Health of the name from another
+      process (not one stopping) is a service already running: the line why this one must not
+      start. A loaded board may answer late; two that start together cannot see each other
+      here (neither answers before it runs): hence the watch.
+    * the watch (from the probe to :data:`DUPLICATE_WATCH_S` after :meth:`arm`, which the
+      service calls once started): the Health of every other live service of this name and
+      vehicle, signed by another sender, with another pid. Of the two, the newer (the larger
+      :class:`Instance`) stops: it calls ``service.stop()`` and :attr:`refusal` says why, in the
+      line the service logs and exits :data:`DUPLICATE_EXIT` with. The older says nothing and
+      runs on, so exactly one of the two stays (an actuator that stops drops its device to
+      neutral; the HSM is never left without one).
+    """
+
+    def __init__(self, service: "U2SAService", *, watch_s: float = DUPLICATE_WATCH_S) -> None:
+        self.service = service
+        self.transport = service.transport
+        self.watch_s = watch_s
+        self.me = own_instance(self.transport)
+        self.refusal: str | None = None     # set: this one must not run (the line, with the other and the fix)
+        self._probing = False
+        self._found: list[tuple[str, int, str]] = []   # (service type, pid, host) answering during the probe
+        self._lock = threading.Lock()
+        self._health_sub: Any = None
+        self._timer: threading.Timer | None = None
+
+    def details(self) -> dict[str, str]:
+        """This service's ``started_us`` and ``stack_pid`` for its Health."""
+        return instance_details(self.me)
+
+    def probe(self, timeout: float | None = None) -> str | None:
+        """Why the service must not start, in one line (:func:`listen_refusal`, or another answers), or None."""
+        refused = listen_refusal(self.service)
+        if refused is not None:
+            return refused
+        timeout = probe_seconds() if timeout is None else timeout
+        transport, service = self.transport, self.service
+        self._probing = True
+        self._health_sub = transport.subscribe(ch.HEALTH, t.Health, self._on_health)
+        if timeout <= 0:
+            self._probing = False
+            return None
+        sub = transport.subscribe(ch.DISCOVERY_RESPONSE, t.DiscoveryResponse, self._on_response)
+        try:
+            start = time.monotonic()
+            deadline, resend = start + timeout, start
+            while not self._found and (left := deadline - time.monotonic()) > 0:
+                if time.monotonic() >= resend:
+                    self._request()
+                    resend += PROBE_RESEND_S
+                try:
+                    transport.handle_once(min(left, max(0.0, resend - time.monotonic())))
+                except OSError:   # a signal (SIGINT, SIGTERM) interrupted the wait: stop() was asked
+                    break
+        finally:
+            transport.unsubscribe(sub)
+            self._probing = False
+        if not self._found:
+            return None
+        self.close()
+        kind, pid, host = self._found[0]
+        return duplicate_line(service.name, kind, pid, host)
+
+    def arm(self) -> None:
+        """The service started: watch for :attr:`watch_s` more, then stop listening to Health."""
+        if self._health_sub is None or self.watch_s <= 0:
+            self.close()
+            return
+        self._timer = threading.Timer(self.watch_s, self.close)
+        self._timer.daemon = True
+        self._timer.start()
+
+    def close(self) -> None:
+        """Stop watching (idempotent; from any thread but the transport's handler thread)."""
+        with self._lock:
+            sub, self._health_sub = self._health_sub, None
+            timer, self._timer = self._timer, None
+        if timer is not None and timer is not threading.current_thread():
+            timer.cancel()
+        if sub is not None:
+            self.transport.unsubscribe(sub)
+
+    def _request(self) -> None:
+        service = self.service
         req = t.DiscoveryRequest()
         req.request_id, req.name_filter = f"dup-{os.getpid()}-{time.monotonic_ns()}", service.name
         req.header.system_id, req.header.source = service.profile.system_id, service.name
         req.header.timestamp_us = time.time_ns() // 1000
-        transport.publish(ch.DISCOVERY_REQUEST, req)
-        deadline = time.monotonic() + timeout
-        while not found and (left := deadline - time.monotonic()) > 0:
-            try:
-                transport.handle_once(left)
-            except OSError:   # a signal (SIGINT, SIGTERM) interrupted the wait: stop() was asked
-                break
-    finally:
-        transport.unsubscribe(sub)
-    if not found:
-        return None
-    other = found[0]
-    return (f"another '{service.name}' ({other.service_type}) already runs on this bus: pid {other.pid} on host "
-            f"{other.host}; stop it first ('u2sa stop {service.name}'), or give this one another name or another "
-            "lcm_url (u2sa sim and the tests pick a private port)")
+        self.transport.publish(ch.DISCOVERY_REQUEST, req)
+
+    def _on_response(self, _c: str, r: t.DiscoveryResponse) -> None:
+        if r.name == self.service.name and (r.host, r.pid) != (HOSTNAME, os.getpid()):
+            self._found.append((r.service_type, r.pid, r.host))
+
+    def _on_health(self, _c: str, msg: t.Health) -> None:
+        service = self.service
+        if (msg.name != service.name or msg.status == "stopping" or self.refusal is not None
+                or (msg.host, msg.pid) == (HOSTNAME, os.getpid())
+                or msg.header.system_id != service.profile.system_id):
+            return
+        sender = self.transport.last_sender
+        if sender and sender == self.transport.sender:
+            return
+        if self._probing:   # it runs and this one has not started: this one gives way
+            self._found.append((msg.service_type, msg.pid, msg.host))
+            return
+        if not service.running:
+            return          # stopping anyway
+        other = health_instance(msg, sender)
+        if other > self.me:
+            return          # the other is the newer: it stops (it hears this one's Health)
+        self.refusal = duplicate_line(service.name, msg.service_type, msg.pid, msg.host, after_start=True)
+        service.logger.error("%s", self.refusal)
+        service.stop()
+
+
+def duplicate_line(name: str, kind: str, pid: int, host: str, *, after_start: bool = False) -> str:
+    """The one line a duplicate logs before it exits :data:`DUPLICATE_EXIT`."""
+    when = (", heard after this one started (of the two, the one started later stops: this one)" if after_start
+            else "")
+    return (f"another '{name}' ({kind}) already runs on this bus: pid {pid} on host {host}{when}; stop it first "
+            f"('u2sa stop {name}'), or give this one another name or another lcm_url (u2sa sim and the tests pick "
+            "a private port)")
