@@ -15,6 +15,7 @@ import pytest
 
 from u2sa_hw.bus_key import KEY_ENV, fresh_key_file
 from u2sa_hw.udp_ports import private_lcm_url
+from u2sa_hw.service_bus import PROBE_ENV
 
 REPO = Path(__file__).resolve().parent.parent
 U2SA = [sys.executable, "-m", "u2sa_hw.cli"]
@@ -36,6 +37,10 @@ def pytest_configure(config: pytest.Config) -> None:
     os.chmod(_SESSION_KEY_DIR.name, 0o755)
     os.chmod(key, 0o644)
     os.environ[KEY_ENV] = str(key)
+    # A starting service listens 1 s for another of its name (u2sa_hw/service_bus.py); the tests
+    # start hundreds, each on a bus of its own, so they listen a quarter of that. The tests of the
+    # duplicate check itself give the default back (DUPLICATE_PROBE_S) where they rely on it.
+    os.environ.setdefault(PROBE_ENV, "0.25")
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:

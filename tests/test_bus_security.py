@@ -34,7 +34,7 @@ from u2sa_hw.bus_client import BusClient
 from u2sa_hw.bus_auth import TAG, TRAILER_LEN, BusAuth, Keyring, keyring_for
 from u2sa_hw.bus_key import KEY_ENV, key_path, new_key, write_key
 from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
-from u2sa_hw.service_bus import PROBE_ENV, Instance, health_instance, process_start_us
+from u2sa_hw.service_bus import DUPLICATE_PROBE_S, PROBE_ENV, Instance, health_instance, process_start_us
 from u2sa_hw.transport import Transport
 
 SERVICE = "state_estimator"
@@ -224,7 +224,8 @@ def duplicate_line(services: ServiceProcesses, log_name: str) -> str:
 
 def test_a_duplicate_service_refuses_to_start_naming_the_other(services: ServiceProcesses, bus: BusClient) -> None:
     first = start_estimator(services, bus)     # discoverable before the second starts
-    second = services.start(SERVICE)           # the default probe (1 s, its request sent 4 times), then the watch
+    second = services.start(SERVICE, **{PROBE_ENV: str(DUPLICATE_PROBE_S)})   # the default probe (1 s, its
+    # request sent 4 times; the suite's services listen 0.25 s), then the watch
     assert second.wait(timeout=30) == 3
     line = duplicate_line(services, SERVICE)
     assert f"pid {first.pid} on host {first.host}" in line and f"u2sa stop {SERVICE}" in line
@@ -269,7 +270,7 @@ def test_two_of_one_name_started_at_once_leave_exactly_one(services: ServiceProc
             heard[msg.pid] = health_instance(msg, bus.transport.last_sender)
 
     bus.transport.subscribe(ch.HEALTH, t.Health, on_health)
-    env = services.env(**({PROBE_ENV: "0"} if probe == "no probe" else {}))
+    env = services.env(**{PROBE_ENV: "0" if probe == "no probe" else str(DUPLICATE_PROBE_S)})
     procs = []
     for i in (1, 2):
         log = open(services.workdir / f"twin{i}.stderr", "wb")

@@ -22,7 +22,7 @@ from u2sa_hw.bus_client import BusClient
 from u2sa_hw.launcher import Launcher, LauncherBusy, LauncherClient, LauncherError, RestartPolicy, SupervisedProcess
 from u2sa_hw.launcher.launcher import u2sa_command
 from u2sa_hw.launcher.process import REFUSED_EXIT
-from u2sa_hw.service_bus import DUPLICATE_EXIT, PROBE_ENV
+from u2sa_hw.service_bus import DUPLICATE_EXIT, DUPLICATE_PROBE_S, PROBE_ENV
 from u2sa_hw.vehicle import load_profile
 
 
@@ -351,7 +351,7 @@ def test_a_second_run_of_the_vehicle_on_its_bus_refuses_once(tmp_path: Path, lcm
                                                              monkeypatch: pytest.MonkeyPatch) -> None:
     """The same profile from a second directory (its own data_dir, so its own control socket): its service
     finds the first run's one on the bus, says so once, and nothing is restarted."""
-    monkeypatch.setenv(PROBE_ENV, "20")      # a loaded machine may take the first run's service long to answer
+    monkeypatch.setenv(PROBE_ENV, str(DUPLICATE_PROBE_S))   # the default probe, then the watch after start
     (tmp_path / "one").mkdir()
     (tmp_path / "two").mkdir()
     first = launch(write_profile(tmp_path / "one", lcm_url, {"est": "state_estimator"}))
