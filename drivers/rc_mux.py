@@ -33,6 +33,23 @@ to the board's pull-down. ``RcMode`` goes out at ``publish_hz`` and on every cha
 the enable line, so the vehicle is under autonomous control only when both say so;
 ``pulse_us`` holds the last valid width of each configured channel in config order
 (0 when it has none within the signal timeout).
+
+Time. Everything is judged on the port's device clock (CLOCK_MONOTONIC on a real chip, the
+recorded edge stamps on a replay chip), in the order of the edges' stamps: before an edge is
+taken, whatever falls due up to its stamp happens first, at its own time -- the signal timeout
+and the read-back mismatch when they expire, and the timed messages (``RC_MODE`` at
+``publish_hz``, ``MANUAL_CMD`` at ``manual_hz``) on a fixed grid of the recorded clock
+(:class:`drivers.rc_pulse.DueGrid`), each with the state as of its due time. A change of what
+``RcMode`` says (mode, enable line, arming, hold, read-back mismatch, the reason autonomy is
+blocked) is published at once, as its own message. Live, a timed message waits for an edge
+stamped after its due time (or ``TIMED_HOLD_NS`` past it on the clock), so a delivery latency
+cannot leave an earlier edge out of it. So what is published depends on the edges and their
+stamps, not on how the loop batched its reads: a replay gives the live messages.
+
+On a replay chip (a device clock) the Health, FAILSAFE and STATE_ESTIMATE the pre-arm checks
+and the failsafe read come from the chip too, the recorded ones, in order with the edges
+(:meth:`u2sa_hw.ports.gpio_port.GpioPort.take_recorded_bus`), and the loop's own stall is not
+judged (the replaying machine's load is not the vehicle's): the decision is the recorded one.
 """
 
 from __future__ import annotations
@@ -45,25 +62,27 @@ from drivers.declarations import RcMuxDeclarations
 from drivers.gpio_lines import (GpioLineSet, check_gpio_device, legacy_gpio_address, note_restart_needed,
                                 parse_line_map)
 from drivers.rc_manual import ManualSticks
-from drivers.rc_pulse import MODE_AUTONOMOUS, MODE_MANUAL, MODE_NAMES, MODE_NO_SIGNAL, PulseMeter, RcModeFilter
+from drivers.rc_pulse import (MODE_AUTONOMOUS, MODE_MANUAL, MODE_NAMES, MODE_NO_SIGNAL, DueGrid, PulseMeter,
+                              RcModeFilter)
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Sensor
 from u2sa_hw.config import ConfigError, field
 from u2sa_hw.failsafe import FailsafeSources
+from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.ports.device_link import device_setting
-from u2sa_hw.ports.gpio_port import EdgeEvent, GpioPort
+from u2sa_hw.ports.gpio_port import BusInput, ClockTick, EdgeEvent, GpioEvent, GpioPort
 from u2sa_hw.safety.config import load_safety
 from u2sa_hw.safety.prearm import CheckFailure, PrearmChecks
 from u2sa_hw.safety.wiring import check_wiring
 
 
-def _next_due(due_ns: int, period_ns: int, now_ns: int) -> int:
-    """The next time a timed message is due: one period on, or one period from now when more than a
-    period behind (no burst after a stall); always after *now_ns*, so a second look at the same time
-    never sends it twice."""
-    following = due_ns + period_ns
-    return following if following > now_ns else now_ns + period_ns
+# Live, a timed message due at D waits until an edge stamped after D is taken, or until the clock is
+# this far past D: an edge stamped before D but delivered late (a kernel chip: microseconds; the
+# mock receiver hands a frame's edges over at the frame's end) is still in it. It only waits
+# while no edge comes (a lost signal): then every RcMode is at most a period and this old.
+TIMED_HOLD_NS = 50_000_000
+RECORDED_BUS = (ch.HEALTH, ch.FAILSAFE)   # what a replay chip hands over (and STATE_ESTIMATE when checked)
 
 
 class RcSetup(NamedTuple):
@@ -123,17 +142,23 @@ class RcMuxDriver(RcMuxDeclarations, Sensor):
         self.prearm_failures: list[CheckFailure] = []
         self.hold = False
         self.checks_lost = self.stalls = 0
-        stale_ns = int((self.safety.rc_mode_timeout_s - 1.0 / c["publish_hz"]) * 1e9)
+        stale_ns = int((self.safety.rc_mode_timeout_s - 1.0 / c["publish_hz"]) * 1e9) - TIMED_HOLD_NS
         self.stall_after_ns = max(20_000_000, min(self.filter.signal_timeout_ns, stale_ns))
         self.select_level: int | None = None
         self.mismatch, self._mismatch_since = False, None
         self.mismatches = self.enable_changes = 0
         self.signal_losses = 0  # times the mode went from manual/autonomous to no signal
         self.clock_ns: int | None = None   # the device clock: the latest time judged (GpioPort.now_ns)
-        self._next_publish_ns = self._next_manual_ns = 0
+        self.mode_grid, self.manual_grid = DueGrid(c["publish_hz"]), DueGrid(c["manual_hz"])
+        self._origin_ns = 0                # the recorded clock's zero on the device clock (a replay chip's)
+        self._origin_of: Any = lambda: 0   # where the open port says it is
+        self._device_clock = False         # the port is a replay chip: its clock, no wall-clock judgments
+        self._recorded_bus: tuple[str, ...] = ()   # bus channels the replay chip hands over instead of the bus
+        self._next_publish_ns: int | None = None   # the next RC_MODE due (None: the clock has not started)
+        self._next_manual_ns: int | None = None    # the next MANUAL_CMD due (None: not in manual)
+        self._published: tuple | None = None       # what the last RcMode said (its state_key)
         self._stopping = False
         self._enable_lock = threading.RLock()
-        self._changed = threading.Event()  # something a subscriber should hear about at once
         inputs = list(self.channels.values()) + ([self.select_line] if self.select_line >= 0 else [])
         self.gpio = GpioLineSet(self, inputs=inputs, initial_outputs=lambda: {self.enable_line: 0},
                                 record_raw=c["record_raw"], on_open=self._on_open)
@@ -142,10 +167,9 @@ class RcMuxDriver(RcMuxDeclarations, Sensor):
         if self.sticks is not None:
             self.register_publisher(ch.MANUAL_CMD, t.PercentageCommand)
         self.register_subscriber(ch.FAILSAFE, t.Failsafe, self._on_failsafe)
-        self.register_subscriber(ch.HEALTH, t.Health, lambda msg: self.prearm.on_health(msg, time.monotonic()))
+        self.register_subscriber(ch.HEALTH, t.Health, self._on_health)
         if self.prearm.needs_estimate:
-            self.register_subscriber(ch.STATE_ESTIMATE, t.StateInformation,
-                                     lambda msg: self.prearm.on_estimate(msg, time.monotonic()))
+            self.register_subscriber(ch.STATE_ESTIMATE, t.StateInformation, self._on_estimate)
 
     def parse_config(self, c: Mapping[str, Any]) -> RcSetup:
         """Check the config and build the pulse meter and mode filter; ConfigError names the field."""
@@ -192,21 +216,35 @@ class RcMuxDriver(RcMuxDeclarations, Sensor):
     # -- the enable line -----------------------------------------------------------------
     def autonomy_allowed(self) -> tuple[bool, str]:
         """Whether the enable line may be high, and if not the first reason why not."""
+        allowed, why, _ = self._blocked()
+        return allowed, why
+
+    def _blocked(self) -> tuple[bool, str, Any]:
+        """(allowed, why not, what the reason is: the pre-arm check and service rather than its text, whose
+        sigma changes with every estimate)."""
         if self._stopping:
-            return False, "stopping"
+            return False, "stopping", "stopping"
         if self.failsafes.active:
-            return False, f"failsafe ({self.failsafes.reason()})"
+            why = f"failsafe ({self.failsafes.reason()})"
+            return False, why, why
         if not self.gpio.is_open:
-            return False, "GPIO port down"
+            return False, "GPIO port down", "port"
         if self.mismatch:
-            return False, "mux select read-back mismatch"
+            return False, "mux select read-back mismatch", "mismatch"
         if self.prearm_failures and not (self.hold and self.enabled):
-            return False, f"pre-arm check failed: {self.prearm_failures[0].reason}"
+            first = self.prearm_failures[0]
+            return False, f"pre-arm check failed: {first.reason}", ("prearm", first.check, first.service)
         if self.filter.mode != MODE_AUTONOMOUS:
-            return False, f"mode {self.filter.mode_name}"
+            why = f"mode {self.filter.mode_name}"
+            return False, why, why
         if not self.armed:
-            return False, "not armed (switch to manual to re-arm)"
-        return True, ""
+            return False, "not armed (switch to manual to re-arm)", "armed"
+        return True, "", ""
+
+    def state_key(self) -> tuple:
+        """What an RcMode says but the pulse widths (and the sigma in a pre-arm reason): a change is published
+        at once."""
+        return (self.filter.mode, self.enabled, self.mismatch, self.armed, self.hold, self._blocked()[2])
 
     def update_enable(self) -> None:
         """Drive the enable line to what :meth:`autonomy_allowed` says (safe from any thread)."""
@@ -224,7 +262,6 @@ class RcMuxDriver(RcMuxDeclarations, Sensor):
                     self.logger.info("autonomy enable HIGH (all conditions hold)")
                 else:
                     self.logger.warning("autonomy enable low (%s)", why)
-                self._changed.set()
 
     @property
     def failsafe_active(self) -> bool:
@@ -232,6 +269,31 @@ class RcMuxDriver(RcMuxDeclarations, Sensor):
         return self.failsafes.active
 
     def _on_failsafe(self, msg: t.Failsafe) -> None:
+        if ch.FAILSAFE not in self._recorded_bus:   # on a replay chip the recorded ones come with the edges
+            self._apply_failsafe(msg)
+
+    def _on_health(self, msg: t.Health) -> None:
+        if ch.HEALTH not in self._recorded_bus:
+            self.prearm.on_health(msg, time.monotonic())
+
+    def _on_estimate(self, msg: t.StateInformation) -> None:
+        if ch.STATE_ESTIMATE not in self._recorded_bus:
+            self.prearm.on_estimate(msg, time.monotonic())
+
+    def _on_bus_input(self, event: BusInput) -> None:
+        """A recorded bus message from a replay chip, at its recorded arrival on the device clock."""
+        try:
+            msg, _ = REGISTRY.decode(event.data, ch.base_type(event.channel))
+        except MalformedMessage:
+            return
+        if event.channel == ch.FAILSAFE:
+            self._apply_failsafe(msg)
+        elif event.channel == ch.HEALTH:
+            self.prearm.on_health(msg, event.timestamp_ns / 1e9)
+        elif event.channel == ch.STATE_ESTIMATE:
+            self.prearm.on_estimate(msg, event.timestamp_ns / 1e9)
+
+    def _apply_failsafe(self, msg: t.Failsafe) -> None:
         with self._enable_lock:
             change = self.failsafes.apply_message(msg)
             if change.raised:
@@ -243,7 +305,6 @@ class RcMuxDriver(RcMuxDeclarations, Sensor):
             if (change.active_after or change.cleared) and self.config["require_rearm"]:
                 self.armed = False
             self.update_enable()
-            self._changed.set()
 
     def _check_prearm(self, now: float) -> None:
         """Evaluate the pre-arm checks; a check lost while autonomous disarms or holds."""
@@ -257,7 +318,6 @@ class RcMuxDriver(RcMuxDeclarations, Sensor):
                 self.logger.info("pre-arm: %s", first)
             else:
                 self.logger.info("pre-arm: every check holds")
-            self._changed.set()
         with self._enable_lock:
             self.prearm_failures = failures
             if (failures and not self.enabled and self.armed and self.filter.mode == MODE_AUTONOMOUS
@@ -265,7 +325,6 @@ class RcMuxDriver(RcMuxDeclarations, Sensor):
                 # refused: the attempt is over, so autonomy cannot start by itself once the check passes
                 self.armed = False
                 self.logger.warning("autonomy refused: %s; switch through manual to try again", first)
-                self._changed.set()
             elif failures and self.enabled and not self.hold:
                 self.checks_lost += 1
                 if self.safety.on_check_lost == "hold":
@@ -276,7 +335,6 @@ class RcMuxDriver(RcMuxDeclarations, Sensor):
                     self.armed = False
                     self.logger.warning("pre-arm check lost while autonomous: %s -> neutral (autonomy dropped; "
                                         "switch through manual to re-arm)", first)
-                self._changed.set()
 
     def _on_open(self, port: GpioPort) -> None:
         # runs inside the opener (under the line set's lock, so not under _enable_lock: lock order
@@ -285,8 +343,16 @@ class RcMuxDriver(RcMuxDeclarations, Sensor):
         if self.config["require_rearm"]:
             self.armed = False  # the lines were lost (or never held): the pilot re-arms
         self.meter.reset()
-        if getattr(port, "device_clock", False):   # a replay chip: its clock, not the wall clock's time so far
-            self.clock_ns, self._next_publish_ns, self._next_manual_ns = None, 0, 0
+        self._device_clock = bool(getattr(port, "device_clock", False))
+        self._origin_of = port.clock_origin_ns
+        if self._device_clock:   # a replay chip: its clock, not the wall clock's time so far
+            self.clock_ns, self._next_publish_ns, self._next_manual_ns = None, None, None
+            wanted = RECORDED_BUS + ((ch.STATE_ESTIMATE,) if self.prearm.needs_estimate else ())
+            taken = port.take_recorded_bus(wanted)
+            if taken:   # the recorded inputs replace what the replay bus says: start from none of them
+                self._recorded_bus = taken
+                self.prearm = PrearmChecks.from_profile(self.profile)
+                self.failsafes = FailsafeSources()
         self.select_level = port.get(self.select_line) if self.select_line >= 0 else None
 
     # -- the loop ------------------------------------------------------------------------
@@ -301,40 +367,155 @@ class RcMuxDriver(RcMuxDeclarations, Sensor):
             if port is None:
                 self.wait(min(0.05, max(0.01, self.gpio.retry_in())))
             else:
-                # each edge (and a replay chip's tick) in order, timers first at its time: what is
-                # published depends on the edge stamps, not on how the reads batched them
-                for event in self.gpio.read_events(port, 0.02):
-                    self._step(event.timestamp_ns)
-                    if isinstance(event, EdgeEvent):
-                        self._on_edge(event.line, event.rising, event.timestamp_ns)
+                # each edge (and a replay chip's tick or recorded bus input) in order, whatever falls
+                # due before it first, at its own time: what is published depends on the stamps, not
+                # on how the reads batched them
+                events = self.gpio.read_events(port, 0.02)
+                wall_ns = time.monotonic_ns()
+                for event in events:
+                    self._take(event, wall_ns)
             # after the wait, before anything is published: a stall anywhere in the loop is caught here
-            last_loop_ns = self._check_stall(last_loop_ns)
+            # (on the wall clock: the actuators judge RC_MODE by it; not in a replay, whose load is not the
+            # vehicle's)
+            if not self._device_clock:
+                last_loop_ns = self._check_stall(last_loop_ns)
             # the device clock (CLOCK_MONOTONIC on a real chip; the port down: the wall clock)
-            self._step(port.now_ns() if port is not None and port.is_open else time.monotonic_ns())
+            up = port is not None and port.is_open
+            if up or not self._device_clock:
+                self._step(port.now_ns() if up else time.monotonic_ns(), time.monotonic_ns())
+            else:
+                self._settle(self.clock_ns)   # a replay chip gone: said at once (its clock went with it)
 
-    def _step(self, now_ns: int | None) -> None:
-        """Everything judged by time, at *now_ns* on the device clock (None: a replay chip's clock has
-        not started): signal timeout, read-back, pre-arm, the enable line, the timed messages."""
+    def _take(self, event: GpioEvent, wall_ns: int) -> None:
+        """One event from the chip at its stamp: what fell due up to it, then the event, then its effects.
+        (Live, the clock may already be past the stamp, read at the loop's last look: an edge delivered late
+        still comes before the timed messages due after it that were held for it.)
+
+        A recorded bus input (a replay chip's) is applied as the live callbacks apply a message: a
+        FAILSAFE drops the enable line at once, a Health or estimate waits for the next judgement; what
+        they change is published with the next edge or tick, as the recorded driver did at its loop's
+        next turn. It does not move the clock (it is stamped at the edge before it)."""
+        if self._published is None:
+            self._settle(None)   # the state before any input (a replay chip sends nothing before it)
+        if isinstance(event, BusInput):
+            self._on_bus_input(event)
+            return
+        at = event.timestamp_ns
+        self._advance_clock(at)
+        if isinstance(event, ClockTick) and event.step:
+            # the recorded loop looked at its clock here while edges were still on their way (late): what
+            # it judged then, as the live step does (expiries up to now, timed messages held for them)
+            self._advance(at, at - TIMED_HOLD_NS, wall_ns)
+            self._settle(at)
+            return
+        self._advance(at, at, wall_ns)
+        if isinstance(event, EdgeEvent):
+            self._on_edge(event.line, event.rising, at)
+        self._settle(at)
+
+    def _step(self, now_ns: int | None, wall_ns: int) -> None:
+        """The loop's look at the clock: expiries up to *now_ns*, timed messages up to it (live: up to
+        TIMED_HOLD_NS before it, later ones wait for a later edge), the pre-arm checks and the enable line.
+        On a replay chip everything was judged at the stamps of its events: only the first state, and a
+        clock that runs on after DEVICE_CLOCK_GRACE_S of silence (a stalled replay times out, fail safe)."""
+        if self._device_clock and (self.clock_ns is None or now_ns is None or now_ns <= self.clock_ns):
+            if self._published is None:
+                self._settle(None)
+            return
+        at = self._advance_clock(now_ns)
+        if at is not None:
+            self._advance(at, at if self._device_clock else at - TIMED_HOLD_NS, wall_ns)
+        self._settle(at)
+
+    def _advance_clock(self, now_ns: int | None) -> int | None:
+        """The device clock moved to *now_ns* (it never goes back); its time now (None: not started). The
+        timed messages start with it."""
         if now_ns is not None:
+            if self.clock_ns is None:
+                self._origin_ns = self._origin_of()
             self.clock_ns = now_ns if self.clock_ns is None else max(self.clock_ns, now_ns)
-        now = self.clock_ns
-        if now is not None:
-            if self.filter.check_signal(now):
-                self._mode_changed()
-            self._check_select(now)
-        self._check_prearm(time.monotonic())   # health ages on the wall clock: it comes over the bus
+        if self.clock_ns is not None and self._next_publish_ns is None:
+            self._next_publish_ns = self.mode_grid.after(self.clock_ns - 1, self._origin_ns)
+        return self.clock_ns
+
+    def _advance(self, limit_ns: int, dues_ns: int, wall_ns: int) -> None:
+        """In time order: every expiry (signal timeout, read-back mismatch) up to *limit_ns*, each timed
+        message due up to *dues_ns* or before an expiry, each at its own time."""
+        while True:
+            expiry = self._next_expiry()
+            due = self._next_timed()
+            expires = expiry is not None and expiry[0] <= limit_ns
+            if expires and (due is None or expiry[0] <= due[0]):
+                self._expire(expiry[1], expiry[0])
+            elif due is not None and (due[0] <= dues_ns or expires):
+                self._timed(due[1], due[0], dues_ns, wall_ns)
+            else:
+                return
+
+    def _next_expiry(self) -> tuple[int, str] | None:
+        times = []
+        signal = self.filter.signal_expiry_ns()
+        if signal is not None:
+            times.append((signal, "signal"))
+        if self._mismatch_since is not None and not self.mismatch:
+            times.append((self._mismatch_since + int(self.config["select_mismatch_ms"] * 1e6) + 1, "select"))
+        return min(times) if times else None
+
+    def _next_timed(self) -> tuple[int, str] | None:
+        times = []
+        if self._next_publish_ns is not None:
+            times.append((self._next_publish_ns, "mode"))
+        if self._next_manual_ns is not None:
+            times.append((self._next_manual_ns, "manual"))
+        return min(times) if times else None
+
+    def _expire(self, what: str, at_ns: int) -> None:
+        if what == "signal":
+            if self.filter.check_signal(at_ns):
+                self._mode_changed(at_ns)
+        else:
+            self._check_select(at_ns)
+            if not self.mismatch:   # no read-back (any more): nothing left to expire
+                self._mismatch_since = None
+        self._settle(at_ns)
+
+    def _timed(self, what: str, due_ns: int, dues_ns: int, wall_ns: int) -> None:
+        """The RC_MODE or MANUAL_CMD due at *due_ns*, with the state as of then. One more than a period behind
+        the clock is left out when the next is due too (no burst after a stall): live the wall clock, on a
+        replay chip its clock (ahead of the edges only after a recorded step, where the live loop was)."""
+        grid = self.mode_grid if what == "mode" else self.manual_grid
+        following = grid.after(due_ns, self._origin_ns)
+        now_ns = (self.clock_ns or due_ns) if self._device_clock else wall_ns
+        behind = now_ns - due_ns > grid.period_ns and following <= dues_ns
+        if what == "mode":
+            self._next_publish_ns = following
+            if not behind:
+                self.publish_mode(due_ns)
+        else:
+            self._next_manual_ns = following if self.filter.mode == MODE_MANUAL and self.sticks is not None else None
+            if not behind and self._next_manual_ns is not None:
+                self.publish_manual(due_ns)
+
+    def _settle(self, at_ns: int | None) -> None:
+        """After an event at *at_ns*: the pre-arm checks, the enable line, the read-back, the status, and
+        RC_MODE at once if what it says changed."""
+        self._check_prearm(self._judge_s(at_ns))
+        if at_ns is not None:
+            self._check_select(at_ns)   # with the line as it was: a mismatch just found goes out before it clears
         self.update_enable()
+        if at_ns is not None and self.select_level is not None and self._mismatch_since is None \
+                and self.select_level != int(self.enabled):
+            self._mismatch_since = at_ns   # the line just changed and the read-back disagrees from now
         self._refresh_status()
-        period_ns = int(1e9 / self.config["publish_hz"])
-        if self._changed.is_set() or (now is not None and now >= self._next_publish_ns):
-            self._changed.clear()
-            self.publish_mode()
-            if now is not None:
-                self._next_publish_ns = _next_due(self._next_publish_ns, period_ns, now)
-        if (self.sticks is not None and self.filter.mode == MODE_MANUAL and now is not None
-                and now >= self._next_manual_ns):
-            self.publish_manual()
-            self._next_manual_ns = _next_due(self._next_manual_ns, int(1e9 / self.config["manual_hz"]), now)
+        if self.state_key() != self._published:
+            self.publish_mode(at_ns)
+
+    def _judge_s(self, at_ns: int | None) -> float:
+        """The time the pre-arm checks judge ages at: the device clock (live: CLOCK_MONOTONIC, the time
+        Health is stamped with on arrival); before a replay chip's clock starts, its zero."""
+        if at_ns is not None:
+            return at_ns / 1e9
+        return 0.0 if self._device_clock else time.monotonic()
 
     def _check_stall(self, last_loop_ns: int) -> int:
         """A loop gap longer than the signal timeout, or long enough that the actuators may have seen
@@ -350,7 +531,6 @@ class RcMuxDriver(RcMuxDeclarations, Sensor):
                     self.logger.warning("RC service stalled for %.0f ms: disarmed (switch through manual to re-arm)",
                                         gap_ns / 1e6)
                 self.update_enable()
-            self._changed.set()
         return now_ns
 
     def _on_edge(self, line: int, rising: bool, timestamp_ns: int) -> None:
@@ -364,14 +544,13 @@ class RcMuxDriver(RcMuxDeclarations, Sensor):
         if line != self.mode_line:
             return
         if self.filter.on_frame(pulse.width_us, pulse.end_ns):
-            self._mode_changed()
+            self._mode_changed(pulse.end_ns)
         if self.filter.manual_confirmed and (not self.armed or self.hold) and not self.failsafes.active:
             with self._enable_lock:
                 self.armed, self.hold = True, False
             self.logger.info("armed: the switch is at manual")
-            self._changed.set()
 
-    def _mode_changed(self) -> None:
+    def _mode_changed(self, at_ns: int) -> None:
         mode = self.filter.mode
         if mode == MODE_NO_SIGNAL:
             self.signal_losses += 1
@@ -383,17 +562,20 @@ class RcMuxDriver(RcMuxDeclarations, Sensor):
             if mode == MODE_NO_SIGNAL and self.config["require_rearm"]:
                 self.armed = False
         if mode == MODE_MANUAL and self.sticks is not None:
-            self.publish_manual()  # the pilot has the software-muxed outputs from the first manual frame
-        self._changed.set()
+            self.publish_manual(at_ns)  # the pilot has the software-muxed outputs from the first manual frame
+            self._next_manual_ns = self.manual_grid.after(at_ns, self._origin_ns)
+        else:
+            self._next_manual_ns = None
 
     def _check_select(self, now_ns: int) -> None:
+        """The read-back against the enable line at *now_ns*: a disagreement starts (its expiry makes it a
+        mismatch, :meth:`_advance`), or ends."""
         if self.select_level is None:
             return
         if self.select_level == int(self.enabled):
             if self.mismatch:
                 self.logger.info("mux select read-back agrees again (%s)", "autonomous" if self.enabled else "rc")
                 self.mismatch = False
-                self._changed.set()
             self._mismatch_since = None
             return
         if self._mismatch_since is None:
@@ -407,7 +589,6 @@ class RcMuxDriver(RcMuxDeclarations, Sensor):
             self.error(f"{self.device}: mux select line {self.select_line} reads "
                        f"{'autonomous' if self.select_level else 'rc'} but autonomy enable is "
                        f"{'high' if self.enabled else 'low'}; check the mux wiring and its mode channel")
-            self._changed.set()
 
     def _refresh_status(self) -> None:
         if self._stopping:
@@ -415,31 +596,36 @@ class RcMuxDriver(RcMuxDeclarations, Sensor):
         bad = not self.gpio.is_open or self.mismatch or self.filter.mode == MODE_NO_SIGNAL
         self.status = "degraded" if bad else "ok"
 
-    def pulse_widths_us(self) -> list[int]:
-        """Each channel's last valid width (us, config order); 0 when none within the signal timeout."""
-        now_ns, widths = self.clock_ns if self.clock_ns is not None else time.monotonic_ns(), []
+    def pulse_widths_us(self, at_ns: int | None = None) -> list[int]:
+        """Each channel's last valid width (us, config order) as of *at_ns* (default: the device clock now);
+        0 when none within the signal timeout."""
+        if at_ns is None:
+            at_ns = self.clock_ns if self.clock_ns is not None else time.monotonic_ns()
+        widths = []
         for name in self.channels:
             last = self.widths.get(name)
-            widths.append(round(last[0]) if last and now_ns - last[1] <= self.filter.signal_timeout_ns else 0)
+            widths.append(round(last[0]) if last and at_ns - last[1] <= self.filter.signal_timeout_ns else 0)
         return widths
 
-    def publish_manual(self) -> None:
-        """Publish the sticks, mixed, on MANUAL_CMD (one PercentageCommand per mixed actuator)."""
+    def publish_manual(self, at_ns: int | None = None) -> None:
+        """Publish the sticks as of *at_ns*, mixed, on MANUAL_CMD (one PercentageCommand per mixed actuator)."""
         if self.sticks is None:
             return
-        widths = dict(zip(self.channels, self.pulse_widths_us()))
+        widths = dict(zip(self.channels, self.pulse_widths_us(at_ns)))
         for cmd in self.sticks.commands(widths):
             self.publish(ch.MANUAL_CMD, cmd)
 
-    def publish_mode(self) -> bool:
-        """Publish the present RcMode on RC_MODE."""
+    def publish_mode(self, at_ns: int | None = None) -> bool:
+        """Publish the RcMode as of *at_ns* (default: now) on RC_MODE."""
         msg = t.RcMode()
-        msg.mode, msg.mode_name = self.filter.mode, self.filter.mode_name
-        msg.autonomy_enabled, msg.select_mismatch = self.enabled, self.mismatch
-        allowed, why = self.autonomy_allowed()
-        msg.armed, msg.hold = self.armed, self.hold
+        with self._enable_lock:
+            self._published = self.state_key()
+            msg.mode, msg.mode_name = self.filter.mode, self.filter.mode_name
+            msg.autonomy_enabled, msg.select_mismatch = self.enabled, self.mismatch
+            allowed, why = self.autonomy_allowed()
+            msg.armed, msg.hold = self.armed, self.hold
         msg.blocked_by = "" if allowed else why
-        msg.pulse_us = self.pulse_widths_us()
+        msg.pulse_us = self.pulse_widths_us(at_ns)
         msg.num_channels = len(msg.pulse_us)
         return self.publish(ch.RC_MODE, msg)
 

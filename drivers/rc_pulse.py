@@ -16,7 +16,12 @@ and a second rising edge without a fall in between.
 - debounce: the mode changes only after ``debounce_frames`` consecutive valid frames ask
   for the same new side, so isolated glitch frames never flip it;
 - signal: no valid frame for ``signal_timeout_ns`` -> "no signal" (the caller asks with
-  :meth:`RcModeFilter.check_signal` and its own monotonic ``now``).
+  :meth:`RcModeFilter.check_signal` and its own monotonic ``now``; :meth:`RcModeFilter.signal_expiry_ns`
+  says when that will be, so a caller can judge it at that very time).
+
+:class:`DueGrid` places a timed message's due times on a fixed grid of a clock (``ceil(k * 1e9 /
+hz)`` ns from the clock's zero), so they are the same whenever the clock is, whatever the phase
+of the loop that sends them: live on CLOCK_MONOTONIC, replayed on the recorded edge stamps.
 
 The mode numbers are those of the ``RcMode`` message.
 """
@@ -25,6 +30,7 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, field
+from fractions import Fraction
 from typing import Iterable
 
 MODE_MANUAL = 0
@@ -163,6 +169,12 @@ class RcModeFilter:
         """True when the switch has been at manual for ``debounce_frames`` frames in a row (what arms)."""
         return self.mode == MODE_MANUAL and self.manual_streak >= self.debounce_frames
 
+    def signal_expiry_ns(self) -> int | None:
+        """The first time at which :meth:`check_signal` says "no signal" (None: it is already, or no frame yet)."""
+        if self.mode == MODE_NO_SIGNAL or self.last_frame_ns is None:
+            return None
+        return self.last_frame_ns + self.signal_timeout_ns + 1
+
     def check_signal(self, now_ns: int) -> bool:
         """Go to "no signal" when the last valid frame is older than the timeout; True on change."""
         if self.mode == MODE_NO_SIGNAL:
@@ -178,3 +190,21 @@ class RcModeFilter:
         if mode == MODE_NO_SIGNAL:
             self.manual_streak = 0
         self._candidate, self._streak = mode, 0
+
+
+class DueGrid:
+    """Due times of a message sent *hz* times a second, on a fixed grid of a clock in ns: the k-th is
+    ``origin + ceil(k * 1e9 / hz)``. The grid depends only on the clock (and its origin), never on when
+    a loop looked, so a replay on the recorded clock has the recorded due times."""
+
+    def __init__(self, hz: float) -> None:
+        if not hz > 0:
+            raise ValueError(f"a rate must be positive, got {hz}")
+        rate = Fraction(hz).limit_denominator(1_000_000)
+        self._num, self._den = rate.numerator, rate.denominator * 1_000_000_000
+        self.period_ns = round(1e9 / hz)
+
+    def after(self, t_ns: int, origin_ns: int = 0) -> int:
+        """The first due time strictly after *t_ns*."""
+        k = ((t_ns - origin_ns) * self._num) // self._den + 1
+        return origin_ns - ((-k * self._den) // self._num)

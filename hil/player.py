@@ -15,6 +15,11 @@ Timing:
   a GPIO replay chip its edges' kernel stamps (hil/replay_gpio.py), so the drivers group and
   time by the recorded times at any speed (see docs/replay.md).
 
+A device may also take recorded bus messages as its input (``bus_inputs``: the channels; a GPIO
+replay chip hands its driver the recorded Health and FAILSAFE the RC mux decides by): they reach
+it as :class:`RecordedBusMessage` records, in log order with its raw records, whatever their
+source (republishing, above, is a separate matter).
+
 The player streams the log (a long one is never loaded whole) and stops early when the
 ``abort`` event is set, raising the reason the orchestration stored.
 """
@@ -45,6 +50,15 @@ class PlayStats:
     late_s: float = 0.0       # the largest lag behind the clock (rate mode)
     wall_s: float = 0.0       # playback time
     started_ns: int = 0       # wall clock (ns) when the playback began: log time start_ns was played then
+
+
+class RecordedBusMessage:
+    """A recorded bus message for a device that takes it as input: its channel, its LCM bytes and its log time."""
+
+    __slots__ = ("channel", "data", "log_time_ns")
+
+    def __init__(self, channel: str, data: bytes, log_time_ns: int) -> None:
+        self.channel, self.data, self.log_time_ns = channel, data, log_time_ns
 
 
 def header_source(msg: Any) -> str:
@@ -85,6 +99,10 @@ class Player:
         self.progress = progress
         self.stall_timeout_s = stall_timeout_s
         self.stats = PlayStats()
+        self.bus_inputs: dict[str, list[str]] = {}   # channel -> devices that take its recorded messages
+        for name, device in devices.items():
+            for channel in getattr(device, "bus_inputs", ()):
+                self.bus_inputs.setdefault(channel, []).append(name)
 
     # -- the recorded stream -------------------------------------------------------------------
     def events(self) -> Iterator[tuple[int, str, Any]]:
@@ -113,7 +131,10 @@ class Player:
                     self.stats.malformed += 1
                     continue
                 yield m.log_time_ns, device, record
-            elif m.channel in self.republish:
+                continue
+            for device in self.bus_inputs.get(m.channel, ()):
+                yield m.log_time_ns, device, RecordedBusMessage(m.channel, m.data, m.log_time_ns)
+            if m.channel in self.republish:
                 try:
                     msg, _ = REGISTRY.decode(m.data, base_type(m.channel))
                 except MalformedMessage:

@@ -17,8 +17,22 @@ timeouts, debounce, pulse ageing and timed messages by the stamps of the edges t
 any rate or with ``--fast`` and the drivers see the recorded timing. Through a recorded
 silence (no edges: an RC signal loss, the end of the window) the device sends clock ticks
 every ``TICK_NS`` of recorded time, derived from the edges' own kernel stamps (never ahead
-of the next recorded edge), so a timeout expires at the recorded moment. In --fast the
-player waits while ``GPIO_BACKLOG`` frames are queued for the driver, so nothing is dropped.
+of the next recorded edge), so a timeout expires at the recorded moment. The chip tells the
+driver the offset (its clock's *origin*), so the driver's timed messages fall on the recorded
+clock's grid (drivers/rc_mux.py). In --fast the player waits while ``GPIO_BACKLOG`` frames are
+queued for the driver, so nothing is dropped.
+
+Recorded bus inputs. What a GPIO driver decides may also depend on bus messages (the RC mux's
+pre-arm checks read every service's Health and the estimate, its enable line drops on FAILSAFE).
+The device takes the recorded ``BUS_INPUTS`` in log order with its edges (the player hands
+them over as :class:`hil.player.RecordedBusMessage`) and the chip passes those a driver asked
+for (op ``bus``) on to it between the edges the recorded driver read before and after it (the
+log's order: an edge's record was logged when the driver read it), stamped with the edge sent
+before it; before the first edge, at its log time less the smallest (log time - kernel stamp)
+of the window's edges (the recording machine's CLOCK_REALTIME - CLOCK_MONOTONIC, plus the
+quickest tap). Only while the recorded driver ran: from its service's first message (or the
+device's first record) to its last output; what came before or after, the recorded driver
+never heard (or its reaction is not in the log).
 What the driver writes to its output lines is compared by
 ``--compare`` as the ``RawGpioWrite`` records it taps (the replay keeps ``record_raw`` on).
 
@@ -32,7 +46,7 @@ the same ``RawPwmWrite`` records, which ``--compare`` compares with the recorded
 
 from __future__ import annotations
 
-import re
+import heapq
 import threading
 import time
 from pathlib import Path
@@ -47,16 +61,19 @@ from hil.replay_plan import ReplayError
 GPIO_MIN_LINES = 64   # lines of the replay chip (more when the log names higher offsets)
 TICK_NS = 10_000_000  # the device clock's step through recorded silences (recorded time)
 GPIO_BACKLOG = 512    # --fast: frames queued for the driver before the player waits
+BUS_INPUTS = ("U2SA_HEALTH", "FAILSAFE", "STATE_ESTIMATE")   # recorded bus channels a GPIO driver may take
+STEP_SILENCE_NS = 30_000_000   # an output of the recorded driver this long after the last edge it read: a step
 
 
 class ClockTickRecord:
     """A tick of the replay chip's clock at recorded kernel time ``kernel_timestamp_ns`` (made by the
-    replay, not recorded)."""
+    replay, not recorded); ``step``: the recorded driver's loop looked at its clock then."""
 
-    __slots__ = ("kernel_timestamp_ns",)
+    __slots__ = ("kernel_timestamp_ns", "step")
 
-    def __init__(self, kernel_timestamp_ns: int) -> None:
+    def __init__(self, kernel_timestamp_ns: int, step: bool = False) -> None:
         self.kernel_timestamp_ns = kernel_timestamp_ns
+        self.step = step
 
 
 class ReplayGpioDevice:
@@ -64,9 +81,11 @@ class ReplayGpioDevice:
 
     kind = "gpio"
     streamed = True
+    bus_inputs = BUS_INPUTS
 
-    def __init__(self, *, name: str, socket_path: Path | str) -> None:
+    def __init__(self, *, name: str, socket_path: Path | str, service: str = "") -> None:
         self.name = name
+        self.service = service                    # the recorded driver's service (its messages bound its life)
         self.socket_path = Path(socket_path)
         self.chip: Any = None
         self.timed = False                        # the window holds edges
@@ -76,10 +95,15 @@ class ReplayGpioDevice:
         self._levels: dict[int, int] = {}         # line -> level at the window's start
         self._num_lines = GPIO_MIN_LINES
         self._min_lag_ns: int | None = None       # smallest (tap time - kernel stamp) in the window
+        self._min_log_lag_ns: int | None = None   # smallest (log time - kernel stamp) in the window
+        self._driver_from_ns: int | None = None   # log time of the recorded driver's first message or record
+        self._driver_until_ns: int | None = None  # ... and of its last output (not its contract messages)
+        self._step_logs: list[int] = []           # log times of the recorded driver's outputs while no edge came
         self._offset_ns: int | None = None
+        self._last_sent_ns: int | None = None     # the latest stamp sent to the driver
         self._lock = threading.Lock()
         self.counts = {"edges": 0, "edges_on_outputs": 0, "repeated_levels": 0, "recorded_writes": 0,
-                       "output_changes": 0, "ticks": 0}
+                       "output_changes": 0, "ticks": 0, "steps": 0, "bus_inputs": 0}
 
     @property
     def address(self) -> str:
@@ -96,11 +120,24 @@ class ReplayGpioDevice:
         return {}
 
     def preload(self, log_path: Path, *, start_ns: int, end_ns: int) -> None:
-        """Read the device's records once: start levels, the lines used, the taps' lag, whether edges are timed."""
+        """Read the log once: the device's start levels, the lines used, the taps' lag, whether edges are timed,
+        and when the recorded driver ran (its first message of any kind, its last output or record)."""
+        from hil.replay import raw_source
+
         first_in_window: dict[int, int] = {}
-        for m in LogFile(log_path).messages(rf"RAW\.{re.escape(self.name)}"):
+        raw = f"RAW.{self.name}"
+        last_edge_log: int | None = None    # log time of the window's latest edge so far
+        for m in LogFile(log_path).messages():
             if m.log_time_ns > end_ns:
                 break
+            if m.channel != raw:
+                if self.service and raw_source(m.data) == self.service:
+                    if self._driver_from_ns is None:
+                        self._driver_from_ns = m.log_time_ns
+                    if not m.channel.startswith("U2SA_"):
+                        self._driver_until_ns = m.log_time_ns
+                        self._note_output(m.log_time_ns, last_edge_log)
+                continue
             try:
                 rec, _ = REGISTRY.decode(m.data)
             except MalformedMessage:
@@ -108,6 +145,13 @@ class ReplayGpioDevice:
             kind = type(rec).__name__
             if kind not in ("RawGpioEdge", "RawGpioWrite"):
                 continue
+            if self._driver_from_ns is None:
+                self._driver_from_ns = m.log_time_ns
+            self._driver_until_ns = m.log_time_ns
+            if kind == "RawGpioWrite":
+                self._note_output(m.log_time_ns, last_edge_log)
+            elif m.log_time_ns >= start_ns:
+                last_edge_log = m.log_time_ns
             line = int(rec.line)
             self._num_lines = max(self._num_lines, line + 1)
             if kind != "RawGpioEdge":
@@ -122,24 +166,54 @@ class ReplayGpioDevice:
             lag = _tap_lag_ns(rec)
             if lag is not None and (self._min_lag_ns is None or lag < self._min_lag_ns):
                 self._min_lag_ns = lag
+            log_lag = m.log_time_ns - int(rec.kernel_timestamp_ns)
+            if self._min_log_lag_ns is None or log_lag < self._min_log_lag_ns:
+                self._min_log_lag_ns = log_lag
         for line, first in first_in_window.items():
             self._levels.setdefault(line, 1 - first)   # an edge to *first* means the line was at the other level
         self._end_ns = end_ns
 
-    def clock_ticks(self) -> Iterator[tuple[int, ClockTickRecord]]:
-        """``(log time, tick)`` through every recorded silence longer than TICK_NS, in log order.
+    def _note_output(self, log_ns: int, last_edge_log: int | None) -> None:
+        """An output of the recorded driver at *log_ns*: a step when no edge was read for STEP_SILENCE_NS."""
+        if last_edge_log is not None and log_ns - last_edge_log > STEP_SILENCE_NS:
+            self._step_logs.append(log_ns)
 
-        A tick's stamp is a previous edge's kernel stamp plus whole steps, and it stays before the
-        next edge's stamp, so the clock never runs ahead of an edge still to come; its log time is
-        the previous edge's plus the same steps (before the next edge's), which places it in the
-        play order. After the last edge the ticks run to the window's end.
+    def clock_ticks(self) -> Iterator[tuple[int, ClockTickRecord]]:
+        """``(log time, tick)`` in log order: through every recorded silence longer than TICK_NS, and a step
+        wherever the recorded driver published while no edge reached it.
+
+        A silence tick's stamp is a previous edge's kernel stamp plus whole steps, and it stays before the
+        next edge's stamp, so the clock never runs ahead of an edge still to come; its log time is the
+        previous edge's plus the same steps (before the next edge's), which places it in the play order.
+        After the last edge the ticks run to the recorded driver's last output (when the log says, else the
+        window's end): a driver that had stopped is not timed out in its place.
+
+        A step is the recorded driver's loop at work (it published: a timed message, a change) more than
+        STEP_SILENCE_NS after the last edge it had read: on a live chip edges can arrive late (a stalled
+        receiver delivered 280 ms of stamped edges at once), and the live loop judged its timeouts on its
+        clock meanwhile. The step carries that clock, the output's log time on the kernel clock (less the
+        smallest log - kernel lag of the window's edges); it may run ahead of the late edges' stamps.
         """
+        return heapq.merge(self._silence_ticks(), self._steps(), key=lambda item: item[0])
+
+    def _steps(self) -> Iterator[tuple[int, ClockTickRecord]]:
+        if self._min_log_lag_ns is None:
+            return
+        for log_ns in self._step_logs:
+            yield log_ns, ClockTickRecord(log_ns - self._min_log_lag_ns, step=True)
+
+    def _silence_ticks(self) -> Iterator[tuple[int, ClockTickRecord]]:
         times = self._edge_times
+        end = self._end_ns
+        if self._driver_until_ns is not None and times:
+            end = max(times[-1][0], min(end, self._driver_until_ns))
         for i, (log_ns, kernel_ns) in enumerate(times):
             if i + 1 < len(times):
                 next_log, next_kernel = times[i + 1]
             else:
-                next_log, next_kernel = self._end_ns + 1, kernel_ns + (self._end_ns + 1 - log_ns)
+                next_log = end + 1
+                mapped = end + 1 - self._min_log_lag_ns if self._min_log_lag_ns is not None else kernel_ns
+                next_kernel = max(kernel_ns + (end + 1 - log_ns), mapped)
             step = TICK_NS
             while kernel_ns + step < next_kernel:
                 yield min(log_ns + step, next_log - 1), ClockTickRecord(kernel_ns + step)
@@ -168,15 +242,19 @@ class ReplayGpioDevice:
         return health.get("port") == "open" and self.chip is not None and bool(self.chip.consumers())
 
     def feed(self, record: Any) -> None:
-        """Drive a recorded edge onto its line (stamped as described above); count a recorded write."""
+        """Drive a recorded edge onto its line (stamped as described above), send a tick or a recorded bus
+        message; count a recorded write."""
         kind = type(record).__name__
         if kind == "RawGpioWrite":
             self.counts["recorded_writes"] += 1
             return
         if kind == "ClockTickRecord":
             if self._offset_ns is not None:   # the clock starts with the first edge
-                self.chip.tick(record.kernel_timestamp_ns + self._offset_ns)
-                self.counts["ticks"] += 1
+                self.chip.tick(self._stamp(record.kernel_timestamp_ns), step=record.step)
+                self.counts["steps" if record.step else "ticks"] += 1
+            return
+        if kind == "RecordedBusMessage":
+            self._feed_bus(record)
             return
         if kind != "RawGpioEdge":
             return
@@ -184,15 +262,47 @@ class ReplayGpioDevice:
         if self._offset_ns is None:
             lag = _tap_lag_ns(record)
             behind = max(0, lag - self._min_lag_ns) if lag is not None and self._min_lag_ns is not None else 0
-            self._offset_ns = time.monotonic_ns() - behind - kernel_ns
+            self._start_clock(time.monotonic_ns() - behind - kernel_ns)
+        stamp = kernel_ns + self._offset_ns
         try:
-            changed = self.chip.drive_input(int(record.line), 1 if record.edge else 0, kernel_ns + self._offset_ns)
+            changed = self.chip.drive_input(int(record.line), 1 if record.edge else 0, stamp)
         except ValueError:   # the replayed driver uses this line as an output (a changed config)
             self.counts["edges_on_outputs"] += 1
             return
+        self._last_sent_ns = stamp if self._last_sent_ns is None else max(self._last_sent_ns, stamp)
         self.counts["edges"] += 1
         if not changed:      # the recording missed the opposite edge (the kernel dropped it): no edge now
             self.counts["repeated_levels"] += 1
+
+    def _start_clock(self, offset_ns: int) -> None:
+        """Fix the offset from recorded kernel time to the device clock, and tell the driver (its origin)."""
+        self._offset_ns = offset_ns
+        self.chip.set_origin(offset_ns)
+
+    def _stamp(self, kernel_ns: int) -> int:
+        """Recorded kernel time *kernel_ns* on the device clock, never before what was sent already."""
+        stamp = kernel_ns + (self._offset_ns or 0)
+        if self._last_sent_ns is not None and stamp < self._last_sent_ns:
+            stamp = self._last_sent_ns
+        self._last_sent_ns = stamp
+        return stamp
+
+    def _feed_bus(self, record: Any) -> None:
+        """A recorded bus message to the driver if it asked for its channel, stamped with the edge (or tick)
+        sent before it: the recorded driver took it between the edges it read before and after it (the log's
+        order), and judged it at its loop's next turn; before the first edge, where the log puts it."""
+        if self._min_log_lag_ns is None or self._driver_from_ns is None or record.log_time_ns < self._driver_from_ns \
+                or (self._driver_until_ns is not None and record.log_time_ns > self._driver_until_ns):
+            return   # no edges to place it among, or while the recorded driver did not run
+        if self._last_sent_ns is not None:
+            stamp = self._last_sent_ns
+        else:
+            kernel_ns = min(record.log_time_ns - self._min_log_lag_ns, self._edge_times[0][1])
+            if self._offset_ns is None:
+                self._start_clock(time.monotonic_ns() - kernel_ns)
+            stamp = kernel_ns + self._offset_ns
+        if self.chip.bus(stamp, record.channel, record.data):
+            self.counts["bus_inputs"] += 1
 
     def pending(self) -> int:
         """Edges and ticks queued for the driver and not yet sent to it."""
@@ -322,7 +432,7 @@ def make_device(kind: str, name: str, run_dir: Path, *, service: str,
     """The replay device for a GPIO or PWM device of *service*; *rigs* shares PWM outputs. It needs nothing
     of the driver's config: the lines and outputs come from the recorded address and records."""
     if kind == "gpio":
-        return ReplayGpioDevice(name=name, socket_path=run_dir / f"gpio-{name}.sock")
+        return ReplayGpioDevice(name=name, socket_path=run_dir / f"gpio-{name}.sock", service=service)
     if kind == "pwm":
         rig = rigs.get(service)
         if rig is None:

@@ -14,7 +14,9 @@ edge timestamp is the one given, else CLOCK_MONOTONIC now), ``read_output``,
 ``disconnect`` and ``stop_edges``. A chip made with ``device_clock=True`` (a replay chip)
 keeps a clock of its own: its request reply says ``"clock": "device"``, ``tick`` sends its
 time to the clients during silences, and the driver's port judges time by the edges and ticks
-it takes (``GpioPort.now_ns``); ``backlog`` counts frames not yet sent, so a player can
+it takes (``GpioPort.now_ns``); ``set_origin`` tells the clients where the recorded clock's zero
+lies on it, ``bus`` hands a recorded bus message to the clients that asked for its channel (op
+``bus``), in order with the edges; ``backlog`` counts frames not yet sent, so a player can
 wait instead of overflowing a client that reads slowly. The wire protocol lives in
 ``u2sa_hw.ports.gpio_port`` (driver and mock share it) and is documented in
 ``docs/gpio-and-rc.md``.
@@ -35,8 +37,10 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from u2sa_hw.ports.gpio_port import (BIASES, EDGE_FALLING, EDGE_RISING, EDGES, MOCK_EDGE, MOCK_EDGE_RECORD, MOCK_JSON,
-                                     MOCK_PREFIX, MOCK_TICK, MOCK_TICK_RECORD, MockFrameReader, MockProtocolError,
-                                     encode_mock_frame, encode_mock_json)
+                                     MOCK_ORIGIN, MOCK_ORIGIN_RECORD, MOCK_PREFIX, MOCK_STEP, MOCK_TICK,
+                                     MOCK_TICK_RECORD,
+                                     MockFrameReader, MockProtocolError, encode_bus_input, encode_mock_frame,
+                                     encode_mock_json)
 
 log = logging.getLogger("mock_devices.gpio_chip")
 
@@ -61,6 +65,7 @@ class _Client:
     outbox: queue.Queue = field(default_factory=lambda: queue.Queue(maxsize=4096))
     global_seqno: int = 0
     line_seqno: dict[int, int] = field(default_factory=dict)
+    bus_channels: frozenset = frozenset()     # recorded bus channels it asked for (a device-clock chip's client)
     closed: bool = False
 
 
@@ -82,6 +87,7 @@ class MockGpioChip:
     def __init__(self, *, socket_path: str, num_lines: int = 32, label: str = "mock-gpiochip",
                  release_level: int | None = 0, history_size: int = 100_000, device_clock: bool = False) -> None:
         self.device_clock = device_clock
+        self.origin_ns: int | None = None   # a device clock's origin, once set_origin gave it
         self.socket_path = str(socket_path)
         self.num_lines = num_lines
         self.label = label
@@ -161,9 +167,10 @@ class MockGpioChip:
                 self._deliver_edge(owner, line, value, stamp)
             return True
 
-    def tick(self, timestamp_ns: int) -> None:
-        """A device-clock chip's time during a silence: sent to every client holding input lines."""
-        frame = encode_mock_frame(MOCK_TICK, MOCK_TICK_RECORD.pack(int(timestamp_ns)))
+    def tick(self, timestamp_ns: int, *, step: bool = False) -> None:
+        """A device-clock chip's time during a silence: sent to every client holding input lines. *step*: the
+        recorded driver's loop looked at its clock then (its port's ``ClockTick.step``)."""
+        frame = encode_mock_frame(MOCK_STEP if step else MOCK_TICK, MOCK_TICK_RECORD.pack(int(timestamp_ns)))
         with self._lock:
             for client in self._clients:
                 if any(s["direction"] == "input" for s in client.lines.values()):
@@ -171,6 +178,33 @@ class MockGpioChip:
                         client.outbox.put_nowait(frame)
                     except queue.Full:
                         self.dropped_edges += 1
+
+    def set_origin(self, origin_ns: int) -> None:
+        """Where the recorded clock's zero lies on this chip's clock: sent to the clients (before any frame
+        stamped after it) and in later request replies."""
+        frame = encode_mock_frame(MOCK_ORIGIN, MOCK_ORIGIN_RECORD.pack(int(origin_ns)))
+        with self._lock:
+            self.origin_ns = int(origin_ns)
+            for client in self._clients:
+                if client.lines:
+                    self._send(client, frame)
+
+    def bus(self, timestamp_ns: int, channel: str, data: bytes) -> int:
+        """A recorded bus message, to every client that asked for *channel*; how many it went to."""
+        frame = encode_bus_input(timestamp_ns, channel, data)
+        sent = 0
+        with self._lock:
+            for client in self._clients:
+                if channel in client.bus_channels:
+                    self._send(client, frame)
+                    sent += 1
+        return sent
+
+    def _send(self, client: _Client, frame: bytes) -> None:
+        try:
+            client.outbox.put_nowait(frame)
+        except queue.Full:
+            self.dropped_edges += 1
 
     def backlog(self) -> int:
         """Frames (edges, ticks, replies) queued for the clients and not yet sent."""
@@ -297,7 +331,7 @@ class MockGpioChip:
         if not isinstance(request, dict):
             raise MockProtocolError("request is not a JSON object")
         handler = {"request": self._op_request, "get": self._op_get, "set": self._op_set,
-                   "release": self._op_release, "info": self._op_info}.get(request.get("op"))
+                   "release": self._op_release, "info": self._op_info, "bus": self._op_bus}.get(request.get("op"))
         fired: list[tuple[int, int, int]] = []
         try:
             if handler is None:
@@ -339,7 +373,9 @@ class MockGpioChip:
             raise ChipRefusal("EBUSY", "lines in use: " + ", ".join(f"{n} by '{c}'" for n, c in busy.items()),
                               consumers=busy)
         client.consumer = str(req.get("consumer") or client.consumer)
-        reply = {"clock": "device"} if self.device_clock else {}
+        reply: dict[str, Any] = {"clock": "device"} if self.device_clock else {}
+        if self.device_clock and self.origin_ns is not None:
+            reply["origin_ns"] = self.origin_ns
         for line, settings in lines.items():
             client.lines[line] = settings
             self._owners[line] = client
@@ -349,6 +385,15 @@ class MockGpioChip:
             else:
                 self._levels[line] = self._input_level(line)
         return reply
+
+    def _op_bus(self, client: _Client, req: dict, fired: list) -> dict:
+        if not self.device_clock:
+            raise ChipRefusal("EINVAL", "this chip has no recorded bus (only a replay chip with a device clock)")
+        channels = req.get("channels") or []
+        if not isinstance(channels, list) or not all(isinstance(c, str) for c in channels):
+            raise ChipRefusal("EINVAL", f"bad channels {channels!r}")
+        client.bus_channels = frozenset(channels)
+        return {"channels": sorted(client.bus_channels)}
 
     def _op_get(self, client: _Client, req: dict, fired: list) -> dict:
         values = []

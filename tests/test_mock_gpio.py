@@ -289,3 +289,42 @@ def test_rc_receiver_in_another_process_measured_over_the_socket(tmp_path: Path)
     finally:
         proc.terminate()
         assert proc.wait(timeout=10) == 0
+
+
+# ------------------------------------------------------------ a replay chip (a device clock) -------
+def test_a_device_clock_chip_hands_its_driver_the_origin_steps_and_the_recorded_bus_in_order(tmp_path: Path) -> None:
+    from u2sa_hw.ports.gpio_port import BusInput, ClockTick, EdgeEvent
+
+    with MockGpioChip(socket_path=str(tmp_path / "replay.sock"), device_clock=True, release_level=None) as chip:
+        chip.set_origin(123_000)                       # before the driver: in its request reply
+        port = open_gpio(device="rc", chip=chip.address, inputs=[5])
+        try:
+            assert port.device_clock and port.clock_origin_ns() == 123_000
+            assert port.take_recorded_bus(["U2SA_HEALTH", "FAILSAFE"]) == ("FAILSAFE", "U2SA_HEALTH")
+            chip.drive_input(5, 1, 1_000)
+            assert chip.bus(1_000, "FAILSAFE", b"\x01\x02") == 1
+            assert chip.bus(1_000, "STATE_ESTIMATE", b"x") == 0     # not asked for: not sent
+            chip.tick(5_000)
+            chip.tick(9_000, step=True)
+            chip.drive_input(5, 0, 2_000)                 # a late edge: stamped before the step
+            chip.set_origin(456_000)                      # set again: sent to the client in order too
+            events: list = []
+            wait_until(lambda: events.extend(port.read_events(0.05)) or len(events) >= 5, message="five events")
+            assert events == [EdgeEvent(5, True, 1_000), BusInput(1_000, "FAILSAFE", b"\x01\x02"), ClockTick(5_000),
+                              ClockTick(9_000, step=True), EdgeEvent(5, False, 2_000)]
+            assert port.now_ns() == 9_000                 # the latest time taken, not the wall clock
+            wait_until(lambda: port.clock_origin_ns() == 456_000, message="the new origin")
+        finally:
+            port.close()
+
+
+def test_a_chip_without_a_device_clock_has_no_recorded_bus_and_a_real_clock(chip: MockGpioChip) -> None:
+    port = open_gpio(device="rc", chip=chip.address, inputs=[5])
+    try:
+        assert not port.device_clock and port.clock_origin_ns() == 0
+        assert port.take_recorded_bus(["FAILSAFE"]) == ()          # the driver hears the bus
+        raw = RawClient(chip.socket_path)
+        reply = raw.call(op="bus", channels=["FAILSAFE"])
+        assert not reply["ok"] and reply["error"] == "EINVAL" and "replay chip" in reply["message"]
+    finally:
+        port.close()

@@ -11,8 +11,10 @@ an RC pulse width is the difference of two such timestamps.
 Mock chip wire protocol: frames ``kind:u8 length:u32be payload``; kind ``J`` is a JSON
 request or reply, kind ``E`` a binary edge event (``MOCK_EDGE_RECORD``), kind ``T`` a clock
 tick (``MOCK_TICK_RECORD``: the chip's time, sent only by a chip that keeps a clock of its
-own). The codec is here because driver and mock share it; docs/gpio-and-rc.md documents
-the requests.
+own; kind ``S`` the same as a *step*: the recorded driver's loop looked at its clock then), kind
+``O`` the origin of such a clock (``MOCK_ORIGIN_RECORD``) and kind ``B`` a recorded
+bus message (``MOCK_BUS_HEADER`` + channel + bytes; a replay chip, to a driver that asked for it).
+The codec is here because driver and mock share it; docs/gpio-and-rc.md documents the requests.
 
 The device clock. :meth:`GpioPort.now_ns` is the time the driver judges timeouts, debounce
 and ageing against, on the clock of the edge stamps. A kernel chip stamps edges with
@@ -22,6 +24,15 @@ hil/replay_gpio.py). Then ``now_ns`` is the latest edge or tick time the driver 
 so recorded edges played at any speed are judged as they happened; and it is never held by a
 chip that goes quiet: once nothing came from the chip for ``DEVICE_CLOCK_GRACE_S`` of wall
 time, the clock runs on with the wall clock from there (a signal timeout then expires).
+:meth:`GpioPort.clock_origin_ns` is where the recorded clock's zero lies on the device clock
+(0 on a real chip: the device clock *is* CLOCK_MONOTONIC; a replay chip's offset), so a driver's
+timed messages fall on the same grid of the recorded clock live and replayed.
+
+Recorded bus inputs. A replay chip can also hand its driver the recorded bus messages the
+driver asks for (:meth:`GpioPort.take_recorded_bus`: the RC mux's Health, FAILSAFE and
+STATE_ESTIMATE), as :class:`BusInput` events in order with the edges, each stamped on the
+device clock where the recording says it arrived. A real chip, and a mock chip without a clock
+of its own, never do: their drivers hear the bus.
 """
 
 from __future__ import annotations
@@ -35,7 +46,7 @@ import time
 from collections import deque
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any, Iterator, Mapping, Sequence, Union
 
 from u2sa_hw import messages as m
 from u2sa_hw.ports.errors import PortClosed, PortIOError, PortTimeout, PortUnavailable
@@ -44,10 +55,15 @@ from u2sa_hw.ports.tap import Tap, call_tap
 MOCK_PREFIX = "mock:"
 EDGES = ("both", "rising", "falling", "none")
 BIASES = ("as-is", "pull-up", "pull-down", "disabled")
-MOCK_JSON, MOCK_EDGE, MOCK_TICK = b"J", b"E", b"T"  # frame kinds: JSON request/reply, edge event, clock tick
+# frame kinds: JSON request/reply, edge event, clock tick, clock origin, recorded bus message
+MOCK_JSON, MOCK_EDGE, MOCK_TICK, MOCK_ORIGIN, MOCK_BUS = b"J", b"E", b"T", b"O", b"B"
+MOCK_STEP = b"S"      # a tick at which the recorded driver's loop looked at its clock (a replay chip's)
+MOCK_KINDS = (MOCK_JSON, MOCK_EDGE, MOCK_TICK, MOCK_ORIGIN, MOCK_BUS, MOCK_STEP)
 MOCK_FRAME_HEADER = struct.Struct(">cI")
 MOCK_EDGE_RECORD = struct.Struct(">BIQQQ")
 MOCK_TICK_RECORD = struct.Struct(">Q")
+MOCK_ORIGIN_RECORD = struct.Struct(">q")      # the recorded clock's zero on the device clock (ns)
+MOCK_BUS_HEADER = struct.Struct(">QH")        # device time (ns), channel name length; then the name, the bytes
 DEVICE_CLOCK_GRACE_S = 2.0  # a device clock silent this long (wall) runs on with the wall clock
 MOCK_MAX_FRAME = 1 << 20
 EDGE_RISING, EDGE_FALLING = 1, 2  # gpiod EdgeEvent.Type values
@@ -65,9 +81,40 @@ class EdgeEvent:
 
 @dataclass(frozen=True)
 class ClockTick:
-    """The chip's clock reached ``timestamp_ns`` (a chip with a clock of its own, in recorded silences)."""
+    """The chip's clock reached ``timestamp_ns`` (a chip with a clock of its own, in recorded silences).
+    ``step``: the recorded driver's loop looked at its clock then, with edges still on their way to it
+    (a replay chip's, where the log shows the driver publishing while no edge reached it)."""
 
     timestamp_ns: int
+    step: bool = False
+
+
+@dataclass(frozen=True)
+class BusInput:
+    """A recorded bus message a replay chip hands its driver in order with the edges: the LCM payload
+    (no signing trailer) of a message on ``channel``, arrived at ``timestamp_ns`` on the device clock."""
+
+    timestamp_ns: int
+    channel: str
+    data: bytes
+
+
+GpioEvent = Union[EdgeEvent, ClockTick, BusInput]
+
+
+def encode_bus_input(timestamp_ns: int, channel: str, data: bytes) -> bytes:
+    """A ``B`` frame: a recorded bus message for a driver that asked for its channel."""
+    name = channel.encode()
+    return encode_mock_frame(MOCK_BUS, MOCK_BUS_HEADER.pack(int(timestamp_ns), len(name)) + name + bytes(data))
+
+
+def decode_bus_input(payload: bytes) -> BusInput:
+    """The :class:`BusInput` in a ``B`` frame's payload."""
+    timestamp_ns, length = MOCK_BUS_HEADER.unpack_from(payload)
+    start = MOCK_BUS_HEADER.size
+    if len(payload) < start + length:
+        raise MockProtocolError(f"bus frame shorter than its channel name ({len(payload)} bytes)")
+    return BusInput(timestamp_ns, payload[start:start + length].decode(), payload[start + length:])
 
 
 class MockProtocolError(ValueError):
@@ -96,7 +143,7 @@ class MockFrameReader:
         frames = []
         while len(self._buffer) >= MOCK_FRAME_HEADER.size:
             kind, length = MOCK_FRAME_HEADER.unpack_from(self._buffer)
-            if kind not in (MOCK_JSON, MOCK_EDGE, MOCK_TICK) or length > MOCK_MAX_FRAME:
+            if kind not in MOCK_KINDS or length > MOCK_MAX_FRAME:
                 raise MockProtocolError(f"bad frame header kind={kind!r} length={length}")
             end = MOCK_FRAME_HEADER.size + length
             if len(self._buffer) < end:
@@ -140,8 +187,18 @@ class GpioPort:
         None while a chip with its own clock has sent nothing yet."""
         return time.monotonic_ns()
 
-    def read_events(self, timeout: float) -> list[EdgeEvent | ClockTick]:
-        """Edges (and a device-clock chip's ticks) in the order the chip sent them; waits up to *timeout* s."""
+    def clock_origin_ns(self) -> int:
+        """Where the recorded clock's zero lies on the device clock: 0 but on a replay chip."""
+        return 0
+
+    def take_recorded_bus(self, channels: Sequence[str]) -> tuple[str, ...]:
+        """Ask the chip for the recorded messages of *channels* as :class:`BusInput` events; the channels it
+        will send (none but on a replay chip: the driver then hears the bus)."""
+        return ()
+
+    def read_events(self, timeout: float) -> list[GpioEvent]:
+        """Edges (and a device-clock chip's ticks and recorded bus inputs) in the order the chip sent them;
+        waits up to *timeout* s."""
         self._check_open()
         events = self._read_edges(timeout)
         if self._tap is not None:
@@ -179,7 +236,7 @@ class GpioPort:
     # backend hooks
     def _get(self, line: int) -> int: raise NotImplementedError  # noqa: E704
     def _set(self, line: int, value: int) -> None: raise NotImplementedError  # noqa: E704
-    def _read_edges(self, timeout: float) -> list[EdgeEvent | ClockTick]: raise NotImplementedError  # noqa: E704
+    def _read_edges(self, timeout: float) -> list[GpioEvent]: raise NotImplementedError  # noqa: E704
     def _release(self) -> None: raise NotImplementedError  # noqa: E704
 
 
@@ -200,10 +257,11 @@ class MockGpioPort(GpioPort):
                                   address=self.address, fix="start the mock chip (mock_devices.gpio_chip."
                                                             "MockGpioChip) or correct the address") from exc
         self._cond, self._send_lock = threading.Condition(), threading.Lock()
-        self._edges: deque[EdgeEvent | ClockTick] = deque()
+        self._edges: deque[GpioEvent] = deque()
         self._replies: dict[int, dict[str, Any]] = {}
         self._next_id, self._lost = 0, ""  # _lost: why the connection is gone, once it is
         self.device_clock = False          # the chip keeps its own clock (a replay chip)
+        self._origin_ns = 0                # the recorded clock's zero on that clock (sent by the chip)
         self._taken_ns: int | None = None  # the latest edge/tick time handed to the driver
         self._heard_at = time.monotonic()  # wall time the chip last sent an edge or tick
         self._reader = threading.Thread(target=self._read_loop, name=f"gpio-mock-{device}", daemon=True)
@@ -224,6 +282,8 @@ class MockGpioPort(GpioPort):
                 message, fix = f"mock chip refused the request: {reply.get('message')}", "check lines and settings"
             raise PortUnavailable(device, message, address=self.address, fix=fix + " in this service's config")
         self.device_clock = reply.get("clock") == "device"
+        if self.device_clock and isinstance(reply.get("origin_ns"), int):
+            self._origin_ns = int(reply["origin_ns"])
         for n, value in outputs.items():
             self._tap_write(n, value)
 
@@ -237,6 +297,18 @@ class MockGpioPort(GpioPort):
                 return None
             silent_s = time.monotonic() - self._heard_at
             return self._taken_ns + max(0, int((silent_s - DEVICE_CLOCK_GRACE_S) * 1e9))
+
+    def clock_origin_ns(self) -> int:
+        """0, or on a device-clock chip the origin it sent (before its first stamped frame)."""
+        with self._cond:
+            return self._origin_ns
+
+    def take_recorded_bus(self, channels: Sequence[str]) -> tuple[str, ...]:
+        """On a device-clock chip, ask for *channels* (op ``bus``); the channels it accepted."""
+        if not self.device_clock or not channels:
+            return ()
+        reply = self._call({"op": "bus", "channels": list(channels)})
+        return tuple(str(c) for c in reply.get("channels", ())) if reply.get("ok") else ()
 
     def _read_loop(self) -> None:
         frames = MockFrameReader()
@@ -257,13 +329,20 @@ class MockGpioPort(GpioPort):
             self._cond.notify_all()
 
     def _dispatch(self, kind: bytes, payload: bytes) -> None:
-        if kind in (MOCK_EDGE, MOCK_TICK):
+        if kind == MOCK_ORIGIN:
+            with self._cond:
+                self._origin_ns = MOCK_ORIGIN_RECORD.unpack(payload)[0]
+            return
+        if kind in (MOCK_EDGE, MOCK_TICK, MOCK_STEP, MOCK_BUS):
             if kind == MOCK_EDGE:
                 event_type, line, timestamp_ns, _global, _line_seq = MOCK_EDGE_RECORD.unpack(payload)
-                event: EdgeEvent | ClockTick = EdgeEvent(line=line, rising=event_type == EDGE_RISING,
-                                                         timestamp_ns=timestamp_ns)
+                event: GpioEvent = EdgeEvent(line=line, rising=event_type == EDGE_RISING, timestamp_ns=timestamp_ns)
+            elif kind in (MOCK_TICK, MOCK_STEP):
+                event = ClockTick(MOCK_TICK_RECORD.unpack(payload)[0], step=kind == MOCK_STEP)
             else:
-                event = ClockTick(MOCK_TICK_RECORD.unpack(payload)[0])
+                if not self.device_clock:
+                    raise MockProtocolError("a bus frame from a chip without a device clock")
+                event = decode_bus_input(payload)
             with self._cond:
                 # a replay chip's edges are all kept (its player paces them by what the chip still has
                 # to send); holding this reader back instead would also hold back the reply to a
@@ -315,7 +394,7 @@ class MockGpioPort(GpioPort):
     def _set(self, line: int, value: int) -> None:
         self._transaction({"op": "set", "values": {str(line): value}})
 
-    def _read_edges(self, timeout: float) -> list[EdgeEvent | ClockTick]:
+    def _read_edges(self, timeout: float) -> list[GpioEvent]:
         with self._cond:
             self._cond.wait_for(lambda: self._edges or self._lost or self._closed, timeout)
             events = list(self._edges)
