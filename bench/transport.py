@@ -116,6 +116,7 @@ def run_case(url: str, mode: str, *, rate: float, count: int) -> tuple[int, list
         publish = lambda: lc.publish(CHANNEL, stamp_and_encode(msg))  # noqa: E731
     else:
         tr = Transport(url, name="bench-tx", security=SECURITY[mode])
+        tr.raw_lcm()   # its receive socket open, as the raw sender's (and every service's) is
         publish = lambda: (setattr(msg.header, "timestamp_us", time.monotonic_ns()), tr.publish(CHANNEL, msg))  # noqa: E731
     period = 1.0 / rate
     next_t = time.monotonic()
