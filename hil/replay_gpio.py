@@ -17,7 +17,10 @@ timeouts, debounce, pulse ageing and timed messages by the stamps of the edges t
 any rate or with ``--fast`` and the drivers see the recorded timing. Through a recorded
 silence (no edges: an RC signal loss, the end of the window) the device sends clock ticks
 every ``TICK_NS`` of recorded time, derived from the edges' own kernel stamps (never ahead
-of the next recorded edge), so a timeout expires at the recorded moment. The chip tells the
+of the next recorded edge), so a timeout expires at the recorded moment; where the recorded
+driver published while no edge had reached it for ``STEP_SILENCE_NS`` (edges arriving late on
+a held-up machine), a *step* at that time, when the live driver judged its timeouts on its own
+clock (:meth:`ReplayGpioDevice.clock_ticks`). The chip tells the
 driver the offset (its clock's *origin*), so the driver's timed messages fall on the recorded
 clock's grid (drivers/rc_mux.py). In --fast the player waits while ``GPIO_BACKLOG`` frames are
 queued for the driver, so nothing is dropped.

@@ -1,7 +1,7 @@
 """Recording a simulation, end to end: ``u2sa sim --record`` writes a complete log of the run, and a
 separate ``u2sa record`` started before the simulation is killed (SIGKILL) mid-run; its file is
 recovered with ``u2sa log recover`` and replayed into every driver with ``--fast --compare``,
-which finds no differences."""
+which finds no differences: every stream, the RC mux's RC_MODE and MANUAL_CMD included."""
 
 from __future__ import annotations
 
@@ -105,21 +105,43 @@ def test_sim_record_writes_a_complete_log_of_the_run(recordings: SimRecordings) 
     assert {"gps", "compass", "imu", "wheels", "rc"} <= set(summary.devices)
 
 
-# The RC mux's timed state channels against a *live* recording differ at the signal's start and at a
-# switch edge (the live driver took each edge after a delivery latency the log does not hold; docs/replay.md,
-# Determinism): reported, not gated here. Every other stream, RAW.rc's writes included, must be the same.
-RC_STATE_ROWS = ("RC_MODE [rc]", "MANUAL_CMD [rc]")
+RC_ROWS = ("RC_MODE [rc]", "MANUAL_CMD [rc]", "RAW.rc [rc]")
 
 
-def assert_same_but_the_rc_mux_states(res: subprocess.CompletedProcess) -> None:
-    """The replay ran and compared; every stream but the RC mux's state channels is the same."""
+def rc_starved(log: Path) -> str:
+    """Why the live RC mux's messages depended on the recording machine's load ('' when they did not).
+
+    The simulation scripts no RC signal loss, so a live signal loss or a stall of the mux's loop means the
+    machine held up the mock receiver or the mux by more than the signal timeout: the live mux judged that
+    on its wall clock, which the log holds only as when its outputs and edge reads happened (docs/replay.md,
+    Determinism: a replay reproduces it from them, not always message for message)."""
+    last: dict[str, str] = {}
+    for m in LogFile(log).messages(ch.HEALTH):
+        msg = t.Health.decode(m.data)
+        if msg.name == "rc":
+            last = {kv.key: kv.value for kv in msg.details}
+    reasons = [f"{key} {last[key]}" for key in ("stalls", "signal_losses") if last.get(key, "0") not in ("0", "")]
+    return ", ".join(reasons)
+
+
+def assert_every_stream_the_same(res: subprocess.CompletedProcess, log: Path) -> None:
+    """The replay ran and compared, and every stream is the same: the RC mux's RC_MODE and MANUAL_CMD too
+    (their timed messages fall on the recorded clock's grid with the state as of their due time, and the
+    pre-arm inputs are the recorded ones: docs/replay.md, Determinism). Only a live run in which the
+    machine starved the mux (rc_starved) has its RC rows reported instead of gated."""
     assert res.returncode in (0, 1), res.stdout + res.stderr
     rows = [line for line in res.stdout.splitlines() if line.rstrip().endswith(("same", "DIFFERENT", "new"))
             and " [" in line]
-    assert rows, res.stdout
-    assert all(row.rstrip().endswith("same") for row in rows if not row.startswith(RC_STATE_ROWS)), res.stdout
-    assert res.returncode == 0 or all(row.startswith(RC_STATE_ROWS) for row in rows
-                                      if not row.rstrip().endswith("same")), res.stdout
+    assert rows and any(row.startswith("RC_MODE [rc]") for row in rows) and any(
+        row.startswith("MANUAL_CMD [rc]") for row in rows), res.stdout
+    starved = rc_starved(log)
+    gated = [row for row in rows if not (starved and row.startswith(RC_ROWS))]
+    assert all(row.rstrip().endswith("same") for row in gated), res.stdout
+    if starved:
+        print(f"the live RC mux was starved ({starved}): its streams reported, not gated:\n"
+              + "\n".join(row for row in rows if row.startswith(RC_ROWS)))
+    else:
+        assert res.returncode == 0, res.stdout + res.stderr
 
 
 @pytest.mark.timeout(300)
@@ -134,7 +156,7 @@ def test_killed_recorder_log_recovers_and_replays_with_no_differences(recordings
     summary = log.scan()
     assert log.contents.complete and DRIVERS <= set(summary.devices), summary.devices
     res = cli("replay", str(fixed), "--fast", "--compare", "-o", str(work / "replayed.mcap"), cwd=work, timeout=240)
-    assert_same_but_the_rc_mux_states(res)
+    assert_every_stream_the_same(res, fixed)
     compared = {line.split(" [", 1)[1].split("]", 1)[0] for line in res.stdout.splitlines() if " [" in line
                 and line.rstrip().endswith("same")}
     assert DRIVERS <= compared, res.stdout
@@ -147,7 +169,7 @@ def test_the_simulations_own_recording_replays_with_no_differences(recordings: S
     work = recordings.workdir
     res = cli("replay", str(files[0]), "--fast", "--compare", "-o", str(work / "sim-replayed.mcap"), cwd=work,
               timeout=240)
-    assert_same_but_the_rc_mux_states(res)
+    assert_every_stream_the_same(res, files[0])
     compared = {line.split(" [", 1)[1].split("]", 1)[0] for line in res.stdout.splitlines() if " [" in line
                 and line.rstrip().endswith("same")}
     assert DRIVERS <= compared, res.stdout
