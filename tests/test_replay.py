@@ -337,10 +337,17 @@ def test_can_frames_replay_into_the_motor_driver_with_its_commands(can_log: Path
 
 
 def test_a_service_that_dies_ends_the_replay_with_its_reason(driver_log: Path, tmp_path: Path) -> None:
+    # a value its field refuses never gets as far as a start: one line, exit 2, nothing replayed
     res = replay_cli(str(driver_log), "--fast", "--set", "gps.baudrate=1234", "-o", str(tmp_path / "x.mcap"),
                      cwd=tmp_path)
+    assert res.returncode == 2 and res.stderr.strip().splitlines() == [
+        "u2sa: --set gps.baudrate=1234: field 'baudrate' must be one of 4800, 9600, 19200, 38400, 57600, 115200; "
+        "got 1234"], res.stderr
+    # values each field takes but the driver cannot start with (a singular soft-iron matrix)
+    res = replay_cli(str(driver_log), "--fast", "--set", "compass.mag_matrix=[0,0,0,0,0,0,0,0,0]",
+                     "-o", str(tmp_path / "x.mcap"), cwd=tmp_path)
     assert res.returncode == 2   # the replay failed (1 would mean "outputs differ")
-    assert "service 'gps' died during the replay" in res.stderr and "baudrate 1234 is not supported" in res.stderr
+    assert "service 'compass' died during the replay" in res.stderr and "mag_matrix" in res.stderr, res.stderr
     kept = res.stderr.rsplit("replay files kept in ", 1)[1].strip(" )\n")
-    assert (Path(kept) / "config" / "gps.toml").read_text().count("baudrate = 1234") == 1
+    assert (Path(kept) / "config" / "compass.toml").read_text().count("mag_matrix = [") == 1
     shutil.rmtree(kept, ignore_errors=True)
