@@ -54,6 +54,18 @@ def test_a_signed_packet_verifies_once_and_is_the_payload_with_a_trailer(key_fil
     assert strip_trailer(packet) == PAYLOAD and strip_trailer(PAYLOAD) == PAYLOAD
 
 
+def test_the_mac_is_the_standard_hmac_sha256_of_channel_nul_payload_and_the_signed_trailer(key_file: Path) -> None:
+    """What docs/security.md specifies, checked against the standard library's hmac (a ground station in
+    another language computes the same)."""
+    import hashlib
+    import hmac
+
+    packet = auth(key_file).sign("STATE_INFO", PAYLOAD)
+    mac_at = len(packet) - TRAILER_LEN + 20           # sender (8), counter (8), key id (4) are signed
+    expected = hmac.new(read_key(key_file), b"STATE_INFO\0" + packet[:mac_at], hashlib.sha256).digest()[:16]
+    assert packet[mac_at:mac_at + 16] == expected and packet.endswith(TAG)
+
+
 def test_the_channel_is_signed_too(key_file: Path) -> None:
     packet = auth(key_file).sign("U2SA_CONFIG_SET", PAYLOAD)
     assert auth(key_file).verify("U2SA_STOP", packet) == FORGED
