@@ -33,6 +33,7 @@ from typing import Any
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
+from hil.stream_align import first_difference  # noqa: E402
 from u2sa_hw.bus_key import use_run_key  # noqa: E402
 
 
@@ -71,19 +72,6 @@ def replay(log: Path, out: Path) -> tuple[dict[str, list[tuple[str, dict[str, An
                           rate=None)
     streams = load_streams(out, sources=services)
     return {k: [(s.type_name, s.fields) for s in v] for k, v in streams.items()}, report, took
-
-
-def first_difference(a: dict[str, list], b: dict[str, list]) -> str:
-    """Where two replays first differ ('' when they do not)."""
-    for key in sorted(set(a) | set(b)):
-        x, y = a.get(key, []), b.get(key, [])
-        for i, (p, q) in enumerate(zip(x, y)):
-            if p != q:
-                fields = sorted(k for k in set(p[1]) | set(q[1]) if p[1].get(k) != q[1].get(k))
-                return f"{key} #{i}: " + ", ".join(f"{k} {p[1].get(k)!r} / {q[1].get(k)!r}" for k in fields[:3])
-        if len(x) != len(y):
-            return f"{key}: {len(x)} messages against {len(y)}"
-    return ""
 
 
 def main() -> int:

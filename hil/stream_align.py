@@ -117,3 +117,18 @@ def _align_gap(i1: int, i2: int, j1: int, j2: int, *, pair_cost: Callable[[int, 
             out.append(Pair("inserted", None, j1 + j))
     out.reverse()
     return out
+
+
+def first_difference(a: dict[str, list], b: dict[str, list]) -> str:
+    """Where two replays' messages first differ, by index ('' when they are the same): each side maps
+    a stream to its ``(type name, fields)`` in order (replay-to-replay determinism, where no message
+    may be inserted or deleted, so pairing by index is the point)."""
+    for key in sorted(set(a) | set(b)):
+        x, y = a.get(key, []), b.get(key, [])
+        for i, (p, q) in enumerate(zip(x, y)):
+            if p != q:
+                fields = sorted(k for k in set(p[1]) | set(q[1]) if p[1].get(k) != q[1].get(k))
+                return f"{key} #{i}: " + ", ".join(f"{k} {p[1].get(k)!r} / {q[1].get(k)!r}" for k in fields[:3])
+        if len(x) != len(y):
+            return f"{key}: {len(x)} messages against {len(y)}"
+    return ""

@@ -138,3 +138,13 @@ def test_rc_mode_fields_decided_from_the_rest_of_the_system_are_notes_and_its_ow
     # the same field names on another channel are the service's own
     r = compare_stream("STATE_INFO [x]", rec, system_only, tolerance=1e-6, edge=1, rate=None, time_tolerance_s=1)
     assert not r.ok and r.differing == 29
+
+
+def test_first_difference_names_the_stream_index_and_fields_or_the_counts() -> None:
+    from hil.stream_align import first_difference
+
+    a = {"GPS": [("State", {"x": 1.0, "y": 2.0}), ("State", {"x": 3.0, "y": 4.0})]}
+    assert first_difference(a, {"GPS": list(a["GPS"])}) == ""
+    assert first_difference(a, {"GPS": [a["GPS"][0], ("State", {"x": 3.0, "y": 5.0})]}) == "GPS #1: y 4.0 / 5.0"
+    assert first_difference(a, {"GPS": a["GPS"][:1]}) == "GPS: 2 messages against 1"
+    assert first_difference(a, {}) == "GPS: 2 messages against 0"

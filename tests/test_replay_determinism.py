@@ -17,6 +17,7 @@ from recorded_sim import recorded_sim
 
 from hil.compare import load_streams
 from hil.replay import Replay, ReplayOptions
+from hil.stream_align import first_difference
 
 # the whole run: with --fast the IMU driver pulls its reads at 1000 Hz from its start, so a
 # short window's reads would run out before the other drivers are ready
@@ -44,19 +45,6 @@ def replay_streams(log: Path, out: Path) -> tuple[dict[str, list[tuple[str, dict
     services = set(result.plan.services)
     streams = load_streams(out, sources=services)
     return {key: [(s.type_name, s.fields) for s in samples] for key, samples in streams.items()}, services
-
-
-def first_difference(a: dict[str, list], b: dict[str, list]) -> str:
-    """The first stream and message where two replays differ ('' when none)."""
-    for key in sorted(set(a) | set(b)):
-        x, y = a.get(key, []), b.get(key, [])
-        for i, (p, q) in enumerate(zip(x, y)):
-            if p != q:
-                fields = sorted(k for k in set(p[1]) | set(q[1]) if p[1].get(k) != q[1].get(k))
-                return f"{key} #{i}: {fields[:5]} {[(p[1].get(k), q[1].get(k)) for k in fields[:3]]}"
-        if len(x) != len(y):
-            return f"{key}: {len(x)} messages against {len(y)}"
-    return ""
 
 
 @pytest.fixture
