@@ -62,26 +62,21 @@ from drivers.declarations import RcMuxDeclarations
 from drivers.gpio_lines import (GpioLineSet, check_gpio_device, legacy_gpio_address, note_restart_needed,
                                 parse_line_map)
 from drivers.rc_manual import ManualSticks
-from drivers.rc_pulse import (MODE_AUTONOMOUS, MODE_MANUAL, MODE_NAMES, MODE_NO_SIGNAL, DueGrid, PulseMeter,
-                              RcModeFilter)
+from drivers.rc_mux_clock import TIMED_HOLD_NS, RcMuxClock
+from drivers.rc_mux_enable import RcMuxEnable
+from drivers.rc_pulse import MODE_MANUAL, MODE_NAMES, MODE_NO_SIGNAL, DueGrid, PulseMeter, RcModeFilter
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Sensor
 from u2sa_hw.config import ConfigError, field
 from u2sa_hw.failsafe import FailsafeSources
-from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.ports.device_link import device_setting
-from u2sa_hw.ports.gpio_port import BusInput, ClockTick, EdgeEvent, GpioEvent, GpioPort
+from u2sa_hw.ports.gpio_port import GpioPort
 from u2sa_hw.safety.config import load_safety
 from u2sa_hw.safety.prearm import CheckFailure, PrearmChecks
 from u2sa_hw.safety.wiring import check_wiring
 
 
-# Live, a timed message due at D waits until an edge stamped after D is taken, or until the clock is
-# this far past D: an edge stamped before D but delivered late (a kernel chip: microseconds; the
-# mock receiver hands a frame's edges over at the frame's end) is still in it. It only waits
-# while no edge comes (a lost signal): then every RcMode is at most a period and this old.
-TIMED_HOLD_NS = 50_000_000
 RECORDED_BUS = (ch.HEALTH, ch.FAILSAFE)   # what a replay chip hands over (and STATE_ESTIMATE when checked)
 
 
@@ -96,7 +91,7 @@ class RcSetup(NamedTuple):
     filter: RcModeFilter
 
 
-class RcMuxDriver(RcMuxDeclarations, Sensor):
+class RcMuxDriver(RcMuxDeclarations, RcMuxEnable, RcMuxClock, Sensor):
     """RC pulse measurement, mux mode on RC_MODE, and the autonomy-enable line into the mux."""
 
     CONFIG = (
@@ -213,129 +208,6 @@ class RcMuxDriver(RcMuxDeclarations, Sensor):
         """require_rearm and select_mismatch_ms apply at once; lines and thresholds at the next start."""
         note_restart_needed(self, name, live=("require_rearm", "select_mismatch_ms"))
 
-    # -- the enable line -----------------------------------------------------------------
-    def autonomy_allowed(self) -> tuple[bool, str]:
-        """Whether the enable line may be high, and if not the first reason why not."""
-        allowed, why, _ = self._blocked()
-        return allowed, why
-
-    def _blocked(self) -> tuple[bool, str, Any]:
-        """(allowed, why not, what the reason is: the pre-arm check and service rather than its text, whose
-        sigma changes with every estimate)."""
-        if self._stopping:
-            return False, "stopping", "stopping"
-        if self.failsafes.active:
-            why = f"failsafe ({self.failsafes.reason()})"
-            return False, why, why
-        if not self.gpio.is_open:
-            return False, "GPIO port down", "port"
-        if self.mismatch:
-            return False, "mux select read-back mismatch", "mismatch"
-        if self.prearm_failures and not (self.hold and self.enabled):
-            first = self.prearm_failures[0]
-            return False, f"pre-arm check failed: {first.reason}", ("prearm", first.check, first.service)
-        if self.filter.mode != MODE_AUTONOMOUS:
-            why = f"mode {self.filter.mode_name}"
-            return False, why, why
-        if not self.armed:
-            return False, "not armed (switch to manual to re-arm)", "armed"
-        return True, "", ""
-
-    def state_key(self) -> tuple:
-        """What an RcMode says but the pulse widths (and the sigma in a pre-arm reason): a change is published
-        at once."""
-        return (self.filter.mode, self.enabled, self.mismatch, self.armed, self.hold, self._blocked()[2])
-
-    def update_enable(self) -> None:
-        """Drive the enable line to what :meth:`autonomy_allowed` says (safe from any thread)."""
-        with self._enable_lock:
-            want, why = self.autonomy_allowed()
-            if want == self.enabled:
-                return
-            ok = self.gpio.set(self.enable_line, int(want))
-            new = want if ok else False  # a failed write lost the port: the request is released, the line falls
-            if new != self.enabled:
-                self.enabled = new
-                self.enable_changes += 1
-                # Handing over to autonomy is normal operation; losing it is worth a warning.
-                if new:
-                    self.logger.info("autonomy enable HIGH (all conditions hold)")
-                else:
-                    self.logger.warning("autonomy enable low (%s)", why)
-
-    @property
-    def failsafe_active(self) -> bool:
-        """True while any source holds a failsafe."""
-        return self.failsafes.active
-
-    def _on_failsafe(self, msg: t.Failsafe) -> None:
-        if ch.FAILSAFE not in self._recorded_bus:   # on a replay chip the recorded ones come with the edges
-            self._apply_failsafe(msg)
-
-    def _on_health(self, msg: t.Health) -> None:
-        if ch.HEALTH not in self._recorded_bus:
-            self.prearm.on_health(msg, time.monotonic())
-
-    def _on_estimate(self, msg: t.StateInformation) -> None:
-        if ch.STATE_ESTIMATE not in self._recorded_bus:
-            self.prearm.on_estimate(msg, time.monotonic())
-
-    def _on_bus_input(self, event: BusInput) -> None:
-        """A recorded bus message from a replay chip, at its recorded arrival on the device clock."""
-        try:
-            msg, _ = REGISTRY.decode(event.data, ch.base_type(event.channel))
-        except MalformedMessage:
-            return
-        if event.channel == ch.FAILSAFE:
-            self._apply_failsafe(msg)
-        elif event.channel == ch.HEALTH:
-            self.prearm.on_health(msg, event.timestamp_ns / 1e9)
-        elif event.channel == ch.STATE_ESTIMATE:
-            self.prearm.on_estimate(msg, event.timestamp_ns / 1e9)
-
-    def _apply_failsafe(self, msg: t.Failsafe) -> None:
-        with self._enable_lock:
-            change = self.failsafes.apply_message(msg)
-            if change.raised:
-                self.logger.warning("FAILSAFE from %s: %s", msg.header.source or "?", msg.reason)
-            if change.cleared:
-                self.logger.info("failsafe of %s cleared by %s%s", ", ".join(change.cleared),
-                                 msg.header.source or "?", "" if change.active_after else " (none held now)")
-            # raised or cleared: the pilot re-arms after it, so a clear never hands autonomy back by itself
-            if (change.active_after or change.cleared) and self.config["require_rearm"]:
-                self.armed = False
-            self.update_enable()
-
-    def _check_prearm(self, now: float) -> None:
-        """Evaluate the pre-arm checks; a check lost while autonomous disarms or holds."""
-        failures = self.prearm.evaluate(now, rc_link_ok=self.filter.mode != MODE_NO_SIGNAL,
-                                        failsafe_reason=self.failsafes.reason())
-        first = failures[0].reason if failures else ""
-        key = (failures[0].check, failures[0].service) if failures else None
-        old = (self.prearm_failures[0].check, self.prearm_failures[0].service) if self.prearm_failures else None
-        if key != old:  # by check and service: a sigma in the reason changes with every estimate
-            if first:
-                self.logger.info("pre-arm: %s", first)
-            else:
-                self.logger.info("pre-arm: every check holds")
-        with self._enable_lock:
-            self.prearm_failures = failures
-            if (failures and not self.enabled and self.armed and self.filter.mode == MODE_AUTONOMOUS
-                    and self.config["require_rearm"]):
-                # refused: the attempt is over, so autonomy cannot start by itself once the check passes
-                self.armed = False
-                self.logger.warning("autonomy refused: %s; switch through manual to try again", first)
-            elif failures and self.enabled and not self.hold:
-                self.checks_lost += 1
-                if self.safety.on_check_lost == "hold":
-                    self.hold = True
-                    self.logger.warning("pre-arm check lost while autonomous: %s -> hold (outputs neutral until "
-                                        "the pilot re-arms through manual)", first)
-                else:
-                    self.armed = False
-                    self.logger.warning("pre-arm check lost while autonomous: %s -> neutral (autonomy dropped; "
-                                        "switch through manual to re-arm)", first)
-
     def _on_open(self, port: GpioPort) -> None:
         # runs inside the opener (under the line set's lock, so not under _enable_lock: lock order
         # is _enable_lock -> line set); the port was requested with the enable line low
@@ -385,137 +257,6 @@ class RcMuxDriver(RcMuxDeclarations, Sensor):
                 self._step(port.now_ns() if up else time.monotonic_ns(), time.monotonic_ns())
             else:
                 self._settle(self.clock_ns)   # a replay chip gone: said at once (its clock went with it)
-
-    def _take(self, event: GpioEvent, wall_ns: int) -> None:
-        """One event from the chip at its stamp: what fell due up to it, then the event, then its effects.
-        (Live, the clock may already be past the stamp, read at the loop's last look: an edge delivered late
-        still comes before the timed messages due after it that were held for it.)
-
-        A recorded bus input (a replay chip's) is applied as the live callbacks apply a message: a
-        FAILSAFE drops the enable line at once, a Health or estimate waits for the next judgement; what
-        they change is published with the next edge or tick, as the recorded driver did at its loop's
-        next turn. It does not move the clock (it is stamped at the edge before it)."""
-        if self._published is None:
-            self._settle(None)   # the state before any input (a replay chip sends nothing before it)
-        if isinstance(event, BusInput):
-            self._on_bus_input(event)
-            return
-        at = event.timestamp_ns
-        self._advance_clock(at)
-        if isinstance(event, ClockTick) and event.step:
-            # the recorded loop looked at its clock here while edges were still on their way (late): what
-            # it judged then, as the live step does (expiries up to now, timed messages held for them)
-            self._advance(at, at - TIMED_HOLD_NS, wall_ns)
-            self._settle(at)
-            return
-        self._advance(at, at, wall_ns)
-        if isinstance(event, EdgeEvent):
-            self._on_edge(event.line, event.rising, at)
-        self._settle(at)
-
-    def _step(self, now_ns: int | None, wall_ns: int) -> None:
-        """The loop's look at the clock: expiries up to *now_ns*, timed messages up to it (live: up to
-        TIMED_HOLD_NS before it, later ones wait for a later edge), the pre-arm checks and the enable line.
-        On a replay chip everything was judged at the stamps of its events: only the first state, and a
-        clock that runs on after DEVICE_CLOCK_GRACE_S of silence (a stalled replay times out, fail safe)."""
-        if self._device_clock and (self.clock_ns is None or now_ns is None or now_ns <= self.clock_ns):
-            if self._published is None:
-                self._settle(None)
-            return
-        at = self._advance_clock(now_ns)
-        if at is not None:
-            self._advance(at, at if self._device_clock else at - TIMED_HOLD_NS, wall_ns)
-        self._settle(at)
-
-    def _advance_clock(self, now_ns: int | None) -> int | None:
-        """The device clock moved to *now_ns* (it never goes back); its time now (None: not started). The
-        timed messages start with it."""
-        if now_ns is not None:
-            if self.clock_ns is None:
-                self._origin_ns = self._origin_of()
-            self.clock_ns = now_ns if self.clock_ns is None else max(self.clock_ns, now_ns)
-        if self.clock_ns is not None and self._next_publish_ns is None:
-            self._next_publish_ns = self.mode_grid.after(self.clock_ns - 1, self._origin_ns)
-        return self.clock_ns
-
-    def _advance(self, limit_ns: int, dues_ns: int, wall_ns: int) -> None:
-        """In time order: every expiry (signal timeout, read-back mismatch) up to *limit_ns*, each timed
-        message due up to *dues_ns* or before an expiry, each at its own time."""
-        while True:
-            expiry = self._next_expiry()
-            due = self._next_timed()
-            expires = expiry is not None and expiry[0] <= limit_ns
-            if expires and (due is None or expiry[0] <= due[0]):
-                self._expire(expiry[1], expiry[0])
-            elif due is not None and (due[0] <= dues_ns or expires):
-                self._timed(due[1], due[0], dues_ns, wall_ns)
-            else:
-                return
-
-    def _next_expiry(self) -> tuple[int, str] | None:
-        times = []
-        signal = self.filter.signal_expiry_ns()
-        if signal is not None:
-            times.append((signal, "signal"))
-        if self._mismatch_since is not None and not self.mismatch:
-            times.append((self._mismatch_since + int(self.config["select_mismatch_ms"] * 1e6) + 1, "select"))
-        return min(times) if times else None
-
-    def _next_timed(self) -> tuple[int, str] | None:
-        times = []
-        if self._next_publish_ns is not None:
-            times.append((self._next_publish_ns, "mode"))
-        if self._next_manual_ns is not None:
-            times.append((self._next_manual_ns, "manual"))
-        return min(times) if times else None
-
-    def _expire(self, what: str, at_ns: int) -> None:
-        if what == "signal":
-            if self.filter.check_signal(at_ns):
-                self._mode_changed(at_ns)
-        else:
-            self._check_select(at_ns)
-            if not self.mismatch:   # no read-back (any more): nothing left to expire
-                self._mismatch_since = None
-        self._settle(at_ns)
-
-    def _timed(self, what: str, due_ns: int, dues_ns: int, wall_ns: int) -> None:
-        """The RC_MODE or MANUAL_CMD due at *due_ns*, with the state as of then. One more than a period behind
-        the clock is left out when the next is due too (no burst after a stall): live the wall clock, on a
-        replay chip its clock (ahead of the edges only after a recorded step, where the live loop was)."""
-        grid = self.mode_grid if what == "mode" else self.manual_grid
-        following = grid.after(due_ns, self._origin_ns)
-        now_ns = (self.clock_ns or due_ns) if self._device_clock else wall_ns
-        behind = now_ns - due_ns > grid.period_ns and following <= dues_ns
-        if what == "mode":
-            self._next_publish_ns = following
-            if not behind:
-                self.publish_mode(due_ns)
-        else:
-            self._next_manual_ns = following if self.filter.mode == MODE_MANUAL and self.sticks is not None else None
-            if not behind and self._next_manual_ns is not None:
-                self.publish_manual(due_ns)
-
-    def _settle(self, at_ns: int | None) -> None:
-        """After an event at *at_ns*: the pre-arm checks, the enable line, the read-back, the status, and
-        RC_MODE at once if what it says changed."""
-        self._check_prearm(self._judge_s(at_ns))
-        if at_ns is not None:
-            self._check_select(at_ns)   # with the line as it was: a mismatch just found goes out before it clears
-        self.update_enable()
-        if at_ns is not None and self.select_level is not None and self._mismatch_since is None \
-                and self.select_level != int(self.enabled):
-            self._mismatch_since = at_ns   # the line just changed and the read-back disagrees from now
-        self._refresh_status()
-        if self.state_key() != self._published:
-            self.publish_mode(at_ns)
-
-    def _judge_s(self, at_ns: int | None) -> float:
-        """The time the pre-arm checks judge ages at: the device clock (live: CLOCK_MONOTONIC, the time
-        Health is stamped with on arrival); before a replay chip's clock starts, its zero."""
-        if at_ns is not None:
-            return at_ns / 1e9
-        return 0.0 if self._device_clock else time.monotonic()
 
     def _check_stall(self, last_loop_ns: int) -> int:
         """A loop gap longer than the signal timeout, or long enough that the actuators may have seen
