@@ -45,6 +45,7 @@ from u2sa_hw.ports.gpio_port import (BIASES, EDGE_FALLING, EDGE_RISING, EDGES, M
 log = logging.getLogger("mock_devices.gpio_chip")
 
 OutputCallback = Callable[[int, int, int], None]
+WRITE_BATCH = 256   # frames a client's writer sends at once at most
 
 
 @dataclass(frozen=True)
@@ -300,13 +301,24 @@ class MockGpioChip:
                              name=f"{self.label}-writer").start()
 
     def _client_writer(self, client: _Client) -> None:
+        # every frame already queued goes out in one send (a replay chip queues edges by the thousand:
+        # one syscall, and one wake-up of the client's reader, per frame was most of the cost); order kept
         while True:
-            frame = client.outbox.get()
-            if frame is None:
-                return
-            try:
-                client.sock.sendall(frame)
-            except OSError:
+            frames = [client.outbox.get()]
+            while frames[-1] is not None and len(frames) < WRITE_BATCH:
+                try:
+                    frames.append(client.outbox.get_nowait())
+                except queue.Empty:
+                    break
+            stop = frames[-1] is None
+            if stop:
+                frames.pop()
+            if frames:
+                try:
+                    client.sock.sendall(frames[0] if len(frames) == 1 else b"".join(frames))
+                except OSError:
+                    return
+            if stop:
                 return
 
     def _client_reader(self, client: _Client) -> None:

@@ -161,6 +161,9 @@ class GpioPort:
         self.device, self.address = device, address
         self.inputs, self.outputs = tuple(inputs), dict(outputs)  # outputs: line -> last value set
         self._tap, self._closed = tap, False
+        # edges are tapped (RawGpioEdge) but from a replay chip (a device clock): they are the log's own
+        # input played back, and re-tapping them only doubled the replay's bus traffic (writes still are)
+        self._tap_edges = True
 
     is_open = property(lambda self: not self._closed, doc="False after close().")
 
@@ -201,7 +204,7 @@ class GpioPort:
         waits up to *timeout* s."""
         self._check_open()
         events = self._read_edges(timeout)
-        if self._tap is not None:
+        if self._tap is not None and self._tap_edges:
             for event in events:
                 if not isinstance(event, EdgeEvent):
                     continue
@@ -282,6 +285,7 @@ class MockGpioPort(GpioPort):
                 message, fix = f"mock chip refused the request: {reply.get('message')}", "check lines and settings"
             raise PortUnavailable(device, message, address=self.address, fix=fix + " in this service's config")
         self.device_clock = reply.get("clock") == "device"
+        self._tap_edges = not self.device_clock
         if self.device_clock and isinstance(reply.get("origin_ns"), int):
             self._origin_ns = int(reply["origin_ns"])
         for n, value in outputs.items():
