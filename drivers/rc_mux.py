@@ -137,6 +137,7 @@ class RcMuxDriver(RcMuxDeclarations, RcMuxEnable, RcMuxClock, Sensor):
         self.prearm_failures: list[CheckFailure] = []
         self.hold = False
         self.checks_lost = self.stalls = 0
+        self.timed_skipped = 0   # timed messages left out because the loop was more than a period behind
         stale_ns = int((self.safety.rc_mode_timeout_s - 1.0 / c["publish_hz"]) * 1e9) - TIMED_HOLD_NS
         self.stall_after_ns = max(20_000_000, min(self.filter.signal_timeout_ns, stale_ns))
         self.select_level: int | None = None
@@ -389,6 +390,7 @@ class RcMuxDriver(RcMuxDeclarations, RcMuxEnable, RcMuxClock, Sensor):
             "enable_blocked_by": "" if allowed else why, "armed": self.armed, "hold": self.hold,
             "failsafe": self.failsafe_active, "failsafe_sources": ",".join(sorted(self.failsafes.held())),
             "prearm_failed": "; ".join(f.reason for f in self.prearm_failures), "checks_lost": self.checks_lost, "stalls": self.stalls,
+            "timed_skipped": self.timed_skipped,
             "manual_commands": self.sticks.sent if self.sticks else 0,
             "select_readback": "none" if self.select_level is None else self.select_level,
             "select_mismatch": self.mismatch, "select_mismatches": self.mismatches,

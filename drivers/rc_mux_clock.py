@@ -30,6 +30,7 @@ class RcMuxClock:
     whose state it reads and moves: the clock, the due grids, the filter, the enable line)."""
 
     clock_ns: int | None
+    timed_skipped: int
     _device_clock: bool
     _published: Any
 
@@ -134,6 +135,8 @@ class RcMuxClock:
         following = grid.after(due_ns, self._origin_ns)
         now_ns = (self.clock_ns or due_ns) if self._device_clock else wall_ns
         behind = now_ns - due_ns > grid.period_ns and following <= dues_ns
+        if behind:
+            self.timed_skipped += 1   # health: the loop fell behind (a replay cannot know the wall clock's gaps)
         if what == "mode":
             self._next_publish_ns = following
             if not behind:
