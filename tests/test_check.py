@@ -478,3 +478,14 @@ def test_a_secret_file_this_user_cannot_read_is_a_warning_and_a_mission_an_error
         assert any(line.startswith(f"error {workdir / 'mission.xml'}") for line in lines), done.stdout
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
+
+
+def test_a_device_with_no_address_is_one_error(tmp_path: Path) -> None:
+    """The RC mux's device table without an address: the driver's own check names the missing line (with a
+    gpio example); the device list does not say it a second time (with a serial example)."""
+    path = write(tmp_path, CLEAN + '\n[services.rc]\nkind = "rc_mux"\nsettings = { channels = "mode=13" }\n'
+                 '\n[devices.rc]\nmock = "rc_receiver"\n')
+    errors = [p for p in errors_of(check_profile(path)) if "'rc'" in p.message]
+    assert len(errors) == 1, "\n".join(map(str, errors))
+    assert "no address: add [devices.rc] address" in errors[0].message and "gpio://" in errors[0].message
+    assert "serial:///dev/u2sa/rc" not in str(errors[0])

@@ -182,8 +182,8 @@ def profile_devices(profile: VehicleProfile, *, configs: Mapping[str, Mapping[st
         where = _where(profile, group_name or device)
         if not text:
             raise ProfileError(f"{where}: device '{device}' of service '{service}' has no address; add "
-                               f"[devices.{device}] address = \"...\" (docs/ports.md lists the forms, e.g. "
-                               f"\"serial:///dev/u2sa/{device}?baud=9600\"){_did_you_mean(device, tables)}")
+                               f"[devices.{device}] address = \"...\" (docs/ports.md lists the forms: serial://, "
+                               f"can://, i2c://, gpio://, pwm://, pca9685://){_did_you_mean(device, tables)}")
         try:
             if from_legacy:
                 text = _fold_legacy_keys(text, table, device)

@@ -152,7 +152,10 @@ def _check_addresses(profile: Any, configs: Mapping[str, Any], out: Collector,
         entries = profile_devices(profile, configs=configs, warn=notices.append)
     except ValueError as exc:   # ProfileError, or a service's ConfigError while reading its devices
         stopped_at = "devices." if isinstance(exc, ProfileError) else "services."
-        if not any(p.is_error and p.key.startswith(stopped_at) for p in out.problems):
+        missing = re.search(r"device '([^']+)' of service '[^']+' has no address", str(exc))
+        told = f"no address: add [devices.{missing.group(1)}]" if missing else None   # by the driver's own check
+        if not any(p.is_error and (p.key.startswith(stopped_at) or (told and told in p.message))
+                   for p in out.problems):
             out.from_text(str(exc), key="devices", fix="write the address as docs/ports.md shows")
         return None
     for text in notices:
