@@ -43,16 +43,8 @@ sys.path.insert(0, str(REPO))
 from u2sa_hw import lcmtypes as t  # noqa: E402
 from u2sa_hw.bus_key import use_run_key  # noqa: E402
 from u2sa_hw.udp_ports import private_lcm_url  # noqa: E402
+from example_mix import EXAMPLE_RATES  # noqa: E402  (bench/ is the script's directory)
 
-# The example ground vehicle with every raw tap on: channel -> (messages per second, payload bytes),
-# the same mix as bench/replay.py's recorder benchmark (not imported: that script pulls in the drivers).
-EXAMPLE_RATES: dict[str, tuple[float, int]] = {
-    "STATE_INFO": (5 + 10 + 50 + 100, 440), "STATE_ESTIMATE": (50, 440), "ACTUATOR_CMD": (40, 80),
-    "NAV_POINT": (20, 120), "RC_MODE": (10, 60), "GOALS": (1, 200), "MISSION_STATUS": (1, 120),
-    "WORLD": (2, 300), "WORLD_SUMMARY": (2, 100), "U2SA_HEALTH": (12, 600), "U2SA_SYSTEM_HEALTH": (1, 800),
-    "RAW.gps": (30, 110), "RAW.compass": (20, 80), "RAW.imu": (100, 70), "RAW.wheels": (460, 70),
-    "RAW.pan": (50, 60), "RAW.rc": (300, 60),
-}
 
 
 def sample(channel: str) -> Any:
