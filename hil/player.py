@@ -124,7 +124,7 @@ class Player:
             if m.channel.startswith("RAW."):
                 device = m.channel[4:]
                 if not getattr(self.devices.get(device), "streamed", device in self.devices):
-                    continue  # not replayed, or loaded before the start (I2C)
+                    continue  # not replayed, or a device that takes none of its records
                 try:
                     record, _ = REGISTRY.decode(m.data)
                 except MalformedMessage:
@@ -241,6 +241,6 @@ class Player:
             time.sleep(pause)
             pause = min(0.002, pause * 2)
             now_left = device.pending()
-            if now_left < left:   # progress: a long input (I2C reads at the driver's pace) may take a while
+            if now_left < left:   # progress: a long input (reads at the driver's pace) may take a while
                 deadline = time.monotonic() + self.stall_timeout_s
             left = now_left

@@ -205,6 +205,8 @@ def test_a_recorded_mpu9250_replays_into_the_same_magnetometer_values(lcm_url: s
     device.start()
     try:
         replayed_address = device.mock_address(parse_address(recorded_address, device="ins"))
+        for record in live.raw():   # as the player feeds them: each recorded data read releases one
+            device.feed(record)
         replay = Driver(replayed_address)
         try:
             replayed = replay.sample(12)
@@ -219,6 +221,7 @@ def test_a_recorded_mpu9250_replays_into_the_same_magnetometer_values(lcm_url: s
     assert all(math.isfinite(psi) for _, psi in replayed)
     report = device.report()
     assert report["divergences"] == 0 and report["recorded_reads_left"] == 0, report
+    assert report["gated_reads"] == 0 and device.pending() == 0, report   # every data read was released first
 
 
 def test_a_device_setting_changed_over_the_bus_reopens_the_imu_and_its_magnetometer_there(

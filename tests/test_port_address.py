@@ -20,7 +20,11 @@ GOOD = [
      {"can_interface": "udp_multicast", "can_channel": "239.74.163.2", "bitrate": None, "udp_port": 17270,
       "bus_options": {"port": 17270, "receive_own_messages": True}}),
     ("i2c://1/0x68", "i2c", False, {"i2c_bus": 1, "chip_address": 0x68}),
-    ("mock+i2c:///run/sim/i2c-1.sock/0x28", "i2c", True, {"i2c_bus": "mock:/run/sim/i2c-1.sock", "chip_address": 0x28}),
+    ("mock+i2c:///run/sim/i2c-1.sock/0x28", "i2c", True,
+     {"i2c_bus": "mock:/run/sim/i2c-1.sock", "chip_address": 0x28, "i2c_timeout": None}),
+    ("mock+i2c:///run/replay/i2c-imu.sock/0x68?timeout=60", "i2c", True,
+     {"i2c_bus": "mock:/run/replay/i2c-imu.sock", "chip_address": 0x68, "i2c_timeout": 60.0}),
+    ("mock+i2c:///run/replay/i2c-imu.sock/0x68?timeout=0.5", "i2c", True, {"i2c_timeout": 0.5}),
     ("gpio://gpiochip0/17,27", "gpio", False, {"gpio_chip": "/dev/gpiochip0", "lines": (17, 27)}),
     ("gpio:///dev/gpiochip1", "gpio", False, {"gpio_chip": "/dev/gpiochip1", "lines": ()}),
     ("mock+gpio:///run/sim/gpiochip0.sock/5,6,13", "gpio", True,
@@ -78,6 +82,15 @@ BAD = [
     ("i2c://1/0x99", "not a 7-bit device address"),
     ("i2c://one/0x68", "adapter number"),
     ("i2c://1/0x68?speed=4", "unknown parameter 'speed'"),
+    ("mock+i2c:///run/x.sock/0x68?timout=60", "unknown parameter 'timout' (did you mean 'timeout'?)"),
+    ("i2c://1/0x68?timeout=60", "timeout= is only for mock+i2c addresses"),
+    ("mock+i2c:///run/x.sock/0x68?timeout=0", "timeout='0' must be a number of seconds > 0"),
+    ("mock+i2c:///run/x.sock/0x68?timeout=-2", "timeout='-2' must be a number of seconds > 0"),
+    ("mock+i2c:///run/x.sock/0x68?timeout=soon", "timeout='soon' must be a number of seconds > 0"),
+    ("mock+i2c:///run/x.sock/0x68?timeout=nan", "timeout='nan' must be a number of seconds > 0"),
+    ("mock+i2c:///run/x.sock/0x68?timeout=inf", "timeout='inf' must be a number of seconds > 0"),
+    ("mock+i2c:///run/x.sock/0x68?timeout=", "timeout='' must be a number of seconds > 0"),
+    ("mock+pca9685:///run/x.sock/0x40/3?timeout=60", "unknown parameter 'timeout'"),
     ("gpio://gpiochip0/1,x", "line numbers separated by commas"),
     ("gpio://gpiochip0/4,4", "repeats a line"),
     ("pwm:///tmp/x/0", "a real pwm chip lives under /sys/class/pwm"),
@@ -118,3 +131,24 @@ def test_the_can_bus_options_an_address_may_carry_reach_can_bus_typed() -> None:
                             device="wheels")
     assert address.bitrate == 500000
     assert address.bus_options == {"fd": True, "data_bitrate": 2000000, "local_loopback": False}
+
+
+def test_a_mock_i2c_timeout_reaches_the_client_and_the_chips_beside_it(tmp_path) -> None:
+    """timeout= is the mock client's answer timeout (a replay's bus holds data reads for its player); a
+    chip opened beside it on the same bus (the AK8963 at 0x0c) keeps it; a real adapter takes none."""
+    from mock_devices.i2c_bus import MockI2cBus
+    from u2sa_hw.ports.i2c_port import MOCK_TIMEOUT_S, open_i2c
+    from u2sa_hw.ports.opener import open_port
+
+    address = parse_address(f"mock+i2c://{tmp_path}/b.sock/0x68?timeout=45", device="imu")
+    beside = address.with_chip_address(0x0C)
+    assert beside.i2c_timeout == 45.0 and beside.url.endswith("/0x0c?timeout=45")
+    with MockI2cBus(socket_path=str(tmp_path / "b.sock")):
+        with open_port(address, device="imu") as port, open_port(beside, device="mag") as mag, \
+                open_port(address.with_params(timeout=None), device="imu2") as default:
+            assert port._sock.gettimeout() == 45.0 and mag._sock.gettimeout() == 45.0
+            assert default._sock.gettimeout() == MOCK_TIMEOUT_S == 2.0
+    with pytest.raises(ValueError, match="for a mock bus and must be > 0 s"):
+        open_i2c(device="imu", bus=1, address=0x68, timeout=5.0)
+    with pytest.raises(ValueError, match="for a mock bus and must be > 0 s"):
+        open_i2c(device="imu", bus=f"mock:{tmp_path}/b.sock", address=0x68, timeout=0.0)

@@ -321,6 +321,48 @@ def test_i2c_reads_replay_into_the_imu_driver(imu_log: Path, tmp_path: Path) -> 
     assert "psi_dot: differs" in res.stdout and "write" in res.stderr  # the config write differs from the log's
 
 
+def log_with_a_pause(src: Path, dst: Path, pause_s: float) -> None:
+    """A copy of *src* with every message from the middle of its window on *pause_s* later (a recorded pause)."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with src.open("rb") as f_in, dst.open("wb") as f_out:
+        reader = make_reader(f_in)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        middle = (summary.statistics.message_start_time + summary.statistics.message_end_time) // 2
+        writer = Writer(f_out)
+        header = reader.get_header()
+        writer.start(profile=header.profile, library=header.library)
+        schemas = {sid: writer.register_schema(x.name, x.encoding, x.data) for sid, x in summary.schemas.items()}
+        channels = {cid: writer.register_channel(c.topic, c.message_encoding, schemas.get(c.schema_id, 0),
+                                                 dict(c.metadata)) for cid, c in summary.channels.items()}
+        for _schema, channel, message in reader.iter_messages(log_time_order=True):
+            shift = int(pause_s * 1e9) if message.log_time >= middle else 0
+            writer.add_message(channels[channel.id], message.log_time + shift, message.data,
+                               message.publish_time + shift, message.sequence)
+        for attachment in reader.iter_attachments():
+            writer.add_attachment(attachment.create_time, attachment.log_time, attachment.name,
+                                  attachment.media_type, attachment.data)
+        for metadata in reader.iter_metadata():
+            writer.add_metadata(metadata.name, dict(metadata.metadata))
+        writer.finish()
+
+
+def test_a_timed_i2c_replay_holds_the_imu_reads_for_the_player(imu_log: Path, tmp_path: Path) -> None:
+    """--rate 1: each recorded data read is released at its recorded time and the driver, sampling at its
+    own rate, waits when it is ahead: through a recorded 3 s pause too, longer than the launcher's 2 s
+    watchdog (which the replay leaves off for a driver whose reads it holds)."""
+    paused = tmp_path / "paused.mcap"
+    log_with_a_pause(imu_log, paused, 3.0)
+    res = replay_cli(str(paused), "--rate", "1", "--compare", "-o", str(tmp_path / "imu.mcap"), cwd=tmp_path)
+    assert res.returncode == 0, res.stdout + res.stderr
+    row = next(line for line in res.stdout.splitlines() if line.startswith("STATE_INFO [imu]"))
+    recorded, replayed = (int(v) for v in row.split()[2:4])
+    assert recorded == replayed >= 80 and row.endswith("same"), row
+    assert "device imu" not in res.stderr, res.stderr   # no read without a recorded answer, no write unlike them
+
+
 def test_can_frames_replay_into_the_motor_driver_with_its_commands(can_log: Path, tmp_path: Path) -> None:
     res = replay_cli(str(can_log), "--fast", "--compare", "-o", str(tmp_path / "can.mcap"), cwd=tmp_path)
     assert res.returncode == 0, res.stdout + res.stderr

@@ -16,6 +16,7 @@ The grammar (docs/ports.md has the table)::
                                                    (clock=stamped: it sends stamped frames, a replay's clock)
     mock+can://udp_multicast/239.74.163.2?port=17270   python-can across processes (also virtual, u2sa_unpluggable)
     mock+i2c:///run/sim/i2c-1.sock/0x68           the mock I2C bus server's Unix socket / chip address
+                                                   (timeout=S: the client waits S s for an answer, default 2)
     mock+gpio:///run/sim/gpiochip0.sock/5,6       the mock GPIO chip's Unix socket / lines
     mock+pwm:///run/sim/pwmchip0/0                a sysfs-shaped directory / channel
     mock+pca9685:///run/sim/i2c-1.sock/0x40/3     a PCA9685 model on the mock I2C bus
@@ -28,7 +29,7 @@ API (stable; ``u2sa check``, install and udev generation build on it):
   ``ValueError``) names the device, the bad text and the fix with an example.
 - :class:`DeviceAddress`: ``url``, ``kind`` (:data:`KINDS`), ``mock``, ``params``, and typed
   properties per kind (``serial_path``, ``baud``..., ``can_interface``..., ``i2c_bus``,
-  ``chip_address``, ``gpio_chip``, ``lines``, ``pwm_chip``, ``pwm_channel``, ``output_id``,
+  ``i2c_timeout``, ``chip_address``, ``gpio_chip``, ``lines``, ``pwm_chip``, ``pwm_channel``, ``output_id``,
   ``usb_id``...) and derived copies (``with_params``, ``with_chip_address``: another chip on the same bus).
 - :func:`make_address` builds one from parts (used by the legacy conversion and the mocks).
 
@@ -223,6 +224,14 @@ class DeviceAddress:
         """The adapter number (1 -> /dev/i2c-1), or for mocks ``"mock:/path/to/bus.sock"``."""
         self._need("i2c", "pca9685")
         return f"mock:{self.location}" if self.mock else int(self.location)
+
+    @property
+    def i2c_timeout(self) -> float | None:
+        """``timeout=`` of a ``mock+i2c`` address: seconds the client waits for the mock bus server's
+        answer, or None (the client's default, 2 s); real addresses never carry it (the parser refuses it)."""
+        self._need("i2c", "pca9685")
+        text = self.params.get("timeout")
+        return float(text) if text is not None else None
 
     @property
     def chip_address(self) -> int:

@@ -14,6 +14,7 @@ an interface that needs another adds it there (docs/ports.md).
 from __future__ import annotations
 
 import difflib
+import math
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping
 
@@ -30,8 +31,9 @@ CAN_PARAMS = ("bitrate", "data_bitrate", "fd", "receive_own_messages", "local_lo
 CAN_CLOCKS = ("stamped",)      # clock=stamped: a replay's frames carry their recorded bus time (mock+can only)
 CAN_NUMBER_PARAMS = ("bitrate", "data_bitrate", "port", "hop_limit", "rx_queue_size")
 CAN_FLAG_PARAMS = ("fd", "receive_own_messages", "local_loopback", "ignore_rx_error_frames", "preserve_timestamps")
+I2C_PARAMS = ("timeout",)     # timeout=S: how long a mock+i2c client waits for the server's answer (mock only)
 PARAMS: dict[str, tuple[str, ...]] = {
-    "serial": SERIAL_PARAMS, "can": CAN_PARAMS, "i2c": (), "gpio": (), "pwm": (), "pca9685": (),
+    "serial": SERIAL_PARAMS, "can": CAN_PARAMS, "i2c": I2C_PARAMS, "gpio": (), "pwm": (), "pca9685": (),
 }
 BAUDRATES = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
 PARITIES = ("N", "E", "O", "M", "S")
@@ -183,9 +185,31 @@ def _split_last(path: str, count: int, what: str, fail: Fail) -> tuple[str, list
     return "/".join(parts[:-count]), parts[-count:]
 
 
+def mock_i2c_timeout(text: str, fail: Fail) -> float:
+    """``timeout=`` of a mock+i2c address: seconds, a finite number > 0, else *fail*."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise fail(f"timeout={text!r} must be a number of seconds > 0 (how long the client waits for the mock "
+                   "I2C bus server's answer), e.g. timeout=60")
+    return value
+
+
 def parse_i2c(parts: UrlParts, fail: Fail) -> Parsed:
-    """``i2c://BUS/CHIP`` and ``pca9685://BUS/CHIP/CHANNEL`` (mock: a bus socket path instead of BUS)."""
+    """``i2c://BUS/CHIP`` and ``pca9685://BUS/CHIP/CHANNEL`` (mock: a bus socket path instead of BUS).
+
+    ``timeout=S`` (how long the client waits for the server's answer; the mock client's default
+    is 2 s) is taken only by ``mock+i2c`` addresses: a replay's bus holds a data read until the
+    player releases it (docs/replay.md), where a real adapter times out in its kernel driver.
+    """
     kind = parts.kind
+    if "timeout" in parts.params:
+        if not parts.mock:
+            raise fail("timeout= is only for mock+i2c addresses (how long the client waits for the mock bus "
+                       "server); a real adapter's timeout is its kernel driver's: remove timeout=")
+        mock_i2c_timeout(parts.params["timeout"], fail)
     count = 1 if kind == "i2c" else 2
     what = "BUS/CHIP" if kind == "i2c" else "BUS/CHIP/CHANNEL"
     if parts.mock:

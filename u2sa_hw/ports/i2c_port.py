@@ -38,6 +38,7 @@ RESPONSE = struct.Struct(">BH")
 MAX_TRANSFER = 1024  # bytes per transaction; far above any chip's register file
 MOCK_BUS_NUMBER = -1  # the RawI2c.bus value recorded for a mock bus
 SMBUS_BLOCK_MAX = 32  # SMBus I2C-block limit; longer reads/writes use I2C_RDWR
+MOCK_TIMEOUT_S = 2.0  # a mock bus client's wait for an answer, unless its address says timeout=
 
 _NO_ACK_ERRNOS = {errno.ENXIO, errno.EREMOTEIO, errno.EIO}
 _GONE_ERRNOS = {errno.ENODEV, errno.EBADF, errno.ESHUTDOWN}
@@ -230,7 +231,7 @@ class MockI2cPort(I2cPort):
     """A chip on the mock I2C bus server, reached over its Unix socket."""
 
     def __init__(self, *, device: str, socket_path: str, i2c_address: int, tap: Tap | None,
-                 timeout: float = 2.0) -> None:
+                 timeout: float = MOCK_TIMEOUT_S) -> None:
         super().__init__(device=device, address=f"{MOCK_SCHEME}{socket_path}:0x{i2c_address:02x}",
                          bus_number=MOCK_BUS_NUMBER, i2c_address=i2c_address, tap=tap)
         self._where = f"{MOCK_SCHEME}{socket_path}"
@@ -313,13 +314,24 @@ def parse_bus(bus: int | str, *, device: str) -> int | str:
                           fix='use an adapter number (1 for /dev/i2c-1) or "mock:/path/to/bus.sock"')
 
 
-def open_i2c(*, device: str, bus: int | str, address: int, tap: Tap | None = None) -> I2cPort:
-    """Open the chip at 7-bit *address* on *bus* (int N -> /dev/i2c-N, "mock:/path" -> mock server)."""
+def open_i2c(*, device: str, bus: int | str, address: int, tap: Tap | None = None,
+             timeout: float | None = None) -> I2cPort:
+    """Open the chip at 7-bit *address* on *bus* (int N -> /dev/i2c-N, "mock:/path" -> mock server).
+
+    *timeout* (mock bus only; None: :data:`MOCK_TIMEOUT_S`) is how long the client waits for the
+    server's answer before it drops the connection (``PortTimeout``); a replay's bus holds a data
+    read until its player releases it, so its addresses carry a longer one (``timeout=`` in a
+    ``mock+i2c`` address). A real adapter's timeout is its kernel driver's: giving one is a ValueError.
+    """
     where = parse_bus(bus, device=device)
+    if timeout is not None and (isinstance(where, int) or not timeout > 0):
+        raise ValueError(f"{device}: an I2C client timeout is for a mock bus and must be > 0 s, got {timeout!r} "
+                         f"on bus {bus!r}")
     if isinstance(address, bool) or not isinstance(address, int) or not 0x03 <= address <= 0x77:
         raise PortUnavailable(device, f"I2C address {address!r} is not a 7-bit device address (0x03..0x77)",
                               address=f"{bus}:{address}", fix="use the chip's address from its datasheet, e.g. 0x68")
     if isinstance(where, int):
         return SmbusI2cPort(device=device, bus=where, i2c_address=address, tap=tap)
-    return MockI2cPort(device=device, socket_path=where[len(MOCK_SCHEME):], i2c_address=address, tap=tap)
+    return MockI2cPort(device=device, socket_path=where[len(MOCK_SCHEME):], i2c_address=address, tap=tap,
+                       timeout=MOCK_TIMEOUT_S if timeout is None else timeout)
 

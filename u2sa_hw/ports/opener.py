@@ -10,7 +10,7 @@ Options a kind takes (everything else about the device is in its address):
 ======== ==================================================================================
 serial   ``timeout`` (read timeout, s)
 can      any ``can.Bus`` keyword (added to the address's parameters)
-i2c      none
+i2c      none (a mock+i2c address may carry ``timeout=S``: the client's answer timeout)
 gpio     ``inputs`` (line offsets), ``outputs`` (line -> initial value), ``edge``, ``bias``;
          each line must be one the address lists (when it lists any)
 pwm      ``period_ns``
@@ -94,7 +94,8 @@ def _open_i2c(address: DeviceAddress, *, device: str, tap: Tap | None, **options
     from u2sa_hw.ports.i2c_port import open_i2c
 
     _unknown_options(address, device, options, ())
-    return open_i2c(device=device, bus=address.i2c_bus, address=address.chip_address, tap=tap)
+    return open_i2c(device=device, bus=address.i2c_bus, address=address.chip_address, tap=tap,
+                    timeout=address.i2c_timeout)
 
 
 def _open_gpio(address: DeviceAddress, *, device: str, tap: Tap | None, **options: Any) -> Any:
