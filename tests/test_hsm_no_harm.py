@@ -184,3 +184,24 @@ def test_the_view_shows_a_late_read_heartbeat_at_its_age_since_sent() -> None:
         mon.on_health(imu.beat(sent), 4.5)
     # sent at 3.0 (plus CATCH_UP of the 4.5 s between readings), not 0 s ago as its reading says
     assert next(v.heartbeat_age_s for v in mon.views(4.5)) == pytest.approx(1.5 - 0.05 * 4.5)
+
+
+def test_a_failed_service_stays_failed_through_a_stall_of_the_hsm() -> None:
+    """The stall rebases the judgements so a pause of the HSM harms nothing, but it is no evidence of
+    recovery: a required GPS given up on for sending no data (while it heartbeats) stays failed, with
+    the failsafe up, when the HSM stalls and wakes; it recovers only when its data comes back."""
+    policy = MonitorPolicy(max_restarts=1, restart_backoff_s=1.0, confirm_s=0.5, stall_s=1.0, failsafe_latch=False)
+    rule = WatchRule("gps", heartbeat_timeout_s=1.0, startup_grace_s=1.0, data_channel="STATE_INFO",
+                     stale_after_s=1.0)
+    mon = HealthMonitor([rule], policy=policy, now=0.0)
+    gps = Sender("gps", 7)
+    actions = run(mon, [gps], 0.0, 8.0)
+    assert [f.service for f in of(Failed, actions)] == ["gps"] and mon.failsafe_active
+    actions = stop_and_wake(mon, [gps], stopped_at=8.0, woke_at=11.0)
+    actions += run(mon, [gps], 11.0, 14.0)
+    assert of(FailsafeChange, actions) == [] and mon.failsafe_active
+    assert all(a.__class__.__name__ != "Recovered" for a in actions), actions
+    assert next(v.state for v in mon.views(14.0)) == "failed"
+    mon.on_data("gps", "STATE_INFO", 14.05)            # its data is back: that is recovery
+    actions = run(mon, [gps], 14.0, 14.5)
+    assert [a.__class__.__name__ for a in actions] == ["Recovered", "FailsafeChange"] and not mon.failsafe_active

@@ -210,8 +210,11 @@ class HealthMonitor:
     def _problem(self, tr: _Track, now: float) -> Problem | None:
         rule = tr.rule
         timeout = self._timeout(tr)
+        # A stall rebases the judgement of what might have come meanwhile, but a service already given up
+        # on recovers only on its own evidence (a heartbeat, data, a good health), never on the HSM's pause.
+        watched = (lambda t: t) if tr.failed else self._watched
         if tr.last_heartbeat is None:
-            waited = now - self._watched(tr.watch_since)
+            waited = now - watched(tr.watch_since)
             if waited > self._grace(tr):
                 return Problem("missing", f"no heartbeat in {waited:.1f} s", "heartbeat")
             return None
@@ -224,17 +227,17 @@ class HealthMonitor:
             return None
         if tr.status == "failed":
             return Problem("stale", f"reports failed: {tr.health_error or 'no reason given'}", "health")
-        data_age = self._data_age(tr, now, judging=True)
+        data_age = self._data_age(tr, now, judging=not tr.failed)
         if rule.stale_after_s > 0 and data_age is not None and data_age > rule.stale_after_s:
             return Problem("stale", f"no data on {rule.data_channel} for {data_age:.1f} s "
                            f"(limit {rule.stale_after_s:g} s)", "data")
-        if tr.details_bad_since is not None and now - self._watched(tr.details_bad_since) > rule.require_grace_s:
+        if tr.details_bad_since is not None and now - watched(tr.details_bad_since) > rule.require_grace_s:
             bad = [k for k in rule.require_details if not truthy(tr.details.get(k))]
             shown = ", ".join(f"{k}={tr.details.get(k, 'absent')}" for k in bad)
             return Problem("stale", f"{shown} for {now - tr.details_bad_since:.1f} s (required: {', '.join(bad)})",
                            "health")
         if rule.degraded_restart_s > 0 and tr.degraded_since is not None \
-                and now - self._watched(tr.degraded_since) > rule.degraded_restart_s:
+                and now - watched(tr.degraded_since) > rule.degraded_restart_s:
             return Problem("degraded", f"degraded for {now - tr.degraded_since:.1f} s: "
                            f"{tr.health_error or 'no reason given'}", "health")
         return None
