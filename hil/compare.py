@@ -41,6 +41,11 @@ reacts to its end).
 device: the RC mux's ``autonomy_enabled``, ``armed``, ``hold``, ``blocked_by`` (its pre-arm
 checks read every service's health) and ``select_mismatch`` (the recorded select read-back
 against the replay's own enable decision). They are compared, and a difference is a note.
+They do not steer the alignment, and a message on one side only that was published for a
+change of one of them (one differs between it and the stream's message before or after it)
+is a note too: on a loaded machine the live mux read the other services' health in another
+order than the recorder wrote it, so its verdict may change a few messages apart from the
+replay's. A timed or device-driven message away from a verdict change still counts.
 """
 
 from __future__ import annotations
@@ -228,18 +233,26 @@ class StreamReport:
         return not self.problems
 
 
-def align(rec: list[Sample], rep: list[Sample], *, tolerance: ToleranceLike) -> list[Pair]:
-    """Pair the two streams' messages in order (hil/stream_align.py): match, differ, deleted, inserted."""
+def align(rec: list[Sample], rep: list[Sample], *, tolerance: ToleranceLike,
+          skip: tuple[str, ...] = ()) -> list[Pair]:
+    """Pair the two streams' messages in order (hil/stream_align.py): match, differ, deleted, inserted.
+
+    Fields in *skip* (the stream's ``SYSTEM_FIELDS``) do not steer the pairing: a difference there is a note.
+    """
     tol = _tolerances(tolerance)
-    rec_keys = [content_key(s.type_name, s.fields, tol.of) for s in rec]
-    rep_keys = [content_key(s.type_name, s.fields, tol.of) for s in rep]
+
+    def own(fields: dict[str, Any]) -> dict[str, Any]:
+        return {n: v for n, v in fields.items() if n not in skip} if skip else fields
+
+    rec_keys = [content_key(s.type_name, own(s.fields), tol.of) for s in rec]
+    rep_keys = [content_key(s.type_name, own(s.fields), tol.of) for s in rep]
 
     def pair_cost(i: int, j: int) -> float:
         a, b = rec[i], rep[j]
         if a.type_name != b.type_name:
             return 1.0
-        names = set(a.fields) | set(b.fields)
-        return len(differing_fields(a, b, tol)) / max(1, len(names))
+        names = (set(a.fields) | set(b.fields)) - set(skip)
+        return len([n for n in differing_fields(a, b, tol) if n not in skip]) / max(1, len(names))
 
     return align_streams(rec_keys, rep_keys, pair_cost=pair_cost)
 
@@ -252,9 +265,11 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
         r.problems.append("only in the replay" if rep else "not reproduced by the replay")
         return r
     tol = _tolerances(tolerance)
-    pairs = align(rec, rep, tolerance=tol)
+    system = SYSTEM_FIELDS.get(key.split(" [", 1)[0], ())
+    pairs = align(rec, rep, tolerance=tol, skip=system)
     paired = [(p.rec, p.rep) for p in pairs if p.rec is not None and p.rep is not None]
     at_edges: list[str] = []
+    system_changes = 0   # unpaired messages published for a change of a system-decided field
     last_rec_t = rec[0].t_ns
     for p in pairs:
         if p.rec is not None:
@@ -266,6 +281,12 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
         if index < edge or index >= len(own) - edge:
             at_edges.append(p.kind)
             continue
+        if system and _at_system_change(own, index, system):
+            # published because a pre-arm verdict changed, which the rest of the system decides: where the
+            # replay's verdict changes is a note like the verdicts themselves (a timed or device-driven
+            # message away from a verdict change still counts)
+            system_changes += 1
+            continue
         if p.kind == "deleted":
             r.deleted += 1
         else:
@@ -275,7 +296,6 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
     k0 = 0   # the timing reference: the first pair whose replayed message came after the playback began
     if replay_start_ns is not None:
         k0 = next((k for k, (_, j) in enumerate(paired) if rep[j].t_ns >= replay_start_ns), len(paired))
-    system = SYSTEM_FIELDS.get(key.split(" [", 1)[0], ())
     system_diffs: dict[str, int] = {}
     for k, (i, j) in enumerate(paired):
         a, b = rec[i], rep[j]
@@ -315,10 +335,22 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
     if system_diffs:
         r.notes.append("decided from the rest of the system (pre-arm checks read every service's health), so a "
                        "note: " + ", ".join(f"{name} differs in {n}" for name, n in sorted(system_diffs.items())))
+    if system_changes:
+        r.notes.append(f"{system_changes} message(s) on one side only, each published for a change of such a "
+                       "verdict (a note like the verdicts)")
     if at_edges:
         r.notes.append(f"{len(at_edges)} message(s) without a counterpart among the first or last {edge} of a "
                        "stream (the recording cuts the input there)")
     return r
+
+
+def _at_system_change(stream: list[Sample], index: int, system: tuple[str, ...]) -> bool:
+    """True when a system-decided field changes between message *index* and the one before or after it
+    (of two messages published for one verdict change, the alignment may leave either unpaired)."""
+    here = stream[index].fields
+    return any(0 <= k < len(stream) and any(not values_equal(here.get(n), stream[k].fields.get(n), 0.0)
+                                            for n in system)
+               for k in (index - 1, index + 1))
 
 
 def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[str], start_ns: int | None = None,

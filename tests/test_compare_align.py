@@ -140,6 +140,25 @@ def test_rc_mode_fields_decided_from_the_rest_of_the_system_are_notes_and_its_ow
     assert not r.ok and r.differing == 29
 
 
+def test_an_rc_mode_published_for_a_verdict_change_on_one_side_only_is_a_note_a_timed_one_counts() -> None:
+    """Under load the live mux read the other services' health in another order than the recorder wrote it:
+    its verdict changed a few messages apart from the replay's, and each change is published at once. Such a
+    message on one side only is a note; an extra message that changes no verdict (a timed one) still counts."""
+    blocked = "pre-arm check failed: gps: no fix"
+    live = [rc_mode(i, pulse_us=1000 + i, blocked_by=blocked if i < 20 else "") for i in range(40)]
+    # the replay's verdict cleared after #17 (a change message between two timed ones), the live one at #20
+    replay = [rc_mode(i, pulse_us=1000 + i, blocked_by=blocked if i < 18 else "") for i in range(18)]
+    replay += [Sample(live[17].t_ns + 10_000_000, "RcMode", {**replay[-1].fields, "armed": True, "blocked_by": ""})]
+    replay += [rc_mode(i, pulse_us=1000 + i) for i in range(18, 40)]
+    r = compare_stream("RC_MODE [rc]", live, replay, tolerance=1e-6, edge=1, rate=None, time_tolerance_s=1)
+    assert r.ok and (r.inserted, r.deleted, r.matched) == (0, 0, 40), (r.problems, r.notes)
+    assert any("1 message(s) on one side only, each published for a change of such a verdict" in n for n in r.notes)
+    # the same message published again without a verdict change (a timed message the live mux did not send)
+    extra = replay[:30] + [Sample(replay[29].t_ns + 10_000_000, "RcMode", dict(replay[29].fields))] + replay[30:]
+    r = compare_stream("RC_MODE [rc]", live, extra, tolerance=1e-6, edge=1, rate=None, time_tolerance_s=1)
+    assert not r.ok and r.inserted == 1
+
+
 def test_first_difference_names_the_stream_index_and_fields_or_the_counts() -> None:
     from hil.stream_align import first_difference
 
