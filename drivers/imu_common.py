@@ -195,6 +195,7 @@ class I2cImuDriver(ProprioceptiveSensor):
             legacy=lambda: self.legacy_address(self.config), on_open=self._on_open)
         self._calibrated_said = False   # the ``calibrated`` detail as last published on a change
         self._reopen = False            # a device or address setting changed over the bus
+        self._paced = False             # the bus paces the data reads (a replay's, paced=true): no timer
 
     # -- for subclasses -------------------------------------------------------------------
     def check_config(self) -> None:
@@ -241,9 +242,6 @@ class I2cImuDriver(ProprioceptiveSensor):
         return {}
 
     @classmethod
-    def replay_options(cls, device: str, config: Mapping[str, Any]) -> dict[str, Any]:
-        """A ``--fast`` replay samples at the highest rate this driver allows (its reads pace the replay)."""
-        return {"fast_settings": {"rate_hz": 1000.0}}
 
     @classmethod
     def probe_expectation(cls, config: Mapping[str, Any]) -> dict[str, Any]:
@@ -273,6 +271,7 @@ class I2cImuDriver(ProprioceptiveSensor):
         address = self.port.address
         assert address is not None
         self.i2c_address = address.chip_address
+        self._paced = address.mock and address.i2c_paced
         bus = address.i2c_bus
         self.where = f"0x{self.i2c_address:02x} on {bus if isinstance(bus, str) else f'/dev/i2c-{bus}'}"
 
@@ -304,10 +303,11 @@ class I2cImuDriver(ProprioceptiveSensor):
                     raise
 
     def run(self) -> None:
-        """Sample at ``rate_hz`` on a fixed schedule until stopped."""
+        """Sample at ``rate_hz`` on a fixed schedule until stopped; back to back on a paced bus (a replay's:
+        it holds each data read until the recording's sample exists, docs/replay.md)."""
         next_at = time.monotonic()
         while self.wait(max(0.0, next_at - time.monotonic())):
-            period = 1.0 / float(self.config["rate_hz"])
+            period = 0.0 if self._paced else 1.0 / float(self.config["rate_hz"])
             now = time.monotonic()
             next_at += period
             if next_at < now - period:  # fell behind (a stall, a slow reopen): start the schedule afresh

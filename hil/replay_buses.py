@@ -167,9 +167,7 @@ def udp_backlog(pid: int | None, port: int, inodes: set[str]) -> int:
 def make_device(dev: DevicePlan, run_dir: Path, *, fast: bool, options: Mapping[str, Any]) -> Any:
     """The replay device for a bus device (*options*: what its driver declares a replay needs)."""
     if dev.kind == "i2c":
-        fast_settings = options.get("fast_settings")
-        return ReplayI2cDevice(name=dev.name, socket_path=run_dir / f"i2c-{dev.name}.sock", fast=fast,
-                               fast_settings=fast_settings if isinstance(fast_settings, Mapping) else None)
+        return ReplayI2cDevice(name=dev.name, socket_path=run_dir / f"i2c-{dev.name}.sock", fast=fast)
     if dev.kind == "can":
         return ReplayCanDevice(name=dev.name, port=private_udp_port())
     raise ReplayError(f"RAW.{dev.name}: replaying {dev.kind or 'unknown'} devices is not supported here; "

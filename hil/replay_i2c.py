@@ -85,12 +85,10 @@ class ReplayI2cDevice:
     kind = "i2c"
     streamed = True    # the player feeds its records: each recorded data read releases one read
 
-    def __init__(self, *, name: str, socket_path: Path | str, fast: bool,
-                 fast_settings: Mapping[str, Any] | None = None) -> None:
+    def __init__(self, *, name: str, socket_path: Path | str, fast: bool) -> None:
         self.name = name
         self.socket_path = Path(socket_path)
         self.fast = fast
-        self.fast_settings = dict(fast_settings or {})   # the driver's declaration (replay_options)
         self.backlog_limit = I2C_BACKLOG_READS           # --fast: the player's wait_taken allowance
         self._lock = threading.Lock()
         self._released_cond = threading.Condition(self._lock)
@@ -109,20 +107,23 @@ class ReplayI2cDevice:
                        "refused_at_stop": 0}
 
     def mock_address(self, real: DeviceAddress | None) -> str:
-        """``mock+i2c://<the replay bus socket>/<the recorded chip address>?timeout=<I2C_CLIENT_TIMEOUT_S>``.
+        """``mock+i2c://<the replay bus socket>/<the recorded chip address>?timeout=<I2C_CLIENT_TIMEOUT_S>&paced=true``.
 
-        The data register is then the most-read one of that chip (the MPU-9250's burst, not its AK8963's
+        ``paced``: the driver reads back to back, as fast as the player releases the reads, whatever the
+        replay's rate (``--fast`` or ``--rate X``), instead of on its ``rate_hz`` timer, which would cap a
+        ``--fast`` replay at rate_hz / recorded rate and fall behind a ``--rate`` above 1. The data
+        register is then the most-read one of that chip (the MPU-9250's burst, not its AK8963's
         read of the same count), when the recording read that chip."""
         if real is None or real.kind != "i2c":
             raise ReplayError(f"RAW.{self.name}: the log's profile gives no I2C address for this device "
                               f"({real.url if real else 'none'}); give the profile with --vehicle FILE")
         self._choose_main(real.chip_address)
         return make_address("i2c", str(self.socket_path), (real.chip_address,), mock=True, device=self.name,
-                            params={"timeout": f"{I2C_CLIENT_TIMEOUT_S:g}"}).url
+                            params={"timeout": f"{I2C_CLIENT_TIMEOUT_S:g}", "paced": "true"}).url
 
     def config_changes(self) -> dict[str, Any]:
-        """With --fast, the settings the driver declares for it (an IMU: its highest sample rate)."""
-        return dict(self.fast_settings) if self.fast else {}
+        """Nothing besides the address: the driver runs with its recorded settings (its sample rate too)."""
+        return {}
 
     def preload(self, log_path: Path, *, start_ns: int, end_ns: int) -> None:
         """Load the device's recorded transactions: reads in the window queued per register, the last
@@ -262,13 +263,8 @@ class ReplayI2cDevice:
         if divergences:
             out["divergence"] = (f"{c['unrecorded_reads']} reads with no recorded answer, {c['length_mismatches']} "
                                  f"of another length, {c['write_mismatches']} writes unlike the recorded ones, "
-                                 f"{c['unrecorded_writes']} writes beyond them"
-                                 + (f" (--fast replayed with {self._fast_text()})"
-                                    if self.fast and self.fast_settings else ""))
+                                 f"{c['unrecorded_writes']} writes beyond them")
         return out
-
-    def _fast_text(self) -> str:
-        return ", ".join(f"{k} = {v!r}" for k, v in self.fast_settings.items())
 
 
 def unwatch_held_drivers(launcher: Any, devices: Mapping[str, Any], services: Mapping[str, str]) -> None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import shutil
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Any, Iterator
@@ -200,7 +201,7 @@ def test_a_recorded_mpu9250_replays_into_the_same_magnetometer_values(lcm_url: s
     log.close()
     assert len({field for field, _ in recorded}) == 12 and all(psi is not None for _, psi in recorded)
 
-    device = ReplayI2cDevice(name="ins", socket_path=socket_dir / "replay.sock", fast=False, fast_settings={"rate_hz": 1000.0})
+    device = ReplayI2cDevice(name="ins", socket_path=socket_dir / "replay.sock", fast=False)
     device.preload(tmp_path / "imu.mcap", start_ns=0, end_ns=2 ** 63 - 1)
     device.start()
     try:
@@ -222,6 +223,46 @@ def test_a_recorded_mpu9250_replays_into_the_same_magnetometer_values(lcm_url: s
     report = device.report()
     assert report["divergences"] == 0 and report["recorded_reads_left"] == 0, report
     assert report["gated_reads"] == 0 and device.pending() == 0, report   # every data read was released first
+
+
+def test_on_a_paced_replay_bus_the_imu_samples_as_fast_as_the_reads_are_released(socket_dir: Path,
+                                                                                 tmp_path: Path) -> None:
+    """The replay bus (paced=true) paces the data reads, so the driver's loop runs back to back: with its
+    recorded rate_hz of 1 its timer would take 12 s for 12 samples; every one comes as soon as it is released."""
+    bus, _ = mpu_bus(socket_dir / "bus.sock", yaw=0.7)
+    recorded_address = f"mock+i2c://{bus.socket_path}/0x68"
+    with bus:
+        live = Driver(recorded_address, record_raw=True, rate_hz=1.0)
+        try:
+            recorded = live.sample(12)
+        finally:
+            live.close()
+    log = McapLogWriter(tmp_path, path=tmp_path / "imu.mcap")
+    for n, record in enumerate(live.raw()):
+        log.write("RAW.ins", record.encode(), time.time_ns() + n)
+    log.close()
+    device = ReplayI2cDevice(name="ins", socket_path=socket_dir / "replay.sock", fast=True)
+    device.preload(tmp_path / "imu.mcap", start_ns=0, end_ns=2 ** 63 - 1)
+    device.start()
+    try:
+        replay = Driver(device.mock_address(parse_address(recorded_address, device="ins")), rate_hz=1.0)
+        replay.svc.running = True   # as main() sets it before the loop
+        loop = threading.Thread(target=replay.svc.run, daemon=True)
+        loop.start()
+        try:
+            for record in live.raw():
+                device.feed(record)
+            wait_until(lambda: len([m for c, m in replay.published if c == ch.STATE_INFO]) >= 12, timeout=8,
+                       message="12 samples from a driver whose own timer gives one a second")
+        finally:
+            replay.svc.stop()
+            device.stop()     # releases the read it holds past the recording
+            loop.join(timeout=10)
+            replay.close()
+    finally:
+        device.stop()
+    psi = [m.get("psi") for c, m in replay.published if c == ch.STATE_INFO][:12]
+    assert psi == [p for _, p in recorded] and device.report()["divergences"] == 0
 
 
 def test_a_device_setting_changed_over_the_bus_reopens_the_imu_and_its_magnetometer_there(

@@ -174,17 +174,18 @@ def test_a_bad_line_map_is_the_drivers_own_error(tmp_path: Path) -> None:
         build(spec, _context(tmp_path))
 
 
-def test_an_imu_declares_the_settings_a_fast_replay_runs_it_with() -> None:
-    """Replay raises an I2C driver's sample rate for --fast because the driver says so, not by a setting name."""
+def test_an_imu_is_replayed_with_its_own_settings_on_a_paced_bus() -> None:
+    """A replayed IMU keeps its recorded sample rate (its configuration writes match the recording): the replay
+    bus paces its data reads (paced=true), so it samples back to back at any replay rate."""
     from hil.replay_buses import ReplayI2cDevice, make_device
     from hil.replay_plan import DevicePlan
+    from u2sa_hw.ports.address import parse_address
     from u2sa_hw.ports.declared import declared_class, replay_options
 
-    options = replay_options(declared_class("imu_mpu9250"), "imu", {})
-    assert options["fast_settings"] == {"rate_hz": 1000.0}
+    assert replay_options(declared_class("imu_mpu9250"), "imu", {}) == {}
     dev = DevicePlan(name="imu", kind="i2c", records=0)
-    fast = make_device(dev, Path("/nonexistent"), fast=True, options=options)
-    slow = make_device(dev, Path("/nonexistent"), fast=False, options=options)
-    assert isinstance(fast, ReplayI2cDevice)
-    assert fast.config_changes() == {"rate_hz": 1000.0} and slow.config_changes() == {}
-    assert make_device(dev, Path("/nonexistent"), fast=True, options={}).config_changes() == {}
+    for fast in (True, False):
+        device = make_device(dev, Path("/nonexistent"), fast=fast, options={})
+        assert isinstance(device, ReplayI2cDevice) and device.config_changes() == {}
+        address = parse_address(device.mock_address(parse_address("i2c://1/0x68", device="imu")), device="imu")
+        assert address.i2c_paced and address.i2c_timeout and address.chip_address == 0x68

@@ -16,7 +16,8 @@ The grammar (docs/ports.md has the table)::
                                                    (clock=stamped: it sends stamped frames, a replay's clock)
     mock+can://udp_multicast/239.74.163.2?port=17270   python-can across processes (also virtual, u2sa_unpluggable)
     mock+i2c:///run/sim/i2c-1.sock/0x68           the mock I2C bus server's Unix socket / chip address
-                                                   (timeout=S: the client waits S s for an answer, default 2)
+                                                   (timeout=S: the client waits S s for an answer, default 2;
+                                                   paced=true: the bus paces the data reads, a replay's)
     mock+gpio:///run/sim/gpiochip0.sock/5,6       the mock GPIO chip's Unix socket / lines
     mock+pwm:///run/sim/pwmchip0/0                a sysfs-shaped directory / channel
     mock+pca9685:///run/sim/i2c-1.sock/0x40/3     a PCA9685 model on the mock I2C bus
@@ -29,7 +30,7 @@ API (stable; ``u2sa check``, install and udev generation build on it):
   ``ValueError``) names the device, the bad text and the fix with an example.
 - :class:`DeviceAddress`: ``url``, ``kind`` (:data:`KINDS`), ``mock``, ``params``, and typed
   properties per kind (``serial_path``, ``baud``..., ``can_interface``..., ``i2c_bus``,
-  ``i2c_timeout``, ``chip_address``, ``gpio_chip``, ``lines``, ``pwm_chip``, ``pwm_channel``, ``output_id``,
+  ``i2c_timeout``, ``i2c_paced``, ``chip_address``, ``gpio_chip``, ``lines``, ``pwm_chip``, ``pwm_channel``, ``output_id``,
   ``usb_id``...) and derived copies (``with_params``, ``with_chip_address``: another chip on the same bus).
 - :func:`make_address` builds one from parts (used by the legacy conversion and the mocks).
 
@@ -232,6 +233,13 @@ class DeviceAddress:
         self._need("i2c", "pca9685")
         text = self.params.get("timeout")
         return float(text) if text is not None else None
+
+    @property
+    def i2c_paced(self) -> bool:
+        """``paced=true`` of a ``mock+i2c`` address: the bus holds each data read until its data exists (a
+        replay, docs/replay.md), so the driver reads back to back rather than on its timer."""
+        self._need("i2c", "pca9685")
+        return self.params.get("paced", "false").lower() == "true"
 
     @property
     def chip_address(self) -> int:

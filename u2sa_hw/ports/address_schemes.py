@@ -31,7 +31,8 @@ CAN_PARAMS = ("bitrate", "data_bitrate", "fd", "receive_own_messages", "local_lo
 CAN_CLOCKS = ("stamped",)      # clock=stamped: a replay's frames carry their recorded bus time (mock+can only)
 CAN_NUMBER_PARAMS = ("bitrate", "data_bitrate", "port", "hop_limit", "rx_queue_size")
 CAN_FLAG_PARAMS = ("fd", "receive_own_messages", "local_loopback", "ignore_rx_error_frames", "preserve_timestamps")
-I2C_PARAMS = ("timeout",)     # timeout=S: how long a mock+i2c client waits for the server's answer (mock only)
+I2C_PARAMS = ("timeout", "paced")   # mock+i2c only: timeout=S, the client's wait for the server's answer;
+                                   # paced=true: the bus holds each data read until its data exists (a replay)
 PARAMS: dict[str, tuple[str, ...]] = {
     "serial": SERIAL_PARAMS, "can": CAN_PARAMS, "i2c": I2C_PARAMS, "gpio": (), "pwm": (), "pca9685": (),
 }
@@ -201,8 +202,10 @@ def parse_i2c(parts: UrlParts, fail: Fail) -> Parsed:
     """``i2c://BUS/CHIP`` and ``pca9685://BUS/CHIP/CHANNEL`` (mock: a bus socket path instead of BUS).
 
     ``timeout=S`` (how long the client waits for the server's answer; the mock client's default
-    is 2 s) is taken only by ``mock+i2c`` addresses: a replay's bus holds a data read until the
-    player releases it (docs/replay.md), where a real adapter times out in its kernel driver.
+    is 2 s) and ``paced=true`` (the bus holds each data read until its data exists, so a driver
+    reads back to back instead of on its timer) are taken only by ``mock+i2c`` addresses: a
+    replay's bus holds a data read until the player releases it (docs/replay.md), where a real
+    adapter times out in its kernel driver and a real chip is read on the driver's timer.
     """
     kind = parts.kind
     if "timeout" in parts.params:
@@ -210,6 +213,12 @@ def parse_i2c(parts: UrlParts, fail: Fail) -> Parsed:
             raise fail("timeout= is only for mock+i2c addresses (how long the client waits for the mock bus "
                        "server); a real adapter's timeout is its kernel driver's: remove timeout=")
         mock_i2c_timeout(parts.params["timeout"], fail)
+    if "paced" in parts.params:
+        if not parts.mock:
+            raise fail("paced= is only for mock+i2c addresses (a replay's bus, which holds each data read until "
+                       "its data exists); a real chip is read on the driver's timer: remove paced=")
+        if parts.params["paced"].lower() not in ("true", "false"):
+            raise fail(f"paced={parts.params['paced']!r} must be true or false")
     count = 1 if kind == "i2c" else 2
     what = "BUS/CHIP" if kind == "i2c" else "BUS/CHIP/CHANNEL"
     if parts.mock:
