@@ -249,8 +249,11 @@ class Replay:
                                   f"see {self._log_of(service)}{self.outputs.tail(service)}")
             time.sleep(0.05)
 
-    def _republished_channels(self, url: str) -> set[str]:
-        """Channels the replayed services subscribe to (their recorded traffic from other sources is replayed)."""
+    def _republished_channels(self, url: str, devices: dict[str, ReplayDevice]) -> set[str]:
+        """Channels the replayed services subscribe to (their recorded traffic from other sources is replayed),
+        but for a service that takes a channel from its replay device instead (*devices*' ``bus_inputs``: the
+        RC mux's replay chip hands it the recorded Health, FAILSAFE and STATE_ESTIMATE in order with the
+        edges, and it ignores the bus on them): nobody else listening, the copy would only load the bus."""
         from u2sa_hw.bus_client import BusClient
 
         with BusClient(url, name="u2sa-replay") as client:
@@ -260,10 +263,18 @@ class Replay:
                     found[r.name] = r
                 if all(n in found for n in self.plan.services):
                     break
-        channels = {c.channel for r in found.values() if r.name in self.plan.services for c in r.subscribes}
+        from_device: dict[str, set[str]] = {}   # channel -> services whose replay device hands it over
+        for name, device in devices.items():
+            for channel in getattr(device, "bus_inputs", ()):
+                from_device.setdefault(channel, set()).add(self.plan.devices[name].service)
+        listeners: dict[str, set[str]] = {}
+        for r in found.values():
+            if r.name in self.plan.services:
+                for c in r.subscribes:
+                    listeners.setdefault(c.channel, set()).add(r.name)
         # Health is contract traffic, but the RC mux's pre-arm checks judge the other services by it
-        return {c for c in channels if (c == HEALTH_CHANNEL or not c.startswith(CONTRACT_PREFIX))
-                and not c.startswith("RAW.")}
+        return {c for c, who in listeners.items() if (c == HEALTH_CHANNEL or not c.startswith(CONTRACT_PREFIX))
+                and not c.startswith("RAW.") and who - from_device.get(c, set())}
 
     def _settle(self) -> None:
         """Wait until the services published nothing new for settle_s after the input ended (at most 10 s)."""
@@ -340,7 +351,7 @@ class Replay:
             unwatch_held_drivers(launcher, devices, {n: d.service or "" for n, d in self.plan.devices.items()})
             launcher.start()
             self._wait_ready(devices, launcher)
-            republish = self._republished_channels(url)
+            republish = self._republished_channels(url, devices)
             startup_s = time.monotonic() - started
             bar = ProgressBar(self.plan.duration_s, enabled=o.progress)
             player = Player(self.plan.log, devices=devices, transport=transport, republish=republish,

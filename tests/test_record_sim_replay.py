@@ -187,3 +187,12 @@ def test_the_simulations_own_recording_replays_with_no_differences(recordings: S
     compared = {line.split(" [", 1)[1].split("]", 1)[0] for line in res.stdout.splitlines() if " [" in line
                 and line.rstrip().endswith("same")}
     assert DRIVERS <= compared, res.stdout
+    # What the replayed drivers hear from the rest of the system is the recorded commands (ACTUATOR_CMD), not
+    # its Health and estimates: the RC mux takes those from its replay chip in order with its edges and
+    # ignores them on the bus, so republishing them would only load the replay bus.
+    heard: dict[str, set[str]] = {}
+    for m in LogFile(work / "sim-replayed.mcap").messages(r"ACTUATOR_CMD|STATE_ESTIMATE|U2SA_HEALTH"):
+        source = t.Health.decode(m.data).name if m.channel == ch.HEALTH else "-"
+        heard.setdefault(m.channel, set()).add(source)
+    assert "ACTUATOR_CMD" in heard and "STATE_ESTIMATE" not in heard, heard
+    assert heard[ch.HEALTH] <= DRIVERS, heard   # the replayed drivers' own health only
