@@ -2,21 +2,23 @@
 reads paced by the player (the interface of :mod:`hil.replay_devices`; made by
 :func:`hil.replay_buses.make_device`).
 
-I2C is pulled: the driver reads when its own timer says so. The recorded reads are loaded
-before the replay starts (:meth:`ReplayI2cDevice.preload`) and each read of a register (by
-chip address) is answered with the next recorded answer for that register, in order. The
-driver's reads of its data register (the most-read one) are paced by the player, as every
-other device is: the player feeds the device's records in log order, each recorded read of
-the data register *releases* one read, and a read not released yet is held (the I2C
-analogue is clock stretching: the chip holds the read until the data exists). Other reads
+I2C is pulled: the driver reads, the chip answers. The recorded reads are loaded before the
+replay starts (:meth:`ReplayI2cDevice.preload`) and each read of a register (by chip address)
+is answered with the next recorded answer for that register, in order. The driver's reads
+of its data register (the most-read one) are paced by the player, as every other device is:
+the player feeds the device's records in log order, each recorded read of the data register
+*releases* one read, and a read not released yet is held (the I2C analogue is clock
+stretching: the chip holds the read until the data exists). The bus's address says
+``paced=true``, so the driver reads again as soon as it has published a sample instead of
+waiting for its ``rate_hz`` timer (docs/ports.md): its pace is the player's. Other reads
 (identification, setup, a magnetometer's) are answered at once. A read the recording has no
 answer for left is answered with the register's last value from before the replayed window
 (the driver's identification at start, when the window starts later), else refused with
 EIO; both are counted. Writes are checked, in order, against the recorded writes to the
 same chip, and every difference is counted.
 
-A driver that writes a register differently from the recording (a changed setting, or
-its sample rate raised for --fast, as it declares) and reads it back to verify gets its own value back: a
+A driver that writes a register differently from the recording (a changed setting) and
+reads it back to verify gets its own value back: a
 recorded read byte that equals what the recorded driver last wrote to that register is
 answered with what the replayed driver wrote there (registers auto-increment, as on the
 supported chips). The chip's data registers are never written, so the samples stay as recorded.
