@@ -62,7 +62,7 @@ GRAVITY_MODES = ("rest", "level", "none")
 RESET_WAIT_S = 0.1  # PWR_MGMT_1.DEVICE_RESET takes up to 100 ms [RM6050]
 WAKE_WAIT_S = 0.01
 CAL_PREFIX = "CAL."
-MAG_MAX_AGE_S = 0.1   # a heading needs a field read this recently
+MAG_MAX_AGE_S = 0.1   # a heading needs a field read this recently (counted in samples at rate_hz: see read_sample)
 
 
 def identify(who_am_i: int) -> tuple[str, str] | None:
@@ -125,6 +125,7 @@ class Mpu9250ImuDriver(I2cImuDriver):
         self.calibration_state = "not started"
         self.calibration: RestCalibration | None = None
         self.mag: Ak8963 | None = None
+        self._samples_since_field: int | None = None   # samples since the magnetometer last had a new field
         self.mag_correction = Correction((0.0, 0.0, 0.0), tuple(IDENTITY9))
         self.accel_correction = Correction((0.0, 0.0, 0.0), tuple(IDENTITY9))
         self.stream_until = 0.0     # monotonic time the CAL stream ends
@@ -270,7 +271,7 @@ class Mpu9250ImuDriver(I2cImuDriver):
                          else (0.0, 0.0, -RestCalibration.GRAVITY))
             set_vector(msg, ACCEL_FIELDS, [f - r for f, r in zip(force, reference)], float(self.config["accel_sigma"]))
         raw_mag = self._read_mag()
-        if raw_mag is not None or (self.mag is not None and time.monotonic() - self.mag.last_at < MAG_MAX_AGE_S):
+        if raw_mag is not None or self._field_recent():
             self._heading(msg, force, raw_mag)
         if self.stream_until and time.monotonic() < self.stream_until:
             self._stream(msg.header.timestamp_us, raw_force, raw_mag)
@@ -284,7 +285,19 @@ class Mpu9250ImuDriver(I2cImuDriver):
         if self.mag is None:
             return None
         got = self.mag.read()
-        return None if got is None else self.mounting.to_body(to_chip_axes(got))
+        if got is None:
+            if self._samples_since_field is not None:
+                self._samples_since_field += 1
+            return None
+        self._samples_since_field = 0
+        return self.mounting.to_body(to_chip_axes(got))
+
+    def _field_recent(self) -> bool:
+        """The last field is under MAG_MAX_AGE_S old, counted in samples at ``rate_hz`` rather than on the wall
+        clock: a replay reads the recorded samples faster, or held up by the player, and must keep the same
+        headings (docs/replay.md); live, the samples come on the rate_hz timer, so the two agree."""
+        since = self._samples_since_field
+        return self.mag is not None and since is not None and since / float(self.config["rate_hz"]) < MAG_MAX_AGE_S
 
     def _heading(self, msg: t.StateInformation, force: Vector, raw_mag: Vector | None) -> None:
         if not self.mag_correction.calibrated or self.mag is None or self.mag.last is None:

@@ -265,6 +265,22 @@ def test_on_a_paced_replay_bus_the_imu_samples_as_fast_as_the_reads_are_released
     assert psi == [p for _, p in recorded] and device.report()["divergences"] == 0
 
 
+def test_a_heading_outlives_its_field_by_0_1_s_of_samples_not_of_wall_time(socket_dir: Path) -> None:
+    """When the AK8963 has no new field (DRDY low) the last one keeps the heading for MAG_MAX_AGE_S, counted in
+    samples at rate_hz: at 50 Hz four samples keep it and the fifth drops it however fast they come (a
+    replay reads them faster than live, or held up by its player, and must keep the same headings)."""
+    bus, ak = mpu_bus(socket_dir / "bus.sock", yaw=0.4)
+    with bus:
+        driver = Driver(f"mock+i2c://{bus.socket_path}/0x68", rate_hz=50.0)
+        try:
+            assert driver.sample(1)[0][1] is not None
+            ak.begin_transaction = lambda *_args: None   # no new measurement latched: DRDY stays low
+            psi = [p for _, p in driver.sample(6)]
+        finally:
+            driver.close()
+    assert all(p is not None for p in psi[:4]) and psi[4:] == [None, None], psi
+
+
 def test_a_device_setting_changed_over_the_bus_reopens_the_imu_and_its_magnetometer_there(
         lcm_url: str, socket_dir: Path) -> None:
     bus_a, _ak_a = mpu_bus(socket_dir / "a.sock", yaw=0.0)
