@@ -185,20 +185,26 @@ def test_an_mpu9250_without_its_ak8963_has_no_heading_and_says_so(lcm_url: str, 
     assert health["mag_errors"] >= 1 and health["heading_deg"] == "" and health["samples"] == 3
 
 
+def record_samples(bus: MockI2cBus, log_path: Path, n: int, **settings: Any) -> tuple[Driver, list[Any]]:
+    """*n* samples of a driver on *bus* with its raw tap on, the taps written to *log_path* as RAW.ins."""
+    with bus:
+        live = Driver(f"mock+i2c://{bus.socket_path}/0x68", record_raw=True, **settings)
+        try:
+            recorded = live.sample(n)
+        finally:
+            live.close()
+    log = McapLogWriter(log_path.parent, path=log_path)
+    for k, record in enumerate(live.raw()):
+        log.write("RAW.ins", record.encode(), time.time_ns() + k)
+    log.close()
+    return live, recorded
+
+
 def test_a_recorded_mpu9250_replays_into_the_same_magnetometer_values(lcm_url: str, socket_dir: Path,
                                                                      tmp_path: Path) -> None:
     bus, _ = mpu_bus(socket_dir / "bus.sock", yaw=2.2, noise_ut=0.5, seed=4)   # noisy: every sample differs
     recorded_address = f"mock+i2c://{bus.socket_path}/0x68"
-    with bus:
-        live = Driver(recorded_address, record_raw=True)
-        try:
-            recorded = live.sample(12)
-        finally:
-            live.close()
-    log = McapLogWriter(tmp_path, path=tmp_path / "imu.mcap")
-    for n, record in enumerate(live.raw()):
-        log.write("RAW.ins", record.encode(), time.time_ns() + n)
-    log.close()
+    live, recorded = record_samples(bus, tmp_path / "imu.mcap", 12)
     assert len({field for field, _ in recorded}) == 12 and all(psi is not None for _, psi in recorded)
 
     device = ReplayI2cDevice(name="ins", socket_path=socket_dir / "replay.sock", fast=False)
@@ -231,16 +237,7 @@ def test_on_a_paced_replay_bus_the_imu_samples_as_fast_as_the_reads_are_released
     recorded rate_hz of 1 its timer would take 12 s for 12 samples; every one comes as soon as it is released."""
     bus, _ = mpu_bus(socket_dir / "bus.sock", yaw=0.7)
     recorded_address = f"mock+i2c://{bus.socket_path}/0x68"
-    with bus:
-        live = Driver(recorded_address, record_raw=True, rate_hz=1.0)
-        try:
-            recorded = live.sample(12)
-        finally:
-            live.close()
-    log = McapLogWriter(tmp_path, path=tmp_path / "imu.mcap")
-    for n, record in enumerate(live.raw()):
-        log.write("RAW.ins", record.encode(), time.time_ns() + n)
-    log.close()
+    live, recorded = record_samples(bus, tmp_path / "imu.mcap", 12, rate_hz=1.0)
     device = ReplayI2cDevice(name="ins", socket_path=socket_dir / "replay.sock", fast=True)
     device.preload(tmp_path / "imu.mcap", start_ns=0, end_ns=2 ** 63 - 1)
     device.start()
