@@ -19,8 +19,7 @@ from hil.compare import load_streams
 from hil.replay import Replay, ReplayOptions
 from hil.stream_align import first_difference
 
-# the whole run: with --fast the IMU driver pulls its reads at 1000 Hz from its start, so a
-# short window's reads would run out before the other drivers are ready
+# the whole run (the IMU's reads are paced by the player, so a window would do as well)
 WINDOW_S: tuple[float, float | None] = (0.0, None)
 # about 7 s each idle, 10 s loaded: the test stays near 80 s (ten took 100-120 s here, too close to the
 # suite's 2-minute limit on a shared machine: bench/replay_determinism.py runs ten, or --runs N)
