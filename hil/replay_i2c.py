@@ -43,7 +43,7 @@ from u2sa_hw.recording.log_reader import LogFile
 
 from hil.replay_plan import ReplayError
 
-I2C_BACKLOG_READS = 8       # --fast: data reads released ahead of the driver (8 ms at 1000 Hz): it runs beside the player
+I2C_BACKLOG_READS = 8       # --fast: data reads released ahead of the driver, so it samples beside the player
 # The replay bus's client timeout (timeout= in its mock+i2c address). The driver's first data read is held
 # from its set-up until the playback starts (the other services' start-up, up to the replay's 30 s readiness
 # limit, and the discovery of what they subscribe to), and a later one while the player waits on another
