@@ -24,7 +24,9 @@ def u2sa(*args: str, key: Path | None = None, stdin: str | None = None, **env: s
     full = dict(os.environ, **env)
     if key is not None:
         full[KEY_ENV] = str(key)
-    return subprocess.run([*U2SA, *args], env=full, input=stdin, capture_output=True, text=True, timeout=60)
+    with tempfile.TemporaryDirectory(prefix="u2sa-cli-") as cwd:   # a service without a profile logs in ./.u2sa
+        return subprocess.run([*U2SA, *args], env=full, input=stdin, capture_output=True, text=True, timeout=60,
+                              cwd=cwd)
 
 
 def test_show_import_and_rotate_move_a_key_between_files(tmp_path: Path) -> None:
@@ -101,8 +103,10 @@ def without_key_env() -> dict[str, str]:
 def run_u2sa(args: list[str], env: dict[str, str], *, stdin: str | None = None,
              as_user: bool = False) -> subprocess.CompletedProcess:
     cmd = [*U2SA, *args]
-    return subprocess.run(unprivileged(cmd) if as_user else cmd, env=env, input=stdin, capture_output=True,
-                          text=True, timeout=60)
+    if as_user:
+        return subprocess.run(unprivileged(cmd), env=env, input=stdin, capture_output=True, text=True, timeout=60)
+    with tempfile.TemporaryDirectory(prefix="u2sa-cli-") as cwd:   # a service without a profile logs in ./.u2sa
+        return subprocess.run(cmd, env=env, input=stdin, capture_output=True, text=True, timeout=60, cwd=cwd)
 
 
 def test_the_key_command_acts_on_the_key_of_the_profile_in_U2SA_VEHICLE(tmp_path: Path) -> None:
