@@ -242,8 +242,6 @@ class I2cImuDriver(ProprioceptiveSensor):
         return {}
 
     @classmethod
-
-    @classmethod
     def probe_expectation(cls, config: Mapping[str, Any]) -> dict[str, Any]:
         """The chip family and the variant the ``chip`` setting names (the MPU's; a BNO055 overrides it)."""
         return {"chip": "mpu", "variant": str(config.get("chip", "auto"))}
