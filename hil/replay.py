@@ -36,7 +36,7 @@ from hil.compare import STATE_CHANNELS
 from hil.player import PlayStats, Player
 from hil.progress import ProgressBar
 from hil.replay_devices import ReplayDevice, ReplaySerialDevice, ReplayStalled
-from hil.replay_i2c import release_held_reads, unwatch_held_drivers
+from hil.replay_i2c import held_drivers, release_held_reads
 from hil.replay_plan import (DevicePlan, ReplayError, ReplayPlan, ServicePlan, build_plan,
                              write_run_profile)
 
@@ -345,10 +345,11 @@ class Replay:
             for device in devices.values():
                 device.start()
             started = time.monotonic()
-            launcher = Launcher(profile, only=list(self.plan.services), grace_s=3.0, control=False, output=self.outputs, on_death=self._on_death,
+            unwatched = held_drivers(devices, {n: d.service or "" for n, d in self.plan.devices.items()})
+            launcher = Launcher(profile, only=list(self.plan.services), grace_s=3.0, control=False,
+                                output=self.outputs, on_death=self._on_death, unwatched=unwatched,
                                 policy=RestartPolicy(initial_backoff_s=0.5, max_backoff_s=0.5, quick_death_s=1e9,
                                                      give_up_after=1))
-            unwatch_held_drivers(launcher, devices, {n: d.service or "" for n, d in self.plan.devices.items()})
             launcher.start()
             self._wait_ready(devices, launcher)
             republish = self._republished_channels(url, devices)

@@ -24,7 +24,7 @@ answered with what the replayed driver wrote there (registers auto-increment, as
 supported chips). The chip's data registers are never written, so the samples stay as recorded.
 
 A driver held in a read cannot ping a watchdog or see its SIGTERM: the replay runs it without the
-launcher's watchdog and stops its bus before stopping it (:func:`unwatch_held_drivers`,
+launcher's watchdog and stops its bus before stopping it (:func:`held_drivers`,
 :func:`release_held_reads`).
 """
 
@@ -269,17 +269,13 @@ class ReplayI2cDevice:
         return out
 
 
-def unwatch_held_drivers(launcher: Any, devices: Mapping[str, Any], services: Mapping[str, str]) -> None:
-    """No launcher watchdog (2 s, as the units') for the drivers of replay I2C buses (*services*: device ->
-    its service): such a driver's loop waits in a data read held for the player (start-up, another device's
-    stall, a recorded pause at --rate) and cannot ping; a driver that stops taking its reads is the
-    player's stall instead. Call before the launcher starts."""
-    from u2sa_hw.launcher.watchdog import WatchdogSetting, WatchdogTimer
-
-    for name, device in devices.items():
-        process = launcher.processes.get(services.get(name, ""))
-        if isinstance(device, ReplayI2cDevice) and process is not None:
-            process.watchdog = WatchdogTimer(WatchdogSetting(timeout_s=0.0))
+def held_drivers(devices: Mapping[str, Any], services: Mapping[str, str]) -> set[str]:
+    """The services (*services*: device -> its service) whose drivers read a replay I2C bus: they run without
+    the launcher's watchdog (``Launcher(unwatched=...)``), because such a driver's loop waits in a data read
+    held for the player (start-up, another device's stall, a recorded pause at --rate) and cannot ping; a
+    driver that stops taking its reads is the player's stall instead."""
+    return {services[name] for name, device in devices.items()
+            if isinstance(device, ReplayI2cDevice) and services.get(name)}
 
 
 def release_held_reads(devices: Mapping[str, Any]) -> None:

@@ -163,3 +163,12 @@ def test_run_help_documents_the_watchdog_and_refuses_a_negative_one(tmp_path: Pa
     bad = subprocess.run([*u2sa_command(), "run", "--vehicle", str(vehicle), "--watchdog", "-1"],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "--watchdog must be >= 0 (0 turns the watchdog off)" in bad.stderr
+
+
+def test_services_named_unwatched_run_without_a_watchdog_and_the_others_keep_theirs(tmp_path: Path) -> None:
+    """A replay's I2C drivers wait in reads held for the player and cannot ping (hil/replay_i2c.py)."""
+    vehicle = tmp_path / "vehicle.toml"
+    vehicle.write_text('[vehicle]\nname = "w"\n[services.imu]\nkind = "imu_mpu9250"\n'
+                       '[services.gps]\nkind = "gps_nmea"\n')
+    launcher = Launcher(load_profile(vehicle), control=False, unwatched={"imu"})
+    assert {n: p.status().watchdog_s for n, p in launcher.processes.items()} == {"imu": 0.0, "gps": 2.0}

@@ -30,7 +30,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Collection
 
 from u2sa_hw.bus_clock import STATE_ENV
 from u2sa_hw.launcher.control import SOCKET_ENV, ControlServer, LauncherError, default_socket_path
@@ -86,7 +86,10 @@ class Launcher:
                  control: bool = True, socket_path: Path | None = None,
                  command: Callable[[ServiceSpec], list[str]] | None = None,
                  env: dict[str, str] | None = None, start_first: list[str] | None = None,
-                 first_wait_s: float = 15.0, watchdog_s: float | None = None) -> None:
+                 first_wait_s: float = 15.0, watchdog_s: float | None = None,
+                 unwatched: Collection[str] = ()) -> None:
+        # watchdog_s replaces every unit's watchdog timeout (0: off); *unwatched* services run without one
+        # (a replay's I2C drivers wait in reads held for the player and cannot ping, hil/replay_i2c.py)
         if profile.path is None:
             raise ValueError("the launcher needs a vehicle profile file (--vehicle PATH)")
         specs = select_services(profile, only)
@@ -108,7 +111,8 @@ class Launcher:
         build = command or (lambda spec: [*u2sa_command(), "service", spec.name, "--vehicle", vehicle])
         self.processes: dict[str, SupervisedProcess] = {
             s.name: SupervisedProcess(s.name, build(s), policy=policy, env=child_env,
-                                      watchdog=_watchdog(s.kind, watchdog_s)) for s in specs}
+                                      watchdog=_watchdog(s.kind, 0.0 if s.name in unwatched else watchdog_s))
+            for s in specs}
         names = [s.name for s in specs]
         first = start_first if start_first is not None else [s.name for s in specs if s.kind == RECORDER_KIND]
         self.start_first = [n for n in first if n in names]
