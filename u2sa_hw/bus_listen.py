@@ -109,6 +109,11 @@ def _group_and_port(url: str) -> tuple[bytes, int]:
     return socket.inet_aton(where.hostname or "239.255.76.67"), where.port or 7667
 
 
+def bus_port(url: str) -> int:
+    """The UDP port of a ``udpm://`` URL (LCM's 7667 when it names none)."""
+    return _group_and_port(url)[1]
+
+
 def interface_flags(interface: str) -> int | None:
     """The kernel's flags of *interface* in this network namespace (SIOCGIFFLAGS), None when unknown."""
     try:

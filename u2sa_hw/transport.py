@@ -41,10 +41,11 @@ import lcm
 
 from u2sa_hw.bus_auth import (FOREIGN, LCM_SELF_TEST, OK, OPEN, REJECTION_WHY, REJECTIONS, REPLAYED, TRAILER_LEN,
                               WINDOW_US, BusAuth, keyring_for, resolve_security, strip_trailer)
+from u2sa_hw import bus_filter
 from u2sa_hw.bus_clock import ClockStore, store_from_env
 from u2sa_hw.bus_key import BusKeyError, key_path
-from u2sa_hw.bus_listen import (forced_default_problem, listen_interface, prepare_interface, receive_on, send_via,
-                                socket_fds)
+from u2sa_hw.bus_listen import (bus_port, forced_default_problem, listen_interface, prepare_interface, receive_on,
+                                send_via, socket_fds)
 from u2sa_hw.lcm_open import MULTICAST_FIX, URL_HELP, captured_c_stderr, open_error, reemit  # noqa: F401 - re-exported
 from u2sa_hw.lcm_url import (DEFAULT_LCM_URL, DEFAULT_RECV_BUF_SIZE, LCM_URL_ENV,  # noqa: F401 - re-exported
                               RMEM_MAX_FILE, resolve_url, with_receive_buffer)
@@ -61,6 +62,8 @@ Callback = Callable[[str, Any], None]
 _SYSTEM_ID = struct.Struct(">i")
 _ANY_SYSTEM = _SYSTEM_ID.pack(0)   # unset (a tool without a profile): not another vehicle
 _FAILSAFE_FP = Failsafe._get_packed_fingerprint()
+FILTER_ENV = "U2SA_BUS_FILTER"   # "off": every transport hears the whole bus (u2sa_hw.bus_filter)
+_RECEIVER_OPENING = threading.Lock()   # one transport at a time finds its new receive socket among the process's
 log = logging.getLogger("u2sa_hw.transport")
 
 
@@ -166,6 +169,11 @@ class Transport:
             except OSError as exc:
                 raise TransportError(f"cannot send on {self.interface} only: {exc}") from None
         self._receiving = False   # set once _open_receiver had LCM bind its receive socket
+        self._recv_fds: set[int] = set()   # LCM's receive socket (found as it opens), for the channel filter
+        # The exact channels subscribed, which the kernel filter passes; None: a regex subscription, hear everything.
+        self._filter_channels: set[str] | None = (set() if self.url.startswith("udpm://")
+                                                  and os.environ.get(FILTER_ENV, "").lower() != "off" else None)
+        self.filtered = False   # True while the kernel drops the channels this transport does not take
         self._publish_lock = threading.Lock()
         self._subs: list[_Subscription] = []
         self._subs_lock = threading.Lock()
@@ -228,6 +236,7 @@ class Transport:
         if self._lc is None:
             raise TransportError(f"cannot subscribe to {channel}: the transport on {self.url} is stopped")
         self._open_receiver()
+        self._widen_filter(channel)   # before LCM takes the channel: nothing of it is dropped after subscribe
         sub.handle = self._lc.subscribe(pattern, handler)
         if sub.handle is None:
             raise TransportError(f"cannot subscribe to {channel} on LCM at {self.url}")
@@ -246,19 +255,41 @@ class Transport:
             return
         if self._if_index is not None:
             send_via(self.url, self._send_fds, 0)   # LCM's self test, as the receiver opens, sends on the route
+        with _RECEIVER_OPENING, captured_c_stderr() as printed:
             sockets_before = socket_fds()
-        with captured_c_stderr() as printed:
             fd = self._lc.fileno()
+            self._recv_fds = socket_fds() - sockets_before
         if fd < 0:
             raise TransportError(open_error(self.url, f"cannot receive on LCM at {self.url}", None, printed[0]))
         reemit(printed[0])
         if self._if_index is not None:
             try:
-                receive_on(self.url, socket_fds() - sockets_before, self._if_index)
+                receive_on(self.url, self._recv_fds, self._if_index)
                 send_via(self.url, self._send_fds, self._if_index)
             except OSError as exc:
                 raise TransportError(f"cannot listen on {self.interface} only: {exc}") from None
         self._receiving = True
+
+    def _widen_filter(self, channel: str) -> None:
+        """Let the kernel pass *channel* too (all channels once a subscription is a regex).
+
+        Filters only narrow what a process hears to what it subscribed to; an unsubscribed channel
+        stays in the filter (a few packets more, never one fewer).
+        """
+        with self._subs_lock:
+            wanted = self._filter_channels
+            if wanted is None or channel in wanted:
+                return
+            port = bus_port(self.url)
+            if _is_regex(channel):
+                self._filter_channels = None
+                bus_filter.apply(self._recv_fds, port, None)
+                self.filtered = False
+                return
+            wanted.add(channel)
+            self.filtered = bus_filter.apply(self._recv_fds, port, wanted)
+            if not self.filtered:
+                self._filter_channels = None   # not available here: stop trying
 
     def unsubscribe(self, sub: _Subscription) -> None:
         """Stop delivering to *sub* (at once; LCM lets go of it between two packets)."""
@@ -381,11 +412,13 @@ class Transport:
         """The ``lcm.LCM`` under this transport, its receive socket open on the bus's interface.
 
         For tools that measure plain LCM on exactly the sockets a transport uses (bench/transport.py):
-        what is published or received on it directly is neither signed nor verified.
+        what is published or received on it directly is neither signed nor verified, and the
+        transport hears every channel from then on (no kernel filter, u2sa_hw.bus_filter).
         """
         if self._lc is None:
             raise TransportError(f"the transport on {self.url} is stopped")
         self._open_receiver()
+        self._widen_filter(".*")   # what is subscribed on it directly must not meet the kernel filter
         return self._lc
 
     @property
