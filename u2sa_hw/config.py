@@ -274,6 +274,8 @@ class Configurator:
         self._extra: dict[str, Any] = {}
         self._persisted: set[str] = set()   # fields the file holds: read from it or changed over the bus
         self._trial = threading.local()      # a proposed value, seen only by the thread validating it
+        self._trials = 0                     # trials open in any thread: get() skips the thread-local when 0
+        self._trials_lock = threading.Lock()
         for name, value in (initial or {}).items():
             if name not in self.passthrough:
                 self._load_value(name, value, source=initial_source, strict=True)
@@ -319,9 +321,10 @@ class Configurator:
         With a default it reads like a mapping's ``get``, so code that takes a plain settings dict
         takes a Configurator too.
         """
-        trial = getattr(self._trial, "values", None)
-        if trial and name in trial:
-            return trial[name]
+        if self._trials:   # a drivers' hot path reads settings per frame: the thread-local only when it can matter
+            trial = getattr(self._trial, "values", None)
+            if trial and name in trial:
+                return trial[name]
         try:
             return self._values[name]
         except KeyError:
@@ -352,11 +355,15 @@ class Configurator:
         if name not in self._values:
             raise KeyError(f"no config field '{name}' (known: {', '.join(sorted(self.fields))})")
         previous = getattr(self._trial, "values", None)
+        with self._trials_lock:
+            self._trials += 1
         self._trial.values = {**(previous or {}), name: value}
         try:
             yield
         finally:
             self._trial.values = previous
+            with self._trials_lock:
+                self._trials -= 1
 
     def enumerate(self) -> list[tuple[str, str, Any]]:
         """``(name, type name, value)`` for every declared field."""
