@@ -2,7 +2,8 @@
 
 The LCM handler thread only appends ``(channel, bytes, time, signer)`` to a bounded queue
 (the verified payload and the sender id that signed it, ``Transport.last_sender``); a
-writer thread drains it into :class:`McapLogWriter`, closing a chunk every
+writer thread, which looks at the queue every 10 ms when it is empty instead of being woken
+per message, drains it into :class:`McapLogWriter`, closing a chunk every
 ``flush_interval_s`` and checking the free disk space. A full queue drops the message and
 counts it; a disk below the floor (or a failing write) stops the recording cleanly: the
 writer thread finishes the file (summary, indexes) and says why in ``stats.stopped_reason``.
@@ -33,6 +34,7 @@ log = logging.getLogger("u2sa_hw.recorder")
 # stop() waits this long for the writer to write what is queued: less than the recorder unit's
 # TimeoutStopSec (15 s), so a stalled disk is reported before systemd's SIGKILL.
 JOIN_TIMEOUT_S = 10.0
+DRAIN_POLL_S = 0.01   # the writer looks at the queue this often when it found it empty (a queue of 10 ms at most)
 
 
 @dataclass
@@ -174,13 +176,15 @@ class BusCapture:
             return
         next_flush = time.monotonic() + self.flush_interval
         while True:
-            timeout = max(0.0, next_flush - time.monotonic())
             try:
-                item = self._queue.get(timeout=timeout)
+                item = self._queue.get_nowait()
             except queue.Empty:
-                item = ()
                 if self._finish.is_set():
-                    break   # stop() could not queue its end marker (queue full), and everything is written
+                    break   # stop() asked (its end marker may not have fit in the queue), and everything is written
+                # Woken every DRAIN_POLL_S, not by each message: at thousands of messages a second a wake-up per
+                # message cost the bus's handler thread (and the process's GIL) more than writing them.
+                self._finish.wait(max(0.0, min(DRAIN_POLL_S, next_flush - time.monotonic())))
+                item = ()
             if item is None:
                 break
             if item:
