@@ -208,8 +208,7 @@ class Player:
             else:
                 device = self.devices[target]
                 limit = getattr(device, "backlog_limit", 0)
-                # a device with a backlog allowance is checked every 16 records: its pending() reads /proc
-                if self.rate is None and (not limit or self.stats.records % 16 == 0):
+                if self.rate is None and (not limit or self._backlog_due(device)):
                     self.wait_taken(device, limit=limit)
                 device.feed(payload)
                 self.stats.records += 1
@@ -224,6 +223,13 @@ class Player:
         self.progress((self.end_ns - self.start_ns) / 1e9)
         self.stats.wall_s = time.monotonic() - started
         return self.stats
+
+    def _backlog_due(self, device: ReplayDevice) -> bool:
+        """Whether to check the backlog of *device* (one with a backlog allowance) before its next record: when
+        it says so (``backlog_due()``: the CAN device, every so many frames it sent, as its pending() reads
+        /proc), else every 16 records."""
+        due = getattr(device, "backlog_due", None)
+        return bool(due()) if due is not None else self.stats.records % 16 == 0
 
     def wait_taken(self, device: ReplayDevice, *, limit: int = 0) -> None:
         """Wait until *device*'s driver has taken everything fed so far (all but *limit*)."""

@@ -6,6 +6,8 @@ Serial is in :mod:`hil.replay_devices`; the interface is the same. :func:`make_d
 from __future__ import annotations
 
 import os
+import socket
+import struct
 import threading
 from collections import Counter
 from pathlib import Path
@@ -18,11 +20,20 @@ from u2sa_hw.udp_ports import private_udp_port
 from hil.replay_i2c import I2C_BACKLOG_READS, I2C_CLIENT_TIMEOUT_S, ReplayI2cChip, ReplayI2cDevice
 from hil.replay_plan import DevicePlan, ReplayError
 
-__all__ = ["CAN_BACKLOG_BYTES", "CAN_GROUP", "I2C_BACKLOG_READS", "I2C_CLIENT_TIMEOUT_S", "ReplayCanDevice",
-           "ReplayI2cChip", "ReplayI2cDevice", "make_device", "socket_inodes", "udp_backlog"]
+__all__ = ["CAN_BACKLOG_BYTES", "CAN_CHECK_EVERY", "CAN_GROUP", "I2C_BACKLOG_READS", "I2C_CLIENT_TIMEOUT_S",
+           "ReplayCanDevice", "ReplayI2cChip", "ReplayI2cDevice", "make_device", "socket_inodes", "udp_backlog"]
 
 CAN_GROUP = "239.74.163.2"  # python-can's default IPv4 group for udp_multicast; the port is the replay's own
-CAN_BACKLOG_BYTES = 32_768  # --fast: unread bytes allowed in the driver's CAN socket (its buffer is ~200 kB)
+# --fast pacing of the driver's CAN socket (its receive buffer: net.core.rmem_default, 212,992 bytes here; a
+# frame's datagram takes ~830 bytes of it, its truesize): the player checks the unread bytes every
+# CAN_CHECK_EVERY frames sent and waits while they exceed CAN_BACKLOG_BYTES, so at most
+# CAN_BACKLOG_BYTES plus CAN_CHECK_EVERY datagrams (~73 kB) ever wait there (tests/test_replay_can_device.py)
+CAN_BACKLOG_BYTES = 32_768
+CAN_CHECK_EVERY = 48
+CAN_DRAIN_PERIOD_S = 0.02     # the counting thread reads the bus in batches this often
+CAN_RCVBUF_BYTES = 4 << 20    # its socket's receive buffer asked for (granted up to net.core.rmem_max unless root)
+_SO_MEMINFO = 55              # Linux: getsockopt -> struct sk_meminfo (u32 x 9), [8] the datagrams dropped
+_SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
 
 
 class ReplayCanDevice:
@@ -34,6 +45,11 @@ class ReplayCanDevice:
     frames (on udp_multicast a node hears what it sends; the replayed driver hears its own
     again). What the driver sends depends on its timers (setpoints re-sent every
     ``command_period_s``), so its frames are counted, not compared frame by frame.
+
+    The frames go out in python-can's wire format from a socket of their own (not bound to the
+    bus's port), so the bus socket that counts tells them from every other member's (sent from
+    the port, as python-can sends) by the sender's port, without decoding; a thread reads it in
+    batches (:data:`CAN_DRAIN_PERIOD_S`) rather than waking for every datagram.
     """
 
     kind = "can"
@@ -42,14 +58,16 @@ class ReplayCanDevice:
         self.name = name
         self.port = port
         self.backlog_limit = CAN_BACKLOG_BYTES
-        self._bus: Any = None
+        self._tx: socket.socket | None = None        # sends the recorded frames
+        self._rx: socket.socket | None = None        # a member of the bus: hears the driver's frames (and ours)
+        self._tx_port = 0                            # the port the recorded frames come from
         self._pid: int | None = None
         self._inodes: set[str] = set()
+        self._unchecked = 0                          # frames sent since pending() last looked
         self._reader: threading.Thread | None = None
         self._stop = threading.Event()
         self._recorded_tx: Counter[tuple[int, bool, bytes]] = Counter()
-        self._sent: Counter[tuple[int, bool, bytes]] = Counter()
-        self._lock = threading.Lock()
+        self._drain_lock = threading.Lock()
         self.counts = {"fed": 0, "echoes_skipped": 0, "recorded_tx": 0, "driver_tx": 0}
 
     def mock_address(self, real: DeviceAddress | None) -> str:
@@ -62,10 +80,12 @@ class ReplayCanDevice:
         return {}
 
     def start(self) -> None:
-        """Join the bus and count what the driver sends."""
-        import can
-
-        self._bus = can.Bus(interface="udp_multicast", channel=CAN_GROUP, port=self.port)
+        """Join the bus (as python-can does) and count what the driver sends."""
+        self._rx = _bus_member(self.port)
+        self._tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, struct.pack("@I", 1))  # python-can's hop limit
+        self._tx.bind(("", 0))
+        self._tx_port = int(self._tx.getsockname()[1])
         self._reader = threading.Thread(target=self._read_loop, name=f"replay-{self.name}", daemon=True)
         self._reader.start()
 
@@ -75,9 +95,11 @@ class ReplayCanDevice:
         if self._reader is not None:
             self._reader.join(timeout=2.0)
             self._reader = None
-        if self._bus is not None:
-            self._bus.shutdown()
-            self._bus = None
+        with self._drain_lock:
+            for sock in (self._tx, self._rx):
+                if sock is not None:
+                    sock.close()
+            self._tx = self._rx = None
 
     def ready(self, pid: int | None, health: dict[str, str]) -> bool:
         """The driver's bus is open (frames sent before it joined the group would be lost)."""
@@ -87,6 +109,7 @@ class ReplayCanDevice:
     def feed(self, record: Any) -> None:
         """Send a recorded RX frame (not an echo of the recorded driver's own); note a TX frame."""
         import can
+        from can.interfaces.udp_multicast.utils import pack_message
 
         key = (int(record.arbitration_id), bool(record.is_remote_frame), bytes(record.data))
         if record.direction == TX:
@@ -100,35 +123,77 @@ class ReplayCanDevice:
         msg = can.Message(arbitration_id=key[0], is_extended_id=bool(record.is_extended_id),
                           is_remote_frame=key[1], is_error_frame=bool(record.is_error_frame),
                           dlc=int(record.dlc), data=key[2], timestamp=float(record.bus_timestamp or 0.0))
-        with self._lock:
-            self._sent[key] += 1
-        self._bus.send(msg)
+        assert self._tx is not None, "feed() before start()"
+        self._tx.sendto(pack_message(msg), (CAN_GROUP, self.port))
+        self._unchecked += 1
         self.counts["fed"] += 1
+
+    def backlog_due(self) -> bool:
+        """--fast: whether the player should look at the driver's backlog now (each CAN_CHECK_EVERY frames sent)."""
+        return self._unchecked >= CAN_CHECK_EVERY
 
     def pending(self) -> int:
         """Bytes waiting unread in the driver's socket on the replay bus's port (Linux /proc)."""
+        self._unchecked = 0
         if self._pid and not self._inodes:
             self._inodes = socket_inodes(self._pid)
         return udp_backlog(self._pid, self.port, self._inodes)
 
     def _read_loop(self) -> None:
-        while not self._stop.is_set():
-            try:
-                msg = self._bus.recv(0.1)
-            except Exception:  # noqa: BLE001 - the bus was shut down under us
+        while not self._stop.wait(CAN_DRAIN_PERIOD_S):
+            self._drain()
+
+    def _drain(self) -> None:
+        """Count the driver's frames waiting in the bus socket (ours, heard back, are left out by their sender)."""
+        with self._drain_lock:
+            rx, ours = self._rx, self._tx_port
+            if rx is None:
                 return
-            if msg is None:
-                continue
-            key = (int(msg.arbitration_id), bool(msg.is_remote_frame), bytes(msg.data))
-            with self._lock:
-                if self._sent[key] > 0:   # our own frame, heard back
-                    self._sent[key] -= 1
-                    continue
-            self.counts["driver_tx"] += 1
+            theirs = 0
+            try:
+                while True:
+                    _, sender = rx.recvfrom(4096, socket.MSG_DONTWAIT)
+                    if sender[1] != ours:
+                        theirs += 1
+            except BlockingIOError:   # all read
+                pass
+            self.counts["driver_tx"] += theirs
 
     def report(self) -> dict[str, Any]:
-        """Frames fed, echoes left out, and the driver's frames against the recording's."""
-        return {"kind": self.kind, **self.counts, "divergences": 0}
+        """Frames fed, echoes left out, and the driver's frames against the recording's (and any the count missed)."""
+        self._drain()
+        return {"kind": self.kind, **self.counts, "driver_tx_lost": _dropped(self._rx), "divergences": 0}
+
+
+def _bus_member(port: int) -> socket.socket:
+    """A socket on the udp_multicast bus at *port*, set up as python-can's (reuse, bound to the port, in the
+    group), with a receive buffer for :data:`CAN_DRAIN_PERIOD_S` of traffic and more (root: forced)."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        if hasattr(socket, "SO_REUSEPORT"):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, _SO_RCVBUFFORCE, CAN_RCVBUF_BYTES)
+        except OSError:   # not root: as much as net.core.rmem_max allows
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, CAN_RCVBUF_BYTES)
+        sock.bind(("", port))
+        sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP,
+                        socket.inet_aton(CAN_GROUP) + struct.pack("@I", socket.INADDR_ANY))
+    except OSError:
+        sock.close()
+        raise
+    return sock
+
+
+def _dropped(sock: socket.socket | None) -> int:
+    """Datagrams the kernel dropped on *sock* for a full buffer (0 when unknown: not Linux, or closed)."""
+    if sock is None:
+        return 0
+    try:
+        return int(struct.unpack("9I", sock.getsockopt(socket.SOL_SOCKET, _SO_MEMINFO, 36))[8])
+    except (OSError, struct.error):
+        return 0
 
 
 def socket_inodes(pid: int) -> set[str]:

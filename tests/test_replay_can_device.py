@@ -1,0 +1,110 @@
+"""The replay CAN device (hil/replay_buses.py) over a real python-can udp_multicast bus: recorded RX
+frames reach a member of the bus (as the replayed driver's, ``clock=stamped``) in order with their
+recorded times and in python-can's wire format, echoes of the recorded driver's own frames are left out,
+the device counts the other members' frames but never its own, and the --fast pacing keeps the
+driver's socket well under its receive buffer.
+"""
+
+from __future__ import annotations
+
+import socket
+import struct
+from typing import Iterator
+
+import pytest
+from conftest import wait_until
+
+from hil.replay_buses import CAN_BACKLOG_BYTES, CAN_CHECK_EVERY, CAN_GROUP, ReplayCanDevice
+from u2sa_hw.lcmtypes.RawCanFrame import RawCanFrame
+from u2sa_hw.ports.can_clock import StampedUdpMulticastBus
+from u2sa_hw.ports.tap import RX, TX
+from u2sa_hw.udp_ports import private_udp_port
+
+SO_MEMINFO = 55   # Linux: struct sk_meminfo, [0] bytes queued (truesize), [1] the receive buffer
+
+
+def frame(arbitration_id: int, data: bytes, *, direction: int = RX, stamp: float = 0.0) -> RawCanFrame:
+    """A recorded CAN frame as the player hands it to the device."""
+    rec = RawCanFrame()
+    rec.direction, rec.arbitration_id, rec.dlc, rec.length = direction, arbitration_id, len(data), len(data)
+    rec.data, rec.bus_timestamp = data, stamp
+    return rec
+
+
+@pytest.fixture
+def bus_pair() -> Iterator[tuple[ReplayCanDevice, StampedUdpMulticastBus]]:
+    """The replay device and a member of its bus opened as the replayed driver opens it."""
+    port = private_udp_port()
+    device = ReplayCanDevice(name="wheels", port=port)
+    device.start()
+    driver = StampedUdpMulticastBus(channel=CAN_GROUP, port=port)
+    try:
+        yield device, driver
+    finally:
+        driver.shutdown()
+        device.stop()
+
+
+def meminfo(bus: StampedUdpMulticastBus) -> tuple[int, ...]:
+    """The kernel's memory counters of *bus*'s socket."""
+    with socket.socket(fileno=socket.dup(bus.fileno())) as sock:
+        return struct.unpack("9I", sock.getsockopt(socket.SOL_SOCKET, SO_MEMINFO, 36))
+
+
+def test_frames_reach_the_driver_in_order_with_their_recorded_times(bus_pair) -> None:
+    device, driver = bus_pair
+    sent = [(0x9 + (n << 5), bytes((n, 1, 2, 3, 4, 5, 6, 7)), 1000.0 + n / 100) for n in range(5)]
+    for arbitration_id, data, stamp in sent:
+        device.feed(frame(arbitration_id, data, stamp=stamp))
+    got = [driver.recv(5.0) for _ in sent]
+    assert [(m.arbitration_id, bytes(m.data), m.timestamp, m.dlc, m.is_extended_id) for m in got] == \
+        [(a, d, s, 8, False) for a, d, s in sent]
+    assert device.report()["fed"] == 5
+
+
+def test_echoes_of_the_recorded_driver_are_left_out(bus_pair) -> None:
+    device, driver = bus_pair
+    device.feed(frame(0x0C, b"\x01\x02", direction=TX))      # the recorded driver sent it ...
+    device.feed(frame(0x0C, b"\x01\x02", stamp=5.0))         # ... and heard it back: not sent again
+    device.feed(frame(0x0C, b"\x01\x02", stamp=6.0))         # the same frame again: a node's, sent
+    assert driver.recv(5.0).timestamp == 6.0
+    report = device.report()
+    assert (report["recorded_tx"], report["echoes_skipped"], report["fed"]) == (1, 1, 1), report
+
+
+def test_counts_the_other_members_frames_not_its_own(bus_pair) -> None:
+    device, driver = bus_pair
+    import can
+
+    for n in range(4):
+        device.feed(frame(0x29, bytes((n,)), stamp=float(n)))
+    assert [driver.recv(5.0).data[0] for _ in range(4)] == [0, 1, 2, 3]
+    for n in range(3):
+        driver.send(can.Message(arbitration_id=0x2C, data=bytes((n,)), is_extended_id=False))
+    assert [driver.recv(5.0).arbitration_id for _ in range(3)] == [0x2C] * 3   # a member hears itself
+    wait_until(lambda: device.report()["driver_tx"] >= 3, message="the driver's frames counted")
+    for n in range(4, 8):                                     # ours after theirs: still not counted
+        device.feed(frame(0x29, bytes((n,)), stamp=float(n)))
+    assert [driver.recv(5.0).data[0] for _ in range(4)] == [4, 5, 6, 7]
+    report = device.report()
+    assert (report["driver_tx"], report["fed"], report["driver_tx_lost"]) == (3, 8, 0), report
+
+
+def test_backlog_is_checked_every_so_many_frames_sent(bus_pair) -> None:
+    device, _driver = bus_pair
+    device.feed(frame(0x0C, b"\x00", direction=TX))            # recorded TX: not sent, not counted
+    for n in range(CAN_CHECK_EVERY - 1):
+        device.feed(frame(0x29, bytes((n % 256,))))
+    assert not device.backlog_due()
+    device.feed(frame(0x29, b"\xff"))
+    assert device.backlog_due()
+    assert device.pending() == 0 and not device.backlog_due()  # no driver pid: nothing to measure; looked
+
+
+def test_the_worst_backlog_stays_well_under_the_drivers_buffer(bus_pair) -> None:
+    """At a check at most CAN_BACKLOG_BYTES wait; CAN_CHECK_EVERY more frames may come before the next."""
+    device, driver = bus_pair
+    device.feed(frame(0x7FF, bytes(8), stamp=1764255379.123456))   # the longest frame the device sends
+    truesize = wait_until(lambda: meminfo(driver)[0], message="the frame queued at the driver")
+    rcvbuf = meminfo(driver)[1]
+    assert CAN_BACKLOG_BYTES + CAN_CHECK_EVERY * truesize <= rcvbuf // 2, (truesize, rcvbuf)
