@@ -115,33 +115,38 @@ class Player:
             return self._recorded()
         return heapq.merge(self._recorded(), *ticks, key=lambda e: e[0])
 
+    def _wanted(self, channel: str) -> bool:
+        """Whether the player needs *channel*'s messages (asked once per channel of the log)."""
+        if channel.startswith("RAW."):
+            device = channel[4:]
+            return bool(getattr(self.devices.get(device), "streamed", device in self.devices))
+        return channel in self.bus_inputs or channel in self.republish
+
     def _recorded(self) -> Iterator[tuple[int, str, Any]]:
-        for m in LogFile(self.log_path).messages():
-            if m.log_time_ns < self.start_ns:
+        start_ns, end_ns = self.start_ns, self.end_ns
+        for channel, log_time_ns, data in LogFile(self.log_path).selected(self._wanted):
+            if log_time_ns < start_ns:
                 continue
-            if m.log_time_ns > self.end_ns:
+            if log_time_ns > end_ns:
                 break
-            if m.channel.startswith("RAW."):
-                device = m.channel[4:]
-                if not getattr(self.devices.get(device), "streamed", device in self.devices):
-                    continue  # not replayed, or a device that takes none of its records
+            if channel.startswith("RAW."):
                 try:
-                    record, _ = REGISTRY.decode(m.data)
+                    record, _ = REGISTRY.decode(data)
                 except MalformedMessage:
                     self.stats.malformed += 1
                     continue
-                yield m.log_time_ns, device, record
+                yield log_time_ns, channel[4:], record
                 continue
-            for device in self.bus_inputs.get(m.channel, ()):
-                yield m.log_time_ns, device, RecordedBusMessage(m.channel, m.data, m.log_time_ns)
-            if m.channel in self.republish:
+            for device in self.bus_inputs.get(channel, ()):
+                yield log_time_ns, device, RecordedBusMessage(channel, data, log_time_ns)
+            if channel in self.republish:
                 try:
-                    msg, _ = REGISTRY.decode(m.data, base_type(m.channel))
+                    msg, _ = REGISTRY.decode(data, base_type(channel))
                 except MalformedMessage:
                     self.stats.malformed += 1
                     continue
                 if header_source(msg) not in self.replayed:
-                    yield m.log_time_ns, f"bus:{m.channel}", m.data
+                    yield log_time_ns, f"bus:{channel}", data
 
     def _bursts(self) -> Iterator[tuple[int, str, Any]]:
         """Fast mode: each device's bursts written whole.
@@ -154,14 +159,22 @@ class Player:
         """
         held: list[tuple[int, int, str, Any]] = []       # finished items, a heap by first time
         open_: dict[str, list[Any]] = {}                 # device -> [first t, last t, payload, order]
+        merges = {name: getattr(d, "merge", None) for name, d in self.devices.items()}
+        gaps = {name: self._gap_ns(name) for name in self.devices}
+        push, pop = heapq.heappush, heapq.heappop
         order = 0
         for t_ns, target, payload in self.events():
-            for dev in [d for d, b in open_.items() if t_ns - b[1] >= self._gap_ns(d)]:
-                b = open_.pop(dev)
-                heapq.heappush(held, (b[0], b[3], dev, b[2]))
-            merge = getattr(self.devices.get(target), "merge", None)
+            if open_:
+                for dev in [d for d, b in open_.items() if t_ns - b[1] >= gaps[d]]:
+                    b = open_.pop(dev)
+                    push(held, (b[0], b[3], dev, b[2]))
+            merge = merges.get(target)
             if merge is None:
-                heapq.heappush(held, (t_ns, order, target, payload))
+                if not open_ and not held:   # nothing waits for a burst: straight out, in order
+                    order += 1
+                    yield t_ns, target, payload
+                    continue
+                push(held, (t_ns, order, target, payload))
             else:
                 b = open_.get(target)
                 joined = merge(b[2], payload) if b is not None else None
@@ -169,17 +182,17 @@ class Player:
                     b[1], b[2] = t_ns, joined
                 else:
                     if b is not None:
-                        heapq.heappush(held, (b[0], b[3], target, b[2]))
+                        push(held, (b[0], b[3], target, b[2]))
                     open_[target] = [t_ns, t_ns, payload, order]
             order += 1
-            horizon = min((b[0] for b in open_.values()), default=None)
+            horizon = min(b[0] for b in open_.values()) if open_ else None
             while held and (horizon is None or held[0][0] < horizon):
-                first, _, dev, item = heapq.heappop(held)
+                first, _, dev, item = pop(held)
                 yield first, dev, item
         for dev, b in open_.items():
-            heapq.heappush(held, (b[0], b[3], dev, b[2]))
+            push(held, (b[0], b[3], dev, b[2]))
         while held:
-            first, _, dev, item = heapq.heappop(held)
+            first, _, dev, item = pop(held)
             yield first, dev, item
 
     def _gap_ns(self, device: str) -> int:

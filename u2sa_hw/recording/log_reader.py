@@ -12,10 +12,12 @@ import stat
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Callable, Iterator
 
-from mcap.records import Attachment, Channel, Footer, Header, Message, Metadata, Schema
+from mcap.records import Attachment, Channel, Chunk, Footer, Header, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
+
+from u2sa_hw.recording.chunk_parse import chunk_message_tuples, chunk_records
 
 MAGIC = b"\x89MCAP0\r\n"
 
@@ -85,28 +87,81 @@ class LogFile:
 
         A truncated or corrupt tail ends the scan and is described in ``contents.problem``.
         """
+        channels = self.contents.channels
+
+        def from_chunk(chunk: Chunk) -> Iterator[Message]:
+            for record in chunk_records(chunk):
+                if isinstance(record, Message):
+                    if record.channel_id in channels:
+                        yield record
+                else:
+                    self._note(record)
+
+        def alone(record: Message) -> Iterator[Message]:
+            if record.channel_id in channels:
+                yield record
+
+        yield from self._scan(from_chunk, alone)
+
+    def selected(self, wanted: Callable[[str], bool]) -> Iterator[tuple[str, int, bytes]]:
+        """``(channel, log time ns, data)`` of the messages on channels *wanted* accepts, in file order.
+
+        :meth:`records` for a reader that skips most of a log (a replay): *wanted* is asked once per
+        channel, and a message of another channel costs no object. Fills :attr:`contents` the same way.
+        """
+        channels = self.contents.channels
+        topics: dict[int, str | None] = {}
+
+        def keep(channel_id: int) -> bool:
+            topic = topics.get(channel_id, "")
+            if topic == "":
+                ch = channels.get(channel_id)
+                if ch is None:
+                    return False   # a channel not (yet) declared: records() leaves it out too
+                topic = topics[channel_id] = ch.topic if wanted(ch.topic) else None
+            return topic is not None
+
+        def from_chunk(chunk: Chunk) -> Iterator[tuple[str, int, bytes]]:
+            for channel_id, log_time, data in chunk_message_tuples(chunk, keep, self._note):
+                yield topics[channel_id], log_time, data
+
+        def alone(record: Message) -> Iterator[tuple[str, int, bytes]]:
+            if keep(record.channel_id):
+                yield topics[record.channel_id], record.log_time, record.data
+
+        yield from self._scan(from_chunk, alone)
+
+    def _scan(self, from_chunk: Callable[[Chunk], Iterator[Any]], alone: Callable[[Message], Iterator[Any]]
+              ) -> Iterator[Any]:
         c = self.contents
         with open(self.path, "rb") as fh:
             try:
-                for record in StreamReader(fh, record_size_limit=1 << 30).records:
-                    if isinstance(record, Message):
-                        if record.channel_id in c.channels:
-                            yield record
-                    elif isinstance(record, Schema):
-                        c.schemas[record.id] = record
-                    elif isinstance(record, Channel):
-                        c.channels[record.id] = record
-                    elif isinstance(record, Metadata):
-                        c.metadata[record.name] = dict(record.metadata)
-                    elif isinstance(record, Attachment):
-                        c.attachments[record.name] = bytes(record.data)
-                        c.attachment_records.append(record)
-                    elif isinstance(record, Header):
-                        c.profile, c.library = record.profile, record.library
-                    elif isinstance(record, Footer):
-                        c.complete = True
+                for record in StreamReader(fh, emit_chunks=True, record_size_limit=1 << 30).records:
+                    if isinstance(record, Chunk):
+                        yield from from_chunk(record)
+                    elif isinstance(record, Message):
+                        yield from alone(record)
+                    else:
+                        self._note(record)
             except Exception as exc:  # noqa: BLE001 - any failure here is a damaged tail; report, keep what was read
                 c.problem = _describe(exc)
+
+    def _note(self, record: Any) -> None:
+        """Fill :attr:`contents` from a record that is not a message."""
+        c = self.contents
+        if isinstance(record, Schema):
+            c.schemas[record.id] = record
+        elif isinstance(record, Channel):
+            c.channels[record.id] = record
+        elif isinstance(record, Metadata):
+            c.metadata[record.name] = dict(record.metadata)
+        elif isinstance(record, Attachment):
+            c.attachments[record.name] = bytes(record.data)
+            c.attachment_records.append(record)
+        elif isinstance(record, Header):
+            c.profile, c.library = record.profile, record.library
+        elif isinstance(record, Footer):
+            c.complete = True
 
     def messages(self, channel: str | None = None) -> Iterator[LogMessage]:
         """Every message in file order, optionally only channels fully matching the regex *channel*."""
