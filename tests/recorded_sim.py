@@ -15,6 +15,10 @@ from pathlib import Path
 import pytest
 from conftest import REPO, U2SA
 
+from u2sa_hw import channels as ch
+from u2sa_hw import lcmtypes as t
+from u2sa_hw.recording.log_reader import LogFile
+
 SIM_TIMEOUT_S = "25"   # the rover engages autonomy a few seconds in; the run ends (status 3) at this timeout
 
 
@@ -39,3 +43,29 @@ def recorded_sim(factory: pytest.TempPathFactory) -> RecordedSim:
         files = sorted((out / "recording").glob("*.mcap"))
         assert files, f"u2sa sim --record wrote no log (status {done.returncode}): {done.stdout[-2000:]}{done.stderr[-2000:]}"
     return RecordedSim(out, files[0], out / "logs")
+
+
+# What in a service's last recorded Health says the recording machine held it up: then what it published
+# depended on that machine's load, which the log does not hold, so its rows are reported, not gated.
+HELD_UP = {
+    # the simulation scripts no RC signal loss: a live signal loss, a stall of the mux's loop or a timed
+    # message left out for being a period behind means the machine held up the mock receiver or the mux
+    # (the live mux judged that on its wall clock: docs/replay.md, Determinism)
+    "rc": ("stalls", "signal_losses", "timed_skipped"),
+    # a sentence that came after its epoch was published (a live pty has no kernel time stamp: the
+    # live driver groups by when it read, a replay by the recorded stamps)
+    "gps": ("supplements",),
+}
+
+
+def held_up(log: Path) -> dict[str, str]:
+    """``{service: why}`` for the services whose live output depended on the recording machine's load."""
+    last: dict[str, dict[str, str]] = {}
+    for m in LogFile(log).messages(ch.HEALTH):
+        msg = t.Health.decode(m.data)
+        if msg.name in HELD_UP:
+            last[msg.name] = {kv.key: kv.value for kv in msg.details}
+    reasons = {name: ", ".join(f"{key} {last[name][key]}" for key in keys
+                               if last.get(name, {}).get(key, "0") not in ("0", ""))
+               for name, keys in HELD_UP.items()}
+    return {name: why for name, why in reasons.items() if why}

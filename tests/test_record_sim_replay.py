@@ -14,6 +14,7 @@ from typing import Iterator
 
 import pytest
 from conftest import REPO, U2SA, wait_until
+from recorded_sim import held_up
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
@@ -110,32 +111,6 @@ def test_sim_record_writes_a_complete_log_of_the_run(recordings: SimRecordings) 
 # a loaded machine took 100 ms to deliver is two more than the recording holds, so three at each end of a
 # stream are not counted against the replay (u2sa replay --edge; the default is one).
 EDGE = 3
-
-# What in a service's last recorded Health says the recording machine held it up: then what it published
-# depended on that machine's load, which the log does not hold, so its rows are reported, not gated.
-HELD_UP = {
-    # the simulation scripts no RC signal loss: a live signal loss, a stall of the mux's loop or a timed
-    # message left out for being a period behind means the machine held up the mock receiver or the mux
-    # (the live mux judged that on its wall clock: docs/replay.md, Determinism)
-    "rc": ("stalls", "signal_losses", "timed_skipped"),
-    # a sentence that came after its epoch was published (a live pty has no kernel time stamp: the
-    # live driver groups by when it read, a replay by the recorded stamps)
-    "gps": ("supplements",),
-}
-
-
-def held_up(log: Path) -> dict[str, str]:
-    """``{service: why}`` for the services whose live output depended on the recording machine's load."""
-    last: dict[str, dict[str, str]] = {}
-    for m in LogFile(log).messages(ch.HEALTH):
-        msg = t.Health.decode(m.data)
-        if msg.name in HELD_UP:
-            last[msg.name] = {kv.key: kv.value for kv in msg.details}
-    reasons = {name: ", ".join(f"{key} {last[name][key]}" for key in keys
-                               if last.get(name, {}).get(key, "0") not in ("0", ""))
-               for name, keys in HELD_UP.items()}
-    return {name: why for name, why in reasons.items() if why}
-
 
 def assert_every_stream_the_same(res: subprocess.CompletedProcess, log: Path) -> None:
     """The replay ran and compared, and every stream is the same: the RC mux's RC_MODE and MANUAL_CMD too
