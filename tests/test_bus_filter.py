@@ -148,3 +148,46 @@ def test_the_filter_can_be_turned_off_from_the_environment(lcm_url: str, monkeyp
         assert not rx.filtered
     finally:
         rx.stop()
+
+
+def test_a_filter_that_cannot_be_widened_is_removed_so_nothing_subscribed_is_dropped(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    group = "239.255.76.99"
+    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2)]
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        port = 0
+        for s in socks:   # two members of one group on one port, as two LCM receivers would be
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            s.bind(("", port))
+            port = s.getsockname()[1]
+            s.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP,
+                         socket.inet_aton(group) + socket.inet_aton("127.0.0.1"))
+            s.setblocking(False)
+        tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
+        fds = [s.fileno() for s in socks]
+        assert bus_filter.apply(fds, port, ["A"])
+        calls = []
+        real = bus_filter._attach
+
+        def second_fails(sock: socket.socket, insns: list) -> None:
+            calls.append(sock.fileno())
+            if len(calls) == 2:
+                raise OSError(12, "Cannot allocate memory")
+            real(sock, insns)
+
+        monkeypatch.setattr(bus_filter, "_attach", second_fails)
+        assert not bus_filter.apply(fds, port, ["A", "B"])
+        for channel in ("B", "C"):   # neither socket keeps a narrower filter: both hear everything now
+            tx.sendto(_lcm_packet(channel), (group, port))
+        got = []
+        for s in socks:
+            while True:
+                try:
+                    got.append(s.recv(100))
+                except BlockingIOError:
+                    break
+        assert got == [_lcm_packet("B"), _lcm_packet("C")] * 2
+    finally:
+        for s in (*socks, tx):
+            s.close()

@@ -143,10 +143,19 @@ def works() -> bool:
     return True
 
 
+def _detach(sock: socket.socket) -> None:
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, SO_DETACH_FILTER, 0)
+    except OSError:
+        pass   # no filter attached
+
+
 def apply(fds: Iterable[int], port: int, channels: Iterable[str] | None) -> bool:
     """Filter the UDP sockets among *fds* bound to *port* to *channels* (None: remove the filter).
 
-    True when a filter is in place afterwards; False when the sockets hear everything.
+    True when every such socket is filtered afterwards; False when they all hear everything
+    (a filter that cannot be attached to one is removed from all: an older, narrower filter
+    left in place would drop a channel subscribed since).
     """
     insns = None
     if channels is not None and works():
@@ -154,26 +163,31 @@ def apply(fds: Iterable[int], port: int, channels: Iterable[str] | None) -> bool
             insns = program(channels)
         except FilterTooLarge as exc:
             log.info("bus channel filter not used: %s", exc)
-    done = False
+    socks = []
     for fd in fds:
         try:
             sock = socket.socket(fileno=fd)
         except OSError:
             continue
         try:
-            if sock.family != socket.AF_INET or sock.type != socket.SOCK_DGRAM or sock.getsockname()[1] != port:
-                continue
-            if insns is not None:
-                _attach(sock, insns)
-                done = True
-            else:
-                try:
-                    sock.setsockopt(socket.SOL_SOCKET, SO_DETACH_FILTER, 0)
-                except OSError:
-                    pass   # no filter attached
-        except OSError as exc:
-            log.info("bus channel filter not attached (%s): this process hears the whole bus", exc)
-            done = False
-        finally:
-            sock.detach()   # the fd is LCM's: never close it here
-    return done
+            ours = sock.family == socket.AF_INET and sock.type == socket.SOCK_DGRAM and sock.getsockname()[1] == port
+        except OSError:
+            ours = False
+        if ours:
+            socks.append(sock)
+        else:
+            sock.detach()   # the fd is LCM's (or another part's): never close it here
+    try:
+        if insns is not None:
+            try:
+                for sock in socks:
+                    _attach(sock, insns)
+                return bool(socks)
+            except OSError as exc:
+                log.info("bus channel filter not attached (%s): this process hears the whole bus", exc)
+        for sock in socks:
+            _detach(sock)
+        return False
+    finally:
+        for sock in socks:
+            sock.detach()
