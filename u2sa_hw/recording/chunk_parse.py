@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import struct
 from io import BytesIO
-from typing import Callable, Iterator
+from typing import Any, Callable, Iterator
 
 from mcap import stream_reader
 from mcap.data_stream import ReadDataStream
@@ -70,37 +70,39 @@ def _other(opcode: int, data: bytes, start: int, stop: int) -> Schema | Channel 
     return None   # an opcode a chunk may hold in a later version of the format: skipped
 
 
-def chunk_records(chunk: Chunk) -> Iterator[Message | Schema | Channel]:
-    """The chunk's Schema, Channel and Message records in order (what ``mcap``'s breakup_chunk gives)."""
+def _parsed(chunk: Chunk) -> Iterator[tuple[tuple[int, int, int, int] | None, Any, int, int]]:
+    """Per record: a message's head (channel id, sequence, log time, publish time) with the chunk's data
+    and where its payload lies in it, or None with a Schema or Channel record."""
     data = chunk_data(chunk)
     msg_head = _MESSAGE_HEAD.unpack_from
     for opcode, start, stop in _walk(data):
         if opcode == _OP_MESSAGE:
             if stop - start < _MSG:
                 raise EndOfFile()
-            channel_id, sequence, log_time, publish_time = msg_head(data, start)
-            yield Message(channel_id=channel_id, sequence=sequence, log_time=log_time, publish_time=publish_time,
-                          data=data[start + _MSG:stop])
+            yield msg_head(data, start), data, start + _MSG, stop
         else:
             record = _other(opcode, data, start, stop)
             if record is not None:
-                yield record
+                yield None, record, 0, 0
+
+
+def chunk_records(chunk: Chunk) -> Iterator[Message | Schema | Channel]:
+    """The chunk's Schema, Channel and Message records in order (what ``mcap``'s breakup_chunk gives)."""
+    for head, body, start, stop in _parsed(chunk):
+        if head is None:
+            yield body
+        else:
+            channel_id, sequence, log_time, publish_time = head
+            yield Message(channel_id=channel_id, sequence=sequence, log_time=log_time, publish_time=publish_time,
+                          data=body[start:stop])
 
 
 def chunk_message_tuples(chunk: Chunk, keep: Callable[[int], bool],
                          on_record: Callable[[Schema | Channel], None]) -> Iterator[tuple[int, int, bytes]]:
     """``(channel id, log time, data)`` of the chunk's messages on channels *keep* accepts; Schema and
     Channel records go to *on_record* first (a channel must be known before *keep* is asked about it)."""
-    data = chunk_data(chunk)
-    msg_head = _MESSAGE_HEAD.unpack_from
-    for opcode, start, stop in _walk(data):
-        if opcode == _OP_MESSAGE:
-            if stop - start < _MSG:
-                raise EndOfFile()
-            channel_id, _seq, log_time, _pub = msg_head(data, start)
-            if keep(channel_id):
-                yield channel_id, log_time, data[start + _MSG:stop]
-        else:
-            record = _other(opcode, data, start, stop)
-            if record is not None:
-                on_record(record)
+    for head, body, start, stop in _parsed(chunk):
+        if head is None:
+            on_record(body)
+        elif keep(head[0]):
+            yield head[0], head[2], body[start:stop]
