@@ -321,7 +321,7 @@ class Configurator:
         With a default it reads like a mapping's ``get``, so code that takes a plain settings dict
         takes a Configurator too.
         """
-        if self._trials:   # a drivers' hot path reads settings per frame: the thread-local only when it can matter
+        if self._trials:   # drivers read settings per frame: the thread-local only when it can matter
             trial = getattr(self._trial, "values", None)
             if trial and name in trial:
                 return trial[name]
