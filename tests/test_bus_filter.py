@@ -34,16 +34,19 @@ def _kernel_run(channels: list[str], packets: list[bytes]) -> list[bytes]:
 
 
 def test_the_program_passes_exactly_the_subscribed_channels_and_everything_not_a_channel_header() -> None:
-    wanted = ["ACTUATOR_CMD", "FAILSAFE", "U2SA_HEALTH", "A", "AB", "ABC", "RAW.rc"]
+    wanted = ["ACTUATOR_CMD", "FAILSAFE", "U2SA_HEALTH", "A", "AB", "ABC", "RAW.gps", "RAW.rc", "X"]
     keep = [_lcm_packet(c) for c in wanted] + [
         _lcm_packet("LCM_SELF_TEST"),                  # LCM's own probe always passes
         _lcm_packet("FAILSAFE", long=True),            # fragment 0 of a large message on a wanted channel
         _lcm_packet("", long=True, fragment=1),        # later fragments carry no channel: they pass
         b"garbage that is not an LCM header",
     ]
+    keep += [_lcm_packet(c, payload=b"") for c in ("A", "AB", "RAW.rc", "FAILSAFE", "X")]   # nothing after the name:
+    # a packet shorter than an earlier name in the program must not end it with a drop
     drop = [_lcm_packet(c) for c in ("FAILSAFE_X", "FAILSAF", "STATE_INFO", "ACTUATOR_CMDX", "RAW.r", "RAW.rcc",
-                                     "B", "failsafe")] + [_lcm_packet("STATE_INFO", long=True), b"LC0", b""]
-    packets = [p for pair in zip(keep, drop) for p in pair] + drop[len(keep):] + [b"LC02"]   # LC02: no channel
+                                     "B", "failsafe")] + [_lcm_packet("STATE_INFO", long=True), b"LC0", b"",
+                                                          _lcm_packet("C", payload=b"")]
+    packets = [p for pair in zip(keep, drop) for p in pair] + keep[len(drop):] + drop[len(keep):] + [b"LC02"]
     got = _kernel_run(wanted, packets)
     assert got == [p for p in packets if p in keep], [p[:24] for p in got]
 
@@ -191,3 +194,31 @@ def test_a_filter_that_cannot_be_widened_is_removed_so_nothing_subscribed_is_dro
     finally:
         for s in (*socks, tx):
             s.close()
+
+
+def test_two_threads_subscribing_first_on_one_transport_both_hear_their_channels(lcm_url: str) -> None:
+    for _trial in range(5):
+        rx = Transport(lcm_url, name="rx")
+        tx = Transport(lcm_url, name="tx")
+        got = {"CHAN_X": 0, "CHAN_Y": 0}
+        both = threading.Barrier(2)
+
+        def subscribe(channel: str) -> None:
+            both.wait()   # each thread's subscribe is the transport's first: both open its receiver at once
+            rx.subscribe(channel, None, lambda c, _d: got.__setitem__(c, got[c] + 1), raw=True)
+
+        threads = [threading.Thread(target=subscribe, args=(c,)) for c in got]
+        try:
+            for th in threads:
+                th.start()
+            for th in threads:
+                th.join(10)
+            rx.start()
+            for _ in range(5):
+                tx.publish_bytes("CHAN_X", b"x")
+                tx.publish_bytes("CHAN_Y", b"y")
+            wait_until(lambda: got == {"CHAN_X": 5, "CHAN_Y": 5}, timeout=20, message=f"both channels ({got})")
+            assert rx.filtered
+        finally:
+            tx.stop()
+            rx.stop()

@@ -49,6 +49,7 @@ MAX_INSNS = 4096        # the kernel's BPF_MAXINSNS
 # classic BPF opcodes (linux/filter.h)
 _LD_W, _LD_H, _LD_B = 0x20, 0x28, 0x30        # BPF_LD | size | BPF_ABS
 _JEQ, _JA, _RET = 0x15, 0x05, 0x06            # BPF_JMP|BPF_JEQ|BPF_K, BPF_JMP|BPF_JA, BPF_RET|BPF_K
+_LD_LEN, _JGE = 0x80, 0x35                    # BPF_LD|BPF_W|BPF_LEN (the packet's length), BPF_JMP|BPF_JGE|BPF_K
 _ACCEPT, _DROP = 0xFFFFFFFF, 0
 _Insn = tuple[int, int, int, int]              # code, jt, jf, k
 
@@ -67,7 +68,9 @@ def _match_block(name: str, base: int) -> list[_Insn]:
         code = {4: _LD_W, 2: _LD_H, 1: _LD_B}[size]
         steps.append((code, UDP_HEADER + base + pos, int.from_bytes(raw[pos:pos + size], "big")))
         pos += size
-    block: list[_Insn] = []
+    # A load past the packet's end would end the whole program with a drop: a packet too short to hold
+    # this name (a short message on a channel later in the list) skips the block instead.
+    block: list[_Insn] = [(_LD_LEN, 0, 0, 0), (_JGE, 0, 2 * len(steps) + 1, UDP_HEADER + base + len(raw))]
     for i, (code, offset, value) in enumerate(steps):
         left = len(steps) - i - 1                   # compare pairs after this one
         block.append((code, 0, 0, offset))
@@ -102,11 +105,11 @@ def _attach(sock: socket.socket, insns: list[_Insn]) -> None:
     sock.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, struct.pack("HL", len(insns), ctypes.addressof(buf)))
 
 
-def _lcm_packet(channel: str, *, long: bool = False, fragment: int = 0) -> bytes:
+def _lcm_packet(channel: str, *, long: bool = False, fragment: int = 0, payload: bytes = b"payload") -> bytes:
     if not long:
-        return struct.pack(">II", MAGIC_SHORT, 1) + channel.encode() + b"\0payload"
+        return struct.pack(">II", MAGIC_SHORT, 1) + channel.encode() + b"\0" + payload
     head = struct.pack(">IIIIHH", MAGIC_LONG, 1, 100_000, 0 if fragment == 0 else 60_000, fragment, 2)
-    return head + (channel.encode() + b"\0payload" if fragment == 0 else b"payload")
+    return head + (channel.encode() + b"\0" + payload if fragment == 0 else payload)
 
 
 @functools.lru_cache(maxsize=1)
@@ -123,6 +126,7 @@ def works() -> bool:
             rx.setblocking(False)
             _attach(rx, program(["WANTED", "W"]))
             probes = [(_lcm_packet("WANTED"), True), (_lcm_packet("WANTED_NOT"), False), (_lcm_packet("W"), True),
+                      (_lcm_packet("W", payload=b""), True), (_lcm_packet("WANTED", payload=b""), True),
                       (_lcm_packet("WANTE"), False), (_lcm_packet("WANTED", long=True), True),
                       (_lcm_packet("OTHER", long=True), False), (_lcm_packet("", long=True, fragment=1), True),
                       (b"not lcm", True)]

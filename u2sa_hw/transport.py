@@ -169,6 +169,7 @@ class Transport:
             except OSError as exc:
                 raise TransportError(f"cannot send on {self.interface} only: {exc}") from None
         self._receiving = False   # set once _open_receiver had LCM bind its receive socket
+        self._receiver_lock = threading.Lock()
         self._recv_fds: set[int] = set()   # LCM's receive socket (found as it opens), for the channel filter
         # The exact channels subscribed, which the kernel filter passes; None: a regex subscription, hear everything.
         self._filter_channels: set[str] | None = (set() if self.url.startswith("udpm://")
@@ -253,22 +254,26 @@ class Transport:
         """
         if self._receiving:
             return
-        if self._if_index is not None:
-            send_via(self.url, self._send_fds, 0)   # LCM's self test, as the receiver opens, sends on the route
-        with _RECEIVER_OPENING, captured_c_stderr() as printed:
-            sockets_before = socket_fds()
-            fd = self._lc.fileno()
-            self._recv_fds = socket_fds() - sockets_before
-        if fd < 0:
-            raise TransportError(open_error(self.url, f"cannot receive on LCM at {self.url}", None, printed[0]))
-        reemit(printed[0])
-        if self._if_index is not None:
-            try:
-                receive_on(self.url, self._recv_fds, self._if_index)
-                send_via(self.url, self._send_fds, self._if_index)
-            except OSError as exc:
-                raise TransportError(f"cannot listen on {self.interface} only: {exc}") from None
-        self._receiving = True
+        with self._receiver_lock:   # two threads subscribing first at once: one opens, the other waits for it
+            if self._receiving:
+                return
+            if self._if_index is not None:
+                send_via(self.url, self._send_fds, 0)   # LCM's self test, as the receiver opens, sends on the route
+            with _RECEIVER_OPENING, captured_c_stderr() as printed:
+                sockets_before = socket_fds()
+                fd = self._lc.fileno()
+                recv_fds = socket_fds() - sockets_before
+            if fd < 0:
+                raise TransportError(open_error(self.url, f"cannot receive on LCM at {self.url}", None, printed[0]))
+            reemit(printed[0])
+            if self._if_index is not None:
+                try:
+                    receive_on(self.url, recv_fds, self._if_index)
+                    send_via(self.url, self._send_fds, self._if_index)
+                except OSError as exc:
+                    raise TransportError(f"cannot listen on {self.interface} only: {exc}") from None
+            self._recv_fds = recv_fds
+            self._receiving = True
 
     def _widen_filter(self, channel: str) -> None:
         """Let the kernel pass *channel* too (all channels once a subscription is a regex).
@@ -289,7 +294,7 @@ class Transport:
             wanted.add(channel)
             self.filtered = bus_filter.apply(self._recv_fds, port, wanted)
             if not self.filtered:
-                self._filter_channels = None   # not available here: stop trying
+                self._filter_channels = None   # not available here (apply removed any filter): stop trying
 
     def unsubscribe(self, sub: _Subscription) -> None:
         """Stop delivering to *sub* (at once; LCM lets go of it between two packets)."""
