@@ -61,6 +61,8 @@ class ReplayCanDevice:
         self._tx: socket.socket | None = None        # sends the recorded frames
         self._rx: socket.socket | None = None        # a member of the bus: hears the driver's frames (and ours)
         self._tx_port = 0                            # the port the recorded frames come from
+        self._message: Any = None                    # can.Message and python-can's pack_message, from start()
+        self._pack: Any = None
         self._pid: int | None = None
         self._inodes: set[str] = set()
         self._unchecked = 0                          # frames sent since pending() last looked
@@ -81,6 +83,10 @@ class ReplayCanDevice:
 
     def start(self) -> None:
         """Join the bus (as python-can does) and count what the driver sends."""
+        import can   # python-can only for a replay with a CAN device
+        from can.interfaces.udp_multicast.utils import pack_message
+
+        self._message, self._pack = can.Message, pack_message
         self._rx = _bus_member(self.port)
         self._tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, struct.pack("@I", 1))  # python-can's hop limit
@@ -108,9 +114,6 @@ class ReplayCanDevice:
 
     def feed(self, record: Any) -> None:
         """Send a recorded RX frame (not an echo of the recorded driver's own); note a TX frame."""
-        import can
-        from can.interfaces.udp_multicast.utils import pack_message
-
         key = (int(record.arbitration_id), bool(record.is_remote_frame), bytes(record.data))
         if record.direction == TX:
             self._recorded_tx[key] += 1
@@ -120,11 +123,11 @@ class ReplayCanDevice:
             self._recorded_tx[key] -= 1
             self.counts["echoes_skipped"] += 1
             return
-        msg = can.Message(arbitration_id=key[0], is_extended_id=bool(record.is_extended_id),
-                          is_remote_frame=key[1], is_error_frame=bool(record.is_error_frame),
-                          dlc=int(record.dlc), data=key[2], timestamp=float(record.bus_timestamp or 0.0))
+        msg = self._message(arbitration_id=key[0], is_extended_id=bool(record.is_extended_id),
+                            is_remote_frame=key[1], is_error_frame=bool(record.is_error_frame),
+                            dlc=int(record.dlc), data=key[2], timestamp=float(record.bus_timestamp or 0.0))
         assert self._tx is not None, "feed() before start()"
-        self._tx.sendto(pack_message(msg), (CAN_GROUP, self.port))
+        self._tx.sendto(self._pack(msg), (CAN_GROUP, self.port))
         self._unchecked += 1
         self.counts["fed"] += 1
 

@@ -11,7 +11,7 @@ import pytest
 from conftest import wait_until
 
 from u2sa_hw import bus_filter
-from u2sa_hw.bus_filter import FilterTooLarge, _lcm_packet, program
+from u2sa_hw.bus_filter import FilterTooLarge, lcm_packet, program
 from u2sa_hw.transport import FILTER_ENV, Transport
 
 
@@ -35,17 +35,17 @@ def _kernel_run(channels: list[str], packets: list[bytes]) -> list[bytes]:
 
 def test_the_program_passes_exactly_the_subscribed_channels_and_everything_not_a_channel_header() -> None:
     wanted = ["ACTUATOR_CMD", "FAILSAFE", "U2SA_HEALTH", "A", "AB", "ABC", "RAW.gps", "RAW.rc", "X"]
-    keep = [_lcm_packet(c) for c in wanted] + [
-        _lcm_packet("LCM_SELF_TEST"),                  # LCM's own probe always passes
-        _lcm_packet("FAILSAFE", long=True),            # fragment 0 of a large message on a wanted channel
-        _lcm_packet("", long=True, fragment=1),        # later fragments carry no channel: they pass
+    keep = [lcm_packet(c) for c in wanted] + [
+        lcm_packet("LCM_SELF_TEST"),                  # LCM's own probe always passes
+        lcm_packet("FAILSAFE", long=True),            # fragment 0 of a large message on a wanted channel
+        lcm_packet("", long=True, fragment=1),        # later fragments carry no channel: they pass
         b"garbage that is not an LCM header",
     ]
-    keep += [_lcm_packet(c, payload=b"") for c in ("A", "AB", "RAW.rc", "FAILSAFE", "X")]   # nothing after the name:
+    keep += [lcm_packet(c, payload=b"") for c in ("A", "AB", "RAW.rc", "FAILSAFE", "X")]   # nothing after the name:
     # a packet shorter than an earlier name in the program must not end it with a drop
-    drop = [_lcm_packet(c) for c in ("FAILSAFE_X", "FAILSAF", "STATE_INFO", "ACTUATOR_CMDX", "RAW.r", "RAW.rcc",
-                                     "B", "failsafe")] + [_lcm_packet("STATE_INFO", long=True), b"LC0", b"",
-                                                          _lcm_packet("C", payload=b"")]
+    drop = [lcm_packet(c) for c in ("FAILSAFE_X", "FAILSAF", "STATE_INFO", "ACTUATOR_CMDX", "RAW.r", "RAW.rcc",
+                                     "B", "failsafe")] + [lcm_packet("STATE_INFO", long=True), b"LC0", b"",
+                                                          lcm_packet("C", payload=b"")]
     packets = [p for pair in zip(keep, drop) for p in pair] + keep[len(drop):] + drop[len(keep):] + [b"LC02"]
     got = _kernel_run(wanted, packets)
     assert got == [p for p in packets if p in keep], [p[:24] for p in got]
@@ -182,7 +182,7 @@ def test_a_filter_that_cannot_be_widened_is_removed_so_nothing_subscribed_is_dro
         monkeypatch.setattr(bus_filter, "_attach", second_fails)
         assert not bus_filter.apply(fds, port, ["A", "B"])
         for channel in ("B", "C"):   # neither socket keeps a narrower filter: both hear everything now
-            tx.sendto(_lcm_packet(channel), (group, port))
+            tx.sendto(lcm_packet(channel), (group, port))
         got = []
         for s in socks:
             while True:
@@ -190,7 +190,7 @@ def test_a_filter_that_cannot_be_widened_is_removed_so_nothing_subscribed_is_dro
                     got.append(s.recv(100))
                 except BlockingIOError:
                     break
-        assert got == [_lcm_packet("B"), _lcm_packet("C")] * 2
+        assert got == [lcm_packet("B"), lcm_packet("C")] * 2
     finally:
         for s in (*socks, tx):
             s.close()

@@ -105,7 +105,9 @@ def _attach(sock: socket.socket, insns: list[_Insn]) -> None:
     sock.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, struct.pack("HL", len(insns), ctypes.addressof(buf)))
 
 
-def _lcm_packet(channel: str, *, long: bool = False, fragment: int = 0, payload: bytes = b"payload") -> bytes:
+def lcm_packet(channel: str, *, long: bool = False, fragment: int = 0, payload: bytes = b"payload") -> bytes:
+    """An LCM packet on *channel* as the filter sees it: a whole message (LC02), or with *long* fragment
+    *fragment* of a large one (LC03; only fragment 0 names the channel). For the kernel probe and tests."""
     if not long:
         return struct.pack(">II", MAGIC_SHORT, 1) + channel.encode() + b"\0" + payload
     head = struct.pack(">IIIIHH", MAGIC_LONG, 1, 100_000, 0 if fragment == 0 else 60_000, fragment, 2)
@@ -125,10 +127,10 @@ def works() -> bool:
             rx.bind(("127.0.0.1", 0))
             rx.setblocking(False)
             _attach(rx, program(["WANTED", "W"]))
-            probes = [(_lcm_packet("WANTED"), True), (_lcm_packet("WANTED_NOT"), False), (_lcm_packet("W"), True),
-                      (_lcm_packet("W", payload=b""), True), (_lcm_packet("WANTED", payload=b""), True),
-                      (_lcm_packet("WANTE"), False), (_lcm_packet("WANTED", long=True), True),
-                      (_lcm_packet("OTHER", long=True), False), (_lcm_packet("", long=True, fragment=1), True),
+            probes = [(lcm_packet("WANTED"), True), (lcm_packet("WANTED_NOT"), False), (lcm_packet("W"), True),
+                      (lcm_packet("W", payload=b""), True), (lcm_packet("WANTED", payload=b""), True),
+                      (lcm_packet("WANTE"), False), (lcm_packet("WANTED", long=True), True),
+                      (lcm_packet("OTHER", long=True), False), (lcm_packet("", long=True, fragment=1), True),
                       (b"not lcm", True)]
             got = []
             for data, _ in probes:
