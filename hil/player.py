@@ -78,6 +78,13 @@ def _targeted(target: str, items: Iterator[tuple[int, Any]]) -> Iterator[tuple[i
         yield t_ns, target, payload
 
 
+def _open_bounds(open_: dict[str, list[Any]], gaps: dict[str, int]) -> tuple[int | None, int | None]:
+    """Of the open bursts (device -> [first t, last t, ...]): the earliest time one closes, the earliest first record."""
+    if not open_:
+        return None, None
+    return min(b[1] + gaps[d] for d, b in open_.items()), min(b[0] for b in open_.values())
+
+
 class Player:
     """Plays the window [start_ns, end_ns] of a log into devices and onto the replay bus."""
 
@@ -163,14 +170,19 @@ class Player:
         gaps = {name: self._gap_ns(name) for name in self.devices}
         push, pop = heapq.heappush, heapq.heappop
         order = 0
+        # while a burst is open: the earliest time one can close (its last record + its gap) and the earliest
+        # first record (nothing later leaves before it); kept as bursts change, not sought per record
+        close_at: int | None = None
+        horizon: int | None = None
         for t_ns, target, payload in self.events():
-            if open_:
+            if close_at is not None and t_ns >= close_at:
                 for dev in [d for d, b in open_.items() if t_ns - b[1] >= gaps[d]]:
                     b = open_.pop(dev)
                     push(held, (b[0], b[3], dev, b[2]))
+                close_at, horizon = _open_bounds(open_, gaps)
             merge = merges.get(target)
             if merge is None:
-                if not open_ and not held:   # nothing waits for a burst: straight out, in order
+                if horizon is None and not held:   # nothing waits for a burst: straight out, in order
                     order += 1
                     yield t_ns, target, payload
                     continue
@@ -184,8 +196,8 @@ class Player:
                     if b is not None:
                         push(held, (b[0], b[3], target, b[2]))
                     open_[target] = [t_ns, t_ns, payload, order]
+                close_at, horizon = _open_bounds(open_, gaps)
             order += 1
-            horizon = min(b[0] for b in open_.values()) if open_ else None
             while held and (horizon is None or held[0][0] < horizon):
                 first, _, dev, item = pop(held)
                 yield first, dev, item

@@ -65,3 +65,19 @@ def test_a_chunk_cut_inside_a_record_is_end_of_file_and_the_log_reports_it(tmp_p
     log = LogFile(damaged)
     list(log.selected(lambda _c: True))
     assert "truncated" in log.contents.problem or "corrupt" in log.contents.problem
+
+
+def test_a_sequential_read_skips_the_message_indexes_unparsed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / "log.mcap"
+    write(path, json_channel=True, chunk_size=64)      # many chunks, a message index per channel after each
+    want = list(LogFile(path).selected(lambda _c: True))
+    from mcap import records as mcap_records, stream_reader
+
+    def parsed(_stream: object) -> None:
+        raise AssertionError("a message index was parsed")
+
+    monkeypatch.setattr(mcap_records.MessageIndex, "read", staticmethod(parsed))
+    monkeypatch.setattr(stream_reader.MessageIndex, "read", staticmethod(parsed))
+    log = LogFile(path)
+    assert list(log.selected(lambda _c: True)) == want and len(want) > 3
+    assert log.contents.complete and not log.contents.problem

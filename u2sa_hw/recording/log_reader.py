@@ -14,12 +14,24 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
+from mcap.opcode import Opcode
 from mcap.records import Attachment, Channel, Chunk, Footer, Header, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
 from u2sa_hw.recording.chunk_parse import chunk_message_tuples, chunk_records
 
 MAGIC = b"\x89MCAP0\r\n"
+
+
+class _SequentialReader(StreamReader):
+    """mcap's StreamReader, message indexes skipped unparsed: a sequential read never uses them, and
+    parsing their entries one field at a time is most of what a --fast replay spends outside the chunks."""
+
+    def _read_record(self, opcode: int, length: int) -> Any:
+        if opcode == Opcode.MESSAGE_INDEX:
+            self._stream.read(length)
+            return None
+        return super()._read_record(opcode, length)
 
 
 class LogError(ValueError):
@@ -136,7 +148,7 @@ class LogFile:
         c = self.contents
         with open(self.path, "rb") as fh:
             try:
-                for record in StreamReader(fh, emit_chunks=True, record_size_limit=1 << 30).records:
+                for record in _SequentialReader(fh, emit_chunks=True, record_size_limit=1 << 30).records:
                     if isinstance(record, Chunk):
                         yield from from_chunk(record)
                     elif isinstance(record, Message):
