@@ -373,6 +373,33 @@ def test_health_from_services_no_check_names_is_ignored(tmp_path: Path) -> None:
     assert checks.evaluate(0.1, **OK) == []
 
 
+def test_a_kept_verdict_is_always_the_one_a_fresh_judgement_gives(tmp_path: Path) -> None:
+    """evaluate() keeps its verdict between edges; at every step it must equal a judgement made afresh, at
+    the age limits (a Health just past health_timeout_s, an estimate just past its age) included."""
+    import random
+
+    checks = checks_for(tmp_path, {"estimator": {"max_estimate_age_s": 0.5}, "health_timeout_s": 1.0})
+    rnd = random.Random(7)
+    now, kept, fresh_calls = 100.0, 0, 0
+    for _ in range(4000):
+        roll = rnd.random()
+        if roll < 0.03:
+            feed_good(checks, now, skip=tuple(n for n in checks.watched if rnd.random() < 0.3))
+        elif roll < 0.05:
+            checks.on_health(health("gps", **{**GOOD_GPS, "fix_type": rnd.choice(["3D", "2D"])}), now)
+        elif roll < 0.07:
+            checks.on_estimate(estimate(x_sigma=rnd.choice([0.5, 9.0])), now)
+        link, failsafe = rnd.random() > 0.02, "hsm: test" if rnd.random() < 0.02 else ""
+        before = checks._memo
+        got = checks.evaluate(now, rc_link_ok=link, failsafe_reason=failsafe)
+        kept += checks._memo is before
+        fresh_calls += 1
+        assert got == checks._judge_all(now, rc_link_ok=link, failsafe_reason=failsafe), now
+        # steps that land on and around the limits: exactly 1.0 s / 0.5 s after an input, and 1 us either side
+        now += rnd.choice([0.0, 0.001, 0.02, 0.25, 0.5, 1.0, 1e-6, 0.4999995, 0.9999995])
+    assert 0 < kept < fresh_calls   # both paths ran
+
+
 def test_describe_lists_what_runs(tmp_path: Path) -> None:
     text = checks_for(tmp_path).describe()
     assert text == ("pre-arm checks: no_failsafe; rc_link; gps (gps: 3D fix, sigma <= 5 m); imu (imu: calibrated); "

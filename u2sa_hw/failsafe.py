@@ -64,6 +64,8 @@ class FailsafeSources:
     def reason(self) -> str:
         """One line naming every holder and its reason ("" when none)."""
         with self._lock:
+            if not self._held:
+                return ""
             return "; ".join(f"{src}: {why or 'no reason given'}" for src, why in sorted(self._held.items()))
 
     def apply(self, *, source: str, active: bool, reason: str = "", target: str = "") -> FailsafeChange:

@@ -107,6 +107,8 @@ class PrearmChecks:
         self._heard: dict[str, _Heard] = {}
         self._estimate: _Estimate | None = None
         self._last: list[CheckFailure] | None = None
+        self._evidence = 0   # counts what arrived: a verdict holds only for the evidence it judged
+        self._memo: tuple[int, bool, str, float, float, list[CheckFailure]] | None = None
         watched: set[str] = set()
         if table.gps:
             watched.add(table.gps.service)
@@ -138,6 +140,7 @@ class PrearmChecks:
                        details={kv.key: kv.value for kv in msg.details})
         with self._lock:
             self._heard[name] = heard
+            self._evidence += 1
 
     def on_estimate(self, msg: Any, now: float) -> None:
         """A STATE_ESTIMATE arrived at *now* (from the estimator the check names; others are ignored)."""
@@ -153,30 +156,55 @@ class PrearmChecks:
             heading = math.degrees(sp) if sp is not None else math.nan
         with self._lock:
             self._estimate = _Estimate(at=now, position_sigma_m=position, heading_sigma_deg=heading)
+            self._evidence += 1
 
     # -- judgement ----------------------------------------------------------------------------
     def evaluate(self, now: float, *, rc_link_ok: bool, failsafe_reason: str) -> list[CheckFailure]:
-        """Every check that does not hold at *now*, in table order (empty: autonomy may be granted)."""
+        """Every check that does not hold at *now*, in table order (empty: autonomy may be granted).
+
+        The RC mux asks after every edge; the verdict changes only when evidence arrives, the RC link or a
+        failsafe changes, or an age limit passes, so a verdict is kept until one of those (exactly the
+        verdict a fresh judgement would give: :meth:`_holds_until`)."""
+        with self._lock:
+            memo = self._memo
+            if (memo is not None and memo[0] == self._evidence and memo[1] == rc_link_ok
+                    and memo[2] == failsafe_reason and memo[3] <= now < memo[4]):
+                return list(memo[5])
+            out = self._judge_all(now, rc_link_ok=rc_link_ok, failsafe_reason=failsafe_reason)
+            self._memo = (self._evidence, rc_link_ok, failsafe_reason, now, self._holds_until(now), out)
+            self._last = out
+            return list(out)
+
+    def _judge_all(self, now: float, *, rc_link_ok: bool, failsafe_reason: str) -> list[CheckFailure]:
         t = self.table
         out: list[CheckFailure] = []
-        with self._lock:
-            if t.no_failsafe and failsafe_reason:
-                out.append(CheckFailure("no_failsafe", f"failsafe held: {failsafe_reason}"))
-            if t.rc_link and not rc_link_ok:
-                out.append(CheckFailure("rc_link", "rc_link: no valid RC signal"))
-            if t.gps:
-                self._judge(out, "gps", t.gps.service, now, self._gps_problem)
-            if t.imu:
-                for name in t.imu.services:
-                    self._judge(out, "imu", name, now, self._imu_problem)
-            if t.estimator:
-                self._judge(out, "estimator", t.estimator.service, now, self._estimator_problem)
-            if t.required_services:
-                for name in t.required_services.services:
-                    self._judge(out, "required_services", name, now, lambda _h, _n: "",
-                                allow_degraded=name in t.required_services.allow_degraded)
-            self._last = out
+        if t.no_failsafe and failsafe_reason:
+            out.append(CheckFailure("no_failsafe", f"failsafe held: {failsafe_reason}"))
+        if t.rc_link and not rc_link_ok:
+            out.append(CheckFailure("rc_link", "rc_link: no valid RC signal"))
+        if t.gps:
+            self._judge(out, "gps", t.gps.service, now, self._gps_problem)
+        if t.imu:
+            for name in t.imu.services:
+                self._judge(out, "imu", name, now, self._imu_problem)
+        if t.estimator:
+            self._judge(out, "estimator", t.estimator.service, now, self._estimator_problem)
+        if t.required_services:
+            for name in t.required_services.services:
+                self._judge(out, "required_services", name, now, lambda _h, _n: "",
+                            allow_degraded=name in t.required_services.allow_degraded)
         return out
+
+    def _holds_until(self, now: float) -> float:
+        """Until when (exclusive) a verdict judged at *now* stands on the same evidence: the first age limit
+        still ahead (a Health's ``health_timeout_s``, the estimate's ``max_estimate_age_s``), less a
+        microsecond so float rounding at the limit is judged afresh. Time is the only other input."""
+        limits = [heard.at + self.table.health_timeout_s for heard in self._heard.values()]
+        check = self.table.estimator
+        if check is not None and check.max_estimate_age_s > 0 and self._estimate is not None:
+            limits.append(self._estimate.at + check.max_estimate_age_s)
+        ahead = [limit for limit in limits if limit >= now]
+        return min(ahead) - 1e-6 if ahead else math.inf
 
     def _judge(self, out: list[CheckFailure], check: str, service: str, now: float,
                specific: Callable[[_Heard, float], str], *, allow_degraded: bool = False) -> None:
