@@ -28,7 +28,7 @@ import can
 from u2sa_hw.messages import RawCanFrame
 from u2sa_hw.ports.can_clock import CAN_CLOCKS, CanDeviceClock, StampedUdpMulticastBus
 from u2sa_hw.ports.errors import PortClosed, PortIOError, PortUnavailable
-from u2sa_hw.ports.tap import RX, TX, Tap, call_tap
+from u2sa_hw.ports.tap import RX, TX, Tap, call_tap, tapping
 
 log = logging.getLogger(__name__)
 
@@ -145,7 +145,8 @@ class CanPort:
             self._bus.send(msg, timeout=timeout)
         except (can.CanError, OSError, ValueError) as exc:
             raise self._fail(exc, "send") from exc
-        call_tap(self._tap, _record(self.device, TX, msg))
+        if tapping(self._tap):
+            call_tap(self._tap, _record(self.device, TX, msg))
 
     def recv(self, timeout: float) -> can.Message | None:
         """The next frame, or None if none arrives within *timeout* seconds (tapped as RX)."""
@@ -157,7 +158,8 @@ class CanPort:
         if msg is not None:
             if self.clock is not None and msg.timestamp:   # an unstamped frame (an echo) leaves it
                 self.clock.frame(float(msg.timestamp))
-            call_tap(self._tap, _record(self.device, RX, msg))
+            if tapping(self._tap):
+                call_tap(self._tap, _record(self.device, RX, msg))
         return msg
 
     def close(self) -> None:

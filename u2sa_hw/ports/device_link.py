@@ -41,7 +41,7 @@ from u2sa_hw.ports.address import AddressError, DeviceAddress
 from u2sa_hw.ports.errors import PortError, PortUnavailable
 from u2sa_hw.ports.opener import open_port
 from u2sa_hw.ports.reconnect import ReconnectingPort
-from u2sa_hw.ports.tap import raw_channel
+from u2sa_hw.ports.tap import RecordingTap, raw_channel
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +88,9 @@ class DeviceLink(Generic[P]):
         self._on_open = on_open
         self._before_close = before_close
         self._record = record or (lambda: bool(owner.config.get("record_raw")))
+        # the port's tap (and the one a second port of the same device, an MPU-9250's magnetometer, hands its
+        # records to): publishes on RAW.<device> while recording is on; a port builds no record while it is off
+        self.tap = RecordingTap(self._publish_raw, active=self._record)
         self.raw_type = raw_type
         self._backoff = dict(initial_backoff=initial_backoff, max_backoff=max_backoff, healthy_after=healthy_after)
         self.device = device()
@@ -171,11 +174,8 @@ class DeviceLink(Generic[P]):
                 raise
         return port
 
-    def tap(self, record: Any) -> None:
-        """Publish *record* on ``RAW.<device>`` while recording is on: the port's tap, and the one a
-        second port of the same device (an MPU-9250's magnetometer) hands its records to."""
-        if self._record():
-            self.owner.publish(raw_channel(self.device), record)
+    def _publish_raw(self, record: Any) -> None:
+        self.owner.publish(raw_channel(self.device), record)
 
     @property
     def holder(self) -> ReconnectingPort[P]:

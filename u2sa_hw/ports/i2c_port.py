@@ -23,7 +23,7 @@ import struct
 import threading
 from u2sa_hw.messages import RawI2c
 from u2sa_hw.ports.errors import PortClosed, PortError, PortIOError, PortTimeout, PortUnavailable
-from u2sa_hw.ports.tap import Tap, call_tap
+from u2sa_hw.ports.tap import Tap, call_tap, tapping
 
 MOCK_SCHEME = "mock:"
 OP_READ = 0
@@ -126,7 +126,7 @@ class I2cPort:
             return result
 
     def _record(self, op: int, register: int, data: bytes, *, ok: bool) -> None:
-        if self._tap is None:
+        if not tapping(self._tap):
             return
         rec = RawI2c()
         rec.device = self.device

@@ -22,7 +22,7 @@ import serial
 
 from u2sa_hw.messages import RawSerial
 from u2sa_hw.ports.errors import PortClosed, PortTimeout, PortUnavailable, fix_for_errno
-from u2sa_hw.ports.tap import RX, TX, Tap, call_tap
+from u2sa_hw.ports.tap import RX, TX, Tap, call_tap, tapping
 
 log = logging.getLogger(__name__)
 
@@ -143,7 +143,7 @@ class SerialPort:
             raise self._lost(exc, "read") from exc
 
     def _tapped(self, data: bytes) -> bytes:
-        if data:
+        if data and tapping(self._tap):
             call_tap(self._tap, _record(self.device, RX, data))
         return data
 
@@ -208,7 +208,7 @@ class SerialPort:
         except (serial.SerialException, OSError, TypeError, ValueError) as exc:
             raise self._lost(exc, "write") from exc
         written = len(data) if written is None else written
-        if written:
+        if written and tapping(self._tap):
             call_tap(self._tap, _record(self.device, TX, data[:written]))
         return written
 

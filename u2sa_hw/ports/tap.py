@@ -17,6 +17,30 @@ RX = 0  # from the device: bytes read, frames received, register reads, edges
 TX = 1  # to the device: bytes written, frames sent, register writes, output writes
 
 
+class RecordingTap:
+    """A tap that knows whether it records now: ``active()``. A port asks :func:`tapping` before it builds
+    a record, so a driver with recording off builds none (a record per frame or byte costs more than
+    reading it)."""
+
+    __slots__ = ("_publish", "active")
+
+    def __init__(self, publish: Callable[[Any], None], *, active: Callable[[], bool]) -> None:
+        self._publish = publish
+        self.active = active
+
+    def __call__(self, record: Any) -> None:
+        if self.active():
+            self._publish(record)
+
+
+def tapping(tap: Tap | None) -> bool:
+    """Whether a record for *tap* is worth building: there is a tap and, if it says (``active``), it records."""
+    if tap is None:
+        return False
+    active = getattr(tap, "active", None)
+    return active is None or bool(active())
+
+
 def raw_channel(device: str) -> str:
     """The LCM channel that carries the raw I/O of *device*."""
     return f"RAW.{device}"
