@@ -17,31 +17,71 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Optional
+from collections import Counter
+from typing import Any, Optional
 
 import can
 from can.interfaces.udp_multicast import UdpMulticastBus
-from can.interfaces.udp_multicast.utils import unpack_message
+from can.interfaces.udp_multicast.utils import pack_message, unpack_message
 
 CAN_CLOCKS = ("stamped",)    # clock=stamped: the replay's frames carry their recorded bus time
 DEVICE_CLOCK_GRACE_S = 2.0   # no frame for this long (wall): the clock runs on with the wall clock
+OWN_FRAMES_HELD = 1024       # own datagrams awaiting their loopback copy (a lost copy cannot pile up)
 
 
 class StampedUdpMulticastBus(UdpMulticastBus):
-    """A ``udp_multicast`` bus whose received frames keep the sender's timestamp (the recorded one)."""
+    """A ``udp_multicast`` bus whose received frames keep the sender's timestamp (the recorded one).
+
+    It hears none of its own frames, as a SocketCAN socket does not by default and as python-can's
+    ``receive_own_messages=False`` promises (multicast loopback hands every datagram back to its
+    sender): each datagram sent is held until its copy comes back, and that copy is dropped unread.
+    The replay device's frames never match one (they carry a recorded stamp, the driver's do not).
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._own: Counter[bytes] = Counter()
+        self._own_lock = threading.Lock()
+
+    def send(self, msg: can.Message, timeout: Optional[float] = None) -> None:
+        if self._can_protocol is not can.CanProtocol.CAN_FD and msg.is_fd:
+            raise can.CanOperationError("cannot send FD message over bus with CAN FD disabled")
+        data = pack_message(msg)
+        with self._own_lock:
+            held = len(self._own) < OWN_FRAMES_HELD or data in self._own
+            if held:
+                self._own[data] += 1
+        try:
+            self._multicast.send(data, timeout)
+        except BaseException:
+            if held:
+                self._forget(data)
+            raise
+
+    def _forget(self, data: bytes) -> bool:
+        """Drop one held copy of *data*; True if one was held."""
+        with self._own_lock:
+            n = self._own.get(data, 0)
+            if n > 1:
+                self._own[data] = n - 1
+            elif n == 1:
+                del self._own[data]
+            return n > 0
 
     def _recv_internal(self, timeout: Optional[float]) -> tuple[Optional[can.Message], bool]:
         result = self._multicast.recv(timeout)
         if not result:
             return None, False
         data, _, _received = result
+        if self._own and self._forget(data):
+            return None, False   # our own frame, back through the loopback
         try:
             msg = unpack_message(data, check=True)
         except Exception as exception:  # noqa: BLE001 - as python-can's own bus: any unpack failure
             raise can.CanOperationError("could not unpack received message") from exception
-        # A frame its sender did not stamp (the driver's own, heard back) keeps timestamp 0: it says
-        # nothing about the recorded time and must not move the device clock (its receive time would
-        # jump the clock from the recording's times to now).
+        # A frame its sender did not stamp (another member's) keeps timestamp 0: it says nothing about
+        # the recorded time and must not move the device clock (its receive time would jump the clock
+        # from the recording's times to now).
         if msg.is_fd and not self.protocol == can.CanProtocol.CAN_FD:
             return None, False
         return msg, False
