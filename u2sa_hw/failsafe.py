@@ -53,8 +53,7 @@ class FailsafeSources:
     @property
     def active(self) -> bool:
         """True while any source holds a failsafe."""
-        with self._lock:
-            return bool(self._held)
+        return bool(self._held)   # one atomic read (the RC mux asks per edge): a snapshot, as under the lock
 
     def held(self) -> dict[str, str]:
         """A copy of source -> reason for every source holding a failsafe."""
@@ -63,9 +62,9 @@ class FailsafeSources:
 
     def reason(self) -> str:
         """One line naming every holder and its reason ("" when none)."""
+        if not self._held:   # one atomic read, as in active
+            return ""
         with self._lock:
-            if not self._held:
-                return ""
             return "; ".join(f"{src}: {why or 'no reason given'}" for src, why in sorted(self._held.items()))
 
     def apply(self, *, source: str, active: bool, reason: str = "", target: str = "") -> FailsafeChange:
