@@ -156,7 +156,7 @@ class CanPort:
         except (can.CanError, OSError, ValueError) as exc:
             raise self._fail(exc, "receive") from exc
         if msg is not None:
-            if self.clock is not None and msg.timestamp:   # an unstamped frame (an echo) leaves it
+            if self.clock is not None and msg.timestamp:   # an unstamped frame (another member's) leaves it
                 self.clock.frame(float(msg.timestamp))
             if tapping(self._tap):
                 call_tap(self._tap, _record(self.device, RX, msg))
