@@ -167,6 +167,24 @@ def test_taps_see_every_edge_with_its_timestamp_and_every_write(chip) -> None:
     port.close()
 
 
+def test_a_tap_that_is_not_recording_gets_no_record_built(chip, monkeypatch: pytest.MonkeyPatch) -> None:
+    from u2sa_hw.ports import gpio_port
+    from u2sa_hw.ports.tap import RecordingTap
+
+    def unwanted() -> None:
+        raise AssertionError("a record was built while the tap was not recording")
+
+    monkeypatch.setattr(gpio_port.m, "RawGpioEdge", unwanted)
+    monkeypatch.setattr(gpio_port.m, "RawGpioWrite", unwanted)
+    records: list = []
+    port = open_gpio(device="mux", chip=chip.address, inputs=[20], outputs={21: 0},
+                     tap=RecordingTap(records.append, active=lambda: False))
+    port.set(21, 1)
+    chip.drive(20, 1, 5_000)
+    assert [e.timestamp_ns for e in read_until(port, 1)] == [5_000] and records == []
+    port.close()
+
+
 def test_a_line_in_use_is_refused_naming_its_consumer(chip) -> None:
     first = open_gpio(device="rc_input", chip=chip.address, inputs=[5, 6])
     with pytest.raises(PortUnavailable) as refused:

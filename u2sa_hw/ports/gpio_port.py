@@ -50,7 +50,7 @@ from typing import Any, Iterator, Mapping, Sequence, Union
 
 from u2sa_hw import messages as m
 from u2sa_hw.ports.errors import PortClosed, PortIOError, PortTimeout, PortUnavailable
-from u2sa_hw.ports.tap import Tap, call_tap
+from u2sa_hw.ports.tap import Tap, call_tap, tapping
 
 MOCK_PREFIX = "mock:"
 EDGES = ("both", "rising", "falling", "none")
@@ -204,7 +204,7 @@ class GpioPort:
         waits up to *timeout* s."""
         self._check_open()
         events = self._read_edges(timeout)
-        if self._tap is not None and self._tap_edges:
+        if self._tap_edges and tapping(self._tap):
             for event in events:
                 if not isinstance(event, EdgeEvent):
                     continue
@@ -221,7 +221,7 @@ class GpioPort:
             self._release()
 
     def _tap_write(self, line: int, value: int) -> None:
-        if self._tap is not None:
+        if tapping(self._tap):
             record = m.RawGpioWrite()
             record.device, record.line, record.value = self.device, line, value
             call_tap(self._tap, record)

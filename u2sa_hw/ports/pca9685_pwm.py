@@ -25,7 +25,7 @@ from typing import Iterator
 from u2sa_hw.messages import RawPwmWrite
 from u2sa_hw.ports.errors import PortClosed, PortError, PortUnavailable
 from u2sa_hw.ports.i2c_port import I2cPort, open_i2c, parse_bus
-from u2sa_hw.ports.tap import Tap, call_tap
+from u2sa_hw.ports.tap import Tap, call_tap, tapping
 from u2sa_hw.protocols import pca9685 as pca
 
 SCHEME = "pca9685:"
@@ -226,6 +226,8 @@ class Pca9685PwmChannel:
         self._tap_state()
 
     def _tap_state(self) -> None:
+        if not tapping(self._tap):
+            return
         rec = RawPwmWrite()
         rec.device = self.device
         rec.channel = self.channel

@@ -30,7 +30,7 @@ from typing import Protocol, runtime_checkable
 
 from u2sa_hw.messages import RawPwmWrite
 from u2sa_hw.ports.errors import PortClosed, PortIOError, PortUnavailable
-from u2sa_hw.ports.tap import Tap, call_tap
+from u2sa_hw.ports.tap import Tap, call_tap, tapping
 
 log = logging.getLogger(__name__)
 
@@ -148,6 +148,8 @@ class SysfsPwmChannel:
 
     # -- PwmChannel --------------------------------------------------------------------
     def _tap_state(self) -> None:
+        if not tapping(self._tap):
+            return
         record = RawPwmWrite()
         record.device = self.device
         record.channel = self.channel

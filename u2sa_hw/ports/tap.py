@@ -18,9 +18,9 @@ TX = 1  # to the device: bytes written, frames sent, register writes, output wri
 
 
 class RecordingTap:
-    """A tap that knows whether it records now: ``active()``. A port asks :func:`tapping` before it builds
-    a record, so a driver with recording off builds none (a record per frame or byte costs more than
-    reading it)."""
+    """A tap that knows whether it records now: ``active()``. Every port (serial, CAN, I2C, GPIO, PWM) asks
+    :func:`tapping` before it builds a record, so a driver with recording off builds none (a record per
+    frame, byte or edge costs more than reading it)."""
 
     __slots__ = ("_publish", "active")
 

@@ -35,7 +35,7 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence getters on StateInformation
 from u2sa_hw.services.hsm.monitor import truthy
@@ -77,6 +77,18 @@ class _Estimate:
     heading_sigma_deg: float | None
 
 
+class _Verdict(NamedTuple):
+    """A verdict and what it was judged on: it stands for a later question with the same inputs while
+    ``judged_at <= now < holds_until``."""
+
+    evidence: int           # PrearmChecks._evidence when judged
+    rc_link_ok: bool
+    failsafe_reason: str
+    judged_at: float
+    holds_until: float
+    failures: list[CheckFailure]
+
+
 def _float(text: str | None) -> float | None:
     try:
         return float(text) if text not in (None, "") else None
@@ -108,7 +120,7 @@ class PrearmChecks:
         self._estimate: _Estimate | None = None
         self._last: list[CheckFailure] | None = None
         self._evidence = 0   # counts what arrived: a verdict holds only for the evidence it judged
-        self._memo: tuple[int, bool, str, float, float, list[CheckFailure]] | None = None
+        self._memo: _Verdict | None = None
         watched: set[str] = set()
         if table.gps:
             watched.add(table.gps.service)
@@ -167,11 +179,11 @@ class PrearmChecks:
         verdict a fresh judgement would give: :meth:`_holds_until`)."""
         with self._lock:
             memo = self._memo
-            if (memo is not None and memo[0] == self._evidence and memo[1] == rc_link_ok
-                    and memo[2] == failsafe_reason and memo[3] <= now < memo[4]):
-                return list(memo[5])
+            if (memo is not None and memo.evidence == self._evidence and memo.rc_link_ok == rc_link_ok
+                    and memo.failsafe_reason == failsafe_reason and memo.judged_at <= now < memo.holds_until):
+                return list(memo.failures)
             out = self._judge_all(now, rc_link_ok=rc_link_ok, failsafe_reason=failsafe_reason)
-            self._memo = (self._evidence, rc_link_ok, failsafe_reason, now, self._holds_until(now), out)
+            self._memo = _Verdict(self._evidence, rc_link_ok, failsafe_reason, now, self._holds_until(now), out)
             self._last = out
             return list(out)
 
