@@ -257,6 +257,11 @@ class MockLauncher:
         for rc in self.context.rc_receivers.values():
             rc.signal_loss(on)
 
+    def rc_stalls(self) -> list[tuple[int, int]]:
+        """Every RC receiver mock's stalls, in time order: (their end, ns beyond a frame period), monotonic ns (see
+        :attr:`mock_devices.rc_receiver.RcReceiverMock.stalls`)."""
+        return sorted(s for rc in self.context.rc_receivers.values() for s in list(rc.stalls))
+
     def describe(self) -> list[str]:
         """One line per device: name, mock kind, address, what it stands in for."""
         width = max(len(d.name) for d in self.devices)

@@ -37,6 +37,7 @@ from mock_devices.gpio_chip import MockGpioChip
 log = logging.getLogger("mock_devices.rc_receiver")
 
 EDGE_GUARD_NS = 100_000  # a pulse ends at least this long before the next channel's slot
+STALL_NOTED_NS = 50_000_000   # this long more than a frame period between two frames: a stall (the thread was not run)
 
 
 @dataclass(frozen=True)
@@ -66,6 +67,10 @@ class RcReceiverMock:
         self.slot_ns = self.frame_period_ns // len(self.lines)
         self.history: deque[RcFrame] = deque(maxlen=history_size)
         self.frames_sent = 0
+        # (when it ended, how much longer than a frame period no frame was handed over) for each stall of at least
+        # STALL_NOTED_NS: a real receiver never stalls, this thread does on an overloaded machine, and an RC mux
+        # then rightly sees a signal loss
+        self.stalls: deque[tuple[int, int]] = deque(maxlen=1000)
         self._pulses_ns = {name: 1_500_000 for name in self.lines}
         if mode_channel in self._pulses_ns:
             self._pulses_ns[mode_channel] = 1_000_000  # manual until the pilot flips the switch
@@ -170,10 +175,15 @@ class RcReceiverMock:
 
     def _run(self) -> None:
         start_ns = time.monotonic_ns()
+        handed_ns: int | None = None   # when the last frame was handed over
         while True:
             delay_ns = start_ns + self.frame_period_ns - time.monotonic_ns()
             if self._stop.wait(max(delay_ns, 0) / 1e9):
                 return
+            now_ns = time.monotonic_ns()
+            if handed_ns is not None and now_ns - handed_ns - self.frame_period_ns >= STALL_NOTED_NS:
+                self.stalls.append((now_ns, now_ns - handed_ns - self.frame_period_ns))
+            handed_ns = now_ns
             self._emit(start_ns)
             start_ns += self.frame_period_ns
             behind = time.monotonic_ns() - start_ns

@@ -12,7 +12,10 @@ devices saw them; :mod:`mock_devices.actuation`):
 
 ``all_neutral_after_ms`` is when every output that was moving at the event was neutral at
 once (0 when none was moving; None when that never happened in the window). ``rc_modes``
-lists the RC_MODE states heard in the window, in order.
+lists the RC_MODE states heard in the window, in order. ``rc_receiver_stalled_ms``: the longest
+the simulated RC receiver went without handing over a frame, beyond a frame period, in the
+window (None when never 50 ms or more): its thread was not run, so the RC mux heard no pulses
+that long, and a NO RC SIGNAL then is the machine's load, not the event's doing.
 """
 
 from __future__ import annotations
@@ -74,8 +77,10 @@ def all_neutral_after(timelines: dict[str, Sequence[OutputChange]], start_ns: in
 
 
 def event_effects(log: OutputLog, fired: Sequence[tuple[Any, int]], *, end_ns: int, t0_ns: int,
-                  rc_modes: Sequence[tuple[int, str]] = ()) -> list[dict[str, Any]]:
-    """Per fired event (event, monotonic ns): its outputs' windows, all-neutral time, RC_MODE states heard."""
+                  rc_modes: Sequence[tuple[int, str]] = (),
+                  rc_stalls: Sequence[tuple[int, int]] = ()) -> list[dict[str, Any]]:
+    """Per fired event (event, monotonic ns): its outputs' windows, all-neutral time, RC_MODE states heard, the
+    RC receiver mock's longest stall (*rc_stalls*: (its end, ns beyond a frame period), monotonic ns)."""
     timelines = {name: log.timeline(name) for name in log.names()}
     results = []
     for i, (event, start_ns) in enumerate(fired):
@@ -87,6 +92,8 @@ def event_effects(log: OutputLog, fired: Sequence[tuple[Any, int]], *, end_ns: i
                         for name, tl in timelines.items()},
             "all_neutral_after_ms": all_neutral_after(timelines, start_ns, stop_ns),
             "rc_modes": [mode for t_ns, mode in rc_modes if start_ns < t_ns <= stop_ns],
+            "rc_receiver_stalled_ms": max((round(late / 1e6, 1) for t_ns, late in rc_stalls
+                                           if start_ns < t_ns <= stop_ns), default=None),
         })
     return results
 

@@ -292,7 +292,8 @@ class SimRun:
         if self.player is not None:
             rc_modes = self.monitor.snapshot().rc_changes if self.monitor is not None else []
             summary["scenario"] = self.player.summary(self.mocks.outputs, t0=self.t0 or self.record.t_end,
-                                                      end=self.record.t_end, rc_modes=rc_modes)
+                                                      end=self.record.t_end, rc_modes=rc_modes,
+                                                      rc_stalls=self.mocks.rc_stalls())
         json_path, text_path = write_summary(summary, self.out, extra_files=files)
         self.progress.event(summary_text(summary, files=[json_path, text_path, *files]))
         return summary

@@ -13,7 +13,7 @@ import os
 import signal
 import threading
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 from simulation.effects import event_effects
 from simulation.events import Scenario, ScenarioError, ScenarioEvent
@@ -73,12 +73,13 @@ class ScriptRunner:
         for thread in self._threads:
             thread.join(timeout=5)
 
-    def summary(self, outputs: Any, *, t0: float, end: float, rc_modes: list[tuple[int, str]]) -> dict[str, Any]:
+    def summary(self, outputs: Any, *, t0: float, end: float, rc_modes: list[tuple[int, str]],
+                rc_stalls: Sequence[tuple[int, int]] = ()) -> dict[str, Any]:
         """The summary's ``scenario`` section: the file, and what each fired event did to the outputs."""
         return {"name": self.scenario.name, "file": str(self.scenario.path),
                 "description": self.scenario.description,
                 "events": event_effects(outputs, self.fired, end_ns=int(end * 1e9), t0_ns=int(t0 * 1e9),
-                                        rc_modes=rc_modes)}
+                                        rc_modes=rc_modes, rc_stalls=rc_stalls)}
 
     # -- the actions ---------------------------------------------------------------------------
     def _gps(self) -> list[Any]:

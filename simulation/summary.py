@@ -166,6 +166,8 @@ def _event_outcome(event: dict[str, Any]) -> str:
         parts.append("moved: " + ", ".join(moved))
     if event["rc_modes"]:
         parts.append("RC_MODE " + " -> ".join(event["rc_modes"]))
+    if event.get("rc_receiver_stalled_ms"):
+        parts.append(f"the simulated RC receiver stalled {event['rc_receiver_stalled_ms']:.0f} ms (machine overloaded)")
     return "; ".join(parts)
 
 

@@ -8,6 +8,8 @@ import os
 import socket
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 from typing import Iterator
 
@@ -15,7 +17,7 @@ import pytest
 
 from conftest import REPO, wait_until
 from mock_devices.gpio_chip import GpioChipRecord, MockGpioChip
-from mock_devices.rc_receiver import MuxMock, RcReceiverMock
+from mock_devices.rc_receiver import MuxMock, RcFrame, RcReceiverMock
 from u2sa_hw.ports.errors import PortClosed
 from u2sa_hw.ports.gpio_port import (MOCK_EDGE_RECORD, GpioPort, MockFrameReader, encode_mock_json,
                                      open_gpio)
@@ -192,6 +194,27 @@ def test_rc_signal_loss_stops_all_edges(chip: MockGpioChip, rc: RcReceiverMock) 
     rc.signal_loss(False)
     assert pulse_widths_us(port, frames=1)
     port.close()
+
+
+def test_a_receiver_thread_held_up_notes_the_stall_and_how_long_no_frame_came(chip: MockGpioChip,
+                                                                              rc: RcReceiverMock) -> None:
+    held, release = threading.Event(), threading.Event()
+
+    def hold(frame: RcFrame) -> None:   # runs in the receiver's thread: hold it as an overloaded machine does
+        if not held.is_set():
+            held.set()
+            release.wait(5.0)
+
+    wait_until(lambda: rc.frames_sent >= 1, message="a first frame")
+    noted = len(rc.stalls)   # an overloaded machine may have stalled it already
+    rc.add_frame_listener(hold)
+    wait_until(held.is_set, message="the receiver thread held")
+    began = time.monotonic_ns()
+    release.wait(0.15)   # held at least 150 ms after handing over a frame: no frame for 130 ms beyond the period
+    release.set()
+    wait_until(lambda: len(rc.stalls) > noted, message="the stall noted")
+    ended, beyond_ns = rc.stalls[noted]
+    assert beyond_ns >= 150_000_000 - rc.frame_period_ns and ended >= began + 150_000_000
 
 
 def test_rc_glitches_are_isolated_single_frames(chip: MockGpioChip, rc: RcReceiverMock) -> None:

@@ -23,6 +23,9 @@ from simulation.events import ScenarioError, ScenarioEvent, load_scenario_file
 from u2sa_hw.udp_ports import private_udp_port
 
 WHEELS = ("left_wheel", "right_wheel")
+# the example rover's rc mux signal_timeout_ms (100) less a frame (20 ms at 50 Hz): a frame handed over this late
+# leaves the mux without a pulse for the timeout (the last pulse before it came up to a frame earlier)
+RC_STARVED_MS = 80.0
 
 
 def play(tmp_path: Path, lcm_url: str, vehicle: str, scenario: str) -> tuple[dict[str, Any], list[dict[str, Any]]]:
@@ -47,6 +50,13 @@ def moved(event: dict[str, Any], names: tuple[str, ...]) -> bool:
                for n in names)
 
 
+def starved_rc(*events: dict[str, Any]) -> bool:
+    """The RC mux heard NO RC SIGNAL in these windows while the simulated receiver (a thread of the sim) stalled
+    long enough for the mux's signal timeout: a loss the machine's load made, not the event (the summary says so)."""
+    return any(e["rc_receiver_stalled_ms"] is not None and e["rc_receiver_stalled_ms"] >= RC_STARVED_MS
+               for e in events) and any("NO RC SIGNAL" in e["rc_modes"] for e in events)
+
+
 def still(event: dict[str, Any], names: tuple[str, ...]) -> bool:
     """Every output in *names* was neutral at the event and stayed neutral through its window."""
     return all(event["outputs"][n]["at_event"]["neutral"] and event["outputs"][n]["moved_after_ms"] is None
@@ -67,7 +77,14 @@ def test_every_failsafe_case_of_the_example_rover_in_order(tmp_path: Path, lcm_u
     assert stopped(rc_loss, WHEELS) and "NO RC SIGNAL" in rc_loss["rc_modes"]
     assert still(rc_return, WHEELS) and moved(rearm1, WHEELS)
     # manual: the autonomous commands stop at every wheel; a forged one is dropped; the sticks drive
-    assert stopped(manual, WHEELS) and manual["rc_modes"][-1] == "MANUAL"
+    if starved_rc(rearm1, manual):
+        # the simulated RC receiver's thread was not run for longer than the mux's signal timeout on an
+        # overloaded machine (make test on a busy 2-core VM): the mux rightly heard no pulses and disarmed
+        # before the switch; the wheels must then already be, and stay, neutral
+        assert still(manual, WHEELS) or stopped(manual, WHEELS)
+    else:
+        assert stopped(manual, WHEELS)
+    assert manual["rc_modes"][-1] == "MANUAL"
     assert still(forge, WHEELS)
     assert moved(sticks, WHEELS) and stopped(centre, WHEELS)
     assert moved(auto, WHEELS)
@@ -148,7 +165,10 @@ def test_effects_say_when_each_output_went_neutral_and_moved_again() -> None:
                            ("a", 400, 30.0)):
         log.record(name, value, neutral=value == 0.0, t_ns=t * ms)
     events = [(ScenarioEvent(1.0, "rc_loss"), 100 * ms), (ScenarioEvent(2.0, "reengage"), 300 * ms)]
-    loss, rearm = event_effects(log, events, end_ns=500 * ms, t0_ns=0, rc_modes=[(120 * ms, "NO RC SIGNAL")])
+    loss, rearm = event_effects(log, events, end_ns=500 * ms, t0_ns=0, rc_modes=[(120 * ms, "NO RC SIGNAL")],
+                                rc_stalls=[(150 * ms, 60 * ms), (170 * ms, 95 * ms), (300 * ms, 70 * ms)])
+    assert loss["rc_receiver_stalled_ms"] == 95.0 and rearm["rc_receiver_stalled_ms"] is None
+    assert starved_rc(loss) and not starved_rc(rearm)
     assert loss["outputs"]["a"]["neutral_after_ms"] == 5.0 and loss["outputs"]["a"]["moved_after_ms"] is None
     assert loss["all_neutral_after_ms"] == 40.0 and loss["rc_modes"] == ["NO RC SIGNAL"]
     assert rearm["all_neutral_after_ms"] == 0.0 and rearm["outputs"]["a"]["moved_after_ms"] == 100.0
