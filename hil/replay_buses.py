@@ -1,5 +1,5 @@
 """Replay devices for the buses: the I2C bus (:mod:`hil.replay_i2c`: chips answering with recorded
-register reads, data reads paced by the player), and CAN frames sent onto a private python-can bus.
+register reads, data reads paced by the player), and CAN frames sent onto a private UDP multicast bus.
 Serial is in :mod:`hil.replay_devices`; the interface is the same. :func:`make_device` makes either.
 """
 
@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from u2sa_hw.ports.address import DeviceAddress, make_address
+from u2sa_hw.ports.can_clock import CAN_GROUP, join_bus, pack_frame
 from u2sa_hw.ports.tap import TX
 from u2sa_hw.udp_ports import private_udp_port
 
@@ -23,7 +24,6 @@ from hil.replay_plan import DevicePlan, ReplayError
 __all__ = ["CAN_BACKLOG_BYTES", "CAN_CHECK_EVERY", "CAN_GROUP", "I2C_BACKLOG_READS", "I2C_CLIENT_TIMEOUT_S",
            "ReplayCanDevice", "ReplayI2cChip", "ReplayI2cDevice", "make_device", "socket_inodes", "udp_backlog"]
 
-CAN_GROUP = "239.74.163.2"  # python-can's default IPv4 group for udp_multicast; the port is the replay's own
 # --fast pacing of the driver's CAN socket (its receive buffer: net.core.rmem_default, 212,992 bytes here; a
 # frame's datagram takes ~830 bytes of it, its truesize): the player checks the unread bytes every
 # CAN_CHECK_EVERY frames sent and waits while they exceed CAN_BACKLOG_BYTES, so at most
@@ -33,7 +33,6 @@ CAN_CHECK_EVERY = 48
 CAN_DRAIN_PERIOD_S = 0.02     # the counting thread reads the bus in batches this often
 CAN_RCVBUF_BYTES = 4 << 20    # its socket's receive buffer asked for (granted up to net.core.rmem_max unless root)
 _SO_MEMINFO = 55              # Linux: getsockopt -> struct sk_meminfo (u32 x 9), [8] the datagrams dropped
-_SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
 
 
 class ReplayCanDevice:
@@ -46,9 +45,10 @@ class ReplayCanDevice:
     again). What the driver sends depends on its timers (setpoints re-sent every
     ``command_period_s``), so its frames are counted, not compared frame by frame.
 
-    The frames go out in python-can's wire format from a socket of their own (not bound to the
-    bus's port), so the bus socket that counts tells them from every other member's (sent from
-    the port, as python-can sends) by the sender's port, without decoding; a thread reads it in
+    The frames go out as :func:`u2sa_hw.ports.can_clock.pack_frame` datagrams from a socket of their own
+    (not bound to the bus's port), so the bus socket that counts tells them from every other member's
+    (sent from the port, as python-can's and the driver's bus send) by the sender's port, without
+    decoding; a thread reads it in
     batches (:data:`CAN_DRAIN_PERIOD_S`) rather than waking for every datagram.
     """
 
@@ -61,8 +61,6 @@ class ReplayCanDevice:
         self._tx: socket.socket | None = None        # sends the recorded frames
         self._rx: socket.socket | None = None        # a member of the bus: hears the driver's frames (and ours)
         self._tx_port = 0                            # the port the recorded frames come from
-        self._message: Any = None                    # can.Message and python-can's pack_message, from start()
-        self._pack: Any = None
         self._pid: int | None = None
         self._inodes: set[str] = set()
         self._unchecked = 0                          # frames sent since pending() last looked
@@ -83,11 +81,7 @@ class ReplayCanDevice:
 
     def start(self) -> None:
         """Join the bus (as python-can does) and count what the driver sends."""
-        import can   # python-can only for a replay with a CAN device
-        from can.interfaces.udp_multicast.utils import pack_message
-
-        self._message, self._pack = can.Message, pack_message
-        self._rx = _bus_member(self.port)
+        self._rx = join_bus(self.port, rcvbuf=CAN_RCVBUF_BYTES)
         self._tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, struct.pack("@I", 1))  # python-can's hop limit
         self._tx.bind(("", 0))
@@ -123,11 +117,11 @@ class ReplayCanDevice:
             self._recorded_tx[key] -= 1
             self.counts["echoes_skipped"] += 1
             return
-        msg = self._message(arbitration_id=key[0], is_extended_id=bool(record.is_extended_id),
-                            is_remote_frame=key[1], is_error_frame=bool(record.is_error_frame),
-                            dlc=int(record.dlc), data=key[2], timestamp=float(record.bus_timestamp or 0.0))
+        data = pack_frame(timestamp=float(record.bus_timestamp or 0.0), arbitration_id=key[0],
+                          is_extended_id=bool(record.is_extended_id), is_remote_frame=key[1],
+                          is_error_frame=bool(record.is_error_frame), dlc=int(record.dlc), data=key[2])
         assert self._tx is not None, "feed() before start()"
-        self._tx.sendto(self._pack(msg), (CAN_GROUP, self.port))
+        self._tx.sendto(data, (CAN_GROUP, self.port))
         self._unchecked += 1
         self.counts["fed"] += 1
 
@@ -166,27 +160,6 @@ class ReplayCanDevice:
         """Frames fed, echoes left out, and the driver's frames against the recording's (and any the count missed)."""
         self._drain()
         return {"kind": self.kind, **self.counts, "driver_tx_lost": _dropped(self._rx), "divergences": 0}
-
-
-def _bus_member(port: int) -> socket.socket:
-    """A socket on the udp_multicast bus at *port*, set up as python-can's (reuse, bound to the port, in the
-    group), with a receive buffer for :data:`CAN_DRAIN_PERIOD_S` of traffic and more (root: forced)."""
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        if hasattr(socket, "SO_REUSEPORT"):
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
-        try:
-            sock.setsockopt(socket.SOL_SOCKET, _SO_RCVBUFFORCE, CAN_RCVBUF_BYTES)
-        except OSError:   # not root: as much as net.core.rmem_max allows
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, CAN_RCVBUF_BYTES)
-        sock.bind(("", port))
-        sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP,
-                        socket.inet_aton(CAN_GROUP) + struct.pack("@I", socket.INADDR_ANY))
-    except OSError:
-        sock.close()
-        raise
-    return sock
 
 
 def _dropped(sock: socket.socket | None) -> int:

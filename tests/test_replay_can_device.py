@@ -1,6 +1,7 @@
-"""The replay CAN device (hil/replay_buses.py) over a real python-can udp_multicast bus: recorded RX
-frames reach a member of the bus (as the replayed driver's, ``clock=stamped``) in order with their
-recorded times and in python-can's wire format, echoes of the recorded driver's own frames are left out,
+"""The replay CAN device (hil/replay_buses.py) over a real UDP multicast bus: recorded RX frames reach a
+member of the bus (as the replayed driver's, ``clock=stamped``) in order with their recorded times,
+every field of a frame survives the replay's datagram, a python-can udp_multicast member is still
+understood, a datagram that is no frame is an error of one receive, echoes of the recorded driver's own frames are left out,
 the device counts the other members' frames but never its own, and the --fast pacing keeps the
 driver's socket well under its receive buffer.
 """
@@ -16,7 +17,7 @@ from conftest import wait_until
 
 from hil.replay_buses import CAN_BACKLOG_BYTES, CAN_CHECK_EVERY, CAN_GROUP, ReplayCanDevice
 from u2sa_hw.lcmtypes.RawCanFrame import RawCanFrame
-from u2sa_hw.ports.can_clock import StampedUdpMulticastBus
+from u2sa_hw.ports.can_clock import StampedUdpMulticastBus, pack_frame, unpack_frame
 from u2sa_hw.ports.tap import RX, TX
 from u2sa_hw.udp_ports import private_udp_port
 
@@ -129,3 +130,41 @@ def test_the_replayed_driver_never_hears_its_own_frames_but_hears_every_other(bu
         assert sorted(m.arbitration_id for m in heard) == [0x0D, 0x0D, 0x29]
     finally:
         other.shutdown()
+
+
+@pytest.mark.parametrize("fields", [
+    dict(arbitration_id=0x1FFFFFFF, is_extended_id=True, dlc=8, data=bytes(range(8))),
+    dict(arbitration_id=0x7FF, is_remote_frame=True, dlc=4, data=b""),
+    dict(arbitration_id=0x080, is_extended_id=True, is_error_frame=True, dlc=8, data=bytes(8)),
+    dict(arbitration_id=0x123, is_fd=True, bitrate_switch=True, error_state_indicator=True, dlc=64, data=bytes(range(64))),
+    dict(arbitration_id=0, dlc=0, data=b""),
+])
+def test_every_field_of_a_frame_survives_the_replay_datagram(fields) -> None:
+    import can
+
+    sent = can.Message(timestamp=1764255379.123456, **fields)
+    got = unpack_frame(pack_frame(timestamp=sent.timestamp, **fields))
+    assert got.equals(sent, timestamp_delta=0.0), (got, sent)
+    for name in ("is_extended_id", "is_remote_frame", "is_error_frame", "is_fd", "bitrate_switch",
+                 "error_state_indicator"):
+        assert getattr(got, name) == getattr(sent, name), name
+
+
+def test_a_python_can_member_is_heard_and_garbage_is_one_failed_receive(bus_pair) -> None:
+    import can
+
+    device, driver = bus_pair
+    assert driver.recv(0.0) is None and driver.recv(0.01) is None   # nothing waiting: none, not an error
+    member = can.Bus(interface="udp_multicast", channel=CAN_GROUP, port=device.port)
+    try:
+        member.send(can.Message(timestamp=42.5, arbitration_id=0x0A, data=b"\x07", is_extended_id=False))
+        got = driver.recv(5.0)
+        assert (got.arbitration_id, bytes(got.data), got.timestamp) == (0x0A, b"\x07", 42.5)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as raw:
+            raw.sendto(b"U2CF" + b"\x01\x02", (CAN_GROUP, device.port))   # truncated head
+        with pytest.raises(can.CanOperationError, match="could not unpack"):
+            driver.recv(5.0)
+        device.feed(frame(0x29, b"\x05", stamp=7.0))                    # the bus goes on
+        assert driver.recv(5.0).timestamp == 7.0
+    finally:
+        member.shutdown()
