@@ -322,8 +322,16 @@ class MockGpioPort(GpioPort):
                 data = self._sock.recv(65536)
                 if not data:
                     break
+                events: list[GpioEvent] = []
                 for kind, payload in frames.feed(data):
+                    event = self._event(kind, payload)
+                    if event is not None:
+                        events.append(event)
+                        continue
+                    self._queue(events)   # what came before a reply or an origin goes first
+                    events = []
                     self._dispatch(kind, payload)
+                self._queue(events)
         except OSError as exc:
             reason = f"connection to the mock chip failed ({exc})"
         except (ValueError, TypeError, AttributeError, struct.error) as exc:
@@ -332,35 +340,44 @@ class MockGpioPort(GpioPort):
             self._lost = reason
             self._cond.notify_all()
 
+    def _event(self, kind: bytes, payload: bytes) -> GpioEvent | None:
+        """The event in an edge, tick or bus frame (None for a reply or an origin)."""
+        if kind == MOCK_EDGE:
+            event_type, line, timestamp_ns, _global, _line_seq = MOCK_EDGE_RECORD.unpack(payload)
+            return EdgeEvent(line=line, rising=event_type == EDGE_RISING, timestamp_ns=timestamp_ns)
+        if kind in (MOCK_TICK, MOCK_STEP):
+            return ClockTick(MOCK_TICK_RECORD.unpack(payload)[0], step=kind == MOCK_STEP)
+        if kind == MOCK_BUS:
+            if not self.device_clock:
+                raise MockProtocolError("a bus frame from a chip without a device clock")
+            return decode_bus_input(payload)
+        return None
+
+    def _queue(self, events: list[GpioEvent]) -> None:
+        """Hand the events of one read to the driver at once (one lock, one wake-up)."""
+        if not events:
+            return
+        with self._cond:
+            # a replay chip's edges are all kept (its player paces them by what the chip still has
+            # to send); holding this reader back instead would also hold back the reply to a
+            # write the driver waits for behind them
+            self._edges.extend(events)
+            if not self.device_clock:
+                while len(self._edges) > EVENT_BUFFER:
+                    self._edges.popleft()   # the oldest is dropped first, as the kernel does
+            self._heard_at = time.monotonic()
+            self._cond.notify_all()
+
     def _dispatch(self, kind: bytes, payload: bytes) -> None:
+        """A reply or an origin frame (events go through :meth:`_event` and :meth:`_queue`)."""
         if kind == MOCK_ORIGIN:
             with self._cond:
                 self._origin_ns = MOCK_ORIGIN_RECORD.unpack(payload)[0]
             return
-        if kind in (MOCK_EDGE, MOCK_TICK, MOCK_STEP, MOCK_BUS):
-            if kind == MOCK_EDGE:
-                event_type, line, timestamp_ns, _global, _line_seq = MOCK_EDGE_RECORD.unpack(payload)
-                event: GpioEvent = EdgeEvent(line=line, rising=event_type == EDGE_RISING, timestamp_ns=timestamp_ns)
-            elif kind in (MOCK_TICK, MOCK_STEP):
-                event = ClockTick(MOCK_TICK_RECORD.unpack(payload)[0], step=kind == MOCK_STEP)
-            else:
-                if not self.device_clock:
-                    raise MockProtocolError("a bus frame from a chip without a device clock")
-                event = decode_bus_input(payload)
-            with self._cond:
-                # a replay chip's edges are all kept (its player paces them by what the chip still has
-                # to send); holding this reader back instead would also hold back the reply to a
-                # write the driver waits for behind them
-                if not self.device_clock and len(self._edges) >= EVENT_BUFFER:
-                    self._edges.popleft()   # the oldest is dropped first, as the kernel does
-                self._edges.append(event)
-                self._heard_at = time.monotonic()
-                self._cond.notify_all()
-        else:
-            reply = json.loads(payload)
-            with self._cond:
-                self._replies[int(reply.get("id", -1))] = reply
-                self._cond.notify_all()
+        reply = json.loads(payload)
+        with self._cond:
+            self._replies[int(reply.get("id", -1))] = reply
+            self._cond.notify_all()
 
     def _lost_error(self, reason: str) -> PortClosed:
         return PortClosed(self.device, reason, address=self.address, fix="restart the mock chip; the driver reconnects")
