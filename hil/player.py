@@ -29,7 +29,7 @@ from __future__ import annotations
 import heapq
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator
 
 from u2sa_hw.channels import base_type
@@ -46,6 +46,7 @@ class PlayStats:
 
     records: int = 0          # device records fed
     republished: int = 0      # bus messages republished
+    republished_on: dict[str, int] = field(default_factory=dict)   # ... by channel
     malformed: int = 0        # records that did not decode (skipped)
     late_s: float = 0.0       # the largest lag behind the clock (rate mode)
     wall_s: float = 0.0       # playback time
@@ -227,9 +228,11 @@ class Player:
                     raise RuntimeError(self.abort_reason())
                 self.stats.late_s = max(self.stats.late_s, -delay)
             if target.startswith("bus:"):
+                channel = target[4:]
                 if self.transport is not None:
-                    self.transport.publish_bytes(target[4:], payload)
+                    self.transport.publish_bytes(channel, payload)
                 self.stats.republished += 1
+                self.stats.republished_on[channel] = self.stats.republished_on.get(channel, 0) + 1
             else:
                 device = self.devices[target]
                 limit = getattr(device, "backlog_limit", 0)

@@ -183,6 +183,8 @@ class Replay:
         self._health: dict[str, dict[str, str]] = {}   # service -> its latest health details
         self._received: dict[str, int] = {}    # service -> its outputs the replay bus delivered here
         self._published: dict[str, int] = {}   # service -> its outputs by its own count (latest health)
+        self._heard: dict[str, dict[str, int]] = {}   # service -> messages it took per channel (latest health)
+        self._listeners: dict[str, set[str]] = {}     # republished channel -> the services that take it from the bus
         self._last_output = time.monotonic()
         self._clocked = False   # a GPIO replay chip with edges: the drivers' timers stop with its clock
         self.run_dir: Path | None = None   # made by run(); kept after a failure for its logs
@@ -226,6 +228,7 @@ class Replay:
             return
         if msg.name in self.plan.services:
             self._health[msg.name] = {kv.key: kv.value for kv in msg.details}
+            self._heard[msg.name] = {c.channel: c.messages for c in msg.channels if c.direction == "in"}
             self._published[msg.name] = sum(c.messages for c in msg.channels if c.direction == "out" and not
                                             c.channel.startswith((CONTRACT_PREFIX, "RAW.")))
 
@@ -273,17 +276,30 @@ class Replay:
                 for c in r.subscribes:
                     listeners.setdefault(c.channel, set()).add(r.name)
         # Health is contract traffic, but the RC mux's pre-arm checks judge the other services by it
-        return {c for c, who in listeners.items() if (c == HEALTH_CHANNEL or not c.startswith(CONTRACT_PREFIX))
-                and not c.startswith("RAW.") and who - from_device.get(c, set())}
+        self._listeners = {c: who - from_device.get(c, set()) for c, who in listeners.items()
+                           if (c == HEALTH_CHANNEL or not c.startswith(CONTRACT_PREFIX)) and not c.startswith("RAW.")}
+        return {c for c, who in self._listeners.items() if who}
 
-    def _settle(self) -> None:
-        """Wait until the services published nothing new for settle_s after the input ended (at most 10 s)."""
+    def _settle(self, republished_on: dict[str, int]) -> None:
+        """Wait until every service has taken the recorded messages republished to it (*republished_on*: how many
+        per channel; by the counts in its health) and then published nothing new for settle_s (at most 10 s).
+
+        Without the first, a loaded machine could stop a driver before the last recorded command reached it
+        (a servo driver's last write, its only output, was lost so)."""
         self._last_output = max(self._last_output, time.monotonic())
         give_up = time.monotonic() + 10.0
-        while time.monotonic() - self._last_output < self.options.settle_s and time.monotonic() < give_up:
+        while (self._behind(republished_on) or time.monotonic() - self._last_output < self.options.settle_s) \
+                and time.monotonic() < give_up:
             if self.abort.is_set():
                 raise ReplayError(self._abort_reason)
             time.sleep(0.05)
+
+    def _behind(self, republished_on: dict[str, int]) -> list[tuple[str, str]]:
+        """(service, channel) pairs where the service's latest health counts fewer messages taken on the channel
+        than were republished on it (at least: it may also hear the live services there)."""
+        return [(service, channel) for channel, sent in republished_on.items()
+                for service in sorted(self._listeners.get(channel, ()))
+                if self._heard.get(service, {}).get(channel, 0) < sent]
 
     def _attachments(self, profile_path: Path) -> dict[str, bytes]:
         out = {"vehicle.toml": profile_path.read_bytes()}
@@ -367,7 +383,7 @@ class Replay:
                 raise ReplayError(str(exc)) from None
             finally:
                 bar.close()
-            self._settle()
+            self._settle(stats.republished_on)
             self._stopping = True
             # the capture first, as a recording ends: what a driver says while it is being stopped
             # (the RC mux's last RcMode, "stopping") is not part of the run
