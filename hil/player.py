@@ -45,12 +45,16 @@ class PlayStats:
     """What the player did."""
 
     records: int = 0          # device records fed
-    republished: int = 0      # bus messages republished
-    republished_on: dict[str, int] = field(default_factory=dict)   # ... by channel
+    republished_on: dict[str, int] = field(default_factory=dict)   # bus messages republished, by channel
     malformed: int = 0        # records that did not decode (skipped)
     late_s: float = 0.0       # the largest lag behind the clock (rate mode)
     wall_s: float = 0.0       # playback time
     started_ns: int = 0       # wall clock (ns) when the playback began: log time start_ns was played then
+
+    @property
+    def republished(self) -> int:
+        """Bus messages republished, on every channel."""
+        return sum(self.republished_on.values())
 
 
 class RecordedBusMessage:
@@ -231,7 +235,6 @@ class Player:
                 channel = target[4:]
                 if self.transport is not None:
                     self.transport.publish_bytes(channel, payload)
-                self.stats.republished += 1
                 self.stats.republished_on[channel] = self.stats.republished_on.get(channel, 0) + 1
             else:
                 device = self.devices[target]
