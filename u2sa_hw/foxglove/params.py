@@ -1,7 +1,9 @@
 """Service configs as Foxglove parameters (``<service>.<field>``), through the service contract.
 
-Reading asks every live service for its config over the bus (discovery, then a
-``ConfigRequest`` each). Writing is off unless the bridge was started with parameter
+Reading asks every live service for its config over the bus (the services that answer
+discovery and those whose health the bridge has heard, then a ``ConfigRequest`` each: on a
+busy machine a discovery answer can come after the discovery's wait, a health message was
+already there). Writing is off unless the bridge was started with parameter
 writes allowed, and it is refused on an open bus: a write becomes a ``ConfigChange``
 published by :class:`u2sa_hw.bus_client.BusClient`, signed with the vehicle's key like
 ``u2sa param set``, and the service checks it exactly as it checks that command's. A
@@ -14,7 +16,7 @@ from __future__ import annotations
 import logging
 import threading
 import tomllib
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 from u2sa_hw.config import to_text
 
@@ -33,8 +35,10 @@ def _native(text: str) -> Any:
 class ParameterBridge:
     """A ``foxglove.websocket.ServerListener`` answering parameter requests from the bus."""
 
-    def __init__(self, bus: Any, *, allow_writes: bool, status: Callable[[str, str], None] | None = None) -> None:
+    def __init__(self, bus: Any, *, allow_writes: bool, status: Callable[[str, str], None] | None = None,
+                 heard: Callable[[], Iterable[str]] = lambda: ()) -> None:
         self.bus = bus
+        self.heard = heard   # the services whose health the bridge has heard
         self.allow_writes = allow_writes and bus.transport.auth is not None
         self.refused_open_bus = allow_writes and not self.allow_writes
         self.status = status or (lambda _level, _text: None)   # (level, text) -> the clients' status bar
@@ -65,7 +69,7 @@ class ParameterBridge:
         """Read the configs of the services *names* mention (all live ones when empty)."""
         services = sorted({n.split(".", 1)[0] for n in names if "." in n})
         if not services:
-            services = [r.name for r in self.bus.discover(timeout=DISCOVERY_TIMEOUT_S)]
+            services = sorted({r.name for r in self.bus.discover(timeout=DISCOVERY_TIMEOUT_S)} | set(self.heard()))
         for service in services:
             self._read_service(service)
 

@@ -127,7 +127,8 @@ class FoxgloveBridgeService(U2SAService):
         p = self.profile
         self.bus = BusClient(p.lcm_url, name=f"{self.name}-params", system_id=p.system_id, security=p.bus_security,
                              key_file=p.bus_key, interface=p.bus_interface)
-        params = ParameterBridge(self.bus, allow_writes=bool(c["allow_parameter_writes"]), status=self._status)
+        params = ParameterBridge(self.bus, allow_writes=bool(c["allow_parameter_writes"]), status=self._status,
+                                 heard=lambda: list(self.bridge.mapper.health.services))
         if params.refused_open_bus:
             self.logger.warning("allow_parameter_writes is ignored: the bus is open, a change would not be signed")
         log_dir = p.log_dir if c["tail_logs"] else None
