@@ -71,6 +71,7 @@ class SimOptions:
     can_port: int | None = None         # None: the profile's [simulation] can_udp_port
     grace_s: float = 3.0
     scenario: Path | None = None        # a failsafe scenario file (simulation.events)
+    service_cgroup: Path | None = None  # every service (each restart too) joins this cgroup; the mocks stay out
 
 
 class SimRun:
@@ -132,7 +133,7 @@ class SimRun:
         self._services_log = (self.out / "services.log").open("w", buffering=1)
         self.launcher = Launcher(sim_profile, grace_s=self.options.grace_s, output=self._on_output,
                                  policy=RestartPolicy(initial_backoff_s=0.5, give_up_after=3),
-                                 on_death=self._on_death)
+                                 on_death=self._on_death, cgroup=self.options.service_cgroup)
         if self.script is not None:
             self.player = ScriptRunner(self.script, self)
             self.player.check()

@@ -33,12 +33,14 @@ from pathlib import Path
 from typing import Any, Callable, Collection
 
 from u2sa_hw.bus_clock import STATE_ENV
+from u2sa_hw.launcher.child_setup import check_cgroup
 from u2sa_hw.launcher.control import SOCKET_ENV, ControlServer, LauncherError, default_socket_path
 from u2sa_hw.launcher.notify import NotifyListener
 from u2sa_hw.launcher.output import LineSink, LineSplitter, PrefixedOutput
 from u2sa_hw.launcher.process import (BACKOFF, EXITED, FAILED, RUNNING, STOPPED, ProcessStatus, RestartPolicy,
                                      SupervisedProcess)
 from u2sa_hw.launcher.watchdog import WatchdogSetting, watchdog_for
+from u2sa_hw.realtime import RealtimePlan, describe_plan
 from u2sa_hw.registry import RECORDER_KIND
 from u2sa_hw.vehicle import ServiceSpec, VehicleProfile
 
@@ -87,9 +89,12 @@ class Launcher:
                  command: Callable[[ServiceSpec], list[str]] | None = None,
                  env: dict[str, str] | None = None, start_first: list[str] | None = None,
                  first_wait_s: float = 15.0, watchdog_s: float | None = None,
-                 unwatched: Collection[str] = ()) -> None:
+                 unwatched: Collection[str] = (), cgroup: Path | None = None,
+                 realtime: RealtimePlan | None = None) -> None:
         # watchdog_s replaces every unit's watchdog timeout (0: off); *unwatched* services run without one
-        # (a replay's I2C drivers wait in reads held for the player and cannot ping, hil/replay_i2c.py)
+        # (a replay's I2C drivers wait in reads held for the player and cannot ping, hil/replay_i2c.py).
+        # cgroup: every run of every child joins it before exec (CgroupError now if it cannot be written);
+        # realtime: the safety chain's priorities as permitted (u2sa_hw.realtime), None leaves priorities alone.
         if profile.path is None:
             raise ValueError("the launcher needs a vehicle profile file (--vehicle PATH)")
         specs = select_services(profile, only)
@@ -108,10 +113,18 @@ class Launcher:
         if self.socket_path is not None:
             child_env[SOCKET_ENV] = str(self.socket_path)
         vehicle = str(profile.path.resolve())
+        self.cgroup = cgroup
+        if cgroup is not None:
+            check_cgroup(cgroup)
+        self.realtime = realtime
+        self.kinds = {s.name: s.kind for s in specs}
+        schedules = realtime.schedules(self.kinds) if realtime is not None else {}
+        self._warned: set[str] = set()   # services whose set-up warning (RT refused) was said
         build = command or (lambda spec: [*u2sa_command(), "service", spec.name, "--vehicle", vehicle])
         self.processes: dict[str, SupervisedProcess] = {
             s.name: SupervisedProcess(s.name, build(s), policy=policy, env=child_env,
-                                      watchdog=_watchdog(s.kind, 0.0 if s.name in unwatched else watchdog_s))
+                                      watchdog=_watchdog(s.kind, 0.0 if s.name in unwatched else watchdog_s),
+                                      cgroup=cgroup, schedule=schedules.get(s.name))
             for s in specs}
         names = [s.name for s in specs]
         first = start_first if start_first is not None else [s.name for s in specs if s.kind == RECORDER_KIND]
@@ -145,6 +158,10 @@ class Launcher:
                 self.notify.close()   # the loop that would close it never runs
                 raise
             self.say(f"control socket {self.socket_path}")
+        if self.realtime is not None:
+            self.say(self.realtime.notice or describe_plan(self.realtime, self.kinds))
+        if self.cgroup is not None:
+            self.say(f"every service runs in cgroup {self.cgroup}")
         self._thread = threading.Thread(target=self._loop, name="u2sa-launcher", daemon=True)
         self._thread.start()
 
@@ -400,14 +417,18 @@ class Launcher:
     def _spawn(self, sel: selectors.BaseSelector, p: SupervisedProcess) -> None:
         try:
             child = p.spawn()
-        except OSError as exc:
-            self._on_death(p, p.failed_to_spawn(f"{p.argv[0]}: {exc.strerror or exc}"))
+        except OSError as exc:   # errno 0: the child's set-up failed, its message names the cgroup
+            self._on_death(p, p.failed_to_spawn(f"{p.argv[0]}: {exc.strerror or exc}" if exc.errno
+                                                else str(exc.strerror)))
             return
         assert child.stdout is not None
         os.set_blocking(child.stdout.fileno(), False)
         self._outputs[child.stdout.fileno()] = (child.stdout, LineSplitter(p.name, self.output))
         sel.register(child.stdout.fileno(), selectors.EVENT_READ, ("out", p.name))
         self.say(f"{p.name} started, pid {child.pid}, run {p.run_id}")
+        if p.setup_warning and p.name not in self._warned:
+            self._warned.add(p.name)
+            self.say(f"{p.name}: {p.setup_warning}")
 
     def _on_death(self, p: SupervisedProcess, account: str) -> None:
         self.say(f"{p.name} {account}")

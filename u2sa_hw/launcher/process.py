@@ -19,16 +19,18 @@ The launcher's event loop drives it: ``spawn`` and ``poll`` run on the loop thre
 
 from __future__ import annotations
 
-import ctypes
 import os
 import signal
 import subprocess
 import time
 from collections import deque
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
 
+from u2sa_hw.launcher.child_setup import CgroupError, ChildSetup, read_report
 from u2sa_hw.launcher.watchdog import WatchdogSetting, WatchdogTimer
+from u2sa_hw.realtime import Schedule
 
 RUNNING = "running"
 STOPPING = "stopping"
@@ -37,20 +39,6 @@ EXITED = "exited"      # exited with status 0 on its own: not restarted (like sy
 STOPPED = "stopped"    # stopped because we asked
 FAILED = "failed"      # given up: too many quick deaths in a row, failed exits within the window, a refusal
 REFUSED_EXIT = 3       # service_bus.DUPLICATE_EXIT: refused to start (RestartPreventExitStatus=3 in u2sa@.service)
-
-_PR_SET_PDEATHSIG = 1
-try:
-    _LIBC: ctypes.CDLL | None = ctypes.CDLL(None, use_errno=True)
-    _PRCTL = _LIBC.prctl
-except (OSError, AttributeError):  # not Linux: children simply outlive a killed launcher
-    _LIBC, _PRCTL = None, None
-
-
-def _die_with_parent() -> None:
-    # Runs in the child between fork and exec: a SIGKILLed launcher must not leave orphans.
-    if _PRCTL is not None:
-        _PRCTL(_PR_SET_PDEATHSIG, int(signal.SIGTERM))
-
 
 @dataclass(frozen=True)
 class RestartPolicy:
@@ -145,7 +133,10 @@ class SupervisedProcess:
 
     def __init__(self, name: str, argv: list[str], *, policy: RestartPolicy, env: dict[str, str] | None = None,
                  cwd: str | None = None, clock: Callable[[], float] = time.monotonic,
-                 watchdog: WatchdogSetting | None = None) -> None:
+                 watchdog: WatchdogSetting | None = None, cgroup: Path | None = None,
+                 schedule: Schedule | None = None) -> None:
+        # cgroup: each run joins it before exec (a CPU budget); schedule: its policy, set before exec
+        # after joining (None: inherited). See child_setup.py for the order and why.
         self.name = name
         self.argv = argv
         self.policy = policy
@@ -172,6 +163,8 @@ class SupervisedProcess:
         self.watchdog = WatchdogTimer(watchdog or WatchdogSetting(timeout_s=0.0))
         self.watchdog_kills = 0
         self.result = ""
+        self.setup = ChildSetup(cgroup=cgroup, schedule=schedule)
+        self.setup_warning: str | None = None   # the last run's set-up problem it started despite (RT refused)
 
     # -- observing -----------------------------------------------------------------
     @property
@@ -207,13 +200,23 @@ class SupervisedProcess:
         else:
             env.pop("WATCHDOG_USEC", None)
         env.pop("WATCHDOG_PID", None)   # the child's pid is unknown before the fork; it is the main process
+        report_r, report_w = os.pipe2(os.O_CLOEXEC | os.O_NONBLOCK)
         try:
+            preexec = self.setup.preexec(report_w)
             self.proc = subprocess.Popen(self.argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                          stderr=subprocess.STDOUT, env=env, cwd=self.cwd, process_group=0,
-                                         preexec_fn=_die_with_parent)
-        except OSError:
+                                         preexec_fn=preexec)
+        except (OSError, subprocess.SubprocessError, CgroupError) as exc:
             self.proc = None
-            raise
+            os.close(report_w)
+            error, _ = read_report(report_r)
+            os.close(report_r)
+            if error is None and isinstance(exc, OSError):
+                raise
+            raise OSError(0, error or str(exc)) from None   # the set-up's own words: the cgroup, why, the fix
+        os.close(report_w)
+        _, self.setup_warning = read_report(report_r)
+        os.close(report_r)
         self.started_at = self.clock()
         self.state = RUNNING
         self.kill_at = None
