@@ -9,7 +9,9 @@ restart), and on stop sends SIGTERM, then SIGKILL after the grace period.
 The children report readiness on the launcher's own ``$NOTIFY_SOCKET`` (:mod:`.notify`), as
 they do to systemd, and ping its watchdog (:mod:`.watchdog`): a child that stops pinging for
 its unit's ``WatchdogSec`` (2 s) is killed with SIGABRT, SIGKILL after ``TimeoutAbortSec``,
-and restarted like any dead one, its death counted and logged as a watchdog timeout.
+and restarted like any dead one, its death counted and logged as a watchdog timeout. A child
+found stopped (SIGSTOP) gets SIGKILL at once and is never resumed, on a watchdog timeout or a
+stop: resumed, a frozen command source would publish commands before it died.
 Services of kind ``recorder`` start first and the others once they are ready (or after
 ``first_wait_s``): a recording then holds every service's start-up I/O (an IMU's
 identification reads, a motor controller's arming), which replay needs.

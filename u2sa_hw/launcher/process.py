@@ -118,6 +118,15 @@ class ProcessStatus:
         return dict(self.__dict__)
 
 
+def process_stopped(pid: int, *, proc: Path = Path("/proc")) -> bool:
+    """True when *pid* is stopped (state T, or t: stopped by a tracer), from ``/proc/PID/stat``."""
+    try:
+        stat = (proc / str(pid) / "stat").read_text()
+    except OSError:
+        return False
+    return stat.rpartition(")")[2].split()[:1] in (["T"], ["t"])   # the name in (...) may hold spaces
+
+
 def describe_exit(returncode: int) -> str:
     """``exited with status 1`` / ``killed by SIGKILL``."""
     if returncode < 0:
@@ -165,6 +174,7 @@ class SupervisedProcess:
         self.result = ""
         self.setup = ChildSetup(cgroup=cgroup, schedule=schedule)
         self.setup_warning: str | None = None   # the last run's set-up problem it started despite (RT refused)
+        self.killed_stopped = False   # this run was found stopped when asked to stop: SIGKILL, never resumed
 
     # -- observing -----------------------------------------------------------------
     @property
@@ -223,6 +233,7 @@ class SupervisedProcess:
         self.reason = ""
         self.ready = False
         self.status_text = ""
+        self.killed_stopped = False
         self.watchdog.reset()
         return self.proc
 
@@ -241,6 +252,8 @@ class SupervisedProcess:
         self.proc = None
         self.kill_at = None
         self.last_exit = describe_exit(code)
+        if self.killed_stopped:
+            self.last_exit += " (it was stopped: killed without resuming it)"
         self.result = "success" if code == 0 else "signal" if code < 0 else "exit-code"
         if self.watchdog.fired:
             self.result = "watchdog"
@@ -308,8 +321,11 @@ class SupervisedProcess:
     def check_watchdog(self) -> str | None:
         """Fire the watchdog of a running child that stopped pinging, as systemd does; return an account.
 
-        SIGABRT (with SIGCONT, so a stopped child acts on it; Python's faulthandler prints its
-        stacks), SIGKILL after the abort timeout; its death then takes the normal restart path.
+        A running child gets SIGABRT (Python's faulthandler prints its stacks) and SIGKILL after
+        the abort timeout. A *stopped* child (state T: SIGSTOP, a debugger) gets SIGKILL at once
+        and is never resumed: SIGCONT, so it could act on SIGABRT, would let its other threads run
+        while faulthandler prints, and a command source then publishes commands (wheels moved
+        ~25 ms in a test). Its death then takes the normal restart path.
         """
         if self.proc is None or self.state != RUNNING:
             return None
@@ -317,12 +333,14 @@ class SupervisedProcess:
         if silent is None:
             return None
         setting = self.watchdog.setting
-        self.kill_at = self.clock() + setting.abort_s
-        self.signal(signal.SIGABRT)
-        self.signal(signal.SIGCONT)
         what = "WATCHDOG=trigger" if self.watchdog.triggered else f"no WATCHDOG=1 for {silent:.1f} s"
-        return (f"watchdog timeout ({what}, limit {setting.timeout_s:g} s): SIGABRT, "
-                f"SIGKILL in {setting.abort_s:g} s")
+        head = f"watchdog timeout ({what}, limit {setting.timeout_s:g} s)"
+        if process_stopped(self.proc.pid):
+            self.signal(signal.SIGKILL)
+            return f"{head}: it was stopped, so SIGKILL without resuming it (no stack dump)"
+        self.kill_at = self.clock() + setting.abort_s
+        self.signal(signal.SIGABRT)   # no SIGCONT: one stopped since the check above gets SIGKILL in abort_s
+        return f"{head}: SIGABRT, SIGKILL in {setting.abort_s:g} s"
 
     def signal(self, sig: int) -> None:
         """Send *sig* to the child's process group (it is its own group leader)."""
@@ -334,7 +352,11 @@ class SupervisedProcess:
             pass
 
     def request_stop(self, grace_s: float) -> None:
-        """SIGTERM now (and SIGCONT, so a stopped child can act on it), SIGKILL after *grace_s*."""
+        """SIGTERM now, SIGKILL after *grace_s*; a stopped child (state T) gets SIGKILL at once.
+
+        A stopped child is not resumed to act on SIGTERM: a frozen command source would publish
+        commands again before it stops (see check_watchdog). A stopped recorder loses its last chunk.
+        """
         if self.proc is None:
             if self.state in (BACKOFF, RUNNING) and self.desired != RUNNING:
                 self.state = STOPPED
@@ -342,8 +364,11 @@ class SupervisedProcess:
         if self.state != STOPPING:
             self.state = STOPPING
             self.kill_at = self.clock() + grace_s
+            if process_stopped(self.proc.pid):
+                self.killed_stopped = True
+                self.signal(signal.SIGKILL)
+                return
             self.signal(signal.SIGTERM)
-            self.signal(signal.SIGCONT)
 
     def stop(self, grace_s: float) -> None:
         """Desired: stopped. A child in backoff is simply not restarted."""
