@@ -38,6 +38,7 @@ from simulation.scenario import load_scenario
 from simulation.script import ScriptRunner
 from simulation.summary import RunRecord, TrackSample, summarise, summary_text, write_summary, write_track_csv
 from u2sa_hw.launcher import Launcher, RestartPolicy
+from u2sa_hw.realtime import SIM_DEVICES_PRIORITY, plan
 from u2sa_hw.vehicle import load_profile
 
 SAMPLE_HZ = 10.0
@@ -72,6 +73,7 @@ class SimOptions:
     grace_s: float = 3.0
     scenario: Path | None = None        # a failsafe scenario file (simulation.events)
     service_cgroup: Path | None = None  # every service (each restart too) joins this cgroup; the mocks stay out
+    realtime: bool = True               # the safety chain and the mock devices' threads SCHED_FIFO, when permitted
 
 
 class SimRun:
@@ -91,6 +93,7 @@ class SimRun:
         self.mocks: Any = None
         self.monitor: BusMonitor | None = None
         self.launcher: Launcher | None = None
+        self.realtime = plan(enabled=options.realtime)
         self.record = RunRecord(vehicle=self.profile.name, mission=self.scenario.mission_name,
                                 looping=self.scenario.looping, goals=self.scenario.goals,
                                 obstacles=self.scenario.obstacles, t_start=time.monotonic())
@@ -118,7 +121,10 @@ class SimRun:
                                   can_udp_port=self.options.can_port, check_inputs=True)
         timeout = self.options.timeout_s or self.mocks.settings.timeout_s
         self.deadline = self.record.t_start + timeout
-        self.mocks.start()
+        # The mock devices' threads run real-time below the safety chain: a real RC receiver or motor
+        # controller does not stall when the board is busy, and a stalled mock is a false NO RC SIGNAL.
+        with self.realtime.threads_started_here(SIM_DEVICES_PRIORITY) as refused:
+            self.mocks.start()
         record_dir = self.out / "recording" if self.options.record else None
         overrides: dict[str, dict[str, Any]] = {}
         if record_dir is not None:   # the drivers tap their ports too, so the recording can be replayed
@@ -130,10 +136,13 @@ class SimRun:
         sim_profile = load_profile(sim_profile_path)
         self.monitor = BusMonitor(sim_profile.lcm_url)
         self._say_start(sim_profile, timeout)
+        for line in ([self.realtime.notice] if self.realtime.notice else refused):
+            self.progress.event(f"  {line}")
         self._services_log = (self.out / "services.log").open("w", buffering=1)
         self.launcher = Launcher(sim_profile, grace_s=self.options.grace_s, output=self._on_output,
                                  policy=RestartPolicy(initial_backoff_s=0.5, give_up_after=3),
-                                 on_death=self._on_death, cgroup=self.options.service_cgroup)
+                                 on_death=self._on_death, cgroup=self.options.service_cgroup,
+                                 realtime=self.realtime)
         if self.script is not None:
             self.player = ScriptRunner(self.script, self)
             self.player.check()

@@ -101,7 +101,10 @@ def test_install_stages_units_configs_rules_users_and_links(vehicle: Path, root:
     assert sorted(os.listdir(wants)) == ["u2sa-hsm.service", "u2sa@estimator.service", "u2sa@gps.service",
                                          "u2sa@rudder.service", "u2sa@wheels.service"]
     # Only the service whose device address is a sysfs PWM chip gets a writable /sys.
-    assert os.listdir(units / "u2sa@rudder.service.d") == ["50-pwm-sysfs.conf"]
+    # (and, as an actuator driver, the safety chain's real-time and watchdog-signal drop-ins)
+    assert sorted(os.listdir(units / "u2sa@rudder.service.d")) == ["30-realtime.conf", "31-command-source.conf",
+                                                                  "50-pwm-sysfs.conf"]
+    assert not (units / "u2sa@wheels.service.d/50-pwm-sysfs.conf").exists()
     assert "ProtectKernelTunables=no" in (units / "u2sa@rudder.service.d/50-pwm-sysfs.conf").read_text()
     assert not (units / "u2sa@gps.service.d").exists()
     assert os.readlink(wants / "u2sa@gps.service") == "/etc/systemd/system/u2sa@.service"

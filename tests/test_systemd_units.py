@@ -252,6 +252,50 @@ def test_the_hsm_sandbox_may_restart_other_units(ns: SystemdNamespace, staged: d
         ns.systemctl("daemon-reload")
 
 
+def _thread_policies(host_pid: int) -> set[tuple[int, int]]:
+    """(policy, rt_priority) of every thread of *host_pid*, from /proc/PID/task/TID/stat (fields 41 and 40)."""
+    found = set()
+    for stat in Path(f"/proc/{host_pid}/task").glob("*/stat"):
+        fields = stat.read_text().rpartition(")")[2].split()   # fields from 3 on: state is [0]
+        found.add((int(fields[41 - 3]), int(fields[40 - 3])))
+    return found
+
+
+def test_a_safety_chain_unit_runs_fifo_in_every_thread_and_a_hung_one_gets_sigkill(ns: SystemdNamespace,
+                                                                                    staged: dict[str, Any]) -> None:
+    """est_c gets the drop-ins an rc_mux service gets: CPUSchedulingPolicy= holds under RestrictRealtime=yes and
+    the @resources filter (systemd sets it before them), the threads inherit it, and the watchdog sends SIGKILL."""
+    from u2sa_hw.install.units import safety_dropins
+
+    unit = "u2sa@est_c.service"
+    written = []
+    for path, text in safety_dropins(unit, "rc_mux").items():
+        target = staged["root"] / path.lstrip("/")
+        target.parent.mkdir(exist_ok=True)   # it exists: est_c starts after the recorder (20-after-recorder.conf)
+        target.write_bytes(text)
+        written.append(target)
+    ns.systemctl("daemon-reload")
+    try:
+        old = ns.wait_active(unit)
+        ns.systemctl("restart", unit)
+        pid = ns.wait_active(unit, not_pid=old)
+        host = ns.host_pid(pid)
+        assert wait_until(lambda: len(list(Path(f"/proc/{host}/task").iterdir())) > 1, timeout=10)
+        assert _thread_policies(host) == {(1, 30)}, ns.journal_hint(unit)   # SCHED_FIFO 30, every thread
+        os.kill(host, signal.SIGSTOP)
+        ns.wait_active(unit, not_pid=pid, timeout=30)
+        why = (f"Killing process {pid} (u2sa) with signal SIGKILL", f"{unit}: Failed with result 'watchdog'.")
+        assert wait_until(lambda: all(line in ns.journal("-u", unit) for line in why), timeout=10), \
+            ns.journal("-u", unit)
+    finally:
+        for target in written:
+            target.unlink()
+        ns.systemctl("daemon-reload")
+        ns.systemctl("restart", unit)
+    assert not any(name.endswith(("30-realtime.conf", "31-command-source.conf"))
+                   for name in ns.show(unit, "DropInPaths")["DropInPaths"].split())
+
+
 def test_crash_loop_ends_at_the_start_limit(ns: SystemdNamespace) -> None:
     unit = "u2sa@broken.service"
     ns.systemctl("start", "--no-block", unit)

@@ -19,11 +19,12 @@ The system calls are injectable (:class:`SchedCalls`) so tests fake them.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import resource
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Mapping
+from typing import Callable, Iterator, Mapping
 
 SAFETY_CHAIN_PRIORITIES: Mapping[str, int] = {
     "rc_mux": 30,       # the pilot's hand-over and the manual path: highest of ours
@@ -136,19 +137,28 @@ class RealtimePlan:
         """Service name -> schedule, for every service in *kinds* (name -> kind)."""
         return {name: self.schedule_for(kind) for name, kind in kinds.items()}
 
-    def raise_self(self, priority: int = SIM_DEVICES_PRIORITY) -> str | None:
-        """Put the calling thread (and every thread it starts later) at ``SCHED_FIFO`` *priority*.
+    @contextlib.contextmanager
+    def threads_started_here(self, priority: int = SIM_DEVICES_PRIORITY) -> Iterator[list[str]]:
+        """Within the block the calling thread runs ``SCHED_FIFO`` *priority* (capped), so the threads it starts
+        (and theirs) do; then it is back at normal priority.
 
-        For ``u2sa sim``'s device-emulating process. Returns a one-line reason when it could not.
+        For ``u2sa sim``'s mock devices: real hardware does not stall when the board is busy. The list
+        yielded gets the one-line reason when it could not (empty otherwise).
         """
+        refused: list[str] = []
         schedule = Schedule(min(priority, self.ceiling))
-        if not schedule.realtime:
-            return None
+        raised = False
+        if schedule.realtime:
+            try:
+                self.calls.setscheduler(0, schedule)
+                raised = True
+            except OSError as exc:
+                refused.append(f"the simulated devices run at normal priority: {exc.strerror or exc}")
         try:
-            self.calls.setscheduler(0, schedule)
-        except OSError as exc:
-            return f"the simulated devices run at normal priority: {exc.strerror or exc}"
-        return None
+            yield refused
+        finally:
+            if raised:
+                self.calls.setscheduler(0, NORMAL)
 
 
 def plan(*, enabled: bool = True, calls: SchedCalls | None = None) -> RealtimePlan:

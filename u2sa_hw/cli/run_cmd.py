@@ -10,6 +10,15 @@ from typing import Any, Iterator
 
 from u2sa_hw.cli.common import add_vehicle_option, profile_from
 
+REALTIME_HELP = ("run the safety chain (RC mux, actuator drivers, HSM) at normal priority instead of SCHED_FIFO; "
+                 "by default it runs real-time when permitted (root, CAP_SYS_NICE or ulimit -r), so other work on "
+                 "the board cannot delay a failsafe; see docs/safety.md")
+
+
+def add_realtime_option(p: Any) -> None:
+    """The ``--no-realtime`` option of ``u2sa run`` and ``u2sa sim``."""
+    p.add_argument("--no-realtime", dest="realtime", action="store_false", help=REALTIME_HELP)
+
 HELP = """\
 Start every enabled service of the vehicle profile as its own process
 (u2sa service NAME --vehicle FILE), prefix their output with the service name,
@@ -38,6 +47,19 @@ WATCHDOG=1 from its own loop; one silent for WatchdogSec of its unit file
 SIGABRT (its stacks are printed), SIGKILL after TimeoutAbortSec, and is restarted
 by the rules above, logged as a watchdog timeout. --watchdog S sets the timeout
 for every service (0 turns the watchdog off).
+
+The safety chain runs real-time, as the units run it (docs/safety.md): the RC
+mux at SCHED_FIFO 30, the actuator drivers (odrive_can, vesc_can, pwm_servo,
+gpio_output) at 25, the HSM at 20; every other service at normal priority. So a
+board kept busy by other work cannot delay the pilot's hand-over or a motor's
+dead-man timer. It needs root, CAP_SYS_NICE or an RLIMIT_RTPRIO (ulimit -r) of
+30; without, one line says so and they run at normal priority. Kernel RT
+throttling is left on: a service that spins leaves 5 % of each CPU to the rest,
+and the watchdog still kills it. --no-realtime runs everything at normal priority.
+
+A service found stopped (SIGSTOP) when its watchdog fires, or when it is to be
+stopped or restarted, gets SIGKILL at once: resumed, a frozen command source
+would publish commands again before it died.
 
 The HSM (a service of kind "hsm") asks the launcher to restart services through
 the control socket <data_dir>/launcher.sock. See docs/supervision.md.
@@ -75,6 +97,7 @@ def register(sub: Any) -> None:
     p.add_argument("--watchdog", type=float, default=None, metavar="S",
                    help="restart a service that sends no WATCHDOG=1 for S seconds (default: WatchdogSec of its "
                    "systemd unit, 2 s; 0 = off)")
+    add_realtime_option(p)
     p.add_argument("--keep-going", action="store_true",
                    help="keep the other services running when one is given up")
     p.add_argument("--no-color", action="store_true", help="never colour the service names")
@@ -115,8 +138,10 @@ def _launch(args: Any, profile: Any, *, only: list[str] | None, policy: Any, out
     from u2sa_hw.cli import CliError
     from u2sa_hw.launcher import Launcher, LauncherError
 
+    from u2sa_hw.realtime import plan
+
     launcher = Launcher(profile, only=only, grace_s=args.grace, policy=policy, keep_going=args.keep_going,
-                        output=output, watchdog_s=args.watchdog)
+                        output=output, watchdog_s=args.watchdog, realtime=plan(enabled=args.realtime))
     try:
         code = launcher.run()
     except LauncherError as exc:

@@ -33,6 +33,12 @@ end: its events at their times (after autonomy engaged), then summary.json's
 "scenario" says, per event, when each output (CAN setpoint, PWM pulse, GPIO
 level) went neutral and moved again, and the RC_MODE states heard.
 
+As under u2sa run, the safety chain (RC mux, actuator drivers, HSM) runs
+SCHED_FIFO when permitted (root, CAP_SYS_NICE, ulimit -r), and so do the mock
+devices' threads, below it (priority 10): real hardware does not stall when the
+board is busy, and a stalled simulated RC receiver is a false NO RC SIGNAL.
+When not permitted, one line says so (docs/safety.md). --no-realtime: all normal.
+
 The pilot hands over only once the IMU has calibrated at rest. A profile whose
 devices do not drive every input of its [simulation] model is refused.
 
@@ -54,6 +60,8 @@ See docs/simulation.md.
 
 def register(sub: Any) -> None:
     """Add the ``sim`` subcommand."""
+    from u2sa_hw.cli.run_cmd import add_realtime_option
+
     p = sub.add_parser("sim", help="drive a mission with the whole stack on simulated hardware",
                        description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter,
                        epilog="example:\n  u2sa sim --vehicle examples/boat/vehicle.toml --out boat-out --record")
@@ -76,6 +84,7 @@ def register(sub: Any) -> None:
                    help="play a failsafe scenario (events at times: RC loss, manual switch, sticks, GPS fix loss, "
                         "a service killed or stopped, a forged command, a failsafe) and record what every actuator "
                         "output did (summary.json 'scenario'); e.g. examples/ground_vehicle/scenarios/rc_loss.toml")
+    add_realtime_option(p)
     p.set_defaults(func=cmd_sim)
 
 
@@ -96,7 +105,8 @@ def cmd_sim(args: Any) -> int:
     refuse_on_errors(args.vehicle, command="sim", for_sim=True)
     lcm_url, can_port = _private_bus(args)
     options = SimOptions(vehicle=args.vehicle, out=args.out, mission=args.mission, timeout_s=args.timeout,
-                         record=args.record, lcm_url=lcm_url, can_port=can_port, scenario=args.scenario)
+                         record=args.record, lcm_url=lcm_url, can_port=can_port, scenario=args.scenario,
+                         realtime=args.realtime)
     keys = None
     try:
         run = SimRun(options)

@@ -7,7 +7,10 @@
   ``u2sa-hsm.service``, which may restart the others.
 - Drop-ins by what a service is, whatever its name: every service of kind ``recorder``
   gets ``u2sa@NAME.service.d/10-recorder.conf`` (lower CPU and I/O priority, a longer
-  stop), every service whose device address is a sysfs PWM chip ``50-pwm-sysfs.conf``.
+  stop), every service whose device address is a sysfs PWM chip ``50-pwm-sysfs.conf``, every
+  service of the safety chain ``30-realtime.conf`` (``CPUSchedulingPolicy=fifo``, the priority
+  of :mod:`u2sa_hw.realtime`) and every command source ``31-command-source.conf``
+  (``WatchdogSignal=SIGKILL``: never resumed to print stacks).
 - The profile is installed as ``/etc/u2sa/vehicle.toml`` with its directories pointed at
   the vehicle's (``/etc/u2sa/config``, ``/var/log/u2sa``, ``/var/lib/u2sa``) and every
   service config as ``/etc/u2sa/config/NAME.toml``.
@@ -27,6 +30,7 @@ from typing import Any, Mapping
 import tomli_w
 
 from u2sa_hw.install.system import DEVICE_GROUPS, SERVICE_USER, InstallError
+from u2sa_hw.realtime import unit_directives
 from u2sa_hw.registry import RECORDER_KIND
 from u2sa_hw.transport import DEFAULT_RECV_BUF_SIZE
 from u2sa_hw.vehicle import ServiceSpec, VehicleProfile
@@ -119,9 +123,46 @@ After={recorders}
 """
 
 
+REALTIME_DROPIN = """\
+# Written by `u2sa install`: {name} is in the safety chain (kind "{kind}"), so it runs
+# real-time (u2sa_hw/realtime.py; u2sa run does the same): a board saturated by normal work
+# cannot delay it. Its threads inherit the policy (no CPUSchedulingResetOnFork=, which would
+# put every thread the service starts back at normal priority). Kernel RT throttling
+# (sched_rt_runtime_us) keeps 5 % of each CPU for normal tasks, systemd among them, so a
+# service that spins is still killed by its watchdog. See docs/safety.md.
+[Service]
+{directives}"""
+
+COMMAND_SOURCE_DROPIN = """\
+# Written by `u2sa install`: {name} commands actuators (kind "{kind}"). A hang ends in
+# SIGKILL, not the template's SIGABRT: systemd sends SIGCONT with SIGABRT, and a frozen
+# command source resumed to print its stacks publishes commands again until it dies.
+# The stack dump is lost; the journal still says "Watchdog timeout". See docs/safety.md.
+[Service]
+WatchdogSignal=SIGKILL
+"""
+
+COMMAND_SOURCE_KINDS = frozenset({"rc_mux", "control", "odrive_can", "vesc_can", "pwm_servo", "gpio_output"})
+"""Kinds whose process publishes or executes actuator commands: their watchdog sends SIGKILL."""
+
+
+def safety_dropins(unit: str, kind: str) -> dict[str, bytes]:
+    """The real-time and watchdog-signal drop-ins of *unit* running a service of *kind* (none for most kinds)."""
+    dropins = {}
+    directives = unit_directives(kind)
+    if directives is not None:
+        dropins[f"{UNIT_DIR}/{unit}.d/30-realtime.conf"] = REALTIME_DROPIN.format(
+            name=unit, kind=kind, directives=directives).encode()
+    if kind in COMMAND_SOURCE_KINDS:
+        dropins[f"{UNIT_DIR}/{unit}.d/31-command-source.conf"] = COMMAND_SOURCE_DROPIN.format(
+            name=unit, kind=kind).encode()
+    return dropins
+
+
 def unit_dropins(profile: VehicleProfile, *, pwm_services: Mapping[str, str]) -> dict[str, bytes]:
     """Per-service drop-ins the profile calls for: a recorder's priorities, the others ordered after it,
-    a writable /sys for each service in *pwm_services* (service -> the sysfs PWM chip its address names)."""
+    a writable /sys for each service in *pwm_services* (service -> the sysfs PWM chip its address names),
+    real-time priority for the safety chain and SIGKILL on a watchdog timeout for command sources."""
     dropins = {}
     units = service_units(profile)
     recorders = [u.unit for u in units if profile.services[u.name].kind == RECORDER_KIND]
@@ -132,6 +173,7 @@ def unit_dropins(profile: VehicleProfile, *, pwm_services: Mapping[str, str]) ->
         elif recorders:
             dropins[f"{UNIT_DIR}/{unit.unit}.d/20-after-recorder.conf"] = AFTER_RECORDER_DROPIN.format(
                 name=unit.unit, recorders=" ".join(recorders)).encode()
+        dropins.update(safety_dropins(unit.unit, spec.kind))
         chip = pwm_services.get(unit.name)
         if chip and unit.unit != HSM_UNIT:
             dropins[f"{UNIT_DIR}/{unit.unit}.d/50-pwm-sysfs.conf"] = PWM_DROPIN.format(path=chip).encode()
