@@ -24,9 +24,10 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, ClassVar, Mapping
+from typing import TYPE_CHECKING, Any, Callable, ClassVar, Mapping
 
-import can
+if TYPE_CHECKING:
+    import can   # python-can loads when the port opens (u2sa_hw/ports/can_port.py)
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
@@ -40,6 +41,7 @@ from u2sa_hw.ports.legacy import can_address
 
 from drivers.declarations import CanMotorDeclarations
 from drivers.diff_drive_odometry import SOURCES, BodyMotion, DiffDriveOdometry
+from drivers.stall_trip import StallWatch, trip_gap_s
 
 TICK_S = 0.01
 _PORT_FIELDS = frozenset({"device", "interface", "channel", "bitrate", "udp_port", "device_name"})
@@ -104,6 +106,7 @@ class CanMotorService(CanMotorDeclarations, Actuator):
         self._clock_seen = False             # a stamped port's first frame has restarted started_at
         self._reason = ""
         self._logged_drops: set[str] = set()
+        self.stalls = StallWatch()   # this driver's own stalls, on time.monotonic(): drivers/stall_trip.py
         self.check_settings(self.config.get)
         self._build()
 
@@ -276,6 +279,11 @@ class CanMotorService(CanMotorDeclarations, Actuator):
         self.logger.info("%s: outputs zeroed on the old bus before reopening", self.device_name)
 
     def _tick_and_status(self) -> None:
+        stall = self.stalls.turn(time.monotonic())
+        if stall is not None and stall.duration >= self.stall_trip_gap_s():
+            self.logger.warning("%s: this driver stalled (%s): a controller watchdog may have tripped; such a "
+                                "trip is cleared at the pilot's next re-arm through manual", self.device_name,
+                                stall.describe())
         self.check_command_timeout()
         now = self.now()
         with self.lock:
@@ -287,7 +295,10 @@ class CanMotorService(CanMotorDeclarations, Actuator):
             reasons.insert(0, "failsafe")
         self._reason = "; ".join(reasons)
         if self.status != "stopping":
-            self.status = "degraded" if reasons else "ok"
+            status = "degraded" if reasons else "ok"
+            if status != self.status:
+                self.status = status
+                self.publish_health()   # pre-arm reads it: a cleared trip must not wait for the next interval
 
     def _dispatch(self, msg: can.Message) -> None:
         self.frames_rx += 1
@@ -298,6 +309,20 @@ class CanMotorService(CanMotorDeclarations, Actuator):
                 self.handle_frame(msg, self.now())
         except ValueError as exc:  # the protocol modules' decode errors
             self.count_drop(type(exc).__name__, str(exc))
+
+    def stall_trip_gap_s(self) -> float:
+        """The shortest stall of this driver that can trip its controllers' watchdogs (hw_watchdog_timeout_s
+        less command_period_s); with no watchdog on, silent_after_s (the stall is logged from there)."""
+        cfg = self.config
+        if cfg.get("hw_watchdog", False):
+            return trip_gap_s(watchdog_timeout_s=float(cfg.get("hw_watchdog_timeout_s")),
+                              command_period_s=float(cfg.get("command_period_s")))
+        return float(cfg.get("silent_after_s"))
+
+    @property
+    def link_up(self) -> bool:
+        """The bus is open (frames go out and come in)."""
+        return self._link.state == "open"
 
     def count_drop(self, kind: str, detail: str) -> None:
         """A frame that could not be decoded was dropped: counted, logged once per kind."""
@@ -372,6 +397,7 @@ class CanMotorService(CanMotorDeclarations, Actuator):
             "frames_tx": self.frames_tx,
             "tx_failed": self.tx_failed,
             "dropped": self.dropped,
+            **self.stalls.details(),
         }
         if self.odometry is not None:
             details.update(odometry_published=self.odometry_published, odometry_resets=self.odometry.resets,

@@ -1,7 +1,7 @@
 """What the ODrive driver knows about one axis, and how its states and error bits read.
 
 ``OdriveAxis`` is the record drivers/odrive_can.py keeps per axis (last heartbeat, estimates,
-bus and temperatures, arming backoff, the state of its watchdog set-up); ``error_names`` and
+bus and temperatures, arming backoff, the state of its watchdog set-up, its latched error); ``error_names`` and
 ``enum_name`` turn the numbers of a heartbeat into the names health and the log show. No bus
 and no clock here: the driver mutates an axis under its lock and passes the time in.
 """
@@ -14,6 +14,15 @@ from u2sa_hw.protocols import odrive_cansimple as cs
 from u2sa_hw.protocols.odrive_cansimple import AxisState
 
 from drivers.can_motor import MotorSpec, WatchdogStep
+from drivers.stall_trip import Trip
+
+
+def watchdog_only(hb: cs.Heartbeat, *, firmware: str) -> bool:
+    """The heartbeat's error is the watchdog bit and nothing else (on 0.5, no motor, encoder or controller
+    sub-error either): the only error a stall of the driver can cause."""
+    bit = cs.OdriveError.WATCHDOG_TIMER_EXPIRED if firmware == "0.6" else cs.AxisError05.WATCHDOG_TIMER_EXPIRED
+    return hb.axis_error == int(bit) and not (hb.motor_error_flag or hb.encoder_error_flag
+                                              or hb.controller_error_flag)
 
 
 def error_names(bits: int, *, firmware: str) -> str:
@@ -53,6 +62,8 @@ class OdriveAxis:
         self.temps: tuple[float, float] | None = None
         self.errors: dict[str, int] = {}  # Get_Error / 0.5 sub-error replies by name
         self.error_events = 0
+        self.trip: Trip | None = None   # the latched error as first heard (drivers/stall_trip.py)
+        self.stall_clears = 0           # watchdog trips of this driver's stalls cleared on the pilot's re-arm
         self.arm_attempts = self.arm_failures = 0
         self.arming_since: float | None = None
         self.arm_retry_s = arm_retry_s

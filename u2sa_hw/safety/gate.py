@@ -21,7 +21,10 @@ armed, hold)
 
 A command from the channel without authority is dropped and counted by why; it never
 refreshes the dead-man. When the authority changes, the actuator goes neutral at once, so a
-setpoint of the old authority never outlives the switch. With ``rc_gating`` off (a bench
+setpoint of the old authority never outlives the switch. :attr:`CommandGate.rearms` counts
+the pilot's re-arms as heard: each RC_MODE that says manual and armed after one that did not
+(the switch moved through manual, or the RC mux armed there); a driver clears a watchdog trip
+its own stall caused only on a re-arm heard after the trip (drivers/stall_trip.py). With ``rc_gating`` off (a bench
 without an RC receiver) only the failsafe gates autonomous commands; the actuator logs that
 at start, and a vehicle should never run that way.
 """
@@ -59,10 +62,18 @@ class CommandGate:
         self._rc_at: float | None = None
         self._lock = threading.Lock()
         self._current = Authority("start")  # so the first evaluation always counts as a change (-> neutral)
+        self.rearms = 0
+
+    @staticmethod
+    def _pilot_armed(msg: Any) -> bool:
+        return getattr(msg, "mode", None) == RC_MODE_MANUAL and bool(getattr(msg, "armed", False))
 
     def on_rc_mode(self, msg: Any, now: float) -> None:
-        """The newest RcMode, received at *now* (monotonic seconds)."""
+        """The newest RcMode, received at *now* (monotonic seconds); counts a re-arm (see the module docstring).
+        The first RcMode heard is no re-arm: what came before it is unknown."""
         with self._lock:
+            if self._rc is not None and self._pilot_armed(msg) and not self._pilot_armed(self._rc):
+                self.rearms += 1
             self._rc, self._rc_at = msg, now
 
     def authority(self, now: float) -> Authority:

@@ -25,6 +25,10 @@ The evidence, per check (the table and its defaults are in :mod:`.prearm_table`)
   details ``position_sigma_m`` and ``heading_sigma_deg``) under their bounds;
 - ``required_services``: every other required service's Health is fresh and says ``ok``.
 
+A ``degraded`` reason ends with the service's ``to_clear`` health detail when it gives one (a latched
+motor controller error: ``to clear: u2sa param set wheels clear_errors true``, or the pilot's re-arm
+for a watchdog trip of the driver's own stall), so the refusal names what clears it.
+
 Every service a check names must have sent a Health within ``health_timeout_s`` and must not
 say ``starting``, ``failed`` or ``stopping``; after its own evidence, ``degraded`` fails too.
 Times are the host's monotonic clock at receipt: service clocks are never compared.
@@ -105,9 +109,13 @@ def _sigma(text: str | None) -> float | None:
 
 
 def _degraded_why(heard: _Heard) -> str:
+    """Why a service says degraded, and what clears it when it says (its ``to_clear`` detail: a latched
+    motor controller error names the command or the re-arm, so the refusal the pilot reads names the fix)."""
     d = heard.details
-    return (d.get("degraded_reason") or d.get("port_error") or (f"silent sensors: {d['silent_sensors']}"
-            if d.get("silent_sensors") else "") or heard.last_error or "no reason given")
+    why = (d.get("degraded_reason") or d.get("port_error") or (f"silent sensors: {d['silent_sensors']}"
+           if d.get("silent_sensors") else "") or heard.last_error or "no reason given")
+    fix = (d.get("to_clear") or "").strip()
+    return f"{why}; to clear: {fix}" if fix else why
 
 
 class PrearmChecks:
