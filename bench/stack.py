@@ -84,13 +84,23 @@ def pct(values: list[float], q: float) -> float:
 
 
 # -- phase 1: resources and rates ---------------------------------------------------------
+def pss_bytes(pid: int) -> int:
+    """The proportional set size of *pid* (shared pages divided among their users), from smaps_rollup."""
+    with open(f"/proc/{pid}/smaps_rollup", encoding="ascii") as f:
+        for line in f:
+            if line.startswith("Pss:"):
+                return int(line.split()[1]) * 1024
+    return 0
+
+
 class ResourceMeter:
-    """CPU time and RSS of the launcher's children (and this process) over a window."""
+    """CPU time, RSS and PSS of the launcher's children (and this process) over a window."""
 
     def __init__(self, pids: dict[str, int]) -> None:
         self.procs = {name: psutil.Process(pid) for name, pid in pids.items()}
         self.procs["(u2sa sim: mocks, simulator)"] = psutil.Process()
         self.rss: dict[str, int] = defaultdict(int)
+        self.pss: dict[str, int] = defaultdict(int)
         self.cpu0 = {n: sum(p.cpu_times()[:2]) for n, p in self.procs.items()}
         self.t0 = time.monotonic()
         self._done = threading.Event()
@@ -100,22 +110,26 @@ class ResourceMeter:
     def _sample(self) -> None:
         while not self._done.wait(1.0):
             for name, proc in self.procs.items():
-                try:
-                    self.rss[name] = max(self.rss[name], proc.memory_info().rss)
-                except psutil.Error:
-                    pass
+                self._memory(name, proc)
 
-    def stop(self) -> dict[str, tuple[float, float]]:
-        """name -> (CPU % of one core, largest RSS MB) over the window."""
+    def _memory(self, name: str, proc: psutil.Process) -> None:
+        try:
+            self.rss[name] = max(self.rss[name], proc.memory_info().rss)
+            self.pss[name] = max(self.pss[name], pss_bytes(proc.pid))
+        except (psutil.Error, OSError):
+            pass
+
+    def stop(self) -> dict[str, tuple[float, float, float]]:
+        """name -> (CPU % of one core, largest RSS MB, largest PSS MB) over the window."""
         wall = time.monotonic() - self.t0
         result = {}
         for name, proc in self.procs.items():
             try:
                 cpu = sum(proc.cpu_times()[:2]) - self.cpu0[name]
-                self.rss[name] = max(self.rss[name], proc.memory_info().rss)
             except psutil.Error:
                 cpu = float("nan")
-            result[name] = (100.0 * cpu / wall, self.rss[name] / 2**20)
+            self._memory(name, proc)
+            result[name] = (100.0 * cpu / wall, self.rss[name] / 2**20, self.pss[name] / 2**20)
         self._done.set()
         return result
 
@@ -153,15 +167,15 @@ def mission_phase(vehicle: Path, out: Path) -> None:
     finally:
         summary = run.finish()
     print(f"\n== mission: {summary['result']} in {summary['mission_time_s']} s; measured over {window:.1f} s of driving")
-    print(f"{'process':34} {'CPU % of 1 core':>16} {'RSS MB':>8}")
+    print(f"{'process':34} {'CPU % of 1 core':>16} {'RSS MB':>8} {'PSS MB':>8}")
     services = {n: v for n, v in usage.items() if not n.startswith("(")}
-    for name, (cpu, rss) in sorted(services.items(), key=lambda kv: -kv[1][0]):
-        print(f"{name:34} {cpu:16.1f} {rss:8.1f}")
-    print(f"{'all services':34} {sum(c for c, _ in services.values()):16.1f} "
-          f"{sum(r for _, r in services.values()):8.1f}")
-    for name, (cpu, rss) in usage.items():
+    for name, (cpu, rss, pss) in sorted(services.items(), key=lambda kv: -kv[1][0]):
+        print(f"{name:34} {cpu:16.1f} {rss:8.1f} {pss:8.1f}")
+    print(f"{'all services':34} {sum(v[0] for v in services.values()):16.1f} "
+          f"{sum(v[1] for v in services.values()):8.1f} {sum(v[2] for v in services.values()):8.1f}")
+    for name, (cpu, rss, pss) in usage.items():
         if name.startswith("("):
-            print(f"{name:34} {cpu:16.1f} {rss:8.1f}")
+            print(f"{name:34} {cpu:16.1f} {rss:8.1f} {pss:8.1f}")
     print(f"\n{'channel':28} {'msg/s':>8} {'kB/s':>8}")
     for channel, (n, size) in sorted(counts.items(), key=lambda kv: -kv[1][0]):
         print(f"{channel:28} {n / window:8.1f} {size / window / 1000:8.2f}")

@@ -18,9 +18,10 @@ watchdog step is settled (at the latest after ``WD_TRIES * WD_REPLY_S``).
 from __future__ import annotations
 
 import logging
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
-import can
+if TYPE_CHECKING:
+    import can   # python-can loads when the port opens (u2sa_hw/ports/can_port.py)
 
 from u2sa_hw.config import Configurator
 from u2sa_hw.protocols import odrive_cansimple as cs

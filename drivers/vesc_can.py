@@ -31,9 +31,10 @@ docs/drivers-can.md.
 from __future__ import annotations
 
 import math
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
-import can
+if TYPE_CHECKING:
+    import can   # python-can loads when the port opens (u2sa_hw/ports/can_port.py)
 
 from u2sa_hw.config import field
 from u2sa_hw.protocols import vesc_can as vc

@@ -36,7 +36,6 @@ import hashlib
 import hmac
 import logging
 import os
-import secrets
 import struct
 import threading
 import time
@@ -219,7 +218,7 @@ class BusAuth:
     def __init__(self, keyring: Keyring, *, sender: bytes | None = None,
                  wall_us: Callable[[], int] | None = None) -> None:
         self.keyring = keyring
-        self.sender = sender or secrets.token_bytes(SENDER_BYTES)
+        self.sender = sender or os.urandom(SENDER_BYTES)
         self.last_sender = b""          # the verified sender of the packet being dispatched
         # The wall clock in ns: time.time_ns itself unless a test gives its own (in µs).
         self._wall_ns: Callable[[], int] = time.time_ns if wall_us is None else (lambda: wall_us() * 1000)

@@ -28,7 +28,6 @@ import contextlib
 import json
 import logging
 import os
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -116,6 +115,7 @@ class ClockStore:
             text = json.dumps({"signing_us": value, "boot_id": self._boot_id(), "boottime_us": self._boottime_us()})
             try:
                 self.path.parent.mkdir(parents=True, exist_ok=True)
+                import tempfile   # imported where written: most processes never write the store
                 fd, tmp = tempfile.mkstemp(dir=self.path.parent, prefix=f".{FILE_NAME}.")
             except OSError as exc:
                 self._log_once(f"cannot save the bus clock in {self.path.parent} ({exc.strerror or exc}); a reboot "

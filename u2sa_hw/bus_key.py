@@ -16,10 +16,7 @@ import errno
 import grp
 import hashlib
 import os
-import secrets
-import shutil
 import stat
-import tempfile
 from pathlib import Path
 
 KEY_ENV = "U2SA_BUS_KEY_FILE"
@@ -87,7 +84,7 @@ def read_key(path: Path) -> bytes:
 
 def new_key() -> bytes:
     """256 fresh random bits."""
-    return secrets.token_bytes(KEY_BYTES)
+    return os.urandom(KEY_BYTES)
 
 
 def write_key(path: Path, key: bytes, *, group: str | None = KEY_GROUP) -> None:
@@ -109,6 +106,7 @@ def write_key(path: Path, key: bytes, *, group: str | None = KEY_GROUP) -> None:
         mode = stat.S_IMODE(old.st_mode) & 0o640 or 0o600
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
+        import tempfile   # only where a key is written, not in every service that reads one
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".bus.key.")
     except OSError as exc:
         raise BusKeyError(_write_error(path, exc)) from None
@@ -161,6 +159,8 @@ def use_run_key() -> Path | None:
     its children, removed at exit; its path, or None when a key was already set or installed."""
     if os.environ.get(KEY_ENV) or SYSTEM_KEY.exists():
         return None
+    import shutil
+    import tempfile
     directory = tempfile.mkdtemp(prefix="u2sa-run-key-")
     atexit.register(shutil.rmtree, directory, ignore_errors=True)
     path = fresh_key_file(directory)

@@ -29,14 +29,11 @@ import contextlib
 import logging
 import math
 import os
-import tempfile
 import threading
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
-
-import tomli_w
 
 from u2sa_hw.config_keys import did_you_mean, known_text, unknown_key_problem
 
@@ -248,6 +245,7 @@ def parse_text(f: ConfigField, text: str) -> Any:
 
 def to_text(value: Any) -> str:
     """The TOML literal of a value (as sent over the bus)."""
+    import tomli_w   # imported when first used: a service that never writes its config never loads it
     return tomli_w.dumps({"v": value}).split("=", 1)[1].strip()
 
 
@@ -428,6 +426,8 @@ class Configurator:
             return ""
         self.path.parent.mkdir(parents=True, exist_ok=True)
         data = {**self._extra, **{n: v for n, v in self._values.items() if n in self._persisted}}
+        import tempfile
+        import tomli_w
         fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent)
         try:
             with os.fdopen(fd, "wb") as fh:

@@ -13,7 +13,6 @@ instead of a value silently left at its default.
 
 from __future__ import annotations
 
-import difflib
 from typing import Iterable, Mapping
 
 # difflib's own default: a swapped pair in a short word still matches ("prot" -> "port" scores 0.75),
@@ -28,6 +27,7 @@ def did_you_mean(word: str, choices: Iterable[str]) -> str:
     for option in options:
         if option.lower() == word.lower() and option != word:
             return f"did you mean '{option}'?"
+    import difflib   # only when a key is misspelt
     close = difflib.get_close_matches(word, options, n=1, cutoff=_CUTOFF)
     return f"did you mean '{close[0]}'?" if close else ""
 

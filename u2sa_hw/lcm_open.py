@@ -10,7 +10,6 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
-import tempfile
 import threading
 from typing import Iterator
 
@@ -46,7 +45,9 @@ def captured_c_stderr() -> Iterator[list[str]]:
             printed.append("")
             yield printed
             return
-        with tempfile.TemporaryFile() as tmp:
+        # an anonymous in-memory file: tempfile (and the modules it pulls in) would cost every
+        # service process memory for this one use
+        with open(os.memfd_create("u2sa-lcm-stderr"), "w+b") as tmp:
             os.dup2(tmp.fileno(), 2)
             try:
                 yield printed

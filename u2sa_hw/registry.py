@@ -34,6 +34,15 @@ SERVICE_KINDS: dict[str, str] = {
 }
 
 
+# Built-in kinds that are not actuators: the RC mux reads the profile's actuators at start and
+# skips these without importing them (the estimator's numpy, the GPS's pyserial would otherwise
+# sit in the mux's memory). tests/test_registry.py checks this table against the classes.
+NOT_ACTUATOR_KINDS = frozenset({
+    "state_estimator", "mission_manager", "world_modeler", "path_planner", "control", "hsm", "recorder",
+    "foxglove_bridge", "gps_nmea", "compass_serial", "gpio_input", "imu_mpu9250", "imu_bno055",
+})
+
+
 def known_kinds() -> dict[str, str]:
     """Every registered kind, built-in ones and those from entry points."""
     from importlib.metadata import entry_points   # scanning installed packages costs ~15 ms: only when needed

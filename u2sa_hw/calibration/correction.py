@@ -12,11 +12,15 @@ import math
 from dataclasses import dataclass
 from typing import Sequence
 
-import numpy as np
-
 ZERO3 = [0.0, 0.0, 0.0]
 IDENTITY9 = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
 MIN_DETERMINANT = 1e-6   # a matrix this close to singular would blow noise up (or flip an axis to zero)
+
+
+def determinant3(m: Sequence[float]) -> float:
+    """The determinant of a row-major 3x3 matrix (the drivers apply a correction without numpy)."""
+    return (m[0] * (m[4] * m[8] - m[5] * m[7]) - m[1] * (m[3] * m[8] - m[5] * m[6])
+            + m[2] * (m[3] * m[7] - m[4] * m[6]))
 
 
 @dataclass(frozen=True)
@@ -36,7 +40,7 @@ class Correction:
                              f"{len(m)}; run 'u2sa calibrate' or reset them to {ZERO3} and {IDENTITY9}")
         if not all(math.isfinite(v) for v in o + m):
             raise ValueError(f"{what}: every number must be finite")
-        det = float(np.linalg.det(np.asarray(m).reshape(3, 3)))
+        det = determinant3(m)
         if det <= MIN_DETERMINANT:
             raise ValueError(f"{what}: the matrix's determinant is {det:.3g}; it must be positive (a singular or "
                              "mirroring matrix is not a calibration)")

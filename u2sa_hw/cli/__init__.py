@@ -59,21 +59,28 @@ class CliError(Exception):
         self.code = code
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser with every subcommand registered."""
+# `u2sa service NAME` is what every unit and the launcher execute: it registers only its own
+# subcommand, so a service process does not import every other command's modules (numpy for
+# calibration, mcap for recording, ...), which cost each service about 10 MB.
+LEAN_COMMANDS = {"service": "u2sa_hw.cli.service_cmd"}
+
+
+def build_parser(*, only: str | None = None) -> argparse.ArgumentParser:
+    """The argument parser with every subcommand registered (*only*: that one module's)."""
     parser = argparse.ArgumentParser(
         prog="u2sa", description="u2sa-hw: run, inspect and control U2SA services on a vehicle.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"u2sa-hw {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for module_name in COMMAND_MODULES:
+    for module_name in [only] if only else COMMAND_MODULES:
         importlib.import_module(module_name).register(sub)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``u2sa`` console script."""
-    parser = build_parser()
+    words = sys.argv[1:] if argv is None else argv
+    parser = build_parser(only=LEAN_COMMANDS.get(words[0]) if words else None)
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()

@@ -42,7 +42,6 @@ neither module imports a port library.
 
 from __future__ import annotations
 
-import difflib
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any, Mapping
@@ -331,6 +330,7 @@ def parse_address(text: str, *, device: str) -> DeviceAddress:
     base = scheme[len(MOCK_PREFIX):] if mock else scheme
     kind, plus, serial_scheme = base.partition("+")
     if kind not in KINDS:
+        import difflib   # only for a misspelt scheme
         close = difflib.get_close_matches(base, [*KINDS, *(MOCK_PREFIX + k for k in KINDS)], n=1)
         hint = f" (did you mean '{close[0]}'?)" if close else ""
         raise AddressError(device, text, f"unknown scheme '{scheme}'{hint}; known: "

@@ -13,7 +13,6 @@ an interface that needs another adds it there (docs/ports.md).
 
 from __future__ import annotations
 
-import difflib
 import math
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping
@@ -88,6 +87,7 @@ def check_params(kind: str, params: Mapping[str, str], fail: Fail) -> None:
     allowed = PARAMS[kind]
     for key in params:
         if key not in allowed:
+            import difflib   # only for a misspelt option
             close = difflib.get_close_matches(key, allowed, n=1)
             hint = f" (did you mean '{close[0]}'?)" if close else ""
             known = ", ".join(allowed) if allowed else "none"

@@ -21,14 +21,18 @@ import errno
 import logging
 import threading
 import time
-from typing import Any
-
-import can
+from typing import TYPE_CHECKING, Any
 
 from u2sa_hw.messages import RawCanFrame
-from u2sa_hw.ports.can_clock import CAN_CLOCKS, CanDeviceClock, StampedUdpMulticastBus
 from u2sa_hw.ports.errors import PortClosed, PortIOError, PortUnavailable
 from u2sa_hw.ports.tap import RX, TX, Tap, call_tap, tapping
+
+# python-can (about 11 MB of memory) is imported when a bus opens, not with this module: the RC
+# mux imports the CAN motor drivers only to read their actuator names, and must not pay for it.
+if TYPE_CHECKING:
+    import can
+
+    from u2sa_hw.ports.can_clock import CanDeviceClock
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +60,8 @@ def _error_code(exc: BaseException) -> int | None:
 
 def _open_fix(interface: str, channel: str, bitrate: int | None, exc: BaseException) -> str:
     """Advice for a failure to open the bus."""
+    import can
+
     code = _error_code(exc)
     if isinstance(exc, can.CanInterfaceNotImplementedError):
         return (f"interface '{interface}' is not usable here: use one python-can knows "
@@ -95,6 +101,9 @@ class CanPort:
     def __init__(self, bus: can.BusABC, *, device: str, interface: str, channel: str,
                  bitrate: int | None = None, tap: Tap | None = None,
                  clock: CanDeviceClock | None = None) -> None:
+        import can
+
+        self._errors = (can.CanError, OSError, ValueError)
         self.device = device
         self.interface = interface
         self.channel = channel
@@ -143,7 +152,7 @@ class CanPort:
         self._check_open()
         try:
             self._bus.send(msg, timeout=timeout)
-        except (can.CanError, OSError, ValueError) as exc:
+        except self._errors as exc:
             raise self._fail(exc, "send") from exc
         if tapping(self._tap):
             call_tap(self._tap, _record(self.device, TX, msg))
@@ -153,7 +162,7 @@ class CanPort:
         self._check_open()
         try:
             msg = self._bus.recv(timeout)
-        except (can.CanError, OSError, ValueError) as exc:
+        except self._errors as exc:
             raise self._fail(exc, "receive") from exc
         if msg is not None:
             if self.clock is not None and msg.timestamp:   # an unstamped frame (another member's) leaves it
@@ -190,6 +199,10 @@ def open_can(*, device: str, interface: str, channel: str, bitrate: int | None =
     the fix when the bus cannot be opened. ``clock="stamped"`` (udp_multicast only: a replay's bus)
     keeps the senders' stamps and gives the port a device clock; any other interface refuses it.
     """
+    import can
+
+    from u2sa_hw.ports.can_clock import CAN_CLOCKS, CanDeviceClock, StampedUdpMulticastBus
+
     kwargs = dict(bus_options)
     clock = kwargs.pop("clock", None)
     address = f"{interface}:{channel}"

@@ -16,8 +16,10 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-import can
+if TYPE_CHECKING:
+    import can
 
 # the command ids and the enumerations live in their own table modules, re-exported here for one import
 from u2sa_hw.protocols.odrive_commands import (COMMAND_NAMES_05, COMMAND_NAMES_06,  # noqa: F401
@@ -71,11 +73,13 @@ def split_arbitration_id(arb_id: int) -> tuple[int, int]:
 
 def make_frame(node_id: int, cmd: int, data: bytes = b"") -> can.Message:
     """A standard-id data frame carrying *data* for *cmd* of *node_id*."""
+    import can   # loads python-can with the first frame (see u2sa_hw/ports/can_port.py)
     return can.Message(arbitration_id=arbitration_id(node_id, cmd), data=data, is_extended_id=False)
 
 
 def make_request(node_id: int, cmd: int, *, dlc: int = 0) -> can.Message:
     """An RTR frame asking *node_id* for a ``Get_*`` value (candump ``009#R``)."""
+    import can
     return can.Message(arbitration_id=arbitration_id(node_id, cmd), is_remote_frame=True, dlc=dlc,
                        is_extended_id=False)
 

@@ -48,13 +48,13 @@ def profile_wiring(profile: VehicleProfile) -> Wiring:
     """Collect the actuators and RC channels of every enabled service of *profile*."""
     from u2sa_hw.abstract import Actuator
     from u2sa_hw.config import ConfigError, Configurator
-    from u2sa_hw.registry import resolve_kind
+    from u2sa_hw.registry import NOT_ACTUATOR_KINDS, resolve_kind
     from u2sa_hw.service import BASE_CONFIG
 
     actuators: dict[str, tuple[str, str]] = {}
     rc_service, rc_channels = None, ()
     for name, spec in profile.services.items():
-        if not spec.enabled:
+        if not spec.enabled or spec.kind in NOT_ACTUATOR_KINDS:
             continue
         try:
             cls = resolve_kind(spec.kind)
