@@ -1,0 +1,426 @@
+#!/usr/bin/env python3
+"""The budget bench: the example vehicle's services held to a CPU budget, stepped down.
+
+A Raspberry Pi-class board shares its cores with the team's own work. This bench asks how
+little CPU the stack needs before its mission or its safety deadlines give: it holds the
+example ground vehicle's 12 services to a cgroup CPU quota (a share of one core), with the
+mock devices and the simulator (the ``u2sa sim`` process) outside the budget, and steps the
+budget down (``--budgets``, default 100, 60, 40, 30, 20 % of one core).
+
+At each step it plays, ``--runs`` times each (a fresh budget group per run):
+  mission        the example mission (as ``make sim``): completed?, its time, start-up,
+                 autonomy losses (the pilot re-engages; more than 3 fail the run), and the
+                 stack's CPU: from the cgroup's own usage counter (cpuacct / cpu.stat),
+                 so every restart and both scheduling classes count, over the whole run
+                 (start-up included) and while driving; "sim" is the u2sa sim process
+                 (mocks, simulator) plus the services; "thr" the share of quota periods
+                 in which the budget throttled the group.
+  rc_loss        the RC link dropped mid-mission: ms from each loss to every moving
+                 wheel output neutral (target <= 200 ms), as bench/failsafe.py measures it.
+  manual_switch  the pilot's switch to manual: ms to the autonomous outputs stopped
+                 (target <= 50 ms).
+
+How to read it: the HEADLINE is the lowest budget at which everything holds at that step
+and at every higher one: the missions completed, no autonomy loss, every failsafe event
+within its target (the maximum, not the median). Below the table each step that did not
+hold says why. CPU figures are % of one core of this machine; a Pi 4 core runs Python
+several times slower, so a budget here is a smaller share of a Pi.
+
+Real time (cgroup v1 with RT group scheduling): the safety chain runs SCHED_FIFO when
+permitted, and a CFS quota does not hold real-time tasks, so the budget sets the group's
+``cpu.rt_runtime_us`` to the same share; the usage figure counts both. cgroup v2 has no RT
+budget: use ``--no-realtime`` there for an honest figure. ``--whole-sim`` puts the whole
+``u2sa sim`` process in the budget instead. ``--selftest`` checks that a budget limits.
+
+Needs root (it creates cgroups ``u2sa-sbc-<pid>`` and moves processes; every group is
+removed at the end, Ctrl-C included). It prints figures; its exit status says only that it ran.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import resource
+import signal
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+from bench.cpu_budget import (BudgetError, CpuBudget, Hierarchy, detect, parse_budgets,  # noqa: E402
+                              read_usage_ns, require_root, selftest)
+from bench.failsafe import CASES, Measure, timings  # noqa: E402
+
+VEHICLE = REPO / "examples" / "ground_vehicle" / "vehicle.toml"
+FAILSAFE = {c.name: c for c in CASES if c.name in ("rc_loss", "manual_switch")}
+KINDS = ("mission", *FAILSAFE)
+LOST = re.compile(r"check lost while autonomous: (\w+)")
+ECHO = ("ready after", "autonomy lost", "re-arming", "completed in", "FAILED", "TIMED OUT", "real-time",
+        "normal priority", "refused", "cannot join", "all neutral after", "never neutral")
+
+
+@dataclass
+class RunResult:
+    """One run's figures (CPU figures: % of one core; None where the run did not get that far)."""
+
+    kind: str
+    result: str
+    reason: str = ""
+    mission_time_s: float | None = None
+    startup_s: float | None = None
+    losses: int = 0
+    times_ms: list[float] = field(default_factory=list)
+    misses: int = 0
+    stack_pct: float | None = None
+    stack_drive_pct: float | None = None
+    sim_drive_pct: float | None = None
+    periods: tuple[int, int] = (0, 0)
+    restarts: int = 0
+    causes: dict[str, int] = field(default_factory=dict)   # pre-arm check -> times lost while autonomous
+    rusage_pct: float | None = None   # the services' own getrusage over the run: a check on the cgroup figure
+
+
+@dataclass
+class Step:
+    """The runs at one budget."""
+
+    percent: float
+    runs: list[RunResult] = field(default_factory=list)
+
+    def of(self, kind: str) -> list[RunResult]:
+        """This step's runs of *kind*."""
+        return [r for r in self.runs if r.kind == kind]
+
+    def problems(self) -> list[str]:
+        """Why this step does not hold; empty when everything holds."""
+        out = []
+        for run in self.of("mission"):
+            if run.result != "completed":
+                out.append(f"mission {run.result}: {run.reason}")
+        losses = sum(r.losses for r in self.of("mission"))
+        if losses:
+            causes: Counter[str] = Counter()
+            for run in self.of("mission"):
+                causes.update(run.causes)
+            why = ", ".join(f"{check} x{n}" for check, n in causes.most_common())
+            out.append(f"{losses} autonomy loss{'es' * (losses > 1)}" + (f" (checks lost: {why})" if why else ""))
+        for name, case in FAILSAFE.items():
+            target = case.measures[0].target_ms
+            runs = self.of(name)
+            for run in runs:
+                if run.result != "completed":
+                    out.append(f"{name} {run.result}: {run.reason}")
+            times = [t for r in runs for t in r.times_ms]
+            misses = sum(r.misses for r in runs)
+            if misses:
+                out.append(f"{name}: {misses} event(s) not measured (nothing moving at the event, or never neutral)")
+            if runs and not times:
+                out.append(f"{name}: no measurement")
+            elif times and target is not None and max(times) > target:
+                out.append(f"{name}: max {max(times):.0f} ms > {target:g} ms")
+        return out
+
+
+def headline(steps: list[Step], *, whole_sim: bool = False) -> str:
+    """The lowest budget at which this step and every higher one hold, and what gave below it."""
+    what = "the whole u2sa sim (mocks and simulator included)" if whole_sim else \
+        "the services (mocks and simulator outside the budget)"
+    ordered = sorted(steps, key=lambda s: -s.percent)
+    lowest: Step | None = None
+    for step in ordered:
+        if step.problems():
+            break
+        lowest = step
+    if lowest is None:
+        return f"HEADLINE: nothing held, not even at {ordered[0].percent:g} % of one core for {what}: " + \
+            "; ".join(ordered[0].problems())
+    text = f"HEADLINE: everything holds down to {lowest.percent:g} % of one core for {what}"
+    below = [s for s in ordered if s.percent < lowest.percent]
+    if below:
+        text += f"; at {below[0].percent:g} %: " + "; ".join(below[0].problems())
+        held_again = [f"{s.percent:g}" for s in below[1:] if not s.problems()]
+        if held_again:
+            text += f" (yet held again at {', '.join(held_again)} %: noise at the edge)"
+    elif ordered[-1] is lowest:
+        text += " (the lowest budget tried)"
+    return text
+
+
+def _fmt(value: float | None, digits: int = 1) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def _mean(values: list[float | None]) -> float | None:
+    present = [v for v in values if v is not None]
+    return statistics.fmean(present) if present else None
+
+
+def table(steps: list[Step]) -> list[str]:
+    """The figures, one row per budget."""
+    rc, manual = (FAILSAFE[n].measures[0].target_ms for n in FAILSAFE)
+    lines = [f"{'budget':>7} {'mission':>15} {'start':>6} {'losses':>6} {f'RC loss<={rc:g}':>13} "
+             f"{f'manual<={manual:g}':>13} {'stack %':>8} {'driving':>8} {'sim %':>6} {'thr %':>6}  holds",
+             f"{'% core':>7} {'done, time s':>15} {'s':>6} {'':>6} {'med/max ms':>13} {'med/max ms':>13} "
+             f"{'run':>8} {'stack %':>8} {'drive':>6} {'':>6}"]
+    for step in sorted(steps, key=lambda s: -s.percent):
+        missions = step.of("mission")
+        measured = missions or step.runs   # CPU from the mission runs, the nominal load, when there are some
+        done = sum(r.result == "completed" for r in missions)
+        mtime = _mean([r.mission_time_s for r in missions if r.result == "completed"])
+        cells = []
+        for name in FAILSAFE:
+            times = [t for r in step.of(name) for t in r.times_ms]
+            misses = sum(r.misses for r in step.of(name))
+            cells.append((f"{statistics.median(times):.0f}/{max(times):.0f}" if times else "-") + ("!" * bool(misses)))
+        periods = sum(r.periods[0] for r in measured)
+        throttled = 100.0 * sum(r.periods[1] for r in measured) / periods if periods else None
+        lines.append(f"{step.percent:>5g} % {f'{done}/{len(missions)} {_fmt(mtime)}':>15} "
+                     f"{_fmt(_mean([r.startup_s for r in missions])):>6} {sum(r.losses for r in missions):>6} "
+                     f"{cells[0]:>13} {cells[1]:>13} {_fmt(_mean([r.stack_pct for r in measured])):>8} "
+                     f"{_fmt(_mean([r.stack_drive_pct for r in measured])):>8} "
+                     f"{_fmt(_mean([r.sim_drive_pct for r in measured])):>6} {_fmt(throttled):>6}  "
+                     f"{'no' if step.problems() else 'yes'}")
+    return lines
+
+
+# -- one run, in a child process of its own (``--_one-run``) ----------------------------------
+def one_run(spec: dict[str, Any]) -> int:
+    """Play one sim run; write the CPU windows beside its summary (``sbc-run.json``)."""
+    from simulation.progress import ProgressLine
+    from simulation.runner import SimOptions, SimRun
+    from u2sa_hw.udp_ports import private_lcm_url, private_udp_port
+
+    usage_file, with_runner = Path(spec["usage_file"]), spec["with_runner"]
+    samples: list[tuple[float, int, int]] = []
+    done = threading.Event()
+
+    def sample() -> None:
+        samples.append((time.monotonic(), read_usage_ns(usage_file), time.process_time_ns()))
+
+    def sampler() -> None:
+        while not done.wait(0.5):
+            sample()
+
+    scenario = FAILSAFE[spec["kind"]].scenario if spec["kind"] in FAILSAFE else None
+    out = Path(spec["out"])
+    options = SimOptions(vehicle=VEHICLE, out=out, lcm_url=private_lcm_url(), can_port=private_udp_port(),
+                         timeout_s=spec["timeout_s"], scenario=REPO / scenario if scenario else None,
+                         service_cgroup=Path(spec["service_cgroup"]), realtime=spec["realtime"])
+    run = SimRun(options, progress=ProgressLine(sys.stdout, interactive=False, plain_every_s=15))
+    sample()
+    thread = threading.Thread(target=sampler, daemon=True)
+    thread.start()
+    run.run()
+    done.set()
+    thread.join()
+    sample()
+
+    def window(t0: float | None, t1: float | None) -> dict[str, float] | None:
+        if t0 is None or t1 is None:
+            return None
+        a = min(samples, key=lambda s: abs(s[0] - t0))
+        b = min(samples, key=lambda s: abs(s[0] - t1))
+        wall, used, own = b[0] - a[0], (b[1] - a[1]) / 1e9, (b[2] - a[2]) / 1e9
+        if wall <= 0:
+            return None
+        stack, whole = (used - own, used) if with_runner else (used, used + own)
+        return {"wall_s": wall, "stack_pct": 100 * stack / wall, "sim_pct": 100 * whole / wall}
+
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    figures = {"run": window(samples[0][0], samples[-1][0]), "drive": window(run.record.t_engage, run.record.t_end),
+               "rusage_stack_pct": 100 * (children.ru_utime + children.ru_stime) / (samples[-1][0] - samples[0][0])}
+    (out / "sbc-run.json").write_text(json.dumps(figures, indent=1))
+    return 0
+
+
+def play(*, hierarchy: Hierarchy, percent: float, kind: str, out: Path, args: argparse.Namespace) -> RunResult:
+    """One run at *percent* in a fresh budget group: the child's lines worth seeing echoed, its figures."""
+    out.mkdir(parents=True, exist_ok=True)
+    for stale in ("summary.json", "sbc-run.json"):
+        (out / stale).unlink(missing_ok=True)
+    with CpuBudget(hierarchy, percent, whole_sim=args.whole_sim) as budget:
+        usage_file, with_runner = budget.usage_file()
+        spec = {"kind": kind, "out": str(out), "timeout_s": args.timeout, "service_cgroup": str(budget.group),
+                "usage_file": str(usage_file), "with_runner": with_runner, "realtime": not args.no_realtime}
+
+        def preexec() -> None:
+            os.setpgid(0, 0)   # Ctrl-C reaches the bench only, which stops the child in order
+            budget.runner_join()
+
+        proc = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--_one-run", json.dumps(spec)],
+                                cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                env=os.environ | {"PYTHONUNBUFFERED": "1"}, preexec_fn=preexec)
+        try:
+            with (out / "sbc.log").open("w") as log:
+                for line in proc.stdout:
+                    log.write(line)
+                    if any(marker in line for marker in ECHO):
+                        print(f"      {line.rstrip()[:150]}", flush=True)
+            proc.wait()
+        except BaseException:
+            proc.send_signal(signal.SIGINT)   # SimRun finishes on Ctrl-C: services and mocks stopped
+            try:
+                proc.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+            raise
+        periods = budget.throttling()
+    say_launcher_lines(out / "services.log")
+    return result_of(kind, out, periods, exit_code=proc.returncode)
+
+
+_SAID: set[str] = set()
+
+
+def say_launcher_lines(log: Path) -> None:
+    """Echo, once per bench, what the launcher said about real-time priority and the cgroup."""
+    try:
+        lines = log.read_text(errors="replace").splitlines()
+    except OSError:
+        return
+    for line in lines:
+        name, _, text = line.partition("|")
+        if name.strip() == "launcher" and any(k in text for k in ("real-time", "cgroup", "refused", "priority")):
+            text = text.strip().replace(f"-{os.getpid()}", "-<pid>")
+            if text not in _SAID:
+                _SAID.add(text)
+                print(f"      launcher: {text}", flush=True)
+
+
+def result_of(kind: str, out: Path, periods: tuple[int, int], *, exit_code: int) -> RunResult:
+    """A RunResult from the run's summary.json and sbc-run.json."""
+    try:
+        summary = json.loads((out / "summary.json").read_text())
+    except (OSError, ValueError):
+        return RunResult(kind, "failed", f"no summary (exit {exit_code}; see {out / 'sbc.log'})", periods=periods)
+    figures = json.loads((out / "sbc-run.json").read_text()) if (out / "sbc-run.json").exists() else {}
+    run, drive = figures.get("run") or {}, figures.get("drive") or {}
+    times: list[float] = []
+    misses = 0
+    if kind in FAILSAFE:
+        measure: Measure = FAILSAFE[kind].measures[0]
+        times, misses = timings(summary, measure)
+    return RunResult(kind, summary["result"], summary.get("reason", ""), summary.get("mission_time_s"),
+                     summary.get("startup_s"), len(summary.get("autonomy_interruptions") or []), times, misses,
+                     run.get("stack_pct"), drive.get("stack_pct"), drive.get("sim_pct"), periods,
+                     sum(s.get("restarts", 0) for s in (summary.get("services") or {}).values()),
+                     lost_checks(out / "services.log"), figures.get("rusage_stack_pct"))
+
+
+def lost_checks(log: Path) -> dict[str, int]:
+    """Pre-arm check -> how often the RC mux dropped autonomy for it (its log's "check lost" lines)."""
+    try:
+        return dict(Counter(m.group(1) for m in LOST.finditer(log.read_text(errors="replace"))))
+    except OSError:
+        return {}
+
+
+def describe(run: RunResult) -> str:
+    """One progress line for a finished run."""
+    text = run.result
+    if run.kind == "mission":
+        text += f", mission {_fmt(run.mission_time_s)} s, start-up {_fmt(run.startup_s)} s"
+        text += f", {run.losses} autonomy losses"
+    else:
+        text += f", {' '.join(f'{t:.0f}' for t in run.times_ms) or 'no'} ms"
+        text += f", {run.misses} not measured" if run.misses else ""
+    text += f", stack {_fmt(run.stack_pct)} % of one core over the run"
+    if run.stack_pct is not None and run.rusage_pct is not None and abs(run.stack_pct - run.rusage_pct) > 2.0:
+        text += f" (but {run.rusage_pct:.1f} % by the services' own getrusage: is every service in the group?)"
+    if run.restarts:
+        text += f", {run.restarts} restarts"
+    return text + (f" ({run.reason})" if run.reason else "")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Step the budget down and print the table and the headline."""
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--budgets", default="100,60,40,30,20",
+                        help="%% of one core, highest first (default %(default)s)")
+    parser.add_argument("--runs", type=int, default=1, help="runs of each kind per budget (default 1)")
+    parser.add_argument("--whole-sim", action="store_true", help="the whole u2sa sim process in the budget, mocks too")
+    parser.add_argument("--no-realtime", action="store_true",
+                        help="the services and the sim may not take a real-time priority (for cgroup v2)")
+    parser.add_argument("--kinds", default=",".join(KINDS), help="which runs per step (default %(default)s)")
+    parser.add_argument("--timeout", type=float, default=240.0, help="each run's timeout, s (default 240)")
+    parser.add_argument("--out", type=Path, default=REPO / "bench-out" / "sbc", help="run output (default %(default)s)")
+    parser.add_argument("--selftest", action="store_true", help="only check that a budget limits busy loops")
+    parser.add_argument("--_one-run", dest="one_run", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.one_run:
+        return one_run(json.loads(args.one_run))
+    try:
+        budgets = parse_budgets(args.budgets)
+        kinds = [k for k in args.kinds.split(",") if k]
+        if unknown := set(kinds) - set(KINDS):
+            raise ValueError(f"unknown kinds {sorted(unknown)} (choose from {', '.join(KINDS)})")
+        require_root()
+        hierarchy = detect()
+    except ValueError as exc:
+        parser.error(str(exc))
+    except BudgetError as exc:
+        sys.exit(f"bench/sbc.py: {exc}")
+    signal.signal(signal.SIGTERM, signal.default_int_handler)   # cleanup as on Ctrl-C
+    print(f"u2sa-hw budget bench: {hierarchy.describe()}")
+    print(f"  {os.cpu_count()} CPUs, Python {sys.version.split()[0]}, load average "
+          f"{' / '.join(f'{x:.1f}' for x in os.getloadavg())}; budgets {', '.join(f'{b:g}' for b in budgets)} % "
+          f"of one core; {'the whole u2sa sim' if args.whole_sim else 'the services only'} in the budget; "
+          f"real-time {'off (--no-realtime)' if args.no_realtime else 'as permitted'}")
+    if hierarchy.version == 2 and not args.no_realtime:
+        print("  cgroup v2: cpu.max does not hold real-time tasks: the safety chain's SCHED_FIFO time is outside the "
+              "budget (still counted in the usage); --no-realtime for an honest budget")
+    if args.selftest:
+        for line in selftest(hierarchy, budgets):
+            print("  " + line, flush=True)
+        return 0
+    from u2sa_hw.bus_key import use_run_key
+
+    use_run_key()
+    steps: list[Step] = []
+    total, n, started = len(budgets) * len(kinds) * args.runs, 0, time.monotonic()
+    try:
+        for percent in budgets:
+            step = Step(percent)
+            steps.append(step)
+            for index in range(args.runs):
+                for kind in kinds:
+                    n += 1
+                    print(f"[{percent:g} % | {n}/{total} | {time.monotonic() - started:5.0f} s] {kind} run "
+                          f"{index + 1}/{args.runs}", flush=True)
+                    t0 = time.monotonic()
+                    mode = "whole" if args.whole_sim else "services"
+                    run = play(hierarchy=hierarchy, percent=percent, kind=kind, args=args,
+                               out=args.out / f"{mode}-{percent:g}" / f"{kind}-{index + 1}")
+                    step.runs.append(run)
+                    print(f"    {describe(run)} [{time.monotonic() - t0:.0f} s]", flush=True)
+            print(f"  {percent:g} %: " + ("; ".join(step.problems()) or "everything holds"), flush=True)
+    except KeyboardInterrupt:
+        print("\ninterrupted: the figures so far", flush=True)
+        if steps and not steps[-1].runs:
+            steps.pop()
+    if not steps:
+        return 1
+    print(f"\nload average at the end {' / '.join(f'{x:.1f}' for x in os.getloadavg())}; "
+          f"{time.monotonic() - started:.0f} s in all; runs under {args.out}")
+    for line in table(steps):
+        print(line)
+    for step in sorted(steps, key=lambda s: -s.percent):
+        if problems := step.problems():
+            print(f"  {step.percent:g} %: " + "; ".join(problems))
+    print(headline(steps, whole_sim=args.whole_sim))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
