@@ -38,7 +38,7 @@ from simulation.scenario import load_scenario
 from simulation.script import ScriptRunner
 from simulation.summary import RunRecord, TrackSample, summarise, summary_text, write_summary, write_track_csv
 from u2sa_hw.launcher import Launcher, RestartPolicy
-from u2sa_hw.realtime import SIM_DEVICES_PRIORITY, plan
+from u2sa_hw.realtime import SIM_DEVICES_PRIORITY, ProcessPriority, plan
 from u2sa_hw.vehicle import load_profile
 
 SAMPLE_HZ = 10.0
@@ -73,7 +73,7 @@ class SimOptions:
     grace_s: float = 3.0
     scenario: Path | None = None        # a failsafe scenario file (simulation.events)
     service_cgroup: Path | None = None  # every service (each restart too) joins this cgroup; the mocks stay out
-    realtime: bool = True               # the safety chain and the mock devices' threads SCHED_FIFO, when permitted
+    realtime: bool = True               # the safety chain and this process (the mocks) SCHED_FIFO, when permitted
 
 
 class SimRun:
@@ -94,6 +94,7 @@ class SimRun:
         self.monitor: BusMonitor | None = None
         self.launcher: Launcher | None = None
         self.realtime = plan(enabled=options.realtime)
+        self._priority: ProcessPriority | None = None   # this process's raise, undone by stop()
         self.record = RunRecord(vehicle=self.profile.name, mission=self.scenario.mission_name,
                                 looping=self.scenario.looping, goals=self.scenario.goals,
                                 obstacles=self.scenario.obstacles, t_start=time.monotonic())
@@ -121,10 +122,10 @@ class SimRun:
                                   can_udp_port=self.options.can_port, check_inputs=True)
         timeout = self.options.timeout_s or self.mocks.settings.timeout_s
         self.deadline = self.record.t_start + timeout
-        # The mock devices' threads run real-time below the safety chain: a real RC receiver or motor
-        # controller does not stall when the board is busy, and a stalled mock is a false NO RC SIGNAL.
-        with self.realtime.threads_started_here(SIM_DEVICES_PRIORITY) as refused:
-            self.mocks.start()
+        # This process hosts the mock devices: real-time below the safety chain, since a real RC receiver or
+        # motor controller does not stall when the board is busy (a stalled mock is a false NO RC SIGNAL).
+        self._priority = self.realtime.raise_process(SIM_DEVICES_PRIORITY)
+        self.mocks.start()
         record_dir = self.out / "recording" if self.options.record else None
         overrides: dict[str, dict[str, Any]] = {}
         if record_dir is not None:   # the drivers tap their ports too, so the recording can be replayed
@@ -136,7 +137,7 @@ class SimRun:
         sim_profile = load_profile(sim_profile_path)
         self.monitor = BusMonitor(sim_profile.lcm_url)
         self._say_start(sim_profile, timeout)
-        for line in ([self.realtime.notice] if self.realtime.notice else refused):
+        for line in filter(None, [self.realtime.notice or self._priority.refused]):
             self.progress.event(f"  {line}")
         self._services_log = (self.out / "services.log").open("w", buffering=1)
         self.launcher = Launcher(sim_profile, grace_s=self.options.grace_s, output=self._on_output,
@@ -328,6 +329,8 @@ class SimRun:
             self._services_log = None
         if self._tmp_device_dir is not None:
             shutil.rmtree(self._tmp_device_dir, ignore_errors=True)
+        if self._priority is not None:
+            self._priority.restore()
 
     # -- internals -----------------------------------------------------------------------
     def _say_start(self, sim_profile: Any, timeout: float) -> None:

@@ -69,22 +69,30 @@ def test_throttling_off_or_no_realtime_leaves_everyone_normal() -> None:
     assert priority_for("gps_nmea") == 0
 
 
-def test_the_sim_raises_only_the_threads_it_starts_in_the_block_then_drops_back() -> None:
+def test_the_sim_raises_every_thread_of_its_process_and_restores_them() -> None:
     calls: list[tuple[int, Schedule]] = []
-    with plan(calls=fake(cap=True, calls=calls)).threads_started_here() as refused:
-        assert calls == [(0, Schedule(SIM_DEVICES_PRIORITY))]
-    assert refused == [] and calls[-1] == (0, NORMAL)
+    threads = [101, 102, 103]
+    sched = fake(cap=True, calls=calls)
+    sched = SchedCalls(cap_sys_nice=sched.cap_sys_nice, rlimit_rtprio=sched.rlimit_rtprio,
+                       throttle_us=sched.throttle_us, setscheduler=sched.setscheduler, threads=lambda: threads)
+    raised = plan(calls=sched).raise_process()
+    assert calls == [(tid, Schedule(SIM_DEVICES_PRIORITY)) for tid in (101, 102, 103)] and raised.refused is None
     calls.clear()
-    with plan(calls=fake(rtprio=5, calls=calls)).threads_started_here():
-        pass
-    assert calls == [(0, Schedule(5)), (0, NORMAL)]
-    calls.clear()
-    with plan(calls=fake(rtprio=0, calls=calls)).threads_started_here() as refused:
-        pass
-    assert calls == [] and refused == []                         # not permitted: the plan's notice says it
-    with plan(calls=fake(cap=True, refuse=True)).threads_started_here() as refused:
-        pass
-    assert refused == ["the simulated devices run at normal priority: Operation not permitted"]
+    threads.append(104)   # started since: it inherited the raise, and is restored too
+    raised.restore()
+    raised.restore()      # once only
+    assert calls == [(tid, NORMAL) for tid in (101, 102, 103, 104)]
+
+    capped: list[tuple[int, Schedule]] = []
+    five = fake(rtprio=5, calls=capped)
+    plan(calls=SchedCalls(five.cap_sys_nice, five.rlimit_rtprio, five.throttle_us, five.setscheduler,
+                          threads=lambda: [7])).raise_process()
+    assert capped == [(7, Schedule(5))]
+    none: list[tuple[int, Schedule]] = []
+    denied = plan(calls=fake(rtprio=0, calls=none)).raise_process()
+    assert none == [] and denied.refused is None                 # not permitted: the plan's notice says it
+    refused = plan(calls=fake(cap=True, refuse=True)).raise_process()
+    assert refused.refused == "the simulated devices run at normal priority: Operation not permitted"
 
 
 def _profile(tmp_path: Path, kinds: dict[str, str]) -> Path:

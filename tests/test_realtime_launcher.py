@@ -81,3 +81,31 @@ def test_a_spinning_real_time_child_on_the_launchers_only_cpu_is_still_killed_by
     (status,) = launcher.status()
     assert status.watchdog_kills == 1 and status.result == "watchdog", status
     assert int(THROTTLE_FILE.read_text()) == throttle   # untouched
+
+
+def _policies() -> set[tuple[int, int]]:
+    found = set()
+    for stat in Path("/proc/self/task").glob("*/stat"):
+        fields = stat.read_text().rpartition(")")[2].split()
+        found.add((int(fields[41 - 3]), int(fields[40 - 3])))
+    return found
+
+
+def test_the_sim_process_raises_all_its_threads_and_stop_puts_them_back() -> None:
+    import threading
+
+    release = threading.Event()
+    waiter = threading.Thread(target=release.wait)   # a thread that existed before the raise
+    waiter.start()
+    raised = PERMITTED.raise_process()
+    try:
+        late: dict[str, int] = {}
+        later = threading.Thread(target=lambda: late.update(policy=os.sched_getscheduler(0)))
+        later.start()
+        later.join()
+        assert _policies() == {(os.SCHED_FIFO, 10)} and late == {"policy": os.SCHED_FIFO}
+    finally:
+        raised.restore()
+        release.set()
+        waiter.join()
+    assert _policies() == {(os.SCHED_OTHER, 0)}

@@ -19,12 +19,11 @@ The system calls are injectable (:class:`SchedCalls`) so tests fake them.
 
 from __future__ import annotations
 
-import contextlib
 import os
 import resource
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator, Mapping
+from typing import Callable, Mapping
 
 SAFETY_CHAIN_PRIORITIES: Mapping[str, int] = {
     "rc_mux": 30,       # the pilot's hand-over and the manual path: highest of ours
@@ -90,6 +89,10 @@ def _throttle_us() -> int | None:
         return None
 
 
+def _threads() -> list[int]:
+    return [int(tid) for tid in os.listdir("/proc/self/task")]
+
+
 def _set(pid: int, schedule: Schedule) -> None:
     os.sched_setscheduler(pid, schedule.policy, os.sched_param(schedule.priority))
 
@@ -101,7 +104,8 @@ class SchedCalls:
     cap_sys_nice: Callable[[], bool] = _cap_sys_nice
     rlimit_rtprio: Callable[[], int] = _rlimit_rtprio
     throttle_us: Callable[[], int | None] = _throttle_us   # sched_rt_runtime_us, None if unreadable
-    setscheduler: Callable[[int, Schedule], None] = _set   # pid (0: the calling thread), schedule
+    setscheduler: Callable[[int, Schedule], None] = _set   # pid or thread id (0: the calling thread), schedule
+    threads: Callable[[], list[int]] = _threads            # the thread ids of this process
 
 
 def priority_for(kind: str) -> int:
@@ -137,28 +141,49 @@ class RealtimePlan:
         """Service name -> schedule, for every service in *kinds* (name -> kind)."""
         return {name: self.schedule_for(kind) for name, kind in kinds.items()}
 
-    @contextlib.contextmanager
-    def threads_started_here(self, priority: int = SIM_DEVICES_PRIORITY) -> Iterator[list[str]]:
-        """Within the block the calling thread runs ``SCHED_FIFO`` *priority* (capped), so the threads it starts
-        (and theirs) do; then it is back at normal priority.
+    def raise_process(self, priority: int = SIM_DEVICES_PRIORITY) -> ProcessPriority:
+        """Put every thread of this process (and so every thread it starts later) at ``SCHED_FIFO`` *priority*.
 
-        For ``u2sa sim``'s mock devices: real hardware does not stall when the board is busy. The list
-        yielded gets the one-line reason when it could not (empty otherwise).
+        For ``u2sa sim``'s process, which hosts the mock devices: real hardware does not stall when the
+        board is busy. The whole process, not only the mocks' threads: a real-time thread waiting for the
+        GIL held by a normal one that the load preempted would stall all the same (priority inversion).
         """
-        refused: list[str] = []
         schedule = Schedule(min(priority, self.ceiling))
-        raised = False
-        if schedule.realtime:
+        done = ProcessPriority(self.calls)
+        if not schedule.realtime:
+            return done
+        for tid in self.calls.threads():
             try:
-                self.calls.setscheduler(0, schedule)
-                raised = True
+                self.calls.setscheduler(tid, schedule)
+            except ProcessLookupError:
+                continue   # a thread that ended meanwhile
             except OSError as exc:
-                refused.append(f"the simulated devices run at normal priority: {exc.strerror or exc}")
-        try:
-            yield refused
-        finally:
-            if raised:
-                self.calls.setscheduler(0, NORMAL)
+                done.refused = f"the simulated devices run at normal priority: {exc.strerror or exc}"
+                break
+            done.raised = True
+        if done.refused:
+            done.restore()
+        return done
+
+
+@dataclass
+class ProcessPriority:
+    """What :meth:`RealtimePlan.raise_process` did: ``refused`` says why not; ``restore()`` undoes it."""
+
+    calls: SchedCalls
+    raised: bool = False
+    refused: str | None = None
+
+    def restore(self) -> None:
+        """Every thread of the process back at normal priority (those started since inherited the raise)."""
+        if not self.raised:
+            return
+        self.raised = False
+        for tid in self.calls.threads():
+            try:
+                self.calls.setscheduler(tid, NORMAL)
+            except OSError:
+                pass   # ended meanwhile; lowering is always permitted otherwise
 
 
 def plan(*, enabled: bool = True, calls: SchedCalls | None = None) -> RealtimePlan:

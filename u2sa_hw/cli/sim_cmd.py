@@ -34,10 +34,11 @@ end: its events at their times (after autonomy engaged), then summary.json's
 level) went neutral and moved again, and the RC_MODE states heard.
 
 As under u2sa run, the safety chain (RC mux, actuator drivers, HSM) runs
-SCHED_FIFO when permitted (root, CAP_SYS_NICE, ulimit -r), and so do the mock
-devices' threads, below it (priority 10): real hardware does not stall when the
-board is busy, and a stalled simulated RC receiver is a false NO RC SIGNAL.
-When not permitted, one line says so (docs/safety.md). --no-realtime: all normal.
+SCHED_FIFO when permitted (root, CAP_SYS_NICE, ulimit -r), and so does this
+process, which hosts the mock devices, below it (priority 10): real hardware
+does not stall when the board is busy, and a stalled simulated RC receiver is a
+false NO RC SIGNAL. When not permitted, one line says so (docs/safety.md).
+--no-realtime: everything at normal priority.
 
 The pilot hands over only once the IMU has calibrated at rest. A profile whose
 devices do not drive every input of its [simulation] model is refused.
