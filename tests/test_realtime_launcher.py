@@ -26,7 +26,8 @@ READY = ("import os, socket\n"
          "s.sendto(b'READY=1', '\\0' + a[1:] if a.startswith('@') else a)\n")
 SHOW = READY + ("import threading, time\n"
                 "seen = {}\n"
-                "t = threading.Thread(target=lambda: seen.update(thread=os.sched_getscheduler(0))); t.start(); t.join()\n"
+                "t = threading.Thread(target=lambda: seen.update(thread=os.sched_getscheduler(0)))\n"
+                "t.start(); t.join()\n"
                 "print('policy', os.sched_getscheduler(0), os.sched_getparam(0).sched_priority, seen['thread'],"
                 " flush=True)\n"
                 "time.sleep(120)\n")
@@ -53,7 +54,8 @@ def test_the_rc_mux_and_its_threads_run_fifo_and_a_sensor_driver_normal(tmp_path
     finally:
         launcher.stop(timeout=20)
     said = {n: line for n, line in lines if line.startswith("policy")}
-    assert said == {"rc": f"policy {os.SCHED_FIFO} 30 {os.SCHED_FIFO}", "gps": f"policy {os.SCHED_OTHER} 0 {os.SCHED_OTHER}"}
+    assert said == {"rc": f"policy {os.SCHED_FIFO} 30 {os.SCHED_FIFO}",
+                    "gps": f"policy {os.SCHED_OTHER} 0 {os.SCHED_OTHER}"}
     assert ("launcher", "real-time (SCHED_FIFO): rc 30") in lines
 
 

@@ -67,8 +67,9 @@ def explain_join(cgroup: Path, err: int) -> str:
     """Why joining *cgroup* failed with *err*, with the fix."""
     text = f"cannot join cgroup {cgroup}: {os.strerror(err)}"
     if err == errno.EINVAL:
-        text += (" (a real-time task cannot enter a cgroup v1 cpu group with cpu.rt_runtime_us 0; give the "
-                 "group an RT budget or start the service at normal priority)")
+        text += " (a real-time task cannot enter a cgroup v1 cpu group with cpu.rt_runtime_us 0: give it an RT budget)"
+    elif err == errno.EBUSY:
+        text += " (cgroup v2: processes may only join a group with no controllers in its cgroup.subtree_control)"
     return text
 
 
@@ -121,7 +122,7 @@ class ChildSetup:
 
 
 def read_report(fd: int) -> tuple[str | None, str | None]:
-    """``(error, warning)`` a child's :meth:`ChildSetup.preexec` left on the pipe *fd* (read end, all writers closed)."""
+    """``(error, warning)`` a child's :meth:`ChildSetup.preexec` left on the pipe *fd* (read end, writers closed)."""
     data = b""
     while True:
         try:
