@@ -13,7 +13,12 @@ axis's id), any frame addressed to the node feeds the watchdog, RTR requests inc
 the watchdog enabled (``watchdog_timeout_s`` at construction is what odrivetool saved; with
 firmware 0.6 a driver writes ``axis0.config.watchdog_timeout``/``enable_watchdog`` by RxSdo), a
 closed-loop axis not fed for that long raises WATCHDOG_TIMER_EXPIRED and disarms; each expiry
-is kept in ``watchdog_trips``. RxSdo reaches the endpoints of mock_devices/odrive_config.py
+is kept in ``watchdog_trips``. A feed counts from when the frame reached the bus interface (its
+receive stamp: the kernel's on udp_multicast), not from when this thread got round to it: a real
+controller is never starved of CPU, and a mock starved by a loaded machine must not trip on frames
+that were on time. So a gap between two frames' stamps longer than the timeout trips it, and after
+the node's own thread was held up (``SELF_STALL_S``) the tick waits one timeout for the frames that
+queued meanwhile before it judges the silence. RxSdo reaches the endpoints of mock_devices/odrive_config.py
 (this mock's own flat_endpoints table for its build MOCK_FW, not a real release's ids) and
 answers reads with TxSdo; ``freeze_config(True)`` makes writes silently not apply. Any axis
 error (watchdog, Estop, ``inject_error``) disarms to IDLE and stops the wheel; Clear_Errors
@@ -42,6 +47,7 @@ from mock_devices.vehicle_sim import SimVehicle
 from u2sa_hw.protocols import odrive_cansimple as cs
 from u2sa_hw.protocols.odrive_cansimple import AxisState, Cmd, ControlMode, InputMode, ProcedureResult
 
+SELF_STALL_S = 0.1   # the node's own thread went this long (real time) between ticks: it was starved
 CALIBRATION_STATES = frozenset({AxisState.STARTUP_SEQUENCE, AxisState.FULL_CALIBRATION_SEQUENCE,
                                 AxisState.MOTOR_CALIBRATION, AxisState.ENCODER_INDEX_SEARCH,
                                 AxisState.ENCODER_OFFSET_CALIBRATION, AxisState.LOCKIN_SPIN,
@@ -112,6 +118,8 @@ class OdriveCanNode(MockCanNode):
         self._pos_offset = 0.0
         self._traj_done = True
         self._last_feed = self._last_tick = 0.0
+        self._last_tick_real = 0.0      # time.monotonic() at the last tick: the thread's own stalls
+        self._judge_silence_from = 0.0  # the node's clock: no tick-judged expiry before this
         self._odometer.rebase()
         self._heartbeat = PeriodicSchedule(self._heartbeat_hz, start=self.clock())
         self._encoder = PeriodicSchedule(self._encoder_hz, start=self.clock())
@@ -182,7 +190,11 @@ class OdriveCanNode(MockCanNode):
         node, cmd = cs.split_arbitration_id(msg.arbitration_id)
         if node != self.node_id:
             return False
-        self._last_feed = now
+        arrival = self._arrival(msg, now)
+        wd = self.config.watchdog_timeout if self.config.enable_watchdog else 0.0
+        if self.axis_state == AxisState.CLOSED_LOOP_CONTROL and wd > 0 and arrival - self._last_feed > wd:
+            self._expire(now)   # the frames' own stamps show a gap longer than the timeout
+        self._last_feed = max(self._last_feed, arrival)
         data = bytes(msg.data)
         if msg.is_remote_frame or (not data and cmd in self._getters):
             getter = self._getters.get(cmd)
@@ -321,15 +333,32 @@ class OdriveCanNode(MockCanNode):
             return
         self._boot()
 
+    @staticmethod
+    def _arrival(msg: can.Message, now: float) -> float:
+        """When *msg* reached the bus interface, on the node's clock: *now* less the age of its receive
+        stamp (wall time), or *now* when it has none or an implausible one."""
+        if not msg.timestamp:
+            return now
+        age = time.time() - float(msg.timestamp)
+        return now - age if 0.0 <= age < 5.0 else now
+
+    def _expire(self, now: float) -> None:
+        self.watchdog_trips.append(now)
+        self._raise_error(self._error_bit("WATCHDOG_TIMER_EXPIRED"))
+
     # ---- control loop ----------------------------------------------------------------
     def _tick(self, now: float) -> None:
         dt = min(now - self._last_tick, 0.1) if self._last_tick else 0.0
         self._last_tick = now
-        pos, vel = self._estimates()
+        real = time.monotonic()
         wd = self.config.watchdog_timeout if self.config.enable_watchdog else 0.0
-        if self.axis_state == AxisState.CLOSED_LOOP_CONTROL and wd > 0 and now - self._last_feed > wd:
-            self.watchdog_trips.append(now)
-            self._raise_error(self._error_bit("WATCHDOG_TIMER_EXPIRED"))
+        if self._last_tick_real and real - self._last_tick_real > SELF_STALL_S:
+            self._judge_silence_from = now + wd   # the frames that queued while this thread waited come first
+        self._last_tick_real = real
+        pos, vel = self._estimates()
+        if (self.axis_state == AxisState.CLOSED_LOOP_CONTROL and wd > 0 and now - self._last_feed > wd
+                and now >= self._judge_silence_from):
+            self._expire(now)
         self._drive(self._setpoint(pos, dt) if self.axis_state == AxisState.CLOSED_LOOP_CONTROL else 0.0)
         if self._heartbeat.due(now):
             self._send(cs.make_frame(self.node_id, Cmd.HEARTBEAT, cs.encode_heartbeat(cs.Heartbeat(
