@@ -97,25 +97,51 @@ class RestCalibration:
     mean below ``max_rate_dps`` (a bias larger than the chip's zero-rate tolerance is a
     rotation), and the specific force within 10 % of g. A steady rotation slower than
     ``max_rate_dps`` cannot be told from bias: the vehicle must be still while it runs.
+
+    Time is the samples' own: each comes with its stamp. A window is judged on its samples'
+    values, so a stall of the process between two samples (no samples for a while) neither
+    fails nor passes it. The bounded fallback is judged on sample time too: after
+    ``give_up_s`` of samples without a window at rest, :attr:`overdue` says so (the driver
+    shows it to the pilot) and the search goes on; a gap between two stamps longer than
+    ``max_gap_s`` (a stall, a reopened chip, a clock that jumped) is not sample time. Moving
+    data is never accepted, however long it lasts: the gyro stays uncalibrated.
     """
 
     GRAVITY = 9.80665
 
-    def __init__(self, *, samples: int, max_std_dps: float, max_rate_dps: float) -> None:
+    def __init__(self, *, samples: int, max_std_dps: float, max_rate_dps: float, give_up_s: float = 30.0,
+                 max_gap_s: float = 0.5) -> None:
         self.samples = samples
         self.max_std_dps = max_std_dps
         self.max_rate_dps = max_rate_dps
+        self.give_up_s = give_up_s
+        self.max_gap_s = max_gap_s
+        self.searched_s = 0.0        # sample time spent looking for rest so far
+        self.last_reason = ""        # why the last window was not at rest
+        self._last_stamp: float | None = None
         self._gyro: list[Vector] = []
         self._accel: list[Vector] = []
 
-    def add(self, gyro: Vector, accel: Vector) -> RestResult | None:
-        """Add one sample; returns the verdict when the window is full (and starts a new one)."""
+    @property
+    def overdue(self) -> bool:
+        """``give_up_s`` of samples went by without a window at rest (the fallback: say so, keep looking)."""
+        return self.searched_s >= self.give_up_s
+
+    def add(self, gyro: Vector, accel: Vector, *, stamp: float) -> RestResult | None:
+        """Add one sample taken at *stamp* (s, the sample's own clock); returns the verdict when the window is
+        full (and starts a new one)."""
+        last, self._last_stamp = self._last_stamp, stamp
+        if last is not None and math.isfinite(stamp) and 0.0 < stamp - last <= self.max_gap_s:
+            self.searched_s += stamp - last
         self._gyro.append(gyro)
         self._accel.append(accel)
         if len(self._gyro) < self.samples:
             return None
         gyro_s, accel_s = self._gyro, self._accel
         self._gyro, self._accel = [], []
+        if not all(math.isfinite(x) for v in (*gyro_s, *accel_s) for x in v):
+            self.last_reason = "unusable: a reading is not a number"
+            return RestResult((0.0, 0.0, 0.0), math.inf, (0.0, 0.0, 0.0), False, self.last_reason)
         g_mean = tuple(statistics.fmean(v[i] for v in gyro_s) for i in range(3))
         a_mean = tuple(statistics.fmean(v[i] for v in accel_s) for i in range(3))
         std = max(math.degrees(statistics.pstdev(v[i] for v in gyro_s)) for i in range(3))
@@ -129,6 +155,7 @@ class RestCalibration:
             reason = f"accelerating: specific force {force:.2f} m/s^2 is not g"
         else:
             reason = ""
+        self.last_reason = reason
         return RestResult(g_mean, std, a_mean, not reason, reason)  # type: ignore[arg-type]
 
 

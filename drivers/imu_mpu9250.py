@@ -13,7 +13,11 @@ What is published (reference_frame "FRD"):
   bias is the mean of ``calibrate_samples`` readings taken at rest after start; a window
   that was not at rest (see :class:`~drivers.imu_common.RestCalibration`) is discarded and
   the next one tried, so a driver restarted while the vehicle moves calibrates at its next
-  stop. Until then the rates carry no bias correction and ``uncalibrated_rate_sigma``.
+  stop. Until then the rates carry no bias correction and ``uncalibrated_rate_sigma``. Rest
+  is judged on the samples, and its time on their stamps, so a stall of the process between
+  samples cannot fail it; after ``rest_timeout_s`` of samples with no window at rest, health
+  says so in one line (``calibration``: "no rest found in 30 s of samples (...)"), the
+  pre-arm IMU check shows it, and the search goes on: moving data never calibrates.
 - x_ddot, y_ddot, z_ddot: body acceleration (m/s^2), i.e. the measured specific force with
   gravity removed. The chip cannot tell gravity from acceleration, so ``gravity`` says
   what is removed: ``rest`` (default) the specific force measured in the rest window
@@ -96,6 +100,8 @@ class Mpu9250ImuDriver(I2cImuDriver):
         field("calibrate_samples", 200, "gyro bias window at rest after start (0: no calibration)", ge=0),
         field("rest_max_std_dps", 0.5, "a window whose gyro std exceeds this is not at rest", gt=0),
         field("rest_max_rate_dps", 10.0, "a window whose mean rate exceeds this is turning, not bias", gt=0),
+        field("rest_timeout_s", 30.0, "seconds of samples without a window at rest before health says the "
+              "vehicle will not keep still (the search goes on; moving data never calibrates)", gt=0),
         field("uncalibrated_rate_sigma", 0.1, "rad/s, rate sigma until the bias is calibrated", gt=0),
         field("gravity", "rest", "what x_ddot..z_ddot lose: rest, level or none (no accelerations)", choices=GRAVITY_MODES),
         field("mag_offset", list(ZERO3), "magnetometer hard iron (µT, body FRD); set by u2sa calibrate compass",
@@ -165,7 +171,8 @@ class Mpu9250ImuDriver(I2cImuDriver):
         if int(c["calibrate_samples"]) > 0:
             self.calibration = RestCalibration(samples=int(c["calibrate_samples"]),
                                                max_std_dps=float(c["rest_max_std_dps"]),
-                                               max_rate_dps=float(c["rest_max_rate_dps"]))
+                                               max_rate_dps=float(c["rest_max_rate_dps"]),
+                                               give_up_s=float(c["rest_timeout_s"]))
             self.calibration_state = "calibrating"
         else:
             self.calibrated, self.calibration_state = True, "off"
@@ -260,7 +267,7 @@ class Mpu9250ImuDriver(I2cImuDriver):
         gyro = self.mounting.to_body([c * rad_per_count for c in (raw.gx, raw.gy, raw.gz)])
         self.temperature_c = raw.temp / variant.temp_lsb_per_c + variant.temp_offset_c
         if not self.calibrated and self.calibration is not None:
-            self._calibrate(gyro, raw_force)
+            self._calibrate(gyro, raw_force, stamp=msg.header.timestamp_us / 1e6)
         rates = [w - b for w, b in zip(gyro, self.gyro_bias)]
         sigma = float(self.config["rate_sigma" if self.calibrated else "uncalibrated_rate_sigma"])
         set_vector(msg, RATE_FIELDS, rates, sigma)
@@ -320,19 +327,31 @@ class Mpu9250ImuDriver(I2cImuDriver):
             cal.set(x=raw_mag[0], y=raw_mag[1], z=raw_mag[2])
         self.publish(self.cal_channel, cal)
 
-    def _calibrate(self, gyro: Vector, force: Vector) -> None:
-        assert self.calibration is not None
-        result = self.calibration.add(gyro, force)
+    def _calibrate(self, gyro: Vector, force: Vector, *, stamp: float) -> None:
+        cal = self.calibration
+        assert cal is not None
+        was_overdue = cal.overdue
+        result = cal.add(gyro, force, stamp=stamp)
+        if cal.overdue and not was_overdue:
+            self.calibration_state = self._no_rest(cal)
+            self.logger.warning("%s: %s", self.name, self.calibration_state)
         if result is None:
             return
         if not result.accepted:
-            self.calibration_state = f"waiting for rest ({result.reason})"
+            self.calibration_state = self._no_rest(cal) if cal.overdue else f"waiting for rest ({result.reason})"
             self.logger.warning("%s: gyro bias window rejected: %s; trying again", self.name, result.reason)
             return
         self.gyro_bias, self.rest_force = result.gyro_mean, result.accel_mean
         self.calibrated, self.calibration_state = True, "calibrated"
         self.logger.info("%s: gyro bias %s deg/s (FRD), std %.3f deg/s; rest specific force %s m/s^2", self.name,
                          _fmt(math.degrees(b) for b in self.gyro_bias), result.gyro_std_dps, _fmt(self.rest_force))
+
+    def _no_rest(self, cal: RestCalibration) -> str:
+        """The fallback's one line: no rest for rest_timeout_s of samples, what it waits for, that it goes on."""
+        window_s = cal.samples / float(self.config["rate_hz"])
+        why = f" ({cal.last_reason})" if cal.last_reason else ""
+        return (f"no rest found in {cal.give_up_s:g} s of samples{why}; it calibrates on the first "
+                f"{window_s:.1f} s at rest, never on moving data")
 
     def healthy(self) -> bool:
         """Degraded until the gyro bias is calibrated."""

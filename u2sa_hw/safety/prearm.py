@@ -281,7 +281,9 @@ class PrearmChecks:
         if truthy(heard.details.get("calibrated")):
             return ""
         state = heard.details.get("calibration") or "the driver reports no calibration"
-        if "rest" in state or "calibrating" in state:
+        if "no rest found" in state:   # the driver's bounded fallback: it says what it waits for itself
+            hint = "; keep the vehicle still, then it passes"
+        elif "rest" in state or "calibrating" in state:
             hint = "; keep the vehicle still"
         elif "mag" in state:
             hint = "; turn the vehicle slowly through a figure eight"
