@@ -41,16 +41,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import resource
 import signal
-import statistics
 import subprocess
 import sys
 import threading
 import time
-from collections import Counter
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -59,138 +55,13 @@ sys.path.insert(0, str(REPO))
 
 from bench.cpu_budget import (BudgetError, CpuBudget, Hierarchy, detect, parse_budgets,  # noqa: E402
                               read_usage_ns, require_root, selftest)
-from bench.failsafe import CASES, Measure, timings  # noqa: E402
+from bench.sbc_figures import (FAILSAFE, STALL_MS, RunResult, Step, describe, headline, result_of,  # noqa: E402
+                                table)
 
 VEHICLE = REPO / "examples" / "ground_vehicle" / "vehicle.toml"
-FAILSAFE = {c.name: c for c in CASES if c.name in ("rc_loss", "manual_switch")}
 KINDS = ("mission", *FAILSAFE)
-LOST = re.compile(r"check lost while autonomous: (\w+)")
 ECHO = ("ready after", "autonomy lost", "re-arming", "completed in", "FAILED", "TIMED OUT", "real-time",
         "normal priority", "refused", "cannot join", "all neutral after", "never neutral")
-
-
-@dataclass
-class RunResult:
-    """One run's figures (CPU figures: % of one core; None where the run did not get that far)."""
-
-    kind: str
-    result: str
-    reason: str = ""
-    mission_time_s: float | None = None
-    startup_s: float | None = None
-    losses: int = 0
-    times_ms: list[float] = field(default_factory=list)
-    misses: int = 0
-    stack_pct: float | None = None
-    stack_drive_pct: float | None = None
-    sim_drive_pct: float | None = None
-    periods: tuple[int, int] = (0, 0)
-    restarts: int = 0
-    causes: dict[str, int] = field(default_factory=dict)   # pre-arm check -> times lost while autonomous
-    rusage_pct: float | None = None   # the services' own getrusage over the run: a check on the cgroup figure
-
-
-@dataclass
-class Step:
-    """The runs at one budget."""
-
-    percent: float
-    runs: list[RunResult] = field(default_factory=list)
-
-    def of(self, kind: str) -> list[RunResult]:
-        """This step's runs of *kind*."""
-        return [r for r in self.runs if r.kind == kind]
-
-    def problems(self) -> list[str]:
-        """Why this step does not hold; empty when everything holds."""
-        out = []
-        for run in self.of("mission"):
-            if run.result != "completed":
-                out.append(f"mission {run.result}: {run.reason}")
-        losses = sum(r.losses for r in self.of("mission"))
-        if losses:
-            causes: Counter[str] = Counter()
-            for run in self.of("mission"):
-                causes.update(run.causes)
-            why = ", ".join(f"{check} x{n}" for check, n in causes.most_common())
-            out.append(f"{losses} autonomy loss{'es' * (losses > 1)}" + (f" (checks lost: {why})" if why else ""))
-        for name, case in FAILSAFE.items():
-            target = case.measures[0].target_ms
-            runs = self.of(name)
-            for run in runs:
-                if run.result != "completed":
-                    out.append(f"{name} {run.result}: {run.reason}")
-            times = [t for r in runs for t in r.times_ms]
-            misses = sum(r.misses for r in runs)
-            if misses:
-                out.append(f"{name}: {misses} event(s) not measured (nothing moving at the event, or never neutral)")
-            if runs and not times:
-                out.append(f"{name}: no measurement")
-            elif times and target is not None and max(times) > target:
-                out.append(f"{name}: max {max(times):.0f} ms > {target:g} ms")
-        return out
-
-
-def headline(steps: list[Step], *, whole_sim: bool = False) -> str:
-    """The lowest budget at which this step and every higher one hold, and what gave below it."""
-    what = "the whole u2sa sim (mocks and simulator included)" if whole_sim else \
-        "the services (mocks and simulator outside the budget)"
-    ordered = sorted(steps, key=lambda s: -s.percent)
-    lowest: Step | None = None
-    for step in ordered:
-        if step.problems():
-            break
-        lowest = step
-    if lowest is None:
-        return f"HEADLINE: nothing held, not even at {ordered[0].percent:g} % of one core for {what}: " + \
-            "; ".join(ordered[0].problems())
-    text = f"HEADLINE: everything holds down to {lowest.percent:g} % of one core for {what}"
-    below = [s for s in ordered if s.percent < lowest.percent]
-    if below:
-        text += f"; at {below[0].percent:g} %: " + "; ".join(below[0].problems())
-        held_again = [f"{s.percent:g}" for s in below[1:] if not s.problems()]
-        if held_again:
-            text += f" (yet held again at {', '.join(held_again)} %: noise at the edge)"
-    elif ordered[-1] is lowest:
-        text += " (the lowest budget tried)"
-    return text
-
-
-def _fmt(value: float | None, digits: int = 1) -> str:
-    return "-" if value is None else f"{value:.{digits}f}"
-
-
-def _mean(values: list[float | None]) -> float | None:
-    present = [v for v in values if v is not None]
-    return statistics.fmean(present) if present else None
-
-
-def table(steps: list[Step]) -> list[str]:
-    """The figures, one row per budget."""
-    rc, manual = (FAILSAFE[n].measures[0].target_ms for n in FAILSAFE)
-    lines = [f"{'budget':>7} {'mission':>15} {'start':>6} {'losses':>6} {f'RC loss<={rc:g}':>13} "
-             f"{f'manual<={manual:g}':>13} {'stack %':>8} {'driving':>8} {'sim %':>6} {'thr %':>6}  holds",
-             f"{'% core':>7} {'done, time s':>15} {'s':>6} {'':>6} {'med/max ms':>13} {'med/max ms':>13} "
-             f"{'run':>8} {'stack %':>8} {'drive':>6} {'':>6}"]
-    for step in sorted(steps, key=lambda s: -s.percent):
-        missions = step.of("mission")
-        measured = missions or step.runs   # CPU from the mission runs, the nominal load, when there are some
-        done = sum(r.result == "completed" for r in missions)
-        mtime = _mean([r.mission_time_s for r in missions if r.result == "completed"])
-        cells = []
-        for name in FAILSAFE:
-            times = [t for r in step.of(name) for t in r.times_ms]
-            misses = sum(r.misses for r in step.of(name))
-            cells.append((f"{statistics.median(times):.0f}/{max(times):.0f}" if times else "-") + ("!" * bool(misses)))
-        periods = sum(r.periods[0] for r in measured)
-        throttled = 100.0 * sum(r.periods[1] for r in measured) / periods if periods else None
-        lines.append(f"{step.percent:>5g} % {f'{done}/{len(missions)} {_fmt(mtime)}':>15} "
-                     f"{_fmt(_mean([r.startup_s for r in missions])):>6} {sum(r.losses for r in missions):>6} "
-                     f"{cells[0]:>13} {cells[1]:>13} {_fmt(_mean([r.stack_pct for r in measured])):>8} "
-                     f"{_fmt(_mean([r.stack_drive_pct for r in measured])):>8} "
-                     f"{_fmt(_mean([r.sim_drive_pct for r in measured])):>6} {_fmt(throttled):>6}  "
-                     f"{'no' if step.problems() else 'yes'}")
-    return lines
 
 
 # -- one run, in a child process of its own (``--_one-run``) ----------------------------------
@@ -237,8 +108,12 @@ def one_run(spec: dict[str, Any]) -> int:
         return {"wall_s": wall, "stack_pct": 100 * stack / wall, "sim_pct": 100 * whole / wall}
 
     children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0, t1 = run.record.t_engage or samples[0][0], run.record.t_end or samples[-1][0]
+    stalls = run.mocks.rc_stalls() if run.mocks is not None else []
     figures = {"run": window(samples[0][0], samples[-1][0]), "drive": window(run.record.t_engage, run.record.t_end),
-               "rusage_stack_pct": 100 * (children.ru_utime + children.ru_stime) / (samples[-1][0] - samples[0][0])}
+               "rusage_stack_pct": 100 * (children.ru_utime + children.ru_stime) / (samples[-1][0] - samples[0][0]),
+               "drive_end_epoch": time.time() - (time.monotonic() - t1),
+               "rc_stalls_ms": [ns / 1e6 for end, ns in stalls if ns >= STALL_MS * 1e6 and t0 <= end / 1e9 <= t1]}
     (out / "sbc-run.json").write_text(json.dumps(figures, indent=1))
     return 0
 
@@ -296,51 +171,6 @@ def say_launcher_lines(log: Path) -> None:
             if text not in _SAID:
                 _SAID.add(text)
                 print(f"      launcher: {text}", flush=True)
-
-
-def result_of(kind: str, out: Path, periods: tuple[int, int], *, exit_code: int) -> RunResult:
-    """A RunResult from the run's summary.json and sbc-run.json."""
-    try:
-        summary = json.loads((out / "summary.json").read_text())
-    except (OSError, ValueError):
-        return RunResult(kind, "failed", f"no summary (exit {exit_code}; see {out / 'sbc.log'})", periods=periods)
-    figures = json.loads((out / "sbc-run.json").read_text()) if (out / "sbc-run.json").exists() else {}
-    run, drive = figures.get("run") or {}, figures.get("drive") or {}
-    times: list[float] = []
-    misses = 0
-    if kind in FAILSAFE:
-        measure: Measure = FAILSAFE[kind].measures[0]
-        times, misses = timings(summary, measure)
-    return RunResult(kind, summary["result"], summary.get("reason", ""), summary.get("mission_time_s"),
-                     summary.get("startup_s"), len(summary.get("autonomy_interruptions") or []), times, misses,
-                     run.get("stack_pct"), drive.get("stack_pct"), drive.get("sim_pct"), periods,
-                     sum(s.get("restarts", 0) for s in (summary.get("services") or {}).values()),
-                     lost_checks(out / "services.log"), figures.get("rusage_stack_pct"))
-
-
-def lost_checks(log: Path) -> dict[str, int]:
-    """Pre-arm check -> how often the RC mux dropped autonomy for it (its log's "check lost" lines)."""
-    try:
-        return dict(Counter(m.group(1) for m in LOST.finditer(log.read_text(errors="replace"))))
-    except OSError:
-        return {}
-
-
-def describe(run: RunResult) -> str:
-    """One progress line for a finished run."""
-    text = run.result
-    if run.kind == "mission":
-        text += f", mission {_fmt(run.mission_time_s)} s, start-up {_fmt(run.startup_s)} s"
-        text += f", {run.losses} autonomy losses"
-    else:
-        text += f", {' '.join(f'{t:.0f}' for t in run.times_ms) or 'no'} ms"
-        text += f", {run.misses} not measured" if run.misses else ""
-    text += f", stack {_fmt(run.stack_pct)} % of one core over the run"
-    if run.stack_pct is not None and run.rusage_pct is not None and abs(run.stack_pct - run.rusage_pct) > 2.0:
-        text += f" (but {run.rusage_pct:.1f} % by the services' own getrusage: is every service in the group?)"
-    if run.restarts:
-        text += f", {run.restarts} restarts"
-    return text + (f" ({run.reason})" if run.reason else "")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -418,7 +248,8 @@ def main(argv: list[str] | None = None) -> int:
     for step in sorted(steps, key=lambda s: -s.percent):
         if problems := step.problems():
             print(f"  {step.percent:g} %: " + "; ".join(problems))
-    print(headline(steps, whole_sim=args.whole_sim))
+    print(headline(steps, whole_sim=args.whole_sim)
+          + ("" if set(kinds) == set(KINDS) else f" [only {', '.join(kinds)} runs: the rest not judged]"))
     return 0
 
 

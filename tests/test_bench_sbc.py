@@ -1,4 +1,7 @@
-"""bench/sbc.py's pure parts: budget lists, the cgroup files for a budget, the headline, group set-up.
+"""bench/sbc.py's pure parts (bench/cpu_budget.py, bench/sbc_figures.py).
+
+Budget lists, the cgroup files for a budget, the headline from a table of step results, and
+group set-up and removal.
 
 The cgroup set-up runs against a fake cgroup root made of real files in tmp_path (a plain
 directory is not empty, so its rmdir is shutil.rmtree). One test uses the real cpu
@@ -8,13 +11,14 @@ controller when this is root and one is mounted; it removes its group. No timing
 from __future__ import annotations
 
 import os
+from datetime import datetime
 from pathlib import Path
 
 import pytest
 
 from bench.cpu_budget import (BudgetError, CpuBudget, Hierarchy, detect, parse_budgets, read_usage_ns, remove_tree,
                               v1_values, v2_values)
-from bench.sbc import RunResult, Step, headline, lost_checks, result_of, table
+from bench.sbc_figures import RunResult, Step, headline, lost_checks, result_of, table
 
 
 # -- budget lists and file values -------------------------------------------------------------
@@ -171,14 +175,18 @@ def test_table_has_a_row_per_budget_highest_first() -> None:
 
 def test_autonomy_losses_name_the_checks_the_mux_dropped_autonomy_for(tmp_path: Path) -> None:
     log = tmp_path / "services.log"
-    log.write_text("rc | WARN pre-arm check lost while autonomous: estimator: not converged -> neutral\n"
-                   "rc | WARN pre-arm check lost while autonomous: rc_link: no valid RC signal -> neutral\n"
-                   "rc | WARN pre-arm check lost while autonomous: estimator: not converged -> neutral\n")
-    causes = lost_checks(log)
-    assert causes == {"estimator": 2, "rc_link": 1}
+    log.write_text("rc | 2026-12-04T20:38:59.963 WARN rc [1] pre-arm check lost while autonomous: estimator: x\n"
+                   "rc | 2026-12-04T20:39:00.100 WARN rc [1] pre-arm check lost while autonomous: rc_link: no valid\n"
+                   "rc | 2026-12-04T20:39:01.000 WARN rc [1] pre-arm check lost while autonomous: estimator: x\n"
+                   "rc | 2026-12-04T20:39:29.322 WARN rc [1] pre-arm check lost while autonomous: imu: stopped\n")
+    assert lost_checks(log)["imu"] == 1
+    causes = lost_checks(log, until=datetime.fromisoformat("2026-12-04T20:39:10").timestamp())
+    assert causes == {"estimator": 2, "rc_link": 1}   # the imu stopped after the drive: not a lost check
     lossy = step(30, losses=3)
     lossy.runs[0].causes = causes
     assert lossy.problems() == ["3 autonomy losses (checks lost: estimator x2, rc_link x1)"]
+    lossy.runs[0].rc_stalls = 2
+    assert "simulated RC receiver, outside the budget, stalled 2 times" in lossy.problems()[0]
     assert lost_checks(tmp_path / "missing.log") == {}
 
 
