@@ -101,9 +101,14 @@ def wait_health(health: FirstHealth, name: str, pid: int) -> float:
     return health.arrival(name, pid)  # type: ignore[return-value]
 
 
+def unit_of(name: str) -> str:
+    """The systemd unit of the staged service *name* (the HSM has a unit of its own, u2sa-hsm.service)."""
+    return "u2sa-hsm.service" if name == "hsm" else f"u2sa@{name}.service"
+
+
 def measure_kill(ns: SystemdNamespace, health: FirstHealth, name: str) -> tuple[float, float]:
     """SIGKILL -> active again, SIGKILL -> first Health of the new process (seconds)."""
-    unit = f"u2sa@{name}.service"
+    unit = unit_of(name)
     old = ns.wait_active(unit)
     ns.systemctl("reset-failed", unit, check=False)
     t0 = time.monotonic()
@@ -115,7 +120,7 @@ def measure_kill(ns: SystemdNamespace, health: FirstHealth, name: str) -> tuple[
 
 def measure_hang(ns: SystemdNamespace, health: FirstHealth, name: str) -> tuple[float, float]:
     """SIGSTOP -> the process is gone (watchdog), SIGSTOP -> first Health of the new one (seconds)."""
-    unit = f"u2sa@{name}.service"
+    unit = unit_of(name)
     old = ns.wait_active(unit)
     ns.systemctl("reset-failed", unit, check=False)
     host = ns.host_pid(old)
@@ -137,8 +142,8 @@ def stage(base: Path, url: str, services: dict[str, str]) -> Path:
     subprocess.run([*u2sa_command(root), "install", "--vehicle", str(profile), "--root", str(root)], check=True,
                    stdout=subprocess.DEVNULL)
     for name in services:
-        if name.endswith("_vehicle"):
-            dropin = root / f"etc/systemd/system/u2sa@{name}.service.d"
+        if name.endswith("_vehicle") or name == "hsm":
+            dropin = root / f"etc/systemd/system/{unit_of(name)}.d"
             dropin.mkdir(exist_ok=True)
             (dropin / "90-bench-bytecode.conf").write_text(BYTECODE_DROPIN)
     return root
@@ -150,9 +155,9 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--kills", type=int, default=20, help="SIGKILLs per service (default 20)")
     parser.add_argument("--hangs", type=int, default=5, help="SIGSTOP hangs per service (default 5)")
-    parser.add_argument("--kinds", default="state_estimator,world_modeler",
-                        help="comma-separated service kinds to restart (default state_estimator,world_modeler: "
-                        "the estimator imports numpy, the world modeler does not)")
+    parser.add_argument("--kinds", default="state_estimator,world_modeler,hsm",
+                        help="comma-separated service kinds to restart (default state_estimator,world_modeler,hsm: "
+                        "the estimator imports numpy, the world modeler does not, the HSM has a unit of its own)")
     parser.add_argument("--modes", default=",".join(MODES),
                         help="comma-separated bytecode modes: vehicle (bytecode cached, as installed on the "
                         "vehicle), checkout (compiled at every start, as in the tests); default both")
@@ -168,7 +173,9 @@ def main() -> int:
     if reason:
         print(f"bench/restart.py: cannot boot systemd here: {reason}", file=sys.stderr)
         return 2
-    services = {f"{kind}_{mode}": kind for kind in kinds for mode in modes}
+    # The HSM runs as u2sa-hsm.service under the name 'hsm': one of it, with cached bytecode.
+    services = {("hsm" if kind == "hsm" else f"{kind}_{mode}"): kind for kind in kinds
+                for mode in (["vehicle"] if kind == "hsm" else modes)}
     url = private_lcm_url()
     results: dict[str, tuple[list[tuple[float, float]], list[tuple[float, float]]]] = {}
     with tempfile.TemporaryDirectory(prefix="u2sa-bench-restart-") as tmp:
@@ -177,7 +184,7 @@ def main() -> int:
         try:
             with SystemdNamespace(root) as ns:
                 for name in services:
-                    ns.wait_active(f"u2sa@{name}.service")
+                    ns.wait_active(unit_of(name))
                 for name in services:
                     kills = [measure_kill(ns, health, name) for _ in range(args.kills)]
                     hangs = [measure_hang(ns, health, name) for _ in range(args.hangs)]
@@ -187,7 +194,7 @@ def main() -> int:
     print(f"u2sa restart benchmark: systemd {subprocess.getoutput('systemctl --version').split()[1]}, "
           f"{os.cpu_count()} CPUs, WatchdogSec=2s, TimeoutAbortSec=1s, RestartSec=250ms, {len(services)} services")
     for name, (kills, hangs) in results.items():
-        kind, _, mode = name.rpartition("_")
+        kind, _, mode = ("hsm", "", "vehicle") if name == "hsm" else name.rpartition("_")
         print(f"{kind} ({mode} bytecode):")
         if kills:
             print(summary("SIGKILL -> active again (READY)", [k[0] for k in kills]))

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import shutil
 import statistics
 import sys
@@ -93,6 +94,26 @@ def pss_bytes(pid: int) -> int:
     return 0
 
 
+THREAD_KINDS = (("u2sa ", "loop"), ("bus ", "bus"), ("health ", "health"))   # kernel names a service gives
+CPU_AIM_PCT, PSS_AIM_MB = 10.0, 200.0    # issue 27: the example rover's services at nominal rates
+
+
+def thread_ticks(pid: int) -> dict[str, int]:
+    """CPU clock ticks per kind of thread of *pid*: the service's own loop, its bus handler, health, other."""
+    ticks: dict[str, int] = defaultdict(int)
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/comm", encoding="ascii", errors="replace") as f:
+                comm = f.read().strip()
+            with open(f"/proc/{pid}/task/{tid}/stat", encoding="ascii") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        kind = next((k for prefix, k in THREAD_KINDS if comm.startswith(prefix)), "other")
+        ticks[kind] += int(fields[11]) + int(fields[12])
+    return ticks
+
+
 class ResourceMeter:
     """CPU time, RSS and PSS of the launcher's children (and this process) over a window."""
 
@@ -101,7 +122,9 @@ class ResourceMeter:
         self.procs["(u2sa sim: mocks, simulator)"] = psutil.Process()
         self.rss: dict[str, int] = defaultdict(int)
         self.pss: dict[str, int] = defaultdict(int)
+        self.threads: dict[str, dict[str, float]] = {}   # name -> thread kind -> CPU % of one core
         self.cpu0 = {n: sum(p.cpu_times()[:2]) for n, p in self.procs.items()}
+        self.threads0 = {n: thread_ticks(p.pid) for n, p in self.procs.items()}
         self.t0 = time.monotonic()
         self._done = threading.Event()
         self._thread = threading.Thread(target=self._sample, daemon=True)
@@ -130,6 +153,12 @@ class ResourceMeter:
                 cpu = float("nan")
             self._memory(name, proc)
             result[name] = (100.0 * cpu / wall, self.rss[name] / 2**20, self.pss[name] / 2**20)
+            try:
+                ticks = thread_ticks(proc.pid)
+            except OSError:
+                ticks = {}
+            hz = os.sysconf("SC_CLK_TCK")
+            self.threads[name] = {k: 100.0 * (v - self.threads0[name].get(k, 0)) / hz / wall for k, v in ticks.items()}
         self._done.set()
         return result
 
@@ -167,15 +196,28 @@ def mission_phase(vehicle: Path, out: Path) -> None:
     finally:
         summary = run.finish()
     print(f"\n== mission: {summary['result']} in {summary['mission_time_s']} s; measured over {window:.1f} s of driving")
-    print(f"{'process':34} {'CPU % of 1 core':>16} {'RSS MB':>8} {'PSS MB':>8}")
+    kinds = ("loop", "bus", "health", "other")
+    print(f"{'process':30} {'CPU % of 1 core':>16} {'(loop':>6} {'bus':>5} {'health':>6} {'other)':>6} "
+          f"{'RSS MB':>8} {'PSS MB':>8}")
     services = {n: v for n, v in usage.items() if not n.startswith("(")}
+    split_total: dict[str, float] = defaultdict(float)
     for name, (cpu, rss, pss) in sorted(services.items(), key=lambda kv: -kv[1][0]):
-        print(f"{name:34} {cpu:16.1f} {rss:8.1f} {pss:8.1f}")
-    print(f"{'all services':34} {sum(v[0] for v in services.values()):16.1f} "
-          f"{sum(v[1] for v in services.values()):8.1f} {sum(v[2] for v in services.values()):8.1f}")
+        split = meter.threads.get(name, {})
+        for k in kinds:
+            split_total[k] += split.get(k, 0.0)
+        print(f"{name:30} {cpu:16.1f} " + " ".join(f"{split.get(k, 0.0):{w}.1f}" for k, w in zip(kinds, (6, 5, 6, 6)))
+              + f" {rss:8.1f} {pss:8.1f}")
+    total_cpu, total_pss = sum(v[0] for v in services.values()), sum(v[2] for v in services.values())
+    print(f"{'all services':30} {total_cpu:16.1f} " + " ".join(f"{split_total[k]:{w}.1f}" for k, w in
+                                                               zip(kinds, (6, 5, 6, 6)))
+          + f" {sum(v[1] for v in services.values()):8.1f} {total_pss:8.1f}")
     for name, (cpu, rss, pss) in usage.items():
         if name.startswith("("):
-            print(f"{name:34} {cpu:16.1f} {rss:8.1f} {pss:8.1f}")
+            print(f"{name:30} {cpu:16.1f} {'':27} {rss:8.1f} {pss:8.1f}")
+    print(f"aims: services' CPU {total_cpu:.1f} % of one core (aim <= {CPU_AIM_PCT:g}: "
+          f"{'met' if total_cpu <= CPU_AIM_PCT else 'not met'}), PSS {total_pss:.0f} MB (aim <= {PSS_AIM_MB:g}: "
+          f"{'met' if total_pss <= PSS_AIM_MB else 'not met'}); loop = the service's own thread (its driver "
+          "loop or timer), bus = the bus handler thread (decode, verify, callbacks), health = its Health publisher")
     print(f"\n{'channel':28} {'msg/s':>8} {'kB/s':>8}")
     for channel, (n, size) in sorted(counts.items(), key=lambda kv: -kv[1][0]):
         print(f"{channel:28} {n / window:8.1f} {size / window / 1000:8.2f}")

@@ -37,8 +37,8 @@ def pytest_configure(config: pytest.Config) -> None:
     os.chmod(_SESSION_KEY_DIR.name, 0o755)
     os.chmod(key, 0o644)
     os.environ[KEY_ENV] = str(key)
-    # A starting service listens 1 s for another of its name (u2sa_hw/service_bus.py); the tests
-    # start hundreds, each on a bus of its own, so they listen a quarter of that. The tests of the
+    # A starting service listens 0.3 s for another of its name (u2sa_hw/service_bus.py); the tests
+    # start hundreds, each on a bus of its own, so they listen a little less. The tests of the
     # duplicate check itself give the default back (DUPLICATE_PROBE_S) where they rely on it.
     os.environ.setdefault(PROBE_ENV, "0.25")
 

@@ -224,8 +224,8 @@ def duplicate_line(services: ServiceProcesses, log_name: str) -> str:
 
 def test_a_duplicate_service_refuses_to_start_naming_the_other(services: ServiceProcesses, bus: BusClient) -> None:
     first = start_estimator(services, bus)     # discoverable before the second starts
-    second = services.start(SERVICE, **{PROBE_ENV: str(DUPLICATE_PROBE_S)})   # the default probe (1 s, its
-    # request sent 4 times; the suite's services listen 0.25 s), then the watch
+    second = services.start(SERVICE, **{PROBE_ENV: str(DUPLICATE_PROBE_S)})   # the default probe (0.3 s, its
+    # request sent 3 times; the suite's services listen 0.25 s), then the watch
     assert second.wait(timeout=30) == 3
     line = duplicate_line(services, SERVICE)
     assert f"pid {first.pid} on host {first.host}" in line and f"u2sa stop {SERVICE}" in line

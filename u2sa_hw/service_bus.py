@@ -47,8 +47,12 @@ if TYPE_CHECKING:
     from u2sa_hw.service import U2SAService
     from u2sa_hw.transport import Transport
 
-DUPLICATE_PROBE_S = 1.0    # how long a starting service listens for another of its name
-PROBE_RESEND_S = 0.25      # ... sending its discovery request again this often (one may be lost or answered late)
+# How long a starting service listens for another of its name, sending its discovery request again
+# every PROBE_RESEND_S (one may be lost or answered late). A live service answers in milliseconds;
+# the probe is short because every restart waits for it (a killed service must publish again within
+# 1.5 s, issue 27), and the watch after start catches an answer later than the probe.
+DUPLICATE_PROBE_S = 0.3
+PROBE_RESEND_S = 0.1
 PROBE_ENV = "U2SA_DUPLICATE_PROBE_S"
 DUPLICATE_WATCH_S = 10.0   # after start, how long it watches Health for another of its name (started together)
 RUN_ID_ENV = "U2SA_RUN_ID"   # set by the launcher (u2sa run, u2sa sim) for its children
