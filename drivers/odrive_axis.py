@@ -13,7 +13,8 @@ from typing import Any
 from u2sa_hw.protocols import odrive_cansimple as cs
 from u2sa_hw.protocols.odrive_cansimple import AxisState
 
-from drivers.can_motor import MotorSpec, WatchdogStep
+from drivers.can_motor import MotorSpec
+from drivers.can_watchdog import WatchdogStep
 from drivers.stall_trip import Trip
 
 

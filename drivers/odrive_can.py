@@ -17,7 +17,7 @@ name (``actuators``/``node_ids``/``directions``/``wheel_radius_m``). For every a
   WATCHDOG_TIMER_EXPIRED alone that this driver's own stall explains (its loop sent nothing
   long enough to starve the watchdog: a slow board, a SIGSTOP) is no hardware fault, and is
   cleared, logged with the stall, once the axis is heard again and the pilot re-arms through
-  manual (drivers/stall_trip.py; docs/safety.md); a heartbeat that stops for
+  manual (drivers/odrive_latch.py, drivers/stall_trip.py; docs/safety.md); a heartbeat that stops for
   ``silent_after_s`` makes the node 'silent' (degraded); when it comes back the axis is
   re-armed if it needs to be;
 - reads encoder estimates (cyclic, or RTR-polled at ``encoder_poll_hz``) into the wheel
@@ -40,7 +40,6 @@ axes are put in IDLE when ``idle_on_stop`` is set. See docs/drivers-can.md.
 from __future__ import annotations
 
 import math
-import time
 from typing import TYPE_CHECKING, Any, Callable
 
 if TYPE_CHECKING:
@@ -50,10 +49,11 @@ from u2sa_hw.config import field
 from u2sa_hw.protocols import odrive_cansimple as cs
 from u2sa_hw.protocols.odrive_cansimple import AxisState, Cmd, ControlMode, InputMode, ProcedureResult
 
-from drivers.can_motor import CanMotorService, WatchdogStep, check_hw_watchdog, watchdog_summary
+from drivers.can_motor import CanMotorService
+from drivers.can_watchdog import WatchdogStep, check_hw_watchdog, watchdog_summary
 from drivers.declarations import OdriveDeclarations
-from drivers.odrive_axis import OdriveAxis, enum_name, error_names, watchdog_only
-from drivers.stall_trip import Trip, may_clear
+from drivers.odrive_axis import OdriveAxis, enum_name, error_names
+from drivers.odrive_latch import OdriveTripLatch
 from drivers.odrive_watchdog import WATCHDOG_FIELDS, OdriveWatchdogSetup
 from drivers.value_ranges import ValueDrops
 
@@ -66,7 +66,7 @@ _REPLIES_05 = frozenset({Cmd.HEARTBEAT, Cmd.GET_ENCODER_ESTIMATES, Cmd.GET_BUS_V
                          Cmd.GET_MOTOR_ERROR, Cmd.GET_ENCODER_ERROR, Cmd.GET_CONTROLLER_ERROR})
 
 
-class OdriveCanMotor(OdriveDeclarations, CanMotorService):
+class OdriveCanMotor(OdriveTripLatch, OdriveDeclarations, CanMotorService):
     """ODrive axes on CAN (CANSimple) as actuators, with heartbeat/error monitoring and odometry."""
 
     ID_FIELD = "node_ids"
@@ -194,19 +194,11 @@ class OdriveCanMotor(OdriveDeclarations, CanMotorService):
             axis.retry_now()
             axis.wd = WatchdogStep()  # it may have rebooted: settings written over CAN live in RAM
             self.logger.info("%s answering again (%s)", label, enum_name(AxisState, hb.axis_state))
-        if not hb.axis_error:
-            axis.trip = None
-        elif axis.trip is None or axis.trip.bits != hb.axis_error:
-            axis.trip = Trip(hb.axis_error, seen=time.monotonic(), rearms=self.gate.rearms,
-                             watchdog_only=watchdog_only(hb, firmware=self.firmware))
+        self.latch(axis, hb)
         if hb.axis_error and (prev is None or prev.axis_error != hb.axis_error):
             axis.error_events += 1
-            stall_note = " (if this driver stalled, the pilot's next re-arm through manual clears it)" \
-                if axis.trip is not None and axis.trip.watchdog_only else ""
             self.error(f"{label}: axis error {error_names(hb.axis_error, firmware=self.firmware)} "
-                       f"({enum_name(AxisState, hb.axis_state)}); "
-                       + ("clearing and re-arming" if self.config.get("rearm_on_error")
-                          else f"to clear it and re-arm: {self.clear_command}{stall_note}"))
+                       f"({enum_name(AxisState, hb.axis_state)}); {self.error_advice(axis)}")
         if axis.armed and axis.arming_since is not None:
             self.logger.info("%s armed (CLOSED_LOOP_CONTROL) after %d attempt(s)", label, axis.arm_attempts)
             axis.arming_since = None
@@ -217,34 +209,6 @@ class OdriveCanMotor(OdriveDeclarations, CanMotorService):
 
     def _label(self, axis: OdriveAxis) -> str:
         return f"ODrive {axis.spec.name} (node {axis.spec.can_id} on {self.device_name})"
-
-    @property
-    def clear_command(self) -> str:
-        """The deliberate clear of a latched axis error, as an operator types it."""
-        return f"u2sa param set {self.name} clear_errors true"
-
-    def _attribute_trip(self, axis: OdriveAxis) -> None:
-        """A watchdog-only trip: look for this driver's own stall behind it (said once, when found)."""
-        trip = axis.trip
-        if trip is None:
-            return
-        stall = trip.attribute(self.stalls, min_s=self.stall_trip_gap_s())
-        if stall is not None:
-            self.logger.warning("%s: WATCHDOG_TIMER_EXPIRED from this driver's own stall (%s), not a hardware "
-                                "fault: cleared at the pilot's next re-arm through manual", self._label(axis),
-                                stall.describe())
-
-    def _stall_trip_clears(self, axis: OdriveAxis, hb: cs.Heartbeat) -> bool:
-        """The pilot re-armed after a trip of this driver's own stall, and the link is back: clear it (logged)."""
-        trip = axis.trip
-        if not may_clear(trip, bits_now=hb.axis_error, rearms_now=self.gate.rearms, link_up=self.link_up):
-            return False
-        assert trip is not None and trip.stall is not None
-        axis.stall_clears += 1
-        trip.rearms = self.gate.rearms   # one clear per re-arm: a retry after a lost frame waits for the next
-        self.logger.warning("%s: clearing WATCHDOG_TIMER_EXPIRED on the pilot's re-arm and re-arming; it came from "
-                            "this driver's own stall (%s)", self._label(axis), trip.stall.describe())
-        return True
 
     # -- periodic work ------------------------------------------------------------------------
     def tick(self, now: float) -> None:
@@ -261,7 +225,7 @@ class OdriveCanMotor(OdriveDeclarations, CanMotorService):
                 self.logger.info("failsafe over: clearing the Estop and re-arming")
                 self._clear_all()
         for axis in self.axes.values():
-            self._attribute_trip(axis)
+            self.attribute_trip(axis)
             if self._check_silence(axis, now) or axis.heartbeat is None:
                 continue
             if not axis.wd.settled:
@@ -304,7 +268,7 @@ class OdriveCanMotor(OdriveDeclarations, CanMotorService):
         if not axis.wd.settled:
             return  # the watchdog first; its set-up settles within WD_TRIES * WD_REPLY_S
         clear = (axis.arm_attempts == 0 and cfg.get("clear_errors_on_start")) \
-            or (bool(hb.axis_error) and (cfg.get("rearm_on_error") or self._stall_trip_clears(axis, hb)))
+            or (bool(hb.axis_error) and (cfg.get("rearm_on_error") or self.stall_trip_clears(axis, hb)))
         if hb.axis_error and not clear:
             return  # reported as an error until someone clears it
         if axis.arming_since is not None:
@@ -390,25 +354,12 @@ class OdriveCanMotor(OdriveDeclarations, CanMotorService):
             if axis.silent:
                 out.append(f"{name} node silent")
             elif hb is not None and hb.axis_error:
-                trip = axis.trip
-                why = f"this driver stalled {trip.stall.duration:.2f} s" if trip is not None and trip.stall_trip \
-                    else "latched"
-                out.append(f"{name} error {error_names(hb.axis_error, firmware=self.firmware)} ({why})")
+                out.append(self.error_problem(axis, hb))
             elif hb is not None and not axis.armed:
                 out.append(f"{name} not armed ({enum_name(AxisState, hb.axis_state)})")
             if axis.wd.state == "error":
                 out.append(f"{name} watchdog {axis.wd.text.split(';')[0]}")
         return out
-
-    def to_clear(self) -> str:
-        """What clears the latched axis errors, for health (``to_clear``; pre-arm shows it): the pilot's re-arm for
-        trips of this driver's own stall, the deliberate clear for everything else; "" when nothing is latched."""
-        errors = [a for a in self.axes.values() if a.heartbeat is not None and a.heartbeat.axis_error]
-        if not errors or self.config.get("rearm_on_error"):
-            return ""
-        if all(a.trip is not None and a.trip.stall_trip for a in errors):
-            return "switch through manual to re-arm (clears a watchdog trip of the driver's own stall)"
-        return self.clear_command
 
     def motor_details(self) -> dict[str, Any]:
         """Per axis (keys ``<actuator>.<what>``): state, errors, setpoint, estimates, bus, temperatures;

@@ -40,7 +40,8 @@ from u2sa_hw.config import field
 from u2sa_hw.protocols import vesc_can as vc
 from u2sa_hw.protocols.vesc_can import PacketId
 
-from drivers.can_motor import CanMotorService, MotorSpec, WatchdogStep, check_hw_watchdog, watchdog_summary
+from drivers.can_motor import CanMotorService, MotorSpec
+from drivers.can_watchdog import WatchdogStep, check_hw_watchdog, watchdog_summary
 from drivers.declarations import VescDeclarations
 from drivers.value_ranges import ValueDrops
 
