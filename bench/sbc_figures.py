@@ -32,7 +32,8 @@ class RunResult:
     startup_s: float | None = None
     losses: int = 0
     times_ms: list[float] = field(default_factory=list)
-    misses: int = 0
+    never: int = 0   # failsafe events whose moving outputs never went neutral
+    idle: int = 0    # failsafe events with nothing moving at the event: not a measurement
     stack_pct: float | None = None
     stack_drive_pct: float | None = None
     sim_drive_pct: float | None = None
@@ -40,7 +41,7 @@ class RunResult:
     restarts: int = 0
     causes: dict[str, int] = field(default_factory=dict)   # pre-arm check -> times lost while autonomous
     rusage_pct: float | None = None   # the services' own getrusage over the run: a check on the cgroup figure
-    rc_stalls: int = 0   # the simulated RC receiver's stalls of STALL_MS or more while driving (outside the budget)
+    rc_stalls: int = 0   # the simulated RC receiver's own stalls of STALL_MS or more while driving
 
 
 @dataclass
@@ -68,7 +69,7 @@ class Step:
             why = ", ".join(f"{check} x{n}" for check, n in causes.most_common())
             stalls = sum(r.rc_stalls for r in self.of("mission"))
             out.append(f"{losses} autonomy loss{'es' * (losses > 1)}" + (f" (checks lost: {why})" if why else "")
-                       + (f" while the simulated RC receiver, outside the budget, stalled {stalls} times for "
+                       + (f" while the simulated RC receiver itself stalled {stalls} times for "
                           f">= {STALL_MS:g} ms" if stalls else ""))
         for name, case in FAILSAFE.items():
             target = case.measures[0].target_ms
@@ -77,9 +78,9 @@ class Step:
                 if run.result != "completed":
                     out.append(f"{name} {run.result}: {run.reason}")
             times = [t for r in runs for t in r.times_ms]
-            misses = sum(r.misses for r in runs)
-            if misses:
-                out.append(f"{name}: {misses} event(s) not measured (nothing moving at the event, or never neutral)")
+            never = sum(r.never for r in runs)
+            if never:
+                out.append(f"{name}: {never} event(s) whose outputs never went neutral")
             if runs and not times:
                 out.append(f"{name}: no measurement")
             elif times and target is not None and max(times) > target:
@@ -136,8 +137,8 @@ def table(steps: list[Step]) -> list[str]:
         cells = []
         for name in FAILSAFE:
             times = [t for r in step.of(name) for t in r.times_ms]
-            misses = sum(r.misses for r in step.of(name))
-            cells.append((f"{statistics.median(times):.0f}/{max(times):.0f}" if times else "-") + ("!" * bool(misses)))
+            never = sum(r.never for r in step.of(name))
+            cells.append((f"{statistics.median(times):.0f}/{max(times):.0f}" if times else "-") + ("!" * bool(never)))
         periods = sum(r.periods[0] for r in measured)
         throttled = 100.0 * sum(r.periods[1] for r in measured) / periods if periods else None
         lines.append(f"{step.percent:>5g} % {f'{done}/{len(missions)} {_fmt(mtime)}':>15} "
@@ -158,12 +159,15 @@ def result_of(kind: str, out: Path, periods: tuple[int, int], *, exit_code: int)
     figures = json.loads((out / "sbc-run.json").read_text()) if (out / "sbc-run.json").exists() else {}
     run, drive = figures.get("run") or {}, figures.get("drive") or {}
     times: list[float] = []
-    misses = 0
+    misses = never = 0
     if kind in FAILSAFE:
         measure: Measure = FAILSAFE[kind].measures[0]
         times, misses = timings(summary, measure)
+        never = sum(1 for e in summary.get("scenario", {}).get("events", []) if e["action"] == measure.action
+                    and measure.match in e["event"] and e["all_neutral_after_ms"] is None)
     return RunResult(kind, summary["result"], summary.get("reason", ""), summary.get("mission_time_s"),
-                     summary.get("startup_s"), len(summary.get("autonomy_interruptions") or []), times, misses,
+                     summary.get("startup_s"), len(summary.get("autonomy_interruptions") or []), times, never,
+                     misses - never,
                      run.get("stack_pct"), drive.get("stack_pct"), drive.get("sim_pct"), periods,
                      sum(s.get("restarts", 0) for s in (summary.get("services") or {}).values()),
                      lost_checks(out / "services.log", until=figures.get("drive_end_epoch")),
@@ -197,7 +201,8 @@ def describe(run: RunResult) -> str:
         text += f", {run.losses} autonomy losses"
     else:
         text += f", {' '.join(f'{t:.0f}' for t in run.times_ms) or 'no'} ms"
-        text += f", {run.misses} not measured" if run.misses else ""
+        text += f", {run.never} never neutral" if run.never else ""
+        text += f", {run.idle} with nothing moving (not measured)" if run.idle else ""
     text += f", stack {_fmt(run.stack_pct)} % of one core over the run"
     if run.rc_stalls:
         text += f", the simulated RC receiver stalled {run.rc_stalls} times >= {STALL_MS:g} ms"

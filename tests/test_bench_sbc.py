@@ -10,6 +10,7 @@ controller when this is root and one is mounted; it removes its group. No timing
 
 from __future__ import annotations
 
+import json
 import os
 from datetime import datetime
 from pathlib import Path
@@ -143,7 +144,7 @@ def step(percent: float, *, completed: bool = True, losses: int = 0, rc: float =
     return Step(percent, [
         RunResult("mission", "completed" if completed else "failed", "" if completed else "timed out",
                   mission_time_s=40.0, losses=losses, stack_pct=12.0),
-        RunResult("rc_loss", "completed", times_ms=[rc, rc / 2], misses=missed),
+        RunResult("rc_loss", "completed", times_ms=[rc, rc / 2], never=missed),
         RunResult("manual_switch", "completed", times_ms=[manual])])
 
 
@@ -186,8 +187,23 @@ def test_autonomy_losses_name_the_checks_the_mux_dropped_autonomy_for(tmp_path: 
     lossy.runs[0].causes = causes
     assert lossy.problems() == ["3 autonomy losses (checks lost: estimator x2, rc_link x1)"]
     lossy.runs[0].rc_stalls = 2
-    assert "simulated RC receiver, outside the budget, stalled 2 times" in lossy.problems()[0]
+    assert "simulated RC receiver itself stalled 2 times" in lossy.problems()[0]
     assert lost_checks(tmp_path / "missing.log") == {}
+
+
+def test_result_of_a_scenario_tells_never_neutral_from_nothing_moving(tmp_path: Path) -> None:
+    def event(after: float | None, moving: bool) -> dict:
+        return {"action": "rc_loss", "event": "rc_loss", "all_neutral_after_ms": after,
+                "outputs": {"left_wheel": {"at_event": {"value": 50.0 * moving, "neutral": not moving}}}}
+
+    summary = {"result": "completed", "reason": "", "autonomy_interruptions": [], "services": {"rc": {"restarts": 1}},
+               "scenario": {"events": [event(30.0, True), event(None, True), event(0.0, False),
+                                       {"action": "rc_return", "event": "rc_return", "all_neutral_after_ms": None,
+                                        "outputs": {}}]}}
+    (tmp_path / "summary.json").write_text(json.dumps(summary))
+    run = result_of("rc_loss", tmp_path, (0, 0), exit_code=0)
+    assert (run.times_ms, run.never, run.idle, run.restarts) == ([30.0], 1, 1, 1)
+    assert Step(100, [run]).problems() == ["rc_loss: 1 event(s) whose outputs never went neutral"]
 
 
 def test_result_of_a_run_that_wrote_no_summary(tmp_path: Path) -> None:
