@@ -60,7 +60,7 @@ from bench.sbc_figures import (FAILSAFE, STALL_MS, RunResult, Step, describe, he
 
 VEHICLE = REPO / "examples" / "ground_vehicle" / "vehicle.toml"
 KINDS = ("mission", *FAILSAFE)
-ECHO = ("ready after", "autonomy lost", "re-arming", "completed in", "FAILED", "TIMED OUT", "real-time",
+ECHO = ("ready after", "reached at", "autonomy lost", "re-arming", "completed in", "FAILED", "TIMED OUT", "real-time",
         "normal priority", "refused", "cannot join", "all neutral after", "never neutral")
 
 
