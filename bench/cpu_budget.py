@@ -287,6 +287,21 @@ class CpuBudget:
             print(f"bench: {problem}", file=sys.stderr)
 
 
+def remove_stale(hierarchy: Hierarchy) -> list[str]:
+    """Remove the empty ``u2sa-sbc-<pid>`` groups of benches no longer running (one killed with SIGKILL)."""
+    removed = []
+    for root in (hierarchy.cpu_root, *([hierarchy.acct_root] if hierarchy.acct_root else [])):
+        for path in root.glob("u2sa-sbc-*"):
+            pid = path.name.rsplit("-", 1)[-1]
+            if pid.isdigit() and _gone(pid) and not _read(path / "cgroup.procs").split():
+                try:
+                    path.rmdir()
+                    removed.append(str(path))
+                except OSError:
+                    pass
+    return removed
+
+
 def _gone(pid: str) -> bool:
     return not Path(f"/proc/{pid}").exists()
 

@@ -54,7 +54,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from bench.cpu_budget import (BudgetError, CpuBudget, Hierarchy, detect, parse_budgets,  # noqa: E402
-                              read_usage_ns, require_root, selftest)
+                              read_usage_ns, remove_stale, require_root, selftest)
 from bench.sbc_figures import (FAILSAFE, STALL_MS, RunResult, Step, describe, headline, result_of,  # noqa: E402
                                 table)
 
@@ -207,9 +207,11 @@ def main(argv: list[str] | None = None) -> int:
           f"{' / '.join(f'{x:.1f}' for x in os.getloadavg())}; budgets {', '.join(f'{b:g}' for b in budgets)} % "
           f"of one core; {'the whole u2sa sim' if args.whole_sim else 'the services only'} in the budget; "
           f"real-time {'off (--no-realtime)' if args.no_realtime else 'as permitted'}")
-    if hierarchy.version == 2 and not args.no_realtime:
-        print("  cgroup v2: cpu.max does not hold real-time tasks: the safety chain's SCHED_FIFO time is outside the "
-              "budget (still counted in the usage); --no-realtime for an honest budget")
+    if not hierarchy.realtime and not args.no_realtime:
+        print("  no RT budget here: a CFS quota does not hold real-time tasks, so the safety chain's SCHED_FIFO time "
+              "is outside the budget (still counted in the usage); --no-realtime for an honest budget")
+    for path in remove_stale(hierarchy):
+        print(f"  removed {path}, left by a bench that no longer runs")
     if args.selftest:
         for line in selftest(hierarchy, budgets):
             print("  " + line, flush=True)

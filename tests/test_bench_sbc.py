@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from bench.cpu_budget import (BudgetError, CpuBudget, Hierarchy, detect, parse_budgets, read_usage_ns, remove_tree,
-                              v1_values, v2_values)
+from bench.cpu_budget import (BudgetError, CpuBudget, Hierarchy, detect, parse_budgets, read_usage_ns, remove_stale,
+                              remove_tree, v1_values, v2_values)
 from bench.sbc_figures import RunResult, Step, headline, lost_checks, result_of, table
 
 
@@ -121,6 +121,16 @@ def test_whole_sim_budget_counts_the_sim_process_in_v2(tmp_path: Path) -> None:
         assert budget.usage_file() == (tmp_path / "u2sa-sbc-2" / "cpu.stat", True)
     assert not (tmp_path / "u2sa-sbc-2").exists()
     assert CpuBudget(h, 40, name="x").usage_file() == (tmp_path / "x" / "cpu.stat", False)
+
+
+def test_stale_groups_of_benches_gone_are_removed_and_live_ones_kept(tmp_path: Path) -> None:
+    h = fake_v1(tmp_path)
+    gone = h.cpu_root / "u2sa-sbc-999999999"   # no such pid
+    mine = h.cpu_root / f"u2sa-sbc-{os.getpid()}"
+    for path in (gone, mine):
+        path.mkdir()
+    assert remove_stale(h) == [str(gone)]
+    assert mine.exists() and (h.cpu_root / "someone-else").exists()
 
 
 def test_a_failed_write_removes_what_was_made(tmp_path: Path) -> None:
