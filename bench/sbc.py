@@ -39,6 +39,7 @@ removed at the end, Ctrl-C included). It prints figures; its exit status says on
 from __future__ import annotations
 
 import argparse
+import ctypes
 import json
 import os
 import resource
@@ -59,6 +60,7 @@ from bench.sbc_figures import (FAILSAFE, STALL_MS, RunResult, Step, describe, he
                                 table)
 
 VEHICLE = REPO / "examples" / "ground_vehicle" / "vehicle.toml"
+PR_SET_PDEATHSIG = 1
 KINDS = ("mission", *FAILSAFE)
 ECHO = ("ready after", "reached at", "autonomy lost", "re-arming", "completed in", "FAILED", "TIMED OUT", "real-time",
         "normal priority", "refused", "cannot join", "all neutral after", "never neutral")
@@ -71,6 +73,7 @@ def one_run(spec: dict[str, Any]) -> int:
     from simulation.runner import SimOptions, SimRun
     from u2sa_hw.udp_ports import private_lcm_url, private_udp_port
 
+    signal.signal(signal.SIGINT, signal.default_int_handler)   # even when started ignoring it (in the background)
     usage_file, with_runner = Path(spec["usage_file"]), spec["with_runner"]
     samples: list[tuple[float, int, int]] = []
     done = threading.Event()
@@ -130,6 +133,7 @@ def play(*, hierarchy: Hierarchy, percent: float, kind: str, out: Path, args: ar
 
         def preexec() -> None:
             os.setpgid(0, 0)   # Ctrl-C reaches the bench only, which stops the child in order
+            ctypes.CDLL(None).prctl(PR_SET_PDEATHSIG, int(signal.SIGINT))   # ... and so does a SIGKILLed bench
             budget.runner_join()
 
         proc = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--_one-run", json.dumps(spec)],
@@ -201,7 +205,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(str(exc))
     except BudgetError as exc:
         sys.exit(f"bench/sbc.py: {exc}")
-    signal.signal(signal.SIGTERM, signal.default_int_handler)   # cleanup as on Ctrl-C
+    for signum in (signal.SIGINT, signal.SIGTERM):   # cleanup as on Ctrl-C, also when started in the background
+        signal.signal(signum, signal.default_int_handler)
     print(f"u2sa-hw budget bench: {hierarchy.describe()}")
     print(f"  {os.cpu_count()} CPUs, Python {sys.version.split()[0]}, load average "
           f"{' / '.join(f'{x:.1f}' for x in os.getloadavg())}; budgets {', '.join(f'{b:g}' for b in budgets)} % "
