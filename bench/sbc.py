@@ -197,6 +197,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         budgets = parse_budgets(args.budgets)
         kinds = [k for k in args.kinds.split(",") if k]
+        if args.runs < 1:
+            raise ValueError("--runs must be at least 1")
         if unknown := set(kinds) - set(KINDS):
             raise ValueError(f"unknown kinds {sorted(unknown)} (choose from {', '.join(KINDS)})")
         require_root()
@@ -233,8 +235,8 @@ def main(argv: list[str] | None = None) -> int:
             for index in range(args.runs):
                 for kind in kinds:
                     n += 1
-                    print(f"[{percent:g} % | {n}/{total} | {time.monotonic() - started:5.0f} s] {kind} run "
-                          f"{index + 1}/{args.runs}", flush=True)
+                    print(f"[{percent:g} % | {n}/{total} | {time.monotonic() - started:5.0f} s | load "
+                          f"{os.getloadavg()[0]:.1f}] {kind} run {index + 1}/{args.runs}", flush=True)
                     t0 = time.monotonic()
                     mode = "whole" if args.whole_sim else "services"
                     run = play(hierarchy=hierarchy, percent=percent, kind=kind, args=args,
