@@ -33,7 +33,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-CGROUP_ROOT = Path("/sys/fs/cgroup")
 CFS_PERIOD_US = 100_000
 RT_PERIOD_US = 1_000_000
 MIN_QUOTA_US = 1_000              # the kernel's smallest CFS quota
@@ -55,8 +54,7 @@ class Hierarchy:
     def describe(self) -> str:
         """One line: the version, where, RT handling, how usage is read."""
         if self.version == 2:
-            return (f"cgroup v2 at {self.cpu_root} (cpu.max; real-time tasks are not held by cpu.max: "
-                    "use --no-realtime for an honest budget)")
+            return f"cgroup v2 at {self.cpu_root} (cpu.max, no RT budget; usage from cpu.stat)"
         rt = "cfs quota + rt_runtime" if self.realtime else "cfs quota (no RT group scheduling)"
         acct = f"usage from {self.acct_root}" if self.acct_root else "usage from cpuacct.usage"
         return f"cgroup v1 at {self.cpu_root} ({rt}; {acct})"
