@@ -171,7 +171,9 @@ class SimRun:
         """The pilot flips the RC mode switch to autonomous; waits for the mux to hand over.
 
         A pilot who sees RC_MODE say "not armed" (a pre-arm check that failed just after the
-        switch disarms the rc service) re-arms through manual, at most REARM_TRIES times.
+        switch disarms the rc service), or a refusal whose fix is a re-arm through manual (a
+        motor controller's watchdog trip of its driver's own stall), re-arms through manual, at
+        most REARM_TRIES times.
         """
         self.mocks.set_mode_switch(True)
         self.progress.event("pilot: RC mode switch -> AUTONOMOUS")
@@ -183,7 +185,8 @@ class SimRun:
                     self.record.t_engage = snap.autonomous_since
                 return
             state = rc_state_name(snap.rc) if snap.rc is not None else "no RC_MODE"
-            if "not armed" in state and time.monotonic() - flipped > REARM_AFTER_S and tries < REARM_TRIES:
+            told = "not armed" in state or "to clear: switch through manual" in state   # a refusal's own fix
+            if told and time.monotonic() - flipped > REARM_AFTER_S and tries < REARM_TRIES:
                 tries += 1
                 self.progress.event(f"pilot: RC_MODE says {state}: re-arming through manual")
                 self._to_manual()
