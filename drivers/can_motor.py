@@ -108,6 +108,7 @@ class CanMotorService(CanMotorDeclarations, Actuator):
         self._reason = ""
         self._logged_drops: set[str] = set()
         self.stalls = StallWatch()   # this driver's own stalls, on time.monotonic(): drivers/stall_trip.py
+        self._silence_judged_from = 0.0   # time.monotonic(): no node is called silent before this
         self.check_settings(self.config.get)
         self._build()
 
@@ -281,6 +282,8 @@ class CanMotorService(CanMotorDeclarations, Actuator):
 
     def _tick_and_status(self) -> None:
         stall = self.stalls.turn(time.monotonic())
+        if stall is not None:   # the frames that queued meanwhile are read first: they say who is silent
+            self._silence_judged_from = stall.end + float(self.config.get("silent_after_s"))
         if stall is not None and stall.duration >= self.stall_trip_gap_s():
             self.logger.warning("%s: this driver stalled (%s): a controller watchdog may have tripped; such a "
                                 "trip is cleared at the pilot's next re-arm through manual", self.device_name,
@@ -319,6 +322,12 @@ class CanMotorService(CanMotorDeclarations, Actuator):
             return trip_gap_s(watchdog_timeout_s=float(cfg.get("hw_watchdog_timeout_s")),
                               command_period_s=float(cfg.get("command_period_s")))
         return float(cfg.get("silent_after_s"))
+
+    @property
+    def judging_silence(self) -> bool:
+        """False for ``silent_after_s`` after a stall of this driver: a node whose frames waited in the socket
+        while the driver was stopped is not silent, and is heard as soon as they are read."""
+        return time.monotonic() >= self._silence_judged_from
 
     @property
     def link_up(self) -> bool:

@@ -245,7 +245,7 @@ class OdriveCanMotor(OdriveTripLatch, OdriveDeclarations, CanMotorService):
 
     def _check_silence(self, axis: OdriveAxis, now: float) -> bool:
         last = axis.last_heartbeat if axis.last_heartbeat is not None else self.started_at
-        if now - last <= self.config.get("silent_after_s"):
+        if now - last <= self.config.get("silent_after_s") or not self.judging_silence:
             return axis.silent
         if not axis.silent:
             axis.silent = True

@@ -209,7 +209,7 @@ class VescCanMotor(VescDeclarations, CanMotorService):
         """Notice silent controllers; re-send every setpoint once its period is due."""
         for motor in self.vescs.values():
             last = motor.last_status if motor.last_status is not None else self.started_at
-            if now - last > self.config.get("silent_after_s") and not motor.silent:
+            if now - last > self.config.get("silent_after_s") and not motor.silent and self.judging_silence:
                 motor.silent = True
                 motor.silent_events += 1
                 motor.stall_since = None

@@ -117,7 +117,7 @@ class Rig:
                       for side, node_id in zip(("left", "right"), NODES)}
         self.svc = OdriveCanMotor("motors", settings={
             "interface": "virtual", "channel": self.channel, "node_ids": list(NODES), "status_poll_s": 0.0,
-            "odometry": False, "rc_gating": False, "command_timeout_s": 0.5, "silent_after_s": 2.0, **WATCHDOG_06})
+            "odometry": False, "rc_gating": False, "command_timeout_s": 0.5, "silent_after_s": 0.5, **WATCHDOG_06})
         self.runner = threading.Thread(target=self.svc.run, daemon=True)
 
     def details(self) -> dict[str, Any]:
@@ -131,10 +131,17 @@ class Rig:
         for mode, armed in modes:
             self.svc.gate.on_rc_mode(rc_mode(mode, armed=armed), time.monotonic())
 
-    def stall(self) -> None:
-        """The driver's loop holds still (its lock taken) until both axes' watchdogs have tripped."""
+    def heartbeats_sent(self, side: str) -> int:
+        return sum(1 for r in self.nodes[side].history
+                   if r.direction == "tx" and r.message.arbitration_id & 0x1F == Cmd.HEARTBEAT)
+
+    def stall(self, *, heartbeats: int) -> None:
+        """The driver's loop holds still (its lock taken) until both axes' watchdogs have tripped and each node
+        has sent *heartbeats* more heartbeats (at 10 Hz: a stall longer than silent_after_s)."""
+        marks = {side: self.heartbeats_sent(side) for side in self.nodes}
         with self.svc.lock:
-            wait_until(lambda: all(n.watchdog_trips for n in self.nodes.values()), timeout=20,
+            wait_until(lambda: all(n.watchdog_trips for n in self.nodes.values())
+                       and all(self.heartbeats_sent(s) - marks[s] >= heartbeats for s in self.nodes), timeout=20,
                        message="both axis watchdogs tripped while the driver stalled")
 
     def frames_after(self, count: int) -> None:
@@ -174,7 +181,7 @@ def test_a_stall_trip_is_logged_and_cleared_on_the_pilots_re_arm_and_a_hardware_
     rig.wait(lambda d: d["left.phase"] == d["right.phase"] == "armed" and d["hw_watchdog"].startswith("on"),
              "both axes armed with their watchdogs on")
     rig.pilot((RC_MODE_MANUAL, True))   # the pilot is in manual, armed, before the stall
-    rig.stall()
+    rig.stall(heartbeats=7)
 
     details = rig.wait(lambda d: d["left.phase"] == d["right.phase"] == "error" and "stalled" in d["degraded_reason"]
                        and d["right.error"] == d["left.error"] == "WATCHDOG_TIMER_EXPIRED",
@@ -183,6 +190,8 @@ def test_a_stall_trip_is_logged_and_cleared_on_the_pilots_re_arm_and_a_hardware_
     assert "left (node 3) error WATCHDOG_TIMER_EXPIRED (this driver stalled" in details["degraded_reason"]
     assert int(details["stalls"]) >= 1 and details["last_stall"].startswith("sent nothing for ")
     assert any("from this driver's own stall (sent nothing for" in r.getMessage() for r in caplog.records)
+    # the stall outlasted silent_after_s (0.5 s), but the heartbeats that waited meanwhile say the nodes are there
+    assert details["left.silent_events"] == details["right.silent_events"] == 0
 
     # no re-arm: still latched however long the driver runs (a still switch in manual is no re-arm)
     rig.pilot((RC_MODE_MANUAL, True))
