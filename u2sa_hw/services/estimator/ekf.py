@@ -24,12 +24,13 @@ This module is pure: no bus, no clock; the caller passes times.
 
 The predict and update steps are filterpy's ``ExtendedKalmanFilter.predict``/``update``
 written out on preallocated arrays (P = F P F' + Q; K = P H' S^-1 with the Joseph-form
-covariance update). The estimator runs them a few hundred times a second, and filterpy's
-copies and checks cost more than the arithmetic; importing it (and scipy.stats for the
-gate) would also cost the estimator process 70 MB and a second at start.
-``tests/test_estimator_ekf.py`` runs filterpy's filter beside this one on the same
-measurements and requires the same state and covariance, and checks :func:`chi2_quantile`
-against scipy's.
+covariance update), each (kind, components) model built once; where H selects states, P H'
+and H P H' are picked from P. The estimator runs them a few hundred times a second: per-call
+allocations and numpy calls are its cost (bench/estimator.py), and filterpy's copies and checks
+cost more than the arithmetic; importing it (and scipy.stats for the gate) would also cost the
+process 70 MB and a second at start. ``tests/test_estimator_ekf.py`` runs filterpy's filter
+beside this one and checks :func:`chi2_quantile` against scipy's; ``tests/test_estimator_reference.py``
+compares with the textbook formulas.
 """
 
 from __future__ import annotations
@@ -139,18 +140,39 @@ def _chi2_sf(x: float, dof: int) -> float:
     return total
 
 
-def _inverse(s: np.ndarray) -> np.ndarray:
-    """The inverse of a small innovation covariance (closed form up to 2x2: numpy's call costs more)."""
-    if s.shape == (1, 1):
-        return 1.0 / s
-    if s.shape == (2, 2):
-        a, b, c, d = s[0, 0], s[0, 1], s[1, 0], s[1, 1]
-        return np.array([[d, -b], [-c, a]]) / (a * d - b * c)
-    return np.linalg.inv(s)
+_POS, _VEL = np.array([N, E, D, PSI]), np.array([VN, VE, VD, R])
+_EYE = np.eye(8)
 
 
-_POS = np.array([N, E, D, PSI])
-_VEL = np.array([VN, VE, VD, R])
+@dataclass(frozen=True)
+class _Plan:
+    """What an update of one (kind, components) needs that does not change between updates."""
+
+    kind: str
+    components: tuple[str, ...]
+    index: np.ndarray                 # state rows of a linear model (empty for velocity_body)
+    states: tuple[int, ...]           # the same as a tuple
+    jac: np.ndarray                   # H of a linear model; velocity_body's own H, refilled per update
+    wrap_rows: tuple[int, ...]        # rows holding a heading (wrapped innovations)
+    single: int                       # the state index of a one-component linear model, else -1
+    observes: frozenset[int]          # states an accepted update makes observed
+    motion_heading: bool              # velocity_body with a horizontal part: heading observed once N, E are
+    needs_heading: bool               # velocity_body: waits for the first heading
+    direct: bool                      # position or heading: a component's first measurement sets it
+
+
+def _plan(kind: str, components: tuple[str, ...]) -> _Plan:
+    """The :class:`_Plan` of a valid (kind, components)."""
+    if kind == "velocity_body":
+        horizontal = any(c != "down" for c in components)
+        observes = frozenset({VN, VE} if horizontal else set()) | frozenset({VD} if "down" in components else set())
+        return _Plan(kind, components, np.zeros(0, dtype=int), (), np.zeros((len(components), 8)), (), -1,
+                     observes, horizontal, True, False)
+    states = tuple(_LINEAR_INDEX[c] for c in components)
+    extra = {i + 3 for i in states} if kind == "position" else {R} if kind == "heading" else set()
+    return _Plan(kind, components, np.array(states), states, _EYE[list(states)],
+                 tuple(i for i, c in enumerate(components) if c == "psi"), states[0] if len(states) == 1 else -1,
+                 frozenset(states) | frozenset(extra), False, False, kind in _DIRECT_INIT_KINDS)
 
 
 class NavigationEkf:
@@ -165,8 +187,8 @@ class NavigationEkf:
         self.x = np.zeros(8)
         self.P = np.diag([INITIAL_UNKNOWN_SIGMA**2] * 3 + [INITIAL_VELOCITY_SIGMA**2] * 3
                          + [INITIAL_HEADING_SIGMA**2, INITIAL_YAW_RATE_SIGMA**2])
-        self._eye = np.eye(8)
         self._f = np.eye(8)
+        self._f_flat = (_POS * 8 + _VEL).tolist()
         # Q(dt) = dt^3/3 Q3 + dt^2/2 Q2 + dt Q1 (filterpy's Q_continuous_white_noise(dim=2) per (pos, vel) pair),
         # kept as one (3, 64) array so that Q is a single dot product
         q = np.zeros((3, 8, 8))
@@ -176,11 +198,17 @@ class NavigationEkf:
             q[1, pos, vel] = q[1, vel, pos] = spectral
             q[2, vel, vel] = spectral
         self._q = q.reshape(3, 64)
+        self._coeffs = np.empty(3)
+        self._q_now = np.empty(64)
+        self._q_now_8x8 = self._q_now.reshape(8, 8)
+        self._tmp = np.empty((8, 8))   # scratch: the filter runs a few hundred times a second
         self.time: float | None = None
         self._thresholds: dict[tuple[float, int], float] = {}
-        self._linear_rows: dict[tuple[str, ...], tuple[np.ndarray, list[int]]] = {}
+        self._plans: dict[tuple[str, tuple[str, ...]], _Plan] = {}
         self.initialised: set[int] = set()
         self.observed: set[int] = set()
+        self.mahalanobis2 = 0.0          # of the latest gated update
+        self.threshold = math.inf
 
     # -- prediction -----------------------------------------------------------------------
     def predict_to(self, t: float) -> None:
@@ -191,38 +219,42 @@ class NavigationEkf:
         dt = t - self.time
         if dt <= 0.0:
             return
-        f = self._f
-        f[_POS, _VEL] = dt
-        self.x = f @ self.x
-        self.P = f @ self.P @ f.T + np.dot((dt * dt * dt / 3.0, dt * dt / 2.0, dt), self._q).reshape(8, 8)
-        self.x[PSI] = wrap_angle(self.x[PSI])
+        f, p, tmp, coeffs = self._f, self.P, self._tmp, self._coeffs
+        f.put(self._f_flat, dt)
+        x = self.x = f @ self.x
+        np.dot(f, p, out=tmp)
+        np.dot(tmp, f.T, out=p)
+        coeffs[0], coeffs[1], coeffs[2] = dt * dt * dt / 3.0, dt * dt / 2.0, dt
+        np.dot(coeffs, self._q, out=self._q_now)
+        p += self._q_now_8x8
+        x[PSI] = wrap_angle(x.item(PSI))
         self.time = t
 
     # -- measurement models ---------------------------------------------------------------
-    def _model(self, m: Measurement) -> tuple[np.ndarray, np.ndarray, list[int]]:
-        """h(x), its Jacobian H and the rows holding a heading (wrapped innovations) for *m*."""
-        x = self.x
-        if m.kind != "velocity_body":
-            rows = self._linear_rows.get(m.components)
-            if rows is None:
-                idx = np.array([_LINEAR_INDEX[c] for c in m.components])
-                rows = self._linear_rows[m.components] = (idx, [i for i, c in enumerate(m.components) if c == "psi"])
-            idx, wrap_rows = rows
-            return x[idx], self._eye[idx], wrap_rows
-        h = np.zeros(len(m.components))
-        jac = np.zeros((len(m.components), 8))
-        c, s = math.cos(x[PSI]), math.sin(x[PSI])
-        for row, comp in enumerate(m.components):
+    def plan(self, kind: str, components: tuple[str, ...]) -> _Plan:
+        """The cached model of a (kind, components) group."""
+        plan = self._plans.get((kind, components))
+        if plan is None:
+            plan = self._plans[(kind, components)] = _plan(kind, components)
+        return plan
+
+    def _body_model(self, plan: _Plan) -> tuple[list[float], np.ndarray]:
+        """h(x) and H of a body-frame velocity at the current state (H is the plan's array, refilled)."""
+        vn, ve, psi, vd = self.x.item(VN), self.x.item(VE), self.x.item(PSI), self.x.item(VD)
+        c, s = math.cos(psi), math.sin(psi)
+        h = []
+        jac = plan.jac
+        for row, comp in enumerate(plan.components):
             if comp == "forward":
-                h[row] = x[VN] * c + x[VE] * s
-                jac[row, [VN, VE, PSI]] = (c, s, -x[VN] * s + x[VE] * c)
+                h.append(vn * c + ve * s)
+                jac[row, VN], jac[row, VE], jac[row, PSI] = c, s, -vn * s + ve * c
             elif comp == "right":
-                h[row] = -x[VN] * s + x[VE] * c
-                jac[row, [VN, VE, PSI]] = (-s, c, -x[VN] * c - x[VE] * s)
+                h.append(-vn * s + ve * c)
+                jac[row, VN], jac[row, VE], jac[row, PSI] = -s, c, -vn * c - ve * s
             else:
-                h[row] = x[VD]
+                h.append(vd)
                 jac[row, VD] = 1.0
-        return h, jac, []
+        return h, jac
 
     def gate_threshold(self, dof: int) -> float:
         """The chi-square quantile of ``gate_probability`` for *dof* components (inf: gate off)."""
@@ -236,10 +268,27 @@ class NavigationEkf:
     # -- update ---------------------------------------------------------------------------
     def update(self, m: Measurement, *, gate: bool = True) -> UpdateResult:
         """Fold *m* into the state; components never measured before initialise directly."""
+        outcome = self.update_values(m.kind, m.components, m.values, m.sigmas, gate=gate)
+        gated = outcome in ("accepted", "rejected")
+        return UpdateResult(outcome, self.mahalanobis2, self.threshold) if gated else UpdateResult(outcome)
+
+    def update_values(self, kind: str, components: tuple[str, ...], values: tuple[float, ...],
+                      sigmas: tuple[float, ...], *, gate: bool = True) -> str:
+        """:meth:`update` of a valid measurement given by parts; the outcome (d2 in ``mahalanobis2``)."""
+        plan = self.plan(kind, components)
+        if plan.needs_heading and PSI not in self.initialised or \
+                plan.direct and not self.initialised.issuperset(plan.states):
+            return self._update_first(Measurement(kind, components, values, sigmas), gate=gate)
+        if plan.single >= 0:
+            return self._update_one(plan, values[0], sigmas[0], gate=gate)
+        return self._update_group(plan, values, sigmas, gate=gate)
+
+    def _update_first(self, m: Measurement, *, gate: bool) -> str:
+        """:meth:`update` before a heading (body velocities) or with components never measured (positions, heading)."""
         if m.kind == "velocity_body" and PSI not in self.initialised:
             keep = [i for i, comp in enumerate(m.components) if comp == "down"]
             if not keep:
-                return UpdateResult("deferred")
+                return "deferred"
             m = m.subset(keep)
         if m.kind in _DIRECT_INIT_KINDS:
             fresh = [i for i, comp in enumerate(m.components) if _LINEAR_INDEX[comp] not in self.initialised]
@@ -247,50 +296,82 @@ class NavigationEkf:
                 self.reset_to(m.subset(fresh))
                 rest = [i for i in range(len(m.components)) if i not in fresh]
                 if not rest:
-                    return UpdateResult("initialised")
+                    return "initialised"
                 m = m.subset(rest)
-        if len(m.components) == 1 and m.kind != "velocity_body":
-            return self._update_one(m, gate=gate)
-        hx, jac, wrap_rows = self._model(m)
-        y = np.array(m.values, dtype=float) - hx
-        for i in wrap_rows:
-            y[i] = wrap_angle(y[i])
-        r_mat = np.diag(np.square(np.array(m.sigmas, dtype=float)))
-        p = self.P
-        pht = p @ jac.T
-        s_inv = _inverse(jac @ pht + r_mat)
-        d2 = float(y @ s_inv @ y)
-        threshold = self.gate_threshold(len(m.components))
-        if gate and not d2 <= threshold:   # also catches a NaN distance
-            return UpdateResult("rejected", d2, threshold)
-        k = pht @ s_inv
-        self.x += k @ y
-        i_kh = self._eye - k @ jac
-        self.P = i_kh @ p @ i_kh.T + k @ r_mat @ k.T   # Joseph form, as filterpy: stays symmetric and positive
-        self.x[PSI] = wrap_angle(self.x[PSI])
-        self._mark_observed(m)
-        return UpdateResult("accepted", d2, threshold)
+        plan = self.plan(m.kind, m.components)
+        if plan.single >= 0:
+            return self._update_one(plan, m.values[0], m.sigmas[0], gate=gate)
+        return self._update_group(plan, m.values, m.sigmas, gate=gate)
 
-    def _update_one(self, m: Measurement, *, gate: bool) -> UpdateResult:
-        """:meth:`update` for one directly measured component: H selects state *i*, S and K are scalars.
+    def _update_group(self, plan: _Plan, values: tuple[float, ...], sigmas: tuple[float, ...], *, gate: bool) -> str:
+        """A group's update: K = P H' S^-1 and the Joseph-form covariance, with the gate on y' S^-1 y."""
+        x, p, linear = self.x, self.P, not plan.needs_heading
+        if linear:   # H selects rows: P H' and H P H' are columns and entries of P (the same numbers)
+            jac = plan.jac
+            y = np.array(values, dtype=float) - x[plan.index]
+            pht = p[:, plan.index]
+            s_mat = pht[plan.index]
+        else:
+            hx, jac = self._body_model(plan)
+            y = np.array([v - h for v, h in zip(values, hx)])
+            pht = p @ jac.T
+            s_mat = jac @ pht
+        for i in plan.wrap_rows:
+            y[i] = wrap_angle(y.item(i))
+        r = np.array(sigmas, dtype=float)
+        r *= r
+        s_mat.flat[::len(r) + 1] += r
+        if len(r) == 2:   # closed form: numpy's inverse costs more than the arithmetic
+            a, b, c, d = s_mat.ravel().tolist()
+            det = a * d - b * c
+            i00, i01, i10, i11 = d / det, -b / det, -c / det, a / det
+            s_inv = np.array(((i00, i01), (i10, i11)))
+            y0, y1 = y.tolist()
+            d2 = self.mahalanobis2 = (y0 * i00 + y1 * i10) * y0 + (y0 * i01 + y1 * i11) * y1
+        else:
+            s_inv = np.linalg.inv(s_mat)
+            d2 = self.mahalanobis2 = float(y @ s_inv @ y)
+        threshold = self.threshold = self.gate_threshold(len(r))
+        if gate and not d2 <= threshold:   # also catches a NaN distance
+            return "rejected"
+        k = pht @ s_inv
+        x += k @ y
+        if linear:
+            i_kh = _EYE.copy()
+            i_kh[:, plan.index] -= k
+        else:
+            i_kh = _EYE - k @ jac
+        tmp = self._tmp
+        np.dot(i_kh, p, out=tmp)
+        np.dot(tmp, i_kh.T, out=p)
+        p += (k * r) @ k.T   # Joseph form, as filterpy: stays symmetric and positive
+        x[PSI] = wrap_angle(x.item(PSI))
+        self._observe(plan)
+        return "accepted"
+
+    def _update_one(self, plan: _Plan, value: float, sigma: float, *, gate: bool) -> str:
+        """The update of one directly measured component: H selects state *i*, S and K are scalars.
 
         The Joseph form reduces to P - p p' / S here (p = P[:, i], K = p / S), exactly symmetric.
         """
-        i = _LINEAR_INDEX[m.components[0]]
-        y = m.values[0] - float(self.x[i])
+        i, x, p = plan.single, self.x, self.P
+        y = value - x.item(i)
         if i == PSI:
             y = wrap_angle(y)
-        p_col = self.P[:, i].copy()
-        s = float(p_col[i]) + m.sigmas[0] * m.sigmas[0]
-        d2 = y * y / s
-        threshold = self.gate_threshold(1)
+        p_col = p[:, i].copy()
+        s = p_col.item(i) + sigma * sigma
+        d2 = self.mahalanobis2 = y * y / s
+        threshold = self.threshold = self.gate_threshold(1)
         if gate and not d2 <= threshold:
-            return UpdateResult("rejected", d2, threshold)
-        self.x += p_col * (y / s)
-        self.P -= np.outer(p_col, p_col) / s
-        self.x[PSI] = wrap_angle(self.x[PSI])
-        self._mark_observed(m)
-        return UpdateResult("accepted", d2, threshold)
+            return "rejected"
+        x += p_col * (y / s)
+        tmp = self._tmp
+        np.multiply(p_col[:, None], p_col, out=tmp)
+        tmp /= s
+        p -= tmp
+        x[PSI] = wrap_angle(x.item(PSI))
+        self._observe(plan)
+        return "accepted"
 
     def reset_to(self, m: Measurement) -> None:
         """Set the components of a position or heading measurement directly (forgetting correlations)."""
@@ -303,24 +384,17 @@ class NavigationEkf:
             self.P[:, idx] = 0.0
             self.P[idx, idx] = sigma * sigma
             self.initialised.add(idx)
-        self._mark_observed(m)
+        self._observe(self.plan(m.kind, m.components))
 
-    def _mark_observed(self, m: Measurement) -> None:
-        for comp in m.components:
-            if m.kind == "velocity_body":
-                self.observed.update({VN, VE} if comp != "down" else {VD})
-                if comp != "down" and {N, E} <= self.initialised:
-                    self.observed.add(PSI)   # heading from motion: odometry against positions
-            else:
-                idx = _LINEAR_INDEX[comp]
-                self.observed.add(idx)
-                if m.kind == "position":
-                    self.observed.add(idx + 3)  # the velocity of a tracked position is estimated
-                elif m.kind == "heading":
-                    self.observed.add(R)
+    def _observe(self, plan: _Plan) -> None:
+        observed = self.observed
+        if not observed.issuperset(plan.observes):
+            observed |= plan.observes
+        if plan.motion_heading and PSI not in observed and {N, E} <= self.initialised:
+            observed.add(PSI)   # heading from motion: odometry against positions
 
     # -- readout --------------------------------------------------------------------------
     def state(self) -> dict[str, tuple[float, float]]:
         """``{state name: (value, sigma)}`` for every observed state component."""
-        x, p = self.x, self.P
-        return {STATE_NAMES[i]: (float(x[i]), math.sqrt(max(float(p[i, i]), 0.0))) for i in sorted(self.observed)}
+        x, var = self.x.tolist(), self.P.diagonal().tolist()
+        return {STATE_NAMES[i]: (x[i], math.sqrt(max(var[i], 0.0))) for i in sorted(self.observed)}

@@ -31,12 +31,15 @@ from __future__ import annotations
 import functools
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from operator import attrgetter
+from typing import Any
 
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.geo import GeoOrigin, geodetic_to_ned
 from u2sa_hw.messages import STATE_FIELDS  # also installs the presence setters
-from u2sa_hw.services.estimator.ekf import Measurement, NavigationEkf, UpdateResult
+from u2sa_hw.services.estimator.ekf import STATE_NAMES, Measurement, NavigationEkf
 
 NED_FRAMES = frozenset({"", "NED", "LOCAL"})
 GEODETIC_FRAMES = frozenset({"GEODETIC", "GLOBAL"})
@@ -49,12 +52,41 @@ _OUTPUT = (("x", "north"), ("y", "east"), ("z", "down"), ("x_dot", "v_north"), (
            ("z_dot", "v_down"), ("psi", "psi"), ("psi_dot", "yaw_rate"))
 _BIT = {name: 1 << i for i, name in enumerate(STATE_FIELDS)}
 _PASSTHROUGH = tuple((name, _BIT[name]) for name in PASSTHROUGH_FIELDS)
-_PASSTHROUGH_MASK = sum(bit for _, bit in _PASSTHROUGH)
 _OUTPUT_BITS = tuple((state, out, _BIT[out], f"{out}_sigma", _BIT[f"{out}_sigma"]) for out, state in _OUTPUT)
+# filter state index -> (estimate field, its bit | its sigma's bit, the sigma field)
+_OUTPUT_BY_STATE = {STATE_NAMES.index(state): (out, bit | sigma_bit, out_sigma)
+                    for state, out, bit, out_sigma, sigma_bit in _OUTPUT_BITS}
 
 
 # (kind, filter components, message fields, (sigma field, its presence bit, default sigma) per field)
 _Group = tuple[str, tuple[str, ...], tuple[str, ...], tuple[tuple[str, int, float], ...]]
+_Getter = Callable[[Any], tuple[float, ...]]
+
+
+def _getter(names: tuple[str, ...]) -> _Getter:
+    """A function of a message returning the fields *names* as a tuple (attrgetter returns one field bare)."""
+    if len(names) == 1:
+        one = attrgetter(names[0])
+        return lambda msg: (one(msg),)
+    return attrgetter(*names)
+
+
+def _some_fields(names: tuple[str, ...], msg: Any) -> tuple[float, ...]:
+    """The fields *names* of *msg*, 0.0 for an empty name."""
+    return tuple(getattr(msg, n) if n else 0.0 for n in names)
+
+
+@dataclass(frozen=True)
+class _MessagePlan:
+    """How a message with one presence vector and frame is read, when all its values are finite."""
+
+    values: _Getter                   # every present value field (to check that all are finite)
+    fields: frozenset[str]            # their names
+    frame: str                        # the frame as a sensor record lists it
+    # per group: kind, components, fields, its values, its sigmas (absent ones 0, i.e. the default), defaults
+    groups: tuple[tuple[str, tuple[str, ...], tuple[str, ...], _Getter, _Getter, tuple[float, ...]], ...]
+    unusable: tuple[str, ...]         # present fields no group reads (a position in a body frame)
+    passthrough: tuple[tuple[str, int], ...]   # present attitude fields copied into the estimate
 
 
 def _sigma(msg: t.StateInformation, bit: int, name: str, default: float) -> float:
@@ -64,6 +96,12 @@ def _sigma(msg: t.StateInformation, bit: int, name: str, default: float) -> floa
         if math.isfinite(sigma) and sigma > 0:
             return sigma
     return default
+
+
+@functools.lru_cache(maxsize=64)
+def _passthrough_fields(presence_vector: int) -> tuple[str, ...]:
+    """The pass-through fields a presence vector marks."""
+    return tuple(name for name, bit in _PASSTHROUGH if presence_vector & bit)
 
 
 @functools.lru_cache(maxsize=256)
@@ -119,6 +157,7 @@ class StateFusion:
         self.passthrough = t.StateInformation()
         self._warned: set[tuple[str, str]] = set()
         self._layouts: dict[tuple[int, str], tuple[list[_Group], list[str]]] = {}
+        self._plans: dict[tuple[int, str], _MessagePlan] = {}
 
     # -- messages -> measurements ---------------------------------------------------------
     def measurements(self, msg: t.StateInformation) -> tuple[list[Measurement], list[str]]:
@@ -190,6 +229,40 @@ class StateFusion:
         group("yaw_rate", (("psi_dot", "yaw_rate"),))
         return groups, unusable
 
+    def _message_plan(self, present: int, frame_text: str) -> _MessagePlan:
+        """The :class:`_MessagePlan` of messages with the fields *present* in *frame_text*."""
+        fields = _value_fields(present)
+        groups, unusable = self._layout(present, frame_text)
+        plans = []
+        for kind, components, names, sigmas in groups:
+            sigma_names = tuple(name if present & bit else "" for name, bit, _ in sigmas)
+            if all(sigma_names):
+                get_sigmas = _getter(sigma_names)
+            else:
+                get_sigmas = functools.partial(_some_fields, sigma_names)
+            plans.append((kind, components, names, _getter(names), get_sigmas, tuple(d for _, _, d in sigmas)))
+        return _MessagePlan(_getter(fields) if fields else lambda msg: (), frozenset(fields),
+                            frame_text.strip().upper() or "NED", tuple(plans), tuple(unusable),
+                            tuple((n, bit) for n, bit in _PASSTHROUGH if present & bit))
+
+    def _groups(self, msg: t.StateInformation, plan: _MessagePlan
+                ) -> tuple[list[tuple[str, tuple[str, ...], tuple[float, ...], tuple[float, ...]]], list[str]]:
+        """(kind, components, values, sigmas) of each measurement group in *msg*, and the unusable fields."""
+        values = plan.values(msg)
+        if not math.isfinite(sum(values)):   # a NaN or an infinity somewhere (or a huge sum): field by field
+            found, unusable = self.measurements(msg)
+            return [(m.kind, m.components, m.values, m.sigmas) for m in found], unusable
+        out = []
+        for kind, components, names, get_values, get_sigmas, defaults in plan.groups:
+            values = get_values(msg)
+            if kind == "geodetic":   # x = lat, y = lon (deg), z = altitude up (m)
+                kind, values = "position", self._geodetic_to_ned(names, values)
+            sigmas = get_sigmas(msg)
+            if not (min(sigmas) > 0.0 and math.isfinite(sum(sigmas))):   # one absent, not finite or not > 0
+                sigmas = tuple(x if 0.0 < x < math.inf else d for x, d in zip(sigmas, defaults))
+            out.append((kind, components, values, sigmas))
+        return out, list(plan.unusable)
+
     # -- ingest -----------------------------------------------------------------------------
     def register(self, name: str, *, now: float) -> SensorRecord:
         """The record of sensor *name*, created (and logged) on its first message."""
@@ -199,61 +272,69 @@ class StateFusion:
             self.logger.debug("new sensor '%s'", name)
         return rec
 
-    def ingest(self, msg: t.StateInformation, *, now: float) -> list[tuple[Measurement, UpdateResult]]:
-        """Fold one message into the estimate at time *now*; return what happened to each group."""
+    def ingest(self, msg: t.StateInformation, *, now: float) -> list[str]:
+        """Fold one message into the estimate at time *now*; return the kinds of the groups folded in
+        (accepted, or initialised a component)."""
         name = msg.sensor_name or "(unnamed)"
-        rec = self.register(name, now=now)
+        rec = self.sensors.get(name) or self.register(name, now=now)
         rec.messages += 1
         rec.last_seen = now
-        rec.frames.add(msg.reference_frame.strip().upper() or "NED")
-        rec.fields.update(_value_fields(msg.presence_vector))
-        groups, unusable = self.measurements(msg)
+        key = (msg.presence_vector, msg.reference_frame)
+        plan = self._plans.get(key)
+        if plan is None:
+            plan = self._plans[key] = self._message_plan(*key)
+        rec.frames.add(plan.frame)
+        if not rec.fields.issuperset(plan.fields):
+            rec.fields |= plan.fields
+        groups, unusable = self._groups(msg, plan)
         if unusable:
             rec.unusable += len(unusable)
             self._warn_once(name, f"fields {', '.join(unusable)} in frame '{msg.reference_frame}'",
                             "unusable (non-finite, half a geodetic position, or a position in a body/unknown "
                             "frame); they are ignored")
-        self._copy_passthrough(msg)
-        self.ekf.predict_to(now)
-        results = []
-        for m in groups:
-            res = self.ekf.update(m)
-            if res.outcome == "rejected":
-                rec.outliers += 1
-                count = rec.consecutive_rejects.get(m.kind, 0) + 1
-                rec.consecutive_rejects[m.kind] = count
-                self.logger.debug("sensor '%s': %s rejected (d2 %.1f > %.1f)", name, m.kind,
-                                  res.mahalanobis2, res.threshold)
-                if count >= self.settings.reinit_after:
-                    self.logger.warning("sensor '%s': %d %s measurements in a row beyond the gate; trusting it "
-                                        "again (the estimate had diverged or the sensor jumped)", name, count, m.kind)
-                    if m.kind in ("position", "heading"):
-                        self.ekf.reset_to(m)
-                        res = UpdateResult("initialised", res.mahalanobis2, res.threshold)
-                    else:
-                        res = self.ekf.update(m, gate=False)
-                    rec.consecutive_rejects[m.kind] = 0
+        if plan.passthrough:
+            self._copy_passthrough(msg, plan.passthrough)
+        ekf = self.ekf
+        ekf.predict_to(now)
+        folded = []
+        for kind, components, values, sigmas in groups:
+            outcome = ekf.update_values(kind, components, values, sigmas)
+            if outcome == "rejected":
+                outcome = self._rejected(rec, Measurement(kind, components, values, sigmas))
             else:
-                rec.consecutive_rejects[m.kind] = 0
-            if res.outcome == "deferred":
+                rec.consecutive_rejects[kind] = 0
+            if outcome == "deferred":
                 rec.deferred += 1
-                self._warn_once(name, f"{m.kind} before any heading", "waits for a heading measurement (psi)")
-            elif res.outcome != "rejected":
+                self._warn_once(name, f"{kind} before any heading", "waits for a heading measurement (psi)")
+            elif outcome != "rejected":
                 rec.accepted += 1
-            results.append((m, res))
-        return results
+                folded.append(kind)
+        return folded
 
-    def _copy_passthrough(self, msg: t.StateInformation) -> None:
-        present = msg.presence_vector & _PASSTHROUGH_MASK
-        if not present:
-            return
+    def _rejected(self, rec: SensorRecord, m: Measurement) -> str:
+        """Count a group the gate rejected; after ``reinit_after`` in a row, fold it in anyway. The outcome."""
+        rec.outliers += 1
+        count = rec.consecutive_rejects.get(m.kind, 0) + 1
+        rec.consecutive_rejects[m.kind] = count
+        self.logger.debug("sensor '%s': %s rejected (d2 %.1f > %.1f)", rec.name, m.kind,
+                          self.ekf.mahalanobis2, self.ekf.threshold)
+        if count < self.settings.reinit_after:
+            return "rejected"
+        self.logger.warning("sensor '%s': %d %s measurements in a row beyond the gate; trusting it "
+                            "again (the estimate had diverged or the sensor jumped)", rec.name, count, m.kind)
+        rec.consecutive_rejects[m.kind] = 0
+        if m.kind in ("position", "heading"):
+            self.ekf.reset_to(m)
+            return "initialised"
+        return self.ekf.update_values(m.kind, m.components, m.values, m.sigmas, gate=False)
+
+    def _copy_passthrough(self, msg: t.StateInformation, present: tuple[tuple[str, int], ...]) -> None:
         kept = self.passthrough
-        for name, bit in _PASSTHROUGH:
-            if present & bit:
-                value = getattr(msg, name)
-                if math.isfinite(value):
-                    setattr(kept, name, value)
-                    kept.presence_vector |= bit
+        for name, bit in present:
+            value = getattr(msg, name)
+            if math.isfinite(value):
+                setattr(kept, name, value)
+                kept.presence_vector |= bit
 
     def _warn_once(self, sensor: str, what: str, why: str) -> None:
         if (sensor, what) not in self._warned:
@@ -267,24 +348,21 @@ class StateFusion:
 
     def estimate(self, *, name: str = "state_estimator") -> t.StateInformation | None:
         """The current estimate (NED, with sigmas), or None before any usable measurement."""
-        state = self.ekf.state()
-        kept = self.passthrough
-        if not state and not kept.presence_vector:
+        ekf, kept = self.ekf, self.passthrough
+        observed, present = ekf.observed, kept.presence_vector
+        if not observed and not present:
             return None
         msg = t.StateInformation()
         msg.sensor_name = name
         msg.reference_frame = "NED"
-        present = kept.presence_vector
-        for state_name, out, bit, out_sigma, sigma_bit in _OUTPUT_BITS:
-            if state_name in state:
-                value, sigma = state[state_name]
-                setattr(msg, out, value)
-                setattr(msg, out_sigma, sigma)
-                present |= bit | sigma_bit
-        if kept.presence_vector:
-            for name_, bit in _PASSTHROUGH:
-                if kept.presence_vector & bit:
-                    setattr(msg, name_, getattr(kept, name_))
+        x, var = ekf.x.tolist(), ekf.P.diagonal().tolist()
+        for i in observed:
+            out, bits, out_sigma = _OUTPUT_BY_STATE[i]
+            setattr(msg, out, x[i])
+            setattr(msg, out_sigma, math.sqrt(max(var[i], 0.0)))
+            present |= bits
+        for name_ in _passthrough_fields(kept.presence_vector):
+            setattr(msg, name_, getattr(kept, name_))
         msg.presence_vector = present
         return msg
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 from u2sa_hw import channels as ch
@@ -39,13 +40,14 @@ _FILTER_FIELDS = tuple(FusionSettings.__dataclass_fields__)
 # publish_on names -> the filter's measurement kinds
 PUBLISH_KINDS = {"position": ("position",), "velocity": ("velocity_ned", "velocity_body"), "heading": ("heading",),
                  "yaw_rate": ("yaw_rate",)}
-_FOLDED = ("accepted", "initialised")
 
 
 class StateEstimator(U2SAService):
     """Fuses State Information from any number of sensors into STATE_ESTIMATE."""
 
     SERVICE_TYPE: ClassVar[str] = "state_estimator"
+    # the clock of sensor arrival and publication times (a bench or test may set a simulated one)
+    clock: Callable[[], float] = staticmethod(time.monotonic)
     _D = FusionSettings()
     CONFIG = (
         field("mode", "ekf", "ekf: extended Kalman filter; passthrough: copy present fields of each message", choices=MODES),
@@ -116,7 +118,7 @@ class StateEstimator(U2SAService):
         if not isinstance(data, t.StateInformation):
             super().callback(data)
             return
-        now = time.monotonic()
+        now = self.clock()
         name = data.sensor_name
         with self._lock:
             if name not in self.sensors:
@@ -124,8 +126,7 @@ class StateEstimator(U2SAService):
                                  ", ".join(data.present_fields()))
             self.sensors[name] = now
             if self.mode == "ekf":
-                results = self.fusion.ingest(data, now=now)
-                if not any(m.kind in self.publish_kinds and r.outcome in _FOLDED for m, r in results):
+                if self.publish_kinds.isdisjoint(self.fusion.ingest(data, now=now)):
                     return
                 msg = self.fusion.estimate(name=self.name)
                 if msg is None:
@@ -154,20 +155,23 @@ class StateEstimator(U2SAService):
     def run(self) -> None:
         """In ekf mode: predict and publish when nothing went out for ``1 / publish_rate_hz``."""
         while True:
-            period = 1.0 / float(self.config.get("publish_rate_hz"))
-            with self._lock:
-                now = time.monotonic()
-                if self.mode == "ekf" and now - self._last_publish >= period:
-                    self.fusion.predict_to(now)
-                    msg = self.fusion.estimate(name=self.name)
-                    if msg is not None:
-                        self._last_publish = now
-                        self.published_on_rate += 1
-                        self.publish(ch.STATE_ESTIMATE, msg)
-                since = now - self._last_publish
-                due = now + (period - since if since < period else period)
-            if not self.wait(max(0.0, due - time.monotonic())):
+            due = self.publish_if_due(self.clock())
+            if not self.wait(max(0.0, due - self.clock())):
                 return
+
+    def publish_if_due(self, now: float) -> float:
+        """In ekf mode, predict to *now* and publish if nothing went out for a period; the next due time."""
+        period = 1.0 / float(self.config.get("publish_rate_hz"))
+        with self._lock:
+            if self.mode == "ekf" and now - self._last_publish >= period:
+                self.fusion.predict_to(now)
+                msg = self.fusion.estimate(name=self.name)
+                if msg is not None:
+                    self._last_publish = now
+                    self.published_on_rate += 1
+                    self.publish(ch.STATE_ESTIMATE, msg)
+            since = now - self._last_publish
+            return now + (period - since if since < period else period)
 
     def on_config_change(self, name: str, value: Any) -> None:
         """Apply a new mode or filter setting live (a filter setting restarts the filter)."""
@@ -190,7 +194,7 @@ class StateEstimator(U2SAService):
 
     def health_details(self) -> dict[str, Any]:
         """Mode, known and silent sensors, and per-sensor outliers (ekf)."""
-        now = time.monotonic()
+        now = self.clock()
         timeout = float(self.config.get("sensor_timeout_s"))
         with self._lock:
             silent_for = {n: now - seen for n, seen in sorted(self.sensors.items()) if now - seen > timeout}
