@@ -336,11 +336,7 @@ class NavigationEkf:
             return "rejected"
         k = pht @ s_inv
         x += k @ y
-        if linear:
-            i_kh = _EYE.copy()
-            i_kh[:, plan.index] -= k
-        else:
-            i_kh = _EYE - k @ jac
+        i_kh = _EYE - k @ jac
         tmp = self._tmp
         np.dot(i_kh, p, out=tmp)
         np.dot(tmp, i_kh.T, out=p)
