@@ -78,7 +78,7 @@ def _state(sensor: str, frame: str, stamp: float, **fields: float) -> t.StateInf
     return msg
 
 
-def schedule(*, seconds: float, seed: int = 3, origin: Any) -> Schedule:
+def schedule(*, seconds: float, seed: int = 3) -> Schedule:
     """The messages of *seconds* of driving in arcs at the live rates, in time order."""
     rng = random.Random(seed)
     events = sorted((k * period + phase, sensor) for sensor, (period, phase) in RATES.items()
@@ -199,8 +199,7 @@ def main() -> int:
     ap.add_argument("--compare", type=Path, help="check the published estimates against this dump")
     ap.add_argument("--profile", action="store_true", help="cProfile one run and print the top functions")
     args = ap.parse_args()
-    profile = load_profile(PROFILE)
-    messages = schedule(seconds=args.seconds, origin=profile.origin)
+    messages = schedule(seconds=args.seconds)
     run_once(messages[:200])   # imports, caches, first allocations
     if args.profile:
         import cProfile
