@@ -153,6 +153,7 @@ class RcMuxDriver(RcMuxDeclarations, RcMuxEnable, RcMuxClock, Sensor):
         self._next_publish_ns: int | None = None   # the next RC_MODE due (None: the clock has not started)
         self._next_manual_ns: int | None = None    # the next MANUAL_CMD due (None: not in manual)
         self._published: tuple | None = None       # what the last RcMode said (its state_key)
+        self._settled: tuple | None = None         # what the last settle left (RcMuxClock._settle_inputs)
         self._stopping = False
         self._enable_lock = threading.RLock()
         inputs = list(self.channels.values()) + ([self.select_line] if self.select_line >= 0 else [])

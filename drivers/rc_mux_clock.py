@@ -15,7 +15,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from drivers.rc_pulse import MODE_MANUAL
+from drivers.rc_pulse import MODE_MANUAL, MODE_NO_SIGNAL
 from u2sa_hw.ports.gpio_port import BusInput, ClockTick, EdgeEvent, GpioEvent
 
 # Live, a timed message due at D waits until an edge stamped after D is taken, or until the clock is
@@ -33,6 +33,7 @@ class RcMuxClock:
     timed_skipped: int
     _device_clock: bool
     _published: Any
+    _settled: tuple | None   # what the last settle left (_settle_inputs); None: settle in full
 
     def _take(self, event: GpioEvent, wall_ns: int) -> None:
         """One event from the chip at its stamp: what fell due up to it, then the event, then its effects.
@@ -101,21 +102,18 @@ class RcMuxClock:
                 return
 
     def _next_expiry(self) -> tuple[int, str] | None:
-        times = []
         signal = self.filter.signal_expiry_ns()
-        if signal is not None:
-            times.append((signal, "signal"))
-        if self._mismatch_since is not None and not self.mismatch:
-            times.append((self._mismatch_since + int(self.config["select_mismatch_ms"] * 1e6) + 1, "select"))
-        return min(times) if times else None
+        signal_at = None if signal is None else (signal, "signal")
+        if self._mismatch_since is None or self.mismatch:
+            return signal_at
+        select = (self._mismatch_since + int(self.config["select_mismatch_ms"] * 1e6) + 1, "select")
+        return select if signal_at is None else min(signal_at, select)
 
     def _next_timed(self) -> tuple[int, str] | None:
-        times = []
-        if self._next_publish_ns is not None:
-            times.append((self._next_publish_ns, "mode"))
-        if self._next_manual_ns is not None:
-            times.append((self._next_manual_ns, "manual"))
-        return min(times) if times else None
+        mode, manual = self._next_publish_ns, self._next_manual_ns
+        if mode is None or manual is None:
+            return (mode, "mode") if mode is not None else None if manual is None else (manual, "manual")
+        return min((mode, "mode"), (manual, "manual"))
 
     def _expire(self, what: str, at_ns: int) -> None:
         if what == "signal":
@@ -148,8 +146,16 @@ class RcMuxClock:
 
     def _settle(self, at_ns: int | None) -> None:
         """After an event at *at_ns*: the pre-arm checks, the enable line, the read-back, the status, and
-        RC_MODE at once if what it says changed."""
-        self._check_prearm(self._judge_s(at_ns))
+        RC_MODE at once if what it says changed.
+
+        What it leaves is a fixed point: run again on the same inputs it changes nothing. So when every
+        input is as the last settle left it (:meth:`_settle_inputs`, the pre-arm verdict by identity),
+        it is skipped: most edges change nothing it reads, and it ran after every one."""
+        failsafe = self.failsafes.reason()
+        verdict = self._verdict(at_ns, failsafe)
+        if at_ns is not None and self._settled is not None and self._settle_inputs(verdict, failsafe) == self._settled:
+            return   # (_settled is None whenever the time matters: see _settle_inputs)
+        self._check_prearm(verdict)
         if at_ns is not None:
             self._check_select(at_ns)   # with the line as it was: a mismatch just found goes out before it clears
         self.update_enable()
@@ -159,6 +165,27 @@ class RcMuxClock:
         self._refresh_status()
         if self.state_key() != self._published:
             self.publish_mode(at_ns)
+        # as left, with the verdict asked afresh: a failsafe or evidence that came meanwhile is a change
+        if at_ns is None:
+            self._settled = None
+        else:
+            failsafe = self.failsafes.reason()
+            self._settled = self._settle_inputs(self._verdict(at_ns, failsafe), failsafe)
+
+    def _verdict(self, at_ns: int | None, failsafe: str) -> tuple:
+        """The pre-arm verdict at *at_ns* with the *failsafe* reason held now (the same object while it
+        stands: PrearmChecks.verdict)."""
+        return self.prearm.verdict(self._judge_s(at_ns), rc_link_ok=self.filter.mode != MODE_NO_SIGNAL,
+                                   failsafe_reason=failsafe)
+
+    def _settle_inputs(self, verdict: tuple, failsafe: str) -> tuple | None:
+        """Everything :meth:`_settle` reads but the time; None while a read-back disagreement is pending,
+        which is judged on the time (then every settle runs in full)."""
+        if self._mismatch_since is not None:
+            return None
+        return (verdict, self.filter.mode, self.enabled, self.armed, self.hold, self.mismatch, self.select_level,
+                self.gpio.is_open, self._stopping, failsafe, self._published, self.status,
+                self.config["require_rearm"], self.prearm)
 
     def _judge_s(self, at_ns: int | None) -> float:
         """The time the pre-arm checks judge ages at: the device clock (live: CLOCK_MONOTONIC, the time

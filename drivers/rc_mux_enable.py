@@ -13,13 +13,14 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Any
+from typing import Any, Sequence
 
-from drivers.rc_pulse import MODE_AUTONOMOUS, MODE_NO_SIGNAL
+from drivers.rc_pulse import MODE_AUTONOMOUS
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.ports.gpio_port import BusInput
+from u2sa_hw.safety.prearm import CheckFailure
 
 
 class RcMuxEnable:
@@ -125,10 +126,10 @@ class RcMuxEnable:
                 self.armed = False
             self.update_enable()
 
-    def _check_prearm(self, now: float) -> None:
-        """Evaluate the pre-arm checks; a check lost while autonomous disarms or holds."""
-        failures = self.prearm.evaluate(now, rc_link_ok=self.filter.mode != MODE_NO_SIGNAL,
-                                        failsafe_reason=self.failsafes.reason())
+    def _check_prearm(self, verdict: Sequence[CheckFailure]) -> None:
+        """Take the pre-arm *verdict* (PrearmChecks.verdict, asked now); a check lost while autonomous disarms
+        or holds."""
+        failures = list(verdict)
         first = failures[0].reason if failures else ""
         key = (failures[0].check, failures[0].service) if failures else None
         old = (self.prearm_failures[0].check, self.prearm_failures[0].service) if self.prearm_failures else None

@@ -31,7 +31,7 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass, field
 from fractions import Fraction
-from typing import Iterable
+from typing import Iterable, NamedTuple
 
 MODE_MANUAL = 0
 MODE_AUTONOMOUS = 1
@@ -45,8 +45,7 @@ FALL_WITHOUT_RISE = "fall_without_rise"
 RISE_WITHOUT_FALL = "rise_without_fall"
 
 
-@dataclass(frozen=True)
-class Pulse:
+class Pulse(NamedTuple):
     """One valid pulse: its line, width in microseconds and the falling edge's timestamp (ns)."""
 
     line: int

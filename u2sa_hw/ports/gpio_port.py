@@ -46,7 +46,7 @@ import time
 from collections import deque
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, Iterator, Mapping, Sequence, Union
+from typing import Any, Iterator, Mapping, NamedTuple, Sequence, Union
 
 from u2sa_hw import messages as m
 from u2sa_hw.ports.errors import PortClosed, PortIOError, PortTimeout, PortUnavailable
@@ -70,17 +70,16 @@ EDGE_RISING, EDGE_FALLING = 1, 2  # gpiod EdgeEvent.Type values
 EVENT_BUFFER = 1024  # edges kept unread per port; the oldest is dropped first, as the kernel does
 
 
-@dataclass(frozen=True)
-class EdgeEvent:
-    """One edge on an input line; ``timestamp_ns`` is CLOCK_MONOTONIC from the kernel/mock."""
+class EdgeEvent(NamedTuple):
+    """One edge on an input line; ``timestamp_ns`` is CLOCK_MONOTONIC from the kernel/mock. (A named tuple:
+    one is made per edge, and a frozen dataclass costs several times as much to make.)"""
 
     line: int
     rising: bool
     timestamp_ns: int
 
 
-@dataclass(frozen=True)
-class ClockTick:
+class ClockTick(NamedTuple):
     """The chip's clock reached ``timestamp_ns`` (a chip with a clock of its own, in recorded silences).
     ``step``: the recorded driver's loop looked at its clock then, with edges still on their way to it
     (a replay chip's, where the log shows the driver publishing while no edge reached it)."""
@@ -139,17 +138,20 @@ class MockFrameReader:
 
     def feed(self, data: bytes) -> list[tuple[bytes, bytes]]:
         """Add received bytes; return the frames completed by them."""
-        self._buffer += data
+        buffer = self._buffer
+        buffer += data
         frames = []
-        while len(self._buffer) >= MOCK_FRAME_HEADER.size:
-            kind, length = MOCK_FRAME_HEADER.unpack_from(self._buffer)
+        start, size, header = 0, len(buffer), MOCK_FRAME_HEADER.size
+        while size - start >= header:
+            kind, length = MOCK_FRAME_HEADER.unpack_from(buffer, start)
             if kind not in MOCK_KINDS or length > MOCK_MAX_FRAME:
                 raise MockProtocolError(f"bad frame header kind={kind!r} length={length}")
-            end = MOCK_FRAME_HEADER.size + length
-            if len(self._buffer) < end:
+            end = start + header + length
+            if size < end:
                 break
-            frames.append((kind, bytes(self._buffer[MOCK_FRAME_HEADER.size:end])))
-            del self._buffer[:end]
+            frames.append((kind, bytes(buffer[start + header:end])))
+            start = end
+        del buffer[:start]   # once per read, not once per frame
         return frames
 
 

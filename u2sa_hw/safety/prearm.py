@@ -82,15 +82,15 @@ class _Estimate:
 
 
 class _Verdict(NamedTuple):
-    """A verdict and what it was judged on: it stands for a later question with the same inputs while
-    ``judged_at <= now < holds_until``."""
+    """A verdict and what it was judged on: it stands for another question with the same inputs while
+    ``holds_from <= now < holds_until`` (no age limit between: time is the only other input)."""
 
     evidence: int           # PrearmChecks._evidence when judged
     rc_link_ok: bool
     failsafe_reason: str
-    judged_at: float
+    holds_from: float
     holds_until: float
-    failures: list[CheckFailure]
+    failures: tuple[CheckFailure, ...]
 
 
 def _float(text: str | None) -> float | None:
@@ -184,16 +184,27 @@ class PrearmChecks:
 
         The RC mux asks after every edge; the verdict changes only when evidence arrives, the RC link or a
         failsafe changes, or an age limit passes, so a verdict is kept until one of those (exactly the
-        verdict a fresh judgement would give: :meth:`_holds_until`)."""
+        verdict a fresh judgement would give: :meth:`_holds`)."""
+        return list(self.verdict(now, rc_link_ok=rc_link_ok, failsafe_reason=failsafe_reason))
+
+    def verdict(self, now: float, *, rc_link_ok: bool, failsafe_reason: str) -> tuple[CheckFailure, ...]:
+        """:meth:`evaluate` as a tuple that is the very same object for as long as the verdict is kept, so a
+        caller asking many times a second can tell "nothing changed" by identity, without a copy."""
+        # without the lock first: the memo is immutable and both reads are atomic, so a hit is the verdict as
+        # of the evidence count read (evidence arriving just after is judged at the next question)
+        memo = self._memo
+        if (memo is not None and memo.evidence == self._evidence and memo.rc_link_ok == rc_link_ok
+                and memo.failsafe_reason == failsafe_reason and memo.holds_from <= now < memo.holds_until):
+            return memo.failures
         with self._lock:
             memo = self._memo
             if (memo is not None and memo.evidence == self._evidence and memo.rc_link_ok == rc_link_ok
-                    and memo.failsafe_reason == failsafe_reason and memo.judged_at <= now < memo.holds_until):
-                return list(memo.failures)
-            out = self._judge_all(now, rc_link_ok=rc_link_ok, failsafe_reason=failsafe_reason)
-            self._memo = _Verdict(self._evidence, rc_link_ok, failsafe_reason, now, self._holds_until(now), out)
-            self._last = out
-            return list(out)
+                    and memo.failsafe_reason == failsafe_reason and memo.holds_from <= now < memo.holds_until):
+                return memo.failures
+            out = tuple(self._judge_all(now, rc_link_ok=rc_link_ok, failsafe_reason=failsafe_reason))
+            self._memo = _Verdict(self._evidence, rc_link_ok, failsafe_reason, *self._holds(now), out)
+            self._last = list(out)
+            return out
 
     def _judge_all(self, now: float, *, rc_link_ok: bool, failsafe_reason: str) -> list[CheckFailure]:
         t = self.table
@@ -215,16 +226,21 @@ class PrearmChecks:
                             allow_degraded=name in t.required_services.allow_degraded)
         return out
 
-    def _holds_until(self, now: float) -> float:
-        """Until when (exclusive) a verdict judged at *now* stands on the same evidence: the first age limit
-        still ahead (a Health's ``health_timeout_s``, the estimate's ``max_estimate_age_s``), less a
-        microsecond so float rounding at the limit is judged afresh. Time is the only other input."""
+    def _holds(self, now: float) -> tuple[float, float]:
+        """When a verdict judged at *now* stands on the same evidence, ``[from, until)``: between the last age
+        limit passed and the first still ahead (a Health's ``health_timeout_s``, the estimate's
+        ``max_estimate_age_s``), each a microsecond in so float rounding at a limit is judged afresh. Time is
+        the only other input; the RC mux asks at edge stamps a little before its loop's last look, so
+        the span reaches back too."""
         limits = [heard.at + self.table.health_timeout_s for heard in self._heard.values()]
         check = self.table.estimator
         if check is not None and check.max_estimate_age_s > 0 and self._estimate is not None:
             limits.append(self._estimate.at + check.max_estimate_age_s)
         ahead = [limit for limit in limits if limit >= now]
-        return min(ahead) - 1e-6 if ahead else math.inf
+        behind = [limit for limit in limits if limit < now]
+        since, until = (max(behind) + 1e-6 if behind else -math.inf), (min(ahead) - 1e-6 if ahead else math.inf)
+        # judged within a microsecond of a limit: rounding may have decided it, so it stands for nothing else
+        return (since, until) if since <= now < until else (math.inf, -math.inf)
 
     def _judge(self, out: list[CheckFailure], check: str, service: str, now: float,
                specific: Callable[[_Heard, float], str], *, allow_degraded: bool = False) -> None:
