@@ -76,7 +76,8 @@ class Mounting:
 
     def to_body(self, chip: Sequence[float]) -> Vector:
         """A chip-axes vector in body FRD axes."""
-        return tuple(s * chip[i] for i, s in zip(self.index, self.sign))  # type: ignore[return-value]
+        i, s = self.index, self.sign
+        return s[0] * chip[i[0]], s[1] * chip[i[1]], s[2] * chip[i[2]]
 
 
 @dataclass(frozen=True)

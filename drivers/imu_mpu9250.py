@@ -56,8 +56,7 @@ from u2sa_hw.geo import wrap_angle
 from u2sa_hw.protocols import mpu9250 as mpu
 
 from drivers.ak8963_mag import Ak8963, to_chip_axes
-from drivers.imu_common import (ACCEL_FIELDS, RATE_FIELDS, ChipIdentityError, I2cImuDriver, Mounting,
-                                RestCalibration, RetryingI2c, Vector, set_vector)
+from drivers.imu_common import ChipIdentityError, I2cImuDriver, Mounting, RestCalibration, RetryingI2c, Vector
 
 # Members outside the register table's three that share their register layout [LNX].
 COMPATIBLE_WHO_AM_I = {0x73: ("MPU-9255", "mpu9250"), 0x74: ("MPU-6515", "mpu6500")}
@@ -143,6 +142,8 @@ class Mpu9250ImuDriver(I2cImuDriver):
         try:
             self.gyro_fs = mpu.gyro_fs_index(int(c["gyro_range_dps"]))
             self.accel_fs = mpu.accel_fs_index(int(c["accel_range_g"]))
+            self.scale = (mpu.STANDARD_GRAVITY / mpu.ACCEL_LSB_PER_G[self.accel_fs],   # m/s^2, rad/s per count
+                          math.radians(1.0 / mpu.GYRO_LSB_PER_DPS[self.gyro_fs]))
         except ValueError as exc:
             raise ConfigError(f"{self.name}: {exc}") from None
         if not 0 <= int(c["dlpf_cfg"]) <= 6:
@@ -260,23 +261,26 @@ class Mpu9250ImuDriver(I2cImuDriver):
         msg = self.new_state()
         variant = self.variant
         assert variant is not None
-        g_per_count = mpu.STANDARD_GRAVITY / mpu.ACCEL_LSB_PER_G[self.accel_fs]
-        rad_per_count = math.radians(1.0 / mpu.GYRO_LSB_PER_DPS[self.gyro_fs])
-        raw_force = self.mounting.to_body([c * g_per_count for c in (raw.ax, raw.ay, raw.az)])
+        g_per_count, rad_per_count = self.scale
+        raw_force = self.mounting.to_body((raw.ax * g_per_count, raw.ay * g_per_count, raw.az * g_per_count))
         force = self.accel_correction.apply(raw_force)
-        gyro = self.mounting.to_body([c * rad_per_count for c in (raw.gx, raw.gy, raw.gz)])
+        gyro = self.mounting.to_body((raw.gx * rad_per_count, raw.gy * rad_per_count, raw.gz * rad_per_count))
         self.temperature_c = raw.temp / variant.temp_lsb_per_c + variant.temp_offset_c
         if not self.calibrated and self.calibration is not None:
             self._calibrate(gyro, raw_force, stamp=msg.header.timestamp_us / 1e6)
-        rates = [w - b for w, b in zip(gyro, self.gyro_bias)]
+        bias = self.gyro_bias
         sigma = float(self.config["rate_sigma" if self.calibrated else "uncalibrated_rate_sigma"])
-        set_vector(msg, RATE_FIELDS, rates, sigma)
+        values = {"phi_dot": gyro[0] - bias[0], "theta_dot": gyro[1] - bias[1], "psi_dot": gyro[2] - bias[2],
+                  "phi_dot_sigma": sigma, "theta_dot_sigma": sigma, "psi_dot_sigma": sigma}
         mode = self.config["gravity"]
         if mode != "none":
             # the rest window holds raw readings, so a calibration saved later corrects it too
-            reference = (self.accel_correction.apply(self.rest_force) if mode == "rest"
-                         else (0.0, 0.0, -RestCalibration.GRAVITY))
-            set_vector(msg, ACCEL_FIELDS, [f - r for f, r in zip(force, reference)], float(self.config["accel_sigma"]))
+            ref = (self.accel_correction.apply(self.rest_force) if mode == "rest"
+                   else (0.0, 0.0, -RestCalibration.GRAVITY))
+            a_sigma = float(self.config["accel_sigma"])
+            values.update(x_ddot=force[0] - ref[0], y_ddot=force[1] - ref[1], z_ddot=force[2] - ref[2],
+                          x_ddot_sigma=a_sigma, y_ddot_sigma=a_sigma, z_ddot_sigma=a_sigma)
+        msg.set(**values)   # both vectors and their sigmas in one set
         raw_mag = self._read_mag()
         if raw_mag is not None or self._field_recent():
             self._heading(msg, force, raw_mag)

@@ -256,8 +256,16 @@ class MockI2cPort(I2cPort):
     def _exchange(self, request: bytes, *, expect: int) -> bytes:
         try:
             self._sock.sendall(request)
-            status, length = RESPONSE.unpack(self._recv_exact(RESPONSE.size))
-            payload = self._recv_exact(length) if length else b""
+            # one recv for the whole answer (the server writes it at once): a syscall fewer per transaction
+            reply = self._sock.recv(RESPONSE.size + expect)
+            if len(reply) < RESPONSE.size:
+                reply += self._recv_exact(RESPONSE.size - len(reply))
+            status, length = RESPONSE.unpack_from(reply)
+            payload = reply[RESPONSE.size:]
+            if len(payload) < length:
+                payload += self._recv_exact(length - len(payload))
+            elif len(payload) > length:   # more than the answer says: the stream is out of step
+                raise ConnectionError(f"the mock I2C bus answered {len(payload)} bytes after announcing {length}")
         except socket.timeout as exc:
             # The stream may now hold a late answer; drop the connection rather than misread it.
             self._gone()
