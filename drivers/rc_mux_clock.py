@@ -153,8 +153,9 @@ class RcMuxClock:
         it is skipped: most edges change nothing it reads, and it ran after every one."""
         failsafe = self.failsafes.reason()
         verdict = self._verdict(at_ns, failsafe)
-        if at_ns is not None and self._settled is not None and self._settle_inputs(verdict, failsafe) == self._settled:
-            return   # (_settled is None whenever the time matters: see _settle_inputs)
+        settled = self._settled
+        if at_ns is not None and settled is not None and self._settle_inputs(verdict, failsafe) == settled:
+            return   # (None whenever the time matters or another thread moved something: _settle_inputs, _left)
         self._check_prearm(verdict)
         if at_ns is not None:
             self._check_select(at_ns)   # with the line as it was: a mismatch just found goes out before it clears
@@ -163,14 +164,22 @@ class RcMuxClock:
                 and self.select_level != int(self.enabled):
             self._mismatch_since = at_ns   # the line just changed and the read-back disagrees from now
         self._refresh_status()
+        status = self.status
         if self.state_key() != self._published:
             self.publish_mode(at_ns)
-        # as left, with the verdict asked afresh: a failsafe or evidence that came meanwhile is a change
+        self._settled = self._left(at_ns, verdict, failsafe, status)
+
+    def _left(self, at_ns: int | None, verdict: tuple, failsafe: str, status: str) -> tuple | None:
+        """What a settle at *at_ns* on *verdict* and *failsafe* left (:meth:`_settle_inputs`), or None (the next
+        runs in full) when something came meanwhile from another thread (a FAILSAFE, evidence, a stop) that it
+        may not have seen whole."""
         if at_ns is None:
-            self._settled = None
-        else:
-            failsafe = self.failsafes.reason()
-            self._settled = self._settle_inputs(self._verdict(at_ns, failsafe), failsafe)
+            return None
+        again = self.failsafes.reason()
+        if (again != failsafe or self._verdict(at_ns, again) is not verdict or self.status != status
+                or self.state_key() != self._published):
+            return None
+        return self._settle_inputs(verdict, failsafe)
 
     def _verdict(self, at_ns: int | None, failsafe: str) -> tuple:
         """The pre-arm verdict at *at_ns* with the *failsafe* reason held now (the same object while it
