@@ -72,10 +72,13 @@ LATENCY_MISSION = """<?xml version="1.0"?>
 STEP_M = 4.0   # the GPS position step, east (m); well inside the estimator's outlier gate
 
 
+REALTIME = True   # --no-realtime: the safety chain and the sim at normal priority
+
+
 def options(vehicle: Path, out: Path) -> SimOptions:
     port = private_udp_port()
     return SimOptions(vehicle=vehicle, out=out, lcm_url=f"udpm://239.255.76.67:{port}?ttl=0",
-                      can_port=private_udp_port(), timeout_s=600)
+                      can_port=private_udp_port(), timeout_s=600, realtime=REALTIME)
 
 
 def pct(values: list[float], q: float) -> float:
@@ -409,7 +412,11 @@ def main() -> int:
     parser.add_argument("--threshold", type=float, default=2e-3, help="rev/s change that counts as an effect")
     parser.add_argument("--skip-mission", action="store_true")
     parser.add_argument("--skip-latency", action="store_true")
+    parser.add_argument("--no-realtime", action="store_true",
+                        help="run the safety chain and the sim process at normal priority (as u2sa sim --no-realtime)")
     args = parser.parse_args()
+    global REALTIME
+    REALTIME = not args.no_realtime
     print(f"u2sa-hw stack benchmark: {args.vehicle}, {psutil.cpu_count()} CPUs, "
           f"load average {', '.join(f'{x:.1f}' for x in psutil.getloadavg())}")
     if not args.skip_mission:

@@ -6,6 +6,8 @@ A channel's base type is what a receiver decodes unknown extensions as.
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Mapping
+
 from u2sa_hw import lcmtypes as t
 
 STATE_INFO = "STATE_INFO"            # proprioceptive sensors -> state estimator
@@ -32,30 +34,46 @@ HEALTH = "U2SA_HEALTH"
 SYSTEM_HEALTH = "U2SA_SYSTEM_HEALTH"
 RAW_PREFIX = "RAW."                  # RAW.<device>: raw device I/O for recording/replay
 
-BASE_TYPES: dict[str, type] = {
-    STATE_INFO: t.StateInformation,
-    STATE_ESTIMATE: t.StateInformation,
-    GOALS: t.GoalInformation,
-    MISSION_STATUS: t.MissionStatus,
-    GOAL_REPORT: t.GoalReport,
-    MISSION_CMD: t.MissionCommand,
-    OBJECTS: t.ObjectDescription,
-    WORLD: t.ObjectDescription,
-    WORLD_SUMMARY: t.WorldSummary,
-    NAV_POINT: t.NavigationPoint,
-    ACTUATOR_CMD: t.ActuatorCommand,
-    MANUAL_CMD: t.ActuatorCommand,
-    RC_MODE: t.RcMode,
-    FAILSAFE: t.Failsafe,
-    DISCOVERY_REQUEST: t.DiscoveryRequest,
-    DISCOVERY_RESPONSE: t.DiscoveryResponse,
-    STOP: t.StopCommand,
-    CONFIG_REQUEST: t.ConfigRequest,
-    CONFIG_CHANGE: t.ConfigChange,
-    CONFIG_RESPONSE: t.ConfigResponse,
-    HEALTH: t.Health,
-    SYSTEM_HEALTH: t.SystemHealth,
-}
+class _ChannelTypes(Mapping[str, type]):
+    """Channel -> base type, each type loaded when first looked up (a process loads only the types it uses)."""
+
+    def __init__(self, names: dict[str, str]) -> None:
+        self._names = names
+
+    def __getitem__(self, channel: str) -> type:
+        return getattr(t, self._names[channel])
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._names)
+
+    def __len__(self) -> int:
+        return len(self._names)
+
+
+BASE_TYPES: Mapping[str, type] = _ChannelTypes({
+    STATE_INFO: "StateInformation",
+    STATE_ESTIMATE: "StateInformation",
+    GOALS: "GoalInformation",
+    MISSION_STATUS: "MissionStatus",
+    GOAL_REPORT: "GoalReport",
+    MISSION_CMD: "MissionCommand",
+    OBJECTS: "ObjectDescription",
+    WORLD: "ObjectDescription",
+    WORLD_SUMMARY: "WorldSummary",
+    NAV_POINT: "NavigationPoint",
+    ACTUATOR_CMD: "ActuatorCommand",
+    MANUAL_CMD: "ActuatorCommand",
+    RC_MODE: "RcMode",
+    FAILSAFE: "Failsafe",
+    DISCOVERY_REQUEST: "DiscoveryRequest",
+    DISCOVERY_RESPONSE: "DiscoveryResponse",
+    STOP: "StopCommand",
+    CONFIG_REQUEST: "ConfigRequest",
+    CONFIG_CHANGE: "ConfigChange",
+    CONFIG_RESPONSE: "ConfigResponse",
+    HEALTH: "Health",
+    SYSTEM_HEALTH: "SystemHealth",
+})
 
 CONTRACT_CHANNELS = (DISCOVERY_REQUEST, DISCOVERY_RESPONSE, STOP, CONFIG_REQUEST, CONFIG_CHANGE,
                      CONFIG_RESPONSE, HEALTH)

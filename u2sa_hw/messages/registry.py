@@ -8,10 +8,10 @@ with a base type therefore decodes a child it has never heard of as that base ty
 
 from __future__ import annotations
 
-import inspect
 import struct
+import threading
 from io import BytesIO
-from typing import Any
+from typing import Any, Mapping
 
 from u2sa_hw import lcmtypes
 
@@ -19,9 +19,9 @@ from u2sa_hw import lcmtypes
 # same (LCM hashes the field names into the fingerprint, not into the encoding), so a message
 # recorded with the old fingerprint decodes as today's type. Never remove an entry: old logs
 # must keep replaying.
-LEGACY_FINGERPRINTS: dict[bytes, tuple[type, str]] = {
+LEGACY_FINGERPRINTS: dict[bytes, tuple[str, str]] = {
     # RawI2c.register (a C/C++ keyword: lcm-gen's C and C++ output did not compile) became register_address
-    bytes.fromhex("0e61df589a1e329c"): (lcmtypes.RawI2c, "RawI2c with its field 'register' (before 2026-11)"),
+    bytes.fromhex("0e61df589a1e329c"): ("RawI2c", "RawI2c with its field 'register' (before 2026-11)"),
 }
 
 
@@ -41,12 +41,44 @@ def type_name(cls_or_msg: Any) -> str:
 
 
 class TypeRegistry:
-    """Maps fingerprints and names to LCM classes and knows each class's parent."""
+    """Maps fingerprints and names to LCM classes and knows each class's parent.
 
-    def __init__(self) -> None:
+    With *package* (a generated package whose ``_TYPES`` load on first use, as
+    ``u2sa_hw.lcmtypes``) it starts empty and registers a type when it is first asked for:
+    a decode by a subscription's own type, a name, and, on any fingerprint it does not know
+    yet, every type of the package at once (and *legacy*: old fingerprint -> type name), so
+    an answer of "unknown" is always about every type. A service process thus loads only the
+    types it receives and sends.
+    """
+
+    def __init__(self, *, package: Any = None, legacy: Mapping[bytes, str] | None = None) -> None:
         self._by_fp: dict[bytes, type] = {}
         self._by_name: dict[str, type] = {}
         self._ancestry: dict[type, tuple[type, ...]] = {}   # parent_of builds an instance: once per class
+        self._package = package
+        self._legacy = dict(legacy or {})
+        self._complete = package is None
+        self._fill_lock = threading.Lock()
+
+    def _fill(self) -> None:
+        """Register every type of the package (importing each), once."""
+        with self._fill_lock:
+            if self._complete:
+                return
+            for name in self._package._TYPES:
+                cls = getattr(self._package, name)
+                if self._by_fp.get(fingerprint_of(cls)) is not cls:
+                    self.register(cls)
+            for fp, name in self._legacy.items():
+                self.register_legacy(fp, getattr(self._package, name))
+            self._complete = True
+
+    def _known(self, fp: bytes) -> type | None:
+        cls = self._by_fp.get(fp)
+        if cls is None and not self._complete:
+            self._fill()
+            cls = self._by_fp.get(fp)
+        return cls
 
     def register(self, cls: type) -> type:
         """Add an LCM class (its parent is found through its ``base`` field); returns it."""
@@ -71,10 +103,21 @@ class TypeRegistry:
 
     def by_fingerprint(self, fp: bytes) -> type | None:
         """The class whose fingerprint is *fp*, or None."""
-        return self._by_fp.get(fp)
+        return self._known(fp)
 
     def by_name(self, name: str) -> type:
         """The class called *name* (short or package-qualified); KeyError lists the known ones."""
+        found = self._by_name.get(name)
+        if found is not None:
+            return found
+        short = name.rpartition(".")[2]
+        if self._package is not None and short in self._package._TYPES and name in (
+                short, f"{self._package.__name__}.{short}"):
+            cls = getattr(self._package, short)
+            if self._by_fp.get(fingerprint_of(cls)) is not cls:
+                self.register(cls)
+            return cls
+        self._fill()
         try:
             return self._by_name[name]
         except KeyError:
@@ -83,6 +126,8 @@ class TypeRegistry:
 
     def names(self) -> list[str]:
         """Short names of every registered type."""
+        if not self._complete:
+            self._fill()
         return sorted(n for n in self._by_name if "." not in n)
 
     @staticmethod
@@ -119,7 +164,14 @@ class TypeRegistry:
         """
         if len(data) < 8:
             raise MalformedMessage(f"truncated: {len(data)} bytes, shorter than a fingerprint")
-        cls = self._by_fp.get(data[:8])
+        fp = data[:8]
+        cls = self._by_fp.get(fp)
+        if cls is None and not self._complete:
+            # the subscription's own type, the common case, registers without loading the others
+            if base is not None and fp == fingerprint_of(base):
+                cls = self.register(base)
+            else:
+                cls = self._known(fp)
         if cls is not None:
             if base is not None and cls is not base and not self.is_a(cls, base):
                 raise MalformedMessage(f"wrong type: {cls.__name__} is not a {base.__name__}")
@@ -151,14 +203,4 @@ def as_type(msg: Any, cls: type) -> Any:
     return cur
 
 
-def _build_default() -> TypeRegistry:
-    reg = TypeRegistry()
-    for _, cls in inspect.getmembers(lcmtypes, inspect.isclass):
-        if hasattr(cls, "_get_packed_fingerprint"):
-            reg.register(cls)
-    for fp, (cls, _what) in LEGACY_FINGERPRINTS.items():
-        reg.register_legacy(fp, cls)
-    return reg
-
-
-REGISTRY = _build_default()
+REGISTRY = TypeRegistry(package=lcmtypes, legacy={fp: name for fp, (name, _what) in LEGACY_FINGERPRINTS.items()})
