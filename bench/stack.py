@@ -97,7 +97,7 @@ def pss_bytes(pid: int) -> int:
     return 0
 
 
-THREAD_KINDS = (("u2sa ", "loop"), ("bus ", "bus"), ("health ", "health"))   # kernel names a service gives
+THREAD_KINDS = (("bus ", "bus"), ("health ", "health"))   # kernel names a service gives its threads
 CPU_AIM_PCT, PSS_AIM_MB = 10.0, 200.0    # issue 27: the example rover's services at nominal rates
 
 
@@ -112,7 +112,8 @@ def thread_ticks(pid: int) -> dict[str, int]:
                 fields = f.read().rsplit(")", 1)[1].split()
         except OSError:
             continue
-        kind = next((k for prefix, k in THREAD_KINDS if comm.startswith(prefix)), "other")
+        kind = "loop" if tid == str(pid) else next((k for prefix, k in THREAD_KINDS if comm.startswith(prefix)),
+                                                   "other")
         ticks[kind] += int(fields[11]) + int(fields[12])
     return ticks
 

@@ -22,6 +22,7 @@ vehicle stands still in manual with the sticks centred until then.
 from __future__ import annotations
 
 import math
+import os
 import shutil
 import threading
 import time
@@ -40,6 +41,18 @@ from simulation.summary import RunRecord, TrackSample, summarise, summary_text, 
 from u2sa_hw.launcher import Launcher, RestartPolicy
 from u2sa_hw.realtime import SIM_DEVICES_PRIORITY, ProcessPriority, plan
 from u2sa_hw.vehicle import load_profile
+
+# "off": every u2sa sim of this environment at normal priority, as --no-realtime. The test suite
+# sets it: two simulations side by side (pytest-xdist) at one SCHED_FIFO priority do not share a
+# CPU by time slices as normal tasks do, so one's busy moment stalls the other's simulated RC
+# receiver, a false NO RC SIGNAL. One stack on a board has no such neighbour.
+SIM_REALTIME_ENV = "U2SA_SIM_REALTIME"
+
+
+def sim_realtime_allowed() -> bool:
+    """False when ``$U2SA_SIM_REALTIME`` is "off" (or 0, no, false)."""
+    return os.environ.get(SIM_REALTIME_ENV, "").strip().lower() not in ("off", "0", "no", "false")
+
 
 SAMPLE_HZ = 10.0
 TICK_S = 0.2
@@ -93,7 +106,7 @@ class SimRun:
         self.mocks: Any = None
         self.monitor: BusMonitor | None = None
         self.launcher: Launcher | None = None
-        self.realtime = plan(enabled=options.realtime)
+        self.realtime = plan(enabled=options.realtime and sim_realtime_allowed())
         self._priority: ProcessPriority | None = None   # this process's raise, undone by stop()
         self.record = RunRecord(vehicle=self.profile.name, mission=self.scenario.mission_name,
                                 looping=self.scenario.looping, goals=self.scenario.goals,

@@ -42,6 +42,10 @@ def pytest_configure(config: pytest.Config) -> None:
     # start hundreds, each on a bus of its own, so they listen a little less. The tests of the
     # duplicate check itself give the default back (DUPLICATE_PROBE_S) where they rely on it.
     os.environ.setdefault(PROBE_ENV, "0.25")
+    # Simulations at normal priority: two side by side (pytest-xdist) at one SCHED_FIFO priority
+    # would not share a CPU by time slices (simulation/runner.py, SIM_REALTIME_ENV). The tests of
+    # real-time priority set it up themselves.
+    os.environ.setdefault("U2SA_SIM_REALTIME", "off")
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:

@@ -152,3 +152,16 @@ def test_help_teaches_no_realtime(command: str) -> None:
     text = " ".join(shown.stdout.split())
     assert "--no-realtime" in text and "SCHED_FIFO" in text and "docs/safety.md" in text
     assert "CAP_SYS_NICE" in text
+
+
+def test_u2sa_sim_realtime_can_be_turned_off_by_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    """$U2SA_SIM_REALTIME=off (the test suite's setting) is --no-realtime for every u2sa sim; unset, it is allowed."""
+    from simulation.runner import SIM_REALTIME_ENV, sim_realtime_allowed
+
+    monkeypatch.delenv(SIM_REALTIME_ENV, raising=False)
+    assert sim_realtime_allowed()
+    for value in ("off", "0", "No", " false "):
+        monkeypatch.setenv(SIM_REALTIME_ENV, value)
+        assert not sim_realtime_allowed(), value
+    monkeypatch.setenv(SIM_REALTIME_ENV, "on")
+    assert sim_realtime_allowed()

@@ -284,7 +284,10 @@ def test_sd_notify_ready_watchdog_stopping_on_abstract_socket(services: ServiceP
 def test_service_log_file_line_format(services: ServiceProcesses, bus: BusClient) -> None:
     services.start("state_estimator")
     wait_until(lambda: _discover(bus, "state_estimator"), timeout=20, message="the estimator")
-    line = (services.workdir / ".u2sa" / "logs" / "state_estimator.log").read_text().splitlines()[0]
+    log = services.workdir / ".u2sa" / "logs" / "state_estimator.log"
+    # it answers discovery as its bus starts, a moment before it logs that it started
+    wait_until(lambda: "started" in log.read_text(), timeout=20, message="the estimator's first log line")
+    line = log.read_text().splitlines()[0]
     import re
 
     match = re.fullmatch(r"(\d{4}-\d\d-\d\dT[\d:.]+) (\w+) +(\S+) \[(\d+)\] (.*)", line)

@@ -38,7 +38,8 @@ SCHED_FIFO when permitted (root, CAP_SYS_NICE, ulimit -r), and so does this
 process, which hosts the mock devices, below it (priority 10): real hardware
 does not stall when the board is busy, and a stalled simulated RC receiver is a
 false NO RC SIGNAL. When not permitted, one line says so (docs/safety.md).
---no-realtime: everything at normal priority.
+--no-realtime (or U2SA_SIM_REALTIME=off in the environment, as the test suite
+sets it): everything at normal priority.
 
 The pilot hands over only once the IMU has calibrated at rest. A profile whose
 devices do not drive every input of its [simulation] model is refused.
