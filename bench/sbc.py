@@ -117,6 +117,9 @@ def one_run(spec: dict[str, Any]) -> int:
                "rusage_stack_pct": 100 * (children.ru_utime + children.ru_stime) / (samples[-1][0] - samples[0][0]),
                "drive_end_epoch": time.time() - (time.monotonic() - t1),
                "rc_stalls_ms": [ns / 1e6 for end, ns in stalls if ns >= STALL_MS * 1e6 and t0 <= end / 1e9 <= t1]}
+    ends = [end / 1e9 - t0 for end, ns in stalls if ns >= STALL_MS * 1e6]   # s after engaging, as interruptions
+    figures["losses_after_rc_stall"] = sum(1 for i in run.record.interruptions
+                                           if any(-1.5 <= i["at_s"] - e <= 1.0 for e in ends))
     (out / "sbc-run.json").write_text(json.dumps(figures, indent=1))
     return 0
 
@@ -230,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     total, n, started = len(budgets) * len(kinds) * args.runs, 0, time.monotonic()
     try:
         for percent in budgets:
-            step = Step(percent)
+            step = Step(percent, whole_sim=args.whole_sim)
             steps.append(step)
             for index in range(args.runs):
                 for kind in kinds:
@@ -243,7 +246,8 @@ def main(argv: list[str] | None = None) -> int:
                                out=args.out / f"{mode}-{percent:g}" / f"{kind}-{index + 1}")
                     step.runs.append(run)
                     print(f"    {describe(run)} [{time.monotonic() - t0:.0f} s]", flush=True)
-            print(f"  {percent:g} %: " + ("; ".join(step.problems()) or "everything holds"), flush=True)
+            print(f"  {percent:g} %: " + ("; ".join(step.problems()) or "everything holds")
+                  + "".join(f"; {note}" for note in step.notes()), flush=True)
     except KeyboardInterrupt:
         print("\ninterrupted: the figures so far", flush=True)
         if steps and not steps[-1].runs:
@@ -255,7 +259,7 @@ def main(argv: list[str] | None = None) -> int:
     for line in table(steps):
         print(line)
     for step in sorted(steps, key=lambda s: -s.percent):
-        if problems := step.problems():
+        if problems := step.problems() + step.notes():
             print(f"  {step.percent:g} %: " + "; ".join(problems))
     print(headline(steps, whole_sim=args.whole_sim)
           + ("" if set(kinds) == set(KINDS) else f" [only {', '.join(kinds)} runs: the rest not judged]"))

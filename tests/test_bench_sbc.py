@@ -166,16 +166,27 @@ def test_headline_is_the_lowest_budget_that_holds_with_every_higher_one() -> Non
     assert steps[4].problems() == ["2 autonomy losses"]
 
 
-def test_headline_notes_a_step_that_held_again_below_a_failure() -> None:
+def test_headline_is_the_lowest_that_held_and_names_a_failure_above_it_as_noise() -> None:
     text = headline([step(20), step(100), step(30, completed=False)])
-    assert "down to 100 %" in text and "at 30 %: mission failed: timed out" in text
-    assert "held again at 20 %" in text
+    assert "down to 20 %" in text and "yet not at 30 % (mission failed: timed out): noise" in text
 
 
 def test_headline_when_nothing_holds_and_when_everything_does() -> None:
-    assert "nothing held, not even at 100 %" in headline([step(100, missed=1), step(50)])
+    assert "nothing held, not even at 100 %" in headline([step(100, missed=1), step(50, manual=60.0)])
     assert "down to 20 %" in headline([step(100), step(20)], whole_sim=True)
     assert "whole u2sa sim" in headline([step(20)], whole_sim=True)
+
+
+def test_losses_right_after_a_simulated_receiver_stall_count_only_when_the_sim_is_in_the_budget() -> None:
+    services = step(100, losses=3)
+    services.runs[0].sim_losses = 3
+    assert services.problems() == []
+    assert "3 autonomy losses right after the simulated RC receiver" in services.notes()[0]
+    whole = step(100, losses=3)
+    whole.runs[0].sim_losses, whole.whole_sim = 3, True
+    assert whole.problems() == ["3 autonomy losses"] and whole.notes() == []
+    services.runs[0].losses = 4   # one loss the stalls do not explain
+    assert services.problems() == ["1 autonomy loss"]
 
 
 def test_table_has_a_row_per_budget_highest_first() -> None:
