@@ -20,11 +20,13 @@ At each step it plays, ``--runs`` times each (a fresh budget group per run):
   manual_switch  the pilot's switch to manual: ms to the autonomous outputs stopped
                  (target <= 50 ms).
 
-How to read it: the HEADLINE is the lowest budget at which everything holds at that step
-and at every higher one: the missions completed, no autonomy loss, every failsafe event
-within its target (the maximum, not the median). Below the table each step that did not
-hold says why. CPU figures are % of one core of this machine; a Pi 4 core runs Python
-several times slower, so a budget here is a smaller share of a Pi.
+How to read it: the HEADLINE is the lowest budget at which everything holds: the missions
+completed, no autonomy loss, every failsafe event within its target (the maximum, not the
+median); a higher budget that did not hold is named beside it as noise. Below the table
+each step that did not hold says why; an autonomy loss right after the simulated RC
+receiver's own stall is a note, not counted, unless --whole-sim. CPU figures are % of one
+core of this machine; a Pi 4 core runs Python several times slower, so a budget here is a
+smaller share of a Pi.
 
 Real time (cgroup v1 with RT group scheduling): the safety chain runs SCHED_FIFO when
 permitted, and a CFS quota does not hold real-time tasks, so the budget sets the group's
