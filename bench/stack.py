@@ -6,10 +6,13 @@ port of its own):
 
 1. **Mission.** The example mission, as ``make sim`` drives it. While the vehicle drives
    (from the pilot's switch to the mission's end): the CPU % (of one core) and the largest
-   RSS of every service process, from psutil on the launcher's children (CPU = user +
-   system time used during the window / the window), their totals, the same for the
-   ``u2sa sim`` process that hosts the mocks and the simulator, and the rate of every
-   channel on the bus.
+   RSS and PSS (``/proc/PID/smaps_rollup``) of every service process, from psutil on the
+   launcher's children (CPU = user + system time used during the window / the window), each
+   service's CPU split into its own loop, its bus handler and its health publisher (the
+   threads a service names), their totals against the aims (10 % of one core, 200 MB PSS),
+   the same for the ``u2sa sim`` process that hosts the mocks and the simulator, and the rate
+   of every channel on the bus (bench/stack_meter.py). ``--no-realtime``: the safety chain
+   and the sim at normal priority.
 2. **Latency.** From an NMEA sentence written to the GPS pty to the CAN frame it causes.
    The rover is held still (wheels in the air: motor commands arrive, nothing moves),
    sensor noise is off and the control system's integrators are off, so the motor
@@ -35,7 +38,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
 import shutil
 import statistics
 import sys
@@ -60,6 +62,7 @@ from u2sa_hw.protocols import odrive_cansimple as cs  # noqa: E402
 from simulation.progress import ProgressLine  # noqa: E402
 from simulation.runner import SimOptions, SimRun  # noqa: E402
 from u2sa_hw.transport import Transport  # noqa: E402
+from stack_meter import CPU_AIM_PCT, PSS_AIM_MB, RateCounter, ResourceMeter  # noqa: E402
 from u2sa_hw.udp_ports import private_udp_port  # noqa: E402
 
 LATENCY_MISSION = """<?xml version="1.0"?>
@@ -72,13 +75,10 @@ LATENCY_MISSION = """<?xml version="1.0"?>
 STEP_M = 4.0   # the GPS position step, east (m); well inside the estimator's outlier gate
 
 
-REALTIME = True   # --no-realtime: the safety chain and the sim at normal priority
-
-
-def options(vehicle: Path, out: Path) -> SimOptions:
+def options(vehicle: Path, out: Path, *, realtime: bool) -> SimOptions:
     port = private_udp_port()
     return SimOptions(vehicle=vehicle, out=out, lcm_url=f"udpm://239.255.76.67:{port}?ttl=0",
-                      can_port=private_udp_port(), timeout_s=600, realtime=REALTIME)
+                      can_port=private_udp_port(), timeout_s=600, realtime=realtime)
 
 
 def pct(values: list[float], q: float) -> float:
@@ -88,107 +88,8 @@ def pct(values: list[float], q: float) -> float:
 
 
 # -- phase 1: resources and rates ---------------------------------------------------------
-def pss_bytes(pid: int) -> int:
-    """The proportional set size of *pid* (shared pages divided among their users), from smaps_rollup."""
-    with open(f"/proc/{pid}/smaps_rollup", encoding="ascii") as f:
-        for line in f:
-            if line.startswith("Pss:"):
-                return int(line.split()[1]) * 1024
-    return 0
-
-
-THREAD_KINDS = (("bus ", "bus"), ("health ", "health"))   # kernel names a service gives its threads
-CPU_AIM_PCT, PSS_AIM_MB = 10.0, 200.0    # issue 27: the example rover's services at nominal rates
-
-
-def thread_ticks(pid: int) -> dict[str, int]:
-    """CPU clock ticks per kind of thread of *pid*: the service's own loop, its bus handler, health, other."""
-    ticks: dict[str, int] = defaultdict(int)
-    for tid in os.listdir(f"/proc/{pid}/task"):
-        try:
-            with open(f"/proc/{pid}/task/{tid}/comm", encoding="ascii", errors="replace") as f:
-                comm = f.read().strip()
-            with open(f"/proc/{pid}/task/{tid}/stat", encoding="ascii") as f:
-                fields = f.read().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        kind = "loop" if tid == str(pid) else next((k for prefix, k in THREAD_KINDS if comm.startswith(prefix)),
-                                                   "other")
-        ticks[kind] += int(fields[11]) + int(fields[12])
-    return ticks
-
-
-class ResourceMeter:
-    """CPU time, RSS and PSS of the launcher's children (and this process) over a window."""
-
-    def __init__(self, pids: dict[str, int]) -> None:
-        self.procs = {name: psutil.Process(pid) for name, pid in pids.items()}
-        self.procs["(u2sa sim: mocks, simulator)"] = psutil.Process()
-        self.rss: dict[str, int] = defaultdict(int)
-        self.pss: dict[str, int] = defaultdict(int)
-        self.threads: dict[str, dict[str, float]] = {}   # name -> thread kind -> CPU % of one core
-        self.cpu0 = {n: sum(p.cpu_times()[:2]) for n, p in self.procs.items()}
-        self.threads0 = {n: thread_ticks(p.pid) for n, p in self.procs.items()}
-        self.t0 = time.monotonic()
-        self._done = threading.Event()
-        self._thread = threading.Thread(target=self._sample, daemon=True)
-        self._thread.start()
-
-    def _sample(self) -> None:
-        while not self._done.wait(1.0):
-            for name, proc in self.procs.items():
-                self._memory(name, proc)
-
-    def _memory(self, name: str, proc: psutil.Process) -> None:
-        try:
-            self.rss[name] = max(self.rss[name], proc.memory_info().rss)
-            self.pss[name] = max(self.pss[name], pss_bytes(proc.pid))
-        except (psutil.Error, OSError):
-            pass
-
-    def stop(self) -> dict[str, tuple[float, float, float]]:
-        """name -> (CPU % of one core, largest RSS MB, largest PSS MB) over the window."""
-        wall = time.monotonic() - self.t0
-        result = {}
-        for name, proc in self.procs.items():
-            try:
-                cpu = sum(proc.cpu_times()[:2]) - self.cpu0[name]
-            except psutil.Error:
-                cpu = float("nan")
-            self._memory(name, proc)
-            result[name] = (100.0 * cpu / wall, self.rss[name] / 2**20, self.pss[name] / 2**20)
-            try:
-                ticks = thread_ticks(proc.pid)
-            except OSError:
-                ticks = {}
-            hz = os.sysconf("SC_CLK_TCK")
-            self.threads[name] = {k: 100.0 * (v - self.threads0[name].get(k, 0)) / hz / wall for k, v in ticks.items()}
-        self._done.set()
-        return result
-
-
-class RateCounter:
-    """Messages and bytes per channel on the bus."""
-
-    def __init__(self, url: str) -> None:
-        self.counts: dict[str, list[int]] = defaultdict(lambda: [0, 0])
-        self.transport = Transport(url, name="bench-rates")
-        self.transport.subscribe(".*", None, self._on, raw=True)
-        self.transport.start()
-        self.t0 = time.monotonic()
-
-    def _on(self, channel: str, data: bytes) -> None:
-        c = self.counts[channel]
-        c[0] += 1
-        c[1] += len(data)
-
-    def stop(self) -> tuple[float, dict[str, list[int]]]:
-        self.transport.stop()
-        return time.monotonic() - self.t0, dict(self.counts)
-
-
-def mission_phase(vehicle: Path, out: Path) -> None:
-    run = SimRun(options(vehicle, out / "mission"), progress=ProgressLine(interactive=False, plain_every_s=30))
+def mission_phase(vehicle: Path, out: Path, *, realtime: bool) -> None:
+    run = SimRun(options(vehicle, out / "mission", realtime=realtime), progress=ProgressLine(interactive=False, plain_every_s=30))
     try:
         run.start()
         run.wait_ready()
@@ -313,9 +214,9 @@ def set_input_vels(nodes: list[Any]) -> dict[int, list[tuple[float, float]]]:
     return out
 
 
-def latency_phase(vehicle: Path, out: Path, *, seconds: float, threshold: float) -> None:
+def latency_phase(vehicle: Path, out: Path, *, seconds: float, threshold: float, realtime: bool) -> None:
     work = Path(tempfile.mkdtemp(prefix="u2sa-bench-"))
-    run = SimRun(options(quiet_copy(vehicle, work / "vehicle"), out / "latency"),
+    run = SimRun(options(quiet_copy(vehicle, work / "vehicle"), out / "latency", realtime=realtime),
                  progress=ProgressLine(interactive=False, plain_every_s=60))
     try:
         max_turns = float(tomllib.loads((work / "vehicle" / "config" / "wheels.toml").read_text())
@@ -416,14 +317,13 @@ def main() -> int:
     parser.add_argument("--no-realtime", action="store_true",
                         help="run the safety chain and the sim process at normal priority (as u2sa sim --no-realtime)")
     args = parser.parse_args()
-    global REALTIME
-    REALTIME = not args.no_realtime
     print(f"u2sa-hw stack benchmark: {args.vehicle}, {psutil.cpu_count()} CPUs, "
           f"load average {', '.join(f'{x:.1f}' for x in psutil.getloadavg())}")
     if not args.skip_mission:
-        mission_phase(args.vehicle, args.out)
+        mission_phase(args.vehicle, args.out, realtime=not args.no_realtime)
     if not args.skip_latency:
-        latency_phase(args.vehicle, args.out, seconds=args.latency_s, threshold=args.threshold)
+        latency_phase(args.vehicle, args.out, seconds=args.latency_s, threshold=args.threshold,
+                      realtime=not args.no_realtime)
     return 0
 
 

@@ -61,7 +61,8 @@ def test_moving_data_never_calibrates_and_the_fallback_runs_on_sample_time() -> 
     assert not cal.overdue
     # a 120 s stall of the process: no samples, and no sample time either
     verdicts += [cal.add(*moving(rng), stamp=t) for t in stamps(140.0, 500)]  # 25 s of samples in all
-    assert not cal.overdue and cal.searched_s < 30.0
+    # sample time only: 1999 + 499 intervals of 10 ms, the 120 s gap not among them
+    assert not cal.overdue and cal.searched_s == pytest.approx(24.98, abs=1e-6)
     verdicts += [cal.add(*moving(rng), stamp=t) for t in stamps(145.0, 60_000)]   # ten more minutes of moving
     assert cal.overdue
     judged = [v for v in verdicts if v is not None]

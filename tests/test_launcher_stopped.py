@@ -6,11 +6,15 @@ writes a file the moment it runs again after its SIGSTOP: with SIGABRT + SIGCONT
 
 from __future__ import annotations
 
+import contextlib
 import signal
+import subprocess
 import sys
 from pathlib import Path
+from typing import Iterator
 
 from conftest import wait_until
+from test_launcher_watchdog import SLEEPER, FakeClock
 
 from u2sa_hw.launcher import RestartPolicy, SupervisedProcess
 from u2sa_hw.launcher.process import BACKOFF, process_stopped
@@ -23,12 +27,15 @@ FREEZES = ("import os, signal\n"
            "open('resumed', 'w').write('a command published after the freeze')\n")
 
 
-class FakeClock:
-    def __init__(self) -> None:
-        self.now = 100.0
-
-    def __call__(self) -> float:
-        return self.now
+@contextlib.contextmanager
+def _reaped(child: subprocess.Popen[bytes]) -> Iterator[subprocess.Popen[bytes]]:
+    """*child*, killed and waited for at the end if the test left it alive."""
+    try:
+        yield child
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait()
 
 
 def _frozen(tmp_path: Path, clock: FakeClock) -> SupervisedProcess:
@@ -42,19 +49,14 @@ def _frozen(tmp_path: Path, clock: FakeClock) -> SupervisedProcess:
 def test_a_stopped_child_gets_sigkill_from_the_watchdog_and_never_runs_again(tmp_path: Path) -> None:
     clock = FakeClock()
     p = _frozen(tmp_path, clock)
-    child = p.proc
-    assert child is not None
-    try:
+    assert p.proc is not None
+    with _reaped(p.proc) as child:
         p.on_notify({"READY": "1"})
         clock.now += 2.5
         fired = p.check_watchdog()
         assert fired == ("watchdog timeout (no WATCHDOG=1 for 2.5 s, limit 2 s): it was stopped, so SIGKILL "
                          "without resuming it (no stack dump)")
         assert child.wait(timeout=30) == -signal.SIGKILL
-    finally:
-        if child.poll() is None:
-            child.kill()
-            child.wait()
     account = p.poll()
     assert account is not None and account.startswith("watchdog timeout, killed by SIGKILL")
     assert (p.state, p.result, p.watchdog_kills) == (BACKOFF, "watchdog", 1)
@@ -64,15 +66,10 @@ def test_a_stopped_child_gets_sigkill_from_the_watchdog_and_never_runs_again(tmp
 def test_a_stopped_child_asked_to_stop_or_restart_gets_sigkill_without_being_resumed(tmp_path: Path) -> None:
     clock = FakeClock()
     p = _frozen(tmp_path, clock)
-    child = p.proc
-    assert child is not None
-    try:
+    assert p.proc is not None
+    with _reaped(p.proc) as child:
         p.restart("HSM: no heartbeat", grace_s=5.0)      # what the HSM asks for a hung service
         assert child.wait(timeout=30) == -signal.SIGKILL
-    finally:
-        if child.poll() is None:
-            child.kill()
-            child.wait()
     account = p.poll()
     assert account == ("killed by SIGKILL (it was stopped: killed without resuming it); restarting now "
                        "(requested: HSM: no heartbeat)")
@@ -81,17 +78,12 @@ def test_a_stopped_child_asked_to_stop_or_restart_gets_sigkill_without_being_res
 
 def test_a_running_child_still_gets_sigabrt_for_its_stacks() -> None:
     clock = FakeClock()
-    p = SupervisedProcess("est", [sys.executable, "-c", "import time; time.sleep(120)"], policy=RestartPolicy(),
-                          clock=clock, watchdog=WatchdogSetting(timeout_s=2.0, abort_s=1.0))
-    child = p.spawn()
-    try:
+    p = SupervisedProcess("est", SLEEPER, policy=RestartPolicy(), clock=clock,
+                          watchdog=WatchdogSetting(timeout_s=2.0, abort_s=1.0))
+    with _reaped(p.spawn()) as child:
         assert not process_stopped(child.pid)
         p.on_notify({"READY": "1"})
         clock.now += 2.5
         assert (p.check_watchdog() or "").endswith(": SIGABRT, SIGKILL in 1 s")
         assert child.wait(timeout=30) == -signal.SIGABRT
-    finally:
-        if child.poll() is None:
-            child.kill()
-            child.wait()
     assert not process_stopped(999_999_999)   # no such process: not stopped

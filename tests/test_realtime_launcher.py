@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 from conftest import wait_until
+from test_realtime import _profile
 
 from u2sa_hw.launcher import Launcher, RestartPolicy
 from u2sa_hw.realtime import THROTTLE_FILE, plan
@@ -32,14 +33,6 @@ SHOW = READY + ("import threading, time\n"
                 " flush=True)\n"
                 "time.sleep(120)\n")
 SPIN = READY + "while True:\n    pass\n"
-
-
-def _profile(tmp_path: Path, kinds: dict[str, str]) -> Path:
-    text = ['[vehicle]\nname = "rt"\nlcm_url = "udpm://239.255.76.67:7667?ttl=0"\n']
-    text += [f'[services.{name}]\nkind = "{kind}"\n' for name, kind in kinds.items()]
-    path = tmp_path / "vehicle.toml"
-    path.write_text("\n".join(text))
-    return path
 
 
 def test_the_rc_mux_and_its_threads_run_fifo_and_a_sensor_driver_normal(tmp_path: Path) -> None:

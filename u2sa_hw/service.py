@@ -375,7 +375,6 @@ class U2SAService:
         self.status = "ok" if self.status == "starting" else self.status
         self._health_thread = threading.Thread(target=self._health_loop, name=f"health-{self.name}", daemon=True)
         self._health_thread.start()
-        name_native_thread(self.transport._thread, f"bus {self.name}")
         name_native_thread(self._health_thread, f"health {self.name}")
         self.publish_health()
         self._notifier.notify("READY=1")

@@ -50,6 +50,7 @@ from u2sa_hw.lcm_open import MULTICAST_FIX, URL_HELP, captured_c_stderr, open_er
 from u2sa_hw.lcm_url import (DEFAULT_LCM_URL, DEFAULT_RECV_BUF_SIZE, LCM_URL_ENV,  # noqa: F401 - re-exported
                               RMEM_MAX_FILE, resolve_url, with_receive_buffer)
 from u2sa_hw.channels import FAILSAFE as FAILSAFE_CHANNEL
+from u2sa_hw.health import name_native_thread
 from u2sa_hw.lcmtypes import Failsafe
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 
@@ -473,6 +474,7 @@ class Transport:
         self._running = True
         self._thread = threading.Thread(target=self._loop, name=f"lcm-{self.name}", daemon=True)
         self._thread.start()
+        name_native_thread(self._thread, f"bus {self.name}")   # top -H and bench/stack.py tell it apart
 
     def _loop(self) -> None:
         # handle_timeout releases the GIL while it waits in C; a short timeout bounds stop().
