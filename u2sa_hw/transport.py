@@ -93,6 +93,18 @@ class ChannelCounters:
         return self.unsigned + self.forged + self.replayed + self.foreign
 
 
+@dataclass(frozen=True)
+class AcceptedRaise:
+    """Failsafe raises of one kind let through on one channel (``raise_stale``: outside the replay
+    window; ``raise_foreign``: another system id), with the last one's sender (hex) and age."""
+
+    channel: str
+    kind: str
+    count: int
+    last_sender: str
+    last_age_s: float
+
+
 @dataclass
 class _Subscription:
     channel: str
@@ -151,6 +163,7 @@ class Transport:
         self._own_system = None if system_id is None else _SYSTEM_ID.pack(system_id)
         self._pending_unsubscribe: deque[Any] = deque()
         self._rejection_logged: set[tuple[str, str]] = set()
+        self._last_raises: dict[tuple[str, str], tuple[str, float]] = {}   # (channel, kind) -> (sender, monotonic)
         with captured_c_stderr() as printed:
             try:
                 self._lc = lcm.LCM(with_receive_buffer(self.url))
@@ -404,6 +417,8 @@ class Transport:
     def _accepted_raise(self, channel: str, counter: str, why: str) -> None:
         counters = self.rx[channel]
         setattr(counters, counter, getattr(counters, counter) + 1)
+        sender = self.auth.last_sender.hex() if self.auth is not None else ""
+        self._last_raises[(channel, counter)] = (sender, time.monotonic())
         if (channel, counter) not in self._rejection_logged:
             self._rejection_logged.add((channel, counter))
             log.warning("%s: accepting a failsafe raise on %s %s: a raise fails safe, so it is never dropped for "
@@ -413,6 +428,15 @@ class Transport:
         """``{channel: {"raise_stale": n, "raise_foreign": n}}`` for channels where a raise was let through."""
         return {ch: {"raise_stale": c.raise_stale, "raise_foreign": c.raise_foreign}
                 for ch, c in sorted(self.rx.items()) if c.raise_stale or c.raise_foreign}
+
+    def accepted_raise_log(self) -> list[AcceptedRaise]:
+        """Every kind of raise let through though stale or foreign: its count, its last sender and that one's age."""
+        now = time.monotonic()
+        out = []
+        for (channel, kind), (sender, at) in sorted(self._last_raises.items()):
+            out.append(AcceptedRaise(channel=channel, kind=kind, count=getattr(self.rx[channel], kind),
+                                     last_sender=sender, last_age_s=now - at))
+        return out
 
     def raw_lcm(self) -> Any:
         """The ``lcm.LCM`` under this transport, its receive socket open on the bus's interface.
