@@ -36,7 +36,7 @@ from u2sa_hw.config import ConfigError, ConfigField, Configurator, field, to_tex
 from u2sa_hw.health import HOSTNAME, ProcessStats, build_health, name_native_thread
 from u2sa_hw.messages import type_name
 from u2sa_hw.sdnotify import SystemdNotifier, watchdog_interval
-from u2sa_hw.service_bus import DUPLICATE_EXIT, DuplicateWatch, bus_text, listen_state, rejected_text
+from u2sa_hw.service_bus import DUPLICATE_EXIT, DuplicateWatch, bus_text, listen_state, raises_text, rejected_text
 from u2sa_hw.service_log import LEVEL_NAMES, level_number, set_level
 from u2sa_hw.transport import Transport
 from u2sa_hw.vehicle import VehicleProfile
@@ -354,6 +354,9 @@ class U2SAService:
         rejected = rejected_text(self.transport.rejected())
         if rejected:
             details["bus_rejected"] = rejected
+        raises = self.transport.accepted_raise_log()   # usually empty: nothing to format
+        if raises:   # failsafe raises let through though stale or foreign (they fail safe): who and when
+            details["bus_raises_accepted"] = raises_text(raises)
         listen = self._bus_listen or self.transport.listen_problem   # u2sa_hw.service_bus.listen_state
         if listen:   # a ttl=0 bus heard beyond this board, a ttl>=1 one on the default route
             details["bus_listen"] = listen

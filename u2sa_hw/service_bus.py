@@ -3,6 +3,11 @@
 * :func:`bus_text` and :func:`rejected_text` fill the ``bus_security`` and ``bus_rejected``
   details of every Health message (``u2sa services`` and ``u2sa health`` show them); the
   transport's ``listen_problem`` fills ``bus_listen``.
+* :func:`raises_text` fills ``bus_raises_accepted``: the failsafe raises the transport let
+  through though outside the replay window or from another system id (they fail safe), each
+  kind with its count, last sender and that one's age. :func:`parse_raises` reads it back and
+  :func:`raise_line` says it in the words ``u2sa health`` and ``u2sa services`` print
+  (:func:`raise_note`, shorter, in the reason column of ``u2sa health --watch``).
 * :func:`listen_state` fills ``bus_listen``: the transport's ``listen_problem``, or a ``ttl`` >= 1
   bus with the vehicle's key on the default route's interface.
 * :class:`DuplicateWatch` runs as a service process starts, before ``setup()`` opens any
@@ -33,6 +38,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import threading
 import time
 from dataclasses import dataclass, field
@@ -44,8 +50,10 @@ from u2sa_hw import lcmtypes as t
 from u2sa_hw.health import HOSTNAME
 
 if TYPE_CHECKING:
+    from collections.abc import Iterable
+
     from u2sa_hw.service import U2SAService
-    from u2sa_hw.transport import Transport
+    from u2sa_hw.transport import AcceptedRaise, Transport
 
 # How long a starting service listens for another of its name, sending its discovery request again
 # every PROBE_RESEND_S (one may be lost or answered late). A live service answers in milliseconds;
@@ -69,6 +77,61 @@ def rejected_text(rejected: dict[str, dict[str, int]]) -> str:
     """``CHANNEL: unsigned 2, replayed 1; ...`` from :meth:`Transport.rejected` (health's ``bus_rejected``)."""
     return "; ".join(f"{channel}: " + ", ".join(f"{why} {n}" for why, n in counts.items() if n)
                      for channel, counts in rejected.items())
+
+
+# The transport's counter of each kind of accepted raise, the word the health detail uses for it,
+# and what such a raise is likely to be (said by u2sa health and u2sa services).
+RAISE_KINDS = {"raise_stale": "stale", "raise_foreign": "foreign"}
+RAISE_WHAT = {"stale": ("outside the replay window", "a sender whose clock is behind, or a replay"),
+              "foreign": ("naming another system id", "a ground station or an operator's u2sa with another "
+                          "vehicle's profile, or another vehicle under this key")}
+_RAISE_PART = re.compile(r"^(?P<channel>[^:;]+): (?P<count>\d+) (?P<kind>\w+), last from sender (?P<sender>\S*) "
+                         r"(?P<age>\d+(?:\.\d+)?) s ago$")
+
+
+def raises_text(raises: Iterable[AcceptedRaise]) -> str:
+    """``FAILSAFE: 2 stale, last from sender 1a2b3c4d5e6f7a8b 12.3 s ago; FAILSAFE: 1 foreign, ...``.
+
+    From :meth:`Transport.accepted_raise_log` (health's ``bus_raises_accepted``); "" when none.
+    """
+    return "; ".join(f"{r.channel}: {r.count} {RAISE_KINDS.get(r.kind, r.kind)}, last from sender "
+                     f"{r.last_sender or '-'} {r.last_age_s:.1f} s ago" for r in raises)
+
+
+def parse_raises(text: str, *, older_by_s: float = 0.0) -> list[dict[str, Any]]:
+    """The entries of a ``bus_raises_accepted`` text: channel, kind, count, last_sender, last_age_s.
+
+    *older_by_s* is added to each age: how long ago the Health carrying the text arrived. A
+    part that does not parse is left out.
+    """
+    out: list[dict[str, Any]] = []
+    for part in text.split(";") if text else ():
+        m = _RAISE_PART.match(part.strip())
+        if m:
+            out.append({"channel": m["channel"], "kind": m["kind"], "count": int(m["count"]),
+                        "last_sender": "" if m["sender"] == "-" else m["sender"],
+                        "last_age_s": round(float(m["age"]) + max(0.0, older_by_s), 1)})
+    return out
+
+
+def raise_note(entry: dict[str, Any]) -> str:
+    """One :func:`parse_raises` entry, short: ``accepted 2 failsafe raises outside the replay window (last 12.3 s
+    ago, from sender 1a2b3c4d5e6f7a8b)`` (the reason column of ``u2sa health --watch`` and Foxglove's /health)."""
+    where = RAISE_WHAT.get(entry["kind"], (f"({entry['kind']})", ""))[0]
+    n = entry["count"]
+    on = "" if entry["channel"] == ch.FAILSAFE else f" on {entry['channel']}"
+    return (f"accepted {n} failsafe raise{'' if n == 1 else 's'}{on} {where} (last {entry['last_age_s']:.1f} s ago, "
+            f"from sender {entry['last_sender'] or 'unknown'})")
+
+
+def raise_line(service: str, entry: dict[str, Any]) -> str:
+    """One :func:`parse_raises` entry in words, as ``u2sa health`` and ``u2sa services`` print it:
+
+    ``hsm: accepted 2 failsafe raises outside the replay window (last 12.3 s ago, from sender
+    1a2b3c4d5e6f7a8b): a raise always fails safe; a sender whose clock is behind, or a replay``.
+    """
+    likely = RAISE_WHAT.get(entry["kind"], ("", "an unknown kind"))[1]
+    return f"{service}: {raise_note(entry)}: a raise always fails safe; {likely}"
 
 
 def run_key(key_file: Path, profile_key: Path | None, *, env: dict[str, str] | None = None) -> bool:

@@ -19,11 +19,14 @@ STOP_SYNC_S = 1.5      # stop: how long to listen for a signed packet before sen
 def register(sub: Any) -> None:
     """Add the bus subcommands."""
     p = sub.add_parser("services", help="list live services (discovery)",
-                       description="Ask every service on the bus to identify itself and list the answers.")
+                       description="Ask every service on the bus to identify itself and list the answers. "
+                       "On stderr, per service: where its bus listens when that is not where it belongs, and "
+                       "the failsafe raises it accepted outside the replay window or naming another system id "
+                       "(how many, the last one's age and sender).")
     add_vehicle_option(p)
     add_timeout_option(p)
     p.add_argument("--json", action="store_true", help="print a JSON list of objects (name, type, status, "
-                   "host, pid, bus, rejected counts, listen, publishes, subscribes)")
+                   "host, pid, bus, rejected counts, listen, raises_accepted, publishes, subscribes)")
     p.set_defaults(func=cmd_services)
 
     p = sub.add_parser("topics", help="channels seen on the bus: rate, bandwidth, type",
@@ -79,21 +82,31 @@ def cmd_services(args: Any) -> int:
     """``u2sa services``: who answers discovery, each one's bus (signed or open) and the packets it dropped."""
     from u2sa_hw import channels as ch
     from u2sa_hw import lcmtypes as t
+    from u2sa_hw.service_bus import parse_raises, raise_line
 
     health: dict[str, Any] = {}
+    heard_at: dict[str, float] = {}   # when each service's newest Health arrived (monotonic)
+
+    def on_health(_c: str, msg: Any) -> None:
+        health[msg.name] = msg
+        heard_at[msg.name] = time.monotonic()
+
     with bus_client(args) as bus:
-        # Health is what says each service's bus and drops; it comes every health_interval_s.
-        bus.transport.subscribe(ch.HEALTH, t.Health, lambda _c, m: health.__setitem__(m.name, m))
+        # Health is what says each service's bus, drops and accepted raises; it comes every health_interval_s.
+        bus.transport.subscribe(ch.HEALTH, t.Health, on_health)
         found = bus.discover(timeout=args.timeout)
         own_drops = bus.transport.rejected()
     rows = []
+    now = time.monotonic()
     for r in found:
         details = {kv.key: kv.value for kv in health[r.name].details} if r.name in health else {}
         dropped = details.get("bus_rejected", "")
+        raises = parse_raises(details.get("bus_raises_accepted", ""), older_by_s=now - heard_at.get(r.name, now))
         rows.append({"name": r.name, "type": r.service_type, "status": r.status, "host": r.host, "pid": r.pid,
                      "bus": details.get("bus_security", "?"), "rejected": rejected_total(dropped),
                      "bad_signature": bad_signature_total(dropped), "foreign": rejected_counts(dropped)["foreign"],
                      "rejected_by_channel": dropped, "listen": details.get("bus_listen", ""),
+                     "raises_accepted": raises,
                      "publishes": _channel_list(r.publishes),
                      "subscribes": _channel_list(r.subscribes)})
     if args.json:
@@ -109,6 +122,8 @@ def cmd_services(args: Any) -> int:
     for row in rows:   # a ttl=0 bus heard beyond the board: never only a log line of the service's
         if row["listen"]:
             print(f"u2sa: {row['name']}: {row['listen']}", file=sys.stderr)
+        for entry in row["raises_accepted"]:   # a stale or foreign failsafe raise let through: who and when
+            print(f"u2sa: {raise_line(row['name'], entry)}", file=sys.stderr)
     if own_drops:
         from u2sa_hw.service_bus import rejected_text
 

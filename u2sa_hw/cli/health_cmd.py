@@ -16,7 +16,9 @@ Wait for the HSM's next system health message and show each service's state
 heartbeat age and data age, and for every service not ok the reason in words (the silent
 sensor of an estimator, the missing device of a driver and its fix; for an ok one its last
 error), with the failsafe state, and whether the RC mux
-grants autonomy (if not, why: the failed pre-arm check, the failsafe, the mode). Exits 1
+grants autonomy (if not, why: the failed pre-arm check, the failsafe, the mode), and one
+line per service that accepted failsafe raises outside the replay window or naming another
+system id (a raise always fails safe): how many, the last one's age and sender. Exits 1
 when no HSM answers within --timeout (is a service of kind "hsm" in the profile and running?).
 """
 
@@ -26,7 +28,8 @@ def register(sub: Any) -> None:
     p = sub.add_parser("health", help="the HSM's view: each service's state, restarts, last error, data age",
                        description=HELP)
     add_vehicle_option(p)
-    p.add_argument("--json", action="store_true", help="print one JSON object (failsafe, summary, services)")
+    p.add_argument("--json", action="store_true",
+                   help="print one JSON object (failsafe, summary, services, autonomy, raises_accepted)")
     p.add_argument("--timeout", type=float, default=3.0, metavar="S",
                    help="seconds to wait for the HSM (default 3; it publishes every second)")
     from u2sa_hw.cli.health_watch import add_options
@@ -71,13 +74,20 @@ def cmd_health(args: Any) -> int:
             arrived.set()
 
     health: dict[str, Any] = {}
+    heard_at: dict[str, float] = {}   # when each service's newest Health arrived (monotonic)
+
+    def on_health(_c: str, msg: Any) -> None:
+        health[msg.name] = msg
+        heard_at[msg.name] = time.monotonic()
+
     with bus_client(args) as bus:
-        # Each service's own Health says its bus (signed/open) and the packets it dropped.
-        bus.transport.subscribe(ch.HEALTH, t.Health, lambda _c, m: health.__setitem__(m.name, m))
+        # Each service's own Health says its bus (signed/open), the packets it dropped, the raises it let through.
+        bus.transport.subscribe(ch.HEALTH, t.Health, on_health)
         bus.transport.subscribe(ch.SYSTEM_HEALTH, t.SystemHealth, on_message)
         arrived.wait(max(0.0, args.timeout))
         if got:
-            names = {s.name for s in got[0].services}
+            # the HSM's own Health too: it is not among the services it watches, and it says the raises it let through
+            names = {s.name for s in got[0].services} | ({got[0].header.source} if got[0].header.source else set())
             deadline = time.monotonic() + min(1.5, max(0.0, args.timeout))
             while not names <= set(health) and time.monotonic() < deadline:
                 arrived.wait(0.05)   # polls the callbacks' dict; SystemHealth already arrived
@@ -102,6 +112,7 @@ def cmd_health(args: Any) -> int:
         s["reason"] = service_reason(s, health.get(s["name"]))
         s["bus_listen"] = details.get("bus_listen", "")   # a ttl=0 bus heard beyond the board
     report["autonomy"] = autonomy_report(health)
+    report["raises_accepted"] = raises_report(health, heard_at)
     if args.json:
         print(json.dumps(report, indent=2))
         return 0
@@ -118,7 +129,30 @@ def cmd_health(args: Any) -> int:
     for rc in report["autonomy"]:
         state = "GRANTED" if rc["granted"] else f"refused: {rc['blocked_by'] or 'unknown'}"
         print(f"autonomy ({rc['service']}, RC {rc['mode']}, {'armed' if rc['armed'] else 'not armed'}): {state}")
+    if report["raises_accepted"]:
+        from u2sa_hw.service_bus import raise_line
+
+        for entry in report["raises_accepted"]:
+            print(raise_line(entry["service"], entry))
     return 0
+
+
+def raises_report(health: dict[str, Any], heard_at: dict[str, float] | None = None) -> list[dict[str, Any]]:
+    """Every service's accepted failsafe raises (its Health's ``bus_raises_accepted``), the HSM's own included.
+
+    One entry per service and kind: service, channel, kind (stale, foreign), count, last_sender and
+    last_age_s, the age counted to now when *heard_at* says when that Health arrived.
+    """
+    from u2sa_hw.service_bus import parse_raises
+
+    now = time.monotonic()
+    out = []
+    for name, msg in sorted(health.items()):
+        text = next((kv.value for kv in msg.details if kv.key == "bus_raises_accepted"), "")
+        if text:
+            older = now - heard_at[name] if heard_at and name in heard_at else 0.0
+            out.extend({"service": name, **entry} for entry in parse_raises(text, older_by_s=older))
+    return out
 
 
 def service_reason(row: dict[str, Any], health: Any | None) -> str:

@@ -3,7 +3,8 @@
 
 The HSM's ``SystemHealth`` gives each service's state as the HSM sees it (restarts,
 heartbeat and data age, the reason); each service's own ``Health`` gives its status,
-CPU, memory, drops and message counters, from which the rates are the difference of two
+CPU, memory, drops, the failsafe raises it accepted though stale or foreign (added to the
+reason) and message counters, from which the rates are the difference of two
 successive messages over the service's uptime between them.
 """
 
@@ -81,14 +82,21 @@ class HealthTable:
 
 
 def _reason(state: Any, health: Any) -> str:
-    """Why a service is not ok, in the words ``u2sa health`` uses (``u2sa_hw.health``); its last error when ok."""
-    from u2sa_hw.health import health_reason, join_reasons
+    """Why a service is not ok, in the words ``u2sa health`` uses (``u2sa_hw.health``); its last error when ok.
 
-    own = health_reason({kv.key: kv.value for kv in health.details}, health.last_error) if health is not None else ""
+    The failsafe raises it accepted though stale or foreign follow, whatever its state
+    (``bus_raises_accepted``, ``u2sa_hw.service_bus.raise_note``).
+    """
+    from u2sa_hw.health import health_reason, join_reasons
+    from u2sa_hw.service_bus import parse_raises, raise_note
+
+    details = {kv.key: kv.value for kv in health.details} if health is not None else {}
+    raises = "; ".join(raise_note(e) for e in parse_raises(details.get("bus_raises_accepted", "")))
+    own = health_reason(details, health.last_error) if health is not None else ""
     hsm = state.last_error if state is not None else ""
     if (state.state if state is not None else health.status) == "ok":
-        return hsm or (health.last_error if health is not None else "")
-    return join_reasons(hsm, own)
+        return join_reasons(hsm or (health.last_error if health is not None else ""), raises)
+    return join_reasons(hsm, own, raises)
 
 
 _CELL_NUM = {"type": ["number", "null"]}
