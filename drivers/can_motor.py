@@ -32,7 +32,7 @@ if TYPE_CHECKING:
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Actuator
-from u2sa_hw.config import ConfigError, field
+from u2sa_hw.config import MAX_TIMEOUT_S, ConfigError, field
 from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence setters
 from u2sa_hw.ports import PortClosed, PortError, PortIOError, PortUnavailable
 from u2sa_hw.ports.can_port import CanPort
@@ -71,24 +71,24 @@ class CanMotorService(CanMotorDeclarations, Actuator):
                                "socketcan when channel is set; both empty: the address is [devices.NAME]'s only)"),
         field("channel", "", "old form: python-can channel: can0, a virtual bus name, or a multicast group "
                              "(empty: can0 when interface is set)"),
-        field("bitrate", 0, "bit/s given to python-can (0: leave the interface as configured, e.g. by udev)", ge=0),
+        field("bitrate", 0, "bit/s given to python-can (0: leave the interface as configured, e.g. by udev)", ge=0, le=8000000),
         field("udp_port", 0, "udp_multicast only: UDP port of the bus (0: python-can's default 43113)", ge=0, le=65535),
         field("device_name", "", "old name of the device setting"),
         field("record_raw", False, "publish every frame sent and received as RawCanFrame on RAW.<device>"),
         field("actuators", ["left", "right"], "actuator names, one per controller (Percentage Commands address them)", item_type=str),
-        field("directions", [1, 1], "+1 or -1 per controller: -1 where forward means turning the motor backwards", item_type=int),
-        field("wheel_radius_m", [0.1, 0.1], "wheel radius per controller (m), for the odometry", item_type=float, gt=0),
-        field("command_period_s", 0.05, "setpoints are re-sent this often (keeps the controller's timeout fed)", gt=0),
-        field("silent_after_s", 0.5, "no frame from a controller for this long -> 'silent' and degraded", gt=0),
+        field("directions", [1, 1], "+1 or -1 per controller: -1 where forward means turning the motor backwards", item_type=int, ge=-1, le=1),
+        field("wheel_radius_m", [0.1, 0.1], "wheel radius per controller (m), for the odometry", item_type=float, gt=0, le=10.0),
+        field("command_period_s", 0.05, "setpoints are re-sent this often (keeps the controller's timeout fed)", gt=0, le=MAX_TIMEOUT_S),
+        field("silent_after_s", 0.5, "no frame from a controller for this long -> 'silent' and degraded", gt=0, le=MAX_TIMEOUT_S),
         field("odometry", True, "publish body speed (x_dot, FRD) and yaw rate from the differential wheel pair"),
         field("odometry_left", "left", "the actuator name of the left wheel"),
         field("odometry_right", "right", "the actuator name of the right wheel"),
-        field("track_width_m", 0.5, "distance between the left and right wheels' contact lines (m)", gt=0),
+        field("track_width_m", 0.5, "distance between the left and right wheels' contact lines (m)", gt=0, le=100.0),
         field("odometry_source", "velocity", "velocity: the controller's speed estimate; position: travel deltas",
               choices=SOURCES),
-        field("odometry_window_s", 0.1, "position source: travel deltas over this window (s)", gt=0),
-        field("speed_sigma_mps", 0.05, "sigma of the published x_dot and y_dot (m/s)", gt=0),
-        field("yaw_rate_sigma_rad_s", 0.05, "sigma of the published psi_dot (rad/s)", gt=0),
+        field("odometry_window_s", 0.1, "position source: travel deltas over this window (s)", gt=0, le=MAX_TIMEOUT_S),
+        field("speed_sigma_mps", 0.05, "sigma of the published x_dot and y_dot (m/s)", gt=0, le=100.0),
+        field("yaw_rate_sigma_rad_s", 0.05, "sigma of the published psi_dot (rad/s)", gt=0, le=10.0),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:

@@ -19,7 +19,7 @@ import time
 from typing import Any
 
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.calibration.correction import IDENTITY9, ZERO3, Correction, heading_at_attitude
+from u2sa_hw.calibration.correction import IDENTITY9, MAX_MAG_OFFSET, MAX_MATRIX_ENTRY, ZERO3, Correction, heading_at_attitude
 from u2sa_hw.config import ConfigError, field
 
 from drivers.os5000_format import Os5000Reading
@@ -29,9 +29,9 @@ MAX_FIELD_MG = 1e6    # 100 G: far beyond any compass's range (the Earth's field
 CONFIG = (
     field("raw_field", False, "os5000: heading from the sentence's Mx/My/Mz corrected by mag_offset/mag_matrix "
                               "(u2sa calibrate compass) instead of the compass's own C heading"),
-    field("mag_offset", list(ZERO3), "raw_field: hard iron (the sentence's field unit, mG; FRD)", item_type=float),
+    field("mag_offset", list(ZERO3), "raw_field: hard iron (the sentence's field unit, mG; FRD)", item_type=float, ge=-MAX_MAG_OFFSET, le=MAX_MAG_OFFSET),
     field("mag_matrix", list(IDENTITY9), "raw_field: soft iron, 9 numbers row-major; identity with a zero offset = "
-                                         "uncalibrated (the compass's own heading is used)", item_type=float),
+                                         "uncalibrated (the compass's own heading is used)", item_type=float, ge=-MAX_MATRIX_ENTRY, le=MAX_MATRIX_ENTRY),
     field("calibration_stream_s", 0.0, "raw_field: seconds to publish the raw field on CAL.<service> for u2sa "
                                        "calibrate (0: off; only a change over the bus starts it)", ge=0, le=3600),
 )

@@ -83,9 +83,9 @@ class SerialCompassDriver(SerialLineSensor):
                                 "(any case)", choices=FORMATS, case_insensitive=True),
         field("declination_deg", 0.0, "magnetic declination, east positive: true = magnetic + declination", ge=-180, le=180),
         field("use_hdg_variation", True, "nmea: use HDG's variation field instead of declination_deg when present"),
-        field("heading_sigma_deg", 1.0, "sigma of psi (deg)", gt=0),
-        field("attitude_sigma_deg", 0.5, "sigma of phi and theta (deg)", gt=0),
-        field("rate_sigma_deg_s", 1.0, "sigma of psi_dot from ROT (deg/s)", gt=0),
+        field("heading_sigma_deg", 1.0, "sigma of psi (deg)", gt=0, le=180),
+        field("attitude_sigma_deg", 0.5, "sigma of phi and theta (deg)", gt=0, le=180),
+        field("rate_sigma_deg_s", 1.0, "sigma of psi_dot from ROT (deg/s)", gt=0, le=1000),
         field("pitch_range_deg", 90.0, "the device's pitch range (deg, > 0 and <= 90): |pitch| beyond it is "
                                        "dropped (OS5000 90, HMR3300 60, HMR3000 40)", gt=0, le=90),
         field("roll_range_deg", 180.0, "the device's roll range (deg, > 0 and <= 180): |roll| beyond it is "

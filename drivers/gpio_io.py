@@ -31,7 +31,7 @@ from drivers.gpio_lines import (GpioLineSet, check_gpio_device, legacy_gpio_addr
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Actuator, ExteroceptiveSensor
-from u2sa_hw.config import ConfigError, field
+from u2sa_hw.config import MAX_TIMEOUT_S, ConfigError, field
 from u2sa_hw.ports.device_link import device_setting
 from u2sa_hw.ports.gpio_port import BIASES, GpioPort
 
@@ -208,7 +208,7 @@ class GpioInputDriver(ExteroceptiveSensor):
         field("failsafe_repeat_s", 1.0, "re-send the active failsafe this often while held", gt=0, le=1.0),
         field("clear_on_release", True, "publish a cleared failsafe when every e-stop is released"),
         field("positions", "", "name=x:y:z,... body-frame (FRD, m) place of each bumper; these publish OBJECTS"),
-        field("bumper_repeat_s", 0.5, "re-send a held bumper's object this often", ge=0),
+        field("bumper_repeat_s", 0.5, "re-send a held bumper's object this often", ge=0, le=MAX_TIMEOUT_S),
         *_DEVICE, _RAW,
     )
 

@@ -49,9 +49,9 @@ class GpsNmeaDriver(SerialLineSensor):
               choices=POSITION_FRAMES, case_insensitive=True),
         field("altitude_datum", "msl", "msl: the GGA altitude (above the geoid); ellipsoid: plus the geoid "
                                        "separation (any case)", choices=ALTITUDE_DATUMS, case_insensitive=True),
-        field("uere_m", 3.0, "user equivalent range error (m): sigmas from HDOP/VDOP when there is no GST", gt=0),
-        field("speed_sigma_mps", 0.1, "sigma of x_dot, y_dot (m/s)", gt=0),
-        field("heading_sigma_deg", 0.5, "sigma of psi from HDT (deg)", gt=0),
+        field("uere_m", 3.0, "user equivalent range error (m): sigmas from HDOP/VDOP when there is no GST", gt=0, le=1000.0),
+        field("speed_sigma_mps", 0.1, "sigma of x_dot, y_dot (m/s)", gt=0, le=100.0),
+        field("heading_sigma_deg", 0.5, "sigma of psi from HDT (deg)", gt=0, le=180),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:

@@ -26,6 +26,7 @@ makes x forward, y left, z up, see docs/i2c-devices.md):
 
 from __future__ import annotations
 
+import math
 import time
 from typing import Any, ClassVar, Mapping
 
@@ -63,8 +64,8 @@ class Bno055ImuDriver(I2cImuDriver):
         field("axis_map_sign", 0x00, "AXIS_MAP_SIGN for the remap", ge=0, le=0xFF),
         field("reset_on_start", False, "reset the chip (SYS_TRIGGER.RST_SYS) on every open"),
         field("min_heading_calibration", 1, "publish psi once CALIB_STAT.SYS reaches this (0..3)", ge=0, le=3),
-        field("attitude_sigma", 0.02, "rad, sigma of phi and theta", gt=0),
-        field("heading_sigma", 0.05, "rad, sigma of psi", gt=0),
+        field("attitude_sigma", 0.02, "rad, sigma of phi and theta", gt=0, le=math.pi),
+        field("heading_sigma", 0.05, "rad, sigma of psi", gt=0, le=math.pi),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:

@@ -200,10 +200,10 @@ class I2cImuDriver(ProprioceptiveSensor):
         field("bus", "", 'old form of the address (with address): I2C adapter number ("1" = /dev/i2c-1) or '
                          '"mock:/path/to/bus.sock" (empty: the address is [devices.NAME]\'s only)'),
         field("rate_hz", 100.0, "samples published per second", gt=0, le=1000),
-        field("retries", 2, "immediate retries of a failed I2C transaction", ge=0),
-        field("reinit_after_errors", 10, "failed samples in a row before the chip is reopened and set up again", ge=1),
-        field("rate_sigma", 0.005, "rad/s, sigma of phi_dot/theta_dot/psi_dot", gt=0),
-        field("accel_sigma", 0.3, "m/s^2, sigma of x_ddot/y_ddot/z_ddot", gt=0),
+        field("retries", 2, "immediate retries of a failed I2C transaction", ge=0, le=100),
+        field("reinit_after_errors", 10, "failed samples in a row before the chip is reopened and set up again", ge=1, le=10000),
+        field("rate_sigma", 0.005, "rad/s, sigma of phi_dot/theta_dot/psi_dot", gt=0, le=10.0),
+        field("accel_sigma", 0.3, "m/s^2, sigma of x_ddot/y_ddot/z_ddot", gt=0, le=100.0),
         field("record_raw", False, "publish every I2C transaction on RAW.<device>"),
     )
 

@@ -49,9 +49,9 @@ import time
 from typing import Any, ClassVar
 
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config import ConfigError, field
+from u2sa_hw.config import MAX_TIMEOUT_S, ConfigError, field
 from u2sa_hw.ports.errors import PortIOError, PortUnavailable
-from u2sa_hw.calibration.correction import IDENTITY9, ZERO3, Correction, tilt_compensated_heading
+from u2sa_hw.calibration.correction import IDENTITY9, MAX_MAG_OFFSET, MAX_MATRIX_ENTRY, ZERO3, Correction, tilt_compensated_heading
 from u2sa_hw.geo import wrap_angle
 from u2sa_hw.protocols import mpu9250 as mpu
 
@@ -96,24 +96,24 @@ class Mpu9250ImuDriver(I2cImuDriver):
         field("accel_range_g", 4, "accelerometer full scale: 2, 4, 8 or 16 g", choices=(2, 4, 8, 16)),
         field("dlpf_cfg", 3, "CONFIG.DLPF_CFG 0..6 (3: about 42 Hz bandwidth, 1 kHz gyro rate)", ge=0, le=6),
         field("mounting", "x,-y,-z", "body forward,right,down as signed chip axes (chip flat, x fwd, y left, z up)"),
-        field("calibrate_samples", 200, "gyro bias window at rest after start (0: no calibration)", ge=0),
-        field("rest_max_std_dps", 0.5, "a window whose gyro std exceeds this is not at rest", gt=0),
-        field("rest_max_rate_dps", 10.0, "a window whose mean rate exceeds this is turning, not bias", gt=0),
+        field("calibrate_samples", 200, "gyro bias window at rest after start (0: no calibration)", ge=0, le=100000),
+        field("rest_max_std_dps", 0.5, "a window whose gyro std exceeds this is not at rest", gt=0, le=2000),
+        field("rest_max_rate_dps", 10.0, "a window whose mean rate exceeds this is turning, not bias", gt=0, le=2000),
         field("rest_timeout_s", 30.0, "seconds of samples without a window at rest before health says the "
-              "vehicle will not keep still (the search goes on; moving data never calibrates)", gt=0),
-        field("uncalibrated_rate_sigma", 0.1, "rad/s, rate sigma until the bias is calibrated", gt=0),
+              "vehicle will not keep still (the search goes on; moving data never calibrates)", gt=0, le=MAX_TIMEOUT_S),
+        field("uncalibrated_rate_sigma", 0.1, "rad/s, rate sigma until the bias is calibrated", gt=0, le=10.0),
         field("gravity", "rest", "what x_ddot..z_ddot lose: rest, level or none (no accelerations)", choices=GRAVITY_MODES),
         field("mag_offset", list(ZERO3), "magnetometer hard iron (µT, body FRD); set by u2sa calibrate compass",
-              item_type=float),
+              item_type=float, ge=-MAX_MAG_OFFSET, le=MAX_MAG_OFFSET),
         field("mag_matrix", list(IDENTITY9), "magnetometer soft iron/scale, 9 numbers row-major; corrected = "
-              "matrix @ (raw - offset); identity with a zero offset = uncalibrated (no heading)", item_type=float),
+              "matrix @ (raw - offset); identity with a zero offset = uncalibrated (no heading)", item_type=float, ge=-MAX_MATRIX_ENTRY, le=MAX_MATRIX_ENTRY),
         field("accel_offset", list(ZERO3), "accelerometer offset (m/s^2, body FRD); set by u2sa calibrate imu",
-              item_type=float),
+              item_type=float, ge=-1000.0, le=1000.0),
         field("accel_matrix", list(IDENTITY9), "accelerometer scale/misalignment, 9 numbers row-major",
-              item_type=float),
+              item_type=float, ge=-MAX_MATRIX_ENTRY, le=MAX_MATRIX_ENTRY),
         field("declination_deg", 0.0, "magnetic declination, east positive: true = magnetic + declination",
               ge=-180, le=180),
-        field("heading_sigma_deg", 3.0, "sigma of psi from the magnetometer (deg)", gt=0),
+        field("heading_sigma_deg", 3.0, "sigma of psi from the magnetometer (deg)", gt=0, le=180),
         field("calibration_stream_s", 0.0, "seconds to publish raw vectors on CAL.<service> for u2sa calibrate "
               "(0: off; only a change over the bus starts it)", ge=0, le=3600),
     )

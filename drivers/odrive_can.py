@@ -45,7 +45,7 @@ from typing import TYPE_CHECKING, Any, Callable
 if TYPE_CHECKING:
     import can   # python-can loads when the port opens (u2sa_hw/ports/can_port.py)
 
-from u2sa_hw.config import field
+from u2sa_hw.config import MAX_RATE_HZ, MAX_TIMEOUT_S, field
 from u2sa_hw.protocols import odrive_cansimple as cs
 from u2sa_hw.protocols.odrive_cansimple import AxisState, Cmd, ControlMode, InputMode, ProcedureResult
 
@@ -74,13 +74,13 @@ class OdriveCanMotor(OdriveTripLatch, OdriveDeclarations, CanMotorService):
         field("node_ids", [0, 1], "CANSimple node id per actuator (0..62; 63 is 0.6's \"unaddressed\")", item_type=int,
               ge=0, le=cs.MAX_NODE_ID - 1),
         field("firmware", "0.6", "0.6 (ODrive Pro, S1, Micro) or 0.5 (ODrive v3.x)", choices=cs.FIRMWARES),
-        field("max_turns_per_s", 2.0, "motor speed at 100 % (rev/s); commands are limited to it", gt=0),
+        field("max_turns_per_s", 2.0, "motor speed at 100 % (rev/s); commands are limited to it", gt=0, le=1000.0),
         field("input_mode", "passthrough", "passthrough or vel_ramp (the ramp rate is the ODrive's vel_ramp_rate)", choices=INPUT_MODES),
         field("set_limits", False, "send Set_Limits(max_turns_per_s, current_limit_a) when arming"),
-        field("current_limit_a", 10.0, "current limit sent with set_limits (A)", gt=0),
-        field("encoder_poll_hz", 0.0, "0: use the node's cyclic encoder estimates; > 0: request them by RTR this often", ge=0),
-        field("status_poll_s", 1.0, "bus voltage/current, temperatures and error details requested this often (0: never)", ge=0),
-        field("arm_retry_s", 0.5, "first wait before an arming attempt is retried (doubles up to 5 s)", gt=0),
+        field("current_limit_a", 10.0, "current limit sent with set_limits (A)", gt=0, le=1000.0),
+        field("encoder_poll_hz", 0.0, "0: use the node's cyclic encoder estimates; > 0: request them by RTR this often", ge=0, le=MAX_RATE_HZ),
+        field("status_poll_s", 1.0, "bus voltage/current, temperatures and error details requested this often (0: never)", ge=0, le=MAX_TIMEOUT_S),
+        field("arm_retry_s", 0.5, "first wait before an arming attempt is retried (doubles up to 5 s)", gt=0, le=MAX_TIMEOUT_S),
         field("clear_errors_on_start", True, "send Clear_Errors before the first arming of each axis"),
         field("rearm_on_error", False, "clear an axis error by itself and re-arm (else wait for clear_errors)"),
         field("clear_errors", False, "set true to clear every axis's errors and re-arm (resets itself to false)"),
@@ -96,7 +96,7 @@ class OdriveCanMotor(OdriveTripLatch, OdriveDeclarations, CanMotorService):
               le=0xFFFF),
         field("endpoints_fw", "", "0.6: the firmware (Get_Version, e.g. 0.6.10) the endpoint ids are from"),
         field("max_motor_rpm", 6000.0, "the fastest a motor can turn (rpm): an encoder estimate beyond it is "
-                                       "impossible, dropped and counted (out_of_range in health)", gt=0),
+                                       "impossible, dropped and counted (out_of_range in health)", gt=0, le=100000.0),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:

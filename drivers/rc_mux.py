@@ -68,7 +68,7 @@ from drivers.rc_pulse import MODE_MANUAL, MODE_NAMES, MODE_NO_SIGNAL, DueGrid, P
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Sensor
-from u2sa_hw.config import ConfigError, field
+from u2sa_hw.config import MAX_RATE_HZ, ConfigError, field
 from u2sa_hw.failsafe import FailsafeSources
 from u2sa_hw.ports.device_link import device_setting
 from u2sa_hw.ports.gpio_port import GpioPort
@@ -77,6 +77,8 @@ from u2sa_hw.safety.prearm import CheckFailure, PrearmChecks
 from u2sa_hw.safety.wiring import check_wiring
 
 
+MAX_PULSE_US = 5000.0   # an RC pulse is 1-2 ms in a 20 ms frame: anything longer is not one
+MAX_GPIO_LINE = 1023    # a line offset of a gpiochip (a Pi's has 54-58)
 RECORDED_BUS = (ch.HEALTH, ch.FAILSAFE)   # what a replay chip hands over (and STATE_ESTIMATE when checked)
 
 
@@ -101,13 +103,13 @@ class RcMuxDriver(RcMuxDeclarations, RcMuxEnable, RcMuxClock, Sensor):
         field("channels", "throttle=5,steering=6,mode=13",
               "name=line,... the receiver channels (RcMode.pulse_us order)"),
         field("mode_channel", "mode", "the channel of the pilot's manual/autonomous switch"),
-        field("enable_line", 21, "output line: autonomy enable into the mux (high = autonomy allowed)", ge=0),
-        field("select_line", -1, "input line: the mux's select read-back, 1 = autonomous (-1: none)", ge=-1),
-        field("min_pulse_us", 800.0, "shorter pulses are rejected", gt=0),
-        field("max_pulse_us", 2200.0, "longer pulses are rejected", gt=0),
-        field("autonomous_above_us", 1700.0, "mode pulse above this asks for autonomous", gt=0),
-        field("manual_below_us", 1300.0, "mode pulse below this asks for manual", gt=0),
-        field("debounce_frames", 3, "consecutive frames needed to change the mode", ge=1),
+        field("enable_line", 21, "output line: autonomy enable into the mux (high = autonomy allowed)", ge=0, le=MAX_GPIO_LINE),
+        field("select_line", -1, "input line: the mux's select read-back, 1 = autonomous (-1: none)", ge=-1, le=MAX_GPIO_LINE),
+        field("min_pulse_us", 800.0, "shorter pulses are rejected", gt=0, le=MAX_PULSE_US),
+        field("max_pulse_us", 2200.0, "longer pulses are rejected", gt=0, le=MAX_PULSE_US),
+        field("autonomous_above_us", 1700.0, "mode pulse above this asks for autonomous", gt=0, le=MAX_PULSE_US),
+        field("manual_below_us", 1300.0, "mode pulse below this asks for manual", gt=0, le=MAX_PULSE_US),
+        field("debounce_frames", 3, "consecutive frames needed to change the mode", ge=1, le=100),
         field("signal_timeout_ms", 100.0, "no valid mode pulse for this long -> no signal (5 frames at 50 Hz)", gt=0,
               le=1000),
         field("select_mismatch_ms", 500.0, "read-back disagreeing this long is a mismatch (> signal timeout)", gt=0,
@@ -115,8 +117,8 @@ class RcMuxDriver(RcMuxDeclarations, RcMuxEnable, RcMuxClock, Sensor):
         field("require_rearm", True, "after failsafe, signal loss, mismatch or start: switch to manual to re-arm",
               remote=False),
         field("publish_hz", 20.0, "RcMode messages per second (plus one on every change); actuators go neutral "
-                                  "when the newest is older than [safety] rc_mode_timeout_ms", gt=0),
-        field("manual_hz", 25.0, "MANUAL_CMD commands per second in manual (with a [safety.manual_mixer])", gt=0),
+                                  "when the newest is older than [safety] rc_mode_timeout_ms", gt=0, le=MAX_RATE_HZ),
+        field("manual_hz", 25.0, "MANUAL_CMD commands per second in manual (with a [safety.manual_mixer])", gt=0, le=MAX_RATE_HZ),
         field("device_name", "", "old name of the device setting"),
         field("record_raw", False, "publish every edge and write as RawGpioEdge/RawGpioWrite on RAW.<device>"),
     )

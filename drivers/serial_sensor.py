@@ -57,7 +57,7 @@ class SerialLineSensor(ProprioceptiveSensor):
         field("device_name", "", "old name of the device setting"),
         field("record_raw", False, "publish every chunk read as RawSerial on RAW.<device>"),
         field("stale_after_s", 2.0, "no valid sentence for this long -> degraded, data stale", gt=0, le=30.0),
-        field("epoch_gap_s", 0.05, "this much silence on the line ends a burst of sentences (and is the read timeout)", gt=0),
+        field("epoch_gap_s", 0.05, "this much silence on the line ends a burst of sentences (and is the read timeout)", gt=0, le=30.0),
     )
     EXAMPLE_PORT: ClassVar[str] = "/dev/u2sa/gps"
     MOCK_KINDS: ClassVar[tuple[str, ...]] = ()   # u2sa_hw/ports/declared.py: the mocks that stand in

@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING, Any, Callable
 if TYPE_CHECKING:
     import can   # python-can loads when the port opens (u2sa_hw/ports/can_port.py)
 
-from u2sa_hw.config import field
+from u2sa_hw.config import MAX_TIMEOUT_S, field
 from u2sa_hw.protocols import vesc_can as vc
 from u2sa_hw.protocols.vesc_can import PacketId
 
@@ -88,20 +88,20 @@ class VescCanMotor(VescDeclarations, CanMotorService):
               le=vc.BROADCAST_ID - 1),
         field("mode", "duty", "duty: SET_DUTY; rpm: SET_RPM (speed control in the VESC)", choices=MODES),
         field("max_duty", 0.95, "duty cycle at 100 % in duty mode (0..1)", gt=0, le=1),
-        field("max_erpm", 7000.0, "electrical RPM at 100 % in rpm mode", gt=0),
+        field("max_erpm", 7000.0, "electrical RPM at 100 % in rpm mode", gt=0, le=1000000.0),
         field("neutral", "release", "release: SET_CURRENT 0 (coast); zero: 0 in the command mode (brake)", choices=NEUTRALS),
-        field("pole_pairs", 7, "motor pole pairs (ERPM / pole pairs = motor RPM), for the odometry", ge=1),
-        field("gear_ratio", 1.0, "motor turns per wheel turn, for the odometry", gt=0),
-        field("stall_after_s", 1.0, "commanded but not turning for this long -> reported (0: never)", ge=0),
+        field("pole_pairs", 7, "motor pole pairs (ERPM / pole pairs = motor RPM), for the odometry", ge=1, le=100),
+        field("gear_ratio", 1.0, "motor turns per wheel turn, for the odometry", gt=0, le=1000.0),
+        field("stall_after_s", 1.0, "commanded but not turning for this long -> reported (0: never)", ge=0, le=MAX_TIMEOUT_S),
         field("stall_percent", 10.0, "commands below this |%| are never a stall", ge=0, le=100),
-        field("stall_erpm", 50.0, "slower than this |ERPM| counts as not turning", ge=0),
+        field("stall_erpm", 50.0, "slower than this |ERPM| counts as not turning", ge=0, le=1000000.0),
         field("hw_watchdog", True, "set and check each VESC's timeout_msec (it releases the motor when this "
                                    "driver dies or hangs)", remote=False),
         field("hw_watchdog_timeout_s", 0.3, "VESC command timeout (s); more than twice command_period_s", gt=0,
               le=1.0),
         field("host_id", 254, "this driver's CAN id: the VESCs answer configuration reads to it (not a VESC's id)", ge=0, le=254),
         field("max_motor_erpm", 100000.0, "the fastest a motor can turn (ERPM; the firmware's default l_max_erpm): "
-                                          "a STATUS beyond it is impossible, dropped and counted", gt=0),
+                                          "a STATUS beyond it is impossible, dropped and counted", gt=0, le=1000000.0),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:

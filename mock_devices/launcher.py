@@ -84,6 +84,11 @@ class SimulationSettings:
                 raise DeviceError(f"{where} [simulation]: {name} must be > 0")
         if not 1024 <= settings.can_udp_port <= 65000:
             raise DeviceError(f"{where} [simulation]: can_udp_port must be in 1024..65000")
+        from u2sa_hw.profile_numbers import checked
+
+        for name, value in values.items():   # every number's range (u2sa_hw/profile_numbers.py)
+            if isinstance(value, (int, float)):
+                checked(f"simulation.{name.replace('start_', 'start.')}", value, f"{where} [simulation]", DeviceError)
         return settings
 
     def make_vehicle(self, profile: VehicleProfile) -> SimVehicle:

@@ -123,7 +123,7 @@ def test_check_config_refuses_a_change_before_it_is_written(tmp_path: Path, lcm_
     from u2sa_hw.service import U2SAService
 
     class RateService(U2SAService):
-        CONFIG = (field("rate_hz", 10.0), field("burst", 2))
+        CONFIG = (field("rate_hz", 10.0, le=1000), field("burst", 2, le=100))
 
         def check_config(self) -> None:
             if self.config["rate_hz"] * self.config["burst"] > 100:

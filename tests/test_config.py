@@ -16,7 +16,7 @@ from conftest import unprivileged
 
 from u2sa_hw.config import ConfigError, Configurator, field
 
-FIELDS = (field("rate_hz", 50.0), field("retries", 3), field("enabled", True), field("port", "/dev/ttyUSB0"))
+FIELDS = (field("rate_hz", 50.0, le=1000), field("retries", 3, le=100), field("enabled", True), field("port", "/dev/ttyUSB0"))
 
 
 def test_missing_file_means_defaults_and_is_created_on_first_change(tmp_path: Path) -> None:
@@ -108,7 +108,7 @@ def _try_set_unprivileged(path: Path, name: str, value: object) -> str:
         import logging, sys
         from u2sa_hw.config import Configurator, field
         logging.basicConfig(level=logging.WARNING, stream=sys.stdout, format="%(message)s")
-        cfg = Configurator({str(path)!r}, (field("retries", 3),))
+        cfg = Configurator({str(path)!r}, (field("retries", 3, le=100),))
         ok, reason = cfg.try_set({name!r}, {value!r})
         print("RESULT", ok, cfg.get("retries"))
         print("REASON", reason)
@@ -183,7 +183,7 @@ def test_string_field_takes_a_toml_string_literal_or_a_bare_word(tmp_path: Path)
 
 
 def test_a_value_outside_the_choices_is_refused_naming_the_field_and_the_allowed_values(tmp_path: Path) -> None:
-    fields = (field("level", "info", choices=("debug", "info")), field("retries", 3))
+    fields = (field("level", "info", choices=("debug", "info")), field("retries", 3, le=100))
     path = tmp_path / "c.toml"
     cfg = Configurator(path, fields)
     assert cfg.set("level", '"debug"') and cfg.get("level") == "debug"
@@ -212,17 +212,19 @@ def test_a_case_insensitive_choice_is_taken_in_any_case_and_kept_in_its_declared
 
 
 # ---------------------------------------------------------------- ranges and non-finite numbers -----
-RANGED = (field("timeout_s", 2.0, gt=0), field("fraction", 0.5, ge=0, le=1), field("count", 3, ge=1, lt=10),
-          field("offset", 0.0), field("limit", 1.0, allow_nonfinite=True),
+RANGED = (field("timeout_s", 2.0, gt=0, le=3600), field("fraction", 0.5, ge=0, le=1), field("count", 3, ge=1, lt=10),
+          field("offset", 0.0, unbounded="a test of the opt-out"),
+          field("limit", 1.0, allow_nonfinite=True, unbounded="inf is its off value"),
           field("ids", [1, 2], item_type=int, ge=0, le=62), field("names", ["a"], item_type=str))
 
 
 @pytest.mark.parametrize("name, text, message", [
-    ("timeout_s", "-5", "field 'timeout_s' must be > 0; got -5.0"),
-    ("timeout_s", "0", "field 'timeout_s' must be > 0; got 0.0"),
-    ("timeout_s", "inf", "field 'timeout_s' must be a finite number > 0; got inf"),
-    ("timeout_s", "-inf", "field 'timeout_s' must be a finite number > 0; got -inf"),
-    ("timeout_s", "nan", "field 'timeout_s' must be a finite number > 0; got nan"),
+    ("timeout_s", "-5", "field 'timeout_s' must be > 0 and <= 3600; got -5.0"),
+    ("timeout_s", "0", "field 'timeout_s' must be > 0 and <= 3600; got 0.0"),
+    ("timeout_s", "1e308", "field 'timeout_s' must be > 0 and <= 3600; got 1e+308"),
+    ("timeout_s", "inf", "field 'timeout_s' must be a finite number > 0 and <= 3600; got inf"),
+    ("timeout_s", "-inf", "field 'timeout_s' must be a finite number > 0 and <= 3600; got -inf"),
+    ("timeout_s", "nan", "field 'timeout_s' must be a finite number > 0 and <= 3600; got nan"),
     ("offset", "inf", "field 'offset' must be a finite number; got inf"),
     ("fraction", "1.5", "field 'fraction' must be >= 0 and <= 1; got 1.5"),
     ("count", "10", "field 'count' must be >= 1 and < 10; got 10"),
@@ -257,10 +259,10 @@ def test_values_inside_the_range_and_allowed_non_finite_ones_are_taken(tmp_path:
 def test_an_out_of_range_value_in_the_file_or_the_profile_names_its_source(tmp_path: Path) -> None:
     path = tmp_path / "est.toml"
     path.write_text("timeout_s = inf\n")
-    with pytest.raises(ConfigError, match=r"est\.toml: field 'timeout_s' must be a finite number > 0; got inf"):
+    with pytest.raises(ConfigError, match=r"est\.toml: field 'timeout_s' must be a finite number > 0 and <= 3600; got inf"):
         Configurator(path, RANGED)
     path.write_text("timeout_s = -5\n")
-    with pytest.raises(ConfigError, match=r"est\.toml: field 'timeout_s' must be > 0; got -5\.0"):
+    with pytest.raises(ConfigError, match=r"est\.toml: field 'timeout_s' must be > 0 and <= 3600; got -5\.0"):
         Configurator(path, RANGED)
     with pytest.raises(ConfigError, match=r"^v\.toml \[services\.est\] settings: field 'ids' item 0 must be >= 0"):
         Configurator(None, RANGED, initial={"ids": [-1]}, initial_source="v.toml [services.est] settings")
@@ -282,6 +284,19 @@ def test_a_declaration_that_breaks_its_own_bounds_fails_at_import() -> None:
         field("x", "text", ge=0)
     with pytest.raises(TypeError, match="bounds must be finite"):
         field("x", 1.0, le=float("inf"))
+
+
+def test_a_number_without_an_upper_bound_fails_at_import_unless_it_says_why() -> None:
+    for declaration in (lambda: field("rate_hz", 50.0, gt=0), lambda: field("count", 3, ge=1),
+                        lambda: field("ids", [1], item_type=int, ge=0)):
+        with pytest.raises(TypeError, match="a number needs a finite upper bound"):
+            declaration()
+    assert field("rate_hz", 50.0, gt=0, le=1000).upper_bound == 1000
+    assert field("count", 3, ge=1, lt=10).upper_bound == 10
+    assert field("baud", 9600, choices=(4800, 9600)).upper_bound == 9600   # choices bound it too
+    assert field("offset", 0.0, unbounded="a sum of anything").upper_bound is None
+    with pytest.raises(TypeError, match="unbounded is for a number"):
+        field("name", "x", unbounded="why")
 
 
 def test_a_binary_config_file_is_an_error_naming_the_file(tmp_path: Path) -> None:

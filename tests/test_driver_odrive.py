@@ -95,7 +95,7 @@ def test_error_names_decode_both_firmware_lines() -> None:
     ({"node_ids": [1, 63]}, "field 'node_ids' item 1 must be >= 0 and <= 62; got 63"),
     ({"watchdog_timeout_endpoint": 70000}, "field 'watchdog_timeout_endpoint' must be >= 0 and <= 65535"),
     ({"directions": [1, 2]}, "1 or -1"),
-    ({"max_turns_per_s": 0.0}, "field 'max_turns_per_s' must be > 0; got 0.0"),
+    ({"max_turns_per_s": 0.0}, "field 'max_turns_per_s' must be > 0 and <= 1000; got 0.0"),
     ({"firmware": "0.4"}, "field 'firmware' must be one of"),
     ({"odometry_left": "port"}, "is not one of the actuators"),
 ])

@@ -43,7 +43,7 @@ def wheel_mps(erpm: float) -> float:
     ({"mode": "current"}, "field 'mode' must be one of"),
     ({"max_duty": 1.5}, "field 'max_duty' must be > 0 and <= 1; got 1.5"),
     ({"neutral": "coast"}, "field 'neutral' must be one of"),
-    ({"wheel_radius_m": [0.1, -0.1]}, "field 'wheel_radius_m' item 1 must be > 0; got -0.1"),
+    ({"wheel_radius_m": [0.1, -0.1]}, "field 'wheel_radius_m' item 1 must be > 0 and <= 10; got -0.1"),
     ({"hw_watchdog_timeout_s": 0.1}, "hw_watchdog_timeout_s = 0.1 s must be more than twice command_period_s"),
     ({"hw_watchdog_timeout_s": 0.3, "command_period_s": 0.15}, "more than twice command_period_s"),
     ({"host_id": 1}, "host_id must be a CAN id 0..254 that no VESC uses"),

@@ -22,9 +22,12 @@ def test_out_of_range_values_over_the_bus_are_refused_and_the_file_is_untouched(
     for field_name, value, reason in (
             ("health_interval_s", "inf", "field 'health_interval_s' must be a finite number > 0 and <= 60; got inf"),
             ("health_interval_s", "nan", "field 'health_interval_s' must be a finite number > 0 and <= 60; got nan"),
-            ("sensor_timeout_s", "-5", "field 'sensor_timeout_s' must be > 0; got -5.0"),
-            ("sensor_timeout_s", "-inf", "field 'sensor_timeout_s' must be a finite number > 0; got -inf"),
-            ("sensor_timeout_s", "-1e3", "field 'sensor_timeout_s' must be > 0; got -1000.0")):
+            ("sensor_timeout_s", "-5", "field 'sensor_timeout_s' must be > 0 and <= 3600; got -5.0"),
+            ("sensor_timeout_s", "-inf", "field 'sensor_timeout_s' must be a finite number > 0 and <= 3600; got -inf"),
+            ("sensor_timeout_s", "-1e3", "field 'sensor_timeout_s' must be > 0 and <= 3600; got -1000.0"),
+            # above the bound (issue 23): a rate that spun a core, a timeout that meant never
+            ("publish_rate_hz", "1e9", "field 'publish_rate_hz' must be > 0 and <= 1000; got 1000000000.0"),
+            ("sensor_timeout_s", "1e308", "field 'sensor_timeout_s' must be > 0 and <= 3600; got 1e+308")):
         r = services.cli("param", "set", "state_estimator", field_name, value)
         # the value reached the service (a leading '-' is not taken for an option) and was refused there;
         # stderr may carry other lines too (a bus warning where lo has no MULTICAST flag), so the refusal

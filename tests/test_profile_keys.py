@@ -120,7 +120,7 @@ def test_validate_config_file_names_a_binary_or_out_of_range_file(tmp_path: Path
     assert validate_config_file("state_estimator", path) == []   # no file: defaults
     path.write_text("sensor_timeout_s = -5\n")
     assert validate_config_file("state_estimator", path) == [
-        f"{path}: field 'sensor_timeout_s' must be > 0; got -5.0; fix 'sensor_timeout_s' (default 2.0)"]
+        f"{path}: field 'sensor_timeout_s' must be > 0 and <= 3600; got -5.0; fix 'sensor_timeout_s' (default 2.0)"]
     path.write_bytes(b"\x89PNG\r\n")
     assert validate_config_file("state_estimator", path) == [
         f"{path}: not a text file (byte 0 is 0x89, not UTF-8); fix the file or delete it to use defaults"]

@@ -23,6 +23,8 @@ from u2sa_hw.safety.config import load_safety
 from u2sa_hw.safety.gate import AUTONOMOUS, MANUAL, CommandGate
 from u2sa_hw.service import U2SAService
 
+MAX_COMMAND_TIMEOUT_S = 0.5   # the dead-man's longest: the field's bound and check_config's
+
 
 class Sensor(U2SAService):
     """A service that measures; its unique name is its sensor name."""
@@ -82,11 +84,11 @@ class Actuator(U2SAService):
     SERVICE_TYPE: ClassVar[str] = "actuator"
     CONFIG = (
         field("command_timeout_s", 0.25, "dead-man: no obeyed command for this long -> neutral (0 < s <= 0.5; "
-                                         "0 = off, allowed only with rc_gating = false)", ge=0),
+                                         "0 = off, allowed only with rc_gating = false)", ge=0, le=MAX_COMMAND_TIMEOUT_S),
         field("rc_gating", True, "obey commands only as the pilot's RC switch allows; false only on a bench "
                                  "without an RC receiver, never on a vehicle", remote=False),
     )
-    MAX_COMMAND_TIMEOUT_S: ClassVar[float] = 0.5
+    MAX_COMMAND_TIMEOUT_S: ClassVar[float] = MAX_COMMAND_TIMEOUT_S
 
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)

@@ -4,6 +4,11 @@ A service declares its fields with defaults (the default's type is the field's t
 int, float, bool, str or list) and what values make sense: ``choices``, bounds
 (``ge``/``gt``/``le``/``lt``, for a list field each number in it), ``item_type`` for a list.
 Non-finite numbers (inf, -inf, nan) are refused unless a field says ``allow_nonfinite``.
+Every number has a finite upper bound (``le``/``lt``, or ``choices``): :func:`field` refuses a
+numeric field without one at import, unless it says why with ``unbounded="..."``. A rate is at
+most :data:`MAX_RATE_HZ` (or the device's own limit), a period or timeout at most
+:data:`MAX_TIMEOUT_S`: ``publish_rate_hz = 1e9`` would spin a core, ``sensor_timeout_s = 1e308``
+would never time out.
 A missing file means defaults; the file is created on the first change over the bus. The
 file holds only what was read from it or changed over the bus, never a value that came from
 the profile's settings or a default: otherwise one unrelated change would freeze the profile's
@@ -40,6 +45,11 @@ from u2sa_hw.config_keys import did_you_mean, known_text, unknown_key_problem
 TYPE_NAMES = {int: "int", float: "float", bool: "bool", str: "str"}
 SECRET_FILE = "secret"   # field(file=SECRET_FILE): the field names a file holding a secret
 Bound = int | float
+# The ceilings every rate, period and timeout field uses (or a lower one of its own): the loops
+# run at most at 1 kHz, and nothing a service waits for is worth waiting more than an hour for.
+MAX_RATE_HZ = 1000.0
+MAX_TIMEOUT_S = 3600.0
+MAX_TIMEOUT_MS = MAX_TIMEOUT_S * 1000.0
 
 
 class ConfigError(ValueError):
@@ -76,6 +86,21 @@ class ConfigField:
     remote: bool = True
     file: bool | str = False
     case_insensitive: bool = False
+    unbounded: str = ""
+
+    @property
+    def numeric(self) -> bool:
+        """True for an int or float field, or a list of them."""
+        return self.type in (int, float) or (self.type is list and self.item_type in (int, float))
+
+    @property
+    def upper_bound(self) -> Bound | None:
+        """The finite largest value allowed (``le``, ``lt`` or the largest choice), None when there is none."""
+        limits = [b for b in (self.le, self.lt) if b is not None]
+        if self.choices and all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in self.choices):
+            limits.append(max(self.choices))
+        limits = [b for b in limits if math.isfinite(b)]
+        return min(limits) if limits else None
 
     @property
     def names_file(self) -> bool:
@@ -116,13 +141,19 @@ def field(name: str, default: Any, help: str = "", *,  # noqa: A002 - reads well
           choices: Iterable[Any] = (), ge: Bound | None = None, gt: Bound | None = None,
           le: Bound | None = None, lt: Bound | None = None, allow_nonfinite: bool = False,
           item_type: type | None = None, remote: bool = True, file: bool | str = False,
-          case_insensitive: bool = False) -> ConfigField:
+          case_insensitive: bool = False, unbounded: str = "") -> ConfigField:
     """Declare a config variable (shorthand for :class:`ConfigField`).
 
     *choices*: the only values allowed; *ge*, *gt*, *le*, *lt*: bounds of a number (or of each
     number of a list); *allow_nonfinite*: accept inf and nan (refused otherwise); *item_type*:
     the type of a list's items; *remote*: False when a change over the bus is refused;
     *case_insensitive*: str choices match in any case and the value becomes the declared spelling.
+
+    A number (or a list of numbers) must have a finite upper bound: *le* or *lt*, or numeric
+    *choices*. Rates at most :data:`MAX_RATE_HZ` (or the device's own limit), periods and
+    timeouts at most :data:`MAX_TIMEOUT_S`, counts and sizes a sane maximum. A field that truly
+    has none says why in *unbounded* (the text is the reason); otherwise it is a TypeError at
+    import, so the next field cannot forget it.
 
     *file*: declare it on every str setting that names a file the service reads (a mission, an
     object list, a token, a certificate): ``file=True``, or ``file="secret"`` when the file holds
@@ -154,13 +185,18 @@ def field(name: str, default: Any, help: str = "", *,  # noqa: A002 - reads well
     if case_insensitive and not (choices and all(isinstance(c, str) for c in choices)):
         raise TypeError(f"config field {name}: case_insensitive needs str choices")
     f = ConfigField(name, default, help, tuple(choices), ge, gt, le, lt, allow_nonfinite, item_type, remote, file,
-                    case_insensitive)
+                    case_insensitive, unbounded.strip())
     if f.choices and default not in f.choices:
         raise ValueError(f"config field {name}: default {default!r} is not one of its choices {f.choices!r}")
     try:
         coerce(f, default)
     except ConfigError as exc:
         raise ValueError(f"config field {name}: its default breaks its own declaration: {exc}") from None
+    if f.numeric and f.upper_bound is None and not f.unbounded:
+        raise TypeError(f"config field {name}: a number needs a finite upper bound (le= or lt=; a rate at most "
+                        f"{MAX_RATE_HZ:g} Hz, a timeout at most {MAX_TIMEOUT_S:g} s), or unbounded=\"why it has none\"")
+    if f.unbounded and not f.numeric:
+        raise TypeError(f"config field {name}: unbounded is for a number without an upper bound")
     return f
 
 

@@ -222,6 +222,11 @@ def load_profile(path: Path | str | None) -> VehicleProfile:
     if not isinstance(o, dict):
         raise ProfileError(f"{where}: 'origin' must be a table like {{ lat = 29.19, lon = -81.05, alt = 10.0 }}")
     origin = Origin(*(_typed(o, k, float, 0.0, f"{where} origin") for k in ("lat", "lon", "alt")))
+    from u2sa_hw.profile_numbers import checked
+
+    for k in ORIGIN_KEYS:
+        checked(f"vehicle.origin.{k}", getattr(origin, k), f"{where} origin", ProfileError)
+    checked("vehicle.system_id", v.get("system_id", 1), where, ProfileError)
     config_dir = rel("config_dir", "config")
     services: dict[str, ServiceSpec] = {}
     for name, s in data.get("services", {}).items():

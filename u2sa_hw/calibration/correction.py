@@ -14,6 +14,10 @@ from typing import Sequence
 
 ZERO3 = [0.0, 0.0, 0.0]
 IDENTITY9 = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+# The ranges of the config fields that hold a correction: far past any real sensor's (a magnetometer
+# reads a few thousand µT or mG at most; a fitted matrix stays near the identity), yet finite.
+MAX_MAG_OFFSET = 100000.0
+MAX_MATRIX_ENTRY = 1000.0
 MIN_DETERMINANT = 1e-6   # a matrix this close to singular would blow noise up (or flip an axis to zero)
 
 

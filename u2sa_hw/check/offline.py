@@ -20,12 +20,14 @@ from typing import Any
 
 from u2sa_hw.check.bus_checks import check_bus
 from u2sa_hw.check.problem import Collector, Problem, did_you_mean, type_name
+from u2sa_hw.profile_numbers import PROFILE_NUMBERS
 from u2sa_hw.vehicle import TOP_TABLES
 from u2sa_hw.vehicle import VEHICLE_KEYS as VEHICLE_KEY_NAMES
 
 VEHICLE_KEYS: dict[str, type] = {   # the loader's keys (u2sa_hw.vehicle), with the type each takes
     name: {"system_id": int, "origin": dict}.get(name, str) for name in VEHICLE_KEY_NAMES}
-ORIGIN_RANGES = {"lat": (-90.0, 90.0), "lon": (-180.0, 180.0), "alt": (-1000.0, 10000.0)}
+ORIGIN_RANGES = {key: (f.ge, f.le) for key in ("lat", "lon", "alt")   # u2sa_hw/profile_numbers.py, as the loader
+                 for f in (PROFILE_NUMBERS[f"vehicle.origin.{key}"],)}
 
 
 def read_profile_table(path: Path, out: Collector) -> dict[str, Any] | None:

@@ -53,7 +53,7 @@ class FoxgloveBridgeService(U2SAService):
               file="secret"),
         field("tls_key", "", "PEM private key of tls_cert", remote=False, file="secret"),
         field("queue_size", 5000, "messages buffered between the bus and the server; beyond, drops are counted",
-              ge=1),
+              ge=1, le=1000000),
         field("allow_parameter_writes", False, "let Foxglove clients change service configs (signed ConfigChange)",
               remote=False),
         field("tail_logs", True, "send the service log lines of the profile's log_dir on /log"),

@@ -119,6 +119,15 @@ def _number(table: Mapping[str, Any], key: str, default: float, where: str, *, l
     return float(value)
 
 
+def _limit(key: str) -> float:
+    """The upper bound of profile number *key* (u2sa_hw/profile_numbers.py, the one table of them)."""
+    from u2sa_hw.profile_numbers import PROFILE_NUMBERS
+
+    bound = PROFILE_NUMBERS[key].upper_bound
+    assert bound is not None
+    return float(bound)
+
+
 def _name(table: Mapping[str, Any], key: str, where: str) -> str:
     value = table.get(key)
     if not isinstance(value, str) or not value.strip():
@@ -146,9 +155,10 @@ def _parse_mixer(table: Any, where: str) -> ManualMixerSpec:
     sticks = (_name(table, "throttle_channel", where), _name(table, "steering_channel", where))
     if sticks[0] == sticks[1]:
         raise _error(where, "throttle_channel and steering_channel must be different RC channels")
-    center = _number(table, "center_us", 1500.0, where, low=800.0, high=2200.0)
-    span = _number(table, "span_us", 500.0, where, low=50.0, high=1000.0)
-    deadband = _number(table, "deadband_us", 25.0, where, low=-1e-9, high=span / 2)
+    center = _number(table, "center_us", 1500.0, where, low=800.0, high=_limit("safety.manual_mixer.center_us"))
+    span = _number(table, "span_us", 500.0, where, low=50.0, high=_limit("safety.manual_mixer.span_us"))
+    deadband = _number(table, "deadband_us", 25.0, where, low=-1e-9,
+                       high=min(span / 2, _limit("safety.manual_mixer.deadband_us")))
     return ManualMixerSpec(kind, MappingProxyType(outputs), *sticks, center_us=center, span_us=span,
                            deadband_us=deadband)
 

@@ -110,6 +110,12 @@ class _Reader:
             example = f"{check} = {{ {key} = {default!r} }}" if check else f"{key} = {default!r}"
             raise self.error(f"{check}.{key}" if check else key,
                              f"must be a number {bound} ({unit}), got {value!r}; e.g. {example}")
+        from u2sa_hw.profile_numbers import range_problem
+
+        dotted = f"{check}.{key}" if check else key
+        problem = range_problem(f"safety.{TABLE}.{dotted}", value)
+        if problem:
+            raise ProfileError(f"{self.where}: {problem.replace(repr(key), repr(dotted), 1)} ({unit})")
         return float(value)
 
     def names(self, table: Mapping[str, Any], check: str, key: str) -> tuple[str, ...]:

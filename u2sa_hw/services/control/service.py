@@ -24,7 +24,7 @@ from typing import Any, ClassVar
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config import ConfigError, field
+from u2sa_hw.config import MAX_RATE_HZ, MAX_TIMEOUT_S, ConfigError, field
 from u2sa_hw.service import U2SAService
 from u2sa_hw.services.control.controller import RC_NAMES, ControlSettings, VehicleController
 from u2sa_hw.services.control.mixers import MIXERS, Mixer, build_mixer
@@ -38,30 +38,30 @@ class ControlSystem(U2SAService):
 
     SERVICE_TYPE: ClassVar[str] = "control"
     CONFIG = (
-        field("control_rate_hz", 20.0, "the least ACTUATOR_CMD cycles per second (each NAV_POINT makes one too)", gt=0),
+        field("control_rate_hz", 20.0, "the least ACTUATOR_CMD cycles per second (each NAV_POINT makes one too)", gt=0, le=MAX_RATE_HZ),
         field("mixer", "differential", "differential, ackermann or twin_thruster", choices=tuple(MIXERS)),
         field("left_actuator", "left_wheel", "differential/twin_thruster: the left wheel or thruster's actuator name"),
         field("right_actuator", "right_wheel", "differential/twin_thruster: the right one's actuator name"),
         field("steering_actuator", "steering", "ackermann: the steering servo's actuator name (+100 % = full right)"),
         field("throttle_actuator", "throttle", "ackermann: the throttle's actuator name"),
         field("subsystem", "vehicle", "follow the navigation points of this subsystem"),
-        field("heading_kp", 80.0, "turn % per rad of heading error", ge=0),
-        field("heading_ki", 5.0, "turn % per rad*s", ge=0),
-        field("heading_kd", 10.0, "turn % per rad/s (on the yaw rate when the estimate has it)", ge=0),
-        field("heading_integral_limit", 20.0, "largest turn % the heading integral may add", ge=0),
+        field("heading_kp", 80.0, "turn % per rad of heading error", ge=0, le=10000.0),
+        field("heading_ki", 5.0, "turn % per rad*s", ge=0, le=10000.0),
+        field("heading_kd", 10.0, "turn % per rad/s (on the yaw rate when the estimate has it)", ge=0, le=10000.0),
+        field("heading_integral_limit", 20.0, "largest turn % the heading integral may add", ge=0, le=100),
         field("turn_limit_pct", 100.0, "largest |turn| %", ge=0, le=100),
-        field("speed_kp", 40.0, "throttle % per m/s of speed error", ge=0),
-        field("speed_ki", 20.0, "throttle % per m", ge=0),
-        field("speed_kd", 0.0, "throttle % per m/s^2", ge=0),
-        field("speed_integral_limit", 40.0, "largest throttle % the speed integral may add", ge=0),
-        field("speed_feedforward", 50.0, "throttle % per m/s of desired speed (100 / top speed)", ge=0),
+        field("speed_kp", 40.0, "throttle % per m/s of speed error", ge=0, le=10000.0),
+        field("speed_ki", 20.0, "throttle % per m", ge=0, le=10000.0),
+        field("speed_kd", 0.0, "throttle % per m/s^2", ge=0, le=10000.0),
+        field("speed_integral_limit", 40.0, "largest throttle % the speed integral may add", ge=0, le=100),
+        field("speed_feedforward", 50.0, "throttle % per m/s of desired speed (100 / top speed)", ge=0, le=10000.0),
         field("throttle_limit_pct", 100.0, "largest |throttle correction| % from the speed PID", ge=0, le=100),
         field("turn_speed_fraction", 0.25, "desired speed kept while the point is abeam or behind (ackermann > 0)", ge=0, le=1),
-        field("rate_limit_pct_s", 200.0, "slew limit of every output, %/s (0: none); neutral is immediate", ge=0),
+        field("rate_limit_pct_s", 200.0, "slew limit of every output, %/s (0: none); neutral is immediate", ge=0, le=100000.0),
         field("require_autonomy_enabled", True, "also require RC_MODE's autonomy_enabled (the mux's enable line)"),
-        field("nav_timeout_s", 0.5, "no NAV_POINT for this long -> neutral", gt=0),
-        field("rc_timeout_s", 0.25, "no RC_MODE for this long -> neutral (as the actuators, [safety] rc_mode_timeout_ms)", gt=0),
-        field("estimate_timeout_s", 0.5, "an older STATE_ESTIMATE is not used (feedforward only)", gt=0),
+        field("nav_timeout_s", 0.5, "no NAV_POINT for this long -> neutral", gt=0, le=MAX_TIMEOUT_S),
+        field("rc_timeout_s", 0.25, "no RC_MODE for this long -> neutral (as the actuators, [safety] rc_mode_timeout_ms)", gt=0, le=MAX_TIMEOUT_S),
+        field("estimate_timeout_s", 0.5, "an older STATE_ESTIMATE is not used (feedforward only)", gt=0, le=MAX_TIMEOUT_S),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:

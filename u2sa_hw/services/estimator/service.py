@@ -30,7 +30,7 @@ from typing import Any, ClassVar
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config import ConfigError, field
+from u2sa_hw.config import MAX_RATE_HZ, MAX_TIMEOUT_S, ConfigError, field
 from u2sa_hw.messages import STATE_FIELDS
 from u2sa_hw.service import U2SAService
 from u2sa_hw.services.estimator.fusion import FusionSettings, StateFusion
@@ -51,21 +51,21 @@ class StateEstimator(U2SAService):
     _D = FusionSettings()
     CONFIG = (
         field("mode", "ekf", "ekf: extended Kalman filter; passthrough: copy present fields of each message", choices=MODES),
-        field("sensor_timeout_s", 2.0, "a sensor silent for this long is reported in health", gt=0),
+        field("sensor_timeout_s", 2.0, "a sensor silent for this long is reported in health", gt=0, le=MAX_TIMEOUT_S),
         field("publish_rate_hz", 50.0, "ekf: the least STATE_ESTIMATE publications per second (a prediction "
-                                        "goes out when nothing did for 1/rate)", gt=0),
+                                        "goes out when nothing did for 1/rate)", gt=0, le=MAX_RATE_HZ),
         field("publish_on", "position,heading", "ekf: measurement kinds whose update is published at once "
                                                  "(position, velocity, heading, yaw_rate; comma separated, may be empty)"),
-        field("default_position_sigma", _D.default_position_sigma, "m, for a position without x_sigma/y_sigma", gt=0),
-        field("default_altitude_sigma", _D.default_altitude_sigma, "m, for a z without z_sigma", gt=0),
-        field("default_velocity_sigma", _D.default_velocity_sigma, "m/s, for a velocity without its sigma", gt=0),
-        field("default_heading_sigma", _D.default_heading_sigma, "rad, for a psi without psi_sigma", gt=0),
-        field("default_yaw_rate_sigma", _D.default_yaw_rate_sigma, "rad/s, for a psi_dot without its sigma", gt=0),
-        field("accel_noise", _D.accel_noise, "process noise, horizontal acceleration m/s^2/sqrt(Hz)", gt=0),
-        field("vertical_accel_noise", _D.vertical_accel_noise, "process noise, vertical acceleration", gt=0),
-        field("yaw_accel_noise", _D.yaw_accel_noise, "process noise, yaw acceleration rad/s^2/sqrt(Hz)", gt=0),
+        field("default_position_sigma", _D.default_position_sigma, "m, for a position without x_sigma/y_sigma", gt=0, le=10000.0),
+        field("default_altitude_sigma", _D.default_altitude_sigma, "m, for a z without z_sigma", gt=0, le=10000.0),
+        field("default_velocity_sigma", _D.default_velocity_sigma, "m/s, for a velocity without its sigma", gt=0, le=100.0),
+        field("default_heading_sigma", _D.default_heading_sigma, "rad, for a psi without psi_sigma", gt=0, le=math.pi),
+        field("default_yaw_rate_sigma", _D.default_yaw_rate_sigma, "rad/s, for a psi_dot without its sigma", gt=0, le=10.0),
+        field("accel_noise", _D.accel_noise, "process noise, horizontal acceleration m/s^2/sqrt(Hz)", gt=0, le=100.0),
+        field("vertical_accel_noise", _D.vertical_accel_noise, "process noise, vertical acceleration", gt=0, le=100.0),
+        field("yaw_accel_noise", _D.yaw_accel_noise, "process noise, yaw acceleration rad/s^2/sqrt(Hz)", gt=0, le=100.0),
         field("gate_probability", _D.gate_probability, "chi-square probability of the outlier gate (1 disables)", gt=0, le=1),
-        field("reinit_after", _D.reinit_after, "consecutive rejections of one sensor before it is trusted again", ge=1),
+        field("reinit_after", _D.reinit_after, "consecutive rejections of one sensor before it is trusted again", ge=1, le=10000),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:

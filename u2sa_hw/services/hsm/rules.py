@@ -93,6 +93,10 @@ def _checked(where: str, key: str, value: Any, default: Any) -> Any:
         raise ProfileError(f"{where}: '{key}' must be {type(default).__name__}, got {type(value).__name__} {value!r}")
     if isinstance(value, float) and value < 0:
         raise ProfileError(f"{where}: '{key}' must be >= 0, got {value}")
+    if isinstance(value, float):
+        from u2sa_hw.profile_numbers import SUPERVISION, checked
+
+        checked(f"{SUPERVISION}.{key}", value, where, ProfileError)
     return value
 
 

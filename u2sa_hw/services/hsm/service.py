@@ -27,7 +27,7 @@ from typing import Any, ClassVar
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config import field
+from u2sa_hw.config import MAX_TIMEOUT_S, field
 from u2sa_hw.failsafe import ALL_SOURCES, OPERATOR_SOURCE, FailsafeSources
 from u2sa_hw.services.hsm.monitor import (Cancelled, Failed, FailsafeChange, HealthMonitor, Recovered, Restart,
                                           Stalled)
@@ -45,18 +45,18 @@ class HealthStatusMonitor(U2SAService):
 
     SERVICE_TYPE: ClassVar[str] = "hsm"
     CONFIG = (
-        field("missed_heartbeats", 3, "heartbeats a service may miss before it counts as missing", ge=1),
-        field("startup_grace_s", 10.0, "time to the first heartbeat after the HSM starts or a restart", ge=0),
-        field("max_restarts", 3, "restarts without recovery before a service is marked failed", ge=0),
-        field("restart_backoff_s", 2.0, "wait after the first restart before another; doubles each time", ge=0),
-        field("max_backoff_s", 30.0, "cap of the wait between restarts", ge=0),
-        field("recovery_s", 30.0, "healthy this long -> the restart count starts over", ge=0),
+        field("missed_heartbeats", 3, "heartbeats a service may miss before it counts as missing", ge=1, le=1000),
+        field("startup_grace_s", 10.0, "time to the first heartbeat after the HSM starts or a restart", ge=0, le=MAX_TIMEOUT_S),
+        field("max_restarts", 3, "restarts without recovery before a service is marked failed", ge=0, le=1000),
+        field("restart_backoff_s", 2.0, "wait after the first restart before another; doubles each time", ge=0, le=MAX_TIMEOUT_S),
+        field("max_backoff_s", 30.0, "cap of the wait between restarts", ge=0, le=MAX_TIMEOUT_S),
+        field("recovery_s", 30.0, "healthy this long -> the restart count starts over", ge=0, le=MAX_TIMEOUT_S),
         field("failsafe_latch", True, "true: the failsafe stays up until someone clears it while all is ok; "
               "false: the HSM lowers it when every required service is ok again"),
         field("system_health_interval_s", 1.0, "seconds between SystemHealth messages", gt=0, le=60),
         field("check_interval_s", 0.1, "seconds between judgements", gt=0, le=10),
         field("confirm_s", 0.5, "a problem must last this long, with nothing from the service meanwhile, "
-              "before the HSM restarts it or marks it failed", ge=0),
+              "before the HSM restarts it or marks it failed", ge=0, le=MAX_TIMEOUT_S),
         field("restarter", "auto", "auto, systemd, launcher or none (see docs/supervision.md)"),
         field("unit_template", DEFAULT_UNIT_TEMPLATE, "systemd unit of a service; {name} is its name"),
     )

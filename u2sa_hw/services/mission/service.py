@@ -27,7 +27,7 @@ from typing import Any, ClassVar
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config import field
+from u2sa_hw.config import MAX_TIMEOUT_S, field
 from u2sa_hw.geo import geodetic_to_ned
 from u2sa_hw.messages import as_type
 from u2sa_hw.service import U2SAService
@@ -46,9 +46,9 @@ class MissionManagerService(U2SAService):
     CONFIG = (
         field("mission_file", "", "mission XML; a relative path is relative to the vehicle profile's directory",
               file=True),
-        field("default_threshold_m", 2.0, "horizontal completion radius of goals without <threshold>, m", gt=0),
+        field("default_threshold_m", 2.0, "horizontal completion radius of goals without <threshold>, m", gt=0, le=10000.0),
         field("loop", "file", "file: as the mission's loop attribute says; true or false: override it"),
-        field("publish_interval_s", 1.0, "republish the current goals and the status this often, s", gt=0),
+        field("publish_interval_s", 1.0, "republish the current goals and the status this often, s", gt=0, le=MAX_TIMEOUT_S),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:

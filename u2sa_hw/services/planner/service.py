@@ -23,7 +23,7 @@ from typing import Any, ClassVar
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config import ConfigError, field
+from u2sa_hw.config import MAX_RATE_HZ, MAX_TIMEOUT_S, ConfigError, field
 from u2sa_hw.geo import geodetic_to_ned
 from u2sa_hw.service import U2SAService
 from u2sa_hw.services.planner.avoidance import AvoidanceSettings
@@ -36,20 +36,20 @@ class PathPlannerService(U2SAService):
 
     SERVICE_TYPE: ClassVar[str] = "path_planner"
     CONFIG = (
-        field("control_rate_hz", 20.0, "the least NAV_POINT publications per second (each estimate makes one too)", gt=0),
+        field("control_rate_hz", 20.0, "the least NAV_POINT publications per second (each estimate makes one too)", gt=0, le=MAX_RATE_HZ),
         field("subsystem", "vehicle", "the NavigationPoint's subsystem"),
-        field("cruise_speed_m_s", 1.0, "desired speed toward a goal, m/s", gt=0),
-        field("slowdown_radius_m", 3.0, "within this distance of a goal the speed ramps down, m", ge=0),
+        field("cruise_speed_m_s", 1.0, "desired speed toward a goal, m/s", gt=0, le=100.0),
+        field("slowdown_radius_m", 3.0, "within this distance of a goal the speed ramps down, m", ge=0, le=10000.0),
         field("min_speed_fraction", 0.3, "the ramp's lowest fraction of the cruise speed", ge=0, le=1),
-        field("lookahead_m", 3.0, "distance of the navigation point along the chosen heading, m", gt=0),
-        field("default_threshold_m", 2.0, "completion radius of a waypoint without a horizontal_threshold, m", gt=0),
-        field("clearance_margin_m", 1.0, "distance kept from avoided objects (half the vehicle's width + safety), m", ge=0),
-        field("avoidance_range_m", 10.0, "how far ahead candidate headings are checked against objects, m", gt=0),
+        field("lookahead_m", 3.0, "distance of the navigation point along the chosen heading, m", gt=0, le=10000.0),
+        field("default_threshold_m", 2.0, "completion radius of a waypoint without a horizontal_threshold, m", gt=0, le=10000.0),
+        field("clearance_margin_m", 1.0, "distance kept from avoided objects (half the vehicle's width + safety), m", ge=0, le=1000.0),
+        field("avoidance_range_m", 10.0, "how far ahead candidate headings are checked against objects, m", gt=0, le=10000.0),
         field("heading_step_deg", 5.0, "spacing of the candidate headings, degrees", gt=0, le=180),
-        field("hysteresis_deg", 15.0, "preference for the side already turned to, degrees", ge=0),
-        field("estimate_timeout_s", 1.0, "an older STATE_ESTIMATE is not used: nothing is published", gt=0),
-        field("object_expiry_s", 3.0, "an object not on WORLD for this long is forgotten (0: never)", ge=0),
-        field("report_resend_s", 2.0, "resend a completion report if the goal is still current this long after", gt=0),
+        field("hysteresis_deg", 15.0, "preference for the side already turned to, degrees", ge=0, le=180),
+        field("estimate_timeout_s", 1.0, "an older STATE_ESTIMATE is not used: nothing is published", gt=0, le=MAX_TIMEOUT_S),
+        field("object_expiry_s", 3.0, "an object not on WORLD for this long is forgotten (0: never)", ge=0, le=MAX_TIMEOUT_S),
+        field("report_resend_s", 2.0, "resend a completion report if the goal is still current this long after", gt=0, le=MAX_TIMEOUT_S),
         field("goal_state_modules", [], "modules imported at start that register goal states (plus the "
               "u2sa_hw.goal_states entry points); see docs/core-services-planner-control.md", item_type=str),
     )

@@ -18,6 +18,9 @@ from u2sa_hw.service import U2SAService
 from u2sa_hw.services.recorder.capture import BusCapture
 from u2sa_hw.vehicle import VehicleProfile
 
+# A file period, not a wait: one file a day is a sensible longest (0 still means never).
+MAX_ROTATE_DURATION_S = 86400.0
+
 
 def run_info(profile: VehicleProfile, url: str) -> RunInfo:
     """The profile, its service configs and identity, for a log's metadata and attachments."""
@@ -40,11 +43,11 @@ class Recorder(U2SAService):
         field("include", ".*", "regex of channels to record"),
         field("exclude", "", "regex of channels not to record"),
         field("compression", "zstd", "zstd, lz4 or none"),
-        field("rotate_size_mb", 512.0, "start a new file past this size (0: never)", ge=0),
-        field("rotate_duration_s", 3600.0, "start a new file after this long (0: never)", ge=0),
-        field("flush_interval_s", 1.0, "close a chunk at least this often (at most 1 s)", gt=0),
-        field("min_free_mb", 200.0, "stop recording below this much free disk", ge=0),
-        field("queue_size", 20000, "messages buffered between the bus and the disk", ge=1),
+        field("rotate_size_mb", 512.0, "start a new file past this size (0: never)", ge=0, le=1000000.0),
+        field("rotate_duration_s", 3600.0, "start a new file after this long (0: never)", ge=0, le=MAX_ROTATE_DURATION_S),
+        field("flush_interval_s", 1.0, "close a chunk at least this often (at most 1 s)", gt=0, le=1.0),
+        field("min_free_mb", 200.0, "stop recording below this much free disk", ge=0, le=1000000.0),
+        field("queue_size", 20000, "messages buffered between the bus and the disk", ge=1, le=1000000),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:

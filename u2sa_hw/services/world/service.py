@@ -17,7 +17,7 @@ from typing import Any, ClassVar
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config import ConfigError, field
+from u2sa_hw.config import MAX_RATE_HZ, MAX_TIMEOUT_S, ConfigError, field
 from u2sa_hw.service import U2SAService
 from u2sa_hw.services.world.model import PlacementError, Pose, WorldModel
 from u2sa_hw.services.world.xml import XmlFileError, load_objects
@@ -30,12 +30,12 @@ class WorldModeler(U2SAService):
     CONFIG = (
         field("objects_file", "", "a-priori objects XML; a relative path is relative to the vehicle profile",
               file=True),
-        field("expiry_s", 5.0, "an observed object not seen for this long is dropped (0: never)", ge=0),
-        field("association_radius_m", 1.0, "objects without a UID from one source merge within this distance", ge=0),
-        field("publish_rate_hz", 2.0, "WORLD and WORLD_SUMMARY publications per second", gt=0),
-        field("max_pose_age_s", 1.0, "a body-frame object needs a STATE_ESTIMATE at most this old", gt=0),
+        field("expiry_s", 5.0, "an observed object not seen for this long is dropped (0: never)", ge=0, le=MAX_TIMEOUT_S),
+        field("association_radius_m", 1.0, "objects without a UID from one source merge within this distance", ge=0, le=1000.0),
+        field("publish_rate_hz", 2.0, "WORLD and WORLD_SUMMARY publications per second", gt=0, le=MAX_RATE_HZ),
+        field("max_pose_age_s", 1.0, "a body-frame object needs a STATE_ESTIMATE at most this old", gt=0, le=MAX_TIMEOUT_S),
         field("default_radius_m", 0.0, "radius of an a-priori <Circle>/<Sphere> written without <radius> "
-              "(the thesis's example has none), m; 0: a point", ge=0),
+              "(the thesis's example has none), m; 0: a point", ge=0, le=10000.0),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:
