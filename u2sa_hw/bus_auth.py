@@ -8,6 +8,14 @@ Every signed packet is ``payload | trailer``; the trailer is 40 bytes::
     mac (16)     HMAC-SHA256(key, channel NUL payload sender counter key-id), first 16 bytes
     tag (4)      b"U2S1"
 
+The key id names the signer's role too (u2sa_hw.bus_keyring, u2sa_hw.bus_roles): the bus
+key speaks for the vehicle, an operator key for a ground station. The pilot's channels,
+RC_MODE and MANUAL_CMD, carry another trailer, 88 bytes: sender, counter and key id as above,
+then an Ed25519 signature (64) of channel NUL payload sender counter key-id, then b"U2P1".
+Only the RC mux holds the pilot's private key (u2sa_hw.bus_pilot); every receiver checks it
+with the public key, so no holder of the bus key can speak for the pilot. A packet whose
+signer's role may not publish its channel is DENIED.
+
 LCM decoders read the payload and ignore what follows, so LCM's own tools still decode.
 
 Replays: a receiver keeps the last counter of every sender it heard. A packet from a known
@@ -32,17 +40,18 @@ never lose one. Everything else, a failsafe clear included, stays refused.
 
 from __future__ import annotations
 
-import hashlib
 import hmac
 import logging
 import os
 import struct
-import threading
 import time
-from pathlib import Path
-from typing import Any, Callable
+from typing import Callable
 
-from u2sa_hw.bus_key import BusKeyError, key_id, read_key
+from u2sa_hw.bus_key import BusKeyError
+from u2sa_hw.bus_keyring import BusKey, Keyring, keyring_for
+from u2sa_hw.bus_roles import PILOT_CHANNELS, VEHICLE, may_publish
+
+__all__ = ["BusAuth", "BusKey", "Keyring", "keyring_for", "resolve_security", "strip_trailer"]
 
 log = logging.getLogger("u2sa_hw.bus_auth")
 
@@ -54,12 +63,14 @@ TRAILER_LEN = SENDER_BYTES + 8 + KEY_ID_BYTES + MAC_BYTES + len(TAG)
 _TAIL = struct.Struct(">8sQ4s")                   # the signed part of the trailer: sender, counter, key id
 _SENDER_COUNTER = struct.Struct(">8sQ")          # read once the MAC is checked
 SIGNED_TAIL = _TAIL.size
-MAX_CACHED_CHANNELS = 1024
+# The pilot's trailer (RC_MODE, MANUAL_CMD): sender, counter, key id as above, then an Ed25519
+# signature of channel NUL payload sender counter key-id, then its own tag.
+PILOT_TAG = b"U2P1"
+SIGNATURE_BYTES = 64
+PILOT_TRAILER_LEN = SIGNED_TAIL + SIGNATURE_BYTES + len(PILOT_TAG)
 MAX_STALE_RAISERS = 1024           # senders of admitted stale failsafe raises remembered (BusAuth.admit_stale)
 
 WINDOW_US = 20_000_000             # a sender never heard before: its first counter at most 20 s old
-OVERLAP_S = 30.0                   # a rotated-out key is still accepted this long
-RELOAD_CHECK_S = 1.0               # how often the key file is looked at for a rotation
 PRUNE_EVERY_US = 10_000_000
 SANE_CLOCK_US = 1_704_067_200_000_000   # 2024-01-01: a wall clock before this has no RTC behind it
 MAX_AHEAD_US = 366 * 86_400_000_000     # with a sane clock, a counter further ahead is out of range
@@ -69,7 +80,9 @@ MAX_COUNTER = 2 ** 53                   # about the year 2255: anything above is
 OK, UNSIGNED, FORGED, REPLAYED = "ok", "unsigned", "forged", "replayed"
 # A verified (or, on an open bus, any) message whose header names another vehicle's system id.
 FOREIGN = "foreign"
-REJECTIONS = (UNSIGNED, FORGED, REPLAYED, FOREIGN)
+# Signed by a key whose role may not publish the channel (u2sa_hw.bus_roles).
+DENIED = "denied"
+REJECTIONS = (UNSIGNED, FORGED, REPLAYED, FOREIGN, DENIED)
 
 LCM_SELF_TEST = "LCM_SELF_TEST"
 REJECTION_WHY = {
@@ -77,6 +90,8 @@ REJECTION_WHY = {
     "forged": "signed with another key: another vehicle or simulation, or a forgery",
     "replayed": "its counter is not newer than the sender's last or is outside the window: a replay",
     "foreign": "its header names another vehicle's system id: another stack sharing this bus and key",
+    "denied": "signed by a key whose role may not publish this channel (docs/security.md): the bus key or an "
+              "operator key on the pilot's RC_MODE or MANUAL_CMD, or an operator key on a vehicle channel",
 }
 
 SECURITY_ENV = "U2SA_BUS_SECURITY"
@@ -93,121 +108,6 @@ def resolve_security(profile_value: str | None = None) -> str:
     return value
 
 
-class BusKey:
-    """One key with its HMAC inner and outer states precomputed (each message copies them).
-
-    The inner state after a channel's name is kept per channel too, so a message costs one
-    copy and one update less; OpenSSL 3's one-shot ``hmac.digest`` fetches its algorithm on
-    every call and measured slower than these copies (bench/transport.py, docs/security.md).
-    """
-
-    def __init__(self, key: bytes) -> None:
-        self.id = key_id(key)
-        block = key.ljust(64, b"\0")   # a 32-byte key is shorter than SHA-256's block: HMAC pads it
-        self._inner = hashlib.sha256(bytes(b ^ 0x36 for b in block))
-        self._outer = hashlib.sha256(bytes(b ^ 0x5C for b in block))
-        self._by_channel: dict[str, Any] = {}
-
-    def inner_after(self, channel: str) -> Any:
-        """The inner hash state having absorbed *channel* NUL (do not update it: copy it)."""
-        state = self._by_channel.get(channel)
-        if state is None:
-            state = self._inner.copy()
-            state.update(channel.encode() + b"\0")
-            if len(self._by_channel) < MAX_CACHED_CHANNELS:   # a flood of invented names cannot grow it
-                self._by_channel[channel] = state
-        return state
-
-    def mac(self, channel: bytes, signed: bytes | memoryview) -> bytes:
-        """The truncated HMAC-SHA256 of *channel* (NUL-terminated) and *signed*."""
-        inner = self._inner.copy()
-        inner.update(channel)
-        inner.update(signed)
-        outer = self._outer.copy()
-        outer.update(inner.digest())
-        return outer.digest()[:MAC_BYTES]
-
-
-class Keyring:
-    """The current key from a file, and the keys it replaced while their overlap lasts.
-
-    :meth:`poll` (cheap; called on every publish and by the handler thread) re-reads the file
-    at most every :data:`RELOAD_CHECK_S` and picks up a rotation without a restart.
-    """
-
-    def __init__(self, path: Path, *, overlap_s: float = OVERLAP_S, clock: Callable[[], float] = time.monotonic) -> None:
-        self.path = Path(path)
-        self.current = BusKey(read_key(self.path))
-        self._overlap_s = overlap_s
-        self._clock = clock
-        self._previous: list[tuple[BusKey, float]] = []
-        self._stamp = _file_stamp(self.path)
-        self._next_check = clock() + RELOAD_CHECK_S
-        self._lock = threading.Lock()
-        self._reload_error_logged = False
-
-    def lookup(self, kid: bytes) -> BusKey | None:
-        """The key with id *kid*: the current one or one still in its overlap; None otherwise."""
-        current = self.current
-        if kid == current.id:
-            return current
-        for key, until in self._previous:
-            if key.id == kid and self._clock() < until:
-                return key
-        return None
-
-    def poll(self) -> None:
-        """Reload the key file if it changed (rate-limited)."""
-        now = self._clock()
-        if now < self._next_check:
-            return
-        with self._lock:
-            if now < self._next_check:
-                return
-            self._next_check = now + RELOAD_CHECK_S
-            self._reload(now)
-
-    def _reload(self, now: float) -> None:
-        stamp = _file_stamp(self.path)
-        if stamp == self._stamp:
-            return
-        try:
-            key = BusKey(read_key(self.path))
-        except BusKeyError as exc:
-            if not self._reload_error_logged:
-                self._reload_error_logged = True
-                log.error("%s; still signing with the key loaded before (id %s)", exc, self.current.id.hex())
-            return
-        self._stamp, self._reload_error_logged = stamp, False
-        if key.id == self.current.id:
-            return
-        self._previous = [(k, u) for k, u in self._previous if u > now] + [(self.current, now + self._overlap_s)]
-        self.current = key
-        log.info("bus key %s changed: now signing with key %s; the previous key is accepted for %g s",
-                 self.path, key.id.hex(), self._overlap_s)
-
-
-_KEYRINGS: dict[Path, Keyring] = {}
-_KEYRINGS_LOCK = threading.Lock()
-
-
-def keyring_for(path: Path) -> Keyring:
-    """The process's one keyring for the key file *path* (BusKeyError when it cannot be read)."""
-    with _KEYRINGS_LOCK:
-        ring = _KEYRINGS.get(path)
-        if ring is None:
-            ring = _KEYRINGS[path] = Keyring(path)
-        return ring
-
-
-def _file_stamp(path: Path) -> tuple[int, int, int] | None:
-    try:
-        st = path.stat()
-    except OSError:
-        return None
-    return st.st_ino, st.st_mtime_ns, st.st_size
-
-
 class BusAuth:
     """Signs what one transport publishes and verifies what it receives.
 
@@ -220,6 +120,8 @@ class BusAuth:
         self.keyring = keyring
         self.sender = sender or os.urandom(SENDER_BYTES)
         self.last_sender = b""          # the verified sender of the packet being dispatched
+        self.last_counter = 0           # ... its signing time (µs)
+        self.end = 0                    # ... where its payload ends
         # The wall clock in ns: time.time_ns itself unless a test gives its own (in µs).
         self._wall_ns: Callable[[], int] = time.time_ns if wall_us is None else (lambda: wall_us() * 1000)
         self._offset = 0
@@ -255,15 +157,21 @@ class BusAuth:
         return True
 
     def sign(self, channel: str, payload: bytes) -> bytes:
-        """*payload* with its trailer."""
+        """*payload* with its trailer: the pilot's on RC_MODE and MANUAL_CMD, the HMAC one otherwise.
+
+        BusKeyError when this process may not sign *channel* (the pilot's channels without the
+        pilot's private key: every process but the RC mux).
+        """
         ring = self.keyring
         if ring._clock() >= ring._next_check:
             ring.poll()
-        key = ring.current
         counter = self._wall_ns() // 1000 + self._offset
         if counter <= self._last_sent:
             counter = self._last_sent + 1
+        if channel in PILOT_CHANNELS:
+            return self._sign_pilot(channel, payload, counter)
         self._last_sent = counter
+        key = ring.operator or ring.current
         tail = _TAIL.pack(self.sender, counter, key.id)
         inner = (key._by_channel.get(channel) or key.inner_after(channel)).copy()
         inner.update(payload)
@@ -272,14 +180,25 @@ class BusAuth:
         outer.update(inner.digest())
         return b"".join((payload, tail, outer.digest()[:MAC_BYTES], TAG))
 
-    def verify(self, channel: str, data: bytes) -> str:
-        """OK, or why *data* is dropped: UNSIGNED, FORGED or REPLAYED. Never raises.
+    def _sign_pilot(self, channel: str, payload: bytes, counter: int) -> bytes:
+        signer = self.keyring.pilot_signer()
+        self._last_sent = counter
+        tail = _TAIL.pack(self.sender, counter, signer.id)
+        signature = signer.sign(b"".join((channel.encode(), b"\0", payload, tail)))
+        return b"".join((payload, tail, signature, PILOT_TAG))
 
-        The MAC is checked (in constant time) before anything of the trailer is believed.
+    def verify(self, channel: str, data: bytes) -> str:
+        """OK, or why *data* is dropped: UNSIGNED, FORGED, DENIED or REPLAYED. Never raises.
+
+        The MAC (or the pilot's signature) is checked, the MAC in constant time, before anything
+        of the trailer is believed; then the signer's role (u2sa_hw.bus_roles), then the counter.
+        On OK, ``end`` is where the payload ends and ``last_counter`` its signing time.
         A packet REPLAYED only for its counter's age or range can be admitted with :meth:`admit_stale`.
         """
         end = len(data) - TRAILER_LEN
         if end < 0 or not data.endswith(TAG):
+            if data.endswith(PILOT_TAG):
+                return self._verify_pilot(channel, data)
             return UNSIGNED
         key = self.keyring.current
         mac_at = end + SIGNED_TAIL
@@ -293,6 +212,27 @@ class BusAuth:
         outer.update(inner.digest())
         if not hmac.compare_digest(outer.digest()[:MAC_BYTES], data[mac_at:mac_at + MAC_BYTES]):
             return FORGED
+        if (key.role is not VEHICLE or channel in PILOT_CHANNELS) and not may_publish(key.role, channel):
+            return DENIED
+        return self._fresh(data, end)
+
+    def _verify_pilot(self, channel: str, data: bytes) -> str:
+        end = len(data) - PILOT_TRAILER_LEN
+        if end < 0:
+            return UNSIGNED
+        verifier = self.keyring.pilot_verifier()
+        sig_at = end + SIGNED_TAIL
+        if verifier is None or data[sig_at - KEY_ID_BYTES:sig_at] != verifier.id:
+            return FORGED
+        signed = b"".join((channel.encode(), b"\0", memoryview(data)[:sig_at]))
+        if not verifier.check(data[sig_at:sig_at + SIGNATURE_BYTES], signed):
+            return FORGED
+        if channel not in PILOT_CHANNELS:
+            return DENIED
+        return self._fresh(data, end)
+
+    def _fresh(self, data: bytes, end: int) -> str:
+        """The counter rules, on a packet whose signature and role are checked; OK sets ``end``."""
         sender, counter = _SENDER_COUNTER.unpack_from(data, end)
         now = self._wall_ns() // 1000 + self._offset
         if counter > MAX_COUNTER or (counter > now + MAX_AHEAD_US and now >= SANE_CLOCK_US):
@@ -307,6 +247,8 @@ class BusAuth:
             return REPLAYED
         self._peers[sender] = counter
         self.last_sender = sender
+        self.last_counter = counter
+        self.end = end
         if counter > now:
             self._offset += counter - now
         return OK
@@ -335,7 +277,7 @@ class BusAuth:
         if len(self._stale_raises) >= MAX_STALE_RAISERS and sender not in self._stale_raises:
             self._stale_raises.clear()
         self._stale_raises[sender] = counter
-        self.last_sender = sender
+        self.last_sender, self.last_counter, self.end = sender, counter, len(data) - TRAILER_LEN
         return OK
 
     def _prune(self, now: int) -> None:
@@ -351,9 +293,7 @@ def strip_trailer(data: bytes) -> bytes:
     """*data* without a trailer if it has one (open mode: nothing is verified)."""
     if len(data) >= TRAILER_LEN and data[-4:] == TAG:
         return data[:-TRAILER_LEN]
+    if len(data) >= PILOT_TRAILER_LEN and data[-4:] == PILOT_TAG:
+        return data[:-PILOT_TRAILER_LEN]
     return data
 
-
-def payload_of(data: bytes) -> bytes:
-    """The payload of a verified packet."""
-    return data[:-TRAILER_LEN]

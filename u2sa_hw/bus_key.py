@@ -134,9 +134,13 @@ def ensure_key(path: Path, *, group: str | None = KEY_GROUP) -> bool:
 
 
 def fresh_key_file(directory: Path | str) -> Path:
-    """A new key in *directory*/bus.key (0600): a simulation's, a test session's or ``u2sa run``'s own key."""
+    """A new key in *directory*/bus.key (0600) and a new pilot pair beside it (u2sa_hw.bus_pilot):
+    a simulation's, a test session's or ``u2sa run``'s own keys."""
+    from u2sa_hw.bus_pilot import write_pilot_pair
+
     path = Path(directory) / "bus.key"
     write_key(path, new_key(), group=None)
+    write_pilot_pair(path)
     return path
 
 

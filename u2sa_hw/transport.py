@@ -41,6 +41,7 @@ import lcm
 
 from u2sa_hw.bus_auth import (FOREIGN, LCM_SELF_TEST, OK, OPEN, REJECTION_WHY, REJECTIONS, REPLAYED, TRAILER_LEN,
                               WINDOW_US, BusAuth, keyring_for, resolve_security, strip_trailer)
+from u2sa_hw.bus_roles import COMMAND_CHANNELS
 from u2sa_hw import bus_filter
 from u2sa_hw.bus_clock import ClockStore, store_from_env
 from u2sa_hw.bus_key import BusKeyError, key_path
@@ -85,12 +86,13 @@ class ChannelCounters:
     forged: int = 0
     replayed: int = 0
     foreign: int = 0     # received only: another vehicle's system id in the header
+    denied: int = 0      # received only: signed by a key whose role may not publish the channel
     raise_stale: int = 0     # received only: failsafe raises accepted though outside the replay window
     raise_foreign: int = 0   # received only: failsafe raises accepted though from another system id
 
     def rejected(self) -> int:
         """Packets verification (or the system id check) dropped on this channel."""
-        return self.unsigned + self.forged + self.replayed + self.foreign
+        return self.unsigned + self.forged + self.replayed + self.foreign + self.denied
 
 
 @dataclass(frozen=True)
@@ -149,11 +151,14 @@ class Transport:
         except BusKeyError as exc:
             raise TransportError(str(exc)) from None
         self._clock_store = (clock_store or store_from_env()) if self.auth is not None else None
+        self.started_us = 0   # the signing clock at start: a command signed before it is not obeyed
         self._clock_saving: threading.Thread | None = None
         if self._clock_store is not None:
             start = self._clock_store.start_at(WINDOW_US)
             if start is not None and self.auth.adopt(start):
                 log.info("%s: signing clock starts at the saved %d µs (%s)", name, start, self._clock_store.path)
+        if self.auth is not None:
+            self.started_us = self.auth.now()
         self._verdict = OK
         self._payload = b""
         # Every u2sa message starts with its Header (extensions with their base, which does):
@@ -218,7 +223,15 @@ class Transport:
         """Publish already-encoded bytes (signed unless the bus is open); True on success."""
         with self._publish_lock:
             c = self.tx[channel]
-            wire = self.auth.sign(channel, data) if self.auth is not None else data
+            try:
+                wire = self.auth.sign(channel, data) if self.auth is not None else data
+            except BusKeyError as exc:   # the pilot's channels, from a process without the pilot's key
+                c.dropped += 1
+                if (channel, "sign") not in self._rejection_logged:
+                    self._rejection_logged.add((channel, "sign"))
+                    self._error(f"cannot sign {channel}: {exc}")
+                self.last_error = f"cannot sign {channel}: {exc}"
+                return False
             try:
                 if self._lc is None:
                     raise OSError("the transport is stopped")
@@ -377,9 +390,11 @@ class Transport:
             verdict = OK
         else:
             verdict = auth.verify(channel, data)
-            payload = data[:-TRAILER_LEN]
             if verdict is REPLAYED and channel == FAILSAFE_CHANNEL:
                 verdict = self._admit_stale_raise(auth, channel, data)
+            payload = data[:auth.end]
+            if verdict is OK and channel in COMMAND_CHANNELS and auth.last_counter < self.started_us:
+                verdict = self._before_start(channel, payload)
         if verdict is OK:
             own = self._own_system
             # Only a u2sa type's bytes 8..12 are its system id: anything else is left to decoding (malformed).
@@ -403,6 +418,17 @@ class Transport:
             log.warning("%s: dropping %s message on %s (%s); further ones are only counted", self.name, verdict,
                         channel, REJECTION_WHY[verdict])
         return verdict
+
+    def _before_start(self, channel: str, payload: bytes) -> str:
+        """REPLAYED for a command signed before this transport started (a restarted service must not obey a
+        stop captured before its restart); OK for a failsafe raise, which fails safe whenever it was signed."""
+        if _is_failsafe_raise(channel, payload):
+            return OK
+        if (channel, "before start") not in self._rejection_logged:
+            self._rejection_logged.add((channel, "before start"))
+            log.warning("%s: dropping a command on %s signed before this service started (a replay, or a sender "
+                        "whose clock is behind); further ones are only counted as replayed", self.name, channel)
+        return REPLAYED
 
     def _admit_stale_raise(self, auth: BusAuth, channel: str, data: bytes) -> str:
         """OK for a failsafe raise refused only for its age (it fails safe), REPLAYED for anything else."""
