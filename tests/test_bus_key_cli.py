@@ -178,3 +178,33 @@ def test_a_user_outside_the_keys_group_is_told_how_to_get_access(tmp_path: Path,
             assert "sudo usermod -aG u2sa $USER" in lines[0] and "or use sudo" in lines[0], lines[0]
             assert KEY_HEX not in r.stdout + r.stderr
         assert run_u2sa(["key", "show", "--id"], env).returncode == 0     # root reads it: the file is fine
+
+
+def test_operator_and_pilot_keys_are_made_beside_the_bus_key_and_shown(tmp_path: Path) -> None:
+    bus = tmp_path / "vehicle" / "bus.key"
+    assert u2sa("key", "rotate", "--file", str(bus)).returncode == 0
+    pilot_key, pilot_pub = bus.parent / "pilot.key", bus.parent / "pilot.pub"   # rotate made the pair: none was there
+    assert pilot_key.is_file() and pilot_pub.is_file()
+    assert oct(pilot_key.stat().st_mode & 0o777) == oct(0o600) and pilot_pub.stat().st_mode & 0o044 == 0o044
+    shown = u2sa("key", "show", "--pilot", "--file", str(bus))
+    assert shown.returncode == 0 and bytes.fromhex(shown.stdout.strip()) == read_key(pilot_pub)
+    from u2sa_hw.bus_pilot import pilot_key_id
+    assert u2sa("key", "show", "--pilot", "--id", "--file", str(bus)).stdout.strip() == \
+        pilot_key_id(read_key(pilot_pub)).hex()
+
+    made = u2sa("key", "operator", "laptop", "--print", "--file", str(bus))
+    assert made.returncode == 0, made.stderr
+    stored = bus.parent / "operators" / "laptop.key"
+    assert read_key(stored) == bytes.fromhex(made.stdout.strip()) and "U2SA_OPERATOR_KEY_FILE" in made.stderr
+    again = u2sa("key", "operator", "laptop", "--file", str(bus))
+    assert again.returncode == 1 and "exists" in again.stderr and read_key(stored).hex() == made.stdout.strip()
+    for bad in ("", "../escape", ".hidden"):
+        refused = u2sa("key", "operator", bad, "--file", str(bus))
+        assert refused.returncode == 2 and "NAME of letters" in refused.stderr, bad
+    assert sorted(p.name for p in (bus.parent / "operators").iterdir()) == ["laptop.key"]
+
+    old_pub = read_key(pilot_pub)
+    assert u2sa("key", "pilot", "--file", str(bus)).returncode == 0
+    assert read_key(pilot_pub) != old_pub
+    missing = u2sa("key", "show", "--pilot", "--file", str(tmp_path / "elsewhere" / "bus.key"))
+    assert missing.returncode == 1 and "pilot.pub" in missing.stderr and "Traceback" not in missing.stderr
