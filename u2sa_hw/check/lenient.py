@@ -56,7 +56,10 @@ def _vehicle(table: Mapping[str, Any], base: Path) -> dict[str, Any]:
         del kept["bus_security"]
     if "origin" in kept:
         kept["origin"] = {k: v for k, v in kept["origin"].items()
-                          if k in ORIGIN_RANGES and isinstance(v, (int, float)) and not isinstance(v, bool)}
+                          if k in ORIGIN_RANGES and isinstance(v, (int, float)) and not isinstance(v, bool)
+                          and ORIGIN_RANGES[k][0] <= v <= ORIGIN_RANGES[k][1]}   # reported by _check_vehicle
+    if not (isinstance(kept.get("system_id"), int) and 0 <= kept["system_id"] <= 255):
+        kept.pop("system_id", None)
     return kept
 
 
