@@ -45,13 +45,13 @@ import logging
 import os
 import struct
 import time
-from typing import Callable
+from typing import Any, Callable
 
 from u2sa_hw.bus_key import BusKeyError
 from u2sa_hw.bus_keyring import BusKey, Keyring, keyring_for
 from u2sa_hw.bus_roles import PILOT_CHANNELS, VEHICLE, may_publish
 
-__all__ = ["BusAuth", "BusKey", "Keyring", "keyring_for", "resolve_security", "strip_trailer"]
+__all__ = ["BusAuth", "BusKey", "Keyring", "check_pilot_packet", "keyring_for", "resolve_security", "strip_trailer"]
 
 log = logging.getLogger("u2sa_hw.bus_auth")
 
@@ -217,19 +217,12 @@ class BusAuth:
         return self._fresh(data, end)
 
     def _verify_pilot(self, channel: str, data: bytes) -> str:
-        end = len(data) - PILOT_TRAILER_LEN
-        if end < 0:
-            return UNSIGNED
-        verifier = self.keyring.pilot_verifier()
-        sig_at = end + SIGNED_TAIL
-        if verifier is None or data[sig_at - KEY_ID_BYTES:sig_at] != verifier.id:
-            return FORGED
-        signed = b"".join((channel.encode(), b"\0", memoryview(data)[:sig_at]))
-        if not verifier.check(data[sig_at:sig_at + SIGNATURE_BYTES], signed):
-            return FORGED
+        verdict = check_pilot_packet(channel, data, self.keyring.pilot_verifier())
+        if verdict is not OK:
+            return verdict
         if channel not in PILOT_CHANNELS:
             return DENIED
-        return self._fresh(data, end)
+        return self._fresh(data, len(data) - PILOT_TRAILER_LEN)
 
     def _fresh(self, data: bytes, end: int) -> str:
         """The counter rules, on a packet whose signature and role are checked; OK sets ``end``."""
@@ -287,6 +280,24 @@ class BusAuth:
         horizon = now - WINDOW_US
         for sender in [s for s, c in self._peers.items() if c < horizon]:
             del self._peers[sender]
+
+
+def check_pilot_packet(channel: str, data: bytes, verifier: Any) -> str:
+    """OK when *data* ends in a pilot trailer signed by *verifier*'s key for *channel*; UNSIGNED or FORGED.
+
+    Only the signature: no counter, no role. A replay checks recorded pilot messages so, with
+    the public key the recording names (u2sa_hw.bus_pilot.PilotVerifier; None: FORGED).
+    """
+    end = len(data) - PILOT_TRAILER_LEN
+    if end < 0 or not data.endswith(PILOT_TAG):
+        return UNSIGNED
+    sig_at = end + SIGNED_TAIL
+    if verifier is None or data[sig_at - KEY_ID_BYTES:sig_at] != verifier.id:
+        return FORGED
+    signed = b"".join((channel.encode(), b"\0", memoryview(data)[:sig_at]))
+    if not verifier.check(data[sig_at:sig_at + SIGNATURE_BYTES], signed):
+        return FORGED
+    return OK
 
 
 def strip_trailer(data: bytes) -> bytes:

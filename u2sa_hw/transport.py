@@ -161,6 +161,7 @@ class Transport:
             self.started_us = self.auth.now()
         self._verdict = OK
         self._payload = b""
+        self._packet = b""   # the whole verified packet being dispatched, trailer included
         # Every u2sa message starts with its Header (extensions with their base, which does):
         # the system id is the big-endian int32 right after the 8-byte fingerprint. A packet of
         # an unknown fingerprint is not checked (it is malformed, or a raw subscriber's bytes).
@@ -400,11 +401,13 @@ class Transport:
             # Only a u2sa type's bytes 8..12 are its system id: anything else is left to decoding (malformed).
             if own is None or payload[8:12] in (own, _ANY_SYSTEM) or REGISTRY.by_fingerprint(payload[:8]) is None:
                 self._payload = payload
+                self._packet = data
                 self.rx[channel].bytes += len(payload)
                 return OK
             if _is_failsafe_raise(channel, payload):
                 self._accepted_raise(channel, "raise_foreign", "from another system id than this vehicle's")
                 self._payload = payload
+                self._packet = data
                 self.rx[channel].bytes += len(payload)
                 return OK
             verdict = FOREIGN
@@ -481,6 +484,15 @@ class Transport:
     def sender(self) -> str:
         """This transport's sender id in the trailers it signs (hex; empty on an open bus)."""
         return self.auth.sender.hex() if self.auth else ""
+
+    @property
+    def packet(self) -> bytes:
+        """The whole packet being dispatched, its signature trailer included; call from a callback.
+
+        The recorder keeps the pilot's trailers with RC_MODE and MANUAL_CMD so that a replay
+        can check them with the recorded public key.
+        """
+        return self._packet
 
     @property
     def last_sender(self) -> str:
