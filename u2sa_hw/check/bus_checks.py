@@ -1,6 +1,7 @@
-"""``u2sa check`` on where the bus listens (docs/security.md, "Where the vehicle listens").
+"""``u2sa check`` on where the bus listens (docs/security.md, "Where the vehicle listens"), and on
+``$U2SA_BUS_SECURITY`` in the environment.
 
-Two warnings, never errors (the bus still verifies every message with the key):
+Three warnings, never errors (the bus still verifies every message with the key):
 
 * ``ttl=0`` while ``lo`` has no MULTICAST flag on this machine and the check does not run as
   root: the services cannot keep the bus on ``lo``. Those signed with the vehicle's key refuse
@@ -8,6 +9,10 @@ Two warnings, never errors (the bus still verifies every message with the key):
   interface too and say so in their health.
 * ``ttl`` >= 1 without ``bus_interface``: the bus joins and sends on the default route's
   interface, which may be the WiFi, where every host that has the key can command the vehicle.
+* ``$U2SA_BUS_SECURITY`` set where the check runs: the installed units (``u2sa service --unit``)
+  ignore it, the profile's ``[vehicle] bus_security`` alone decides there; ``u2sa run``, the
+  benches and the tests still honour it when the profile does not say. Whoever set it (a shell
+  profile, a bench script) should know the vehicle will not do what it asks.
 """
 
 from __future__ import annotations
@@ -44,3 +49,23 @@ def check_bus(vehicle: dict[str, Any], out: Collector) -> None:
                     f"interface (here {route_interface(url)}), which may be the WiFi; every host there that has "
                     "the key can command this vehicle",
                     "name the vehicle's own network in [vehicle], e.g. bus_interface = \"eth0\"")
+
+
+def check_security_env(vehicle: dict[str, Any], out: Collector) -> None:
+    """Warn when ``$U2SA_BUS_SECURITY`` is set here: the installed units ignore it (see the module docstring)."""
+    from u2sa_hw.bus_auth import SECURITY_ENV
+
+    value = os.environ.get(SECURITY_ENV)
+    if value is None:
+        return
+    said = vehicle.get("bus_security")
+    if isinstance(said, str) and said:
+        decides = f'follow the profile\'s bus_security = "{said}" (which wins over the variable for u2sa run too)'
+    else:
+        decides = ("follow the profile, which has no bus_security in [vehicle]: they sign and verify every message. "
+                   f"u2sa run, the benches and the tests still honour ${SECURITY_ENV} when the profile does not say")
+    out.warning("vehicle.bus_security",
+                f"${SECURITY_ENV}={value!r} is set in this environment, but the installed units (u2sa service "
+                f"--unit) ignore it and {decides}",
+                f"say what the vehicle does with bus_security in [vehicle], and unset {SECURITY_ENV} unless a bench "
+                "or a test needs it")

@@ -18,7 +18,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from u2sa_hw.check.bus_checks import check_bus
+from u2sa_hw.check.bus_checks import check_bus, check_security_env
 from u2sa_hw.check.problem import Collector, Problem, did_you_mean, type_name
 from u2sa_hw.profile_numbers import PROFILE_NUMBERS
 from u2sa_hw.vehicle import TOP_TABLES
@@ -75,6 +75,7 @@ def check_profile(path: Path, *, for_sim: bool = False) -> list[Problem]:
     vehicle = data.get("vehicle", {}) if isinstance(data.get("vehicle", {}), dict) else {}
     _check_vehicle(path, vehicle, out)
     check_bus(vehicle, out)   # where the bus listens: u2sa_hw/check/bus_checks.py
+    check_security_env(vehicle, out)   # $U2SA_BUS_SECURITY, which the installed units ignore
     profile, load_error = _load(path)
     if profile is None:
         from u2sa_hw.check.lenient import lenient_profile

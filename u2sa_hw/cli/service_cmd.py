@@ -21,6 +21,13 @@ Config file: --config PATH, else the profile's `config` for the service, else
 Log level: --log-level, else the service's log_level config field (its config
 file, or the profile's settings for it), else the profile's log_level, else
 info. `u2sa param set NAME log_level debug` changes it while running.
+
+--unit (what the installed systemd units run): the vehicle profile alone decides
+bus security. $U2SA_BUS_SECURITY is removed from the environment before anything
+reads it (so an "open" set in a drop-in or the manager's environment cannot open
+the vehicle's bus), and one warning names it and its ignored value. Without
+--unit (u2sa run, benches, tests) the variable still applies when the profile
+has no [vehicle] bus_security.
 """
 
 
@@ -36,11 +43,15 @@ def register(sub: Any) -> None:
     p.add_argument("--log-level", choices=["debug", "info", "warn", "error"],
                    help="log level at start (wins over the config field and the profile)")
     p.add_argument("--list-kinds", action="store_true", help="list the service kinds and exit")
+    p.add_argument("--unit", action="store_true",
+                   help="run as an installed systemd unit: the vehicle profile alone decides bus security "
+                        "($U2SA_BUS_SECURITY is ignored, with a warning)")
     p.set_defaults(func=run)
 
 
 def run(args: Any) -> int:
     """Resolve the service, build it and run it."""
+    ignored = _drop_security_env() if args.unit else None   # first: before anything reads it
     from u2sa_hw.cli import CliError
     from u2sa_hw.config import ConfigError
     from u2sa_hw.registry import known_kinds, resolve_kind
@@ -63,6 +74,12 @@ def run(args: Any) -> int:
         raise CliError(f"service '{args.name}'{where}: {exc}") from None
     # Until the service's config is read, log at the command line's or the profile's level.
     logger = setup_service_logging(args.name, log_dir=profile.log_dir, level=args.log_level or profile.log_level)
+    if ignored is not None:
+        from u2sa_hw.bus_auth import SECURITY_ENV
+
+        decided = f'bus_security = "{profile.bus_security}"' if profile.bus_security else "no bus_security: signed"
+        logger.warning("$%s=%r ignored: an installed unit (--unit) follows the vehicle profile alone (%s)",
+                       SECURITY_ENV, ignored, decided)
     config_path = Path(args.config) if args.config else profile.config_path_for(args.name)
     try:
         service = cls(args.name, profile=profile, config_path=config_path,
@@ -70,3 +87,12 @@ def run(args: Any) -> int:
     except (ConfigError, TransportError) as exc:
         raise CliError(str(exc)) from None
     return service.main(log_level=args.log_level)
+
+
+def _drop_security_env() -> str | None:
+    """Remove $U2SA_BUS_SECURITY from this process's environment (and its children's); its value, or None."""
+    import os
+
+    from u2sa_hw.bus_auth import SECURITY_ENV
+
+    return os.environ.pop(SECURITY_ENV, None)
