@@ -81,7 +81,8 @@ def register(sub: Any) -> None:
                    help="UDP port of the simulated CAN bus (default: a free private port)")
     p.add_argument("--bus-key", type=Path, metavar="FILE",
                    help="sign the run's bus with this key (default: a fresh one in --out, printed), e.g. to "
-                   "record or watch the run from another process")
+                   "record or watch the run from another process; the pilot's pair (pilot.key, pilot.pub) must be "
+                   "beside it ('u2sa key pilot --file FILE' makes one)")
     p.add_argument("--scenario", metavar="FILE", type=Path,
                    help="play a failsafe scenario (events at times: RC loss, manual switch, sticks, GPS fix loss, "
                         "a service killed or stopped, a forged command, a failsafe) and record what every actuator "
@@ -168,6 +169,11 @@ def _private_bus(args: Any) -> tuple[str, int]:
             read_key(args.bus_key)
         except BusKeyError as exc:
             raise CliError(f"sim: {exc}", 2) from None
+        from u2sa_hw.bus_pilot import pilot_paths
+        missing = [p for p in pilot_paths(args.bus_key) if not p.is_file()]
+        if missing:   # the sim's RC mux signs RC_MODE with it: without it the vehicle would never leave neutral
+            raise CliError(f"sim: no pilot key beside {args.bus_key} ({', '.join(p.name for p in missing)} missing): "
+                           f"make a pair with 'u2sa key pilot --file {args.bus_key}'", 2)
     key = args.bus_key.resolve() if args.bus_key is not None else fresh_key_file(args.out).resolve()
     os.environ[KEY_ENV] = str(key)
     print(f"u2sa sim: bus {lcm_url}, CAN port {can_port}, key {key} (to join: U2SA_LCM_URL='{lcm_url}' "
