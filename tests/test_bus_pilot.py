@@ -14,6 +14,7 @@ before a service restarted is not obeyed after it.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -160,6 +161,10 @@ def test_with_the_switch_at_manual_no_holder_of_the_bus_or_an_operator_key_moves
             assert "denied" in rejected[channel] and "forged" in rejected[channel], rejected
         assert "denied" in rejected[ch.ACTUATOR_CMD], rejected
         assert health["failsafe"] == "False" and proc.poll() is None
+        listed = services.cli("services", "--json")                # the operator sees the denials, per service
+        assert listed.returncode == 0, listed.stderr
+        row = next(r for r in json.loads(listed.stdout) if r["name"] == "drive")
+        assert row["denied"] >= 3 and row["bad_signature"] >= 2, row
         pilot.stick = -100.0                                        # and the pilot still drives
         wait_until(lambda: duty_us() == 1000.0, timeout=30, message="the pilot's sticks after the attack")
     finally:

@@ -105,6 +105,7 @@ def cmd_services(args: Any) -> int:
         rows.append({"name": r.name, "type": r.service_type, "status": r.status, "host": r.host, "pid": r.pid,
                      "bus": details.get("bus_security", "?"), "rejected": rejected_total(dropped),
                      "bad_signature": bad_signature_total(dropped), "foreign": rejected_counts(dropped)["foreign"],
+                     "denied": rejected_counts(dropped)["denied"],
                      "rejected_by_channel": dropped, "listen": details.get("bus_listen", ""),
                      "raises_accepted": raises,
                      "publishes": _channel_list(r.publishes),
@@ -114,11 +115,11 @@ def cmd_services(args: Any) -> int:
     else:
         if found:
             print(f"{'NAME':22} {'TYPE':18} {'STATUS':9} {'HOST':14} {'PID':>7} {'BUS':8} {'BAD SIG':>7} "
-                  f"{'FOREIGN':>7}  PUBLISHES")
+                  f"{'FOREIGN':>7} {'DENIED':>6}  PUBLISHES")
         for row, r in zip(rows, found):
             pubs = ", ".join(i.channel for i in r.publishes)
             print(f"{r.name:22} {r.service_type:18} {r.status:9} {r.host:14} {r.pid:>7} {row['bus'].split()[0]:8} "
-                  f"{row['bad_signature']:>7} {row['foreign']:>7}  {pubs}")
+                  f"{row['bad_signature']:>7} {row['foreign']:>7} {row['denied']:>6}  {pubs}")
     for row in rows:   # a ttl=0 bus heard beyond the board: never only a log line of the service's
         if row["listen"]:
             print(f"u2sa: {row['name']}: {row['listen']}", file=sys.stderr)
@@ -129,7 +130,8 @@ def cmd_services(args: Any) -> int:
 
         print(f"u2sa: dropped while listening: {rejected_text(own_drops)} (unsigned: a sender without the key; "
               "forged: another key, e.g. a second stack or vehicle on this port; foreign: another vehicle's "
-              "system id under this key; u2sa health shows each service's counts)", file=sys.stderr)
+              "system id under this key; denied: a key whose role may not publish that channel, e.g. the bus key "
+              "on RC_MODE; u2sa health shows each service's counts)", file=sys.stderr)
     if not found:
         raise no_answer_error(args, f"no service answered discovery within {args.timeout:g} s "
                               "(are services running, and on the same LCM URL and bus key?)")

@@ -109,6 +109,7 @@ def cmd_health(args: Any) -> int:
         s["rejected"] = rejected_total(s["rejected_by_channel"])
         s["bad_signature"] = bad_signature_total(s["rejected_by_channel"])
         s["foreign"] = rejected_counts(s["rejected_by_channel"])["foreign"]
+        s["denied"] = rejected_counts(s["rejected_by_channel"])["denied"]
         s["reason"] = service_reason(s, health.get(s["name"]))
         s["bus_listen"] = details.get("bus_listen", "")   # a ttl=0 bus heard beyond the board
     report["autonomy"] = autonomy_report(health)
@@ -120,11 +121,11 @@ def cmd_health(args: Any) -> int:
           f"(from {report['source'] or 'hsm'})")
     if report["services"]:
         print(f"{'SERVICE':22} {'STATE':11} {'RESTARTS':>8} {'HEARTBEAT':>9} {'DATA AGE':>8} {'BAD SIG':>7} "
-              f"{'FOREIGN':>7}  "
+              f"{'FOREIGN':>7} {'DENIED':>6}  "
               "REASON / LAST ERROR")
     for s, row in zip(got[0].services, report["services"]):
         print(f"{s.name:22} {s.state:11} {s.restarts:>8} {_age(s.heartbeat_age_s):>9} {_age(s.data_age_s):>8} "
-              f"{row['bad_signature']:>7} {row['foreign']:>7}  "
+              f"{row['bad_signature']:>7} {row['foreign']:>7} {row['denied']:>6}  "
               f"{'; '.join(x for x in (row['reason'] or s.last_error, row['bus_listen']) if x)}")
     for rc in report["autonomy"]:
         state = "GRANTED" if rc["granted"] else f"refused: {rc['blocked_by'] or 'unknown'}"
