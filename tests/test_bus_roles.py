@@ -143,3 +143,21 @@ def test_the_table_gives_each_channel_its_roles() -> None:
     assert rows[ch.STOP] == rows[ch.FAILSAFE] == rows[ch.MISSION_CMD] == ("yes", "yes", "no")
     assert not may_publish("nobody", ch.STOP)
     assert len(TAG) == len(PILOT_TAG) and TRAILER_LEN < PILOT_TRAILER_LEN
+
+
+def test_a_service_signs_as_the_vehicle_even_where_an_operator_key_is_set(vehicle: Path, lcm_url: str,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    from u2sa_hw.bus_key import KEY_ENV
+    from u2sa_hw.bus_keyring import OPERATOR_KEY_ENV
+    from u2sa_hw.transport import Transport
+
+    monkeypatch.setenv(KEY_ENV, str(vehicle))
+    monkeypatch.setenv(OPERATOR_KEY_ENV, str(vehicle.parent / "operators" / "laptop.key"))  # a ground station's shell
+    tool, service = Transport(lcm_url, name="tool"), Transport(lcm_url, name="svc", vehicle=True)
+    try:
+        assert tool.auth is not None and service.auth is not None
+        assert tool.auth.keyring.signing.role == "operator"
+        assert service.auth.keyring.signing.role == "vehicle"
+    finally:
+        tool.stop()
+        service.stop()

@@ -189,16 +189,20 @@ class Keyring:
                  self.path, key.id.hex(), self._overlap_s)
 
 
-_KEYRINGS: dict[Path, Keyring] = {}
+_KEYRINGS: dict[tuple[Path, bool], Keyring] = {}
 _KEYRINGS_LOCK = threading.Lock()
 
 
-def keyring_for(path: Path) -> Keyring:
-    """The process's one keyring for the key file *path* (BusKeyError when it cannot be read)."""
+def keyring_for(path: Path, *, vehicle: bool = False) -> Keyring:
+    """The process's one keyring for the key file *path* (BusKeyError when it cannot be read).
+
+    *vehicle*: a service's, which always signs with the bus key, whatever ``$U2SA_OPERATOR_KEY_FILE``
+    says (a stack started from a ground station's shell must not sign its health as an operator).
+    """
     with _KEYRINGS_LOCK:
-        ring = _KEYRINGS.get(path)
+        ring = _KEYRINGS.get((path, vehicle))
         if ring is None:
-            ring = _KEYRINGS[path] = Keyring(path)
+            ring = _KEYRINGS[(path, vehicle)] = Keyring(path, operator_file="" if vehicle else None)
         return ring
 
 

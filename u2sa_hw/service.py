@@ -78,7 +78,7 @@ class U2SAService:
         self.transport = transport or Transport(self.profile.lcm_url, name=name,
                                                 security=self.profile.bus_security, key_file=self.profile.bus_key,
                                                 interface=self.profile.bus_interface,
-                                                system_id=self.profile.system_id)
+                                                system_id=self.profile.system_id, vehicle=True)
         self.running = False
         self.status = "starting"
         self.last_error = ""

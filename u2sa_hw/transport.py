@@ -127,7 +127,8 @@ class Transport:
     With *system_id* (the vehicle's), a message whose header carries another non-zero system
     id is dropped and counted as ``foreign``: a second stack sharing the bus and the key.
     A failsafe raise is the exception to both the replay window and the system id check
-    (module docstring).
+    (module docstring). A tool signs with the operator key ``$U2SA_OPERATOR_KEY_FILE`` names,
+    if any; a service's transport (*vehicle*) always with the bus key.
 
     ``listen_problem`` is "" when the bus stays where the URL and *interface* say (ttl=0: ``lo``),
     else one line saying where it listens instead and the fix (``u2sa_hw.bus_listen``).
@@ -137,7 +138,7 @@ class Transport:
 
     def __init__(self, url: str | None = None, *, name: str = "u2sa", security: str | None = None,
                  key_file: Path | str | None = None, interface: str | None = None,
-                 system_id: int | None = None, clock_store: ClockStore | None = None) -> None:
+                 system_id: int | None = None, clock_store: ClockStore | None = None, vehicle: bool = False) -> None:
         self.url = resolve_url(url)
         self.name = name
         # ttl=0: loopback only; ttl>=1: the profile's bus_interface, if any (u2sa_hw.bus_listen).
@@ -147,7 +148,7 @@ class Transport:
         sockets_before = socket_fds() if self.interface else set()
         try:
             self.security = resolve_security(security)
-            self.auth = BusAuth(keyring_for(key_path(key_file))) if self.security != OPEN else None
+            self.auth = BusAuth(keyring_for(key_path(key_file), vehicle=vehicle)) if self.security != OPEN else None
         except BusKeyError as exc:
             raise TransportError(str(exc)) from None
         self._clock_store = (clock_store or store_from_env()) if self.auth is not None else None
