@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import pytest
-from conftest import ServiceProcesses, wait_until
+from conftest import U2SA, ServiceProcesses, wait_until
 from gpio_driver_harness import BusCollector
 from serial_driver_harness import start_driver
 
@@ -219,3 +219,23 @@ def test_a_stop_signed_before_a_service_restarted_is_not_obeyed_after_it(service
         assert restarted.wait(timeout=30) == 0
     finally:
         sniffer.stop()
+
+
+def test_a_ground_station_with_an_operator_key_sets_parameters_and_stops_a_service(
+        services: ServiceProcesses, bus: BusClient, operator_key: Path, tmp_path: Path) -> None:
+    name = "state_estimator"
+    proc = services.start(name)
+    wait_until(lambda: bus.discover(timeout=0.5, name=name), timeout=30, message=f"{name} to answer")
+    stranger = tmp_path / "stranger.key"                      # an operator key the vehicle was never given
+    write_key(stranger, new_key(), group=None)
+    env = {**services.env(), OPERATOR_KEY_ENV: str(stranger)}
+    refused = subprocess.run([*U2SA, "param", "set", name, "health_interval_s", "0.4"], env=env,
+                             capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert refused.returncode != 0, refused.stdout
+    env[OPERATOR_KEY_ENV] = str(operator_key)
+    changed = subprocess.run([*U2SA, "param", "set", name, "health_interval_s", "0.4"], env=env,
+                             capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert changed.returncode == 0, changed.stdout + changed.stderr
+    stopped = subprocess.run([*U2SA, "stop", name], env=env, capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert stopped.returncode == 0, stopped.stdout + stopped.stderr
+    assert proc.wait(timeout=30) == 0
