@@ -330,6 +330,7 @@ def test_sysusers_declaration_creates_the_user_and_groups(tmp_path: Path, vehicl
     passwd, group = entries(image / "etc/passwd"), entries(image / "etc/group")
     assert passwd["u2sa"][6] == "/usr/sbin/nologin"
     assert all("u2sa" in group[g][3].split(",") for g in ("dialout", "i2c", "gpio"))
+    assert group["u2sa-pilot"][3] == ""   # the RC mux's unit's group alone: the service user is not in it
 
 
 def test_install_makes_the_bus_key_root_u2sa_0640_once_and_keeps_an_existing_one(vehicle: Path, root: Path) -> None:
@@ -373,3 +374,103 @@ def test_u2sa_key_rotate_import_and_show_on_a_staged_key(vehicle: Path, root: Pa
                          text=True, env=env)
     assert bad.returncode == 1 and bad.stderr.count("\n") == 1 and "64 hex digits" in bad.stderr
     assert "Traceback" not in bad.stderr
+
+
+RC_MUX = ('\n[services.mux]\nkind = "rc_mux"\n'
+          'settings = { chip = "/dev/gpiochip0", channels = "throttle=5,steering=6,mode=13", enable_line = 21 }\n')
+
+
+def test_install_makes_the_pilot_pair_that_only_the_rc_muxs_unit_reads(vehicle: Path, root: Path) -> None:
+    """pilot.key root:u2sa-pilot 0040 (not even root's own bits), pilot.pub root:root 0644, the group u2sa-pilot
+    without the user u2sa in it, and the drop-in giving that group to the RC mux's unit and no other."""
+    from u2sa_hw.bus_pilot import pilot_key_id, public_of, read_signer, read_verifier
+    from u2sa_hw.bus_key import parse_key
+
+    vehicle.write_text(PROFILE + RC_MUX)
+    tree = install(vehicle=vehicle, root=root)
+    etc = root / "etc/u2sa"
+    group = entries(root / "etc/group")
+    assert "u2sa-pilot" in group and group["u2sa-pilot"][3] == "", group["u2sa-pilot"]   # no member, u2sa least
+    assert "u2sa-pilot" not in [g for g, e in group.items() if "u2sa" in e[3].split(",")]
+    pilot_gid = int(group["u2sa-pilot"][2])
+    st = (etc / "pilot.key").stat()
+    assert (st.st_uid, st.st_gid, st.st_mode & 0o7777) == (0, pilot_gid, 0o040)
+    st = (etc / "pilot.pub").stat()
+    assert (st.st_uid, st.st_gid, st.st_mode & 0o7777) == (0, 0, 0o644)
+    assert [str(c) for c in tree.changes if c.path.startswith("/etc/u2sa/pilot")] == [
+        "created   /etc/u2sa/pilot.key  (the pilot's private key, root:u2sa-pilot 0040: only the RC mux's unit "
+        "reads it)",
+        "created   /etc/u2sa/pilot.pub  (the pilot's public key; copy it beside a laptop's bus key to check RC_MODE)"]
+    assert "created   group u2sa-pilot" in [str(c).strip() for c in tree.changes]
+    # A pair: what the key signs, the public key checks.
+    signer, verifier = read_signer(etc / "pilot.key"), read_verifier(etc / "pilot.pub")
+    assert signer.id == verifier.id and verifier.check(signer.sign(b"RC_MODE"), b"RC_MODE")
+    # The RC mux's unit alone gets the group, added to the template's list, and the key back in reach.
+    units = root / "etc/systemd/system"
+    assert [p.relative_to(units).as_posix() for p in sorted(units.glob("*.d/32-pilot-key.conf"))] == \
+        ["u2sa@mux.service.d/32-pilot-key.conf"]
+    dropin = (units / "u2sa@mux.service.d/32-pilot-key.conf").read_text().splitlines()
+    assert [line for line in dropin if not line.startswith("#")] == \
+        ["[Service]", "SupplementaryGroups=u2sa-pilot", "InaccessiblePaths="]
+    assert not [p for p in units.rglob("*") if p.is_file() and p.name != "32-pilot-key.conf"
+                and any("u2sa-pilot" in line for line in p.read_text().splitlines() if not line.startswith("#"))]
+    for unit in ("u2sa@.service", "u2sa-hsm.service"):
+        lines = (units / unit).read_text().splitlines()
+        assert "InaccessiblePaths=-/etc/u2sa/pilot.key" in lines, unit
+        assert next(line for line in lines if line.startswith("ExecStart=")).endswith(" --unit"), unit
+    sysusers = (root / "etc/sysusers.d/u2sa.conf").read_text().splitlines()
+    assert "g u2sa-pilot -" in sysusers and "m u2sa u2sa-pilot" not in sysusers
+    # Again: nothing to do. Drifted: the key is kept, owner and mode put back, and said.
+    assert not install(vehicle=vehicle, root=root).changed
+    key = (etc / "pilot.key").read_bytes()
+    os.chown(etc / "pilot.key", 0, 0)
+    (etc / "pilot.key").chmod(0o644)
+    os.chown(etc / "pilot.pub", 0, pilot_gid)
+    (etc / "pilot.pub").chmod(0o664)
+    fixed = install(vehicle=vehicle, root=root)
+    assert [str(c) for c in fixed.changes if c.action != "unchanged"] == [
+        "updated   /etc/u2sa/pilot.key  (the existing pilot key is kept; owner and mode root:u2sa-pilot 0040 again)",
+        "updated   /etc/u2sa/pilot.pub  (owner and mode root:root 0644 again)"]
+    assert (etc / "pilot.key").read_bytes() == key
+    st = (etc / "pilot.key").stat()
+    assert (st.st_uid, st.st_gid, st.st_mode & 0o7777) == (0, pilot_gid, 0o040)
+    st = (etc / "pilot.pub").stat()
+    assert (st.st_uid, st.st_gid, st.st_mode & 0o7777) == (0, 0, 0o644)
+    # A lost pilot.pub is made again from the key (laptops holding it keep checking), not a new pair.
+    (etc / "pilot.pub").unlink()
+    install(vehicle=vehicle, root=root)
+    assert (etc / "pilot.key").read_bytes() == key
+    seed = parse_key(key, source="pilot.key")
+    assert read_verifier(etc / "pilot.pub").id == pilot_key_id(public_of(seed)) == verifier.id
+    # Not the rc mux any more: its drop-in goes; the pair stays (every receiver checks RC_MODE with pilot.pub).
+    vehicle.write_text(PROFILE)
+    install(vehicle=vehicle, root=root)
+    assert not list(units.glob("*.d/32-pilot-key.conf"))
+    # Uninstall keeps the pair with the configs, --purge removes it and the group install made.
+    uninstall(root=root)
+    assert (etc / "pilot.key").read_bytes() == key and (etc / "pilot.pub").is_file()
+    uninstall(root=root, purge=True)
+    assert not etc.exists() and "u2sa-pilot" not in entries(root / "etc/group")
+
+
+def test_install_warns_when_the_service_user_is_in_the_pilot_group(vehicle: Path, root: Path) -> None:
+    install(vehicle=vehicle, root=root)
+    text = (root / "etc/group").read_text()
+    (root / "etc/group").write_text(text.replace("\nu2sa-pilot:x:" + entries(root / "etc/group")["u2sa-pilot"][2]
+                                                 + ":\n", "\nu2sa-pilot:x:"
+                                                 + entries(root / "etc/group")["u2sa-pilot"][2] + ":u2sa\n"))
+    assert entries(root / "etc/group")["u2sa-pilot"][3] == "u2sa"
+    tree = install(vehicle=vehicle, root=root)
+    assert [w for w in tree.warnings if "u2sa-pilot" in w] == [
+        f"{root}/etc/group: the user u2sa is in the group u2sa-pilot, so every service could read "
+        "/etc/u2sa/pilot.key and sign as the pilot; fix: sudo gpasswd -d u2sa u2sa-pilot (only the RC mux's unit "
+        "gets the group, from its drop-in 32-pilot-key.conf)"]
+
+
+def test_a_tree_without_a_user_database_gets_a_pilot_key_only_root_reads(vehicle: Path, tmp_path: Path) -> None:
+    bare = tmp_path / "bare"
+    tree = install(vehicle=vehicle, root=bare)
+    st = (bare / "etc/u2sa/pilot.key").stat()
+    assert (st.st_uid, st.st_gid, st.st_mode & 0o7777) == (0, 0, 0o600)
+    assert any(str(c).startswith("created   /etc/u2sa/pilot.key  (the pilot's private key, root:root 0600 (no group "
+                                 "u2sa-pilot yet)") for c in tree.changes)

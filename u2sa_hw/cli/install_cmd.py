@@ -15,7 +15,14 @@ Deploy the vehicle profile FILE on this SBC: the user u2sa and the device groups
 venv under /opt/u2sa, the profile and configs under /etc/u2sa (a config you changed is
 never overwritten; a newer default goes beside it as .new) with every file the services
 name (missions, a-priori objects...) beside the profile, the systemd units and udev rules,
-then enable u2sa.target and one u2sa@NAME.service per service of the profile.
+then enable u2sa.target and one u2sa@NAME.service per service of the profile. The units
+run `u2sa service NAME --unit`: the profile alone decides bus security.
+
+Keys, made unless they are there (then only their owners and modes are put back), kept
+by uninstall: the bus key /etc/u2sa/bus.key (root:u2sa 0640) and the pilot's pair,
+/etc/u2sa/pilot.key (root:u2sa-pilot 0040) and pilot.pub (0644). Only the RC mux's unit
+(kind rc_mux) gets the group u2sa-pilot (drop-in 32-pilot-key.conf); the user u2sa is not
+in it, and every other unit, the HSM's too, has the key in InaccessiblePaths=.
 
 First the offline check (u2sa check) runs on the file as written; install refuses, writing
 nothing and listing every problem with its file, key and fix, when it finds errors or when

@@ -2,13 +2,16 @@
 
 Install, on the SBC as root (or staged into ``--root DIR`` for packaging and tests):
 
-1. creates the group u2sa and the device groups dialout, i2c, gpio where missing, and
-   the system user u2sa (no login, home /var/lib/u2sa);
+1. creates the group u2sa, the device groups dialout, i2c, gpio and the group u2sa-pilot
+   (the RC mux's unit alone; the user u2sa is not a member) where missing, and the system
+   user u2sa (no login, home /var/lib/u2sa);
 2. makes the venv under /opt/u2sa/venv (see :mod:`u2sa_hw.install.system`);
 3. installs the profile and service configs under /etc/u2sa (never overwriting one the
    user changed: the new default goes beside it as ``.new``) with the files the services'
    declared file settings name (a secret one root:u2sa 0640), and makes the vehicle's bus
-   key /etc/u2sa/bus.key (root:u2sa 0640) unless one is there (docs/security.md);
+   key /etc/u2sa/bus.key (root:u2sa 0640) unless one is there, and the pilot's pair
+   /etc/u2sa/pilot.key (root:u2sa-pilot 0040: only the RC mux's unit reads it) and
+   /etc/u2sa/pilot.pub (0644) unless both are there (docs/security.md);
 4. makes the log directory /var/log/u2sa (u2sa:u2sa 0770) and declares it in
    /etc/tmpfiles.d/u2sa.conf, so that it exists before any unit starts;
 5. installs the units, the udev rules and /etc/sysctl.d/60-u2sa-lcm.conf (LCM's
@@ -28,12 +31,13 @@ import os
 import subprocess
 from pathlib import Path
 
-from u2sa_hw.bus_key import BusKeyError, ensure_key
+from u2sa_hw.bus_key import BusKeyError, ensure_key, parse_key
+from u2sa_hw.bus_pilot import PILOT_GROUP, PILOT_KEY_NAME, PILOT_PUB_NAME, public_of, write_pilot_pair
 from u2sa_hw.install.files import InstallTree
 from u2sa_hw.install.manifest import MANAGED, MANIFEST_PATH, Manifest, host_path, load_manifest, save_manifest
 from u2sa_hw.install.system import (SERVICE_USER, VENV_MODES, InstallError, apply_sysctl, apply_tmpfiles, ensure_users,
-                                    ensure_venv, owner_ids, project_source, reload_systemd, reload_udev,
-                                    remove_users, user_ids)
+                                    ensure_venv, group_members, owner_ids, project_source, reload_systemd,
+                                    reload_udev, remove_users, user_ids)
 from u2sa_hw.install.preflight import load_for_install, offline_check, preflight
 from u2sa_hw.install.referenced import installed_files, rewrites
 from u2sa_hw.install.udev import VEHICLE_RULES, render_rules
@@ -46,6 +50,9 @@ OPT_DIR = "/opt/u2sa"
 # Directories uninstall (without --purge) leaves, with what is in them.
 KEPT_DIRS = (ETC_DIR, CONFIG_DIR, OPT_DIR, LOG_DIR)
 BUS_KEY = f"{ETC_DIR}/bus.key"
+PILOT_KEY = f"{ETC_DIR}/{PILOT_KEY_NAME}"   # the pilot's Ed25519 private key: root:u2sa-pilot 0040
+PILOT_PUB = f"{ETC_DIR}/{PILOT_PUB_NAME}"   # its public key, which every receiver checks RC_MODE with: 0644
+PILOT_KEY_MODE = 0o040   # the group u2sa-pilot reads it; not even root's own bits (the HSM runs as uid 0)
 
 
 def _check_root(root: Path, *, create: bool = False) -> Path:
@@ -91,8 +98,8 @@ def install(*, vehicle: Path | str, root: Path | str = "/", venv: str | None = N
     profile = load_for_install(path, checked)
     units = service_units(profile)
     configs_plain = service_configs(profile)
-    found = preflight(profile, root=root_path, force=force, taken={PROFILE, BUS_KEY, *configs_plain},
-                      checked=checked)
+    found = preflight(profile, root=root_path, force=force, checked=checked,
+                      taken={PROFILE, BUS_KEY, PILOT_KEY, PILOT_PUB, *configs_plain})
     profile_text = render_profile(profile, settings=rewrites(found.references, in_config=False))
     configs = service_configs(profile, rewrites=rewrites(found.references, in_config=True))
     vehicle_rules = render_rules(found.plan, profile=PROFILE)
@@ -120,6 +127,7 @@ def install(*, vehicle: Path | str, root: Path | str = "/", venv: str | None = N
     tree.make_dir(CONFIG_DIR, mode=0o2770, owner=owner)
     tree.put_config(PROFILE, profile_text, mode=0o644)
     _ensure_bus_key(tree, owner=owner)
+    _ensure_pilot_pair(tree)
     for dest, data in configs.items():
         tree.put_config(dest, data, mode=0o660, owner=owner)
     # Missions, objects...: the user's once installed, like the configs (one file may be named twice);
@@ -164,6 +172,79 @@ def _ensure_bus_key(tree: InstallTree, *, owner: tuple[int, int] | None) -> None
         tree.note("created", BUS_KEY, "the vehicle's bus key; copy it to a ground station with 'u2sa key show'")
     else:
         tree.note("unchanged", BUS_KEY, "the existing bus key is kept")
+
+
+def _ensure_pilot_pair(tree: InstallTree) -> None:
+    """/etc/u2sa/pilot.key root:u2sa-pilot 0040 and pilot.pub root:root 0644, made unless both are there.
+
+    The private key signs RC_MODE and MANUAL_CMD; only the RC mux's unit has the group u2sa-pilot
+    (32-pilot-key.conf), the user u2sa is not in it, and the owner root has no bit, so not even the
+    HSM (uid 0 without CAP_DAC_OVERRIDE) reads it. The group id is the tree's (``--root``: its
+    etc/group), set here after writing, whatever the host's group database says; a tree without
+    the group (no etc/group yet) gets 0600. A pair that is there is kept (a second install, one
+    after ``u2sa key pilot``), its owner and mode put back; a pilot.pub that went missing is made
+    again from pilot.key, so laptops holding it keep checking. Like the bus key, not in the
+    manifest: uninstall keeps both with the configs, ``--purge`` removes /etc/u2sa.
+    """
+    private, public = tree.path(PILOT_KEY), tree.path(PILOT_PUB)
+    owner = owner_ids(tree.root, PILOT_GROUP)
+    mode = PILOT_KEY_MODE if owner is not None else 0o600
+    how = (f"root:{PILOT_GROUP} {mode:04o}" if owner is not None
+           else f"root:root {mode:04o} (no group {PILOT_GROUP} yet)")
+    try:
+        for path in (private, public):
+            if path.is_symlink():
+                raise BusKeyError(f"{path} is a symbolic link; put the file itself there (or remove it: install "
+                                  "makes a new pair)")
+        if private.is_file() and public.is_file():
+            made = None
+        elif private.is_file():
+            made = "pub"
+            _write_public(public, public_of(parse_key(private.read_bytes(), source=str(private))))
+        else:
+            made = "pair"
+            write_pilot_pair(tree.path(BUS_KEY), system=True)
+        fixed_key = _set_owner_mode(private, owner or (0, 0), mode)
+        fixed_pub = _set_owner_mode(public, (0, 0), 0o644)
+    except (BusKeyError, OSError) as exc:
+        raise InstallError(f"{PILOT_KEY}: {exc}") from None
+    if made == "pair":
+        tree.note("created", PILOT_KEY, f"the pilot's private key, {how}: only the RC mux's unit reads it")
+        tree.note("created", PILOT_PUB, "the pilot's public key; copy it beside a laptop's bus key to check RC_MODE")
+    else:
+        tree.note("updated" if fixed_key else "unchanged", PILOT_KEY,
+                  f"the existing pilot key is kept; owner and mode {how} again" if fixed_key
+                  else "the existing pilot key is kept")
+        tree.note("created" if made == "pub" else "updated" if fixed_pub else "unchanged", PILOT_PUB,
+                  "made again from the existing pilot.key" if made == "pub"
+                  else "owner and mode root:root 0644 again" if fixed_pub else "")
+    if SERVICE_USER in group_members(tree.root, PILOT_GROUP):
+        tree.warnings.append(f"{host_path(tree.root, '/etc/group')}: the user {SERVICE_USER} is in the group "
+                             f"{PILOT_GROUP}, so every service could read {PILOT_KEY} and sign as the pilot; fix: "
+                             f"sudo gpasswd -d {SERVICE_USER} {PILOT_GROUP} (only the RC mux's unit gets the group, "
+                             "from its drop-in 32-pilot-key.conf)")
+
+
+def _write_public(path: Path, public: bytes) -> None:
+    from u2sa_hw.install.manifest import atomic_write
+
+    atomic_write(path, public.hex().encode() + b"\n", mode=0o644)
+
+
+def _set_owner_mode(path: Path, owner: tuple[int, int], mode: int) -> bool:
+    """Give *path* *owner* and *mode* (the mode first when it narrows, so the file is never more open); True
+    when either changed."""
+    st = path.lstat()
+    changed = False
+    if st.st_mode & 0o7777 != mode:
+        os.chmod(path, mode & st.st_mode & 0o7777)   # narrow first: never readable by the new owner and the old
+        changed = True
+    if (st.st_uid, st.st_gid) != owner:
+        os.chown(path, *owner, follow_symlinks=False)
+        changed = True
+    if changed:
+        os.chmod(path, mode)
+    return changed
 
 
 def _ensure_log_dir(tree: InstallTree) -> None:

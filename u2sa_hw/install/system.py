@@ -25,10 +25,14 @@ import sysconfig
 from pathlib import Path
 
 from u2sa_hw import __version__
+from u2sa_hw.bus_pilot import PILOT_GROUP
 from u2sa_hw.install.files import InstallTree
 
 SERVICE_USER = "u2sa"
 DEVICE_GROUPS = ("dialout", "i2c", "gpio")
+# Groups install makes that the service user is NOT a member of: u2sa-pilot (the group of
+# /etc/u2sa/pilot.key) is given to the RC mux's unit alone, by its drop-in 32-pilot-key.conf.
+UNIT_ONLY_GROUPS = (PILOT_GROUP,)
 VENV = "/opt/u2sa/venv"
 VENV_MODES = ("build", "shared", "none")
 HIDDEN_PREFIXES = ("/root", "/home", "/run/user")
@@ -64,7 +68,10 @@ def user_database(root: Path) -> Path | None:
 
 
 def ensure_users(tree: InstallTree) -> None:
-    """Create the groups u2sa, dialout, i2c, gpio and the system user u2sa where missing."""
+    """Create the groups u2sa, dialout, i2c, gpio, u2sa-pilot and the system user u2sa where missing.
+
+    The user u2sa is a member of the device groups, never of u2sa-pilot: only the RC mux's
+    unit gets that group (SupplementaryGroups= in its drop-in), so only it reads pilot.key."""
     etc = user_database(tree.root)
     if etc is None:
         tree.note("skipped", "users and groups",
@@ -73,7 +80,7 @@ def ensure_users(tree: InstallTree) -> None:
         return
     prefix = [] if tree.root == Path("/") else ["--prefix", str(tree.root)]
     groups = _names(etc / "group")
-    for group in (SERVICE_USER, *DEVICE_GROUPS):
+    for group in (SERVICE_USER, *DEVICE_GROUPS, *UNIT_ONLY_GROUPS):
         if group in groups:
             if group in tree.old.groups:
                 tree.new.groups.append(group)
@@ -115,6 +122,13 @@ def owner_ids(root: Path, group: str = SERVICE_USER) -> tuple[int, int] | None:
         return None
     entry = _names(etc / "group").get(group)
     return (0, int(entry[2])) if entry and len(entry) > 2 and entry[2].isdigit() else None
+
+
+def group_members(root: Path, group: str) -> list[str]:
+    """The users the tree's group file lists as members of *group* (empty when unknown)."""
+    etc = user_database(root)
+    entry = _names(etc / "group").get(group) if etc is not None else None
+    return [m for m in entry[3].split(",") if m] if entry and len(entry) > 3 else []
 
 
 def user_ids(root: Path, user: str = SERVICE_USER) -> tuple[int, int] | None:

@@ -10,7 +10,9 @@
   stop), every service whose device address is a sysfs PWM chip ``50-pwm-sysfs.conf``, every
   service of the safety chain ``30-realtime.conf`` (``CPUSchedulingPolicy=fifo``, the priority
   of :mod:`u2sa_hw.realtime`) and every command source ``31-command-source.conf``
-  (``WatchdogSignal=SIGKILL``: never resumed to print stacks).
+  (``WatchdogSignal=SIGKILL``: never resumed to print stacks); the RC mux (kind ``rc_mux``)
+  alone gets ``32-pilot-key.conf``: the group u2sa-pilot, so it reads /etc/u2sa/pilot.key,
+  which the template and the HSM's unit make inaccessible to every other service.
 - The profile is installed as ``/etc/u2sa/vehicle.toml`` with its directories pointed at
   the vehicle's (``/etc/u2sa/config``, ``/var/log/u2sa``, ``/var/lib/u2sa``) and every
   service config as ``/etc/u2sa/config/NAME.toml``.
@@ -29,7 +31,8 @@ from typing import Any, Mapping
 
 import tomli_w
 
-from u2sa_hw.install.system import DEVICE_GROUPS, SERVICE_USER, InstallError
+from u2sa_hw.bus_pilot import PILOT_GROUP
+from u2sa_hw.install.system import DEVICE_GROUPS, SERVICE_USER, UNIT_ONLY_GROUPS, InstallError
 from u2sa_hw.realtime import unit_directives
 from u2sa_hw.registry import RECORDER_KIND
 from u2sa_hw.transport import DEFAULT_RECV_BUF_SIZE
@@ -146,6 +149,28 @@ COMMAND_SOURCE_KINDS = frozenset({"rc_mux", "control", "odrive_can", "vesc_can",
 """Kinds whose process publishes or executes actuator commands: their watchdog sends SIGKILL."""
 
 
+PILOT_KIND = "rc_mux"   # the one service that signs the pilot's channels (RC_MODE, MANUAL_CMD)
+PILOT_DROPIN_NAME = "32-pilot-key.conf"
+PILOT_DROPIN = f"""\
+# Written by `u2sa install`: {{name}} is the RC mux (kind "{PILOT_KIND}"), the only service that
+# signs the pilot's channels (RC_MODE, MANUAL_CMD) with /etc/u2sa/pilot.key (root:{PILOT_GROUP}
+# 0040). It alone gets the group {PILOT_GROUP}, added to the template's SupplementaryGroups=
+# (a list: this adds, an empty assignment would reset it); the user u2sa is not a member.
+# The template makes the key inaccessible to every service (InaccessiblePaths=); the empty
+# assignment below resets that list for this unit only. See docs/security.md.
+[Service]
+SupplementaryGroups={PILOT_GROUP}
+InaccessiblePaths=
+"""
+
+
+def pilot_dropins(unit: str, kind: str) -> dict[str, bytes]:
+    """The drop-in that lets *unit* read the pilot's private key: only for the RC mux (kind ``rc_mux``)."""
+    if kind != PILOT_KIND or unit == HSM_UNIT:
+        return {}
+    return {f"{UNIT_DIR}/{unit}.d/{PILOT_DROPIN_NAME}": PILOT_DROPIN.format(name=unit).encode()}
+
+
 def safety_dropins(unit: str, kind: str) -> dict[str, bytes]:
     """The real-time and watchdog-signal drop-ins of *unit* running a service of *kind* (none for most kinds)."""
     dropins = {}
@@ -162,7 +187,8 @@ def safety_dropins(unit: str, kind: str) -> dict[str, bytes]:
 def unit_dropins(profile: VehicleProfile, *, pwm_services: Mapping[str, str]) -> dict[str, bytes]:
     """Per-service drop-ins the profile calls for: a recorder's priorities, the others ordered after it,
     a writable /sys for each service in *pwm_services* (service -> the sysfs PWM chip its address names),
-    real-time priority for the safety chain and SIGKILL on a watchdog timeout for command sources."""
+    real-time priority for the safety chain and SIGKILL on a watchdog timeout for command sources, and the
+    pilot's key for the RC mux."""
     dropins = {}
     units = service_units(profile)
     recorders = [u.unit for u in units if profile.services[u.name].kind == RECORDER_KIND]
@@ -174,6 +200,7 @@ def unit_dropins(profile: VehicleProfile, *, pwm_services: Mapping[str, str]) ->
             dropins[f"{UNIT_DIR}/{unit.unit}.d/20-after-recorder.conf"] = AFTER_RECORDER_DROPIN.format(
                 name=unit.unit, recorders=" ".join(recorders)).encode()
         dropins.update(safety_dropins(unit.unit, spec.kind))
+        dropins.update(pilot_dropins(unit.unit, spec.kind))
         chip = pwm_services.get(unit.name)
         if chip and unit.unit != HSM_UNIT:
             dropins[f"{UNIT_DIR}/{unit.unit}.d/50-pwm-sysfs.conf"] = PWM_DROPIN.format(path=chip).encode()
@@ -256,9 +283,12 @@ def service_configs(profile: VehicleProfile, *, rewrites: Mapping[str, Mapping[s
 
 
 def sysusers_conf() -> bytes:
-    """systemd-sysusers declaration of the service user and device groups (for images and packages)."""
-    lines = ["# u2sa-hw: the service user and the device groups (written by u2sa install).",
-             *(f"g {g} -" for g in DEVICE_GROUPS),
+    """systemd-sysusers declaration of the service user, the device groups and u2sa-pilot (for images and packages).
+
+    The user is a member of the device groups, not of u2sa-pilot (only the RC mux's unit gets it)."""
+    lines = ["# u2sa-hw: the service user and the device groups (written by u2sa install); u2sa-pilot, the",
+             "# group of /etc/u2sa/pilot.key, is the RC mux's unit's alone: u2sa is not a member.",
+             *(f"g {g} -" for g in (*DEVICE_GROUPS, *UNIT_ONLY_GROUPS)),
              f'u {SERVICE_USER} - "U2SA vehicle services" {STATE_DIR} /usr/sbin/nologin',
              *(f"m {SERVICE_USER} {g}" for g in DEVICE_GROUPS)]
     return ("\n".join(lines) + "\n").encode()
