@@ -3,6 +3,13 @@
 A log cut short by SIGKILL or a power cut has no summary; reading it record by record
 yields everything up to the last complete chunk (the recorder closes a chunk every
 second). :func:`recover` rewrites such a file as a valid, indexed log.
+
+The pilot's messages (RC_MODE, MANUAL_CMD) are stored with their signature trailer (their MCAP
+channel's metadata ``pilot_trailer``, u2sa_hw.recording.mcap_log): :meth:`LogFile.messages` and
+:meth:`LogFile.selected` give every reader the payload without it, as on any other channel, so a
+decoder, a comparison or an export never sees it; ``LogMessage.trailer`` holds it and
+``selected(raw=True)`` gives the data as stored (u2sa_hw.recording.pilot_check checks it).
+:func:`recover` copies the data as stored.
 """
 
 from __future__ import annotations
@@ -21,6 +28,29 @@ from mcap.stream_reader import StreamReader
 from u2sa_hw.recording.chunk_parse import chunk_message_tuples, chunk_records
 
 MAGIC = b"\x89MCAP0\r\n"
+PILOT_TRAILER_KEY = "pilot_trailer"   # channel metadata (u2sa_hw.recording.mcap_log): bytes of trailer per message
+PILOT_TAG = b"U2P1"                   # how the pilot's trailer ends (u2sa_hw.bus_auth.PILOT_TAG, not imported:
+                                      # a reader of logs needs none of the bus's key handling)
+
+
+def trailer_length(channel: Channel) -> int:
+    """How many bytes at the end of each message of *channel* are the pilot's trailer (0: none)."""
+    value = channel.metadata.get(PILOT_TRAILER_KEY, "") if channel.metadata else ""
+    if not value:
+        return 0
+    try:
+        n = int(value)
+    except ValueError:
+        return 0
+    return n if 0 < n <= 1024 else 0
+
+
+def split_trailer(data: bytes, n: int) -> tuple[bytes, bytes]:
+    """(payload, trailer) of a message whose channel keeps *n* bytes of pilot trailer; one that does not
+    end in the pilot's tag is all payload (and the pilot check finds it unsigned)."""
+    if n and len(data) >= n and data.endswith(PILOT_TAG):
+        return data[:-n], data[-n:]
+    return data, b""
 
 
 class _SequentialReader(StreamReader):
@@ -48,6 +78,7 @@ class LogMessage:
     type_name: str
     encoding: str = "lcm"     # the MCAP channel's message encoding
     schema_id: int = 0        # the channel's schema (0: none), in ``LogFile.contents.schemas``
+    trailer: bytes = b""      # the pilot's signature trailer kept after *data* (RC_MODE, MANUAL_CMD), else b""
 
 
 @dataclass
@@ -115,14 +146,16 @@ class LogFile:
 
         yield from self._scan(from_chunk, alone)
 
-    def selected(self, wanted: Callable[[str], bool]) -> Iterator[tuple[str, int, bytes]]:
+    def selected(self, wanted: Callable[[str], bool], *, raw: bool = False) -> Iterator[tuple[str, int, bytes]]:
         """``(channel, log time ns, data)`` of the messages on channels *wanted* accepts, in file order.
 
         :meth:`records` for a reader that skips most of a log (a replay): *wanted* is asked once per
         channel, and a message of another channel costs no object. Fills :attr:`contents` the same way.
+        *data* is the payload, a pilot trailer cut off, unless *raw*: then the data as stored.
         """
         channels = self.contents.channels
         topics: dict[int, str | None] = {}
+        cuts: dict[int, int] = {}   # channel id -> its pilot trailer's length, for the channels that keep one
 
         def keep(channel_id: int) -> bool:
             topic = topics.get(channel_id, "")
@@ -131,15 +164,23 @@ class LogFile:
                 if ch is None:
                     return False   # a channel not (yet) declared: records() leaves it out too
                 topic = topics[channel_id] = ch.topic if wanted(ch.topic) else None
+                n = 0 if raw else trailer_length(ch)
+                if n:
+                    cuts[channel_id] = n
             return topic is not None
 
         def from_chunk(chunk: Chunk) -> Iterator[tuple[str, int, bytes]]:
             for channel_id, log_time, data in chunk_message_tuples(chunk, keep, self._note):
+                if cuts and channel_id in cuts:
+                    data = split_trailer(data, cuts[channel_id])[0]
                 yield topics[channel_id], log_time, data
 
         def alone(record: Message) -> Iterator[tuple[str, int, bytes]]:
             if keep(record.channel_id):
-                yield topics[record.channel_id], record.log_time, record.data
+                data = record.data
+                if cuts and record.channel_id in cuts:
+                    data = split_trailer(data, cuts[record.channel_id])[0]
+                yield topics[record.channel_id], record.log_time, data
 
         yield from self._scan(from_chunk, alone)
 
@@ -176,15 +217,20 @@ class LogFile:
             c.complete = True
 
     def messages(self, channel: str | None = None) -> Iterator[LogMessage]:
-        """Every message in file order, optionally only channels fully matching the regex *channel*."""
+        """Every message in file order, optionally only channels fully matching the regex *channel*.
+
+        A pilot trailer kept after a message's payload is in ``trailer``, not in ``data``.
+        """
         pattern = re.compile(channel) if channel else None
         c = self.contents
         for record in self.records():
             ch = c.channels[record.channel_id]
             if pattern is None or pattern.fullmatch(ch.topic):
                 schema = c.schemas.get(ch.schema_id)
-                yield LogMessage(ch.topic, record.log_time, record.data, schema.name if schema else "?",
-                                 ch.message_encoding, ch.schema_id)
+                n = trailer_length(ch)
+                data, trailer = split_trailer(record.data, n) if n else (record.data, b"")
+                yield LogMessage(ch.topic, record.log_time, data, schema.name if schema else "?",
+                                 ch.message_encoding, ch.schema_id, trailer)
 
     def scan(self) -> "LogSummary":
         """Read the whole log once and summarise it."""

@@ -1,7 +1,7 @@
 """Writing LCM traffic into MCAP logs: chunked (zstd or lz4), indexed, with statistics.
 
 LCM bytes are stored unchanged (message encoding ``lcm``; on a signed bus the verified
-payload, without its trailer), each type's ``.lcm``
+payload, without its trailer, but for the pilot's channels, below), each type's ``.lcm``
 definition is its schema, and the vehicle profile and configs travel as attachments
 and metadata. :meth:`McapLogWriter.flush` closes the chunk in progress and fsyncs, so
 calling it every second bounds what a SIGKILL or power cut can lose to that second.
@@ -11,6 +11,13 @@ Who signed each message: an MCAP channel per (topic, type, signer), whose metada
 ``signer`` is the sender id (16 hex digits) of the process that signed it; each finished
 file gets a ``u2sa_signers`` metadata record naming, per signer, the header sources it
 signed as (``gps``, ``u2sa-cli-1234``). See docs/recording.md.
+
+The pilot's messages (RC_MODE, MANUAL_CMD) keep their 88-byte Ed25519 trailer, as they crossed
+the bus, so that a replay can check them later: their MCAP channel's metadata
+``pilot_trailer = "88"`` says that every message's data ends with it, and the ``u2sa`` metadata
+record names the pilot's public key (``pilot_key``, hex) and its id (``pilot_key_id``). Readers
+of :mod:`u2sa_hw.recording.log_reader` get the payload without it (and the trailer apart);
+an LCM decoder of another tool ignores the trailing bytes anyway.
 
 A full disk never leaves a cut file: the summary's space is reserved ahead of the data, and
 after a write error :meth:`McapFile.close` ends the file at its last complete chunk with a
@@ -31,6 +38,7 @@ from mcap.writer import CompressionType, Writer
 
 from u2sa_hw import __version__
 from u2sa_hw.messages import REGISTRY
+from u2sa_hw.recording.log_reader import PILOT_TRAILER_KEY
 from u2sa_hw.recording.mcap_stream import TrackedMcapStream
 from u2sa_hw.recording.schemas import MESSAGE_ENCODING, SCHEMA_ENCODING, schema_text
 
@@ -41,6 +49,9 @@ FOREIGN_PACKETS = {b"lcm self": "lcm_self_test"}
 BUS_METADATA = "u2sa_bus"   # metadata record written as each file is finished (BusCapture.bus_metadata)
 SIGNERS_METADATA = "u2sa_signers"   # signer id -> the header sources it signed as, per file
 SIGNER_KEY = "signer"               # channel metadata: the sender id that signed its messages
+# PILOT_TRAILER_KEY, channel metadata: every message's data ends with this many bytes of the pilot's
+# signature trailer (u2sa_hw.bus_auth.PILOT_TRAILER_LEN), kept so that a replay can check it
+# (u2sa_hw.recording.pilot_check); the readers cut it off (u2sa_hw.recording.log_reader).
 COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
 
@@ -54,13 +65,17 @@ class RunInfo:
     attachments: dict[str, bytes] = field(default_factory=dict)  # name -> file contents
     bus_security: str = ""    # "signed" or "open": what the recorder's transport verified
     bus_key_id: str = ""      # the public id of the key it verified with (never the key)
+    # The pilot's public key (hex) the recorder verified RC_MODE and MANUAL_CMD with, and its id:
+    # a replay checks the kept pilot trailers with it. Empty when it had none (an open bus). Never a private key.
+    pilot_key: str = ""
+    pilot_key_id: str = ""
 
     def metadata(self) -> dict[str, str]:
         """The ``u2sa`` metadata record."""
         return {"vehicle": self.vehicle, "system_id": str(self.system_id), "lcm_url": self.lcm_url,
                 "host": socket.gethostname(), "u2sa_hw_version": __version__,
                 "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "bus_security": self.bus_security,
-                "bus_key_id": self.bus_key_id}
+                "bus_key_id": self.bus_key_id, "pilot_key": self.pilot_key, "pilot_key_id": self.pilot_key_id}
 
 
 def header_source(data: bytes) -> str:
@@ -95,7 +110,7 @@ class McapFile:
         self._stream = TrackedMcapStream(path)
         self._writer = Writer(self._stream, chunk_size=chunk_size, compression=COMPRESSION[compression])
         self._schemas: dict[bytes, int] = {}
-        self._channels: dict[tuple[str, int, str], int] = {}
+        self._channels: dict[tuple[str, int, str, int], int] = {}
         self.signers: dict[str, set[str]] = {}    # signer -> header sources seen from it
         self.messages = 0
         self.lost = 0
@@ -133,16 +148,22 @@ class McapFile:
             self._schemas[fingerprint] = sid
         return sid
 
-    def write(self, channel: str, data: bytes, log_time_ns: int, signer: str = "") -> None:
-        """Append one LCM message (*signer*: the verified sender id that signed it, "" on an open bus)."""
+    def write(self, channel: str, data: bytes, log_time_ns: int, signer: str = "", trailer: int = 0) -> None:
+        """Append one LCM message (*signer*: the verified sender id that signed it, "" on an open bus).
+
+        *trailer*: *data* ends with that many bytes of the pilot's signature trailer (its MCAP
+        channel says so in ``pilot_trailer``); 0: *data* is the payload alone.
+        """
         if self.error is not None:
             raise OSError(self.error.errno, f"{self.path}: not writable after an earlier error ({self.error})")
         try:
             sid = self._schema_id(data[:8]) if len(data) >= 8 else self._schema_id(b"")
-            key = (channel, sid, signer)
+            key = (channel, sid, signer, trailer)
             cid = self._channels.get(key)
             if cid is None:
                 meta = {SIGNER_KEY: signer} if signer else {}
+                if trailer:
+                    meta[PILOT_TRAILER_KEY] = str(trailer)
                 cid = self._writer.register_channel(topic=channel, message_encoding=MESSAGE_ENCODING, schema_id=sid,
                                                     metadata=meta)
                 self._stream.add_summary_record(Channel(id=cid, topic=channel, message_encoding=MESSAGE_ENCODING,
@@ -260,8 +281,9 @@ class McapLogWriter:
         self.files.append(path)
         return McapFile(path, compression=self.compression, chunk_size=self.chunk_size, run=self.run)
 
-    def write(self, channel: str, data: bytes, log_time_ns: int, signer: str = "") -> None:
-        """Append one message (signed by *signer*), rotating first when the current file is full or old."""
+    def write(self, channel: str, data: bytes, log_time_ns: int, signer: str = "", trailer: int = 0) -> None:
+        """Append one message (signed by *signer*; *trailer*: see :meth:`McapFile.write`), rotating first
+        when the current file is full or old."""
         if self.current is None:
             self.current = self._open()
         elif self._due_for_rotation(self.current):
@@ -269,7 +291,7 @@ class McapLogWriter:
             if old.error is not None:
                 raise old.error   # the disk is full: no new file
             self.current = self._open()
-        self.current.write(channel, data, log_time_ns, signer)
+        self.current.write(channel, data, log_time_ns, signer, trailer)
         self.messages += 1
 
     def _due_for_rotation(self, f: McapFile) -> bool:

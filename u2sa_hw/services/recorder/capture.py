@@ -1,7 +1,9 @@
 """Capture from the bus into an MCAP writer without ever blocking the bus.
 
-The LCM handler thread only appends ``(channel, bytes, time, signer)`` to a bounded queue
-(the verified payload and the sender id that signed it, ``Transport.last_sender``); a
+The LCM handler thread only appends ``(channel, bytes, time, signer, trailer)`` to a bounded queue
+(the verified payload and the sender id that signed it, ``Transport.last_sender``; on the
+pilot's channels the whole verified packet, its 88-byte pilot trailer kept, so that a replay
+can check the pilot's signature with the public key the log names); a
 writer thread, which looks at the queue every 10 ms when it is empty instead of being woken
 per message, drains it into :class:`McapLogWriter`, closing a chunk every
 ``flush_interval_s`` and checking the free disk space. A full queue drops the message and
@@ -25,7 +27,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from u2sa_hw.bus_auth import REJECTIONS
+from u2sa_hw.bus_auth import PILOT_TAG, PILOT_TRAILER_LEN, REJECTIONS
+from u2sa_hw.bus_roles import PILOT_CHANNELS
 from u2sa_hw.recording.mcap_log import BUS_METADATA, McapLogWriter
 from u2sa_hw.transport import Transport
 
@@ -73,12 +76,19 @@ class BusCapture:
         # they came from and, in each file, how many packets verification dropped meanwhile.
         writer.run.bus_security = "signed" if transport.auth is not None else "open"
         writer.run.bus_key_id = transport.key_id()
+        # The pilot's messages keep their trailer (Ed25519: checking it needs only the public key, which
+        # the log names), so a replay can tell that the RC mux signed every recorded RC_MODE and MANUAL_CMD.
+        verifier = transport.auth.keyring.pilot_verifier() if transport.auth is not None else None
+        self._keep_pilot = verifier is not None
+        if verifier is not None:
+            writer.run.pilot_key = verifier.public.hex()
+            writer.run.pilot_key_id = verifier.id.hex()
         writer.closing_metadata = self.bus_metadata
         self.flush_interval = min(1.0, max(0.05, flush_interval_s))
         self.min_free = min_free_mb * 1e6
         self.disk_usage = disk_usage
         self.stats = CaptureStats()
-        self._queue: queue.Queue[tuple[str, bytes, int, str] | None] = queue.Queue(maxsize=queue_size)
+        self._queue: queue.Queue[tuple[str, bytes, int, str, int] | None] = queue.Queue(maxsize=queue_size)
         self._finish = threading.Event()   # stop() asked: write what is queued, then finish the file
         self._lost_seen = 0                # writer.lost already moved from written to dropped
         self._cuts_seen = 0                # writer.cut_short lines already reported
@@ -97,8 +107,13 @@ class BusCapture:
         if not self.wanted(channel):
             self.stats.filtered += 1
             return
+        trailer = 0
+        if self._keep_pilot and channel in PILOT_CHANNELS:
+            packet = self.transport.packet   # verified: the transport checked the pilot's signature
+            if len(packet) == len(data) + PILOT_TRAILER_LEN and packet.endswith(PILOT_TAG):
+                data, trailer = packet, PILOT_TRAILER_LEN
         try:
-            self._queue.put_nowait((channel, data, time.time_ns(), self.transport.last_sender))
+            self._queue.put_nowait((channel, data, time.time_ns(), self.transport.last_sender, trailer))
         except queue.Full:
             self.stats.dropped += 1
 
@@ -188,9 +203,9 @@ class BusCapture:
             if item is None:
                 break
             if item:
-                channel, data, t_ns, signer = item
+                channel, data, t_ns, signer, trailer = item
                 try:
-                    self.writer.write(channel, data, t_ns, signer)
+                    self.writer.write(channel, data, t_ns, signer, trailer)
                 except OSError as exc:
                     self.stats.dropped += 1   # this message: in no file
                     self._halt(f"cannot write {self.writer.directory}: {exc}; recording stopped")
