@@ -356,11 +356,14 @@ def _at_system_change(stream: list[Sample], index: int, system: tuple[str, ...])
 def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[str], start_ns: int | None = None,
                  end_ns: int | None = None, rate: float | None = 1.0, tolerance: ToleranceLike = 1e-6, edge: int = 1,
                  time_tolerance_s: float = 0.5, ignore: tuple[str, ...] = (),
-                 replay_start_ns: int | None = None) -> "CompareReport":
+                 replay_start_ns: int | None = None, pilot: Any = None) -> "CompareReport":
     """Compare the streams of *services* in *recorded* (within the window) and *replayed*; ``rate=None``: no timing.
 
     *replay_start_ns*: the wall-clock time the playback began (log time *start_ns* was played
     then); with a rate and the window it lets state channels be compared over time.
+    *pilot*: the check of the recorded pilot messages (u2sa_hw.recording.pilot_check.PilotCheck,
+    ``ReplayResult.pilot``): reported, and a message that fails it is a finding.
+    The recorded pilot trailers never reach the comparison (the log reader cuts them off).
     """
     from hil.compare_report import CompareReport
     from hil.compare_states import compare_states
@@ -386,4 +389,4 @@ def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[st
             r.problems.clear()
             r.notes.append("the recording has nothing from this service to compare with")
     origin = start_ns if start_ns is not None else min((v[0].t_ns for v in rec.values() if v), default=0)
-    return CompareReport(Path(recorded), Path(replayed), reports, tol, rate is not None, origin)
+    return CompareReport(Path(recorded), Path(replayed), reports, tol, rate is not None, origin, pilot)

@@ -2,6 +2,9 @@
 
 Times in the report are seconds from the start of the compared window of the recording
 (its first message), so a difference can be found in the log with ``u2sa log echo``.
+
+The check of the recorded pilot messages (u2sa_hw.recording.pilot_check) is a line of the report
+and a finding when a message fails it: the comparison is then not OK, whatever the streams say.
 """
 
 from __future__ import annotations
@@ -38,18 +41,26 @@ class CompareReport:
     tolerance: Tolerances
     timed: bool
     origin_ns: int = 0          # log time of the window's first recorded message: report times count from it
+    pilot: Any = None           # u2sa_hw.recording.pilot_check.PilotCheck of the recording (None: not checked)
 
     @property
     def ok(self) -> bool:
-        """True when no stream differs."""
-        return all(s.ok for s in self.streams)
+        """True when no stream differs and no recorded pilot message fails its signature check."""
+        return all(s.ok for s in self.streams) and (self.pilot is None or self.pilot.ok)
+
+    def summary(self) -> str:
+        """One line for a CI log: ``compare: OK 6 streams ...`` or what differs, stream by stream; a recorded
+        pilot message that fails its signature check comes first."""
+        line = self._streams_summary()
+        if self.pilot is None or self.pilot.ok:
+            return line
+        return f"compare: DIFFERENT: {self.pilot.short()}; streams: {line.removeprefix('compare: ')}"
 
     def seconds(self, t_ns: int | None) -> float | None:
         """*t_ns* as seconds into the compared window."""
         return None if t_ns is None else (t_ns - self.origin_ns) / 1e9
 
-    def summary(self) -> str:
-        """One line for a CI log: ``compare: OK 6 streams ...`` or what differs, stream by stream."""
+    def _streams_summary(self) -> str:
         bad = [s for s in self.streams if not s.ok]
         totals = (sum(s.matched for s in self.streams), sum(s.differing for s in self.streams),
                   sum(s.inserted for s in self.streams), sum(s.deleted for s in self.streams))
@@ -93,6 +104,8 @@ class CompareReport:
                 lines.append(f"    ... and {len(s.fields) - SHOWN_FIELDS} more fields")
             for note in s.notes:
                 lines.append(f"  {s.key}: note: {note}")
+        if self.pilot is not None:
+            lines.append(self.pilot.line())
         lines.append(self.summary())
         return "\n".join(lines)
 
@@ -103,6 +116,7 @@ class CompareReport:
             "tolerance": {"default": self.tolerance.default, "fields": self.tolerance.fields,
                           "ignore": list(self.tolerance.ignore)},
             "summary": self.summary(),
+            "pilot": None if self.pilot is None else self.pilot.to_dict(),
             "streams": [{
                 "stream": s.key, "ok": s.ok, "recorded": s.recorded, "replayed": s.replayed, "matched": s.matched,
                 "different": s.differing, "inserted": s.inserted, "deleted": s.deleted,

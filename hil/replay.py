@@ -6,7 +6,9 @@ overrides) -> a private run directory and LCM URL (a replay never talks to a liv
 ``ttl=0`` and a port of its own) -> replay devices at the addresses written into the
 drivers' configs -> capture of the replay bus into the output log (the recorder's
 BusCapture) -> the services as supervised processes (the launcher) -> wait until every
-driver has opened its device -> play (hil/player.py) -> let the last outputs arrive -> stop.
+driver has opened its device -> play (hil/player.py) -> let the last outputs arrive -> stop
+-> check the recorded pilot messages (RC_MODE, MANUAL_CMD) of the window with the pilot's public
+key the log names (u2sa_hw.recording.pilot_check; ``ReplayResult.pilot``).
 """
 
 from __future__ import annotations
@@ -77,6 +79,7 @@ class ReplayResult:
     dropped: int
     devices: dict[str, dict[str, Any]]
     run_dir: Path | None
+    pilot: Any = None                      # u2sa_hw.recording.pilot_check.PilotCheck of the replayed window
 
     def summary(self, *, fast: bool, rate: float) -> str:
         """The one-line summary printed at the end."""
@@ -313,6 +316,16 @@ class Replay:
                                                               if self.plan.devices[d].service]}}).encode()
         return out
 
+    def check_pilot(self) -> Any:
+        """The recorded pilot messages of the window checked with the log's recorded pilot key (PilotCheck)."""
+        from u2sa_hw.recording.log_reader import LogError
+        from u2sa_hw.recording.pilot_check import PilotCheck, check_log
+
+        try:
+            return check_log(self.plan.log, start_ns=self.plan.start_ns, end_ns=self.plan.end_ns)
+        except LogError as exc:   # the log was read to plan the replay: only a file changed meanwhile
+            return PilotCheck(note=f"cannot read the log ({exc})")
+
     # -- the run -----------------------------------------------------------------------------------
     def run(self) -> ReplayResult:
         """Replay; ReplayError (or ReplayStalled) with the reason on failure."""
@@ -396,7 +409,8 @@ class Replay:
             received = sum(self._received.values())
             lost = max(0, sum(self._published.values()) - received)
             return ReplayResult(self.plan, self.out, stats, startup_s, received, lost, s.written, s.dropped,
-                                {n: d.report() for n, d in devices.items()}, self.run_dir if keep else None)
+                                {n: d.report() for n, d in devices.items()}, self.run_dir if keep else None,
+                                self.check_pilot())
         except BaseException:
             keep = True
             raise

@@ -6,6 +6,7 @@ which finds no differences: every stream, the RC mux's RC_MODE and MANUAL_CMD in
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 from dataclasses import dataclass
@@ -111,6 +112,8 @@ def test_sim_record_writes_a_complete_log_of_the_run(recordings: SimRecordings) 
 # a loaded machine took 100 ms to deliver is two more than the recording holds, so three at each end of a
 # stream are not counted against the replay (u2sa replay --edge; the default is one).
 EDGE = 3
+# Every recorded RC_MODE and MANUAL_CMD kept its pilot signature, and the replay checked it with the recorded key.
+PILOT_CHECKED = re.compile(r"pilot messages: [1-9]\d* checked with the recorded pilot key [0-9a-f]{8}, all signed")
 
 def assert_every_stream_the_same(res: subprocess.CompletedProcess, log: Path) -> None:
     """The replay ran and compared, and every stream is the same: the RC mux's RC_MODE and MANUAL_CMD too
@@ -146,6 +149,7 @@ def test_killed_recorder_log_recovers_and_replays_with_no_differences(recordings
     res = cli("replay", str(fixed), "--fast", "--compare", "--edge", str(EDGE), "-o", str(work / "replayed.mcap"),
               cwd=work, timeout=240)
     assert_every_stream_the_same(res, fixed)
+    assert PILOT_CHECKED.search(res.stdout), res.stdout   # u2sa log recover keeps the trailers and the key
     compared = {line.split(" [", 1)[1].split("]", 1)[0] for line in res.stdout.splitlines() if " [" in line
                 and line.rstrip().endswith("same")}
     assert DRIVERS <= compared, res.stdout
@@ -159,6 +163,7 @@ def test_the_simulations_own_recording_replays_with_no_differences(recordings: S
     res = cli("replay", str(files[0]), "--fast", "--compare", "--edge", str(EDGE),
               "-o", str(work / "sim-replayed.mcap"), cwd=work, timeout=240)
     assert_every_stream_the_same(res, files[0])
+    assert PILOT_CHECKED.search(res.stdout), res.stdout
     compared = {line.split(" [", 1)[1].split("]", 1)[0] for line in res.stdout.splitlines() if " [" in line
                 and line.rstrip().endswith("same")}
     assert DRIVERS <= compared, res.stdout

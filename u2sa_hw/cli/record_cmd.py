@@ -165,6 +165,7 @@ def cmd_info(args: Any) -> int:
     meta = c.metadata.get("u2sa", {})
     bus = bus_summary(meta, c.metadata.get(BUS_METADATA))
     bus["signers"] = c.metadata.get(SIGNERS_METADATA, {})
+    bus["pilot"] = pilot_summary(meta, c)
     rows = [{"channel": s.channel, "type": s.type_name, "count": s.count,
              "rate_hz": s.count / summary.duration_s if summary.duration_s else 0.0} for s in summary.channels]
     if args.json:
@@ -179,6 +180,7 @@ def cmd_info(args: Any) -> int:
           f"{meta.get('host', '?')}, started {meta.get('started', '?')}")
     print(f"duration:    {summary.duration_s:.1f} s, {summary.messages} messages")
     print(f"bus:         {bus['text']}")
+    print(f"pilot:       {bus['pilot']['text']}")
     if bus["signers"]:
         print(f"signers:     {len(bus['signers'])} (" + "; ".join(f"{sig} {who or '?'}" for sig, who in
                                                         bus["signers"].items()) + ")")
@@ -209,6 +211,22 @@ def bus_summary(meta: dict[str, str], record: dict[str, str] | None) -> dict[str
             text += f": {record['by_channel']}"
     return {"security": security or None, "dropped": dropped, "by_channel": (record or {}).get("by_channel", ""),
             "text": text}
+
+
+def pilot_summary(meta: dict[str, str], contents: Any) -> dict[str, Any]:
+    """The pilot's recorded public key and the channels whose messages keep its signature trailer."""
+    from u2sa_hw.recording.log_reader import trailer_length
+    from u2sa_hw.recording.pilot_check import PILOT_KEY, PILOT_KEY_ID, recorded_verifier
+
+    kept = sorted({ch.topic for ch in contents.channels.values() if trailer_length(ch)})
+    key_id = meta.get(PILOT_KEY_ID, "")
+    if meta.get(PILOT_KEY):
+        text = f"key {key_id or '?'}; " + (f"messages of {', '.join(kept)} kept with their signatures "
+                                            "(u2sa replay checks them)" if kept else
+                                            "no pilot message recorded with its signature")
+    else:
+        text = recorded_verifier({"u2sa": meta})[1]
+    return {"key": meta.get(PILOT_KEY, "") or None, "key_id": key_id or None, "signed_channels": kept, "text": text}
 
 
 def cmd_echo(args: Any) -> int:

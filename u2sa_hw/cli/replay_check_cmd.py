@@ -18,6 +18,9 @@ progress line per log, then one summary table. Use it as a regression gate on a 
 field logs (docs/replay.md has a sample CI job): record with record_raw = true, keep the
 logs that matter in a directory, run this on every change.
 
+Each log's recorded pilot messages (RC_MODE, MANUAL_CMD) are checked with the pilot's public
+key the log names, as u2sa replay does: a message that fails the check makes the log DIFFERENT.
+
 Logs recorded without a vehicle profile (u2sa record without --vehicle) carry no
 vehicle.toml: give the profile with --vehicle FILE, used for every log of the run (as
 u2sa replay --vehicle does for one).
@@ -104,7 +107,7 @@ def _replay_and_compare(log: Path, out: Path, args: Any, tolerances: Any, began:
                           start_ns=result.plan.start_ns, end_ns=result.plan.end_ns,
                           rate=None if fast else args.rate, tolerance=tolerances, edge=args.edge,
                           time_tolerance_s=args.time_tolerance, ignore=tuple(args.ignore),
-                          replay_start_ns=result.play.started_ns or None)
+                          replay_start_ns=result.play.started_ns or None, pilot=result.pilot)
     duration = (result.plan.end_ns - result.plan.start_ns) / 1e9 if result.plan.end_ns else 0.0
     return LogResult(log, "same" if report.ok else "DIFFERENT", time.monotonic() - began, duration,
                      report.summary(), report.to_dict())

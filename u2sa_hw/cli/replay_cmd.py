@@ -16,6 +16,11 @@ log's own config, the recorded bytes/frames/register reads/edges are played into
 mocks with the original timing, and what the services publish is recorded to --out.
 --compare then checks the replayed outputs against the recorded ones.
 
+Every recorded pilot message (RC_MODE, MANUAL_CMD) of the replayed window is checked with
+the pilot's public key the log names: "pilot messages: 412 checked with the recorded pilot
+key 3ec94b6c, all signed", or how many fail (with --compare a failure is a difference), or
+a note when the log has no pilot signatures (recorded before they existed, or on an open bus).
+
 Exit status: 0 when the replay ran (and, with --compare, nothing differs); 1 when
 --compare found a difference; 2 when the replay could not run or failed (a damaged or
 unreplayable log, a bad option or --set, a service that died or never opened its device).
@@ -107,6 +112,8 @@ def cmd_replay(args: Any) -> int:
         raise CliError(f"{exc}\n(replay files kept in {replay.run_dir})", failed) from None
     out = sys.stderr if args.json else sys.stdout   # --json keeps stdout for the JSON alone
     print(result.summary(fast=replay.fast, rate=replay.rate), file=out)
+    if result.pilot is not None and (args.json or not args.compare):   # else it is a line of the comparison
+        print(result.pilot.line(), file=out)
     for name, report in result.devices.items():
         if report.get("divergences"):
             print(f"u2sa: note: device {name}: {report.get('divergence', 'diverged from the recording')}",
@@ -119,7 +126,7 @@ def cmd_replay(args: Any) -> int:
                           start_ns=result.plan.start_ns, end_ns=result.plan.end_ns,
                           rate=None if replay.fast else replay.rate, tolerance=tolerances, edge=args.edge,
                           time_tolerance_s=args.time_tolerance, ignore=tuple(args.ignore),
-                          replay_start_ns=result.play.started_ns or None)
+                          replay_start_ns=result.play.started_ns or None, pilot=result.pilot)
     if args.json:
         print(json.dumps(report.to_dict(), indent=1))
     else:
