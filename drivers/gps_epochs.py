@@ -16,7 +16,10 @@ The rules, in order (docs/drivers-serial.md lists them beside gpsd's):
    least ``learn_span_s`` of wall time (two epochs at least), that content is *expected*
    and an epoch that holds all of it ends with its last sentence, without waiting for the
    silence. Epochs whose content varies within that span (a 1 Hz RMC among 10 Hz GGA)
-   are never learned: they end by rules 1-3.
+   are never learned: they end by rules 1-3. The span is of *consecutive* epochs: every
+   epoch handed out, the ones that end on completion included, continues or restarts it,
+   so two bursts cut at the same point by silences seconds apart, with whole epochs
+   between them, are never learned as the receiver's content.
 5. *Supplements, never a second fix.* A sentence that belongs to an epoch already handed
    out -- the ended epoch's time and a talker and kind it did not hold, or no time right
    after an epoch that ended on completion -- opens a *supplement* epoch
@@ -27,6 +30,13 @@ The rules, in order (docs/drivers-serial.md lists them beside gpsd's):
    no epoch pending belongs to the preceding epoch, never to the following one; so do
    sentences without a time that never meet one (a GSA alone between two silences), and
    an epoch that began without a time and then meets the published epoch's time.
+6. *A timeless no-fix sentence never opens the next epoch.* A sentence of a kind that
+   carries a time, sent with its time empty (``$GPGLL,,,,,,V,N``: the receiver has no
+   solution for it), that finds no epoch pending belongs to the preceding epoch when that
+   epoch did not hold its talker and kind (the rest of a burst cut by a silence, like an
+   HDT); else it opens an epoch of its own. Either way a sentence with a time ends that
+   epoch: it is never the start of the next one, whose own sentence of that kind would
+   then split it in two.
 """
 
 from __future__ import annotations
@@ -39,6 +49,7 @@ from drivers.nmea_fields import Epoch, Sentence, utc_time
 
 Key = tuple[str, str]   # (talker, kind)
 GPS_REPEATABLE = frozenset({"GSA", "GSV", "TXT", "ZDA"})
+TIMED_KINDS = frozenset({"GGA", "GNS", "RMC", "GLL", "GST", "ZDA"})   # kinds whose sentences carry a UTC time
 LEARN_SPAN_S = 2.0
 MAX_EPOCH_SENTENCES = 64   # more in one epoch is no receiver's output (a flood of one repeatable kind): end it
 
@@ -56,11 +67,13 @@ class GpsEpochCollector:
     """Groups parsed GNSS sentences into epochs (rules in the module docstring)."""
 
     def __init__(self, *, end_on_complete: bool = True, learn_span_s: float = LEARN_SPAN_S,
-                 repeatable: frozenset[str] = GPS_REPEATABLE) -> None:
+                 repeatable: frozenset[str] = GPS_REPEATABLE, timed: frozenset[str] = TIMED_KINDS) -> None:
         self.end_on_complete = end_on_complete
         self.learn_span_s = learn_span_s
         self.repeatable = repeatable
+        self.timed = timed
         self._pending: Epoch | None = None
+        self._void = False   # the pending epoch has no time yet and holds a timed kind sent without one (rule 6)
         self._keys: Counter[Key] = Counter()
         self._ended: _Ended | None = None
         self._run: tuple[Counter[Key], float] | None = None   # the content of the latest epochs, alike since
@@ -90,23 +103,33 @@ class GpsEpochCollector:
         if cur is not None and self._starts_new(cur, key, when):
             done.append(self._end(cur))
             cur = None
+        void = when is None and key[1] in self.timed
         if cur is None:
-            cur = self._open(key, when, received)
+            cur = self._open(key, when, received, void)
         if cur.time is None and when is not None:
             cur.time = when
             cur.supplement = cur.supplement or self._belongs_to_ended(when, {*self._keys, key})
+        elif void:
+            self._void = cur.time is None
         cur.sentences.append(sentence)
         self._keys[key] += 1
         if not cur.supplement and self._complete():
             self._ended = _Ended(cur.time, frozenset(self._keys), True)
             self._pending, self._keys = None, Counter()
             self.completed += 1
+            expected, run = self.expected, self._run
+            if run is None or run[0] is not expected:
+                # a whole epoch after another content (a burst cut by a silence): the span of alike
+                # epochs starts again here, so a cut seconds ago is never learned as complete (rule 4)
+                self._run = (expected, cur.received)  # type: ignore[assignment]
             done.append(cur)
         return done
 
     def _starts_new(self, cur: Epoch, key: Key, when: dt.time | None) -> bool:
         if when is not None and cur.time is not None and when != cur.time:
             return True
+        if when is not None and cur.time is None and self._void:
+            return True   # a timeless no-fix sentence (rule 6) never opens the epoch of the next time
         if len(cur.sentences) >= MAX_EPOCH_SENTENCES:
             return True
         if key[1] in self.repeatable:
@@ -115,14 +138,15 @@ class GpsEpochCollector:
         ended = self._ended
         return key in self._keys or (cur.supplement and ended is not None and key in ended.keys)
 
-    def _open(self, key: Key, when: dt.time | None, received: float) -> Epoch:
+    def _open(self, key: Key, when: dt.time | None, received: float, void: bool) -> Epoch:
         ended = self._ended
         supplement = False
+        self._void = void
         if ended is not None and (key not in ended.keys or key[1] in self.repeatable):
             if when is not None:
                 supplement = when == ended.time
             else:
-                supplement = ended.early or key[1] == "HDT"
+                supplement = ended.early or void or key[1] == "HDT"
         if supplement:
             self.late += 1
             if ended is not None and ended.early:
@@ -200,5 +224,6 @@ class GpsEpochCollector:
     def reset(self) -> None:
         """Drop the pending epoch and everything learned (the port was lost or reopened)."""
         self._pending, self._keys, self._ended, self._run = None, Counter(), None, None
+        self._void = False
         self.expected = None
         self.varying = False
