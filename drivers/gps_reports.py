@@ -6,11 +6,13 @@ its kind added to ``rejects``). ``drivers.gps_fix`` then merges the reports of o
 
 The status of a report follows the sentence's own indicators:
 
-- GGA quality 1-5 (GPS, DGPS, PPS, RTK fixed, RTK float) is ``gnss``, with at least 3
-  satellites in use (gpsd's rule: fewer, or an empty count, is no fix); 6 is ``dr`` (dead
-  reckoning), 7 ``manual``, 8 ``simulator``, 0 or anything else ``none``.
-- GNS: a mode letter per constellation; any of A, D, P, R, F is ``gnss`` (again with 3
-  satellites at least), else E ``dr``, S ``simulator``, M ``manual``, else ``none``.
+- GGA quality 1-5 (GPS, DGPS, PPS, RTK fixed, RTK float) is ``gnss``, unless it counts
+  fewer than 3 satellites in use (gpsd's rule). An empty count is *unknown*, not zero: the
+  quality decides (some receivers never fill the field; gpsd reads it as 0, no fix). A
+  count outside its range is no fix (fail safe). 6 is ``dr`` (dead reckoning), 7
+  ``manual``, 8 ``simulator``, 0 or anything else ``none``.
+- GNS: a mode letter per constellation; any of A, D, P, R, F is ``gnss`` (again unless
+  it counts fewer than 3 satellites), else E ``dr``, S ``simulator``, M ``manual``, else ``none``.
 - RMC and GLL: mode indicator E is ``dr``, S ``simulator``, M ``manual``, N ``none``;
   otherwise status A with a mode of A, D, P, R, F or none (NMEA before 2.3) is ``gnss``;
   status V, or a mode letter not defined for a fix (Quectel's C caution, U unsafe), is
@@ -28,7 +30,7 @@ POSITION_KINDS = ("GGA", "GNS", "RMC", "GLL")    # in the order of preference fo
 GGA_STATUS = {1: "gnss", 2: "gnss", 3: "gnss", 4: "gnss", 5: "gnss", 6: "dr", 7: "manual", 8: "simulator"}
 FIX_MODES = frozenset("ADPRF")
 MODE_STATUS = {"E": "dr", "S": "simulator", "M": "manual", "N": "none"}
-MIN_SATELLITES = 3            # fewer in use: no fix (gpsd)
+MIN_SATELLITES = 3            # fewer in use: no fix (gpsd); an empty count is unknown, not 0
 MIN_SATELLITES_3D = 4
 # where the latitude field is among each sentence's fields (longitude two further on)
 _LAT_FIELD = {"GGA": 1, "GNS": 1, "RMC": 2, "GLL": 0}
@@ -142,6 +144,7 @@ def read_report(sentence: Sentence) -> PositionReport:
         rep.hdop = dop(num(msg, "HDOP", "hdop", rejects), "hdop", rejects)
         rep.alt_msl = checked(num(msg, "alt", "altitude", rejects), lim.ALT_M, "altitude", rejects)
         rep.geoid_sep = checked(num(msg, "sep", "geoid separation", rejects), lim.GEOID_SEP_M, "geoid separation", rejects)
-        if rep.status == "gnss" and (rep.satellites or 0) < MIN_SATELLITES:
-            rep.status = "none"
+        if rep.status == "gnss" and (rep.satellites < MIN_SATELLITES if rep.satellites is not None
+                                     else "satellites" in rejects):
+            rep.status = "none"   # too few satellites (an empty count is unknown: the quality decides)
     return rep

@@ -73,9 +73,10 @@ def test_gll_alone_gives_a_2d_fix_with_its_time() -> None:
 
 
 # ------------------------------------------------------------------ 3: satellites -----------------
-@pytest.mark.parametrize(("sats", "name"), [("00", "no fix"), ("02", "no fix"), ("", "no fix"), ("03", "2D"),
+@pytest.mark.parametrize(("sats", "name"), [("00", "no fix"), ("02", "no fix"), ("", "2D"), ("03", "2D"),
                                             ("04", "3D")])
 def test_gga_with_fewer_than_three_satellites_is_no_fix_and_three_is_2d(sats: str, name: str) -> None:
+    """An empty count is unknown, not zero (issue 24 (b)): the quality decides, 2-D without a GSA saying 3-D."""
     fix = fix_from_epoch(epoch(gga(SOL, sats=sats)))
     assert fix.fix_name == name
     assert (state_from_fix(fix, settings()) is None) == (name == "no fix")
