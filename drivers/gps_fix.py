@@ -21,7 +21,10 @@ Merging the sentences of one epoch (one UTC time):
   GGA with 4); altitude, satellites and HDOP of the primary.
 - *dimension*: 3-D when the primary has an altitude and either at least 4 satellites in
   use (gpsd's rule) or a GSA says 3-D; a GSA saying 2-D does not take the altitude away
-  from such a GGA (gpsd keeps 3-D). Otherwise 2-D: no altitude is published.
+  from a GGA with 4 satellites. Otherwise 2-D: no altitude is published (an epoch without
+  GGA or GNS; an altitude with 3 satellites, or an empty count, and no GSA saying 3-D).
+  ``GpsFix.fix_rule`` names the rule that gave the fix mode (the ``RULE_*`` texts below;
+  docs/drivers-serial.md has the policy beside gpsd's, and why it differs).
 - *geoid*: the receiver's geoid separation, else the built-in EGM96 table
   (``drivers.geoid``), so the ellipsoid height is right with any receiver.
 - *velocity*: speed and course are separate fields: speed from RMC, else VTG (knots,
@@ -52,6 +55,19 @@ KNOT_MPS = 1852.0 / 3600.0
 GGA_QUALITY = {0: "invalid", 1: "gps", 2: "dgps", 3: "pps", 4: "rtk", 5: "float rtk", 6: "dead reckoning",
                7: "manual", 8: "simulator"}
 STATUS_NAMES = {"dr": "DR", "simulator": "simulator", "manual": "manual"}
+# Which rule gave an epoch its fix mode (GpsFix.fix_rule; health ``fix_rule``). 3-D:
+RULE_3D_SATELLITES = "altitude, 4+ satellites"
+RULE_3D_OVER_GSA_2D = "altitude, 4+ satellites over a GSA saying 2D"
+RULE_3D_GSA = "altitude, a GSA saying 3D"
+# 2-D (no altitude published):
+RULE_2D_NO_GGA = "no GGA or GNS (no altitude)"
+RULE_2D_NO_ALTITUDE = "GGA/GNS without altitude"
+RULE_2D_FEW_SATELLITES = "altitude with under 4 satellites, no GSA saying 3D"
+RULE_2D_UNKNOWN_SATELLITES = "altitude with no satellite count, no GSA saying 3D"
+# no fix (or dead reckoning, simulator, manual: no position published):
+RULE_NONE_GGA = "GGA/GNS quality, mode or under 3 satellites"
+RULE_NONE_STATUS = "RMC/GLL status or mode"
+RULE_NONE_GSA = "every GSA says no fix"
 VELOCITY_INVALID_MODES = frozenset("NESM")
 POSITION_FRAMES = ("NED", "GEODETIC")
 ALTITUDE_DATUMS = ("msl", "ellipsoid")
@@ -66,6 +82,7 @@ class GpsFix:
     reported: bool = False               # the epoch held a position sentence (else it says nothing of the fix)
     quality: int | None = None           # GGA quality (None without GGA)
     fix_dim: int = 0                     # 0 no fix, 2, 3
+    fix_rule: str = ""                   # the rule that gave fix_dim / status (a RULE_* text; "" says nothing)
     lat: float | None = None             # degrees
     lon: float | None = None
     alt_msl: float | None = None         # m above the geoid (GGA/GNS altitude)
@@ -134,9 +151,13 @@ def _position(epoch: Epoch, fix: GpsFix) -> None:
         statuses = {r.status for r in reports}
         fix.status = next((s for s in ("dr", "simulator", "manual") if s in statuses), "none")
         fix.satellites = next((r.satellites for r in reports if r.satellites is not None), None)
+        if reports:
+            fix.fix_rule = RULE_NONE_GGA if rich else RULE_NONE_STATUS
         return
     primary = max(fixes, key=PositionReport.richness)   # max keeps the first of equals: arrival order
     fix.has_fix, fix.status = True, "gnss"
+    if primary.kind in ("RMC", "GLL"):
+        fix.fix_rule = RULE_2D_NO_GGA   # the richest fix sentence has no altitude field: no GGA or GNS
     fix.quality = primary.quality if primary.kind == "GGA" else fix.quality
     fix.lat, fix.lon = _finer_position(primary, fixes)
     fix.alt_msl, fix.satellites = primary.alt_msl, primary.satellites
@@ -156,17 +177,26 @@ def _dilution(epoch: Epoch, fix: GpsFix) -> None:
         fix.pdop = fix.pdop if fix.pdop is not None else dop(num(g, "PDOP", "pdop", fix.rejects), "pdop", fix.rejects)
         fix.hdop = fix.hdop if fix.hdop is not None else dop(num(g, "HDOP", "hdop", fix.rejects), "hdop", fix.rejects)
         fix.vdop = fix.vdop if fix.vdop is not None else dop(num(g, "VDOP", "vdop", fix.rejects), "vdop", fix.rejects)
-    if fix.has_fix and modes and max(modes) == 1:
+    gsa_mode = max(modes) if modes else 0
+    if fix.has_fix and gsa_mode == 1:
         fix.has_fix, fix.status = False, "none"     # the receiver says no fix in every GSA: fail safe
+        fix.fix_rule = RULE_NONE_GSA
     if not fix.has_fix:
         fix.fix_dim = 0
         fix.lat = fix.lon = fix.alt_msl = fix.geoid_sep = None
         fix.geoid_source = ""
         return
-    enough = (fix.satellites or 0) >= MIN_SATELLITES_3D or (bool(modes) and max(modes) == 3)
-    fix.fix_dim = 3 if fix.alt_msl is not None and enough else 2
-    if fix.fix_dim != 3:
-        fix.alt_msl = None
+    # the fix mode (docs/drivers-serial.md, "Fix mode"): 3-D needs an altitude and either 4 satellites
+    # or the receiver's GSA saying 3-D; else 2-D, and the altitude is not published
+    if fix.alt_msl is None:
+        fix.fix_dim, fix.fix_rule = 2, fix.fix_rule or RULE_2D_NO_ALTITUDE
+    elif fix.satellites is not None and fix.satellites >= MIN_SATELLITES_3D:
+        fix.fix_dim, fix.fix_rule = 3, RULE_3D_OVER_GSA_2D if gsa_mode == 2 else RULE_3D_SATELLITES
+    elif gsa_mode == 3:
+        fix.fix_dim, fix.fix_rule = 3, RULE_3D_GSA
+    else:
+        fix.fix_dim, fix.alt_msl = 2, None
+        fix.fix_rule = RULE_2D_UNKNOWN_SATELLITES if fix.satellites is None else RULE_2D_FEW_SATELLITES
 
 
 def _velocity(epoch: Epoch, fix: GpsFix) -> None:

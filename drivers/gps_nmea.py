@@ -206,6 +206,9 @@ class GpsNmeaDriver(SerialLineSensor):
         if (old is not None and old.has_fix) != fix.has_fix:
             self.logger.info("%s: %s", self.name, f"{fix.fix_name} fix" if fix.has_fix else f"lost the fix "
                              f"({fix.fix_name})")
+        if old is None or fix.fix_rule != old.fix_rule or fix.fix_name != old.fix_name:
+            # which rule gave the fix mode (docs/drivers-serial.md, "Fix mode"), once per change
+            self.logger.debug("%s: %s by rule: %s", self.name, fix.fix_name, fix.fix_rule)
         if old is None or fix.fix_name != old.fix_name:
             # The pre-arm GPS check reads the fix type from health: say a change now, not at the next interval.
             self.publish_health()
@@ -255,6 +258,8 @@ class GpsNmeaDriver(SerialLineSensor):
         details: dict[str, Any] = {
             "fix": bool(fix and fix.has_fix),
             "fix_type": fix.fix_name if fix else ("no fix" if self.fix is not None else "no data"),
+            "fix_rule": fix.fix_rule if fix else ("no position sentence for stale_after_s"
+                                                  if self.fix is not None else ""),
             "h_sigma_m": _show(horizontal_sigma(fix, self.config.get("uere_m")) if fix else None, ".2f"),
             "fix_quality": "" if quality is None else f"{quality} ({GGA_QUALITY.get(quality, 'unknown')})",
             "satellites": _show(fix.satellites if fix else None),
