@@ -3,7 +3,9 @@
 Each subcommand lives in its own module with a ``register(subparsers)`` function;
 ``COMMAND_MODULES`` lists them (modules outside ``u2sa_hw`` -- mocks, replay -- are
 imported only when their command runs, so ``u2sa_hw`` stays free of them).
-Errors are one line on stderr (``u2sa: ...``) with a non-zero exit status.
+Errors are one line on stderr (``u2sa: ...``) with a non-zero exit status, never a traceback
+(a missing bus key or profile included). A command whose reader goes away (``u2sa echo X |
+head -3``) exits at once and quietly with status 141, as a process killed by SIGPIPE would.
 """
 
 from __future__ import annotations
@@ -36,12 +38,12 @@ COMMAND_MODULES = [
 
 EPILOG = """\
 examples:
-  u2sa service state_estimator --vehicle examples/ground_vehicle/vehicle.toml
+  u2sa service estimator --vehicle examples/ground_vehicle/vehicle.toml
   u2sa services                      list live services (discovery)
   u2sa topics                        channels seen on the bus with rate and bandwidth
   u2sa echo STATE_ESTIMATE --count 1 --json
   u2sa pub STATE_INFO StateInformation sensor_name=test x=1.5 psi=0.3
-  u2sa param list state_estimator    a service's config; param set changes and persists it
+  u2sa param list estimator          a service's config; param set changes and persists it
   u2sa mission status                the mission and its current goal; goto/skip/restart/upload change it
   u2sa failsafe raise                every actuator neutral now; status shows who holds one, clear lowers it
   u2sa stop --all
@@ -86,14 +88,51 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
-        return int(args.func(args) or 0)
+        status = int(args.func(args) or 0)
+        sys.stdout.flush()   # here, not at exit, so a reader gone before the last line is seen below
+        return status
     except CliError as exc:
         print(f"u2sa: {exc}", file=sys.stderr)
         return exc.code
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:
-        return 0
+        return output_closed()
     except (OSError, ValueError, LookupError) as exc:
         print(f"u2sa: {exc}", file=sys.stderr)
         return 1
+    except RuntimeError as exc:
+        if not _user_facing(exc):
+            raise
+        print(f"u2sa: {exc}", file=sys.stderr)
+        return 1
+
+
+# Errors whose text is the whole story for a user (a missing or unreadable bus key, a bus that cannot
+# open): one line, as a CliError, wherever they are raised. Named by module so none is imported here.
+USER_FACING_ERRORS = (("u2sa_hw.transport", "TransportError"), ("u2sa_hw.bus_key", "BusKeyError"))
+
+
+def _user_facing(exc: BaseException) -> bool:
+    classes = [getattr(sys.modules.get(module), name, None) for module, name in USER_FACING_ERRORS]
+    return any(cls is not None and isinstance(exc, cls) for cls in classes)
+
+
+SIGPIPE_STATUS = 141   # 128 + SIGPIPE: what a shell reports for `yes | head -1`'s yes
+
+
+def output_closed() -> int:
+    """Our stdout's reader went away (``u2sa echo X | head -3``): exit quietly with the SIGPIPE status.
+
+    stdout is pointed at /dev/null first, so the interpreter's flush at exit does not raise
+    again (https://docs.python.org/3/library/signal.html#note-on-sigpipe).
+    """
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):
+        pass
+    return SIGPIPE_STATUS

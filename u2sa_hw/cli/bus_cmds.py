@@ -66,7 +66,9 @@ def register(sub: Any) -> None:
     p = sub.add_parser("stop", help="stop a service by name, or all services",
                        description="Send the contract's stop command and wait until the service(s) are gone. "
                        "It first listens up to 1.5 s for one signed packet (so a laptop whose clock is behind "
-                       "the vehicle's is not taken for a replay), and exits 1 when nothing answered.")
+                       "the vehicle's is not taken for a replay), and exits 1 when nothing answered. A NAME no "
+                       "service on the bus has fails at once, naming the services that answered (with a "
+                       "did-you-mean).")
     p.add_argument("name", nargs="?", help="service to stop")
     p.add_argument("--all", action="store_true", help="stop every service on the bus")
     add_vehicle_option(p)
@@ -216,6 +218,7 @@ def cmd_echo(args: Any) -> int:
     printed = 0
     done = threading.Event()
     first = threading.Event()
+    closed = threading.Event()   # our reader went away (| head -3): printed from the transport's thread
     lock = threading.Lock()
     heard: set[str] = set()
 
@@ -230,13 +233,19 @@ def cmd_echo(args: Any) -> int:
         with lock:
             if done.is_set():
                 return
-            if args.json:
-                print(json.dumps({"channel": channel, **to_dict(msg)}), flush=True)
-            else:
-                print(f"--- {channel} {type(msg).__name__}")
-                for name, value in enumerate_fields(msg):
-                    print(f"  {name}: {value}")
-                sys.stdout.flush()
+            try:
+                if args.json:   # an absent presence-vector field is null (u2sa_hw/messages/fields.py)
+                    print(json.dumps({"channel": channel, **to_dict(msg)}), flush=True)
+                else:           # ... and "-" in text
+                    print(f"--- {channel} {type(msg).__name__}")
+                    for name, value in enumerate_fields(msg):
+                        print(f"  {name}: {value}")
+                    sys.stdout.flush()
+            except BrokenPipeError:   # the main thread ends the command (SIGPIPE convention)
+                closed.set()
+                first.set()
+                done.set()
+                return
             printed += 1
             if args.count and printed >= args.count:
                 done.set()
@@ -253,6 +262,8 @@ def cmd_echo(args: Any) -> int:
             raise CliError(f"no message on {args.channel} within {args.timeout:g} s{hint}")
         bus.transport.unsubscribe(others)
         done.wait()
+    if closed.is_set():
+        raise BrokenPipeError("stdout closed")
     return 0
 
 
@@ -296,7 +307,15 @@ def cmd_stop(args: Any) -> int:
         raise CliError("stop: give a service NAME or --all", 2)
     with bus_client(args) as bus:
         synced = bus.sync_clock(timeout=STOP_SYNC_S)   # else a laptop behind the vehicle's clock is a "replay"
-        before = bus.discover(timeout=min(1.0, args.timeout), name="" if args.all else args.name)
+        if args.all:
+            before = bus.discover(timeout=min(1.0, args.timeout))
+        else:   # everyone is asked, so a name not on the bus gets a did-you-mean from the names that are
+            found, on_bus = bus.find_service(args.name, timeout=min(1.0, args.timeout))
+            if found is None and on_bus:
+                from u2sa_hw.bus_client import unknown_service_text
+
+                raise CliError(f"{unknown_service_text(args.name, on_bus)}; nothing to stop")
+            before = [found] if found is not None else []
         if not before:
             target = "no service" if args.all else f"no service '{args.name}'"
             heard = "" if synced else f", and nothing signed with this bus key was heard in {STOP_SYNC_S:g} s"
