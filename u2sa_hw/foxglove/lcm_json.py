@@ -32,7 +32,9 @@ def json_schema(cls: type) -> dict[str, Any]:
                 continue
             item: dict[str, Any] = {"type": _JSON_TYPES[lcm_type]}
             if _JSON_TYPES[lcm_type] is _FLOAT:
-                item["description"] = "null where the value is NaN or infinite"
+                item["description"] = ("null where the value is NaN or infinite, or absent (a presence-vector "
+                                       "field whose bit is clear)" if name in getattr(cls, "PRESENCE_FIELDS", ())
+                                       else "null where the value is NaN or infinite")
         else:
             item = json_schema(REGISTRY.by_name(lcm_type.rsplit(".", 1)[1]))
         props[name] = {"type": "array", "items": item} if dims is not None else item

@@ -10,13 +10,13 @@ from typing import Any
 
 from u2sa_hw import lcmtypes
 from u2sa_hw.lcmtypes import Header, StateInformation, Waypoint  # noqa: F401
-from u2sa_hw.messages.fields import enumerate_fields, set_field, to_dict
+from u2sa_hw.messages.fields import ABSENT, enumerate_fields, set_field, to_dict
 from u2sa_hw.messages.presence import STATE_FIELDS, WAYPOINT_FIELDS, AbsentField
 from u2sa_hw.messages.registry import REGISTRY, MalformedMessage, TypeRegistry, as_type, type_name
 
 __all__ = [
     "REGISTRY", "MalformedMessage", "TypeRegistry", "as_type", "type_name",
-    "enumerate_fields", "set_field", "to_dict", "STATE_FIELDS", "WAYPOINT_FIELDS", "AbsentField",
+    "ABSENT", "enumerate_fields", "set_field", "to_dict", "STATE_FIELDS", "WAYPOINT_FIELDS", "AbsentField",
     "serialize",
 ]
 

@@ -12,16 +12,42 @@ def _is_lcm(value: Any) -> bool:
     return hasattr(type(value), "_get_packed_fingerprint")
 
 
+class _Absent(str):
+    """The value of a presence-vector field whose bit is clear: ``-``, never 0.
+
+    A ``str`` so that whatever prints, compares or writes the values as JSON keeps working;
+    test for it with ``value is ABSENT``.
+    """
+
+    __slots__ = ()
+
+    def __reduce__(self) -> str:
+        return "ABSENT"
+
+
+ABSENT = _Absent("-")
+
+
+def _absent(msg: Any, name: str) -> bool:
+    """True when *name* is a presence-vector field of *msg* that the message does not carry."""
+    fields = getattr(type(msg), "PRESENCE_FIELDS", ())
+    return name in fields and not msg.has(name)
+
+
 def enumerate_fields(msg: Any, prefix: str = "") -> list[tuple[str, Any]]:
     """``(name, value)`` for every primitive field, nested structs flattened with dots.
 
     Arrays of primitives come back as one list; arrays of structs as ``name[i].field``.
+    A presence-vector field the message does not carry (its bit clear) comes back as
+    :data:`ABSENT`, which prints as ``-``: an absent field is never read as 0.
     """
     out: list[tuple[str, Any]] = []
     for name in msg.__slots__:
         value = getattr(msg, name)
         path = f"{prefix}{name}"
-        if _is_lcm(value):
+        if _absent(msg, name):
+            out.append((path, ABSENT))
+        elif _is_lcm(value):
             out.extend(enumerate_fields(value, f"{path}."))
         elif isinstance(value, (list, tuple)) and value and _is_lcm(value[0]):
             for i, item in enumerate(value):
@@ -36,10 +62,14 @@ def enumerate_fields(msg: Any, prefix: str = "") -> list[tuple[str, Any]]:
 
 
 def to_dict(msg: Any) -> dict[str, Any]:
-    """A JSON-ready nested dict of the message (bytes as hex), with ``_type``."""
+    """A JSON-ready nested dict of the message (bytes as hex), with ``_type``.
+
+    A presence-vector field the message does not carry is None (JSON null), never 0; every
+    field keeps its key, so the dict still matches the type's schema (``foxglove.lcm_json``).
+    """
     out: dict[str, Any] = {"_type": type(msg).__name__}
     for name in msg.__slots__:
-        out[name] = _plain(getattr(msg, name))
+        out[name] = None if _absent(msg, name) else _plain(getattr(msg, name))
     return out
 
 
