@@ -35,7 +35,7 @@ EPILOG = """\
 examples:
   u2sa replay-check field-logs/                      all logs, --fast, default tolerances
   u2sa replay-check field-logs/ --tolerances tol.toml --json > report.json
-  u2sa replay-check field-logs/ --services state_estimator --keep-outputs out/
+  u2sa replay-check field-logs/ --services estimator --keep-outputs out/
   u2sa replay-check bench-logs/ --vehicle rover/vehicle.toml   logs recorded without a profile
 """
 
@@ -63,7 +63,7 @@ def register(sub: Any) -> None:
     p.add_argument("--vehicle", metavar="FILE", help="the vehicle profile for every log, instead of the one each "
                    "log carries (needed for logs recorded without one)")
     p.add_argument("--services", nargs="+", default=[], metavar="NAME",
-                   help="also run these services of each log's profile (e.g. state_estimator)")
+                   help="also run these services of each log's profile (e.g. estimator)")
     p.add_argument("--tolerance", type=float, default=1e-6, metavar="D", help="float difference allowed (default 1e-6)")
     p.add_argument("--tolerances", metavar="FILE", help="per-field tolerances (TOML, see u2sa replay --help)")
     p.add_argument("--time-tolerance", type=float, default=0.5, metavar="S", help="with --rate (default 0.5 s)")

@@ -30,7 +30,7 @@ EPILOG = """\
 examples:
   u2sa replay run1.mcap --fast --compare            regression check of the drivers
   u2sa replay run1.mcap --set gps.uere_m=5 --compare    what does this setting change?
-  u2sa replay run1.mcap --rate 2 --start 60 --end 120 --services state_estimator
+  u2sa replay run1.mcap --rate 2 --start 60 --end 120 --services estimator
   u2sa replay rc.mcap --compare --set rc.autonomous_above_us=1900    (GPIO: RC pulses, e-stops)
 
 Devices replayed: serial (bytes into a pty), I2C (register reads answered), CAN (frames
@@ -54,7 +54,7 @@ def register(sub: Any) -> None:
     p.add_argument("--start", type=float, default=0.0, metavar="S", help="begin S seconds into the log")
     p.add_argument("--end", type=float, default=None, metavar="S", help="stop S seconds into the log")
     p.add_argument("--services", nargs="+", default=[], metavar="NAME",
-                   help="also run these services of the log's profile (e.g. state_estimator)")
+                   help="also run these services of the log's profile (e.g. estimator)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SERVICE.FIELD=VALUE",
                    help="change a config field for the replay (repeatable), e.g. --set gps.uere_m=5")
     p.add_argument("-o", "--out", metavar="FILE", help="output log (default: <file>.replay.mcap)")
