@@ -145,6 +145,19 @@ def rc_state_name(msg: t.RcMode) -> str:
     return name + (f", blocked: {blocked}" if blocked and msg.mode == 1 else "")
 
 
+def mission_done(status: Any, changes: Sequence[StatusChange], *, since: float | None) -> bool:
+    """True when the mission's goals were reached: it finished, or a looping one went round once after *since*.
+
+    *status* is the latest MissionStatus (None: never heard); without *since* (the vehicle
+    never went autonomous) a looping mission cannot have gone round.
+    """
+    if status is None:
+        return False
+    if status.finished:
+        return True
+    return bool(status.looping and since is not None and loop_completed(changes, since=since))
+
+
 def loop_completed(changes: Sequence[StatusChange], *, since: float) -> bool:
     """True once a looping mission went round once after *since* (when the vehicle went autonomous).
 

@@ -33,7 +33,7 @@ from typing import Any
 from simulation.effects import final_outputs
 from simulation.events import Scenario, load_scenario_file
 from simulation.profile import effective_configs, write_sim_profile
-from simulation.progress import (BusMonitor, BusSnapshot, ProgressLine, control_mode, loop_completed,
+from simulation.progress import (BusMonitor, BusSnapshot, ProgressLine, control_mode, mission_done,
                                 rc_state_name, status_text)
 from simulation.scenario import load_scenario
 from simulation.script import ScriptRunner
@@ -252,9 +252,7 @@ class SimRun:
                     at = change.t - self.record.t_engage
                     self.progress.event(f"goal {previous.index + 1}/{total} {previous.uid} reached at {at:.1f} s")
             reported = max(reported, len(changes) - 1)
-            st = snap.status
-            looped = st is not None and st.looping and loop_completed(snap.changes, since=self.record.t_engage)
-            if st is not None and (st.finished or looped):
+            if mission_done(snap.status, snap.changes, since=self.record.t_engage):
                 self.record.result, self.record.reason = "completed", ""
                 return
             distance = snap.nav.distance_to_goal if snap.nav is not None and snap.nav.distance_to_goal >= 0 else None
@@ -274,7 +272,10 @@ class SimRun:
                        waiting_for=f"scenario '{self.script.name}' ({what})")
 
         self.player.play(self.t0, tick=tick)
-        self.record.result, self.record.reason = "completed", ""
+        # "completed" is the mission's word: a scenario that played to its end without the goals reached only "played"
+        snap = self._check()
+        done = mission_done(snap.status, snap.changes, since=self.record.t_engage)
+        self.record.result, self.record.reason = "completed" if done else "played", ""
 
     def run(self) -> dict[str, Any]:
         """All steps; returns the summary (``result`` completed, timeout or failed)."""

@@ -97,8 +97,12 @@ def _object_name(obj: Any) -> tuple[str, str]:
 def summarise(record: RunRecord) -> dict[str, Any]:
     """The summary as a JSON-ready dict."""
     live = [s for s in record.samples if record.t_engage is not None and s.t >= record.t_engage]
-    distance = sum(math.hypot(b.north - a.north, b.east - a.east) for a, b in zip(live, live[1:]))
+    # Distance and speeds from the whole simulated track (track.csv): a scenario the pilot drives by hand
+    # never goes autonomous, and what he drove is still driven.
+    track = record.samples
+    distance = sum(math.hypot(b.north - a.north, b.east - a.east) for a, b in zip(track, track[1:]))
     mission_time = _rel(record.t_end, record.t_engage)
+    track_time = track[-1].t - track[0].t if len(track) > 1 else None
     worst, worst_leg, leg_from, last_index = 0.0, "", None, None
     for s in live:
         if s.goal_index is None or not 0 <= s.goal_index < len(record.goals):
@@ -121,7 +125,7 @@ def summarise(record: RunRecord) -> dict[str, Any]:
                            "min_clearance_m": None if closest is None else round(closest, 2)})
     errors = sorted(math.hypot(s.est_north - s.north, s.est_east - s.east) for s in live
                     if s.est_north is not None and s.est_east is not None)
-    speeds = [s.speed for s in live]
+    speeds = [s.speed for s in track]
     reached = arrivals(record)
     return {
         "result": record.result,
@@ -133,7 +137,7 @@ def summarise(record: RunRecord) -> dict[str, Any]:
         "mission_time_s": mission_time,
         "wall_time_s": round(record.t_end - record.t_start, 2),
         "distance_m": round(distance, 2),
-        "mean_speed_mps": round(distance / mission_time, 2) if mission_time else None,
+        "mean_speed_mps": round(distance / span, 2) if (span := mission_time or track_time) else None,
         "max_speed_mps": round(max(speeds), 2) if speeds else None,
         "goals": [{"uid": g.uid, "north": g.north, "east": g.east, "threshold_m": g.threshold,
                    "arrival_s": next((a["arrival_s"] for a in reached if a["uid"] == g.uid), None)}
@@ -173,11 +177,18 @@ def _event_outcome(event: dict[str, Any]) -> str:
 
 def summary_text(summary: dict[str, Any], *, files: Iterable[Path] = ()) -> str:
     """A short human summary (what u2sa sim prints at the end and writes to summary.txt)."""
-    head = {"completed": "completed", "timeout": "TIMED OUT", "failed": "FAILED"}.get(summary["result"],
-                                                                                     summary["result"])
-    lines = [f"mission '{summary['mission']}' on {summary['vehicle']}: {head} "
-             f"in {_fmt(summary['mission_time_s'], 's')} (startup {_fmt(summary['startup_s'], 's')}, "
-             f"wall {_fmt(summary['wall_time_s'], 's')})"]
+    times = (f"(startup {_fmt(summary['startup_s'], 's')}, wall {_fmt(summary['wall_time_s'], 's')})")
+    if summary["result"] == "played":   # a scenario ran to its end: "completed" is said only of reached goals
+        scenario = summary.get("scenario", {}).get("name", "")
+        engaged = (f"{_fmt(summary['mission_time_s'], 's')} after engaging" if summary["mission_time_s"] is not None
+                   else "never autonomous")
+        first = (f"not completed ({len(summary['arrivals'])} of {len(summary['goals'])} goals reached); scenario "
+                 + (f"'{scenario}' " if scenario else "") + f"played to its end, {engaged} {times}")
+    else:
+        head = {"completed": "completed", "timeout": "TIMED OUT", "failed": "FAILED"}.get(summary["result"],
+                                                                                         summary["result"])
+        first = f"{head} in {_fmt(summary['mission_time_s'], 's')} {times}"
+    lines = [f"mission '{summary['mission']}' on {summary['vehicle']}: {first}"]
     if summary["reason"]:
         lines.append(f"  reason               {summary['reason']}")
     lines.append(f"  distance driven      {_fmt(summary['distance_m'], 'm')}, mean speed "
