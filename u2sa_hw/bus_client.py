@@ -102,6 +102,39 @@ class BusClient:
             by_name[r.name] = r
         return [by_name[n] for n in sorted(by_name)]
 
+    def find_service(self, name: str, *, timeout: float = 1.0,
+                     resend: float = 0.25) -> tuple[t.DiscoveryResponse | None, list[str]]:
+        """Discover until *name* answers or *timeout* passes: ``(its answer or None, every name heard)``.
+
+        One discovery round for everyone (no name filter), so when *name* is not on the bus the
+        names that are give a did-you-mean (:func:`unknown_service_text`) instead of a silent wait
+        for an answer that cannot come. Returns as soon as *name* answers; the request is sent
+        again every *resend* s (a service that was still starting, or a lost datagram).
+        """
+        req = t.DiscoveryRequest()
+        req.request_id = uuid.uuid4().hex
+        heard: dict[str, t.DiscoveryResponse] = {}
+        found = threading.Event()
+
+        def on_reply(_c: str, msg: t.DiscoveryResponse) -> None:
+            if msg.request_id != req.request_id:
+                return
+            heard[msg.name] = msg
+            if msg.name == name:
+                found.set()
+
+        sub = self.transport.subscribe(ch.DISCOVERY_RESPONSE, t.DiscoveryResponse, on_reply)
+        try:
+            deadline = time.monotonic() + timeout
+            while True:
+                self.transport.publish(ch.DISCOVERY_REQUEST, self._stamp(req))
+                left = deadline - time.monotonic()
+                if found.wait(max(0.0, min(resend, left))) or left <= resend:
+                    break
+        finally:
+            self.transport.unsubscribe(sub)
+        return heard.get(name), sorted(heard)
+
     def get_config(self, service: str, *, timeout: float = 5.0) -> t.ConfigResponse | None:
         """The config of *service*, or None when it does not answer."""
         req = t.ConfigRequest()
@@ -159,3 +192,11 @@ class BusClient:
                 return True
             time.sleep(interval)
         return bool(predicate())
+
+
+def unknown_service_text(name: str, names: list[str]) -> str:
+    """``no service 'pann' on the bus; did you mean 'pan'? (services: ...)`` for a name discovery did not find."""
+    from u2sa_hw.config_keys import did_you_mean, known_text
+
+    hint = did_you_mean(name, names)
+    return f"no service '{name}' on the bus" + (f"; {hint}" if hint else "") + f" (services: {known_text(names)})"
