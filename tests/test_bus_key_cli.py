@@ -208,3 +208,14 @@ def test_operator_and_pilot_keys_are_made_beside_the_bus_key_and_shown(tmp_path:
     assert read_key(pilot_pub) != old_pub
     missing = u2sa("key", "show", "--pilot", "--file", str(tmp_path / "elsewhere" / "bus.key"))
     assert missing.returncode == 1 and "pilot.pub" in missing.stderr and "Traceback" not in missing.stderr
+
+
+def test_rotate_says_services_switch_only_when_it_is_their_key(tmp_path: Path) -> None:
+    theirs, other = tmp_path / "bus.key", tmp_path / "other.key"
+    own = u2sa("key", "rotate", key=theirs)   # no --file: the services' key ($U2SA_BUS_KEY_FILE)
+    assert own.returncode == 0 and "running services switch to it" in own.stdout, own.stdout
+    again = u2sa("key", "rotate", "--file", str(theirs), key=theirs)
+    assert again.returncode == 0 and "running services switch to it" in again.stdout, again.stdout
+    elsewhere = u2sa("key", "rotate", "--file", str(other), key=theirs)
+    assert elsewhere.returncode == 0 and "running services switch" not in elsewhere.stdout, elsewhere.stdout
+    assert "no service uses it yet" in elsewhere.stdout and f"U2SA_BUS_KEY_FILE={other}" in elsewhere.stdout

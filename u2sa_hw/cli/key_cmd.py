@@ -87,12 +87,27 @@ def cmd_key(args: Any) -> int:
             return 0
         key = new_key()
         write_key(path, key)
-        print(f"new key {key_id(key).hex()} in {path}; running services switch to it within a second "
-              "(copy it to every other computer of the vehicle: u2sa key show | ... u2sa key import -)")
+        print(f"new key {key_id(key).hex()} in {path}; " + _who_uses(path, args))
         _ensure_pilot_pair(path)
         return 0
     except BusKeyError as exc:
         raise CliError(f"key {args.action}: {exc}") from None
+
+
+def _who_uses(path: Path, args: Any) -> str:
+    """What a rotated key at *path* changes: the services' key switches them; any other file changes nothing yet."""
+    from u2sa_hw.bus_key import KEY_ENV
+
+    try:
+        used = _service_key_path(args)
+    except Exception:   # noqa: BLE001 - a profile that cannot load: no service uses *path* through it
+        used = None
+    if used is not None and Path(os.path.abspath(used)) == Path(os.path.abspath(path)):
+        return ("running services switch to it within a second (copy it to every other computer of the vehicle: "
+                "u2sa key show | ... u2sa key import -)")
+    return (f"no service uses it yet (theirs is {used or 'not found'}): point them at it with "
+            f"{KEY_ENV}={path} or bus_key = \"{path}\" in the vehicle profile, or import it into theirs "
+            f"(u2sa key show --file {path} | u2sa key import -)")
 
 
 def _service_key_path(args: Any) -> Path:
