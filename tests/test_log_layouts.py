@@ -29,8 +29,8 @@ SECOND = 1_000_000_000
 
 
 def state(x: float) -> bytes:
-    msg = StateInformation()
-    msg.sensor_name, msg.x = "gps", x
+    msg = StateInformation().set(x=x)          # x present: an absent field reads as null (issue 26)
+    msg.sensor_name = "gps"
     return msg.encode()
 
 

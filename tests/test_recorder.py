@@ -218,11 +218,11 @@ def test_disk_floor_with_a_full_queue_finishes_the_file_and_stop_returns(tmp_pat
 def test_recorder_below_the_disk_floor_stays_up_and_says_why_in_health(services: ServiceProcesses,
                                                                        bus: BusClient) -> None:
     health = BusCollector(bus).listen(ch.HEALTH, t.Health)
-    vehicle = _profile(services.workdir, services.url, min_free_mb=1e12, health_interval_s=0.2)
+    vehicle = _profile(services.workdir, services.url, min_free_mb=1e9, health_interval_s=0.2)
     proc = services.start("recorder", "--vehicle", str(vehicle))
     details = health.health_of("recorder", lambda d: d["status"] == "degraded", timeout=20,
                                message="the recorder degraded")
-    assert "below the 1000000000000 MB floor" in details["stopped"]
+    assert "below the 1000000000 MB floor" in details["stopped"]
     assert "below the" in details["last_error"] and "recording stopped" in details["last_error"]
     assert proc.poll() is None
     assert not _recorder_files(services.workdir)    # stopped before the first message: no file at all
@@ -285,7 +285,7 @@ def test_record_command_rotates_by_duration_with_lz4_chunks(services: ServicePro
 def test_record_command_below_min_free_stops_with_the_reason(services: ServiceProcesses) -> None:
     r = services.cli("record", "-o", str(services.workdir / "x.mcap"), "--min-free-mb", "1e12", "--duration", "20")
     assert r.returncode == 1
-    assert "below the 1000000000000 MB floor" in r.stderr and "recording stopped" in r.stderr
+    assert "below the 1000000000 MB floor" in r.stderr and "recording stopped" in r.stderr
     r = services.cli("record", "--queue-size", "0")
     assert r.returncode == 2 and "--queue-size" in r.stderr
 

@@ -46,7 +46,7 @@ class Recorder(U2SAService):
         field("rotate_size_mb", 512.0, "start a new file past this size (0: never)", ge=0, le=1000000.0),
         field("rotate_duration_s", 3600.0, "start a new file after this long (0: never)", ge=0, le=MAX_ROTATE_DURATION_S),
         field("flush_interval_s", 1.0, "close a chunk at least this often (at most 1 s)", gt=0, le=1.0),
-        field("min_free_mb", 200.0, "stop recording below this much free disk", ge=0, le=1000000.0),
+        field("min_free_mb", 200.0, "stop recording below this much free disk", ge=0, le=1e9),
         field("queue_size", 20000, "messages buffered between the bus and the disk", ge=1, le=1000000),
     )
 
