@@ -14,7 +14,8 @@ from supervision_helpers import launch, write_profile  # noqa: F401 - launch is 
 
 from u2sa_hw.launcher import Launcher, RestartPolicy, SupervisedProcess
 from u2sa_hw.launcher.process import BACKOFF
-from u2sa_hw.launcher.watchdog import WatchdogSetting, parse_timespan, unit_watchdog, watchdog_for
+from u2sa_hw.launcher.watchdog import (STALL_STEP_S, WatchdogSetting, WatchedClock, parse_timespan, unit_watchdog,
+                                       watchdog_for)
 from u2sa_hw.vehicle import load_profile
 
 SLEEPER = [sys.executable, "-c", "import time; time.sleep(120)"]
@@ -175,3 +176,66 @@ def test_services_named_unwatched_run_without_a_watchdog_and_the_others_keep_the
                        '[services.gps]\nkind = "gps_nmea"\n')
     launcher = Launcher(load_profile(vehicle), control=False, unwatched={"imu"})
     assert {n: p.status().watchdog_s for n, p in launcher.processes.items()} == {"imu": 0.0, "gps": 2.0}
+    # every child's silence is judged on the launcher's one watched clock (its own stalls not counted)
+    assert all(p.watch_clock is launcher.watch_clock for p in launcher.processes.values())
+
+
+def test_the_launchers_own_stall_is_not_counted_against_a_child_but_a_hung_child_is_still_killed() -> None:
+    """CI: ``u2sa sim`` restarted a healthy imu under load. The sim process both serves the mock devices
+    and runs the launcher: while it stalls, a child waiting on a mock (the imu's I2C read, the rc mux's
+    GPIO write) cannot ping, and the launcher's next turn counted the whole pause as the child's silence.
+    SIGSTOPping the sim process for 2.2-2.5 s reproduced it: the rc service was killed so."""
+    real = FakeClock()
+    watched = WatchedClock(real)
+    p = SupervisedProcess("imu", SLEEPER, policy=RestartPolicy(), clock=real, watch_clock=watched,
+                          watchdog=WatchdogSetting(timeout_s=2.0, abort_s=1.0))
+    child = p.spawn()
+    try:
+        p.on_notify({"READY": "1"})
+        for _ in range(9):                           # the launcher's turns, 0.1 s apart: 0.9 s of silence
+            real.now += 0.1
+            assert p.check_watchdog() is None
+        real.now += 3.0                              # the launcher's process stalled 3 s (the child waited on it)
+        assert p.check_watchdog() is None            # 0.9 s + at most one step: not the child's silence
+        assert watched.unwatched_s == pytest.approx(3.0 - STALL_STEP_S)
+        p.on_notify({"WATCHDOG": "1"})               # the child answers once the launcher's process runs again
+        fired, turns = None, 0
+        while fired is None and turns < 100:        # now it hangs, while the launcher runs normally
+            real.now += 0.1
+            turns += 1
+            fired = p.check_watchdog()
+        assert turns == 21 and fired == "watchdog timeout (no WATCHDOG=1 for 2.1 s, limit 2 s): SIGABRT, SIGKILL in 1 s"
+        assert child.wait(timeout=30) == -signal.SIGABRT
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+    # a launcher starved to one turn a second still kills a hung child: after 2 s / STALL_STEP_S turns
+    starved = SupervisedProcess("hung", SLEEPER, policy=RestartPolicy(), clock=real, watch_clock=watched,
+                                watchdog=WatchdogSetting(timeout_s=2.0, abort_s=1.0))
+    second = starved.spawn()
+    try:
+        starved.on_notify({"READY": "1"})
+        fired, turns = None, 0
+        while fired is None and turns < 100:
+            real.now += 1.0
+            turns += 1
+            fired = starved.check_watchdog()
+        assert turns == 9 and fired is not None and "no WATCHDOG=1 for 2.2 s" in fired   # 9 x 0.25 s > 2 s
+    finally:
+        second.kill()
+        second.wait()
+
+
+def test_the_watched_clock_is_real_time_while_the_launcher_runs_and_never_goes_back() -> None:
+    real = FakeClock()
+    watched = WatchedClock(real, max_step_s=0.5)
+    start = watched()
+    real.now += 0.4
+    assert watched() == pytest.approx(start + 0.4)
+    real.now += 10.0
+    assert watched() == pytest.approx(start + 0.9) and watched.unwatched_s == pytest.approx(9.5)
+    real.now -= 5.0                                  # a clock that went back counts nothing
+    assert watched() == pytest.approx(start + 0.9)
+    with pytest.raises(ValueError):
+        WatchedClock(real, max_step_s=0.0)

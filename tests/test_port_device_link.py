@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
+import textwrap
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from conftest import wait_until
+from conftest import REPO, wait_until
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.devices import profile_devices
 from u2sa_hw.ports import PortClosed, PortUnavailable
@@ -241,3 +244,46 @@ def test_a_device_no_address_gives_names_the_line_to_add(tmp_path: Path) -> None
     with pytest.raises(ProfileError, match=r"device 'gps' of service 'gps' has no address; add \[devices.gps\] "
                                            r"address = "):
         profile_devices(load_profile(tmp_path / "vehicle.toml"))
+
+
+def test_start_imports_what_the_open_will_so_the_first_open_after_ready_is_quick(tmp_path: Path) -> None:
+    """CI: a motor driver's first open imported python-can (some 160 modules) in its first loop turn, after
+    READY=1 had armed the watchdog; on a loaded machine that took over 2 s without a ping and the launcher
+    killed it. ``start()`` runs in setup, before READY: the import is paid there. A fresh interpreter, since
+    this one may have imported python-can already; nothing is opened."""
+    code = textwrap.dedent("""
+        import sys
+        from pathlib import Path
+        from u2sa_hw import lcmtypes as t
+        from u2sa_hw.ports.device_link import DeviceLink
+        from u2sa_hw.vehicle import VehicleProfile
+
+        class Owner:
+            name = "wheels"
+            config = {"record_raw": False}
+            profile = VehicleProfile(path=Path(sys.argv[1]),
+                                     devices={"wheels": {"address": "mock+can://udp_multicast/239.74.163.2?port=17280"}})
+            def publish(self, channel, msg): pass
+            def register_publisher(self, channel, kind): pass
+
+        link = DeviceLink(Owner(), device=lambda: "wheels", raw_type=t.RawCanFrame)
+        assert "can" not in sys.modules, "python-can imported before start()"
+        link.start()
+        assert link.holder.state != "open"
+        print(sorted(m for m in ("can", "u2sa_hw.ports.can_port") if m in sys.modules))
+    """)
+    done = subprocess.run([sys.executable, "-c", code, str(tmp_path / "vehicle.toml")], cwd=REPO,
+                          capture_output=True, text=True, timeout=120, env=dict(os.environ, PYTHONPATH=str(REPO)))
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split("\n")[0] == "['can', 'u2sa_hw.ports.can_port']"
+
+
+def test_every_kind_has_its_preload_and_each_module_exists() -> None:
+    from importlib.util import find_spec
+
+    from u2sa_hw.ports.address import KINDS
+    from u2sa_hw.ports.opener import PRELOAD
+
+    assert set(PRELOAD) == set(KINDS)
+    assert all(find_spec(module) is not None for modules in PRELOAD.values() for module in modules
+               if module.startswith("u2sa_hw."))

@@ -9,7 +9,10 @@ restart), and on stop sends SIGTERM, then SIGKILL after the grace period.
 The children report readiness on the launcher's own ``$NOTIFY_SOCKET`` (:mod:`.notify`), as
 they do to systemd, and ping its watchdog (:mod:`.watchdog`): a child that stops pinging for
 its unit's ``WatchdogSec`` (2 s) is killed with SIGABRT, SIGKILL after ``TimeoutAbortSec``,
-and restarted like any dead one, its death counted and logged as a watchdog timeout. A child
+and restarted like any dead one, its death counted and logged as a watchdog timeout. Silence is
+measured in time the launcher was watching (:class:`~.watchdog.WatchedClock`): when the
+launcher's own process stalls (under ``u2sa sim`` it also serves the mock devices a child may
+be waiting on), the stall is not counted against the children. A child
 found stopped (SIGSTOP) gets SIGKILL at once and is never resumed, on a watchdog timeout or a
 stop: resumed, a frozen command source would publish commands before it died.
 Services of kind ``recorder`` start first and the others once they are ready (or after
@@ -41,7 +44,7 @@ from u2sa_hw.launcher.notify import NotifyListener
 from u2sa_hw.launcher.output import LineSink, LineSplitter, PrefixedOutput
 from u2sa_hw.launcher.process import (BACKOFF, EXITED, FAILED, RUNNING, STOPPED, ProcessStatus, RestartPolicy,
                                      SupervisedProcess)
-from u2sa_hw.launcher.watchdog import WatchdogSetting, watchdog_for
+from u2sa_hw.launcher.watchdog import WatchdogSetting, WatchedClock, watchdog_for
 from u2sa_hw.realtime import RealtimePlan, describe_plan
 from u2sa_hw.registry import RECORDER_KIND
 from u2sa_hw.vehicle import ServiceSpec, VehicleProfile
@@ -123,10 +126,11 @@ class Launcher:
         schedules = realtime.schedules(self.kinds) if realtime is not None else {}
         self._warned: set[str] = set()   # services whose set-up warning (RT refused) was said
         build = command or (lambda spec: [*u2sa_command(), "service", spec.name, "--vehicle", vehicle])
+        self.watch_clock = WatchedClock()   # read on the loop thread only
         self.processes: dict[str, SupervisedProcess] = {
             s.name: SupervisedProcess(s.name, build(s), policy=policy, env=child_env,
                                       watchdog=_watchdog(s.kind, 0.0 if s.name in unwatched else watchdog_s),
-                                      cgroup=cgroup, schedule=schedules.get(s.name))
+                                      cgroup=cgroup, schedule=schedules.get(s.name), watch_clock=self.watch_clock)
             for s in specs}
         names = [s.name for s in specs]
         first = start_first if start_first is not None else [s.name for s in specs if s.kind == RECORDER_KIND]

@@ -143,15 +143,18 @@ class SupervisedProcess:
     def __init__(self, name: str, argv: list[str], *, policy: RestartPolicy, env: dict[str, str] | None = None,
                  cwd: str | None = None, clock: Callable[[], float] = time.monotonic,
                  watchdog: WatchdogSetting | None = None, cgroup: Path | None = None,
-                 schedule: Schedule | None = None) -> None:
+                 schedule: Schedule | None = None, watch_clock: Callable[[], float] | None = None) -> None:
         # cgroup: each run joins it before exec (a CPU budget); schedule: its policy, set before exec
         # after joining (None: inherited). See child_setup.py for the order and why.
+        # watch_clock: the time the watchdog judges silence by (None: *clock*); the launcher's
+        # WatchedClock does not count its own stalls against the child (watchdog.py).
         self.name = name
         self.argv = argv
         self.policy = policy
         self.env = env
         self.cwd = cwd
         self.clock = clock
+        self.watch_clock = watch_clock or clock
         self.desired = RUNNING
         self.state = BACKOFF          # not yet started: due at once
         self.proc: subprocess.Popen[bytes] | None = None
@@ -311,7 +314,7 @@ class SupervisedProcess:
         """Apply an sd_notify message from this run (READY, STATUS, WATCHDOG); True when it just became ready."""
         if "STATUS" in fields:
             self.status_text = fields["STATUS"]
-        self.watchdog.on_fields(fields, self.clock())
+        self.watchdog.on_fields(fields, self.watch_clock())
         if fields.get("READY") == "1" and not self.ready:
             self.ready = True
             self.ready_at = self.clock()
@@ -329,7 +332,7 @@ class SupervisedProcess:
         """
         if self.proc is None or self.state != RUNNING:
             return None
-        silent = self.watchdog.overdue(self.clock())
+        silent = self.watchdog.overdue(self.watch_clock())
         if silent is None:
             return None
         setting = self.watchdog.setting

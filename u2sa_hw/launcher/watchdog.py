@@ -12,19 +12,34 @@ by its first ``READY=1`` or ``WATCHDOG=1`` (a child that never speaks the protoc
 judged by it), each ``WATCHDOG=1`` re-arms it, ``WATCHDOG=trigger`` fires it at once, and
 ``STOPPING=1`` ends it for the run: a service on its way out (closing a recording, say) stops
 looping, and systemd does not judge a unit that is stopping by its watchdog either.
+
+Unlike systemd, the launcher is an ordinary process, and under ``u2sa sim`` the same process
+also serves the mock devices. When it does not run for a while (starved on a loaded machine,
+a long pause, SIGSTOP), a child that waits on one of those mocks (an IMU's I2C read, the RC
+mux's GPIO write) cannot ping either, and on the launcher's next turn its silence included
+the launcher's own pause: a healthy child was killed for the launcher's stall. So a child's
+silence is measured on a :class:`WatchedClock`, as the HSM measures heartbeats: time the
+launcher could not watch does not count against a child. Each turn of its loop (every 0.1 s
+at most) advances the clock by the real time elapsed, but by at most ``STALL_STEP_S``. A hung
+child is still killed: after its timeout of watched time, which is real time while the
+launcher runs normally, and at most ``gap / STALL_STEP_S`` times longer while it is itself
+starved to one turn per ``gap``.
 """
 
 from __future__ import annotations
 
 import re
+import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 from u2sa_hw.install.units import HSM_KIND, HSM_UNIT, TEMPLATE
 
 UNIT_DIR = Path(__file__).resolve().parents[2] / "systemd"
 DEFAULT_WATCHDOG_S = 2.0
 DEFAULT_ABORT_S = 1.0
+STALL_STEP_S = 0.25   # the most one turn of the launcher's loop (normally <= 0.1 s apart) counts as watched time
 
 _UNITS = {"us": 1e-6, "usec": 1e-6, "ms": 1e-3, "msec": 1e-3, "s": 1.0, "sec": 1.0, "second": 1.0,
           "seconds": 1.0, "m": 60.0, "min": 60.0, "minute": 60.0, "minutes": 60.0, "h": 3600.0, "hr": 3600.0,
@@ -132,3 +147,30 @@ class WatchdogTimer:
             self.fired = True
             return silent
         return None
+
+
+class WatchedClock:
+    """The launcher's time for judging silences: real time, but a gap between two readings counts at most *max_step_s*.
+
+    A gap longer than that is the launcher not running (see the module docstring): the children
+    could not be watched, and the ones waiting on devices the launcher's process serves could
+    not ping. Monotonic; *clock* is injectable for tests.
+    """
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic, max_step_s: float = STALL_STEP_S) -> None:
+        if max_step_s <= 0:
+            raise ValueError(f"max_step_s must be > 0, got {max_step_s}")
+        self._clock = clock
+        self.max_step_s = max_step_s
+        self._last_real = clock()
+        self._watched = self._last_real
+        self.unwatched_s = 0.0   # real time not counted so far (the launcher's own stalls)
+
+    def __call__(self) -> float:
+        real = self._clock()
+        step = max(0.0, real - self._last_real)
+        counted = min(step, self.max_step_s)
+        self.unwatched_s += step - counted
+        self._watched += counted
+        self._last_real = real
+        return self._watched

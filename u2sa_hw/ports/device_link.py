@@ -39,7 +39,7 @@ from typing import Any, Callable, Generic, Mapping, TypeVar
 
 from u2sa_hw.ports.address import AddressError, DeviceAddress
 from u2sa_hw.ports.errors import PortError, PortUnavailable
-from u2sa_hw.ports.opener import open_port
+from u2sa_hw.ports.opener import open_port, preload
 from u2sa_hw.ports.reconnect import ReconnectingPort
 from u2sa_hw.ports.tap import RecordingTap, raw_channel
 
@@ -118,9 +118,14 @@ class DeviceLink(Generic[P]):
 
     # ---- lifecycle -------------------------------------------------------------------------------
     def start(self) -> None:
-        """Resolve the address and create the reconnecting port (opened by the first ``get()``)."""
+        """Resolve the address and create the reconnecting port (opened by the first ``get()``).
+
+        What the open will import is imported now (``opener.preload``): the driver calls this in
+        ``setup()``, before READY=1 arms its watchdog, and the first open runs in its loop.
+        """
         self.device = self._device_of()
         self.address = self.resolve()
+        preload(self.address)
         self.record_changed()
         self._holder = ReconnectingPort(self._open, device=self.device, **self._backoff)
 

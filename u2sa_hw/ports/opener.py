@@ -47,6 +47,29 @@ SCHEMES: dict[str, tuple[str, str]] = {
 }
 
 
+# What opening a device of each kind imports beyond its opener: the port module and the library under it
+# (python-can alone is some 160 modules). ``preload`` imports them when the driver sets up, before its
+# READY=1 arms the watchdog; left to the first open, in the service's first loop turn, that import took
+# over 2 s without a ping on a loaded machine and the launcher killed a healthy motor driver.
+PRELOAD: dict[str, tuple[str, ...]] = {
+    "serial": ("u2sa_hw.ports.serial_port",),
+    "can": ("u2sa_hw.ports.can_port", "can", "u2sa_hw.ports.can_clock"),
+    "i2c": ("u2sa_hw.ports.i2c_port",),
+    "gpio": ("u2sa_hw.ports.gpio_port",),
+    "pwm": ("u2sa_hw.ports.pwm_port",),
+    "pca9685": ("u2sa_hw.ports.pwm_port", "u2sa_hw.ports.pca9685_pwm"),
+}
+
+
+def preload(address: DeviceAddress) -> None:
+    """Import what opening *address* will import, now (a missing library is left for the open to report)."""
+    for module in PRELOAD.get(address.kind, ()):
+        try:
+            importlib.import_module(module)
+        except ImportError:
+            pass   # the open raises PortUnavailable naming the library and the fix
+
+
 def table_key(address: DeviceAddress) -> str:
     """The :data:`SCHEMES` key of *address* (``serial+socket`` -> ``serial``)."""
     return ("mock+" if address.mock else "") + address.kind
