@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import tomllib
 from pathlib import Path
+from typing import Callable
 
 import pytest
 from conftest import ServiceProcesses, wait_until
@@ -109,50 +110,40 @@ def test_load_refuses_bad_files_with_file_and_line_and_rolls_back_a_refusal(
     est_before, world_before = _params(services, EST), _params(services, WORLD)
     cfg_dir = services.workdir / ".u2sa" / "config"
 
-    def refused(edits: list[tuple[str, str]], expected: list[str]) -> None:
+    def refused(edits: list[tuple[str, str]], expected: Callable[[], list[str]]) -> None:
+        """Load the saved file with *edits*: refused with the *expected* lines (computed on the edited file)."""
         saved.write_text(good)
         for old, new in edits:
             _replace(saved, old, new)
+        want = expected()
         r = services.cli("param", "load", str(saved))
         assert r.returncode == 1, r.stdout + r.stderr
         problems = _problems(r.stderr)
-        assert problems[-1] == f"u2sa: {saved}: {len(expected)} problem{'s' if len(expected) > 1 else ''}; " \
+        assert problems[-1] == f"u2sa: {saved}: {len(want)} problem{'s' if len(want) > 1 else ''}; " \
                                "nothing was changed", r.stderr
-        assert problems[:-1] == [f"u2sa: {p}" for p in expected], r.stderr
+        assert problems[:-1] == [f"u2sa: {p}" for p in want], r.stderr
         assert "->" not in r.stdout   # refused before any difference is printed or applied
         assert _params(services, EST) == est_before and _params(services, WORLD) == world_before
         assert not cfg_dir.exists() or not list(cfg_dir.iterdir())
 
     # an out-of-range value (fields have upper bounds) beside a valid change of the same service
-    saved.write_text(good)
-    _replace(saved, "sensor_timeout_s = 2.0\n", "sensor_timeout_s = 4.5\n")
-    _replace(saved, "publish_rate_hz = 50.0\n", "publish_rate_hz = 1e9\n")
-    line = _line_of(saved, "publish_rate_hz = 1e9")
     refused([("sensor_timeout_s = 2.0\n", "sensor_timeout_s = 4.5\n"),
              ("publish_rate_hz = 50.0\n", "publish_rate_hz = 1e9\n")],
-            [f"{saved}:{line}: {EST}: field 'publish_rate_hz' must be > 0 and <= 1000; got 1000000000.0"])
+            lambda: [f"{saved}:{_line_of(saved, 'publish_rate_hz = 1e9')}: {EST}: field 'publish_rate_hz' must be "
+                     "> 0 and <= 1000; got 1000000000.0"])
 
     # an unknown field, with a did-you-mean
-    saved.write_text(good)
-    _replace(saved, "expiry_s = 5.0\n", "expiry_sec = 6.0\n")
-    line = _line_of(saved, "expiry_sec")
-    saved.write_text(good)
-    r_expected = (f"{saved}:{line}: {WORLD}: unknown field 'expiry_sec'; did you mean 'expiry_s'? (known: "
-                  "association_radius_m, default_radius_m, expiry_s, health_interval_s, log_level, max_pose_age_s, "
-                  "objects_file, publish_rate_hz)")
-    refused([("expiry_s = 5.0\n", "expiry_sec = 6.0\n")], [r_expected])
+    refused([("expiry_s = 5.0\n", "expiry_sec = 6.0\n")],
+            lambda: [f"{saved}:{_line_of(saved, 'expiry_sec')}: {WORLD}: unknown field 'expiry_sec'; did you mean "
+                     "'expiry_s'? (known: association_radius_m, default_radius_m, expiry_s, health_interval_s, "
+                     "log_level, max_pose_age_s, objects_file, publish_rate_hz)"])
 
     # an unknown service (its table header's line), and a wrong type
-    saved.write_text(good)
-    _replace(saved, f"[{WORLD}]\n", "[world_modeller]\n")
-    _replace(saved, f"[{WORLD}.params]\n", "[world_modeller.params]\n")
-    _replace(saved, "mode = \"ekf\"\n", "mode = 3\n")
-    unknown_line, mode_line = _line_of(saved, "[world_modeller]"), _line_of(saved, "mode = 3")
     refused([(f"[{WORLD}]\n", "[world_modeller]\n"), (f"[{WORLD}.params]\n", "[world_modeller.params]\n"),
              ("mode = \"ekf\"\n", "mode = 3\n")],
-            [f"{saved}:{mode_line}: {EST}: field 'mode' expects str, got int 3",
-             f"{saved}:{unknown_line}: no service 'world_modeller' on the bus; did you mean '{WORLD}'? "
-             f"(services: {EST}, {WORLD})"])
+            lambda: [f"{saved}:{_line_of(saved, 'mode = 3')}: {EST}: field 'mode' expects str, got int 3",
+                     f"{saved}:{_line_of(saved, '[world_modeller]')}: no service 'world_modeller' on the bus; "
+                     f"did you mean '{WORLD}'? (services: {EST}, {WORLD})"])
 
     # a change only the service can refuse (its check_config: publish_on names an unknown kind): the
     # changes before it are rolled back, so nothing of that service changes; the other service's apply

@@ -235,7 +235,7 @@ def _live_value(type_name: str, text: str) -> Any:
 
 def plan_load(label: str, text: str, on_bus: Iterable[str], live: Mapping[str, LiveService], *,
               only: Iterable[str] = ()) -> LoadPlan:
-    """Check the parameter file *text* (named *label* in messages) against the *live* services; the changes and problems.
+    """Check the parameter file *text* (named *label* in messages) against the *live* services.
 
     *on_bus*: every service name discovery found (for the did-you-mean of one that is not
     there); *live*: the config of those the file names; *only*: the tables to load (all when

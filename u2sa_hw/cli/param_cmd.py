@@ -137,7 +137,7 @@ def cmd_param(args: Any) -> int:
 
 
 def require_service(args: Any, bus: Any, name: str) -> Any:
-    """*name*'s discovery answer; a CliError naming the services on the bus (with a did-you-mean) when it is not there."""
+    """*name*'s discovery answer; when it is not there, a CliError naming the services on the bus (a did-you-mean)."""
     from u2sa_hw.bus_client import unknown_service_text
     from u2sa_hw.cli import CliError
 
@@ -163,7 +163,6 @@ def _kind_of(profile: Any, name: str, service_type: str) -> str:
 
 def _live(args: Any, bus: Any, answers: list[Any]) -> dict[str, Any]:
     """name -> LiveService for every discovery answer in *answers*; CliError naming those whose config did not come."""
-    from u2sa_hw.cli import CliError
     from u2sa_hw.param_file import LiveService, declared_for
 
     profile = profile_from(args)
