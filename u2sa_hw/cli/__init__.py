@@ -44,6 +44,7 @@ examples:
   u2sa echo STATE_ESTIMATE --count 1 --json
   u2sa pub STATE_INFO StateInformation sensor_name=test x=1.5 psi=0.3
   u2sa param list estimator          a service's config; param set changes and persists it
+  u2sa param save params.toml        every service's parameters to a file; param load FILE restores them
   u2sa mission status                the mission and its current goal; goto/skip/restart/upload change it
   u2sa failsafe raise                every actuator neutral now; status shows who holds one, clear lowers it
   u2sa stop --all
