@@ -147,8 +147,12 @@ def test_with_the_switch_at_manual_no_holder_of_the_bus_or_an_operator_key_moves
         attacker = subprocess.Popen([sys.executable, "-c", ATTACKER, services.url, str(bus_key), str(operator_key),
                                      str(ROUNDS)], env=env, stderr=subprocess.PIPE, text=True)
         seen = set()
-        while attacker.poll() is None:                              # every duty written while it attacks
+        while attacker.poll() is None:                              # the duty, every 2 ms while it attacks
             seen.add(duty_us())
+            try:
+                attacker.wait(timeout=0.002)
+            except subprocess.TimeoutExpired:
+                pass
         assert attacker.returncode == 0, attacker.stderr.read() if attacker.stderr else ""
         seen.add(duty_us())
         assert seen == {1500.0}, f"the ESC moved under the attack: {sorted(seen)}"
