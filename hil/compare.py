@@ -11,7 +11,14 @@ carries uptime and CPU) or raw device I/O (``RAW.*``). For each stream:
   from at all (it was not running) is shown as ``new``, with nothing to compare. A
   recording cuts its devices' input at both ends (the recorder starts and stops while
   drivers run), so insertions or deletions among the first or last ``edge`` messages of a
-  stream are notes; elsewhere they are differences.
+  stream are notes; elsewhere they are differences. So is a *partial* message there: a pair
+  among the first or last ``edge`` whose only differences are fields one side holds and the
+  other does not (``presence_vector`` with them), every field both hold being equal. That is
+  what a cut epoch gives (the recording begins after the live driver read a burst's first
+  sentences: the live fix holds position and velocity, the replayed one only the velocity of
+  the sentences recorded; or it ends before the burst's last ones): a note naming the stream,
+  the message and the cut, never counted as matched or different. A value that differs, at an
+  edge or anywhere, and a partial message away from the edges, are differences.
 - fields: every field from ``enumerate_fields`` except the header's ``timestamp_us`` and
   ``sequence`` (and ``ignore`` patterns), floats equal within their field's tolerance
   (:class:`Tolerances`: a default and per-field globs, from ``--tolerances FILE``; absolute, or
@@ -58,7 +65,7 @@ from pathlib import Path
 from typing import Any, Union
 
 from u2sa_hw.channels import base_type
-from u2sa_hw.messages import REGISTRY, MalformedMessage, enumerate_fields
+from u2sa_hw.messages import ABSENT, REGISTRY, MalformedMessage, enumerate_fields
 from u2sa_hw.recording.log_reader import LogFile
 
 from hil.player import header_source
@@ -258,8 +265,10 @@ def align(rec: list[Sample], rep: list[Sample], *, tolerance: ToleranceLike,
 
 
 def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance: ToleranceLike, edge: int,
-                   rate: float | None, time_tolerance_s: float, replay_start_ns: int | None = None) -> StreamReport:
-    """Compare one stream (see the module docstring); *replay_start_ns*: when the playback began."""
+                   rate: float | None, time_tolerance_s: float, replay_start_ns: int | None = None,
+                   origin_ns: int | None = None) -> StreamReport:
+    """Compare one stream (see the module docstring); *replay_start_ns*: when the playback began; *origin_ns*:
+    the log time notes count seconds from (default the stream's first recorded message)."""
     r = StreamReport(key, len(rec), len(rep))
     if not rec or not rep:
         r.problems.append("only in the replay" if rep else "not reproduced by the replay")
@@ -270,8 +279,13 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
     paired = [(p.rec, p.rep) for p in pairs if p.rec is not None and p.rep is not None]
     at_edges: list[str] = []
     system_changes = 0   # unpaired messages published for a change of a system-decided field
+    # the partial pairs at the edges (a cut epoch): (recorded, replayed) indexes
+    cut_pairs = {(i, j) for i, j in paired
+                 if (i < edge or i >= len(rec) - edge or j < edge or j >= len(rep) - edge)
+                 and (names := [n for n in differing_fields(rec[i], rep[j], tol) if n not in system])
+                 and partial(rec[i], rep[j], names)}
     last_rec_t = rec[0].t_ns
-    for p in pairs:
+    for k, p in enumerate(pairs):
         if p.rec is not None:
             last_rec_t = rec[p.rec].t_ns
         if p.kind in ("match", "differ"):
@@ -279,6 +293,10 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
         own, index = (rec, p.rec) if p.kind == "deleted" else (rep, p.rep)
         assert index is not None
         if index < edge or index >= len(own) - edge:
+            at_edges.append(p.kind)
+            continue
+        if _rest_of_cut(pairs, k, cut_pairs, rec, rep, tol):
+            # the other part of an epoch the cut split in two (its partial pair is beside it)
             at_edges.append(p.kind)
             continue
         if system and _at_system_change(own, index, system):
@@ -297,6 +315,7 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
     if replay_start_ns is not None:
         k0 = next((k for k, (_, j) in enumerate(paired) if rep[j].t_ns >= replay_start_ns), len(paired))
     system_diffs: dict[str, int] = {}
+    cut: list[str] = []   # partial messages where the recording cuts the input (module docstring)
     for k, (i, j) in enumerate(paired):
         a, b = rec[i], rep[j]
         names = differing_fields(a, b, tol)
@@ -304,6 +323,10 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
             for name in [n for n in names if n in system]:
                 system_diffs[name] = system_diffs.get(name, 0) + 1
             names = [n for n in names if n not in system]
+        at_edge = i < edge or i >= len(rec) - edge or j < edge or j >= len(rep) - edge
+        if names and at_edge and partial(a, b, names):
+            cut.append(_cut_note(a, b, i, start=i < edge or j < edge, origin_ns=origin_ns or rec[0].t_ns))
+            continue
         if names:
             r.differing += 1
         else:
@@ -341,7 +364,52 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
     if at_edges:
         r.notes.append(f"{len(at_edges)} message(s) without a counterpart among the first or last {edge} of a "
                        "stream (the recording cuts the input there)")
+    r.notes.extend(cut)
     return r
+
+
+def partial(a: Sample, b: Sample, names: list[str]) -> bool:
+    """True when *a* and *b* differ only in which fields they hold (*names*: the differing fields): each
+    is ``presence_vector`` or a field one of them leaves out, and at least one is such a field. Every
+    field both hold is then equal: one message holds part of the other's epoch."""
+    if a.type_name != b.type_name:
+        return False
+    held = [n for n in names if n != "presence_vector"]
+    return bool(held) and all(a.fields.get(n) is ABSENT or b.fields.get(n) is ABSENT for n in held)
+
+
+def _rest_of_cut(pairs: list[Pair], k: int, cut_pairs: set[tuple[int, int]], rec: list[Sample],
+                 rep: list[Sample], tol: Tolerances) -> bool:
+    """True when the unpaired message ``pairs[k]`` is beside a partial pair at a cut and holds part of the
+    same epoch: every field it holds is held, equal, by that pair's message on the other side."""
+    p = pairs[k]
+    for q in (pairs[k - 1] if k else None, pairs[k + 1] if k + 1 < len(pairs) else None):
+        if q is None or q.rec is None or q.rep is None or (q.rec, q.rep) not in cut_pairs:
+            continue
+        mine, other = (rec[p.rec], rep[q.rep]) if p.kind == "deleted" else (rep[p.rep], rec[q.rec])  # type: ignore[index]
+        if mine.type_name == other.type_name and all(
+                other.fields.get(n) is not ABSENT and values_equal(v, other.fields.get(n), tol.of(n))
+                for n, v in mine.fields.items() if v is not ABSENT and n != "presence_vector"):
+            return True
+    return False
+
+
+def _cut_note(a: Sample, b: Sample, index: int, *, start: bool, origin_ns: int) -> str:
+    """The note for a partial message at a cut: which side holds which fields, and where the cut is."""
+    only_rec = [n for n, v in a.fields.items() if v is not ABSENT and b.fields.get(n) is ABSENT]
+    only_rep = [n for n, v in b.fields.items() if v is not ABSENT and a.fields.get(n) is ABSENT]
+
+    def names(fields: list[str]) -> str:
+        return ", ".join(fields[:SHOWN_FIELDS]) + (f" (+{len(fields) - SHOWN_FIELDS})" if len(fields) > SHOWN_FIELDS
+                                                   else "")
+
+    held = "; ".join(part for part in (f"only the recorded one holds {names(only_rec)}" if only_rec else "",
+                                       f"only the replayed one holds {names(only_rep)}" if only_rep else "") if part)
+    where = ("the recording begins inside the epoch or burst of input this message was made of: the live driver "
+             "had read its first part before the recording started" if start else
+             "the recording ends inside the epoch or burst of input this message was made of")
+    return (f"cut: recorded #{index} at t={(a.t_ns - origin_ns) / 1e9:.3f} s and its replay hold part of one epoch each ({held}; every "
+            f"field both hold is equal): {where}, so a note, not a difference")
 
 
 def _at_system_change(stream: list[Sample], index: int, system: tuple[str, ...]) -> bool:
@@ -372,6 +440,7 @@ def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[st
     ignore = (*ignore, *tol.ignore)
     rec = load_streams(recorded, sources=services, start_ns=start_ns, end_ns=end_ns, ignore=ignore)
     rep = load_streams(replayed, sources=services, ignore=ignore)
+    origin = start_ns if start_ns is not None else min((v[0].t_ns for v in rec.values() if v), default=0)
     reports = []
     for key in sorted(set(rec) | set(rep)):
         a, b = rec.get(key, []), rep.get(key, [])
@@ -381,12 +450,12 @@ def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[st
                                           start_ns=start_ns, end_ns=end_ns, rate=rate, replay_start_ns=replay_start_ns))
         else:
             reports.append(compare_stream(key, a, b, tolerance=tol, edge=edge, rate=rate,
-                                          time_tolerance_s=time_tolerance_s, replay_start_ns=replay_start_ns))
+                                          time_tolerance_s=time_tolerance_s, replay_start_ns=replay_start_ns,
+                                          origin_ns=origin))
     recorded_sources = {key.rsplit(" [", 1)[1] for key in rec}
     for r in reports:
         if not r.recorded and r.key.rsplit(" [", 1)[1] not in recorded_sources:
             # a service that was not running (or not recorded) in the log: nothing to compare with
             r.problems.clear()
             r.notes.append("the recording has nothing from this service to compare with")
-    origin = start_ns if start_ns is not None else min((v[0].t_ns for v in rec.values() if v), default=0)
     return CompareReport(Path(recorded), Path(replayed), reports, tol, rate is not None, origin, pilot)

@@ -1,0 +1,89 @@
+"""``--compare`` at the cut of a recording (hil/compare.py): a recording that begins or ends inside a GPS
+epoch gives a first or last message that holds part of the live one (the live driver had read the
+epoch's GGA before the recording started: recorded position and velocity, replayed velocity only). That
+is a note naming the stream, the message and the cut. A real difference in the first or last message (a
+value) is still a difference, and so is a partial message away from the edges."""
+
+from __future__ import annotations
+
+from hil.compare import Sample, compare_stream
+from u2sa_hw.lcmtypes import StateInformation
+from u2sa_hw.messages import enumerate_fields
+
+POSITION = ("x", "y", "z", "x_sigma", "y_sigma", "z_sigma")
+VELOCITY = ("x_dot", "y_dot", "x_dot_sigma", "y_dot_sigma")
+
+
+def fix(k: int, *, held: tuple[str, ...] = POSITION + VELOCITY, x: float | None = None) -> Sample:
+    """The k-th GPS fix with the fields *held* (values from k), as load_streams gives it."""
+    msg = StateInformation()
+    msg.header.source = "gps"
+    msg.set(**{name: 0.5 + k + (POSITION + VELOCITY).index(name) / 10 for name in held})   # set() marks them present
+    if x is not None:
+        msg.set(x=x)
+    fields = {n: v for n, v in enumerate_fields(msg) if n not in ("header.timestamp_us", "header.sequence")}
+    return Sample(1_000_000_000 + k * 200_000_000, "StateInformation", fields)
+
+
+def stream(n: int = 10) -> list[Sample]:
+    return [fix(k) for k in range(n)]
+
+
+def compare(rec: list[Sample], rep: list[Sample]):
+    return compare_stream("STATE_INFO [gps]", rec, rep, tolerance=1e-6, edge=1, rate=None, time_tolerance_s=0.5)
+
+
+def test_the_fixture_builds_partial_messages() -> None:
+    # the presence vector says which fields a message holds: a velocity-only fix leaves x out
+    full, vel = fix(0), fix(0, held=VELOCITY)
+    assert full.fields["x"] == 0.5 and str(vel.fields["x"]) == "-" and vel.fields["x_dot"] == full.fields["x_dot"]
+    assert vel.fields["presence_vector"] != full.fields["presence_vector"]
+
+
+def test_a_first_epoch_cut_by_the_recording_is_a_note_naming_the_cut() -> None:
+    rec = stream()
+    rep = [fix(0, held=VELOCITY)] + stream()[1:]   # the replay had only the epoch's VTG
+    r = compare(rec, rep)
+    assert r.ok, r.problems
+    assert (r.differing, r.inserted, r.deleted, r.matched) == (0, 0, 0, 9)
+    [note] = [n for n in r.notes if n.startswith("cut:")]
+    assert "recorded #0" in note and "begins inside" in note and "only the recorded one holds x, y, z" in note
+
+
+def test_a_first_epoch_split_in_two_by_the_cut_is_a_note() -> None:
+    rec = stream()
+    rep = [fix(0, held=POSITION), fix(0, held=VELOCITY)] + stream()[1:]
+    r = compare(rec, rep)
+    assert r.ok, r.problems
+    assert any(n.startswith("cut:") for n in r.notes), r.notes
+
+
+def test_a_last_epoch_cut_by_the_recording_is_a_note() -> None:
+    rec = stream()
+    rep = stream()[:-1] + [fix(9, held=POSITION)]   # the recording ended after the epoch's GGA
+    r = compare(rec, rep)
+    assert r.ok, r.problems
+    [note] = [n for n in r.notes if n.startswith("cut:")]
+    assert "recorded #9" in note and "ends inside" in note
+
+
+def test_a_real_difference_in_the_first_or_the_last_message_is_still_reported() -> None:
+    for index in (0, 9):
+        rep = stream()
+        rep[index] = fix(index, x=rep[index].fields["x"] + 0.01)   # a driver change: a value, not a cut
+        r = compare(stream(), rep)
+        assert not r.ok and r.differing == 1 and "x" in r.fields, (index, r.problems, r.notes)
+        assert not any(n.startswith("cut:") for n in r.notes)
+        # a partial message whose shared values differ is no cut either
+        rep[index] = fix(index, held=VELOCITY)
+        rep[index].fields["x_dot"] += 0.01
+        r = compare(stream(), rep)
+        assert not r.ok and r.differing == 1, (index, r.problems, r.notes)
+
+
+def test_a_partial_message_away_from_the_edges_is_a_difference() -> None:
+    rep = stream()
+    rep[5] = fix(5, held=VELOCITY)
+    r = compare(stream(), rep)
+    assert not r.ok and r.differing == 1 and "x" in r.fields, r.problems
+    assert not any(n.startswith("cut:") for n in r.notes)
