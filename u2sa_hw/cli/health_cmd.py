@@ -128,8 +128,7 @@ def cmd_health(args: Any) -> int:
               f"{row['bad_signature']:>7} {row['foreign']:>7} {row['denied']:>6}  "
               f"{'; '.join(x for x in (row['reason'] or s.last_error, row['bus_listen']) if x)}")
     for rc in report["autonomy"]:
-        state = "GRANTED" if rc["granted"] else f"refused: {rc['blocked_by'] or 'unknown'}"
-        print(f"autonomy ({rc['service']}, RC {rc['mode']}, {'armed' if rc['armed'] else 'not armed'}): {state}")
+        print(autonomy_line(rc))
     if report["raises_accepted"]:
         from u2sa_hw.service_bus import raise_line
 
@@ -180,5 +179,25 @@ def autonomy_report(health: dict[str, Any]) -> list[dict[str, Any]]:
             continue
         out.append({"service": name, "granted": details.get("autonomy_enabled") == "True",
                     "blocked_by": details["enable_blocked_by"], "mode": details.get("mode", "?"),
-                    "armed": details.get("armed") == "True", "prearm_failed": details.get("prearm_failed", "")})
+                    "armed": details.get("armed") == "True", "hold": details.get("hold") == "True",
+                    "prearm_failed": details.get("prearm_failed", "")})
     return out
+
+
+def autonomy_from_rc_mode(msg: Any) -> dict[str, Any]:
+    """The same view from an ``RcMode`` on ``RC_MODE`` (the mux sends it at 20 Hz and at once on a change)."""
+    return {"service": msg.header.source or "RC_MODE", "granted": bool(msg.autonomy_enabled),
+            "blocked_by": msg.blocked_by, "mode": msg.mode_name or "?", "armed": bool(msg.armed),
+            "hold": bool(msg.hold), "prearm_failed": ""}
+
+
+def autonomy_line(rc: dict[str, Any]) -> str:
+    """``autonomy (rc, RC autonomous, armed): GRANTED``, or ``refused:`` and why; the one-shot's and the watch's.
+
+    Granted with ``hold`` (a pre-arm check was lost with action "hold") keeps the outputs neutral: said so.
+    """
+    if rc["granted"]:
+        state = "GRANTED, but HOLD: outputs neutral (a pre-arm check was lost)" if rc.get("hold") else "GRANTED"
+    else:
+        state = f"refused: {rc['blocked_by'] or 'unknown'}"
+    return f"autonomy ({rc['service']}, RC {rc['mode']}, {'armed' if rc['armed'] else 'not armed'}): {state}"
