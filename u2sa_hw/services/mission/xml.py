@@ -34,6 +34,7 @@ together and are range-checked. Every error names the file, the line and the ele
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -194,3 +195,46 @@ def parse_mission(text: str | bytes, *, source: str, default_threshold: float | 
 def load_mission(path: Path | str, *, default_threshold: float | None = None) -> MissionSpec:
     """Read and parse the mission file at *path*."""
     return mission_from_tree(read_xml_file(path), default_threshold=default_threshold)
+
+
+# -- writing ----------------------------------------------------------------------------------------
+def _num(value: float, places: int = 3) -> str:
+    """*value* rounded to *places* decimals, without trailing zeros (metres: to the millimetre)."""
+    text = f"{value:.{places}f}".rstrip("0").rstrip(".")
+    return "0" if text in ("-0", "") else text
+
+
+def mission_to_xml(spec: MissionSpec, *, comment: str = "") -> str:
+    """*spec* as mission XML that :func:`parse_mission` reads back to the same goals.
+
+    Local positions are written to the millimetre, Global ones as ``<lat>/<lon>/<alt>`` to
+    1e-8 degree, attitudes in degrees (``unit="deg"``). A goal's ``horizontal_threshold``
+    of 0 or less means "the configured default": no ``<threshold>`` is written. *comment*
+    (one or more lines) goes in an XML comment above ``<mission>``.
+    """
+    from xml.sax.saxutils import escape, quoteattr
+
+    lines = ['<?xml version="1.0" encoding="UTF-8"?>']
+    if comment:
+        lines.append("<!-- " + comment.replace("--", "- -").replace("\n", "\n     ") + " -->")
+    lines.append(f"<mission name={quoteattr(spec.name)} loop=\"{'true' if spec.loop else 'false'}\">")
+    for goal in spec.goals:
+        parts = [f"<name>{escape(goal.uid)}</name>"]
+        parts += [f"<next>{escape(uid)}</next>" for uid in goal.next_uids]
+        values = goal.values
+        if goal.frame == GLOBAL:
+            parts.append("<reference>Global</reference>")
+            parts += [f"<{tag}>{_num(values[slot], 8)}</{tag}>" for tag, slot in (("lat", "x"), ("lon", "y"))
+                      if slot in values]
+            if "z" in values:
+                parts.append(f"<alt>{_num(values['z'])}</alt>")
+        else:
+            parts += [f"<{slot}>{_num(values[slot])}</{slot}>" for slot in ("x", "y", "z") if slot in values]
+        parts += [f'<{tag} unit="deg">{_num(math.degrees(values[tag]), 6)}</{tag}>'
+                  for tag in ("phi", "theta", "psi") if tag in values]
+        parts += [f"<{tag}>{_num(values[tag])}</{tag}>" for tag in ("time", "vertical_threshold") if tag in values]
+        if goal.horizontal_threshold > 0:
+            parts.append(f"<threshold>{_num(goal.horizontal_threshold)}</threshold>")
+        lines.append("  <waypoint>" + "".join(parts) + "</waypoint>")
+    lines.append("</mission>")
+    return "\n".join(lines) + "\n"
