@@ -71,13 +71,17 @@ class Client:
         """Read frames until ``until()`` holds, calling ``tick()`` (a publisher) every 50 ms meanwhile."""
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
+        next_tick = loop.time()
         while not until():
             if loop.time() > deadline:
                 got = {sub_id: len(items) for sub_id, items in sorted(self.data.items())}
                 pytest.fail(f"timed out after {timeout:g} s; advertised {sorted(self.channels)}, replies "
                             f"{self.replies}, messages per subscription {got}")
-            if tick is not None:
+            if tick is not None and loop.time() >= next_tick:
+                # at most every 50 ms, not per frame: each tick's messages come back as frames, and a tick per
+                # frame would snowball into a flood that delays the server's pongs (a keepalive timeout)
                 tick()
+                next_tick = loop.time() + 0.05
             try:
                 frame = await asyncio.wait_for(self.ws.recv(), 0.05)
             except asyncio.TimeoutError:
