@@ -343,13 +343,14 @@ def test_health_table_from_services_own_health_without_an_hsm() -> None:
     assert sent == [3.0, 4.0]
     (table,) = tables("U2SA_HEALTH", health_msg("gps", 5.1), 5.1)
     assert [r["name"] for r in table["services"]] == ["gps", "world"] and table["summary"].startswith("no HSM heard")
+    assert table["failsafe"] is None   # no one counts the failsafes held: unknown, not "off"
     system = t.SystemHealth()
     system.summary = "all ok"
     (table,) = tables("U2SA_SYSTEM_HEALTH", system, 5.2)
-    assert table["summary"] == "all ok"
+    assert table["summary"] == "all ok" and table["failsafe"] is False
     assert not tables("U2SA_HEALTH", health_msg("gps", 7.0), 7.0)   # the HSM is heard: its table only
     (table,) = tables("U2SA_HEALTH", health_msg("gps", 8.3), 8.3)   # silent for 3 s: its view is dropped
-    assert table["summary"].startswith("no HSM heard")
+    assert table["summary"].startswith("no HSM heard") and table["failsafe"] is None
 
 
 def test_a_geodetic_polygon_is_placed_about_the_origin() -> None:

@@ -29,6 +29,8 @@ def test_render_cuts_the_reason_to_the_width() -> None:
     assert lines[0] == "12:00:00  FAILSAFE ACTIVE -- 1 failed"
     assert all(len(line) <= 100 for line in lines) and lines[2].endswith("...")
     assert re.match(r"gps\s+failed\s+2\s+-\s+1\.2\s+3\.0\s+0\s+x+", lines[2])
+    no_hsm = render({"failsafe": None, "summary": "no HSM heard", "services": []}, width=100, now="12:00:00")
+    assert no_hsm[0] == "12:00:00  failsafe unknown -- no HSM heard"   # without an HSM no one counts them
 
 
 def rc_mode(*, mode: str, armed: bool, granted: bool, blocked_by: str = "", hold: bool = False) -> t.RcMode:

@@ -91,7 +91,8 @@ def _cut(line: str, width: int) -> str:
 def render(message: dict[str, Any], *, width: int, now: str, autonomy: list[str] | tuple[str, ...] = ()) -> list[str]:
     """The table's lines for one HealthTable message, the reason column cut to *width*, then the *autonomy*
     lines (:class:`AutonomyView`)."""
-    head = f"{now}  {'FAILSAFE ACTIVE' if message['failsafe'] else 'failsafe off'} -- {message['summary']}"
+    failsafe = {True: "FAILSAFE ACTIVE", False: "failsafe off"}.get(message["failsafe"], "failsafe unknown")
+    head = f"{now}  {failsafe} -- {message['summary']}"
     fixed = " ".join(f"{name:{align}{w}}" for name, w, align in COLUMNS)
     lines = [head[:width], f"{fixed}  REASON"[:width]]
     keys = ("name", "state", "status", "restarts", "rx_hz", "tx_hz", "cpu_percent", "dropped")

@@ -76,7 +76,8 @@ class HealthTable:
     def message(self) -> dict[str, Any]:
         """The table as one JSON-ready message (``u2sa.HealthTable``)."""
         sysh = self.system
-        return {"failsafe": bool(sysh.failsafe) if sysh is not None else False,
+        # Without an HSM no one counts the failsafes held: null (unknown), never "off"
+        return {"failsafe": bool(sysh.failsafe) if sysh is not None else None,
                 "summary": sysh.summary if sysh is not None else "no HSM heard (no U2SA_SYSTEM_HEALTH)",
                 "services": self.rows()}
 
@@ -103,7 +104,9 @@ _CELL_NUM = {"type": ["number", "null"]}
 SCHEMA: dict[str, Any] = {
     "title": "u2sa.HealthTable", "type": "object",
     "properties": {
-        "failsafe": {"type": "boolean"}, "summary": {"type": "string"},
+        "failsafe": {"type": ["boolean", "null"], "description": "held by any source, as the HSM counts them; "
+                                                                   "null without an HSM"},
+        "summary": {"type": "string"},
         "services": {"type": "array", "items": {
             "type": "object",
             "properties": {"name": {"type": "string"}, "state": {"type": "string"}, "status": {"type": "string"},
