@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import os
 import shutil
 import subprocess
@@ -11,12 +12,16 @@ from pathlib import Path
 
 import pytest
 
-from u2sa_hw.install.deploy import install, uninstall
+from u2sa_hw.install.deploy import install as deploy_install
+from u2sa_hw.install.deploy import uninstall
 from u2sa_hw.install.manifest import MANIFEST_PATH, load_manifest
 from u2sa_hw.install.system import InstallError
 from u2sa_hw.transport import DEFAULT_RECV_BUF_SIZE
 
 U2SA = Path(sys.executable).with_name("u2sa")
+# These tests stage in seconds: a venv sharing this environment's packages, not one built with pip
+# (the default with --root, tests/test_systemd_image.py).
+install = functools.partial(deploy_install, venv="shared")
 PROFILE = """\
 # a comment that the installed profile does not keep
 [vehicle]
@@ -151,13 +156,13 @@ def test_install_stages_units_configs_rules_users_and_links(vehicle: Path, root:
 
 
 def test_second_install_changes_nothing_and_says_so(vehicle: Path, root: Path) -> None:
-    first = subprocess.run([str(U2SA), "install", "--vehicle", str(vehicle), "--root", str(root)],
-                           capture_output=True, text=True, timeout=120)
+    first = subprocess.run([str(U2SA), "install", "--vehicle", str(vehicle), "--root", str(root),
+                            "--venv", "shared"], capture_output=True, text=True, timeout=120)
     assert first.returncode == 0, first.stderr
     before = snapshot(root)
     manifest = (root / MANIFEST_PATH.lstrip("/")).read_bytes()
-    second = subprocess.run([str(U2SA), "install", "--vehicle", str(vehicle), "--root", str(root)],
-                            capture_output=True, text=True, timeout=120)
+    second = subprocess.run([str(U2SA), "install", "--vehicle", str(vehicle), "--root", str(root),
+                             "--venv", "shared"], capture_output=True, text=True, timeout=120)
     assert second.returncode == 0, second.stderr
     assert second.stdout.strip() == "nothing to do: everything is already installed as this profile wants"
     assert snapshot(root) == before
@@ -474,3 +479,42 @@ def test_a_tree_without_a_user_database_gets_a_pilot_key_only_root_reads(vehicle
     assert (st.st_uid, st.st_gid, st.st_mode & 0o7777) == (0, 0, 0o600)
     assert any(str(c).startswith("created   /etc/u2sa/pilot.key  (the pilot's private key, root:root 0600 (no group "
                                  "u2sa-pilot yet)") for c in tree.changes)
+
+
+def test_a_shared_venv_staged_with_root_warns_that_the_image_will_not_find_this_environment(
+        vehicle: Path, root: Path) -> None:
+    """--venv shared points into this machine's environment; a staged tree without it does not boot."""
+    import sysconfig
+
+    tree = install(vehicle=vehicle, root=root)
+    site = sysconfig.get_paths()["purelib"]
+    assert [w for w in tree.warnings if w.startswith("--venv shared")] == [
+        f"--venv shared with --root: /opt/u2sa/venv points at this machine's {site}, which is not in "
+        f"{root.resolve()}; booted anywhere else every unit fails with \"No module named 'u2sa_hw'\"; fix: --venv "
+        "build (the default), which builds the venv inside the root"]
+
+
+def test_help_says_the_venv_is_built_inside_the_root_by_default() -> None:
+    shown = subprocess.run([str(U2SA), "install", "--help"], capture_output=True, text=True, timeout=60)
+    assert shown.returncode == 0, shown.stderr
+    text = " ".join(shown.stdout.split())
+    assert "build (the default, also with --root" in text
+    assert "builds the venv inside DIR (--venv build, the default)" in text
+
+
+def test_relocate_venv_rewrites_the_scripts_and_pyvenv_cfg_to_the_vehicles_path(tmp_path: Path) -> None:
+    from u2sa_hw.install.system import relocate_venv
+
+    venv = tmp_path / "root/opt/u2sa/venv"
+    (venv / "bin").mkdir(parents=True)
+    (venv / "pyvenv.cfg").write_text(f"home = /usr/bin\ncommand = /usr/bin/python3 -m venv {venv}\n")
+    (venv / "bin/u2sa").write_text(f"#!{venv}/bin/python\nfrom u2sa_hw.cli import main\n")
+    (venv / "bin/u2sa").chmod(0o755)
+    (venv / "bin/activate").write_text(f'VIRTUAL_ENV="{venv}"\n')
+    (venv / "bin/python").symlink_to("/usr/bin/python3")
+    assert relocate_venv(venv, "/opt/u2sa/venv") == ["pyvenv.cfg", "activate", "u2sa"]
+    assert (venv / "bin/u2sa").read_text().startswith("#!/opt/u2sa/venv/bin/python\n")
+    assert (venv / "bin/u2sa").stat().st_mode & 0o777 == 0o755
+    assert (venv / "bin/activate").read_text() == 'VIRTUAL_ENV="/opt/u2sa/venv"\n'
+    assert (venv / "pyvenv.cfg").read_text().endswith("-m venv /opt/u2sa/venv\n")
+    assert os.readlink(venv / "bin/python") == "/usr/bin/python3"

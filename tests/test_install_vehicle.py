@@ -73,7 +73,7 @@ def vehicle(tmp_path: Path) -> Path:
 def test_root_is_created_and_the_named_files_are_installed_and_named_by_the_installed_configs(
         vehicle: Path, tmp_path: Path) -> None:
     root = tmp_path / "not" / "yet" / "there"
-    done = u2sa("install", "--vehicle", str(vehicle), "--root", str(root))
+    done = u2sa("install", "--vehicle", str(vehicle), "--root", str(root), "--venv", "shared")
     assert done.returncode == 0, done.stderr
     etc = root / "etc/u2sa"
     # Beside the profile at the same relative place: the config keeps its text, comments too.
@@ -89,7 +89,7 @@ def test_root_is_created_and_the_named_files_are_installed_and_named_by_the_inst
     assert check.returncode == 0, check.stdout + check.stderr
     # Once installed, a file is the user's like a config: changed on the vehicle, it is kept.
     (etc / "missions/harbour.xml").write_text(MISSION + "<!-- changed on the vehicle -->\n")
-    again = u2sa("install", "--vehicle", str(vehicle), "--root", str(root))
+    again = u2sa("install", "--vehicle", str(vehicle), "--root", str(root), "--venv", "shared")
     assert again.returncode == 0 and "kept      /etc/u2sa/missions/harbour.xml" in again.stdout
     assert "changed on the vehicle" in (etc / "missions/harbour.xml").read_text()
 
@@ -98,11 +98,11 @@ def test_a_missing_named_file_is_refused_and_force_installs_the_rest_and_exits_1
                                                                                  tmp_path: Path) -> None:
     (vehicle.parent / "missions/harbour.xml").unlink()
     root = tmp_path / "root"
-    refused = u2sa("install", "--vehicle", str(vehicle), "--root", str(root))
+    refused = u2sa("install", "--vehicle", str(vehicle), "--root", str(root), "--venv", "shared")
     assert refused.returncode == 1 and "refusing to install" in refused.stderr and "--force" in refused.stderr
     assert "mission_file" in refused.stderr and "harbour.xml" in refused.stderr
     assert not root.exists()                       # nothing written, not even the root
-    forced = u2sa("install", "--vehicle", str(vehicle), "--root", str(root), "--force")
+    forced = u2sa("install", "--vehicle", str(vehicle), "--root", str(root), "--venv", "shared", "--force")
     assert forced.returncode == 1, forced.stdout + forced.stderr
     assert "not done:" in forced.stderr and "harbour.xml" in forced.stderr
     assert (root / "etc/u2sa/vehicle.toml").is_file() and (root / "etc/u2sa/files/world/objects.xml").is_file()
@@ -113,17 +113,17 @@ def test_a_dev_u2sa_link_nothing_creates_is_refused_with_the_rule_line_and_a_loc
     vehicle.write_text(PROFILE.replace("?baud=9600&usb=1546:01a7&serial=A1B2", "?baud=9600"))
     root = tmp_path / "root"
     with pytest.raises(InstallError) as err:
-        install(vehicle=vehicle, root=root)
+        install(vehicle=vehicle, root=root, venv="shared")
     text = str(err.value)
     assert "/dev/u2sa/gps" in text and 'SYMLINK+="u2sa/gps"' in text and "66-u2sa-local.rules" in text
-    forced = install(vehicle=vehicle, root=root, force=True)
+    forced = install(vehicle=vehicle, root=root, force=True, venv="shared")
     assert any("/dev/u2sa/gps" in f for f in forced.failures)
     rules = (root / "etc/udev/rules.d/65-u2sa-vehicle.rules").read_text()
     assert "u2sa/gps" not in rules
     # The user's own rule (as the error says) makes the link: install goes through, and leaves the rule alone.
     local = root / "etc/udev/rules.d/66-u2sa-local.rules"
     local.write_text('SUBSYSTEM=="tty", ATTRS{idVendor}=="0403", ATTRS{idProduct}=="6001", SYMLINK+="u2sa/gps"\n')
-    tree = install(vehicle=vehicle, root=root)
+    tree = install(vehicle=vehicle, root=root, venv="shared")
     assert tree.failures == []
     uninstall(root=root, purge=True)
     assert local.read_text().startswith('SUBSYSTEM=="tty"')
@@ -133,7 +133,7 @@ def test_can_interfaces_get_their_bitrate_from_the_address(vehicle: Path, tmp_pa
     vehicle.write_text(PROFILE + '\n[services.wheels]\nkind = "odrive_can"\n\n'
                        '[devices.wheels]\naddress = "can://socketcan/can1?bitrate=250000"\n')
     root = tmp_path / "root"
-    tree = install(vehicle=vehicle, root=root)
+    tree = install(vehicle=vehicle, root=root, venv="shared")
     rules = (root / "etc/udev/rules.d/65-u2sa-vehicle.rules").read_text().splitlines()
     assert 'SUBSYSTEM=="net", KERNEL=="can1", ENV{U2SA_CAN_BITRATE}="250000"' in rules
     assert ('SUBSYSTEM=="tty", ATTRS{idVendor}=="1546", ATTRS{idProduct}=="01a7", ATTRS{serial}=="A1B2", '
@@ -143,7 +143,7 @@ def test_can_interfaces_get_their_bitrate_from_the_address(vehicle: Path, tmp_pa
     assert not tree.failures
     # Without a bitrate the interface is left as configured, and install says so.
     vehicle.write_text(vehicle.read_text().replace("?bitrate=250000", ""))
-    tree = install(vehicle=vehicle, root=root)
+    tree = install(vehicle=vehicle, root=root, venv="shared")
     assert "can1" not in (root / "etc/udev/rules.d/65-u2sa-vehicle.rules").read_text()
     assert any(c.action == "skipped" and "can1" in c.path for c in tree.changes)
 
@@ -171,7 +171,7 @@ def test_uninstall_undoes_exactly_what_install_did(vehicle: Path, tmp_path: Path
     (root / "etc/systemd/system/other.service").write_text("[Service]\nExecStart=/bin/true\n")
     (root / "opt/other").mkdir(parents=True)
     before = _tree(root)
-    assert u2sa("install", "--vehicle", str(vehicle), "--root", str(root)).returncode == 0
+    assert u2sa("install", "--vehicle", str(vehicle), "--root", str(root), "--venv", "shared").returncode == 0
     assert (root / "etc/u2sa/missions/harbour.xml").is_file()
     done = u2sa("uninstall", "--root", str(root))
     assert done.returncode == 0, done.stderr
@@ -251,7 +251,7 @@ def test_secret_files_are_installed_root_u2sa_0640_and_the_installed_profile_nam
     for name in ("passwd", "group", "shadow", "gshadow", "login.defs"):   # useradd --prefix adds u2sa to these
         if Path("/etc", name).exists():
             (root / "etc" / name).write_bytes(Path("/etc", name).read_bytes())
-    install(vehicle=vehicle, root=root)
+    install(vehicle=vehicle, root=root, venv="shared")
     etc = root / "etc/u2sa"
     gid = next(int(line.split(":")[2]) for line in (root / "etc/group").read_text().splitlines()
                if line.startswith("u2sa:"))
@@ -267,7 +267,7 @@ def test_secret_files_are_installed_root_u2sa_0640_and_the_installed_profile_nam
     token = etc / "files/bridge/token"
     token.write_text("another-token-of-twenty-four\n")
     token.chmod(0o644)
-    again = install(vehicle=vehicle, root=root)
+    again = install(vehicle=vehicle, root=root, venv="shared")
     assert token.stat().st_mode & 0o7777 == 0o640 and token.read_text() == "another-token-of-twenty-four\n"
     assert any(c.path == "/etc/u2sa/files/bridge/token" and c.action == "updated" for c in again.changes)
     assert (etc / "files/bridge/token.new").stat().st_mode & 0o7777 == 0o640
@@ -290,7 +290,7 @@ def test_a_staged_install_of_each_example_passes_u2sa_check_against_the_staged_t
         (root / "etc/udev/rules.d/66-u2sa-local.rules").write_text("".join(
             f'SUBSYSTEM=="tty", ATTRS{{idVendor}}=="0403", ATTRS{{idProduct}}=="6001", ATTRS{{serial}}=="{name}", '
             f'SYMLINK+="{path[len("/dev/"):]}"\n' for name, path in plan.unmade))
-    done = u2sa("install", "--vehicle", str(source), "--root", str(root))
+    done = u2sa("install", "--vehicle", str(source), "--root", str(root), "--venv", "shared")
     assert done.returncode == 0, done.stdout + done.stderr
     installed = root / "etc/u2sa/vehicle.toml"
     check = u2sa("check", "--vehicle", str(installed), env=staged_check_env(root))

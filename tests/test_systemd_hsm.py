@@ -171,7 +171,7 @@ def root(tmp_path_factory: pytest.TempPathFactory, url: str) -> Path:
     staged = stage_root(base / "root")
     # --force: the check rightly refuses the service 'broken', which is there to crash-loop.
     done = subprocess.run([*u2sa_command(staged), "install", "--vehicle", str(profile), "--root", str(staged),
-                           "--force"],
+                           "--venv", "shared", "--force"],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert (staged / "etc/systemd/system/u2sa.target.wants/u2sa-hsm.service").is_symlink()

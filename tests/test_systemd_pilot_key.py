@@ -82,8 +82,8 @@ def wait_probes(ns: SystemdNamespace, count: int) -> dict[str, str]:
 def test_only_the_rc_muxs_unit_reads_the_pilot_key(tmp_path: Path) -> None:
     root = stage_root(tmp_path / "root")
     profile = write_profile(tmp_path / "vehicle.toml", private_udp_port())
-    done = subprocess.run([*u2sa_command(root), "install", "--vehicle", str(profile), "--root", str(root)],
-                          capture_output=True, text=True, timeout=120)
+    done = subprocess.run([*u2sa_command(root), "install", "--vehicle", str(profile), "--root", str(root),
+                           "--venv", "shared"], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     key = root / "etc/u2sa/pilot.key"
     group = {line.split(":")[0]: line.split(":") for line in (root / "etc/group").read_text().splitlines()}

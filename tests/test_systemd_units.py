@@ -87,8 +87,8 @@ def staged(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     port = private_udp_port()
     profile = write_profile(base / "vehicle.toml", port, recorder=True)
     root = stage_root(base / "root")
-    done = subprocess.run([*u2sa_command(root), "install", "--vehicle", str(profile), "--root", str(root)],
-                          capture_output=True, text=True, timeout=120)
+    done = subprocess.run([*u2sa_command(root), "install", "--vehicle", str(profile), "--root", str(root),
+                           "--venv", "shared"], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     # The check's word on the disabled service 'broken' (an unknown kind, there to crash-loop) is a warning.
     assert "warning: " in done.stderr and "no_such_kind" in done.stderr
@@ -364,8 +364,8 @@ def test_offline_vehicle_gets_multicast_on_lo_and_its_services_talk(tmp_path: Pa
     port = private_udp_port()
     profile = write_profile(tmp_path / "vehicle.toml", port)
     root = stage_root(tmp_path / "root")
-    subprocess.run([*u2sa_command(root), "install", "--vehicle", str(profile), "--root", str(root)], check=True,
-                   capture_output=True, timeout=120)
+    subprocess.run([*u2sa_command(root), "install", "--vehicle", str(profile), "--root", str(root),
+                    "--venv", "shared"], check=True, capture_output=True, timeout=120)
     with SystemdNamespace(root, private_network=True) as offline:
         assert offline.state("u2sa-multicast-lo.service") == "active/exited"
         assert "224.0.0.0/4 dev lo" in offline.run("ip", "-4", "route", "show").stdout

@@ -39,11 +39,20 @@ recorder gets u2sa@NAME.service.d/10-recorder.conf (lower CPU and I/O priority, 
 stop). Running it again changes only what differs, and says so. Needs root, unless
 --root DIR stages everything into DIR instead (made if missing; for packages, images and
 tests). u2sa uninstall undoes it.
+
+An SD-card image: u2sa install --vehicle FILE --root DIR builds the venv inside DIR
+(--venv build, the default), where the booted image has it as /opt/u2sa/venv; nothing in
+it points at this checkout. Its python links to this machine's interpreter by path
+(e.g. /usr/bin/python3.11): build on a machine of the vehicle's architecture whose
+interpreter the image has at the same path (or pass --python). pip shows its progress and
+reads its usual settings (PIP_INDEX_URL, PIP_FIND_LINKS...) and cache.
 """
 
-VENV_HELP = ("how to make /opt/u2sa/venv: build (venv + pip install of the project; the default on a "
-             "vehicle), shared (a venv using this environment's packages, seconds; the default with "
-             "--root), none (leave it to the package)")
+VENV_HELP = ("how to make /opt/u2sa/venv: build (the default, also with --root: a venv and pip install of a "
+             "wheel of the checkout with its dependencies, pip's output shown; with --root DIR built inside DIR "
+             "and made correct at /opt/u2sa/venv, so the image boots without this checkout), shared (seconds: a "
+             "venv using this environment's packages, for a development board; a staged image boots only where "
+             "that environment is), none (leave it to the package)")
 
 
 def register(sub: Any) -> None:
@@ -93,6 +102,11 @@ def _print_changes(tree: Any, *, verbose: bool, done: str) -> None:
         print(f"nothing to do: {done}")
 
 
+def _progress(line: str) -> None:
+    """Where install's slow step (pip) says what it does: stderr, so stdout keeps only the changes."""
+    print(line, file=sys.stderr, flush=True)
+
+
 def cmd_install(args: Any) -> int:
     """Run install and print what changed."""
     from u2sa_hw.cli import CliError
@@ -102,7 +116,7 @@ def cmd_install(args: Any) -> int:
 
     try:
         tree = install(vehicle=args.vehicle, root=Path(args.root), venv=args.venv, python=args.python,
-                       source=args.source, force=args.force)
+                       source=args.source, force=args.force, progress=_progress)
     except (InstallError, ProfileError) as exc:
         raise CliError(str(exc)) from None
     for warning in tree.warnings:

@@ -5,7 +5,8 @@ Install, on the SBC as root (or staged into ``--root DIR`` for packaging and tes
 1. creates the group u2sa, the device groups dialout, i2c, gpio and the group u2sa-pilot
    (the RC mux's unit alone; the user u2sa is not a member) where missing, and the system
    user u2sa (no login, home /var/lib/u2sa);
-2. makes the venv under /opt/u2sa/venv (see :mod:`u2sa_hw.install.system`);
+2. makes the venv under /opt/u2sa/venv, by default built with pip, inside DIR with ``--root``
+   (see :mod:`u2sa_hw.install.system`);
 3. installs the profile and service configs under /etc/u2sa (never overwriting one the
    user changed: the new default goes beside it as ``.new``) with the files the services'
    declared file settings name (a secret one root:u2sa 0640), and makes the vehicle's bus
@@ -30,6 +31,7 @@ from __future__ import annotations
 import os
 import subprocess
 from pathlib import Path
+from typing import Callable
 
 from u2sa_hw.bus_key import BusKeyError, ensure_key, parse_key
 from u2sa_hw.bus_pilot import PILOT_GROUP, PILOT_KEY_NAME, PILOT_PUB_NAME, public_of, write_pilot_pair
@@ -73,7 +75,8 @@ def _check_root(root: Path, *, create: bool = False) -> Path:
 
 
 def install(*, vehicle: Path | str, root: Path | str = "/", venv: str | None = None,
-            python: str | None = None, source: str | None = None, force: bool = False) -> InstallTree:
+            python: str | None = None, source: str | None = None, force: bool = False,
+            progress: Callable[[str], None] | None = None) -> InstallTree:
     """Install (or update) the deployment of the profile *vehicle* under *root*; the tree lists the changes.
 
     The offline check (``u2sa check``) runs first, on the file as written. Refuses
@@ -81,13 +84,17 @@ def install(*, vehicle: Path | str, root: Path | str = "/", venv: str | None = N
     could not make a runnable vehicle of the profile, unless *force*; then what could not be
     done is in ``tree.failures`` and the check's errors in ``tree.warnings``. Not even *force*
     installs a profile that does not load or has a ``[safety]`` error.
+
+    *venv* is ``build`` unless given, with *root* too: a staged tree gets a venv built inside it
+    that boots as the image's /opt/u2sa/venv. *progress* gets pip's output line by line while it
+    builds one (None: quiet).
     """
     if not vehicle:
         raise InstallError("install needs a vehicle profile: pass --vehicle FILE")
     path = Path(vehicle)
     if Path(root).resolve() == Path("/"):
         _check_root(Path(root))   # not root: refused before the check runs
-    mode = venv or ("build" if Path(root).resolve() == Path("/") else "shared")
+    mode = venv or "build"
     if mode not in VENV_MODES:
         raise InstallError(f"--venv {mode}: use one of {', '.join(VENV_MODES)}")
     src = project_source(source)
@@ -109,7 +116,7 @@ def install(*, vehicle: Path | str, root: Path | str = "/", venv: str | None = N
     tree.warnings, tree.failures = found.warnings, found.failures
     ensure_users(tree)
     owner = owner_ids(root)
-    ensure_venv(tree, mode=mode, source=src, python=python)
+    ensure_venv(tree, mode=mode, source=src, python=python, progress=progress)
 
     unit_files = {**unit_sources(src), **unit_dropins(profile, pwm_services=found.plan.pwm_services)}
     unit_actions = [tree.put_managed(dest, data) for dest, data in unit_files.items()]
