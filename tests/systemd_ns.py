@@ -86,12 +86,13 @@ def cgroup2_mount() -> Path | None:
     return None
 
 
-def stage_root(root: Path) -> Path:
+def stage_root(root: Path, *, code: bool = True) -> Path:
     """Prepare *root* for install --root and a boot: a copy of the host's /etc (users,
     libraries' config) without any unit, an empty var/ tree, and the support units; and,
-    when the units could not see this checkout or its venv (under /tmp or a home), the
-    code staged into its /opt (``staged_code.stage_code``: run install with
-    ``u2sa_command(root)``, and ``u2sa_inside(root)`` in the namespace)."""
+    when *code* and the units could not see this checkout or its venv (under /tmp or a
+    home), the code staged into its /opt (``staged_code.stage_code``: run install with
+    ``u2sa_command(root)``, and ``u2sa_inside(root)`` in the namespace). ``code=False``:
+    never, for a root whose venv ``u2sa install --venv build`` builds inside it."""
     root.mkdir(parents=True, exist_ok=True)
     subprocess.run(["cp", "-a", "/etc", str(root / "etc")], check=True)
     units = root / "etc/systemd/system"
@@ -118,7 +119,7 @@ def stage_root(root: Path) -> Path:
         (root / d).mkdir(parents=True, exist_ok=True)
     (root / "var/run").symlink_to("/run")
     (root / "var/lock").symlink_to("/run/lock")
-    if code_hidden():
+    if code and code_hidden():
         stage_code(root)
     return root
 
