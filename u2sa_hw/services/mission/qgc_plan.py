@@ -256,7 +256,7 @@ def plan_to_mission(plan: dict[str, Any], *, source: str, origin: GeoOrigin,
     used: set[str] = set()
     seen: dict[tuple[int, tuple[int, ...]], int] = {}
     counters = {i: item["repeat"] for i, item in enumerate(items) if item["command"] == JUMP}
-    pc, loop = 0, False
+    pc, loop, reached = 0, False, set()
     while pc < len(items):
         state = (pc, tuple(counters.values()))
         if state in seen:   # back where the mission was: close the cycle with a next link
@@ -270,6 +270,7 @@ def plan_to_mission(plan: dict[str, Any], *, source: str, origin: GeoOrigin,
             break
         seen[state] = len(goals)
         item = items[pc]
+        reached.add(pc)
         if item["command"] == JUMP:
             left = counters[pc]
             if left == 0:
@@ -299,6 +300,9 @@ def plan_to_mission(plan: dict[str, Any], *, source: str, origin: GeoOrigin,
         pc += 1
     if not goals:
         raise PlanError(f"{where}: no waypoint is ever reached")
+    if never := [str(i + 1) for i, item in enumerate(items) if i not in reached and item["command"] != JUMP]:
+        warnings.append(f"{source}: item(s) {', '.join(never)} never reached (after a jump that repeats forever or "
+                        "a return-to-launch): left out")
     meta = plan.get("u2sa") if isinstance(plan.get("u2sa"), dict) else {}
     name = meta.get("mission")
     name = name.strip() if isinstance(name, str) and name.strip() else Path(source).stem
