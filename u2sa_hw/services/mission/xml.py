@@ -30,6 +30,8 @@ forms in one goal is an error. ``<mission reference="Global">`` makes Global the
 of every goal without its own ``<reference>`` (the thesis's 4.5.2.3 waypoints have none).
 A goal needs at least one position value; a Global goal's latitude and longitude come
 together and are range-checked. Every error names the file, the line and the element.
+:func:`mission_to_xml` writes a :class:`MissionSpec` back as such a file (``u2sa mission
+import`` prints a QGroundControl plan that way, :mod:`.qgc_plan`).
 """
 
 from __future__ import annotations
