@@ -139,8 +139,8 @@ def stage(base: Path, url: str, services: dict[str, str]) -> Path:
     profile.write_text(f'[vehicle]\nname = "bench"\nlcm_url = "{url}"\n\n' + "".join(
         f'[services.{name}]\nkind = "{kind}"\n\n' for name, kind in services.items()))
     root = stage_root(base / "root")
-    subprocess.run([*u2sa_command(root), "install", "--vehicle", str(profile), "--root", str(root), "--venv", "shared"], check=True,
-                   stdout=subprocess.DEVNULL)
+    subprocess.run([*u2sa_command(root), "install", "--vehicle", str(profile), "--root", str(root),
+                    "--venv", "shared"], check=True, stdout=subprocess.DEVNULL)
     for name in services:
         if name.endswith("_vehicle") or name == "hsm":
             dropin = root / f"etc/systemd/system/{unit_of(name)}.d"
