@@ -190,7 +190,7 @@ def _configured_mission(profile: Any) -> Path:
     from u2sa_hw.cli import CliError
 
     managers = [s for s in profile.services.values() if s.kind == MANAGER_TYPE and s.enabled]
-    where = profile.path or "no vehicle profile (--vehicle)"
+    where = profile.path or "the default profile (there is no --vehicle, $U2SA_VEHICLE or /etc/u2sa/vehicle.toml)"
     if len(managers) != 1:
         names = f" ({', '.join(s.name for s in managers)})" if managers else ""
         raise CliError(f"mission export: {where} has {len(managers) or 'no'} mission_manager service{names}: "

@@ -5,29 +5,19 @@ A plan is JSON: ``{"fileType": "Plan", "version": 1, "mission": {"version": 2,
 {...}}``; each mission item a ``SimpleItem`` with a MAVLink ``command``, a ``frame``, a
 ``doJumpId`` and seven ``params`` (latitude, longitude, altitude at 4, 5, 6). Import:
 
-================================  ===========================================================
-plan                              u2sa mission
-================================  ===========================================================
-NAV_WAYPOINT (16)                 a Local ``<waypoint>``: lat/lon -> x north, y east about the
-                                  profile's ``[vehicle] origin``; acceptance radius (param 2)
-                                  -> ``<threshold>`` (0: the manager's default); yaw (param 4)
-                                  -> ``<psi unit="deg">``; named ``wpN`` (N = the item number)
-NAV_RETURN_TO_LAUNCH (20)         a goal ``home`` at ``plannedHomePosition``; the mission ends
-DO_JUMP (177), repeat -1          a ``<next>`` link (or ``loop="true"`` when the jump closes
-                                  the whole mission, last goal back to the first)
-DO_JUMP, repeat N >= 0            the jumped-over goals written N more times (``wp2.2`` ...),
-                                  as the autopilot would drive them; our missions cannot count
-plannedHomePosition               the RTL goal's position; export writes the origin there
-geoFence, non-empty               refused (not enforced yet), or with ``ignore_geofence``
-                                  left out with a warning
-rallyPoints, non-empty            left out with a warning (RTL goes to the planned home)
-anything else                     refused: its index, command name and the fix
-================================  ===========================================================
+- NAV_WAYPOINT (16) -> a Local ``<waypoint>`` ``wpN`` (N: the item number), lat/lon -> x north,
+  y east about the profile's ``[vehicle] origin``; acceptance radius -> ``<threshold>``, yaw -> psi.
+- NAV_RETURN_TO_LAUNCH (20) -> a goal ``home`` at ``plannedHomePosition``, where the mission ends.
+- DO_JUMP (177) repeating forever -> a ``<next>`` link (``loop="true"`` when it closes the whole
+  mission); repeating N times -> the jumped-over goals written N more times (``wp2.2``): the
+  mission is traced as the autopilot would drive it, and a ``<next>`` cannot count.
+- A non-empty geoFence is refused (not enforced yet) unless ``ignore_geofence`` (then warned);
+  rally points, altitudes and never-reached items are left out with a warning.
+- Anything else is refused with its index, command name and the fix.
 
-Altitudes are left out (u2sa vehicles drive on the ground or water; a non-zero one is
-warned about). A plan written by :func:`mission_to_plan` carries the goals' names and the
-mission's name in a top-level ``"u2sa"`` object, which QGroundControl ignores (it reads only
-the keys it knows) and drops when it saves the plan again; import then names goals ``wpN``.
+A plan written by :func:`mission_to_plan` carries the goals' names and the mission's name in a
+top-level ``"u2sa"`` object, which QGroundControl ignores (it reads only the keys it knows) and
+drops when it saves the plan again; import then names goals ``wpN``.
 """
 
 from __future__ import annotations
