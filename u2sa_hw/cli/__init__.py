@@ -46,6 +46,7 @@ examples:
   u2sa param list estimator          a service's config; param set changes and persists it
   u2sa param save params.toml        every service's parameters to a file; param load FILE restores them
   u2sa mission status                the mission and its current goal; goto/skip/restart/upload change it
+  u2sa mission upload field.plan     a QGroundControl plan (import/export convert between .plan and XML)
   u2sa failsafe raise                every actuator neutral now; status shows who holds one, clear lowers it
   u2sa stop --all
 
