@@ -265,6 +265,19 @@ class U2SAService:
             self._last_watchdog = now
             self._notifier.notify("WATCHDOG=1")
 
+    def _ping_while_stopping(self) -> threading.Event:
+        """Ping the watchdog every half period from a thread of its own until the returned event is set."""
+        done = threading.Event()
+        if self._watchdog_period is not None:
+            period = self._watchdog_period
+
+            def ping() -> None:
+                while not done.wait(period):
+                    self._notifier.notify("WATCHDOG=1")
+
+            threading.Thread(target=ping, name=f"stopping-{self.name}", daemon=True).start()
+        return done
+
     def notify_status(self, text: str) -> None:
         """Set systemd's STATUS= line for this unit."""
         self._notifier.notify(f"STATUS={text}")
@@ -419,7 +432,11 @@ class U2SAService:
             code = 1
         finally:
             self.status = "stopping"
+            # The stop's acknowledgement: the launcher (u2sa run) then waits for the exit, and while the
+            # shutdown below runs (kill(), the transport, the bus clock's fsync) a thread keeps pinging the
+            # watchdog, so a slow shutdown on a loaded machine is not taken for a hung one (docs/supervision.md).
             self._notifier.notify("STOPPING=1")
+            pinging = self._ping_while_stopping()
             try:
                 self.publish_health()
             except Exception:  # noqa: BLE001 - best effort on the way out
@@ -431,6 +448,7 @@ class U2SAService:
                 code = code or 1
             self._duplicates.close()
             self.transport.stop()
+            pinging.set()   # done: what is left (the interpreter's exit) shows progress as CPU time
             self._notifier.close()
             self.logger.info("%s stopped", self.name)
         return DUPLICATE_EXIT if self._duplicates.refusal is not None else code
