@@ -239,14 +239,14 @@ def test_library_sigkill_after_grace_control_socket_and_single_owner(tmp_path: P
             client.restart("nope")
         client.restart("stubborn", reason="test asked")
         wait_until(lambda: client.status()[0]["run_id"] == 2, timeout=10, message="run 2 after a restart request")
-        assert any("stubborn did not stop within 0.5 s: SIGKILL" in line for _, line in lines)
+        assert any("stubborn did not acknowledge the stop within 0.5 s (no STOPPING=1): SIGKILL" in line for _, line in lines)
         assert deaths and deaths[0].startswith("stubborn:backoff:killed by SIGKILL; restarting now")
         assert client.status()[0]["quick_deaths"] == 0     # a requested restart is no quick death
         wait_until(lambda: lines.count(("stubborn", "ignoring SIGTERM")) == 2, timeout=10, message="run 2 ready")
     finally:
         assert launcher.stop(timeout=10) == 0
     assert launcher.finished.is_set()
-    assert sum("did not stop within" in line for _, line in lines) == 2
+    assert sum("did not acknowledge the stop within" in line for _, line in lines) == 2
 
 
 def test_killed_launcher_takes_its_children_and_leaves_a_reusable_socket(tmp_path: Path, lcm_url: str,

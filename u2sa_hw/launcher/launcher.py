@@ -4,7 +4,10 @@ For a bench or a laptop without systemd (``u2sa run``) and as a library for ``u2
 One event-loop thread starts the children (``u2sa service NAME --vehicle FILE``), reads
 their output and prefixes it with the service name, restarts crashed ones with the
 backoff of :class:`RestartPolicy`, answers the control socket (so the HSM can ask for a
-restart), and on stop sends SIGTERM, then SIGKILL after the grace period.
+restart), and on stop sends SIGTERM and waits for each child to exit: SIGKILL only for one
+that does not acknowledge (``STOPPING=1``) within the grace, one that goes the grace without
+progress after acknowledging (hung in its shutdown), and one still alive ``stop_limit_s``
+after the SIGTERM (:meth:`~.process.SupervisedProcess.enforce_stop`).
 
 The children report readiness on the launcher's own ``$NOTIFY_SOCKET`` (:mod:`.notify`), as
 they do to systemd, and ping its watchdog (:mod:`.watchdog`): a child that stops pinging for
@@ -42,8 +45,8 @@ from u2sa_hw.launcher.child_setup import check_cgroup
 from u2sa_hw.launcher.control import SOCKET_ENV, ControlServer, LauncherError, default_socket_path
 from u2sa_hw.launcher.notify import NotifyListener
 from u2sa_hw.launcher.output import LineSink, LineSplitter, PrefixedOutput
-from u2sa_hw.launcher.process import (BACKOFF, EXITED, FAILED, RUNNING, STOPPED, ProcessStatus, RestartPolicy,
-                                     SupervisedProcess)
+from u2sa_hw.launcher.process import (BACKOFF, EXITED, FAILED, RUNNING, STOP_LIMIT_S, STOPPED, ProcessStatus,
+                                     RestartPolicy, SupervisedProcess)
 from u2sa_hw.launcher.watchdog import WatchdogSetting, WatchedClock, watchdog_for
 from u2sa_hw.realtime import RealtimePlan, describe_plan
 from u2sa_hw.registry import RECORDER_KIND
@@ -95,16 +98,19 @@ class Launcher:
                  env: dict[str, str] | None = None, start_first: list[str] | None = None,
                  first_wait_s: float = 15.0, watchdog_s: float | None = None,
                  unwatched: Collection[str] = (), cgroup: Path | None = None,
-                 realtime: RealtimePlan | None = None) -> None:
+                 realtime: RealtimePlan | None = None, stop_limit_s: float = STOP_LIMIT_S) -> None:
         # watchdog_s replaces every unit's watchdog timeout (0: off); *unwatched* services run without one
         # (a replay's I2C drivers wait in reads held for the player and cannot ping, hil/replay_i2c.py).
         # cgroup: every run of every child joins it before exec (CgroupError now if it cannot be written);
         # realtime: the safety chain's priorities as permitted (u2sa_hw.realtime), None leaves priorities alone.
+        # grace_s: on a stop, the time (watched) to acknowledge it and the most a child may then go without
+        # progress; stop_limit_s: the bound on a stop, real time from the SIGTERM (at least grace_s).
         if profile.path is None:
             raise ValueError("the launcher needs a vehicle profile file (--vehicle PATH)")
         specs = select_services(profile, only)
         self.profile = profile
         self.grace_s = grace_s
+        self.stop_limit_s = max(stop_limit_s, grace_s)
         self.keep_going = keep_going
         self.output = output or PrefixedOutput(names=[s.name for s in specs])
         self.on_death = on_death
@@ -130,7 +136,8 @@ class Launcher:
         self.processes: dict[str, SupervisedProcess] = {
             s.name: SupervisedProcess(s.name, build(s), policy=policy, env=child_env,
                                       watchdog=_watchdog(s.kind, 0.0 if s.name in unwatched else watchdog_s),
-                                      cgroup=cgroup, schedule=schedules.get(s.name), watch_clock=self.watch_clock)
+                                      cgroup=cgroup, schedule=schedules.get(s.name), watch_clock=self.watch_clock,
+                                      stop_limit_s=self.stop_limit_s)
             for s in specs}
         names = [s.name for s in specs]
         first = start_first if start_first is not None else [s.name for s in specs if s.kind == RECORDER_KIND]
@@ -178,7 +185,7 @@ class Launcher:
         self._wake()
 
     def stop(self, *, timeout: float | None = None) -> int:
-        """Stop every service (SIGTERM, SIGKILL after the grace period), wait, return the exit code."""
+        """Stop every service (SIGTERM, then wait on their exits: the module docstring); return the exit code."""
         self.request_stop()
         self.wait(timeout)
         return self.exit_code
@@ -394,8 +401,9 @@ class Launcher:
     def _tick(self, sel: selectors.BaseSelector) -> None:
         if self._stop_reason and not self._stopping:
             self._stopping = True
-            self.say(f"{self._stop_reason}: stopping {len(self.processes)} services "
-                     f"(SIGTERM, SIGKILL after {self.grace_s:g} s)")
+            self.say(f"{self._stop_reason}: stopping {len(self.processes)} services (SIGTERM; SIGKILL to one "
+                     f"that does not acknowledge within {self.grace_s:g} s or then hangs, or is still "
+                     f"alive after {self.stop_limit_s:g} s)")
             for p in self.processes.values():
                 p.stop(self.grace_s)
         if self._force:
@@ -411,8 +419,9 @@ class Launcher:
             fired = p.check_watchdog()
             if fired is not None:
                 self.say(f"{p.name} {fired}")
-            if p.enforce_grace():
-                self.say(f"{p.name} did not stop within {self.grace_s:g} s: SIGKILL")
+            verdict = p.enforce_stop()
+            if verdict is not None:
+                self.say(f"{p.name} {verdict}")
         if self._stopping:
             return
         holding = self._still_holding()

@@ -13,6 +13,17 @@ healthy-looking start would otherwise restart forever). An exit status in
 already runs on the bus) is final at once, as ``RestartPreventExitStatus=3`` makes it under
 systemd: a restart would find the same, and each one would print the same line again.
 
+A stop (SIGTERM) waits on the child's exit, not on a clock (:meth:`SupervisedProcess.enforce_stop`):
+a child that acknowledges it (``STOPPING=1``, which every service sends as its run loop ends)
+within the grace is reaped when it exits, however long a loaded machine makes that, as long as
+it keeps showing progress: a ``WATCHDOG=1`` (a service pings while it shuts down), CPU time
+spent, or being runnable or in an uninterruptible (disk) wait, from ``/proc/PID/stat``. SIGKILL
+is kept for a child that does not acknowledge within the grace, that goes the grace without
+progress after acknowledging (hung in its shutdown: blocked, deadlocked, SIGSTOPped), and for
+any child still alive ``stop_limit_s`` (30 s) of real time after the SIGTERM: the bound on a
+stop. The grace and the silences are measured on the launcher's watched clock, so its own
+stalls do not count against a child.
+
 The launcher's event loop drives it: ``spawn`` and ``poll`` run on the loop thread only
 (the child's parent-death signal is tied to the thread that forked it).
 """
@@ -39,6 +50,7 @@ EXITED = "exited"      # exited with status 0 on its own: not restarted (like sy
 STOPPED = "stopped"    # stopped because we asked
 FAILED = "failed"      # given up: too many quick deaths in a row, failed exits within the window, a refusal
 REFUSED_EXIT = 3       # service_bus.DUPLICATE_EXIT: refused to start (RestartPreventExitStatus=3 in u2sa@.service)
+STOP_LIMIT_S = 30.0    # the most a stop waits, in real time from the SIGTERM, for a child that keeps making progress
 
 @dataclass(frozen=True)
 class RestartPolicy:
@@ -118,13 +130,39 @@ class ProcessStatus:
         return dict(self.__dict__)
 
 
-def process_stopped(pid: int, *, proc: Path = Path("/proc")) -> bool:
-    """True when *pid* is stopped (state T, or t: stopped by a tracer), from ``/proc/PID/stat``."""
+def process_sample(pid: int, *, proc: Path = Path("/proc")) -> tuple[str, int] | None:
+    """``(state letter, CPU ticks used)`` of *pid* from ``/proc/PID/stat``, None when unreadable.
+
+    The state is the main thread's (R running or runnable, S sleeping, D in a disk wait, T stopped,
+    Z dead); the ticks (utime + stime) are the whole process's.
+    """
     try:
         stat = (proc / str(pid) / "stat").read_text()
     except OSError:
-        return False
-    return stat.rpartition(")")[2].split()[:1] in (["T"], ["t"])   # the name in (...) may hold spaces
+        return None
+    fields = stat.rpartition(")")[2].split()   # the name in (...) may hold spaces
+    try:
+        return fields[0], int(fields[11]) + int(fields[12])
+    except (IndexError, ValueError):
+        return None
+
+
+def process_stopped(pid: int, *, proc: Path = Path("/proc")) -> bool:
+    """True when *pid* is stopped (state T, or t: stopped by a tracer), from ``/proc/PID/stat``."""
+    sample = process_sample(pid, proc=proc)
+    return sample is not None and sample[0] in ("T", "t")
+
+
+@dataclass
+class StopWait:
+    """One stop of one run: when it was asked, and the child's latest sign of progress (see enforce_stop)."""
+
+    grace_s: float
+    started_at: float                  # clock() of the SIGTERM (real time: the bound)
+    asked_at: float | None = None      # watch_clock() at the launcher's first turn after it
+    progress_at: float | None = None   # watch_clock() of the latest sign of progress since the acknowledgement
+    ticks: int | None = None           # CPU ticks at the latest sample
+    killed: bool = False               # SIGKILL sent: nothing more to decide
 
 
 def describe_exit(returncode: int) -> str:
@@ -143,11 +181,15 @@ class SupervisedProcess:
     def __init__(self, name: str, argv: list[str], *, policy: RestartPolicy, env: dict[str, str] | None = None,
                  cwd: str | None = None, clock: Callable[[], float] = time.monotonic,
                  watchdog: WatchdogSetting | None = None, cgroup: Path | None = None,
-                 schedule: Schedule | None = None, watch_clock: Callable[[], float] | None = None) -> None:
+                 schedule: Schedule | None = None, watch_clock: Callable[[], float] | None = None,
+                 stop_limit_s: float = STOP_LIMIT_S,
+                 sample: Callable[[int], tuple[str, int] | None] = process_sample) -> None:
         # cgroup: each run joins it before exec (a CPU budget); schedule: its policy, set before exec
         # after joining (None: inherited). See child_setup.py for the order and why.
         # watch_clock: the time the watchdog judges silence by (None: *clock*); the launcher's
         # WatchedClock does not count its own stalls against the child (watchdog.py).
+        # stop_limit_s: the bound on a stop (real time from the SIGTERM); sample: reads a pid's state and
+        # CPU ticks (process_sample), injectable for tests.
         self.name = name
         self.argv = argv
         self.policy = policy
@@ -165,7 +207,10 @@ class SupervisedProcess:
         self.backoff_s = 0.0
         self.next_start = clock()
         self.started_at = 0.0
-        self.kill_at: float | None = None
+        self.kill_at: float | None = None   # SIGKILL at this clock() time: the watchdog's SIGABRT was not enough
+        self.stop_limit_s = stop_limit_s
+        self.sample = sample
+        self.stop_wait: StopWait | None = None   # the current stop's wait (see enforce_stop), None when not stopping
         self.restart_pending = False
         self.last_exit = ""
         self.reason = ""
@@ -233,6 +278,7 @@ class SupervisedProcess:
         self.started_at = self.clock()
         self.state = RUNNING
         self.kill_at = None
+        self.stop_wait = None
         self.reason = ""
         self.ready = False
         self.status_text = ""
@@ -254,6 +300,7 @@ class SupervisedProcess:
         uptime = self.clock() - self.started_at
         self.proc = None
         self.kill_at = None
+        self.stop_wait = None
         self.last_exit = describe_exit(code)
         if self.killed_stopped:
             self.last_exit += " (it was stopped: killed without resuming it)"
@@ -314,7 +361,10 @@ class SupervisedProcess:
         """Apply an sd_notify message from this run (READY, STATUS, WATCHDOG); True when it just became ready."""
         if "STATUS" in fields:
             self.status_text = fields["STATUS"]
-        self.watchdog.on_fields(fields, self.watch_clock())
+        now = self.watch_clock()
+        self.watchdog.on_fields(fields, now)
+        if self.stop_wait is not None and (fields.get("STOPPING") == "1" or fields.get("WATCHDOG") == "1"):
+            self.stop_wait.progress_at = now   # an acknowledgement, or a ping on the way out
         if fields.get("READY") == "1" and not self.ready:
             self.ready = True
             self.ready_at = self.clock()
@@ -355,7 +405,7 @@ class SupervisedProcess:
             pass
 
     def request_stop(self, grace_s: float) -> None:
-        """SIGTERM now, SIGKILL after *grace_s*; a stopped child (state T) gets SIGKILL at once.
+        """SIGTERM now; SIGKILL only as :meth:`enforce_stop` decides. A stopped child (state T) gets SIGKILL at once.
 
         A stopped child is not resumed to act on SIGTERM: a frozen command source would publish
         commands again before it stops (see check_watchdog). A stopped recorder loses its last chunk.
@@ -366,9 +416,10 @@ class SupervisedProcess:
             return
         if self.state != STOPPING:
             self.state = STOPPING
-            self.kill_at = self.clock() + grace_s
+            self.stop_wait = StopWait(grace_s=grace_s, started_at=self.clock())
             if process_stopped(self.proc.pid):
                 self.killed_stopped = True
+                self.stop_wait.killed = True
                 self.signal(signal.SIGKILL)
                 return
             self.signal(signal.SIGTERM)
@@ -399,13 +450,53 @@ class SupervisedProcess:
             self.failure_times.clear()
         self.state, self.next_start, self.backoff_s = BACKOFF, self.clock(), 0.0
 
-    def enforce_grace(self) -> bool:
-        """SIGKILL a child whose grace period ran out; True if it was killed now."""
-        if self.proc is not None and self.kill_at is not None and self.clock() >= self.kill_at:
+    def enforce_stop(self) -> str | None:
+        """SIGKILL a child whose time is up; return why (for the launcher's line), else None. Loop thread only.
+
+        After the watchdog's SIGABRT: ``abort_s`` of real time. After a stop's SIGTERM, on the watched
+        clock: the grace to acknowledge (``STOPPING=1``), then never the grace without progress (a
+        ``WATCHDOG=1``, CPU time spent, or the main thread runnable, in a disk wait or already dead). A child that
+        acknowledged and keeps progressing is waited for, until ``stop_limit_s`` (at least the grace)
+        of real time after the SIGTERM: a loaded machine lengthens the wait, not the verdict.
+        """
+        if self.proc is None:
+            return None
+        if self.kill_at is not None and self.clock() >= self.kill_at:
             self.kill_at = None
             self.signal(signal.SIGKILL)
-            return True
-        return False
+            return f"did not die within {self.watchdog.setting.abort_s:g} s of SIGABRT: SIGKILL"
+        wait = self.stop_wait
+        if wait is None or wait.killed:
+            return None
+        watched = self.watch_clock()
+        if wait.asked_at is None:   # the first turn since the SIGTERM (request_stop may run on another thread)
+            wait.asked_at = watched
+        grace = wait.grace_s
+        verdict = None
+        if self.clock() - wait.started_at >= max(self.stop_limit_s, grace):
+            verdict = (f"still stopping {max(self.stop_limit_s, grace):g} s after SIGTERM"
+                       f"{' (it acknowledged and kept running)' if self.watchdog.stopping else ''}: SIGKILL")
+        elif not self.watchdog.stopping:
+            if watched - wait.asked_at >= grace:
+                verdict = f"did not acknowledge the stop within {grace:g} s (no STOPPING=1): SIGKILL"
+        else:
+            if wait.progress_at is None:
+                wait.progress_at = watched   # acknowledged before we asked (it was stopping on its own)
+            sample = self.sample(self.proc.pid)
+            if sample is not None:
+                state, ticks = sample
+                if state in ("R", "D", "Z") or (wait.ticks is not None and ticks != wait.ticks):
+                    wait.progress_at = watched
+                wait.ticks = ticks
+            silent = watched - wait.progress_at
+            if silent >= grace and silent > 0:
+                verdict = (f"hung while stopping: acknowledged, then no progress for {silent:.1f} s "
+                           f"(no WATCHDOG=1, no CPU time): SIGKILL")
+        if verdict is None:
+            return None
+        wait.killed = True
+        self.signal(signal.SIGKILL)
+        return verdict
 
     @property
     def settled(self) -> bool:
