@@ -405,11 +405,13 @@ def _cut_note(a: Sample, b: Sample, index: int, *, start: bool, origin_ns: int) 
 
     held = "; ".join(part for part in (f"only the recorded one holds {names(only_rec)}" if only_rec else "",
                                        f"only the replayed one holds {names(only_rep)}" if only_rep else "") if part)
-    where = ("the recording begins inside the epoch or burst of input this message was made of: the live driver "
-             "had read its first part before the recording started" if start else
-             "the recording ends inside the epoch or burst of input this message was made of")
+    where = ("at the start of the stream: the recording begins inside the epoch or burst of input this message "
+             "was made of (the live driver had read its first part before), or the live driver, held up as it "
+             "started, read it in two parts with a gap the log cannot tell from a silence" if start else
+             "at the end of the stream: the recording ends inside the epoch or burst of input this message was "
+             "made of")
     return (f"cut: recorded #{index} at t={(a.t_ns - origin_ns) / 1e9:.3f} s and its replay hold part of one epoch each ({held}; every "
-            f"field both hold is equal): {where}, so a note, not a difference")
+            f"field both hold is equal), {where}: a note, not a difference")
 
 
 def _at_system_change(stream: list[Sample], index: int, system: tuple[str, ...]) -> bool:

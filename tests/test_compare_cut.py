@@ -47,7 +47,7 @@ def test_a_first_epoch_cut_by_the_recording_is_a_note_naming_the_cut() -> None:
     assert r.ok, r.problems
     assert (r.differing, r.inserted, r.deleted, r.matched) == (0, 0, 0, 9)
     [note] = [n for n in r.notes if n.startswith("cut:")]
-    assert "recorded #0" in note and "begins inside" in note and "only the recorded one holds x, y, z" in note
+    assert "recorded #0" in note and "start of the stream" in note and "begins inside" in note and "only the recorded one holds x, y, z" in note
 
 
 def test_a_first_epoch_split_in_two_by_the_cut_is_a_note() -> None:
@@ -64,7 +64,7 @@ def test_a_last_epoch_cut_by_the_recording_is_a_note() -> None:
     r = compare(rec, rep)
     assert r.ok, r.problems
     [note] = [n for n in r.notes if n.startswith("cut:")]
-    assert "recorded #9" in note and "ends inside" in note
+    assert "recorded #9" in note and "end of the stream" in note
 
 
 def test_a_real_difference_in_the_first_or_the_last_message_is_still_reported() -> None:
