@@ -8,6 +8,7 @@ base temp directory.
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
@@ -58,6 +59,32 @@ HELD_UP = {
 }
 
 
+EPOCH_GAP_S = 0.05   # the GPS driver's epoch_gap_s in the example profiles
+_UTC = re.compile(rb"\$[A-Z]{2}(?:GGA|RMC|GST|ZDA|GLL|GNS),(\d{6}(?:\.\d*)?),")
+
+
+def split_reads(log: Path, device: str = "gps") -> int:
+    """How often the live *device* driver read one epoch in two parts more than EPOCH_GAP_S apart: a chunk that
+    continues the previous chunk's epoch (no time of its own before a sentence of that time, or the same time)
+    stamped that long after it. The live driver was held up between the two reads (the bytes waited in the
+    pty: no silence), which the log shows only as the gap, so a replay judges a silence there and publishes the
+    epoch in two parts (issue 24: the first fix of a recording whose GPS driver was held up as it started)."""
+    count, last_stamp, last_utc = 0, None, None
+    for m in LogFile(log).messages(f"RAW.{device}"):
+        raw = t.RawSerial.decode(m.data)
+        if raw.direction != 0:
+            continue
+        data = bytes(raw.data)
+        first = _UTC.search(data)
+        continues = not data.startswith(b"$") or first is None or first.start() > 0 or first.group(1) == last_utc
+        if last_stamp is not None and continues and (raw.header.timestamp_us - last_stamp) / 1e6 >= EPOCH_GAP_S:
+            count += 1
+        times = _UTC.findall(data)
+        last_utc = times[-1] if times else last_utc
+        last_stamp = raw.header.timestamp_us
+    return count
+
+
 def held_up(log: Path) -> dict[str, str]:
     """``{service: why}`` for the services whose live output depended on the recording machine's load."""
     last: dict[str, dict[str, str]] = {}
@@ -68,4 +95,7 @@ def held_up(log: Path) -> dict[str, str]:
     reasons = {name: ", ".join(f"{key} {last[name][key]}" for key in keys
                                if last.get(name, {}).get(key, "0") not in ("0", ""))
                for name, keys in HELD_UP.items()}
+    split = split_reads(log)
+    if split:
+        reasons["gps"] = ", ".join(filter(None, (reasons.get("gps"), f"an epoch read in two parts {split}x")))
     return {name: why for name, why in reasons.items() if why}
