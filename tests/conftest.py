@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 import os
 import shutil
 import subprocess
@@ -14,6 +13,7 @@ from typing import Callable, Iterator
 
 import pytest
 
+import unprivileged_env
 from u2sa_hw.bus_key import KEY_ENV, fresh_key_file
 from u2sa_hw.udp_ports import private_lcm_url
 from u2sa_hw.service_bus import PROBE_ENV
@@ -49,9 +49,10 @@ def pytest_configure(config: pytest.Config) -> None:
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:
-    """Remove the session's key."""
+    """Remove the session's key, and what unprivileged() staged."""
     if _SESSION_KEY_DIR is not None:
         _SESSION_KEY_DIR.cleanup()
+    unprivileged_env.remove_stage()
 
 
 def wait_until(predicate: Callable[[], object], *, timeout: float = 10.0, interval: float = 0.02,
@@ -68,24 +69,19 @@ def wait_until(predicate: Callable[[], object], *, timeout: float = 10.0, interv
 
 
 def unprivileged(cmd: list[str]) -> list[str]:
-    """*cmd* run as user nobody when we are root (root ignores file permissions); skip without setpriv."""
+    """*cmd* run as user nobody when we are root (root ignores file permissions); skip without setpriv.
+
+    A *cmd* that starts with ``sys.executable`` runs a Python nobody can run, with this checkout's
+    u2sa_hw: this one, or one staged where nobody can read it when the checkout or the interpreter
+    is in a directory other users cannot enter (tests/unprivileged_env.py).
+    """
     if os.geteuid() != 0:
         return cmd
-    setpriv = shutil.which("setpriv")
-    if setpriv is None:
+    if shutil.which("setpriv") is None:
         pytest.skip("running as root without setpriv: cannot make a file unwritable")
-    as_nobody = [setpriv, "--reuid=65534", "--regid=65534", "--clear-groups"]
-    if not _nobody_can_run_python(tuple(as_nobody)):
-        pytest.skip(f"user nobody cannot run {sys.executable} (e.g. a pyenv Python under /root, mode 700)")
-    return [*as_nobody, *cmd]
-
-
-@functools.cache
-def _nobody_can_run_python(as_nobody: tuple[str, ...]) -> bool:
-    """Whether this interpreter starts as user nobody (make test-pythons' pyenv ones under /root may not)."""
-    probe = subprocess.run([*as_nobody, sys.executable, "-c", "import u2sa_hw"], capture_output=True, timeout=60,
-                           cwd="/", env=dict(os.environ, PYTHONPATH=str(REPO)))
-    return probe.returncode == 0
+    if cmd and cmd[0] == sys.executable:
+        cmd = [*unprivileged_env.python_for_nobody(), *cmd[1:]]
+    return [*unprivileged_env.as_nobody(), *cmd]
 
 
 @pytest.fixture

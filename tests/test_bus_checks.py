@@ -16,7 +16,7 @@ import uuid
 from pathlib import Path
 
 import pytest
-from conftest import U2SA
+from conftest import U2SA, unprivileged
 
 from u2sa_hw.bus_listen import route_interface
 from u2sa_hw.check.bus_checks import check_bus
@@ -72,8 +72,7 @@ def test_ttl0_warns_when_lo_cannot_carry_multicast_and_the_check_is_not_root() -
         pytest.skip("ip netns add failed")
     try:
         subprocess.run(["ip", "-n", ns, "link", "set", "lo", "up"], check=True, timeout=30)
-        nobody = ["ip", "netns", "exec", ns, "setpriv", "--reuid=65534", "--regid=65534", "--clear-groups",
-                  sys.executable, "-c", CHECK_LO]
+        nobody = ["ip", "netns", "exec", ns, *unprivileged([sys.executable, "-c", CHECK_LO])]
 
         def warned() -> str:
             return subprocess.run(nobody, capture_output=True, text=True, timeout=60, cwd="/").stdout.strip()

@@ -134,7 +134,8 @@ def test_a_directory_that_cannot_be_written_keeps_the_service_working() -> None:
     try:
         shared.chmod(0o755)
         locked = shared / "locked"
-        locked.mkdir(mode=0o555)          # readable, not writable (by the user nobody; root ignores modes)
+        locked.mkdir()
+        locked.chmod(0o555)   # readable, not writable (by the user nobody; root ignores modes), whatever the umask
         code = ("from u2sa_hw.bus_clock import ClockStore\n"
                 f"s = ClockStore({str(locked)!r})\nprint(s.save(1), s.save(2), s.start_at(5))\n")
         done = subprocess.run(unprivileged([sys.executable, "-c", code]), capture_output=True, text=True, timeout=60)

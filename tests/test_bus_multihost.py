@@ -26,13 +26,12 @@ from pathlib import Path
 from typing import Iterator
 
 import pytest
-from conftest import U2SA, wait_until
+from conftest import U2SA, unprivileged, wait_until
 
 from u2sa_hw.bus_key import KEY_ENV, new_key, write_key
 from u2sa_hw.udp_ports import private_udp_port
 
 SERVICE = "state_estimator"
-NOBODY = ["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups"]
 IFF_MULTICAST = 0x1000
 
 # Host B, with the key: a signed StopCommand(all) every 0.2 s (a rate, not a wait) until killed.
@@ -243,9 +242,11 @@ def test_without_lo_multicast_a_service_with_the_vehicles_key_refuses_to_start(h
         profile = shared / "vehicle.toml"
         profile.write_text(f'[vehicle]\nname = "rover"\nlcm_url = "{local}"\nbus_key = "{key}"\nlog_dir = "logs"\n'
                            f'[services.{SERVICE}]\nkind = "{SERVICE}"\n')
+        profile.chmod(0o644)       # for nobody, whatever the umask
         env = hosts.env(None)      # the profile's key: the vehicle's, which a ground station may hold too
-        done = subprocess.run(hosts.command("a", *NOBODY, *U2SA, "service", SERVICE, "--vehicle", str(profile)),
-                              cwd=shared, env=env, capture_output=True, text=True, timeout=120)
+        as_nobody = unprivileged([*U2SA, "service", SERVICE, "--vehicle", str(profile)])
+        done = subprocess.run(hosts.command("a", *as_nobody), cwd=shared, env=env, capture_output=True, text=True,
+                              timeout=120)
         assert done.returncode == 3, done.stdout + done.stderr
         line = next(x for x in (done.stdout + done.stderr).splitlines() if "refusing to start" in x)
         assert f"refusing to start '{SERVICE}': bus listens on va, not lo: sudo ip link set lo multicast on" in line
@@ -264,12 +265,12 @@ def test_without_lo_multicast_a_run_key_service_starts_and_says_where_it_listens
     key.chmod(0o644)
     local = hosts.url.replace("ttl=1", "ttl=0")
     log = open(shared / "a.stderr", "wb")
-    service = subprocess.Popen(hosts.command("a", *NOBODY, *U2SA, "service", SERVICE), cwd=shared,
+    service = subprocess.Popen(hosts.command("a", *unprivileged([*U2SA, "service", SERVICE])), cwd=shared,
                                env=hosts.env(key, U2SA_LCM_URL=local), stdout=log, stderr=subprocess.STDOUT)
     stops: Stops | None = None
     try:
         def found_on_a() -> list[dict[str, object]]:
-            r = subprocess.run(hosts.command("a", *NOBODY, *U2SA, "services", "--json"), cwd=shared,
+            r = subprocess.run(hosts.command("a", *unprivileged([*U2SA, "services", "--json"])), cwd=shared,
                                env=hosts.env(key, U2SA_LCM_URL=local), capture_output=True, text=True, timeout=60)
             return json.loads(r.stdout) if r.returncode == 0 else []
 
@@ -280,7 +281,7 @@ def test_without_lo_multicast_a_run_key_service_starts_and_says_where_it_listens
         first = wait_until(listed_with_listen, timeout=60,
                            message="the service on A to answer, saying where it listens")
         assert str(first[0]["listen"]).startswith("bus listens on va, not lo: sudo ip link set lo multicast on")
-        table = subprocess.run(hosts.command("a", *NOBODY, *U2SA, "services"), cwd=shared,
+        table = subprocess.run(hosts.command("a", *unprivileged([*U2SA, "services"])), cwd=shared,
                                env=hosts.env(key, U2SA_LCM_URL=local), capture_output=True, text=True, timeout=60)
         assert f"u2sa: {SERVICE}: bus listens on va, not lo" in table.stderr, table.stderr
         assert not hosts.lo_multicast("a")
