@@ -285,7 +285,7 @@ def test_record_command_rotates_by_duration_with_lz4_chunks(services: ServicePro
 def test_record_command_below_min_free_stops_with_the_reason(services: ServiceProcesses) -> None:
     r = services.cli("record", "-o", str(services.workdir / "x.mcap"), "--min-free-mb", "1e12", "--duration", "20")
     assert r.returncode == 1
-    assert "below the 1000000000 MB floor" in r.stderr and "recording stopped" in r.stderr
+    assert "below the 1000000000000 MB floor" in r.stderr and "recording stopped" in r.stderr
     r = services.cli("record", "--queue-size", "0")
     assert r.returncode == 2 and "--queue-size" in r.stderr
 
