@@ -12,11 +12,9 @@ docs/security.md): unsigned, forged and replayed packets are counted per channel
 once per channel and reason, and never reach a callback. Raw subscribers get the verified
 payload without its trailer. ``security="open"`` (a bench) signs and verifies nothing.
 
-A failsafe raise (a signed ``Failsafe`` with ``active = true`` on ``FAILSAFE``) fails safe, so
-it is accepted where anything else is dropped: outside the replay window (an operator's
-laptop whose clock is behind) and from another non-zero system id (a ground station, another
-vehicle's profile). Each such acceptance is counted (``raise_stale``, ``raise_foreign``) and
-logged once per channel. A clear, and every other message, keeps every check.
+What happens to a packet before a callback sees it (verification, the signer's role, a command
+signed before this process started, the system id, a failsafe raise that fails safe) is
+``u2sa_hw.bus_guard``.
 
 The LCM C library reports a failure to open (no multicast route, a bad URL, a port held by
 another program) with many lines on stderr; those are caught and folded into the one-line
@@ -29,7 +27,6 @@ import functools
 import logging
 import os
 import re
-import struct
 import threading
 import time
 from collections import defaultdict, deque
@@ -39,9 +36,8 @@ from typing import Any, Callable
 
 import lcm
 
-from u2sa_hw.bus_auth import (FOREIGN, LCM_SELF_TEST, OK, OPEN, REJECTION_WHY, REJECTIONS, REPLAYED, TRAILER_LEN,
-                              WINDOW_US, BusAuth, keyring_for, resolve_security, strip_trailer)
-from u2sa_hw.bus_roles import COMMAND_CHANNELS
+from u2sa_hw.bus_auth import OK, OPEN, WINDOW_US, BusAuth, keyring_for, resolve_security
+from u2sa_hw.bus_guard import AcceptedRaise, ChannelCounters, ReceiveGuard  # noqa: F401 - AcceptedRaise re-exported
 from u2sa_hw import bus_filter
 from u2sa_hw.bus_clock import ClockStore, store_from_env
 from u2sa_hw.bus_key import BusKeyError, key_path
@@ -50,9 +46,7 @@ from u2sa_hw.bus_listen import (bus_port, forced_default_problem, listen_interfa
 from u2sa_hw.lcm_open import MULTICAST_FIX, URL_HELP, captured_c_stderr, open_error, reemit  # noqa: F401 - re-exported
 from u2sa_hw.lcm_url import (DEFAULT_LCM_URL, DEFAULT_RECV_BUF_SIZE, LCM_URL_ENV,  # noqa: F401 - re-exported
                               RMEM_MAX_FILE, resolve_url, with_receive_buffer)
-from u2sa_hw.channels import FAILSAFE as FAILSAFE_CHANNEL
 from u2sa_hw.health import name_native_thread
-from u2sa_hw.lcmtypes import Failsafe
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 
 # LCM queues at most 30 messages per subscription by default and drops the rest without a
@@ -61,9 +55,6 @@ from u2sa_hw.messages import REGISTRY, MalformedMessage
 DEFAULT_QUEUE_CAPACITY = 10_000
 
 Callback = Callable[[str, Any], None]
-_SYSTEM_ID = struct.Struct(">i")
-_ANY_SYSTEM = _SYSTEM_ID.pack(0)   # unset (a tool without a profile): not another vehicle
-_FAILSAFE_FP = Failsafe._get_packed_fingerprint()
 FILTER_ENV = "U2SA_BUS_FILTER"   # "off": every transport hears the whole bus (u2sa_hw.bus_filter)
 _RECEIVER_OPENING = threading.Lock()   # one transport at a time finds its new receive socket among the process's
 log = logging.getLogger("u2sa_hw.transport")
@@ -71,40 +62,6 @@ log = logging.getLogger("u2sa_hw.transport")
 
 class TransportError(RuntimeError):
     """The LCM transport cannot start; the message says why and how to fix it."""
-
-
-@dataclass
-class ChannelCounters:
-    """Traffic counters of one channel in one direction."""
-
-    messages: int = 0
-    malformed: int = 0
-    dropped: int = 0
-    bytes: int = 0
-    type_name: str = ""
-    unsigned: int = 0    # received only: dropped by verification (bus_auth.REJECTIONS)
-    forged: int = 0
-    replayed: int = 0
-    foreign: int = 0     # received only: another vehicle's system id in the header
-    denied: int = 0      # received only: signed by a key whose role may not publish the channel
-    raise_stale: int = 0     # received only: failsafe raises accepted though outside the replay window
-    raise_foreign: int = 0   # received only: failsafe raises accepted though from another system id
-
-    def rejected(self) -> int:
-        """Packets verification (or the system id check) dropped on this channel."""
-        return self.unsigned + self.forged + self.replayed + self.foreign + self.denied
-
-
-@dataclass(frozen=True)
-class AcceptedRaise:
-    """Failsafe raises of one kind let through on one channel (``raise_stale``: outside the replay
-    window; ``raise_foreign``: another system id), with the last one's sender (hex) and age."""
-
-    channel: str
-    kind: str
-    count: int
-    last_sender: str
-    last_age_s: float
 
 
 @dataclass
@@ -152,25 +109,15 @@ class Transport:
         except BusKeyError as exc:
             raise TransportError(str(exc)) from None
         self._clock_store = (clock_store or store_from_env()) if self.auth is not None else None
-        self.started_us = 0   # the signing clock at start: a command signed before it is not obeyed
         self._clock_saving: threading.Thread | None = None
         if self._clock_store is not None:
             start = self._clock_store.start_at(WINDOW_US)
             if start is not None and self.auth.adopt(start):
                 log.info("%s: signing clock starts at the saved %d µs (%s)", name, start, self._clock_store.path)
-        if self.auth is not None:
-            self.started_us = self.auth.now()
         self._verdict = OK
-        self._payload = b""
-        self._packet = b""   # the whole verified packet being dispatched, trailer included
-        # Every u2sa message starts with its Header (extensions with their base, which does):
-        # the system id is the big-endian int32 right after the 8-byte fingerprint. A packet of
-        # an unknown fingerprint is not checked (it is malformed, or a raw subscriber's bytes).
         self.system_id = system_id
-        self._own_system = None if system_id is None else _SYSTEM_ID.pack(system_id)
         self._pending_unsubscribe: deque[Any] = deque()
-        self._rejection_logged: set[tuple[str, str]] = set()
-        self._last_raises: dict[tuple[str, str], tuple[str, float]] = {}   # (channel, kind) -> (sender, monotonic)
+        self._sign_logged: set[str] = set()
         with captured_c_stderr() as printed:
             try:
                 self._lc = lcm.LCM(with_receive_buffer(self.url))
@@ -200,6 +147,8 @@ class Transport:
         self._subs: list[_Subscription] = []
         self._subs_lock = threading.Lock()
         self.rx: dict[str, ChannelCounters] = defaultdict(ChannelCounters)
+        self._guard = ReceiveGuard(name=name, auth=self.auth, system_id=system_id, rx=self.rx)
+        self.started_us = self._guard.started_us   # the signing clock at start: older commands are not obeyed
         self.tx: dict[str, ChannelCounters] = defaultdict(ChannelCounters)
         self._malformed_logged: set[str] = set()
         # One handle() call dispatches one packet to every matching subscription: the
@@ -229,8 +178,8 @@ class Transport:
                 wire = self.auth.sign(channel, data) if self.auth is not None else data
             except BusKeyError as exc:   # the pilot's channels, from a process without the pilot's key
                 c.dropped += 1
-                if (channel, "sign") not in self._rejection_logged:
-                    self._rejection_logged.add((channel, "sign"))
+                if channel not in self._sign_logged:
+                    self._sign_logged.add(channel)
                     self._error(f"cannot sign {channel}: {exc}")
                 self.last_error = f"cannot sign {channel}: {exc}"
                 return False
@@ -347,10 +296,10 @@ class Transport:
         generation = self._generation
         if self._bytes_counted != generation:   # the packet's first dispatch: verify it once
             self._bytes_counted = generation
-            self._verdict = self._verify(channel, data)
+            self._verdict = self._guard.verify(channel, data)
         if self._verdict is not OK:
             return
-        data = self._payload
+        data = self._guard.payload
         counters = self.rx[channel]
         if sub.raw:
             if self._messages_counted != generation:
@@ -384,90 +333,6 @@ class Transport:
             counters.dropped += 1
             self._error(f"callback for {channel} failed: {type(exc).__name__}: {exc}", exc_info=True)
 
-    def _verify(self, channel: str, data: bytes) -> str:
-        """OK (the payload is in ``self._payload``) or why the packet is dropped, counted and logged once."""
-        auth = self.auth
-        if auth is None:
-            payload = strip_trailer(data)
-            verdict = OK
-        else:
-            verdict = auth.verify(channel, data)
-            if verdict is REPLAYED and channel == FAILSAFE_CHANNEL:
-                verdict = self._admit_stale_raise(auth, channel, data)
-            payload = data[:auth.end]
-            if verdict is OK and channel in COMMAND_CHANNELS and auth.last_counter < self.started_us:
-                verdict = self._before_start(channel, payload)
-        if verdict is OK:
-            own = self._own_system
-            # Only a u2sa type's bytes 8..12 are its system id: anything else is left to decoding (malformed).
-            if own is None or payload[8:12] in (own, _ANY_SYSTEM) or REGISTRY.by_fingerprint(payload[:8]) is None:
-                self._payload = payload
-                self._packet = data
-                self.rx[channel].bytes += len(payload)
-                return OK
-            if _is_failsafe_raise(channel, payload):
-                self._accepted_raise(channel, "raise_foreign", "from another system id than this vehicle's")
-                self._payload = payload
-                self._packet = data
-                self.rx[channel].bytes += len(payload)
-                return OK
-            verdict = FOREIGN
-        counters = self.rx[channel]
-        counters.bytes += len(data)
-        if channel == LCM_SELF_TEST:   # LCM's own probe at start-up, never ours: not a rejection
-            return verdict
-        setattr(counters, verdict, getattr(counters, verdict) + 1)
-        if (channel, verdict) not in self._rejection_logged:
-            self._rejection_logged.add((channel, verdict))
-            log.warning("%s: dropping %s message on %s (%s); further ones are only counted", self.name, verdict,
-                        channel, REJECTION_WHY[verdict])
-        return verdict
-
-    def _before_start(self, channel: str, payload: bytes) -> str:
-        """REPLAYED for a command signed before this transport started (a restarted service must not obey a
-        stop captured before its restart); OK for a failsafe raise, which fails safe whenever it was signed."""
-        if _is_failsafe_raise(channel, payload):
-            return OK
-        if (channel, "before start") not in self._rejection_logged:
-            self._rejection_logged.add((channel, "before start"))
-            log.warning("%s: dropping a command on %s signed before this service started (a replay, or a sender "
-                        "whose clock is behind); further ones are only counted as replayed", self.name, channel)
-        return REPLAYED
-
-    def _admit_stale_raise(self, auth: BusAuth, channel: str, data: bytes) -> str:
-        """OK for a failsafe raise refused only for its age (it fails safe), REPLAYED for anything else."""
-        if not _is_failsafe_raise(channel, data[:-TRAILER_LEN]):
-            return REPLAYED
-        verdict = auth.admit_stale(data)
-        if verdict is OK:
-            self._accepted_raise(channel, "raise_stale", "outside the replay window (a sender whose clock is behind, "
-                                 "or a replay)")
-        return verdict
-
-    def _accepted_raise(self, channel: str, counter: str, why: str) -> None:
-        counters = self.rx[channel]
-        setattr(counters, counter, getattr(counters, counter) + 1)
-        sender = self.auth.last_sender.hex() if self.auth is not None else ""
-        self._last_raises[(channel, counter)] = (sender, time.monotonic())
-        if (channel, counter) not in self._rejection_logged:
-            self._rejection_logged.add((channel, counter))
-            log.warning("%s: accepting a failsafe raise on %s %s: a raise fails safe, so it is never dropped for "
-                        "that; further ones are only counted", self.name, channel, why)
-
-    def accepted_raises(self) -> dict[str, dict[str, int]]:
-        """``{channel: {"raise_stale": n, "raise_foreign": n}}`` for channels where a raise was let through."""
-        return {ch: {"raise_stale": c.raise_stale, "raise_foreign": c.raise_foreign}
-                for ch, c in sorted(self.rx.items()) if c.raise_stale or c.raise_foreign}
-
-    def accepted_raise_log(self) -> list[AcceptedRaise]:
-        """Every kind of raise let through though stale or foreign: its count, its last sender and that one's age."""
-        now = time.monotonic()
-        out = []
-        for (channel, kind), (sender, at) in sorted(self._last_raises.items()):
-            out.append(AcceptedRaise(channel=channel, kind=kind, count=getattr(self.rx[channel], kind),
-                                     last_sender=sender, last_age_s=now - at))
-        return out
-
     def raw_lcm(self) -> Any:
         """The ``lcm.LCM`` under this transport, its receive socket open on the bus's interface.
 
@@ -486,6 +351,18 @@ class Transport:
         """This transport's sender id in the trailers it signs (hex; empty on an open bus)."""
         return self.auth.sender.hex() if self.auth else ""
 
+    def accepted_raises(self) -> dict[str, dict[str, int]]:
+        """``{channel: {"raise_stale": n, "raise_foreign": n}}`` for channels where a raise was let through."""
+        return self._guard.accepted_raises()
+
+    def accepted_raise_log(self) -> list[AcceptedRaise]:
+        """Every kind of raise let through though stale or foreign: its count, its last sender and that one's age."""
+        return self._guard.accepted_raise_log()
+
+    def rejected(self) -> dict[str, dict[str, int]]:
+        """``{channel: {"unsigned": n, "forged": n, "replayed": n, "foreign": n, "denied": n}}`` for channels with drops."""
+        return self._guard.rejected()
+
     @property
     def packet(self) -> bytes:
         """The whole packet being dispatched, its signature trailer included; call from a callback.
@@ -493,7 +370,7 @@ class Transport:
         The recorder keeps the pilot's trailers with RC_MODE and MANUAL_CMD so that a replay
         can check them with the recorded public key.
         """
-        return self._packet
+        return self._guard.packet
 
     @property
     def last_sender(self) -> str:
@@ -503,10 +380,6 @@ class Transport:
     def key_id(self) -> str:
         """The id of the key this transport signs with (hex; empty on an open bus)."""
         return self.auth.keyring.current.id.hex() if self.auth else ""
-
-    def rejected(self) -> dict[str, dict[str, int]]:
-        """``{channel: {"unsigned": n, "forged": n, "replayed": n, "foreign": n}}`` for channels with drops."""
-        return {ch: {r: getattr(c, r) for r in REJECTIONS} for ch, c in sorted(self.rx.items()) if c.rejected()}
 
     def _call(self, sub: _Subscription, channel: str, payload: Any) -> None:
         try:
@@ -604,17 +477,6 @@ class Transport:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
-
-
-def _is_failsafe_raise(channel: str, payload: bytes) -> bool:
-    """True for a Failsafe with ``active = true`` on FAILSAFE (only read on the rare paths that drop otherwise)."""
-    if channel != FAILSAFE_CHANNEL or payload[:8] != _FAILSAFE_FP:
-        return False
-    try:
-        msg, _ = REGISTRY.decode(payload, Failsafe)
-    except MalformedMessage:
-        return False
-    return bool(msg.active)
 
 
 def _is_regex(channel: str) -> bool:
