@@ -330,7 +330,7 @@ class SimRun:
         """Stop the services (SIGTERM, SIGKILL after the grace), the sampler, the monitor, the mocks."""
         self._stopping = True
         if self.launcher is not None:
-            self.launcher.stop(timeout=self.options.grace_s + 10)
+            self.launcher.stop(timeout=self.launcher.stop_limit_s + 5.0)
             self.record.services = {s.name: {"state": s.state, "restarts": s.restarts, "last_exit": s.last_exit}
                                     for s in self.launcher.status()}
         self._stop_sampling.set()

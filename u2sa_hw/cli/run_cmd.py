@@ -24,7 +24,9 @@ Start every enabled service of the vehicle profile as its own process
 (u2sa service NAME --vehicle FILE), prefix their output with the service name,
 restart a crashed service with a backoff that doubles on quick deaths and decays
 after healthy uptime, and stop everything on Ctrl-C or SIGTERM (SIGTERM to each
-service, SIGKILL after the grace period; a second Ctrl-C kills at once).
+service; SIGKILL for one that does not acknowledge within the grace, stops making progress
+for a grace after acknowledging, or is still alive 30 s after SIGTERM; a second Ctrl-C kills
+at once). A loaded board lengthens the wait, not the verdict (docs/supervision.md).
 
 A service that exits with status 0 stopped on purpose and is not restarted; one
 that exits with status 3 refused to start (another of its name already runs on
@@ -80,7 +82,8 @@ def register(sub: Any) -> None:
     p.add_argument("--only", action="append", metavar="NAMES",
                    help="comma-separated services to run (repeatable; may name disabled ones)")
     p.add_argument("--grace", type=float, default=5.0, metavar="S",
-                   help="seconds between SIGTERM and SIGKILL when stopping a service (default 5)")
+                   help="seconds a stopping service has to acknowledge (STOPPING=1), and the longest it may go "
+                   "without progress after that, before SIGKILL (default 5; every stop ends within 30 s)")
     p.add_argument("--give-up-after", type=int, default=5, metavar="N",
                    help="quick deaths in a row before a service is given up (default 5; 0 = never)")
     p.add_argument("--backoff", type=float, default=0.5, metavar="S",
