@@ -19,7 +19,7 @@ from typing import Any
 
 import pytest
 from conftest import REPO, ServiceProcesses
-from test_foxglove_bridge import SUBPROTOCOL, Client, bridge_port, start_bridge
+from test_foxglove_bridge import Client, advertised, bridge_port, start_bridge
 
 from drivers.rc_pulse import MODE_NAMES
 from u2sa_hw import channels as ch
@@ -195,14 +195,17 @@ def test_the_bridge_advertises_what_the_driving_panels_read(services: ServicePro
 
     async def session() -> Client:
         nonlocal c
-        async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL]) as ws:
-            c = client = Client(ws)
-            await client.pump(lambda: topics <= set(client.channels), timeout=60, tick=publish)
+        async with advertised(port, topics, tick=publish) as client:
+            c = client
             await client.subscribe({i: topic for topic, i in ids.items()})
             await client.pump(every_stick_seen, timeout=60, tick=publish)
             return client
 
-    c = asyncio.run(session())
+    try:
+        c = asyncio.run(session())
+    except BaseException:
+        print(f"the bridge's stderr:\n{err.read_text()}\nstatus messages: {c.status if c else None}")
+        raise
     assert c.channels["RC_MODE"]["schemaName"] == "u2sa.RcMode"
     assert c.channels["FAILSAFE"]["schemaName"] == "u2sa.Failsafe"
     for path in paths:
