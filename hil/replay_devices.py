@@ -6,9 +6,13 @@ the recorded ``RAW.<device>`` records by the player (hil/player.py):
 - :class:`ReplaySerialDevice`: a pty at a symlink (like ``mock_devices.pty_serial``);
   recorded RX bytes are written into it, with backpressure instead of drops; what the
   driver writes is kept and checked against the recorded TX bytes. Stamped (the replay's
-  mode), each recorded chunk goes as a frame with its recorded read time, and a clock tick
-  marks each recorded silence, so the driver times lines and silences by the recording
-  (:mod:`u2sa_hw.ports.serial_clock`), not by when the replay delivers them.
+  mode), each recorded chunk goes as a frame with its recorded read time, and each recorded
+  silence goes as a silence frame, so the driver times lines and silences by the recording
+  (:mod:`u2sa_hw.ports.serial_clock`), not by when the replay delivers them. A silence is
+  what the live port recorded (an RX record without data: a ``readline`` that timed out
+  empty); a log from before those records gets a clock tick wherever two recorded reads are
+  ``burst_gap_s`` or more apart, which a live driver busy between two reads of one burst also
+  leaves (issue 24).
 - CAN and I2C replay devices live in :mod:`hil.replay_buses`, GPIO and PWM in
   :mod:`hil.replay_gpio`.
 
@@ -35,7 +39,7 @@ from typing import Any, Iterator, Protocol
 
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.ports.address import DeviceAddress, make_address
-from u2sa_hw.ports.serial_clock import encode_frame
+from u2sa_hw.ports.serial_clock import encode_frame, encode_silence
 from u2sa_hw.ports.tap import RX, TX
 from u2sa_hw.recording.log_reader import LogFile
 
@@ -103,22 +107,24 @@ def record_stamp_ns(record: Any, *, previous: int = 0) -> int:
 @dataclass
 class StampedChunks:
     """RX chunks with their device-clock stamps, written as one (``--fast`` merges a burst); a chunk
-    without bytes is a clock tick (the recorded line was silent until then)."""
+    without bytes is a clock tick (the recorded line was silent until then), one with None a recorded
+    silence."""
 
-    chunks: list[tuple[int, bytes]] = field(default_factory=list)
+    chunks: list[tuple[int, bytes | None]] = field(default_factory=list)
     direction: int = RX
 
     @property
     def length(self) -> int:
         """Data bytes held."""
-        return sum(len(data) for _, data in self.chunks)
+        return sum(len(data) for _, data in self.chunks if data)
 
 
 class ReplaySerialDevice:
     """A pty at *link_path*; recorded RX bytes go to the driver, its writes are compared with TX.
 
     *stamped*: every chunk is written as a stamped frame and the driver's address says
-    ``clock=stamped`` (module docstring); ``preload`` then finds the recorded silences.
+    ``clock=stamped`` (module docstring); ``preload`` then finds whether the log records its
+    silences (``silences_recorded``) or, for an older log, where the gaps put them.
     """
 
     kind = "serial"
@@ -127,8 +133,9 @@ class ReplaySerialDevice:
                  write_timeout_s: float = 10.0, stamped: bool = False) -> None:
         self.name = name
         self.stamped = stamped
-        self._ticks: list[tuple[int, int]] = []   # (log time, stamp) of a tick after each recorded silence
+        self._ticks: list[tuple[int, int]] = []   # (log time, stamp) of a tick after each gap (older logs)
         self._last_stamp = 0
+        self.silences_recorded = False   # the log has the live port's silence records: only they are silences
         self.burst_gap_s = burst_gap_s  # records closer than this are one burst (the driver's epoch_gap_s)
         self.link_path = Path(link_path)
         self.write_timeout_s = write_timeout_s
@@ -159,24 +166,30 @@ class ReplaySerialDevice:
         return {}
 
     def preload(self, log_path: Path, *, start_ns: int, end_ns: int) -> None:
-        """Stamped: note a clock tick ``burst_gap_s`` after each recorded RX chunk that the next one follows
-        later than that on the device clock (and after the last one, when the window goes on that long),
-        so the driver ends a burst on the recorded silence, at once and at any replay speed."""
+        """Stamped: find whether the log has the live port's silence records (an RX record without data, up to
+        the window's end); then those are fed as silences and nothing else is one. A log without them: note a
+        clock tick ``burst_gap_s`` after each recorded RX chunk that the next one follows later than that on
+        the device clock (and after the last one, when the window goes on that long), so the driver ends a
+        burst on the gap, at once and at any replay speed."""
         if not self.stamped:
             return
         gap = max(1, int(self.burst_gap_s * 1e9))
         ticks: list[tuple[int, int]] = []
         prev: tuple[int, int] | None = None   # (log time, stamp) of the previous RX chunk
+        marked = False
         for m in LogFile(log_path).messages(rf"RAW\.{re.escape(self.name)}"):
             if m.log_time_ns > end_ns:
                 break
-            if m.log_time_ns < start_ns:
-                continue
             try:
                 rec, _ = REGISTRY.decode(m.data)
             except MalformedMessage:
                 continue
-            if getattr(rec, "direction", None) != RX or not bytes(getattr(rec, "data", b"")):
+            if getattr(rec, "direction", None) != RX:
+                continue
+            if not bytes(getattr(rec, "data", b"")):
+                marked = True
+                continue
+            if m.log_time_ns < start_ns:
                 continue
             stamp = record_stamp_ns(rec, previous=prev[1] if prev else m.log_time_ns)
             if prev is not None and stamp - prev[1] >= gap:
@@ -184,7 +197,8 @@ class ReplaySerialDevice:
             prev = (m.log_time_ns, stamp)
         if prev is not None and end_ns - prev[0] >= gap:
             ticks.append((prev[0] + gap - 1, prev[1] + gap))
-        self._ticks = ticks
+        self.silences_recorded = marked
+        self._ticks = [] if marked else ticks
 
     def clock_ticks(self) -> Iterator[tuple[int, StampedChunks]]:
         """``(log time, tick)`` of each recorded silence (see :meth:`preload`), in log order; the player
@@ -238,8 +252,11 @@ class ReplaySerialDevice:
         """What goes into the pty for an RX *record* (stamped: its frames) and how many data bytes it holds."""
         if not self.stamped:
             return bytes(record.data), len(record.data)
-        chunks = self._chunks(record) if isinstance(record, StampedChunks) or record.data else []
-        return b"".join(encode_frame(stamp, data) for stamp, data in chunks), sum(len(d) for _, d in chunks)
+        marked = self.silences_recorded
+        chunks = self._chunks(record) if isinstance(record, StampedChunks) or record.data or marked else []
+        return (b"".join(encode_silence(stamp) if data is None else encode_frame(stamp, data, silences_recorded=marked)
+                         for stamp, data in chunks),
+                sum(len(d) for _, d in chunks if d))
 
     def feed(self, record: Any) -> None:
         """Write an RX record's bytes (stamped: its frames) into the pty, waiting while the driver's
@@ -281,12 +298,14 @@ class ReplaySerialDevice:
         merged.length = len(merged.data)
         return merged
 
-    def _chunks(self, record: Any) -> list[tuple[int, bytes]]:
+    def _chunks(self, record: Any) -> list[tuple[int, bytes | None]]:
+        """A record's (stamp, data) chunks; a recorded silence (no data, in a log that records them) has None."""
         if isinstance(record, StampedChunks):
             return list(record.chunks)
         stamp = record_stamp_ns(record, previous=self._last_stamp)
         self._last_stamp = stamp
-        return [(stamp, bytes(record.data))]
+        data = bytes(record.data)
+        return [(stamp, data if data or not self.silences_recorded else None)]
 
     def pending(self) -> int:
         """Bytes in the pty the driver has not read yet."""

@@ -68,13 +68,16 @@ def split_reads(log: Path, device: str = "gps") -> int:
     continues the previous chunk's epoch (no time of its own before a sentence of that time, or the same time)
     stamped that long after it. The live driver was held up between the two reads (the bytes waited in the
     pty: no silence), which the log shows only as the gap, so a replay judges a silence there and publishes the
-    epoch in two parts (issue 24: the first fix of a recording whose GPS driver was held up as it started)."""
+    epoch in two parts (issue 24: the first fix of a recording whose GPS driver was held up as it started).
+    0 for a log that records the live port's silences (RX records without data): its replay sees those only."""
     count, last_stamp, last_utc = 0, None, None
     for m in LogFile(log).messages(f"RAW.{device}"):
         raw = t.RawSerial.decode(m.data)
         if raw.direction != 0:
             continue
         data = bytes(raw.data)
+        if not data:
+            return 0
         first = _UTC.search(data)
         continues = not data.startswith(b"$") or first is None or first.start() > 0 or first.group(1) == last_utc
         if last_stamp is not None and continues and (raw.header.timestamp_us - last_stamp) / 1e6 >= EPOCH_GAP_S:

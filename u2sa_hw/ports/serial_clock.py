@@ -12,13 +12,25 @@ new frame; a frame with no data is a clock tick (the recorded line was silent un
 Anything else (an ``ESC`` followed by another byte, a stamp that is not hex, data before the
 first stamp) is garbage: dropped and counted, never handed to the driver.
 
+A log whose live port recorded its silences (an empty ``RawSerial`` RX record each time a
+``readline`` of the live driver timed out empty, :meth:`SerialPort.readline`) is written with
+two more kinds, so the replayed driver sees exactly the silences the live one saw::
+
+    ESC 'R' <16 hex digits> <data>   a frame as 'T', of a stream whose silences are recorded: a
+                                     gap before it, however long, is no silence (the live driver
+                                     was busy while the bytes waited in the device)
+    ESC 'Q' <16 hex digits>          a recorded silence: the live driver's read timed out here
+
+Only ``'T'`` frames keep the older rule (a gap of ``timeout`` or more between two frames' stamps
+is a silence), for logs recorded before the silences were.
+
 :class:`StampedSerialPort` decodes the frames inside ``readline()``/``read()`` and replays
 what the recorded driver's reads saw: a line's time (:meth:`~StampedSerialPort.line_time_ns`)
 is the stamp of the frame that held its last byte, and an empty ``readline()`` stands for a
-silence of ``timeout`` or more on the device clock (:meth:`~StampedSerialPort.went_quiet`),
-however long the replay took to deliver it. Only an address that says ``clock=stamped``
-opens this port, and only a ``mock+serial`` address may say it: a real device can never set
-the time its driver sees.
+recorded silence (``'Q'``), or in a stream without them a gap of ``timeout`` or more on the
+device clock (:meth:`~StampedSerialPort.went_quiet`), however long the replay took to deliver
+it. Only an address that says ``clock=stamped`` opens this port, and only a ``mock+serial``
+address may say it: a real device can never set the time its driver sees.
 """
 
 from __future__ import annotations
@@ -33,19 +45,33 @@ from u2sa_hw.ports.tap import Tap
 
 ESC = 0x1B
 STAMP = ord("T")
+RECORDED = ord("R")          # a frame of a stream with recorded silences: no gap is a silence
+SILENCE = ord("Q")           # a recorded silence (no data)
+_STARTS = frozenset((STAMP, RECORDED, SILENCE))
 STAMP_DIGITS = 16
 HEADER_LEN = 2 + STAMP_DIGITS
 DEVICE_CLOCK_GRACE_S = 2.0   # the pty silent this long (wall): a readline timeout is a silence again
 _HEX = frozenset(b"0123456789abcdefABCDEF")
 
-Frame = tuple[int, bytes]    # (stamp ns, data bytes; empty for a clock tick)
+Frame = tuple[int, "bytes | None"]   # (stamp ns, data bytes; empty for a clock tick, None for a recorded silence)
 
 
-def encode_frame(stamp_ns: int, data: bytes = b"") -> bytes:
-    """One frame: *data* (any bytes) stamped *stamp_ns*; no data is a clock tick."""
+def _header(kind: int, stamp_ns: int) -> bytes:
     if not 0 <= stamp_ns < 1 << 64:
         raise ValueError(f"stamp {stamp_ns} ns does not fit in 16 hex digits")
-    return bytes((ESC, STAMP)) + b"%016x" % stamp_ns + bytes(data).replace(b"\x1b", b"\x1b\x1b")
+    return bytes((ESC, kind)) + b"%016x" % stamp_ns
+
+
+def encode_frame(stamp_ns: int, data: bytes = b"", *, silences_recorded: bool = False) -> bytes:
+    """One frame: *data* (any bytes) stamped *stamp_ns*; no data is a clock tick. *silences_recorded*: the
+    stream carries its silences (:func:`encode_silence`), so no gap before this frame is one (``'R'``)."""
+    kind = RECORDED if silences_recorded else STAMP
+    return _header(kind, stamp_ns) + bytes(data).replace(b"\x1b", b"\x1b\x1b")
+
+
+def encode_silence(stamp_ns: int) -> bytes:
+    """A recorded silence at *stamp_ns*: the live driver's read timed out empty there (``'Q'``)."""
+    return _header(SILENCE, stamp_ns)
 
 
 class FrameDecoder:
@@ -55,6 +81,7 @@ class FrameDecoder:
         self._pending = bytearray()        # an incomplete escape or stamp, kept for the next feed
         self.stamp_ns: int | None = None   # the stamp of the frame being read
         self.garbage = 0                   # bytes dropped: bad escapes, bad stamps, data before any stamp
+        self.silences_recorded = False     # an 'R' frame or a 'Q' silence came: only 'Q' is a silence
 
     def feed(self, raw: bytes) -> list[Frame]:
         """The frames (or continuations of the current frame) that *raw* completes, in order."""
@@ -83,7 +110,7 @@ class FrameDecoder:
             if kind == ESC:
                 data.append(ESC)
                 i += 2
-            elif kind == STAMP:
+            elif kind in _STARTS:
                 if i + HEADER_LEN > n:
                     break
                 digits = bytes(buf[i + 2:i + HEADER_LEN])
@@ -93,7 +120,10 @@ class FrameDecoder:
                     continue
                 close()
                 self.stamp_ns = int(digits, 16)
-                frames.append((self.stamp_ns, b""))   # the frame's start: a tick until data follows
+                if kind != STAMP:
+                    self.silences_recorded = True
+                # a silence, or the frame's start: a tick until data follows
+                frames.append((self.stamp_ns, None if kind == SILENCE else b""))
             else:
                 self.garbage += 2
                 i += 2
@@ -106,7 +136,7 @@ def _joined(frames: list[Frame]) -> list[Frame]:
     """A frame's start merged with the data that followed it in the same feed."""
     out: list[Frame] = []
     for stamp, data in frames:
-        if data and out and out[-1][0] == stamp and not out[-1][1]:
+        if data and out and out[-1][0] == stamp and out[-1][1] == b"":
             out[-1] = (stamp, data)
         else:
             out.append((stamp, data))
@@ -149,18 +179,19 @@ class StampedSerialPort(SerialPort):
         return self._clock_quiet or heard is None or time.monotonic() - heard >= DEVICE_CLOCK_GRACE_S
 
     def _fill(self) -> bool:
-        """Wait up to the timeout for bytes from the pty and decode them; False when none came."""
+        """Wait up to the timeout for bytes from the pty and decode them; False when none came. The data is
+        tapped as it arrives; the silences are not (they would be tapped out of order with it)."""
         raw = self._read_waiting()
         if not raw:
             return False
         self._heard_at = time.monotonic()
         frames = self._decoder.feed(raw)
         self._frames.extend(frames)
-        self._tapped(b"".join(data for _, data in frames))
+        self._tapped(b"".join(data for _, data in frames if data))
         return True
 
     def _take_frame(self) -> None:
-        stamp, data = self._frames.popleft()
+        stamp, data = self._frames.popleft()   # a recorded silence (no data) only moves the clock here (read())
         self._clock_ns = stamp
         if data:
             self._buffer += data
@@ -194,9 +225,10 @@ class StampedSerialPort(SerialPort):
             return data
 
     def readline(self) -> bytes:
-        """One line (as :meth:`SerialPort.readline`), or ``b""`` on a silence: one of ``timeout`` on the
-        device clock before the next frame (:meth:`went_quiet` True), or nothing from the pty
-        within the timeout of wall time."""
+        """One line (as :meth:`SerialPort.readline`), or ``b""`` on a silence (:meth:`went_quiet` True): a
+        recorded one (``'Q'``: the live driver's read timed out there), or in a stream without recorded
+        silences a gap of ``timeout`` or more on the device clock before the next frame; or ``b""`` when
+        nothing came from the pty within the timeout of wall time."""
         with self._read_lock:
             self._clock_quiet = False
             while b"\n" not in self._buffer and len(self._buffer) < MAX_LINE:
@@ -204,8 +236,14 @@ class StampedSerialPort(SerialPort):
                     if not self._fill():
                         return b""
                     continue
-                stamp = self._frames[0][0]
-                if self._clock_ns is not None and stamp - self._clock_ns >= self.timeout_ns:
+                stamp, data = self._frames[0]
+                if data is None:   # a recorded silence: the live driver's read found nothing here
+                    self._frames.popleft()
+                    self._clock_ns = stamp
+                    self._clock_quiet = True
+                    return b""
+                if (not self._decoder.silences_recorded and self._clock_ns is not None
+                        and stamp - self._clock_ns >= self.timeout_ns):
                     self._clock_ns = stamp   # said once: the frame is taken on the next call
                     self._clock_quiet = True
                     return b""

@@ -7,7 +7,12 @@ port error hierarchy: failing to open is ``PortUnavailable`` (with the group to 
 udev rule to check or the process holding the port), and any failure of an open port
 (pty master closed, USB adapter unplugged, socket dropped) is ``PortClosed``.
 
-Every chunk read from the device is tapped as a ``RawSerial`` RX record, every write as TX.
+Every chunk read from the device is tapped as a ``RawSerial`` RX record, every write as TX. A
+``readline`` that times out empty (the silence a driver ends a burst on) is tapped as an RX record
+without data, once per silence: a log then says where the live driver saw a silence, which the
+read times alone cannot (a driver busy between two reads left the bytes waiting in the device:
+a gap in the read times, no silence). A replay hands the driver those silences and no others
+(:mod:`u2sa_hw.ports.serial_clock`); readers of the data bytes see nothing of them.
 """
 
 from __future__ import annotations
@@ -87,7 +92,8 @@ class SerialPort:
 
     ``read`` and ``readline`` return ``b""`` when nothing arrives within the timeout.
     ``readline`` returns only complete lines: a partial line stays buffered for the next
-    call (and for ``read``), so a driver never sees half an NMEA sentence as a line.
+    call (and for ``read``), so a driver never sees half an NMEA sentence as a line. An empty
+    ``readline`` is tapped as an RX record without data, once per silence (module docstring).
     ``device_clock`` is False: an empty ``readline`` is a silence of the device
     (:meth:`went_quiet`), and a line's time is the reader's clock (a replay's
     :class:`~u2sa_hw.ports.serial_clock.StampedSerialPort` says otherwise).
@@ -103,6 +109,7 @@ class SerialPort:
         self._buffer = bytearray()
         self._read_lock = threading.Lock()
         self._closed = False
+        self._silence_tapped = False   # the current silence has its record (no data read since)
 
     @property
     def framing(self) -> str:
@@ -143,9 +150,20 @@ class SerialPort:
             raise self._lost(exc, "read") from exc
 
     def _tapped(self, data: bytes) -> bytes:
-        if data and tapping(self._tap):
-            call_tap(self._tap, _record(self.device, RX, data))
+        if data:
+            self._silence_tapped = False
+            if tapping(self._tap):
+                call_tap(self._tap, _record(self.device, RX, data))
         return data
+
+    def _tap_silence(self) -> None:
+        """A ``readline`` timed out empty: tap an RX record without data, the first time since data came (one
+        record per silence, not per empty read of a quiet line)."""
+        if self._silence_tapped:
+            return
+        self._silence_tapped = True
+        if tapping(self._tap):
+            call_tap(self._tap, _record(self.device, RX, b""))
 
     def _read_waiting(self) -> bytes:
         """Wait up to the timeout for one byte, then take whatever else is waiting (not tapped)."""
@@ -188,6 +206,7 @@ class SerialPort:
             while b"\n" not in self._buffer and len(self._buffer) < MAX_LINE:
                 chunk = self._read_available()
                 if not chunk:
+                    self._tap_silence()
                     return b""
                 self._buffer += chunk
             end = self._buffer.find(b"\n")
