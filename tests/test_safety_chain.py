@@ -312,7 +312,8 @@ def test_u2sa_health_names_why_autonomy_is_refused() -> None:
         "rc": health("rc", 2, mode="autonomous", autonomy_enabled="False", armed="True",
                      enable_blocked_by="pre-arm check failed: gps: no 3D fix (fix type 2D, 7 satellites)"),
     })
-    assert report == [{"service": "rc", "granted": False, "mode": "autonomous", "armed": True, "prearm_failed": "",
+    assert report == [{"service": "rc", "granted": False, "mode": "autonomous", "armed": True, "hold": False,
+                       "prearm_failed": "",
                        "blocked_by": "pre-arm check failed: gps: no 3D fix (fix type 2D, 7 satellites)"}]
 
 
