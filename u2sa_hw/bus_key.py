@@ -104,10 +104,15 @@ def write_key(path: Path, key: bytes, *, group: str | None = KEY_GROUP) -> None:
     else:
         gid = old.st_gid if root else None
         mode = stat.S_IMODE(old.st_mode) & 0o640 or 0o600
+    write_key_file(path, key, mode=mode, gid=gid)
+
+
+def write_key_file(path: Path, key: bytes, *, mode: int, gid: int | None) -> None:
+    """Store *key* as one line of hex at *path* atomically (temp file, fsync, rename), *mode*, root:*gid* if given."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         import tempfile   # only where a key is written, not in every service that reads one
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".bus.key.")
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
     except OSError as exc:
         raise BusKeyError(_write_error(path, exc)) from None
     try:

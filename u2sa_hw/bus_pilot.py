@@ -19,13 +19,12 @@ project's bench machine it checks a signature in about 37 µs against 60 µs, an
 
 from __future__ import annotations
 
-import contextlib
 import grp
 import hashlib
 import os
 from pathlib import Path
 
-from u2sa_hw.bus_key import KEY_BYTES, BusKeyError, parse_key
+from u2sa_hw.bus_key import KEY_BYTES, BusKeyError, parse_key, write_key_file
 
 PILOT_KEY_NAME = "pilot.key"
 PILOT_PUB_NAME = "pilot.pub"
@@ -127,32 +126,9 @@ def write_pilot_pair(bus_key_file: Path, *, system: bool = False) -> bytes:
     seed = os.urandom(KEY_BYTES)
     public = public_of(seed)
     gid = _group_id(PILOT_GROUP) if system and os.geteuid() == 0 else None
-    _write(private, seed, mode=0o040 if gid is not None else 0o600, gid=gid)
-    _write(public_path, public, mode=0o644, gid=None)
+    write_key_file(private, seed, mode=0o040 if gid is not None else 0o600, gid=gid)
+    write_key_file(public_path, public, mode=0o644, gid=None)
     return pilot_key_id(public)
-
-
-def _write(path: Path, key: bytes, *, mode: int, gid: int | None) -> None:
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        import tempfile
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    except OSError as exc:
-        raise BusKeyError(f"cannot write {path}: {exc.strerror or exc}: run the command with sudo, "
-                          "or pass --file PATH") from None
-    try:
-        with os.fdopen(fd, "w") as f:
-            if gid is not None:
-                os.fchown(f.fileno(), 0, gid)
-            os.fchmod(f.fileno(), mode)
-            f.write(key.hex() + "\n")
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except OSError as exc:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise BusKeyError(f"cannot write {path}: {exc.strerror or exc}") from None
 
 
 def _group_id(name: str) -> int | None:
