@@ -12,7 +12,17 @@
    ``u2sa replay LOG --fast --compare`` does (hil.replay.Replay, hil.compare.compare_logs)
    and prints the log's length, the wall time, the speed-up over real time (aim: 20x, GPIO
    included), the records fed per device and compare's summary line. ``--log FILE`` replays
-   an existing recording instead.
+   an existing recording instead (docs/replay.md, Figures: a 3-minute and a 10-minute log).
+   Then the figure a CI job pays: the end-to-end time, start-up included (aim: within 2x of
+   the playback), and where it goes, step by step (``phases``, wall s, in order): ``plan``
+   (reading the whole log to decide what to replay), ``devices`` (the replay devices and the
+   log reads their start needs: the GPIO chip's levels, the I2C reads), ``bus``, ``log read
+   while starting`` (what is left of the log reading -- the serial devices' recorded silences
+   -- done while the services start), ``services`` (then still waiting for every service's
+   health and device), ``discover`` (which channels to republish: one round trip), ``play``,
+   ``settle`` (the last outputs: 1 s of quiet after them), ``pilot check (after the settle)``
+   (read in the settle), ``capture stop``, ``services stop`` (the launcher waits on each
+   child's exit), ``clean-up`` and ``compare`` (``--skip-compare``: the replay alone).
    (The earlier synthetic GPS+compass-only log is gone: the compass driver now groups its
    bursts itself -- drivers/compass_bursts.py -- so its outputs can no longer be built here.)
 2. Recorder throughput: a publisher process sends the example ground vehicle's channel mix
@@ -20,7 +30,7 @@
    BusCapture in this process writes it to MCAP. Prints the rate achieved, what never reached
    the recorder and what it dropped (its queue overflowing).
 
-Usage: ``python bench/replay.py [--minutes 10 | --quick] [--log FILE] [--keep DIR]
+Usage: ``python bench/replay.py [--minutes 10 | --quick] [--log FILE] [--keep DIR] [--skip-compare]
 [--factor 10] [--seconds 10] [--skip-replay|--skip-recorder]``
 """
 
@@ -85,7 +95,7 @@ def _load() -> str:
     return f"load average {one:.2f} {five:.2f} {fifteen:.2f} on {os.cpu_count()} cores"
 
 
-def bench_replay(minutes: float, log: Path | None, keep: Path | None) -> None:
+def bench_replay(minutes: float, log: Path | None, keep: Path | None, *, compare: bool = True) -> None:
     """Part 1: a recorded simulation with every device class replayed with --fast, then compared."""
     from hil.compare import compare_logs
     from hil.replay import Replay, ReplayOptions
@@ -122,8 +132,21 @@ def bench_replay(minutes: float, log: Path | None, keep: Path | None) -> None:
           f"(aim >= 20x: {'MET' if speed >= 20 else 'NOT MET'}); {total:.1f} s in all with {result.startup_s:.1f} s "
           f"starting the services and the wait for the last outputs = {played / total:.1f}x end to end; "
           f"{result.play.records} device records fed")
+    if not compare:
+        print("phases (wall s): " + ", ".join(f"{k} {v:.2f}" for k, v in result.phases.items())
+              + f"; replay {total:.2f} s end to end = {total / max(result.play.wall_s, 1e-9):.2f}x the playback "
+              "(no compare)")
+        if keep is None:
+            shutil.rmtree(work, ignore_errors=True)
+        return
+    compare_started = time.monotonic()
     report = compare_logs(plan.log, result.out, services=set(plan.services), start_ns=plan.start_ns,
                           end_ns=plan.end_ns, rate=None, replay_start_ns=result.play.started_ns or None)
+    compare_s = time.monotonic() - compare_started
+    phases = {**result.phases, "compare": compare_s}
+    print("phases (wall s): " + ", ".join(f"{k} {v:.2f}" for k, v in phases.items())
+          + f"; replay {total:.2f} + compare {compare_s:.2f} = {total + compare_s:.2f} s end to end "
+          f"= {(total + compare_s) / result.play.wall_s:.2f}x the playback" if result.play.wall_s > 0 else "")
     text = report.format()
     print(text if not report.ok else report.summary())
     if keep is None:
@@ -195,13 +218,15 @@ def main() -> int:
     p.add_argument("--keep", type=Path, help="keep the recording and the replayed log in this directory")
     p.add_argument("--factor", type=float, default=10.0, help="times the example vehicle's rates (default 10)")
     p.add_argument("--seconds", type=float, default=10.0, help="recorder test length (default 10)")
+    p.add_argument("--skip-compare", action="store_true", help="replay only (the compare of the two logs is "
+                   "a step of its own, as --compare is to u2sa replay)")
     p.add_argument("--skip-replay", action="store_true")
     p.add_argument("--skip-recorder", action="store_true")
     args = p.parse_args()
     use_run_key()
     minutes = 1.0 if args.quick else args.minutes
     if not args.skip_replay:
-        bench_replay(minutes, args.log, args.keep)
+        bench_replay(minutes, args.log, args.keep, compare=not args.skip_compare)
     if not args.skip_recorder:
         bench_recorder(args.factor, args.seconds)
     return 0

@@ -80,6 +80,7 @@ class ReplayResult:
     devices: dict[str, dict[str, Any]]
     run_dir: Path | None
     pilot: Any = None                      # u2sa_hw.recording.pilot_check.PilotCheck of the replayed window
+    phases: dict[str, float] = field(default_factory=dict)   # wall seconds per step of the run, in order (bench)
 
     def summary(self, *, fast: bool, rate: float) -> str:
         """The one-line summary printed at the end."""
@@ -172,6 +173,7 @@ class Replay:
 
     def __init__(self, path: Path | str, options: ReplayOptions, *, echo: Callable[[str], None] | None = None) -> None:
         self.options = options
+        began = time.monotonic()
         self.plan = build_plan(path, extra_services=options.services, overrides=options.overrides,
                                start_s=options.start_s, end_s=options.end_s, vehicle=options.vehicle)
         self.fast, self.rate = options.fast, options.rate   # as played
@@ -191,6 +193,14 @@ class Replay:
         self._last_output = time.monotonic()
         self._clocked = False   # a GPIO replay chip with edges: the drivers' timers stop with its clock
         self.run_dir: Path | None = None   # made by run(); kept after a failure for its logs
+        self.phases: dict[str, float] = {"plan": time.monotonic() - began}   # see _phase
+        self._phase_at = time.monotonic()
+
+    def _phase(self, name: str) -> None:
+        """Note the wall time since the previous step as step *name* (ReplayResult.phases; bench/replay.py)."""
+        now = time.monotonic()
+        self.phases[name] = self.phases.get(name, 0.0) + now - self._phase_at
+        self._phase_at = now
 
     def _log_of(self, service: str) -> Path:
         return (self.run_dir or Path(".")) / "logs" / f"{service}.log"
@@ -255,20 +265,46 @@ class Replay:
                                   f"see {self._log_of(service)}{self.outputs.tail(service)}")
             time.sleep(0.05)
 
+    def _discover(self, url: str, *, timeout: float = 1.5, resend: float = 0.25) -> dict[str, Any]:
+        """The replayed services' discovery answers (name -> DiscoveryResponse): done as soon as every one has
+        answered (the request is sent again every *resend* s), else what answered within *timeout*. They are all
+        up (their health was heard), so this takes a round trip, not a fixed wait for stragglers."""
+        import uuid
+
+        from u2sa_hw import channels as ch
+        from u2sa_hw import lcmtypes as t
+        from u2sa_hw.bus_client import BusClient
+
+        found: dict[str, Any] = {}
+        everyone = threading.Event()
+        with BusClient(url, name="u2sa-replay") as client:
+            req = t.DiscoveryRequest()
+            req.request_id = uuid.uuid4().hex
+
+            def on_reply(_c: str, msg: Any) -> None:
+                if msg.request_id == req.request_id:
+                    found[msg.name] = msg
+                    if all(n in found for n in self.plan.services):
+                        everyone.set()
+
+            sub = client.transport.subscribe(ch.DISCOVERY_RESPONSE, t.DiscoveryResponse, on_reply)
+            try:
+                deadline = time.monotonic() + timeout
+                while True:
+                    client.publish(ch.DISCOVERY_REQUEST, req)
+                    left = deadline - time.monotonic()
+                    if everyone.wait(max(0.0, min(resend, left))) or left <= resend:
+                        break
+            finally:
+                client.transport.unsubscribe(sub)
+        return dict(found)
+
     def _republished_channels(self, url: str, devices: dict[str, ReplayDevice]) -> set[str]:
         """Channels the replayed services subscribe to (their recorded traffic from other sources is replayed),
         but for a service that takes a channel from its replay device instead (*devices*' ``bus_inputs``: the
         RC mux's replay chip hands it the recorded Health, FAILSAFE and STATE_ESTIMATE in order with the
         edges, and it ignores the bus on them): nobody else listening, the copy would only load the bus."""
-        from u2sa_hw.bus_client import BusClient
-
-        with BusClient(url, name="u2sa-replay") as client:
-            found: dict[str, Any] = {}
-            for _ in range(3):
-                for r in client.discover(timeout=0.5):
-                    found[r.name] = r
-                if all(n in found for n in self.plan.services):
-                    break
+        found = self._discover(url)
         from_device: dict[str, set[str]] = {}   # channel -> services whose replay device hands it over
         for name, device in devices.items():
             for channel in getattr(device, "bus_inputs", ()):
@@ -330,6 +366,7 @@ class Replay:
     def run(self) -> ReplayResult:
         """Replay; ReplayError (or ReplayStalled) with the reason on failure."""
         o = self.options
+        self._phase_at = time.monotonic()
         self.run_dir = Path(tempfile.mkdtemp(prefix="u2sa-replay-"))
         keep = o.keep_run_dir
         url = o.lcm_url or private_url(self.plan)
@@ -349,15 +386,19 @@ class Replay:
             changes: dict[str, dict[str, Any]] = {}
             addresses: dict[str, str] = {}
             rigs: dict[str, Any] = {}
+            later: list[Callable[..., None]] = []   # preloads the device's start does not need (see below)
             for dev in self.plan.devices.values():
                 if dev.service:
                     devices[dev.name] = make_device(dev, self.run_dir, self.plan.services[dev.service],
                                                     fast=self.fast, rigs=rigs)
                     preload = getattr(devices[dev.name], "preload", None)
-                    if preload is not None:
+                    if preload is not None and isinstance(devices[dev.name], ReplaySerialDevice):
+                        later.append(preload)
+                    elif preload is not None:
                         preload(self.plan.log, start_ns=self.plan.start_ns, end_ns=self.plan.end_ns)
                     addresses[dev.name] = devices[dev.name].mock_address(dev.address)
                     changes.setdefault(dev.service, {}).update(devices[dev.name].config_changes())
+            self._phase("devices")
             profile_path = write_run_profile(self.plan, self.run_dir, lcm_url=url, changes=changes,
                                              addresses=addresses)
             profile = load_profile(profile_path)
@@ -373,6 +414,7 @@ class Replay:
             self._clocked = any(getattr(d, "timed", False) for d in devices.values())
             for device in devices.values():
                 device.start()
+            self._phase("bus")
             started = time.monotonic()
             unwatched = held_drivers(devices, {n: d.service or "" for n, d in self.plan.devices.items()})
             launcher = Launcher(profile, only=list(self.plan.services), grace_s=3.0, control=False,
@@ -380,8 +422,16 @@ class Replay:
                                 policy=RestartPolicy(initial_backoff_s=0.5, max_backoff_s=0.5, quick_death_s=1e9,
                                                      give_up_after=1))
             launcher.start()
+            # The rest of the log reading while the services start (seconds of interpreter start-up and imports
+            # in processes of their own): a serial device's preload only notes the recorded silences the player
+            # merges in (clock_ticks); it touches neither the bus nor the devices the drivers are opening.
+            for preload in later:
+                preload(self.plan.log, start_ns=self.plan.start_ns, end_ns=self.plan.end_ns)
+            self._phase("log read while starting")
             self._wait_ready(devices, launcher)
+            self._phase("services")
             republish = self._republished_channels(url, devices)
+            self._phase("discover")
             startup_s = time.monotonic() - started
             bar = ProgressBar(self.plan.duration_s, enabled=o.progress)
             player = Player(self.plan.log, devices=devices, transport=transport, republish=republish,
@@ -396,21 +446,42 @@ class Replay:
                 raise ReplayError(str(exc)) from None
             finally:
                 bar.close()
+            self._phase("play")
+            # the pilot check reads the recorded window again: in the settle's quiet time, when this process
+            # only waits (it has no part in what the services publish)
+            pilot: list[Any] = []   # its PilotCheck, or what it raised
+
+            def check() -> None:
+                try:
+                    pilot.append(self.check_pilot())
+                except BaseException as exc:  # noqa: BLE001 - raised below, in this thread
+                    pilot.append(exc)
+
+            checker = threading.Thread(target=check, name="u2sa-replay-pilot", daemon=True)
+            checker.start()
             self._settle(stats.republished_on)
+            self._phase("settle")
+            checker.join()
+            if isinstance(pilot[0], BaseException):
+                raise pilot[0]
+            self._phase("pilot check (after the settle)")
             self._stopping = True
             # the capture first, as a recording ends: what a driver says while it is being stopped
             # (the RC mux's last RcMode, "stopping") is not part of the run
             capture.stop()
             s = capture.stats
             capture = None
+            self._phase("capture stop")
             release_held_reads(devices)
             launcher.stop(timeout=10.0)
             launcher = None
+            self._phase("services stop")
             received = sum(self._received.values())
             lost = max(0, sum(self._published.values()) - received)
-            return ReplayResult(self.plan, self.out, stats, startup_s, received, lost, s.written, s.dropped,
-                                {n: d.report() for n, d in devices.items()}, self.run_dir if keep else None,
-                                self.check_pilot())
+            result = ReplayResult(self.plan, self.out, stats, startup_s, received, lost, s.written, s.dropped,
+                                  {n: d.report() for n, d in devices.items()}, self.run_dir if keep else None,
+                                  pilot[0], self.phases)
+            return result
         except BaseException:
             keep = True
             raise
@@ -431,4 +502,5 @@ class Replay:
                 os.environ[KEY_ENV] = saved_key
             if not keep:
                 shutil.rmtree(self.run_dir, ignore_errors=True)
+            self._phase("clean-up")
 
