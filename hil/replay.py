@@ -473,7 +473,7 @@ class Replay:
             capture = None
             self._phase("capture stop")
             release_held_reads(devices)
-            launcher.stop(timeout=10.0)
+            launcher.stop(timeout=launcher.stop_limit_s + 5.0)
             launcher = None
             self._phase("services stop")
             received = sum(self._received.values())
@@ -489,7 +489,7 @@ class Replay:
             self._stopping = True
             if launcher is not None:
                 release_held_reads(devices)
-                launcher.stop(timeout=10.0)
+                launcher.stop(timeout=launcher.stop_limit_s + 5.0)
             if capture is not None:
                 capture.stop()
             if transport is not None:
