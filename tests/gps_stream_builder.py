@@ -15,6 +15,8 @@ import math
 from dataclasses import dataclass, field, replace
 from typing import Callable, Iterator
 
+from drivers.gps_nmea import GpsNmeaDriver
+from u2sa_hw import lcmtypes as t
 from u2sa_hw.geo import ned_to_geodetic
 from u2sa_hw.vehicle import Origin
 
@@ -215,3 +217,15 @@ def stream(receiver: Receiver, solutions: Callable[[int], Solution], epochs: int
 def with_time(sol: Solution, seconds: float) -> Solution:
     """*sol* stamped *seconds* later."""
     return replace(sol, when=sol.when + dt.timedelta(seconds=seconds))
+
+
+class RecordingGps(GpsNmeaDriver):
+    """The real driver; every message it publishes is also kept here."""
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        self.sent: list[t.StateInformation] = []
+
+    def publish_state(self, msg: t.StateInformation) -> bool:
+        self.sent.append(msg)
+        return super().publish_state(msg)

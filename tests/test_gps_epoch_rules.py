@@ -18,14 +18,12 @@ from pathlib import Path
 from typing import Iterator
 
 import pytest
-from gps_stream_builder import START, Solution, gga, gll, gns, gsa, nmea, rmc, vtg
+from gps_stream_builder import RecordingGps, START, Solution, gga, gll, gns, gsa, nmea, rmc, vtg
 
 from drivers import gps_fix as gf
 from drivers.gps_epochs import GpsEpochCollector
 from drivers.gps_fix import fix_from_epoch
-from drivers.gps_nmea import GpsNmeaDriver
 from drivers.nmea_fields import Epoch, parse_sentence, utc_time
-from u2sa_hw import lcmtypes as t
 from u2sa_hw.transport import Transport
 
 SOL = Solution(when=START, lat=29.19, lon=-81.05, speed=2.0, course=90.0)
@@ -200,18 +198,6 @@ def transport(lcm_url: str) -> Iterator[Transport]:
     tr = Transport(lcm_url, name="gps-epoch-rules")
     yield tr
     tr.stop()
-
-
-class RecordingGps(GpsNmeaDriver):
-    """The real driver; every message it publishes is also kept here."""
-
-    def __init__(self, *args: object, **kwargs: object) -> None:
-        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
-        self.sent: list[t.StateInformation] = []
-
-    def publish_state(self, msg: t.StateInformation) -> bool:
-        self.sent.append(msg)
-        return super().publish_state(msg)
 
 
 def make_driver(tmp_path: Path, transport: Transport) -> RecordingGps:

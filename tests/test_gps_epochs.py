@@ -11,12 +11,10 @@ from typing import Iterator
 
 import pytest
 from conftest import wait_until
-from gps_stream_builder import START, Solution, gga, gsa, hdt, rmc, vtg, zda
+from gps_stream_builder import RecordingGps, START, Solution, gga, gsa, hdt, rmc, vtg, zda
 
 from drivers.gps_epochs import MAX_EPOCH_SENTENCES, GpsEpochCollector
-from drivers.gps_nmea import GpsNmeaDriver
 from drivers.nmea_fields import Epoch, parse_sentence
-from u2sa_hw import lcmtypes as t
 from u2sa_hw.transport import Transport
 
 SOL = Solution(when=START, lat=29.19, lon=-81.05, speed=2.0, course=90.0, heading=91.0)
@@ -87,18 +85,6 @@ def transport(lcm_url: str) -> Iterator[Transport]:
     tr = Transport(lcm_url, name="gps-epochs")
     yield tr
     tr.stop()
-
-
-class RecordingGps(GpsNmeaDriver):
-    """The real driver; every message it publishes is also kept here."""
-
-    def __init__(self, *args: object, **kwargs: object) -> None:
-        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
-        self.sent: list[t.StateInformation] = []
-
-    def publish_state(self, msg: t.StateInformation) -> bool:
-        self.sent.append(msg)
-        return super().publish_state(msg)
 
 
 def make_driver(tmp_path: Path, transport: Transport, **settings: object) -> RecordingGps:

@@ -14,12 +14,10 @@ from typing import Iterator
 
 import pytest
 from gps_fuzzing import check_message, feed, fuzz_cases
-from gps_stream_builder import nmea
+from gps_stream_builder import RecordingGps, nmea
 
 from drivers.gps_fix import fix_from_epoch
-from drivers.gps_nmea import GpsNmeaDriver
 from drivers.nmea_fields import Epoch, SentenceError, parse_sentence
-from u2sa_hw import lcmtypes as t
 from u2sa_hw.transport import Transport
 
 CASES_PER_SEED = 1500
@@ -32,18 +30,6 @@ def transport(lcm_url: str) -> Iterator[Transport]:
     tr = Transport(lcm_url, name="gps-fuzz")
     yield tr
     tr.stop()
-
-
-class RecordingGps(GpsNmeaDriver):
-    """The real driver; every message it publishes is also kept here."""
-
-    def __init__(self, *args: object, **kwargs: object) -> None:
-        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
-        self.sent: list[t.StateInformation] = []
-
-    def publish_state(self, msg: t.StateInformation) -> bool:
-        self.sent.append(msg)
-        return super().publish_state(msg)
 
 
 def make_driver(tmp_path: Path, transport: Transport) -> RecordingGps:

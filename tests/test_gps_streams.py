@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 import pytest
-from gps_stream_builder import GAP_S, Part, Receiver, Solution, printed, stream, trajectory
+from gps_stream_builder import RecordingGps, GAP_S, Part, Receiver, Solution, printed, stream, trajectory
 
 from drivers.geoid import geoid_separation
 from drivers.gps_limits import SPEED_MPS
@@ -32,18 +32,6 @@ def transport(lcm_url: str) -> Iterator[Transport]:
     tr = Transport(lcm_url, name="gps-streams")
     yield tr
     tr.stop()
-
-
-class RecordingGps(GpsNmeaDriver):
-    """The real driver; every message it publishes is also kept here."""
-
-    def __init__(self, *args: object, **kwargs: object) -> None:
-        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
-        self.sent: list[t.StateInformation] = []
-
-    def publish_state(self, msg: t.StateInformation) -> bool:
-        self.sent.append(msg)
-        return super().publish_state(msg)
 
 
 def make_driver(tmp_path: Path, transport: Transport, **settings: object) -> RecordingGps:
