@@ -8,6 +8,7 @@ the test process; this collector listens over real LCM multicast.
 from __future__ import annotations
 
 import threading
+from pathlib import Path
 from typing import Any, Callable
 
 from conftest import wait_until
@@ -70,3 +71,11 @@ class BusCollector:
         msg = self.wait_for(ch.HEALTH, lambda m: m.name == service and predicate(details(m)), since=since,
                             timeout=timeout, message=message or f"health of {service} matching the condition")
         return details(msg)
+
+
+def pwm_duty_us(chip: Path, channel: int = 0) -> float:
+    """The duty cycle a driver wrote to *channel* of a sysfs-shaped PWM tree, in µs; -1 while unreadable."""
+    try:
+        return int((chip / f"pwm{channel}" / "duty_cycle").read_text()) / 1000.0
+    except (OSError, ValueError):
+        return -1.0

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field, replace
 from typing import Callable, Iterator
 
 from drivers.gps_nmea import GpsNmeaDriver
+from drivers.nmea_fields import Epoch, parse_sentence
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.geo import ned_to_geodetic
 from u2sa_hw.vehicle import Origin
@@ -229,3 +230,13 @@ class RecordingGps(GpsNmeaDriver):
     def publish_state(self, msg: t.StateInformation) -> bool:
         self.sent.append(msg)
         return super().publish_state(msg)
+
+
+def epoch(*lines: bytes) -> Epoch:
+    """One parsed epoch of *lines* (each must parse), received at 0."""
+    e = Epoch(received=0.0)
+    for line in lines:
+        s = parse_sentence(line)
+        assert s is not None, line
+        e.sentences.append(s)
+    return e

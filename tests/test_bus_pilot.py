@@ -26,7 +26,7 @@ from typing import Any, Iterator
 
 import pytest
 from conftest import U2SA, ServiceProcesses, wait_until
-from gpio_driver_harness import BusCollector
+from gpio_driver_harness import BusCollector, pwm_duty_us
 from serial_driver_harness import start_driver
 
 from u2sa_hw import channels as ch
@@ -129,10 +129,7 @@ def test_with_the_switch_at_manual_no_holder_of_the_bus_or_an_operator_key_moves
     col = BusCollector(bus).listen(ch.HEALTH, t.Health)
 
     def duty_us() -> float:
-        try:
-            return int((pwm / "pwm0" / "duty_cycle").read_text()) / 1000.0
-        except (OSError, ValueError):
-            return -1.0
+        return pwm_duty_us(pwm)
 
     proc = start_driver(services, profile, "drive")
     pilot = Pilot(bus)

@@ -25,7 +25,7 @@ from typing import Any
 import lcm
 import pytest
 from conftest import ServiceProcesses, wait_until
-from gpio_driver_harness import BusCollector
+from gpio_driver_harness import BusCollector, pwm_duty_us
 from serial_driver_harness import start_driver
 
 from u2sa_hw import channels as ch
@@ -407,10 +407,7 @@ def test_an_actuator_moves_for_no_forged_command_and_keeps_its_failsafe_through_
     col = BusCollector(bus).listen(ch.HEALTH, t.Health)
 
     def duty_us() -> float:
-        try:
-            return int((pwm / "pwm0" / "duty_cycle").read_text()) / 1000.0
-        except (OSError, ValueError):
-            return -1.0
+        return pwm_duty_us(pwm)
 
     def drive(predicate: Any, message: str) -> dict[str, str]:
         return col.health_of("drive", predicate, since=col.count(ch.HEALTH), timeout=30, message=message)

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Iterator
 
 import pytest
-from gps_stream_builder import RecordingGps, START, Solution, gga, gll, gns, gsa, nmea, rmc, vtg
+from gps_stream_builder import START, RecordingGps, Solution, epoch, gga, gll, gns, gsa, nmea, rmc, vtg
 
 from drivers import gps_fix as gf
 from drivers.gps_epochs import GpsEpochCollector
@@ -43,15 +43,6 @@ def add(col: GpsEpochCollector, line: bytes, received: float) -> list[Epoch]:
     sentence = parse_sentence(line)
     assert sentence is not None, line
     return col.add(sentence, received=received)
-
-
-def epoch(*lines: bytes) -> Epoch:
-    e = Epoch(received=0.0)
-    for line in lines:
-        s = parse_sentence(line)
-        assert s is not None, line
-        e.sentences.append(s)
-    return e
 
 
 # ------------------------------------------------------------ (a) completion from a split burst -----

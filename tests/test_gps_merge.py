@@ -10,26 +10,16 @@ import math
 from dataclasses import replace
 
 import pytest
-from gps_stream_builder import (KNOT_MPS, START, Solution, dm, gga, gll, gns, gsa, gst, hdt, hhmmss, nmea, printed,
-                                rmc, vtg, zda)
+from gps_stream_builder import (KNOT_MPS, START, Solution, dm, epoch, gga, gll, gns, gsa, gst, hdt, hhmmss, nmea,
+                                printed, rmc, vtg, zda)
 
 from drivers.geoid import geoid_separation
 from drivers.gps_fix import StateSettings, fix_from_epoch, state_from_fix
-from drivers.nmea_fields import Epoch, parse_sentence
 from u2sa_hw.vehicle import Origin
 
 ORIGIN = Origin(lat=29.1895, lon=-81.0483, alt=10.0)
 SOL = Solution(when=START, lat=29.19012345, lon=-81.04912345, alt=25.0, sep=-28.3, speed=3.0, course=45.0,
                heading=50.0, sats=11, hdop=0.8, vdop=1.2)
-
-
-def epoch(*lines: bytes) -> Epoch:
-    e = Epoch(received=0.0)
-    for line in lines:
-        s = parse_sentence(line)
-        assert s is not None, line
-        e.sentences.append(s)
-    return e
 
 
 def settings(**kw: object) -> StateSettings:
