@@ -6,6 +6,7 @@ damaged."""
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -28,6 +29,7 @@ from mock_devices.nmea_gps import NmeaGpsDevice
 from mock_devices.serial_compass import NmeaCompassDevice
 from mock_devices.vehicle_sim import SimVehicle
 from u2sa_hw.bus_client import BusClient
+from u2sa_hw.lcmtypes import RawSerial
 from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo
 from u2sa_hw.services.recorder.capture import BusCapture
 from u2sa_hw.services.recorder.service import run_info
@@ -35,6 +37,7 @@ from u2sa_hw.transport import Transport
 from u2sa_hw.vehicle import load_profile
 from u2sa_hw.udp_ports import private_lcm_url, private_udp_port
 
+GGA_TIME = re.compile(rb"\$[A-Z]{2}GGA,(\d{6}(?:\.\d*)?),")
 ORIGIN = {"lat": 29.1895, "lon": -81.0483, "alt": 10.0}
 U2SA = [sys.executable, "-m", "u2sa_hw.cli"]
 
@@ -44,7 +47,10 @@ def _url() -> str:
 
 
 def record_driver_log(workdir: Path, *, gps_epochs: int = 12, compass_epochs: int = 24) -> Path:
-    """Record a log with the GPS and compass drivers tapping their raw input; returns its path."""
+    """Record a log with the GPS and compass drivers tapping their raw input; returns its path.
+
+    The log holds at least *gps_epochs* whole GPS epochs (counted by their GGA time, not by chunks: a
+    loaded machine splits an epoch over reads) and *compass_epochs* raw compass chunks."""
     url = _url()
     dev = workdir / "dev"
     profile_path = workdir / "vehicle.toml"
@@ -66,6 +72,8 @@ def record_driver_log(workdir: Path, *, gps_epochs: int = 12, compass_epochs: in
     log_path = workdir / "run.mcap"
     capture = BusCapture(transport, McapLogWriter(workdir, path=log_path, run=run_info(profile, url)))
     capture.start()
+    epochs: set[bytes] = set()   # GPS epochs seen (a chunk may hold part of one, or be a recorded silence)
+    transport.subscribe("RAW.gps", RawSerial, lambda _c, raw: epochs.update(GGA_TIME.findall(bytes(raw.data))))
     transport.start()
     gps.start()
     compass.start()
@@ -74,8 +82,9 @@ def record_driver_log(workdir: Path, *, gps_epochs: int = 12, compass_epochs: in
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for name in ("gps", "compass")]
     try:
         per = capture.stats.per_channel
-        wait_until(lambda: per.get("RAW.gps", 0) >= gps_epochs and per.get("RAW.hdg", 0) >= compass_epochs,
-                   timeout=30, message="raw GPS and compass input recorded")
+        # one epoch more than asked: the last one seen may be cut by the stop
+        wait_until(lambda: len(epochs) > gps_epochs and per.get("RAW.hdg", 0) >= compass_epochs,
+                   timeout=60, message="raw GPS and compass input recorded")
     finally:
         gps.stop()
         compass.stop()
