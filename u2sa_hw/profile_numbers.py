@@ -45,6 +45,11 @@ PROFILE_NUMBERS: dict[str, ConfigField] = {f.name: f for f in (
     field("safety.prearm.estimator.max_position_sigma_m", 5.0, "the estimate's position sigma", gt=0.0, le=10000.0),
     field("safety.prearm.estimator.max_heading_sigma_deg", 10.0, "the estimate's heading sigma", gt=0.0, le=180.0),
     field("safety.prearm.estimator.max_estimate_age_s", 0.5, "0: not judged", ge=0.0, le=MAX_TIMEOUT_S),
+    field("safety.prearm.geofence.max_position_age_s", 1.0, "an older position fails the geofence check", gt=0.0,
+          le=MAX_TIMEOUT_S),
+    # [geofence] (u2sa_hw/geofence_parse.py)
+    field("geofence.margin_m", 1.0, "the path planner keeps this far inside every fence line", ge=0.0, le=100.0),
+    field("geofence.circles.radius_m", 10.0, "m", gt=0.0, le=10000.0),
     # [services.NAME.supervision] (u2sa_hw/services/hsm/rules.py)
     field(f"{SUPERVISION}.heartbeat_timeout_s", 3.0, "no health for this long -> missing", ge=0.0, le=MAX_TIMEOUT_S),
     field(f"{SUPERVISION}.startup_grace_s", 10.0, "time to the first heartbeat", ge=0.0, le=MAX_TIMEOUT_S),

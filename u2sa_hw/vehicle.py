@@ -41,7 +41,7 @@ from u2sa_hw.service_log import level_number
 # Every key a table of the profile may hold; any other is an error with a did-you-mean (a typo
 # must not leave a setting silently at its default). [safety] and [devices.*] are checked by
 # their own modules (u2sa_hw.safety.config, u2sa_hw.devices), supervision by the HSM's rules.
-TOP_TABLES = ("vehicle", "services", "devices", "safety", "simulation")
+TOP_TABLES = ("vehicle", "services", "devices", "safety", "geofence", "simulation")
 VEHICLE_KEYS = ("name", "system_id", "lcm_url", "bus_security", "bus_key", "bus_interface", "config_dir",
                 "log_dir", "data_dir", "log_level", "origin")
 ORIGIN_KEYS = ("lat", "lon", "alt")
@@ -262,7 +262,7 @@ def load_profile(path: Path | str | None) -> VehicleProfile:
     from u2sa_hw.safety.config import parse_safety  # the syntax of [safety]; names are checked by check_wiring
 
     parse_safety(data.get("safety"), where=f"{path} [safety]")
-    return VehicleProfile(
+    profile = VehicleProfile(
         path=path,
         name=_typed(v, "name", str, path.stem, where),
         system_id=_typed(v, "system_id", int, 1, where),
@@ -279,3 +279,7 @@ def load_profile(path: Path | str | None) -> VehicleProfile:
         devices={k: d for k, d in data.get("devices", {}).items() if isinstance(d, dict)},
         raw=data,
     )
+    from u2sa_hw.geofence_parse import profile_fence
+
+    profile_fence(profile)   # a malformed [geofence] is refused here, before anything runs on it
+    return profile

@@ -23,6 +23,8 @@ The evidence, per check (the table and its defaults are in :mod:`.prearm_table`)
 - ``estimator``: its Health, STATE_ESTIMATE younger than ``max_estimate_age_s``, and the
   estimate's position and heading sigmas (from the newest STATE_ESTIMATE, else the Health
   details ``position_sigma_m`` and ``heading_sigma_deg``) under their bounds;
+- ``geofence`` (on whenever the profile has a ``[geofence]``): the estimator's newest position is
+  fresh and inside the fence (:mod:`.prearm_geofence`);
 - ``required_services``: every other required service's Health is fresh and says ``ok``.
 
 A ``degraded`` reason ends with the service's ``to_clear`` health detail when it gives one (a latched
@@ -45,6 +47,7 @@ from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence 
 from u2sa_hw.services.hsm.monitor import truthy
 from u2sa_hw.vehicle import VehicleProfile
 
+from u2sa_hw.safety.prearm_geofence import Position, age_limit, geofence_problem, position_of
 from u2sa_hw.safety.prearm_table import PrearmTable, parse_prearm
 
 
@@ -126,6 +129,7 @@ class PrearmChecks:
         self._lock = threading.Lock()
         self._heard: dict[str, _Heard] = {}
         self._estimate: _Estimate | None = None
+        self._position: Position | None = None
         self._last: list[CheckFailure] | None = None
         self._evidence = 0   # counts what arrived: a verdict holds only for the evidence it judged
         self._memo: _Verdict | None = None
@@ -148,7 +152,8 @@ class PrearmChecks:
     @property
     def needs_estimate(self) -> bool:
         """True when the estimator check judges STATE_ESTIMATE freshness: feed :meth:`on_estimate`."""
-        return self.table.estimator is not None and self.table.estimator.max_estimate_age_s > 0
+        return (self.table.estimator is not None and self.table.estimator.max_estimate_age_s > 0) \
+            or self.table.geofence is not None
 
     # -- evidence ---------------------------------------------------------------------------
     def on_health(self, msg: Any, now: float) -> None:
@@ -163,9 +168,14 @@ class PrearmChecks:
             self._evidence += 1
 
     def on_estimate(self, msg: Any, now: float) -> None:
-        """A STATE_ESTIMATE arrived at *now* (from the estimator the check names; others are ignored)."""
-        check = self.table.estimator
-        if check is None or (msg.header.source or msg.sensor_name) != check.service:
+        """A STATE_ESTIMATE arrived at *now* (from the estimator a check names; others are ignored)."""
+        check, fence = self.table.estimator, self.table.geofence
+        source = msg.header.source or msg.sensor_name
+        if fence is not None and source == fence.service:
+            with self._lock:
+                self._position = position_of(msg, now)
+                self._evidence += 1
+        if check is None or source != check.service:
             return
         position = heading = None
         if msg.has("x") and msg.has("y"):
@@ -220,6 +230,8 @@ class PrearmChecks:
                 self._judge(out, "imu", name, now, self._imu_problem)
         if t.estimator:
             self._judge(out, "estimator", t.estimator.service, now, self._estimator_problem)
+        if t.geofence and (problem := geofence_problem(t.geofence, self._position, now)):
+            out.append(CheckFailure("geofence", f"geofence: {problem}", t.geofence.service))
         if t.required_services:
             for name in t.required_services.services:
                 self._judge(out, "required_services", name, now, lambda _h, _n: "",
@@ -236,6 +248,8 @@ class PrearmChecks:
         check = self.table.estimator
         if check is not None and check.max_estimate_age_s > 0 and self._estimate is not None:
             limits.append(self._estimate.at + check.max_estimate_age_s)
+        if self.table.geofence is not None and (limit := age_limit(self.table.geofence, self._position)) is not None:
+            limits.append(limit)
         ahead = [limit for limit in limits if limit >= now]
         behind = [limit for limit in limits if limit < now]
         since, until = (max(behind) + 1e-6 if behind else -math.inf), (min(ahead) - 1e-6 if ahead else math.inf)
@@ -367,6 +381,8 @@ class PrearmChecks:
             e = t.estimator
             parts.append(f"estimator ({e.service}: sigma <= {e.max_position_sigma_m:g} m, "
                          f"<= {e.max_heading_sigma_deg:g} deg)")
+        if t.geofence:
+            parts.append(f"geofence ({t.geofence.service}'s position inside {t.geofence.fence.names()})")
         if t.required_services:
             parts.append(f"required_services ({', '.join(t.required_services.services) or 'none'})")
         return "pre-arm checks: " + ("; ".join(parts) or "none (every check is off)")

@@ -6,6 +6,7 @@ gps = { service = "gps", max_sigma_m = 5.0 }
 estimator = { service = "estimator", max_position_sigma_m = 5.0, max_heading_sigma_deg = 10.0,
               max_estimate_age_s = 0.5 }
 imu = { services = ["imu"] }
+geofence = { service = "estimator", max_position_age_s = 1.0 }   # on whenever the profile has a [geofence]
 required_services = { ignore = [], allow_degraded = [] }
 rc_link = true
 no_failsafe = true
@@ -37,7 +38,7 @@ IMU_KIND_PREFIX = "imu_"
 MONITOR_KINDS = frozenset({"hsm"})   # degraded when others are: allowed degraded by default
 RC_KINDS = frozenset({"rc_mux"})   # the RC link check judges the RC service; it is never a "required service"
 # The order checks are evaluated and reported in: the first failure is the one a pilot reads.
-CHECK_ORDER = ("no_failsafe", "rc_link", "gps", "imu", "estimator", "required_services")
+CHECK_ORDER = ("no_failsafe", "rc_link", "gps", "imu", "estimator", "geofence", "required_services")
 _TOP_KEYS = frozenset(CHECK_ORDER) | {"health_timeout_s"}
 DEFAULT_HEALTH_TIMEOUT_S = 3.0
 
@@ -58,6 +59,15 @@ class EstimatorCheck:
     max_position_sigma_m: float = 5.0
     max_heading_sigma_deg: float = 10.0
     max_estimate_age_s: float = 0.5
+
+
+@dataclass(frozen=True)
+class GeofenceCheck:
+    """The estimator's newest position (younger than ``max_position_age_s``) inside the profile's fence."""
+
+    service: str
+    fence: Any = None   # u2sa_hw.geofence.Fence
+    max_position_age_s: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -83,6 +93,7 @@ class PrearmTable:
     estimator: EstimatorCheck | None
     imu: ImuCheck | None
     required_services: RequiredServicesCheck | None
+    geofence: GeofenceCheck | None = None
     rc_link: bool = True
     no_failsafe: bool = True
     health_timeout_s: float = DEFAULT_HEALTH_TIMEOUT_S
@@ -241,4 +252,25 @@ def parse_prearm(profile: VehicleProfile) -> PrearmTable:
         required = RequiredServicesCheck(services=names, allow_degraded=(*allowed, *(m for m in monitors
                                                                                      if m not in allowed)))
     return PrearmTable(gps=gps, estimator=estimator, imu=imu, required_services=required,
-                       rc_link=flags["rc_link"], no_failsafe=flags["no_failsafe"], health_timeout_s=timeout)
+                       geofence=_geofence(r, data, profile), rc_link=flags["rc_link"], no_failsafe=flags["no_failsafe"], health_timeout_s=timeout)
+
+
+def _geofence(r: _Reader, data: Mapping[str, Any], profile: VehicleProfile) -> GeofenceCheck | None:
+    """The geofence check: on exactly when the profile has a ``[geofence]`` (a fence nobody enforces is worse
+    than none, so it cannot be turned off, and without a fence it has nothing to judge)."""
+    from u2sa_hw.geofence_parse import profile_fence
+
+    fence = profile_fence(profile)
+    if fence is None:
+        if "geofence" in data:
+            raise r.error("geofence", "is set, but the profile has no [geofence] table to check against; add the "
+                                      "fence (docs/geofence.md) or remove the key")
+        return None
+    table = r.check_table(data, "geofence", frozenset({"service", "max_position_age_s"}))
+    if table is None:
+        raise r.error("geofence", "cannot be false while the profile has a [geofence]: a fence that is not "
+                                  "enforced is worse than none; remove [geofence] to drive without one")
+    name = r.default_service("geofence", {**data, "geofence": table}, table, ESTIMATOR_KINDS)
+    assert name is not None   # default_service raises when the check is asked for and nothing provides it
+    return GeofenceCheck(service=name, fence=fence,
+                         max_position_age_s=r.number(table, "geofence", "max_position_age_s", 1.0, unit="s"))
