@@ -249,8 +249,8 @@ def test_an_extension_flies_as_its_parent_until_its_own_state_is_registered() ->
 
 
 # -- bookkeeping ------------------------------------------------------------------------------------
-def new_planner(**timings: float) -> PathPlanner:
-    return PathPlanner(guidance=GuidanceSettings(avoidance=AVOID), timings=PlannerTimings(**timings))
+def new_planner(*, fence: Any = None, **timings: float) -> PathPlanner:
+    return PathPlanner(guidance=GuidanceSettings(avoidance=AVOID), timings=PlannerTimings(**timings), fence=fence)
 
 
 def status(current: str, uids: list[str], *, finished: bool = False) -> t.MissionStatus:
@@ -356,14 +356,14 @@ class MiniMission:
             self.index += 1
 
 
-def drive(model: str, goals: list[t.Waypoint], objects: list[object], *, limit_s: float = 120.0
-          ) -> tuple[MiniMission, list[tuple[float, float]]]:
+def drive(model: str, goals: list[t.Waypoint], objects: list[object], *, limit_s: float = 120.0,
+          fence: Any = None) -> tuple[MiniMission, list[tuple[float, float]]]:
     """Fly *goals* around *objects* with the planner + control logic; returns the mission and the track."""
     sim = SimVehicle(origin_lat=45.0, origin_lon=7.0, model=model, max_speed=2.0)
     mixer = build_mixer("ackermann" if model == "ackermann" else model, left="L", right="R", steering="S",
                         throttle="T")
     control = VehicleController(settings=ControlSettings(), mixer=mixer)
-    planner = new_planner()
+    planner = new_planner(fence=fence)
     mission = MiniMission(goals)
     rc = t.RcMode()
     rc.mode, rc.autonomy_enabled = 1, True

@@ -185,10 +185,11 @@ class FenceObstacle:
     level = 3
     hard = True
     avoided = True
+    message = None   # not a WORLD object
 
     def __init__(self, fence: Fence) -> None:
         self.fence = fence
-        self.uid = f"geofence ({fence.names()})"
+        self.uid = f"the geofence ({fence.names()}): outside it"
 
     def distance(self, x: float, y: float) -> float:
         """Distance (m) from (x, y) to the nearest fence line; 0 outside the fence."""

@@ -13,6 +13,10 @@ this class directly in a closed loop.
   current goal or its message changes, keeping the state's memory for the same UID.
 - Objects are kept by UID and dropped ``object_expiry_s`` after their last message; only
   objects in the local frame (NED) can be steered around, others are counted and skipped.
+- The profile's geofence (:mod:`u2sa_hw.geofence`), when there is one, is one more level-3 object whose
+  distance from a point is the point's distance to the nearest fence line (0 outside): the avoidance keeps
+  ``clearance_margin_m`` from the lines, routes around exclusion areas and holds, "blocked", rather than
+  leave the fence or head for a goal outside it.
 - Without a pose younger than ``estimate_timeout_s`` nothing is published (the control
   system then goes neutral on its own timeout). With a pose but no goal a *hold* point is
   published: x = y = z = 0, speed 0, distance_to_goal -1 and goal_uid ''.
@@ -29,6 +33,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from u2sa_hw import lcmtypes as t
+from u2sa_hw.geofence import Fence, FenceObstacle
 from u2sa_hw.messages import as_type
 from u2sa_hw.services.planner.avoidance import Obstacle
 from u2sa_hw.services.planner.states import GoalState, GuidanceSettings, IdleState, Plan, PlanContext, Pose, state_for
@@ -64,12 +69,13 @@ class PathPlanner:
     """Goals, objects and pose in; navigation points and completion reports out."""
 
     def __init__(self, *, guidance: GuidanceSettings, timings: PlannerTimings, subsystem: str = "vehicle",
-                 logger: logging.Logger | None = None) -> None:
+                 logger: logging.Logger | None = None, fence: Fence | None = None) -> None:
         self.guidance = guidance
         self.timings = timings
         self.subsystem = subsystem
         self.logger = logger or logging.getLogger("u2sa.planner")
         self.goals: dict[str, Any] = {}
+        self.fence_obstacles = [FenceObstacle(fence)] if fence is not None else []
         self.status: t.MissionStatus | None = None
         self.latest_goal_uid = ""
         self.objects: dict[str, _Tracked] = {}
@@ -171,7 +177,8 @@ class PathPlanner:
             return Cycle(nav=None, report=None, plan=None)
         self.waiting_for = ""
         self._update_state()
-        ctx = PlanContext(pose=self.pose, obstacles=[tr.obstacle for tr in self.objects.values()],
+        ctx = PlanContext(pose=self.pose, obstacles=[*(tr.obstacle for tr in self.objects.values()),
+                                                     *self.fence_obstacles],
                           settings=self.guidance, memory=self.memory)
         plan = self.state.step(ctx)
         self.last_plan = plan

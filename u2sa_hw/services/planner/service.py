@@ -11,7 +11,7 @@ z down, metres from the vehicle) ``lookahead_m`` along the heading to take, with
 desired speed, the horizontal distance to the goal and the goal's UID. A reached goal is
 reported on ``GOAL_REPORT`` (once, again after ``report_resend_s`` if still current).
 
-Without a fresh estimate nothing is published; with an estimate but no goal the point is a
+The profile's geofence is planned inside (:mod:`.planner`). Without a fresh estimate nothing is published; with an estimate but no goal the point is a
 hold (0, 0, 0, speed 0, distance -1, goal_uid ''). The bookkeeping is in :mod:`.planner`.
 """
 
@@ -25,6 +25,7 @@ from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.config import MAX_RATE_HZ, MAX_TIMEOUT_S, ConfigError, field
 from u2sa_hw.geo import geodetic_to_ned
+from u2sa_hw.geofence_parse import profile_fence
 from u2sa_hw.service import U2SAService
 from u2sa_hw.services.planner.avoidance import AvoidanceSettings
 from u2sa_hw.services.planner.planner import PathPlanner, PlannerTimings
@@ -61,8 +62,11 @@ class PathPlannerService(U2SAService):
         self._last_cycle = -float("inf")   # monotonic time of the latest planning cycle
         self._last_sent = -float("inf")    # ... and of the latest NAV_POINT
         self._sent: tuple[Any, ...] = ()
+        fence = profile_fence(self.profile)
         self.planner = PathPlanner(guidance=self._guidance(), timings=self._timings(),
-                                   subsystem=str(self.config.get("subsystem")), logger=self.logger)
+                                   subsystem=str(self.config.get("subsystem")), logger=self.logger, fence=fence)
+        if fence is not None:
+            self.logger.info("geofence: planning inside %s", fence.names())
         self.register_subscriber(ch.STATE_ESTIMATE, t.StateInformation, self._on_estimate)
         self.register_subscriber(ch.GOALS, t.GoalInformation, self._on_goal)
         self.register_subscriber(ch.MISSION_STATUS, t.MissionStatus, self._on_status)
