@@ -153,27 +153,6 @@ def test_each_item_u2sa_cannot_fly_is_refused_with_its_index_name_and_fix(tmp_pa
     assert "\n" not in text
 
 
-@pytest.mark.parametrize("fence", [
-    {"version": 2, "circles": [], "polygons": [{"inclusion": True, "version": 1,
-                                                "polygon": [list(at(0, 0)), list(at(50, 0)), list(at(50, 50))]}]},
-    {"version": 2, "polygons": [], "circles": [{"inclusion": False, "version": 1,
-                                                "circle": {"center": list(at(5, 5)), "radius": 3}}]},
-])
-def test_a_geofence_is_refused_unless_ignored_with_a_warning(tmp_path: Path, vehicle: Path, fence: dict[str, Any],
-                                                            capsys: pytest.CaptureFixture[str]) -> None:
-    path = write(tmp_path, plan([waypoint(1, 0, 0), waypoint(2, 10, 0)], geoFence=fence))
-    with pytest.raises(CliError) as err:
-        mission_cli("import", str(path), "--vehicle", str(vehicle))
-    assert "geofences yet: remove the fence from the plan, or pass --ignore-geofence" in str(err.value)
-    with pytest.raises(CliError, match="does not enforce geofences yet.*nothing was sent"):
-        mission_cli("upload", str(path), "--vehicle", str(vehicle))
-    assert capsys.readouterr().out == ""
-    assert mission_cli("import", str(path), "--vehicle", str(vehicle), "--ignore-geofence") == 0
-    printed = capsys.readouterr()
-    assert [g.uid for g in parse_mission(printed.out, source="printed", default_threshold=0.0).goals] == ["wp1", "wp2"]
-    assert printed.err.startswith("u2sa: warning: ") and "is NOT enforced: the vehicle is not fenced" in printed.err
-
-
 def _edit(change: Any) -> Any:
     data = copy.deepcopy(plan([waypoint(1, 0, 0), waypoint(2, 10, 0), simple(3, 177, 1, -1)]))
     change(data)

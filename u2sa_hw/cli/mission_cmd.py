@@ -40,7 +40,8 @@ Show the mission manager's status, or change what the vehicle does now:
   restart         start the mission over from its first goal
   upload FILE     replace the whole mission with FILE (checked here first: an error
                   names the file, the line and the element, and nothing is sent);
-                  FILE is a mission .xml or a QGroundControl .plan (converted as import does)
+                  FILE is a mission .xml or a QGroundControl .plan (converted as import does);
+                  a goal outside the profile's [geofence] is refused, naming it
 
 QGroundControl plans (no bus; positions through the profile's [vehicle] origin):
 
@@ -48,8 +49,10 @@ QGroundControl plans (no bus; positions through the profile's [vehicle] origin):
                      become local x/y goals, DO_JUMP becomes <next> links (or loop="true"),
                      return-to-launch a goal "home" at the planned home. An item u2sa cannot
                      fly (takeoff, loiter, survey, DO_SET_SERVO ...) is refused with its index,
-                     name and the fix. A plan with a geofence is refused: geofences are not
-                     enforced yet; --ignore-geofence imports it without the fence (warned).
+                     name and the fix. The plan's geofence is taken only when the profile's
+                     [geofence] already holds it (plan = "FILE.plan" there); otherwise it is
+                     refused, naming that fix, or --ignore-geofence drops it (warned). Every
+                     goal must lie inside the profile's fence (docs/geofence.md).
   export FILE.plan   write the mission as a plan QGroundControl opens: the profile's
                      mission manager's mission_file, or --from MISSION.xml
 
@@ -73,7 +76,8 @@ def register(sub: Any) -> None:
                    help="the goal of goto; the mission file of upload; the .plan of import and export")
     p.add_argument("--json", action="store_true", help="print the resulting status as JSON")
     p.add_argument("--ignore-geofence", action="store_true",
-                   help="import/upload a plan that has a geofence, without the fence (it is NOT enforced)")
+                   help="import/upload a plan whose geofence the profile does not hold: drop the plan's fence "
+                        "(the vehicle enforces only its profile's [geofence])")
     p.add_argument("-o", "--output", metavar="FILE.xml", help="import: write the mission here (default: print it)")
     p.add_argument("--from", dest="source", metavar="MISSION.xml",
                    help="export: the mission file (default: the profile's mission manager's mission_file)")
@@ -108,16 +112,23 @@ def plan_to_xml(path: Path, data: bytes, args: Any, verb: str) -> str:
     from u2sa_hw.services.mission.qgc_plan import PlanError, load_plan_text, plan_to_mission
     from u2sa_hw.services.mission.xml import mission_to_xml
 
+    from u2sa_hw.cli.mission_fence import check_goals_in_fence, plan_fence_warnings
+
     origin = _origin(args, verb, str(path))
     try:
-        spec, warnings = plan_to_mission(load_plan_text(data, source=str(path)), source=str(path), origin=origin,
-                                         ignore_geofence=bool(getattr(args, "ignore_geofence", False)))
+        plan = load_plan_text(data, source=str(path))
+        spec, warnings = plan_to_mission(plan, source=str(path), origin=origin)
     except PlanError as exc:
         raise CliError(f"mission {verb}: {exc}" + ("; nothing was sent" if verb == "upload" else "")) from None
+    profile = profile_from(args)
+    warnings += plan_fence_warnings(plan, path=path, profile=profile, origin=origin, verb=verb,
+                                    ignore=bool(getattr(args, "ignore_geofence", False)))
     for warning in warnings:
         _warn(warning)
-    return mission_to_xml(spec, comment=f"from {path.name} by u2sa mission import: x north, y east (m) about the "
+    text = mission_to_xml(spec, comment=f"from {path.name} by u2sa mission import: x north, y east (m) about the "
                                         f"origin lat {origin.lat}, lon {origin.lon}")
+    check_goals_in_fence(text, source=str(path), profile=profile, verb=verb)
+    return text
 
 
 def read_mission_file(path: Path, args: Any = None) -> str:
@@ -145,6 +156,11 @@ def read_mission_file(path: Path, args: Any = None) -> str:
         raise CliError(f"mission upload: {exc}; nothing was sent") from None
     if not spec.goals:
         raise CliError(f"mission upload: {path}: no goals; nothing was sent")
+    if not looks_like_plan(path, data):   # a plan's goals were checked as it was converted
+        from u2sa_hw.cli.mission_fence import check_goals_in_fence
+
+        check_goals_in_fence(text, source=str(path), profile=profile_from(args or argparse.Namespace(vehicle=None)),
+                             verb="upload")
     return text
 
 

@@ -11,8 +11,9 @@ A plan is JSON: ``{"fileType": "Plan", "version": 1, "mission": {"version": 2,
 - DO_JUMP (177) repeating forever -> a ``<next>`` link (``loop="true"`` when it closes the whole
   mission); repeating N times -> the jumped-over goals written N more times (``wp2.2``): the
   mission is traced as the autopilot would drive it, and a ``<next>`` cannot count.
-- A non-empty geoFence is refused (not enforced yet) unless ``ignore_geofence`` (then warned);
-  rally points, altitudes and never-reached items are left out with a warning.
+- The geoFence is not read here: :mod:`u2sa_hw.geofence_parse` reads it (``plan_areas``) and the
+  commands decide what becomes of it (docs/geofence.md); rally points, altitudes and never-reached
+  items are left out with a warning.
 - Anything else is refused with its index, command name and the fix.
 
 A plan written by :func:`mission_to_plan` carries the goals' names and the mission's name in a
@@ -130,17 +131,6 @@ def _finite(value: Any, what: str, where: str, *, low: float = -math.inf, high: 
     return float(value)
 
 
-def _fence_shapes(plan: dict[str, Any], source: str) -> list[str]:
-    """What the plan's geoFence holds ("2 polygons", "1 circle"): empty for no fence."""
-    fence = _get(plan, "geoFence", (dict,), source, required=False) or {}
-    shapes = []
-    for key, noun in (("polygons", "polygon"), ("circles", "circle"), ("polygon", "version-1 polygon vertice")):
-        shape = _get(fence, key, (list,), f"{source}: geoFence", required=False) or []
-        if shape:
-            shapes.append(f"{len(shape)} {noun}{'' if len(shape) == 1 else 's'}")
-    return shapes
-
-
 def _item(raw: Any, index: int, source: str) -> dict[str, Any]:
     """One mission item checked: {"command", "where", and what the command needs}."""
     where = f"{source}: mission.items[{index}] (item {index + 1})"
@@ -192,8 +182,7 @@ def _item(raw: Any, index: int, source: str) -> dict[str, Any]:
     return item
 
 
-def plan_to_mission(plan: dict[str, Any], *, source: str, origin: GeoOrigin,
-                    ignore_geofence: bool = False) -> tuple[MissionSpec, list[str]]:
+def plan_to_mission(plan: dict[str, Any], *, source: str, origin: GeoOrigin) -> tuple[MissionSpec, list[str]]:
     """The mission a plan's items fly, with Local goals about *origin*, and warnings (one line each)."""
     if plan.get("fileType") != "Plan":
         got = f"fileType {json.dumps(plan['fileType'])[:40]}" if "fileType" in plan else "no fileType"
@@ -202,13 +191,6 @@ def plan_to_mission(plan: dict[str, Any], *, source: str, origin: GeoOrigin,
     if _get(plan, "version", (int,), source, required=False) not in (None, 1):
         raise PlanError(f"{source}: plan version {plan['version']}: only version 1 is read")
     warnings: list[str] = []
-    fence = _fence_shapes(plan, source)
-    if fence and not ignore_geofence:
-        raise PlanError(f"{source}: the plan has a geofence ({', '.join(fence)}), and u2sa does not enforce "
-                        "geofences yet: remove the fence from the plan, or pass --ignore-geofence to drive "
-                        "without it")
-    if fence:
-        warnings.append(f"{source}: the geofence ({', '.join(fence)}) is NOT enforced: the vehicle is not fenced")
     rally = _get(plan, "rallyPoints", (dict,), source, required=False) or {}
     if _get(rally, "points", (list,), f"{source}: rallyPoints", required=False):
         warnings.append(f"{source}: rally points left out: return-to-launch goes to the planned home position")

@@ -12,6 +12,10 @@ every ``publish_interval_s``. Its inputs:
   (a whole new mission; bad XML is refused, logged with the element and line, and the
   running mission is kept).
 
+A mission file or upload with a goal outside the profile's geofence (or closer to a line than
+``[geofence] margin_m``) is refused the same way, naming the goal and the area
+(:mod:`.fence_check`).
+
 Every command is acknowledged on ``U2SA_HEALTH`` at once: the health detail
 ``last_command`` reads ``"<command> from <sender>: ok"`` or ``"...: refused: <reason>"``
 (the sender is the command's ``header.source``), after the changed mission went out.
@@ -30,7 +34,9 @@ from u2sa_hw import lcmtypes as t
 from u2sa_hw.config import MAX_TIMEOUT_S, field
 from u2sa_hw.geo import geodetic_to_ned
 from u2sa_hw.messages import as_type
+from u2sa_hw.geofence_parse import profile_fence
 from u2sa_hw.service import U2SAService
+from u2sa_hw.services.mission.fence_check import check_mission
 from u2sa_hw.services.mission.manager import MissionError, MissionManager, from_message, to_waypoint
 from u2sa_hw.services.mission.xml import GLOBAL, MissionSpec, load_mission, parse_mission
 from u2sa_hw.services.mission.xmltree import XmlFileError
@@ -54,6 +60,7 @@ class MissionManagerService(U2SAService):
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
         self._lock = threading.Lock()
+        self.fence = profile_fence(self.profile)
         self.manager = MissionManager(loop=self._loop_setting(), logger=self.logger,
                                       default_threshold=float(self.config.get("default_threshold_m")))
         self.reports_ignored = 0
@@ -85,7 +92,8 @@ class MissionManagerService(U2SAService):
             return False
         try:
             spec = load_mission(path, default_threshold=float(self.config.get("default_threshold_m")))
-        except XmlFileError as exc:
+            check_mission(spec, self.fence, self.profile.origin)
+        except (XmlFileError, MissionError) as exc:
             self.error(f"mission not loaded: {exc}")
             self.status = "degraded"
             return False
@@ -180,6 +188,7 @@ class MissionManagerService(U2SAService):
                     spec = parse_mission(cmd.mission_xml, source=f"mission uploaded by {who}",
                                          default_threshold=float(self.config.get("default_threshold_m")))
                     self._warn_far_goals(spec)
+                    check_mission(spec, self.fence, self.profile.origin)
                     self.manager.load(spec)
                 else:
                     raise MissionError(f"unknown command {cmd.command!r}; known: goto, skip, restart, upload")
