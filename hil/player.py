@@ -50,11 +50,21 @@ class PlayStats:
     late_s: float = 0.0       # the largest lag behind the clock (rate mode)
     wall_s: float = 0.0       # playback time
     started_ns: int = 0       # wall clock (ns) when the playback began: log time start_ns was played then
+    order_waits: int = 0      # republished messages held until a replayed service's earlier output was out
+    order_timeouts: int = 0   # ... that went out after ORDER_WAIT_S without it (the replay published fewer)
 
     @property
     def republished(self) -> int:
         """Bus messages republished, on every channel."""
         return sum(self.republished_on.values())
+
+
+# Channels a replayed service publishes that decide what another replayed service does with a republished
+# message: the RC mux's RC_MODE admits or refuses an actuator's ACTUATOR_CMD (u2sa_hw.safety.gate). Recorded,
+# the mode change came before the first obeyed command; replayed --fast, the player would republish that
+# command while the replayed mux was still decoding the edges before it, and the driver refused it.
+ORDERED_CHANNELS = ("RC_MODE",)
+ORDER_WAIT_S = 2.0   # how long a republished message waits for them before it goes out anyway (counted)
 
 
 class RecordedBusMessage:
@@ -96,7 +106,8 @@ class Player:
     def __init__(self, log_path: Any, *, devices: dict[str, ReplayDevice], transport: Transport | None,
                  republish: set[str], replayed_services: set[str], start_ns: int, end_ns: int,
                  rate: float | None, abort: threading.Event, abort_reason: Callable[[], str],
-                 progress: Callable[[float], None] = lambda _s: None, stall_timeout_s: float = 20.0) -> None:
+                 progress: Callable[[float], None] = lambda _s: None, stall_timeout_s: float = 20.0,
+                 replayed_seen: Callable[[str], int] | None = None) -> None:
         if rate is not None and not rate > 0:
             raise ValueError(f"--rate must be > 0, got {rate!r}")
         self.log_path = log_path
@@ -111,6 +122,10 @@ class Player:
         self.progress = progress
         self.stall_timeout_s = stall_timeout_s
         self.stats = PlayStats()
+        # ORDERED_CHANNELS: how many of the replayed services' messages on each the replay bus has carried
+        # (None: not watched), and how many the recording had before the next republished message
+        self.replayed_seen = replayed_seen
+        self._owed: dict[str, int] = {}
         self.bus_inputs: dict[str, list[str]] = {}   # channel -> devices that take its recorded messages
         for name, device in devices.items():
             for channel in getattr(device, "bus_inputs", ()):
@@ -132,7 +147,10 @@ class Player:
         if channel.startswith("RAW."):
             device = channel[4:]
             return bool(getattr(self.devices.get(device), "streamed", device in self.devices))
-        return channel in self.bus_inputs or channel in self.republish
+        return channel in self.bus_inputs or channel in self.republish or self._ordered(channel)
+
+    def _ordered(self, channel: str) -> bool:
+        return self.replayed_seen is not None and channel in ORDERED_CHANNELS
 
     def _recorded(self) -> Iterator[tuple[int, str, Any]]:
         start_ns, end_ns = self.start_ns, self.end_ns
@@ -151,14 +169,18 @@ class Player:
                 continue
             for device in self.bus_inputs.get(channel, ()):
                 yield log_time_ns, device, RecordedBusMessage(channel, data, log_time_ns)
-            if channel in self.republish:
+            ordered = self._ordered(channel)
+            if channel in self.republish or ordered:
                 try:
                     msg, _ = REGISTRY.decode(data, base_type(channel))
                 except MalformedMessage:
                     self.stats.malformed += 1
                     continue
-                if header_source(msg) not in self.replayed:
+                replayed = header_source(msg) in self.replayed
+                if not replayed and channel in self.republish:
                     yield log_time_ns, f"bus:{channel}", data
+                elif replayed and ordered:
+                    yield log_time_ns, f"order:{channel}", None
 
     def _bursts(self) -> Iterator[tuple[int, str, Any]]:
         """Fast mode: each device's bursts written whole.
@@ -231,8 +253,14 @@ class Player:
                 if delay > 0 and self.abort.wait(delay):
                     raise RuntimeError(self.abort_reason())
                 self.stats.late_s = max(self.stats.late_s, -delay)
+            if target.startswith("order:"):
+                if self.replayed_seen is not None:
+                    self._owed[target[6:]] = self._owed.get(target[6:], 0) + 1
+                continue
             if target.startswith("bus:"):
                 channel = target[4:]
+                if self._owed:
+                    self._wait_ordered()
                 if self.transport is not None:
                     self.transport.publish_bytes(channel, payload)
                 self.stats.republished_on[channel] = self.stats.republished_on.get(channel, 0) + 1
@@ -254,6 +282,29 @@ class Player:
         self.progress((self.end_ns - self.start_ns) / 1e9)
         self.stats.wall_s = time.monotonic() - started
         return self.stats
+
+    def _wait_ordered(self) -> None:
+        """Hold a republished message until the replay bus has carried every replayed message on
+        ORDERED_CHANNELS that the recording had before it (at most ORDER_WAIT_S; then it goes out, counted,
+        and the missing ones are not waited for again)."""
+        assert self.replayed_seen is not None
+        behind = [c for c, owed in self._owed.items() if self.replayed_seen(c) < owed]
+        if not behind:
+            return
+        self.stats.order_waits += 1
+        deadline = time.monotonic() + ORDER_WAIT_S
+        pause = 0.0002
+        while behind:
+            if self.abort.is_set():
+                raise RuntimeError(self.abort_reason())
+            if time.monotonic() > deadline:
+                self.stats.order_timeouts += 1
+                for c in behind:
+                    self._owed[c] = self.replayed_seen(c)
+                return
+            time.sleep(pause)
+            pause = min(0.002, pause * 2)
+            behind = [c for c in behind if self.replayed_seen(c) < self._owed[c]]
 
     def _backlog_due(self, device: ReplayDevice) -> bool:
         """Whether to check the backlog of *device* (one with a backlog allowance) before its next record: when

@@ -35,7 +35,7 @@ from u2sa_hw.vehicle import load_profile
 from u2sa_hw.udp_ports import private_lcm_url
 
 from hil.compare import STATE_CHANNELS
-from hil.player import PlayStats, Player
+from hil.player import ORDERED_CHANNELS, PlayStats, Player
 from hil.progress import ProgressBar
 from hil.replay_devices import ReplayDevice, ReplaySerialDevice, ReplayStalled
 from hil.replay_i2c import held_drivers, release_held_reads
@@ -91,7 +91,10 @@ class ReplayResult:
                 f"({speed:.1f}x real time, {self.startup_s:.1f} s starting {len(self.plan.services)} services): "
                 f"{self.outputs} messages from {', '.join(self.plan.services)}"
                 + (f" ({self.lost} more lost on the replay bus)" if self.lost else "")
-                + f"; {self.written} written to {self.out}, {self.dropped} dropped")
+                + f"; {self.written} written to {self.out}, {self.dropped} dropped"
+                + (f"; {self.play.order_timeouts} recorded messages went out without the replayed "
+                   f"{'/'.join(ORDERED_CHANNELS)} the recording had before them (the replay published fewer)"
+                   if self.play.order_timeouts else ""))
 
 
 def private_url(plan: ReplayPlan) -> str:
@@ -187,6 +190,7 @@ class Replay:
         self._stopping = False
         self._health: dict[str, dict[str, str]] = {}   # service -> its latest health details
         self._received: dict[str, int] = {}    # service -> its outputs the replay bus delivered here
+        self._replayed_on: dict[str, int] = {}  # ORDERED_CHANNELS -> the replayed services' messages on it heard
         self._published: dict[str, int] = {}   # service -> its outputs by its own count (latest health)
         self._heard: dict[str, dict[str, int]] = {}   # service -> messages it took per channel (latest health)
         self._listeners: dict[str, set[str]] = {}     # republished channel -> the services that take it from the bus
@@ -227,6 +231,8 @@ class Replay:
         source = raw_source(data)
         if source in self.plan.services:
             self._received[source] = self._received.get(source, 0) + 1
+            if channel in ORDERED_CHANNELS:
+                self._replayed_on[channel] = self._replayed_on.get(channel, 0) + 1
             # state channels are published on a timer too, so they are waited for only when that timer
             # runs on a replay chip's clock, which stops with the recorded edges (GPIO logs)
             if channel not in STATE_CHANNELS or self._clocked:
@@ -437,7 +443,8 @@ class Replay:
             player = Player(self.plan.log, devices=devices, transport=transport, republish=republish,
                             replayed_services=set(self.plan.services), start_ns=self.plan.start_ns,
                             end_ns=self.plan.end_ns, rate=None if self.fast else self.rate, abort=self.abort,
-                            abort_reason=lambda: self._abort_reason, progress=bar.update)
+                            abort_reason=lambda: self._abort_reason, progress=bar.update,
+                            replayed_seen=lambda channel: self._replayed_on.get(channel, 0))
             try:
                 stats = player.run()
             except RuntimeError as exc:

@@ -15,6 +15,7 @@ is left out (and said so), two claimants are an error.
 
 from __future__ import annotations
 
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -250,6 +251,13 @@ def build_plan(path: Path | str, *, extra_services: list[str] = (), overrides: l
             plan.notes.append(f"RAW.{dev.name}: {what}; service '{owners[0]}' is not replayed")
             blocked.add(owners[0])
             continue
+        if dev.kind == "i2c" and not i2c_setup_recorded(log, dev.name):
+            plan.notes.append(f"RAW.{dev.name}: the recording began after '{owners[0]}' set its chip up (the log "
+                              "holds its data reads only: no identification, no configuration, no calibration "
+                              f"samples), so what it published depends on what came before the cut; service "
+                              f"'{owners[0]}' is not replayed and its messages are not compared")
+            blocked.add(owners[0])
+            continue
         dev.service = owners[0]
     for dev in devices.values():
         if dev.service in blocked:
@@ -285,6 +293,36 @@ def build_plan(path: Path | str, *, extra_services: list[str] = (), overrides: l
         raise ReplayError(f"--start {start_s:g} / --end {end_s}: empty window; the log lasts "
                           f"{summary.duration_s:.1f} s")
     return plan
+
+
+SETUP_SCAN_READS = 3   # reads of one register with no write before them: the driver was sampling already
+
+
+def i2c_setup_recorded(log: LogFile, device: str) -> bool:
+    """True when RAW.*device* holds its driver's chip set-up: a write (every supported chip driver configures
+    its chip when it opens it; sampling only reads) before any register is read SETUP_SCAN_READS times. A
+    recording started while the stack ran (``u2sa record``, a recorder restarted, a log recovered after a cut)
+    begins with data reads: a replay could not identify the chip, and its calibration is not in the log.
+    Reads the log only up to that point."""
+    from u2sa_hw.messages import REGISTRY, MalformedMessage
+    from u2sa_hw.ports.i2c_port import OP_READ, OP_WRITE
+
+    reads: dict[tuple[int, int], int] = {}
+    for m in log.messages(rf"RAW\.{re.escape(device)}"):
+        try:
+            rec, _ = REGISTRY.decode(m.data)
+        except MalformedMessage:
+            continue
+        if type(rec).__name__ != "RawI2c":
+            continue
+        if rec.op == OP_WRITE:
+            return True
+        if rec.op == OP_READ:
+            key = (int(rec.address), int(rec.register_address))
+            reads[key] = reads.get(key, 0) + 1
+            if reads[key] >= SETUP_SCAN_READS:
+                return False
+    return True   # too few reads to tell: replay it (a short log of set-up reads replays as before)
 
 
 def _add_service(plan: ReplayPlan, name: str, table: dict[str, Any], configs: dict[str, dict[str, Any]]) -> ServicePlan:

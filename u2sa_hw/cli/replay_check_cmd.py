@@ -7,7 +7,7 @@ import json
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -50,6 +50,7 @@ class LogResult:
     duration_s: float = 0.0
     summary: str = ""
     report: dict[str, Any] | None = None
+    notes: list[str] = field(default_factory=list)   # what the replay left out, and why (the plan's notes)
 
 
 def register(sub: Any) -> None:
@@ -110,7 +111,7 @@ def _replay_and_compare(log: Path, out: Path, args: Any, tolerances: Any, began:
                           replay_start_ns=result.play.started_ns or None, pilot=result.pilot)
     duration = (result.plan.end_ns - result.plan.start_ns) / 1e9 if result.plan.end_ns else 0.0
     return LogResult(log, "same" if report.ok else "DIFFERENT", time.monotonic() - began, duration,
-                     report.summary(), report.to_dict())
+                     report.summary(), report.to_dict(), list(result.plan.notes))
 
 
 def summary_table(results: list[LogResult], root: Path) -> str:
@@ -154,9 +155,11 @@ def cmd_replay_check(args: Any) -> int:
             r = check_one(log, out_dir / f"{n:03d}-{log.stem}.replay.mcap", args, tolerances)
             results.append(r)
             print(f"[{n}/{len(logs)}] {log}: {r.status} in {r.seconds:.1f} s: {r.summary}", file=sys.stderr, flush=True)
+            for note in r.notes:
+                print(f"    note: {note}", file=sys.stderr, flush=True)
     if args.json:
         print(json.dumps([{"log": str(r.log), "status": r.status, "seconds": round(r.seconds, 3),
-                           "duration_s": r.duration_s, "summary": r.summary, "report": r.report} for r in results],
+                           "duration_s": r.duration_s, "summary": r.summary, "notes": r.notes, "report": r.report} for r in results],
                          indent=1))
     else:
         print(summary_table(results, root))
