@@ -84,8 +84,8 @@ def register(sub: Any) -> None:
     xp.add_argument("--logs", metavar="DIR", help="the run's service log directory for /log (default: a logs/ "
                     "directory beside the log's directory, as u2sa sim writes, if there is one)")
     xp.set_defaults(func=cmd_export)
-    pp = lsub.add_parser("plot", help="PNG of the run: map with waypoints and obstacles, heading, speed, commands, "
-                        "RC mode and failsafes")
+    pp = lsub.add_parser("plot", help="PNG of the run: map with waypoints, obstacles and the geofence, heading, "
+                        "speed, commands, RC mode and failsafes")
     pp.add_argument("file", help="an MCAP log written by u2sa")
     pp.add_argument("-o", "--output", metavar="PNG", help="output (default: <file>.png)")
     pp.add_argument("--channel", default="STATE_ESTIMATE", help="state channel to plot (default STATE_ESTIMATE)")
@@ -387,6 +387,7 @@ def cmd_plot(args: Any) -> int:
         raise CliError(f"plotting needs {exc.name}: pip install 'u2sa-hw[sim]'") from None
     if not any(counts.values()):
         raise CliError(f"{args.file}: nothing to plot (no {args.channel} positions or actuator commands)")
+    fence = f", {counts['fence_areas']} geofence areas" if counts["fence_areas"] else ""
     print(f"wrote {out} ({counts['track']} track points, {counts['waypoints']} waypoints, {counts['obstacles']} "
-          f"obstacles, {counts['commands']} commands, {counts['failsafes']} failsafes)")
+          f"obstacles{fence}, {counts['commands']} commands, {counts['failsafes']} failsafes)")
     return 0

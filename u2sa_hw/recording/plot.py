@@ -2,7 +2,8 @@
 
 Left, the map view (east right, north up, metres about the origin) as the simulation
 draws it: the track, the waypoints with their threshold circles, the obstacles of
-``WORLD`` (their last known shape). Right, over time: the heading (unwrapped, so a turn
+``WORLD`` (their last known shape) and the geofence (the log's ``geofence.json``, which the
+recorder attaches from the profile). Right, over time: the heading (unwrapped, so a turn
 through north is a slope, not a jump of 360 degrees), the speed, every actuator's
 commands (``ACTUATOR_CMD`` solid, the pilot's ``MANUAL_CMD`` dashed) and a panel with the
 RC mode (autonomy shaded) and the failsafes. Legends sit beside their panels, never on
@@ -28,6 +29,7 @@ from u2sa_hw import lcmtypes as t
 from u2sa_hw.channels import base_type
 from u2sa_hw.failsafe import FailsafeSources
 from u2sa_hw.geo import geodetic_to_ned
+from u2sa_hw.geofence_draw import draw_fence
 from u2sa_hw.messages import REGISTRY, MalformedMessage, as_type
 from u2sa_hw.recording.log_reader import LogFile
 from u2sa_hw.services.world.model import GEODETIC_FRAMES, NED_FRAMES, PlacementError, place_in_world
@@ -75,6 +77,7 @@ class RunData:
     obstacles: dict[str, Any] = field(default_factory=dict)                   # uid -> last WORLD object
     rc_modes: list[tuple[float, str, bool]] = field(default_factory=list)     # t, mode name, autonomy enabled
     failsafes: list[tuple[float, dict[str, str]]] = field(default_factory=list)  # t, source -> reason held after
+    fence: Any = None                                                         # u2sa_hw.geofence.Fence
     end: float = 0.0
 
 
@@ -92,6 +95,7 @@ def read_run(src: Path | str, *, channel: str = ch.STATE_ESTIMATE) -> RunData:
         if t0 is None:
             t0, origin = m.log_time_ns, log_origin(log)[0]
             run.vehicle = log.contents.metadata.get("u2sa", {}).get("vehicle", "")
+            run.fence = _fence(log)
         tm = (m.log_time_ns - t0) / 1e9
         run.end = max(run.end, tm)
         if m.channel not in wanted:
@@ -129,6 +133,17 @@ def read_run(src: Path | str, *, channel: str = ch.STATE_ESTIMATE) -> RunData:
         elif m.channel == ch.MISSION_STATUS and isinstance(msg, t.MissionStatus) and msg.mission_name:
             run.mission = msg.mission_name
     return run
+
+
+def _fence(log: LogFile) -> Any:
+    """The geofence the log carries, or None (none recorded, or unreadable: the map is drawn without it)."""
+    from u2sa_hw.geofence import Fence
+
+    data = log.contents.attachments.get("geofence.json")
+    try:
+        return Fence.from_json(data) if data else None
+    except (ValueError, KeyError, TypeError, IndexError):
+        return None
 
 
 def _placed(msg: Any, base: Any, origin: Any) -> Any:
@@ -200,6 +215,7 @@ def build_figure(run: RunData, *, title: str, channel: str = ch.STATE_ESTIMATE) 
     fig = plt.figure(figsize=(15, 10), dpi=100)
     grid = fig.add_gridspec(4, 2, width_ratios=(1.15, 1.0), hspace=0.45, wspace=0.28)
     ax = fig.add_subplot(grid[:, 0])
+    draw_fence(ax, run.fence, patches)
     for obj in run.obstacles.values():
         ax.add_patch(obstacle_patch(obj, patches))
         base = as_type(obj, t.ObjectDescription)
@@ -296,5 +312,6 @@ def plot_log(src: Path | str, out: Path | str, *, channel: str = ch.STATE_ESTIMA
     plt.close(fig)
     return {"track": len(run.track), "heading": len(run.heading), "speed": len(run.speed),
             "commands": sum(len(s) for s in run.commands.values()), "waypoints": len(run.waypoints),
-            "obstacles": len(run.obstacles), "rc_modes": len(run.rc_modes),
+            "obstacles": len(run.obstacles), "fence_areas": len(run.fence.areas) if run.fence else 0,
+            "rc_modes": len(run.rc_modes),
             "failsafes": len(failsafe_spans(run))}

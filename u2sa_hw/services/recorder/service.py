@@ -27,6 +27,11 @@ def run_info(profile: VehicleProfile, url: str) -> RunInfo:
     attachments: dict[str, bytes] = {}
     if profile.path is not None and profile.path.exists():
         attachments["vehicle.toml"] = profile.path.read_bytes()
+    from u2sa_hw.geofence_parse import profile_fence
+
+    fence = profile_fence(profile)
+    if fence is not None:   # resolved to local metres: u2sa log plot draws it without the .plan it may come from
+        attachments["geofence.json"] = fence.to_json().encode()
     for name, spec in profile.services.items():
         if spec.config_path.exists():
             attachments[f"config/{name}.toml"] = spec.config_path.read_bytes()
