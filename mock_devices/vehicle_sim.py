@@ -132,6 +132,7 @@ class SimVehicle:
         self._cmd = {"left": 0.0, "right": 0.0}  # wheel speeds (m/s) or thrust fractions
         self._steer = 0.0
         self._throttle = 0.0
+        self._push = (0.0, 0.0)   # (north, east) m/s the world adds: a slope, mud, a current
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
 
@@ -176,6 +177,12 @@ class SimVehicle:
             self._throttle = f
 
     # ---- dynamics --------------------------------------------------------------------
+    def set_push(self, north_mps: float, east_mps: float) -> None:
+        """Move the vehicle this fast over the ground whatever its inputs (a slope, mud, a current; 0, 0: none).
+        The wheels' odometry does not see it; the GPS does."""
+        with self._lock:
+            self._push = (_finite("north_mps", north_mps), _finite("east_mps", east_mps))
+
     def _rates(self, dt: float) -> tuple[float, float]:
         """New (u, r) after dt under the current inputs; caller holds the lock."""
         u, r = self._u, self._r
@@ -207,6 +214,8 @@ class SimVehicle:
             else:
                 self._north += u * math.cos(yaw0) * dt
                 self._east += u * math.sin(yaw0) * dt
+            self._north += self._push[0] * dt
+            self._east += self._push[1] * dt
             self._yaw = wrap_angle(yaw0 + r * dt)
             self._du = (u - self._u) / dt
             self._u, self._r = u, r
@@ -220,8 +229,8 @@ class SimVehicle:
         """The current true state."""
         with self._lock:
             u, r, yaw = self._u, self._r, self._yaw
-            v_north, v_east = u * math.cos(yaw), u * math.sin(yaw)
-            speed = abs(u)
+            v_north, v_east = u * math.cos(yaw) + self._push[0], u * math.sin(yaw) + self._push[1]
+            speed = abs(u) if self._push == (0.0, 0.0) else math.hypot(v_north, v_east)
             course = wrap_angle(math.atan2(v_east, v_north)) if speed > 1e-9 else yaw
             lat, lon, alt = ned_to_geodetic(self._north, self._east, self._down, origin_lat=self.origin_lat,
                                             origin_lon=self.origin_lon, origin_alt=self.origin_alt)

@@ -26,6 +26,8 @@ Actions and their keys (every key but ``at_s``/``action``/``label`` belongs to t
 ``sticks``          RC channel = position -1..1, e.g. ``throttle = 0.6, steering = -0.3``
 ``centre``          every stick back to the centre
 ``gps_fix``         ``fix = false``: every GPS mock stops reporting a fix; ``true``: it is back
+``push``            ``north_mps = 0.0, east_mps = -2.0``: the world moves the simulated vehicle this
+                    fast whatever it commands (a slope, mud, a current); 0, 0 ends it
 ``signal``          ``service = "wheels", signal = "KILL" | "STOP" | "CONT" | "TERM"``
 ``forge``           ``actuator = "left_wheel", percent = 60``: an ACTUATOR_CMD published by the
                     scenario runner, ``count`` times (default 20) every ``every_s`` (0.05)
@@ -46,6 +48,7 @@ from typing import Any
 
 SIGNALS = ("KILL", "STOP", "CONT", "TERM")
 SETTLE_S = 4.0
+MAX_PUSH_MPS = 20.0
 
 # action -> {key: (type, required)}
 ACTIONS: dict[str, dict[str, tuple[type | tuple[type, ...], bool]]] = {
@@ -56,6 +59,7 @@ ACTIONS: dict[str, dict[str, tuple[type | tuple[type, ...], bool]]] = {
     "sticks": {},   # any RC channel name -> float, checked against the receiver at run time
     "centre": {},
     "gps_fix": {"fix": (bool, True)},
+    "push": {"north_mps": ((int, float), False), "east_mps": ((int, float), False)},
     "signal": {"service": (str, True), "signal": (str, True)},
     "forge": {"actuator": (str, True), "percent": ((int, float), True), "count": (int, False),
               "every_s": ((int, float), False)},
@@ -125,6 +129,8 @@ def _event(raw: Any, index: int, where: str) -> ScenarioEvent:
                 raise ScenarioError(f"{at}: {key} has the wrong type ({raw[key]!r})")
     if action == "mode" and raw["value"] not in ("manual", "autonomous"):
         raise ScenarioError(f"{at}: mode value must be \"manual\" or \"autonomous\", got {raw['value']!r}")
+    if action == "push" and any(abs(raw.get(k, 0.0)) > MAX_PUSH_MPS for k in ("north_mps", "east_mps")):
+        raise ScenarioError(f"{at}: push speeds must be within -{MAX_PUSH_MPS:g}..{MAX_PUSH_MPS:g} m/s")
     if action == "signal":
         raw["signal"] = raw["signal"].upper().removeprefix("SIG")
         if raw["signal"] not in SIGNALS:

@@ -1,5 +1,6 @@
 """The PNG of a simulated mission: the driven track (coloured by speed), the estimate, the
-waypoints with their completion circles, the legs between them and the a-priori obstacles.
+waypoints with their completion circles, the legs between them, the a-priori obstacles and the
+geofence.
 
 A map view: east to the right, north up, metres about the profile's origin. matplotlib
 is imported here only (the ``sim`` extra), with the Agg backend, so no display is needed.
@@ -14,10 +15,11 @@ from typing import Any, Sequence
 from simulation.summary import Goal, TrackSample
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.messages import as_type
+from u2sa_hw.geofence_draw import draw_fence
 from u2sa_hw.recording.plot import obstacle_patch
 
 def plot_run(path: Path, *, samples: Sequence[TrackSample], goals: Sequence[Goal], obstacles: Sequence[Any],
-             title: str, t_engage: float | None = None) -> Path:
+             title: str, t_engage: float | None = None, fence: Any = None) -> Path:
     """Draw the run into *path* (PNG); returns *path*."""
     import matplotlib
 
@@ -28,6 +30,7 @@ def plot_run(path: Path, *, samples: Sequence[TrackSample], goals: Sequence[Goal
 
     live = [s for s in samples if t_engage is None or s.t >= t_engage] or list(samples)
     fig, ax = plt.subplots(figsize=(8.5, 7.5), dpi=110)
+    draw_fence(ax, fence, patches)
     for obj in obstacles:
         ax.add_patch(obstacle_patch(obj, patches))
         base = as_type(obj, t.ObjectDescription)

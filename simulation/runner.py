@@ -110,7 +110,8 @@ class SimRun:
         self._priority: ProcessPriority | None = None   # this process's raise, undone by stop()
         self.record = RunRecord(vehicle=self.profile.name, mission=self.scenario.mission_name,
                                 looping=self.scenario.looping, goals=self.scenario.goals,
-                                obstacles=self.scenario.obstacles, t_start=time.monotonic())
+                                obstacles=self.scenario.obstacles, fence=self.scenario.fence,
+                                t_start=time.monotonic())
         self.deadline = math.inf
         self._stop_sampling = threading.Event()
         self._sampler: threading.Thread | None = None
@@ -311,7 +312,7 @@ class SimRun:
 
             files.append(plot_run(self.out / "track.png", samples=self.record.samples, goals=self.scenario.goals,
                                   obstacles=self.scenario.obstacles, t_engage=self.record.t_engage,
-                                  title=self._title()))
+                                  title=self._title(), fence=self.scenario.fence))
         except ImportError as exc:   # matplotlib is the "sim" extra
             self.progress.event(f"no plot: {exc} (pip install 'u2sa-hw[sim]')")
         summary = summarise(self.record)

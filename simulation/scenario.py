@@ -1,4 +1,4 @@
-"""What a simulation drives: the mission's goals and the a-priori obstacles, in local NED.
+"""What a simulation drives: the mission's goals, the a-priori obstacles and the geofence, in local NED.
 
 Read from the same files the mission manager and the world modeler load (their
 effective ``mission_file`` and ``objects_file``, relative paths resolved against the
@@ -13,6 +13,7 @@ from typing import Any, Mapping
 
 from simulation.summary import Goal
 from u2sa_hw.geo import geodetic_to_ned
+from u2sa_hw.geofence_parse import profile_fence
 from u2sa_hw.services.mission.xml import GLOBAL, load_mission
 from u2sa_hw.services.world.model import place_in_world
 from u2sa_hw.services.world.xml import load_objects
@@ -29,6 +30,7 @@ class Scenario:
     goals: list[Goal]
     obstacles: list[Any] = field(default_factory=list)
     objects_file: Path | None = None
+    fence: Any = None               # the profile's geofence (u2sa_hw.geofence.Fence), or None
 
 
 def _service_of_kind(profile: VehicleProfile, kind: str) -> str | None:
@@ -67,7 +69,7 @@ def load_scenario(profile: VehicleProfile, configs: Mapping[str, Mapping[str, An
         else:
             north, east = values.get("x", 0.0), values.get("y", 0.0)
         goals.append(Goal(goal.uid, north, east, goal.horizontal_threshold))
-    scenario = Scenario(spec.name, mission, looping, goals)
+    scenario = Scenario(spec.name, mission, looping, goals, fence=profile_fence(profile))
     world = _service_of_kind(profile, "world_modeler")
     objects_text = str(configs.get(world, {}).get("objects_file", "")).strip() if world else ""
     if objects_text:

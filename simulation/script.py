@@ -101,6 +101,8 @@ class ScriptRunner:
         elif event.action == "gps_fix":
             for gps in self._gps():
                 gps.set_fix(bool(p["fix"]))
+        elif event.action == "push":
+            self.run.mocks.vehicle.set_push(float(p.get("north_mps", 0.0)), float(p.get("east_mps", 0.0)))
         elif event.action == "signal":
             pid = self.run.launcher.processes[p["service"]].pid
             if pid is not None:

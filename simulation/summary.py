@@ -20,6 +20,7 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
+from simulation.fence_report import fence_lines, fence_report
 from simulation.progress import StatusChange
 from u2sa_hw.services.world.shapes import distance_to_point, segment_distance
 
@@ -66,6 +67,7 @@ class RunRecord:
     reason: str = ""
     services: dict[str, dict[str, Any]] = field(default_factory=dict)
     interruptions: list[dict[str, Any]] = field(default_factory=list)
+    fence: Any = None                    # u2sa_hw.geofence.Fence of the profile, or None
 
 
 def _rel(t: float | None, t0: float | None) -> float | None:
@@ -150,6 +152,7 @@ def summarise(record: RunRecord) -> dict[str, Any]:
                              "p95": round(errors[int(0.95 * (len(errors) - 1))], 3) if errors else None,
                              "max": round(errors[-1], 3) if errors else None},
         "autonomy_interruptions": record.interruptions,
+        "geofence": fence_report(record.fence, record.samples, t_engage=record.t_engage),
         "services": record.services,
     }
 
@@ -203,6 +206,7 @@ def summary_text(summary: dict[str, Any], *, files: Iterable[Path] = ()) -> str:
     err = summary["estimate_error_m"]
     lines.append(f"  estimate vs truth    mean {_fmt(err['mean'], 'm', 2)}, p95 {_fmt(err['p95'], 'm', 2)}, "
                  f"max {_fmt(err['max'], 'm', 2)}")
+    lines += fence_lines(summary.get("geofence"))
     for gap in summary["autonomy_interruptions"]:
         lines.append(f"  autonomy lost        at {gap['at_s']:.1f} s ({gap['why']}), re-engaged by the pilot")
     restarts = {n: s.get("restarts", 0) for n, s in summary["services"].items() if s.get("restarts")}

@@ -50,7 +50,9 @@ def test_plot_of_a_recorded_simulation(tmp_path_factory: pytest.TempPathFactory,
     track_ax, heading_ax, speed_ax, cmd_ax, mode_ax = fig.axes
     circles = [p for p in track_ax.patches if isinstance(p, patches.Circle) and not p.get_fill()]
     assert len(circles) == sum(1 for w in run.waypoints.values() if w.horizontal_threshold > 0)
-    assert len(track_ax.patches) == len(circles) + len(run.obstacles)   # every obstacle drawn
+    assert run.fence is not None and [a.name for a in run.fence.areas] == ["yard", "pond"]   # the example's fence
+    # every obstacle and fence area drawn
+    assert len(track_ax.patches) == len(circles) + len(run.obstacles) + len(run.fence.areas)
     labels = {text.get_text() for text in track_ax.texts}
     assert set(run.obstacles) <= labels and all(any(uid in s for s in labels) for uid in run.waypoints)
     fig.canvas.draw()

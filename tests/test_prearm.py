@@ -106,7 +106,8 @@ def test_defaults_come_from_the_rover_profiles_service_kinds() -> None:
     # pan is required = false, the recorder disabled.
     assert table.required_services is not None
     assert table.required_services.services == ("compass", "wheels", "mission", "world", "planner", "control", "hsm")
-    assert table.enabled() == ("no_failsafe", "rc_link", "gps", "imu", "estimator", "required_services")
+    assert table.enabled() == ("no_failsafe", "rc_link", "gps", "imu", "estimator", "geofence", "required_services")
+    assert table.geofence is not None and table.geofence.service == "estimator"   # the rover's yard
     assert checks.needs_estimate
 
 
@@ -121,7 +122,8 @@ def test_defaults_come_from_the_boat_profiles_service_kinds() -> None:
 @pytest.mark.parametrize("profile", sorted((REPO / "examples").glob("*/vehicle.toml")), ids=lambda p: p.parent.name)
 def test_every_example_profile_parses_with_every_check_on(profile: Path) -> None:
     table = PrearmChecks.from_profile(load_profile(profile)).table
-    assert table.enabled() == ("no_failsafe", "rc_link", "gps", "imu", "estimator", "required_services")
+    fenced = ("geofence",) if table.geofence is not None else ()   # the ground vehicle has a fence
+    assert table.enabled() == ("no_failsafe", "rc_link", "gps", "imu", "estimator", *fenced, "required_services")
 
 
 def test_a_profile_without_a_gps_or_imu_has_those_checks_off(tmp_path: Path) -> None:
