@@ -1,8 +1,9 @@
 """The geofence in a simulation's summary: where the TRUE track went against the profile's fence.
 
 ``geofence`` in summary.json: the areas, every breach (when the true position left the allowed
-area, in seconds after autonomy engaged, which area and how far out it got before it came back or
-the run ended) and the closest the track came to a line while inside. The vehicle's own reaction
+area, in seconds after autonomy engaged, which area, how far out it got before it came back or
+the run ended, and ``estimate_out_s``: when the estimate was first outside too, which is what the
+vehicle acts on; samples at the track's rate) and the closest the track came to a line while inside. The vehicle's own reaction
 (pre-arm refusal, the lost check's neutral or hold) is in ``autonomy_interruptions`` and in the
 scenario's events, as for every other check.
 """
@@ -29,8 +30,12 @@ def fence_report(fence: Any, samples: Sequence[Any], *, t_engage: float | None) 
             continue
         depth = hit.area.edge_distance(s.north, s.east)
         if current is None or current["area"] != hit.area.name:
-            current = {"at_s": round(s.t - base, 2), "area": hit.area.name, "what": hit.what, "max_out_m": 0.0}
+            current = {"at_s": round(s.t - base, 2), "area": hit.area.name, "what": hit.what, "max_out_m": 0.0,
+                       "estimate_out_s": None}
             breaches.append(current)
+        if current["estimate_out_s"] is None and s.est_north is not None and s.est_east is not None \
+                and fence.breach(s.est_north, s.est_east) is not None:
+            current["estimate_out_s"] = round(s.t - base, 2)
         current["max_out_m"] = round(max(current["max_out_m"], depth), 2)
     return {"areas": [a.name for a in fence.areas], "breaches": breaches,
             "closest_to_a_line_m": None if closest is None else round(closest, 2)}

@@ -18,6 +18,7 @@ def test_a_push_across_the_fence_stops_the_wheels_and_the_summary_names_it(tmp_p
     assert fence["areas"] == ["yard", "pond"]
     assert [b["area"] for b in fence["breaches"]] == ["yard"], fence
     assert fence["breaches"][0]["what"] == "outside inclusion polygon 'yard'"
+    assert fence["breaches"][0]["estimate_out_s"] is not None   # the estimate left too: what the vehicle acted on
     push, calm = events
     assert push["action"] == "push" and stopped(push, WHEELS), push
     assert any("geofence: outside inclusion polygon 'yard'" in mode for mode in push["rc_modes"]), push["rc_modes"]
