@@ -99,7 +99,9 @@ def test_the_mission_manager_refuses_a_mission_outside_its_fence(services: Servi
                       services="[services.mission]\nkind = \"mission_manager\"\n"
                                "settings = { mission_file = \"inside.xml\", publish_interval_s = 0.3 }\n")
     status: list[t.MissionStatus] = []
+    goals: list[t.Waypoint] = []
     acks: list[str] = []
+    bus.transport.subscribe(ch.GOALS, t.Waypoint, lambda _c, msg: goals.append(msg))
     bus.transport.subscribe(ch.MISSION_STATUS, t.MissionStatus, lambda _c, msg: status.append(msg))
     bus.transport.subscribe(ch.HEALTH, t.Health, lambda _c, msg: acks.extend(
         kv.value for kv in msg.details if kv.key == "last_command" and kv.value))
@@ -113,3 +115,17 @@ def test_the_mission_manager_refuses_a_mission_outside_its_fence(services: Servi
     refusal = next(a for a in acks if "refused" in a)
     assert "goal 1 'far'" in refusal and "outside inclusion circle 'yard' of the geofence" in refusal
     assert status[-1].mission_name == "in"
+
+    moved = t.Waypoint()                                  # another service moves goal 'a' out of the fence
+    moved.base.uid, moved.reference_frame = "a", "LOCAL"
+    moved.set(x=30.0, y=0.0)
+    errors: list[str] = []
+    bus.transport.subscribe(ch.HEALTH, t.Health, lambda _c, msg: errors.append(msg.last_error)
+                            if msg.name == "mission" else None)
+    bus.publish(ch.GOALS, moved)
+    wait_until(lambda: any("goal update: goal 'a' at x 30.0, y 0.0 is outside inclusion circle 'yard'" in e
+                           for e in errors), timeout=20, message="the goal update's refusal in the manager's health")
+    del goals[:]
+    inside_goal = wait_until(lambda: next((g for g in reversed(goals) if g.base.uid == "a"), None), timeout=20,
+                             message="goal a republished")
+    assert (inside_goal.x, inside_goal.y) == (5.0, 0.0)   # still where the mission put it

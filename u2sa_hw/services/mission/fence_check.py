@@ -28,13 +28,15 @@ def goal_position(goal: MissionGoal, origin: GeoOrigin) -> tuple[float, float] |
     return v["x"], v["y"]
 
 
-def goal_problem(goal: MissionGoal, number: int, fence: Fence, origin: GeoOrigin, *,
+def goal_problem(goal: MissionGoal, number: int | None, fence: Fence, origin: GeoOrigin, *,
                  with_line: bool = True) -> str | None:
-    """Why goal number *number* (1-based) breaks *fence*, or None; *with_line*: name its line in the file."""
+    """Why goal number *number* (1-based; None: a goal on its own) breaks *fence*, or None; *with_line*: name its
+    line in the file."""
     at = goal_position(goal, origin)
     if at is None:
         return None
-    where = f"goal {number} '{goal.uid}'" + (f" (line {goal.line})" if goal.line and with_line else "")
+    where = ("goal " if number is None else f"goal {number} ") + f"'{goal.uid}'" \
+        + (f" (line {goal.line})" if goal.line and with_line else "")
     breach = fence.breach(*at)
     if breach is not None:
         return (f"{where} at x {at[0]:.1f}, y {at[1]:.1f} is {breach.what} of the geofence: move it inside the "

@@ -12,9 +12,9 @@ every ``publish_interval_s``. Its inputs:
   (a whole new mission; bad XML is refused, logged with the element and line, and the
   running mission is kept).
 
-A mission file or upload with a goal outside the profile's geofence (or closer to a line than
-``[geofence] margin_m``) is refused the same way, naming the goal and the area
-(:mod:`.fence_check`).
+A mission file, an upload or a goal update on ``GOALS`` with a goal outside the profile's geofence
+(or closer to a line than ``[geofence] margin_m``) is refused the same way, naming the goal and the
+area (:mod:`.fence_check`).
 
 Every command is acknowledged on ``U2SA_HEALTH`` at once: the health detail
 ``last_command`` reads ``"<command> from <sender>: ok"`` or ``"...: refused: <reason>"``
@@ -36,7 +36,7 @@ from u2sa_hw.geo import geodetic_to_ned
 from u2sa_hw.messages import as_type
 from u2sa_hw.geofence_parse import profile_fence
 from u2sa_hw.service import U2SAService
-from u2sa_hw.services.mission.fence_check import check_mission
+from u2sa_hw.services.mission.fence_check import check_mission, goal_problem
 from u2sa_hw.services.mission.manager import MissionError, MissionManager, from_message, to_waypoint
 from u2sa_hw.services.mission.xml import GLOBAL, MissionSpec, load_mission, parse_mission
 from u2sa_hw.services.mission.xmltree import XmlFileError
@@ -161,6 +161,8 @@ class MissionManagerService(U2SAService):
         with self._lock:
             before = self.manager.version
             try:
+                if self.fence is not None and (problem := goal_problem(goal, None, self.fence, self.profile.origin)):
+                    raise MissionError(f"goal update: {problem}")
                 result = self.manager.merge(goal, fields=fields)
             except MissionError as exc:
                 self.commands_refused += 1
