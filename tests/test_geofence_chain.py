@@ -26,10 +26,22 @@ from mock_devices.rc_receiver import RcReceiverMock
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus_client import BusClient
+from u2sa_hw.cli.health_cmd import autonomy_line, autonomy_report
 from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence setters
 
 FENCE = {"circles": [{"name": "yard", "local_center": [0, 0], "radius_m": 20}]}
 BREACH = "geofence: outside inclusion circle 'yard'"
+
+
+def as_health(details: dict[str, str]) -> t.Health:
+    """A Health message carrying *details* (what u2sa health reads them from)."""
+    msg = t.Health()
+    for key, value in details.items():
+        kv = t.KeyValue()
+        kv.key, kv.value = key, value
+        msg.details.append(kv)
+    msg.num_details = len(msg.details)
+    return msg
 
 
 class Estimator:
@@ -105,12 +117,15 @@ def test_the_fence_refuses_autonomy_outside_and_stops_or_holds_on_a_breach(
         chain.mode(lambda m: m.mode == 1 and m.autonomy_enabled and not m.blocked_by, "autonomy granted inside")
         chain.wait_duty(1, 1700.0, "the control system drives in autonomy")
 
+        since = chain.col.count(ch.HEALTH)
         estimator.at = (25.0, 0.0)                              # the breach, while autonomous
         chain.wait_duty(1, 1500.0, "neutral on the breach, though autonomous commands keep coming")
         # neutral: disarmed, RC_MODE names the breach; hold: RC_MODE says hold, the rc service's health names it
         lost = chain.mode(lambda m: m.mode == 1 and (m.hold or BREACH in m.blocked_by), "the breach acted on")
-        details = chain.col.health_of("rc", lambda d: BREACH in d["prearm_failed"], message="the breach in health")
-        assert details["checks_lost"] == "1"
+        details = chain.col.health_of("rc", lambda d: BREACH in d["prearm_failed"] and d["checks_lost"] == "1",
+                                      since=since, message="the breach, a check lost while autonomous, in health")
+        line = autonomy_line(autonomy_report({"rc": as_health(details)})[0])   # what u2sa health prints
+        assert BREACH in line and ("GRANTED, but HOLD" in line if action == "hold" else "refused" in line), line
         if action == "hold":
             assert lost.hold and lost.autonomy_enabled, f"not held: {lost}"
         else:

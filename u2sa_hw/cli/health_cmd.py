@@ -196,8 +196,12 @@ def autonomy_line(rc: dict[str, Any]) -> str:
 
     Granted with ``hold`` (a pre-arm check was lost with action "hold") keeps the outputs neutral: said so.
     """
-    if rc["granted"]:
-        state = "GRANTED, but HOLD: outputs neutral (a pre-arm check was lost)" if rc.get("hold") else "GRANTED"
+    if rc["granted"] and rc.get("hold"):
+        # the check that was lost, when the RC mux's health says which (RC_MODE alone does not)
+        lost = f"pre-arm check lost: {rc['prearm_failed']}" if rc.get("prearm_failed") else "a pre-arm check was lost"
+        state = f"GRANTED, but HOLD: outputs neutral ({lost})"
+    elif rc["granted"]:
+        state = "GRANTED"
     else:
         state = f"refused: {rc['blocked_by'] or 'unknown'}"
     return f"autonomy ({rc['service']}, RC {rc['mode']}, {'armed' if rc['armed'] else 'not armed'}): {state}"
