@@ -62,12 +62,13 @@ import math
 import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Union
+from typing import Any, Mapping, Sequence, Union
 
 from u2sa_hw.channels import base_type
 from u2sa_hw.messages import ABSENT, REGISTRY, MalformedMessage, enumerate_fields
 from u2sa_hw.recording.log_reader import LogFile
 
+from hil.held_up import HeldWindow
 from hil.player import header_source
 from hil.stream_align import Pair, align_streams, content_key
 
@@ -266,9 +267,10 @@ def align(rec: list[Sample], rep: list[Sample], *, tolerance: ToleranceLike,
 
 def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance: ToleranceLike, edge: int,
                    rate: float | None, time_tolerance_s: float, replay_start_ns: int | None = None,
-                   origin_ns: int | None = None) -> StreamReport:
+                   origin_ns: int | None = None, held: Sequence[HeldWindow] = ()) -> StreamReport:
     """Compare one stream (see the module docstring); *replay_start_ns*: when the playback began; *origin_ns*:
-    the log time notes count seconds from (default the stream's first recorded message)."""
+    the log time notes count seconds from (default the stream's first recorded message); *held*: where the
+    recording machine held the stream's service up (hil/held_up.py): what differs there is a note."""
     r = StreamReport(key, len(rec), len(rep))
     if not rec or not rep:
         r.problems.append("only in the replay" if rep else "not reproduced by the replay")
@@ -278,10 +280,12 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
     pairs = align(rec, rep, tolerance=tol, skip=system)
     paired = [(p.rec, p.rep) for p in pairs if p.rec is not None and p.rep is not None]
     at_edges: list[str] = []
+    held_seen: dict[HeldWindow, int] = {}   # differences inside a held-up window, per window
     system_changes = 0   # unpaired messages published for a change of a system-decided field
+    rec_edge, rep_edge = edge_positions(rec, edge), edge_positions(rep, edge)
     # the partial pairs at the edges (a cut epoch): (recorded, replayed) indexes
     cut_pairs = {(i, j) for i, j in paired
-                 if (i < edge or i >= len(rec) - edge or j < edge or j >= len(rep) - edge)
+                 if (i in rec_edge or j in rep_edge)
                  and (names := [n for n in differing_fields(rec[i], rep[j], tol) if n not in system])
                  and partial(rec[i], rep[j], names)}
     last_rec_t = rec[0].t_ns
@@ -292,12 +296,14 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
             continue
         own, index = (rec, p.rec) if p.kind == "deleted" else (rep, p.rep)
         assert index is not None
-        if index < edge or index >= len(own) - edge:
+        if index in (rec_edge if p.kind == "deleted" else rep_edge):
             at_edges.append(p.kind)
             continue
         if _rest_of_cut(pairs, k, cut_pairs, rec, rep, tol):
             # the other part of an epoch the cut split in two (its partial pair is beside it)
             at_edges.append(p.kind)
+            continue
+        if _in_held(held, last_rec_t, held_seen):
             continue
         if system and _at_system_change(own, index, system):
             # published because a pre-arm verdict changed, which the rest of the system decides: where the
@@ -323,9 +329,11 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
             for name in [n for n in names if n in system]:
                 system_diffs[name] = system_diffs.get(name, 0) + 1
             names = [n for n in names if n not in system]
-        at_edge = i < edge or i >= len(rec) - edge or j < edge or j >= len(rep) - edge
+        at_edge = i in rec_edge or j in rep_edge
         if names and at_edge and partial(a, b, names):
             cut.append(_cut_note(a, b, i, start=i < edge or j < edge, origin_ns=origin_ns or rec[0].t_ns))
+            continue
+        if names and _in_held(held, a.t_ns, held_seen):
             continue
         if names:
             r.differing += 1
@@ -365,7 +373,34 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
         r.notes.append(f"{len(at_edges)} message(s) without a counterpart among the first or last {edge} of a "
                        "stream (the recording cuts the input there)")
     r.notes.extend(cut)
+    origin = origin_ns or rec[0].t_ns
+    for w, n in held_seen.items():
+        r.notes.append(f"{n} difference(s) between t={(w.from_ns - origin) / 1e9:.2f} and {(w.to_ns - origin) / 1e9:.2f} s, "
+                       f"where the recording machine held {w.service} up ({w.why} in its health); shown, not counted")
     return r
+
+
+def _in_held(held: Sequence[HeldWindow], t_ns: int, seen: dict[HeldWindow, int]) -> bool:
+    """Whether log time *t_ns* is in a held-up window (counted in *seen*)."""
+    for w in held:
+        if w.holds(t_ns):
+            seen[w] = seen.get(w, 0) + 1
+            return True
+    return False
+
+
+# A command stream holds one sequence per actuator, published together (the RC mux's MANUAL_CMD: one message
+# per stick output per frame), so its edges are counted per actuator: a cut frame is one message of each.
+PER_ACTUATOR = "base.actuator_name"
+
+
+def edge_positions(samples: list[Sample], edge: int) -> set[int]:
+    """Indexes of *samples* among the first or last *edge* of their sequence: of the stream, or of their
+    actuator's commands in a command stream (PER_ACTUATOR)."""
+    groups: dict[Any, list[int]] = {}
+    for k, sample in enumerate(samples):
+        groups.setdefault(sample.fields.get(PER_ACTUATOR), []).append(k)
+    return {k for ks in groups.values() for k in (ks[:edge] + ks[-edge:] if edge else [])}
 
 
 def partial(a: Sample, b: Sample, names: list[str]) -> bool:
@@ -426,7 +461,8 @@ def _at_system_change(stream: list[Sample], index: int, system: tuple[str, ...])
 def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[str], start_ns: int | None = None,
                  end_ns: int | None = None, rate: float | None = 1.0, tolerance: ToleranceLike = 1e-6, edge: int = 1,
                  time_tolerance_s: float = 0.5, ignore: tuple[str, ...] = (),
-                 replay_start_ns: int | None = None, pilot: Any = None) -> "CompareReport":
+                 replay_start_ns: int | None = None, pilot: Any = None,
+                 held: Mapping[str, Sequence[HeldWindow]] | None = None) -> "CompareReport":
     """Compare the streams of *services* in *recorded* (within the window) and *replayed*; ``rate=None``: no timing.
 
     *replay_start_ns*: the wall-clock time the playback began (log time *start_ns* was played
@@ -434,6 +470,8 @@ def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[st
     *pilot*: the check of the recorded pilot messages (u2sa_hw.recording.pilot_check.PilotCheck,
     ``ReplayResult.pilot``): reported, and a message that fails it is a finding.
     The recorded pilot trailers never reach the comparison (the log reader cuts them off).
+    *held*: service -> the windows where the recording machine held it up or its input ended
+    (hil.held_up, ``ReplayPlan.held_windows``); what differs there is a note.
     """
     from hil.compare_report import CompareReport
     from hil.compare_states import compare_states
@@ -443,6 +481,7 @@ def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[st
     rec = load_streams(recorded, sources=services, start_ns=start_ns, end_ns=end_ns, ignore=ignore)
     rep = load_streams(replayed, sources=services, ignore=ignore)
     origin = start_ns if start_ns is not None else min((v[0].t_ns for v in rec.values() if v), default=0)
+    windows = held or {}
     reports = []
     for key in sorted(set(rec) | set(rep)):
         a, b = rec.get(key, []), rep.get(key, [])
@@ -453,7 +492,7 @@ def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[st
         else:
             reports.append(compare_stream(key, a, b, tolerance=tol, edge=edge, rate=rate,
                                           time_tolerance_s=time_tolerance_s, replay_start_ns=replay_start_ns,
-                                          origin_ns=origin))
+                                          origin_ns=origin, held=windows.get(key.rsplit(" [", 1)[1][:-1], ())))
     recorded_sources = {key.rsplit(" [", 1)[1] for key in rec}
     for r in reports:
         if not r.recorded and r.key.rsplit(" [", 1)[1] not in recorded_sources:

@@ -83,6 +83,15 @@ class ReplayPlan:
     start_ns: int = 0                              # the replayed window, log time (ns)
     end_ns: int = 0
 
+    def held_windows(self) -> dict[str, list[Any]]:
+        """service -> where the recording machine held it up, or its input ended (hil/held_up.py): what differs
+        there, ``--compare`` reports as a note."""
+        from hil.held_up import plan_windows
+
+        return plan_windows(self.log, kinds={name: sp.kind for name, sp in self.services.items()},
+                            devices={d.name: d.service for d in self.devices.values() if d.service},
+                            start_ns=self.start_ns, end_ns=self.end_ns)
+
     @property
     def duration_s(self) -> float:
         """Seconds of log time replayed."""

@@ -1,7 +1,7 @@
 """A corpus of recordings of varied runs (issue 24), built by the tests once per session: both example
-vehicles (and the boat), the sticks scenario, an RC loss, a GPS fix loss, a manual switch, a driver killed and restarted mid-recording,
-recordings started while the stack runs (one ended by --duration, one cut by SIGKILL and recovered with
-``u2sa log recover``). Each run drives for a few seconds only; the runs go three at a time.
+vehicles (and the boat), the sticks scenario, an RC loss, a GPS fix loss, a manual switch, a driver killed and
+restarted mid-recording, recordings started while the stack runs (one ended by --duration, one cut by SIGKILL and
+recovered with ``u2sa log recover``), and ``u2sa record`` of a ``u2sa mock`` + ``u2sa run`` stack. Each run drives for a few seconds only; the runs go three at a time.
 
 ``build_corpus(dir)`` writes ``<dir>/<name>.mcap`` for each and returns ``{name: path}``; the tests
 (tests/test_replay_corpus.py) and ``bench/replay_corpus.py`` (``replay-check`` over it under
@@ -133,8 +133,60 @@ def _mid_run(work: Path) -> dict[str, Path]:
             "killed-recovered": recovered}
 
 
+def _raw_recording_profile(profile: Path, url: str) -> None:
+    """Turn record_raw on for every driver of *profile* (u2sa mock's copy) and put it on *url*: what a team
+    does to its own profile to record logs that replay."""
+    import tomllib
+
+    import tomli_w
+
+    from hil.replay_plan import declared_fields
+
+    data = tomllib.loads(profile.read_text())
+    data["vehicle"]["lcm_url"] = url
+    for table in data.get("services", {}).values():
+        if "record_raw" in declared_fields(table["kind"]):
+            table.setdefault("settings", {})["record_raw"] = True
+    profile.write_text(tomli_w.dumps(data))
+
+
+def _mock_run(work: Path) -> dict[str, Path]:
+    """``u2sa record`` of a ``u2sa mock`` + ``u2sa run`` stack, as a team runs it by hand: the recording starts
+    first, so it holds every driver's start-up, and ends with Ctrl-C once it holds a few seconds of running."""
+    from u2sa_hw.udp_ports import private_lcm_url, private_udp_port
+
+    url = private_lcm_url()
+    env = dict(_env(), U2SA_LCM_URL=url)
+    run_dir = work / "sim"
+    log = work / "mock-run.mcap"
+    mock = subprocess.Popen([*U2SA, "mock", "--vehicle", str(GROUND), "--run-dir", str(run_dir),
+                             "--can-port", str(private_udp_port())], cwd=work, env=env, stdin=subprocess.DEVNULL,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    procs = [mock]
+    try:
+        profile = run_dir / "vehicle.toml"
+        _wait(profile.is_file, 60, "u2sa mock to write its profile")
+        _raw_recording_profile(profile, url)
+        record = subprocess.Popen([*U2SA, "record", "-o", str(log), "--vehicle", str(profile)], cwd=work, env=env,
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        procs.append(record)   # (its file appears with the first message it hears)
+        procs.append(subprocess.Popen([*U2SA, "run", "--vehicle", str(profile)], cwd=work, env=env,
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        _wait(lambda: log.exists() and log.stat().st_size > 300_000, 120, "the stack's traffic in the recording")
+        for proc in (record, *procs[2:], mock):   # the recording ends first, then the stack, then its mocks
+            proc.send_signal(signal.SIGINT)
+            proc.wait(timeout=90)
+    finally:
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    return {"mock-run": log}
+
+
 JOBS: dict[str, Callable[[Path], dict[str, Path]]] = {
     "mid-run": _mid_run,
+    "mock-run": _mock_run,
     "ackermann": _vehicle("ackermann-sim", ACKERMANN),
     "boat": _vehicle("boat-sim", REPO / "examples" / "boat" / "vehicle.toml"),
     **{name: _scenario(name) for name in SCENARIOS},

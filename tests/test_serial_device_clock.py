@@ -154,3 +154,21 @@ def test_the_replay_device_writes_stamped_chunks_and_its_ticks(tmp_path: Path,
     finally:
         port.close()
         device.stop()
+
+
+def test_with_recorded_silences_a_long_wall_clock_gap_is_no_silence(pty: tuple[int, str],
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """A --fast replay on a loaded machine held the rest of an epoch back for over 2 s (the live driver had
+    read the epoch in two parts): in a stream whose silences are recorded, only RECORDED_SILENCES_GRACE_S of
+    wall time is one (a replay that stopped), never DEVICE_CLOCK_GRACE_S."""
+    monkeypatch.setattr(serial_clock, "DEVICE_CLOCK_GRACE_S", 0.0)   # any wall-clock gap is "long" here
+    master, link = pty
+    port = open_port(f"mock+serial://{link}?clock=stamped", device="gps", timeout=0.05)
+    try:
+        os.write(master, encode_frame(1 * S, b"$GPGGA,1\n", silences_recorded=True))
+        assert wait_until(port.readline, timeout=10, message="the line") == b"$GPGGA,1\n"
+        assert port.readline() == b"" and not port.went_quiet()   # the rest of the burst may still come
+        monkeypatch.setattr(serial_clock, "RECORDED_SILENCES_GRACE_S", 0.0)   # the replay stopped: fail safe
+        assert port.readline() == b"" and port.went_quiet()
+    finally:
+        port.close()

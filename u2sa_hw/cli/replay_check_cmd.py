@@ -108,7 +108,8 @@ def _replay_and_compare(log: Path, out: Path, args: Any, tolerances: Any, began:
                           start_ns=result.plan.start_ns, end_ns=result.plan.end_ns,
                           rate=None if fast else args.rate, tolerance=tolerances, edge=args.edge,
                           time_tolerance_s=args.time_tolerance, ignore=tuple(args.ignore),
-                          replay_start_ns=result.play.started_ns or None, pilot=result.pilot)
+                          replay_start_ns=result.play.started_ns or None, pilot=result.pilot,
+                          held=result.plan.held_windows())
     duration = (result.plan.end_ns - result.plan.start_ns) / 1e9 if result.plan.end_ns else 0.0
     return LogResult(log, "same" if report.ok else "DIFFERENT", time.monotonic() - began, duration,
                      report.summary(), report.to_dict(), list(result.plan.notes))

@@ -126,7 +126,8 @@ def cmd_replay(args: Any) -> int:
                           start_ns=result.plan.start_ns, end_ns=result.plan.end_ns,
                           rate=None if replay.fast else replay.rate, tolerance=tolerances, edge=args.edge,
                           time_tolerance_s=args.time_tolerance, ignore=tuple(args.ignore),
-                          replay_start_ns=result.play.started_ns or None, pilot=result.pilot)
+                          replay_start_ns=result.play.started_ns or None, pilot=result.pilot,
+                          held=result.plan.held_windows())
     if args.json:
         print(json.dumps(report.to_dict(), indent=1))
     else:

@@ -51,6 +51,11 @@ _STARTS = frozenset((STAMP, RECORDED, SILENCE))
 STAMP_DIGITS = 16
 HEADER_LEN = 2 + STAMP_DIGITS
 DEVICE_CLOCK_GRACE_S = 2.0   # the pty silent this long (wall): a readline timeout is a silence again
+# ... in a stream whose silences are recorded ('R', 'Q'), where a wall-clock gap is never one: only a replay
+# that stopped feeding (the player's own stall limit is 20 s). A --fast replay on a loaded machine may hold
+# the rest of a burst back for seconds while other drivers take their input (the live driver read an epoch
+# in two parts, held up in between): 2 s there split one epoch into two fixes, in 1 replay of 5.
+RECORDED_SILENCES_GRACE_S = 30.0
 _HEX = frozenset(b"0123456789abcdefABCDEF")
 
 Frame = tuple[int, "bytes | None"]   # (stamp ns, data bytes; empty for a clock tick, None for a recorded silence)
@@ -171,12 +176,14 @@ class StampedSerialPort(SerialPort):
         return self._line_ns
 
     def went_quiet(self) -> bool:
-        """True when the last empty ``readline()`` stands for a silence of the device: one of ``timeout``
-        on the device clock, or the pty silent for DEVICE_CLOCK_GRACE_S of wall time (a stopped
-        replay never holds a burst back for ever); False for a wall-clock timeout while the
-        device clock is fresh (the replay is only slower than the recording)."""
+        """True when the last empty ``readline()`` stands for a silence of the device: a recorded one, one of
+        ``timeout`` on the device clock, or the pty silent for DEVICE_CLOCK_GRACE_S of wall time
+        (RECORDED_SILENCES_GRACE_S in a stream with recorded silences: a stopped replay never holds a
+        burst back for ever); False for a wall-clock timeout while the device clock is fresh (the replay
+        is only slower than the recording)."""
         heard = self._heard_at
-        return self._clock_quiet or heard is None or time.monotonic() - heard >= DEVICE_CLOCK_GRACE_S
+        grace = RECORDED_SILENCES_GRACE_S if self._decoder.silences_recorded else DEVICE_CLOCK_GRACE_S
+        return self._clock_quiet or heard is None or time.monotonic() - heard >= grace
 
     def _fill(self) -> bool:
         """Wait up to the timeout for bytes from the pty and decode them; False when none came. The data is

@@ -1,0 +1,172 @@
+"""When the recording machine held a replayed service up: the windows of the log where what that service
+published depended on the recording machine's load, which the log does not hold.
+
+A service says so in its health: the RC mux counts its loop's ``stalls`` (a loop gap longer than the signal
+timeout disarms it, judged on the wall clock, never in a replay) and ``timed_skipped`` (a timed message left
+out for being a period behind). A replay runs on the recorded stamps and reproduces neither, so
+``--compare`` reports what differs inside such a window as a note naming the window and the counters,
+instead of as a difference (hil/compare.py). Everywhere else the service is compared as usual.
+
+A window runs from the health message before a counter grew to the one where it had grown (the counters
+are read once a second), widened by HELD_MARGIN_S on each side for the effects that outlast the stall (a
+frame's pulses aged out, the next timed message).
+
+So is where a GPIO driver read its edges late: each recorded edge carries its kernel stamp and the time it
+was tapped, and an edge tapped more than LATE_EDGE_NS after the quickest tap of the log was read that much
+late by the live driver (its loop was held up); the RC mux's timed messages wait at most that long for the
+edges of their frame (drivers/rc_mux_clock.TIMED_HOLD_NS), so one may have gone out without them.
+
+The end of a service's device input is such a window too: from HELD_MARGIN_S before the last input
+record of its devices to the end of the log. There the run was stopping (a simulation stops its mock devices
+before its services, a recorder may stop before or after the stack): what the live driver did about the
+end, in the recording machine's stop order, the replay reproduces only in part.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping
+
+from u2sa_hw.recording.log_reader import LogFile
+
+# service kind -> the health details that count the recording machine holding the service up
+# (``checks_lost``: a service's health came too late for a pre-arm check, on the recording machine's clock)
+HELD_UP_BY_KIND: dict[str, tuple[str, ...]] = {"rc_mux": ("stalls", "timed_skipped", "checks_lost")}
+LATE_EDGE_NS = 50_000_000   # = drivers.rc_mux_clock.TIMED_HOLD_NS (not imported: hil reads logs, not drivers)
+INPUT_TYPES = ("RawGpioEdge", "RawSerial", "RawCanFrame", "RawI2c")   # records of what a device sent its driver
+HELD_MARGIN_S = 0.5
+
+
+@dataclass(frozen=True)
+class HeldWindow:
+    """Log times [from_ns, to_ns] where *service* was held up; *why*: the counters that grew, with their growth."""
+
+    service: str
+    from_ns: int
+    to_ns: int
+    why: str
+
+    def holds(self, t_ns: int) -> bool:
+        """Whether log time *t_ns* is inside the window."""
+        return self.from_ns <= t_ns <= self.to_ns
+
+
+def plan_windows(log: Path | str, *, kinds: Mapping[str, str], devices: Mapping[str, str], start_ns: int,
+                 end_ns: int) -> dict[str, list[HeldWindow]]:
+    """Every held-up window of a replay's services (*kinds*: service -> kind; *devices*: device -> service)."""
+    out = held_windows(log, held_up_counters(kinds), start_ns=start_ns, end_ns=end_ns)
+    for more in (late_edge_windows(log, devices, start_ns=start_ns, end_ns=end_ns),
+                 input_end_windows(log, devices, end_ns=end_ns)):
+        for service, windows in more.items():
+            out.setdefault(service, []).extend(windows)
+    return out
+
+
+def held_up_counters(kinds: Mapping[str, str]) -> dict[str, tuple[str, ...]]:
+    """service -> its held-up counters, for the services (*kinds*: name -> kind) whose kind has any."""
+    return {name: HELD_UP_BY_KIND[kind] for name, kind in kinds.items() if kind in HELD_UP_BY_KIND}
+
+
+def held_windows(log: Path | str, counters: Mapping[str, tuple[str, ...]], *, start_ns: int | None = None,
+                 end_ns: int | None = None) -> dict[str, list[HeldWindow]]:
+    """service -> the windows of *log* where its health counters (*counters*) grew; services with none left out."""
+    from u2sa_hw import lcmtypes as t
+
+    if not counters:
+        return {}
+    margin = int(HELD_MARGIN_S * 1e9)
+    first = start_ns
+    last: dict[str, tuple[int, dict[str, int]]] = {}   # service -> (log time, counters) of its latest health
+    out: dict[str, list[HeldWindow]] = {}
+    for m in LogFile(log).messages("U2SA_HEALTH"):
+        if end_ns is not None and m.log_time_ns > end_ns + margin:
+            break
+        first = m.log_time_ns if first is None else first
+        try:
+            health = t.Health.decode(m.data)
+        except Exception:  # noqa: BLE001 - a malformed health message says nothing about load
+            continue
+        names = counters.get(health.name)
+        if not names:
+            continue
+        details = {kv.key: kv.value for kv in health.details}
+        now = {n: _count(details.get(n)) for n in names}
+        before_t, before = last.get(health.name, (first, dict.fromkeys(names, 0)))
+        grown = {n: now[n] - before.get(n, 0) for n in names if now[n] > before.get(n, 0)}
+        if grown:
+            why = ", ".join(f"{n} +{d}" for n, d in grown.items())
+            out.setdefault(health.name, []).append(HeldWindow(health.name, before_t - margin, m.log_time_ns + margin, why))
+        last[health.name] = (m.log_time_ns, now)
+    return out
+
+
+def _count(text: str | None) -> int:
+    try:
+        return int(text or 0)
+    except ValueError:
+        return 0
+
+
+def input_end_windows(log: Path | str, devices: Mapping[str, str], *, end_ns: int) -> dict[str, list[HeldWindow]]:
+    """service -> [the window from HELD_MARGIN_S before its devices' last input record to *end_ns*]
+    (*devices*: device -> its service)."""
+    from u2sa_hw.messages import REGISTRY, MalformedMessage
+
+    last: dict[str, int] = {}
+    for m in LogFile(log).messages(r"RAW\..*"):
+        if m.log_time_ns > end_ns:
+            break
+        service = devices.get(m.channel[4:])
+        if not service:
+            continue
+        try:
+            rec, _ = REGISTRY.decode(m.data)
+        except MalformedMessage:
+            continue
+        if type(rec).__name__ in INPUT_TYPES and getattr(rec, "direction", getattr(rec, "op", 0)) == 0:
+            last[service] = max(last.get(service, 0), m.log_time_ns)
+    margin = int(HELD_MARGIN_S * 1e9)
+    return {service: [HeldWindow(service, t - margin, end_ns + margin, "the end of its device input, where the "
+                                 "run was stopping")] for service, t in last.items()}
+
+
+def late_edge_windows(log: Path | str, devices: Mapping[str, str], *, start_ns: int,
+                      end_ns: int) -> dict[str, list[HeldWindow]]:
+    """service -> windows (merged) around the recorded GPIO edges its driver tapped more than LATE_EDGE_NS
+    later than the quickest tap of the log (tap time is wall clock, the stamp monotonic: only the
+    difference from the quickest means something)."""
+    from u2sa_hw.messages import REGISTRY, MalformedMessage
+
+    lags: list[tuple[str, int, int]] = []   # (service, log time, tap time - kernel stamp)
+    for m in LogFile(log).messages(r"RAW\..*"):
+        if m.log_time_ns > end_ns:
+            break
+        service = devices.get(m.channel[4:])
+        if not service or m.log_time_ns < start_ns:
+            continue
+        try:
+            rec, _ = REGISTRY.decode(m.data)
+        except MalformedMessage:
+            continue
+        if type(rec).__name__ == "RawGpioEdge" and rec.header.timestamp_us:
+            lags.append((service, m.log_time_ns, int(rec.header.timestamp_us) * 1000 - int(rec.kernel_timestamp_ns)))
+    if not lags:
+        return {}
+    quickest: dict[str, int] = {}
+    for service, _t, lag in lags:
+        quickest[service] = min(quickest.get(service, lag), lag)
+    margin = int(HELD_MARGIN_S * 1e9)
+    out: dict[str, list[HeldWindow]] = {}
+    for service, t, lag in lags:
+        late = lag - quickest[service]
+        if late <= LATE_EDGE_NS:
+            continue
+        windows = out.setdefault(service, [])
+        if windows and windows[-1].to_ns >= t - margin:
+            w = windows[-1]
+            windows[-1] = HeldWindow(service, w.from_ns, t + margin, w.why)
+        else:
+            windows.append(HeldWindow(service, t - margin, t + margin, f"its edges read up to "
+                                      f"{LATE_EDGE_NS / 1e6:.0f}+ ms late"))
+    return out

@@ -1,0 +1,117 @@
+"""``--compare`` where the recording machine held a service up, and at the ends of command streams
+(hil/held_up.py, hil/compare.py).
+
+- The RC mux counts its loop's stalls and the timed messages it skipped for lateness in its health: a
+  replay runs on the recorded stamps and reproduces neither, so what differs between the health message
+  before a counter grew and the one after (widened by HELD_MARGIN_S) is a note naming the window; the same
+  difference anywhere else still counts.
+- A command stream holds one sequence per actuator (the mux's MANUAL_CMD: a message per stick output per
+  frame), so a frame cut at an end is one message of each actuator, all within the edge."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from hil.compare import Sample, compare_stream
+from hil.held_up import HELD_MARGIN_S, HeldWindow, held_up_counters, held_windows, late_edge_windows
+from u2sa_hw import lcmtypes as t
+from u2sa_hw.recording.mcap_log import McapLogWriter
+
+S = 1_000_000_000
+
+
+def mode(k: int, *, armed: int = 1, pulse: int | None = None) -> Sample:
+    steering = 1000 + 10 * k   # the sticks move: each message its own
+    return Sample(S + k * 50_000_000, "RcMode", {"mode": 0, "armed": armed,
+                                                 "pulse_us": (steering if pulse is None else pulse, 1500, 1000)})
+
+
+def command(k: int, actuator: str) -> Sample:
+    return Sample(S + k * 40_000_000, "PercentageCommand", {"base.actuator_name": actuator, "percentage": 0.0})
+
+
+def frames(n: int) -> list[Sample]:
+    return [command(k, a) for k in range(n) for a in ("left_wheel", "right_wheel")]
+
+
+def test_a_difference_inside_a_held_up_window_is_a_note_and_outside_it_counts() -> None:
+    rec = [mode(k) for k in range(40)]
+    rep = [mode(k, pulse=1001 + 10 * k) if k in (10, 30) else mode(k) for k in range(40)]
+    window = HeldWindow("rc", rec[8].t_ns, rec[12].t_ns, "stalls +2")
+    r = compare_stream("RC_MODE [rc]", rec, rep, tolerance=1e-6, edge=1, rate=None, time_tolerance_s=0.5,
+                       held=[window])
+    assert (r.differing, r.matched) == (1, 38) and not r.ok   # #30 is outside: still a difference
+    [note] = [n for n in r.notes if "held rc up" in n]
+    assert note.startswith("1 difference(s)") and "stalls +2" in note
+    # without the window both count
+    r = compare_stream("RC_MODE [rc]", rec, rep, tolerance=1e-6, edge=1, rate=None, time_tolerance_s=0.5)
+    assert r.differing == 2
+
+
+def test_an_unpaired_message_inside_a_held_up_window_is_a_note() -> None:
+    rec = [mode(k) for k in range(40)]
+    rep = rec[:20] + [mode(20, armed=0)] + rec[20:]   # one more message, published while held up
+    window = HeldWindow("rc", rec[18].t_ns, rec[22].t_ns, "timed_skipped +1")
+    r = compare_stream("RC_MODE [rc]", rec, rep, tolerance=1e-6, edge=1, rate=None, time_tolerance_s=0.5,
+                       held=[window])
+    assert r.ok and r.inserted == 0, (r.problems, r.notes)
+
+
+def test_a_frame_cut_at_the_end_of_a_command_stream_is_within_the_edge() -> None:
+    rec, rep = frames(20), frames(21)   # the replay published one frame more: a message for each actuator
+    r = compare_stream("MANUAL_CMD [rc]", rec, rep, tolerance=1e-6, edge=1, rate=None, time_tolerance_s=0.5)
+    assert r.ok and (r.matched, r.inserted) == (40, 0), (r.problems, r.notes)
+    rep = frames(22)   # two frames more: beyond the edge
+    r = compare_stream("MANUAL_CMD [rc]", rec, rep, tolerance=1e-6, edge=1, rate=None, time_tolerance_s=0.5)
+    assert r.inserted == 2 and not r.ok
+
+
+def health(name: str, **details: int) -> bytes:
+    msg = t.Health()
+    msg.name = name
+    for key, value in details.items():
+        kv = t.KeyValue()
+        kv.key, kv.value = key, str(value)
+        msg.details.append(kv)
+    msg.num_details = len(msg.details)
+    return msg.encode()
+
+
+def test_windows_are_where_the_muxs_health_counters_grew(tmp_path: Path) -> None:
+    log = McapLogWriter(tmp_path, path=tmp_path / "run.mcap")
+    counts = [(0, 0), (0, 0), (2, 1), (2, 1), (3, 1)]   # (stalls, timed_skipped) at 1 s intervals
+    for k, (stalls, skipped) in enumerate(counts):
+        log.write("U2SA_HEALTH", health("rc", stalls=stalls, timed_skipped=skipped), (k + 1) * S)
+        log.write("U2SA_HEALTH", health("wheels", stalls=k), (k + 1) * S)   # a motor's stall: not the machine's
+    log.close()
+    counters = held_up_counters({"rc": "rc_mux", "wheels": "odrive_can"})
+    assert counters == {"rc": ("stalls", "timed_skipped", "checks_lost")}
+    windows = held_windows(tmp_path / "run.mcap", counters, start_ns=S)
+    margin = int(HELD_MARGIN_S * S)
+    assert [(w.from_ns, w.to_ns, w.why) for w in windows["rc"]] == [
+        (2 * S - margin, 3 * S + margin, "stalls +2, timed_skipped +1"), (4 * S - margin, 5 * S + margin, "stalls +1")]
+    assert set(windows) == {"rc"}
+
+
+def edge(k: int, *, late_ns: int = 0) -> bytes:
+    rec = t.RawGpioEdge()
+    rec.device, rec.line, rec.edge = "rc", 5, k % 2
+    rec.kernel_timestamp_ns = k * 10_000_000
+    rec.header.timestamp_us = (rec.kernel_timestamp_ns + 1_000_000 + late_ns) // 1000   # tapped 1 ms after, or late
+    return rec.encode()
+
+
+def test_edges_the_live_driver_read_late_make_a_window(tmp_path: Path) -> None:
+    log = McapLogWriter(tmp_path, path=tmp_path / "run.mcap")
+    for k in range(300):   # 3 s of edges; the driver read the ones at 1.00-1.02 s 80 ms late
+        log.write("RAW.rc", edge(k, late_ns=80_000_000 if 100 <= k <= 102 else 0), S + k * 10_000_000)
+    log.close()
+    windows = late_edge_windows(tmp_path / "run.mcap", {"rc": "rc"}, start_ns=S, end_ns=5 * S)
+    margin = int(HELD_MARGIN_S * S)
+    assert [(w.from_ns, w.to_ns) for w in windows["rc"]] == [(2 * S - margin, 2 * S + 20_000_000 + margin)]
+    # read on time: none
+    log = McapLogWriter(tmp_path, path=tmp_path / "quick.mcap")
+    for k in range(300):
+        log.write("RAW.rc", edge(k), S + k * 10_000_000)
+    log.close()
+    assert late_edge_windows(tmp_path / "quick.mcap", {"rc": "rc"}, start_ns=S, end_ns=5 * S) == {}
