@@ -470,7 +470,7 @@ def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[st
     *pilot*: the check of the recorded pilot messages (u2sa_hw.recording.pilot_check.PilotCheck,
     ``ReplayResult.pilot``): reported, and a message that fails it is a finding.
     The recorded pilot trailers never reach the comparison (the log reader cuts them off).
-    *held*: service -> the windows where the recording machine held it up or its input ended
+    *held*: service -> the windows where the recording machine held it up
     (hil.held_up, ``ReplayPlan.held_windows``); what differs there is a note.
     """
     from hil.compare_report import CompareReport

@@ -15,11 +15,6 @@ So is where a GPIO driver read its edges late: each recorded edge carries its ke
 was tapped, and an edge tapped more than LATE_EDGE_NS after the quickest tap of the log was read that much
 late by the live driver (its loop was held up); the RC mux's timed messages wait at most that long for the
 edges of their frame (drivers/rc_mux_clock.TIMED_HOLD_NS), so one may have gone out without them.
-
-The end of a service's device input is such a window too: from HELD_MARGIN_S before the last input
-record of its devices to the end of the log. There the run was stopping (a simulation stops its mock devices
-before its services, a recorder may stop before or after the stack): what the live driver did about the
-end, in the recording machine's stop order, the replay reproduces only in part.
 """
 
 from __future__ import annotations
@@ -34,7 +29,6 @@ from u2sa_hw.recording.log_reader import LogFile
 # (``checks_lost``: a service's health came too late for a pre-arm check, on the recording machine's clock)
 HELD_UP_BY_KIND: dict[str, tuple[str, ...]] = {"rc_mux": ("stalls", "timed_skipped", "checks_lost")}
 LATE_EDGE_NS = 50_000_000   # = drivers.rc_mux_clock.TIMED_HOLD_NS (not imported: hil reads logs, not drivers)
-INPUT_TYPES = ("RawGpioEdge", "RawSerial", "RawCanFrame", "RawI2c")   # records of what a device sent its driver
 HELD_MARGIN_S = 0.5
 
 
@@ -56,10 +50,8 @@ def plan_windows(log: Path | str, *, kinds: Mapping[str, str], devices: Mapping[
                  end_ns: int) -> dict[str, list[HeldWindow]]:
     """Every held-up window of a replay's services (*kinds*: service -> kind; *devices*: device -> service)."""
     out = held_windows(log, held_up_counters(kinds), start_ns=start_ns, end_ns=end_ns)
-    for more in (late_edge_windows(log, devices, start_ns=start_ns, end_ns=end_ns),
-                 input_end_windows(log, devices, end_ns=end_ns)):
-        for service, windows in more.items():
-            out.setdefault(service, []).extend(windows)
+    for service, windows in late_edge_windows(log, devices, start_ns=start_ns, end_ns=end_ns).items():
+        out.setdefault(service, []).extend(windows)
     return out
 
 
@@ -106,29 +98,6 @@ def _count(text: str | None) -> int:
         return int(text or 0)
     except ValueError:
         return 0
-
-
-def input_end_windows(log: Path | str, devices: Mapping[str, str], *, end_ns: int) -> dict[str, list[HeldWindow]]:
-    """service -> [the window from HELD_MARGIN_S before its devices' last input record to *end_ns*]
-    (*devices*: device -> its service)."""
-    from u2sa_hw.messages import REGISTRY, MalformedMessage
-
-    last: dict[str, int] = {}
-    for m in LogFile(log).messages(r"RAW\..*"):
-        if m.log_time_ns > end_ns:
-            break
-        service = devices.get(m.channel[4:])
-        if not service:
-            continue
-        try:
-            rec, _ = REGISTRY.decode(m.data)
-        except MalformedMessage:
-            continue
-        if type(rec).__name__ in INPUT_TYPES and getattr(rec, "direction", getattr(rec, "op", 0)) == 0:
-            last[service] = max(last.get(service, 0), m.log_time_ns)
-    margin = int(HELD_MARGIN_S * 1e9)
-    return {service: [HeldWindow(service, t - margin, end_ns + margin, "the end of its device input, where the "
-                                 "run was stopping")] for service, t in last.items()}
 
 
 def late_edge_windows(log: Path | str, devices: Mapping[str, str], *, start_ns: int,

@@ -50,8 +50,8 @@ class PlayStats:
     late_s: float = 0.0       # the largest lag behind the clock (rate mode)
     wall_s: float = 0.0       # playback time
     started_ns: int = 0       # wall clock (ns) when the playback began: log time start_ns was played then
-    order_waits: int = 0      # republished messages held until a replayed service's earlier output was out
-    order_timeouts: int = 0   # ... that went out after ORDER_WAIT_S without it (the replay published fewer)
+    order_waits: int = 0      # republished messages held until the replayed state was the recorded one
+    order_timeouts: int = 0   # ... that went out after ORDER_WAIT_S without it (the replay never got there)
 
     @property
     def republished(self) -> int:
@@ -60,11 +60,23 @@ class PlayStats:
 
 
 # Channels a replayed service publishes that decide what another replayed service does with a republished
-# message: the RC mux's RC_MODE admits or refuses an actuator's ACTUATOR_CMD (u2sa_hw.safety.gate). Recorded,
-# the mode change came before the first obeyed command; replayed --fast, the player would republish that
-# command while the replayed mux was still decoding the edges before it, and the driver refused it.
-ORDERED_CHANNELS = ("RC_MODE",)
-ORDER_WAIT_S = 2.0   # how long a republished message waits for them before it goes out anyway (counted)
+# message, with the fields that do: the RC mux's RC_MODE admits or refuses an actuator's ACTUATOR_CMD by its
+# mode and autonomy_enabled (u2sa_hw.safety.gate). Recorded, the mode change came before the first obeyed
+# command; replayed --fast, the player would republish that command while the replayed mux was still decoding
+# the edges before it, and the driver refused it. So a republished message waits until the replayed state
+# (those fields of the replayed service's newest message) is the recorded one as of the message: a state,
+# not a count, because a loaded recording machine may have made the mux flap more or less often than a
+# replay does where it was held up (hil/held_up.py).
+ORDERED_CHANNELS: dict[str, tuple[str, ...]] = {"RC_MODE": ("mode", "autonomy_enabled")}
+# How long a republished message waits for it before it goes out anyway (counted, and that state is not
+# waited for again): well under the replay devices' clock grace (2 s), or a state the replay never reaches
+# would starve every replayed driver meanwhile.
+ORDER_WAIT_S = 0.5
+
+
+def authority_key(channel: str, msg: Any) -> tuple[Any, ...]:
+    """The values of *channel*'s deciding fields (ORDERED_CHANNELS) in *msg*."""
+    return tuple(getattr(msg, name, None) for name in ORDERED_CHANNELS[channel])
 
 
 class RecordedBusMessage:
@@ -107,7 +119,7 @@ class Player:
                  republish: set[str], replayed_services: set[str], start_ns: int, end_ns: int,
                  rate: float | None, abort: threading.Event, abort_reason: Callable[[], str],
                  progress: Callable[[float], None] = lambda _s: None, stall_timeout_s: float = 20.0,
-                 replayed_seen: Callable[[str], int] | None = None) -> None:
+                 replayed_state: Callable[[str], tuple[Any, ...] | None] | None = None) -> None:
         if rate is not None and not rate > 0:
             raise ValueError(f"--rate must be > 0, got {rate!r}")
         self.log_path = log_path
@@ -122,10 +134,11 @@ class Player:
         self.progress = progress
         self.stall_timeout_s = stall_timeout_s
         self.stats = PlayStats()
-        # ORDERED_CHANNELS: how many of the replayed services' messages on each the replay bus has carried
-        # (None: not watched), and how many the recording had before the next republished message
-        self.replayed_seen = replayed_seen
-        self._owed: dict[str, int] = {}
+        # ORDERED_CHANNELS: the replayed services' newest state on each, as the replay bus carried it (None:
+        # not watched); the recorded state as of the next republished message; states given up waiting for
+        self.replayed_state = replayed_state
+        self._want_state: dict[str, tuple[Any, ...]] = {}
+        self._given_up: dict[str, tuple[Any, ...]] = {}
         self.bus_inputs: dict[str, list[str]] = {}   # channel -> devices that take its recorded messages
         for name, device in devices.items():
             for channel in getattr(device, "bus_inputs", ()):
@@ -150,7 +163,7 @@ class Player:
         return channel in self.bus_inputs or channel in self.republish or self._ordered(channel)
 
     def _ordered(self, channel: str) -> bool:
-        return self.replayed_seen is not None and channel in ORDERED_CHANNELS
+        return self.replayed_state is not None and channel in ORDERED_CHANNELS
 
     def _recorded(self) -> Iterator[tuple[int, str, Any]]:
         start_ns, end_ns = self.start_ns, self.end_ns
@@ -180,7 +193,7 @@ class Player:
                 if not replayed and channel in self.republish:
                     yield log_time_ns, f"bus:{channel}", data
                 elif replayed and ordered:
-                    yield log_time_ns, f"order:{channel}", None
+                    yield log_time_ns, f"order:{channel}", authority_key(channel, msg)
 
     def _bursts(self) -> Iterator[tuple[int, str, Any]]:
         """Fast mode: each device's bursts written whole.
@@ -254,12 +267,12 @@ class Player:
                     raise RuntimeError(self.abort_reason())
                 self.stats.late_s = max(self.stats.late_s, -delay)
             if target.startswith("order:"):
-                if self.replayed_seen is not None:
-                    self._owed[target[6:]] = self._owed.get(target[6:], 0) + 1
+                if self.replayed_state is not None:
+                    self._want_state[target[6:]] = payload
                 continue
             if target.startswith("bus:"):
                 channel = target[4:]
-                if self._owed:
+                if self._want_state:
                     self._wait_ordered()
                 if self.transport is not None:
                     self.transport.publish_bytes(channel, payload)
@@ -284,27 +297,32 @@ class Player:
         return self.stats
 
     def _wait_ordered(self) -> None:
-        """Hold a republished message until the replay bus has carried every replayed message on
-        ORDERED_CHANNELS that the recording had before it (at most ORDER_WAIT_S; then it goes out, counted,
-        and the missing ones are not waited for again)."""
-        assert self.replayed_seen is not None
-        behind = [c for c, owed in self._owed.items() if self.replayed_seen(c) < owed]
-        if not behind:
+        """Hold a republished message until the replayed state on every ORDERED_CHANNELS channel is the
+        recorded one as of it (at most ORDER_WAIT_S; then it goes out, counted, and that state is not waited
+        for again)."""
+        assert self.replayed_state is not None
+        state = self.replayed_state
+
+        def behind() -> list[str]:
+            return [c for c, want in self._want_state.items() if self._given_up.get(c) != want and state(c) != want]
+
+        waiting = behind()
+        if not waiting:
             return
         self.stats.order_waits += 1
         deadline = time.monotonic() + ORDER_WAIT_S
         pause = 0.0002
-        while behind:
+        while waiting:
             if self.abort.is_set():
                 raise RuntimeError(self.abort_reason())
             if time.monotonic() > deadline:
                 self.stats.order_timeouts += 1
-                for c in behind:
-                    self._owed[c] = self.replayed_seen(c)
+                for c in waiting:
+                    self._given_up[c] = self._want_state[c]
                 return
             time.sleep(pause)
             pause = min(0.002, pause * 2)
-            behind = [c for c in behind if self.replayed_seen(c) < self._owed[c]]
+            waiting = behind()
 
     def _backlog_due(self, device: ReplayDevice) -> bool:
         """Whether to check the backlog of *device* (one with a backlog allowance) before its next record: when

@@ -27,7 +27,9 @@ from typing import Any, Callable
 import tomli_w
 
 from u2sa_hw.bus_key import KEY_ENV, fresh_key_file
+from u2sa_hw.channels import base_type
 from u2sa_hw.launcher import Launcher, ProcessStatus, RestartPolicy
+from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo
 from u2sa_hw.services.recorder.capture import BusCapture
 from u2sa_hw.transport import Transport, TransportError, check_multicast
@@ -35,7 +37,7 @@ from u2sa_hw.vehicle import load_profile
 from u2sa_hw.udp_ports import private_lcm_url
 
 from hil.compare import STATE_CHANNELS
-from hil.player import ORDERED_CHANNELS, PlayStats, Player
+from hil.player import ORDERED_CHANNELS, PlayStats, Player, authority_key
 from hil.progress import ProgressBar
 from hil.replay_devices import ReplayDevice, ReplaySerialDevice, ReplayStalled
 from hil.replay_i2c import held_drivers, release_held_reads
@@ -93,7 +95,7 @@ class ReplayResult:
                 + (f" ({self.lost} more lost on the replay bus)" if self.lost else "")
                 + f"; {self.written} written to {self.out}, {self.dropped} dropped"
                 + (f"; {self.play.order_timeouts} recorded messages went out without the replayed "
-                   f"{'/'.join(ORDERED_CHANNELS)} the recording had before them (the replay published fewer)"
+                   f"{'/'.join(ORDERED_CHANNELS)} state the recording had then (the replay never reached it)"
                    if self.play.order_timeouts else ""))
 
 
@@ -190,7 +192,7 @@ class Replay:
         self._stopping = False
         self._health: dict[str, dict[str, str]] = {}   # service -> its latest health details
         self._received: dict[str, int] = {}    # service -> its outputs the replay bus delivered here
-        self._replayed_on: dict[str, int] = {}  # ORDERED_CHANNELS -> the replayed services' messages on it heard
+        self._replayed_state: dict[str, tuple[Any, ...]] = {}  # ORDERED_CHANNELS: the replayed services' newest
         self._published: dict[str, int] = {}   # service -> its outputs by its own count (latest health)
         self._heard: dict[str, dict[str, int]] = {}   # service -> messages it took per channel (latest health)
         self._listeners: dict[str, set[str]] = {}     # republished channel -> the services that take it from the bus
@@ -232,11 +234,19 @@ class Replay:
         if source in self.plan.services:
             self._received[source] = self._received.get(source, 0) + 1
             if channel in ORDERED_CHANNELS:
-                self._replayed_on[channel] = self._replayed_on.get(channel, 0) + 1
+                self._note_ordered(channel, data)
             # state channels are published on a timer too, so they are waited for only when that timer
             # runs on a replay chip's clock, which stops with the recorded edges (GPIO logs)
             if channel not in STATE_CHANNELS or self._clocked:
                 self._last_output = time.monotonic()
+
+    def _note_ordered(self, channel: str, data: bytes) -> None:
+        """A replayed message on an ORDERED_CHANNELS channel: its deciding fields are the replayed state now."""
+        try:
+            msg, _ = REGISTRY.decode(data, base_type(channel))
+        except MalformedMessage:
+            return
+        self._replayed_state[channel] = authority_key(channel, msg)
 
     def _note_health(self, data: bytes) -> None:
         from u2sa_hw import lcmtypes as t
@@ -444,7 +454,7 @@ class Replay:
                             replayed_services=set(self.plan.services), start_ns=self.plan.start_ns,
                             end_ns=self.plan.end_ns, rate=None if self.fast else self.rate, abort=self.abort,
                             abort_reason=lambda: self._abort_reason, progress=bar.update,
-                            replayed_seen=lambda channel: self._replayed_on.get(channel, 0))
+                            replayed_state=self._replayed_state.get)
             try:
                 stats = player.run()
             except RuntimeError as exc:

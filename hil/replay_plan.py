@@ -84,7 +84,7 @@ class ReplayPlan:
     end_ns: int = 0
 
     def held_windows(self) -> dict[str, list[Any]]:
-        """service -> where the recording machine held it up, or its input ended (hil/held_up.py): what differs
+        """service -> where the recording machine held it up (hil/held_up.py): what differs
         there, ``--compare`` reports as a note."""
         from hil.held_up import plan_windows
 
@@ -308,11 +308,12 @@ SETUP_SCAN_READS = 3   # reads of one register with no write before them: the dr
 
 
 def i2c_setup_recorded(log: LogFile, device: str) -> bool:
-    """True when RAW.*device* holds its driver's chip set-up: a write (every supported chip driver configures
-    its chip when it opens it; sampling only reads) before any register is read SETUP_SCAN_READS times. A
-    recording started while the stack ran (``u2sa record``, a recorder restarted, a log recovered after a cut)
-    begins with data reads: a replay could not identify the chip, and its calibration is not in the log.
-    Reads the log only up to that point."""
+    """True when RAW.*device* holds its driver's chip set-up from its start: the device's first record is a
+    read (every supported chip driver reads the chip's identity first) and a write follows (it configures
+    the chip; sampling only reads) before any register is read SETUP_SCAN_READS times. A recording started
+    while the stack ran (``u2sa record``, a recorder restarted, a log recovered after a cut) begins with data
+    reads, or inside the set-up after the identity read: a replay could not identify the chip, and its
+    calibration is not in the log. Reads the log only up to that point."""
     from u2sa_hw.messages import REGISTRY, MalformedMessage
     from u2sa_hw.ports.i2c_port import OP_READ, OP_WRITE
 
@@ -325,7 +326,7 @@ def i2c_setup_recorded(log: LogFile, device: str) -> bool:
         if type(rec).__name__ != "RawI2c":
             continue
         if rec.op == OP_WRITE:
-            return True
+            return bool(reads)   # a write first: the recording began inside the set-up, after the identity read
         if rec.op == OP_READ:
             key = (int(rec.address), int(rec.register_address))
             reads[key] = reads.get(key, 0) + 1

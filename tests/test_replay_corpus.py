@@ -47,4 +47,4 @@ def test_every_recording_of_the_corpus_replays_same(corpus: dict[str, Path], tmp
         left_out = [n for n in r["notes"] if "set its chip up" in n]
         # the IMU's set-up is in every log but those begun while the stack drove; there it is left out, said so
         assert bool(left_out) == (name in MID_RUN), (name, r["notes"])
-    assert f"{len(KINDS)} logs: {len(KINDS)} same, 0 different, 0 could not be replayed" in done.stderr
+    assert done.stderr.count(": same in ") == len(KINDS), done.stderr   # the progress line of each

@@ -161,5 +161,7 @@ def test_a_log_begun_after_the_chip_set_up_is_told_from_one_that_holds_it(socket
     assert i2c_setup_recorded(write_log(sockets / "whole.mcap", RECORDS), "imu")
     mid_run = [r for sample in SAMPLES for r in (raw(DATA, sample), raw(0x03, sample[:2], address=0x0C))]
     assert not i2c_setup_recorded(write_log(sockets / "mid-run.mcap", mid_run), "imu")
+    # begun inside the set-up, after the identity read: its first record is a write
+    assert not i2c_setup_recorded(write_log(sockets / "inside.mcap", RECORDS[1:]), "imu")
     # too few reads to tell: replayed as before
     assert i2c_setup_recorded(write_log(sockets / "short.mcap", mid_run[:2]), "imu")
