@@ -133,21 +133,28 @@ def _mid_run(work: Path) -> dict[str, Path]:
             "killed-recovered": recovered}
 
 
-def _raw_recording_profile(profile: Path, url: str) -> None:
-    """Turn record_raw on for every driver of *profile* (u2sa mock's copy) and put it on *url*: what a team
-    does to its own profile to record logs that replay."""
+def _raw_recording_profile(sim_profile: Path, out: Path, url: str) -> bool:
+    """Write *out*: u2sa mock's profile (*sim_profile*) with record_raw on for every driver and its bus on
+    *url*, what a team does to its own profile to record logs that replay. False while u2sa mock has not
+    finished writing its profile."""
     import tomllib
 
     import tomli_w
 
     from hil.replay_plan import declared_fields
 
-    data = tomllib.loads(profile.read_text())
+    try:
+        data = tomllib.loads(sim_profile.read_text())
+    except (OSError, tomllib.TOMLDecodeError):
+        return False
+    if "vehicle" not in data or "services" not in data:
+        return False
     data["vehicle"]["lcm_url"] = url
-    for table in data.get("services", {}).values():
+    for table in data["services"].values():
         if "record_raw" in declared_fields(table["kind"]):
             table.setdefault("settings", {})["record_raw"] = True
-    profile.write_text(tomli_w.dumps(data))
+    out.write_text(tomli_w.dumps(data))
+    return True
 
 
 def _mock_run(work: Path) -> dict[str, Path]:
@@ -164,9 +171,9 @@ def _mock_run(work: Path) -> dict[str, Path]:
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     procs = [mock]
     try:
-        profile = run_dir / "vehicle.toml"
-        _wait(profile.is_file, 60, "u2sa mock to write its profile")
-        _raw_recording_profile(profile, url)
+        profile = work / "vehicle.toml"
+        _wait(lambda: _raw_recording_profile(run_dir / "vehicle.toml", profile, url), 60,
+              "u2sa mock to write its profile")
         record = subprocess.Popen([*U2SA, "record", "-o", str(log), "--vehicle", str(profile)], cwd=work, env=env,
                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         procs.append(record)   # (its file appears with the first message it hears)
