@@ -16,12 +16,8 @@ sentence unset, so fields are read with :func:`number` / :func:`text`, which giv
 / ``""`` for both and never a stale or zero value; :func:`number` also gives None for a
 value that is no finite float (a 400-digit field, ``inf``), so no caller meets an overflow.
 
-An *epoch* is the burst of sentences a receiver sends for one solution.
-:class:`EpochCollector` ends an epoch when a sentence carries a different UTC time than
-the epoch so far, when a once-per-epoch sentence kind repeats, or when the caller reports
-that the line went quiet (:meth:`EpochCollector.flush`). With ``end_on_complete`` it also
-learns what a complete epoch holds and ends one as soon as its last sentence arrives,
-instead of waiting for the silence (see :class:`EpochCollector`).
+An *epoch* is the burst of sentences a receiver sends for one solution (:class:`Epoch`);
+the GPS driver's rules for where one ends are in :mod:`drivers.gps_epochs`.
 """
 
 from __future__ import annotations
@@ -29,9 +25,8 @@ from __future__ import annotations
 import datetime as dt
 import math
 import re
-from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any, Iterable
+from typing import Any
 
 from pynmeagps import VALMSGID, NMEAMessage, NMEAReader
 from pynmeagps.exceptions import NMEAMessageError, NMEAParseError, NMEATypeError
@@ -200,123 +195,3 @@ class Epoch:
         """The talker ids seen in this epoch."""
         return {s.talker for s in self.sentences}
 
-
-class EpochCollector:
-    """Groups parsed sentences into epochs (the rules are in the module docstring).
-
-    With ``end_on_complete`` the collector learns the epoch's content: the sentence kinds,
-    with their counts, of an epoch that ended the ordinary way (new UTC time, repeated kind,
-    silence). Once two such epochs in a row hold the same kinds, that set is *expected*, and
-    an epoch that holds all of it ends at once -- the receiver has said everything, so the
-    silence after the burst is not waited for. The ordinary rules stay in force for epochs
-    that never complete (a dropped sentence, a stall mid-burst).
-
-    A receiver whose epochs differ (a ZDA once a second, a GSV cycle) can send a sentence
-    after an epoch that looked complete. Until the line goes quiet, a sentence that is not
-    the expected first kind and carries the ended epoch's UTC time (or no time) belongs to
-    the epoch already handed out: it is *late*, dropped and counted (``late``), and ending on
-    completion is switched off (``varying``) until :meth:`reset`, so such a receiver is read
-    the ordinary way and loses nothing more.
-    """
-
-    def __init__(self, *, repeatable: Iterable[str] = REPEATABLE_KINDS, end_on_complete: bool = False) -> None:
-        self.repeatable = frozenset(repeatable)
-        self.end_on_complete = end_on_complete
-        self._pending: Epoch | None = None
-        self._pending_kinds: Counter[str] = Counter()
-        self.expected: Counter[str] | None = None   # the content of a complete epoch, once learned
-        self.first_kind = ""                        # the expected epoch's first sentence kind
-        self._last_kinds: tuple[Counter[str], str] | None = None   # the previous ordinarily ended epoch
-        self._ended_early: Epoch | None = None      # ended on completion; the line has not gone quiet since
-        self.completed = 0   # epochs ended on completion
-        self.late = 0        # sentences that came after their epoch had ended on completion
-        self.varying = False
-
-    @property
-    def pending(self) -> Epoch | None:
-        """The epoch being collected, if any."""
-        return self._pending
-
-    @property
-    def mode(self) -> str:
-        """How epochs end now: ``"on completion"``, ``"learning"`` or ``"on silence"``."""
-        if not self.end_on_complete or self.varying:
-            return "on silence"
-        return "on completion" if self.expected is not None else "learning"
-
-    def add(self, sentence: Sentence, *, received: float) -> Epoch | None:
-        """Add *sentence*; returns the epoch it ended: the previous one, or its own when it completes it."""
-        when = utc_time(sentence.msg)
-        if self._ended_early is not None:
-            if self._is_late(sentence.kind, when):
-                self.late += 1
-                self.varying = True
-                return None
-            self._ended_early = None
-        done = None
-        cur = self._pending
-        if cur is not None and self._starts_new(cur, sentence.kind, when):
-            done, cur = self._end(), None
-        if cur is None:
-            cur = self._pending = Epoch(received=received)
-        if cur.time is None and when is not None:
-            cur.time = when
-        cur.sentences.append(sentence)
-        self._pending_kinds[sentence.kind] += 1
-        # the sentence that ended the previous epoch does not also end its own (only a one-sentence epoch could)
-        if done is None and self._complete():
-            self._ended_early = cur
-            self.completed += 1
-            self._pending, self._pending_kinds = None, Counter()
-            return cur
-        return done
-
-    def _starts_new(self, cur: Epoch, kind: str, when: dt.time | None) -> bool:
-        if when is not None and cur.time is not None and when != cur.time:
-            return True
-        return kind not in self.repeatable and kind in self._pending_kinds
-
-    def _complete(self) -> bool:
-        expected = self.expected
-        if expected is None or self.varying or not self.end_on_complete:
-            return False
-        have = self._pending_kinds
-        return all(have[kind] >= n for kind, n in expected.items())
-
-    def _is_late(self, kind: str, when: dt.time | None) -> bool:
-        if kind == self.first_kind:
-            return False
-        ended = self._ended_early
-        return when is None or ended is None or ended.time is None or when == ended.time
-
-    def _end(self) -> Epoch | None:
-        """End the pending epoch the ordinary way, learning its content."""
-        done, kinds = self._pending, self._pending_kinds
-        self._pending, self._pending_kinds = None, Counter()
-        if done is not None and self.end_on_complete and not self.varying:
-            first = done.sentences[0].kind
-            if self._last_kinds == (kinds, first):
-                self.expected, self.first_kind = kinds, first
-            self._last_kinds = (kinds, first)
-        return done
-
-    def dropped(self, kind: str) -> Epoch | None:
-        """A *kind* sentence was dropped (bad checksum). If it would have started a new epoch
-        (a kind the pending epoch already holds), the pending epoch is over: end and return it,
-        so a run of corrupted sentences does not hold the last good epoch back."""
-        cur = self._pending
-        if cur is None or kind in self.repeatable or kind not in self._pending_kinds:
-            return None
-        self._ended_early = None
-        return self._end()
-
-    def flush(self) -> Epoch | None:
-        """End the pending epoch (the line went quiet); returns it, or None when there is none."""
-        self._ended_early = None
-        return self._end()
-
-    def reset(self) -> None:
-        """Drop the pending epoch and everything learned (the port was lost or reopened)."""
-        self._pending, self._pending_kinds = None, Counter()
-        self.expected, self.first_kind, self._last_kinds, self._ended_early = None, "", None, None
-        self.varying = False

@@ -31,12 +31,9 @@ from u2sa_hw.config import ConfigError, field
 from u2sa_hw.ports import PortClosed, PortIOError, PortUnavailable
 from u2sa_hw.ports.device_link import DeviceLink, device_setting
 from u2sa_hw.ports.legacy import serial_address
+from u2sa_hw.ports.address_schemes import BAUDRATES, BYTESIZES, PARITIES, STOPBITS   # the one framing table
 from u2sa_hw.ports.serial_port import SerialPort
 
-BAUDRATES = (4800, 9600, 19200, 38400, 57600, 115200)
-BYTESIZES = (5, 6, 7, 8)
-PARITIES = ("N", "E", "O", "M", "S")  # none, even, odd, mark, space (pyserial's letters)
-STOPBITS = (1.0, 1.5, 2.0)
 _PORT_FIELDS = ("device", "port", "baudrate", "bytesize", "parity", "stopbits", "device_name", "epoch_gap_s")
 
 
@@ -48,7 +45,7 @@ class SerialLineSensor(ProprioceptiveSensor):
                             "(empty: the service name)"),
         field("port", "", "old form of the address: device path (/dev/u2sa/NAME) or pyserial URL; "
                           "[devices.NAME] address wins"),
-        field("baudrate", 9600, "old form (with port): one of 4800, 9600, 19200, 38400, 57600, 115200",
+        field("baudrate", 9600, f"old form (with port): one of {', '.join(map(str, BAUDRATES))}",
               choices=BAUDRATES),
         field("bytesize", 8, "old form (with port): data bits: 5, 6, 7 or 8", choices=BYTESIZES),
         field("parity", "N", "old form (with port): parity: N (none), E (even), O (odd), M (mark) or S (space)",

@@ -30,7 +30,7 @@ from u2sa_hw.bus_key import KEY_ENV, fresh_key_file
 from u2sa_hw.channels import base_type
 from u2sa_hw.launcher import Launcher, ProcessStatus, RestartPolicy
 from u2sa_hw.messages import REGISTRY, MalformedMessage
-from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo
+from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo, header_source
 from u2sa_hw.services.recorder.capture import BusCapture
 from u2sa_hw.transport import Transport, TransportError, check_multicast
 from u2sa_hw.vehicle import load_profile
@@ -140,22 +140,6 @@ def _replay_options(dev: DevicePlan, service: ServicePlan) -> dict[str, Any]:
     return replay_options(cls, dev.name, {**service.config, **service.overrides})
 
 
-def raw_source(data: bytes) -> str:
-    """The header's source service straight from a message's bytes ('' if they hold none).
-
-    Every U2SA type's root header comes first (an extension's first field is its parent), so
-    after the 8-byte fingerprint: int32 system id, int64 timestamp, then the source string
-    (int32 length with its NUL, the bytes). Decoding whole messages here would cost the
-    replay's bus thread the time it needs to keep up with a --fast replay.
-    """
-    if len(data) < 24:
-        return ""
-    n = int.from_bytes(data[20:24], "big")
-    if n < 1 or 24 + n > len(data):
-        return ""
-    return data[24:24 + n - 1].decode("utf-8", "replace")
-
-
 class _Outputs:
     """The services' output lines (the last few per service, for error messages)."""
 
@@ -230,7 +214,7 @@ class Replay:
             return
         if channel.startswith("RAW.") or channel == "LCM_SELF_TEST":
             return
-        source = raw_source(data)
+        source = header_source(data)
         if source in self.plan.services:
             self._received[source] = self._received.get(source, 0) + 1
             if channel in ORDERED_CHANNELS:

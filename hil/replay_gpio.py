@@ -58,6 +58,7 @@ from typing import Any, Iterator
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.ports.address import DeviceAddress, make_address
 from u2sa_hw.recording.log_reader import LogFile
+from u2sa_hw.recording.mcap_log import header_source
 
 from hil.replay_plan import ReplayError
 
@@ -125,8 +126,6 @@ class ReplayGpioDevice:
     def preload(self, log_path: Path, *, start_ns: int, end_ns: int) -> None:
         """Read the log once: the device's start levels, the lines used, the taps' lag, whether edges are timed,
         and when the recorded driver ran (its first message of any kind, its last output or record)."""
-        from hil.replay import raw_source
-
         first_in_window: dict[int, int] = {}
         raw = f"RAW.{self.name}"
         last_edge_log: int | None = None    # log time of the window's latest edge so far
@@ -134,7 +133,7 @@ class ReplayGpioDevice:
             if m.log_time_ns > end_ns:
                 break
             if m.channel != raw:
-                if self.service and raw_source(m.data) == self.service:
+                if self.service and header_source(m.data) == self.service:
                     if self._driver_from_ns is None:
                         self._driver_from_ns = m.log_time_ns
                     if not m.channel.startswith("U2SA_"):

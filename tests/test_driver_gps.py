@@ -495,7 +495,7 @@ def test_gps_refuses_an_unsupported_baud_rate_with_a_clear_error(services: Servi
     proc = start_driver(services, profile, "gps")
     assert proc.wait(timeout=20) != 0
     out = (tmp_path / "gps.stderr").read_text()
-    assert "field 'baudrate' must be one of 4800, 9600, 19200, 38400, 57600, 115200; got 1234" in out
+    assert "field 'baudrate' must be one of 1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600; got 1234" in out
 
 
 def test_gps_opens_the_port_with_the_configured_framing_and_changes_it_live(

@@ -400,8 +400,8 @@ def test_a_service_that_dies_ends_the_replay_with_its_reason(driver_log: Path, t
     res = replay_cli(str(driver_log), "--fast", "--set", "gps.baudrate=1234", "-o", str(tmp_path / "x.mcap"),
                      cwd=tmp_path)
     assert res.returncode == 2 and res.stderr.strip().splitlines() == [
-        "u2sa: --set gps.baudrate=1234: field 'baudrate' must be one of 4800, 9600, 19200, 38400, 57600, 115200; "
-        "got 1234"], res.stderr
+        "u2sa: --set gps.baudrate=1234: field 'baudrate' must be one of 1200, 2400, 4800, 9600, 19200, 38400, 57600, "
+        "115200, 230400, 460800, 921600; got 1234"], res.stderr
     # values each field takes but the driver cannot start with (a singular soft-iron matrix)
     res = replay_cli(str(driver_log), "--fast", "--set", "compass.mag_matrix=[0,0,0,0,0,0,0,0,0]",
                      "-o", str(tmp_path / "x.mcap"), cwd=tmp_path)
