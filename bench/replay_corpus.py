@@ -19,7 +19,8 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tests"))
+# not bench/ itself: bench/drivers.py would stand in for the drivers package (issue 25, one namespace)
+sys.path[0:1] = [str(REPO), str(REPO / "tests")]
 
 from replay_corpus import build_corpus  # noqa: E402
 
