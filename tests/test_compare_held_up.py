@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from test_health_watch import mux_health
+
 from hil.compare import Sample, compare_stream
 from hil.held_up import HELD_MARGIN_S, HeldWindow, held_up_counters, held_windows, late_edge_windows
 from u2sa_hw import lcmtypes as t
@@ -66,23 +68,12 @@ def test_a_frame_cut_at_the_end_of_a_command_stream_is_within_the_edge() -> None
     assert r.inserted == 2 and not r.ok
 
 
-def health(name: str, **details: int) -> bytes:
-    msg = t.Health()
-    msg.name = name
-    for key, value in details.items():
-        kv = t.KeyValue()
-        kv.key, kv.value = key, str(value)
-        msg.details.append(kv)
-    msg.num_details = len(msg.details)
-    return msg.encode()
-
-
 def test_windows_are_where_the_muxs_health_counters_grew(tmp_path: Path) -> None:
     log = McapLogWriter(tmp_path, path=tmp_path / "run.mcap")
     counts = [(0, 0), (0, 0), (2, 1), (2, 1), (3, 1)]   # (stalls, timed_skipped) at 1 s intervals
     for k, (stalls, skipped) in enumerate(counts):
-        log.write("U2SA_HEALTH", health("rc", stalls=stalls, timed_skipped=skipped), (k + 1) * S)
-        log.write("U2SA_HEALTH", health("wheels", stalls=k), (k + 1) * S)   # a motor's stall: not the machine's
+        log.write("U2SA_HEALTH", mux_health("rc", stalls=stalls, timed_skipped=skipped).encode(), (k + 1) * S)
+        log.write("U2SA_HEALTH", mux_health("wheels", stalls=k).encode(), (k + 1) * S)   # a motor's stall: not the machine's
     log.close()
     counters = held_up_counters({"rc": "rc_mux", "wheels": "odrive_can"})
     assert counters == {"rc": ("stalls", "timed_skipped", "checks_lost")}
