@@ -70,7 +70,7 @@ def test_a_wrong_setting_is_refused_with_the_checks_line_naming_file_service_and
     assert "\n" not in text, text
     assert f"error: {vehicle} [services.compass.settings.baudrate]: expects int, got str '9600'" in text
     # the check's fix for it (a type, or the baud rates the driver declares): whatever it is, it is on the line
-    assert "fix: write an int like baudrate = " in text or "fix: use one of 4800, 9600" in text
+    assert "fix: write an int like baudrate = " in text or "fix: use one of 1200, 2400, 4800, 9600" in text
     assert "pass --force" in text
     assert not root.exists()
 

@@ -18,6 +18,10 @@ progress line per log, then one summary table. Use it as a regression gate on a 
 field logs (docs/replay.md has a sample CI job): record with record_raw = true, keep the
 logs that matter in a directory, run this on every change.
 
+What a replay cannot reproduce is a note under the log's line (and in --json), not a
+difference: an I2C driver left out of a log that began after it set its chip up, and what
+differs where the recording machine held the RC mux up (docs/replay.md, the corpus).
+
 Each log's recorded pilot messages (RC_MODE, MANUAL_CMD) are checked with the pilot's public
 key the log names, as u2sa replay does: a message that fails the check makes the log DIFFERENT.
 
