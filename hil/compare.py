@@ -267,10 +267,13 @@ def align(rec: list[Sample], rep: list[Sample], *, tolerance: ToleranceLike,
 
 def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance: ToleranceLike, edge: int,
                    rate: float | None, time_tolerance_s: float, replay_start_ns: int | None = None,
-                   origin_ns: int | None = None, held: Sequence[HeldWindow] = ()) -> StreamReport:
+                   origin_ns: int | None = None, held: Sequence[HeldWindow] = (),
+                   started_before: bool = False) -> StreamReport:
     """Compare one stream (see the module docstring); *replay_start_ns*: when the playback began; *origin_ns*:
     the log time notes count seconds from (default the stream's first recorded message); *held*: where the
-    recording machine held the stream's service up (hil/held_up.py): what differs there is a note."""
+    recording machine held the stream's service up (hil/held_up.py): what differs there is a note;
+    *started_before*: the recording began after the stream's driver started (:func:`begun_after_start`),
+    so the replayed start-up writes before the first recorded one are a note."""
     r = StreamReport(key, len(rec), len(rep))
     if not rec or not rep:
         r.problems.append("only in the replay" if rep else "not reproduced by the replay")
@@ -289,10 +292,16 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
                  and (names := [n for n in differing_fields(rec[i], rep[j], tol) if n not in system])
                  and partial(rec[i], rep[j], names)}
     last_rec_t = rec[0].t_ns
+    startup = 0   # replayed start-up writes the recording began after (started_before)
+    paired_yet = False
     for k, p in enumerate(pairs):
         if p.rec is not None:
             last_rec_t = rec[p.rec].t_ns
         if p.kind in ("match", "differ"):
+            paired_yet = True
+            continue
+        if started_before and not paired_yet and p.kind == "inserted":
+            startup += 1
             continue
         own, index = (rec, p.rec) if p.kind == "deleted" else (rep, p.rep)
         assert index is not None
@@ -373,11 +382,21 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
         r.notes.append(f"{len(at_edges)} message(s) without a counterpart among the first or last {edge} of a "
                        "stream (the recording cuts the input there)")
     r.notes.extend(cut)
+    if startup:
+        r.notes.append(f"{startup} replayed start-up write(s) before the first recorded one: the recording began "
+                       "after the live driver had started (its first recorded write already drives the output)")
     origin = origin_ns or rec[0].t_ns
     for w, n in held_seen.items():
         r.notes.append(f"{n} difference(s) between t={(w.from_ns - origin) / 1e9:.2f} and {(w.to_ns - origin) / 1e9:.2f} s, "
                        f"where the recording machine held {w.service} up ({w.why} in its health); shown, not counted")
     return r
+
+
+def begun_after_start(rec: list[Sample]) -> bool:
+    """True for a PWM output stream whose first recorded write already has the output enabled: a driver
+    starts its outputs disabled (duty 0, then neutral) before it enables them, so the recording began
+    after the live driver's start-up, which the replayed driver does again."""
+    return bool(rec) and rec[0].type_name == "RawPwmWrite" and bool(rec[0].fields.get("enabled"))
 
 
 def _in_held(held: Sequence[HeldWindow], t_ns: int, seen: dict[HeldWindow, int]) -> bool:
@@ -492,7 +511,8 @@ def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[st
         else:
             reports.append(compare_stream(key, a, b, tolerance=tol, edge=edge, rate=rate,
                                           time_tolerance_s=time_tolerance_s, replay_start_ns=replay_start_ns,
-                                          origin_ns=origin, held=windows.get(key.rsplit(" [", 1)[1][:-1], ())))
+                                          origin_ns=origin, held=windows.get(key.rsplit(" [", 1)[1][:-1], ()),
+                                          started_before=begun_after_start(a)))
     recorded_sources = {key.rsplit(" [", 1)[1] for key in rec}
     for r in reports:
         if not r.recorded and r.key.rsplit(" [", 1)[1] not in recorded_sources:

@@ -6,7 +6,7 @@ value) is still a difference, and so is a partial message away from the edges.""
 
 from __future__ import annotations
 
-from hil.compare import Sample, compare_stream
+from hil.compare import Sample, begun_after_start, compare_stream
 from u2sa_hw.lcmtypes import StateInformation
 from u2sa_hw.messages import enumerate_fields
 
@@ -87,3 +87,27 @@ def test_a_partial_message_away_from_the_edges_is_a_difference() -> None:
     r = compare(stream(), rep)
     assert not r.ok and r.differing == 1 and "x" in r.fields, r.problems
     assert not any(n.startswith("cut:") for n in r.notes)
+
+
+def pwm(k: int, duty: int, *, enabled: bool = True) -> Sample:
+    return Sample(1_000_000_000 + k * 20_000_000, "RawPwmWrite",
+                  {"device": "pan", "channel": 0, "period_ns": 20_000_000, "duty_ns": duty, "enabled": enabled})
+
+
+STARTUP = [pwm(0, 0, enabled=False), pwm(1, 1_500_000, enabled=False), pwm(2, 1_500_000)]
+
+
+def test_a_pwm_stream_recorded_after_its_driver_started_notes_the_replayed_start_up_writes() -> None:
+    """A recording begun after the PWM driver started holds no start-up writes; the replayed driver makes
+    them again before the first recorded one: a note. A stream that does record them compares them."""
+    commands = [pwm(3 + k, 1_500_000 + 10_000 * k) for k in range(6)]
+    r = compare_stream("RAW.pan [pan]", commands, STARTUP + commands, tolerance=1e-6, edge=1, rate=None,
+                       time_tolerance_s=0.5, started_before=True)
+    assert r.ok and (r.matched, r.inserted) == (6, 0), (r.problems, r.notes)
+    assert any("3 replayed start-up write(s)" in n for n in r.notes), r.notes
+    # without the mark (a recording holding the start-up): the writes beyond the edge are insertions
+    r = compare_stream("RAW.pan [pan]", commands, STARTUP + commands, tolerance=1e-6, edge=1, rate=None,
+                       time_tolerance_s=0.5)
+    assert r.inserted == 2 and not r.ok
+    # the mark is read off the recorded stream: its first write already enabled
+    assert begun_after_start(commands) and not begun_after_start(STARTUP + commands)
