@@ -65,5 +65,7 @@ def test_every_recording_of_the_corpus_replays_same(corpus: dict[str, Path], tmp
         if any("set its chip up" in n for n in r["notes"]):
             noted.add(name)
         assert (name in noted) == (not i2c_setup_recorded(LogFile(corpus[name]), "imu")), (name, r["notes"])
-    assert noted and noted <= MID_RUN, noted   # the recorders started while the stack drove (mostly: both)
+    # only the recorders started while the stack drove can begin after the IMU's set-up (on a loaded machine
+    # they may start before it: then nothing is left out, and the rule above says so)
+    assert noted <= MID_RUN, noted
     assert done.stderr.count(": same in ") == len(KINDS), done.stderr   # the progress line of each
