@@ -47,6 +47,7 @@ from mock_devices.i2c_bus import MockI2cBus  # noqa: E402
 from mock_devices.mpu9250_chip import Ak8963Chip, Mpu9250Chip  # noqa: E402
 from mock_devices.rc_receiver import MuxMock, RcReceiverMock  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
+from u2sa_hw.health import set_details  # noqa: E402
 from u2sa_hw.bus_key import use_run_key  # noqa: E402
 from u2sa_hw.transport import Transport  # noqa: E402
 from u2sa_hw.udp_ports import private_lcm_url  # noqa: E402
@@ -167,11 +168,7 @@ def health(name: str, status: str = "ok", **details: str) -> t.Health:
     """A Health of *name* as the bus would hand it to a callback."""
     msg = t.Health()
     msg.header.source, msg.name, msg.status = name, name, status
-    for key, value in details.items():
-        kv = t.KeyValue()
-        kv.key, kv.value = key, value
-        msg.details.append(kv)
-    msg.num_details = len(msg.details)
+    set_details(msg, details)
     return msg
 
 

@@ -19,6 +19,7 @@ edges of their frame (drivers/rc_mux_clock.TIMED_HOLD_NS), so one may have gone 
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping
@@ -48,11 +49,9 @@ class HeldWindow:
 
 def plan_windows(log: Path | str, *, kinds: Mapping[str, str], devices: Mapping[str, str], start_ns: int,
                  end_ns: int) -> dict[str, list[HeldWindow]]:
-    """Every held-up window of a replay's services (*kinds*: service -> kind; *devices*: device -> service)."""
-    out = held_windows(log, held_up_counters(kinds), start_ns=start_ns, end_ns=end_ns)
-    for service, windows in late_edge_windows(log, devices, start_ns=start_ns, end_ns=end_ns).items():
-        out.setdefault(service, []).extend(windows)
-    return out
+    """Every held-up window of a replay's services (*kinds*: service -> kind; *devices*: GPIO device -> its
+    service), from one pass over the log."""
+    return _scan(log, held_up_counters(kinds), devices, start_ns=start_ns, end_ns=end_ns)
 
 
 def held_up_counters(kinds: Mapping[str, str]) -> dict[str, tuple[str, ...]]:
@@ -63,17 +62,44 @@ def held_up_counters(kinds: Mapping[str, str]) -> dict[str, tuple[str, ...]]:
 def held_windows(log: Path | str, counters: Mapping[str, tuple[str, ...]], *, start_ns: int | None = None,
                  end_ns: int | None = None) -> dict[str, list[HeldWindow]]:
     """service -> the windows of *log* where its health counters (*counters*) grew; services with none left out."""
-    from u2sa_hw import lcmtypes as t
+    return _scan(log, counters, {}, start_ns=start_ns, end_ns=end_ns)
 
-    if not counters:
+
+def late_edge_windows(log: Path | str, devices: Mapping[str, str], *, start_ns: int,
+                      end_ns: int) -> dict[str, list[HeldWindow]]:
+    """service -> windows (merged) around the recorded GPIO edges (*devices*: device -> service) its driver
+    tapped more than LATE_EDGE_NS later than the quickest tap of the log (tap time is wall clock, the stamp
+    monotonic: only the difference from the quickest means something)."""
+    return _scan(log, {}, devices, start_ns=start_ns, end_ns=end_ns)
+
+
+def _scan(log: Path | str, counters: Mapping[str, tuple[str, ...]], devices: Mapping[str, str], *,
+          start_ns: int | None, end_ns: int | None) -> dict[str, list[HeldWindow]]:
+    """The counter windows of *counters*' services and the late-edge windows of *devices* in one read."""
+    from u2sa_hw import lcmtypes as t
+    from u2sa_hw.messages import REGISTRY, MalformedMessage
+
+    wanted = (["U2SA_HEALTH"] if counters else []) + [rf"RAW\.{re.escape(d)}" for d in devices]
+    if not wanted:
         return {}
     margin = int(HELD_MARGIN_S * 1e9)
     first = start_ns
     last: dict[str, tuple[int, dict[str, int]]] = {}   # service -> (log time, counters) of its latest health
+    lags: list[tuple[str, int, int]] = []               # (service, log time, tap time - kernel stamp)
     out: dict[str, list[HeldWindow]] = {}
-    for m in LogFile(log).messages("U2SA_HEALTH"):
+    for m in LogFile(log).messages("|".join(wanted)):
         if end_ns is not None and m.log_time_ns > end_ns + margin:
             break
+        if m.channel != "U2SA_HEALTH":
+            if (start_ns is None or m.log_time_ns >= start_ns) and (end_ns is None or m.log_time_ns <= end_ns):
+                try:
+                    rec, _ = REGISTRY.decode(m.data)
+                except MalformedMessage:
+                    continue
+                if type(rec).__name__ == "RawGpioEdge" and rec.header.timestamp_us:
+                    lag = int(rec.header.timestamp_us) * 1000 - int(rec.kernel_timestamp_ns)
+                    lags.append((devices[m.channel[4:]], m.log_time_ns, lag))
+            continue
         first = m.log_time_ns if first is None else first
         try:
             health = t.Health.decode(m.data)
@@ -88,8 +114,11 @@ def held_windows(log: Path | str, counters: Mapping[str, tuple[str, ...]], *, st
         grown = {n: now[n] - before.get(n, 0) for n in names if now[n] > before.get(n, 0)}
         if grown:
             why = ", ".join(f"{n} +{d}" for n, d in grown.items())
-            out.setdefault(health.name, []).append(HeldWindow(health.name, before_t - margin, m.log_time_ns + margin, why))
+            window = HeldWindow(health.name, before_t - margin, m.log_time_ns + margin, why)
+            out.setdefault(health.name, []).append(window)
         last[health.name] = (m.log_time_ns, now)
+    for service, windows in _late_edges(lags, margin).items():
+        out.setdefault(service, []).extend(windows)
     return out
 
 
@@ -100,42 +129,20 @@ def _count(text: str | None) -> int:
         return 0
 
 
-def late_edge_windows(log: Path | str, devices: Mapping[str, str], *, start_ns: int,
-                      end_ns: int) -> dict[str, list[HeldWindow]]:
-    """service -> windows (merged) around the recorded GPIO edges its driver tapped more than LATE_EDGE_NS
-    later than the quickest tap of the log (tap time is wall clock, the stamp monotonic: only the
-    difference from the quickest means something)."""
-    from u2sa_hw.messages import REGISTRY, MalformedMessage
-
-    lags: list[tuple[str, int, int]] = []   # (service, log time, tap time - kernel stamp)
-    for m in LogFile(log).messages(r"RAW\..*"):
-        if m.log_time_ns > end_ns:
-            break
-        service = devices.get(m.channel[4:])
-        if not service or m.log_time_ns < start_ns:
-            continue
-        try:
-            rec, _ = REGISTRY.decode(m.data)
-        except MalformedMessage:
-            continue
-        if type(rec).__name__ == "RawGpioEdge" and rec.header.timestamp_us:
-            lags.append((service, m.log_time_ns, int(rec.header.timestamp_us) * 1000 - int(rec.kernel_timestamp_ns)))
-    if not lags:
-        return {}
+def _late_edges(lags: list[tuple[str, int, int]], margin: int) -> dict[str, list[HeldWindow]]:
+    """Windows (merged) around the edges tapped more than LATE_EDGE_NS later than their service's quickest."""
     quickest: dict[str, int] = {}
     for service, _t, lag in lags:
         quickest[service] = min(quickest.get(service, lag), lag)
-    margin = int(HELD_MARGIN_S * 1e9)
     out: dict[str, list[HeldWindow]] = {}
     for service, t, lag in lags:
-        late = lag - quickest[service]
-        if late <= LATE_EDGE_NS:
+        if lag - quickest[service] <= LATE_EDGE_NS:
             continue
         windows = out.setdefault(service, [])
         if windows and windows[-1].to_ns >= t - margin:
             w = windows[-1]
             windows[-1] = HeldWindow(service, w.from_ns, t + margin, w.why)
         else:
-            windows.append(HeldWindow(service, t - margin, t + margin, f"its edges read up to "
-                                      f"{LATE_EDGE_NS / 1e6:.0f}+ ms late"))
+            windows.append(HeldWindow(service, t - margin, t + margin,
+                                      f"its edges read over {LATE_EDGE_NS / 1e6:.0f} ms late"))
     return out

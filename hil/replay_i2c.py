@@ -30,18 +30,16 @@ launcher's watchdog and stops its bus before stopping it (:func:`held_drivers`,
 
 from __future__ import annotations
 
-import re
 import threading
 from collections import deque
 from pathlib import Path
 from typing import Any, Mapping
 
-from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.ports.address import DeviceAddress, make_address
 from u2sa_hw.ports.i2c_port import OP_READ, OP_WRITE, STATUS_EIO, STATUS_NACK, STATUS_OK
 from u2sa_hw.recording.log_reader import LogFile
 
-from hil.replay_plan import ReplayError
+from hil.replay_plan import ReplayError, raw_records
 
 I2C_BACKLOG_READS = 8       # --fast: data reads released ahead of the driver, so it samples beside the player
 # The replay bus's client timeout (timeout= in its mock+i2c address). The driver's first data read is held
@@ -130,22 +128,16 @@ class ReplayI2cDevice:
     def preload(self, log_path: Path, *, start_ns: int, end_ns: int) -> None:
         """Load the device's recorded transactions: reads in the window queued per register, the last
         read of each register before it, and the writes in it (checked)."""
-        for m in LogFile(log_path).messages(rf"RAW\.{re.escape(self.name)}"):
-            if m.log_time_ns > end_ns:
+        for log_time_ns, rec in raw_records(LogFile(log_path), self.name, "RawI2c"):
+            if log_time_ns > end_ns:
                 break
-            try:
-                rec, _ = REGISTRY.decode(m.data)
-            except MalformedMessage:
-                continue
-            if type(rec).__name__ != "RawI2c":
-                continue
             key = (int(rec.address), int(rec.register_address))
             if rec.op == OP_READ:
-                if m.log_time_ns < start_ns:
+                if log_time_ns < start_ns:
                     self._before[key] = (bool(rec.ok), bytes(rec.data))
                 else:
                     self._reads.setdefault(key, deque()).append((bool(rec.ok), bytes(rec.data)))
-            elif rec.op == OP_WRITE and m.log_time_ns >= start_ns:
+            elif rec.op == OP_WRITE and log_time_ns >= start_ns:
                 self._writes.setdefault(key[0], deque()).append((key[1], bytes(rec.data)))
         self._choose_main(None)
 

@@ -19,7 +19,7 @@ import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import tomli_w
 
@@ -88,8 +88,8 @@ class ReplayPlan:
         there, ``--compare`` reports as a note."""
         from hil.held_up import plan_windows
 
-        return plan_windows(self.log, kinds={name: sp.kind for name, sp in self.services.items()},
-                            devices={d.name: d.service for d in self.devices.values() if d.service},
+        gpio = {d.name: d.service for d in self.devices.values() if d.service and d.kind == "gpio"}
+        return plan_windows(self.log, kinds={name: sp.kind for name, sp in self.services.items()}, devices=gpio,
                             start_ns=self.start_ns, end_ns=self.end_ns)
 
     @property
@@ -307,6 +307,20 @@ def build_plan(path: Path | str, *, extra_services: list[str] = (), overrides: l
 SETUP_SCAN_READS = 3   # reads of one register with no write before them: the driver was sampling already
 
 
+def raw_records(log: LogFile, device: str, type_name: str) -> Iterator[tuple[int, Any]]:
+    """``(log time ns, record)`` of RAW.*device*'s records of type *type_name*, in log order (a record that
+    does not decode is skipped: the replay devices count what they cannot use)."""
+    from u2sa_hw.messages import REGISTRY, MalformedMessage
+
+    for m in log.messages(rf"RAW\.{re.escape(device)}"):
+        try:
+            rec, _ = REGISTRY.decode(m.data)
+        except MalformedMessage:
+            continue
+        if type(rec).__name__ == type_name:
+            yield m.log_time_ns, rec
+
+
 def i2c_setup_recorded(log: LogFile, device: str) -> bool:
     """True when RAW.*device* holds its driver's chip set-up from its start: the device's first record is a
     read (every supported chip driver reads the chip's identity first) and a write follows (it configures
@@ -314,17 +328,10 @@ def i2c_setup_recorded(log: LogFile, device: str) -> bool:
     while the stack ran (``u2sa record``, a recorder restarted, a log recovered after a cut) begins with data
     reads, or inside the set-up after the identity read: a replay could not identify the chip, and its
     calibration is not in the log. Reads the log only up to that point."""
-    from u2sa_hw.messages import REGISTRY, MalformedMessage
     from u2sa_hw.ports.i2c_port import OP_READ, OP_WRITE
 
     reads: dict[tuple[int, int], int] = {}
-    for m in log.messages(rf"RAW\.{re.escape(device)}"):
-        try:
-            rec, _ = REGISTRY.decode(m.data)
-        except MalformedMessage:
-            continue
-        if type(rec).__name__ != "RawI2c":
-            continue
+    for _t, rec in raw_records(log, device, "RawI2c"):
         if rec.op == OP_WRITE:
             return bool(reads)   # a write first: the recording began inside the set-up, after the identity read
         if rec.op == OP_READ:

@@ -220,16 +220,24 @@ def with_time(sol: Solution, seconds: float) -> Solution:
     return replace(sol, when=sol.when + dt.timedelta(seconds=seconds))
 
 
-class RecordingGps(GpsNmeaDriver):
-    """The real driver; every message it publishes is also kept here."""
+def recording_driver(base: type) -> type:
+    """*base* (a real sensor driver class) whose every published state is also kept in ``sent``."""
 
-    def __init__(self, *args: object, **kwargs: object) -> None:
-        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
-        self.sent: list[t.StateInformation] = []
+    class Recording(base):  # type: ignore[valid-type, misc]
+        def __init__(self, *args: object, **kwargs: object) -> None:
+            super().__init__(*args, **kwargs)
+            self.sent: list[t.StateInformation] = []
 
-    def publish_state(self, msg: t.StateInformation) -> bool:
-        self.sent.append(msg)
-        return super().publish_state(msg)
+        def publish_state(self, msg: t.StateInformation) -> bool:
+            self.sent.append(msg)
+            return super().publish_state(msg)
+
+    Recording.__name__ = Recording.__qualname__ = f"Recording{base.__name__}"
+    Recording.__doc__ = f"The real {base.__name__}; every message it publishes is also kept in ``sent``."
+    return Recording
+
+
+RecordingGps = recording_driver(GpsNmeaDriver)
 
 
 def epoch(*lines: bytes) -> Epoch:

@@ -17,6 +17,7 @@ from typing import Iterator
 
 import pytest
 from pynmeagps.nmeahelpers import calc_checksum
+from gps_stream_builder import recording_driver
 
 from drivers.compass_serial import SerialCompassDriver, char_time_s
 from u2sa_hw import lcmtypes as t
@@ -98,16 +99,7 @@ def transport(lcm_url: str) -> Iterator[Transport]:
     tr.stop()
 
 
-class RecordingCompass(SerialCompassDriver):
-    """The real driver; every message it publishes is also kept here."""
-
-    def __init__(self, *args: object, **kwargs: object) -> None:
-        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
-        self.sent: list[t.StateInformation] = []
-
-    def publish_state(self, msg: t.StateInformation) -> bool:
-        self.sent.append(msg)
-        return super().publish_state(msg)
+RecordingCompass = recording_driver(SerialCompassDriver)
 
 
 def make_driver(tmp_path: Path, transport: Transport, **settings: object) -> RecordingCompass:

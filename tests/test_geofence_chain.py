@@ -25,6 +25,7 @@ from mock_devices.gpio_chip import MockGpioChip
 from mock_devices.rc_receiver import RcReceiverMock
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
+from u2sa_hw.health import set_details
 from u2sa_hw.bus_client import BusClient
 from u2sa_hw.cli.health_cmd import autonomy_line, autonomy_report
 from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence setters
@@ -36,11 +37,7 @@ BREACH = "geofence: outside inclusion circle 'yard'"
 def as_health(details: dict[str, str]) -> t.Health:
     """A Health message carrying *details* (what u2sa health reads them from)."""
     msg = t.Health()
-    for key, value in details.items():
-        kv = t.KeyValue()
-        kv.key, kv.value = key, value
-        msg.details.append(kv)
-    msg.num_details = len(msg.details)
+    set_details(msg, details)
     return msg
 
 

@@ -18,6 +18,7 @@ from conftest import U2SA, ServiceProcesses, wait_until
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
+from u2sa_hw.health import set_details
 from u2sa_hw.cli.health_cmd import autonomy_line, autonomy_report
 from u2sa_hw.cli.health_watch import CLEAR, RC_STALE_S, AutonomyView, render
 
@@ -44,11 +45,7 @@ def rc_mode(*, mode: str, armed: bool, granted: bool, blocked_by: str = "", hold
 def mux_health(name: str = "rc", **details: object) -> t.Health:
     msg = t.Health()
     msg.name = name
-    for key, value in details.items():
-        kv = t.KeyValue()
-        kv.key, kv.value = key, str(value)
-        msg.details.append(kv)
-    msg.num_details = len(msg.details)
+    set_details(msg, details)
     return msg
 
 

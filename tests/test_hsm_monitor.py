@@ -8,6 +8,7 @@ from typing import Any
 import pytest
 
 from u2sa_hw import lcmtypes as t
+from u2sa_hw.health import set_details
 from u2sa_hw.services.hsm.monitor import Failed, FailsafeChange, HealthMonitor, Recovered, Restart, truthy
 from u2sa_hw.services.hsm.rules import MonitorPolicy, WatchRule, rules_from_profile
 from u2sa_hw.vehicle import ProfileError, load_profile
@@ -16,11 +17,7 @@ from u2sa_hw.vehicle import ProfileError, load_profile
 def health(name: str, pid: int, status: str = "ok", **details: str) -> t.Health:
     msg = t.Health()
     msg.name, msg.pid, msg.status = name, pid, status
-    for key, value in details.items():
-        kv = t.KeyValue()
-        kv.key, kv.value = key, value
-        msg.details.append(kv)
-    msg.num_details = len(msg.details)
+    set_details(msg, details)
     return msg
 
 

@@ -11,6 +11,7 @@ import pytest
 import tomli_w
 
 from u2sa_hw import lcmtypes as t
+from u2sa_hw.health import set_details
 from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence setters
 from u2sa_hw.safety.prearm import CheckFailure, PrearmChecks
 from u2sa_hw.vehicle import ProfileError, load_profile
@@ -50,12 +51,7 @@ def health(name: str, status: str = "ok", *, last_error: str = "", **details: An
     msg = t.Health()
     msg.name, msg.status, msg.last_error = name, status, last_error
     msg.header.source = name
-    kvs = []
-    for key, value in details.items():
-        kv = t.KeyValue()
-        kv.key, kv.value = key, str(value)
-        kvs.append(kv)
-    msg.details, msg.num_details = kvs, len(kvs)
+    set_details(msg, details)
     return msg
 
 

@@ -24,6 +24,7 @@ from drivers.rc_pulse import DueGrid, RcModeFilter
 from mock_devices.gpio_chip import MockGpioChip
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
+from u2sa_hw.health import set_details
 from u2sa_hw.messages import enumerate_fields
 from u2sa_hw.transport import Transport
 from u2sa_hw.udp_ports import private_lcm_url
@@ -75,11 +76,7 @@ def _frame_edges(start_ns: int, widths_us: dict[str, int]) -> list[tuple[int, st
 def _health(name: str, status: str, **details: str) -> bytes:
     msg = t.Health()
     msg.header.source, msg.name, msg.status = name, name, status
-    for key, value in details.items():
-        kv = t.KeyValue()
-        kv.key, kv.value = key, value
-        msg.details.append(kv)
-    msg.num_details = len(msg.details)
+    set_details(msg, details)
     return msg.encode()
 
 

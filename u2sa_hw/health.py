@@ -98,6 +98,12 @@ def build_health(*, name: str, service_type: str, status: str, stats: ProcessSta
     msg.malformed = sum(c.malformed for c in transport.rx.values())
     msg.dropped = sum(c.dropped for c in transport.rx.values()) + sum(c.dropped for c in transport.tx.values())
     msg.last_error = last_error[:500]
+    set_details(msg, details)
+    return msg
+
+
+def set_details(msg: t.Health, details: Mapping[str, Any]) -> None:
+    """Put *details* (key -> value, values as text) into *msg*'s details list."""
     kvs = []
     for key, value in details.items():
         kv = t.KeyValue()
@@ -105,7 +111,6 @@ def build_health(*, name: str, service_type: str, status: str, stats: ProcessSta
         kvs.append(kv)
     msg.details = kvs
     msg.num_details = len(kvs)
-    return msg
 
 
 # Health details that say, in words, why a service is not ok. A driver's port puts its error
