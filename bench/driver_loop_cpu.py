@@ -42,16 +42,16 @@ from typing import Any, Callable
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from mock_devices.gpio_chip import MockGpioChip  # noqa: E402
-from mock_devices.i2c_bus import MockI2cBus  # noqa: E402
-from mock_devices.mpu9250_chip import Ak8963Chip, Mpu9250Chip  # noqa: E402
-from mock_devices.rc_receiver import MuxMock, RcReceiverMock  # noqa: E402
+from u2sa_hw.mocks.gpio_chip import MockGpioChip  # noqa: E402
+from u2sa_hw.mocks.i2c_bus import MockI2cBus  # noqa: E402
+from u2sa_hw.mocks.mpu9250_chip import Ak8963Chip, Mpu9250Chip  # noqa: E402
+from u2sa_hw.mocks.rc_receiver import MuxMock, RcReceiverMock  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
-from u2sa_hw.health import set_details  # noqa: E402
-from u2sa_hw.bus_key import use_run_key  # noqa: E402
-from u2sa_hw.transport import Transport  # noqa: E402
-from u2sa_hw.udp_ports import private_lcm_url  # noqa: E402
-from u2sa_hw.vehicle import load_profile  # noqa: E402
+from u2sa_hw.service.health import set_details  # noqa: E402
+from u2sa_hw.bus.key import use_run_key  # noqa: E402
+from u2sa_hw.bus.transport import Transport  # noqa: E402
+from u2sa_hw.bus.udp_ports import private_lcm_url  # noqa: E402
+from u2sa_hw.profile.vehicle import load_profile  # noqa: E402
 
 EXAMPLE = REPO / "examples" / "ground_vehicle"
 RC_LINES = {"throttle": 5, "steering": 6, "mode": 13}
@@ -198,7 +198,7 @@ def feed_evidence(driver: Any, stop: threading.Event) -> None:
 
 
 def bench_rc(root: Path, *, seconds: float, profiled: bool) -> None:
-    from drivers.rc_mux import RcMuxDriver
+    from u2sa_hw.drivers.rc_mux.driver import RcMuxDriver
 
     root.mkdir(parents=True)
     mocks = MockProcess("rc", root / "gpio.sock")
@@ -247,7 +247,7 @@ def bench_rc_recorded(root: Path, *, frames: int, profiled: bool) -> None:
     """Deterministic: *frames* recorded frames (and the Health and estimates the pre-arm checks read,
     handed over by the chip as a replay chip does) fed at once to the driver on a device-clock chip; the
     loop thread's CPU per edge. Without a select read-back (nothing here answers the enable line)."""
-    from drivers.rc_mux import RcMuxDriver
+    from u2sa_hw.drivers.rc_mux.driver import RcMuxDriver
     from u2sa_hw import channels as ch
 
     root.mkdir(parents=True)
@@ -311,7 +311,7 @@ def bench_rc_recorded(root: Path, *, frames: int, profiled: bool) -> None:
 
 # ------------------------------------------------------------------ imu ------------------------------
 def bench_imu(root: Path, *, seconds: float, samples: int, profiled: bool) -> None:
-    from drivers.imu_mpu9250 import Mpu9250ImuDriver
+    from u2sa_hw.drivers.imu.mpu9250 import Mpu9250ImuDriver
 
     root.mkdir(parents=True)
     mocks = MockProcess("imu", root / "i2c.sock")

@@ -5,11 +5,11 @@ round trip through a mock ODrive.
 Every driver runs as a real ``u2sa service`` process and every mock device as it does in the
 tests; this script is the control system and the stopwatch. It prints:
 
-(a) GPS: NMEA sentences/s through the GPS driver (drivers/gps_nmea.py), fed through a pty
+(a) GPS: NMEA sentences/s through the GPS driver (drivers/gps_nmea/driver.py), fed through a pty
     as fast as it reads (blocking writes on the pty master), and the State Information
     messages published against the epochs written (one message per epoch expected);
 (b) CAN: the command -> status round trip through a mock ODrive (each axis a node in a
-    process of its own, on udp_multicast) with the ODrive driver (drivers/odrive_can.py)
+    process of its own, on udp_multicast) with the ODrive driver (drivers/can_motor/odrive/driver.py)
     in between. One Percentage Command on LCM is timed to three points:
       1. the driver's Set_Input_Vel frame on the bus (the command path),
       2. the mock ODrive's status frame showing it: the first Get_Encoder_Estimates whose
@@ -19,7 +19,7 @@ tests; this script is the control system and the stopwatch. It prints:
     A point not reached within 1 s of the command is counted as missed, per point, and
     left out of that point's figures (a missed Set_Input_Vel is not hidden in a late status).
 
-(c) compass: NMEA sentences/s through the compass driver (drivers/compass_serial.py), bursts
+(c) compass: NMEA sentences/s through the compass driver (drivers/compass/driver.py), bursts
     of XDR, THS and ROT written back to back as fast as it reads, and the State Information
     messages published against the bursts written (one per burst expected).
 
@@ -48,16 +48,16 @@ import tomli_w
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from mock_devices.nmea_gps import NmeaGpsDevice  # noqa: E402
-from mock_devices.serial_compass import NmeaCompassDevice  # noqa: E402
-from mock_devices.vehicle_sim import SimVehicle  # noqa: E402
-from u2sa_hw.bus_key import use_run_key  # noqa: E402
+from u2sa_hw.mocks.nmea_gps import NmeaGpsDevice  # noqa: E402
+from u2sa_hw.mocks.serial_compass import NmeaCompassDevice  # noqa: E402
+from u2sa_hw.mocks.vehicle_sim import SimVehicle  # noqa: E402
+from u2sa_hw.bus.key import use_run_key  # noqa: E402
 from u2sa_hw import channels as ch  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
-from u2sa_hw.bus_client import BusClient  # noqa: E402
+from u2sa_hw.bus.client import BusClient  # noqa: E402
 from u2sa_hw.protocols import odrive_cansimple as cs  # noqa: E402
 from u2sa_hw.protocols.odrive_cansimple import Cmd  # noqa: E402
-from u2sa_hw.udp_ports import private_lcm_url, private_udp_port  # noqa: E402
+from u2sa_hw.bus.udp_ports import private_lcm_url, private_udp_port  # noqa: E402
 
 GROUP = "239.74.163.2"
 RADIUS = 0.1  # the mock ODrive's default wheel radius (m)
@@ -233,7 +233,7 @@ def start_mock_odrives(services: Services, port: int) -> list[subprocess.Popen]:
     """Two mock ODrive nodes (1 left, 2 right), each in its own process with its own vehicle."""
     procs = []
     for node, side in ((1, "left"), (2, "right")):
-        proc = subprocess.Popen([sys.executable, "-m", "mock_devices.odrive_node", "--node-id", str(node), "--side",
+        proc = subprocess.Popen([sys.executable, "-m", "u2sa_hw.mocks.odrive_node", "--node-id", str(node), "--side",
                                  side, "--port", str(port)], cwd=REPO, stdout=subprocess.PIPE, text=True,
                                 env=dict(os.environ, PYTHONPATH=str(REPO)))
         assert proc.stdout is not None

@@ -2,8 +2,8 @@
 
 The example rover's estimator handles about 115 STATE_INFO messages a second in a mission:
 IMU body rates (50 Hz), wheel odometry (~50 Hz), compass heading (10 Hz) and GPS position
-with ground velocity (5 Hz), each composed as its driver composes it (``drivers/imu_common.py``,
-``drivers/can_motor.py``, ``drivers/compass_serial.py``, ``drivers/gps_fix.py``), and publishes
+with ground velocity (5 Hz), each composed as its driver composes it (``drivers/imu/common.py``,
+``drivers/can_motor/common.py``, ``drivers/compass/driver.py``, ``drivers/gps_nmea/fix.py``), and publishes
 STATE_ESTIMATE after each GPS and compass update and at least at ``publish_rate_hz`` (20 Hz).
 This bench feeds the real service (its callback and its run loop's publication, on a
 simulated clock, with a transport that only keeps what is published) a deterministic
@@ -40,7 +40,7 @@ from u2sa_hw import lcmtypes as t  # noqa: E402
 from u2sa_hw import messages as m  # noqa: E402
 from u2sa_hw.messages import STATE_FIELDS  # noqa: E402
 from u2sa_hw.services.estimator.service import StateEstimator  # noqa: E402
-from u2sa_hw.vehicle import load_profile  # noqa: E402
+from u2sa_hw.profile.vehicle import load_profile  # noqa: E402
 
 PROFILE = Path(__file__).resolve().parent.parent / "examples" / "ground_vehicle" / "vehicle.toml"
 # sensor -> (period s, phase s): the live rates, phases apart as independent drivers are

@@ -29,7 +29,7 @@ from typing import Any
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from u2sa_hw.udp_ports import private_lcm_url, private_udp_port  # noqa: E402
+from u2sa_hw.bus.udp_ports import private_lcm_url, private_udp_port  # noqa: E402
 
 
 @dataclass(frozen=True)

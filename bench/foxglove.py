@@ -41,8 +41,8 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from u2sa_hw import lcmtypes as t  # noqa: E402
-from u2sa_hw.bus_key import use_run_key  # noqa: E402
-from u2sa_hw.udp_ports import private_lcm_url  # noqa: E402
+from u2sa_hw.bus.key import use_run_key  # noqa: E402
+from u2sa_hw.bus.udp_ports import private_lcm_url  # noqa: E402
 from example_mix import EXAMPLE_RATES  # noqa: E402  (bench/ is the script's directory)
 
 
@@ -100,7 +100,7 @@ def sample(channel: str) -> Any:
 
 def publisher(url: str, factor: float, seconds: float) -> None:
     """Child process: publish the mix; STATE_ESTIMATE carries its publish time in the header."""
-    from u2sa_hw.transport import Transport
+    from u2sa_hw.bus.transport import Transport
 
     tx = Transport(url, name="bench-publisher")
     plan = [(ch, rate * factor, sample(ch)) for ch, (rate, _size) in EXAMPLE_RATES.items()]
@@ -178,7 +178,7 @@ def main() -> int:
     p.add_argument("--factor", type=float, default=1.0, help="times the example vehicle's rates (default 1)")
     args = p.parse_args()
     use_run_key()
-    from u2sa_hw.transport import Transport
+    from u2sa_hw.bus.transport import Transport
 
     url = private_lcm_url()
     env = dict(os.environ, U2SA_LCM_URL=url, PYTHONPATH=str(REPO))

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Long fuzzing run of the GPS NMEA driver (the bounded one is tests/test_gps_fuzz.py in ``make test``).
 
-Two engines, both feeding the real driver class (``drivers.gps_nmea.GpsNmeaDriver``,
+Two engines, both feeding the real driver class (``u2sa_hw.drivers.gps_nmea.driver.GpsNmeaDriver``,
 GEODETIC frame, publishing over LCM on a private local bus; ``bench/fuzz.py`` runs it as
 its ``gps`` target) and checking every message
 it publishes (finite, latitude/longitude/altitude/speed/sigmas in range):
@@ -37,11 +37,11 @@ sys.path.insert(0, str(REPO / "tests"))
 
 from gps_fuzzing import check_message, feed, fuzz_cases, seed_line  # noqa: E402
 
-from drivers.gps_nmea import GpsNmeaDriver  # noqa: E402
+from u2sa_hw.drivers.gps_nmea.driver import GpsNmeaDriver  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
-from u2sa_hw.bus_key import use_run_key  # noqa: E402
-from u2sa_hw.transport import Transport  # noqa: E402
-from u2sa_hw.udp_ports import private_lcm_url  # noqa: E402
+from u2sa_hw.bus.key import use_run_key  # noqa: E402
+from u2sa_hw.bus.transport import Transport  # noqa: E402
+from u2sa_hw.bus.udp_ports import private_lcm_url  # noqa: E402
 
 
 class CheckedGps(GpsNmeaDriver):

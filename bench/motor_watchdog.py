@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """The dead-man below the driver: kill or freeze a CAN motor driver, time the wheels to zero.
 
-A motor driver (``u2sa service``, drivers/odrive_can.py or drivers/vesc_can.py) drives two
+A motor driver (``u2sa service``, drivers/can_motor/odrive/driver.py or drivers/can_motor/vesc/driver.py) drives two
 mock controllers (ODrive axes or VESCs, in this process, on a udp_multicast bus) at 50 %,
 with the controllers' own watchdog turned on and read back by the driver (``hw_watchdog``,
 0.3 s). The driver process is then sent SIGKILL (dies) or SIGSTOP (hangs): it sends nothing
@@ -33,14 +33,14 @@ import tomli_w
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from mock_devices.odrive_node import (ENABLE_WATCHDOG_ENDPOINT, MOCK_FW, WATCHDOG_TIMEOUT_ENDPOINT,  # noqa: E402
+from u2sa_hw.mocks.odrive_node import (ENABLE_WATCHDOG_ENDPOINT, MOCK_FW, WATCHDOG_TIMEOUT_ENDPOINT,  # noqa: E402
                                       OdriveCanNode)
-from mock_devices.vehicle_sim import SimVehicle  # noqa: E402
-from mock_devices.vesc_node import VescCanNode  # noqa: E402
+from u2sa_hw.mocks.vehicle_sim import SimVehicle  # noqa: E402
+from u2sa_hw.mocks.vesc_node import VescCanNode  # noqa: E402
 from u2sa_hw import channels as ch  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
-from u2sa_hw.bus_client import BusClient  # noqa: E402
-from u2sa_hw.udp_ports import private_lcm_url, private_udp_port  # noqa: E402
+from u2sa_hw.bus.client import BusClient  # noqa: E402
+from u2sa_hw.bus.udp_ports import private_lcm_url, private_udp_port  # noqa: E402
 
 GROUP = "239.74.163.2"
 TIMEOUT_S = 0.3
@@ -145,7 +145,7 @@ def main() -> None:
     args = parser.parse_args()
     keys = tempfile.TemporaryDirectory(prefix="u2sa-bench-key-")
     try:  # a signed bus: this run's own key, inherited by the driver processes
-        from u2sa_hw.bus_key import KEY_ENV, fresh_key_file
+        from u2sa_hw.bus.key import KEY_ENV, fresh_key_file
         os.environ.setdefault(KEY_ENV, str(fresh_key_file(keys.name)))
     except ImportError:
         pass

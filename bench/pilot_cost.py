@@ -1,7 +1,7 @@
 """What the pilot's Ed25519 signatures cost the lean stack (issue 23): CPU per message and memory per process.
 
 RC_MODE (20 Hz) and MANUAL_CMD (25 Hz, in manual) are signed by the RC mux with the pilot's
-private key and checked by every receiver with the public key (u2sa_hw.bus_pilot). This prints,
+private key and checked by every receiver with the public key (u2sa_hw.bus.pilot). This prints,
 on this machine:
 
 - the hot, in-process time of one HMAC sign/verify (every other channel) against one Ed25519
@@ -30,8 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from u2sa_hw import channels as ch  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
-from u2sa_hw.bus_auth import BusAuth, Keyring  # noqa: E402
-from u2sa_hw.bus_key import fresh_key_file  # noqa: E402
+from u2sa_hw.bus.auth import BusAuth, Keyring  # noqa: E402
+from u2sa_hw.bus.key import fresh_key_file  # noqa: E402
 
 RC_MODE_HZ, MANUAL_HZ = 20.0, 25.0
 # The example ground vehicle's receivers of the pilot's channels: (name, hears MANUAL_CMD too)

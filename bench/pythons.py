@@ -2,10 +2,10 @@
 
 `make test-pythons` runs it in each interpreter's venv (see docs/python-versions.md):
 
-- ``gc.freeze()`` after start-up (u2sa_hw/service.py ``settle_memory``);
-- kernel thread names written to ``/proc/self/task/TID/comm`` (u2sa_hw/health.py);
-- ``os.memfd_create`` for the C library's captured stderr (u2sa_hw/lcm_open.py);
-- ``os.times()`` for a service's CPU % (u2sa_hw/health.py ``ProcessStats``);
+- ``gc.freeze()`` after start-up (u2sa_hw/service/contract.py ``settle_memory``);
+- kernel thread names written to ``/proc/self/task/TID/comm`` (u2sa_hw/service/health.py);
+- ``os.memfd_create`` for the C library's captured stderr (u2sa_hw/bus/lcm_open.py);
+- ``os.times()`` for a service's CPU % (u2sa_hw/service/health.py ``ProcessStats``);
 - python-can imported only when a CAN port opens (u2sa_hw/ports/can_port.py).
 
 Then, in a fresh interpreter, the memory of a service-like import set (PSS, private and RSS from
@@ -27,7 +27,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))   # the repository's drivers package, not bench/drivers.py
 
-SERVICE_IMPORTS = "import u2sa_hw.cli.service_cmd, u2sa_hw.service, u2sa_hw.services.mission.service"
+SERVICE_IMPORTS = "import u2sa_hw.cli.service_cmd, u2sa_hw.service.contract, u2sa_hw.services.mission.service"
 
 MEMORY = """
 import sys
@@ -56,7 +56,7 @@ def check_gc_freeze() -> str:
 
 
 def check_thread_comm() -> str:
-    from u2sa_hw.health import name_native_thread
+    from u2sa_hw.service.health import name_native_thread
 
     release = threading.Event()
     thread = threading.Thread(target=release.wait, daemon=True)
@@ -73,7 +73,7 @@ def check_thread_comm() -> str:
 
 
 def check_memfd() -> str:
-    from u2sa_hw.lcm_open import captured_c_stderr
+    from u2sa_hw.bus.lcm_open import captured_c_stderr
 
     with captured_c_stderr() as printed:
         os.write(2, b"from C\n")
@@ -82,7 +82,7 @@ def check_memfd() -> str:
 
 
 def check_os_times() -> str:
-    from u2sa_hw.health import ProcessStats
+    from u2sa_hw.service.health import ProcessStats
 
     stats = ProcessStats()
     sum(i * i for i in range(200_000))
@@ -92,8 +92,8 @@ def check_os_times() -> str:
 
 
 def check_lazy_can() -> str:
-    import drivers.odrive_can  # noqa: F401  (the RC mux imports the CAN drivers for their names)
-    import drivers.vesc_can  # noqa: F401
+    import u2sa_hw.drivers.can_motor.odrive.driver  # noqa: F401  (the RC mux imports the CAN drivers for their names)
+    import u2sa_hw.drivers.can_motor.vesc.driver  # noqa: F401
     import u2sa_hw.ports.can_port as can_port
 
     assert "can" not in sys.modules, "python-can loaded before any CAN port opened"

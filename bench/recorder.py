@@ -41,11 +41,11 @@ from typing import Any
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from u2sa_hw.bus_key import use_run_key  # noqa: E402
+from u2sa_hw.bus.key import use_run_key  # noqa: E402
 from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo  # noqa: E402
 from u2sa_hw.services.recorder.capture import BusCapture  # noqa: E402
-from u2sa_hw.transport import Transport  # noqa: E402
-from u2sa_hw.udp_ports import private_lcm_url  # noqa: E402
+from u2sa_hw.bus.transport import Transport  # noqa: E402
+from u2sa_hw.bus.udp_ports import private_lcm_url  # noqa: E402
 from example_mix import EXAMPLE_RATES  # noqa: E402  (bench/ is the script's directory)
 
 QUEUE_SIZE = 20000        # the recorder service's default queue_size

@@ -9,7 +9,7 @@
    compass HDG/XDR), I2C (the MPU-9250's register reads), CAN (the
    ODrive's encoder/heartbeat frames and the setpoints sent), GPIO (the RC receiver's pulse
    edges into the RC mux) and PWM (the pan servo's pulse writes). Then replays it as
-   ``u2sa replay LOG --fast --compare`` does (hil.replay.Replay, hil.compare.compare_logs)
+   ``u2sa replay LOG --fast --compare`` does (u2sa_hw.hil.replay.Replay, u2sa_hw.hil.compare.compare_logs)
    and prints the log's length, the wall time, the speed-up over real time (aim: 20x, GPIO
    included), the records fed per device and compare's summary line. ``--log FILE`` replays
    an existing recording instead (docs/replay.md, Figures: a 3-minute and a 10-minute log).
@@ -24,7 +24,7 @@
    (read in the settle), ``capture stop``, ``services stop`` (the launcher waits on each
    child's exit), ``clean-up`` and ``compare`` (``--skip-compare``: the replay alone).
    (The earlier synthetic GPS+compass-only log is gone: the compass driver now groups its
-   bursts itself -- drivers/compass_bursts.py -- so its outputs can no longer be built here.)
+   bursts itself -- drivers/compass/bursts.py -- so its outputs can no longer be built here.)
 2. Recorder throughput: a publisher process sends the example ground vehicle's channel mix
    at ``--factor`` (default 10) times its nominal rates for ``--seconds``; the recorder's
    BusCapture in this process writes it to MCAP. Prints the rate achieved, what never reached
@@ -48,9 +48,9 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from u2sa_hw.bus_key import use_run_key  # noqa: E402
+from u2sa_hw.bus.key import use_run_key  # noqa: E402
 from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo  # noqa: E402
-from u2sa_hw.udp_ports import private_lcm_url  # noqa: E402
+from u2sa_hw.bus.udp_ports import private_lcm_url  # noqa: E402
 from example_mix import EXAMPLE_RATES  # noqa: E402  (bench/ is the script's directory)
 
 
@@ -97,8 +97,8 @@ def _load() -> str:
 
 def bench_replay(minutes: float, log: Path | None, keep: Path | None, *, compare: bool = True) -> None:
     """Part 1: a recorded simulation with every device class replayed with --fast, then compared."""
-    from hil.compare import compare_logs
-    from hil.replay import Replay, ReplayOptions
+    from u2sa_hw.hil.compare import compare_logs
+    from u2sa_hw.hil.replay import Replay, ReplayOptions
 
     work = Path(tempfile.mkdtemp(prefix="u2sa-bench-replay-"))
     if keep is not None:
@@ -155,7 +155,7 @@ def bench_replay(minutes: float, log: Path | None, keep: Path | None, *, compare
 
 def publisher(url: str, factor: float, seconds: float) -> None:
     """Child process: publish the example vehicle's mix at *factor* times its rates; print the count sent."""
-    from u2sa_hw.transport import Transport
+    from u2sa_hw.bus.transport import Transport
 
     tx = Transport(url, name="bench-publisher")   # signed, as every u2sa publisher is
     plan = [(ch, rate * factor, b"\x00" * size) for ch, (rate, size) in EXAMPLE_RATES.items()]
@@ -178,7 +178,7 @@ def publisher(url: str, factor: float, seconds: float) -> None:
 def bench_recorder(factor: float, seconds: float) -> None:
     """Part 2: the recorder's capture under the example vehicle's mix times *factor*."""
     from u2sa_hw.services.recorder.capture import BusCapture
-    from u2sa_hw.transport import Transport
+    from u2sa_hw.bus.transport import Transport
 
     nominal = sum(r for r, _ in EXAMPLE_RATES.values())
     url = private_lcm_url(options="ttl=0&recv_buf_size=4194304")

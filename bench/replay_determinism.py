@@ -33,8 +33,8 @@ from typing import Any
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from hil.stream_align import first_difference  # noqa: E402
-from u2sa_hw.bus_key import use_run_key  # noqa: E402
+from u2sa_hw.hil.stream_align import first_difference  # noqa: E402
+from u2sa_hw.bus.key import use_run_key  # noqa: E402
 
 
 def burn() -> None:
@@ -60,8 +60,8 @@ def record(work: Path, seconds: float) -> Path:
 
 def replay(log: Path, out: Path) -> tuple[dict[str, list[tuple[str, dict[str, Any]]]], Any, float]:
     """One --fast replay: its streams (type, fields), compare's report against the recording, the wall time."""
-    from hil.compare import compare_logs, load_streams
-    from hil.replay import Replay, ReplayOptions
+    from u2sa_hw.hil.compare import compare_logs, load_streams
+    from u2sa_hw.hil.replay import Replay, ReplayOptions
 
     started = time.monotonic()
     result = Replay(log, ReplayOptions(fast=True, out=out, progress=False)).run()

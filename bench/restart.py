@@ -43,11 +43,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from staged_code import u2sa_command  # noqa: E402
 from systemd_ns import SystemdNamespace, cannot_boot_reason, stage_root, wait_until  # noqa: E402
 
-from u2sa_hw.bus_key import use_run_key  # noqa: E402
+from u2sa_hw.bus.key import use_run_key  # noqa: E402
 from u2sa_hw import channels as ch  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
-from u2sa_hw.bus_client import BusClient  # noqa: E402
-from u2sa_hw.udp_ports import private_lcm_url  # noqa: E402
+from u2sa_hw.bus.client import BusClient  # noqa: E402
+from u2sa_hw.bus.udp_ports import private_lcm_url  # noqa: E402
 
 MODES = ("vehicle", "checkout")
 PYCACHE = "u2sa-bench-pycache"

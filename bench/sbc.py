@@ -71,9 +71,9 @@ ECHO = ("ready after", "reached at", "autonomy lost", "re-arming", "completed in
 # -- one run, in a child process of its own (``--_one-run``) ----------------------------------
 def one_run(spec: dict[str, Any]) -> int:
     """Play one sim run; write the CPU windows beside its summary (``sbc-run.json``)."""
-    from simulation.progress import ProgressLine
-    from simulation.runner import SimOptions, SimRun
-    from u2sa_hw.udp_ports import private_lcm_url, private_udp_port
+    from u2sa_hw.simulation.progress import ProgressLine
+    from u2sa_hw.simulation.runner import SimOptions, SimRun
+    from u2sa_hw.bus.udp_ports import private_lcm_url, private_udp_port
 
     signal.signal(signal.SIGINT, signal.default_int_handler)   # even when started ignoring it (in the background)
     usage_file, with_runner = Path(spec["usage_file"]), spec["with_runner"]
@@ -228,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
         for line in selftest(hierarchy, budgets):
             print("  " + line, flush=True)
         return 0
-    from u2sa_hw.bus_key import use_run_key
+    from u2sa_hw.bus.key import use_run_key
 
     use_run_key()
     steps: list[Step] = []

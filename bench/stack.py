@@ -55,15 +55,15 @@ import tomli_w
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from u2sa_hw.bus_key import use_run_key  # noqa: E402
+from u2sa_hw.bus.key import use_run_key  # noqa: E402
 from u2sa_hw import channels as ch  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
 from u2sa_hw.protocols import odrive_cansimple as cs  # noqa: E402
-from simulation.progress import ProgressLine  # noqa: E402
-from simulation.runner import SimOptions, SimRun  # noqa: E402
-from u2sa_hw.transport import Transport  # noqa: E402
+from u2sa_hw.simulation.progress import ProgressLine  # noqa: E402
+from u2sa_hw.simulation.runner import SimOptions, SimRun  # noqa: E402
+from u2sa_hw.bus.transport import Transport  # noqa: E402
 from stack_meter import CPU_AIM_PCT, PSS_AIM_MB, RateCounter, ResourceMeter  # noqa: E402
-from u2sa_hw.udp_ports import private_udp_port  # noqa: E402
+from u2sa_hw.bus.udp_ports import private_udp_port  # noqa: E402
 
 LATENCY_MISSION = """<?xml version="1.0"?>
 <mission name="straight ahead" loop="false">

@@ -9,7 +9,7 @@ from collections import defaultdict
 
 import psutil
 
-from u2sa_hw.transport import Transport
+from u2sa_hw.bus.transport import Transport
 
 def pss_bytes(pid: int) -> int:
     """The proportional set size of *pid* (shared pages divided among their users), from smaps_rollup."""

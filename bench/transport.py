@@ -45,9 +45,9 @@ import time
 from typing import Any
 
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_key import use_run_key
-from u2sa_hw.transport import DEFAULT_QUEUE_CAPACITY, Transport, with_receive_buffer
-from u2sa_hw.udp_ports import private_lcm_url
+from u2sa_hw.bus.key import use_run_key
+from u2sa_hw.bus.transport import DEFAULT_QUEUE_CAPACITY, Transport, with_receive_buffer
+from u2sa_hw.bus.udp_ports import private_lcm_url
 
 CHANNEL = "BENCH_STATE"
 MODES = ("raw", "rawdec", "open", "signed")
@@ -311,8 +311,8 @@ def print_stages(stages: dict[str, dict]) -> None:
 
 def print_cpu() -> None:
     """Each step's CPU in this process, hot (a tight loop): what the latency would pay with warm caches."""
-    from u2sa_hw.bus_auth import BusAuth, keyring_for
-    from u2sa_hw.bus_key import key_path
+    from u2sa_hw.bus.auth import BusAuth, keyring_for
+    from u2sa_hw.bus.key import key_path
     from u2sa_hw.messages import REGISTRY
 
     msg = full_state()

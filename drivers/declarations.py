@@ -1,7 +1,7 @@
 """Device declarations of the driver families whose modules are full: CAN motors and the RC mux.
 
-Mixins of :class:`drivers.can_motor.CanMotorService`, :class:`drivers.odrive_can.OdriveCanMotor`,
-:class:`drivers.vesc_can.VescCanMotor` and :class:`drivers.rc_mux.RcMuxDriver`: what each
+Mixins of :class:`u2sa_hw.drivers.can_motor.common.CanMotorService`, :class:`u2sa_hw.drivers.can_motor.odrive.driver.OdriveCanMotor`,
+:class:`u2sa_hw.drivers.can_motor.vesc.driver.VescCanMotor` and :class:`u2sa_hw.drivers.rc_mux.driver.RcMuxDriver`: what each
 declares to the mock catalog and ``u2sa check --probe`` (``MOCK_KINDS``, ``mock_wiring``,
 ``probe_expectation``; u2sa_hw/ports/declared.py). The setting names stay with the drivers;
 callers get values in their own vocabulary. Each is called with the service's config with
@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from typing import Any, ClassVar, Mapping
 
-from drivers.gpio_lines import parse_line_map
+from u2sa_hw.drivers.gpio.lines import parse_line_map
 
 
 class CanMotorDeclarations:

@@ -17,7 +17,7 @@ sentence unset, so fields are read with :func:`number` / :func:`text`, which giv
 value that is no finite float (a 400-digit field, ``inf``), so no caller meets an overflow.
 
 An *epoch* is the burst of sentences a receiver sends for one solution (:class:`Epoch`);
-the GPS driver's rules for where one ends are in :mod:`drivers.gps_epochs`.
+the GPS driver's rules for where one ends are in :mod:`u2sa_hw.drivers.gps_nmea.epochs`.
 """
 
 from __future__ import annotations

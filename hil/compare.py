@@ -68,9 +68,9 @@ from u2sa_hw.channels import base_type
 from u2sa_hw.messages import ABSENT, REGISTRY, MalformedMessage, enumerate_fields
 from u2sa_hw.recording.log_reader import LogFile
 
-from hil.held_up import HeldWindow
-from hil.player import header_source
-from hil.stream_align import Pair, align_streams, content_key
+from u2sa_hw.hil.held_up import HeldWindow
+from u2sa_hw.hil.player import header_source
+from u2sa_hw.hil.stream_align import Pair, align_streams, content_key
 
 HEADER_FIELDS = ("*header.timestamp_us", "*header.sequence")
 STATE_CHANNELS = ("RC_MODE", "MANUAL_CMD")         # published on a timer and on every change
@@ -490,10 +490,10 @@ def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[st
     ``ReplayResult.pilot``): reported, and a message that fails it is a finding.
     The recorded pilot trailers never reach the comparison (the log reader cuts them off).
     *held*: service -> the windows where the recording machine held it up
-    (hil.held_up, ``ReplayPlan.held_windows``); what differs there is a note.
+    (u2sa_hw.hil.held_up, ``ReplayPlan.held_windows``); what differs there is a note.
     """
-    from hil.compare_report import CompareReport
-    from hil.compare_states import compare_states
+    from u2sa_hw.hil.compare_report import CompareReport
+    from u2sa_hw.hil.compare_states import compare_states
 
     tol = _tolerances(tolerance)
     ignore = (*ignore, *tol.ignore)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from hil.compare import StreamReport, Tolerances
+from u2sa_hw.hil.compare import StreamReport, Tolerances
 
 SHOWN_FIELDS = 8
 SHOWN_EVENTS = 5

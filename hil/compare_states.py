@@ -9,7 +9,7 @@ from __future__ import annotations
 import bisect
 from typing import Any
 
-from hil.compare import (SYSTEM_FIELDS, FieldDiff, Sample, StreamReport, ToleranceLike, Tolerances, _tolerances,
+from u2sa_hw.hil.compare import (SYSTEM_FIELDS, FieldDiff, Sample, StreamReport, ToleranceLike, Tolerances, _tolerances,
                          values_equal)
 
 

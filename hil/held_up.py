@@ -29,7 +29,7 @@ from u2sa_hw.recording.log_reader import LogFile
 # service kind -> the health details that count the recording machine holding the service up
 # (``checks_lost``: a service's health came too late for a pre-arm check, on the recording machine's clock)
 HELD_UP_BY_KIND: dict[str, tuple[str, ...]] = {"rc_mux": ("stalls", "timed_skipped", "checks_lost")}
-LATE_EDGE_NS = 50_000_000   # = drivers.rc_mux_clock.TIMED_HOLD_NS (not imported: hil reads logs, not drivers)
+LATE_EDGE_NS = 50_000_000   # = u2sa_hw.drivers.rc_mux.clock.TIMED_HOLD_NS (not imported: hil reads logs, not drivers)
 HELD_MARGIN_S = 0.5
 
 

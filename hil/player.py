@@ -35,9 +35,9 @@ from typing import Any, Callable, Iterator
 from u2sa_hw.channels import base_type
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.recording.log_reader import LogFile
-from u2sa_hw.transport import Transport
+from u2sa_hw.bus.transport import Transport
 
-from hil.replay_devices import ReplayDevice, ReplayStalled
+from u2sa_hw.hil.replay_devices import ReplayDevice, ReplayStalled
 
 
 @dataclass

@@ -26,22 +26,22 @@ from typing import Any, Callable
 
 import tomli_w
 
-from u2sa_hw.bus_key import KEY_ENV, fresh_key_file
+from u2sa_hw.bus.key import KEY_ENV, fresh_key_file
 from u2sa_hw.channels import base_type
 from u2sa_hw.launcher import Launcher, ProcessStatus, RestartPolicy
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo, header_source
 from u2sa_hw.services.recorder.capture import BusCapture
-from u2sa_hw.transport import Transport, TransportError, check_multicast
-from u2sa_hw.vehicle import load_profile
-from u2sa_hw.udp_ports import private_lcm_url
+from u2sa_hw.bus.transport import Transport, TransportError, check_multicast
+from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.bus.udp_ports import private_lcm_url
 
-from hil.compare import STATE_CHANNELS
-from hil.player import ORDERED_CHANNELS, PlayStats, Player, authority_key
-from hil.progress import ProgressBar
-from hil.replay_devices import ReplayDevice, ReplaySerialDevice, ReplayStalled
-from hil.replay_i2c import held_drivers, release_held_reads
-from hil.replay_plan import (DevicePlan, ReplayError, ReplayPlan, ServicePlan, build_plan,
+from u2sa_hw.hil.compare import STATE_CHANNELS
+from u2sa_hw.hil.player import ORDERED_CHANNELS, PlayStats, Player, authority_key
+from u2sa_hw.hil.progress import ProgressBar
+from u2sa_hw.hil.replay_devices import ReplayDevice, ReplaySerialDevice, ReplayStalled
+from u2sa_hw.hil.replay_i2c import held_drivers, release_held_reads
+from u2sa_hw.hil.replay_plan import (DevicePlan, ReplayError, ReplayPlan, ServicePlan, build_plan,
                              write_run_profile)
 
 CONTRACT_PREFIX = "U2SA_"
@@ -64,7 +64,7 @@ class ReplayOptions:
     progress: bool | None = None          # None: when stderr is a terminal
     ready_timeout_s: float = 30.0
     settle_s: float = 1.0                 # quiet time that ends the replay after the last input
-    lcm_url: str | None = None            # default: a free private port (u2sa_hw.udp_ports), ttl=0
+    lcm_url: str | None = None            # default: a free private port (u2sa_hw.bus.udp_ports), ttl=0
 
 
 @dataclass
@@ -120,11 +120,11 @@ def make_device(dev: DevicePlan, run_dir: Path, service: ServicePlan, *, fast: b
         return ReplaySerialDevice(name=dev.name, link_path=run_dir / "dev" / dev.name, stamped=True,
                                   **({"burst_gap_s": float(gap)} if isinstance(gap, (int, float)) else {}))
     if dev.kind in ("gpio", "pwm"):
-        from hil import replay_gpio
+        from u2sa_hw.hil import replay_gpio
 
         return replay_gpio.make_device(dev.kind, dev.name, run_dir, service=service.name,
                                        rigs=rigs if rigs is not None else {})
-    from hil import replay_buses
+    from u2sa_hw.hil import replay_buses
 
     return replay_buses.make_device(dev, run_dir, fast=fast, options=_replay_options(dev, service))
 
@@ -273,7 +273,7 @@ class Replay:
 
         from u2sa_hw import channels as ch
         from u2sa_hw import lcmtypes as t
-        from u2sa_hw.bus_client import BusClient
+        from u2sa_hw.bus.client import BusClient
 
         found: dict[str, Any] = {}
         everyone = threading.Event()

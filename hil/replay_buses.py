@@ -1,6 +1,6 @@
-"""Replay devices for the buses: the I2C bus (:mod:`hil.replay_i2c`: chips answering with recorded
+"""Replay devices for the buses: the I2C bus (:mod:`u2sa_hw.hil.replay_i2c`: chips answering with recorded
 register reads, data reads paced by the player), and CAN frames sent onto a private UDP multicast bus.
-Serial is in :mod:`hil.replay_devices`; the interface is the same. :func:`make_device` makes either.
+Serial is in :mod:`u2sa_hw.hil.replay_devices`; the interface is the same. :func:`make_device` makes either.
 """
 
 from __future__ import annotations
@@ -16,10 +16,10 @@ from typing import Any, Mapping
 from u2sa_hw.ports.address import DeviceAddress, make_address
 from u2sa_hw.ports.can_clock import CAN_GROUP, join_bus, pack_frame
 from u2sa_hw.ports.tap import TX
-from u2sa_hw.udp_ports import private_udp_port
+from u2sa_hw.bus.udp_ports import private_udp_port
 
-from hil.replay_i2c import I2C_BACKLOG_READS, I2C_CLIENT_TIMEOUT_S, ReplayI2cChip, ReplayI2cDevice
-from hil.replay_plan import DevicePlan, ReplayError
+from u2sa_hw.hil.replay_i2c import I2C_BACKLOG_READS, I2C_CLIENT_TIMEOUT_S, ReplayI2cChip, ReplayI2cDevice
+from u2sa_hw.hil.replay_plan import DevicePlan, ReplayError
 
 __all__ = ["CAN_BACKLOG_BYTES", "CAN_CHECK_EVERY", "CAN_GROUP", "I2C_BACKLOG_READS", "I2C_CLIENT_TIMEOUT_S",
            "ReplayCanDevice", "ReplayI2cChip", "ReplayI2cDevice", "make_device", "socket_inodes", "udp_backlog"]

@@ -3,7 +3,7 @@
 Each device stands at the address the replay writes into its driver's config and is fed
 the recorded ``RAW.<device>`` records by the player (hil/player.py):
 
-- :class:`ReplaySerialDevice`: a pty at a symlink (like ``mock_devices.pty_serial``);
+- :class:`ReplaySerialDevice`: a pty at a symlink (like ``u2sa_hw.mocks.pty_serial``);
   recorded RX bytes are written into it, with backpressure instead of drops; what the
   driver writes is kept and checked against the recorded TX bytes. Stamped (the replay's
   mode), each recorded chunk goes as a frame with its recorded read time, and each recorded
@@ -13,8 +13,8 @@ the recorded ``RAW.<device>`` records by the player (hil/player.py):
   empty); a log from before those records gets a clock tick wherever two recorded reads are
   ``burst_gap_s`` or more apart, which a live driver busy between two reads of one burst also
   leaves (issue 24).
-- CAN and I2C replay devices live in :mod:`hil.replay_buses`, GPIO and PWM in
-  :mod:`hil.replay_gpio`.
+- CAN and I2C replay devices live in :mod:`u2sa_hw.hil.replay_buses`, GPIO and PWM in
+  :mod:`u2sa_hw.hil.replay_gpio`.
 
 Every device has ``config_changes()`` (the config fields that point its driver at it),
 ``start()``/``stop()``, ``ready(pid, health)`` (the driver has opened its side), ``feed(record)``,

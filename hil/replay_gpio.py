@@ -3,7 +3,7 @@ driver's input lines, and mock PWM outputs (a sysfs-shaped directory or a mock P
 for a servo driver whose recorded commands come over the bus.
 
 GPIO. :class:`ReplayGpioDevice` serves the mock chip protocol (it *is* a
-``mock_devices.gpio_chip.MockGpioChip`` at a socket in the run directory), so the driver
+``u2sa_hw.mocks.gpio_chip.MockGpioChip`` at a socket in the run directory), so the driver
 requests its lines exactly as from a real chip. Each recorded ``RawGpioEdge`` drives its
 input line when the player reaches it, stamped with the recorded kernel timestamp moved
 onto this machine's CLOCK_MONOTONIC by one offset: every interval between edges (a pulse
@@ -22,13 +22,13 @@ driver published while no edge had reached it for ``STEP_SILENCE_NS`` (edges arr
 a held-up machine), a *step* at that time, when the live driver judged its timeouts on its own
 clock (:meth:`ReplayGpioDevice.clock_ticks`). The chip tells the
 driver the offset (its clock's *origin*), so the driver's timed messages fall on the recorded
-clock's grid (drivers/rc_mux.py). In --fast the player waits while ``GPIO_BACKLOG`` frames are
+clock's grid (drivers/rc_mux/driver.py). In --fast the player waits while ``GPIO_BACKLOG`` frames are
 queued for the driver, so nothing is dropped.
 
 Recorded bus inputs. What a GPIO driver decides may also depend on bus messages (the RC mux's
 pre-arm checks read every service's Health and the estimate, its enable line drops on FAILSAFE).
 The device takes the recorded ``BUS_INPUTS`` in log order with its edges (the player hands
-them over as :class:`hil.player.RecordedBusMessage`) and the chip passes those a driver asked
+them over as :class:`u2sa_hw.hil.player.RecordedBusMessage`) and the chip passes those a driver asked
 for (op ``bus``) on to it between the edges the recorded driver read before and after it (the
 log's order: an edge's record was logged when the driver read it), stamped with the edge sent
 before it; before the first edge, at its log time less the smallest (log time - kernel stamp)
@@ -60,7 +60,7 @@ from u2sa_hw.ports.address import DeviceAddress, make_address
 from u2sa_hw.recording.log_reader import LogFile
 from u2sa_hw.recording.mcap_log import header_source
 
-from hil.replay_plan import ReplayError
+from u2sa_hw.hil.replay_plan import ReplayError
 
 GPIO_MIN_LINES = 64   # lines of the replay chip (more when the log names higher offsets)
 TICK_NS = 10_000_000  # the device clock's step through recorded silences (recorded time)
@@ -223,7 +223,7 @@ class ReplayGpioDevice:
 
     def start(self) -> None:
         """Serve the replay chip with every recorded input line at its starting level."""
-        from mock_devices.gpio_chip import MockGpioChip
+        from u2sa_hw.mocks.gpio_chip import MockGpioChip
 
         self.socket_path.parent.mkdir(parents=True, exist_ok=True)
         self.chip = MockGpioChip(socket_path=str(self.socket_path), num_lines=self._num_lines,
@@ -364,8 +364,8 @@ class PwmReplayRig:
         """Create the trees and start the buses (once for all the service's devices)."""
         if self._started:
             return
-        from mock_devices.i2c_bus import MockI2cBus
-        from mock_devices.pca9685_chip import Pca9685Chip
+        from u2sa_hw.mocks.i2c_bus import MockI2cBus
+        from u2sa_hw.mocks.pca9685_chip import Pca9685Chip
         from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
 
         self._started = True

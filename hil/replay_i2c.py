@@ -1,6 +1,6 @@
 """The replay I2C bus: chips answering a driver's register reads with a log's recorded reads, its data
-reads paced by the player (the interface of :mod:`hil.replay_devices`; made by
-:func:`hil.replay_buses.make_device`).
+reads paced by the player (the interface of :mod:`u2sa_hw.hil.replay_devices`; made by
+:func:`u2sa_hw.hil.replay_buses.make_device`).
 
 I2C is pulled: the driver reads, the chip answers. The recorded reads are loaded before the
 replay starts (:meth:`ReplayI2cDevice.preload`) and each read of a register (by chip address)
@@ -39,7 +39,7 @@ from u2sa_hw.ports.address import DeviceAddress, make_address
 from u2sa_hw.ports.i2c_port import OP_READ, OP_WRITE, STATUS_EIO, STATUS_NACK, STATUS_OK
 from u2sa_hw.recording.log_reader import LogFile
 
-from hil.replay_plan import ReplayError, raw_records
+from u2sa_hw.hil.replay_plan import ReplayError, raw_records
 
 I2C_BACKLOG_READS = 8       # --fast: data reads released ahead of the driver, so it samples beside the player
 # The replay bus's client timeout (timeout= in its mock+i2c address). The driver's first data read is held
@@ -64,7 +64,7 @@ class ReplayI2cChip:
 
 def _replay_bus_class() -> type:
     """A MockI2cBus that does not hold its bus lock around a chip's answer (imported when a replay starts)."""
-    from mock_devices.i2c_bus import MockI2cBus
+    from u2sa_hw.mocks.i2c_bus import MockI2cBus
 
     class ReplayI2cBus(MockI2cBus):
         """The replay's bus: a held data read must not keep another chip (an AK8963 on its own connection)

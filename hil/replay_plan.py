@@ -23,7 +23,7 @@ from typing import Any, Iterator
 
 import tomli_w
 
-from u2sa_hw.config import ConfigError, parse_text
+from u2sa_hw.config.configurator import ConfigError, parse_text
 from u2sa_hw.ports.address import AddressError, DeviceAddress, parse_address
 from u2sa_hw.recording.log_reader import LogFile, LogSummary
 from u2sa_hw.registry import resolve_kind
@@ -86,7 +86,7 @@ class ReplayPlan:
     def held_windows(self) -> dict[str, list[Any]]:
         """service -> where the recording machine held it up (hil/held_up.py): what differs
         there, ``--compare`` reports as a note."""
-        from hil.held_up import plan_windows
+        from u2sa_hw.hil.held_up import plan_windows
 
         gpio = {d.name: d.service for d in self.devices.values() if d.service and d.kind == "gpio"}
         return plan_windows(self.log, kinds={name: sp.kind for name, sp in self.services.items()}, devices=gpio,
@@ -100,7 +100,7 @@ class ReplayPlan:
 
 def service_devices(service: str, kind: str | None, config: dict[str, Any]) -> dict[str, str | None]:
     """The devices *service* of *kind* with *config* uses: name -> its old-form address (or None)."""
-    from u2sa_hw.devices import service_devices as declared
+    from u2sa_hw.profile.devices import service_devices as declared
 
     used: dict[str, str | None] = {}
     if kind:
@@ -153,7 +153,7 @@ def read_profile(log: LogFile, vehicle: Path | None) -> tuple[dict[str, Any], di
             profile = _toml(vehicle.read_bytes(), str(vehicle))
         except OSError as exc:
             raise ReplayError(f"{vehicle}: cannot read ({exc.strerror})") from None
-        from u2sa_hw.vehicle import ProfileError, load_profile
+        from u2sa_hw.profile.vehicle import ProfileError, load_profile
 
         try:
             parsed = load_profile(vehicle)

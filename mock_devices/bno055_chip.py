@@ -23,8 +23,8 @@ import random
 import time
 from typing import Any, Sequence
 
-from mock_devices.i2c_chip import RegisterChip, RestingVehicle, Vehicle
-from mock_devices.mpu9250_chip import ned_to_body
+from u2sa_hw.mocks.i2c_chip import RegisterChip, RestingVehicle, Vehicle
+from u2sa_hw.mocks.mpu9250_chip import ned_to_body
 from u2sa_hw.ports.i2c_port import OP_READ, STATUS_NACK
 from u2sa_hw.protocols import bno055 as bno
 

@@ -34,7 +34,7 @@ from typing import Any, Callable, Mapping
 
 import can
 
-from mock_devices.vehicle_sim import SimVehicle
+from u2sa_hw.mocks.vehicle_sim import SimVehicle
 
 log = logging.getLogger(__name__)
 

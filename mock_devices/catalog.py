@@ -10,7 +10,7 @@ when it cannot be found from the services, the service that uses it::
     sides = ["left", "right"]    # CAN motor mocks only: which side of the vehicle each controller drives
     drives = { rudder = "steering" }   # PWM and GPIO outputs: actuator name -> the vehicle model input it moves
 
-Each builder works from the device's real address (a :class:`~u2sa_hw.devices.DeviceEntry`)
+Each builder works from the device's real address (a :class:`~u2sa_hw.profile.devices.DeviceEntry`)
 and returns the device's *mock address*, which is all the simulation changes in its copy of
 the profile (docs/ports.md): ``serial:///dev/u2sa/gps`` -> ``mock+serial://<dir>/gps`` (a
 pty), ``i2c://1/0x68`` -> ``mock+i2c://<dir>/i2c-1.sock/0x68`` (one mock bus per real bus,
@@ -27,7 +27,7 @@ device (``MOCK_KINDS``) and gives ``mock_wiring(service, device, config)`` in th
 vocabulary (a CAN motor's controllers with their ids, directions and wheel radii, the RC
 receiver's channel lines and mux lines, a PWM output's pulse range), so nothing here reads a
 driver's setting names. Every actuator output is logged and moves the
-vehicle through :mod:`mock_devices.actuation`: CAN motors by their side, PWM outputs named
+vehicle through :mod:`u2sa_hw.mocks.actuation`: CAN motors by their side, PWM outputs named
 like a model input (``steering``, ``throttle``, ``left``, ``right``) or listed in ``drives``,
 GPIO outputs listed in ``drives`` (``enable``: a motor contactor).
 """
@@ -39,18 +39,18 @@ import os
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Mapping
 
-from mock_devices.actuation import GpioFeed, PwmFeed
-from mock_devices.bno055_chip import Bno055Chip
-from mock_devices.i2c_bus import MockI2cBus
-from mock_devices.mpu9250_chip import Ak8963Chip, Mpu9250Chip
-from mock_devices.nmea_gps import NmeaGpsDevice
-from mock_devices.odrive_node import OdriveCanNode
-from mock_devices.pca9685_chip import Pca9685Chip
-from mock_devices.rc_receiver import MuxMock, RcReceiverMock
-from mock_devices.serial_compass import NmeaCompassDevice, Os5000CompassDevice
-from mock_devices.sim_context import CAN_GROUP, MODEL_INPUTS, DeviceError, MockContext
-from mock_devices.sysfs_pwm import SysfsPwmChip
-from mock_devices.vesc_node import VescCanNode
+from u2sa_hw.mocks.actuation import GpioFeed, PwmFeed
+from u2sa_hw.mocks.bno055_chip import Bno055Chip
+from u2sa_hw.mocks.i2c_bus import MockI2cBus
+from u2sa_hw.mocks.mpu9250_chip import Ak8963Chip, Mpu9250Chip
+from u2sa_hw.mocks.nmea_gps import NmeaGpsDevice
+from u2sa_hw.mocks.odrive_node import OdriveCanNode
+from u2sa_hw.mocks.pca9685_chip import Pca9685Chip
+from u2sa_hw.mocks.rc_receiver import MuxMock, RcReceiverMock
+from u2sa_hw.mocks.serial_compass import NmeaCompassDevice, Os5000CompassDevice
+from u2sa_hw.mocks.sim_context import CAN_GROUP, MODEL_INPUTS, DeviceError, MockContext
+from u2sa_hw.mocks.sysfs_pwm import SysfsPwmChip
+from u2sa_hw.mocks.vesc_node import VescCanNode
 from u2sa_hw.ports import declared
 from u2sa_hw.ports.address import DeviceAddress, make_address
 

@@ -42,7 +42,7 @@ from u2sa_hw.ports.gpio_port import (BIASES, EDGE_FALLING, EDGE_RISING, EDGES, M
                                      MockFrameReader, MockProtocolError, encode_bus_input, encode_mock_frame,
                                      encode_mock_json)
 
-log = logging.getLogger("mock_devices.gpio_chip")
+log = logging.getLogger("u2sa_hw.mocks.gpio_chip")
 
 OutputCallback = Callable[[int, int, int], None]
 WRITE_BATCH = 256   # frames a client's writer sends at once at most

@@ -4,7 +4,7 @@ This machine has no ``/dev/gpiochip*`` and no gpio-sim (configfs is not mounted)
 port's gpiod backend (``u2sa_hw.ports.gpio_port.GpiodGpioPort``) cannot reach a kernel
 chip. ``GpiodOnMockChips`` stands in for the two libgpiod v2 calls that open the kernel's
 character device -- ``gpiod.request_lines(path, config=..., consumer=...)`` and
-``gpiod.Chip(path)`` -- and answers them from a :class:`~mock_devices.gpio_chip.MockGpioChip`
+``gpiod.Chip(path)`` -- and answers them from a :class:`~u2sa_hw.mocks.gpio_chip.MockGpioChip`
 over its socket, so the chip's own semantics (EBUSY naming the consumer, per-request
 edges with timestamps, release on close) are the ones the mock backend is tested against.
 Everything else is libgpiod's own: ``gpiod.LineSettings``, the ``gpiod.line`` enums,
@@ -36,7 +36,7 @@ from typing import Any, Iterable
 import gpiod
 from gpiod.line import Bias, Direction, Edge, Value
 
-from mock_devices.gpio_chip import MockGpioChip
+from u2sa_hw.mocks.gpio_chip import MockGpioChip
 from u2sa_hw.ports.gpio_port import (EDGE_RISING, MOCK_EDGE, MOCK_EDGE_RECORD, MockFrameReader, MockProtocolError,
                                      encode_mock_json)
 

@@ -1,7 +1,7 @@
 """Mock I2C bus: register-level chip models behind a Unix stream socket.
 
 ``MockI2cBus(socket_path=...)`` hosts chip models (subclasses of
-:class:`mock_devices.i2c_chip.RegisterChip`) at
+:class:`u2sa_hw.mocks.i2c_chip.RegisterChip`) at
 7-bit addresses. Drivers reach it through ``open_i2c(bus="mock:<socket_path>", ...)``;
 the wire protocol is documented (and its constants defined) in u2sa_hw/ports/i2c_port.py
 and docs/i2c-devices.md. One thread per client; one transaction at a time on the bus, as
@@ -9,7 +9,7 @@ on a real I2C bus. An address with no chip NACKs, like an empty address on real 
 
 Run standalone (e.g. from a test in another process, or for a bench session)::
 
-    python -m mock_devices.i2c_bus --socket /tmp/i2c.sock --chip mpu9250@0x68 --chip pca9685@0x40
+    python -m u2sa_hw.mocks.i2c_bus --socket /tmp/i2c.sock --chip mpu9250@0x68 --chip pca9685@0x40
 """
 
 from __future__ import annotations
@@ -24,17 +24,17 @@ import threading
 import time
 from collections import deque
 
-from mock_devices.bno055_chip import Bno055Chip
-from mock_devices.i2c_chip import (HISTORY_LIMIT, STANDARD_GRAVITY, I2cChip, I2cTransaction, RegisterChip,
+from u2sa_hw.mocks.bno055_chip import Bno055Chip
+from u2sa_hw.mocks.i2c_chip import (HISTORY_LIMIT, STANDARD_GRAVITY, I2cChip, I2cTransaction, RegisterChip,
                                    RestingVehicle, Vehicle)
-from mock_devices.mpu9250_chip import Mpu9250Chip
-from mock_devices.pca9685_chip import Pca9685Chip
+from u2sa_hw.mocks.mpu9250_chip import Mpu9250Chip
+from u2sa_hw.mocks.pca9685_chip import Pca9685Chip
 from u2sa_hw.ports.i2c_port import (MAX_TRANSFER, MOCK_SCHEME, OP_READ, OP_WRITE, REQUEST, RESPONSE,
                                     STATUS_BAD_REQUEST, STATUS_NACK)
 
 __all__ = ["HISTORY_LIMIT", "STANDARD_GRAVITY", "I2cChip", "I2cTransaction", "MockI2cBus", "RegisterChip",
            "RestingVehicle", "Vehicle", "build_chip"]   # the chip base is re-exported for existing imports
-log = logging.getLogger("mock_devices.i2c_bus")
+log = logging.getLogger("u2sa_hw.mocks.i2c_bus")
 
 
 class MockI2cBus:
@@ -213,7 +213,7 @@ def build_chip(spec: str, *, seed: int) -> RegisterChip:
 
 def main(argv: list[str] | None = None) -> int:
     """Serve a mock I2C bus with chips at rest until SIGTERM/SIGINT."""
-    parser = argparse.ArgumentParser(prog="python -m mock_devices.i2c_bus", description=main.__doc__)
+    parser = argparse.ArgumentParser(prog="python -m u2sa_hw.mocks.i2c_bus", description=main.__doc__)
     parser.add_argument("--socket", required=True, help="Unix socket path to serve on")
     parser.add_argument("--chip", action="append", default=[], metavar="KIND@ADDR",
                         help="chip to host, e.g. mpu9250@0x68 (repeatable)")

@@ -1,8 +1,8 @@
 """The register-level chip model base the mock I2C bus hosts, and what sensor chips sample.
 
 :class:`RegisterChip` is a register file with auto-increment, faults and a history;
-the chip models (:mod:`mock_devices.mpu9250_chip`, :mod:`mock_devices.bno055_chip`,
-:mod:`mock_devices.pca9685_chip`) subclass it and :class:`mock_devices.i2c_bus.MockI2cBus`
+the chip models (:mod:`u2sa_hw.mocks.mpu9250_chip`, :mod:`u2sa_hw.mocks.bno055_chip`,
+:mod:`u2sa_hw.mocks.pca9685_chip`) subclass it and :class:`u2sa_hw.mocks.i2c_bus.MockI2cBus`
 hosts them. This module imports neither, so the bus can import the chip models and the
 chip models this base without an import circle.
 """

@@ -12,7 +12,7 @@ library::
 
 The ``[simulation]`` table sets the vehicle model (see :class:`SimulationSettings`); the
 origin is the profile's ``[vehicle].origin``. Each ``[devices.NAME]`` table is built by
-:mod:`mock_devices.catalog`. *service_configs* maps a service name to its effective
+:mod:`u2sa_hw.mocks.catalog`. *service_configs* maps a service name to its effective
 config; without it the mocks read the profile's ``settings`` and the service's config
 file (``u2sa sim`` passes the full config with the service kind's defaults).
 """
@@ -25,10 +25,10 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, Mapping
 
-from mock_devices.catalog import CATALOG, DeviceSpec, MockDevice, build
-from mock_devices.sim_context import MODEL_INPUTS, DeviceError, MockContext
-from mock_devices.vehicle_sim import MODELS, SimVehicle
-from u2sa_hw.vehicle import VehicleProfile
+from u2sa_hw.mocks.catalog import CATALOG, DeviceSpec, MockDevice, build
+from u2sa_hw.mocks.sim_context import MODEL_INPUTS, DeviceError, MockContext
+from u2sa_hw.mocks.vehicle_sim import MODELS, SimVehicle
+from u2sa_hw.profile.vehicle import VehicleProfile
 
 DEFAULT_CAN_UDP_PORT = 43113   # python-can's udp_multicast default
 
@@ -84,9 +84,9 @@ class SimulationSettings:
                 raise DeviceError(f"{where} [simulation]: {name} must be > 0")
         if not 1024 <= settings.can_udp_port <= 65000:
             raise DeviceError(f"{where} [simulation]: can_udp_port must be in 1024..65000")
-        from u2sa_hw.profile_numbers import checked
+        from u2sa_hw.profile.numbers import checked
 
-        for name, value in values.items():   # every number's range (u2sa_hw/profile_numbers.py)
+        for name, value in values.items():   # every number's range (u2sa_hw/profile/numbers.py)
             if isinstance(value, (int, float)):
                 checked(f"simulation.{name.replace('start_', 'start.')}", value, f"{where} [simulation]", DeviceError)
         return settings
@@ -115,9 +115,9 @@ def file_service_config(profile: VehicleProfile, service: str) -> dict[str, Any]
 
 
 def device_specs(profile: VehicleProfile, configs: Mapping[str, Mapping[str, Any]] | None = None) -> list[DeviceSpec]:
-    """Every device of *profile* (``u2sa_hw.devices.profile_devices``) that names a mock, checked."""
-    from u2sa_hw.devices import profile_devices
-    from u2sa_hw.vehicle import ProfileError
+    """Every device of *profile* (``u2sa_hw.profile.devices.profile_devices``) that names a mock, checked."""
+    from u2sa_hw.profile.devices import profile_devices
+    from u2sa_hw.profile.vehicle import ProfileError
 
     try:
         entries = profile_devices(profile, configs=configs)
@@ -264,7 +264,7 @@ class MockLauncher:
 
     def rc_stalls(self) -> list[tuple[int, int]]:
         """Every RC receiver mock's stalls, in time order: (their end, ns beyond a frame period), monotonic ns (see
-        :attr:`mock_devices.rc_receiver.RcReceiverMock.stalls`)."""
+        :attr:`u2sa_hw.mocks.rc_receiver.RcReceiverMock.stalls`)."""
         return sorted(s for rc in self.context.rc_receivers.values() for s in list(rc.stalls))
 
     def describe(self) -> list[str]:

@@ -31,8 +31,8 @@ from typing import Callable
 from pynmeagps import NMEAMessage
 from pynmeagps.nmeahelpers import ddd2dmm, time2str
 
-from mock_devices.pty_serial import PeriodicSerialDevice
-from mock_devices.vehicle_sim import SimVehicle, VehicleTruth, ned_to_geodetic
+from u2sa_hw.mocks.pty_serial import PeriodicSerialDevice
+from u2sa_hw.mocks.vehicle_sim import SimVehicle, VehicleTruth, ned_to_geodetic
 
 GPS_SENTENCES = ("GGA", "RMC", "VTG", "GSA", "GST", "ZDA", "HDT", "GNS", "GLL")
 KNOT_MPS = 1852.0 / 3600.0

@@ -26,7 +26,7 @@ clears, Set_Axis_State re-arms.
 
 Position estimates come from the vehicle's wheel odometer, velocity estimates from its rate
 (see WheelOdometer), so the node agrees with every other sensor on the same SimVehicle.
-``python -m mock_devices.odrive_node --help`` runs one node with its own vehicle.
+``python -m u2sa_hw.mocks.odrive_node --help`` runs one node with its own vehicle.
 """
 
 from __future__ import annotations
@@ -39,11 +39,11 @@ from typing import Any, Callable, Mapping
 
 import can
 
-from mock_devices.can_node import MockCanNode, PeriodicSchedule, WheelOdometer, add_bus_arguments, bus_options, serve
-from mock_devices.odrive_config import VERSION_06, OdriveConfig, endpoint_access
+from u2sa_hw.mocks.can_node import MockCanNode, PeriodicSchedule, WheelOdometer, add_bus_arguments, bus_options, serve
+from u2sa_hw.mocks.odrive_config import VERSION_06, OdriveConfig, endpoint_access
 # re-exported: the tests and bench/motor_watchdog.py configure drivers for this mock's build with them
-from mock_devices.odrive_config import ENABLE_WATCHDOG_ENDPOINT, MOCK_FW, WATCHDOG_TIMEOUT_ENDPOINT  # noqa: F401
-from mock_devices.vehicle_sim import SimVehicle
+from u2sa_hw.mocks.odrive_config import ENABLE_WATCHDOG_ENDPOINT, MOCK_FW, WATCHDOG_TIMEOUT_ENDPOINT  # noqa: F401
+from u2sa_hw.mocks.vehicle_sim import SimVehicle
 from u2sa_hw.protocols import odrive_cansimple as cs
 from u2sa_hw.protocols.odrive_cansimple import AxisState, Cmd, ControlMode, InputMode, ProcedureResult
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import time
 
-from mock_devices.i2c_chip import RegisterChip
+from u2sa_hw.mocks.i2c_chip import RegisterChip
 from u2sa_hw.protocols import pca9685 as pca
 
 _LED_REGISTERS = range(pca.LED0_ON_L, pca.LED15_OFF_H + 1)

@@ -49,7 +49,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from mock_devices.vehicle_sim import SimVehicle, VehicleTruth
+from u2sa_hw.mocks.vehicle_sim import SimVehicle, VehicleTruth
 
 log = logging.getLogger(__name__)
 

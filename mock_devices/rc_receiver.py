@@ -14,7 +14,7 @@ Faults: ``signal_loss`` (no edges), ``glitch`` (isolated out-of-range frames).
 autonomy-enable output line is high AND the pilot's mode switch (the mode channel) says
 autonomous; otherwise, and on loss of the RC signal, the pilot (RC) side. Software and
 pilot must both agree. It switches only the PWM outputs wired through it (the profile's
-``[safety] hardware_mux``: :class:`mock_devices.actuation.PwmFeed` asks ``rc_pulse_us`` for
+``[safety] hardware_mux``: :class:`u2sa_hw.mocks.actuation.PwmFeed` asks ``rc_pulse_us`` for
 the pilot's pulse); CAN, I2C and GPIO outputs never pass through it. It drives an optional
 select read-back input line (1 = autonomous).
 Fault: ``stick(side)`` jams the mux on one side whatever its inputs say (a welded relay, a
@@ -32,9 +32,9 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Callable
 
-from mock_devices.gpio_chip import MockGpioChip
+from u2sa_hw.mocks.gpio_chip import MockGpioChip
 
-log = logging.getLogger("mock_devices.rc_receiver")
+log = logging.getLogger("u2sa_hw.mocks.rc_receiver")
 
 EDGE_GUARD_NS = 100_000  # a pulse ends at least this long before the next channel's slot
 STALL_NOTED_NS = 50_000_000   # this long more than a frame period between two frames: a stall (the thread was not run)

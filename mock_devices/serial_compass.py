@@ -40,9 +40,9 @@ import os
 
 from pynmeagps.nmeahelpers import calc_checksum
 
-from mock_devices.nmea_gps import heading_360, nmea_sentence
-from mock_devices.pty_serial import PeriodicSerialDevice
-from mock_devices.vehicle_sim import SimVehicle, VehicleTruth
+from u2sa_hw.mocks.nmea_gps import heading_360, nmea_sentence
+from u2sa_hw.mocks.pty_serial import PeriodicSerialDevice
+from u2sa_hw.mocks.vehicle_sim import SimVehicle, VehicleTruth
 
 COMPASS_SENTENCES = ("HDG", "HDM", "HDT", "THS", "ROT", "XDR", "PASHR", "PTNTHTM", "PTNTHPR")
 
@@ -171,7 +171,7 @@ class Os5000CompassDevice(_CompassBase):
         return [os5000_line(magnetic, pitch, roll, self.temperature_c, self._field(truth) if self.raw_field else None)]
 
     def _field(self, truth: VehicleTruth) -> tuple[float, float, float]:
-        from mock_devices.mpu9250_chip import ned_to_body
+        from u2sa_hw.mocks.mpu9250_chip import ned_to_body
 
         body = ned_to_body(self.earth_field_mg, truth.roll, truth.pitch, truth.yaw)
         return tuple(b + sum(k * f for k, f in zip(row, body)) + self.rng.gauss(0.0, self.field_noise_mg)

@@ -5,7 +5,7 @@ chip and one UDP port per real CAN bus, so devices on the same real bus meet on 
 mock one. :class:`RoutedVehicle` is the vehicle as the actuator outputs drive it (each model
 input by name), optionally *held* (motors turn, the vehicle does not move: a vehicle on
 blocks, for bench measurements). The context also keeps the :class:`OutputLog` of every
-actuator output and the PWM/GPIO feeds (:mod:`mock_devices.actuation`).
+actuator output and the PWM/GPIO feeds (:mod:`u2sa_hw.mocks.actuation`).
 """
 
 from __future__ import annotations
@@ -16,11 +16,11 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from mock_devices.actuation import Feeds, MotorInput, OutputLog, OutputPoller
-from mock_devices.gpio_chip import MockGpioChip
-from mock_devices.i2c_bus import MockI2cBus
-from mock_devices.rc_receiver import MuxMock, RcReceiverMock
-from mock_devices.vehicle_sim import ACKERMANN_MAX_STEER_RAD, SimVehicle
+from u2sa_hw.mocks.actuation import Feeds, MotorInput, OutputLog, OutputPoller
+from u2sa_hw.mocks.gpio_chip import MockGpioChip
+from u2sa_hw.mocks.i2c_bus import MockI2cBus
+from u2sa_hw.mocks.rc_receiver import MuxMock, RcReceiverMock
+from u2sa_hw.mocks.vehicle_sim import ACKERMANN_MAX_STEER_RAD, SimVehicle
 
 MODEL_INPUTS = {"differential": ("left", "right"), "twin_thruster": ("left", "right"),
                 "ackermann": ("steering", "throttle")}
@@ -50,9 +50,9 @@ class RoutedVehicle:
 
     Inputs are ``left``/``right`` (differential: wheel surface speed in m/s; twin_thruster:
     thrust -1..1) and ``steering``/``throttle`` (ackermann). CAN motor nodes set them through
-    :class:`mock_devices.actuation.MotorInput`, PWM outputs through the output poller
+    :class:`u2sa_hw.mocks.actuation.MotorInput`, PWM outputs through the output poller
     (``set_fraction``). No RC mux sits here: the simulated mux switches only the PWM outputs
-    wired through it (:class:`mock_devices.actuation.PwmFeed`). A GPIO output that *drives*
+    wired through it (:class:`u2sa_hw.mocks.actuation.PwmFeed`). A GPIO output that *drives*
     ``enable`` (a motor contactor) cuts the propulsion while at its safe level.
     """
 

@@ -2,7 +2,7 @@
 
 This machine has no ``/dev/i2c-*``, so the smbus2 backend of the I2C port
 (``u2sa_hw.ports.i2c_port.SmbusI2cPort``) cannot reach a kernel adapter. ``SmbusAdapters``
-stands in for the kernel's i2c-dev: attach a :class:`~mock_devices.i2c_bus.MockI2cBus` as
+stands in for the kernel's i2c-dev: attach a :class:`~u2sa_hw.mocks.i2c_bus.MockI2cBus` as
 adapter N, and the class from :meth:`SmbusAdapters.smbus_class` (put in place of
 ``smbus2.SMBus``) answers ``open(N)``, ``read_i2c_block_data``, ``write_i2c_block_data`` and
 ``i2c_rdwr`` (with smbus2's own ``i2c_msg`` objects) from that bus's chip models, with the
@@ -27,7 +27,7 @@ import os
 import threading
 from typing import Any
 
-from mock_devices.i2c_bus import MockI2cBus
+from u2sa_hw.mocks.i2c_bus import MockI2cBus
 from u2sa_hw.ports.i2c_port import OP_READ, OP_WRITE, STATUS_EIO, STATUS_NACK, STATUS_OK
 
 SMBUS_BLOCK_MAX = 32

@@ -36,7 +36,7 @@ import time
 from dataclasses import dataclass
 
 from u2sa_hw import geo
-from u2sa_hw.vehicle import Origin
+from u2sa_hw.profile.vehicle import Origin
 GRAVITY = 9.80665  # standard gravity, m/s^2
 
 BOAT_SURGE_TAU_S = 2.0

@@ -20,7 +20,7 @@ The STATUS frames chosen in ``status_messages`` (1..6; default 1, 4 and 5, as VE
 "CAN Status Message Mode") are sent at ``status_hz``. ERPM and the tachometer (6 counts per
 electrical revolution) come from the vehicle's wheel odometer on a differential vehicle, and
 from the commanded speed on a boat (a propeller has no odometer). PING is answered with PONG.
-``python -m mock_devices.vesc_node --help`` runs one node with its own vehicle.
+``python -m u2sa_hw.mocks.vesc_node --help`` runs one node with its own vehicle.
 """
 
 from __future__ import annotations
@@ -33,8 +33,8 @@ from typing import Any, Callable, Iterable, Mapping
 
 import can
 
-from mock_devices.can_node import MockCanNode, PeriodicSchedule, WheelOdometer, add_bus_arguments, bus_options, serve
-from mock_devices.vehicle_sim import SimVehicle
+from u2sa_hw.mocks.can_node import MockCanNode, PeriodicSchedule, WheelOdometer, add_bus_arguments, bus_options, serve
+from u2sa_hw.mocks.vehicle_sim import SimVehicle
 from u2sa_hw.protocols import vesc_can as vc
 from u2sa_hw.protocols.vesc_can import FaultCode, PacketId
 

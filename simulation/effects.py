@@ -2,7 +2,7 @@
 
 For every event, over the window from the moment it fired to the next event (or the end of
 the run), and for every output (CAN motor setpoint, PWM pulse, GPIO level, as the mock
-devices saw them; :mod:`mock_devices.actuation`):
+devices saw them; :mod:`u2sa_hw.mocks.actuation`):
 
 * ``at_event``: its value (% of full scale, or the GPIO level) and whether it was neutral;
 * ``neutral_after_ms``: when it went neutral, if it was moving at the event;
@@ -23,7 +23,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any, Sequence
 
 if TYPE_CHECKING:   # the mocks are imported only where a simulation runs
-    from mock_devices.actuation import OutputChange, OutputLog
+    from u2sa_hw.mocks.actuation import OutputChange, OutputLog
 
 
 def _state_at(timeline: Sequence[OutputChange], t_ns: int) -> OutputChange | None:

@@ -12,7 +12,7 @@ import math
 from pathlib import Path
 from typing import Any, Sequence
 
-from simulation.summary import Goal, TrackSample
+from u2sa_hw.simulation.summary import Goal, TrackSample
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.messages import as_type
 from u2sa_hw.geofence_draw import draw_fence

@@ -22,10 +22,10 @@ from typing import Any, Mapping
 
 import tomli_w
 
-from u2sa_hw.config_validate import declared_fields
-from u2sa_hw.devices import effective_config
+from u2sa_hw.config.validate import declared_fields
+from u2sa_hw.profile.devices import effective_config
 from u2sa_hw.registry import RECORDER_KIND
-from u2sa_hw.vehicle import ProfileError, VehicleProfile
+from u2sa_hw.profile.vehicle import ProfileError, VehicleProfile
 
 SIM_PROFILE_NAME = "vehicle.toml"
 __all__ = ["effective_config", "effective_configs", "write_sim_profile"]

@@ -25,7 +25,7 @@ from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.failsafe import FailsafeSources
 from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence helpers on StateInformation
-from u2sa_hw.transport import Transport
+from u2sa_hw.bus.transport import Transport
 
 MODE_NAMES = {0: "MANUAL", 1: "AUTONOMOUS", 2: "NO RC SIGNAL"}
 

@@ -11,9 +11,9 @@
 
 ``run()`` chains them. The simulated vehicle lives in this process (with the mocks), so
 its true track is sampled here, at ``SAMPLE_HZ``. With a scenario (``SimOptions.scenario``,
-:mod:`simulation.events`) ``run()`` plays its events instead of waiting for the mission's
+:mod:`u2sa_hw.simulation.events`) ``run()`` plays its events instead of waiting for the mission's
 end, a failsafe or a loss of autonomy is what the run is about rather than a failure, and
-the summary says what each event did to every actuator output (:mod:`simulation.effects`).
+the summary says what each event did to every actuator output (:mod:`u2sa_hw.simulation.effects`).
 
 The pilot hands over only once every IMU has calibrated at rest (its health ``ok``): the
 vehicle stands still in manual with the sticks centred until then.
@@ -30,17 +30,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from simulation.effects import final_outputs
-from simulation.events import Scenario, load_scenario_file
-from simulation.profile import effective_configs, write_sim_profile
-from simulation.progress import (BusMonitor, BusSnapshot, ProgressLine, control_mode, mission_done,
+from u2sa_hw.simulation.effects import final_outputs
+from u2sa_hw.simulation.events import Scenario, load_scenario_file
+from u2sa_hw.simulation.profile import effective_configs, write_sim_profile
+from u2sa_hw.simulation.progress import (BusMonitor, BusSnapshot, ProgressLine, control_mode, mission_done,
                                 rc_state_name, status_text)
-from simulation.scenario import load_scenario
-from simulation.script import ScriptRunner
-from simulation.summary import RunRecord, TrackSample, summarise, summary_text, write_summary, write_track_csv
+from u2sa_hw.simulation.scenario import load_scenario
+from u2sa_hw.simulation.script import ScriptRunner
+from u2sa_hw.simulation.summary import RunRecord, TrackSample, summarise, summary_text, write_summary, write_track_csv
 from u2sa_hw.launcher import Launcher, RestartPolicy
 from u2sa_hw.realtime import SIM_DEVICES_PRIORITY, ProcessPriority, plan
-from u2sa_hw.vehicle import load_profile
+from u2sa_hw.profile.vehicle import load_profile
 
 # "off": every u2sa sim of this environment at normal priority, as --no-realtime. The test suite
 # sets it: two simulations side by side (pytest-xdist) at one SCHED_FIFO priority do not share a
@@ -84,7 +84,7 @@ class SimOptions:
     lcm_url: str | None = None          # None: the profile's
     can_port: int | None = None         # None: the profile's [simulation] can_udp_port
     grace_s: float = 3.0
-    scenario: Path | None = None        # a failsafe scenario file (simulation.events)
+    scenario: Path | None = None        # a failsafe scenario file (u2sa_hw.simulation.events)
     service_cgroup: Path | None = None  # every service (each restart too) joins this cgroup; the mocks stay out
     realtime: bool = True               # the safety chain and this process (the mocks) SCHED_FIFO, when permitted
 
@@ -123,8 +123,8 @@ class SimRun:
     # -- steps ---------------------------------------------------------------------------
     def start(self) -> None:
         """Start the mocks, write the simulation profile, listen to the bus, launch the services."""
-        from mock_devices.launcher import MockLauncher
-        from mock_devices.sim_context import device_dir_for
+        from u2sa_hw.mocks.launcher import MockLauncher
+        from u2sa_hw.mocks.sim_context import device_dir_for
 
         for sub in ("run", "logs"):
             shutil.rmtree(self.out / sub, ignore_errors=True)
@@ -308,7 +308,7 @@ class SimRun:
         self.out.mkdir(parents=True, exist_ok=True)
         files.append(write_track_csv(self.record.samples, self.out / "track.csv"))
         try:
-            from simulation.plot import plot_run
+            from u2sa_hw.simulation.plot import plot_run
 
             files.append(plot_run(self.out / "track.png", samples=self.record.samples, goals=self.scenario.goals,
                                   obstacles=self.scenario.obstacles, t_engage=self.record.t_engage,

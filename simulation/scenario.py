@@ -11,13 +11,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
-from simulation.summary import Goal
+from u2sa_hw.simulation.summary import Goal
 from u2sa_hw.geo import geodetic_to_ned
 from u2sa_hw.geofence_parse import profile_fence
 from u2sa_hw.services.mission.xml import GLOBAL, load_mission
 from u2sa_hw.services.world.model import place_in_world
 from u2sa_hw.services.world.xml import load_objects
-from u2sa_hw.vehicle import ProfileError, VehicleProfile
+from u2sa_hw.profile.vehicle import ProfileError, VehicleProfile
 
 
 @dataclass

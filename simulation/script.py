@@ -3,7 +3,7 @@
 :class:`ScriptRunner` acts on what the simulation owns: the mock devices (RC receiver and
 its sticks, the GPS), the launcher's processes (signals), and the bus (a forged
 ``ACTUATOR_CMD``, a ``FAILSAFE`` raised or cleared). It keeps when each event fired
-(``time.monotonic_ns()`` just before acting), which :mod:`simulation.effects` lines up
+(``time.monotonic_ns()`` just before acting), which :mod:`u2sa_hw.simulation.effects` lines up
 with the output log of the mocks.
 """
 
@@ -15,8 +15,8 @@ import threading
 import time
 from typing import Any, Callable, Sequence
 
-from simulation.effects import event_effects
-from simulation.events import Scenario, ScenarioError, ScenarioEvent
+from u2sa_hw.simulation.effects import event_effects
+from u2sa_hw.simulation.events import Scenario, ScenarioError, ScenarioEvent
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 

@@ -20,8 +20,8 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
-from simulation.fence_report import fence_lines, fence_report
-from simulation.progress import StatusChange
+from u2sa_hw.simulation.fence_report import fence_lines, fence_report
+from u2sa_hw.simulation.progress import StatusChange
 from u2sa_hw.services.world.shapes import distance_to_point, segment_distance
 
 

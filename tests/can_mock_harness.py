@@ -41,9 +41,9 @@ def _plain(value: Any) -> Any:
 
 def serve(spec: dict[str, Any]) -> None:
     """Run the vehicle and nodes of *spec* and answer requests until stdin closes."""
-    from mock_devices.odrive_node import OdriveCanNode
-    from mock_devices.vehicle_sim import SimVehicle
-    from mock_devices.vesc_node import VescCanNode
+    from u2sa_hw.mocks.odrive_node import OdriveCanNode
+    from u2sa_hw.mocks.vehicle_sim import SimVehicle
+    from u2sa_hw.mocks.vesc_node import VescCanNode
 
     vehicle = SimVehicle(origin_lat=0.0, origin_lon=0.0, **spec.get("vehicle", {}))
     cls = {"odrive": OdriveCanNode, "vesc": VescCanNode}[spec["kind"]]

@@ -14,9 +14,9 @@ from typing import Callable, Iterator
 import pytest
 
 import unprivileged_env
-from u2sa_hw.bus_key import KEY_ENV, fresh_key_file
-from u2sa_hw.udp_ports import private_lcm_url
-from u2sa_hw.service_bus import PROBE_ENV
+from u2sa_hw.bus.key import KEY_ENV, fresh_key_file
+from u2sa_hw.bus.udp_ports import private_lcm_url
+from u2sa_hw.service.bus_handlers import PROBE_ENV
 
 REPO = Path(__file__).resolve().parent.parent
 U2SA = [sys.executable, "-m", "u2sa_hw.cli"]
@@ -38,7 +38,7 @@ def pytest_configure(config: pytest.Config) -> None:
     os.chmod(_SESSION_KEY_DIR.name, 0o755)
     os.chmod(key, 0o644)
     os.environ[KEY_ENV] = str(key)
-    # A starting service listens 0.3 s for another of its name (u2sa_hw/service_bus.py); the tests
+    # A starting service listens 0.3 s for another of its name (u2sa_hw/service/bus_handlers.py); the tests
     # start hundreds, each on a bus of its own, so they listen a little less. The tests of the
     # duplicate check itself give the default back (DUPLICATE_PROBE_S) where they rely on it.
     os.environ.setdefault(PROBE_ENV, "0.25")
@@ -139,7 +139,7 @@ def services(tmp_path: Path, lcm_url: str) -> Iterator[ServiceProcesses]:
 @pytest.fixture
 def bus(lcm_url: str) -> Iterator[object]:
     """A BusClient on this test's LCM URL."""
-    from u2sa_hw.bus_client import BusClient
+    from u2sa_hw.bus.client import BusClient
 
     client = BusClient(lcm_url)
     yield client

@@ -20,15 +20,15 @@ from typing import Any, Callable
 import can
 from pynmeagps.nmeahelpers import calc_checksum
 
-from drivers.compass_serial import SerialCompassDriver
-from drivers.odrive_can import OdriveCanMotor
-from drivers.vesc_can import VescCanMotor
+from u2sa_hw.drivers.compass.driver import SerialCompassDriver
+from u2sa_hw.drivers.can_motor.odrive.driver import OdriveCanMotor
+from u2sa_hw.drivers.can_motor.vesc.driver import VescCanMotor
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_auth import OK, TRAILER_LEN
+from u2sa_hw.bus.auth import OK, TRAILER_LEN
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.protocols import odrive_cansimple as cs
 from u2sa_hw.protocols import vesc_can as vc
-from u2sa_hw.transport import Transport
+from u2sa_hw.bus.transport import Transport
 
 
 class FuzzViolation(AssertionError):

@@ -15,7 +15,7 @@ from conftest import wait_until
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 
 
 class BusCollector:

@@ -19,7 +19,7 @@ from typing import Callable
 
 from gps_stream_builder import BUILDERS, START, Solution, checksum
 
-from drivers import gps_limits as lim
+from u2sa_hw.drivers.gps_nmea import limits as lim
 from u2sa_hw import lcmtypes as t
 
 INFLATIONS = ("9" * 20, "1" * 400, "1e308", "-1e308", "inf", "nan", "-0", "1e-320", "99999999999.999999",

@@ -15,11 +15,11 @@ import math
 from dataclasses import dataclass, field, replace
 from typing import Callable, Iterator
 
-from drivers.gps_nmea import GpsNmeaDriver
-from drivers.nmea_fields import Epoch, parse_sentence
+from u2sa_hw.drivers.gps_nmea.driver import GpsNmeaDriver
+from u2sa_hw.drivers.nmea_fields import Epoch, parse_sentence
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.geo import ned_to_geodetic
-from u2sa_hw.vehicle import Origin
+from u2sa_hw.profile.vehicle import Origin
 
 KNOT_MPS = 1852.0 / 3600.0
 GAP_S = 0.05

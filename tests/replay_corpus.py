@@ -96,7 +96,7 @@ def _wait(predicate: Callable[[], bool], timeout: float, what: str) -> None:
 def _mid_run(work: Path) -> dict[str, Path]:
     """The ground vehicle's simulation with two ``u2sa record`` started while it drives: one ends by
     --duration, the other is killed with SIGKILL and recovered; and the simulation's own recording."""
-    from u2sa_hw.udp_ports import private_lcm_url, private_udp_port
+    from u2sa_hw.bus.udp_ports import private_lcm_url, private_udp_port
 
     url = private_lcm_url()
     env = dict(_env(), U2SA_LCM_URL=url)
@@ -141,7 +141,7 @@ def _raw_recording_profile(sim_profile: Path, out: Path, url: str) -> bool:
 
     import tomli_w
 
-    from hil.replay_plan import declared_fields
+    from u2sa_hw.hil.replay_plan import declared_fields
 
     try:
         data = tomllib.loads(sim_profile.read_text())
@@ -162,7 +162,7 @@ def _raw_recording_profile(sim_profile: Path, out: Path, url: str) -> bool:
 def _mock_run(work: Path) -> dict[str, Path]:
     """``u2sa record`` of a ``u2sa mock`` + ``u2sa run`` stack, as a team runs it by hand: the recording starts
     first, so it holds every driver's start-up, and ends with Ctrl-C once it holds a few seconds of running."""
-    from u2sa_hw.udp_ports import private_lcm_url, private_udp_port
+    from u2sa_hw.bus.udp_ports import private_lcm_url, private_udp_port
 
     url = private_lcm_url()
     env = dict(_env(), U2SA_LCM_URL=url)
@@ -215,13 +215,13 @@ def build_corpus(corpus: Path, *, workers: int = 2, only: set[str] | None = None
     corpus.mkdir(parents=True, exist_ok=True)
     work = corpus.parent / f"{corpus.name}-work"
     if "U2SA_BUS_KEY_FILE" not in os.environ:   # outside the test session (the bench): a key of the corpus's own
-        from u2sa_hw.bus_key import fresh_key_file
+        from u2sa_hw.bus.key import fresh_key_file
         (work / "key").mkdir(parents=True, exist_ok=True)
         os.environ["U2SA_BUS_KEY_FILE"] = str(fresh_key_file(str(work / "key")))
 
     # the driver modules imported here, once: the jobs' threads importing them at once can meet a module
     # another thread is still initialising (declared_fields then finds no fields)
-    from hil.replay_plan import declared_fields
+    from u2sa_hw.hil.replay_plan import declared_fields
     from u2sa_hw.registry import SERVICE_KINDS
 
     for kind in SERVICE_KINDS:

@@ -17,7 +17,7 @@ from conftest import REPO, ServiceProcesses, wait_until
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 from u2sa_hw.ports.tap import raw_channel
 
 ORIGIN = {"lat": 29.1895, "lon": -81.0483, "alt": 10.0}

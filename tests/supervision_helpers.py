@@ -13,7 +13,7 @@ import pytest
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 from u2sa_hw.launcher import LauncherClient, LauncherError
 from u2sa_hw.launcher.launcher import u2sa_command
 

@@ -11,7 +11,7 @@ from conftest import wait_until
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Actuator, ExteroceptiveSensor, ProprioceptiveSensor
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 
 
 class RecordingActuator(Actuator):
@@ -119,8 +119,8 @@ def test_sensors_publish_with_their_name(tmp_path: Path, lcm_url: str, bus: BusC
 
 
 def test_check_config_refuses_a_change_before_it_is_written(tmp_path: Path, lcm_url: str) -> None:
-    from u2sa_hw.config import ConfigError, field
-    from u2sa_hw.service import U2SAService
+    from u2sa_hw.config.configurator import ConfigError, field
+    from u2sa_hw.service.contract import U2SAService
 
     class RateService(U2SAService):
         CONFIG = (field("rate_hz", 10.0, le=1000), field("burst", 2, le=100))

@@ -19,17 +19,17 @@ from typing import Any, Iterator
 import pytest
 from conftest import wait_until
 
-from drivers.ak8963_mag import mag_address, to_chip_axes
-from drivers.imu_mpu9250 import Mpu9250ImuDriver
-from hil.replay_buses import ReplayI2cDevice
-from mock_devices.i2c_bus import MockI2cBus
-from mock_devices.mpu9250_chip import Ak8963Chip, Mpu9250Chip, OrientedVehicle, ned_to_body
+from u2sa_hw.drivers.imu.ak8963 import mag_address, to_chip_axes
+from u2sa_hw.drivers.imu.mpu9250 import Mpu9250ImuDriver
+from u2sa_hw.hil.replay_buses import ReplayI2cDevice
+from u2sa_hw.mocks.i2c_bus import MockI2cBus
+from u2sa_hw.mocks.mpu9250_chip import Ak8963Chip, Mpu9250Chip, OrientedVehicle, ned_to_body
 from u2sa_hw import channels as ch
 from u2sa_hw.ports.address import parse_address
 from u2sa_hw.ports.i2c_port import OP_READ, OP_WRITE
 from u2sa_hw.protocols import mpu9250 as mpu
 from u2sa_hw.recording.mcap_log import McapLogWriter
-from u2sa_hw.vehicle import VehicleProfile
+from u2sa_hw.profile.vehicle import VehicleProfile
 
 EARTH_UT = (20.0, 0.0, 45.0)      # the chip model's default field (NED, µT)
 SETTINGS = {"device": "ins", "calibrate_samples": 0, "retries": 1,

@@ -1,4 +1,4 @@
-"""Signing and verification (u2sa_hw.bus_auth) and the key file (u2sa_hw.bus_key), with injected clocks.
+"""Signing and verification (u2sa_hw.bus.auth) and the key file (u2sa_hw.bus.key), with injected clocks.
 
 The window rules are checked here with clocks the test sets (a minute later, a board without
 RTC); the same code over real multicast between processes is tests/test_bus_security.py.
@@ -13,10 +13,10 @@ from pathlib import Path
 import pytest
 
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_auth import (FORGED, MAX_COUNTER, OK, REPLAYED, TAG, TRAILER_LEN, UNSIGNED, WINDOW_US, BusAuth,
+from u2sa_hw.bus.auth import (FORGED, MAX_COUNTER, OK, REPLAYED, TAG, TRAILER_LEN, UNSIGNED, WINDOW_US, BusAuth,
                               Keyring, strip_trailer)
-from u2sa_hw.bus_key import BusKeyError, key_path, new_key, parse_key, read_key, write_key
-from u2sa_hw.transport import Transport, TransportError
+from u2sa_hw.bus.key import BusKeyError, key_path, new_key, parse_key, read_key, write_key
+from u2sa_hw.bus.transport import Transport, TransportError
 
 NOW_US = 1_764_000_000_000_000      # November 2025
 PAYLOAD = t.StateInformation().set(x=1.0).encode()

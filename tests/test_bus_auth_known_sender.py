@@ -1,4 +1,4 @@
-"""A sender a receiver already heard is held to every rule of the window (u2sa_hw.bus_auth).
+"""A sender a receiver already heard is held to every rule of the window (u2sa_hw.bus.auth).
 
 tests/test_bus_auth.py checks a sender's first packet against the window; these check the
 packets after it: the same or an older counter is a replay, a counter out of range is refused
@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_auth import MAX_COUNTER, OK, REPLAYED, TAG, BusAuth, Keyring
-from u2sa_hw.bus_key import new_key, write_key
+from u2sa_hw.bus.auth import MAX_COUNTER, OK, REPLAYED, TAG, BusAuth, Keyring
+from u2sa_hw.bus.key import new_key, write_key
 
 NOW_US = 1_764_000_000_000_000
 PAYLOAD = t.StateInformation().set(x=1.0).encode()

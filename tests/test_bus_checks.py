@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 from conftest import U2SA, unprivileged
 
-from u2sa_hw.bus_listen import route_interface
+from u2sa_hw.bus.listen import route_interface
 from u2sa_hw.check.bus_checks import check_bus
 from u2sa_hw.check.problem import Collector
 

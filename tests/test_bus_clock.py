@@ -16,9 +16,9 @@ from conftest import unprivileged
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_auth import OK, REPLAYED, WINDOW_US, BusAuth, Keyring
-from u2sa_hw.bus_clock import FILE_NAME, SAVE_EVERY_S, STATE_ENV, ClockStore, store_from_env
-from u2sa_hw.bus_key import new_key, write_key
+from u2sa_hw.bus.auth import OK, REPLAYED, WINDOW_US, BusAuth, Keyring
+from u2sa_hw.bus.clock import FILE_NAME, SAVE_EVERY_S, STATE_ENV, ClockStore, store_from_env
+from u2sa_hw.bus.key import new_key, write_key
 
 DAY_US = 86_400_000_000
 YESTERDAY = 1_790_000_000_000_000          # µs since 1970: November 2026
@@ -136,7 +136,7 @@ def test_a_directory_that_cannot_be_written_keeps_the_service_working() -> None:
         locked = shared / "locked"
         locked.mkdir()
         locked.chmod(0o555)   # readable, not writable (by the user nobody; root ignores modes), whatever the umask
-        code = ("from u2sa_hw.bus_clock import ClockStore\n"
+        code = ("from u2sa_hw.bus.clock import ClockStore\n"
                 f"s = ClockStore({str(locked)!r})\nprint(s.save(1), s.save(2), s.start_at(5))\n")
         done = subprocess.run(unprivileged([sys.executable, "-c", code]), capture_output=True, text=True, timeout=60)
     finally:
@@ -148,7 +148,7 @@ def test_a_directory_that_cannot_be_written_keeps_the_service_working() -> None:
 
 def test_a_transport_starts_from_the_saved_time_and_saves_when_it_stops(tmp_path: Path, lcm_url: str,
                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
-    from u2sa_hw.transport import Transport
+    from u2sa_hw.bus.transport import Transport
 
     later = time.time_ns() // 1000 + 100 * DAY_US         # saved by a vehicle whose clock ran 100 days ahead
     (tmp_path / FILE_NAME).write_text(json.dumps({"signing_us": later, "boot_id": "another boot", "boottime_us": 0}))

@@ -19,10 +19,10 @@ from gpio_driver_harness import BusCollector
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
-from u2sa_hw.bus_key import KEY_ENV
-from u2sa_hw.bus_listen import default_route_note, route_interface
-from u2sa_hw.udp_ports import private_lcm_url
+from u2sa_hw.bus.client import BusClient
+from u2sa_hw.bus.key import KEY_ENV
+from u2sa_hw.bus.listen import default_route_note, route_interface
+from u2sa_hw.bus.udp_ports import private_lcm_url
 
 
 def test_the_note_is_only_for_ttl_1_without_an_interface(monkeypatch: pytest.MonkeyPatch) -> None:

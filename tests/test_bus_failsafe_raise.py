@@ -27,9 +27,9 @@ from supervision_helpers import hsm_profile
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_auth import BusAuth
-from u2sa_hw.bus_client import BusClient
-from u2sa_hw.transport import Transport
+from u2sa_hw.bus.auth import BusAuth
+from u2sa_hw.bus.client import BusClient
+from u2sa_hw.bus.transport import Transport
 
 BEHIND_S = 60   # three times the replay window
 # The u2sa command on a machine whose wall clock is BEHIND_S behind: time.time_ns is what signing reads.

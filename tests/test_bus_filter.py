@@ -1,4 +1,4 @@
-"""The kernel channel filter on a transport's receive socket (u2sa_hw.bus_filter): a process hears
+"""The kernel channel filter on a transport's receive socket (u2sa_hw.bus.filter): a process hears
 only the channels it subscribed to, and never misses one of them."""
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ import threading
 import pytest
 from conftest import wait_until
 
-from u2sa_hw import bus_filter
-from u2sa_hw.bus_filter import FilterTooLarge, lcm_packet, program
-from u2sa_hw.transport import FILTER_ENV, Transport
+from u2sa_hw.bus import filter as bus_filter
+from u2sa_hw.bus.filter import FilterTooLarge, lcm_packet, program
+from u2sa_hw.bus.transport import FILTER_ENV, Transport
 
 
 def _kernel_run(channels: list[str], packets: list[bytes]) -> list[bytes]:

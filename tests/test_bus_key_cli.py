@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 from conftest import U2SA, unprivileged
 
-from u2sa_hw.bus_key import KEY_ENV, BusKeyError, key_id, key_path, read_key
+from u2sa_hw.bus.key import KEY_ENV, BusKeyError, key_id, key_path, read_key
 
 
 def u2sa(*args: str, key: Path | None = None, stdin: str | None = None, **env: str) -> subprocess.CompletedProcess:
@@ -112,7 +112,7 @@ def run_u2sa(args: list[str], env: dict[str, str], *, stdin: str | None = None,
 def test_the_key_command_acts_on_the_key_of_the_profile_in_U2SA_VEHICLE(tmp_path: Path) -> None:
     # The services find the key through the profile $U2SA_VEHICLE names; so does `u2sa key`,
     # not /etc/u2sa/bus.key (which a test must never touch).
-    from u2sa_hw.vehicle import load_profile
+    from u2sa_hw.profile.vehicle import load_profile
 
     profile = profile_naming(tmp_path, "keys/rover.key")          # relative to the profile's directory
     env = {**without_key_env(), "U2SA_VEHICLE": str(profile)}
@@ -135,7 +135,7 @@ def test_the_key_command_acts_on_the_key_of_the_profile_in_U2SA_VEHICLE(tmp_path
 
 
 def test_a_key_pasted_into_bus_key_is_refused_at_load_without_printing_it(tmp_path: Path, lcm_url: str) -> None:
-    from u2sa_hw.vehicle import ProfileError, load_profile
+    from u2sa_hw.profile.vehicle import ProfileError, load_profile
 
     profile = profile_naming(tmp_path, KEY_HEX, lcm_url)
     with pytest.raises(ProfileError) as err:
@@ -188,7 +188,7 @@ def test_operator_and_pilot_keys_are_made_beside_the_bus_key_and_shown(tmp_path:
     assert oct(pilot_key.stat().st_mode & 0o777) == oct(0o600) and pilot_pub.stat().st_mode & 0o044 == 0o044
     shown = u2sa("key", "show", "--pilot", "--file", str(bus))
     assert shown.returncode == 0 and bytes.fromhex(shown.stdout.strip()) == read_key(pilot_pub)
-    from u2sa_hw.bus_pilot import pilot_key_id
+    from u2sa_hw.bus.pilot import pilot_key_id
     assert u2sa("key", "show", "--pilot", "--id", "--file", str(bus)).stdout.strip() == \
         pilot_key_id(read_key(pilot_pub)).hex()
 

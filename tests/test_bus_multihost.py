@@ -28,8 +28,8 @@ from typing import Iterator
 import pytest
 from conftest import U2SA, unprivileged, wait_until
 
-from u2sa_hw.bus_key import KEY_ENV, new_key, write_key
-from u2sa_hw.udp_ports import private_udp_port
+from u2sa_hw.bus.key import KEY_ENV, new_key, write_key
+from u2sa_hw.bus.udp_ports import private_udp_port
 
 SERVICE = "state_estimator"
 IFF_MULTICAST = 0x1000
@@ -38,7 +38,7 @@ IFF_MULTICAST = 0x1000
 STOPS = """\
 import sys, time
 from u2sa_hw import channels as ch, lcmtypes as t
-from u2sa_hw.transport import Transport
+from u2sa_hw.bus.transport import Transport
 
 tx = Transport(sys.argv[1], name="laptop")
 stop = t.StopCommand()

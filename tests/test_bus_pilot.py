@@ -31,12 +31,12 @@ from serial_driver_harness import start_driver
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_auth import BusAuth, Keyring
-from u2sa_hw.bus_client import BusClient
-from u2sa_hw.bus_key import KEY_ENV, key_path, new_key, write_key
-from u2sa_hw.bus_keyring import OPERATOR_KEY_ENV, OPERATORS_DIR
+from u2sa_hw.bus.auth import BusAuth, Keyring
+from u2sa_hw.bus.client import BusClient
+from u2sa_hw.bus.key import KEY_ENV, key_path, new_key, write_key
+from u2sa_hw.bus.keyring import OPERATOR_KEY_ENV, OPERATORS_DIR
 from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
-from u2sa_hw.transport import Transport
+from u2sa_hw.bus.transport import Transport
 
 ROUNDS = 150
 
@@ -44,8 +44,8 @@ ATTACKER = """\
 import sys, time
 from pathlib import Path
 from u2sa_hw import channels as ch, lcmtypes as t
-from u2sa_hw.bus_auth import _TAIL, MAC_BYTES, PILOT_TAG, PILOT_TRAILER_LEN, TAG, BusAuth, Keyring
-from u2sa_hw.transport import Transport
+from u2sa_hw.bus.auth import _TAIL, MAC_BYTES, PILOT_TAG, PILOT_TRAILER_LEN, TAG, BusAuth, Keyring
+from u2sa_hw.bus.transport import Transport
 
 url, bus_key, operator_key, rounds = sys.argv[1], Path(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4])
 wire = Transport(url, name="attacker", security="open")          # sends the bytes it is given

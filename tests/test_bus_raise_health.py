@@ -21,10 +21,10 @@ from supervision_helpers import hsm_profile
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_auth import BusAuth
-from u2sa_hw.bus_client import BusClient
-from u2sa_hw.service_bus import parse_raises
-from u2sa_hw.transport import Transport
+from u2sa_hw.bus.auth import BusAuth
+from u2sa_hw.bus.client import BusClient
+from u2sa_hw.service.bus_handlers import parse_raises
+from u2sa_hw.bus.transport import Transport
 
 BEHIND_S = 60   # three times the replay window
 

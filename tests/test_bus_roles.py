@@ -1,4 +1,4 @@
-"""Roles on the bus (u2sa_hw.bus_roles): the pilot's Ed25519 signature, operator keys, ``denied``.
+"""Roles on the bus (u2sa_hw.bus.roles): the pilot's Ed25519 signature, operator keys, ``denied``.
 
 In-process, with keys of the test's own in a temporary directory laid out as on a vehicle
 (bus.key, pilot.key, pilot.pub, operators/). The same rules between real processes, with an
@@ -14,10 +14,10 @@ import pytest
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_auth import (DENIED, FORGED, OK, PILOT_TAG, PILOT_TRAILER_LEN, TAG, TRAILER_LEN, UNSIGNED, BusAuth,
+from u2sa_hw.bus.auth import (DENIED, FORGED, OK, PILOT_TAG, PILOT_TRAILER_LEN, TAG, TRAILER_LEN, UNSIGNED, BusAuth,
                               Keyring, strip_trailer)
-from u2sa_hw.bus_key import BusKeyError, fresh_key_file, new_key, write_key
-from u2sa_hw.bus_roles import OPERATOR_CHANNELS, PILOT_CHANNELS, may_publish, table
+from u2sa_hw.bus.key import BusKeyError, fresh_key_file, new_key, write_key
+from u2sa_hw.bus.roles import OPERATOR_CHANNELS, PILOT_CHANNELS, may_publish, table
 
 NOW_US = 1_764_000_000_000_000
 MODE = t.RcMode().encode()
@@ -67,7 +67,7 @@ def test_the_bus_key_and_an_operator_key_are_denied_on_the_pilot_channels(vehicl
     key = forger.keyring.current
     for channel in PILOT_CHANNELS:
         # what a holder of the bus key could make: an HMAC trailer on RC_MODE (the code before issue 23 signed so)
-        from u2sa_hw.bus_auth import _TAIL, MAC_BYTES
+        from u2sa_hw.bus.auth import _TAIL, MAC_BYTES
         tail = _TAIL.pack(b"forger!!", NOW_US, key.id)
         hmac_signed = MODE + tail + key.mac(channel.encode() + b"\0", MODE + tail)[:MAC_BYTES] + TAG
         assert rx.verify(channel, hmac_signed) == DENIED
@@ -104,7 +104,7 @@ def test_without_the_pilots_public_key_pilot_messages_are_dropped_and_the_fix_na
 def test_the_pilot_key_signs_nothing_but_the_pilot_channels(vehicle: Path) -> None:
     rx, pilot = auth(vehicle), auth(vehicle)
     packet = pilot.sign(ch.RC_MODE, STATE)
-    from u2sa_hw.bus_auth import SIGNED_TAIL
+    from u2sa_hw.bus.auth import SIGNED_TAIL
     signer = pilot.keyring.pilot_signer()
     end = len(STATE)
     tail = packet[end:end + SIGNED_TAIL]
@@ -147,9 +147,9 @@ def test_the_table_gives_each_channel_its_roles() -> None:
 
 def test_a_service_signs_as_the_vehicle_even_where_an_operator_key_is_set(vehicle: Path, lcm_url: str,
                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
-    from u2sa_hw.bus_key import KEY_ENV
-    from u2sa_hw.bus_keyring import OPERATOR_KEY_ENV
-    from u2sa_hw.transport import Transport
+    from u2sa_hw.bus.key import KEY_ENV
+    from u2sa_hw.bus.keyring import OPERATOR_KEY_ENV
+    from u2sa_hw.bus.transport import Transport
 
     monkeypatch.setenv(KEY_ENV, str(vehicle))
     monkeypatch.setenv(OPERATOR_KEY_ENV, str(vehicle.parent / "operators" / "laptop.key"))  # a ground station's shell

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 from conftest import U2SA, wait_until
 
-from u2sa_hw.bus_key import KEY_ENV, SYSTEM_KEY, read_key
+from u2sa_hw.bus.key import KEY_ENV, SYSTEM_KEY, read_key
 
 SERVICE = "state_estimator"
 

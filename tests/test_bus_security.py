@@ -30,19 +30,19 @@ from serial_driver_harness import start_driver
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
-from u2sa_hw.bus_auth import TAG, TRAILER_LEN, BusAuth, Keyring, keyring_for
-from u2sa_hw.bus_key import KEY_ENV, key_path, new_key, write_key
+from u2sa_hw.bus.client import BusClient
+from u2sa_hw.bus.auth import TAG, TRAILER_LEN, BusAuth, Keyring, keyring_for
+from u2sa_hw.bus.key import KEY_ENV, key_path, new_key, write_key
 from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
-from u2sa_hw.service_bus import DUPLICATE_PROBE_S, PROBE_ENV, Instance, health_instance, process_start_us
-from u2sa_hw.transport import Transport
+from u2sa_hw.service.bus_handlers import DUPLICATE_PROBE_S, PROBE_ENV, Instance, health_instance, process_start_us
+from u2sa_hw.bus.transport import Transport
 
 SERVICE = "state_estimator"
 
 FORGER = """\
 import sys
 from u2sa_hw import channels as ch, lcmtypes as t
-from u2sa_hw.transport import Transport
+from u2sa_hw.bus.transport import Transport
 
 tx = Transport(sys.argv[1], name="laptop")    # open, or signed with the wrong key: the environment says
 stop = t.StopCommand(); stop.all = True
@@ -302,7 +302,7 @@ def test_two_of_one_name_started_at_once_leave_exactly_one(services: ServiceProc
 def test_services_a_launcher_started_take_its_start_so_a_whole_newer_run_gives_way() -> None:
     # Every child of one `u2sa run` (U2SA_RUN_ID set, the launcher its parent) reports the run's start and
     # pid: of two runs of one profile started together, all of the newer run's duplicates are the newer.
-    show = ("from u2sa_hw.service_bus import own_instance\n"
+    show = ("from u2sa_hw.service.bus_handlers import own_instance\n"
             "class T: sender = 'ab'\n"
             "i = own_instance(T()); print(i.started_us, i.stack_pid, i.pid)")
     env = {k: v for k, v in os.environ.items() if k != "U2SA_RUN_ID"}

@@ -21,8 +21,8 @@ import pytest
 from conftest import U2SA, ServiceProcesses, wait_until
 from serial_driver_harness import DriverProbe, start_driver, write_profile
 
-from mock_devices.i2c_bus import MockI2cBus
-from mock_devices.mpu9250_chip import Ak8963Chip, Mpu9250Chip, OrientedVehicle
+from u2sa_hw.mocks.i2c_bus import MockI2cBus
+from u2sa_hw.mocks.mpu9250_chip import Ak8963Chip, Mpu9250Chip, OrientedVehicle
 
 G = 9.80665
 # the mock's truth, in the chips' own axes
@@ -197,7 +197,7 @@ OS5000_SOFT_IRON = ((1.08, -0.04, 0.0), (-0.04, 0.93, 0.02), (0.0, 0.02, 1.0))
 
 def test_os5000_raw_field_calibration_and_the_heading_from_the_corrected_field(
         services: ServiceProcesses, bus, tmp_path: Path) -> None:
-    from mock_devices.serial_compass import Os5000CompassDevice
+    from u2sa_hw.mocks.serial_compass import Os5000CompassDevice
 
     vehicle = OrientedVehicle()
     dev = Os5000CompassDevice(vehicle, link_path=tmp_path / "dev" / "compass", rate_hz=50.0, seed=2, raw_field=True,
@@ -233,7 +233,7 @@ def test_os5000_raw_field_calibration_and_the_heading_from_the_corrected_field(
 
 def test_a_compass_without_raw_field_values_is_not_offered_calibration(
         services: ServiceProcesses, bus, tmp_path: Path) -> None:
-    from mock_devices.serial_compass import NmeaCompassDevice
+    from u2sa_hw.mocks.serial_compass import NmeaCompassDevice
 
     dev = NmeaCompassDevice(OrientedVehicle(), link_path=tmp_path / "dev" / "compass", rate_hz=20.0)
     dev.start()

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from drivers.ak8963_mag import Ak8963, to_chip_axes
-from mock_devices.i2c_bus import MockI2cBus
-from mock_devices.mpu9250_chip import Ak8963Chip, Mpu9250Chip, OrientedVehicle, ned_to_body
+from u2sa_hw.drivers.imu.ak8963 import Ak8963, to_chip_axes
+from u2sa_hw.mocks.i2c_bus import MockI2cBus
+from u2sa_hw.mocks.mpu9250_chip import Ak8963Chip, Mpu9250Chip, OrientedVehicle, ned_to_body
 from u2sa_hw.calibration.correction import IDENTITY9, ZERO3, Correction, tilt_compensated_heading
 from u2sa_hw.cli.calibrate_cmd import AccelCollector, MagCollector, Progress
 from u2sa_hw.ports.address import DeviceAddress, parse_address

@@ -428,8 +428,8 @@ def test_sim_shows_a_service_device_error_on_the_console_once() -> None:
     import io
     from types import SimpleNamespace
 
-    from simulation.progress import BusSnapshot, ProgressLine
-    from simulation.runner import SimRun
+    from u2sa_hw.simulation.progress import BusSnapshot, ProgressLine
+    from u2sa_hw.simulation.runner import SimRun
 
     out = io.StringIO()
     run = SimRun.__new__(SimRun)   # only the console half: no profile, no mocks, no bus

@@ -19,17 +19,17 @@ from typing import Iterator
 import pytest
 
 from conftest import REPO, U2SA
-from mock_devices.bno055_chip import Bno055Chip
-from mock_devices.gpio_chip import MockGpioChip
-from mock_devices.i2c_bus import MockI2cBus
-from mock_devices.pty_serial import PtySerialDevice
+from u2sa_hw.mocks.bno055_chip import Bno055Chip
+from u2sa_hw.mocks.gpio_chip import MockGpioChip
+from u2sa_hw.mocks.i2c_bus import MockI2cBus
+from u2sa_hw.mocks.pty_serial import PtySerialDevice
 from u2sa_hw.check.probe import ProbeResult, probe_profile, probe_target, socketcan_state
 from u2sa_hw.check.serial_probe import judge, xor_checksum
 from u2sa_hw.check.targets import Target
 from u2sa_hw.ports.gpio_port import open_gpio
 from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
-from u2sa_hw.udp_ports import private_udp_port
-from u2sa_hw.vehicle import load_profile
+from u2sa_hw.bus.udp_ports import private_udp_port
+from u2sa_hw.profile.vehicle import load_profile
 
 WINDOW_S = 1.5
 
@@ -317,7 +317,7 @@ def test_socketcan_state_reads_state_bitrate_and_counters() -> None:
 
 def test_probe_reads_device_addresses_of_every_kind(tmp_path: Path) -> None:
     """A profile of the new form: each [devices.NAME] address opened by its scheme (mock+i2c, mock+gpio, mock+pwm)."""
-    from mock_devices.mpu9250_chip import Mpu9250Chip
+    from u2sa_hw.mocks.mpu9250_chip import Mpu9250Chip
 
     bus = MockI2cBus(socket_path=str(tmp_path / "i2c-1.sock"))
     bus.add(Mpu9250Chip(address=0x68))

@@ -14,7 +14,7 @@ from conftest import U2SA, ServiceProcesses, wait_until
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from hil.compare import Sample, Tolerances, align, compare_stream
-from hil.compare_report import CompareReport
-from hil.stream_align import MAX_DP_CELLS
+from u2sa_hw.hil.compare import Sample, Tolerances, align, compare_stream
+from u2sa_hw.hil.compare_report import CompareReport
+from u2sa_hw.hil.stream_align import MAX_DP_CELLS
 
 
 def fix(i: int, *, x: float | None = None, alt: float = 10.0) -> Sample:
@@ -160,7 +160,7 @@ def test_an_rc_mode_published_for_a_verdict_change_on_one_side_only_is_a_note_a_
 
 
 def test_first_difference_names_the_stream_index_and_fields_or_the_counts() -> None:
-    from hil.stream_align import first_difference
+    from u2sa_hw.hil.stream_align import first_difference
 
     a = {"GPS": [("State", {"x": 1.0, "y": 2.0}), ("State", {"x": 3.0, "y": 4.0})]}
     assert first_difference(a, {"GPS": list(a["GPS"])}) == ""

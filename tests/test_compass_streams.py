@@ -19,10 +19,10 @@ import pytest
 from pynmeagps.nmeahelpers import calc_checksum
 from gps_stream_builder import recording_driver
 
-from drivers.compass_serial import SerialCompassDriver, char_time_s
+from u2sa_hw.drivers.compass.driver import SerialCompassDriver, char_time_s
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.transport import Transport
-from u2sa_hw.vehicle import load_profile
+from u2sa_hw.bus.transport import Transport
+from u2sa_hw.profile.vehicle import load_profile
 
 GAP_S = 0.05  # the driver's epoch_gap_s (its read timeout)
 

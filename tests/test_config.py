@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 from conftest import unprivileged
 
-from u2sa_hw.config import ConfigError, Configurator, field
+from u2sa_hw.config.configurator import ConfigError, Configurator, field
 
 FIELDS = (field("rate_hz", 50.0, le=1000), field("retries", 3, le=100), field("enabled", True), field("port", "/dev/ttyUSB0"))
 
@@ -106,7 +106,7 @@ def test_unknown_fields_in_the_file_are_kept_on_write(tmp_path: Path) -> None:
 def _try_set_unprivileged(path: Path, name: str, value: object) -> str:
     code = textwrap.dedent(f"""\
         import logging, sys
-        from u2sa_hw.config import Configurator, field
+        from u2sa_hw.config.configurator import Configurator, field
         logging.basicConfig(level=logging.WARNING, stream=sys.stdout, format="%(message)s")
         cfg = Configurator({str(path)!r}, (field("retries", 3, le=100),))
         ok, reason = cfg.try_set({name!r}, {value!r})
@@ -309,7 +309,7 @@ def test_a_binary_config_file_is_an_error_naming_the_file(tmp_path: Path) -> Non
 
 
 def test_a_remote_false_field_is_not_changed_over_the_bus(tmp_path: Path, lcm_url: str) -> None:
-    from u2sa_hw.service import U2SAService
+    from u2sa_hw.service.contract import U2SAService
 
     class Gated(U2SAService):
         CONFIG = (field("gating", True, "the pilot's switch", remote=False),)

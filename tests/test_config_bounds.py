@@ -17,12 +17,13 @@ from typing import Any
 import pytest
 
 from conftest import REPO, U2SA
-from u2sa_hw.config import MAX_RATE_HZ, MAX_TIMEOUT_S, ConfigError, ConfigField, Configurator
-from u2sa_hw.profile_numbers import PROFILE_NUMBERS, SUPERVISION
+from u2sa_hw.config.configurator import MAX_RATE_HZ, MAX_TIMEOUT_S, ConfigError, ConfigField, Configurator
+from u2sa_hw.profile.numbers import PROFILE_NUMBERS, SUPERVISION
 from u2sa_hw.registry import SERVICE_KINDS, resolve_kind
-from u2sa_hw.service import BASE_CONFIG
+from u2sa_hw.service.contract import BASE_CONFIG
 
-DRIVER_MODULES = sorted(f"drivers.{p.stem}" for p in (REPO / "drivers").glob("*.py") if p.stem != "__init__")
+DRIVER_MODULES = sorted("u2sa_hw.drivers." + ".".join(p.relative_to(REPO / "drivers").with_suffix("").parts)
+                        for p in (REPO / "drivers").rglob("*.py") if p.stem != "__init__")
 
 
 def _unbounded(fields: dict[str, ConfigField]) -> list[str]:
@@ -77,11 +78,11 @@ def test_every_number_of_the_profile_has_a_finite_upper_bound() -> None:
 
 def _profile_dataclasses() -> list[tuple[type, str, dict[str, str]]]:
     """(dataclass a profile parser builds, its table's key prefix, attribute -> key where they differ)."""
-    from mock_devices.launcher import SimulationSettings
+    from u2sa_hw.mocks.launcher import SimulationSettings
     from u2sa_hw.safety.config import ManualMixerSpec, SafetyConfig
     from u2sa_hw.safety.prearm_table import EstimatorCheck, GpsCheck, PrearmTable
     from u2sa_hw.services.hsm.rules import WatchRule
-    from u2sa_hw.vehicle import Origin, VehicleProfile
+    from u2sa_hw.profile.vehicle import Origin, VehicleProfile
 
     return [(VehicleProfile, "vehicle", {}), (Origin, "vehicle.origin", {}),
             (SafetyConfig, "safety", {"rc_mode_timeout_s": "rc_mode_timeout_ms"}),
@@ -99,7 +100,7 @@ def test_every_numeric_field_the_profile_parsers_build_is_in_the_table_of_profil
                 key = f"{prefix}.{renames.get(f.name, f.name)}"
                 if key not in PROFILE_NUMBERS:
                     missing.append(f"{cls.__name__}.{f.name} -> {key}")
-    assert not missing, "profile numbers missing from u2sa_hw/profile_numbers.py:\n" + "\n".join(missing)
+    assert not missing, "profile numbers missing from u2sa_hw/profile/numbers.py:\n" + "\n".join(missing)
 
 
 # ------------------------------------------------------------------------- the three ways in -----
@@ -133,7 +134,7 @@ def test_a_change_over_the_bus_above_the_bound_is_refused_and_not_written(tmp_pa
 
 
 def _refused_profile(table: str, line: str, tmp_path: Path) -> Exception:
-    from u2sa_hw.vehicle import ProfileError, load_profile
+    from u2sa_hw.profile.vehicle import ProfileError, load_profile
 
     path = tmp_path / "vehicle.toml"
     path.write_text(f"[{table}]\n{line}\n")

@@ -1,8 +1,8 @@
-"""Unknown keys and did-you-mean (u2sa_hw/config_keys.py)."""
+"""Unknown keys and did-you-mean (u2sa_hw/config/keys.py)."""
 
 from __future__ import annotations
 
-from u2sa_hw.config_keys import did_you_mean, unknown_key_problems
+from u2sa_hw.config.keys import did_you_mean, unknown_key_problems
 
 
 def test_did_you_mean_finds_a_typo_and_a_case_slip() -> None:

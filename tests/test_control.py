@@ -10,12 +10,12 @@ import pytest
 from tests.conftest import ServiceProcesses, wait_until
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 from u2sa_hw.geo import ned_to_geodetic
 from u2sa_hw.services.control.controller import ControlSettings, VehicleController
 from u2sa_hw.services.control.mixers import AckermannMixer, DifferentialMixer, TwinThrusterMixer, build_mixer
 from u2sa_hw.services.control.pid import PidController, PidGains, RateLimiter
-from u2sa_hw.vehicle import Origin
+from u2sa_hw.profile.vehicle import Origin
 
 
 # -- PID and rate limiter ---------------------------------------------------------------------------

@@ -13,14 +13,14 @@ from conftest import ServiceProcesses
 from pynmeagps.nmeahelpers import calc_checksum
 from serial_driver_harness import SIM_ORIGIN, DriverProbe, start_driver, write_profile
 
-from drivers.compass_bursts import CompassReading, reading_from_parts
-from drivers.compass_sentences import AttitudeLimits, CompassPart, parse_compass_line
-from drivers.compass_serial import state_from_reading
-from drivers.value_ranges import ValueDrops
-from drivers.os5000_format import Os5000BadChecksum, Os5000Error, is_os5000_line, parse_os5000
-from mock_devices.serial_compass import NmeaCompassDevice, Os5000CompassDevice
-from mock_devices.vehicle_sim import SimVehicle
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.drivers.compass.bursts import CompassReading, reading_from_parts
+from u2sa_hw.drivers.compass.sentences import AttitudeLimits, CompassPart, parse_compass_line
+from u2sa_hw.drivers.compass.driver import state_from_reading
+from u2sa_hw.drivers.value_ranges import ValueDrops
+from u2sa_hw.drivers.compass.os5000_format import Os5000BadChecksum, Os5000Error, is_os5000_line, parse_os5000
+from u2sa_hw.mocks.serial_compass import NmeaCompassDevice, Os5000CompassDevice
+from u2sa_hw.mocks.vehicle_sim import SimVehicle
+from u2sa_hw.bus.client import BusClient
 
 
 def nmea(body: str) -> bytes:

@@ -10,16 +10,16 @@ from typing import Any, ClassVar, Mapping
 
 import pytest
 
-from mock_devices.catalog import CATALOG, DeviceSpec, build
-from mock_devices.sim_context import DeviceError, MockContext
-from mock_devices.vehicle_sim import SimVehicle
+from u2sa_hw.mocks.catalog import CATALOG, DeviceSpec, build
+from u2sa_hw.mocks.sim_context import DeviceError, MockContext
+from u2sa_hw.mocks.vehicle_sim import SimVehicle
 from u2sa_hw import registry
 from u2sa_hw.check.device_checks import mock_for_kind
 from u2sa_hw.check.targets import expectation
 from u2sa_hw.ports import declared
 from u2sa_hw.ports.address import parse_address
 
-DRIVER_KINDS = sorted(kind for kind, target in registry.SERVICE_KINDS.items() if target.startswith("drivers."))
+DRIVER_KINDS = sorted(kind for kind, target in registry.SERVICE_KINDS.items() if target.startswith("u2sa_hw.drivers."))
 
 
 def _context(tmp_path: Path) -> MockContext:
@@ -177,8 +177,8 @@ def test_a_bad_line_map_is_the_drivers_own_error(tmp_path: Path) -> None:
 def test_an_imu_is_replayed_with_its_own_settings_on_a_paced_bus() -> None:
     """A replayed IMU keeps its recorded sample rate (its configuration writes match the recording): the replay
     bus paces its data reads (paced=true), so it samples back to back at any replay rate."""
-    from hil.replay_buses import ReplayI2cDevice, make_device
-    from hil.replay_plan import DevicePlan
+    from u2sa_hw.hil.replay_buses import ReplayI2cDevice, make_device
+    from u2sa_hw.hil.replay_plan import DevicePlan
     from u2sa_hw.ports.address import parse_address
     from u2sa_hw.ports.declared import declared_class, replay_options
 

@@ -14,13 +14,13 @@ from conftest import ServiceProcesses, wait_until
 from gpio_driver_harness import BusCollector
 from serial_driver_harness import start_driver, write_profile
 
-from drivers.gpio_io import DebouncedInput
-from drivers.gpio_lines import parse_levels, parse_line_map, parse_names, parse_positions
-from mock_devices.gpio_chip import MockGpioChip
+from u2sa_hw.drivers.gpio.driver import DebouncedInput
+from u2sa_hw.drivers.gpio.lines import parse_levels, parse_line_map, parse_names, parse_positions
+from u2sa_hw.mocks.gpio_chip import MockGpioChip
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
-from u2sa_hw.config import ConfigError
+from u2sa_hw.bus.client import BusClient
+from u2sa_hw.config.configurator import ConfigError
 from u2sa_hw.ports.tap import raw_channel
 
 MS = 1_000_000

@@ -13,18 +13,18 @@ from conftest import ServiceProcesses, wait_until
 from pynmeagps.nmeahelpers import calc_checksum
 from serial_driver_harness import ORIGIN, SIM_ORIGIN, DriverProbe, start_driver, write_profile
 
-from drivers.gps_fix import KNOT_MPS, StateSettings, fix_from_epoch, horizontal_sigma, state_from_fix
-from drivers.gps_epochs import GpsEpochCollector
-from drivers.nmea_fields import BadChecksum, Epoch, MalformedSentence, Sentence, parse_sentence
-from drivers.gps_nmea import GpsNmeaDriver
-from mock_devices.nmea_gps import NmeaGpsDevice
-from mock_devices.pty_serial import LineSettings
-from mock_devices.vehicle_sim import SimVehicle
-from u2sa_hw.bus_client import BusClient
-from u2sa_hw.config import ConfigError
+from u2sa_hw.drivers.gps_nmea.fix import KNOT_MPS, StateSettings, fix_from_epoch, horizontal_sigma, state_from_fix
+from u2sa_hw.drivers.gps_nmea.epochs import GpsEpochCollector
+from u2sa_hw.drivers.nmea_fields import BadChecksum, Epoch, MalformedSentence, Sentence, parse_sentence
+from u2sa_hw.drivers.gps_nmea.driver import GpsNmeaDriver
+from u2sa_hw.mocks.nmea_gps import NmeaGpsDevice
+from u2sa_hw.mocks.pty_serial import LineSettings
+from u2sa_hw.mocks.vehicle_sim import SimVehicle
+from u2sa_hw.bus.client import BusClient
+from u2sa_hw.config.configurator import ConfigError
 from u2sa_hw.geo import geodetic_to_ned, ned_to_geodetic
-from u2sa_hw.transport import Transport
-from u2sa_hw.vehicle import Origin
+from u2sa_hw.bus.transport import Transport
+from u2sa_hw.profile.vehicle import Origin
 
 GEO = Origin(**ORIGIN)
 

@@ -20,10 +20,10 @@ import pytest
 from conftest import REPO, ServiceProcesses, wait_until
 from serial_driver_harness import SIM_ORIGIN, DriverProbe, start_driver, write_profile
 
-from mock_devices.bno055_chip import Bno055Chip
-from mock_devices.i2c_bus import MockI2cBus
-from mock_devices.mpu9250_chip import Mpu9250Chip
-from mock_devices.vehicle_sim import SimVehicle
+from u2sa_hw.mocks.bno055_chip import Bno055Chip
+from u2sa_hw.mocks.i2c_bus import MockI2cBus
+from u2sa_hw.mocks.mpu9250_chip import Mpu9250Chip
+from u2sa_hw.mocks.vehicle_sim import SimVehicle
 from u2sa_hw.lcmtypes import RawI2c
 from u2sa_hw.ports.i2c_port import OP_WRITE
 from u2sa_hw.ports.tap import raw_channel
@@ -172,7 +172,7 @@ def test_every_variant_and_full_scale_is_configured_and_scaled_through_the_drive
 def test_wrong_chip_identity_stops_the_service_with_a_clear_error(
         tmp_path: Path, services: ServiceProcesses, socket_dir: Path, kind: str, chip_spec: str,
         settings: dict, expected: list[str]) -> None:
-    from mock_devices.i2c_bus import build_chip
+    from u2sa_hw.mocks.i2c_bus import build_chip
 
     i2c = MockI2cBus(socket_path=str(socket_dir / "bus.sock"))
     i2c.add(build_chip(chip_spec, seed=1))
@@ -232,7 +232,7 @@ def test_mpu9250_recovers_when_the_bus_server_is_killed_and_restarted(
     sock = socket_dir / "bus.sock"
 
     def serve() -> subprocess.Popen:
-        proc = subprocess.Popen([sys.executable, "-m", "mock_devices.i2c_bus", "--socket", str(sock),
+        proc = subprocess.Popen([sys.executable, "-m", "u2sa_hw.mocks.i2c_bus", "--socket", str(sock),
                                  "--chip", "mpu9250@0x68"], cwd=REPO, stdout=subprocess.PIPE, text=True)
         assert "serving" in proc.stdout.readline()
         return proc

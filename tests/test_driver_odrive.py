@@ -18,19 +18,19 @@ from can_mock_harness import GROUP, Commander, MockCanProcess, stop_driver
 from conftest import REPO, ServiceProcesses, wait_until
 from serial_driver_harness import DriverProbe, start_driver, write_profile
 
-from drivers.diff_drive_odometry import DiffDriveOdometry, WheelTravel, body_motion
-from drivers.odrive_can import OdriveCanMotor, error_names
-from mock_devices import can_adapter
-from mock_devices.odrive_node import ENABLE_WATCHDOG_ENDPOINT, MOCK_FW, WATCHDOG_TIMEOUT_ENDPOINT, OdriveCanNode
-from mock_devices.vehicle_sim import SimVehicle
+from u2sa_hw.drivers.can_motor.diff_drive_odometry import DiffDriveOdometry, WheelTravel, body_motion
+from u2sa_hw.drivers.can_motor.odrive.driver import OdriveCanMotor, error_names
+from u2sa_hw.mocks import can_adapter
+from u2sa_hw.mocks.odrive_node import ENABLE_WATCHDOG_ENDPOINT, MOCK_FW, WATCHDOG_TIMEOUT_ENDPOINT, OdriveCanNode
+from u2sa_hw.mocks.vehicle_sim import SimVehicle
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
-from u2sa_hw.config import ConfigError
+from u2sa_hw.bus.client import BusClient
+from u2sa_hw.config.configurator import ConfigError
 from u2sa_hw.ports.tap import RX, TX, raw_channel
 from u2sa_hw.protocols.odrive_cansimple import (AxisError05, AxisState, Cmd, Heartbeat, OdriveError, ProcedureResult,
                                                 arbitration_id, decode_set_axis_state, encode_heartbeat, make_frame)
 from u2sa_hw.protocols.odrive_cansimple import decode_set_input_vel as cs_decode_vel
-from u2sa_hw.udp_ports import private_udp_port
+from u2sa_hw.bus.udp_ports import private_udp_port
 
 CIRCUMFERENCE = 2 * math.pi * 0.1  # the mock's default wheel radius
 NODES = (3, 4)

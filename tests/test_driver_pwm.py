@@ -14,11 +14,11 @@ import pytest
 from conftest import ServiceProcesses, wait_until
 from serial_driver_harness import DriverProbe, start_driver, write_profile
 
-from mock_devices.i2c_bus import MockI2cBus
-from mock_devices.pca9685_chip import Pca9685Chip
+from u2sa_hw.mocks.i2c_bus import MockI2cBus
+from u2sa_hw.mocks.pca9685_chip import Pca9685Chip
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
 from u2sa_hw.ports.tap import raw_channel
 

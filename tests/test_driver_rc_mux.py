@@ -14,13 +14,13 @@ from conftest import ServiceProcesses, wait_until
 from gpio_driver_harness import BusCollector
 from serial_driver_harness import start_driver, write_profile
 
-from drivers.rc_pulse import (FALL_WITHOUT_RISE, MODE_AUTONOMOUS, MODE_MANUAL, MODE_NO_SIGNAL, RISE_WITHOUT_FALL,
+from u2sa_hw.drivers.rc_mux.pulse import (FALL_WITHOUT_RISE, MODE_AUTONOMOUS, MODE_MANUAL, MODE_NO_SIGNAL, RISE_WITHOUT_FALL,
                               TOO_LONG, TOO_SHORT, PulseMeter, RcModeFilter)
-from mock_devices.gpio_chip import MockGpioChip
-from mock_devices.rc_receiver import MuxMock, RcReceiverMock
+from u2sa_hw.mocks.gpio_chip import MockGpioChip
+from u2sa_hw.mocks.rc_receiver import MuxMock, RcReceiverMock
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 from u2sa_hw.ports.tap import raw_channel
 
 MS = 1_000_000

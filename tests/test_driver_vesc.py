@@ -19,14 +19,14 @@ from can_mock_harness import GROUP, Commander, MockCanProcess, stop_driver
 from conftest import REPO, ServiceProcesses, wait_until
 from serial_driver_harness import DriverProbe, start_driver, write_profile
 
-from drivers.vesc_can import VescCanMotor
-from mock_devices.vehicle_sim import SimVehicle
-from mock_devices.vesc_node import VescCanNode
-from u2sa_hw.bus_client import BusClient
-from u2sa_hw.config import ConfigError
+from u2sa_hw.drivers.can_motor.vesc.driver import VescCanMotor
+from u2sa_hw.mocks.vehicle_sim import SimVehicle
+from u2sa_hw.mocks.vesc_node import VescCanNode
+from u2sa_hw.bus.client import BusClient
+from u2sa_hw.config.configurator import ConfigError
 from u2sa_hw.protocols import vesc_can as vc
 from u2sa_hw.protocols.vesc_can import PacketId
-from u2sa_hw.udp_ports import private_udp_port
+from u2sa_hw.bus.udp_ports import private_udp_port
 
 IDS = (10, 11)
 POLE_PAIRS = 7

@@ -10,16 +10,16 @@ import numpy as np
 import pytest
 from conftest import ServiceProcesses, wait_until
 
-from mock_devices.vehicle_sim import SimVehicle
+from u2sa_hw.mocks.vehicle_sim import SimVehicle
 from u2sa_hw import channels as ch
 from u2sa_hw import geo
 from u2sa_hw import lcmtypes as t
 from u2sa_hw import messages as m
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 from u2sa_hw.services.estimator.ekf import Measurement, NavigationEkf, chi2_quantile
 from u2sa_hw.services.estimator.fusion import FusionSettings, StateFusion
 from u2sa_hw.services.estimator.service import estimate_sigmas
-from u2sa_hw.vehicle import Origin
+from u2sa_hw.profile.vehicle import Origin
 
 ORIGIN = Origin(lat=29.1895, lon=-81.0483, alt=10.0)
 

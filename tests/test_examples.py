@@ -19,10 +19,10 @@ from conftest import REPO
 from u2sa_hw.registry import resolve_kind
 from u2sa_hw.services.mission.xml import load_mission
 from u2sa_hw.services.world.xml import load_objects
-from simulation.profile import effective_configs
-from simulation.scenario import load_scenario
-from u2sa_hw.transport import Transport
-from u2sa_hw.vehicle import VehicleProfile, load_profile
+from u2sa_hw.simulation.profile import effective_configs
+from u2sa_hw.simulation.scenario import load_scenario
+from u2sa_hw.bus.transport import Transport
+from u2sa_hw.profile.vehicle import VehicleProfile, load_profile
 
 EXAMPLES = sorted((REPO / "examples").glob("*/vehicle.toml"))
 

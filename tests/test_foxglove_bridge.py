@@ -26,7 +26,7 @@ from conftest import U2SA, ServiceProcesses, wait_until
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.foxglove.mapping import HEALTH, SCENE_WORLD, FoxgloveMapper
 from u2sa_hw.geo import ned_to_geodetic
-from u2sa_hw.vehicle import Origin
+from u2sa_hw.profile.vehicle import Origin
 
 websockets = pytest.importorskip("websockets")
 InvalidStatus = pytest.importorskip("websockets.exceptions").InvalidStatus

@@ -21,7 +21,7 @@ import pytest
 from conftest import REPO, ServiceProcesses
 from test_foxglove_bridge import Client, advertised, bridge_port, start_bridge
 
-from drivers.rc_pulse import MODE_NAMES
+from u2sa_hw.drivers.rc_mux.pulse import MODE_NAMES
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 

@@ -19,9 +19,9 @@ from conftest import wait_until
 from fuzz_targets import LcmTarget, Mutator, lcm_corpus, run_seeded
 
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_auth import OK
+from u2sa_hw.bus.auth import OK
 from u2sa_hw.messages import REGISTRY, MalformedMessage
-from u2sa_hw.transport import Transport
+from u2sa_hw.bus.transport import Transport
 
 
 def test_the_registry_decode_raises_only_malformed_message() -> None:

@@ -21,12 +21,12 @@ from gpio_driver_harness import BusCollector
 from serial_driver_harness import start_driver
 from test_safety_chain import MIXER, RC_LINES, Chain, write_vehicle
 
-from mock_devices.gpio_chip import MockGpioChip
-from mock_devices.rc_receiver import RcReceiverMock
+from u2sa_hw.mocks.gpio_chip import MockGpioChip
+from u2sa_hw.mocks.rc_receiver import RcReceiverMock
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.health import set_details
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.service.health import set_details
+from u2sa_hw.bus.client import BusClient
 from u2sa_hw.cli.health_cmd import autonomy_line, autonomy_report
 from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence setters
 

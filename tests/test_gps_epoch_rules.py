@@ -20,11 +20,11 @@ from typing import Iterator
 import pytest
 from gps_stream_builder import START, RecordingGps, Solution, epoch, gga, gll, gns, gsa, nmea, rmc, vtg
 
-from drivers import gps_fix as gf
-from drivers.gps_epochs import GpsEpochCollector
-from drivers.gps_fix import fix_from_epoch
-from drivers.nmea_fields import Epoch, parse_sentence, utc_time
-from u2sa_hw.transport import Transport
+from u2sa_hw.drivers.gps_nmea import fix as gf
+from u2sa_hw.drivers.gps_nmea.epochs import GpsEpochCollector
+from u2sa_hw.drivers.gps_nmea.fix import fix_from_epoch
+from u2sa_hw.drivers.nmea_fields import Epoch, parse_sentence, utc_time
+from u2sa_hw.bus.transport import Transport
 
 SOL = Solution(when=START, lat=29.19, lon=-81.05, speed=2.0, course=90.0)
 # a receiver without a solution and without a time (u-blox before its first fix; NMEA 0183 leaves

@@ -13,9 +13,9 @@ import pytest
 from conftest import wait_until
 from gps_stream_builder import RecordingGps, START, Solution, gga, gsa, hdt, rmc, vtg, zda
 
-from drivers.gps_epochs import MAX_EPOCH_SENTENCES, GpsEpochCollector
-from drivers.nmea_fields import Epoch, parse_sentence
-from u2sa_hw.transport import Transport
+from u2sa_hw.drivers.gps_nmea.epochs import MAX_EPOCH_SENTENCES, GpsEpochCollector
+from u2sa_hw.drivers.nmea_fields import Epoch, parse_sentence
+from u2sa_hw.bus.transport import Transport
 
 SOL = Solution(when=START, lat=29.19, lon=-81.05, speed=2.0, course=90.0, heading=91.0)
 NEXT = replace(SOL, when=START + dt.timedelta(seconds=1), lat=29.19002)

@@ -16,9 +16,9 @@ import pytest
 from gps_fuzzing import check_message, feed, fuzz_cases
 from gps_stream_builder import RecordingGps, nmea
 
-from drivers.gps_fix import fix_from_epoch
-from drivers.nmea_fields import Epoch, SentenceError, parse_sentence
-from u2sa_hw.transport import Transport
+from u2sa_hw.drivers.gps_nmea.fix import fix_from_epoch
+from u2sa_hw.drivers.nmea_fields import Epoch, SentenceError, parse_sentence
+from u2sa_hw.bus.transport import Transport
 
 CASES_PER_SEED = 1500
 SEEDS = (1, 2, 3)

@@ -13,9 +13,9 @@ import pytest
 from gps_stream_builder import (KNOT_MPS, START, Solution, dm, epoch, gga, gll, gns, gsa, gst, hdt, hhmmss, nmea,
                                 printed, rmc, vtg, zda)
 
-from drivers.geoid import geoid_separation
-from drivers.gps_fix import StateSettings, fix_from_epoch, state_from_fix
-from u2sa_hw.vehicle import Origin
+from u2sa_hw.drivers.gps_nmea.geoid import geoid_separation
+from u2sa_hw.drivers.gps_nmea.fix import StateSettings, fix_from_epoch, state_from_fix
+from u2sa_hw.profile.vehicle import Origin
 
 ORIGIN = Origin(lat=29.1895, lon=-81.0483, alt=10.0)
 SOL = Solution(when=START, lat=29.19012345, lon=-81.04912345, alt=25.0, sep=-28.3, speed=3.0, course=45.0,

@@ -17,9 +17,9 @@ from conftest import ServiceProcesses, wait_until
 from gps_stream_builder import Part, Receiver, epoch_lines, printed, trajectory
 from serial_driver_harness import DriverProbe, start_driver, write_profile
 
-from mock_devices.pty_serial import PtySerialDevice
-from u2sa_hw.bus_client import BusClient
-from u2sa_hw.vehicle import Origin
+from u2sa_hw.mocks.pty_serial import PtySerialDevice
+from u2sa_hw.bus.client import BusClient
+from u2sa_hw.profile.vehicle import Origin
 
 ORIGIN = Origin(lat=29.1895, lon=-81.0483, alt=10.0)
 RATE_HZ = 10.0

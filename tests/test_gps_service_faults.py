@@ -12,10 +12,10 @@ from conftest import ServiceProcesses, wait_until
 from gps_stream_builder import nmea
 from serial_driver_harness import ORIGIN, SIM_ORIGIN, DriverProbe, start_driver, write_profile
 
-from drivers.geoid import geoid_separation
-from mock_devices.nmea_gps import NmeaGpsDevice
-from mock_devices.vehicle_sim import SimVehicle
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.drivers.gps_nmea.geoid import geoid_separation
+from u2sa_hw.mocks.nmea_gps import NmeaGpsDevice
+from u2sa_hw.mocks.vehicle_sim import SimVehicle
+from u2sa_hw.bus.client import BusClient
 
 CRASHERS = (
     nmea("GPZDA,120000.00,14,03," + "9" * 20 + ",00,00"),                                   # a 20-digit year

@@ -17,12 +17,12 @@ from typing import Callable, Iterator
 import pytest
 from gps_stream_builder import RecordingGps, GAP_S, Part, Receiver, Solution, printed, stream, trajectory
 
-from drivers.geoid import geoid_separation
-from drivers.gps_limits import SPEED_MPS
-from drivers.gps_nmea import GpsNmeaDriver
+from u2sa_hw.drivers.gps_nmea.geoid import geoid_separation
+from u2sa_hw.drivers.gps_nmea.limits import SPEED_MPS
+from u2sa_hw.drivers.gps_nmea.driver import GpsNmeaDriver
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.transport import Transport
-from u2sa_hw.vehicle import Origin
+from u2sa_hw.bus.transport import Transport
+from u2sa_hw.profile.vehicle import Origin
 
 ORIGIN = Origin(lat=29.1895, lon=-81.0483, alt=10.0)
 

@@ -11,8 +11,8 @@ from typing import Iterator
 import pytest
 from gps_stream_builder import START, Solution, gga, hdt, rmc, zda
 
-from drivers.gps_nmea import GpsNmeaDriver
-from u2sa_hw.transport import Transport
+from u2sa_hw.drivers.gps_nmea.driver import GpsNmeaDriver
+from u2sa_hw.bus.transport import Transport
 
 BAD_HDOP = Solution(when=START, lat=29.19, lon=-81.05, speed=2.0, course=90.0, heading=361.5, hdop=-4.0)
 NEXT = replace(BAD_HDOP, when=START + dt.timedelta(seconds=1), lat=29.19002)

@@ -13,8 +13,8 @@ from supervision_helpers import Watch, hsm_profile, launch  # noqa: F401 - launc
 
 from u2sa_hw import channels as ch
 from u2sa_hw import messages as m
-from u2sa_hw.bus_client import BusClient
-from u2sa_hw.health import health_reason, join_reasons
+from u2sa_hw.bus.client import BusClient
+from u2sa_hw.service.health import health_reason, join_reasons
 from u2sa_hw.launcher.launcher import u2sa_command
 
 

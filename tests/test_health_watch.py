@@ -18,7 +18,7 @@ from conftest import U2SA, ServiceProcesses, wait_until
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.health import set_details
+from u2sa_hw.service.health import set_details
 from u2sa_hw.cli.health_cmd import autonomy_line, autonomy_report
 from u2sa_hw.cli.health_watch import CLEAR, RC_STALE_S, AutonomyView, render
 

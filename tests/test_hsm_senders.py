@@ -24,20 +24,20 @@ from supervision_helpers import Watch, hsm_profile, launch  # noqa: F401 - launc
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 from u2sa_hw.launcher.launcher import u2sa_command
 from u2sa_hw.services.hsm.senders import ServiceSenders
-from u2sa_hw.transport import Transport
+from u2sa_hw.bus.transport import Transport
 
 OTHER_STACK = """\
 import os, sys, time
 from u2sa_hw import channels as ch, lcmtypes as t
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 from u2sa_hw.launcher.launcher import u2sa_command
 from u2sa_hw.services.hsm.senders import ServiceSenders
-from u2sa_hw.transport import Transport
+from u2sa_hw.bus.transport import Transport
 
 bus = BusClient(sys.argv[1], name="est_a", system_id=1)   # the session's key, the vehicle's system id
 end = time.monotonic() + float(sys.argv[2])

@@ -15,7 +15,7 @@ from typing import Any
 from conftest import wait_until
 from supervision_helpers import Watch, hsm_profile, launch  # noqa: F401 - launch is a fixture
 
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 
 SERVICES = ("est_a", "est_b", "est_c", "est_d")
 # Heartbeats every 0.2 s, 5 may be missed: every heartbeat timeout is 1 s.

@@ -13,10 +13,10 @@ from typing import Iterator
 
 import pytest
 
-from drivers.imu_common import RestCalibration
-from drivers.imu_mpu9250 import Mpu9250ImuDriver
+from u2sa_hw.drivers.imu.common import RestCalibration
+from u2sa_hw.drivers.imu.mpu9250 import Mpu9250ImuDriver
 from u2sa_hw.safety.prearm import PrearmChecks
-from u2sa_hw.vehicle import load_profile
+from u2sa_hw.profile.vehicle import load_profile
 
 from test_prearm import OK, health, write_profile
 

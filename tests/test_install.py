@@ -16,7 +16,7 @@ from u2sa_hw.install.deploy import install as deploy_install
 from u2sa_hw.install.deploy import uninstall
 from u2sa_hw.install.manifest import MANIFEST_PATH, load_manifest
 from u2sa_hw.install.system import InstallError
-from u2sa_hw.transport import DEFAULT_RECV_BUF_SIZE
+from u2sa_hw.bus.transport import DEFAULT_RECV_BUF_SIZE
 
 U2SA = Path(sys.executable).with_name("u2sa")
 # These tests stage in seconds: a venv sharing this environment's packages, not one built with pip
@@ -115,7 +115,7 @@ def test_install_stages_units_configs_rules_users_and_links(vehicle: Path, root:
     assert os.readlink(wants / "u2sa@gps.service") == "/etc/systemd/system/u2sa@.service"
     assert os.readlink(units / "multi-user.target.wants/u2sa.target") == "/etc/systemd/system/u2sa.target"
     # Profile: directories pointed at the vehicle's, service configs all in /etc/u2sa/config.
-    from u2sa_hw.vehicle import load_profile
+    from u2sa_hw.profile.vehicle import load_profile
 
     installed = root / "etc/u2sa/vehicle.toml"
     text = installed.read_text()
@@ -339,7 +339,7 @@ def test_sysusers_declaration_creates_the_user_and_groups(tmp_path: Path, vehicl
 
 
 def test_install_makes_the_bus_key_root_u2sa_0640_once_and_keeps_an_existing_one(vehicle: Path, root: Path) -> None:
-    from u2sa_hw.bus_key import read_key
+    from u2sa_hw.bus.key import read_key
 
     tree = install(vehicle=vehicle, root=root)
     key_file = root / "etc/u2sa/bus.key"
@@ -388,8 +388,8 @@ RC_MUX = ('\n[services.mux]\nkind = "rc_mux"\n'
 def test_install_makes_the_pilot_pair_that_only_the_rc_muxs_unit_reads(vehicle: Path, root: Path) -> None:
     """pilot.key root:u2sa-pilot 0040 (not even root's own bits), pilot.pub root:root 0644, the group u2sa-pilot
     without the user u2sa in it, and the drop-in giving that group to the RC mux's unit and no other."""
-    from u2sa_hw.bus_pilot import pilot_key_id, public_of, read_signer, read_verifier
-    from u2sa_hw.bus_key import parse_key
+    from u2sa_hw.bus.pilot import pilot_key_id, public_of, read_signer, read_verifier
+    from u2sa_hw.bus.key import parse_key
 
     vehicle.write_text(PROFILE + RC_MUX)
     tree = install(vehicle=vehicle, root=root)

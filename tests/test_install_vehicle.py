@@ -13,7 +13,7 @@ import pytest
 
 from u2sa_hw.install.deploy import install, uninstall
 from u2sa_hw.install.system import InstallError
-from u2sa_hw.vehicle import load_profile
+from u2sa_hw.profile.vehicle import load_profile
 
 U2SA = Path(sys.executable).with_name("u2sa")
 REPO = Path(__file__).resolve().parent.parent
@@ -278,7 +278,7 @@ def test_a_staged_install_of_each_example_passes_u2sa_check_against_the_staged_t
                                                                                     tmp_path: Path) -> None:
     """As on a vehicle: where the example's serial addresses carry no USB id, the user's rule makes the link
     (the line the check asks for); then install goes through and the installed profile checks clean."""
-    from u2sa_hw.devices import profile_devices
+    from u2sa_hw.profile.devices import profile_devices
     from u2sa_hw.install.udev import links_made, plan_devices
 
     source = REPO / "examples" / example / "vehicle.toml"

@@ -18,12 +18,12 @@ from supervision_helpers import BROKEN_CONFIG_ERROR, break_config, launch, write
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 from u2sa_hw.launcher import Launcher, LauncherBusy, LauncherClient, LauncherError, RestartPolicy, SupervisedProcess
 from u2sa_hw.launcher.launcher import u2sa_command
 from u2sa_hw.launcher.process import REFUSED_EXIT
-from u2sa_hw.service_bus import DUPLICATE_EXIT, DUPLICATE_PROBE_S, PROBE_ENV
-from u2sa_hw.vehicle import load_profile
+from u2sa_hw.service.bus_handlers import DUPLICATE_EXIT, DUPLICATE_PROBE_S, PROBE_ENV
+from u2sa_hw.profile.vehicle import load_profile
 
 
 def _alive(pid: int) -> bool:
@@ -315,7 +315,7 @@ REFUSES = ("import sys\n"
 
 
 def test_a_service_that_refuses_to_start_is_never_restarted(tmp_path: Path, lcm_url: str) -> None:
-    # Exit status 3 is a refusal (u2sa_hw.service_bus): a restart would find the same, as under
+    # Exit status 3 is a refusal (u2sa_hw.service.bus_handlers): a restart would find the same, as under
     # systemd's RestartPreventExitStatus=3. Its line is printed once and the launcher stops.
     assert REFUSED_EXIT == DUPLICATE_EXIT == 3
     profile = load_profile(write_profile(tmp_path, lcm_url, {"dup": "state_estimator", "est": "state_estimator"}))

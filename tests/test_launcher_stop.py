@@ -31,7 +31,7 @@ from test_launcher_watchdog import FakeClock
 from u2sa_hw.launcher import Launcher, RestartPolicy, SupervisedProcess
 from u2sa_hw.launcher.process import STOP_LIMIT_S, STOPPED, process_sample
 from u2sa_hw.launcher.watchdog import WatchdogSetting, WatchedClock
-from u2sa_hw.vehicle import load_profile
+from u2sa_hw.profile.vehicle import load_profile
 
 # Ignores SIGTERM (its shutdown is the test's to end), exits 0 on SIGUSR1: a clean exit, whenever it comes.
 LINGERS = ("import signal, sys, time\n"
@@ -185,8 +185,8 @@ def test_process_sample_reads_the_state_and_cpu_ticks_of_a_real_child() -> None:
 # its stopping thread pings the launcher's watchdog meanwhile.
 SLOW_SERVICE = textwrap.dedent("""\
     import sys, time
-    from u2sa_hw.service import U2SAService
-    from u2sa_hw.vehicle import load_profile
+    from u2sa_hw.service.contract import U2SAService
+    from u2sa_hw.profile.vehicle import load_profile
 
     class SlowStop(U2SAService):
         SERVICE_TYPE = "slow_stop"
@@ -204,7 +204,7 @@ SLOW_SERVICE = textwrap.dedent("""\
 # Acknowledges the stop, then hangs: it stops itself (state T), as a deadlock would leave it without progress.
 HANGS = textwrap.dedent("""\
     import os, signal, sys, time
-    from u2sa_hw.sdnotify import SystemdNotifier
+    from u2sa_hw.service.sdnotify import SystemdNotifier
     n = SystemdNotifier()
     signal.signal(signal.SIGTERM, lambda *_: (n.notify("STOPPING=1"), print("acknowledged", flush=True),
                                              os.kill(os.getpid(), signal.SIGSTOP)))

@@ -1,7 +1,8 @@
 """The layout's one-way dependency rule (DESIGN.md section 1, docs/ports.md "Where each thing goes").
 
-``drivers``, ``hil``, ``mock_devices`` and ``simulation`` import ``u2sa_hw``; ``u2sa_hw`` imports
-none of them at import time. Only a CLI command (or a check that reads the mock catalog) may
+``drivers/``, ``hil/``, ``mock_devices/`` and ``simulation/`` (installed as ``u2sa_hw.drivers``,
+``u2sa_hw.hil``, ``u2sa_hw.mocks`` and ``u2sa_hw.simulation``) import the rest of ``u2sa_hw``; the rest
+imports none of them at import time. Only a CLI command (or a check that reads the mock catalog) may
 reach them, inside the function that needs them, and only the modules named in
 ``LAZY_BOUNDARIES`` do.
 """
@@ -16,7 +17,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = REPO / "u2sa_hw"
-OUTSIDE = ("mock_devices", "hil", "drivers", "simulation")
+OUTSIDE = ("u2sa_hw.mocks", "u2sa_hw.hil", "u2sa_hw.drivers", "u2sa_hw.simulation")
 LAZY_BOUNDARIES = {   # module -> why it may import one of OUTSIDE inside a function
     "u2sa_hw.cli.sim_cmd": "u2sa sim runs the simulation package",
     "u2sa_hw.cli.mock_cmd": "u2sa mock starts the mock devices",
@@ -40,7 +41,7 @@ def _modules() -> list[tuple[str, Path]]:
 
 
 def _outside(name: str | None) -> str | None:
-    top = (name or "").split(".")[0]
+    top = ".".join((name or "").split(".")[:2])
     return top if top in OUTSIDE else None
 
 
@@ -109,9 +110,9 @@ import importlib, json, sys
 outside = {outside!r}
 culprits = {{}}
 for name in {names!r}:
-    before = {{m.split(".")[0] for m in sys.modules}}
+    before = {{".".join(m.split(".")[:2]) for m in sys.modules}}
     importlib.import_module(name)
-    new = sorted({{m.split(".")[0] for m in sys.modules}} - before & set(outside))
+    new = sorted({{".".join(m.split(".")[:2]) for m in sys.modules}} - before & set(outside))
     if new:
         culprits[name] = new
 print(json.dumps(culprits))

@@ -23,7 +23,7 @@ from u2sa_hw import lcmtypes as t  # noqa: E402
 from u2sa_hw.geo import ned_to_geodetic  # noqa: E402
 from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo  # noqa: E402
 from u2sa_hw.recording.plot import FAILSAFE_COLOUR, failsafe_spans, log_figure, unwrapped_degrees  # noqa: E402
-from u2sa_hw.vehicle import Origin  # noqa: E402
+from u2sa_hw.profile.vehicle import Origin  # noqa: E402
 
 ORIGIN = Origin(29.19, -81.05, 10.0)
 PROFILE = b'[vehicle]\nname = "rover"\norigin = { lat = 29.19, lon = -81.05, alt = 10.0 }\n'

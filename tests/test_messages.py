@@ -167,7 +167,7 @@ def test_raw_i2c_recorded_with_its_old_field_name_still_decodes() -> None:
 
 
 def test_an_old_mcap_log_replays_its_i2c_reads(tmp_path: Path) -> None:
-    from hil.replay_buses import ReplayI2cDevice
+    from u2sa_hw.hil.replay_buses import ReplayI2cDevice
     from u2sa_hw.recording.mcap_log import McapFile, RunInfo
 
     log = tmp_path / "old.mcap"

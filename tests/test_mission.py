@@ -13,11 +13,11 @@ from u2sa_hw import channels as ch
 from u2sa_hw import geo
 from u2sa_hw import lcmtypes as t
 from u2sa_hw import messages as m
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 from u2sa_hw.services.mission.manager import MissionError, MissionManager, from_message, to_waypoint
 from u2sa_hw.services.mission.xml import GLOBAL, LOCAL, load_mission, parse_mission
 from u2sa_hw.services.mission.xmltree import XmlFileError
-from u2sa_hw.vehicle import Origin
+from u2sa_hw.profile.vehicle import Origin
 
 ORIGIN = Origin(lat=29.1895, lon=-81.0483, alt=10.0)
 

@@ -13,7 +13,7 @@ from test_mission_plan import at, mission_cli, plan, waypoint, write
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 from u2sa_hw.cli import CliError
 from u2sa_hw.services.mission.xml import parse_mission
 from test_mission_plan import ORIGIN

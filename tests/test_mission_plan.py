@@ -20,10 +20,10 @@ from conftest import ServiceProcesses, wait_until
 from u2sa_hw import channels as ch
 from u2sa_hw import geo
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 from u2sa_hw.cli import CliError
 from u2sa_hw.services.mission.xml import LOCAL, MissionSpec, load_mission, parse_mission
-from u2sa_hw.vehicle import Origin
+from u2sa_hw.profile.vehicle import Origin
 
 ORIGIN = Origin(lat=29.1895, lon=-81.0483, alt=10.0)
 HOME = geo.ned_to_geodetic(-4.0, 3.0, origin=ORIGIN)[:2]   # the planned home: 4 m south, 3 m east of the origin

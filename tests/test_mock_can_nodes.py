@@ -18,15 +18,15 @@ import can
 import pytest
 
 from conftest import REPO, wait_until
-from mock_devices.can_node import RX
-from mock_devices.odrive_node import OdriveCanNode
-from mock_devices.vehicle_sim import SimVehicle
-from mock_devices.vesc_node import VescCanNode
+from u2sa_hw.mocks.can_node import RX
+from u2sa_hw.mocks.odrive_node import OdriveCanNode
+from u2sa_hw.mocks.vehicle_sim import SimVehicle
+from u2sa_hw.mocks.vesc_node import VescCanNode
 from u2sa_hw.protocols import odrive_cansimple as cs
 from u2sa_hw.protocols import vesc_can as vc
 from u2sa_hw.protocols.odrive_cansimple import AxisState, Cmd, ControlMode, InputMode
 from u2sa_hw.protocols.vesc_can import FaultCode, PacketId
-from u2sa_hw.udp_ports import private_udp_port
+from u2sa_hw.bus.udp_ports import private_udp_port
 
 CIRCUMFERENCE = 2 * math.pi * 0.1  # the nodes' default wheel radius
 GROUP = "239.74.163.2"
@@ -266,7 +266,7 @@ def test_odrive_watchdog_is_fed_by_any_frame_and_disarms_when_starved(vehicle, c
 
 def test_odrive_watchdog_set_over_rxsdo_reads_back_and_trips_when_starved(vehicle, channel, client,
                                                                            start_node) -> None:
-    from mock_devices.odrive_node import ENABLE_WATCHDOG_ENDPOINT as ENABLE, WATCHDOG_TIMEOUT_ENDPOINT as TIMEOUT
+    from u2sa_hw.mocks.odrive_node import ENABLE_WATCHDOG_ENDPOINT as ENABLE, WATCHDOG_TIMEOUT_ENDPOINT as TIMEOUT
     node = start_node(odrive(vehicle, channel))   # boots with the watchdog off, as the factory config has it
 
     def read(endpoint: int, kind: str):
@@ -569,7 +569,7 @@ def node_process(tmp_path: Path, udp_port: int) -> Iterator[Callable[..., subpro
 
     def run(module: str, *args: str) -> subprocess.Popen:
         log = open(tmp_path / f"{module}.log", "wb")
-        proc = subprocess.Popen([sys.executable, "-m", f"mock_devices.{module}", "--interface", "udp_multicast",
+        proc = subprocess.Popen([sys.executable, "-m", f"u2sa_hw.mocks.{module}", "--interface", "udp_multicast",
                                  "--channel", GROUP, "--port", str(udp_port), *args],
                                 cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
         procs.append(proc)

@@ -16,8 +16,8 @@ from typing import Iterator
 import pytest
 
 from conftest import REPO, wait_until
-from mock_devices.gpio_chip import GpioChipRecord, MockGpioChip
-from mock_devices.rc_receiver import MuxMock, RcFrame, RcReceiverMock
+from u2sa_hw.mocks.gpio_chip import GpioChipRecord, MockGpioChip
+from u2sa_hw.mocks.rc_receiver import MuxMock, RcFrame, RcReceiverMock
 from u2sa_hw.ports.errors import PortClosed
 from u2sa_hw.ports.gpio_port import (MOCK_EDGE_RECORD, GpioPort, MockFrameReader, encode_mock_json,
                                      open_gpio)
@@ -298,7 +298,7 @@ def test_a_stuck_mux_ignores_its_inputs_until_freed(chip: MockGpioChip, rc: RcRe
 def test_rc_receiver_in_another_process_measured_over_the_socket(tmp_path: Path) -> None:
     sock = tmp_path / "rc.sock"
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    proc = subprocess.Popen([sys.executable, "-m", "mock_devices.rc_receiver", "--socket", str(sock),
+    proc = subprocess.Popen([sys.executable, "-m", "u2sa_hw.mocks.rc_receiver", "--socket", str(sock),
                              "--pulse", "throttle=1750,steering=1100"], cwd=REPO, env=env,
                             stdout=subprocess.PIPE, text=True)
     try:

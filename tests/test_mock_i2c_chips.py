@@ -14,11 +14,11 @@ from typing import Callable, Iterator
 import pytest
 
 from conftest import wait_until
-from mock_devices.bno055_chip import Bno055Chip
-from mock_devices.i2c_bus import MockI2cBus
-from mock_devices.mpu9250_chip import Ak8963Chip, Mpu9250Chip
-from mock_devices.pca9685_chip import Pca9685Chip
-from mock_devices.vehicle_sim import SimVehicle
+from u2sa_hw.mocks.bno055_chip import Bno055Chip
+from u2sa_hw.mocks.i2c_bus import MockI2cBus
+from u2sa_hw.mocks.mpu9250_chip import Ak8963Chip, Mpu9250Chip
+from u2sa_hw.mocks.pca9685_chip import Pca9685Chip
+from u2sa_hw.mocks.vehicle_sim import SimVehicle
 from u2sa_hw.ports.errors import PortIOError
 from u2sa_hw.ports.i2c_port import I2cPort, open_i2c
 from u2sa_hw.protocols import bno055 as bno

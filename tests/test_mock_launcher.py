@@ -16,15 +16,15 @@ from pathlib import Path
 import pytest
 
 from conftest import U2SA, wait_until
-from mock_devices.launcher import MockLauncher
-from mock_devices.sim_context import DeviceError
+from u2sa_hw.mocks.launcher import MockLauncher
+from u2sa_hw.mocks.sim_context import DeviceError
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.launcher import Launcher
-from simulation.profile import effective_configs, write_sim_profile
-from u2sa_hw.transport import Transport
-from u2sa_hw.vehicle import load_profile
-from u2sa_hw.udp_ports import private_udp_port
+from u2sa_hw.simulation.profile import effective_configs, write_sim_profile
+from u2sa_hw.bus.transport import Transport
+from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.bus.udp_ports import private_udp_port
 
 SENSORS = """
 [vehicle]

@@ -11,15 +11,15 @@ import pytest
 from conftest import REPO, U2SA, ServiceProcesses, wait_until
 from serial_driver_harness import DriverProbe, start_driver, write_profile
 
-from mock_devices.launcher import MockLauncher
-from mock_devices.sim_context import DeviceError
-from mock_devices.sysfs_pwm import SysfsPwmChip
+from u2sa_hw.mocks.launcher import MockLauncher
+from u2sa_hw.mocks.sim_context import DeviceError
+from u2sa_hw.mocks.sysfs_pwm import SysfsPwmChip
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 from u2sa_hw.ports import PortClosed, PortUnavailable, open_pwm
-from simulation.profile import effective_configs
-from u2sa_hw.vehicle import load_profile
+from u2sa_hw.simulation.profile import effective_configs
+from u2sa_hw.profile.vehicle import load_profile
 
 SERVOS = """
 [vehicle]

@@ -13,9 +13,9 @@ from typing import Callable
 import pytest
 from conftest import ServiceProcesses, wait_until
 
-from u2sa_hw.bus_client import BusClient
-from u2sa_hw.config import field
-from u2sa_hw.param_file import LiveService, key_lines, plan_load
+from u2sa_hw.bus.client import BusClient
+from u2sa_hw.config.configurator import field
+from u2sa_hw.config.param_file import LiveService, key_lines, plan_load
 
 EST, WORLD = "state_estimator", "world_modeler"
 

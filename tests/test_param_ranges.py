@@ -8,7 +8,7 @@ from conftest import ServiceProcesses, wait_until
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 
 
 def test_out_of_range_values_over_the_bus_are_refused_and_the_file_is_untouched(

@@ -14,8 +14,8 @@ from typing import Iterator
 import pytest
 
 from conftest import REPO
-from mock_devices.i2c_bus import MockI2cBus
-from mock_devices.pca9685_chip import Pca9685Chip
+from u2sa_hw.mocks.i2c_bus import MockI2cBus
+from u2sa_hw.mocks.pca9685_chip import Pca9685Chip
 from u2sa_hw.ports.errors import PortClosed, PortIOError, PortUnavailable
 from u2sa_hw.ports.i2c_port import OP_WRITE, open_i2c
 from u2sa_hw.ports.pca9685_pwm import open_pca9685_pwm, parse_address

@@ -15,7 +15,7 @@ from typing import Any
 
 import pytest
 
-from mock_devices.vehicle_sim import ACKERMANN_MAX_STEER_RAD, SimVehicle
+from u2sa_hw.mocks.vehicle_sim import ACKERMANN_MAX_STEER_RAD, SimVehicle
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.messages import REGISTRY
 from u2sa_hw.services.control.controller import ControlSettings, VehicleController

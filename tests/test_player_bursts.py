@@ -1,4 +1,4 @@
-"""hil.player.Player._bursts (--fast): each serial burst leaves whole, in the order of first records,
+"""u2sa_hw.hil.player.Player._bursts (--fast): each serial burst leaves whole, in the order of first records,
 nothing lost, and no other device's record recorded inside a burst goes out in the middle of it."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import random
 import threading
 from typing import Any
 
-from hil.player import Player
+from u2sa_hw.hil.player import Player
 
 
 class Merging:

@@ -1,4 +1,4 @@
-"""hil.player.Player: a republished message waits until the replayed state on ORDERED_CHANNELS (RC_MODE's
+"""u2sa_hw.hil.player.Player: a republished message waits until the replayed state on ORDERED_CHANNELS (RC_MODE's
 mode and autonomy_enabled) is the recorded one as of it, so a --fast replay cannot hand an actuator the
 first command of an autonomy stint before the replayed RC mux has granted autonomy (the Ackermann corpus
 log lost its first throttle and steering writes so). A state, not a count: a replay whose mux flapped more
@@ -12,8 +12,8 @@ from typing import Any
 
 import pytest
 
-import hil.player as player_module
-from hil.player import Player
+import u2sa_hw.hil.player as player_module
+from u2sa_hw.hil.player import Player
 
 MANUAL, AUTONOMOUS = (0, False), (1, True)
 

@@ -1,5 +1,5 @@
 """CAN port contract: one suite over python-can's virtual and udp_multicast buses, the
-unpluggable adapter (mock_devices.can_adapter) and SocketCAN on a vcan interface when one
+unpluggable adapter (u2sa_hw.mocks.can_adapter) and SocketCAN on a vcan interface when one
 exists (skipped with the reason otherwise: this machine has no vcan module), plus
 udp_multicast across processes, bad datagrams, and the SocketCAN open hints."""
 
@@ -16,13 +16,13 @@ from typing import Iterator
 import can
 import pytest
 
-from mock_devices import can_adapter
+from u2sa_hw.mocks import can_adapter
 from u2sa_hw.ports import PortClosed, PortIOError, PortUnavailable, open_can
 from u2sa_hw.ports.address import AddressError, parse_address
 from u2sa_hw.ports.can_clock import CanDeviceClock
 from u2sa_hw.ports.can_port import CanPort
 from u2sa_hw.ports.tap import RX, TX
-from u2sa_hw.udp_ports import private_udp_port
+from u2sa_hw.bus.udp_ports import private_udp_port
 
 GROUP = "239.74.163.2"  # python-can's default IPv4 group
 

@@ -13,12 +13,12 @@ import pytest
 
 from conftest import REPO, wait_until
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.devices import profile_devices
+from u2sa_hw.profile.devices import profile_devices
 from u2sa_hw.ports import PortClosed, PortUnavailable
 from u2sa_hw.ports.address import AddressError
 from u2sa_hw.ports.device_link import DeviceLink, device_setting
 from u2sa_hw.ports.tap import raw_channel
-from u2sa_hw.vehicle import ProfileError, VehicleProfile, load_profile
+from u2sa_hw.profile.vehicle import ProfileError, VehicleProfile, load_profile
 
 
 class Pty:
@@ -256,7 +256,7 @@ def test_start_imports_what_the_open_will_so_the_first_open_after_ready_is_quick
         from pathlib import Path
         from u2sa_hw import lcmtypes as t
         from u2sa_hw.ports.device_link import DeviceLink
-        from u2sa_hw.vehicle import VehicleProfile
+        from u2sa_hw.profile.vehicle import VehicleProfile
 
         class Owner:
             name = "wheels"

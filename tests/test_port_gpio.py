@@ -5,7 +5,7 @@ Backends of the contract: the mock chip in this process; the mock chip in anothe
 (driven through a small stdin/stdout control script), so the port is exercised over a real
 Unix socket between processes; and the gpiod backend (``GpiodGpioPort``, libgpiod v2's
 own LineSettings, enums and errors) with libgpiod's two kernel calls answered by a mock
-chip (mock_devices.gpiod_on_mock). The kernel's gpio-sim would give the gpiod backend a
+chip (u2sa_hw.mocks.gpiod_on_mock). The kernel's gpio-sim would give the gpiod backend a
 real kernel chip, but it needs configfs (/sys/kernel/config/gpio-sim), which this machine
 does not have.
 """
@@ -23,14 +23,14 @@ import gpiod
 import pytest
 
 from conftest import REPO, wait_until
-from mock_devices.gpio_chip import MockGpioChip
-from mock_devices.gpiod_on_mock import GpiodOnMockChips
+from u2sa_hw.mocks.gpio_chip import MockGpioChip
+from u2sa_hw.mocks.gpiod_on_mock import GpiodOnMockChips
 from u2sa_hw.ports.errors import PortClosed, PortUnavailable
 from u2sa_hw.ports.gpio_port import EdgeEvent, GpiodGpioPort, GpioPort, open_gpio
 
 CHIP_PROCESS = r"""
 import sys
-from mock_devices.gpio_chip import MockGpioChip
+from u2sa_hw.mocks.gpio_chip import MockGpioChip
 chip = MockGpioChip(socket_path=sys.argv[1]).start()
 print("ready", flush=True)
 for command in sys.stdin:

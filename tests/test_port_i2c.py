@@ -19,9 +19,9 @@ from typing import Iterator
 import pytest
 import smbus2
 
-from mock_devices.i2c_bus import MockI2cBus
-from mock_devices.mpu9250_chip import Mpu9250Chip
-from mock_devices.smbus_adapter import SmbusAdapters
+from u2sa_hw.mocks.i2c_bus import MockI2cBus
+from u2sa_hw.mocks.mpu9250_chip import Mpu9250Chip
+from u2sa_hw.mocks.smbus_adapter import SmbusAdapters
 from conftest import REPO, wait_until
 from u2sa_hw.ports.errors import PortClosed, PortIOError, PortTimeout, PortUnavailable
 from u2sa_hw.ports.i2c_port import (MOCK_BUS_NUMBER, REQUEST, RESPONSE, STATUS_BAD_REQUEST, I2cPort, MockI2cPort,
@@ -70,13 +70,13 @@ class MockBusBackend:
 
 
 class ProcessBusBackend:
-    """The mock bus server in another process (``python -m mock_devices.i2c_bus``)."""
+    """The mock bus server in another process (``python -m u2sa_hw.mocks.i2c_bus``)."""
 
     faults = False  # its chips live in the other process
 
     def __init__(self, sock_dir: Path) -> None:
         path = sock_dir / "bus.sock"
-        self.proc = subprocess.Popen([sys.executable, "-m", "mock_devices.i2c_bus", "--socket", str(path),
+        self.proc = subprocess.Popen([sys.executable, "-m", "u2sa_hw.mocks.i2c_bus", "--socket", str(path),
                                       "--chip", "mpu9250@0x68", "--chip", "bno055@0x28"], cwd=REPO,
                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         self.chip = None

@@ -10,11 +10,11 @@ from typing import Iterator
 import can
 import pytest
 
-from mock_devices.gpio_chip import MockGpioChip
-from mock_devices.i2c_bus import MockI2cBus
-from mock_devices.mpu9250_chip import Mpu9250Chip
-from mock_devices.pca9685_chip import Pca9685Chip
-from mock_devices.vehicle_sim import SimVehicle
+from u2sa_hw.mocks.gpio_chip import MockGpioChip
+from u2sa_hw.mocks.i2c_bus import MockI2cBus
+from u2sa_hw.mocks.mpu9250_chip import Mpu9250Chip
+from u2sa_hw.mocks.pca9685_chip import Pca9685Chip
+from u2sa_hw.mocks.vehicle_sim import SimVehicle
 from u2sa_hw.ports import PortUnavailable
 from u2sa_hw.ports.address import AddressError, make_address
 from u2sa_hw.ports.opener import SCHEMES, open_port

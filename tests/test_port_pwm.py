@@ -14,8 +14,8 @@ from typing import Iterator
 
 import pytest
 
-from mock_devices.i2c_bus import MockI2cBus
-from mock_devices.pca9685_chip import Pca9685Chip
+from u2sa_hw.mocks.i2c_bus import MockI2cBus
+from u2sa_hw.mocks.pca9685_chip import Pca9685Chip
 from u2sa_hw.ports import PortClosed, PortIOError, PortUnavailable, open_pwm
 from u2sa_hw.ports.pwm_port import PwmChannel, SysfsPwmChannel, is_real_sysfs, make_sysfs_pwm_tree
 from u2sa_hw.protocols import pca9685 as pca

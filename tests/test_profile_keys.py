@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from u2sa_hw.config_validate import kind_problem, validate_config_file, validate_settings
-from u2sa_hw.vehicle import SIMULATION_KEYS, SIMULATION_START_KEYS, ProfileError, load_profile
+from u2sa_hw.config.validate import kind_problem, validate_config_file, validate_settings
+from u2sa_hw.profile.vehicle import SIMULATION_KEYS, SIMULATION_START_KEYS, ProfileError, load_profile
 
 GOOD = """
 [vehicle]
@@ -87,7 +87,7 @@ def test_a_binary_profile_is_an_error_naming_the_file(tmp_path: Path) -> None:
 
 
 def test_the_simulation_keys_are_those_the_mock_launcher_reads() -> None:
-    from mock_devices.launcher import SimulationSettings
+    from u2sa_hw.mocks.launcher import SimulationSettings
 
     names = {f.name for f in fields(SimulationSettings)}
     assert set(SIMULATION_KEYS) == {n for n in names if not n.startswith("start_")} | {"start"}

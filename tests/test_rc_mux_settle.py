@@ -1,4 +1,4 @@
-"""The RC mux skips the settle after an event that changed nothing it reads (drivers/rc_mux_clock.py
+"""The RC mux skips the settle after an event that changed nothing it reads (drivers/rc_mux/clock.py
 ``_settle``): most edges change nothing, and the pre-arm checks, the enable line and the RcMode it
 publishes were worked out again after every one. Skipping must not change a message: the recorded
 input of tests/test_rc_mux_timing.py (manual, autonomy granted, a failsafe raised and cleared, a signal
@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 from test_rc_mux_timing import all_at_once, in_uneven_chunks, run_driver, socket_dir  # noqa: F401 - a fixture
 
-from drivers.rc_mux import RcMuxDriver
+from u2sa_hw.drivers.rc_mux.driver import RcMuxDriver
 
 
 def _counting(monkeypatch: pytest.MonkeyPatch, *, skip: bool) -> dict[str, int]:

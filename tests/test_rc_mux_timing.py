@@ -5,7 +5,7 @@ RC_MODE and MANUAL_CMD messages each time: the timed ones on the grid of the rec
 the state as of their due time, the changes at once, and the pre-arm verdicts from the recorded
 Health and FAILSAFE handed over by the chip in order with the edges.
 
-Also the pure parts: :class:`drivers.rc_pulse.DueGrid` and the filter's signal expiry."""
+Also the pure parts: :class:`u2sa_hw.drivers.rc_mux.pulse.DueGrid` and the filter's signal expiry."""
 
 from __future__ import annotations
 
@@ -20,15 +20,15 @@ import pytest
 import tomli_w
 from conftest import wait_until
 
-from drivers.rc_pulse import DueGrid, RcModeFilter
-from mock_devices.gpio_chip import MockGpioChip
+from u2sa_hw.drivers.rc_mux.pulse import DueGrid, RcModeFilter
+from u2sa_hw.mocks.gpio_chip import MockGpioChip
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.health import set_details
+from u2sa_hw.service.health import set_details
 from u2sa_hw.messages import enumerate_fields
-from u2sa_hw.transport import Transport
-from u2sa_hw.udp_ports import private_lcm_url
-from u2sa_hw.vehicle import load_profile
+from u2sa_hw.bus.transport import Transport
+from u2sa_hw.bus.udp_ports import private_lcm_url
+from u2sa_hw.profile.vehicle import load_profile
 
 LINES = {"throttle": 5, "steering": 6, "mode": 13}
 ENABLE, SELECT = 21, 20
@@ -141,7 +141,7 @@ def _profile(tmp_path: Path, chip: MockGpioChip) -> Path:
 
 def run_driver(tmp_path: Path, socket_dir: Path, feed: Callable[[MockGpioChip, Any, list], None]) -> list:
     """The RC mux driver on a fresh device-clock chip, the recorded input fed by *feed*; what it published."""
-    from drivers.rc_mux import RcMuxDriver
+    from u2sa_hw.drivers.rc_mux.driver import RcMuxDriver
 
     chip = MockGpioChip(socket_path=str(socket_dir / "gpio.sock"), release_level=None, device_clock=True).start()
     for line in LINES.values():

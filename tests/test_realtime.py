@@ -13,7 +13,7 @@ from u2sa_hw.launcher import Launcher
 from u2sa_hw.launcher.launcher import u2sa_command
 from u2sa_hw.realtime import (NORMAL, SAFETY_CHAIN_PRIORITIES, SIM_DEVICES_PRIORITY, SchedCalls, Schedule,
                              describe_plan, plan, priority_for)
-from u2sa_hw.vehicle import load_profile
+from u2sa_hw.profile.vehicle import load_profile
 
 KINDS = {"rc": "rc_mux", "wheels": "odrive_can", "vesc": "vesc_can", "rudder": "pwm_servo", "horn": "gpio_output",
          "hsm": "hsm", "gps": "gps_nmea", "control": "control", "est": "state_estimator"}
@@ -156,7 +156,7 @@ def test_help_teaches_no_realtime(command: str) -> None:
 
 def test_u2sa_sim_realtime_can_be_turned_off_by_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
     """$U2SA_SIM_REALTIME=off (the test suite's setting) is --no-realtime for every u2sa sim; unset, it is allowed."""
-    from simulation.runner import SIM_REALTIME_ENV, sim_realtime_allowed
+    from u2sa_hw.simulation.runner import SIM_REALTIME_ENV, sim_realtime_allowed
 
     monkeypatch.delenv(SIM_REALTIME_ENV, raising=False)
     assert sim_realtime_allowed()

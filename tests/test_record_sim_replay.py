@@ -19,9 +19,9 @@ from recorded_sim import held_up
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 from u2sa_hw.recording.log_reader import LogFile
-from u2sa_hw.udp_ports import private_lcm_url, private_udp_port
+from u2sa_hw.bus.udp_ports import private_lcm_url, private_udp_port
 
 GROUND = REPO / "examples" / "ground_vehicle" / "vehicle.toml"
 DRIVERS = {"gps", "compass", "imu", "wheels", "pan", "rc"}

@@ -20,11 +20,11 @@ from mcap.reader import make_reader
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 from u2sa_hw.recording.log_reader import LogError, LogFile
 from u2sa_hw.recording.mcap_log import McapLogWriter
 from u2sa_hw.services.recorder.capture import BusCapture
-from u2sa_hw.transport import Transport
+from u2sa_hw.bus.transport import Transport
 
 TIMESTAMPED = re.compile(r"u2sa-\d{8}-\d{6}(_\d{3})?\.mcap")
 
@@ -300,7 +300,7 @@ def test_the_log_holds_verified_payloads_and_says_the_bus_was_signed(services: S
                             stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     keyless = {k: v for k, v in services.env().items() if k != "U2SA_BUS_KEY_FILE"}
-    forger = ("import sys; from u2sa_hw.transport import Transport; from u2sa_hw import lcmtypes as t; "
+    forger = ("import sys; from u2sa_hw.bus.transport import Transport; from u2sa_hw import lcmtypes as t; "
               "Transport(sys.argv[1], name='laptop', security='open').publish('STATE_INFO', "
               "t.StateInformation().set(x=666.0))")
     try:
@@ -378,7 +378,7 @@ if sys.argv[4] == "writer":        # flush every 25 messages: what is flushed be
     report.update(taken=writer.messages, flushed=flushed, lost=writer.lost, cut=writer.cut_short)
 else:                              # the recorder's capture, fed over the bus
     from u2sa_hw.services.recorder.capture import BusCapture
-    from u2sa_hw.transport import Transport
+    from u2sa_hw.bus.transport import Transport
     url = sys.argv[5]
     transport = Transport(url, name="full-disk-recorder")
     capture = BusCapture(transport, McapLogWriter(disk, path=path, chunk_size=4096), min_free_mb=0,

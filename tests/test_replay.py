@@ -20,22 +20,22 @@ from can_mock_harness import GROUP, Commander, MockCanProcess
 from conftest import REPO, wait_until
 from recorded_sim import held_up
 
-from hil.compare import Sample, align, compare_stream, load_streams, values_equal
-from hil.progress import format_duration, progress_line
-from hil.replay_plan import ReplayError, build_plan, claimed_devices, parse_overrides
-from mock_devices.i2c_bus import MockI2cBus
-from mock_devices.mpu9250_chip import Mpu9250Chip
-from mock_devices.nmea_gps import NmeaGpsDevice
-from mock_devices.serial_compass import NmeaCompassDevice
-from mock_devices.vehicle_sim import SimVehicle
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.hil.compare import Sample, align, compare_stream, load_streams, values_equal
+from u2sa_hw.hil.progress import format_duration, progress_line
+from u2sa_hw.hil.replay_plan import ReplayError, build_plan, claimed_devices, parse_overrides
+from u2sa_hw.mocks.i2c_bus import MockI2cBus
+from u2sa_hw.mocks.mpu9250_chip import Mpu9250Chip
+from u2sa_hw.mocks.nmea_gps import NmeaGpsDevice
+from u2sa_hw.mocks.serial_compass import NmeaCompassDevice
+from u2sa_hw.mocks.vehicle_sim import SimVehicle
+from u2sa_hw.bus.client import BusClient
 from u2sa_hw.lcmtypes import RawSerial
 from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo
 from u2sa_hw.services.recorder.capture import BusCapture
 from u2sa_hw.services.recorder.service import run_info
-from u2sa_hw.transport import Transport
-from u2sa_hw.vehicle import load_profile
-from u2sa_hw.udp_ports import private_lcm_url, private_udp_port
+from u2sa_hw.bus.transport import Transport
+from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.bus.udp_ports import private_lcm_url, private_udp_port
 
 GGA_TIME = re.compile(rb"\$[A-Z]{2}GGA,(\d{6}(?:\.\d*)?),")
 ORIGIN = {"lat": 29.1895, "lon": -81.0483, "alt": 10.0}
@@ -417,7 +417,7 @@ def test_the_replay_ends_only_once_each_service_took_what_was_republished_to_it(
     (a servo driver's last command, its only output a write, was lost on a loaded machine), then settle_s."""
     import threading
 
-    from hil.replay import Replay, ReplayOptions
+    from u2sa_hw.hil.replay import Replay, ReplayOptions
 
     replay = object.__new__(Replay)   # only the end-of-run wait: no log, no services
     replay.options, replay.abort, replay._abort_reason = ReplayOptions(settle_s=0.0), threading.Event(), ""

@@ -15,11 +15,11 @@ from typing import Iterator
 import pytest
 from conftest import wait_until
 
-from hil.replay_buses import CAN_BACKLOG_BYTES, CAN_CHECK_EVERY, CAN_GROUP, ReplayCanDevice
+from u2sa_hw.hil.replay_buses import CAN_BACKLOG_BYTES, CAN_CHECK_EVERY, CAN_GROUP, ReplayCanDevice
 from u2sa_hw.lcmtypes import RawCanFrame
 from u2sa_hw.ports.can_clock import StampedUdpMulticastBus, pack_frame, unpack_frame
 from u2sa_hw.ports.tap import RX, TX
-from u2sa_hw.udp_ports import private_udp_port
+from u2sa_hw.bus.udp_ports import private_udp_port
 
 SO_MEMINFO = 55   # Linux: struct sk_meminfo, [0] bytes queued (truesize), [1] the receive buffer
 

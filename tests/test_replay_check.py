@@ -26,8 +26,8 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 from test_replay import record_driver_log
 
-from hil.compare import compare_logs
-from hil.player import header_source
+from u2sa_hw.hil.compare import compare_logs
+from u2sa_hw.hil.player import header_source
 
 from u2sa_hw.channels import base_type
 from u2sa_hw.lcmtypes import RawSerial, StateInformation
@@ -65,7 +65,7 @@ def clean_log(driver_log: Path, reference: Path, tmp_path_factory: pytest.TempPa
 
 
 def outputs(data: bytes, topic: str) -> bool:
-    """True for a message ``--compare`` compares (hil.compare.load_streams): a replayed service's, not raw
+    """True for a message ``--compare`` compares (u2sa_hw.hil.compare.load_streams): a replayed service's, not raw
     device I/O, not the contract channels."""
     if topic.startswith(("U2SA_", "RAW.")):
         return False

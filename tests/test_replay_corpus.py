@@ -20,7 +20,7 @@ import pytest
 from conftest import REPO
 from replay_corpus import build_corpus, job_of
 
-from hil.replay_plan import i2c_setup_recorded
+from u2sa_hw.hil.replay_plan import i2c_setup_recorded
 from u2sa_hw.recording.log_reader import LogFile
 
 U2SA = [sys.executable, "-m", "u2sa_hw.cli"]

@@ -15,9 +15,9 @@ from typing import Any, Iterator
 import pytest
 from recorded_sim import recorded_sim
 
-from hil.compare import load_streams
-from hil.replay import Replay, ReplayOptions
-from hil.stream_align import first_difference
+from u2sa_hw.hil.compare import load_streams
+from u2sa_hw.hil.replay import Replay, ReplayOptions
+from u2sa_hw.hil.stream_align import first_difference
 
 # the whole run (the IMU's reads are paced by the player, so a window would do as well)
 WINDOW_S: tuple[float, float | None] = (0.0, None)

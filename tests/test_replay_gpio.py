@@ -18,20 +18,20 @@ import tomli_w
 from conftest import REPO, wait_until
 from gpio_driver_harness import BusCollector
 
-from hil.replay_plan import build_plan
-from mock_devices.gpio_chip import MockGpioChip
-from mock_devices.rc_receiver import MuxMock, RcReceiverMock
+from u2sa_hw.hil.replay_plan import build_plan
+from u2sa_hw.mocks.gpio_chip import MockGpioChip
+from u2sa_hw.mocks.rc_receiver import MuxMock, RcReceiverMock
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
 from u2sa_hw.recording.log_reader import LogFile
 from u2sa_hw.recording.mcap_log import McapLogWriter
 from u2sa_hw.services.recorder.capture import BusCapture
 from u2sa_hw.services.recorder.service import run_info
-from u2sa_hw.transport import Transport
-from u2sa_hw.udp_ports import private_lcm_url
-from u2sa_hw.vehicle import load_profile
+from u2sa_hw.bus.transport import Transport
+from u2sa_hw.bus.udp_ports import private_lcm_url
+from u2sa_hw.profile.vehicle import load_profile
 
 U2SA = [sys.executable, "-m", "u2sa_hw.cli"]
 RC_LINES = {"throttle": 5, "steering": 6, "mode": 13}

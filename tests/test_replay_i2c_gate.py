@@ -15,8 +15,8 @@ from typing import Any, Iterator
 import pytest
 from conftest import wait_until
 
-from hil.replay_buses import I2C_CLIENT_TIMEOUT_S, ReplayI2cDevice
-from hil.replay_plan import i2c_setup_recorded
+from u2sa_hw.hil.replay_buses import I2C_CLIENT_TIMEOUT_S, ReplayI2cDevice
+from u2sa_hw.hil.replay_plan import i2c_setup_recorded
 from u2sa_hw.messages import RawI2c
 from u2sa_hw.ports.address import parse_address
 from u2sa_hw.ports.errors import PortClosed, PortError, PortIOError

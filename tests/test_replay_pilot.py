@@ -23,11 +23,11 @@ from mcap.writer import CompressionType, Writer
 from recorded_sim import recorded_sim
 from test_replay_gpio import record_rc_log
 
-from u2sa_hw import bus_auth
+from u2sa_hw.bus import auth as bus_auth
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_key import KEY_ENV
-from u2sa_hw.bus_pilot import pilot_key_id, pilot_paths, public_of
+from u2sa_hw.bus.key import KEY_ENV
+from u2sa_hw.bus.pilot import pilot_key_id, pilot_paths, public_of
 from u2sa_hw.recording import log_reader
 from u2sa_hw.recording.log_reader import LogFile
 from u2sa_hw.recording.pilot_check import check_log
@@ -128,7 +128,7 @@ def test_the_recorder_keeps_the_pilot_trailers_and_the_public_key(rc_log: Path) 
 
 
 def _verifier(public: bytes) -> Any:
-    from u2sa_hw.bus_pilot import PilotVerifier
+    from u2sa_hw.bus.pilot import PilotVerifier
 
     return PilotVerifier(public)
 

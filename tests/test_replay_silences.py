@@ -19,10 +19,10 @@ from pathlib import Path
 import pytest
 from gps_stream_builder import START, Solution, gga, rmc, vtg
 
-from drivers.gps_epochs import GpsEpochCollector
-from drivers.nmea_fields import Epoch, parse_sentence
-from hil.player import Player
-from hil.replay_devices import ReplaySerialDevice
+from u2sa_hw.drivers.gps_nmea.epochs import GpsEpochCollector
+from u2sa_hw.drivers.nmea_fields import Epoch, parse_sentence
+from u2sa_hw.hil.player import Player
+from u2sa_hw.hil.replay_devices import ReplaySerialDevice
 from u2sa_hw.messages import RawSerial
 from u2sa_hw.ports import serial_clock
 from u2sa_hw.ports.opener import open_port

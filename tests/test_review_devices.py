@@ -20,23 +20,23 @@ from typing import Any
 import pytest
 from conftest import wait_until
 
-from drivers.gpio_io import GpioInputDriver
-from drivers.imu_mpu9250 import Mpu9250ImuDriver
-from drivers.odrive_can import OdriveCanMotor
-from drivers.pwm_servo import PwmServoDriver
-from drivers.rc_mux import RcMuxDriver
-from mock_devices.odrive_node import OdriveCanNode
-from mock_devices.vehicle_sim import SimVehicle
+from u2sa_hw.drivers.gpio.driver import GpioInputDriver
+from u2sa_hw.drivers.imu.mpu9250 import Mpu9250ImuDriver
+from u2sa_hw.drivers.can_motor.odrive.driver import OdriveCanMotor
+from u2sa_hw.drivers.pwm.servo import PwmServoDriver
+from u2sa_hw.drivers.rc_mux.driver import RcMuxDriver
+from u2sa_hw.mocks.odrive_node import OdriveCanNode
+from u2sa_hw.mocks.vehicle_sim import SimVehicle
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.check.offline import check_profile
 from u2sa_hw.check.problem import errors_of
-from u2sa_hw.config import ConfigError
-from u2sa_hw.devices import effective_config, profile_devices
+from u2sa_hw.config.configurator import ConfigError
+from u2sa_hw.profile.devices import effective_config, profile_devices
 from u2sa_hw.ports import PortUnavailable
 from u2sa_hw.ports.device_link import DeviceLink
 from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
 from u2sa_hw.protocols.odrive_cansimple import AxisState
-from u2sa_hw.vehicle import ProfileError, VehicleProfile, load_profile
+from u2sa_hw.profile.vehicle import ProfileError, VehicleProfile, load_profile
 
 
 def write(tmp_path: Path, body: str) -> Path:

@@ -21,17 +21,17 @@ from conftest import ServiceProcesses, wait_until
 from gpio_driver_harness import BusCollector
 from serial_driver_harness import start_driver
 
-from mock_devices.gpio_chip import MockGpioChip
-from mock_devices.rc_receiver import RcReceiverMock
+from u2sa_hw.mocks.gpio_chip import MockGpioChip
+from u2sa_hw.mocks.rc_receiver import RcReceiverMock
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 from u2sa_hw.failsafe import FailsafeSources
 from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
 from u2sa_hw.safety.config import parse_safety
 from u2sa_hw.safety.gate import AUTONOMOUS, MANUAL, CommandGate
 from u2sa_hw.safety.wiring import check_wiring
-from u2sa_hw.vehicle import ProfileError, load_profile
+from u2sa_hw.profile.vehicle import ProfileError, load_profile
 
 RC_LINES = {"throttle": 5, "steering": 6, "mode": 13}
 ENABLE = 21

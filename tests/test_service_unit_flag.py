@@ -19,8 +19,8 @@ from conftest import U2SA, ServiceProcesses, wait_until
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
-from u2sa_hw.bus_key import KEY_ENV
+from u2sa_hw.bus.client import BusClient
+from u2sa_hw.bus.key import KEY_ENV
 
 SERVICE = "state_estimator"
 IGNORED = "$U2SA_BUS_SECURITY='open' ignored: an installed unit (--unit) follows the vehicle profile alone"
@@ -28,7 +28,7 @@ IGNORED = "$U2SA_BUS_SECURITY='open' ignored: an installed unit (--unit) follows
 UNSIGNED_STOP = """\
 import sys
 from u2sa_hw import channels as ch, lcmtypes as t
-from u2sa_hw.transport import Transport
+from u2sa_hw.bus.transport import Transport
 
 tx = Transport(sys.argv[1], name="laptop")   # U2SA_BUS_SECURITY=open and no key: unsigned
 stop = t.StopCommand(); stop.all = True

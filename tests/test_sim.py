@@ -15,9 +15,9 @@ from pathlib import Path
 import pytest
 
 from conftest import REPO, U2SA
-from simulation.progress import StatusChange
-from simulation.summary import Goal, RunRecord, TrackSample, summarise
-from u2sa_hw.udp_ports import private_udp_port
+from u2sa_hw.simulation.progress import StatusChange
+from u2sa_hw.simulation.summary import Goal, RunRecord, TrackSample, summarise
+from u2sa_hw.bus.udp_ports import private_udp_port
 
 GROUND = REPO / "examples" / "ground_vehicle"
 

@@ -15,10 +15,10 @@ from pathlib import Path
 import pytest
 
 from conftest import REPO, U2SA, wait_until
-from mock_devices.launcher import MockLauncher
-from mock_devices.sim_context import DeviceError
+from u2sa_hw.mocks.launcher import MockLauncher
+from u2sa_hw.mocks.sim_context import DeviceError
 from u2sa_hw.ports.opener import open_port
-from u2sa_hw.vehicle import load_profile
+from u2sa_hw.profile.vehicle import load_profile
 
 ACKERMANN = """
 [vehicle]

@@ -9,10 +9,10 @@ from pathlib import Path
 import pytest
 from test_sim_scenarios import WHEELS, play, still, stopped
 
-from mock_devices.vehicle_sim import SimVehicle
-from simulation.events import ScenarioError, load_scenario_file
-from simulation.fence_report import fence_lines, fence_report
-from simulation.summary import TrackSample
+from u2sa_hw.mocks.vehicle_sim import SimVehicle
+from u2sa_hw.simulation.events import ScenarioError, load_scenario_file
+from u2sa_hw.simulation.fence_report import fence_lines, fence_report
+from u2sa_hw.simulation.summary import TrackSample
 from u2sa_hw.geofence import POLYGON, Fence, FenceArea
 
 

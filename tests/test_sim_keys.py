@@ -17,12 +17,12 @@ from types import SimpleNamespace
 import pytest
 
 from conftest import U2SA
-from mock_devices.launcher import MockLauncher
-from simulation.keys import StickKeys
-from simulation.progress import BusSnapshot
-from simulation.runner import SimFailure, SimRun
-from u2sa_hw.udp_ports import private_udp_port
-from u2sa_hw.vehicle import load_profile
+from u2sa_hw.mocks.launcher import MockLauncher
+from u2sa_hw.simulation.keys import StickKeys
+from u2sa_hw.simulation.progress import BusSnapshot
+from u2sa_hw.simulation.runner import SimFailure, SimRun
+from u2sa_hw.bus.udp_ports import private_udp_port
+from u2sa_hw.profile.vehicle import load_profile
 
 RC = """
 [vehicle]

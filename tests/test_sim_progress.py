@@ -7,7 +7,7 @@ import math
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.services.mission.manager import MissionManager
 from u2sa_hw.services.mission.xml import parse_mission
-from simulation.progress import BusSnapshot, StatusChange, loop_completed, status_text
+from u2sa_hw.simulation.progress import BusSnapshot, StatusChange, loop_completed, status_text
 
 
 def _status(uid: str, index: int, *, total: int = 4, finished: bool = False) -> t.MissionStatus:

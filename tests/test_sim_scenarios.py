@@ -17,10 +17,10 @@ from typing import Any
 import pytest
 
 from conftest import REPO, U2SA
-from mock_devices.actuation import OutputLog
-from simulation.effects import event_effects
-from simulation.events import ScenarioError, ScenarioEvent, load_scenario_file
-from u2sa_hw.udp_ports import private_udp_port
+from u2sa_hw.mocks.actuation import OutputLog
+from u2sa_hw.simulation.effects import event_effects
+from u2sa_hw.simulation.events import ScenarioError, ScenarioEvent, load_scenario_file
+from u2sa_hw.bus.udp_ports import private_udp_port
 
 WHEELS = ("left_wheel", "right_wheel")
 # the example rover's rc mux signal_timeout_ms (100) less two frames (20 ms each at 50 Hz): a stall this long beyond

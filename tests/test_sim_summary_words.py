@@ -18,10 +18,10 @@ from pathlib import Path
 import pytest
 from conftest import REPO, U2SA
 
-from simulation.progress import StatusChange, mission_done
-from simulation.summary import Goal, RunRecord, TrackSample, summarise, summary_text
+from u2sa_hw.simulation.progress import StatusChange, mission_done
+from u2sa_hw.simulation.summary import Goal, RunRecord, TrackSample, summarise, summary_text
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.udp_ports import private_udp_port
+from u2sa_hw.bus.udp_ports import private_udp_port
 
 
 def _record(*, engaged: bool, result: str, changes: list[StatusChange]) -> RunRecord:

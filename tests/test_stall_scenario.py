@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from conftest import REPO, U2SA
-from u2sa_hw.udp_ports import private_udp_port
+from u2sa_hw.bus.udp_ports import private_udp_port
 
 SCENARIO = "examples/ground_vehicle/scenarios/wheels_stall.toml"
 WHEELS = ("left_wheel", "right_wheel")

@@ -15,15 +15,15 @@ from typing import Any, Iterator
 import pytest
 from conftest import wait_until
 
-from drivers.odrive_can import OdriveCanMotor
-from drivers.stall_trip import Stall, StallWatch, Trip, may_clear, trip_gap_s
-from mock_devices.odrive_node import ENABLE_WATCHDOG_ENDPOINT, MOCK_FW, WATCHDOG_TIMEOUT_ENDPOINT, OdriveCanNode
-from mock_devices.vehicle_sim import SimVehicle
+from u2sa_hw.drivers.can_motor.odrive.driver import OdriveCanMotor
+from u2sa_hw.drivers.can_motor.stall_trip import Stall, StallWatch, Trip, may_clear, trip_gap_s
+from u2sa_hw.mocks.odrive_node import ENABLE_WATCHDOG_ENDPOINT, MOCK_FW, WATCHDOG_TIMEOUT_ENDPOINT, OdriveCanNode
+from u2sa_hw.mocks.vehicle_sim import SimVehicle
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.protocols.odrive_cansimple import AxisState, Cmd, OdriveError
 from u2sa_hw.safety.gate import RC_MODE_AUTONOMOUS, RC_MODE_MANUAL, CommandGate
 from u2sa_hw.safety.prearm import PrearmChecks
-from u2sa_hw.vehicle import load_profile
+from u2sa_hw.profile.vehicle import load_profile
 
 from test_prearm import OK, health, write_profile
 

@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from staged_code import u2sa_command  # noqa: E402
 from systemd_ns import SystemdNamespace, cannot_boot_reason, stage_root, wait_until  # noqa: E402
 
-from u2sa_hw.udp_ports import private_udp_port  # noqa: E402
+from u2sa_hw.bus.udp_ports import private_udp_port  # noqa: E402
 
 REASON = cannot_boot_reason()
 pytestmark = pytest.mark.skipif(REASON is not None, reason=f"systemd cannot boot here: {REASON}")
@@ -33,8 +33,8 @@ PROBE = """\
 import sys
 from pathlib import Path
 
-from u2sa_hw.bus_key import BusKeyError
-from u2sa_hw.bus_pilot import read_signer, read_verifier
+from u2sa_hw.bus.key import BusKeyError
+from u2sa_hw.bus.pilot import read_signer, read_verifier
 
 try:
     signer = read_signer(Path("/etc/u2sa/pilot.key"))

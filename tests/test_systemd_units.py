@@ -30,8 +30,8 @@ from systemd_ns import SystemdNamespace, cannot_boot_reason, stage_root, wait_un
 
 from u2sa_hw import channels as ch  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
-from u2sa_hw.bus_client import BusClient  # noqa: E402
-from u2sa_hw.udp_ports import private_udp_port  # noqa: E402
+from u2sa_hw.bus.client import BusClient  # noqa: E402
+from u2sa_hw.bus.udp_ports import private_udp_port  # noqa: E402
 
 REASON = cannot_boot_reason()
 pytestmark = pytest.mark.skipif(REASON is not None, reason=f"systemd cannot boot here: {REASON}")

@@ -17,11 +17,11 @@ from conftest import wait_until
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw import message_codegen
-from u2sa_hw.service import U2SAService
-from u2sa_hw.transport import (DEFAULT_LCM_URL, DEFAULT_RECV_BUF_SIZE, Transport, TransportError, check_multicast,
+from u2sa_hw.service.contract import U2SAService
+from u2sa_hw.bus.transport import (DEFAULT_LCM_URL, DEFAULT_RECV_BUF_SIZE, Transport, TransportError, check_multicast,
                                resolve_url, with_receive_buffer)
-from u2sa_hw.udp_ports import private_lcm_url
-from u2sa_hw.vehicle import VehicleProfile
+from u2sa_hw.bus.udp_ports import private_lcm_url
+from u2sa_hw.profile.vehicle import VehicleProfile
 
 
 def _port(url: str) -> int:
@@ -142,7 +142,7 @@ def test_a_bad_url_or_provider_is_one_line_naming_the_url_and_what_lcm_said(capf
 def test_no_multicast_route_is_one_line_with_the_fix(tmp_path: Path) -> None:
     if subprocess.run(["unshare", "-rn", "true"], capture_output=True).returncode != 0:
         pytest.skip("unshare -rn (a network namespace without routes) is not allowed here")
-    code = "from u2sa_hw.transport import Transport\nTransport('udpm://239.255.76.67:7667?ttl=0')\n"
+    code = "from u2sa_hw.bus.transport import Transport\nTransport('udpm://239.255.76.67:7667?ttl=0')\n"
     r = subprocess.run(["unshare", "-rn", sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
                        cwd=Path(__file__).resolve().parent.parent)
     last = r.stderr.strip().splitlines()[-1]
@@ -181,7 +181,7 @@ def test_counters_count_packets_once_and_malformed_ones_are_logged_once(lcm_url:
     good = t.StateInformation().set(x=1.0).encode()
     packets = [b"\x00garbage", good[:30], t.Health().encode(), good, good]
     try:
-        with caplog.at_level(logging.WARNING, logger="u2sa_hw.transport"):
+        with caplog.at_level(logging.WARNING, logger="u2sa_hw.bus.transport"):
             for data in packets:
                 tx.publish_bytes(ch.STATE_INFO, data)
             wait_until(lambda: len(got) >= 4, message="both subscriptions to get both good messages")
@@ -200,7 +200,7 @@ BUOY_PUBLISHER = """\
 import sys
 sys.path.insert(0, sys.argv[1])
 from buoyext import Buoy
-from u2sa_hw.transport import Transport
+from u2sa_hw.bus.transport import Transport
 tx = Transport(sys.argv[2], name="buoys")   # signed with the session's key ($U2SA_BUS_KEY_FILE)
 for i in range(3):
     b = Buoy(); b.base.uid = f"red-{i}"; b.base.object_type = "buoy"; b.base.x = 4.0 + i; b.colour = "red"
@@ -222,7 +222,7 @@ def test_an_unknown_child_from_another_process_arrives_as_its_base_and_is_logged
     rx.subscribe(ch.OBJECTS, t.ObjectDescription, lambda _c, m: got.append(m))
     rx.start()
     try:
-        with caplog.at_level(logging.INFO, logger="u2sa_hw.transport"):
+        with caplog.at_level(logging.INFO, logger="u2sa_hw.bus.transport"):
             subprocess.run([sys.executable, "-c", BUOY_PUBLISHER, str(tmp_path), lcm_url], check=True, timeout=60)
             wait_until(lambda: len(got) >= 3, timeout=20, message="three buoys")
         assert all(type(m) is t.ObjectDescription for m in got)

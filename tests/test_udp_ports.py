@@ -5,7 +5,7 @@ from __future__ import annotations
 import random
 import socket
 
-from u2sa_hw.udp_ports import LCM_DEFAULT_PORT, LOWEST_PORT, ephemeral_range, private_lcm_url, private_udp_port
+from u2sa_hw.bus.udp_ports import LCM_DEFAULT_PORT, LOWEST_PORT, ephemeral_range, private_lcm_url, private_udp_port
 
 
 def test_ports_come_from_below_the_ephemeral_range_and_skip_the_lcm_default() -> None:

@@ -11,12 +11,12 @@ from conftest import ServiceProcesses, wait_until
 from u2sa_hw import channels as ch
 from u2sa_hw import geo
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus_client import BusClient
+from u2sa_hw.bus.client import BusClient
 from u2sa_hw.messages import as_type
 from u2sa_hw.services.world.model import PlacementError, Pose, WorldModel, place_in_world
 from u2sa_hw.services.world.shapes import cloud_points, distance_to_point
 from u2sa_hw.services.world.xml import XmlFileError, parse_objects
-from u2sa_hw.vehicle import Origin
+from u2sa_hw.profile.vehicle import Origin
 
 ORIGIN = Origin(lat=29.1895, lon=-81.0483, alt=10.0)
 

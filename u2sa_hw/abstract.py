@@ -17,11 +17,11 @@ from typing import Any, ClassVar, Mapping
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config import ConfigError, field
+from u2sa_hw.config.configurator import ConfigError, field
 from u2sa_hw.messages import as_type
 from u2sa_hw.safety.config import load_safety
 from u2sa_hw.safety.gate import AUTONOMOUS, MANUAL, CommandGate
-from u2sa_hw.service import U2SAService
+from u2sa_hw.service.contract import U2SAService
 
 MAX_COMMAND_TIMEOUT_S = 0.5   # the dead-man's longest: the field's bound and check_config's
 

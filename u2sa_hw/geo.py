@@ -1,7 +1,7 @@
 """Geodetic <-> local NED about the vehicle profile's origin, and angle helpers.
 
 The local frame is NED (x north, y east, z down, metres) about ``[vehicle] origin`` of the
-profile (:class:`u2sa_hw.vehicle.Origin`: lat, lon in degrees, alt in metres up).
+profile (:class:`u2sa_hw.profile.vehicle.Origin`: lat, lon in degrees, alt in metres up).
 
 The projection is a local flat-earth (equirectangular) one: a latitude difference is
 scaled by the WGS84 meridian radius of curvature and a longitude difference by the

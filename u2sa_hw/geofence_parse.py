@@ -250,9 +250,9 @@ def load_plan_fence(path: Path, *, origin: GeoOrigin, where: str) -> list[FenceA
 
 
 def profile_fence(profile: Any) -> Fence | None:
-    """The fence of a loaded :class:`~u2sa_hw.vehicle.VehicleProfile` (None without ``[geofence]``);
+    """The fence of a loaded :class:`~u2sa_hw.profile.vehicle.VehicleProfile` (None without ``[geofence]``);
     ProfileError names the file and the fix."""
-    from u2sa_hw.vehicle import ProfileError
+    from u2sa_hw.profile.vehicle import ProfileError
 
     table = profile.raw.get("geofence")
     if table is None:

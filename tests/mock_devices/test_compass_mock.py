@@ -13,9 +13,9 @@ from conftest import wait_until
 from pynmeagps.exceptions import NMEAParseError
 from serial_line_reader import SerialLineReader, parse_nmea
 
-from mock_devices.pty_serial import PeriodicSerialDevice
-from mock_devices.serial_compass import NmeaCompassDevice, Os5000CompassDevice
-from mock_devices.vehicle_sim import SimVehicle
+from u2sa_hw.mocks.pty_serial import PeriodicSerialDevice
+from u2sa_hw.mocks.serial_compass import NmeaCompassDevice, Os5000CompassDevice
+from u2sa_hw.mocks.vehicle_sim import SimVehicle
 
 ORIGIN = dict(origin_lat=44.0, origin_lon=-69.0)
 OS5000_LINE = re.compile(rb"^\$(C(\d{1,3}\.\d)P(-?\d+\.\d)R(-?\d+\.\d)T(-?\d+\.\d))\*([0-9A-F]{2})\r\n$")

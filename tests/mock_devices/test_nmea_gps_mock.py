@@ -14,8 +14,8 @@ from conftest import wait_until
 from pynmeagps.exceptions import NMEAParseError
 from serial_line_reader import SerialLineReader, parse_nmea
 
-from mock_devices.nmea_gps import GPS_SENTENCES, KNOT_MPS, NmeaGpsDevice
-from mock_devices.vehicle_sim import SimVehicle, geodetic_to_ned
+from u2sa_hw.mocks.nmea_gps import GPS_SENTENCES, KNOT_MPS, NmeaGpsDevice
+from u2sa_hw.mocks.vehicle_sim import SimVehicle, geodetic_to_ned
 
 ORIGIN = dict(origin_lat=29.1895, origin_lon=-81.0483, origin_alt=10.0)
 CLOCK = datetime(2026, 3, 14, 15, 9, 26, 530000, tzinfo=timezone.utc)

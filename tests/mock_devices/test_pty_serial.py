@@ -10,7 +10,7 @@ import pytest
 import serial
 from conftest import wait_until
 
-from mock_devices.pty_serial import RX, TX, PtySerialDevice, corrupt_checksum
+from u2sa_hw.mocks.pty_serial import RX, TX, PtySerialDevice, corrupt_checksum
 
 
 @pytest.fixture

@@ -7,7 +7,7 @@ import math
 import pytest
 from conftest import wait_until
 
-from mock_devices.vehicle_sim import (GRAVITY, SimVehicle, geodetic_to_ned, ned_to_geodetic,
+from u2sa_hw.mocks.vehicle_sim import (GRAVITY, SimVehicle, geodetic_to_ned, ned_to_geodetic,
                                       wrap_angle)
 
 ORIGIN = dict(origin_lat=29.1895, origin_lon=-81.0483, origin_alt=10.0)

@@ -20,9 +20,9 @@ from __future__ import annotations
 import os
 from typing import Any
 
-from u2sa_hw.bus_listen import IFF_MULTICAST, interface_flags, is_local, route_interface
+from u2sa_hw.bus.listen import IFF_MULTICAST, interface_flags, is_local, route_interface
 from u2sa_hw.check.problem import Collector
-from u2sa_hw.lcm_url import DEFAULT_LCM_URL
+from u2sa_hw.bus.lcm_url import DEFAULT_LCM_URL
 
 
 def check_bus(vehicle: dict[str, Any], out: Collector) -> None:
@@ -53,7 +53,7 @@ def check_bus(vehicle: dict[str, Any], out: Collector) -> None:
 
 def check_security_env(vehicle: dict[str, Any], out: Collector) -> None:
     """Warn when ``$U2SA_BUS_SECURITY`` is set here: the installed units ignore it (see the module docstring)."""
-    from u2sa_hw.bus_auth import SECURITY_ENV
+    from u2sa_hw.bus.auth import SECURITY_ENV
 
     value = os.environ.get(SECURITY_ENV)
     if value is None:

@@ -39,7 +39,7 @@ UDEV_RULES_DIRS = (Path("/etc/udev/rules.d"), Path("/run/udev/rules.d"), Path("/
                    Path("/usr/lib/udev/rules.d"))
 UDEV_DIRS_ENV = "U2SA_UDEV_RULES_DIRS"   # colon-separated directories instead of the above (tests, staged roots)
 U2SA_DEV = "/dev/u2sa/"
-DRIVER_PREFIX = "drivers."               # registry targets of hardware drivers: each has a device
+DRIVER_PREFIX = "u2sa_hw.drivers."               # registry targets of hardware drivers: each has a device
 
 
 def check_devices(path: Path, data: Mapping[str, Any], out: Collector, *, profile: Any, for_sim: bool) -> None:
@@ -48,7 +48,7 @@ def check_devices(path: Path, data: Mapping[str, Any], out: Collector, *, profil
     services = data.get("services", {}) if isinstance(data.get("services"), dict) else {}
     if not isinstance(devices, dict):
         return
-    from u2sa_hw.devices import DEVICE_KEYS, LEGACY_DEVICE_KEYS
+    from u2sa_hw.profile.devices import DEVICE_KEYS, LEGACY_DEVICE_KEYS
 
     known_keys = (*DEVICE_KEYS, *LEGACY_DEVICE_KEYS)
     catalog = _mock_catalog()
@@ -114,18 +114,18 @@ class _MockSupport:
     """What the checks read from :mod:`mock_devices`: its catalog and how it reads ``[simulation]``."""
 
     catalog: Mapping[str, Any]          # mock kind -> its catalog entry
-    settings: Any                       # mock_devices.launcher.SimulationSettings
-    error: type[Exception]              # mock_devices.sim_context.DeviceError
+    settings: Any                       # u2sa_hw.mocks.launcher.SimulationSettings
+    error: type[Exception]              # u2sa_hw.mocks.sim_context.DeviceError
 
 
 def _mock_support() -> _MockSupport | None:
     """The lazy boundary to :mod:`mock_devices`; None when it is not installed (any other error surfaces)."""
     try:
-        from mock_devices.catalog import CATALOG
-        from mock_devices.launcher import SimulationSettings
-        from mock_devices.sim_context import DeviceError
+        from u2sa_hw.mocks.catalog import CATALOG
+        from u2sa_hw.mocks.launcher import SimulationSettings
+        from u2sa_hw.mocks.sim_context import DeviceError
     except ModuleNotFoundError as exc:
-        if exc.name != "mock_devices":
+        if exc.name != "u2sa_hw.mocks":
             raise
         return None
     return _MockSupport(catalog=CATALOG, settings=SimulationSettings, error=DeviceError)
@@ -144,8 +144,8 @@ def _check_addresses(profile: Any, configs: Mapping[str, Any], out: Collector,
     pairs in *shown*, whose new form an error's fix already gives; the list's own errors (a service
     with no address, two services on one device) are reported here.
     """
-    from u2sa_hw.devices import profile_devices
-    from u2sa_hw.vehicle import ProfileError
+    from u2sa_hw.profile.devices import profile_devices
+    from u2sa_hw.profile.vehicle import ProfileError
 
     notices: list[str] = []
     try:
@@ -283,7 +283,7 @@ def _check_can_bitrates(entries: Mapping[str, Any], profile: Any, out: Collector
 def serial_devices(profile: Any, entries: Mapping[str, Any] | None = None) -> list[tuple[str, str, Any]]:
     """``(device name, key, address)`` of every real serial device node of the enabled services
     (*entries*: the profile's device list when already read)."""
-    from u2sa_hw.devices import profile_devices
+    from u2sa_hw.profile.devices import profile_devices
 
     if entries is None:
         try:
@@ -416,7 +416,7 @@ def _check_usb_identities(entries: Mapping[str, Any], out: Collector) -> None:
 
 def check_simulation(path: Path, data: Mapping[str, Any], out: Collector) -> None:
     """``[simulation]``: each unknown key (with a did-you-mean), then the rest as the mock launcher reads it."""
-    from u2sa_hw.vehicle import SIMULATION_KEYS, SIMULATION_START_KEYS
+    from u2sa_hw.profile.vehicle import SIMULATION_KEYS, SIMULATION_START_KEYS
 
     table = data.get("simulation")
     if isinstance(table, dict):

@@ -35,12 +35,12 @@ import tomli_w
 
 PATH_KEYS = ("config_dir", "log_dir", "data_dir", "bus_key")
 DEVICE_KEY_TYPES: dict[str, type] = {"address": str, "mock": str, "service": str, "options": dict, "sides": list,
-                                     "drives": dict}   # u2sa_hw.devices.check_table's types
+                                     "drives": dict}   # u2sa_hw.profile.devices.check_table's types
 
 
 def _vehicle(table: Mapping[str, Any], base: Path) -> dict[str, Any]:
     from u2sa_hw.check.offline import ORIGIN_RANGES, VEHICLE_KEYS
-    from u2sa_hw.service_log import LEVEL_NAMES
+    from u2sa_hw.service.log import LEVEL_NAMES
 
     kept: dict[str, Any] = {}
     for key, value in table.items():
@@ -84,7 +84,7 @@ def _services(table: Mapping[str, Any], base: Path) -> dict[str, Any]:
 
 def lenient_profile(path: Path, data: Mapping[str, Any]) -> Any:
     """The profile at *path* (parsed as *data*) without its reported mistakes; None when even that cannot load."""
-    from u2sa_hw.vehicle import TOP_TABLES, ProfileError, load_profile
+    from u2sa_hw.profile.vehicle import TOP_TABLES, ProfileError, load_profile
 
     base = path.resolve().parent
     clean: dict[str, Any] = {k: v for k, v in data.items() if k in TOP_TABLES and isinstance(v, dict)}
@@ -106,7 +106,7 @@ def lenient_profile(path: Path, data: Mapping[str, Any]) -> Any:
 def clean_device_tables(tables: Any, *, services: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
     """Each ``[devices.NAME]`` table with only the keys a device table takes, of the right type, and a
     ``service`` that is one of *services* (the device check reports the rest)."""
-    from u2sa_hw.devices import LEGACY_DEVICE_KEYS
+    from u2sa_hw.profile.devices import LEGACY_DEVICE_KEYS
 
     kept: dict[str, dict[str, Any]] = {}
     for name, table in (tables.items() if isinstance(tables, dict) else ()):
@@ -122,7 +122,7 @@ def clean_device_tables(tables: Any, *, services: Mapping[str, Any]) -> dict[str
 def readable_configs(profile: Any) -> dict[str, dict[str, Any]]:
     """service -> the config it runs with, for every enabled service of a known kind; a value that is
     wrong (in the settings or the config file) is left at its default, as if it were not written."""
-    from u2sa_hw.devices import effective_config
+    from u2sa_hw.profile.devices import effective_config
 
     configs: dict[str, dict[str, Any]] = {}
     for name, spec in profile.services.items():
@@ -165,10 +165,10 @@ def old_form_numbers(profile: Any, configs: Mapping[str, Mapping[str, Any]]) -> 
     that text, gives a device without a ``[devices.NAME] address`` an address that parses: an old-form
     address setting (``bus = 1`` -> ``i2c://1/0x68``). The driver declares which settings make an address
     (``used_devices``); nothing here knows their names. *configs*: :func:`readable_configs`."""
-    from u2sa_hw.devices import service_devices
+    from u2sa_hw.profile.devices import service_devices
     from u2sa_hw.ports.address import AddressError, parse_address
     from u2sa_hw.registry import resolve_kind
-    from u2sa_hw.service import BASE_CONFIG
+    from u2sa_hw.service.contract import BASE_CONFIG
 
     found: list[OldFormNumber] = []
     tables = profile.devices if isinstance(profile.devices, dict) else {}
@@ -206,9 +206,9 @@ def old_form_numbers(profile: Any, configs: Mapping[str, Mapping[str, Any]]) -> 
 
 
 def _config_past_mistakes(spec: Any) -> dict[str, Any] | None:
-    from u2sa_hw.config import ConfigError, coerce
+    from u2sa_hw.config.configurator import ConfigError, coerce
     from u2sa_hw.registry import resolve_kind
-    from u2sa_hw.service import BASE_CONFIG
+    from u2sa_hw.service.contract import BASE_CONFIG
 
     try:
         cls = resolve_kind(spec.kind)
@@ -236,7 +236,7 @@ def lenient_devices(profile: Any, configs: Mapping[str, Mapping[str, Any]]) -> t
     """(*profile* with clean device tables and without the devices whose address does not parse, the names
     of those devices). A service that uses such a device is disabled in the copy, so the other devices
     are still read; *configs* are :func:`readable_configs`."""
-    from u2sa_hw.devices import service_devices
+    from u2sa_hw.profile.devices import service_devices
     from u2sa_hw.ports.address import AddressError, parse_address
     from u2sa_hw.registry import resolve_kind
 

@@ -20,13 +20,13 @@ from typing import Any
 
 from u2sa_hw.check.bus_checks import check_bus, check_security_env
 from u2sa_hw.check.problem import Collector, Problem, did_you_mean, type_name
-from u2sa_hw.profile_numbers import PROFILE_NUMBERS
-from u2sa_hw.vehicle import TOP_TABLES
-from u2sa_hw.vehicle import VEHICLE_KEYS as VEHICLE_KEY_NAMES
+from u2sa_hw.profile.numbers import PROFILE_NUMBERS
+from u2sa_hw.profile.vehicle import TOP_TABLES
+from u2sa_hw.profile.vehicle import VEHICLE_KEYS as VEHICLE_KEY_NAMES
 
-VEHICLE_KEYS: dict[str, type] = {   # the loader's keys (u2sa_hw.vehicle), with the type each takes
+VEHICLE_KEYS: dict[str, type] = {   # the loader's keys (u2sa_hw.profile.vehicle), with the type each takes
     name: {"system_id": int, "origin": dict}.get(name, str) for name in VEHICLE_KEY_NAMES}
-ORIGIN_RANGES = {key: (f.ge, f.le) for key in ("lat", "lon", "alt")   # u2sa_hw/profile_numbers.py, as the loader
+ORIGIN_RANGES = {key: (f.ge, f.le) for key in ("lat", "lon", "alt")   # u2sa_hw/profile/numbers.py, as the loader
                  for f in (PROFILE_NUMBERS[f"vehicle.origin.{key}"],)}
 
 
@@ -102,7 +102,7 @@ def check_profile(path: Path, *, for_sim: bool = False) -> list[Problem]:
 
 
 def _check_vehicle(path: Path, vehicle: dict[str, Any], out: Collector) -> None:
-    from u2sa_hw.service_log import LEVEL_NAMES
+    from u2sa_hw.service.log import LEVEL_NAMES
 
     for key, value in vehicle.items():
         want = VEHICLE_KEYS.get(key)
@@ -158,7 +158,7 @@ def _example(kind: type) -> str:
 
 def _load(path: Path) -> tuple[Any, str]:
     """(the parsed profile, "") or (None, load_profile's error): the checks report its reasons one by one."""
-    from u2sa_hw.vehicle import ProfileError, load_profile
+    from u2sa_hw.profile.vehicle import ProfileError, load_profile
 
     try:
         return load_profile(path), ""

@@ -40,7 +40,7 @@ def has_magnetometer(kind: str, cfg: dict[str, Any], text: str) -> bool:
 
 def with_calibration_warnings(profile: Any, target: Any, result: Any) -> Any:
     """*result* with a warning per uncalibrated sensor of *target*'s service (unchanged when it failed)."""
-    from u2sa_hw.devices import effective_config
+    from u2sa_hw.profile.devices import effective_config
 
     spec = profile.services.get(target.service)
     if not result.ok or spec is None:

@@ -48,7 +48,7 @@ def errors_of(problems: Iterable[Problem]) -> list[Problem]:
 
 def did_you_mean(word: object, known: Iterable[object]) -> str:
     """`` (did you mean 'x'?)`` when *word* is close to one of *known*, else ``""`` (config_keys' rule)."""
-    from u2sa_hw.config_keys import did_you_mean as hint_for
+    from u2sa_hw.config.keys import did_you_mean as hint_for
 
     hint = hint_for(str(word), [str(k) for k in known])
     return f" ({hint})" if hint else ""

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from u2sa_hw.check.problem import Collector, did_you_mean, type_name
-from u2sa_hw.vehicle import SERVICE_KEYS
+from u2sa_hw.profile.vehicle import SERVICE_KEYS
 
 _TYPES: dict[str, type] = {"settings": dict, "enabled": bool, "required": bool, "supervision": dict}
 SERVICE_KEY_TYPES: dict[str, type | tuple[type, ...]] = {   # the loader's keys, with the type each takes
@@ -104,7 +104,7 @@ def _service_class(kind: str, key: str, out: Collector) -> Any:
 
 
 def _fields(cls: Any) -> dict[str, Any]:
-    from u2sa_hw.service import BASE_CONFIG
+    from u2sa_hw.service.contract import BASE_CONFIG
 
     return {f.name: f for f in (*BASE_CONFIG, *cls.config_fields())}
 
@@ -112,7 +112,7 @@ def _fields(cls: Any) -> dict[str, Any]:
 def _check_values(values: Mapping[str, Any], fields: Mapping[str, Any], out: Collector, *, key: str,
                   file: Path | None, unknown_is_error: bool) -> bool:
     """Names and types of *values*; True when every value can be used."""
-    from u2sa_hw.config import ConfigError, coerce, to_text
+    from u2sa_hw.config.configurator import ConfigError, coerce, to_text
 
     usable = True
     for name, value in values.items():
@@ -150,7 +150,7 @@ def _reason(text: str, name: str) -> str:
 
 def _value_fix(f: Any, value: Any) -> str:
     """What to write instead of *value* for field *f*: its type, choices or range."""
-    from u2sa_hw.config import choices_text, to_text
+    from u2sa_hw.config.configurator import choices_text, to_text
 
     if f.choices:
         return f"use one of {choices_text(f)}"
@@ -223,7 +223,7 @@ def _check_semantics(name: str, cls: Any, values: dict[str, Any], config_path: P
     addresses are checked with the devices). A hook that needs more than that cannot run here:
     that is a warning line naming the kind and why, never a silent pass.
     """
-    from u2sa_hw.config import ConfigError, Configurator
+    from u2sa_hw.config.configurator import ConfigError, Configurator
 
     key = f"services.{name}.settings"
     config = Configurator(None, fields.values(), logger=_quiet, initial=values)
@@ -285,7 +285,7 @@ def _read_referenced(field_name: str, path: Path, profile: Any, *, secret: bool)
             load_mission(path)
         elif field_name == "objects_file":
             from u2sa_hw.services.world.xml import load_objects
-            from u2sa_hw.vehicle import Origin
+            from u2sa_hw.profile.vehicle import Origin
 
             load_objects(path, origin=profile.origin if profile is not None else Origin())
         else:
@@ -304,7 +304,7 @@ def _check_supervision(name: str, table: Any, out: Collector) -> None:
     """The ``[services.NAME.supervision]`` keys and types, as the HSM reads them."""
     from u2sa_hw.channels import BASE_TYPES
     from u2sa_hw.services.hsm.rules import _KEYS, _checked
-    from u2sa_hw.vehicle import ProfileError
+    from u2sa_hw.profile.vehicle import ProfileError
 
     if table is None or not isinstance(table, dict):
         return

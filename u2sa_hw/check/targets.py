@@ -3,7 +3,7 @@
 A target is the port kind, the address text shown, the parameters the probe opens it with,
 and what the service's driver expects there (the protocol of a serial device, the chip
 behind an I2C address, the CAN node ids). Where each device is comes from its address
-(:func:`u2sa_hw.devices.profile_devices`); what the driver expects there, the driver declares
+(:func:`u2sa_hw.profile.devices.profile_devices`); what the driver expects there, the driver declares
 (:func:`expectation`: its ``probe_expectation``, :mod:`u2sa_hw.ports.declared`): a protocol,
 a chip family and variant, the CAN node ids. Nothing here reads a driver's setting names.
 
@@ -81,7 +81,7 @@ def _from_address(name: str, service: str, address: Any, expect: Mapping[str, An
 
 def profile_targets(profile: Any) -> list[Target]:
     """Every device of every enabled service of *profile*; one whose kind has no probe has ``port=""``."""
-    from u2sa_hw.devices import effective_config, profile_devices
+    from u2sa_hw.profile.devices import effective_config, profile_devices
 
     entries = profile_devices(profile, warn=lambda _text: None)   # ProfileError: see u2sa check (offline)
     targets, seen = [], set()

@@ -112,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
 
 # Errors whose text is the whole story for a user (a missing or unreadable bus key, a bus that cannot
 # open): one line, as a CliError, wherever they are raised. Named by module so none is imported here.
-USER_FACING_ERRORS = (("u2sa_hw.transport", "TransportError"), ("u2sa_hw.bus_key", "BusKeyError"))
+USER_FACING_ERRORS = (("u2sa_hw.bus.transport", "TransportError"), ("u2sa_hw.bus.key", "BusKeyError"))
 
 
 def _user_facing(exc: BaseException) -> bool:

@@ -84,7 +84,7 @@ def cmd_services(args: Any) -> int:
     """``u2sa services``: who answers discovery, each one's bus (signed or open) and the packets it dropped."""
     from u2sa_hw import channels as ch
     from u2sa_hw import lcmtypes as t
-    from u2sa_hw.service_bus import parse_raises, raise_line
+    from u2sa_hw.service.bus_handlers import parse_raises, raise_line
 
     health: dict[str, Any] = {}
     heard_at: dict[str, float] = {}   # when each service's newest Health arrived (monotonic)
@@ -128,7 +128,7 @@ def cmd_services(args: Any) -> int:
         for entry in row["raises_accepted"]:   # a stale or foreign failsafe raise let through: who and when
             print(f"u2sa: {raise_line(row['name'], entry)}", file=sys.stderr)
     if own_drops:
-        from u2sa_hw.service_bus import rejected_text
+        from u2sa_hw.service.bus_handlers import rejected_text
 
         print(f"u2sa: dropped while listening: {rejected_text(own_drops)} (unsigned: a sender without the key; "
               "forged: another key, e.g. a second stack or vehicle on this port; foreign: another vehicle's "
@@ -145,7 +145,7 @@ def rejected_counts(text: str) -> dict[str, int]:
 
     The text is ``CHANNEL: unsigned 2, forged 1; CHANNEL: foreign 3`` (``service_bus.rejected_text``).
     """
-    from u2sa_hw.bus_auth import REJECTIONS
+    from u2sa_hw.bus.auth import REJECTIONS
 
     counts = dict.fromkeys(REJECTIONS, 0)
     for part in text.split(";"):
@@ -312,7 +312,7 @@ def cmd_stop(args: Any) -> int:
         else:   # everyone is asked, so a name not on the bus gets a did-you-mean from the names that are
             found, on_bus = bus.find_service(args.name, timeout=min(1.0, args.timeout))
             if found is None and on_bus:
-                from u2sa_hw.bus_client import unknown_service_text
+                from u2sa_hw.bus.client import unknown_service_text
 
                 raise CliError(f"{unknown_service_text(args.name, on_bus)}; nothing to stop")
             before = [found] if found is not None else []

@@ -6,8 +6,8 @@ import argparse
 import contextlib
 from typing import Any, Iterator
 
-from u2sa_hw.transport import TransportError, check_multicast
-from u2sa_hw.vehicle import ProfileError, VehicleProfile, load_profile
+from u2sa_hw.bus.transport import TransportError, check_multicast
+from u2sa_hw.profile.vehicle import ProfileError, VehicleProfile, load_profile
 
 
 def add_vehicle_option(parser: argparse.ArgumentParser) -> None:
@@ -38,7 +38,7 @@ def bus_client(args: Any, *, name: str | None = None) -> Iterator[Any]:
 
     A TransportError (LCM cannot open or receive) becomes a one-line CliError with the fix.
     """
-    from u2sa_hw.bus_client import BusClient
+    from u2sa_hw.bus.client import BusClient
     from u2sa_hw.cli import CliError
 
     profile = profile_from(args)

@@ -46,9 +46,9 @@ def register(sub: Any) -> None:
 def cmd_foxglove(args: Any) -> int:
     """Build the bridge service from the options and run it until Ctrl-C."""
     from u2sa_hw.cli import CliError
-    from u2sa_hw.config import ConfigError
-    from u2sa_hw.service_log import setup_service_logging
-    from u2sa_hw.transport import TransportError
+    from u2sa_hw.config.configurator import ConfigError
+    from u2sa_hw.service.log import setup_service_logging
+    from u2sa_hw.bus.transport import TransportError
 
     try:
         from u2sa_hw.foxglove.service import FoxgloveBridgeService

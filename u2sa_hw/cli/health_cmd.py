@@ -94,7 +94,7 @@ def cmd_health(args: Any) -> int:
         url = bus.transport.url
         own_drops = bus.transport.rejected()
     if own_drops:
-        from u2sa_hw.service_bus import rejected_text
+        from u2sa_hw.service.bus_handlers import rejected_text
 
         print(f"u2sa: dropped while listening: {rejected_text(own_drops)}", file=sys.stderr)
     if not got:
@@ -130,7 +130,7 @@ def cmd_health(args: Any) -> int:
     for rc in report["autonomy"]:
         print(autonomy_line(rc))
     if report["raises_accepted"]:
-        from u2sa_hw.service_bus import raise_line
+        from u2sa_hw.service.bus_handlers import raise_line
 
         for entry in report["raises_accepted"]:
             print(raise_line(entry["service"], entry))
@@ -143,7 +143,7 @@ def raises_report(health: dict[str, Any], heard_at: dict[str, float] | None = No
     One entry per service and kind: service, channel, kind (stale, foreign), count, last_sender and
     last_age_s, the age counted to now when *heard_at* says when that Health arrived.
     """
-    from u2sa_hw.service_bus import parse_raises
+    from u2sa_hw.service.bus_handlers import parse_raises
 
     now = time.monotonic()
     out = []
@@ -161,7 +161,7 @@ def service_reason(row: dict[str, Any], health: Any | None) -> str:
     The HSM's words (its problem, a restart error, what the service said before it died) come
     first, then the service's own latest Health (the silent sensor, the port's error and fix).
     """
-    from u2sa_hw.health import health_reason, join_reasons
+    from u2sa_hw.service.health import health_reason, join_reasons
 
     if row["state"] == "ok":
         return ""

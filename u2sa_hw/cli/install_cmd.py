@@ -112,7 +112,7 @@ def cmd_install(args: Any) -> int:
     from u2sa_hw.cli import CliError
     from u2sa_hw.install.deploy import install
     from u2sa_hw.install.system import InstallError
-    from u2sa_hw.vehicle import ProfileError
+    from u2sa_hw.profile.vehicle import ProfileError
 
     try:
         tree = install(vehicle=args.vehicle, root=Path(args.root), venv=args.venv, python=args.python,

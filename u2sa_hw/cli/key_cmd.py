@@ -61,7 +61,7 @@ def register(sub: Any) -> None:
 
 def cmd_key(args: Any) -> int:
     """Run ``u2sa key ACTION``; every failure is one CliError line naming the file and the fix."""
-    from u2sa_hw.bus_key import BusKeyError, key_id, new_key, read_key, write_key
+    from u2sa_hw.bus.key import BusKeyError, key_id, new_key, read_key, write_key
     from u2sa_hw.cli import CliError
 
     path = args.file or _service_key_path(args)
@@ -75,7 +75,7 @@ def cmd_key(args: Any) -> int:
         if args.action == "operator":
             return _make_operator(path, args.source, print_key=args.print_key)
         if args.action == "pilot":
-            from u2sa_hw.bus_pilot import write_pilot_pair
+            from u2sa_hw.bus.pilot import write_pilot_pair
             kid = write_pilot_pair(path, system=os.geteuid() == 0 and path.parent == Path("/etc/u2sa"))
             print(f"new pilot key {kid.hex()} beside {path}; restart the stack to use it "
                   "('sudo systemctl restart u2sa.target'), and copy pilot.pub to every laptop that shows RC_MODE")
@@ -96,7 +96,7 @@ def cmd_key(args: Any) -> int:
 
 def _who_uses(path: Path, args: Any) -> str:
     """What a rotated key at *path* changes: the services' key switches them; any other file changes nothing yet."""
-    from u2sa_hw.bus_key import KEY_ENV
+    from u2sa_hw.bus.key import KEY_ENV
 
     try:
         used = _service_key_path(args)
@@ -118,7 +118,7 @@ def _service_key_path(args: Any) -> Path:
     else /etc/u2sa/bus.key. With the variable set the profile is not read: it would not change
     the file, and a profile that cannot load must not keep ``u2sa key`` from the key.
     """
-    from u2sa_hw.bus_key import KEY_ENV, key_path
+    from u2sa_hw.bus.key import KEY_ENV, key_path
 
     if os.environ.get(KEY_ENV):
         return key_path(None)
@@ -126,7 +126,7 @@ def _service_key_path(args: Any) -> Path:
 
 
 def _read_source(source: str | None) -> bytes:
-    from u2sa_hw.bus_key import parse_key
+    from u2sa_hw.bus.key import parse_key
     from u2sa_hw.cli import CliError
 
     if not source:
@@ -145,8 +145,8 @@ NAME_CHARS = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123
 
 def _make_operator(bus_key: Path, name: str | None, *, print_key: bool) -> int:
     """operators/NAME.key beside *bus_key*: a new operator key the vehicle's services accept within a second."""
-    from u2sa_hw.bus_key import key_id, new_key, write_key
-    from u2sa_hw.bus_keyring import OPERATORS_DIR
+    from u2sa_hw.bus.key import key_id, new_key, write_key
+    from u2sa_hw.bus.keyring import OPERATORS_DIR
     from u2sa_hw.cli import CliError
 
     if not name or not set(name) <= NAME_CHARS or name.startswith("."):
@@ -167,12 +167,12 @@ def _make_operator(bus_key: Path, name: str | None, *, print_key: bool) -> int:
 
 
 def _operator_env() -> str:
-    from u2sa_hw.bus_keyring import OPERATOR_KEY_ENV
+    from u2sa_hw.bus.keyring import OPERATOR_KEY_ENV
     return OPERATOR_KEY_ENV
 
 
 def _show_pilot(bus_key: Path, *, only_id: bool) -> int:
-    from u2sa_hw.bus_pilot import pilot_paths, read_verifier
+    from u2sa_hw.bus.pilot import pilot_paths, read_verifier
 
     verifier = read_verifier(pilot_paths(bus_key)[1])
     print(verifier.id.hex() if only_id else verifier.public.hex())
@@ -181,7 +181,7 @@ def _show_pilot(bus_key: Path, *, only_id: bool) -> int:
 
 def _ensure_pilot_pair(bus_key: Path) -> None:
     """A pilot pair beside a rotated bus key when there is none (a key of the user's own, or an old install)."""
-    from u2sa_hw.bus_pilot import pilot_paths, write_pilot_pair
+    from u2sa_hw.bus.pilot import pilot_paths, write_pilot_pair
 
     private, public = pilot_paths(bus_key)
     if private.exists() or public.exists():

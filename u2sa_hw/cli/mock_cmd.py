@@ -59,16 +59,16 @@ def cmd_mock(args: Any) -> int:
     from u2sa_hw.cli import CliError
 
     if args.list_kinds:
-        from mock_devices.catalog import CATALOG
+        from u2sa_hw.mocks.catalog import CATALOG
 
         for kind, (_build, what) in sorted(CATALOG.items()):
             print(f"{kind:16} {what}")
         return 0
-    from mock_devices.launcher import MockLauncher
-    from mock_devices.sim_context import MODEL_INPUTS, DeviceError, device_dir_for
-    from simulation.keys import HELP, StickKeys
-    from simulation.profile import effective_configs, write_sim_profile
-    from u2sa_hw.vehicle import ProfileError
+    from u2sa_hw.mocks.launcher import MockLauncher
+    from u2sa_hw.mocks.sim_context import MODEL_INPUTS, DeviceError, device_dir_for
+    from u2sa_hw.simulation.keys import HELP, StickKeys
+    from u2sa_hw.simulation.profile import effective_configs, write_sim_profile
+    from u2sa_hw.profile.vehicle import ProfileError
 
     profile = profile_from(args)
     if profile.path is None:

@@ -2,7 +2,7 @@
 
 ``save`` and ``load`` are parameter files (ArduPilot's .param, ``ros2 param dump``/``load``):
 every service's fields in one TOML file, written from the bus and applied back, all or
-nothing per service (u2sa_hw/param_file.py has the format and the checks).
+nothing per service (u2sa_hw/config/param_file.py has the format and the checks).
 
 A service name nobody on the bus answers to fails after one discovery round, with a
 did-you-mean from the names that did answer, instead of waiting for an answer that cannot come.
@@ -138,7 +138,7 @@ def cmd_param(args: Any) -> int:
 
 def require_service(args: Any, bus: Any, name: str) -> Any:
     """*name*'s discovery answer; when it is not there, a CliError naming the services on the bus (a did-you-mean)."""
-    from u2sa_hw.bus_client import unknown_service_text
+    from u2sa_hw.bus.client import unknown_service_text
     from u2sa_hw.cli import CliError
 
     found, names = bus.find_service(name, timeout=args.timeout)
@@ -163,7 +163,7 @@ def _kind_of(profile: Any, name: str, service_type: str) -> str:
 
 def _live(args: Any, bus: Any, answers: list[Any]) -> dict[str, Any]:
     """name -> LiveService for every discovery answer in *answers*; CliError naming those whose config did not come."""
-    from u2sa_hw.param_file import LiveService, declared_for
+    from u2sa_hw.config.param_file import LiveService, declared_for
 
     profile = profile_from(args)
     live: dict[str, LiveService] = {}
@@ -184,7 +184,7 @@ def _live(args: Any, bus: Any, answers: list[Any]) -> dict[str, Any]:
 
 def _discover_all(args: Any, bus: Any, names: list[str]) -> tuple[list[Any], list[str]]:
     """Discovery answers of *names* (every service when empty) and every name heard; CliError when none answered."""
-    from u2sa_hw.bus_client import unknown_service_text
+    from u2sa_hw.bus.client import unknown_service_text
     from u2sa_hw.cli import CliError
 
     heard = bus.discover(timeout=args.timeout)
@@ -201,7 +201,7 @@ def _discover_all(args: Any, bus: Any, names: list[str]) -> tuple[list[Any], lis
 def cmd_param_save(args: Any) -> int:
     """``u2sa param save FILE [SERVICE...]``: the services' config as a TOML parameter file."""
     from u2sa_hw.cli import CliError
-    from u2sa_hw.param_file import render
+    from u2sa_hw.config.param_file import render
 
     with bus_client(args) as bus:
         answers, _ = _discover_all(args, bus, args.services)
@@ -242,7 +242,7 @@ def cmd_param_save(args: Any) -> int:
 def cmd_param_load(args: Any) -> int:
     """``u2sa param load FILE [SERVICE...] [--dry-run]``: print the differences, then apply them per service."""
     from u2sa_hw.cli import CliError
-    from u2sa_hw.param_file import plan_load
+    from u2sa_hw.config.param_file import plan_load
 
     path = Path(args.file)
     try:

@@ -98,7 +98,7 @@ def cmd_record(args: Any) -> int:
     from u2sa_hw.recording.mcap_log import McapLogWriter
     from u2sa_hw.services.recorder.capture import BusCapture
     from u2sa_hw.services.recorder.service import run_info
-    from u2sa_hw.transport import Transport, TransportError
+    from u2sa_hw.bus.transport import Transport, TransportError
 
     profile = profile_from(args)
     out = Path(args.output) if args.output else None

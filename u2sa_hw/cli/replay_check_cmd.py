@@ -92,7 +92,7 @@ def check_one(log: Path, out: Path, args: Any, tolerances: Any) -> LogResult:
     try:
         return _replay_and_compare(log, out, args, tolerances, began)
     except Exception as exc:  # noqa: BLE001 - one log's failure, of any kind, must not stop the gate
-        from hil.replay_plan import ReplayError
+        from u2sa_hw.hil.replay_plan import ReplayError
 
         expected = isinstance(exc, (ReplayError, RuntimeError, OSError, ValueError))
         first = (str(exc).splitlines() or [""])[0]
@@ -101,8 +101,8 @@ def check_one(log: Path, out: Path, args: Any, tolerances: Any) -> LogResult:
 
 
 def _replay_and_compare(log: Path, out: Path, args: Any, tolerances: Any, began: float) -> LogResult:
-    from hil.compare import compare_logs
-    from hil.replay import Replay, ReplayOptions
+    from u2sa_hw.hil.compare import compare_logs
+    from u2sa_hw.hil.replay import Replay, ReplayOptions
 
     fast = args.rate is None
     replay = Replay(log, ReplayOptions(rate=args.rate or 1.0, fast=fast, services=args.services, out=out,

@@ -83,11 +83,11 @@ def cmd_replay(args: Any) -> int:
 
     failed = 2   # exit status of a replay that could not run (1 is kept for "outputs differ")
     try:
-        from hil.compare import compare_logs
-        from hil.replay import Replay, ReplayOptions
-        from hil.replay_plan import ReplayError
+        from u2sa_hw.hil.compare import compare_logs
+        from u2sa_hw.hil.replay import Replay, ReplayOptions
+        from u2sa_hw.hil.replay_plan import ReplayError
     except ModuleNotFoundError as exc:
-        if exc.name != "hil":
+        if exc.name != "u2sa_hw.hil":
             raise
         raise CliError("u2sa replay needs the hil package of u2sa-hw, which this installation lacks: "
                        "reinstall u2sa-hw (make venv, or pip install -e . in the source tree)", failed) from None
@@ -140,7 +140,7 @@ def cmd_replay(args: Any) -> int:
 
 def load_tolerances(args: Any) -> Any:
     """The ``Tolerances`` of ``--tolerance`` and ``--tolerances FILE``; CliError (exit 2) naming the file."""
-    from hil.compare import Tolerances
+    from u2sa_hw.hil.compare import Tolerances
     from u2sa_hw.cli import CliError
 
     if args.tolerance < 0 or args.tolerance != args.tolerance:

@@ -151,7 +151,7 @@ def _launch(args: Any, profile: Any, *, only: list[str] | None, policy: Any, out
         raise CliError(str(exc)) from None
     refused = [s.name for s in launcher.status() if s.name in launcher.failed and s.reason.startswith("refused")]
     given_up = [n for n in launcher.failed if n not in refused]
-    if refused:   # exit status 3: not restarted, its own line said why (u2sa_hw.service_bus)
+    if refused:   # exit status 3: not restarted, its own line said why (u2sa_hw.service.bus_handlers)
         output("launcher", f"exit 1: {', '.join(refused)} refused to start (the line above says why)")
     if given_up:
         output("launcher", f"exit 1: given up on {', '.join(given_up)}")
@@ -168,8 +168,8 @@ def _run_key(profile: Any, output: Any) -> Iterator[None]:
     exist, are errors naming the file and the fix: the profile asked for that key, and a fresh
     one would leave every other computer holding it unheard.
     """
-    from u2sa_hw.bus_auth import OPEN, resolve_security
-    from u2sa_hw.bus_key import KEY_ENV, BusKeyError, fresh_key_file, key_path, read_key
+    from u2sa_hw.bus.auth import OPEN, resolve_security
+    from u2sa_hw.bus.key import KEY_ENV, BusKeyError, fresh_key_file, key_path, read_key
     from u2sa_hw.cli import CliError
 
     try:
@@ -210,7 +210,7 @@ def _check_safety(profile: Any) -> None:
     """The [safety] table against the profile's actuators and RC channels, before anything starts."""
     from u2sa_hw.cli import CliError
     from u2sa_hw.safety.wiring import check_wiring
-    from u2sa_hw.vehicle import ProfileError
+    from u2sa_hw.profile.vehicle import ProfileError
 
     try:
         check_wiring(profile)

@@ -53,10 +53,10 @@ def run(args: Any) -> int:
     """Resolve the service, build it and run it."""
     ignored = _drop_security_env() if args.unit else None   # first: before anything reads it
     from u2sa_hw.cli import CliError
-    from u2sa_hw.config import ConfigError
+    from u2sa_hw.config.configurator import ConfigError
     from u2sa_hw.registry import known_kinds, resolve_kind
-    from u2sa_hw.service_log import setup_service_logging
-    from u2sa_hw.transport import TransportError
+    from u2sa_hw.service.log import setup_service_logging
+    from u2sa_hw.bus.transport import TransportError
 
     if args.list_kinds:
         for kind, target in sorted(known_kinds().items()):
@@ -75,7 +75,7 @@ def run(args: Any) -> int:
     # Until the service's config is read, log at the command line's or the profile's level.
     logger = setup_service_logging(args.name, log_dir=profile.log_dir, level=args.log_level or profile.log_level)
     if ignored is not None:
-        from u2sa_hw.bus_auth import SECURITY_ENV
+        from u2sa_hw.bus.auth import SECURITY_ENV
 
         decided = f'bus_security = "{profile.bus_security}"' if profile.bus_security else "no bus_security: signed"
         logger.warning("$%s=%r ignored: an installed unit (--unit) follows the vehicle profile alone (%s)",
@@ -93,6 +93,6 @@ def _drop_security_env() -> str | None:
     """Remove $U2SA_BUS_SECURITY from this process's environment (and its children's); its value, or None."""
     import os
 
-    from u2sa_hw.bus_auth import SECURITY_ENV
+    from u2sa_hw.bus.auth import SECURITY_ENV
 
     return os.environ.pop(SECURITY_ENV, None)

@@ -93,9 +93,9 @@ def register(sub: Any) -> None:
 
 def cmd_sim(args: Any) -> int:
     """Run the simulation; CliError with the reason unless the mission completed."""
-    from mock_devices.sim_context import DeviceError
-    from simulation.events import ScenarioError
-    from simulation.runner import SimOptions, SimRun
+    from u2sa_hw.mocks.sim_context import DeviceError
+    from u2sa_hw.simulation.events import ScenarioError
+    from u2sa_hw.simulation.runner import SimOptions, SimRun
     from u2sa_hw.cli import CliError
 
     if args.timeout is not None and args.timeout <= 0:
@@ -114,7 +114,7 @@ def cmd_sim(args: Any) -> int:
     try:
         run = SimRun(options)
         if sys.stdin.isatty() and sys.stdout.isatty():
-            from simulation.keys import StickKeys
+            from u2sa_hw.simulation.keys import StickKeys
 
             keys = StickKeys(lambda: run.mocks, say=run.progress.event)
             keys.start()
@@ -154,22 +154,22 @@ def _private_bus(args: Any) -> tuple[str, int]:
     """
     import os
 
-    from u2sa_hw.bus_key import KEY_ENV, fresh_key_file
-    from u2sa_hw.udp_ports import private_lcm_url, private_udp_port
+    from u2sa_hw.bus.key import KEY_ENV, fresh_key_file
+    from u2sa_hw.bus.udp_ports import private_lcm_url, private_udp_port
 
     lcm_url = args.lcm_url or private_lcm_url()
     lcm_port = int(lcm_url.split("?", 1)[0].rsplit(":", 1)[-1]) if lcm_url.startswith("udpm://") else 0
     can_port = args.can_port or private_udp_port(avoid={lcm_port}, span=4)
     args.out.mkdir(parents=True, exist_ok=True)
     if args.bus_key is not None:
-        from u2sa_hw.bus_key import BusKeyError, read_key
+        from u2sa_hw.bus.key import BusKeyError, read_key
         from u2sa_hw.cli import CliError
 
         try:
             read_key(args.bus_key)
         except BusKeyError as exc:
             raise CliError(f"sim: {exc}", 2) from None
-        from u2sa_hw.bus_pilot import pilot_paths
+        from u2sa_hw.bus.pilot import pilot_paths
         missing = [p for p in pilot_paths(args.bus_key) if not p.is_file()]
         if missing:   # the sim's RC mux signs RC_MODE with it: without it the vehicle would never leave neutral
             raise CliError(f"sim: no pilot key beside {args.bus_key} ({', '.join(p.name for p in missing)} missing): "

@@ -26,8 +26,8 @@ from u2sa_hw.channels import base_type
 from u2sa_hw.foxglove.logs import LogTail
 from u2sa_hw.foxglove.mapping import LOG, FoxgloveMapper, Topic
 from u2sa_hw.messages import REGISTRY, MalformedMessage
-from u2sa_hw.transport import Transport
-from u2sa_hw.vehicle import Origin
+from u2sa_hw.bus.transport import Transport
+from u2sa_hw.profile.vehicle import Origin
 
 log = logging.getLogger("u2sa_hw.foxglove")
 LOG_POLL_S = 0.5

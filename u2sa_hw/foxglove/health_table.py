@@ -83,13 +83,13 @@ class HealthTable:
 
 
 def _reason(state: Any, health: Any) -> str:
-    """Why a service is not ok, in the words ``u2sa health`` uses (``u2sa_hw.health``); its last error when ok.
+    """Why a service is not ok, in the words ``u2sa health`` uses (``u2sa_hw.service.health``); its last error when ok.
 
     The failsafe raises it accepted though stale or foreign follow, whatever its state
-    (``bus_raises_accepted``, ``u2sa_hw.service_bus.raise_note``).
+    (``bus_raises_accepted``, ``u2sa_hw.service.bus_handlers.raise_note``).
     """
-    from u2sa_hw.health import health_reason, join_reasons
-    from u2sa_hw.service_bus import parse_raises, raise_note
+    from u2sa_hw.service.health import health_reason, join_reasons
+    from u2sa_hw.service.bus_handlers import parse_raises, raise_note
 
     details = {kv.key: kv.value for kv in health.details} if health is not None else {}
     raises = "; ".join(raise_note(e) for e in parse_raises(details.get("bus_raises_accepted", "")))

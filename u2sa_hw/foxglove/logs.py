@@ -1,7 +1,7 @@
 """Service log lines as ``foxglove.Log`` messages.
 
 Services do not publish their logs on the bus: each writes ``<log_dir>/<service>.log``
-(``u2sa_hw.service_log``, one line per record: local ISO time with milliseconds, level,
+(``u2sa_hw.service.log``, one line per record: local ISO time with milliseconds, level,
 service, thread id, message; a traceback continues on the lines after). The live bridge
 tails those files (:class:`LogTail`); the export reads them whole (:func:`read_log_dir`).
 """

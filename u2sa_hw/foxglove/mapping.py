@@ -35,7 +35,7 @@ from u2sa_hw.foxglove.lcm_json import finite, schema_bytes, topic_for
 from u2sa_hw.geo import geodetic_to_ned, ned_to_geodetic
 from u2sa_hw.messages import as_type, to_dict
 from u2sa_hw.services.world.model import GEODETIC_FRAMES, place_in_world
-from u2sa_hw.vehicle import Origin
+from u2sa_hw.profile.vehicle import Origin
 
 LOCATION_CHANNELS = (ch.STATE_INFO, ch.STATE_ESTIMATE)
 WORLD_FRAME, BODY_FRAME = "world", "base_link"

@@ -5,7 +5,7 @@ discovery and those whose health the bridge has heard, then a ``ConfigRequest`` 
 busy machine a discovery answer can come after the discovery's wait, a health message was
 already there). Writing is off unless the bridge was started with parameter
 writes allowed, and it is refused on an open bus: a write becomes a ``ConfigChange``
-published by :class:`u2sa_hw.bus_client.BusClient`, signed with the vehicle's key like
+published by :class:`u2sa_hw.bus.client.BusClient`, signed with the vehicle's key like
 ``u2sa param set``, and the service checks it exactly as it checks that command's. A
 refused or unanswered write is reported to the client as a status message, and the
 parameter comes back with the value the service still has.
@@ -18,7 +18,7 @@ import threading
 import tomllib
 from typing import Any, Callable, Iterable
 
-from u2sa_hw.config import to_text
+from u2sa_hw.config.configurator import to_text
 
 log = logging.getLogger("u2sa_hw.foxglove")
 DISCOVERY_TIMEOUT_S = 1.0

@@ -19,10 +19,10 @@ import ssl
 from pathlib import Path
 from typing import Any, ClassVar
 
-from u2sa_hw.config import ConfigError, field
+from u2sa_hw.config.configurator import ConfigError, field
 from u2sa_hw.foxglove.gate import GateError, read_token
-from u2sa_hw.service import U2SAService
-from u2sa_hw.vehicle import Origin
+from u2sa_hw.service.contract import U2SAService
+from u2sa_hw.profile.vehicle import Origin
 
 LOOPBACK_NAMES = ("localhost", "ip6-localhost")
 NO_ORIGIN = ("the profile has no [vehicle] origin: local positions are not on the map "
@@ -117,7 +117,7 @@ class FoxgloveBridgeService(U2SAService):
         except ModuleNotFoundError:
             raise RuntimeError("the Foxglove bridge needs the foxglove-sdk package: pip install 'u2sa-hw[foxglove]'") \
                 from None
-        from u2sa_hw.bus_client import BusClient
+        from u2sa_hw.bus.client import BusClient
         from u2sa_hw.foxglove.bridge import FoxgloveBridge
         from u2sa_hw.foxglove.gate import TokenGate
         from u2sa_hw.foxglove.params import ParameterBridge

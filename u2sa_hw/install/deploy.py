@@ -33,8 +33,8 @@ import subprocess
 from pathlib import Path
 from typing import Callable
 
-from u2sa_hw.bus_key import BusKeyError, ensure_key, parse_key
-from u2sa_hw.bus_pilot import PILOT_GROUP, PILOT_KEY_NAME, PILOT_PUB_NAME, public_of, write_pilot_pair
+from u2sa_hw.bus.key import BusKeyError, ensure_key, parse_key
+from u2sa_hw.bus.pilot import PILOT_GROUP, PILOT_KEY_NAME, PILOT_PUB_NAME, public_of, write_pilot_pair
 from u2sa_hw.install.files import InstallTree
 from u2sa_hw.install.manifest import MANAGED, MANIFEST_PATH, Manifest, host_path, load_manifest, save_manifest
 from u2sa_hw.install.system import (SERVICE_USER, VENV_MODES, InstallError, apply_sysctl, apply_tmpfiles, ensure_users,

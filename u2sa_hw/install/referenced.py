@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
-from u2sa_hw.vehicle import ServiceSpec, VehicleProfile
+from u2sa_hw.profile.vehicle import ServiceSpec, VehicleProfile
 
 ETC_DIR = "/etc/u2sa"
 
@@ -74,7 +74,7 @@ def file_fields(kind: str) -> dict[str, Any]:
     Read through the service registry (the kind's class is imported, nothing is started);
     LookupError for an unknown kind, ImportError or AttributeError for one that does not import.
     """
-    from u2sa_hw.config_validate import declared_fields
+    from u2sa_hw.config.validate import declared_fields
 
     return {name: f for name, f in declared_fields(kind).items() if f.names_file}
 

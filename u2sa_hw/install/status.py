@@ -16,7 +16,7 @@ from typing import Any
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.install.units import HSM_UNIT, TARGET, service_units
-from u2sa_hw.vehicle import VehicleProfile
+from u2sa_hw.profile.vehicle import VehicleProfile
 
 SHOW_PROPERTIES = ("Id", "LoadState", "ActiveState", "SubState", "NRestarts", "MainPID", "Result",
                    "StatusText", "UnitFileState")
@@ -59,7 +59,7 @@ def systemctl_show(units: list[str], *, systemctl: str = "systemctl") -> tuple[l
 
 def listen_system_health(url: str | None, *, timeout: float) -> t.SystemHealth | None:
     """The first SystemHealth published within *timeout* seconds, or None."""
-    from u2sa_hw.bus_client import BusClient
+    from u2sa_hw.bus.client import BusClient
 
     got: list[t.SystemHealth] = []
     event = threading.Event()

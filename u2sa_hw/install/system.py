@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Callable
 
 from u2sa_hw import __version__
-from u2sa_hw.bus_pilot import PILOT_GROUP
+from u2sa_hw.bus.pilot import PILOT_GROUP
 from u2sa_hw.install.files import InstallTree
 
 SERVICE_USER = "u2sa"

@@ -1,6 +1,6 @@
 """What install makes of the profile's device addresses: udev rules, CAN bring-up, sysfs PWM drop-ins.
 
-Only device addresses are read (:func:`u2sa_hw.devices.profile_devices`), never a driver's
+Only device addresses are read (:func:`u2sa_hw.profile.devices.profile_devices`), never a driver's
 setting names:
 
 - a real serial address whose path is ``/dev/u2sa/NAME`` and which carries the adapter's USB
@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Mapping
 
-from u2sa_hw.devices import DeviceEntry
+from u2sa_hw.profile.devices import DeviceEntry
 from u2sa_hw.install.system import InstallError
 
 U2SA_DEV = "/dev/u2sa/"

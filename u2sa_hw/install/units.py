@@ -31,12 +31,12 @@ from typing import Any, Mapping
 
 import tomli_w
 
-from u2sa_hw.bus_pilot import PILOT_GROUP
+from u2sa_hw.bus.pilot import PILOT_GROUP
 from u2sa_hw.install.system import DEVICE_GROUPS, SERVICE_USER, UNIT_ONLY_GROUPS, InstallError
 from u2sa_hw.realtime import unit_directives
 from u2sa_hw.registry import RECORDER_KIND
-from u2sa_hw.transport import DEFAULT_RECV_BUF_SIZE
-from u2sa_hw.vehicle import ServiceSpec, VehicleProfile
+from u2sa_hw.bus.transport import DEFAULT_RECV_BUF_SIZE
+from u2sa_hw.profile.vehicle import ServiceSpec, VehicleProfile
 
 UNIT_DIR = "/etc/systemd/system"
 UDEV_DIR = "/etc/udev/rules.d"

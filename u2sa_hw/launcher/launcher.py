@@ -26,7 +26,7 @@ A child that exits 3 refused to start (another of its name already answers on th
 its bus cannot be kept on this board): it is not restarted, as ``RestartPreventExitStatus=3``
 keeps systemd from restarting the unit, and the launcher stops like for a service given up.
 Children get ``$STATE_DIRECTORY`` (the profile's ``data_dir``), as systemd's ``StateDirectory=``
-gives the units: the bus clock survives restarts there (``u2sa_hw.bus_clock``).
+gives the units: the bus clock survives restarts there (``u2sa_hw.bus.clock``).
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Collection
 
-from u2sa_hw.bus_clock import STATE_ENV
+from u2sa_hw.bus.clock import STATE_ENV
 from u2sa_hw.launcher.child_setup import check_cgroup
 from u2sa_hw.launcher.control import SOCKET_ENV, ControlServer, LauncherError, default_socket_path
 from u2sa_hw.launcher.notify import NotifyListener
@@ -50,7 +50,7 @@ from u2sa_hw.launcher.process import (BACKOFF, EXITED, FAILED, RUNNING, STOP_LIM
 from u2sa_hw.launcher.watchdog import WatchdogSetting, WatchedClock, watchdog_for
 from u2sa_hw.realtime import RealtimePlan, describe_plan
 from u2sa_hw.registry import RECORDER_KIND
-from u2sa_hw.vehicle import ServiceSpec, VehicleProfile
+from u2sa_hw.profile.vehicle import ServiceSpec, VehicleProfile
 
 DeathCallback = Callable[[ProcessStatus, str], None]
 """``on_death(status, account)``: a child died; *status* says what happens next (backoff, failed...)."""
@@ -117,7 +117,7 @@ class Launcher:
         self.socket_path = (socket_path or default_socket_path(profile.data_dir)) if control else None
         self.notify = NotifyListener()
         # PYTHONFAULTHANDLER as in the units: a child killed by the watchdog's SIGABRT prints its stacks.
-        # STATE_DIRECTORY as systemd's StateDirectory= gives it: the bus clock is saved there (u2sa_hw.bus_clock).
+        # STATE_DIRECTORY as systemd's StateDirectory= gives it: the bus clock is saved there (u2sa_hw.bus.clock).
         child_env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONFAULTHANDLER": "1",
                      STATE_ENV: str(Path(profile.data_dir).resolve()), **(env or {}),
                      "NOTIFY_SOCKET": self.notify.address}

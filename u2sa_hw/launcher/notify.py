@@ -1,7 +1,7 @@
 """The launcher's ``$NOTIFY_SOCKET``: the children tell it when they are ready, as they tell systemd.
 
 A service sends ``READY=1`` once it has set up and subscribed, ``STATUS=...`` as it goes
-and ``STOPPING=1`` on the way out (:mod:`u2sa_hw.sdnotify`). Under systemd these go to
+and ``STOPPING=1`` on the way out (:mod:`u2sa_hw.service.sdnotify`). Under systemd these go to
 PID 1; under the launcher they come here: a datagram socket in the abstract namespace
 with ``SO_PASSCRED``, so each message carries the sender's pid and the launcher knows
 which child sent it (systemd does the same).

@@ -3,7 +3,7 @@
 A :class:`DeviceLink` owns what every driver family used to wire by itself:
 
 - **the address**: ``[devices.NAME] address`` of the vehicle profile, else the address the
-  driver derives from its old-form settings (:func:`u2sa_hw.devices.device_address`);
+  driver derives from its old-form settings (:func:`u2sa_hw.profile.devices.device_address`);
 - **open** through :func:`~u2sa_hw.ports.opener.open_port`, then the driver's ``on_open``
   (chip init, reading the present levels); a PortError there counts as a failed open;
 - **reconnect with backoff** (:class:`~u2sa_hw.ports.reconnect.ReconnectingPort`): ``get()``
@@ -28,7 +28,7 @@ A driver declares the devices it uses for the rest of the system with a classmet
     def used_devices(cls, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
         # device name -> the address its old-form settings give (None: new form only)
 
-which :func:`u2sa_hw.devices.profile_devices` calls; the driver's own setting names stay in
+which :func:`u2sa_hw.profile.devices.profile_devices` calls; the driver's own setting names stay in
 the driver.
 """
 
@@ -103,7 +103,7 @@ class DeviceLink(Generic[P]):
     # ---- the address -----------------------------------------------------------------------------
     def resolve(self) -> DeviceAddress:
         """The device's address now (AddressError names the device and the fix when there is none)."""
-        from u2sa_hw.devices import device_address
+        from u2sa_hw.profile.devices import device_address
 
         device = self._device_of()
         return device_address(self.owner.profile, device, self._legacy())

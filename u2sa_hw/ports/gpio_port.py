@@ -2,7 +2,7 @@
 
 ``open_gpio(device=..., chip="/dev/gpiochip0", ...)`` requests the lines from the kernel
 through libgpiod v2 (``gpiod`` is imported only then, never at import time);
-``chip="mock:/path/to.sock"`` requests them from ``mock_devices.gpio_chip.MockGpioChip``
+``chip="mock:/path/to.sock"`` requests them from ``u2sa_hw.mocks.gpio_chip.MockGpioChip``
 over a Unix socket. Both hand out the same ``GpioPort``: ``get``, ``set``,
 ``read_edges`` and ``close``. Edge events carry the timestamp the kernel (or the mock
 chip) took when the edge happened, never a time taken when the event was read, because
@@ -259,7 +259,7 @@ class MockGpioPort(GpioPort):
         except OSError as exc:
             self._sock.close()
             raise PortUnavailable(device, f"no mock GPIO chip is listening at {socket_path} ({exc.strerror})",
-                                  address=self.address, fix="start the mock chip (mock_devices.gpio_chip."
+                                  address=self.address, fix="start the mock chip (u2sa_hw.mocks.gpio_chip."
                                                             "MockGpioChip) or correct the address") from exc
         self._cond, self._send_lock = threading.Condition(), threading.Lock()
         self._edges: deque[GpioEvent] = deque()

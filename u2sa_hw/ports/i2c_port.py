@@ -244,7 +244,7 @@ class MockI2cPort(I2cPort):
             why = exc.strerror or exc
             raise PortUnavailable(device, f"cannot connect to the mock I2C bus at {socket_path} ({why})",
                                   address=self.address,
-                                  fix="start the mock I2C bus server (python -m mock_devices.i2c_bus) "
+                                  fix="start the mock I2C bus server (python -m u2sa_hw.mocks.i2c_bus) "
                                       "or check the socket path in the service config") from exc
 
     def _read(self, register: int, length: int) -> bytes:

@@ -22,7 +22,7 @@ from u2sa_hw.foxglove.logs import read_log_dir
 from u2sa_hw.foxglove.mapping import LOG, FoxgloveMapper, Topic
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.recording.log_reader import LogFile
-from u2sa_hw.vehicle import Origin
+from u2sa_hw.profile.vehicle import Origin
 
 # Log lines this long before the first or after the last message still belong to the run.
 LOG_MARGIN_NS = 5_000_000_000

@@ -29,7 +29,7 @@ from u2sa_hw.recording.chunk_parse import chunk_message_tuples, chunk_records
 
 MAGIC = b"\x89MCAP0\r\n"
 PILOT_TRAILER_KEY = "pilot_trailer"   # channel metadata (u2sa_hw.recording.mcap_log): bytes of trailer per message
-PILOT_TAG = b"U2P1"                   # how the pilot's trailer ends (u2sa_hw.bus_auth.PILOT_TAG, not imported:
+PILOT_TAG = b"U2P1"                   # how the pilot's trailer ends (u2sa_hw.bus.auth.PILOT_TAG, not imported:
                                       # a reader of logs needs none of the bus's key handling)
 
 

@@ -50,7 +50,7 @@ BUS_METADATA = "u2sa_bus"   # metadata record written as each file is finished (
 SIGNERS_METADATA = "u2sa_signers"   # signer id -> the header sources it signed as, per file
 SIGNER_KEY = "signer"               # channel metadata: the sender id that signed its messages
 # PILOT_TRAILER_KEY, channel metadata: every message's data ends with this many bytes of the pilot's
-# signature trailer (u2sa_hw.bus_auth.PILOT_TRAILER_LEN), kept so that a replay can check it
+# signature trailer (u2sa_hw.bus.auth.PILOT_TRAILER_LEN), kept so that a replay can check it
 # (u2sa_hw.recording.pilot_check); the readers cut it off (u2sa_hw.recording.log_reader).
 COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 

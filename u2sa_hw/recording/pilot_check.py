@@ -27,10 +27,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from u2sa_hw.bus_roles import PILOT_CHANNELS
+from u2sa_hw.bus.roles import PILOT_CHANNELS
 
 PILOT_KEY = "pilot_key"         # in the ``u2sa`` metadata record: the public key, hex
-PILOT_KEY_ID = "pilot_key_id"   # ... its id, hex (u2sa_hw.bus_pilot.pilot_key_id)
+PILOT_KEY_ID = "pilot_key_id"   # ... its id, hex (u2sa_hw.bus.pilot.pilot_key_id)
 RUN_METADATA = "u2sa"
 SHOWN_FAILURES = 5
 
@@ -116,7 +116,7 @@ def recorded_verifier(metadata: dict[str, dict[str, str]]) -> tuple[Any, str]:
         public = b""
     if len(public) != 32:
         return None, f"the log's recorded pilot key is malformed ({PILOT_KEY} {shown!r} is not 64 hex digits)"
-    from u2sa_hw.bus_pilot import PilotVerifier, pilot_key_id
+    from u2sa_hw.bus.pilot import PilotVerifier, pilot_key_id
 
     kid = pilot_key_id(public).hex()
     named = run.get(PILOT_KEY_ID, "").strip().lower()
@@ -136,7 +136,7 @@ def check_log(path: Path | str, *, start_ns: int | None = None, end_ns: int | No
     Never raises for what the log holds: a missing or malformed key is the result's ``note``;
     a damaged tail ends the check where reading ends (LogError only when *path* is no log).
     """
-    from u2sa_hw.bus_auth import OK, UNSIGNED, check_pilot_packet
+    from u2sa_hw.bus.auth import OK, UNSIGNED, check_pilot_packet
     from u2sa_hw.recording.log_reader import LogFile
 
     log = LogFile(path)

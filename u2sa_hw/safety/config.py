@@ -33,11 +33,11 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, Mapping
 
-from u2sa_hw.config_keys import unknown_key_problems
+from u2sa_hw.config.keys import unknown_key_problems
 
 if TYPE_CHECKING:
     from u2sa_hw.services.control.mixers import Mixer
-    from u2sa_hw.vehicle import VehicleProfile
+    from u2sa_hw.profile.vehicle import VehicleProfile
 
 TABLE = "safety"
 ON_CHECK_LOST = ("neutral", "hold")
@@ -51,13 +51,13 @@ MAX_RC_MODE_TIMEOUT_MS = 1000.0
 
 
 def _error(where: str, text: str) -> Exception:
-    from u2sa_hw.vehicle import ProfileError
+    from u2sa_hw.profile.vehicle import ProfileError
     return ProfileError(f"{where}: {text}")
 
 
 def _error_lines(lines: list[str]) -> Exception:
     """One ProfileError of whole lines (an unknown key each, with a did-you-mean)."""
-    from u2sa_hw.vehicle import ProfileError
+    from u2sa_hw.profile.vehicle import ProfileError
     return ProfileError("\n".join(lines))
 
 
@@ -120,8 +120,8 @@ def _number(table: Mapping[str, Any], key: str, default: float, where: str, *, l
 
 
 def _limit(key: str) -> float:
-    """The upper bound of profile number *key* (u2sa_hw/profile_numbers.py, the one table of them)."""
-    from u2sa_hw.profile_numbers import PROFILE_NUMBERS
+    """The upper bound of profile number *key* (u2sa_hw/profile/numbers.py, the one table of them)."""
+    from u2sa_hw.profile.numbers import PROFILE_NUMBERS
 
     bound = PROFILE_NUMBERS[key].upper_bound
     assert bound is not None

@@ -24,7 +24,7 @@ refreshes the dead-man. When the authority changes, the actuator goes neutral at
 setpoint of the old authority never outlives the switch. :attr:`CommandGate.rearms` counts
 the pilot's re-arms as heard: each RC_MODE that says manual and armed after one that did not
 (the switch moved through manual, or the RC mux armed there); a driver clears a watchdog trip
-its own stall caused only on a re-arm heard after the trip (drivers/stall_trip.py). With ``rc_gating`` off (a bench
+its own stall caused only on a re-arm heard after the trip (drivers/can_motor/stall_trip.py). With ``rc_gating`` off (a bench
 without an RC receiver) only the failsafe gates autonomous commands; the actuator logs that
 at start, and a vehicle should never run that way.
 """

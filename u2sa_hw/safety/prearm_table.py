@@ -28,8 +28,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-from u2sa_hw.config_keys import did_you_mean
-from u2sa_hw.vehicle import ProfileError, VehicleProfile
+from u2sa_hw.config.keys import did_you_mean
+from u2sa_hw.profile.vehicle import ProfileError, VehicleProfile
 
 TABLE = "prearm"
 GPS_KINDS = frozenset({"gps_nmea"})
@@ -121,7 +121,7 @@ class _Reader:
             example = f"{check} = {{ {key} = {default!r} }}" if check else f"{key} = {default!r}"
             raise self.error(f"{check}.{key}" if check else key,
                              f"must be a number {bound} ({unit}), got {value!r}; e.g. {example}")
-        from u2sa_hw.profile_numbers import range_problem
+        from u2sa_hw.profile.numbers import range_problem
 
         dotted = f"{check}.{key}" if check else key
         problem = range_problem(f"safety.{TABLE}.{dotted}", value)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import Mapping
 
 from u2sa_hw.safety.config import SafetyConfig, load_safety
-from u2sa_hw.vehicle import ProfileError, VehicleProfile
+from u2sa_hw.profile.vehicle import ProfileError, VehicleProfile
 
 RC_KIND = "rc_mux"
 PWM_KINDS = frozenset({"pwm_servo"})   # outputs that can physically pass through a hardware RC mux
@@ -47,9 +47,9 @@ def rc_channel_names(text: str) -> tuple[str, ...]:
 def profile_wiring(profile: VehicleProfile) -> Wiring:
     """Collect the actuators and RC channels of every enabled service of *profile*."""
     from u2sa_hw.abstract import Actuator
-    from u2sa_hw.config import ConfigError, Configurator
+    from u2sa_hw.config.configurator import ConfigError, Configurator
     from u2sa_hw.registry import NOT_ACTUATOR_KINDS, resolve_kind
-    from u2sa_hw.service import BASE_CONFIG
+    from u2sa_hw.service.contract import BASE_CONFIG
 
     actuators: dict[str, tuple[str, str]] = {}
     rc_service, rc_channels = None, ()

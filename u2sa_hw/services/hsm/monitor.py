@@ -39,7 +39,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from u2sa_hw.health import health_reason, join_reasons
+from u2sa_hw.service.health import health_reason, join_reasons
 from u2sa_hw.services.hsm.rules import MonitorPolicy, WatchRule
 from u2sa_hw.services.hsm.senders import ServiceSenders
 from u2sa_hw.services.hsm.stamps import SenderClock

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Mapping, Protocol
 
 from u2sa_hw.launcher.control import SOCKET_ENV, LauncherClient, LauncherError, default_socket_path
-from u2sa_hw.vehicle import VehicleProfile
+from u2sa_hw.profile.vehicle import VehicleProfile
 
 RESTARTER_KINDS = ("auto", "systemd", "launcher", "none")
 DEFAULT_UNIT_TEMPLATE = "u2sa@{name}.service"

@@ -27,14 +27,14 @@ from typing import Any, ClassVar
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config import MAX_TIMEOUT_S, field
+from u2sa_hw.config.configurator import MAX_TIMEOUT_S, field
 from u2sa_hw.failsafe import ALL_SOURCES, OPERATOR_SOURCE, FailsafeSources
 from u2sa_hw.services.hsm.monitor import (Cancelled, Failed, FailsafeChange, HealthMonitor, Recovered, Restart,
                                           Stalled)
 from u2sa_hw.services.hsm.restarters import (DEFAULT_UNIT_TEMPLATE, LauncherRestarter, Restarter, RestartError,
                                              choose_restarter)
 from u2sa_hw.services.hsm.rules import MonitorPolicy, rules_from_profile
-from u2sa_hw.service import U2SAService
+from u2sa_hw.service.contract import U2SAService
 
 FAILSAFE_REPEAT_S = 1.0
 FAILSAFE_HELD = "FAILSAFE held by"

@@ -31,11 +31,11 @@ from typing import Any, ClassVar
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config import MAX_TIMEOUT_S, field
+from u2sa_hw.config.configurator import MAX_TIMEOUT_S, field
 from u2sa_hw.geo import geodetic_to_ned
 from u2sa_hw.messages import as_type
 from u2sa_hw.geofence_parse import profile_fence
-from u2sa_hw.service import U2SAService
+from u2sa_hw.service.contract import U2SAService
 from u2sa_hw.services.mission.fence_check import check_mission, goal_problem
 from u2sa_hw.services.mission.manager import MissionError, MissionManager, from_message, to_waypoint
 from u2sa_hw.services.mission.xml import GLOBAL, MissionSpec, load_mission, parse_mission

@@ -23,10 +23,10 @@ from typing import Any, ClassVar
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config import MAX_RATE_HZ, MAX_TIMEOUT_S, ConfigError, field
+from u2sa_hw.config.configurator import MAX_RATE_HZ, MAX_TIMEOUT_S, ConfigError, field
 from u2sa_hw.geo import geodetic_to_ned
 from u2sa_hw.geofence_parse import profile_fence
-from u2sa_hw.service import U2SAService
+from u2sa_hw.service.contract import U2SAService
 from u2sa_hw.services.planner.avoidance import AvoidanceSettings
 from u2sa_hw.services.planner.planner import PathPlanner, PlannerTimings
 from u2sa_hw.services.planner.states import GoalStateModuleError, GuidanceSettings, load_goal_state_modules

@@ -27,10 +27,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from u2sa_hw.bus_auth import PILOT_TAG, PILOT_TRAILER_LEN, REJECTIONS
-from u2sa_hw.bus_roles import PILOT_CHANNELS
+from u2sa_hw.bus.auth import PILOT_TAG, PILOT_TRAILER_LEN, REJECTIONS
+from u2sa_hw.bus.roles import PILOT_CHANNELS
 from u2sa_hw.recording.mcap_log import BUS_METADATA, McapLogWriter
-from u2sa_hw.transport import Transport
+from u2sa_hw.bus.transport import Transport
 
 log = logging.getLogger("u2sa_hw.recorder")
 

@@ -12,11 +12,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, ClassVar
 
-from u2sa_hw.config import field
+from u2sa_hw.config.configurator import field
 from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo
-from u2sa_hw.service import U2SAService
+from u2sa_hw.service.contract import U2SAService
 from u2sa_hw.services.recorder.capture import BusCapture
-from u2sa_hw.vehicle import VehicleProfile
+from u2sa_hw.profile.vehicle import VehicleProfile
 
 # A file period, not a wait: one file a day is a sensible longest (0 still means never).
 MAX_ROTATE_DURATION_S = 86400.0

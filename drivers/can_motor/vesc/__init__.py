@@ -1,0 +1,1 @@
+"""VESC motor controllers over CAN (VESC mode, extended ids)."""

@@ -1,0 +1,1 @@
+"""Digital GPIO lines as services: outputs (an Actuator) and inputs such as an e-stop (a Sensor)."""

@@ -1,0 +1,1 @@
+"""Configuration: a service's typed config fields, unknown-key checks, validation, parameter files."""

@@ -1,0 +1,1 @@
+"""The service layer: the contract every U2SA service keeps, its bus handlers, health, log and systemd notification."""
