@@ -1,4 +1,5 @@
-"""Device drivers (the interaction layer): one module per device family, each a U2SA Sensor or Actuator service."""
+"""Device drivers (the interaction layer): one folder per device family, each driver a U2SA Sensor or
+Actuator service; shared parts (serial line sensors, value ranges, NMEA fields) beside them."""
 
 # One module, one name: this folder installs as u2sa_hw.drivers (setup.py). Imported as a top-level
 # 'drivers' (a script run from the source tree) it would load a second copy of every module.

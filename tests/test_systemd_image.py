@@ -111,6 +111,12 @@ def test_an_image_staged_with_the_default_venv_boots_without_the_checkout(tmp_pa
     # The project itself is installed into it, not linked to a checkout (no editable finder or u2sa path file).
     site = next(venv.glob("lib/python3.*/site-packages"))
     assert (site / "u2sa_hw/__init__.py").is_file()
+    # One import name: the drivers, mocks, replay and simulation folders are inside u2sa_hw, and
+    # nothing generic (drivers, hil, simulation, mock_devices) lands in site-packages.
+    for inside in ("drivers/gps_nmea/driver.py", "mocks/nmea_gps.py", "hil/replay.py", "simulation/runner.py"):
+        assert (site / "u2sa_hw" / inside).is_file(), inside
+    top = {p.name for p in site.iterdir()}
+    assert not top & {"drivers", "hil", "simulation", "mock_devices"}, sorted(top)
     assert not [p.name for p in site.iterdir() if p.name.startswith("__editable__")
                 or (p.suffix == ".pth" and "u2sa" in p.name)]
 
