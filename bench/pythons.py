@@ -6,7 +6,7 @@
 - kernel thread names written to ``/proc/self/task/TID/comm`` (u2sa_hw/service/health.py);
 - ``os.memfd_create`` for the C library's captured stderr (u2sa_hw/bus/lcm_open.py);
 - ``os.times()`` for a service's CPU % (u2sa_hw/service/health.py ``ProcessStats``);
-- python-can imported only when a CAN port opens (u2sa_hw/ports/can_port.py).
+- python-can imported only when a CAN port opens (u2sa_hw/ports/can/port.py).
 
 Then, in a fresh interpreter, the memory of a service-like import set (PSS, private and RSS from
 ``/proc/self/smaps_rollup``, peak RSS from ``VmHWM``) beside a bare interpreter's. PSS depends on
@@ -94,7 +94,7 @@ def check_os_times() -> str:
 def check_lazy_can() -> str:
     import u2sa_hw.drivers.can_motor.odrive.driver  # noqa: F401  (the RC mux imports the CAN drivers for their names)
     import u2sa_hw.drivers.can_motor.vesc.driver  # noqa: F401
-    import u2sa_hw.ports.can_port as can_port
+    import u2sa_hw.ports.can.port as can_port
 
     assert "can" not in sys.modules, "python-can loaded before any CAN port opened"
     port = can_port.open_can(device="pythons-check", interface="virtual", channel="pythons-check")

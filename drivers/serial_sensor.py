@@ -9,7 +9,7 @@ quiet for ``epoch_gap_s`` it calls :meth:`handle_idle` (the end of a burst). Wit
 ``record_raw`` every chunk read is published as ``RawSerial`` on ``RAW.<device>``.
 
 In a replay the port has a *device clock* (``mock+serial://...?clock=stamped``,
-:mod:`u2sa_hw.ports.serial_clock`): a line's time is the recorded read time and a silence is
+:mod:`u2sa_hw.ports.serial.clock`): a line's time is the recorded read time and a silence is
 one of the recording, so the lines and silences the driver sees, and what it publishes, do
 not depend on how fast or how loaded the replay is. A wall-clock read timeout then counts as
 a silence only once the replay has sent nothing for ``DEVICE_CLOCK_GRACE_S`` (fail safe).
@@ -32,7 +32,7 @@ from u2sa_hw.ports import PortClosed, PortIOError, PortUnavailable
 from u2sa_hw.ports.device_link import DeviceLink, device_setting
 from u2sa_hw.ports.legacy import serial_address
 from u2sa_hw.ports.address_schemes import BAUDRATES, BYTESIZES, PARITIES, STOPBITS   # the one framing table
-from u2sa_hw.ports.serial_port import SerialPort
+from u2sa_hw.ports.serial.port import SerialPort
 
 _PORT_FIELDS = ("device", "port", "baudrate", "bytesize", "parity", "stopbits", "device_name", "epoch_gap_s")
 

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from u2sa_hw.ports.address import DeviceAddress, make_address
-from u2sa_hw.ports.can_clock import CAN_GROUP, join_bus, pack_frame
+from u2sa_hw.ports.can.clock import CAN_GROUP, join_bus, pack_frame
 from u2sa_hw.ports.tap import TX
 from u2sa_hw.bus.udp_ports import private_udp_port
 
@@ -45,7 +45,7 @@ class ReplayCanDevice:
     again). What the driver sends depends on its timers (setpoints re-sent every
     ``command_period_s``), so its frames are counted, not compared frame by frame.
 
-    The frames go out as :func:`u2sa_hw.ports.can_clock.pack_frame` datagrams from a socket of their own
+    The frames go out as :func:`u2sa_hw.ports.can.clock.pack_frame` datagrams from a socket of their own
     (not bound to the bus's port), so the bus socket that counts tells them from every other member's
     (sent from the port, as python-can's and the driver's bus send) by the sender's port, without
     decoding; a thread reads it in

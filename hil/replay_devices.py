@@ -8,7 +8,7 @@ the recorded ``RAW.<device>`` records by the player (hil/player.py):
   driver writes is kept and checked against the recorded TX bytes. Stamped (the replay's
   mode), each recorded chunk goes as a frame with its recorded read time, and each recorded
   silence goes as a silence frame, so the driver times lines and silences by the recording
-  (:mod:`u2sa_hw.ports.serial_clock`), not by when the replay delivers them. A silence is
+  (:mod:`u2sa_hw.ports.serial.clock`), not by when the replay delivers them. A silence is
   what the live port recorded (an RX record without data: a ``readline`` that timed out
   empty); a log from before those records gets a clock tick wherever two recorded reads are
   ``burst_gap_s`` or more apart, which a live driver busy between two reads of one burst also
@@ -39,7 +39,7 @@ from typing import Any, Iterator, Protocol
 
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.ports.address import DeviceAddress, make_address
-from u2sa_hw.ports.serial_clock import encode_frame, encode_silence
+from u2sa_hw.ports.serial.clock import encode_frame, encode_silence
 from u2sa_hw.ports.tap import RX, TX
 from u2sa_hw.recording.log_reader import LogFile
 

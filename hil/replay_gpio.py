@@ -366,7 +366,7 @@ class PwmReplayRig:
             return
         from u2sa_hw.mocks.i2c_bus import MockI2cBus
         from u2sa_hw.mocks.pca9685_chip import Pca9685Chip
-        from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
+        from u2sa_hw.ports.pwm.port import make_sysfs_pwm_tree
 
         self._started = True
         for tree, npwm in self._trees.values():

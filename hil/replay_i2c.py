@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from u2sa_hw.ports.address import DeviceAddress, make_address
-from u2sa_hw.ports.i2c_port import OP_READ, OP_WRITE, STATUS_EIO, STATUS_NACK, STATUS_OK
+from u2sa_hw.ports.i2c.wire import OP_READ, OP_WRITE, STATUS_EIO, STATUS_NACK, STATUS_OK
 from u2sa_hw.recording.log_reader import LogFile
 
 from u2sa_hw.hil.replay_plan import ReplayError, raw_records

@@ -328,7 +328,7 @@ def i2c_setup_recorded(log: LogFile, device: str) -> bool:
     while the stack ran (``u2sa record``, a recorder restarted, a log recovered after a cut) begins with data
     reads, or inside the set-up after the identity read: a replay could not identify the chip, and its
     calibration is not in the log. Reads the log only up to that point."""
-    from u2sa_hw.ports.i2c_port import OP_READ, OP_WRITE
+    from u2sa_hw.ports.i2c.wire import OP_READ, OP_WRITE
 
     reads: dict[tuple[int, int], int] = {}
     for _t, rec in raw_records(log, device, "RawI2c"):

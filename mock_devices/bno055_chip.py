@@ -25,7 +25,7 @@ from typing import Any, Sequence
 
 from u2sa_hw.mocks.i2c_chip import RegisterChip, RestingVehicle, Vehicle
 from u2sa_hw.mocks.mpu9250_chip import ned_to_body
-from u2sa_hw.ports.i2c_port import OP_READ, STATUS_NACK
+from u2sa_hw.ports.i2c.wire import OP_READ, STATUS_NACK
 from u2sa_hw.protocols import bno055 as bno
 
 _ACC_MODES = {bno.MODE_ACCONLY, bno.MODE_ACCMAG, bno.MODE_ACCGYRO, bno.MODE_AMG, *bno.FUSION_MODES}

@@ -18,7 +18,7 @@ it takes (``GpioPort.now_ns``); ``set_origin`` tells the clients where the recor
 lies on it, ``bus`` hands a recorded bus message to the clients that asked for its channel (op
 ``bus``), in order with the edges; ``backlog`` counts frames not yet sent, so a player can
 wait instead of overflowing a client that reads slowly. The wire protocol lives in
-``u2sa_hw.ports.gpio_port`` (driver and mock share it) and is documented in
+``u2sa_hw.ports.gpio.wire`` (driver and mock share it) and is documented in
 ``docs/gpio-and-rc.md``.
 """
 
@@ -36,11 +36,11 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-from u2sa_hw.ports.gpio_port import (BIASES, EDGE_FALLING, EDGE_RISING, EDGES, MOCK_EDGE, MOCK_EDGE_RECORD, MOCK_JSON,
-                                     MOCK_ORIGIN, MOCK_ORIGIN_RECORD, MOCK_PREFIX, MOCK_STEP, MOCK_TICK,
-                                     MOCK_TICK_RECORD,
+from u2sa_hw.ports.gpio.wire import (BIASES, EDGE_FALLING, EDGE_RISING, EDGES, MOCK_EDGE, MOCK_EDGE_RECORD, MOCK_JSON,
+                                     MOCK_ORIGIN, MOCK_ORIGIN_RECORD, MOCK_STEP, MOCK_TICK, MOCK_TICK_RECORD,
                                      MockFrameReader, MockProtocolError, encode_bus_input, encode_mock_frame,
                                      encode_mock_json)
+from u2sa_hw.ports.gpio.port import MOCK_PREFIX
 
 log = logging.getLogger("u2sa_hw.mocks.gpio_chip")
 

@@ -1,7 +1,7 @@
 """libgpiod's kernel calls answered by mock GPIO chips, so the gpiod backend runs without a kernel chip.
 
 This machine has no ``/dev/gpiochip*`` and no gpio-sim (configfs is not mounted), so the
-port's gpiod backend (``u2sa_hw.ports.gpio_port.GpiodGpioPort``) cannot reach a kernel
+port's gpiod backend (``u2sa_hw.ports.gpio.gpiod_backend.GpiodGpioPort``) cannot reach a kernel
 chip. ``GpiodOnMockChips`` stands in for the two libgpiod v2 calls that open the kernel's
 character device -- ``gpiod.request_lines(path, config=..., consumer=...)`` and
 ``gpiod.Chip(path)`` -- and answers them from a :class:`~u2sa_hw.mocks.gpio_chip.MockGpioChip`
@@ -37,7 +37,7 @@ import gpiod
 from gpiod.line import Bias, Direction, Edge, Value
 
 from u2sa_hw.mocks.gpio_chip import MockGpioChip
-from u2sa_hw.ports.gpio_port import (EDGE_RISING, MOCK_EDGE, MOCK_EDGE_RECORD, MockFrameReader, MockProtocolError,
+from u2sa_hw.ports.gpio.wire import (EDGE_RISING, MOCK_EDGE, MOCK_EDGE_RECORD, MockFrameReader, MockProtocolError,
                                      encode_mock_json)
 
 _BIAS = {Bias.AS_IS: "as-is", Bias.PULL_UP: "pull-up", Bias.PULL_DOWN: "pull-down", Bias.DISABLED: "disabled"}

@@ -3,7 +3,7 @@
 ``MockI2cBus(socket_path=...)`` hosts chip models (subclasses of
 :class:`u2sa_hw.mocks.i2c_chip.RegisterChip`) at
 7-bit addresses. Drivers reach it through ``open_i2c(bus="mock:<socket_path>", ...)``;
-the wire protocol is documented (and its constants defined) in u2sa_hw/ports/i2c_port.py
+the wire protocol is documented (and its constants defined) in u2sa_hw/ports/i2c/wire.py
 and docs/i2c-devices.md. One thread per client; one transaction at a time on the bus, as
 on a real I2C bus. An address with no chip NACKs, like an empty address on real hardware.
 
@@ -29,8 +29,8 @@ from u2sa_hw.mocks.i2c_chip import (HISTORY_LIMIT, STANDARD_GRAVITY, I2cChip, I2
                                    RestingVehicle, Vehicle)
 from u2sa_hw.mocks.mpu9250_chip import Mpu9250Chip
 from u2sa_hw.mocks.pca9685_chip import Pca9685Chip
-from u2sa_hw.ports.i2c_port import (MAX_TRANSFER, MOCK_SCHEME, OP_READ, OP_WRITE, REQUEST, RESPONSE,
-                                    STATUS_BAD_REQUEST, STATUS_NACK)
+from u2sa_hw.ports.i2c.wire import MAX_TRANSFER, OP_READ, OP_WRITE, REQUEST, RESPONSE, STATUS_BAD_REQUEST, STATUS_NACK
+from u2sa_hw.ports.i2c.port import MOCK_SCHEME
 
 __all__ = ["HISTORY_LIMIT", "STANDARD_GRAVITY", "I2cChip", "I2cTransaction", "MockI2cBus", "RegisterChip",
            "RestingVehicle", "Vehicle", "build_chip"]   # the chip base is re-exported for existing imports

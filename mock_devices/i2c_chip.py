@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from types import SimpleNamespace
 from typing import Any, Protocol
 
-from u2sa_hw.ports.i2c_port import OP_READ, STATUS_EIO, STATUS_NACK, STATUS_OK
+from u2sa_hw.ports.i2c.wire import OP_READ, STATUS_EIO, STATUS_NACK, STATUS_OK
 
 STANDARD_GRAVITY = 9.80665
 HISTORY_LIMIT = 10_000

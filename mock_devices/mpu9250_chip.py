@@ -26,7 +26,7 @@ from types import SimpleNamespace
 from typing import Sequence
 
 from u2sa_hw.mocks.i2c_chip import RegisterChip, RestingVehicle, Vehicle
-from u2sa_hw.ports.i2c_port import OP_READ, STATUS_NACK
+from u2sa_hw.ports.i2c.wire import OP_READ, STATUS_NACK
 from u2sa_hw.protocols import mpu9250 as mpu
 
 IDENTITY = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))

@@ -1,7 +1,7 @@
 """Linux I2C adapters (``/dev/i2c-N``) backed by mock I2C buses, for smbus2 in this process.
 
 This machine has no ``/dev/i2c-*``, so the smbus2 backend of the I2C port
-(``u2sa_hw.ports.i2c_port.SmbusI2cPort``) cannot reach a kernel adapter. ``SmbusAdapters``
+(``u2sa_hw.ports.i2c.port.SmbusI2cPort``) cannot reach a kernel adapter. ``SmbusAdapters``
 stands in for the kernel's i2c-dev: attach a :class:`~u2sa_hw.mocks.i2c_bus.MockI2cBus` as
 adapter N, and the class from :meth:`SmbusAdapters.smbus_class` (put in place of
 ``smbus2.SMBus``) answers ``open(N)``, ``read_i2c_block_data``, ``write_i2c_block_data`` and
@@ -28,7 +28,7 @@ import threading
 from typing import Any
 
 from u2sa_hw.mocks.i2c_bus import MockI2cBus
-from u2sa_hw.ports.i2c_port import OP_READ, OP_WRITE, STATUS_EIO, STATUS_NACK, STATUS_OK
+from u2sa_hw.ports.i2c.wire import OP_READ, OP_WRITE, STATUS_EIO, STATUS_NACK, STATUS_OK
 
 SMBUS_BLOCK_MAX = 32
 I2C_M_RD = 0x0001  # i2c_msg flag: a read

@@ -2,7 +2,7 @@
 
 ``SysfsPwmChip(path=..., npwm=4)`` makes ``path`` look like ``/sys/class/pwm/pwmchipN``
 (``npwm``, ``export``, ``unexport``; the tree maker is
-:func:`u2sa_hw.ports.pwm_port.make_sysfs_pwm_tree`). A driver opens it by that path with
+:func:`u2sa_hw.ports.pwm.port.make_sysfs_pwm_tree`). A driver opens it by that path with
 ``open_pwm`` exactly as it opens the kernel's chip: exporting a channel creates ``pwmN/``
 with ``period``, ``duty_cycle`` and ``enable`` (the port plays the kernel's part for a
 directory outside ``/sys``, see docs/ports.md). The chip side reads those files, the way
@@ -22,7 +22,7 @@ import shutil
 import threading
 from pathlib import Path
 
-from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
+from u2sa_hw.ports.pwm.port import make_sysfs_pwm_tree
 
 
 class SysfsPwmChip:

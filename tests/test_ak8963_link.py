@@ -26,7 +26,7 @@ from u2sa_hw.mocks.i2c_bus import MockI2cBus
 from u2sa_hw.mocks.mpu9250_chip import Ak8963Chip, Mpu9250Chip, OrientedVehicle, ned_to_body
 from u2sa_hw import channels as ch
 from u2sa_hw.ports.address import parse_address
-from u2sa_hw.ports.i2c_port import OP_READ, OP_WRITE
+from u2sa_hw.ports.i2c.wire import OP_READ, OP_WRITE
 from u2sa_hw.protocols import mpu9250 as mpu
 from u2sa_hw.recording.mcap_log import McapLogWriter
 from u2sa_hw.profile.vehicle import VehicleProfile

@@ -35,7 +35,7 @@ from u2sa_hw.bus.auth import BusAuth, Keyring
 from u2sa_hw.bus.client import BusClient
 from u2sa_hw.bus.key import KEY_ENV, key_path, new_key, write_key
 from u2sa_hw.bus.keyring import OPERATOR_KEY_ENV, OPERATORS_DIR
-from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
+from u2sa_hw.ports.pwm.port import make_sysfs_pwm_tree
 from u2sa_hw.bus.transport import Transport
 
 ROUNDS = 150

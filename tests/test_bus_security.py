@@ -33,7 +33,7 @@ from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus.client import BusClient
 from u2sa_hw.bus.auth import TAG, TRAILER_LEN, BusAuth, Keyring, keyring_for
 from u2sa_hw.bus.key import KEY_ENV, key_path, new_key, write_key
-from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
+from u2sa_hw.ports.pwm.port import make_sysfs_pwm_tree
 from u2sa_hw.service.bus_handlers import DUPLICATE_PROBE_S, PROBE_ENV, Instance, health_instance, process_start_us
 from u2sa_hw.bus.transport import Transport
 

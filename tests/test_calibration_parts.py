@@ -16,7 +16,7 @@ from u2sa_hw.mocks.mpu9250_chip import Ak8963Chip, Mpu9250Chip, OrientedVehicle,
 from u2sa_hw.calibration.correction import IDENTITY9, ZERO3, Correction, tilt_compensated_heading
 from u2sa_hw.cli.calibrate_cmd import AccelCollector, MagCollector, Progress
 from u2sa_hw.ports.address import DeviceAddress, parse_address
-from u2sa_hw.ports.i2c_port import open_i2c
+from u2sa_hw.ports.i2c.port import open_i2c
 from u2sa_hw.protocols import mpu9250 as mpu
 
 EARTH_UT = (20.0, 0.0, 45.0)

@@ -26,8 +26,8 @@ from u2sa_hw.mocks.pty_serial import PtySerialDevice
 from u2sa_hw.check.probe import ProbeResult, probe_profile, probe_target, socketcan_state
 from u2sa_hw.check.serial_probe import judge, xor_checksum
 from u2sa_hw.check.targets import Target
-from u2sa_hw.ports.gpio_port import open_gpio
-from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
+from u2sa_hw.ports.gpio.port import open_gpio
+from u2sa_hw.ports.pwm.port import make_sysfs_pwm_tree
 from u2sa_hw.bus.udp_ports import private_udp_port
 from u2sa_hw.profile.vehicle import load_profile
 

@@ -25,7 +25,7 @@ from u2sa_hw.mocks.i2c_bus import MockI2cBus
 from u2sa_hw.mocks.mpu9250_chip import Mpu9250Chip
 from u2sa_hw.mocks.vehicle_sim import SimVehicle
 from u2sa_hw.lcmtypes import RawI2c
-from u2sa_hw.ports.i2c_port import OP_WRITE
+from u2sa_hw.ports.i2c.wire import OP_WRITE
 from u2sa_hw.ports.tap import raw_channel
 from u2sa_hw.protocols import bno055 as bno
 from u2sa_hw.protocols import mpu9250 as mpu

@@ -19,7 +19,7 @@ from u2sa_hw.mocks.pca9685_chip import Pca9685Chip
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus.client import BusClient
-from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
+from u2sa_hw.ports.pwm.port import make_sysfs_pwm_tree
 from u2sa_hw.ports.tap import raw_channel
 
 

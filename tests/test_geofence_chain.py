@@ -68,7 +68,7 @@ def fenced(request: Any, tmp_path: Path, services: ServiceProcesses,
     sockets = Path(tempfile.mkdtemp(prefix="u2sa-gf-", dir="/tmp"))
     chip = MockGpioChip(socket_path=str(sockets / "gpio.sock")).start()
     rc = RcReceiverMock(chip, lines=RC_LINES, frame_hz=50).start()
-    from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
+    from u2sa_hw.ports.pwm.port import make_sysfs_pwm_tree
 
     pwm = make_sysfs_pwm_tree(tmp_path / "pwmchip0", npwm=2)
     path = write_vehicle(tmp_path, safety={"manual_mixer": MIXER, "rc_mode_timeout_ms": 250,

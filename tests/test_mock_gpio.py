@@ -19,8 +19,8 @@ from conftest import REPO, wait_until
 from u2sa_hw.mocks.gpio_chip import GpioChipRecord, MockGpioChip
 from u2sa_hw.mocks.rc_receiver import MuxMock, RcFrame, RcReceiverMock
 from u2sa_hw.ports.errors import PortClosed
-from u2sa_hw.ports.gpio_port import (MOCK_EDGE_RECORD, GpioPort, MockFrameReader, encode_mock_json,
-                                     open_gpio)
+from u2sa_hw.ports.gpio.wire import MOCK_EDGE_RECORD, MockFrameReader, encode_mock_json
+from u2sa_hw.ports.gpio.port import GpioPort, open_gpio
 
 RC_LINES = {"throttle": 5, "steering": 6, "mode": 13}
 
@@ -316,7 +316,7 @@ def test_rc_receiver_in_another_process_measured_over_the_socket(tmp_path: Path)
 
 # ------------------------------------------------------------ a replay chip (a device clock) -------
 def test_a_device_clock_chip_hands_its_driver_the_origin_steps_and_the_recorded_bus_in_order(tmp_path: Path) -> None:
-    from u2sa_hw.ports.gpio_port import BusInput, ClockTick, EdgeEvent
+    from u2sa_hw.ports.gpio.wire import BusInput, ClockTick, EdgeEvent
 
     with MockGpioChip(socket_path=str(tmp_path / "replay.sock"), device_clock=True, release_level=None) as chip:
         chip.set_origin(123_000)                       # before the driver: in its request reply

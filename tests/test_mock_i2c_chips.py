@@ -20,7 +20,7 @@ from u2sa_hw.mocks.mpu9250_chip import Ak8963Chip, Mpu9250Chip
 from u2sa_hw.mocks.pca9685_chip import Pca9685Chip
 from u2sa_hw.mocks.vehicle_sim import SimVehicle
 from u2sa_hw.ports.errors import PortIOError
-from u2sa_hw.ports.i2c_port import I2cPort, open_i2c
+from u2sa_hw.ports.i2c.port import I2cPort, open_i2c
 from u2sa_hw.protocols import bno055 as bno
 from u2sa_hw.protocols import mpu9250 as mpu
 from u2sa_hw.protocols import pca9685 as pca

@@ -17,9 +17,10 @@ from conftest import REPO
 from u2sa_hw.mocks.i2c_bus import MockI2cBus
 from u2sa_hw.mocks.pca9685_chip import Pca9685Chip
 from u2sa_hw.ports.errors import PortClosed, PortIOError, PortUnavailable
-from u2sa_hw.ports.i2c_port import OP_WRITE, open_i2c
-from u2sa_hw.ports.pca9685_pwm import open_pca9685_pwm, parse_address
-from u2sa_hw.ports.pwm_port import open_pwm
+from u2sa_hw.ports.i2c.wire import OP_WRITE
+from u2sa_hw.ports.i2c.port import open_i2c
+from u2sa_hw.ports.pwm.pca9685 import open_pca9685_pwm, parse_address
+from u2sa_hw.ports.pwm.port import open_pwm
 from u2sa_hw.protocols import pca9685 as pca
 
 
@@ -114,7 +115,7 @@ def test_channel_opened_from_another_process_keeps_the_prescale(bus: MockI2cBus)
     a = open_pca9685_pwm(device="left", address=address_of(bus), channel=0)
     a.set_pulse_us(1200)
     a.enable(True)
-    script = ("from u2sa_hw.ports.pca9685_pwm import open_pca9685_pwm\n"
+    script = ("from u2sa_hw.ports.pwm.pca9685 import open_pca9685_pwm\n"
               f"p = open_pca9685_pwm(device='other', address={address_of(bus)!r}, channel=5)\n"
               "p.set_pulse_us(1700); p.enable(True)\n")
     subprocess.run([sys.executable, "-c", script], cwd=REPO, check=True, timeout=60)

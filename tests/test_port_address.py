@@ -143,7 +143,7 @@ def test_a_mock_i2c_timeout_reaches_the_client_and_the_chips_beside_it(tmp_path)
     """timeout= is the mock client's answer timeout (a replay's bus holds data reads for its player); a
     chip opened beside it on the same bus (the AK8963 at 0x0c) keeps it; a real adapter takes none."""
     from u2sa_hw.mocks.i2c_bus import MockI2cBus
-    from u2sa_hw.ports.i2c_port import MOCK_TIMEOUT_S, open_i2c
+    from u2sa_hw.ports.i2c.port import MOCK_TIMEOUT_S, open_i2c
     from u2sa_hw.ports.opener import open_port
 
     address = parse_address(f"mock+i2c://{tmp_path}/b.sock/0x68?timeout=45", device="imu")

@@ -19,8 +19,8 @@ import pytest
 from u2sa_hw.mocks import can_adapter
 from u2sa_hw.ports import PortClosed, PortIOError, PortUnavailable, open_can
 from u2sa_hw.ports.address import AddressError, parse_address
-from u2sa_hw.ports.can_clock import CanDeviceClock
-from u2sa_hw.ports.can_port import CanPort
+from u2sa_hw.ports.can.clock import CanDeviceClock
+from u2sa_hw.ports.can.port import CanPort
 from u2sa_hw.ports.tap import RX, TX
 from u2sa_hw.bus.udp_ports import private_udp_port
 

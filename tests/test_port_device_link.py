@@ -270,12 +270,12 @@ def test_start_imports_what_the_open_will_so_the_first_open_after_ready_is_quick
         assert "can" not in sys.modules, "python-can imported before start()"
         link.start()
         assert link.holder.state != "open"
-        print(sorted(m for m in ("can", "u2sa_hw.ports.can_port") if m in sys.modules))
+        print(sorted(m for m in ("can", "u2sa_hw.ports.can.port") if m in sys.modules))
     """)
     done = subprocess.run([sys.executable, "-c", code, str(tmp_path / "vehicle.toml")], cwd=REPO,
                           capture_output=True, text=True, timeout=120, env=dict(os.environ, PYTHONPATH=str(REPO)))
     assert done.returncode == 0, done.stderr
-    assert done.stdout.split("\n")[0] == "['can', 'u2sa_hw.ports.can_port']"
+    assert done.stdout.split("\n")[0] == "['can', 'u2sa_hw.ports.can.port']"
 
 
 def test_every_kind_has_its_preload_and_each_module_exists() -> None:

@@ -26,7 +26,9 @@ from conftest import REPO, wait_until
 from u2sa_hw.mocks.gpio_chip import MockGpioChip
 from u2sa_hw.mocks.gpiod_on_mock import GpiodOnMockChips
 from u2sa_hw.ports.errors import PortClosed, PortUnavailable
-from u2sa_hw.ports.gpio_port import EdgeEvent, GpiodGpioPort, GpioPort, open_gpio
+from u2sa_hw.ports.gpio.wire import EdgeEvent
+from u2sa_hw.ports.gpio.gpiod_backend import GpiodGpioPort
+from u2sa_hw.ports.gpio.port import GpioPort, open_gpio
 
 CHIP_PROCESS = r"""
 import sys
@@ -168,7 +170,7 @@ def test_taps_see_every_edge_with_its_timestamp_and_every_write(chip) -> None:
 
 
 def test_a_tap_that_is_not_recording_gets_no_record_built(chip, monkeypatch: pytest.MonkeyPatch) -> None:
-    from u2sa_hw.ports import gpio_port
+    from u2sa_hw.ports.gpio import port as gpio_port
     from u2sa_hw.ports.tap import RecordingTap
 
     def unwanted() -> None:
@@ -255,6 +257,6 @@ def test_a_file_that_is_not_a_gpio_chip_is_unavailable() -> None:
 
 
 def test_importing_the_port_does_not_import_gpiod() -> None:
-    probe = "import sys, u2sa_hw.ports.gpio_port; print('gpiod' in sys.modules)"
+    probe = "import sys, u2sa_hw.ports.gpio.port; print('gpiod' in sys.modules)"
     result = subprocess.run([sys.executable, "-c", probe], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert result.stdout.strip() == "False", result.stderr

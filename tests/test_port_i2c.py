@@ -24,8 +24,8 @@ from u2sa_hw.mocks.mpu9250_chip import Mpu9250Chip
 from u2sa_hw.mocks.smbus_adapter import SmbusAdapters
 from conftest import REPO, wait_until
 from u2sa_hw.ports.errors import PortClosed, PortIOError, PortTimeout, PortUnavailable
-from u2sa_hw.ports.i2c_port import (MOCK_BUS_NUMBER, REQUEST, RESPONSE, STATUS_BAD_REQUEST, I2cPort, MockI2cPort,
-                                    SmbusI2cPort, open_error, open_i2c, transaction_error)
+from u2sa_hw.ports.i2c.wire import MOCK_BUS_NUMBER, REQUEST, RESPONSE, STATUS_BAD_REQUEST
+from u2sa_hw.ports.i2c.port import I2cPort, MockI2cPort, SmbusI2cPort, open_error, open_i2c, transaction_error
 from u2sa_hw.protocols import mpu9250 as mpu
 
 WHO_AM_I_9250 = 0x71

@@ -18,7 +18,7 @@ from u2sa_hw.mocks.vehicle_sim import SimVehicle
 from u2sa_hw.ports import PortUnavailable
 from u2sa_hw.ports.address import AddressError, make_address
 from u2sa_hw.ports.opener import SCHEMES, open_port
-from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
+from u2sa_hw.ports.pwm.port import make_sysfs_pwm_tree
 from u2sa_hw.ports.tap import RX, TX
 from u2sa_hw.protocols import mpu9250 as mpu
 

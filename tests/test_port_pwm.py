@@ -17,7 +17,7 @@ import pytest
 from u2sa_hw.mocks.i2c_bus import MockI2cBus
 from u2sa_hw.mocks.pca9685_chip import Pca9685Chip
 from u2sa_hw.ports import PortClosed, PortIOError, PortUnavailable, open_pwm
-from u2sa_hw.ports.pwm_port import PwmChannel, SysfsPwmChannel, is_real_sysfs, make_sysfs_pwm_tree
+from u2sa_hw.ports.pwm.port import PwmChannel, SysfsPwmChannel, is_real_sysfs, make_sysfs_pwm_tree
 from u2sa_hw.protocols import pca9685 as pca
 
 SERVO_PERIOD = 20_000_000
@@ -236,9 +236,9 @@ class TestSysfsSemantics:
 
 def test_pca9685_addresses_go_to_the_pca9685_backend(monkeypatch: pytest.MonkeyPatch) -> None:
     calls: list[dict] = []
-    backend = types.ModuleType("u2sa_hw.ports.pca9685_pwm")
+    backend = types.ModuleType("u2sa_hw.ports.pwm.pca9685")
     backend.open_pca9685_pwm = lambda **kwargs: calls.append(kwargs) or "pca-channel"  # type: ignore[attr-defined]
-    monkeypatch.setitem(sys.modules, "u2sa_hw.ports.pca9685_pwm", backend)
+    monkeypatch.setitem(sys.modules, "u2sa_hw.ports.pwm.pca9685", backend)
     got = open_pwm(device="rudder", address="pca9685:1:0x40", channel=7, period_ns=3_000_000)
     assert got == "pca-channel"
     assert calls == [dict(device="rudder", address="pca9685:1:0x40", channel=7, period_ns=3_000_000, tap=None)]

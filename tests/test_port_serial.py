@@ -15,7 +15,7 @@ import pytest
 
 from conftest import wait_until
 from u2sa_hw.ports import PortClosed, PortUnavailable, open_serial
-from u2sa_hw.ports import serial_port
+from u2sa_hw.ports.serial import port as serial_port
 from u2sa_hw.ports.tap import RX, TX
 
 

@@ -8,8 +8,8 @@ from typing import Any
 import can
 import pytest
 
-from u2sa_hw.ports import can_port
-from u2sa_hw.ports.can_port import open_can
+from u2sa_hw.ports.can import port as can_port
+from u2sa_hw.ports.can.port import open_can
 from u2sa_hw.ports.tap import RX, TX, RecordingTap, tapping
 
 

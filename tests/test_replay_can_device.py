@@ -17,7 +17,7 @@ from conftest import wait_until
 
 from u2sa_hw.hil.replay_buses import CAN_BACKLOG_BYTES, CAN_CHECK_EVERY, CAN_GROUP, ReplayCanDevice
 from u2sa_hw.lcmtypes import RawCanFrame
-from u2sa_hw.ports.can_clock import StampedUdpMulticastBus, pack_frame, unpack_frame
+from u2sa_hw.ports.can.clock import StampedUdpMulticastBus, pack_frame, unpack_frame
 from u2sa_hw.ports.tap import RX, TX
 from u2sa_hw.bus.udp_ports import private_udp_port
 

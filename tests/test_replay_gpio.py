@@ -24,7 +24,7 @@ from u2sa_hw.mocks.rc_receiver import MuxMock, RcReceiverMock
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus.client import BusClient
-from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
+from u2sa_hw.ports.pwm.port import make_sysfs_pwm_tree
 from u2sa_hw.recording.log_reader import LogFile
 from u2sa_hw.recording.mcap_log import McapLogWriter
 from u2sa_hw.services.recorder.capture import BusCapture

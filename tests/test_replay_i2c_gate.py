@@ -20,7 +20,7 @@ from u2sa_hw.hil.replay_plan import i2c_setup_recorded
 from u2sa_hw.messages import RawI2c
 from u2sa_hw.ports.address import parse_address
 from u2sa_hw.ports.errors import PortClosed, PortError, PortIOError
-from u2sa_hw.ports.i2c_port import OP_READ, OP_WRITE
+from u2sa_hw.ports.i2c.wire import OP_READ, OP_WRITE
 from u2sa_hw.ports.opener import open_port
 from u2sa_hw.recording.log_reader import LogFile
 from u2sa_hw.recording.mcap_log import McapLogWriter

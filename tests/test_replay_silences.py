@@ -24,9 +24,9 @@ from u2sa_hw.drivers.nmea_fields import Epoch, parse_sentence
 from u2sa_hw.hil.player import Player
 from u2sa_hw.hil.replay_devices import ReplaySerialDevice
 from u2sa_hw.messages import RawSerial
-from u2sa_hw.ports import serial_clock
+from u2sa_hw.ports.serial import clock as serial_clock
 from u2sa_hw.ports.opener import open_port
-from u2sa_hw.ports.serial_clock import FrameDecoder, encode_frame, encode_silence
+from u2sa_hw.ports.serial.clock import FrameDecoder, encode_frame, encode_silence
 from u2sa_hw.ports.tap import RX
 from u2sa_hw.recording.mcap_log import McapFile, RunInfo
 

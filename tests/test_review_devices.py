@@ -34,7 +34,7 @@ from u2sa_hw.config.configurator import ConfigError
 from u2sa_hw.profile.devices import effective_config, profile_devices
 from u2sa_hw.ports import PortUnavailable
 from u2sa_hw.ports.device_link import DeviceLink
-from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
+from u2sa_hw.ports.pwm.port import make_sysfs_pwm_tree
 from u2sa_hw.protocols.odrive_cansimple import AxisState
 from u2sa_hw.profile.vehicle import ProfileError, VehicleProfile, load_profile
 

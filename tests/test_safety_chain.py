@@ -27,7 +27,7 @@ from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus.client import BusClient
 from u2sa_hw.failsafe import FailsafeSources
-from u2sa_hw.ports.pwm_port import make_sysfs_pwm_tree
+from u2sa_hw.ports.pwm.port import make_sysfs_pwm_tree
 from u2sa_hw.safety.config import parse_safety
 from u2sa_hw.safety.gate import AUTONOMOUS, MANUAL, CommandGate
 from u2sa_hw.safety.wiring import check_wiring

@@ -1,4 +1,4 @@
-"""The serial device clock of a replay: stamped frames through a real pty (u2sa_hw/ports/serial_clock.py).
+"""The serial device clock of a replay: stamped frames through a real pty (u2sa_hw/ports/serial/clock.py).
 
 The framing survives any data byte and any split, drops garbage, and only a ``mock+serial``
 address may turn it on; the port returns the data bytes with the recorded time of each line
@@ -17,10 +17,10 @@ import pytest
 from conftest import wait_until
 from u2sa_hw.hil.replay_devices import ReplaySerialDevice, StampedChunks
 from u2sa_hw.messages import RawSerial
-from u2sa_hw.ports import serial_clock
+from u2sa_hw.ports.serial import clock as serial_clock
 from u2sa_hw.ports.address import AddressError, parse_address
 from u2sa_hw.ports.opener import open_port
-from u2sa_hw.ports.serial_clock import ESC, FrameDecoder, StampedSerialPort, encode_frame
+from u2sa_hw.ports.serial.clock import ESC, FrameDecoder, StampedSerialPort, encode_frame
 from u2sa_hw.ports.tap import RX
 
 S = 1_000_000_000  # ns

@@ -15,7 +15,7 @@ polling). Bus callbacks (commands, failsafe) run on the transport's thread; both
 
 The driver's time (:meth:`CanMotorService.now`: frame handling, ticks, silence, setpoint timing)
 is the port's clock: ``time.monotonic()`` on a real bus, the recorded frames' times on a replay's
-stamped bus (``clock=stamped``, :mod:`u2sa_hw.ports.can_clock`), so a replayed node is silent,
+stamped bus (``clock=stamped``, :mod:`u2sa_hw.ports.can.clock`), so a replayed node is silent,
 and its odometry restarted, only where the recording says so, however fast the replay runs.
 """
 
@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable, ClassVar, Mapping
 
 if TYPE_CHECKING:
-    import can   # python-can loads when the port opens (u2sa_hw/ports/can_port.py)
+    import can   # python-can loads when the port opens (u2sa_hw/ports/can/port.py)
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
@@ -35,7 +35,7 @@ from u2sa_hw.abstract import Actuator
 from u2sa_hw.config.configurator import MAX_TIMEOUT_S, ConfigError, field
 from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence setters
 from u2sa_hw.ports import PortClosed, PortError, PortIOError, PortUnavailable
-from u2sa_hw.ports.can_port import CanPort
+from u2sa_hw.ports.can.port import CanPort
 from u2sa_hw.ports.device_link import DeviceLink, device_setting
 from u2sa_hw.ports.legacy import can_address
 

@@ -33,7 +33,8 @@ from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Actuator, ExteroceptiveSensor
 from u2sa_hw.config.configurator import MAX_TIMEOUT_S, ConfigError, field
 from u2sa_hw.ports.device_link import device_setting
-from u2sa_hw.ports.gpio_port import BIASES, GpioPort
+from u2sa_hw.ports.gpio.wire import BIASES
+from u2sa_hw.ports.gpio.port import GpioPort
 
 ON_THRESHOLD_PERCENT = 50.0
 BUMPER_LEVEL = 3  # ObjectDescription level: avoid at all costs (we are touching it)

@@ -26,7 +26,8 @@ from u2sa_hw.config.configurator import ConfigError
 from u2sa_hw.ports import PortClosed, PortIOError, PortTimeout, PortUnavailable
 from u2sa_hw.ports.address import AddressError, make_address
 from u2sa_hw.ports.device_link import DeviceLink, device_setting
-from u2sa_hw.ports.gpio_port import ClockTick, EdgeEvent, GpioPort
+from u2sa_hw.ports.gpio.wire import ClockTick, EdgeEvent
+from u2sa_hw.ports.gpio.port import GpioPort
 from u2sa_hw.ports.legacy import gpio_address
 from u2sa_hw.service.contract import U2SAService
 

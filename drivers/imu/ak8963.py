@@ -30,7 +30,7 @@ from typing import Callable
 
 from u2sa_hw.ports.address import DeviceAddress
 from u2sa_hw.ports.errors import PortError, PortIOError
-from u2sa_hw.ports.i2c_port import I2cPort
+from u2sa_hw.ports.i2c.port import I2cPort
 from u2sa_hw.ports.opener import open_port
 from u2sa_hw.ports.tap import Tap
 from u2sa_hw.protocols import mpu9250 as mpu

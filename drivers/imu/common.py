@@ -35,7 +35,7 @@ from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence 
 from u2sa_hw.ports.errors import PortClosed, PortError, PortIOError, PortTimeout, PortUnavailable
 from u2sa_hw.ports.address import AddressError
 from u2sa_hw.ports.device_link import DeviceLink, device_setting
-from u2sa_hw.ports.i2c_port import I2cPort
+from u2sa_hw.ports.i2c.port import I2cPort
 from u2sa_hw.ports.legacy import i2c_address
 
 T = TypeVar("T")

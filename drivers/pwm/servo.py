@@ -53,7 +53,7 @@ from u2sa_hw.ports.address import AddressError, DeviceAddress
 from u2sa_hw.ports.device_link import DeviceLink
 from u2sa_hw.ports.errors import PortError, PortUnavailable
 from u2sa_hw.ports.legacy import pwm_address
-from u2sa_hw.ports.pwm_port import PwmChannel
+from u2sa_hw.ports.pwm.port import PwmChannel
 
 log = logging.getLogger(__name__)
 

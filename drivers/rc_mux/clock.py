@@ -16,7 +16,7 @@ import time
 from typing import Any
 
 from u2sa_hw.drivers.rc_mux.pulse import MODE_MANUAL, MODE_NO_SIGNAL
-from u2sa_hw.ports.gpio_port import BusInput, ClockTick, EdgeEvent, GpioEvent
+from u2sa_hw.ports.gpio.wire import BusInput, ClockTick, EdgeEvent, GpioEvent
 
 # Live, a timed message due at D waits until an edge stamped after D is taken, or until the clock is
 # this far past D: an edge stamped before D but delivered late (a kernel chip: microseconds; the

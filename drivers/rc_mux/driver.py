@@ -48,7 +48,7 @@ stamps, not on how the loop batched its reads: a replay gives the live messages.
 
 On a replay chip (a device clock) the Health, FAILSAFE and STATE_ESTIMATE the pre-arm checks
 and the failsafe read come from the chip too, the recorded ones, in order with the edges
-(:meth:`u2sa_hw.ports.gpio_port.GpioPort.take_recorded_bus`), and the loop's own stall is not
+(:meth:`u2sa_hw.ports.gpio.port.GpioPort.take_recorded_bus`), and the loop's own stall is not
 judged (the replaying machine's load is not the vehicle's): the decision is the recorded one.
 """
 
@@ -71,7 +71,7 @@ from u2sa_hw.abstract import Sensor
 from u2sa_hw.config.configurator import MAX_RATE_HZ, ConfigError, field
 from u2sa_hw.failsafe import FailsafeSources
 from u2sa_hw.ports.device_link import device_setting
-from u2sa_hw.ports.gpio_port import GpioPort
+from u2sa_hw.ports.gpio.port import GpioPort
 from u2sa_hw.safety.config import load_safety
 from u2sa_hw.safety.prearm import CheckFailure, PrearmChecks
 from u2sa_hw.safety.wiring import check_wiring

@@ -19,7 +19,7 @@ from u2sa_hw.drivers.rc_mux.pulse import MODE_AUTONOMOUS
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.messages import REGISTRY, MalformedMessage
-from u2sa_hw.ports.gpio_port import BusInput
+from u2sa_hw.ports.gpio.wire import BusInput
 from u2sa_hw.safety.prearm import CheckFailure
 
 

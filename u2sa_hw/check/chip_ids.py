@@ -34,7 +34,7 @@ class Identity:
         if not self.magnetometer:
             return ""
         from u2sa_hw.ports.errors import PortError
-        from u2sa_hw.ports.i2c_port import open_i2c
+        from u2sa_hw.ports.i2c.port import open_i2c
 
         try:
             mag = open_i2c(device=device, bus=bus, address=mpu.AK8963_ADDRESS)

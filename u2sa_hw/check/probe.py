@@ -109,7 +109,7 @@ def _probe_serial(target: Target, seconds: float) -> tuple[bool, str, dict[str, 
 
 # ---- I2C ------------------------------------------------------------------------------------
 def _probe_i2c(target: Target, seconds: float) -> tuple[bool, str, dict[str, Any]]:
-    from u2sa_hw.ports.i2c_port import open_i2c
+    from u2sa_hw.ports.i2c.port import open_i2c
 
     chip = target.params["chip"]
     address = int(target.params["address"])
@@ -179,7 +179,7 @@ def heard_nodes(frames: list[Any], protocol: str) -> list[int]:
 
 
 def _probe_can(target: Target, seconds: float) -> tuple[bool, str, dict[str, Any]]:
-    from u2sa_hw.ports.can_port import open_can
+    from u2sa_hw.ports.can.port import open_can
 
     interface, channel = str(target.params["interface"]), str(target.params["channel"])
     if interface in SIMULATED_CAN:
@@ -213,7 +213,7 @@ def _probe_can(target: Target, seconds: float) -> tuple[bool, str, dict[str, Any
 
 # ---- GPIO -----------------------------------------------------------------------------------
 def _mock_gpio_info(path: str) -> dict[str, Any]:
-    from u2sa_hw.ports.gpio_port import MOCK_JSON, encode_mock_json, MockFrameReader
+    from u2sa_hw.ports.gpio.wire import MOCK_JSON, encode_mock_json, MockFrameReader
 
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
         sock.settimeout(3.0)

@@ -18,14 +18,14 @@ from u2sa_hw.ports.errors import PortClosed, PortError, PortIOError, PortTimeout
 
 # public name -> module that defines it, imported lazily by __getattr__
 _LAZY = {
-    "open_serial": "u2sa_hw.ports.serial_port",
-    "SerialPort": "u2sa_hw.ports.serial_port",
-    "open_can": "u2sa_hw.ports.can_port",
-    "CanPort": "u2sa_hw.ports.can_port",
-    "open_pwm": "u2sa_hw.ports.pwm_port",
-    "PwmChannel": "u2sa_hw.ports.pwm_port",
-    "SysfsPwmChannel": "u2sa_hw.ports.pwm_port",
-    "make_sysfs_pwm_tree": "u2sa_hw.ports.pwm_port",
+    "open_serial": "u2sa_hw.ports.serial.opener",
+    "SerialPort": "u2sa_hw.ports.serial.port",
+    "open_can": "u2sa_hw.ports.can.port",
+    "CanPort": "u2sa_hw.ports.can.port",
+    "open_pwm": "u2sa_hw.ports.pwm.port",
+    "PwmChannel": "u2sa_hw.ports.pwm.port",
+    "SysfsPwmChannel": "u2sa_hw.ports.pwm.port",
+    "make_sysfs_pwm_tree": "u2sa_hw.ports.pwm.port",
     "ReconnectingPort": "u2sa_hw.ports.reconnect",
     "open_port": "u2sa_hw.ports.opener",
     "SCHEMES": "u2sa_hw.ports.opener",

@@ -165,7 +165,7 @@ class DeviceAddress:
     @property
     def device_clock(self) -> bool:
         """True for ``mock+serial://...?clock=stamped``: the pty carries stamped frames (a replay's device
-        clock, :mod:`u2sa_hw.ports.serial_clock`); never for a real address (the parser refuses it)."""
+        clock, :mod:`u2sa_hw.ports.serial.clock`); never for a real address (the parser refuses it)."""
         self._need("serial")
         return self.mock and self.params.get("clock") == "stamped"
 

@@ -52,12 +52,12 @@ SCHEMES: dict[str, tuple[str, str]] = {
 # READY=1 arms the watchdog; left to the first open, in the service's first loop turn, that import took
 # over 2 s without a ping on a loaded machine and the launcher killed a healthy motor driver.
 PRELOAD: dict[str, tuple[str, ...]] = {
-    "serial": ("u2sa_hw.ports.serial_port",),
-    "can": ("u2sa_hw.ports.can_port", "can", "u2sa_hw.ports.can_clock"),
-    "i2c": ("u2sa_hw.ports.i2c_port",),
-    "gpio": ("u2sa_hw.ports.gpio_port",),
-    "pwm": ("u2sa_hw.ports.pwm_port",),
-    "pca9685": ("u2sa_hw.ports.pwm_port", "u2sa_hw.ports.pca9685_pwm"),
+    "serial": ("u2sa_hw.ports.serial.opener",),
+    "can": ("u2sa_hw.ports.can.port", "can", "u2sa_hw.ports.can.clock"),
+    "i2c": ("u2sa_hw.ports.i2c.port",),
+    "gpio": ("u2sa_hw.ports.gpio.port", "u2sa_hw.ports.gpio.mock_client", "u2sa_hw.ports.gpio.gpiod_backend"),
+    "pwm": ("u2sa_hw.ports.pwm.port",),
+    "pca9685": ("u2sa_hw.ports.pwm.port", "u2sa_hw.ports.pwm.pca9685"),
 }
 
 
@@ -96,7 +96,7 @@ def _unknown_options(address: DeviceAddress, device: str, options: dict[str, Any
 
 
 def _open_serial(address: DeviceAddress, *, device: str, tap: Tap | None, **options: Any) -> Any:
-    from u2sa_hw.ports.serial_port import open_serial
+    from u2sa_hw.ports.serial.opener import open_serial
 
     _unknown_options(address, device, options, ("timeout",))
     stop = address.stopbits
@@ -106,7 +106,7 @@ def _open_serial(address: DeviceAddress, *, device: str, tap: Tap | None, **opti
 
 
 def _open_can(address: DeviceAddress, *, device: str, tap: Tap | None, **options: Any) -> Any:
-    from u2sa_hw.ports.can_port import open_can
+    from u2sa_hw.ports.can.port import open_can
 
     bus_options = {**address.bus_options, **options}
     return open_can(device=device, interface=address.can_interface, channel=address.can_channel,
@@ -114,7 +114,7 @@ def _open_can(address: DeviceAddress, *, device: str, tap: Tap | None, **options
 
 
 def _open_i2c(address: DeviceAddress, *, device: str, tap: Tap | None, **options: Any) -> Any:
-    from u2sa_hw.ports.i2c_port import open_i2c
+    from u2sa_hw.ports.i2c.port import open_i2c
 
     _unknown_options(address, device, options, ())
     return open_i2c(device=device, bus=address.i2c_bus, address=address.chip_address, tap=tap,
@@ -122,7 +122,7 @@ def _open_i2c(address: DeviceAddress, *, device: str, tap: Tap | None, **options
 
 
 def _open_gpio(address: DeviceAddress, *, device: str, tap: Tap | None, **options: Any) -> Any:
-    from u2sa_hw.ports.gpio_port import open_gpio
+    from u2sa_hw.ports.gpio.port import open_gpio
 
     _unknown_options(address, device, options, ("inputs", "outputs", "edge", "bias"))
     inputs = list(options.get("inputs", ()))
@@ -138,7 +138,7 @@ def _open_gpio(address: DeviceAddress, *, device: str, tap: Tap | None, **option
 
 
 def _open_pwm(address: DeviceAddress, *, device: str, tap: Tap | None, **options: Any) -> Any:
-    from u2sa_hw.ports.pwm_port import open_pwm
+    from u2sa_hw.ports.pwm.port import open_pwm
 
     _unknown_options(address, device, options, ("period_ns",))
     return open_pwm(device=device, address=address.pwm_legacy_address, channel=address.pwm_channel,

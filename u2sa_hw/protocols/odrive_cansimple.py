@@ -73,7 +73,7 @@ def split_arbitration_id(arb_id: int) -> tuple[int, int]:
 
 def make_frame(node_id: int, cmd: int, data: bytes = b"") -> can.Message:
     """A standard-id data frame carrying *data* for *cmd* of *node_id*."""
-    import can   # loads python-can with the first frame (see u2sa_hw/ports/can_port.py)
+    import can   # loads python-can with the first frame (see u2sa_hw/ports/can/port.py)
     return can.Message(arbitration_id=arbitration_id(node_id, cmd), data=data, is_extended_id=False)
 
 

@@ -1,6 +1,6 @@
 """NXP PCA9685 16-channel 12-bit PWM controller: registers, bits and timing arithmetic.
 
-Shared by the PWM backend (u2sa_hw/ports/pca9685_pwm.py) and the mock chip
+Shared by the PWM backend (u2sa_hw/ports/pwm/pca9685.py) and the mock chip
 (mock_devices/pca9685_chip.py). From the NXP PCA9685 product data sheet (rev. 4):
 the frame is 4096 counts of (PRE_SCALE + 1) oscillator periods; each channel goes high at
 its ON count and low at its OFF count; bit 4 of LEDn_ON_H is "full on", bit 4 of

@@ -71,7 +71,7 @@ def split_ext_id(arb_id: int) -> tuple[int, int]:
 
 def make_frame(controller_id: int, packet_id: int, data: bytes) -> can.Message:
     """An extended-id data frame carrying *data* for *packet_id* of *controller_id*."""
-    import can   # loads python-can with the first frame (see u2sa_hw/ports/can_port.py)
+    import can   # loads python-can with the first frame (see u2sa_hw/ports/can/port.py)
     return can.Message(arbitration_id=ext_id(packet_id, controller_id), data=data, is_extended_id=True)
 
 

@@ -21,7 +21,7 @@ import logging
 from typing import TYPE_CHECKING, Callable
 
 if TYPE_CHECKING:
-    import can   # python-can loads when the port opens (u2sa_hw/ports/can_port.py)
+    import can   # python-can loads when the port opens (u2sa_hw/ports/can/port.py)
 
 from u2sa_hw.config.configurator import Configurator
 from u2sa_hw.protocols import odrive_cansimple as cs

@@ -34,7 +34,7 @@ import math
 from typing import TYPE_CHECKING, Any, Callable
 
 if TYPE_CHECKING:
-    import can   # python-can loads when the port opens (u2sa_hw/ports/can_port.py)
+    import can   # python-can loads when the port opens (u2sa_hw/ports/can/port.py)
 
 from u2sa_hw.config.configurator import MAX_TIMEOUT_S, field
 from u2sa_hw.protocols import vesc_can as vc

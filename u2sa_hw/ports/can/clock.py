@@ -9,7 +9,7 @@ the driver's end of it and keeps that stamp, and :class:`CanDeviceClock` turns t
 the driver's clock.
 
 Only an address that says ``clock=stamped`` opens this bus, and only a ``mock+can`` address on
-``udp_multicast`` may say it (the address parser and :func:`u2sa_hw.ports.can_port.open_can`
+``udp_multicast`` may say it (the address parser and :func:`u2sa_hw.ports.can.port.open_can`
 both refuse it otherwise): a real bus (SocketCAN) can never set the time its driver sees.
 """
 

@@ -1,6 +1,6 @@
 """PWM channels: Linux PWM sysfs (``/sys/class/pwm/pwmchip0``), a sysfs-shaped directory
 (the mock the simulation reads), or a PCA9685 on I2C (``pca9685:<bus>:<addr>``, handled by
-``u2sa_hw.ports.pca9685_pwm``, imported only when such an address is opened).
+``u2sa_hw.ports.pwm.pca9685``, imported only when such an address is opened).
 
 Sysfs semantics, as the kernel documents them (Documentation/driver-api/pwm.rst):
 writing channel N to ``<chip>/export`` creates ``<chip>/pwmN/`` with ``period``,
@@ -292,7 +292,7 @@ def open_pwm(*, device: str, address: str, channel: int, period_ns: int = 20_000
     if period_ns <= 0:
         raise ValueError(f"{device}: period_ns must be > 0, got {period_ns}")
     if address.startswith(PCA9685_PREFIX):
-        from u2sa_hw.ports.pca9685_pwm import open_pca9685_pwm
+        from u2sa_hw.ports.pwm.pca9685 import open_pca9685_pwm
 
         return open_pca9685_pwm(device=device, address=address, channel=channel, period_ns=period_ns, tap=tap)
     return _open_sysfs(device=device, address=address, channel=channel, period_ns=period_ns, tap=tap)

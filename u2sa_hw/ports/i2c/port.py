@@ -8,35 +8,21 @@ fails (no ACK, EIO), ``PortClosed`` when the bus goes away, ``PortTimeout`` when
 server does not answer. Every transaction is handed to the tap as a ``RawI2c`` record
 (op 0 read / 1 write, ok flag, data).
 
-Mock wire protocol (one request, one response, in order, on a stream socket; big-endian):
-  request  = op:u8 (0 read, 1 write) | address:u8 (7-bit) | register:u8 | length:u16
-             | data[length] (write only; for a read, length is the number of bytes wanted)
-  response = status:u8 (0 OK, 1 NACK, 2 EIO, 3 BAD_REQUEST) | length:u16 | data[length]
-A read answers OK with exactly the bytes asked for; every other answer carries no data.
+The mock bus's wire protocol is :mod:`u2sa_hw.ports.i2c.wire`.
 """
 
 from __future__ import annotations
 
 import errno
 import socket
-import struct
 import threading
 from u2sa_hw.messages import RawI2c
 from u2sa_hw.ports.errors import PortClosed, PortError, PortIOError, PortTimeout, PortUnavailable
+from u2sa_hw.ports.i2c.wire import (MAX_TRANSFER, MOCK_BUS_NUMBER, OP_READ, OP_WRITE, REQUEST, RESPONSE, STATUS_NAMES,
+                                    STATUS_EIO, STATUS_NACK, STATUS_OK)
 from u2sa_hw.ports.tap import Tap, call_tap, tapping
 
 MOCK_SCHEME = "mock:"
-OP_READ = 0
-OP_WRITE = 1
-STATUS_OK = 0
-STATUS_NACK = 1
-STATUS_EIO = 2
-STATUS_BAD_REQUEST = 3
-STATUS_NAMES = {STATUS_OK: "OK", STATUS_NACK: "NACK", STATUS_EIO: "EIO", STATUS_BAD_REQUEST: "BAD_REQUEST"}
-REQUEST = struct.Struct(">BBBH")
-RESPONSE = struct.Struct(">BH")
-MAX_TRANSFER = 1024  # bytes per transaction; far above any chip's register file
-MOCK_BUS_NUMBER = -1  # the RawI2c.bus value recorded for a mock bus
 SMBUS_BLOCK_MAX = 32  # SMBus I2C-block limit; longer reads/writes use I2C_RDWR
 MOCK_TIMEOUT_S = 2.0  # a mock bus client's wait for an answer, unless its address says timeout=
 

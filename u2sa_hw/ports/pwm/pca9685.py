@@ -24,7 +24,7 @@ from typing import Iterator
 
 from u2sa_hw.messages import RawPwmWrite
 from u2sa_hw.ports.errors import PortClosed, PortError, PortUnavailable
-from u2sa_hw.ports.i2c_port import I2cPort, open_i2c, parse_bus
+from u2sa_hw.ports.i2c.port import I2cPort, open_i2c, parse_bus
 from u2sa_hw.ports.tap import Tap, call_tap, tapping
 from u2sa_hw.protocols import pca9685 as pca
 

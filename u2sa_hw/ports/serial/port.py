@@ -12,79 +12,28 @@ Every chunk read from the device is tapped as a ``RawSerial`` RX record, every w
 without data, once per silence: a log then says where the live driver saw a silence, which the
 read times alone cannot (a driver busy between two reads left the bytes waiting in the device:
 a gap in the read times, no silence). A replay hands the driver those silences and no others
-(:mod:`u2sa_hw.ports.serial_clock`); readers of the data bytes see nothing of them.
+(:mod:`u2sa_hw.ports.serial.clock`); readers of the data bytes see nothing of them.
 """
 
 from __future__ import annotations
 
-import errno
-import grp
 import logging
-import os
 import threading
 
 import serial
 
 from u2sa_hw.messages import RawSerial
-from u2sa_hw.ports.errors import PortClosed, PortTimeout, PortUnavailable, fix_for_errno
+from u2sa_hw.ports.errors import PortClosed, PortTimeout
 from u2sa_hw.ports.tap import RX, TX, Tap, call_tap, tapping
 
 log = logging.getLogger(__name__)
 
 MAX_LINE = 4096  # readline() gives up waiting for b"\n" after this many bytes (garbage)
 
-_BUSY_ERRNOS = {errno.EBUSY, errno.EAGAIN, errno.EWOULDBLOCK}
-
 
 def is_serial_url(address: str) -> bool:
     """True if *address* is a pyserial URL (``scheme://...``) rather than a device path."""
     return "://" in address
-
-
-def _os_errno(exc: BaseException) -> int | None:
-    """The errno behind a pyserial exception (pyserial often keeps it only in the context)."""
-    seen: set[int] = set()
-    current: BaseException | None = exc
-    while current is not None and id(current) not in seen:
-        seen.add(id(current))
-        if isinstance(current, OSError) and isinstance(current.errno, int):
-            return current.errno
-        current = current.__cause__ or current.__context__
-    return None
-
-
-def _group_fix(path: str) -> str:
-    """Advice for EACCES on *path*, naming the device node's group when it can be read."""
-    try:
-        group = grp.getgrgid(os.stat(path).st_gid).gr_name
-    except (OSError, KeyError):
-        return fix_for_errno(errno.EACCES, path)
-    if group == "root":
-        return (f"{path} belongs to group root: give it group 'dialout' with a udev rule "
-                "(like udev/60-u2sa-permissions.rules, installed by u2sa install) and add the "
-                "service user to that group")
-    return (f"no permission on {path}: add the service user to group '{group}' "
-            f"(usermod -aG {group} <user>; u2sa install does this)")
-
-
-def _open_fix(address: str, exc: BaseException) -> str:
-    """The advice for an open failure of *address*."""
-    code = _os_errno(exc)
-    if is_serial_url(address):
-        if isinstance(exc, ValueError):
-            return ("the URL scheme or its options are not known to pyserial: use a device path "
-                    "or loop://, socket://host:port, rfc2217://host:port, spy://<path>")
-        if code == errno.ECONNREFUSED:
-            return f"nothing listens at {address}: start the serial server (e.g. ser2net) or fix the URL"
-        return f"check that {address} is reachable and the URL is right"
-    if code in (errno.EACCES, errno.EPERM):
-        return _group_fix(address)
-    if code in _BUSY_ERRNOS:
-        return f"{address} is in use by another process: stop it (fuser -v {address})"
-    if code == errno.ENOENT and os.path.islink(address):
-        return (f"{address} is a dangling symlink: the device (or the mock device's pty) is gone; "
-                "plug it in / start the mock device, or fix the udev rule")
-    return fix_for_errno(code, address)
 
 
 class SerialPort:
@@ -96,7 +45,7 @@ class SerialPort:
     ``readline`` is tapped as an RX record without data, once per silence (module docstring).
     ``device_clock`` is False: an empty ``readline`` is a silence of the device
     (:meth:`went_quiet`), and a line's time is the reader's clock (a replay's
-    :class:`~u2sa_hw.ports.serial_clock.StampedSerialPort` says otherwise).
+    :class:`~u2sa_hw.ports.serial.clock.StampedSerialPort` says otherwise).
     """
 
     device_clock = False
@@ -257,41 +206,3 @@ def _record(device: str, direction: int, data: bytes) -> RawSerial:
     record.length = len(data)
     record.data = data
     return record
-
-
-def open_serial(address: str, *, device: str, baudrate: int = 9600, bytesize: int = 8, parity: str = "N",
-                stopbits: float = 1, timeout: float = 0.1, tap: Tap | None = None,
-                device_clock: bool = False) -> SerialPort:
-    """Open the serial device at *address* (a path or a pyserial URL) as *device*.
-
-    *device_clock*: the other end writes stamped frames (a replay's pty, ``clock=stamped`` on a
-    ``mock+serial`` address; :mod:`u2sa_hw.ports.serial_clock`).
-
-    Raises PortUnavailable naming the device, the address and the fix when it cannot be
-    opened (missing, no permission, busy, unknown URL scheme).
-    """
-    options = dict(baudrate=baudrate, bytesize=bytesize, parity=parity, stopbits=stopbits, timeout=timeout)
-    try:
-        if is_serial_url(address):
-            handle = serial.serial_for_url(address, **options)
-        else:
-            handle = serial.Serial(address, exclusive=True, **options)
-    except (serial.SerialException, OSError, ValueError) as exc:
-        code = _os_errno(exc)
-        if isinstance(exc, ValueError) and not is_serial_url(address):
-            reason = f"bad serial settings ({exc})"
-            fix = (f"check the framing in the service config: baudrate {baudrate!r} (e.g. 4800-115200), "
-                   f"bytesize {bytesize!r} (5, 6, 7, 8), parity {parity!r} (N, E, O, M, S), "
-                   f"stopbits {stopbits!r} (1, 1.5, 2)")
-        else:
-            reason = f"cannot open ({exc})"
-            fix = _open_fix(address, exc)
-        if code in _BUSY_ERRNOS:
-            reason = f"busy: another process holds it ({exc})"
-        raise PortUnavailable(device, reason, address=address, fix=fix) from exc
-    log.debug("%s: opened %s%s", device, address, " (stamped frames: device clock)" if device_clock else "")
-    if device_clock:
-        from u2sa_hw.ports.serial_clock import StampedSerialPort
-
-        return StampedSerialPort(handle, device=device, address=address, tap=tap, timeout=timeout)
-    return SerialPort(handle, device=device, address=address, tap=tap)

@@ -11,7 +11,7 @@ Every frame sent is tapped as a ``RawCanFrame`` TX record, every frame received 
 
 ``clock=stamped`` (a ``mock+can`` udp_multicast address only: a replay's bus) keeps each
 frame's sender stamp (its recorded bus time) and gives the port a device clock
-(:mod:`u2sa_hw.ports.can_clock`); :meth:`CanPort.now` is then that clock, else
+(:mod:`u2sa_hw.ports.can.clock`); :meth:`CanPort.now` is then that clock, else
 ``time.monotonic()``. A real bus never takes a foreign clock.
 """
 
@@ -32,7 +32,7 @@ from u2sa_hw.ports.tap import RX, TX, Tap, call_tap, tapping
 if TYPE_CHECKING:
     import can
 
-    from u2sa_hw.ports.can_clock import CanDeviceClock
+    from u2sa_hw.ports.can.clock import CanDeviceClock
 
 log = logging.getLogger(__name__)
 
@@ -201,7 +201,7 @@ def open_can(*, device: str, interface: str, channel: str, bitrate: int | None =
     """
     import can
 
-    from u2sa_hw.ports.can_clock import CAN_CLOCKS, CanDeviceClock, StampedUdpMulticastBus
+    from u2sa_hw.ports.can.clock import CAN_CLOCKS, CanDeviceClock, StampedUdpMulticastBus
 
     kwargs = dict(bus_options)
     clock = kwargs.pop("clock", None)

@@ -40,7 +40,7 @@ from collections import deque
 
 import serial
 
-from u2sa_hw.ports.serial_port import MAX_LINE, SerialPort
+from u2sa_hw.ports.serial.port import MAX_LINE, SerialPort
 from u2sa_hw.ports.tap import Tap
 
 ESC = 0x1B

@@ -1,0 +1,1 @@
+"""The pwm port kind (docs/ports.md): its address grammar, backends, mock client and wire protocol."""
