@@ -29,6 +29,7 @@ from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import ProprioceptiveSensor
 from u2sa_hw.config.configurator import ConfigError, field
 from u2sa_hw.ports import PortClosed, PortIOError, PortUnavailable
+from u2sa_hw.ports.declared import DeviceDeclarations
 from u2sa_hw.ports.device_link import DeviceLink, device_setting
 from u2sa_hw.ports.legacy import serial_address
 from u2sa_hw.ports.address_schemes import BAUDRATES, BYTESIZES, PARITIES, STOPBITS   # the one framing table
@@ -37,7 +38,7 @@ from u2sa_hw.ports.serial.port import SerialPort
 _PORT_FIELDS = ("device", "port", "baudrate", "bytesize", "parity", "stopbits", "device_name", "epoch_gap_s")
 
 
-class SerialLineSensor(ProprioceptiveSensor):
+class SerialLineSensor(DeviceDeclarations, ProprioceptiveSensor):
     """A proprioceptive sensor that reads NMEA-style lines from one serial device."""
 
     CONFIG = (
@@ -57,7 +58,6 @@ class SerialLineSensor(ProprioceptiveSensor):
         field("epoch_gap_s", 0.05, "this much silence on the line ends a burst of sentences (and is the read timeout)", gt=0, le=30.0),
     )
     EXAMPLE_PORT: ClassVar[str] = "/dev/u2sa/gps"
-    MOCK_KINDS: ClassVar[tuple[str, ...]] = ()   # u2sa_hw/ports/declared.py: the mocks that stand in
 
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)

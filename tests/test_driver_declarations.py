@@ -37,7 +37,7 @@ def _spec(kind: str, mock: str, address: str, config: Mapping[str, Any], *, name
 @pytest.mark.parametrize("kind", DRIVER_KINDS)
 def test_every_driver_with_a_device_declares_its_mocks_and_what_the_probe_expects(kind: str) -> None:
     cls = registry.resolve_kind(kind)
-    assert hasattr(cls, "used_devices")
+    assert declared.declares_devices(cls)
     kinds = declared.mock_kinds(cls)
     assert kinds and all(k in CATALOG for k in kinds), f"{kind}: MOCK_KINDS {kinds} must name catalog kinds"
     for name in ("mock_wiring", "probe_expectation"):
@@ -89,7 +89,7 @@ def test_declarations_get_the_drivers_defaults_under_a_partial_config() -> None:
 
 
 # ---- the catalog uses the declaration, not the setting names ----------------------------------------
-class RenamedRcDriver:
+class RenamedRcDriver(declared.DeviceDeclarations):
     """A third-party RC driver whose settings are named unlike rc_mux's."""
 
     MOCK_KINDS: ClassVar[tuple[str, ...]] = ("rc_receiver",)
@@ -100,7 +100,7 @@ class RenamedRcDriver:
                 "enable_line": config["autonomy_line"], "select_line": None}
 
 
-class RenamedVescDriver:
+class RenamedVescDriver(declared.DeviceDeclarations):
     """A third-party VESC driver with one table per motor."""
 
     MOCK_KINDS: ClassVar[tuple[str, ...]] = ("vesc",)

@@ -40,7 +40,7 @@ from u2sa_hw.ports.device_link import DeviceLink, device_setting
 from u2sa_hw.ports.legacy import can_address
 
 from u2sa_hw.drivers.can_motor.watchdog import WatchdogStep, check_hw_watchdog, watchdog_summary  # noqa: F401 - their old home
-from u2sa_hw.drivers.declarations import CanMotorDeclarations
+from u2sa_hw.drivers.can_motor.declarations import CanMotorDeclarations
 from u2sa_hw.drivers.can_motor.diff_drive_odometry import SOURCES, BodyMotion, DiffDriveOdometry
 from u2sa_hw.drivers.can_motor.stall_trip import StallWatch, trip_gap_s
 

@@ -32,6 +32,7 @@ from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Actuator, ExteroceptiveSensor
 from u2sa_hw.config.configurator import MAX_TIMEOUT_S, ConfigError, field
+from u2sa_hw.ports.declared import DeviceDeclarations
 from u2sa_hw.ports.device_link import device_setting
 from u2sa_hw.ports.gpio.wire import BIASES
 from u2sa_hw.ports.gpio.port import GpioPort
@@ -56,7 +57,7 @@ def _used_gpio(service: str, config: Mapping[str, Any], key: str) -> dict[str, s
 _RAW = field("record_raw", False, "publish every edge and write as RawGpioEdge/RawGpioWrite on RAW.<device>")
 
 
-class GpioOutputDriver(Actuator):
+class GpioOutputDriver(DeviceDeclarations, Actuator):
     """Digital output lines, each an actuator: >= 50 % on, else off; neutral = its safe level."""
 
     MOCK_KINDS = ("gpio_chip",)   # u2sa_hw/ports/declared.py
@@ -195,7 +196,7 @@ class _Announce:
     last_s: float = 0.0
 
 
-class GpioInputDriver(ExteroceptiveSensor):
+class GpioInputDriver(DeviceDeclarations, ExteroceptiveSensor):
     """Digital inputs with edge events: e-stops command the failsafe, bumpers report contacts."""
 
     MOCK_KINDS = ("gpio_chip",)   # u2sa_hw/ports/declared.py

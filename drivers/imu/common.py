@@ -34,6 +34,7 @@ from u2sa_hw.abstract import ProprioceptiveSensor
 from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence setters
 from u2sa_hw.ports.errors import PortClosed, PortError, PortIOError, PortTimeout, PortUnavailable
 from u2sa_hw.ports.address import AddressError
+from u2sa_hw.ports.declared import DeviceDeclarations
 from u2sa_hw.ports.device_link import DeviceLink, device_setting
 from u2sa_hw.ports.i2c.port import I2cPort
 from u2sa_hw.ports.legacy import i2c_address
@@ -184,7 +185,7 @@ class RetryingI2c:
         self._retry(lambda: self.port.write_block(register, data))
 
 
-class I2cImuDriver(ProprioceptiveSensor):
+class I2cImuDriver(DeviceDeclarations, ProprioceptiveSensor):
     """Base of the I2C IMU drivers (see the module docstring).
 
     Subclasses declare an ``address`` config field, set ``DEFAULT_ADDRESS`` and write

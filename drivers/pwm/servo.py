@@ -50,6 +50,7 @@ from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Actuator
 from u2sa_hw.config.configurator import ConfigError, field
 from u2sa_hw.ports.address import AddressError, DeviceAddress
+from u2sa_hw.ports.declared import DeviceDeclarations
 from u2sa_hw.ports.device_link import DeviceLink
 from u2sa_hw.ports.errors import PortError, PortUnavailable
 from u2sa_hw.ports.legacy import pwm_address
@@ -273,7 +274,7 @@ class ServoOutput:
         self.last_error = error
 
 
-class PwmServoDriver(Actuator):
+class PwmServoDriver(DeviceDeclarations, Actuator):
     """Servos and ESCs on sysfs PWM or PCA9685 channels; see the module docstring."""
 
     MOCK_KINDS = ("pca9685", "sysfs_pwm")   # u2sa_hw/ports/declared.py

@@ -58,7 +58,7 @@ import threading
 import time
 from typing import Any, Mapping, NamedTuple
 
-from u2sa_hw.drivers.declarations import RcMuxDeclarations
+from u2sa_hw.drivers.rc_mux.declarations import RcMuxDeclarations
 from u2sa_hw.drivers.gpio.lines import (GpioLineSet, check_gpio_device, legacy_gpio_address, note_restart_needed,
                                 parse_line_map)
 from u2sa_hw.drivers.rc_mux.manual import ManualSticks

@@ -1,38 +1,77 @@
-"""What a driver declares about its device for the rest of the system, read by service kind.
+"""What a driver declares about its device for the rest of the system: a typed base, read by service kind.
 
 Nothing outside a driver reads a driver's setting names (DESIGN.md section 4): the mock
-catalog, replay and ``u2sa check`` (its probe, its "no mock" fix) ask the driver class,
-found by service kind through the registry (:func:`u2sa_hw.registry.resolve_kind`), and
-get values in their own vocabulary. Besides ``used_devices`` (see
-:mod:`u2sa_hw.ports.device_link`) a driver class declares::
+catalog, replay, install and ``u2sa check`` (its probe, its "no mock" fix) ask the driver
+class, found by service kind through the registry (:func:`u2sa_hw.registry.resolve_kind`),
+and get values in their own vocabulary. Every hardware driver class derives from
+:class:`DeviceDeclarations` and overrides what applies to it::
 
-    MOCK_KINDS: ClassVar[tuple[str, ...]] = ("nmea_gps",)   # the mocks that stand in for its
-                                                            # device (the usual one first)
-    @classmethod
-    def mock_wiring(cls, service: str, device: str, config: Mapping[str, Any]) -> Mapping[str, Any]:
-        # what a mock of *device* must mirror of the driver's wiring (lines, ids, pulse range);
-        # a ValueError (ConfigError) names the setting and the fix
-    @classmethod
-    def probe_expectation(cls, config: Mapping[str, Any]) -> Mapping[str, Any]:
-        # what ``u2sa check --probe`` expects at the device (a protocol, a chip, node ids)
-    @classmethod
-    def replay_options(cls, device: str, config: Mapping[str, Any]) -> Mapping[str, Any]:
-        # how a replay feeds the device (a serial device's burst gap)
+    class GpsNmeaDriver(SerialLineSensor):           # SerialLineSensor derives from DeviceDeclarations
+        MOCK_KINDS = ("nmea_gps",)                   # the mocks that stand in for its device, usual first
+        @classmethod
+        def used_devices(cls, service, config) -> Mapping[str, str | None]: ...   # the devices it opens
+        @classmethod
+        def mock_wiring(cls, service, device, config) -> Mapping[str, Any]: ...
+        @classmethod
+        def probe_expectation(cls, config) -> Mapping[str, Any]: ...
+        @classmethod
+        def replay_options(cls, device, config) -> Mapping[str, Any]: ...
 
-Each is called with the service's config with the class's declared defaults under it (what
-the service runs with, :func:`with_defaults`), so a profile that leaves a setting at its
-default gets the driver's default, never a guess of the caller's. The keys each mapping may
-hold are listed in docs/ports.md ("Driver declarations"). A mock wiring may give, under
-:data:`SOURCES`, the setting each value comes from, for the caller's messages only
-(``{"protocol": "format"}``). A class that declares nothing gets empty mappings and no mock
-kinds.
+The base's defaults declare nothing (no devices, no mocks, empty mappings), so a service that
+is not a driver (``control``, a mission) is read the same way and gives nothing. The module
+functions below call the declarations with the service's config with the class's field
+defaults under it (what the service runs with, :func:`with_defaults`), so a profile that
+leaves a setting at its default gets the driver's default, never a guess of the caller's.
+The keys each mapping may hold are listed in docs/ports.md ("Driver declarations"). A mock
+wiring may give, under :data:`SOURCES`, the setting each value comes from, for the caller's
+messages only (``{"protocol": "format"}``). ``tests/test_driver_declarations_typed.py`` checks
+that every registered driver derives from the base and declares its devices and mocks.
 """
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any, ClassVar, Mapping
 
 SOURCES = "sources"   # mock wiring key: value key -> the setting it comes from (for messages only)
+
+
+class DeviceDeclarations:
+    """The typed declarations of a driver class; each default declares nothing (see the module docstring)."""
+
+    MOCK_KINDS: ClassVar[tuple[str, ...]] = ()
+    """The ``CATALOG`` mock kinds that stand in for the driver's device, the usual one first."""
+
+    @classmethod
+    def used_devices(cls, service: str, config: Mapping[str, Any]) -> Mapping[str, str | None]:
+        """The devices service *service* opens (``[devices.NAME]`` tables), in order: name -> the address its
+        old-form settings give (None: new form only)."""
+        return {}
+
+    @classmethod
+    def mock_wiring(cls, service: str, device: str, config: Mapping[str, Any]) -> Mapping[str, Any]:
+        """What a mock of *device* must mirror of the driver's wiring (lines, ids, pulse range), in the mocks'
+        vocabulary; a ConfigError (a ValueError) names the setting and the fix."""
+        return {}
+
+    @classmethod
+    def probe_expectation(cls, config: Mapping[str, Any]) -> Mapping[str, Any]:
+        """What ``u2sa check --probe`` expects at the device (a protocol, a chip and variant, node ids)."""
+        return {}
+
+    @classmethod
+    def replay_options(cls, device: str, config: Mapping[str, Any]) -> Mapping[str, Any]:
+        """How a replay feeds *device* (a serial device's ``burst_gap_s``)."""
+        return {}
+
+
+def declares_devices(cls: object) -> bool:
+    """True when *cls* is a class deriving from :class:`DeviceDeclarations` (a driver)."""
+    return isinstance(cls, type) and issubclass(cls, DeviceDeclarations)
+
+
+def declarations(cls: type) -> type[DeviceDeclarations]:
+    """*cls* when it is a driver, else the base (a service that is not a driver declares nothing)."""
+    return cls if declares_devices(cls) else DeviceDeclarations
 
 
 def declared_class(kind: str) -> type:
@@ -44,33 +83,35 @@ def declared_class(kind: str) -> type:
 
 def with_defaults(cls: type, config: Mapping[str, Any]) -> dict[str, Any]:
     """*config* over the defaults of the fields *cls* declares (a config file may leave any out)."""
-    fields = getattr(cls, "config_fields", None)
+    fields = getattr(cls, "config_fields", None)   # the service contract's, not a declaration
     defaults = {f.name: f.default for f in fields()} if fields is not None else {}
     return {**defaults, **config}
 
 
+def used_devices(cls: type, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
+    """The devices service *service* of class *cls* opens (*config* as given: the caller's is the effective one)."""
+    return dict(declarations(cls).used_devices(service, config))
+
+
 def mock_kinds(cls: type) -> tuple[str, ...]:
     """The mock kinds that stand in for the device of a service of class *cls* (the usual one first)."""
-    return tuple(getattr(cls, "MOCK_KINDS", ()))
+    return tuple(declarations(cls).MOCK_KINDS)
 
 
 def mock_wiring(cls: type, service: str, device: str, config: Mapping[str, Any]) -> dict[str, Any]:
     """What a mock of *device* (of *service*, class *cls*) mirrors of the driver's wiring; ValueError
     (the driver's ConfigError) names the setting and the fix."""
-    declare = getattr(cls, "mock_wiring", None)
-    return dict(declare(service, device, with_defaults(cls, config))) if declare is not None else {}
+    return dict(declarations(cls).mock_wiring(service, device, with_defaults(cls, config)))
 
 
 def probe_expectation(cls: type, config: Mapping[str, Any]) -> dict[str, Any]:
     """What the driver of class *cls* expects at its device (``u2sa check --probe``)."""
-    declare = getattr(cls, "probe_expectation", None)
-    return dict(declare(with_defaults(cls, config))) if declare is not None else {}
+    return dict(declarations(cls).probe_expectation(with_defaults(cls, config)))
 
 
 def replay_options(cls: type, device: str, config: Mapping[str, Any]) -> dict[str, Any]:
     """How a replay feeds *device* of a service of class *cls* (e.g. ``burst_gap_s``)."""
-    declare = getattr(cls, "replay_options", None)
-    return dict(declare(device, with_defaults(cls, config))) if declare is not None else {}
+    return dict(declarations(cls).replay_options(device, with_defaults(cls, config)))
 
 
 def source_of(wiring: Mapping[str, Any], key: str) -> str:

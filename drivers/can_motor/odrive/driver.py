@@ -51,7 +51,7 @@ from u2sa_hw.protocols.odrive_cansimple import AxisState, Cmd, ControlMode, Inpu
 
 from u2sa_hw.drivers.can_motor.common import CanMotorService
 from u2sa_hw.drivers.can_motor.watchdog import WatchdogStep, check_hw_watchdog, watchdog_summary
-from u2sa_hw.drivers.declarations import OdriveDeclarations
+from u2sa_hw.drivers.can_motor.declarations import OdriveDeclarations
 from u2sa_hw.drivers.can_motor.odrive.axis import OdriveAxis, enum_name, error_names
 from u2sa_hw.drivers.can_motor.odrive.latch import OdriveTripLatch
 from u2sa_hw.drivers.can_motor.odrive.watchdog import WATCHDOG_FIELDS, OdriveWatchdogSetup

@@ -42,7 +42,7 @@ from u2sa_hw.protocols.vesc_can import PacketId
 
 from u2sa_hw.drivers.can_motor.common import CanMotorService, MotorSpec
 from u2sa_hw.drivers.can_motor.watchdog import WatchdogStep, check_hw_watchdog, watchdog_summary
-from u2sa_hw.drivers.declarations import VescDeclarations
+from u2sa_hw.drivers.can_motor.declarations import VescDeclarations
 from u2sa_hw.drivers.value_ranges import ValueDrops
 
 MODES = {"duty": PacketId.SET_DUTY, "rpm": PacketId.SET_RPM}

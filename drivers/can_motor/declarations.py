@@ -1,22 +1,22 @@
-"""Device declarations of the driver families whose modules are full: CAN motors and the RC mux.
+"""What the CAN motor drivers declare to the rest of the system (u2sa_hw/ports/declared.py).
 
-Mixins of :class:`u2sa_hw.drivers.can_motor.common.CanMotorService`, :class:`u2sa_hw.drivers.can_motor.odrive.driver.OdriveCanMotor`,
-:class:`u2sa_hw.drivers.can_motor.vesc.driver.VescCanMotor` and :class:`u2sa_hw.drivers.rc_mux.driver.RcMuxDriver`: what each
-declares to the mock catalog and ``u2sa check --probe`` (``MOCK_KINDS``, ``mock_wiring``,
-``probe_expectation``; u2sa_hw/ports/declared.py). The setting names stay with the drivers;
-callers get values in their own vocabulary. Each is called with the service's config with
-the driver's defaults under it.
+Mixins of :class:`u2sa_hw.drivers.can_motor.common.CanMotorService` and its ODrive and VESC
+drivers: the one bus a service drives, the mocks that stand in for its controllers, what a
+mock node mirrors (actuator names, CAN ids, directions, wheel radii, the motor's limits) and
+the node ids ``u2sa check --probe`` listens for. The setting names stay here, with the
+drivers; callers get values in their own vocabulary. Each is called with the service's config
+with the driver's defaults under it.
 """
 
 from __future__ import annotations
 
 from typing import Any, ClassVar, Mapping
 
-from u2sa_hw.drivers.gpio.lines import parse_line_map
+from u2sa_hw.ports.declared import DeviceDeclarations
 
 
-class CanMotorDeclarations:
-    """One node per controller: actuator names, CAN ids, directions, wheel radii; the probe's node ids."""
+class CanMotorDeclarations(DeviceDeclarations):
+    """One node per controller on one bus: actuator names, CAN ids, directions, wheel radii; the probe's ids."""
 
     ID_FIELD: ClassVar[str]                # the setting holding the controllers' CAN ids (the driver's)
     PROTOCOL: ClassVar[str] = ""           # what the probe listens for: odrive or vesc
@@ -57,23 +57,3 @@ class VescDeclarations(CanMotorDeclarations):
         """The controllers, ``max_erpm`` (at 100 %), ``pole_pairs`` and ``gear_ratio``."""
         return {**super().mock_wiring(service, device, config), "max_erpm": float(config["max_erpm"]),
                 "pole_pairs": int(config["pole_pairs"]), "gear_ratio": float(config["gear_ratio"])}
-
-
-class RcMuxDeclarations:
-    """An RC receiver's pulse trains on the service's lines, and the mux on its enable line."""
-
-    MOCK_KINDS: ClassVar[tuple[str, ...]] = ("rc_receiver",)
-
-    @classmethod
-    def mock_wiring(cls, service: str, device: str, config: Mapping[str, Any]) -> dict[str, Any]:
-        """``lines`` (channel -> line), ``mode_channel``, ``enable_line`` and ``select_line`` (None: no such line);
-        a ConfigError names the setting and the fix."""
-        enable, select = int(config["enable_line"]), int(config["select_line"])
-        return {"lines": parse_line_map(str(config["channels"]), service=service, key="channels"),
-                "mode_channel": str(config["mode_channel"]),
-                "enable_line": enable if enable >= 0 else None, "select_line": select if select >= 0 else None}
-
-    @classmethod
-    def probe_expectation(cls, config: Mapping[str, Any]) -> dict[str, Any]:
-        """Nothing: a GPIO chip has no identity to read."""
-        return {}
