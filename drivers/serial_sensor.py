@@ -32,7 +32,7 @@ from u2sa_hw.ports import PortClosed, PortIOError, PortUnavailable
 from u2sa_hw.ports.declared import DeviceDeclarations
 from u2sa_hw.ports.device_link import DeviceLink, device_setting
 from u2sa_hw.ports.legacy import serial_address
-from u2sa_hw.ports.address_schemes import BAUDRATES, BYTESIZES, PARITIES, STOPBITS   # the one framing table
+from u2sa_hw.ports.serial.grammar import BAUDRATES, BYTESIZES, PARITIES, STOPBITS   # the one framing table
 from u2sa_hw.ports.serial.port import SerialPort
 
 _PORT_FIELDS = ("device", "port", "baudrate", "bytesize", "parity", "stopbits", "device_name", "epoch_gap_s")

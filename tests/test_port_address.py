@@ -33,13 +33,13 @@ GOOD = [
     ("mock+gpio:///run/sim/gpiochip0.sock/5,6,13", "gpio", True,
      {"gpio_chip": "mock:/run/sim/gpiochip0.sock", "lines": (5, 6, 13)}),
     ("pwm://pwmchip0/2", "pwm", False,
-     {"pwm_chip": "/sys/class/pwm/pwmchip0", "pwm_channel": 2, "pwm_legacy_address": "/sys/class/pwm/pwmchip0"}),
+     {"pwm_chip": "/sys/class/pwm/pwmchip0", "pwm_channel": 2, "location": "/sys/class/pwm/pwmchip0"}),
     ("mock+pwm:///run/sim/pwmchip0/0", "pwm", True, {"pwm_chip": "/run/sim/pwmchip0", "pwm_channel": 0}),
     ("pca9685://1/0x40/3", "pca9685", False,
-     {"i2c_bus": 1, "chip_address": 0x40, "pwm_channel": 3, "pwm_legacy_address": "pca9685:1:0x40"}),
+     {"i2c_bus": 1, "chip_address": 0x40, "pwm_channel": 3, "location": "1"}),
     ("mock+pca9685:///run/sim/i2c-1.sock/0x41/15", "pca9685", True,
      {"i2c_bus": "mock:/run/sim/i2c-1.sock", "chip_address": 0x41, "pwm_channel": 15,
-      "pwm_legacy_address": "pca9685:mock:/run/sim/i2c-1.sock:0x41"}),
+      "location": "/run/sim/i2c-1.sock"}),
 ]
 
 

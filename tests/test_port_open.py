@@ -17,7 +17,8 @@ from u2sa_hw.mocks.pca9685_chip import Pca9685Chip
 from u2sa_hw.mocks.vehicle_sim import SimVehicle
 from u2sa_hw.ports import PortUnavailable
 from u2sa_hw.ports.address import AddressError, make_address
-from u2sa_hw.ports.opener import SCHEMES, open_port
+from u2sa_hw.ports.kinds import PORT_KINDS
+from u2sa_hw.ports.opener import open_port
 from u2sa_hw.ports.pwm.port import make_sysfs_pwm_tree
 from u2sa_hw.ports.tap import RX, TX
 from u2sa_hw.protocols import mpu9250 as mpu
@@ -34,9 +35,10 @@ def sockets() -> Iterator[Path]:
 
 
 def test_every_kind_has_a_real_and_a_mock_scheme() -> None:
-    kinds = {key.removeprefix("mock+") for key in SCHEMES}
-    assert kinds == {"serial", "can", "i2c", "gpio", "pwm", "pca9685"}
-    assert all(f"mock+{kind}" in SCHEMES and kind in SCHEMES for kind in kinds)
+    assert set(PORT_KINDS) == {"serial", "can", "i2c", "gpio", "pwm", "pca9685"}
+    for name, kind in PORT_KINDS.items():
+        assert kind.example.startswith(f"{name}://") and kind.mock_example.startswith(f"mock+{name}://")
+        assert callable(kind.open_real) and callable(kind.open_mock) and kind.real_backend and kind.mock_backend
 
 
 def test_serial_on_a_pty_with_the_address_framing_and_a_tap(tmp_path: Path) -> None:

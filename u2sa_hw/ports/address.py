@@ -35,7 +35,8 @@ API (stable; ``u2sa check``, install and udev generation build on it):
 - :func:`make_address` builds one from parts (used by the legacy conversion and the mocks).
 
 A query parameter the kind does not take is an error with a did-you-mean (``bitrat=`` is
-not handed on). The per-scheme parsers and parameter tables are in
+not handed on). Each kind's parser and parameters are its grammar (``u2sa_hw/ports/<kind>/grammar.py``),
+found through the kind table (:data:`u2sa_hw.ports.kinds.PORT_KINDS`); the pieces they share are
 :mod:`u2sa_hw.ports.address_schemes`. Opening is :func:`u2sa_hw.ports.opener.open_port`;
 neither module imports a port library.
 """
@@ -47,31 +48,16 @@ from types import MappingProxyType
 from typing import Any, Mapping
 from urllib.parse import parse_qsl, quote, urlencode
 
-from u2sa_hw.ports.address_schemes import (BAUDRATES, BYTESIZES, CAN_PARAMS, MOCK_PREFIX, PARAMS, PARITIES, PARSERS,
-                                           SERIAL_PARAMS, STOPBITS, SYSFS_PWM, UrlParts, check_params, typed_option)
+from u2sa_hw.ports.address_schemes import MOCK_PREFIX, SYSFS_PWM, UrlParts, check_params, typed_option
+from u2sa_hw.ports.kinds import PORT_KINDS
 
-__all__ = ["KINDS", "MOCK_PREFIX", "EXAMPLES", "MOCK_EXAMPLES", "SERIAL_PARAMS", "CAN_PARAMS", "PARAMS", "BAUDRATES",
-           "PARITIES", "BYTESIZES", "STOPBITS", "SYSFS_PWM", "AddressError", "DeviceAddress", "parse_address",
-           "make_address"]
+__all__ = ["KINDS", "MOCK_PREFIX", "EXAMPLES", "MOCK_EXAMPLES", "PARAMS", "SYSFS_PWM", "AddressError", "DeviceAddress",
+           "parse_address", "make_address"]
 
-KINDS = ("serial", "can", "i2c", "gpio", "pwm", "pca9685")
-
-EXAMPLES = {
-    "serial": "serial:///dev/u2sa/gps?baud=9600",
-    "can": "can://socketcan/can0?bitrate=500000",
-    "i2c": "i2c://1/0x68",
-    "gpio": "gpio://gpiochip0/17,27",
-    "pwm": "pwm://pwmchip0/0",
-    "pca9685": "pca9685://1/0x40/3",
-}
-MOCK_EXAMPLES = {
-    "serial": "mock+serial:///run/sim/gps?baud=9600",
-    "can": "mock+can://udp_multicast/239.74.163.2?port=17270",
-    "i2c": "mock+i2c:///run/sim/i2c-1.sock/0x68",
-    "gpio": "mock+gpio:///run/sim/gpiochip0.sock/5,6",
-    "pwm": "mock+pwm:///run/sim/pwmchip0/0",
-    "pca9685": "mock+pca9685:///run/sim/i2c-1.sock/0x40/3",
-}
+KINDS = tuple(PORT_KINDS)   # the address kinds, one per line of the kind table
+EXAMPLES = {name: kind.example for name, kind in PORT_KINDS.items()}
+MOCK_EXAMPLES = {name: kind.mock_example for name, kind in PORT_KINDS.items()}
+PARAMS = {name: kind.params for name, kind in PORT_KINDS.items()}   # the query parameters each kind takes
 
 
 class AddressError(ValueError):
@@ -273,14 +259,6 @@ class DeviceAddress:
         return self.numbers[-1]
 
     @property
-    def pwm_legacy_address(self) -> str:
-        """The address string ``open_pwm`` takes (a chip directory or ``pca9685:<bus>:<addr>``)."""
-        self._need("pwm", "pca9685")
-        if self.kind == "pwm":
-            return self.location
-        return f"pca9685:{self.i2c_bus}:0x{self.chip_address:02x}"
-
-    @property
     def output_id(self) -> tuple[Any, ...]:
         """What makes two PWM addresses one output pin (sysfs chip + channel; PCA9685 bus + chip + channel),
         however the chip address is spelt: sysfs and a PCA9685 let two writers share a pin unnoticed."""
@@ -347,11 +325,12 @@ def parse_address(text: str, *, device: str) -> DeviceAddress:
         params = dict(parse_qsl(query, keep_blank_values=True, strict_parsing=bool(query)))
     except ValueError:
         raise fail(f"bad query string {query!r} (use key=value&key=value)") from None
-    check_params(kind, params, fail)
+    port_kind = PORT_KINDS[kind]
+    check_params(kind, port_kind.params, params, fail)
     netloc, slash, path = body.partition("/")
     parts = UrlParts(kind=kind, mock=mock, serial_scheme=serial_scheme if plus else "", body=body, netloc=netloc,
                      path=slash + path, params=params)
-    backend, location, numbers = PARSERS[kind](parts, fail)
+    backend, location, numbers = port_kind.parse(parts, fail)
     return DeviceAddress(url=url, kind=kind, mock=mock, params=MappingProxyType(params), backend=backend,
                          location=location, numbers=numbers)
 

@@ -133,14 +133,10 @@ class GpioPort:
     def _release(self) -> None: raise NotImplementedError  # noqa: E704
 
 
-def open_gpio(*, device: str, chip: str, inputs: Sequence[int] = (), outputs: Mapping[int, int] | None = None,
-              edge: str = "both", bias: str = "as-is", tap: Tap | None = None) -> GpioPort:
-    """Request *inputs* (with *edge* detection) and *outputs* (line -> initial value) on *chip*.
-
-    *chip* is a kernel GPIO chip (``/dev/gpiochip0``) or ``mock:/path/to.sock``.
-    *bias* is one of ``as-is``, ``pull-up``, ``pull-down``, ``disabled`` for every line.
-    Raises PortUnavailable (naming the chip and the fix) when the lines cannot be had.
-    """
+def checked_request(*, device: str, inputs: Sequence[int], outputs: Mapping[int, int] | None, edge: str,
+                    bias: str) -> tuple[list[int], dict[int, int]]:
+    """*inputs* and *outputs* as a list and a dict, once they make a request a chip can grant: ValueError
+    (naming *device*) for an unknown *edge* or *bias*, no line, a line twice or an output value not 0/1."""
     inputs, outputs = list(inputs), dict(outputs or {})
     if edge not in EDGES or bias not in BIASES:
         raise ValueError(f"{device}: edge must be one of {EDGES} and bias one of {BIASES}, not {edge!r}, {bias!r}")
@@ -152,6 +148,18 @@ def open_gpio(*, device: str, chip: str, inputs: Sequence[int] = (), outputs: Ma
                          f"and outputs {sorted(outputs)}")
     if any(v not in (0, 1) for v in outputs.values()):
         raise ValueError(f"{device}: initial output values must be 0 or 1, got {outputs}")
+    return inputs, outputs
+
+
+def open_gpio(*, device: str, chip: str, inputs: Sequence[int] = (), outputs: Mapping[int, int] | None = None,
+              edge: str = "both", bias: str = "as-is", tap: Tap | None = None) -> GpioPort:
+    """Request *inputs* (with *edge* detection) and *outputs* (line -> initial value) on *chip*.
+
+    *chip* is a kernel GPIO chip (``/dev/gpiochip0``) or ``mock:/path/to.sock``.
+    *bias* is one of ``as-is``, ``pull-up``, ``pull-down``, ``disabled`` for every line.
+    Raises PortUnavailable (naming the chip and the fix) when the lines cannot be had.
+    """
+    inputs, outputs = checked_request(device=device, inputs=inputs, outputs=outputs, edge=edge, bias=bias)
     if chip.startswith(MOCK_PREFIX):
         from u2sa_hw.ports.gpio.mock_client import MockGpioPort
 

@@ -324,8 +324,17 @@ def open_i2c(*, device: str, bus: int | str, address: int, tap: Tap | None = Non
     if isinstance(address, bool) or not isinstance(address, int) or not 0x03 <= address <= 0x77:
         raise PortUnavailable(device, f"I2C address {address!r} is not a 7-bit device address (0x03..0x77)",
                               address=f"{bus}:{address}", fix="use the chip's address from its datasheet, e.g. 0x68")
-    if isinstance(where, int):
-        return SmbusI2cPort(device=device, bus=where, i2c_address=address, tap=tap)
-    return MockI2cPort(device=device, socket_path=where[len(MOCK_SCHEME):], i2c_address=address, tap=tap,
+    return open_i2c_chip(device=device, bus=where if isinstance(where, int) else where[len(MOCK_SCHEME):],
+                         chip=address, tap=tap, timeout=timeout)
+
+
+def open_i2c_chip(*, device: str, bus: int | str, chip: int, tap: Tap | None = None,
+                  timeout: float | None = None) -> I2cPort:
+    """Open *chip* (a checked 7-bit address) on *bus*: an adapter number (int: ``/dev/i2c-N`` through smbus2)
+    or the mock bus server's socket path (str). The typed parts of a parsed address go here as they are;
+    *timeout* is the mock client's wait for an answer (None: :data:`MOCK_TIMEOUT_S`)."""
+    if isinstance(bus, int):
+        return SmbusI2cPort(device=device, bus=bus, i2c_address=chip, tap=tap)
+    return MockI2cPort(device=device, socket_path=bus, i2c_address=chip, tap=tap,
                        timeout=MOCK_TIMEOUT_S if timeout is None else timeout)
 

@@ -24,7 +24,7 @@ from typing import Iterator
 
 from u2sa_hw.messages import RawPwmWrite
 from u2sa_hw.ports.errors import PortClosed, PortError, PortUnavailable
-from u2sa_hw.ports.i2c.port import I2cPort, open_i2c, parse_bus
+from u2sa_hw.ports.i2c.port import MOCK_SCHEME, I2cPort, open_i2c_chip, parse_bus
 from u2sa_hw.ports.tap import Tap, call_tap, tapping
 from u2sa_hw.protocols import pca9685 as pca
 
@@ -53,7 +53,7 @@ class Pca9685Controller:
 
     def __init__(self, *, bus: int | str, i2c_address: int, period_ns: int) -> None:
         self.device = "pca9685"  # channels re-raise the port's errors under their own names
-        self.bus = bus
+        self.bus = bus           # an adapter number, or the mock I2C bus server's socket path
         self.i2c_address = i2c_address
         self.prescale = pca.prescale_for_period(period_ns)
         self.period_ns = pca.period_for_prescale(self.prescale)
@@ -66,7 +66,7 @@ class Pca9685Controller:
         """The open I2C port, reopened and the chip set up again if the bus went away."""
         with self.lock:
             if self._port is None or not self._port.is_open:
-                self._port = open_i2c(device=self.device, bus=self.bus, address=self.i2c_address)
+                self._port = open_i2c_chip(device=self.device, bus=self.bus, chip=self.i2c_address)
                 try:
                     self._configure(self._port)
                 except Exception:
@@ -113,19 +113,20 @@ _chips: dict[tuple[int | str, int], Pca9685Controller] = {}
 _chips_lock = threading.Lock()
 
 
-def _attach(*, device: str, bus: int | str, i2c_address: int, channel: int, period_ns: int) -> Pca9685Controller:
-    """The shared chip record for (bus, address), created or checked for a matching period."""
+def _attach(*, device: str, address: str, bus: int | str, i2c_address: int, channel: int,
+            period_ns: int) -> Pca9685Controller:
+    """The shared chip record for (bus, address), created or checked for a matching period; errors name *address*."""
     with _chips_lock:
         chip = _chips.get((bus, i2c_address))
         if chip is not None and chip.channels and pca.prescale_for_period(period_ns) != chip.prescale:
             raise PortUnavailable(device, f"the PCA9685 at 0x{i2c_address:02x} runs a {chip.period_ns} ns frame for "
                                   f"channels {sorted(chip.channels)}; channel {channel} asks {period_ns} ns",
-                                  address=f"{SCHEME}{bus}:0x{i2c_address:02x}",
+                                  address=address,
                                   fix="all channels of one PCA9685 share one period: "
                                       f"use period_ns={chip.requested_period_ns}")
         if chip is not None and channel in chip.channels:
             raise PortUnavailable(device, f"PCA9685 channel {channel} at 0x{i2c_address:02x} is already open",
-                                  address=f"{SCHEME}{bus}:0x{i2c_address:02x}",
+                                  address=address,
                                   fix="give each actuator its own channel in the vehicle config")
         if chip is None or not chip.channels:
             chip = Pca9685Controller(bus=bus, i2c_address=i2c_address, period_ns=period_ns)
@@ -256,8 +257,18 @@ def renamed_error(exc: PortError, *, device: str, address: str) -> PortError:
 
 def open_pca9685_pwm(*, device: str, address: str, channel: int, period_ns: int = 20_000_000,
                      tap: Tap | None = None) -> Pca9685PwmChannel:
-    """Open *channel* (0..15) of the PCA9685 at *address* with a frame of *period_ns*."""
+    """Open *channel* (0..15) of the PCA9685 at *address* (``pca9685:<bus>:<i2c addr>``) with a frame of *period_ns*."""
     bus, i2c_address = parse_address(address, device=device)
+    return open_pca9685_channel(device=device, address=address, bus=bus if isinstance(bus, int) else
+                                bus[len(MOCK_SCHEME):], i2c_address=i2c_address, channel=channel, period_ns=period_ns,
+                                tap=tap)
+
+
+def open_pca9685_channel(*, device: str, address: str, bus: int | str, i2c_address: int, channel: int,
+                         period_ns: int = 20_000_000, tap: Tap | None = None) -> Pca9685PwmChannel:
+    """Open *channel* (0..15) of the PCA9685 at *i2c_address* on *bus* (an adapter number, or the mock I2C bus
+    server's socket path) with a frame of *period_ns*: the typed parts of a parsed address, as they are.
+    *address* is what errors and taps name."""
     if isinstance(channel, bool) or not isinstance(channel, int) or not 0 <= channel < pca.CHANNELS:
         raise PortUnavailable(device, f"PCA9685 channel must be 0..{pca.CHANNELS - 1}, got {channel!r}",
                               address=address, fix="use the channel number printed on the board")
@@ -266,7 +277,8 @@ def open_pca9685_pwm(*, device: str, address: str, channel: int, period_ns: int 
     except ValueError as exc:
         raise PortUnavailable(device, str(exc), address=address,
                               fix="servos and ESCs use 20_000_000 ns (50 Hz)") from None
-    chip = _attach(device=device, bus=bus, i2c_address=i2c_address, channel=channel, period_ns=period_ns)
+    chip = _attach(device=device, address=address, bus=bus, i2c_address=i2c_address, channel=channel,
+                   period_ns=period_ns)
     try:
         return Pca9685PwmChannel(device=device, address=address, channel=channel, chip=chip, tap=tap)
     except BaseException:

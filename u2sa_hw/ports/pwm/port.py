@@ -264,7 +264,12 @@ def _export(*, device: str, chip: Path, channel: int) -> Path:
     return path
 
 
-def _open_sysfs(*, device: str, address: str, channel: int, period_ns: int, tap: Tap | None) -> SysfsPwmChannel:
+def open_sysfs_pwm(*, device: str, address: str, channel: int, period_ns: int = 20_000_000,
+                   tap: Tap | None = None) -> SysfsPwmChannel:
+    """Open *channel* of the sysfs chip directory *address* (real under /sys, else a mock tree) and set its
+    period; a freshly exported channel is disabled until ``enable(True)``."""
+    if period_ns <= 0:
+        raise ValueError(f"{device}: period_ns must be > 0, got {period_ns}")
     chip = Path(address)
     if not (chip / "export").exists():
         fix = ("enable the PWM controller (e.g. dtoverlay=pwm-2chan on a Raspberry Pi) and check ls /sys/class/pwm"
@@ -295,4 +300,4 @@ def open_pwm(*, device: str, address: str, channel: int, period_ns: int = 20_000
         from u2sa_hw.ports.pwm.pca9685 import open_pca9685_pwm
 
         return open_pca9685_pwm(device=device, address=address, channel=channel, period_ns=period_ns, tap=tap)
-    return _open_sysfs(device=device, address=address, channel=channel, period_ns=period_ns, tap=tap)
+    return open_sysfs_pwm(device=device, address=address, channel=channel, period_ns=period_ns, tap=tap)

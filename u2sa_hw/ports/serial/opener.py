@@ -51,10 +51,10 @@ def _group_fix(path: str) -> str:
             f"(usermod -aG {group} <user>; u2sa install does this)")
 
 
-def _open_fix(address: str, exc: BaseException) -> str:
-    """The advice for an open failure of *address*."""
+def _open_fix(address: str, exc: BaseException, *, pyserial_url: bool) -> str:
+    """The advice for an open failure of *address* (a pyserial URL or a device path)."""
     code = _os_errno(exc)
-    if is_serial_url(address):
+    if pyserial_url:
         if isinstance(exc, ValueError):
             return ("the URL scheme or its options are not known to pyserial: use a device path "
                     "or loop://, socket://host:port, rfc2217://host:port, spy://<path>")
@@ -73,8 +73,11 @@ def _open_fix(address: str, exc: BaseException) -> str:
 
 def open_serial(address: str, *, device: str, baudrate: int = 9600, bytesize: int = 8, parity: str = "N",
                 stopbits: float = 1, timeout: float = 0.1, tap: Tap | None = None,
-                device_clock: bool = False) -> SerialPort:
+                device_clock: bool = False, pyserial_url: bool | None = None) -> SerialPort:
     """Open the serial device at *address* (a path or a pyserial URL) as *device*.
+
+    *pyserial_url*: *address* is a pyserial URL (from a parsed address: ``DeviceAddress.is_serial_url``);
+    None decides it from the text (``scheme://``), for a caller that holds only the text.
 
     *device_clock*: the other end writes stamped frames (a replay's pty, ``clock=stamped`` on a
     ``mock+serial`` address; :mod:`u2sa_hw.ports.serial.clock`).
@@ -82,26 +85,27 @@ def open_serial(address: str, *, device: str, baudrate: int = 9600, bytesize: in
     Raises PortUnavailable naming the device, the address and the fix when it cannot be
     opened (missing, no permission, busy, unknown URL scheme).
     """
+    url = is_serial_url(address) if pyserial_url is None else pyserial_url
     options = dict(baudrate=baudrate, bytesize=bytesize, parity=parity, stopbits=stopbits, timeout=timeout)
     try:
-        if is_serial_url(address):
+        if url:
             handle = serial.serial_for_url(address, **options)
         else:
             handle = serial.Serial(address, exclusive=True, **options)
     except (serial.SerialException, OSError, ValueError) as exc:
         code = _os_errno(exc)
-        if isinstance(exc, ValueError) and not is_serial_url(address):
+        if isinstance(exc, ValueError) and not url:
             reason = f"bad serial settings ({exc})"
             fix = (f"check the framing in the service config: baudrate {baudrate!r} (e.g. 4800-115200), "
                    f"bytesize {bytesize!r} (5, 6, 7, 8), parity {parity!r} (N, E, O, M, S), "
                    f"stopbits {stopbits!r} (1, 1.5, 2)")
         else:
             reason = f"cannot open ({exc})"
-            fix = _open_fix(address, exc)
+            fix = _open_fix(address, exc, pyserial_url=url)
         if code in _BUSY_ERRNOS:
             reason = f"busy: another process holds it ({exc})"
         raise PortUnavailable(device, reason, address=address, fix=fix) from exc
     log.debug("%s: opened %s%s", device, address, " (stamped frames: device clock)" if device_clock else "")
     if device_clock:
         return StampedSerialPort(handle, device=device, address=address, tap=tap, timeout=timeout)
-    return SerialPort(handle, device=device, address=address, tap=tap)
+    return SerialPort(handle, device=device, address=address, tap=tap, pyserial_url=url)

@@ -50,9 +50,12 @@ class SerialPort:
 
     device_clock = False
 
-    def __init__(self, handle: serial.SerialBase, *, device: str, address: str, tap: Tap | None = None) -> None:
+    def __init__(self, handle: serial.SerialBase, *, device: str, address: str, tap: Tap | None = None,
+                 pyserial_url: bool | None = None) -> None:
         self.device = device
         self.address = address
+        # a pyserial URL (socket://, rfc2217://) rather than a device path: as the address said, else from the text
+        self.pyserial_url = is_serial_url(address) if pyserial_url is None else pyserial_url
         self._serial = handle
         self._tap = tap
         self._buffer = bytearray()
@@ -78,7 +81,7 @@ class SerialPort:
             self._serial.close()
         except Exception:  # noqa: BLE001 - the device is already gone; closing is best effort
             pass
-        if is_serial_url(self.address):
+        if self.pyserial_url:
             fix = f"restore the connection to {self.address}; ReconnectingPort reopens it"
         else:
             fix = "plug the device back in (for a pty: restart the mock device); ReconnectingPort reopens it"
