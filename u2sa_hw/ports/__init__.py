@@ -2,7 +2,9 @@
 
 Drivers never open ``/dev/...`` themselves; they ask this package for a port by the
 device's address (``address``: one URL per device, real or mock; ``opener.open_port``
-dispatches on its scheme; ``device_link.DeviceLink`` is the lifecycle a driver holds). See ``errors`` for the one error
+opens it through its kind, one line of the table in ``kinds``; ``device_link.DeviceLink`` is
+the lifecycle a driver holds). Each port kind is a package (``serial``, ``can``, ``i2c``,
+``gpio``, ``pwm``) implementing ``port_kind.PortKind``. See ``errors`` for the one error
 hierarchy and ``tap`` for how raw I/O is published for recording and replay.
 
 The openers are imported on first use (``from u2sa_hw.ports import open_serial``), so a
