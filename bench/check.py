@@ -39,7 +39,7 @@ def probe(example: Path, seconds: float, run_dir: Path) -> tuple[float, int, int
     """(wall s, devices, failed) of probe_profile against ``u2sa mock`` of *example*."""
     from u2sa_hw.check.probe import probe_profile
     from u2sa_hw.bus.udp_ports import private_udp_port
-    from u2sa_hw.profile.vehicle import load_profile
+    from u2sa_hw.profile.loader import load_profile
 
     proc = subprocess.Popen([sys.executable, "-m", "u2sa_hw.cli", "mock", "--vehicle", str(example), "--run-dir",
                              str(run_dir), "--can-port", str(private_udp_port(span=2))], cwd=REPO,

@@ -51,7 +51,7 @@ from u2sa_hw.service.health import set_details  # noqa: E402
 from u2sa_hw.bus.key import use_run_key  # noqa: E402
 from u2sa_hw.bus.transport import Transport  # noqa: E402
 from u2sa_hw.bus.udp_ports import private_lcm_url  # noqa: E402
-from u2sa_hw.profile.vehicle import load_profile  # noqa: E402
+from u2sa_hw.profile.loader import load_profile  # noqa: E402
 
 EXAMPLE = REPO / "examples" / "ground_vehicle"
 RC_LINES = {"throttle": 5, "steering": 6, "mode": 13}

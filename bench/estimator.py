@@ -40,7 +40,7 @@ from u2sa_hw import lcmtypes as t  # noqa: E402
 from u2sa_hw import messages as m  # noqa: E402
 from u2sa_hw.messages import STATE_FIELDS  # noqa: E402
 from u2sa_hw.services.estimator.service import StateEstimator  # noqa: E402
-from u2sa_hw.profile.vehicle import load_profile  # noqa: E402
+from u2sa_hw.profile.loader import load_profile  # noqa: E402
 
 PROFILE = Path(__file__).resolve().parent.parent / "examples" / "ground_vehicle" / "vehicle.toml"
 # sensor -> (period s, phase s): the live rates, phases apart as independent drivers are

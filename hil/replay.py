@@ -33,7 +33,7 @@ from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo, header_source
 from u2sa_hw.services.recorder.capture import BusCapture
 from u2sa_hw.bus.transport import Transport, TransportError, check_multicast
-from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.profile.loader import load_profile
 from u2sa_hw.bus.udp_ports import private_lcm_url
 
 from u2sa_hw.hil.compare import STATE_CHANNELS

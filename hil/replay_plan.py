@@ -153,7 +153,8 @@ def read_profile(log: LogFile, vehicle: Path | None) -> tuple[dict[str, Any], di
             profile = _toml(vehicle.read_bytes(), str(vehicle))
         except OSError as exc:
             raise ReplayError(f"{vehicle}: cannot read ({exc.strerror})") from None
-        from u2sa_hw.profile.vehicle import ProfileError, load_profile
+        from u2sa_hw.profile.vehicle import ProfileError
+        from u2sa_hw.profile.loader import load_profile
 
         try:
             parsed = load_profile(vehicle)

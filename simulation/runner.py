@@ -40,7 +40,7 @@ from u2sa_hw.simulation.script import ScriptRunner
 from u2sa_hw.simulation.summary import RunRecord, TrackSample, summarise, summary_text, write_summary, write_track_csv
 from u2sa_hw.launcher import Launcher, RestartPolicy
 from u2sa_hw.realtime import SIM_DEVICES_PRIORITY, ProcessPriority, plan
-from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.profile.loader import load_profile
 
 # "off": every u2sa sim of this environment at normal priority, as --no-realtime. The test suite
 # sets it: two simulations side by side (pytest-xdist) at one SCHED_FIFO priority do not share a

@@ -112,7 +112,7 @@ def run_u2sa(args: list[str], env: dict[str, str], *, stdin: str | None = None,
 def test_the_key_command_acts_on_the_key_of_the_profile_in_U2SA_VEHICLE(tmp_path: Path) -> None:
     # The services find the key through the profile $U2SA_VEHICLE names; so does `u2sa key`,
     # not /etc/u2sa/bus.key (which a test must never touch).
-    from u2sa_hw.profile.vehicle import load_profile
+    from u2sa_hw.profile.loader import load_profile
 
     profile = profile_naming(tmp_path, "keys/rover.key")          # relative to the profile's directory
     env = {**without_key_env(), "U2SA_VEHICLE": str(profile)}
@@ -135,7 +135,8 @@ def test_the_key_command_acts_on_the_key_of_the_profile_in_U2SA_VEHICLE(tmp_path
 
 
 def test_a_key_pasted_into_bus_key_is_refused_at_load_without_printing_it(tmp_path: Path, lcm_url: str) -> None:
-    from u2sa_hw.profile.vehicle import ProfileError, load_profile
+    from u2sa_hw.profile.vehicle import ProfileError
+    from u2sa_hw.profile.loader import load_profile
 
     profile = profile_naming(tmp_path, KEY_HEX, lcm_url)
     with pytest.raises(ProfileError) as err:

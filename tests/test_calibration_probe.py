@@ -9,7 +9,7 @@ import tomli_w
 from u2sa_hw.mocks.i2c_bus import MockI2cBus
 from u2sa_hw.mocks.mpu9250_chip import Ak8963Chip, Mpu9250Chip
 from u2sa_hw.check.probe import probe_profile
-from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.profile.loader import load_profile
 
 
 def _profile(tmp_path: Path, variant: str) -> Path:

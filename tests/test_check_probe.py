@@ -29,7 +29,7 @@ from u2sa_hw.check.targets import Target
 from u2sa_hw.ports.gpio.port import open_gpio
 from u2sa_hw.ports.pwm.port import make_sysfs_pwm_tree
 from u2sa_hw.bus.udp_ports import private_udp_port
-from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.profile.loader import load_profile
 
 WINDOW_S = 1.5
 

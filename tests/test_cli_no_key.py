@@ -22,7 +22,7 @@ from conftest import U2SA
 from u2sa_hw.bus.key import KEY_ENV, SYSTEM_KEY
 from u2sa_hw.cli import build_parser
 from u2sa_hw.bus.udp_ports import private_lcm_url
-from u2sa_hw.profile.vehicle import SYSTEM_PROFILE, VEHICLE_ENV
+from u2sa_hw.profile.loader import SYSTEM_PROFILE, VEHICLE_ENV
 
 # Options a command gets so that it touches nothing outside the test's directory ({tmp}).
 SAFE_OPTIONS: dict[str, list[str]] = {

@@ -22,7 +22,7 @@ from gps_stream_builder import recording_driver
 from u2sa_hw.drivers.compass.driver import SerialCompassDriver, char_time_s
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus.transport import Transport
-from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.profile.loader import load_profile
 
 GAP_S = 0.05  # the driver's epoch_gap_s (its read timeout)
 

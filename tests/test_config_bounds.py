@@ -20,7 +20,7 @@ from conftest import REPO, U2SA
 from u2sa_hw.config.configurator import MAX_RATE_HZ, MAX_TIMEOUT_S, ConfigError, ConfigField, Configurator
 from u2sa_hw.profile.numbers import PROFILE_NUMBERS, SUPERVISION
 from u2sa_hw.registry import SERVICE_KINDS, resolve_kind
-from u2sa_hw.service.contract import BASE_CONFIG
+from u2sa_hw.service.base_config import BASE_CONFIG
 
 DRIVER_MODULES = sorted("u2sa_hw.drivers." + ".".join(p.relative_to(REPO / "drivers").with_suffix("").parts)
                         for p in (REPO / "drivers").rglob("*.py") if p.stem != "__init__")
@@ -134,7 +134,8 @@ def test_a_change_over_the_bus_above_the_bound_is_refused_and_not_written(tmp_pa
 
 
 def _refused_profile(table: str, line: str, tmp_path: Path) -> Exception:
-    from u2sa_hw.profile.vehicle import ProfileError, load_profile
+    from u2sa_hw.profile.vehicle import ProfileError
+    from u2sa_hw.profile.loader import load_profile
 
     path = tmp_path / "vehicle.toml"
     path.write_text(f"[{table}]\n{line}\n")

@@ -22,7 +22,8 @@ from u2sa_hw.services.world.xml import load_objects
 from u2sa_hw.simulation.profile import effective_configs
 from u2sa_hw.simulation.scenario import load_scenario
 from u2sa_hw.bus.transport import Transport
-from u2sa_hw.profile.vehicle import VehicleProfile, load_profile
+from u2sa_hw.profile.vehicle import VehicleProfile
+from u2sa_hw.profile.loader import load_profile
 
 EXAMPLES = sorted((REPO / "examples").glob("*/vehicle.toml"))
 

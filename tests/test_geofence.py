@@ -16,7 +16,8 @@ from conftest import U2SA
 from u2sa_hw.geo import ned_to_geodetic
 from u2sa_hw.geofence import CIRCLE, POLYGON, Fence, FenceArea, FenceObstacle
 from u2sa_hw.geofence_parse import FenceError, checked_polygon, plan_areas, profile_fence
-from u2sa_hw.profile.vehicle import Origin, ProfileError, load_profile
+from u2sa_hw.profile.vehicle import Origin, ProfileError
+from u2sa_hw.profile.loader import load_profile
 
 ORIGIN = Origin(29.1895, -81.0483, 10.0)
 SQUARE = FenceArea("field", True, POLYGON, points=((-10, -10), (30, -10), (30, 35), (-10, 35)))

@@ -19,7 +19,7 @@ from u2sa_hw.messages import STATE_FIELDS  # noqa: E402,F401 - installs the pres
 from u2sa_hw.recording.mcap_log import McapLogWriter  # noqa: E402
 from u2sa_hw.recording.plot import log_figure, plot_log  # noqa: E402
 from u2sa_hw.services.recorder.service import run_info  # noqa: E402
-from u2sa_hw.profile.vehicle import load_profile  # noqa: E402
+from u2sa_hw.profile.loader import load_profile  # noqa: E402
 
 FENCE = {"polygons": [{"name": "field", "local": [[-5, -5], [30, -5], [30, 20], [-5, 20]]}],
          "circles": [{"name": "pond", "inclusion": False, "local_center": [10, 8], "radius_m": 3}]}

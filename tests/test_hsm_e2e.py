@@ -190,7 +190,7 @@ def test_alive_but_silent_service_is_restarted(tmp_path: Path, lcm_url: str, bus
 
 def test_hsm_service_in_process_applies_policy_changes_and_drops_garbage(tmp_path: Path, lcm_url: str) -> None:
     from u2sa_hw.services.hsm.service import HealthStatusMonitor
-    from u2sa_hw.profile.vehicle import load_profile
+    from u2sa_hw.profile.loader import load_profile
 
     vehicle = hsm_profile(tmp_path, lcm_url, '[services.gps]\nkind = "gps_nmea"\n'
                       '[services.gps.supervision]\ndata_channel = "STATE_INFO"\nstale_after_s = 2.0\n',

@@ -12,7 +12,7 @@ from conftest import wait_until
 from u2sa_hw.launcher import Launcher
 from u2sa_hw.services.hsm.restarters import (LauncherRestarter, NoRestarter, RestartError, SystemdRestarter,
                                              choose_restarter)
-from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.profile.loader import load_profile
 
 
 def _profile(tmp_path: Path, url: str):  # noqa: ANN202 - a VehicleProfile

@@ -16,7 +16,7 @@ import pytest
 from u2sa_hw.drivers.imu.common import RestCalibration
 from u2sa_hw.drivers.imu.mpu9250 import Mpu9250ImuDriver
 from u2sa_hw.safety.prearm import PrearmChecks
-from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.profile.loader import load_profile
 
 from test_prearm import OK, health, write_profile
 

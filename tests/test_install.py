@@ -115,7 +115,7 @@ def test_install_stages_units_configs_rules_users_and_links(vehicle: Path, root:
     assert os.readlink(wants / "u2sa@gps.service") == "/etc/systemd/system/u2sa@.service"
     assert os.readlink(units / "multi-user.target.wants/u2sa.target") == "/etc/systemd/system/u2sa.target"
     # Profile: directories pointed at the vehicle's, service configs all in /etc/u2sa/config.
-    from u2sa_hw.profile.vehicle import load_profile
+    from u2sa_hw.profile.loader import load_profile
 
     installed = root / "etc/u2sa/vehicle.toml"
     text = installed.read_text()

@@ -13,7 +13,7 @@ import pytest
 
 from u2sa_hw.install.deploy import install, uninstall
 from u2sa_hw.install.system import InstallError
-from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.profile.loader import load_profile
 
 U2SA = Path(sys.executable).with_name("u2sa")
 REPO = Path(__file__).resolve().parent.parent

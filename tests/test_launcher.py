@@ -23,7 +23,7 @@ from u2sa_hw.launcher import Launcher, LauncherBusy, LauncherClient, LauncherErr
 from u2sa_hw.launcher.launcher import u2sa_command
 from u2sa_hw.launcher.process import REFUSED_EXIT
 from u2sa_hw.service.bus_handlers import DUPLICATE_EXIT, DUPLICATE_PROBE_S, PROBE_ENV
-from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.profile.loader import load_profile
 
 
 def _alive(pid: int) -> bool:

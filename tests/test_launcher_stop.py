@@ -31,7 +31,7 @@ from test_launcher_watchdog import FakeClock
 from u2sa_hw.launcher import Launcher, RestartPolicy, SupervisedProcess
 from u2sa_hw.launcher.process import STOP_LIMIT_S, STOPPED, process_sample
 from u2sa_hw.launcher.watchdog import WatchdogSetting, WatchedClock
-from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.profile.loader import load_profile
 
 # Ignores SIGTERM (its shutdown is the test's to end), exits 0 on SIGUSR1: a clean exit, whenever it comes.
 LINGERS = ("import signal, sys, time\n"

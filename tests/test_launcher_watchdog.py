@@ -16,7 +16,7 @@ from u2sa_hw.launcher import Launcher, RestartPolicy, SupervisedProcess
 from u2sa_hw.launcher.process import BACKOFF
 from u2sa_hw.launcher.watchdog import (STALL_STEP_S, WatchdogSetting, WatchedClock, parse_timespan, unit_watchdog,
                                        watchdog_for)
-from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.profile.loader import load_profile
 
 SLEEPER = [sys.executable, "-c", "import time; time.sleep(120)"]
 

@@ -23,7 +23,7 @@ from u2sa_hw import lcmtypes as t
 from u2sa_hw.launcher import Launcher
 from u2sa_hw.simulation.profile import effective_configs, write_sim_profile
 from u2sa_hw.bus.transport import Transport
-from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.profile.loader import load_profile
 from u2sa_hw.bus.udp_ports import private_udp_port
 
 SENSORS = """

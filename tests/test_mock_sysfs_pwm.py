@@ -19,7 +19,7 @@ from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus.client import BusClient
 from u2sa_hw.ports import PortClosed, PortUnavailable, open_pwm
 from u2sa_hw.simulation.profile import effective_configs
-from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.profile.loader import load_profile
 
 SERVOS = """
 [vehicle]

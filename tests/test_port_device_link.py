@@ -18,7 +18,8 @@ from u2sa_hw.ports import PortClosed, PortUnavailable
 from u2sa_hw.ports.address import AddressError
 from u2sa_hw.ports.device_link import DeviceLink, device_setting
 from u2sa_hw.ports.tap import raw_channel
-from u2sa_hw.profile.vehicle import ProfileError, VehicleProfile, load_profile
+from u2sa_hw.profile.vehicle import ProfileError, VehicleProfile
+from u2sa_hw.profile.loader import load_profile
 
 
 class Pty:
@@ -282,9 +283,8 @@ def test_every_kind_has_its_preload_and_each_module_exists() -> None:
     from importlib.util import find_spec
 
     from u2sa_hw.ports.address import KINDS
-    from u2sa_hw.ports.kinds import PORT_KINDS
+    from u2sa_hw.ports.opener import PRELOAD
 
-    assert set(PORT_KINDS) == set(KINDS)
-    assert all(kind.preload for kind in PORT_KINDS.values())
-    assert all(find_spec(module) is not None for kind in PORT_KINDS.values() for module in kind.preload
+    assert set(PRELOAD) == set(KINDS)
+    assert all(find_spec(module) is not None for modules in PRELOAD.values() for module in modules
                if module.startswith("u2sa_hw."))

@@ -14,7 +14,8 @@ from u2sa_hw import lcmtypes as t
 from u2sa_hw.service.health import set_details
 from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence setters
 from u2sa_hw.safety.prearm import CheckFailure, PrearmChecks
-from u2sa_hw.profile.vehicle import ProfileError, load_profile
+from u2sa_hw.profile.vehicle import ProfileError
+from u2sa_hw.profile.loader import load_profile
 
 REPO = Path(__file__).resolve().parent.parent
 ROVER = REPO / "examples" / "ground_vehicle" / "vehicle.toml"

@@ -14,7 +14,8 @@ from test_prearm import OK, SERVICES, feed_good, health
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence setters
 from u2sa_hw.safety.prearm import PrearmChecks
-from u2sa_hw.profile.vehicle import ProfileError, load_profile
+from u2sa_hw.profile.vehicle import ProfileError
+from u2sa_hw.profile.loader import load_profile
 
 FENCE = {"polygons": [{"name": "field", "local": [[-10, -10], [30, -10], [30, 35], [-10, 35]]}],
          "circles": [{"name": "pond", "inclusion": False, "local_center": [10, 12], "radius_m": 3}]}

@@ -28,7 +28,7 @@ from u2sa_hw.service.health import set_details
 from u2sa_hw.messages import enumerate_fields
 from u2sa_hw.bus.transport import Transport
 from u2sa_hw.bus.udp_ports import private_lcm_url
-from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.profile.loader import load_profile
 
 LINES = {"throttle": 5, "steering": 6, "mode": 13}
 ENABLE, SELECT = 21, 20

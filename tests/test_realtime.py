@@ -13,7 +13,7 @@ from u2sa_hw.launcher import Launcher
 from u2sa_hw.launcher.launcher import u2sa_command
 from u2sa_hw.realtime import (NORMAL, SAFETY_CHAIN_PRIORITIES, SIM_DEVICES_PRIORITY, SchedCalls, Schedule,
                              describe_plan, plan, priority_for)
-from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.profile.loader import load_profile
 
 KINDS = {"rc": "rc_mux", "wheels": "odrive_can", "vesc": "vesc_can", "rudder": "pwm_servo", "horn": "gpio_output",
          "hsm": "hsm", "gps": "gps_nmea", "control": "control", "est": "state_estimator"}

@@ -16,7 +16,7 @@ from test_realtime import _profile
 
 from u2sa_hw.launcher import Launcher, RestartPolicy
 from u2sa_hw.realtime import THROTTLE_FILE, plan
-from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.profile.loader import load_profile
 
 PERMITTED = plan()
 pytestmark = pytest.mark.skipif(PERMITTED.ceiling < 30, reason=f"real-time not permitted: {PERMITTED.notice}")

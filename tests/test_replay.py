@@ -34,7 +34,7 @@ from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo
 from u2sa_hw.services.recorder.capture import BusCapture
 from u2sa_hw.services.recorder.service import run_info
 from u2sa_hw.bus.transport import Transport
-from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.profile.loader import load_profile
 from u2sa_hw.bus.udp_ports import private_lcm_url, private_udp_port
 
 GGA_TIME = re.compile(rb"\$[A-Z]{2}GGA,(\d{6}(?:\.\d*)?),")

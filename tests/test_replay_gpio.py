@@ -31,7 +31,7 @@ from u2sa_hw.services.recorder.capture import BusCapture
 from u2sa_hw.services.recorder.service import run_info
 from u2sa_hw.bus.transport import Transport
 from u2sa_hw.bus.udp_ports import private_lcm_url
-from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.profile.loader import load_profile
 
 U2SA = [sys.executable, "-m", "u2sa_hw.cli"]
 RC_LINES = {"throttle": 5, "steering": 6, "mode": 13}

@@ -36,7 +36,8 @@ from u2sa_hw.ports import PortUnavailable
 from u2sa_hw.ports.device_link import DeviceLink
 from u2sa_hw.ports.pwm.port import make_sysfs_pwm_tree
 from u2sa_hw.protocols.odrive_cansimple import AxisState
-from u2sa_hw.profile.vehicle import ProfileError, VehicleProfile, load_profile
+from u2sa_hw.profile.vehicle import ProfileError, VehicleProfile
+from u2sa_hw.profile.loader import load_profile
 
 
 def write(tmp_path: Path, body: str) -> Path:

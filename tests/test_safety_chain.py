@@ -31,7 +31,8 @@ from u2sa_hw.ports.pwm.port import make_sysfs_pwm_tree
 from u2sa_hw.safety.config import parse_safety
 from u2sa_hw.safety.gate import AUTONOMOUS, MANUAL, CommandGate
 from u2sa_hw.safety.wiring import check_wiring
-from u2sa_hw.profile.vehicle import ProfileError, load_profile
+from u2sa_hw.profile.vehicle import ProfileError
+from u2sa_hw.profile.loader import load_profile
 
 RC_LINES = {"throttle": 5, "steering": 6, "mode": 13}
 ENABLE = 21

@@ -202,7 +202,8 @@ def test_log_level_from_the_config_file_checked_and_changed_live(services: Servi
 def test_a_profile_with_an_unknown_log_level_is_refused_by_every_command(tmp_path: Path) -> None:
     """Checked when the profile loads: u2sa run and install too, not only u2sa service (whose children
     would otherwise crash-loop under the launcher)."""
-    from u2sa_hw.profile.vehicle import ProfileError, load_profile
+    from u2sa_hw.profile.vehicle import ProfileError
+    from u2sa_hw.profile.loader import load_profile
 
     profile = tmp_path / "vehicle.toml"
     profile.write_text('[vehicle]\nname = "x"\nlog_level = "verbose"\n\n[services.est]\nkind = "state_estimator"\n')

@@ -18,7 +18,7 @@ from conftest import REPO, U2SA, wait_until
 from u2sa_hw.mocks.launcher import MockLauncher
 from u2sa_hw.mocks.sim_context import DeviceError
 from u2sa_hw.ports.opener import open_port
-from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.profile.loader import load_profile
 
 ACKERMANN = """
 [vehicle]

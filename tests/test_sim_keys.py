@@ -22,7 +22,7 @@ from u2sa_hw.simulation.keys import StickKeys
 from u2sa_hw.simulation.progress import BusSnapshot
 from u2sa_hw.simulation.runner import SimFailure, SimRun
 from u2sa_hw.bus.udp_ports import private_udp_port
-from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.profile.loader import load_profile
 
 RC = """
 [vehicle]

@@ -23,7 +23,7 @@ from u2sa_hw import lcmtypes as t
 from u2sa_hw.protocols.odrive_cansimple import AxisState, Cmd, OdriveError
 from u2sa_hw.safety.gate import RC_MODE_AUTONOMOUS, RC_MODE_MANUAL, CommandGate
 from u2sa_hw.safety.prearm import PrearmChecks
-from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.profile.loader import load_profile
 
 from test_prearm import OK, health, write_profile
 

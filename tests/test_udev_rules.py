@@ -25,7 +25,7 @@ from udev_rules_syntax import RulesSyntaxError, matches, parse_rules
 
 from u2sa_hw.profile.devices import profile_devices
 from u2sa_hw.install.udev import plan_devices, render_rules
-from u2sa_hw.profile.vehicle import load_profile
+from u2sa_hw.profile.loader import load_profile
 
 UDEV_DIR = Path(__file__).resolve().parent.parent / "udev"
 

@@ -32,6 +32,7 @@ from typing import Any, Mapping
 
 from u2sa_hw.geo import GeoOrigin, geodetic_to_ned
 from u2sa_hw.geofence import CIRCLE, POLYGON, Fence, FenceArea
+from u2sa_hw.profile.vehicle import ProfileError, VehicleProfile
 
 MAX_VERTICES = 1000
 FAR_M = 10_000.0              # geo.py's flat-earth projection holds within ~10 km
@@ -249,11 +250,9 @@ def load_plan_fence(path: Path, *, origin: GeoOrigin, where: str) -> list[FenceA
     return areas
 
 
-def profile_fence(profile: Any) -> Fence | None:
+def profile_fence(profile: VehicleProfile) -> Fence | None:
     """The fence of a loaded :class:`~u2sa_hw.profile.vehicle.VehicleProfile` (None without ``[geofence]``);
     ProfileError names the file and the fix."""
-    from u2sa_hw.profile.vehicle import ProfileError
-
     table = profile.raw.get("geofence")
     if table is None:
         return None

@@ -416,7 +416,7 @@ def _check_usb_identities(entries: Mapping[str, Any], out: Collector) -> None:
 
 def check_simulation(path: Path, data: Mapping[str, Any], out: Collector) -> None:
     """``[simulation]``: each unknown key (with a did-you-mean), then the rest as the mock launcher reads it."""
-    from u2sa_hw.profile.vehicle import SIMULATION_KEYS, SIMULATION_START_KEYS
+    from u2sa_hw.profile.loader import SIMULATION_KEYS, SIMULATION_START_KEYS
 
     table = data.get("simulation")
     if isinstance(table, dict):

@@ -84,7 +84,8 @@ def _services(table: Mapping[str, Any], base: Path) -> dict[str, Any]:
 
 def lenient_profile(path: Path, data: Mapping[str, Any]) -> Any:
     """The profile at *path* (parsed as *data*) without its reported mistakes; None when even that cannot load."""
-    from u2sa_hw.profile.vehicle import TOP_TABLES, ProfileError, load_profile
+    from u2sa_hw.profile.vehicle import ProfileError
+    from u2sa_hw.profile.loader import TOP_TABLES, load_profile
 
     base = path.resolve().parent
     clean: dict[str, Any] = {k: v for k, v in data.items() if k in TOP_TABLES and isinstance(v, dict)}
@@ -168,7 +169,7 @@ def old_form_numbers(profile: Any, configs: Mapping[str, Mapping[str, Any]]) -> 
     from u2sa_hw.profile.devices import service_devices
     from u2sa_hw.ports.address import AddressError, parse_address
     from u2sa_hw.registry import resolve_kind
-    from u2sa_hw.service.contract import BASE_CONFIG
+    from u2sa_hw.service.base_config import BASE_CONFIG
 
     found: list[OldFormNumber] = []
     tables = profile.devices if isinstance(profile.devices, dict) else {}
@@ -208,7 +209,7 @@ def old_form_numbers(profile: Any, configs: Mapping[str, Mapping[str, Any]]) -> 
 def _config_past_mistakes(spec: Any) -> dict[str, Any] | None:
     from u2sa_hw.config.configurator import ConfigError, coerce
     from u2sa_hw.registry import resolve_kind
-    from u2sa_hw.service.contract import BASE_CONFIG
+    from u2sa_hw.service.base_config import BASE_CONFIG
 
     try:
         cls = resolve_kind(spec.kind)

@@ -21,10 +21,10 @@ from typing import Any
 from u2sa_hw.check.bus_checks import check_bus, check_security_env
 from u2sa_hw.check.problem import Collector, Problem, did_you_mean, type_name
 from u2sa_hw.profile.numbers import PROFILE_NUMBERS
-from u2sa_hw.profile.vehicle import TOP_TABLES
-from u2sa_hw.profile.vehicle import VEHICLE_KEYS as VEHICLE_KEY_NAMES
+from u2sa_hw.profile.loader import TOP_TABLES
+from u2sa_hw.profile.loader import VEHICLE_KEYS as VEHICLE_KEY_NAMES
 
-VEHICLE_KEYS: dict[str, type] = {   # the loader's keys (u2sa_hw.profile.vehicle), with the type each takes
+VEHICLE_KEYS: dict[str, type] = {   # the loader's keys (u2sa_hw.profile.loader), with the type each takes
     name: {"system_id": int, "origin": dict}.get(name, str) for name in VEHICLE_KEY_NAMES}
 ORIGIN_RANGES = {key: (f.ge, f.le) for key in ("lat", "lon", "alt")   # u2sa_hw/profile/numbers.py, as the loader
                  for f in (PROFILE_NUMBERS[f"vehicle.origin.{key}"],)}
@@ -158,7 +158,8 @@ def _example(kind: type) -> str:
 
 def _load(path: Path) -> tuple[Any, str]:
     """(the parsed profile, "") or (None, load_profile's error): the checks report its reasons one by one."""
-    from u2sa_hw.profile.vehicle import ProfileError, load_profile
+    from u2sa_hw.profile.vehicle import ProfileError
+    from u2sa_hw.profile.loader import load_profile
 
     try:
         return load_profile(path), ""

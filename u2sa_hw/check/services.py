@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from u2sa_hw.check.problem import Collector, did_you_mean, type_name
-from u2sa_hw.profile.vehicle import SERVICE_KEYS
+from u2sa_hw.profile.loader import SERVICE_KEYS
 
 _TYPES: dict[str, type] = {"settings": dict, "enabled": bool, "required": bool, "supervision": dict}
 SERVICE_KEY_TYPES: dict[str, type | tuple[type, ...]] = {   # the loader's keys, with the type each takes
@@ -104,7 +104,7 @@ def _service_class(kind: str, key: str, out: Collector) -> Any:
 
 
 def _fields(cls: Any) -> dict[str, Any]:
-    from u2sa_hw.service.contract import BASE_CONFIG
+    from u2sa_hw.service.base_config import BASE_CONFIG
 
     return {f.name: f for f in (*BASE_CONFIG, *cls.config_fields())}
 

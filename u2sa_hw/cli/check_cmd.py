@@ -71,7 +71,7 @@ def profile_path(args: Any, *, command: str = "check") -> Path:
     import os
 
     from u2sa_hw.cli import CliError
-    from u2sa_hw.profile.vehicle import SYSTEM_PROFILE, VEHICLE_ENV
+    from u2sa_hw.profile.loader import SYSTEM_PROFILE, VEHICLE_ENV
 
     text = getattr(args, "vehicle", None) or os.environ.get(VEHICLE_ENV)
     if text:
@@ -94,7 +94,7 @@ def cmd_check(args: Any) -> int:
     probes: list[Any] = []
     if args.probe and not errors:
         from u2sa_hw.check.probe import probe_profile
-        from u2sa_hw.profile.vehicle import load_profile
+        from u2sa_hw.profile.loader import load_profile
 
         probes = probe_profile(load_profile(path), seconds=args.seconds)
     failed = [p for p in probes if not p.ok]

@@ -7,7 +7,8 @@ import contextlib
 from typing import Any, Iterator
 
 from u2sa_hw.bus.transport import TransportError, check_multicast
-from u2sa_hw.profile.vehicle import ProfileError, VehicleProfile, load_profile
+from u2sa_hw.profile.vehicle import ProfileError, VehicleProfile
+from u2sa_hw.profile.loader import load_profile
 
 
 def add_vehicle_option(parser: argparse.ArgumentParser) -> None:

@@ -23,12 +23,12 @@ from typing import Any, Mapping
 
 from u2sa_hw.config.configurator import ConfigError, ConfigField, coerce, to_text
 from u2sa_hw.config.keys import unknown_key_problem
+from u2sa_hw.registry import SERVICE_KINDS, known_kinds, resolve_kind
+from u2sa_hw.service.base_config import BASE_CONFIG
 
 
 def kind_problem(kind: str, *, where: str) -> str | None:
     """One line when *kind* is not a registered service kind (with a did-you-mean), else None."""
-    from u2sa_hw.registry import SERVICE_KINDS, known_kinds
-
     if kind in SERVICE_KINDS:
         return None
     kinds = known_kinds()
@@ -40,9 +40,6 @@ def kind_problem(kind: str, *, where: str) -> str | None:
 
 def declared_fields(kind: str) -> dict[str, ConfigField]:
     """Every field a service of *kind* declares (the base ones included); LookupError for an unknown kind."""
-    from u2sa_hw.registry import resolve_kind
-    from u2sa_hw.service.contract import BASE_CONFIG
-
     cls = resolve_kind(kind)
     return {f.name: f for f in (*BASE_CONFIG, *cls.config_fields())}
 

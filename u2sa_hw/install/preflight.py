@@ -32,7 +32,8 @@ from u2sa_hw.profile.devices import profile_devices
 from u2sa_hw.install.referenced import MissingFile, Reference, find_references
 from u2sa_hw.install.system import InstallError
 from u2sa_hw.install.udev import DevicePlan, links_made, plan_devices, unmade_text
-from u2sa_hw.profile.vehicle import ProfileError, VehicleProfile, load_profile
+from u2sa_hw.profile.vehicle import ProfileError, VehicleProfile
+from u2sa_hw.profile.loader import load_profile
 
 RULES_DIRS = ("/etc/udev/rules.d", "/run/udev/rules.d", "/lib/udev/rules.d", "/usr/lib/udev/rules.d")
 UDEV_DIRS_ENV = "U2SA_UDEV_RULES_DIRS"   # where u2sa check looks for installed rules

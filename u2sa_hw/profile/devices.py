@@ -23,8 +23,8 @@ API (stable; ``u2sa check``, install, udev generation, the simulation and replay
 - :func:`effective_config` ``(profile, service)``: the config a service will run with.
 
 Which devices a service uses, and (for old-form profiles) their address, is declared by the
-driver: its ``used_devices(service, config) -> {device: legacy address or None}``
-declaration (:class:`u2sa_hw.ports.declared.DeviceDeclarations`). Nothing
+driver: a service class with a ``used_devices(service, config) -> {device: legacy address
+or None}`` classmethod (:class:`u2sa_hw.ports.device_link.DeviceLink` documents it). Nothing
 here knows a driver's setting names. An old-form profile (the address in the service's
 ``port``/``bus``/``interface``/``chip``/``channels`` settings) keeps loading: the address is
 derived from those and one warning per device shows the new form. A ``[devices.NAME]`` table
@@ -70,7 +70,7 @@ def effective_config(profile: VehicleProfile, name: str) -> dict[str, Any]:
     """What service *name* will run with: its kind's defaults, the profile settings, its config file."""
     from u2sa_hw.config.configurator import Configurator
     from u2sa_hw.registry import resolve_kind
-    from u2sa_hw.service.contract import BASE_CONFIG
+    from u2sa_hw.service.base_config import BASE_CONFIG
 
     spec = profile.service(name)
     try:
@@ -86,11 +86,9 @@ def effective_config(profile: VehicleProfile, name: str) -> dict[str, Any]:
 
 
 def service_devices(cls: type, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
-    """The devices service *service* of class *cls* uses: name -> old-form address text (or None); a service
-    that is not a driver uses none (:mod:`u2sa_hw.ports.declared`)."""
-    from u2sa_hw.ports.declared import used_devices
-
-    return used_devices(cls, service, config)
+    """The devices service *service* of class *cls* uses: name -> old-form address text (or None)."""
+    used = getattr(cls, "used_devices", None)
+    return dict(used(service, config)) if used is not None else {}
 
 
 def _where(profile: VehicleProfile, table: str) -> str:
@@ -132,7 +130,6 @@ def _fold_legacy_keys(text: str, table: Mapping[str, Any], name: str) -> str:
 def _usage(profile: VehicleProfile, configs: Mapping[str, Mapping[str, Any]] | None
            ) -> dict[str, tuple[str, str | None]]:
     """device -> (service, old-form address) over the enabled services; two users are an error."""
-    from u2sa_hw.ports.declared import declares_devices
     from u2sa_hw.registry import resolve_kind
 
     owners: dict[str, tuple[str, str | None]] = {}
@@ -143,7 +140,7 @@ def _usage(profile: VehicleProfile, configs: Mapping[str, Mapping[str, Any]] | N
             cls = resolve_kind(spec.kind)
         except (LookupError, ImportError):
             continue   # an unknown kind is the profile check's error, not a device's
-        if not declares_devices(cls):
+        if not hasattr(cls, "used_devices"):
             continue
         config = configs[service] if configs is not None and service in configs else effective_config(profile, service)
         for device, legacy in service_devices(cls, service, config).items():

@@ -20,10 +20,11 @@ import math
 from typing import Any
 
 from u2sa_hw.config.configurator import MAX_RATE_HZ, MAX_TIMEOUT_S, ConfigError, ConfigField, coerce, field, to_text
-from u2sa_hw.safety.config import DEFAULT_RC_MODE_TIMEOUT_MS, MAX_RC_MODE_TIMEOUT_MS
 
 SUPERVISION = "services.*.supervision"
 MAX_DISTANCE_M = 1_000_000.0   # a simulated start this far from the origin is still on the map
+DEFAULT_RC_MODE_TIMEOUT_MS = 250.0   # [safety] rc_mode_timeout_ms (u2sa_hw/safety/config.py reads it)
+MAX_RC_MODE_TIMEOUT_MS = 1000.0
 
 PROFILE_NUMBERS: dict[str, ConfigField] = {f.name: f for f in (
     # [vehicle]

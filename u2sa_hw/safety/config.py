@@ -34,10 +34,11 @@ from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, Mapping
 
 from u2sa_hw.config.keys import unknown_key_problems
+from u2sa_hw.profile.numbers import DEFAULT_RC_MODE_TIMEOUT_MS, MAX_RC_MODE_TIMEOUT_MS, PROFILE_NUMBERS
+from u2sa_hw.profile.vehicle import ProfileError, VehicleProfile
 
 if TYPE_CHECKING:
     from u2sa_hw.services.control.mixers import Mixer
-    from u2sa_hw.profile.vehicle import VehicleProfile
 
 TABLE = "safety"
 ON_CHECK_LOST = ("neutral", "hold")
@@ -46,18 +47,14 @@ MIXER_OUTPUTS = {"differential": ("left", "right"), "twin_thruster": ("left", "r
 _TOP_KEYS = {"hardware_mux", "rc_mode_timeout_ms", "on_check_lost", "manual_mixer", "prearm"}
 _MIXER_KEYS = {"kind", "left", "right", "steering", "throttle", "throttle_channel", "steering_channel",
                "center_us", "span_us", "deadband_us"}
-DEFAULT_RC_MODE_TIMEOUT_MS = 250.0
-MAX_RC_MODE_TIMEOUT_MS = 1000.0
 
 
 def _error(where: str, text: str) -> Exception:
-    from u2sa_hw.profile.vehicle import ProfileError
     return ProfileError(f"{where}: {text}")
 
 
 def _error_lines(lines: list[str]) -> Exception:
     """One ProfileError of whole lines (an unknown key each, with a did-you-mean)."""
-    from u2sa_hw.profile.vehicle import ProfileError
     return ProfileError("\n".join(lines))
 
 
@@ -121,8 +118,6 @@ def _number(table: Mapping[str, Any], key: str, default: float, where: str, *, l
 
 def _limit(key: str) -> float:
     """The upper bound of profile number *key* (u2sa_hw/profile/numbers.py, the one table of them)."""
-    from u2sa_hw.profile.numbers import PROFILE_NUMBERS
-
     bound = PROFILE_NUMBERS[key].upper_bound
     assert bound is not None
     return float(bound)

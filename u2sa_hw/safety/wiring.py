@@ -49,7 +49,7 @@ def profile_wiring(profile: VehicleProfile) -> Wiring:
     from u2sa_hw.abstract import Actuator
     from u2sa_hw.config.configurator import ConfigError, Configurator
     from u2sa_hw.registry import NOT_ACTUATOR_KINDS, resolve_kind
-    from u2sa_hw.service.contract import BASE_CONFIG
+    from u2sa_hw.service.base_config import BASE_CONFIG
 
     actuators: dict[str, tuple[str, str]] = {}
     rc_service, rc_channels = None, ()

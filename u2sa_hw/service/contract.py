@@ -32,21 +32,15 @@ from typing import Any, Callable, ClassVar
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config.configurator import ConfigError, ConfigField, Configurator, field, to_text
+from u2sa_hw.config.configurator import ConfigError, ConfigField, Configurator, to_text
 from u2sa_hw.service.health import HOSTNAME, ProcessStats, build_health, name_native_thread
 from u2sa_hw.messages import type_name
 from u2sa_hw.service.sdnotify import SystemdNotifier, watchdog_interval
 from u2sa_hw.service.bus_handlers import DUPLICATE_EXIT, DuplicateWatch, bus_text, listen_state, raises_text, rejected_text
-from u2sa_hw.service.log import LEVEL_NAMES, level_number, set_level
+from u2sa_hw.service.base_config import BASE_CONFIG
+from u2sa_hw.service.log import level_number, set_level
 from u2sa_hw.bus.transport import Transport
 from u2sa_hw.profile.vehicle import VehicleProfile
-
-BASE_CONFIG: tuple[ConfigField, ...] = (
-    field("health_interval_s", 1.0, "seconds between health messages", gt=0, le=60),
-    field("log_level", "", "debug, info, warn or error; empty: the vehicle profile's log_level",
-          choices=("", *LEVEL_NAMES)),
-)
-
 
 def settle_memory() -> None:
     """After start-up: collect once, then freeze what is left out of the collector's sight.

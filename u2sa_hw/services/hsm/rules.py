@@ -26,6 +26,7 @@ import tomllib
 from dataclasses import dataclass, fields
 from typing import Any
 
+from u2sa_hw.profile.numbers import SUPERVISION, checked
 from u2sa_hw.profile.vehicle import ProfileError, ServiceSpec, VehicleProfile
 
 SUPERVISION_TABLE = "supervision"
@@ -94,8 +95,6 @@ def _checked(where: str, key: str, value: Any, default: Any) -> Any:
     if isinstance(value, float) and value < 0:
         raise ProfileError(f"{where}: '{key}' must be >= 0, got {value}")
     if isinstance(value, float):
-        from u2sa_hw.profile.numbers import SUPERVISION, checked
-
         checked(f"{SUPERVISION}.{key}", value, where, ProfileError)
     return value
 
