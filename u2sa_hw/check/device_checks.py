@@ -33,6 +33,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
+from u2sa_hw.check.lenient import lenient_devices, old_form_numbers, readable_configs
 from u2sa_hw.check.problem import WARNING, Collector, did_you_mean, type_name
 
 UDEV_RULES_DIRS = (Path("/etc/udev/rules.d"), Path("/run/udev/rules.d"), Path("/lib/udev/rules.d"),
@@ -79,8 +80,6 @@ def check_devices(path: Path, data: Mapping[str, Any], out: Collector, *, profil
         if for_sim:
             _check_mocks(None, profile, devices, services, out)
         return
-    from u2sa_hw.check.lenient import lenient_devices, old_form_numbers, readable_configs
-
     configs = readable_configs(profile)
     numbers = old_form_numbers(profile, configs)
     for number in numbers:   # bus = 1 read as bus = "1": the device is known, and the type error shows the new form

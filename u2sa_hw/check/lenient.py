@@ -33,13 +33,19 @@ from typing import Any, Mapping
 
 import tomli_w
 
+from u2sa_hw.profile.loader import VEHICLE_KEYS as VEHICLE_KEY_NAMES
+from u2sa_hw.profile.numbers import PROFILE_NUMBERS
+
 PATH_KEYS = ("config_dir", "log_dir", "data_dir", "bus_key")
 DEVICE_KEY_TYPES: dict[str, type] = {"address": str, "mock": str, "service": str, "options": dict, "sides": list,
                                      "drives": dict}   # u2sa_hw.profile.devices.check_table's types
+VEHICLE_KEYS: dict[str, type] = {   # the loader's keys (u2sa_hw.profile.loader), with the type each takes
+    name: {"system_id": int, "origin": dict}.get(name, str) for name in VEHICLE_KEY_NAMES}
+ORIGIN_RANGES = {key: (f.ge, f.le) for key in ("lat", "lon", "alt")   # u2sa_hw/profile/numbers.py, as the loader
+                 for f in (PROFILE_NUMBERS[f"vehicle.origin.{key}"],)}
 
 
 def _vehicle(table: Mapping[str, Any], base: Path) -> dict[str, Any]:
-    from u2sa_hw.check.offline import ORIGIN_RANGES, VEHICLE_KEYS
     from u2sa_hw.service.log import LEVEL_NAMES
 
     kept: dict[str, Any] = {}

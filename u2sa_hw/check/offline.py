@@ -19,15 +19,10 @@ from pathlib import Path
 from typing import Any
 
 from u2sa_hw.check.bus_checks import check_bus, check_security_env
+from u2sa_hw.check.device_checks import check_devices, check_simulation
+from u2sa_hw.check.lenient import ORIGIN_RANGES, VEHICLE_KEYS, lenient_profile
 from u2sa_hw.check.problem import Collector, Problem, did_you_mean, type_name
-from u2sa_hw.profile.numbers import PROFILE_NUMBERS
 from u2sa_hw.profile.loader import TOP_TABLES
-from u2sa_hw.profile.loader import VEHICLE_KEYS as VEHICLE_KEY_NAMES
-
-VEHICLE_KEYS: dict[str, type] = {   # the loader's keys (u2sa_hw.profile.loader), with the type each takes
-    name: {"system_id": int, "origin": dict}.get(name, str) for name in VEHICLE_KEY_NAMES}
-ORIGIN_RANGES = {key: (f.ge, f.le) for key in ("lat", "lon", "alt")   # u2sa_hw/profile/numbers.py, as the loader
-                 for f in (PROFILE_NUMBERS[f"vehicle.origin.{key}"],)}
 
 
 def read_profile_table(path: Path, out: Collector) -> dict[str, Any] | None:
@@ -78,15 +73,11 @@ def check_profile(path: Path, *, for_sim: bool = False) -> list[Problem]:
     check_security_env(vehicle, out)   # $U2SA_BUS_SECURITY, which the installed units ignore
     profile, load_error = _load(path)
     if profile is None:
-        from u2sa_hw.check.lenient import lenient_profile
-
         profile = lenient_profile(path, data)   # past the mistakes load_profile stops at: the rest is checked too
     from u2sa_hw.check.services import check_services
 
     services = data.get("services", {}) if isinstance(data.get("services"), dict) else {}
     check_services(path, data, services, out, profile=profile)
-    from u2sa_hw.check.device_checks import check_devices, check_simulation
-
     check_devices(path, data, out, profile=profile, for_sim=for_sim)
     if "simulation" in data or for_sim:
         check_simulation(path, data, out)
