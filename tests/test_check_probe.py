@@ -23,11 +23,12 @@ from u2sa_hw.mocks.bno055_chip import Bno055Chip
 from u2sa_hw.mocks.gpio_chip import MockGpioChip
 from u2sa_hw.mocks.i2c_bus import MockI2cBus
 from u2sa_hw.mocks.pty_serial import PtySerialDevice
-from u2sa_hw.check.probe import ProbeResult, probe_profile, probe_target, socketcan_state
-from u2sa_hw.check.serial_probe import judge, xor_checksum
+from u2sa_hw.check.probe import ProbeResult, probe_profile, probe_target
 from u2sa_hw.check.targets import Target
+from u2sa_hw.ports.can.probe import socketcan_state
 from u2sa_hw.ports.gpio.port import open_gpio
 from u2sa_hw.ports.pwm.port import make_sysfs_pwm_tree
+from u2sa_hw.ports.serial.probe import judge, xor_checksum
 from u2sa_hw.bus.udp_ports import private_udp_port
 from u2sa_hw.profile.loader import load_profile
 

@@ -283,8 +283,9 @@ def test_every_kind_has_its_preload_and_each_module_exists() -> None:
     from importlib.util import find_spec
 
     from u2sa_hw.ports.address import KINDS
-    from u2sa_hw.ports.opener import PRELOAD
+    from u2sa_hw.ports.kinds import PORT_KINDS
 
-    assert set(PRELOAD) == set(KINDS)
-    assert all(find_spec(module) is not None for modules in PRELOAD.values() for module in modules
+    assert set(PORT_KINDS) == set(KINDS)
+    assert all(kind.preload for kind in PORT_KINDS.values())
+    assert all(find_spec(module) is not None for kind in PORT_KINDS.values() for module in kind.preload
                if module.startswith("u2sa_hw."))

@@ -1,8 +1,8 @@
 """The kind table: every port kind is a package with every part, registered once (docs/ports.md, "Port kinds").
 
 A walk over ``PORT_KINDS``: each kind implements the ``PortKind`` protocol, lives in its own
-``u2sa_hw/ports/<kind>/`` package with its grammar, real backend, mock client and wire
-protocol, parses its own examples, refuses a parameter it does not take, and opens a missing
+``u2sa_hw/ports/<kind>/`` package with its grammar, real backend, mock client, wire
+protocol and probe, parses its own examples, refuses a parameter it does not take, and opens a missing
 device (real and mock) as a ``PortUnavailable`` naming the device and the fix. A new kind that
 leaves a part out fails here, not on a vehicle.
 """
@@ -163,3 +163,18 @@ def test_the_serial_backend_is_told_path_or_url_by_the_address(monkeypatch: pyte
     open_port("serial:///dev/u2sa/gps", device="gps")
     assert [(c["path"], c["pyserial_url"], c["baudrate"]) for c in calls] == [
         ("socket://localhost:7000", True, 19200), ("/dev/u2sa/gps", False, 9600)]
+
+
+@pytest.mark.parametrize("name", sorted(PORT_KINDS))
+def test_every_kind_has_a_read_only_probe_in_its_package(name: str) -> None:
+    """``u2sa check --probe`` finds each kind's probe through the table: its name, its parameters, the probe."""
+    from u2sa_hw.check.probe import PROBES
+    from u2sa_hw.check.targets import TARGETS
+
+    kind = PORT_KINDS[name]
+    assert kind.probe is not None and kind.probe.startswith("u2sa_hw.ports.") and kind.probe.endswith(".probe")
+    module = importlib.import_module(kind.probe)
+    assert module.__doc__ and module.target_params.__doc__ and module.probe.__doc__
+    assert PROBES[module.PROBE] is module.probe and name in TARGETS
+    target = TARGETS[name]("dev", "svc", parse_address(kind.example, device="dev"), {})
+    assert (target.port, target.address) == (module.PROBE, kind.example) and target.params

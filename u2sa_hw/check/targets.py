@@ -7,16 +7,19 @@ behind an I2C address, the CAN node ids). Where each device is comes from its ad
 (:func:`expectation`: its ``probe_expectation``, :mod:`u2sa_hw.ports.declared`): a protocol,
 a chip family and variant, the CAN node ids. Nothing here reads a driver's setting names.
 
-Which probe looks at a device follows its address kind (:data:`TARGETS`: kind -> the target
-of that kind's probe, in :data:`u2sa_hw.check.probe.PROBES`). A device whose kind has
+Which probe looks at a device follows its address kind: each port kind names its probe module
+(``PortKind.probe``, ``u2sa_hw/ports/<kind>/probe.py``: ``PROBE``, ``target_params``, ``probe``),
+and :data:`TARGETS` (kind -> the target of that kind's probe, in
+:data:`u2sa_hw.check.probe.PROBES`) is read off the kind table. A device whose kind has
 neither is still a target, with no port (``port=""``): ``u2sa check --probe`` says "no
-probe for kind X" on its line rather than leave it out unsaid. A new port kind adds its
-entry here and its probe there (docs/ports.md, "A new port kind").
+probe for kind X" on its line rather than leave it out unsaid (docs/ports.md, "A new port kind").
 """
 
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass, field
+from types import ModuleType
 from typing import Any, Callable, Mapping
 
 
@@ -40,36 +43,24 @@ def expectation(kind: str, cfg: Mapping[str, Any]) -> dict[str, Any]:
     return probe_expectation(declared_class(kind), cfg)
 
 
-def _serial(name: str, service: str, address: Any, expect: Mapping[str, Any]) -> Target:
-    return Target(name, service, "serial", address.url, {"path": address.serial_path, "baud": address.baud,
-                                                         "protocol": expect.get("protocol")})
+def _target_of(probe: ModuleType) -> Callable[[str, str, Any, Mapping[str, Any]], Target]:
+    """The target builder of a kind whose probe is *probe* (a ``u2sa_hw/ports/<kind>/probe.py``)."""
+    def target(name: str, service: str, address: Any, expect: Mapping[str, Any]) -> Target:
+        kind = address.kind if probe.PROBE == "i2c" else ""   # a pca9685 address names its kind on the line
+        return Target(name, service, probe.PROBE, address.url, probe.target_params(address, expect), kind=kind)
+
+    return target
 
 
-def _i2c(name: str, service: str, address: Any, expect: Mapping[str, Any]) -> Target:
-    chip = "pca9685" if address.kind == "pca9685" else expect.get("chip", "mpu")
-    return Target(name, service, "i2c", address.url, {"bus": address.i2c_bus, "address": address.chip_address,
-                                                      "chip": chip, "variant": expect.get("variant", "auto")},
-                  kind=address.kind)
+def _kind_targets() -> dict[str, Callable[[str, str, Any, Mapping[str, Any]], Target]]:
+    from u2sa_hw.ports.kinds import PORT_KINDS
+
+    return {name: _target_of(importlib.import_module(kind.probe)) for name, kind in PORT_KINDS.items()
+            if kind.probe is not None}
 
 
-def _can(name: str, service: str, address: Any, expect: Mapping[str, Any]) -> Target:
-    return Target(name, service, "can", address.url, {"interface": address.can_interface,
-                                                      "channel": address.can_channel,
-                                                      "bus_options": address.bus_options, **expect})
-
-
-def _gpio(name: str, service: str, address: Any, expect: Mapping[str, Any]) -> Target:
-    return Target(name, service, "gpio", address.url, {"chip": address.gpio_chip, "lines": list(address.lines)})
-
-
-def _pwm(name: str, service: str, address: Any, expect: Mapping[str, Any]) -> Target:
-    return Target(name, service, "pwm", address.url, {"chip": address.pwm_chip, "channel": address.pwm_channel})
-
-
-# address kind -> its probe's target (the probe: u2sa_hw.check.probe.PROBES[target.port])
-TARGETS: dict[str, Callable[[str, str, Any, Mapping[str, Any]], Target]] = {
-    "serial": _serial, "i2c": _i2c, "pca9685": _i2c, "can": _can, "gpio": _gpio, "pwm": _pwm,
-}
+# address kind -> its probe's target (the probe: u2sa_hw.check.probe.PROBES[target.port]), from the kind table
+TARGETS: dict[str, Callable[[str, str, Any, Mapping[str, Any]], Target]] = _kind_targets()
 
 
 def _from_address(name: str, service: str, address: Any, expect: Mapping[str, Any]) -> Target:

@@ -25,13 +25,15 @@ if TYPE_CHECKING:
 
 @runtime_checkable
 class PortKind(Protocol):
-    """One port kind: its address grammar, its real backend and its mock client.
+    """One port kind: its address grammar, its real backend, its mock client and its probe.
 
     ``name`` is the address kind (``DeviceAddress.kind``) and the real scheme; ``mock+`` + name
     the mock one. ``package`` is the ``u2sa_hw.ports`` package the kind lives in (the PCA9685 is
     a kind of the ``pwm`` package). ``params`` are the query parameters its addresses take,
     ``options`` the keyword options ``open_port`` passes on (None: any, for python-can's bus
-    options). ``preload`` names the modules opening one imports (``opener.preload``).
+    options). ``preload`` names the modules opening one imports (``opener.preload``). ``probe``
+    names the module of its ``u2sa check --probe`` (``PROBE``, the probe's name;
+    ``target_params(address, expect)``; ``probe(target, seconds)``), None for a kind without one.
     """
 
     name: str
@@ -43,6 +45,7 @@ class PortKind(Protocol):
     params: tuple[str, ...]
     options: tuple[str, ...] | None
     preload: tuple[str, ...]
+    probe: str | None
 
     def parse(self, parts: UrlParts, fail: Fail) -> Parsed:
         """``(backend, location, numbers)`` of an address split into *parts*, else raise ``fail(problem)``."""

@@ -31,6 +31,7 @@ class GpioKind:
     params = GPIO_PARAMS
     options: tuple[str, ...] | None = ("inputs", "outputs", "edge", "bias")
     preload = ("u2sa_hw.ports.gpio.port", "u2sa_hw.ports.gpio.mock_client", "u2sa_hw.ports.gpio.gpiod_backend")
+    probe: str | None = "u2sa_hw.ports.gpio.probe"
 
     def parse(self, parts: UrlParts, fail: Fail) -> Parsed:
         """See :func:`u2sa_hw.ports.gpio.grammar.parse_gpio`."""

@@ -29,6 +29,7 @@ class I2cKind:
     params = I2C_PARAMS
     options: tuple[str, ...] | None = ()
     preload = ("u2sa_hw.ports.i2c.port",)
+    probe: str | None = "u2sa_hw.ports.i2c.probe"
 
     def parse(self, parts: UrlParts, fail: Fail) -> Parsed:
         """See :func:`u2sa_hw.ports.i2c.grammar.parse_i2c`."""

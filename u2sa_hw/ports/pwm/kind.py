@@ -42,6 +42,7 @@ class PwmKind:
     params = PWM_PARAMS
     options: tuple[str, ...] | None = ("period_ns",)
     preload = ("u2sa_hw.ports.pwm.port",)
+    probe: str | None = "u2sa_hw.ports.pwm.probe"
 
     def parse(self, parts: UrlParts, fail: Fail) -> Parsed:
         """See :func:`u2sa_hw.ports.pwm.grammar.parse_pwm`."""
@@ -75,6 +76,7 @@ class Pca9685Kind:
     params = PCA9685_PARAMS
     options: tuple[str, ...] | None = ("period_ns",)
     preload = ("u2sa_hw.ports.pwm.port", "u2sa_hw.ports.pwm.pca9685")
+    probe: str | None = "u2sa_hw.ports.i2c.probe"   # one identity read per chip
 
     def parse(self, parts: UrlParts, fail: Fail) -> Parsed:
         """See :func:`u2sa_hw.ports.i2c.grammar.parse_i2c` (an I2C bus and chip, then the channel)."""

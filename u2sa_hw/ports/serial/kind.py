@@ -29,6 +29,7 @@ class SerialKind:
     params = SERIAL_PARAMS
     options: tuple[str, ...] | None = ("timeout",)
     preload = ("u2sa_hw.ports.serial.opener",)
+    probe: str | None = "u2sa_hw.ports.serial.probe"
 
     def parse(self, parts: UrlParts, fail: Fail) -> Parsed:
         """See :func:`u2sa_hw.ports.serial.grammar.parse_serial`."""

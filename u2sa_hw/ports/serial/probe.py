@@ -1,4 +1,4 @@
-"""``u2sa check --probe`` for a serial device: what the port says, at which baud.
+"""The serial kind's probe (``u2sa check --probe``): what the port says, at which baud.
 
 The port is read for a few seconds; the bytes are split into lines and each line is judged:
 NMEA 0183 (``$``/``!`` talker sentence with ``*hh``), OceanServer OS5000 (``$C...*hh``),
@@ -14,7 +14,13 @@ from __future__ import annotations
 import re
 import time
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, Mapping
+
+if TYPE_CHECKING:
+    from u2sa_hw.check.targets import Target
+    from u2sa_hw.ports.address import DeviceAddress
+
+PROBE = "serial"          # the probe's name (a target's ``port``)
 
 COMMON_BAUDS = (4800, 9600, 19200, 38400, 57600, 115200)
 GOOD_SHARE = 0.8           # this share of good checksums: the port works
@@ -139,3 +145,23 @@ def probe_serial_port(open_at: Callable[[int], Any], *, baud: int, seconds: floa
         if report.works:
             return False, f"{text}; at {other} baud: {report.text()}: set baud={other} in the address"
     return False, f"{text}; no other common baud ({', '.join(map(str, others))}) gives good sentences either"
+
+
+def target_params(address: DeviceAddress, expect: Mapping[str, Any]) -> dict[str, Any]:
+    """What the probe opens a serial *address* with, and the protocol the driver expects there."""
+    return {"path": address.serial_path, "baud": address.baud, "protocol": expect.get("protocol")}
+
+
+def probe(target: Target, seconds: float) -> tuple[bool, str, dict[str, Any]]:
+    """Read the port for *seconds* at the configured baud (then the other common ones): lines, protocol,
+    checksums; a protocol other than the driver's is a failure."""
+    from u2sa_hw.ports import open_serial   # the package attribute: a test puts a fake UART there
+
+    baud = int(target.params.get("baud", 9600))
+    path = str(target.params["path"])
+    ok, text = probe_serial_port(lambda rate: open_serial(path, device=target.name, baudrate=rate, timeout=0.1),
+                                 baud=baud, seconds=seconds)
+    expect = target.params.get("protocol")
+    if ok and expect and expect.upper() not in text:
+        return False, f"{text}; the driver expects {expect} (from its service's config)", {}
+    return ok, text, {}
