@@ -14,7 +14,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from u2sa_hw.hil.compare import StreamReport, Tolerances
+from u2sa_hw.hil.compare_stream import StreamReport
+from u2sa_hw.hil.compare_values import Tolerances
 
 SHOWN_FIELDS = 8
 SHOWN_EVENTS = 5

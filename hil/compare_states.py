@@ -9,8 +9,8 @@ from __future__ import annotations
 import bisect
 from typing import Any
 
-from u2sa_hw.hil.compare import (SYSTEM_FIELDS, FieldDiff, Sample, StreamReport, ToleranceLike, Tolerances, _tolerances,
-                         values_equal)
+from u2sa_hw.hil.compare_stream import FieldDiff, StreamReport
+from u2sa_hw.hil.compare_values import SYSTEM_FIELDS, Sample, ToleranceLike, Tolerances, as_tolerances, values_equal
 
 
 def _missing_fields(s: Sample, times: list[int], others: list[Sample], *, window_ns: int,
@@ -45,7 +45,7 @@ def compare_states(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
                    time_tolerance_s: float, start_ns: int, end_ns: int, rate: float,
                    replay_start_ns: int) -> StreamReport:
     """Compare a state stream over time (see hil/compare.py's docstring)."""
-    tol = _tolerances(tolerance)
+    tol = as_tolerances(tolerance)
     rec = [Sample(s.t_ns, s.type_name, _elements(s.fields)) for s in rec]
     mapped = sorted((Sample(start_ns + int((s.t_ns - replay_start_ns) * rate), s.type_name, _elements(s.fields))
                      for s in rep), key=lambda s: s.t_ns)

@@ -36,7 +36,7 @@ from u2sa_hw.bus.transport import Transport, TransportError, check_multicast
 from u2sa_hw.profile.loader import load_profile
 from u2sa_hw.bus.udp_ports import private_lcm_url
 
-from u2sa_hw.hil.compare import STATE_CHANNELS
+from u2sa_hw.hil.compare_values import STATE_CHANNELS
 from u2sa_hw.hil.player import ORDERED_CHANNELS, PlayStats, Player, authority_key
 from u2sa_hw.hil.progress import ProgressBar
 from u2sa_hw.hil.replay_devices import ReplayDevice, ReplaySerialDevice, ReplayStalled

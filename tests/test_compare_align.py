@@ -7,7 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from u2sa_hw.hil.compare import Sample, Tolerances, align, compare_stream
+from u2sa_hw.hil.compare_stream import align, compare_stream
+from u2sa_hw.hil.compare_values import Sample, Tolerances
 from u2sa_hw.hil.compare_report import CompareReport
 from u2sa_hw.hil.stream_align import MAX_DP_CELLS
 

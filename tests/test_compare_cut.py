@@ -6,7 +6,8 @@ value) is still a difference, and so is a partial message away from the edges.""
 
 from __future__ import annotations
 
-from u2sa_hw.hil.compare import Sample, begun_after_start, compare_stream
+from u2sa_hw.hil.compare_stream import begun_after_start, compare_stream
+from u2sa_hw.hil.compare_values import Sample
 from u2sa_hw.lcmtypes import StateInformation
 from u2sa_hw.messages import enumerate_fields
 

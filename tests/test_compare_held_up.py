@@ -14,7 +14,8 @@ from pathlib import Path
 
 from test_health_watch import mux_health
 
-from u2sa_hw.hil.compare import Sample, compare_stream
+from u2sa_hw.hil.compare_stream import compare_stream
+from u2sa_hw.hil.compare_values import Sample
 from u2sa_hw.hil.held_up import HELD_MARGIN_S, HeldWindow, held_up_counters, held_windows, late_edge_windows
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.recording.mcap_log import McapLogWriter

@@ -20,7 +20,9 @@ from can_mock_harness import GROUP, Commander, MockCanProcess
 from conftest import REPO, wait_until
 from recorded_sim import held_up
 
-from u2sa_hw.hil.compare import Sample, align, compare_stream, load_streams, values_equal
+from u2sa_hw.hil.compare import load_streams
+from u2sa_hw.hil.compare_stream import align, compare_stream
+from u2sa_hw.hil.compare_values import Sample, values_equal
 from u2sa_hw.hil.progress import format_duration, progress_line
 from u2sa_hw.hil.replay_plan import ReplayError, build_plan, claimed_devices, parse_overrides
 from u2sa_hw.mocks.i2c_bus import MockI2cBus

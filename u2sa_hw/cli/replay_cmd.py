@@ -140,7 +140,7 @@ def cmd_replay(args: Any) -> int:
 
 def load_tolerances(args: Any) -> Any:
     """The ``Tolerances`` of ``--tolerance`` and ``--tolerances FILE``; CliError (exit 2) naming the file."""
-    from u2sa_hw.hil.compare import Tolerances
+    from u2sa_hw.hil.compare_values import Tolerances
     from u2sa_hw.cli import CliError
 
     if args.tolerance < 0 or args.tolerance != args.tolerance:

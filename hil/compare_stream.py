@@ -1,0 +1,304 @@
+"""One stream of ``u2sa replay --compare`` compared message by message: :func:`compare_stream`.
+
+The two sides are paired in order and by content (:func:`align`, hil/stream_align.py); the rules
+for what is a difference and what a note -- the edges where the recording cuts the input, a
+partial message at a cut, the fields the rest of the system decides, the windows where the
+recording machine held a service up, the replayed start-up writes -- are in hil/compare.py's
+docstring. The result is a :class:`StreamReport`.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+from u2sa_hw.messages import ABSENT
+
+from u2sa_hw.hil.compare_values import (SYSTEM_FIELDS, Sample, ToleranceLike, Tolerances, as_tolerances,
+                                        differing_fields, values_equal)
+from u2sa_hw.hil.held_up import HeldWindow
+from u2sa_hw.hil.stream_align import Pair, align_streams, content_key
+
+SHOWN_FIELDS = 8
+
+
+@dataclass
+class FieldDiff:
+    """One field that differs in some messages of a stream."""
+
+    name: str
+    count: int = 0
+    max_abs: float = 0.0
+    first: tuple[int, Any, Any] | None = None   # (recorded index, recorded, replayed)
+    first_t_ns: int | None = None               # log time of that recorded message
+
+
+@dataclass
+class Event:
+    """A message only on one side: ``deleted`` (recorded, not replayed) or ``inserted`` (replayed only)."""
+
+    kind: str
+    index: int          # in its own stream
+    t_ns: int           # log time: the recorded message's, or for an insertion the recorded one before it
+
+
+@dataclass
+class StreamReport:
+    """The comparison of one stream."""
+
+    key: str
+    recorded: int
+    replayed: int
+    matched: int = 0
+    differing: int = 0
+    inserted: int = 0
+    deleted: int = 0
+    events: list[Event] = field(default_factory=list)
+    fields: dict[str, FieldDiff] = field(default_factory=dict)
+    time_p50_s: float | None = None
+    time_max_s: float | None = None
+    problems: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        """True when nothing differs beyond the tolerances."""
+        return not self.problems
+
+
+def align(rec: list[Sample], rep: list[Sample], *, tolerance: ToleranceLike,
+          skip: tuple[str, ...] = ()) -> list[Pair]:
+    """Pair the two streams' messages in order (hil/stream_align.py): match, differ, deleted, inserted.
+
+    Fields in *skip* (the stream's ``SYSTEM_FIELDS``) do not steer the pairing: a difference there is a note.
+    """
+    tol = as_tolerances(tolerance)
+
+    def own(fields: dict[str, Any]) -> dict[str, Any]:
+        return {n: v for n, v in fields.items() if n not in skip} if skip else fields
+
+    rec_keys = [content_key(s.type_name, own(s.fields), tol.of) for s in rec]
+    rep_keys = [content_key(s.type_name, own(s.fields), tol.of) for s in rep]
+
+    def pair_cost(i: int, j: int) -> float:
+        a, b = rec[i], rep[j]
+        if a.type_name != b.type_name:
+            return 1.0
+        names = (set(a.fields) | set(b.fields)) - set(skip)
+        return len([n for n in differing_fields(a, b, tol) if n not in skip]) / max(1, len(names))
+
+    return align_streams(rec_keys, rep_keys, pair_cost=pair_cost)
+
+
+def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance: ToleranceLike, edge: int,
+                   rate: float | None, time_tolerance_s: float, replay_start_ns: int | None = None,
+                   origin_ns: int | None = None, held: Sequence[HeldWindow] = (),
+                   started_before: bool = False) -> StreamReport:
+    """Compare one stream (see the module docstring); *replay_start_ns*: when the playback began; *origin_ns*:
+    the log time notes count seconds from (default the stream's first recorded message); *held*: where the
+    recording machine held the stream's service up (hil/held_up.py): what differs there is a note;
+    *started_before*: the recording began after the stream's driver started (:func:`begun_after_start`),
+    so the replayed start-up writes before the first recorded one are a note."""
+    r = StreamReport(key, len(rec), len(rep))
+    if not rec or not rep:
+        r.problems.append("only in the replay" if rep else "not reproduced by the replay")
+        return r
+    tol = as_tolerances(tolerance)
+    system = SYSTEM_FIELDS.get(key.split(" [", 1)[0], ())
+    pairs = align(rec, rep, tolerance=tol, skip=system)
+    paired = [(p.rec, p.rep) for p in pairs if p.rec is not None and p.rep is not None]
+    at_edges: list[str] = []
+    held_seen: dict[HeldWindow, int] = {}   # differences inside a held-up window, per window
+    system_changes = 0   # unpaired messages published for a change of a system-decided field
+    rec_edge, rep_edge = edge_positions(rec, edge), edge_positions(rep, edge)
+    # the partial pairs at the edges (a cut epoch): (recorded, replayed) indexes
+    cut_pairs = {(i, j) for i, j in paired
+                 if (i in rec_edge or j in rep_edge)
+                 and (names := [n for n in differing_fields(rec[i], rep[j], tol) if n not in system])
+                 and partial(rec[i], rep[j], names)}
+    last_rec_t = rec[0].t_ns
+    startup = 0   # replayed start-up writes the recording began after (started_before)
+    paired_yet = False
+    for k, p in enumerate(pairs):
+        if p.rec is not None:
+            last_rec_t = rec[p.rec].t_ns
+        if p.kind in ("match", "differ"):
+            paired_yet = True
+            continue
+        if started_before and not paired_yet and p.kind == "inserted":
+            startup += 1
+            continue
+        own, index = (rec, p.rec) if p.kind == "deleted" else (rep, p.rep)
+        assert index is not None
+        if index in (rec_edge if p.kind == "deleted" else rep_edge):
+            at_edges.append(p.kind)
+            continue
+        if _rest_of_cut(pairs, k, cut_pairs, rec, rep, tol):
+            # the other part of an epoch the cut split in two (its partial pair is beside it)
+            at_edges.append(p.kind)
+            continue
+        if _in_held(held, last_rec_t, held_seen):
+            continue
+        if system and _at_system_change(own, index, system):
+            # published because a pre-arm verdict changed, which the rest of the system decides: where the
+            # replay's verdict changes is a note like the verdicts themselves (a timed or device-driven
+            # message away from a verdict change still counts)
+            system_changes += 1
+            continue
+        if p.kind == "deleted":
+            r.deleted += 1
+        else:
+            r.inserted += 1
+        r.events.append(Event(p.kind, index, last_rec_t))
+    offsets: list[float] = []
+    k0 = 0   # the timing reference: the first pair whose replayed message came after the playback began
+    if replay_start_ns is not None:
+        k0 = next((k for k, (_, j) in enumerate(paired) if rep[j].t_ns >= replay_start_ns), len(paired))
+    system_diffs: dict[str, int] = {}
+    cut: list[str] = []   # partial messages where the recording cuts the input (module docstring)
+    for k, (i, j) in enumerate(paired):
+        a, b = rec[i], rep[j]
+        names = differing_fields(a, b, tol)
+        if system:
+            for name in [n for n in names if n in system]:
+                system_diffs[name] = system_diffs.get(name, 0) + 1
+            names = [n for n in names if n not in system]
+        at_edge = i in rec_edge or j in rep_edge
+        if names and at_edge and partial(a, b, names):
+            cut.append(_cut_note(a, b, i, start=i < edge or j < edge, origin_ns=origin_ns or rec[0].t_ns))
+            continue
+        if names and _in_held(held, a.t_ns, held_seen):
+            continue
+        if names:
+            r.differing += 1
+        else:
+            r.matched += 1
+        for name in names:
+            d = r.fields.setdefault(name, FieldDiff(name))
+            d.count += 1
+            va, vb = a.fields.get(name), b.fields.get(name)
+            if isinstance(va, (int, float)) and isinstance(vb, (int, float)) and not isinstance(va, bool):
+                if math.isfinite(va) and math.isfinite(vb):
+                    d.max_abs = max(d.max_abs, abs(float(va) - float(vb)))
+            if d.first is None:
+                d.first = (i, va if name != "_type" else a.type_name, vb if name != "_type" else b.type_name)
+                d.first_t_ns = a.t_ns
+        if rate is not None and k >= k0 and k0 < len(paired):
+            i0, j0 = paired[k0]
+            offsets.append(abs((b.t_ns - rep[j0].t_ns) / 1e9 * rate - (a.t_ns - rec[i0].t_ns) / 1e9))
+    if offsets:
+        r.time_p50_s, r.time_max_s = statistics.median(offsets), max(offsets)
+        if r.time_max_s > time_tolerance_s:
+            r.problems.append(f"timing: a message is {r.time_max_s:.3f} s off its recorded time "
+                              f"(tolerance {time_tolerance_s:g} s)")
+    if r.differing:
+        r.problems.append(f"{r.differing} of {len(paired)} paired messages differ")
+    if r.deleted:
+        r.problems.append(f"{r.deleted} recorded message(s) not reproduced (deleted)")
+    if r.inserted:
+        r.problems.append(f"{r.inserted} replayed message(s) not in the recording (inserted)")
+    if system_diffs:
+        r.notes.append("decided from the rest of the system (pre-arm checks read every service's health), so a "
+                       "note: " + ", ".join(f"{name} differs in {n}" for name, n in sorted(system_diffs.items())))
+    if system_changes:
+        r.notes.append(f"{system_changes} message(s) on one side only, each published for a change of such a "
+                       "verdict (a note like the verdicts)")
+    if at_edges:
+        r.notes.append(f"{len(at_edges)} message(s) without a counterpart among the first or last {edge} of a "
+                       "stream (the recording cuts the input there)")
+    r.notes.extend(cut)
+    if startup:
+        r.notes.append(f"{startup} replayed start-up write(s) before the first recorded one: the recording began "
+                       "after the live driver had started (its first recorded write already drives the output)")
+    origin = origin_ns or rec[0].t_ns
+    for w, n in held_seen.items():
+        r.notes.append(f"{n} difference(s) between t={(w.from_ns - origin) / 1e9:.2f} and {(w.to_ns - origin) / 1e9:.2f} s, "
+                       f"where the recording machine held {w.service} up ({w.why} in its health); shown, not counted")
+    return r
+
+
+def begun_after_start(rec: list[Sample]) -> bool:
+    """True for a PWM output stream whose first recorded write already has the output enabled: a driver
+    starts its outputs disabled (duty 0, then neutral) before it enables them, so the recording began
+    after the live driver's start-up, which the replayed driver does again."""
+    return bool(rec) and rec[0].type_name == "RawPwmWrite" and bool(rec[0].fields.get("enabled"))
+
+
+def _in_held(held: Sequence[HeldWindow], t_ns: int, seen: dict[HeldWindow, int]) -> bool:
+    """Whether log time *t_ns* is in a held-up window (counted in *seen*)."""
+    for w in held:
+        if w.holds(t_ns):
+            seen[w] = seen.get(w, 0) + 1
+            return True
+    return False
+
+
+# A command stream holds one sequence per actuator, published together (the RC mux's MANUAL_CMD: one message
+# per stick output per frame), so its edges are counted per actuator: a cut frame is one message of each.
+PER_ACTUATOR = "base.actuator_name"
+
+
+def edge_positions(samples: list[Sample], edge: int) -> set[int]:
+    """Indexes of *samples* among the first or last *edge* of their sequence: of the stream, or of their
+    actuator's commands in a command stream (PER_ACTUATOR)."""
+    groups: dict[Any, list[int]] = {}
+    for k, sample in enumerate(samples):
+        groups.setdefault(sample.fields.get(PER_ACTUATOR), []).append(k)
+    return {k for ks in groups.values() for k in (ks[:edge] + ks[-edge:] if edge else [])}
+
+
+def partial(a: Sample, b: Sample, names: list[str]) -> bool:
+    """True when *a* and *b* differ only in which fields they hold (*names*: the differing fields): each
+    is ``presence_vector`` or a field one of them leaves out, and at least one is such a field. Every
+    field both hold is then equal: one message holds part of the other's epoch."""
+    if a.type_name != b.type_name:
+        return False
+    held = [n for n in names if n != "presence_vector"]
+    return bool(held) and all(a.fields.get(n) is ABSENT or b.fields.get(n) is ABSENT for n in held)
+
+
+def _rest_of_cut(pairs: list[Pair], k: int, cut_pairs: set[tuple[int, int]], rec: list[Sample],
+                 rep: list[Sample], tol: Tolerances) -> bool:
+    """True when the unpaired message ``pairs[k]`` is beside a partial pair at a cut and holds part of the
+    same epoch: every field it holds is held, equal, by that pair's message on the other side."""
+    p = pairs[k]
+    for q in (pairs[k - 1] if k else None, pairs[k + 1] if k + 1 < len(pairs) else None):
+        if q is None or q.rec is None or q.rep is None or (q.rec, q.rep) not in cut_pairs:
+            continue
+        mine, other = (rec[p.rec], rep[q.rep]) if p.kind == "deleted" else (rep[p.rep], rec[q.rec])  # type: ignore[index]
+        if mine.type_name == other.type_name and all(
+                other.fields.get(n) is not ABSENT and values_equal(v, other.fields.get(n), tol.of(n))
+                for n, v in mine.fields.items() if v is not ABSENT and n != "presence_vector"):
+            return True
+    return False
+
+
+def _cut_note(a: Sample, b: Sample, index: int, *, start: bool, origin_ns: int) -> str:
+    """The note for a partial message at a cut: which side holds which fields, and where the cut is."""
+    only_rec = [n for n, v in a.fields.items() if v is not ABSENT and b.fields.get(n) is ABSENT]
+    only_rep = [n for n, v in b.fields.items() if v is not ABSENT and a.fields.get(n) is ABSENT]
+
+    def names(fields: list[str]) -> str:
+        return ", ".join(fields[:SHOWN_FIELDS]) + (f" (+{len(fields) - SHOWN_FIELDS})" if len(fields) > SHOWN_FIELDS
+                                                   else "")
+
+    held = "; ".join(part for part in (f"only the recorded one holds {names(only_rec)}" if only_rec else "",
+                                       f"only the replayed one holds {names(only_rep)}" if only_rep else "") if part)
+    where = ("at the start of the stream: the recording begins inside the epoch or burst of input this message "
+             "was made of (the live driver had read its first part before), or the live driver, held up as it "
+             "started, read it in two parts with a gap the log cannot tell from a silence" if start else
+             "at the end of the stream: the recording ends inside the epoch or burst of input this message was "
+             "made of")
+    return (f"cut: recorded #{index} at t={(a.t_ns - origin_ns) / 1e9:.3f} s and its replay hold part of one epoch each ({held}; every "
+            f"field both hold is equal), {where}: a note, not a difference")
+
+
+def _at_system_change(stream: list[Sample], index: int, system: tuple[str, ...]) -> bool:
+    """True when a system-decided field changes between message *index* and the one before or after it
+    (of two messages published for one verdict change, the alignment may leave either unpaired)."""
+    here = stream[index].fields
+    return any(0 <= k < len(stream) and any(not values_equal(here.get(n), stream[k].fields.get(n), 0.0)
+                                            for n in system)
+               for k in (index - 1, index + 1))
