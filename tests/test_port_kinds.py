@@ -178,3 +178,15 @@ def test_every_kind_has_a_read_only_probe_in_its_package(name: str) -> None:
     assert PROBES[module.PROBE] is module.probe and name in TARGETS
     target = TARGETS[name]("dev", "svc", parse_address(kind.example, device="dev"), {})
     assert (target.port, target.address) == (module.PROBE, kind.example) and target.params
+
+
+@pytest.mark.parametrize("name", sorted(PORT_KINDS))
+def test_what_install_makes_of_a_kind_is_in_its_package(name: str) -> None:
+    """``u2sa install`` finds what a real address of each kind needs through the table (None: nothing)."""
+    kind = PORT_KINDS[name]
+    expected = {"serial": "u2sa_hw.ports.serial.install", "can": "u2sa_hw.ports.can.install",
+                "pwm": "u2sa_hw.ports.pwm.install"}.get(name)
+    assert kind.install == expected
+    if kind.install is not None:
+        module = importlib.import_module(kind.install)
+        assert module.__doc__ and module.plan_device.__doc__

@@ -1,7 +1,8 @@
 """What install makes of the profile's device addresses: udev rules, CAN bring-up, sysfs PWM drop-ins.
 
 Only device addresses are read (:func:`u2sa_hw.profile.devices.profile_devices`), never a driver's
-setting names:
+setting names; what a real address of each kind needs is that kind's ``install.py``
+(``u2sa_hw/ports/<kind>/``, named by ``PortKind.install``):
 
 - a real serial address whose path is ``/dev/u2sa/NAME`` and which carries the adapter's USB
   identity (``usb=VID:PID`` and/or ``serial=SERIALNO``) gets one line in
@@ -19,21 +20,20 @@ Mock addresses (``mock+...``) need nothing on the vehicle and are skipped.
 
 from __future__ import annotations
 
+import importlib
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Mapping
 
-from u2sa_hw.profile.devices import DeviceEntry
 from u2sa_hw.install.system import InstallError
+from u2sa_hw.ports.can.install import bitrate_rule
+from u2sa_hw.ports.kinds import PORT_KINDS
+from u2sa_hw.ports.serial.install import serial_rule
+from u2sa_hw.profile.devices import DeviceEntry
 
-U2SA_DEV = "/dev/u2sa/"
 VEHICLE_RULES = "65-u2sa-vehicle.rules"
 LOCAL_RULES = "66-u2sa-local.rules"
-_LINK_NAME = re.compile(r"^[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*$")
-_HEX4 = re.compile(r"^[0-9a-f]{4}$")
-_CAN = re.compile(r"^can[0-9]+$")
-_RULE_VALUE = re.compile(r'^[^"\n\\*?\[\]|]*$')   # no quote, newline, escape or udev glob
 
 
 @dataclass
@@ -47,73 +47,26 @@ class DevicePlan:
     unmade: list[tuple[str, str]] = field(default_factory=list)      # (device, /dev/u2sa/NAME)
 
 
-def _value(text: str, where: str, what: str) -> str:
-    if not _RULE_VALUE.match(text):
-        raise InstallError(f"{where}: {what} {text!r} cannot go into a udev rule (quotes, backslashes and "
-                           "glob characters * ? [ ] | are not allowed)")
-    return text
-
-
-def serial_rule(link: str, vendor: str | None, product: str | None, serial: str | None) -> str:
-    """The rule line that makes ``/dev/<link>`` for the USB serial adapter *vendor*:*product* and/or *serial*."""
-    match = ['SUBSYSTEM=="tty"']
-    if vendor and product:
-        match += [f'ATTRS{{idVendor}}=="{vendor}"', f'ATTRS{{idProduct}}=="{product}"']
-    if serial:
-        match.append(f'ATTRS{{serial}}=="{serial}"')
-    return ", ".join(match) + f', SYMLINK+="{link}", GROUP="dialout", MODE="0660"'
-
-
 def plan_devices(devices: Mapping[str, DeviceEntry], *, profile_path: Path | str,
                  made_elsewhere: Iterable[str] = ()) -> DevicePlan:
     """The rules, CAN bitrates and PWM drop-ins the real addresses of *devices* need.
 
+    Each real address goes to its port kind's ``install`` module (``PortKind.install``:
+    ``u2sa_hw/ports/<kind>/install.py``); a kind without one needs nothing from install.
     *made_elsewhere*: links (``u2sa/gps``) that an installed rule of the user's already makes.
     """
     plan = DevicePlan()
     elsewhere = set(made_elsewhere)
     for name, entry in sorted(devices.items()):
         address = entry.address
-        if address.mock:
+        module = PORT_KINDS[address.kind].install
+        if address.mock or module is None:
             continue
         where = f"{profile_path} [devices.{name}] address"
-        if address.kind == "serial" and not address.is_serial_url:
-            path = address.serial_path
-            if not path.startswith(U2SA_DEV):
-                continue
-            link = path[len("/dev/"):]
-            if not _LINK_NAME.match(link[len("u2sa/"):]):
-                raise InstallError(f"{where}: {path} cannot be a udev link; name it /dev/u2sa/NAME with letters, "
-                                   "digits, '_', '.' and '-'")
-            usb, serial = address.usb_id, address.usb_serial
-            if usb is None and not serial:
-                if link not in elsewhere:
-                    plan.unmade.append((name, path))
-                continue
-            vendor, product = usb or (None, None)
-            if usb is not None and not (_HEX4.match(vendor) and _HEX4.match(product)):
-                raise InstallError(f"{where}: usb={vendor}:{product} must be two 4-digit hex ids, e.g. usb=1546:01a7")
-            plan.rule_lines.append(serial_rule(link, vendor, product,
-                                               _value(serial, where, "serial") if serial else None))
-        elif address.kind == "can" and address.can_interface == "socketcan":
-            channel = address.can_channel
-            if not _CAN.match(channel):
-                raise InstallError(f"{where}: SocketCAN interface {channel!r}: install brings up only canN "
-                                   "interfaces; rename it or bring it up yourself")
-            bitrate = address.bitrate
-            if bitrate is None:
-                plan.can_without_bitrate.append(f"{name} ({channel})")
-                continue
-            if not 0 < bitrate <= 8_000_000:
-                raise InstallError(f"{where}: bitrate={bitrate} is not a CAN bitrate (bit/s, e.g. 500000)")
-            if plan.can_channels.get(channel, bitrate) != bitrate:
-                raise InstallError(f"{where}: {channel} at {bitrate} bit/s, but another device has it at "
-                                   f"{plan.can_channels[channel]}; one interface has one bitrate")
-            plan.can_channels[channel] = bitrate
-        elif address.kind == "pwm" and entry.service:
-            plan.pwm_services.setdefault(entry.service, address.pwm_chip)
+        importlib.import_module(module).plan_device(plan, name, address, service=entry.service, elsewhere=elsewhere,
+                                                    fail=lambda problem, where=where: InstallError(f"{where}: {problem}"))
     for channel, bitrate in sorted(plan.can_channels.items()):
-        plan.rule_lines.append(f'SUBSYSTEM=="net", KERNEL=="{channel}", ENV{{U2SA_CAN_BITRATE}}="{bitrate}"')
+        plan.rule_lines.append(bitrate_rule(channel, bitrate))
     return plan
 
 

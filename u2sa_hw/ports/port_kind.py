@@ -34,6 +34,8 @@ class PortKind(Protocol):
     options). ``preload`` names the modules opening one imports (``opener.preload``). ``probe``
     names the module of its ``u2sa check --probe`` (``PROBE``, the probe's name;
     ``target_params(address, expect)``; ``probe(target, seconds)``), None for a kind without one.
+    ``install`` names the module whose ``plan_device`` says what ``u2sa install`` makes of a real
+    address of the kind (a udev rule, an interface's bitrate, a unit drop-in), None for nothing.
     """
 
     name: str
@@ -46,6 +48,7 @@ class PortKind(Protocol):
     options: tuple[str, ...] | None
     preload: tuple[str, ...]
     probe: str | None
+    install: str | None
 
     def parse(self, parts: UrlParts, fail: Fail) -> Parsed:
         """``(backend, location, numbers)`` of an address split into *parts*, else raise ``fail(problem)``."""

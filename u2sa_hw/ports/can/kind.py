@@ -29,6 +29,7 @@ class CanKind:
     options: tuple[str, ...] | None = None
     preload = ("u2sa_hw.ports.can.port", "can", "u2sa_hw.ports.can.clock")
     probe: str | None = "u2sa_hw.ports.can.probe"
+    install: str | None = "u2sa_hw.ports.can.install"
 
     def parse(self, parts: UrlParts, fail: Fail) -> Parsed:
         """See :func:`u2sa_hw.ports.can.grammar.parse_can`."""

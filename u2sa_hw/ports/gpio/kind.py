@@ -32,6 +32,7 @@ class GpioKind:
     options: tuple[str, ...] | None = ("inputs", "outputs", "edge", "bias")
     preload = ("u2sa_hw.ports.gpio.port", "u2sa_hw.ports.gpio.mock_client", "u2sa_hw.ports.gpio.gpiod_backend")
     probe: str | None = "u2sa_hw.ports.gpio.probe"
+    install: str | None = None   # udev/60-u2sa-permissions.rules covers every chip
 
     def parse(self, parts: UrlParts, fail: Fail) -> Parsed:
         """See :func:`u2sa_hw.ports.gpio.grammar.parse_gpio`."""

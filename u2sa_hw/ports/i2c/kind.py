@@ -30,6 +30,7 @@ class I2cKind:
     options: tuple[str, ...] | None = ()
     preload = ("u2sa_hw.ports.i2c.port",)
     probe: str | None = "u2sa_hw.ports.i2c.probe"
+    install: str | None = None   # udev/60-u2sa-permissions.rules covers every adapter
 
     def parse(self, parts: UrlParts, fail: Fail) -> Parsed:
         """See :func:`u2sa_hw.ports.i2c.grammar.parse_i2c`."""

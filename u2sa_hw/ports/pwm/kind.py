@@ -43,6 +43,7 @@ class PwmKind:
     options: tuple[str, ...] | None = ("period_ns",)
     preload = ("u2sa_hw.ports.pwm.port",)
     probe: str | None = "u2sa_hw.ports.pwm.probe"
+    install: str | None = "u2sa_hw.ports.pwm.install"
 
     def parse(self, parts: UrlParts, fail: Fail) -> Parsed:
         """See :func:`u2sa_hw.ports.pwm.grammar.parse_pwm`."""
@@ -77,6 +78,7 @@ class Pca9685Kind:
     options: tuple[str, ...] | None = ("period_ns",)
     preload = ("u2sa_hw.ports.pwm.port", "u2sa_hw.ports.pwm.pca9685")
     probe: str | None = "u2sa_hw.ports.i2c.probe"   # one identity read per chip
+    install: str | None = None   # an I2C chip: udev/60-u2sa-permissions.rules covers its adapter
 
     def parse(self, parts: UrlParts, fail: Fail) -> Parsed:
         """See :func:`u2sa_hw.ports.i2c.grammar.parse_i2c` (an I2C bus and chip, then the channel)."""

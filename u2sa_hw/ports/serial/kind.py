@@ -30,6 +30,7 @@ class SerialKind:
     options: tuple[str, ...] | None = ("timeout",)
     preload = ("u2sa_hw.ports.serial.opener",)
     probe: str | None = "u2sa_hw.ports.serial.probe"
+    install: str | None = "u2sa_hw.ports.serial.install"
 
     def parse(self, parts: UrlParts, fail: Fail) -> Parsed:
         """See :func:`u2sa_hw.ports.serial.grammar.parse_serial`."""
