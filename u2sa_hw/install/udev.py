@@ -63,8 +63,12 @@ def plan_devices(devices: Mapping[str, DeviceEntry], *, profile_path: Path | str
         if address.mock or module is None:
             continue
         where = f"{profile_path} [devices.{name}] address"
+
+        def fail(problem: str, where: str = where) -> InstallError:
+            return InstallError(f"{where}: {problem}")
+
         importlib.import_module(module).plan_device(plan, name, address, service=entry.service, elsewhere=elsewhere,
-                                                    fail=lambda problem, where=where: InstallError(f"{where}: {problem}"))
+                                                    fail=fail)
     for channel, bitrate in sorted(plan.can_channels.items()):
         plan.rule_lines.append(bitrate_rule(channel, bitrate))
     return plan
