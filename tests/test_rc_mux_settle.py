@@ -1,4 +1,4 @@
-"""The RC mux skips the settle after an event that changed nothing it reads (drivers/rc_mux/clock.py
+"""The RC mux skips the settle after an event that changed nothing it reads (drivers/rc_mux/state.py
 ``_settle``): most edges change nothing, and the pre-arm checks, the enable line and the RcMode it
 publishes were worked out again after every one. Skipping must not change a message: the recorded
 input of tests/test_rc_mux_timing.py (manual, autonomy granted, a failsafe raised and cleared, a signal
@@ -13,26 +13,26 @@ from typing import Any
 import pytest
 from test_rc_mux_timing import all_at_once, in_uneven_chunks, run_driver, socket_dir  # noqa: F401 - a fixture
 
-from u2sa_hw.drivers.rc_mux.driver import RcMuxDriver
+from u2sa_hw.drivers.rc_mux.state import MuxState
 
 
 def _counting(monkeypatch: pytest.MonkeyPatch, *, skip: bool) -> dict[str, int]:
     """Count the settles and those run in full; without *skip* every settle runs in full."""
     counts = {"settles": 0, "full": 0}
-    settle, check_prearm = RcMuxDriver._settle, RcMuxDriver._check_prearm
+    settle, check_prearm = MuxState._settle, MuxState._check_prearm
 
-    def counted_settle(self: RcMuxDriver, at_ns: int | None) -> None:
+    def counted_settle(self: MuxState, at_ns: int | None) -> None:
         counts["settles"] += 1
         settle(self, at_ns)
 
-    def counted_check(self: RcMuxDriver, verdict: Any) -> None:
+    def counted_check(self: MuxState, verdict: Any) -> None:
         counts["full"] += 1
         check_prearm(self, verdict)
 
-    monkeypatch.setattr(RcMuxDriver, "_settle", counted_settle)
-    monkeypatch.setattr(RcMuxDriver, "_check_prearm", counted_check)
+    monkeypatch.setattr(MuxState, "_settle", counted_settle)
+    monkeypatch.setattr(MuxState, "_check_prearm", counted_check)
     if not skip:
-        monkeypatch.setattr(RcMuxDriver, "_settle_inputs", lambda self, verdict, failsafe: None)
+        monkeypatch.setattr(MuxState, "_settle_inputs", lambda self, verdict, failsafe: None)
     return counts
 
 

@@ -1,79 +1,59 @@
 """RC input and the hardware RC multiplexer (kind ``rc_mux``): the pilot's mode on ``RC_MODE``
-and the autonomy-enable line into the mux.
+and the autonomy-enable line into the mux -- the service around :class:`u2sa_hw.drivers.rc_mux.state.MuxState`.
 
-The RC receiver's channel outputs are GPIO inputs; each pulse width is measured from the
-edge timestamps (``u2sa_hw.drivers.rc_mux.pulse.PulseMeter``) and the mode channel's pulses decide
-the mode with hysteresis, debounce and a signal timeout (``u2sa_hw.drivers.rc_mux.pulse.RcModeFilter``).
+Every decision is the state's (pure, time passed in; drivers/rc_mux/state.py and the modules it
+names): the pulse widths and the mode (``pulse.py``), the signal timeout, the autonomy-enable
+verdict (``enable.py``: failsafes held per source, pre-arm checks, arming, ``on_check_lost``), the
+select read-back (``readback.py``) and what is due when on the device clock (``clock.py``). This
+service is thin: it opens the GPIO port (``GpioLineSet``), hands the state every edge, tick and
+recorded bus input with its stamp, the bus's FAILSAFE, Health and STATE_ESTIMATE with the host's
+CLOCK_MONOTONIC, and the loop's looks at the clocks; it drives the enable line when the state says
+so, publishes the ``RcMode`` and ``MANUAL_CMD`` (the sticks through ``[safety.manual_mixer]``,
+``manual.py``) it returns, logs its notes and reports its health. One lock serialises the calls
+into the state: the loop's, a FAILSAFE callback's (which drops the line at once, not at the next
+loop turn) and the health thread's.
 
-The autonomy-enable output goes into the mux, whose default side is the pilot (RC). It is
-high only while ALL of these hold, and is driven low the moment one fails:
-
-- the mode is autonomous (the pilot's switch; leaving autonomy for manual takes one frame,
-  anything else ``debounce_frames`` frames alike);
-- no FAILSAFE is held by any source (u2sa_hw/failsafe.py; dropped from the FAILSAFE
-  callback itself, not the next loop);
-- the service is healthy: the GPIO port is open and the mux's select read-back agrees;
-- every pre-arm check holds (``[safety.prearm]``, u2sa_hw/safety/prearm.py): a refusal
-  names the failed check in ``RcMode.blocked_by``, health and the log; a check lost while
-  autonomous takes the profile's ``on_check_lost`` action: ``neutral`` disarms (the line
-  drops, the pilot has the hardware-muxed outputs at once), ``hold`` keeps the line but sets
-  ``RcMode.hold`` so every output goes neutral until the pilot re-arms;
-- autonomy is armed: with ``require_rearm`` a failsafe, a loss of signal, a read-back
-  mismatch, a lost pre-arm check, a (re)start and a re-opened GPIO port disarm it, and only
-  the switch held at manual for ``debounce_frames`` frames arms it again, so nothing
-  re-enables autonomy behind the pilot's back.
-
-With a ``[safety.manual_mixer]`` in the profile the service is also the software half of
-the mux: in manual it publishes the sticks, mixed, on ``MANUAL_CMD`` at ``manual_hz``
-(drivers/rc_mux/manual.py) for the actuators no hardware mux can switch.
-
-It drops on stop and kill too; a crashed service's request is released and the line falls
-to the board's pull-down. ``RcMode`` goes out at ``publish_hz`` and on every change:
-``mode`` is the pilot's switch (0 manual, 1 autonomous, 2 no signal), ``autonomy_enabled``
-the enable line, so the vehicle is under autonomous control only when both say so;
-``pulse_us`` holds the last valid width of each configured channel in config order
-(0 when it has none within the signal timeout).
+The enable line is high only while all of these hold: the mode is autonomous, no FAILSAFE is
+held, the GPIO port is open and the select read-back agrees, every pre-arm check holds, and the
+pilot armed through manual (docs/drivers-gpio-rc.md, docs/safety.md). It drops on stop and kill
+too; a crashed service's request is released and the line falls to the board's pull-down.
+``RcMode`` goes out at ``publish_hz`` on a fixed grid of the device clock and on every change:
+``mode`` is the pilot's switch (0 manual, 1 autonomous, 2 no signal), ``autonomy_enabled`` the
+enable line, so the vehicle is under autonomous control only when both say so.
 
 Time. Everything is judged on the port's device clock (CLOCK_MONOTONIC on a real chip, the
-recorded edge stamps on a replay chip), in the order of the edges' stamps: before an edge is
-taken, whatever falls due up to its stamp happens first, at its own time -- the signal timeout
-and the read-back mismatch when they expire, and the timed messages (``RC_MODE`` at
-``publish_hz``, ``MANUAL_CMD`` at ``manual_hz``) on a fixed grid of the recorded clock
-(:class:`u2sa_hw.drivers.rc_mux.pulse.DueGrid`), each with the state as of its due time. A change of what
-``RcMode`` says (mode, enable line, arming, hold, read-back mismatch, the reason autonomy is
-blocked) is published at once, as its own message. Live, a timed message waits for an edge
-stamped after its due time (or ``TIMED_HOLD_NS`` past it on the clock), so a delivery latency
-cannot leave an earlier edge out of it. So what is published depends on the edges and their
-stamps, not on how the loop batched its reads: a replay gives the live messages.
-
-On a replay chip (a device clock) the Health, FAILSAFE and STATE_ESTIMATE the pre-arm checks
-and the failsafe read come from the chip too, the recorded ones, in order with the edges
+recorded edge stamps on a replay chip), in the order of the edges' stamps, so a replay gives the
+live messages. On a replay chip the Health, FAILSAFE and STATE_ESTIMATE the pre-arm checks and the
+failsafe read come from the chip too, the recorded ones, in order with the edges
 (:meth:`u2sa_hw.ports.gpio.port.GpioPort.take_recorded_bus`), and the loop's own stall is not
 judged (the replaying machine's load is not the vehicle's): the decision is the recorded one.
 """
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
-from typing import Any, Mapping, NamedTuple
+from typing import Any, Callable, Mapping, NamedTuple
 
 from u2sa_hw.drivers.rc_mux.declarations import RcMuxDeclarations
 from u2sa_hw.drivers.gpio.lines import (GpioLineSet, check_gpio_device, legacy_gpio_address, note_restart_needed,
                                 parse_line_map)
+from u2sa_hw.drivers.rc_mux.health import health_details
 from u2sa_hw.drivers.rc_mux.manual import ManualSticks
-from u2sa_hw.drivers.rc_mux.clock import TIMED_HOLD_NS, RcMuxClock
-from u2sa_hw.drivers.rc_mux.enable import RcMuxEnable
-from u2sa_hw.drivers.rc_mux.pulse import MODE_MANUAL, MODE_NAMES, MODE_NO_SIGNAL, DueGrid, PulseMeter, RcModeFilter
+from u2sa_hw.drivers.rc_mux.outputs import ManualReport, ModeReport, Output
+from u2sa_hw.drivers.rc_mux.pulse import PulseMeter, RcModeFilter
+from u2sa_hw.drivers.rc_mux.state import MuxState
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Sensor
 from u2sa_hw.config.configurator import MAX_RATE_HZ, ConfigError, field
-from u2sa_hw.failsafe import FailsafeSources
+from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.ports.device_link import device_setting
 from u2sa_hw.ports.gpio.port import GpioPort
+from u2sa_hw.ports.gpio.wire import BusInput, ClockTick, EdgeEvent
 from u2sa_hw.safety.config import load_safety
-from u2sa_hw.safety.prearm import CheckFailure, PrearmChecks
+from u2sa_hw.safety.prearm import PrearmChecks
 from u2sa_hw.safety.wiring import check_wiring
 
 
@@ -93,8 +73,9 @@ class RcSetup(NamedTuple):
     filter: RcModeFilter
 
 
-class RcMuxDriver(RcMuxDeclarations, RcMuxEnable, RcMuxClock, Sensor):
-    """RC pulse measurement, mux mode on RC_MODE, and the autonomy-enable line into the mux."""
+class RcMuxDriver(RcMuxDeclarations, Sensor):
+    """RC pulse measurement, mux mode on RC_MODE, and the autonomy-enable line into the mux: the service around
+    :class:`u2sa_hw.drivers.rc_mux.state.MuxState`."""
 
     CONFIG = (
         field("device", "", "the chip's lines: its [devices.NAME] table (address gpio://CHIP/LINES) and "
@@ -127,41 +108,28 @@ class RcMuxDriver(RcMuxDeclarations, RcMuxEnable, RcMuxClock, Sensor):
         super().__init__(name, **kwargs)
         c = self.config
         self.channels, self.enable_line, self.select_line, self.meter, self.filter = self.parse_config(c)
-        self.mode_line = self.channels[c["mode_channel"]]
-        self.names_by_line = {line: n for n, line in self.channels.items()}
-        self.widths: dict[str, tuple[float, int]] = {}  # channel -> (width us, falling edge ns)
-        self.enabled = False      # what the enable line was last driven to
-        self.armed = not c["require_rearm"]
-        self.failsafes = FailsafeSources()
         self.safety = check_wiring(self.profile) if self.profile.path else load_safety(self.profile)
         self.sticks = ManualSticks(self.safety.manual_mixer) if self.safety.manual_mixer else None
-        self.prearm = PrearmChecks.from_profile(self.profile)
-        self.prearm_failures: list[CheckFailure] = []
-        self.hold = False
-        self.checks_lost = self.stalls = 0
-        self.timed_skipped = 0   # timed messages left out because the loop was more than a period behind
-        stale_ns = int((self.safety.rc_mode_timeout_s - 1.0 / c["publish_hz"]) * 1e9) - TIMED_HOLD_NS
-        self.stall_after_ns = max(20_000_000, min(self.filter.signal_timeout_ns, stale_ns))
-        self.select_level: int | None = None
-        self.mismatch, self._mismatch_since = False, None
-        self.mismatches = self.enable_changes = 0
-        self.signal_losses = 0  # times the mode went from manual/autonomous to no signal
-        self.clock_ns: int | None = None   # the device clock: the latest time judged (GpioPort.now_ns)
-        self.mode_grid, self.manual_grid = DueGrid(c["publish_hz"]), DueGrid(c["manual_hz"])
-        self._origin_ns = 0                # the recorded clock's zero on the device clock (a replay chip's)
-        self._origin_of: Any = lambda: 0   # where the open port says it is
-        self._device_clock = False         # the port is a replay chip: its clock, no wall-clock judgments
-        self._recorded_bus: tuple[str, ...] = ()   # bus channels the replay chip hands over instead of the bus
-        self._next_publish_ns: int | None = None   # the next RC_MODE due (None: the clock has not started)
-        self._next_manual_ns: int | None = None    # the next MANUAL_CMD due (None: not in manual)
-        self._published: tuple | None = None       # what the last RcMode said (its state_key)
-        self._settled: tuple | None = None         # what the last settle left (RcMuxClock._settle_inputs)
+        prearm = PrearmChecks.from_profile(self.profile)
         self._stopping = False
-        self._enable_lock = threading.RLock()
+        self._status_said = ""   # the state's status as last carried over (the contract sets its own too)
+        # every call into the state holds it; the port's own lock is taken after it (a write of the line),
+        # never before (the opener's on_open does not take it)
+        self._lock = threading.RLock()
+        self._origin_of: Any = lambda: 0   # where the open port says the recorded clock's zero is
+        self._recorded_bus: tuple[str, ...] = ()   # bus channels the replay chip hands over instead of the bus
         inputs = list(self.channels.values()) + ([self.select_line] if self.select_line >= 0 else [])
         self.gpio = GpioLineSet(self, inputs=inputs, initial_outputs=lambda: {self.enable_line: 0},
                                 record_raw=c["record_raw"], on_open=self._on_open)
         self.device = self.gpio.device
+        self.state = MuxState(channels=self.channels, mode_channel=c["mode_channel"], meter=self.meter,
+                              filter=self.filter, prearm=prearm,
+                              drive_enable=self._drive_enable,
+                              select_line=self.select_line if self.select_line >= 0 else None,
+                              on_check_lost=self.safety.on_check_lost, require_rearm=bool(c["require_rearm"]),
+                              select_mismatch_ms=float(c["select_mismatch_ms"]), publish_hz=c["publish_hz"],
+                              manual_hz=c["manual_hz"], manual=self.sticks is not None,
+                              rc_mode_timeout_s=self.safety.rc_mode_timeout_s, device=self.device)
         self.register_publisher(ch.RC_MODE, t.RcMode)
         if self.sticks is not None:
             self.register_publisher(ch.MANUAL_CMD, t.PercentageCommand)
@@ -210,26 +178,64 @@ class RcMuxDriver(RcMuxDeclarations, RcMuxEnable, RcMuxClock, Sensor):
 
     def on_config_change(self, name: str, value: Any) -> None:
         """require_rearm and select_mismatch_ms apply at once; lines and thresholds at the next start."""
+        with self._lock:
+            self.state.set_live(require_rearm=bool(self.config["require_rearm"]),
+                                select_mismatch_ms=float(self.config["select_mismatch_ms"]))
         note_restart_needed(self, name, live=("require_rearm", "select_mismatch_ms"))
 
+    # -- what the state says, for readers (health, the bench) -----------------------------------
+    @property
+    def prearm(self) -> PrearmChecks:
+        """The pre-arm checks the state judges with."""
+        return self.state.gate.prearm
+
+    @property
+    def clock_ns(self) -> int | None:
+        """The device clock: the latest time judged (None: not started)."""
+        return self.state.clock_ns
+
+    @property
+    def enabled(self) -> bool:
+        """What the enable line was last driven to."""
+        return self.state.enabled
+
+    def autonomy_allowed(self) -> tuple[bool, str]:
+        """Whether the enable line may be high, and if not the first reason why not."""
+        with self._lock:
+            return self.state.autonomy_allowed()
+
+    # -- the port and the bus -----------------------------------------------------------------------
     def _on_open(self, port: GpioPort) -> None:
-        # runs inside the opener (under the line set's lock, so not under _enable_lock: lock order
-        # is _enable_lock -> line set); the port was requested with the enable line low
-        self.enabled = False
-        if self.config["require_rearm"]:
-            self.armed = False  # the lines were lost (or never held): the pilot re-arms
-        self.meter.reset()
-        self._device_clock = bool(getattr(port, "device_clock", False))
+        # runs inside the opener, under the line set's lock, so not under self._lock (lock order: self._lock ->
+        # line set); the port was requested with the enable line low
         self._origin_of = port.clock_origin_ns
-        if self._device_clock:   # a replay chip: its clock, not the wall clock's time so far
-            self.clock_ns, self._next_publish_ns, self._next_manual_ns = None, None, None
+        device_clock = bool(getattr(port, "device_clock", False))
+        prearm = None
+        if device_clock:   # a replay chip: its clock, not the wall clock's time so far
             wanted = RECORDED_BUS + ((ch.STATE_ESTIMATE,) if self.prearm.needs_estimate else ())
             taken = port.take_recorded_bus(wanted)
             if taken:   # the recorded inputs replace what the replay bus says: start from none of them
                 self._recorded_bus = taken
-                self.prearm = PrearmChecks.from_profile(self.profile)
-                self.failsafes = FailsafeSources()
-        self.select_level = port.get(self.select_line) if self.select_line >= 0 else None
+                prearm = PrearmChecks.from_profile(self.profile)
+        self.state.port_opened(device_clock=device_clock, prearm=prearm,
+                               select_level=port.get(self.select_line) if self.select_line >= 0 else None)
+
+    def _drive_enable(self, level: bool) -> bool:
+        return self.gpio.set(self.enable_line, int(level))
+
+    def _on_failsafe(self, msg: t.Failsafe) -> None:
+        if ch.FAILSAFE not in self._recorded_bus:   # on a replay chip the recorded ones come with the edges
+            self._judge(self.state.on_failsafe, msg, host_ns=time.monotonic_ns())
+
+    def _on_health(self, msg: t.Health) -> None:
+        if ch.HEALTH not in self._recorded_bus:
+            with self._lock:
+                self.state.on_health(msg, now_s=time.monotonic())
+
+    def _on_estimate(self, msg: t.StateInformation) -> None:
+        if ch.STATE_ESTIMATE not in self._recorded_bus:
+            with self._lock:
+                self.state.on_estimate(msg, now_s=time.monotonic())
 
     # -- the loop ------------------------------------------------------------------------
     def run(self) -> None:
@@ -237,172 +243,96 @@ class RcMuxDriver(RcMuxDeclarations, RcMuxEnable, RcMuxClock, Sensor):
         self.logger.info("%s; manual mixer: %s; on a lost check: %s", self.prearm.describe(),
                          f"{self.sticks.spec.kind} -> {', '.join(self.sticks.spec.actuators)}" if self.sticks else "none",
                          self.safety.on_check_lost)
-        last_loop_ns = time.monotonic_ns()
+        self._judge(self.state.loop_looked, time.monotonic_ns())
         while self.wait(0.0):
             port = self.gpio.port()
             if port is None:
                 self.wait(min(0.05, max(0.01, self.gpio.retry_in())))
             else:
-                # each edge (and a replay chip's tick or recorded bus input) in order, whatever falls
-                # due before it first, at its own time: what is published depends on the stamps, not
-                # on how the reads batched them
+                # each edge (and a replay chip's tick or recorded bus input) in order, whatever falls due
+                # before it first, at its own time: what is published depends on the stamps, not on how
+                # the reads batched them
                 events = self.gpio.read_events(port, 0.02)
-                wall_ns = time.monotonic_ns()
+                host_ns = time.monotonic_ns()
+                with self._lock:
+                    if self.state.clock_ns is None:   # the clock starts with these: its zero as the port says now
+                        self.state.clock_origin(self._origin_of())
                 for event in events:
-                    self._take(event, wall_ns)
-            # after the wait, before anything is published: a stall anywhere in the loop is caught here
-            # (on the wall clock: the actuators judge RC_MODE by it; not in a replay, whose load is not the
-            # vehicle's)
-            if not self._device_clock:
-                last_loop_ns = self._check_stall(last_loop_ns)
-            # the device clock (CLOCK_MONOTONIC on a real chip; the port down: the wall clock)
-            up = port is not None and port.is_open
-            if up or not self._device_clock:
-                self._step(port.now_ns() if up else time.monotonic_ns(), time.monotonic_ns())
+                    self._take(event, host_ns)
+            # after the wait, before anything is published: a stall anywhere in the loop is caught here (on
+            # the host clock: the actuators judge RC_MODE by it; not in a replay, whose load is not the vehicle's)
+            if not self.state.device_clock:
+                self._judge(self.state.loop_looked, time.monotonic_ns())
+            # the device clock (CLOCK_MONOTONIC on a real chip; the port down: the host's)
+            if port is not None and port.is_open:
+                self._judge(self.state.step, port.now_ns(), host_ns=time.monotonic_ns())
+            elif not self.state.device_clock:
+                self._judge(self.state.step, time.monotonic_ns(), host_ns=time.monotonic_ns())
             else:
-                self._settle(self.clock_ns)   # a replay chip gone: said at once (its clock went with it)
+                self._judge(self.state.settle_now, host_ns=time.monotonic_ns())   # a replay chip gone: said at once
 
-    def _check_stall(self, last_loop_ns: int) -> int:
-        """A loop gap longer than the signal timeout, or long enough that the actuators may have seen
-        RC_MODE go stale (the process was stopped or starved), is a signal loss: autonomy must not come
-        back without the pilot."""
-        now_ns = time.monotonic_ns()
-        gap_ns = now_ns - last_loop_ns
-        if gap_ns > self.stall_after_ns:
-            self.stalls += 1
-            with self._enable_lock:
-                if self.config["require_rearm"] and self.armed:
-                    self.armed = False
-                    self.logger.warning("RC service stalled for %.0f ms: disarmed (switch through manual to re-arm)",
-                                        gap_ns / 1e6)
-                self.update_enable()
-        return now_ns
+    def _take(self, event: Any, host_ns: int) -> None:
+        """One event from the chip, handed to the state at its stamp."""
+        if isinstance(event, EdgeEvent):
+            self._judge(self.state.take_edge, event.line, event.rising, event.timestamp_ns, host_ns=host_ns)
+        elif isinstance(event, ClockTick):
+            self._judge(self.state.take_tick, event.timestamp_ns, step=event.step, host_ns=host_ns)
+        elif isinstance(event, BusInput):
+            try:
+                msg, _ = REGISTRY.decode(event.data, ch.base_type(event.channel))
+            except MalformedMessage:
+                return
+            self._judge(self.state.take_bus, event.channel, msg, event.timestamp_ns, host_ns=host_ns)
 
-    def _on_edge(self, line: int, rising: bool, timestamp_ns: int) -> None:
-        if line == self.select_line:
-            self.select_level = int(rising)
-            return
-        pulse = self.meter.feed(line, rising, timestamp_ns)
-        if pulse is None:
-            return
-        self.widths[self.names_by_line[line]] = (pulse.width_us, pulse.end_ns)
-        if line != self.mode_line:
-            return
-        if self.filter.on_frame(pulse.width_us, pulse.end_ns):
-            self._mode_changed(pulse.end_ns)
-        if self.filter.manual_confirmed and (not self.armed or self.hold) and not self.failsafes.active:
-            with self._enable_lock:
-                self.armed, self.hold = True, False
-            self.logger.info("armed: the switch is at manual")
+    def _judge(self, call: Callable[..., list[Output]], *args: Any, **kwargs: Any) -> None:
+        """One call into the state with the port's state as it is now, then what it says to do."""
+        with self._lock:
+            self.state.port_open = self.gpio.is_open
+            outputs = call(*args, **kwargs)
+            if not self._stopping and self.state.status != self._status_said:
+                self.status = self._status_said = self.state.status
+        self._carry_out(outputs)
 
-    def _mode_changed(self, at_ns: int) -> None:
-        mode = self.filter.mode
-        if mode == MODE_NO_SIGNAL:
-            self.signal_losses += 1
-            self.logger.warning("RC mode %s: no valid mode pulse for %.0f ms (signal loss %d)", MODE_NAMES[mode],
-                                self.filter.signal_timeout_ns / 1e6, self.signal_losses)
-        else:
-            self.logger.info("RC mode %s", MODE_NAMES[mode])
-        with self._enable_lock:
-            if mode == MODE_NO_SIGNAL and self.config["require_rearm"]:
-                self.armed = False
-        if mode == MODE_MANUAL and self.sticks is not None:
-            self.publish_manual(at_ns)  # the pilot has the software-muxed outputs from the first manual frame
-            self._next_manual_ns = self.manual_grid.after(at_ns, self._origin_ns)
-        else:
-            self._next_manual_ns = None
-
-    def _check_select(self, now_ns: int) -> None:
-        """The read-back against the enable line at *now_ns*: a disagreement starts (its expiry makes it a
-        mismatch, :meth:`_advance`), or ends."""
-        if self.select_level is None:
-            return
-        if self.select_level == int(self.enabled):
-            if self.mismatch:
-                self.logger.info("mux select read-back agrees again (%s)", "autonomous" if self.enabled else "rc")
-                self.mismatch = False
-            self._mismatch_since = None
-            return
-        if self._mismatch_since is None:
-            self._mismatch_since = now_ns
-        elif not self.mismatch and now_ns - self._mismatch_since > self.config["select_mismatch_ms"] * 1e6:
-            self.mismatch = True
-            self.mismatches += 1
-            with self._enable_lock:
-                if self.config["require_rearm"]:
-                    self.armed = False
-            self.error(f"{self.device}: mux select line {self.select_line} reads "
-                       f"{'autonomous' if self.select_level else 'rc'} but autonomy enable is "
-                       f"{'high' if self.enabled else 'low'}; check the mux wiring and its mode channel")
-
-    def _refresh_status(self) -> None:
-        if self._stopping:
-            return
-        bad = not self.gpio.is_open or self.mismatch or self.filter.mode == MODE_NO_SIGNAL
-        self.status = "degraded" if bad else "ok"
-
-    def pulse_widths_us(self, at_ns: int | None = None) -> list[int]:
-        """Each channel's last valid width (us, config order) as of *at_ns* (default: the device clock now);
-        0 when none within the signal timeout."""
-        if at_ns is None:
-            at_ns = self.clock_ns if self.clock_ns is not None else time.monotonic_ns()
-        widths = []
-        for name in self.channels:
-            last = self.widths.get(name)
-            widths.append(round(last[0]) if last and at_ns - last[1] <= self.filter.signal_timeout_ns else 0)
-        return widths
-
-    def publish_manual(self, at_ns: int | None = None) -> None:
-        """Publish the sticks as of *at_ns*, mixed, on MANUAL_CMD (one PercentageCommand per mixed actuator)."""
-        if self.sticks is None:
-            return
-        widths = dict(zip(self.channels, self.pulse_widths_us(at_ns)))
-        for cmd in self.sticks.commands(widths):
-            self.publish(ch.MANUAL_CMD, cmd)
-
-    def publish_mode(self, at_ns: int | None = None) -> bool:
-        """Publish the RcMode as of *at_ns* (default: now) on RC_MODE."""
-        msg = t.RcMode()
-        with self._enable_lock:
-            self._published = self.state_key()
-            msg.mode, msg.mode_name = self.filter.mode, self.filter.mode_name
-            msg.autonomy_enabled, msg.select_mismatch = self.enabled, self.mismatch
-            allowed, why = self.autonomy_allowed()
-            msg.armed, msg.hold = self.armed, self.hold
-        msg.blocked_by = "" if allowed else why
-        msg.pulse_us = self.pulse_widths_us(at_ns)
-        msg.num_channels = len(msg.pulse_us)
-        return self.publish(ch.RC_MODE, msg)
+    def _carry_out(self, outputs: list[Output]) -> None:
+        for out in outputs:
+            if isinstance(out, ModeReport):
+                self.publish(ch.RC_MODE, rc_mode_message(out))
+            elif isinstance(out, ManualReport):
+                if self.sticks is not None:
+                    for cmd in self.sticks.commands(out.widths_us):
+                        self.publish(ch.MANUAL_CMD, cmd)
+            elif out.level == "error":
+                self.error(out.text)
+            else:
+                self.logger.log(logging.WARNING if out.level == "warning" else logging.INFO, "%s", out.text)
 
     def kill(self) -> None:
         """Drop the enable line, release the lines, then stop."""
-        with self._enable_lock:
+        with self._lock:
             self._stopping = True
-            self.update_enable()
+            self.state.port_open = self.gpio.is_open
+            outputs = self.state.stop(host_ns=time.monotonic_ns())
         try:
-            self.publish_mode()
+            self._carry_out(outputs)
         finally:
             self.gpio.close()
             super().kill()
 
     def health_details(self) -> dict[str, Any]:
-        """Mode, enable line and why, read-back, pulse counters and each channel's width."""
-        allowed, why = self.autonomy_allowed()
-        details: dict[str, Any] = {
-            **self.gpio.health(), "mode": self.filter.mode_name, "autonomy_enabled": self.enabled,
-            "enable_blocked_by": "" if allowed else why, "armed": self.armed, "hold": self.hold,
-            "failsafe": self.failsafe_active, "failsafe_sources": ",".join(sorted(self.failsafes.held())),
-            "prearm_failed": "; ".join(f.reason for f in self.prearm_failures), "checks_lost": self.checks_lost, "stalls": self.stalls,
-            "timed_skipped": self.timed_skipped,
-            "manual_commands": self.sticks.sent if self.sticks else 0,
-            "select_readback": "none" if self.select_level is None else self.select_level,
-            "select_mismatch": self.mismatch, "select_mismatches": self.mismatches,
-            "mode_frames": self.filter.frames, "mode_changes": self.filter.changes,
-            "signal_losses": self.signal_losses,
-            "enable_changes": self.enable_changes, "pulses": self.meter.pulses,
-            "rejected": self.meter.rejected_total,
-            "rejected_kinds": ",".join(f"{k}:{n}" for k, n in sorted(self.meter.rejected.items())),
-        }
-        for name, width in zip(self.channels, self.pulse_widths_us()):
-            details[f"{name}_us"] = width
-        return details
+        """The port's fields, then the state's: mode, enable line and why, read-back, counters, each channel's width."""
+        with self._lock:
+            clock_ns = self.state.clock_ns
+            details = health_details(self.state, at_ns=time.monotonic_ns() if clock_ns is None else clock_ns,
+                                     manual_commands=self.sticks.sent if self.sticks else 0)
+        return {**self.gpio.health(), **details}
+
+
+def rc_mode_message(report: ModeReport) -> t.RcMode:
+    """The ``RcMode`` that says *report*."""
+    msg = t.RcMode()
+    msg.mode, msg.mode_name = report.mode, report.mode_name
+    msg.autonomy_enabled, msg.select_mismatch = report.autonomy_enabled, report.select_mismatch
+    msg.armed, msg.hold, msg.blocked_by = report.armed, report.hold, report.blocked_by
+    msg.pulse_us = list(report.pulse_us)
+    msg.num_channels = len(msg.pulse_us)
+    return msg

@@ -102,6 +102,28 @@ class PulseMeter:
         return sum(self.rejected.values())
 
 
+class LastWidths:
+    """Each channel's last valid pulse width (us) and when it ended; as of a time, 0 for a channel without
+    one within *timeout_ns* (``RcMode.pulse_us``, the sticks)."""
+
+    def __init__(self, channels: Iterable[str], *, timeout_ns: int) -> None:
+        self.channels = tuple(channels)
+        self.timeout_ns = timeout_ns
+        self._last: dict[str, Pulse] = {}
+
+    def record(self, channel: str, pulse: Pulse) -> None:
+        """*pulse* is the newest valid one of *channel*."""
+        self._last[channel] = pulse
+
+    def as_of(self, at_ns: int) -> list[int]:
+        """Each channel's width in whole us as of *at_ns*, in channel order."""
+        widths = []
+        for name in self.channels:
+            last = self._last.get(name)
+            widths.append(round(last.width_us) if last and at_ns - last.end_ns <= self.timeout_ns else 0)
+        return widths
+
+
 class RcModeFilter:
     """Mode from the mode channel's pulses, with hysteresis, debounce and a signal timeout."""
 
