@@ -68,12 +68,11 @@ from u2sa_hw.recording.log_reader import LogFile
 from u2sa_hw.hil.compare_report import CompareReport
 from u2sa_hw.hil.compare_states import compare_states
 from u2sa_hw.hil.compare_stream import begun_after_start, compare_stream
-from u2sa_hw.hil.compare_values import STATE_CHANNELS, Sample, ToleranceLike, as_tolerances
+from u2sa_hw.hil.compare_values import OUTPUT_RAW_TYPES, STATE_CHANNELS, Sample, ToleranceLike, as_tolerances
 from u2sa_hw.hil.held_up import HeldWindow
 from u2sa_hw.hil.player import header_source
 
 HEADER_FIELDS = ("*header.timestamp_us", "*header.sequence")
-OUTPUT_RAW_TYPES = ("RawGpioWrite", "RawPwmWrite")  # raw records of what a driver drives
 
 
 def load_streams(path: Path | str, *, sources: set[str], start_ns: int | None = None, end_ns: int | None = None,

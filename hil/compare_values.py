@@ -4,7 +4,7 @@ The rules are in hil/compare.py's docstring; this module holds the pieces every 
 comparison uses (hil/compare_stream.py message by message, hil/compare_states.py over time,
 hil/compare_report.py the report): :class:`Sample`, :class:`Tolerances`, :func:`values_equal`,
 :func:`differing_fields`, and which channels and fields are compared in their own way
-(``STATE_CHANNELS``, ``SYSTEM_FIELDS``).
+(``STATE_CHANNELS``, ``SYSTEM_FIELDS``, ``OUTPUT_RAW_TYPES``).
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ STATE_CHANNELS = ("RC_MODE", "MANUAL_CMD")         # published on a timer and on
 SYSTEM_FIELDS: dict[str, tuple[str, ...]] = {
     "RC_MODE": ("autonomy_enabled", "armed", "hold", "blocked_by", "select_mismatch"),
 }
+OUTPUT_RAW_TYPES = ("RawGpioWrite", "RawPwmWrite")  # raw records of what a driver drives (compared)
 
 
 @dataclass(frozen=True)

@@ -27,25 +27,20 @@ from typing import Any, Callable
 import tomli_w
 
 from u2sa_hw.bus.key import KEY_ENV, fresh_key_file
-from u2sa_hw.channels import base_type
 from u2sa_hw.launcher import Launcher, ProcessStatus, RestartPolicy
-from u2sa_hw.messages import REGISTRY, MalformedMessage
-from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo, header_source
+from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo
 from u2sa_hw.services.recorder.capture import BusCapture
 from u2sa_hw.bus.transport import Transport, TransportError, check_multicast
 from u2sa_hw.profile.loader import load_profile
 from u2sa_hw.bus.udp_ports import private_lcm_url
 
-from u2sa_hw.hil.compare_values import STATE_CHANNELS
-from u2sa_hw.hil.player import ORDERED_CHANNELS, PlayStats, Player, authority_key
+from u2sa_hw.hil.player import ORDERED_CHANNELS, PlayStats, Player
 from u2sa_hw.hil.progress import ProgressBar
 from u2sa_hw.hil.replay_devices import ReplayDevice, ReplaySerialDevice, ReplayStalled
 from u2sa_hw.hil.replay_i2c import held_drivers, release_held_reads
 from u2sa_hw.hil.replay_plan import (DevicePlan, ReplayError, ReplayPlan, ServicePlan, build_plan,
-                             write_run_profile)
-
-CONTRACT_PREFIX = "U2SA_"
-HEALTH_CHANNEL = "U2SA_HEALTH"
+                                     write_run_profile)
+from u2sa_hw.hil.replay_watch import ReplayWatch, discover, listeners
 
 
 @dataclass
@@ -174,14 +169,7 @@ class Replay:
         self.abort = threading.Event()
         self._abort_reason = ""
         self._stopping = False
-        self._health: dict[str, dict[str, str]] = {}   # service -> its latest health details
-        self._received: dict[str, int] = {}    # service -> its outputs the replay bus delivered here
-        self._replayed_state: dict[str, tuple[Any, ...]] = {}  # ORDERED_CHANNELS: the replayed services' newest
-        self._published: dict[str, int] = {}   # service -> its outputs by its own count (latest health)
-        self._heard: dict[str, dict[str, int]] = {}   # service -> messages it took per channel (latest health)
-        self._listeners: dict[str, set[str]] = {}     # republished channel -> the services that take it from the bus
-        self._last_output = time.monotonic()
-        self._clocked = False   # a GPIO replay chip with edges: the drivers' timers stop with its clock
+        self.watch = ReplayWatch(self.plan.services)   # what the replay bus shows of the replayed services
         self.run_dir: Path | None = None   # made by run(); kept after a failure for its logs
         self.phases: dict[str, float] = {"plan": time.monotonic() - began}   # see _phase
         self._phase_at = time.monotonic()
@@ -207,54 +195,16 @@ class Replay:
         self._fail(f"service '{status.name}' died during the replay ({status.last_exit}); its log is "
                    f"{self._log_of(status.name)}{self.outputs.tail(status.name)}")
 
-    def _on_message(self, channel: str, data: bytes) -> None:
-        if channel.startswith(CONTRACT_PREFIX):
-            if channel == "U2SA_HEALTH":
-                self._note_health(data)
-            return
-        if channel.startswith("RAW.") or channel == "LCM_SELF_TEST":
-            return
-        source = header_source(data)
-        if source in self.plan.services:
-            self._received[source] = self._received.get(source, 0) + 1
-            if channel in ORDERED_CHANNELS:
-                self._note_ordered(channel, data)
-            # state channels are published on a timer too, so they are waited for only when that timer
-            # runs on a replay chip's clock, which stops with the recorded edges (GPIO logs)
-            if channel not in STATE_CHANNELS or self._clocked:
-                self._last_output = time.monotonic()
-
-    def _note_ordered(self, channel: str, data: bytes) -> None:
-        """A replayed message on an ORDERED_CHANNELS channel: its deciding fields are the replayed state now."""
-        try:
-            msg, _ = REGISTRY.decode(data, base_type(channel))
-        except MalformedMessage:
-            return
-        self._replayed_state[channel] = authority_key(channel, msg)
-
-    def _note_health(self, data: bytes) -> None:
-        from u2sa_hw import lcmtypes as t
-
-        try:
-            msg = t.Health.decode(data)
-        except Exception:  # noqa: BLE001 - a malformed health message is not our concern here
-            return
-        if msg.name in self.plan.services:
-            self._health[msg.name] = {kv.key: kv.value for kv in msg.details}
-            self._heard[msg.name] = {c.channel: c.messages for c in msg.channels if c.direction == "in"}
-            self._published[msg.name] = sum(c.messages for c in msg.channels if c.direction == "out" and not
-                                            c.channel.startswith((CONTRACT_PREFIX, "RAW.")))
-
     def _wait_ready(self, devices: dict[str, ReplayDevice], launcher: Launcher) -> None:
         deadline = time.monotonic() + self.options.ready_timeout_s
         while True:
             if self.abort.is_set():
                 raise ReplayError(self._abort_reason)
             pids = {s.name: s.pid for s in launcher.status()}
-            waiting = [n for n in self.plan.services if n not in self._health]
+            waiting = [n for n in self.plan.services if n not in self.watch.health]
             for d in devices.values():
                 service = self.plan.devices[d.name].service
-                if not d.ready(pids.get(service), self._health.get(service, {})):
+                if not d.ready(pids.get(service), self.watch.health.get(service, {})):
                     waiting.append(f"{d.name} (device of {service})")
             if not waiting:
                 return
@@ -265,80 +215,17 @@ class Replay:
                                   f"see {self._log_of(service)}{self.outputs.tail(service)}")
             time.sleep(0.05)
 
-    def _discover(self, url: str, *, timeout: float = 1.5, resend: float = 0.25) -> dict[str, Any]:
-        """The replayed services' discovery answers (name -> DiscoveryResponse): done as soon as every one has
-        answered (the request is sent again every *resend* s), else what answered within *timeout*. They are all
-        up (their health was heard), so this takes a round trip, not a fixed wait for stragglers."""
-        import uuid
-
-        from u2sa_hw import channels as ch
-        from u2sa_hw import lcmtypes as t
-        from u2sa_hw.bus.client import BusClient
-
-        found: dict[str, Any] = {}
-        everyone = threading.Event()
-        with BusClient(url, name="u2sa-replay") as client:
-            req = t.DiscoveryRequest()
-            req.request_id = uuid.uuid4().hex
-
-            def on_reply(_c: str, msg: Any) -> None:
-                if msg.request_id == req.request_id:
-                    found[msg.name] = msg
-                    if all(n in found for n in self.plan.services):
-                        everyone.set()
-
-            sub = client.transport.subscribe(ch.DISCOVERY_RESPONSE, t.DiscoveryResponse, on_reply)
-            try:
-                deadline = time.monotonic() + timeout
-                while True:
-                    client.publish(ch.DISCOVERY_REQUEST, req)
-                    left = deadline - time.monotonic()
-                    if everyone.wait(max(0.0, min(resend, left))) or left <= resend:
-                        break
-            finally:
-                client.transport.unsubscribe(sub)
-        return dict(found)
-
     def _republished_channels(self, url: str, devices: dict[str, ReplayDevice]) -> set[str]:
         """Channels the replayed services subscribe to (their recorded traffic from other sources is replayed),
         but for a service that takes a channel from its replay device instead (*devices*' ``bus_inputs``: the
         RC mux's replay chip hands it the recorded Health, FAILSAFE and STATE_ESTIMATE in order with the
         edges, and it ignores the bus on them): nobody else listening, the copy would only load the bus."""
-        found = self._discover(url)
         from_device: dict[str, set[str]] = {}   # channel -> services whose replay device hands it over
         for name, device in devices.items():
             for channel in getattr(device, "bus_inputs", ()):
                 from_device.setdefault(channel, set()).add(self.plan.devices[name].service)
-        listeners: dict[str, set[str]] = {}
-        for r in found.values():
-            if r.name in self.plan.services:
-                for c in r.subscribes:
-                    listeners.setdefault(c.channel, set()).add(r.name)
-        # Health is contract traffic, but the RC mux's pre-arm checks judge the other services by it
-        self._listeners = {c: who - from_device.get(c, set()) for c, who in listeners.items()
-                           if (c == HEALTH_CHANNEL or not c.startswith(CONTRACT_PREFIX)) and not c.startswith("RAW.")}
-        return {c for c, who in self._listeners.items() if who}
-
-    def _settle(self, republished_on: dict[str, int]) -> None:
-        """Wait until every service has taken the recorded messages republished to it (*republished_on*: how many
-        per channel; by the counts in its health) and then published nothing new for settle_s (at most 10 s).
-
-        Without the first, a loaded machine could stop a driver before the last recorded command reached it
-        (a servo driver's last write, its only output, was lost so)."""
-        self._last_output = max(self._last_output, time.monotonic())
-        give_up = time.monotonic() + 10.0
-        while (self._behind(republished_on) or time.monotonic() - self._last_output < self.options.settle_s) \
-                and time.monotonic() < give_up:
-            if self.abort.is_set():
-                raise ReplayError(self._abort_reason)
-            time.sleep(0.05)
-
-    def _behind(self, republished_on: dict[str, int]) -> list[tuple[str, str]]:
-        """(service, channel) pairs where the service's latest health counts fewer messages taken on the channel
-        than were republished on it (at least: it may also hear the live services there)."""
-        return [(service, channel) for channel, sent in republished_on.items()
-                for service in sorted(self._listeners.get(channel, ()))
-                if self._heard.get(service, {}).get(channel, 0) < sent]
+        self.watch.listeners = listeners(discover(url, self.plan.services), self.plan.services, from_device)
+        return {c for c, who in self.watch.listeners.items() if who}
 
     def _attachments(self, profile_path: Path) -> dict[str, bytes]:
         out = {"vehicle.toml": profile_path.read_bytes()}
@@ -408,10 +295,10 @@ class Replay:
                 vehicle=f"{profile.name} (replay)", system_id=profile.system_id, lcm_url=url,
                 attachments=self._attachments(profile_path)))
             capture = BusCapture(transport, writer, min_free_mb=50)
-            transport.subscribe(".*", None, self._on_message, raw=True)
+            transport.subscribe(".*", None, self.watch.on_message, raw=True)
             capture.start()
             transport.start()
-            self._clocked = any(getattr(d, "timed", False) for d in devices.values())
+            self.watch.clocked = any(getattr(d, "timed", False) for d in devices.values())
             for device in devices.values():
                 device.start()
             self._phase("bus")
@@ -438,7 +325,7 @@ class Replay:
                             replayed_services=set(self.plan.services), start_ns=self.plan.start_ns,
                             end_ns=self.plan.end_ns, rate=None if self.fast else self.rate, abort=self.abort,
                             abort_reason=lambda: self._abort_reason, progress=bar.update,
-                            replayed_state=self._replayed_state.get)
+                            replayed_state=self.watch.replayed_state.get)
             try:
                 stats = player.run()
             except RuntimeError as exc:
@@ -460,7 +347,7 @@ class Replay:
 
             checker = threading.Thread(target=check, name="u2sa-replay-pilot", daemon=True)
             checker.start()
-            self._settle(stats.republished_on)
+            self.watch.settle(stats.republished_on, o.settle_s, abort=self.abort, reason=lambda: self._abort_reason)
             self._phase("settle")
             checker.join()
             if isinstance(pilot[0], BaseException):
@@ -477,8 +364,8 @@ class Replay:
             launcher.stop(timeout=launcher.stop_limit_s + 5.0)
             launcher = None
             self._phase("services stop")
-            received = sum(self._received.values())
-            lost = max(0, sum(self._published.values()) - received)
+            received = sum(self.watch.received.values())
+            lost = max(0, sum(self.watch.published.values()) - received)
             result = ReplayResult(self.plan, self.out, stats, startup_s, received, lost, s.written, s.dropped,
                                   {n: d.report() for n, d in devices.items()}, self.run_dir if keep else None,
                                   pilot[0], self.phases)

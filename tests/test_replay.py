@@ -419,18 +419,19 @@ def test_the_replay_ends_only_once_each_service_took_what_was_republished_to_it(
     (a servo driver's last command, its only output a write, was lost on a loaded machine), then settle_s."""
     import threading
 
-    from u2sa_hw.hil.replay import Replay, ReplayOptions
+    from u2sa_hw.hil.replay_watch import ReplayWatch
 
-    replay = object.__new__(Replay)   # only the end-of-run wait: no log, no services
-    replay.options, replay.abort, replay._abort_reason = ReplayOptions(settle_s=0.0), threading.Event(), ""
-    replay._last_output = 0.0
-    replay._listeners = {"ACTUATOR_CMD": {"servos", "wheels"}, "FAILSAFE": set()}
-    replay._heard = {"servos": {"ACTUATOR_CMD": 3}, "wheels": {"ACTUATOR_CMD": 2}}
+    watch = ReplayWatch({"servos", "wheels"})   # only the end-of-run wait: no log, no services
+    abort = threading.Event()
+    watch.last_output = 0.0
+    watch.listeners = {"ACTUATOR_CMD": {"servos", "wheels"}, "FAILSAFE": set()}
+    watch.heard = {"servos": {"ACTUATOR_CMD": 3}, "wheels": {"ACTUATOR_CMD": 2}}
     sent = {"ACTUATOR_CMD": 3, "FAILSAFE": 1}
-    assert replay._behind(sent) == [("wheels", "ACTUATOR_CMD")]   # nobody takes FAILSAFE from the bus here
+    assert watch.behind(sent) == [("wheels", "ACTUATOR_CMD")]   # nobody takes FAILSAFE from the bus here
     ended = threading.Event()
-    waiter = threading.Thread(target=lambda: (replay._settle(sent), ended.set()), daemon=True)
+    waiter = threading.Thread(target=lambda: (watch.settle(sent, 0.0, abort=abort, reason=str), ended.set()),
+                              daemon=True)
     waiter.start()
     assert not ended.wait(0.3)   # the wheels' health still counts 2 of the 3
-    replay._heard = {"servos": {"ACTUATOR_CMD": 3}, "wheels": {"ACTUATOR_CMD": 4}}   # (it hears live ones too)
-    assert ended.wait(10.0) and replay._behind(sent) == []
+    watch.heard = {"servos": {"ACTUATOR_CMD": 3}, "wheels": {"ACTUATOR_CMD": 4}}   # (it hears live ones too)
+    assert ended.wait(10.0) and watch.behind(sent) == []
