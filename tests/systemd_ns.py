@@ -68,7 +68,8 @@ def interpreter_hidden_reason() -> str | None:
 
     A checkout or venv that the units' PrivateTmp=/ProtectHome= hide is staged into the
     root (tests/staged_code.py); only the interpreter must be one they can reach."""
-    from u2sa_hw.install.system import InstallError, choose_python
+    from u2sa_hw.install.system import InstallError
+    from u2sa_hw.install.venv import choose_python
 
     try:
         choose_python(None)

@@ -503,7 +503,7 @@ def test_help_says_the_venv_is_built_inside_the_root_by_default() -> None:
 
 
 def test_relocate_venv_rewrites_the_scripts_and_pyvenv_cfg_to_the_vehicles_path(tmp_path: Path) -> None:
-    from u2sa_hw.install.system import relocate_venv
+    from u2sa_hw.install.venv import relocate_venv
 
     venv = tmp_path / "root/opt/u2sa/venv"
     (venv / "bin").mkdir(parents=True)

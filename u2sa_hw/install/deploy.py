@@ -37,9 +37,9 @@ from u2sa_hw.bus.key import BusKeyError, ensure_key, parse_key
 from u2sa_hw.bus.pilot import PILOT_GROUP, PILOT_KEY_NAME, PILOT_PUB_NAME, public_of, write_pilot_pair
 from u2sa_hw.install.files import InstallTree
 from u2sa_hw.install.manifest import MANAGED, MANIFEST_PATH, Manifest, host_path, load_manifest, save_manifest
-from u2sa_hw.install.system import (SERVICE_USER, VENV_MODES, InstallError, apply_sysctl, apply_tmpfiles, ensure_users,
-                                    ensure_venv, group_members, owner_ids, project_source, reload_systemd,
-                                    reload_udev, remove_users, user_ids)
+from u2sa_hw.install.system import (InstallError, SERVICE_USER, apply_sysctl, apply_tmpfiles, ensure_users,
+                                    group_members, owner_ids, reload_systemd, reload_udev, remove_users, user_ids)
+from u2sa_hw.install.venv import VENV_MODES, ensure_venv, project_source
 from u2sa_hw.install.preflight import load_for_install, offline_check, preflight
 from u2sa_hw.install.referenced import installed_files, rewrites
 from u2sa_hw.install.udev import VEHICLE_RULES, render_rules
