@@ -129,8 +129,8 @@ def test_systemd_analyze_verify_passes_on_every_unit(staged: dict[str, Any]) -> 
 
 def test_the_shared_venv_imports_code_the_sandboxed_units_can_see(staged: dict[str, Any]) -> None:
     """From a checkout under /tmp or a home, what the venv imports is the copy staged in /opt."""
-    probe = ("import u2sa_hw, drivers, hil, mock_devices, lcm; "
-             "print('\\n'.join(m.__file__ for m in (u2sa_hw, drivers, hil, mock_devices, lcm)))")
+    probe = ("import u2sa_hw, u2sa_hw.drivers, u2sa_hw.hil, u2sa_hw.mocks, lcm; from u2sa_hw import drivers, hil, mocks; "
+             "print('\\n'.join(m.__file__ for m in (u2sa_hw, drivers, hil, mocks, lcm)))")
     script = f'mount --bind "{staged["root"]}/opt" /opt && cd / && exec /opt/u2sa/venv/bin/python -c "{probe}"'
     done = subprocess.run(["unshare", "--mount", "--propagation", "private", "sh", "-c", script],
                           capture_output=True, text=True, timeout=60)
