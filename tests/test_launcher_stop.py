@@ -186,7 +186,7 @@ def test_process_sample_reads_the_state_and_cpu_ticks_of_a_real_child() -> None:
 SLOW_SERVICE = textwrap.dedent("""\
     import sys, time
     from u2sa_hw.service.contract import U2SAService
-    from u2sa_hw.profile.vehicle import load_profile
+    from u2sa_hw.profile.loader import load_profile
 
     class SlowStop(U2SAService):
         SERVICE_TYPE = "slow_stop"

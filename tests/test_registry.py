@@ -33,7 +33,7 @@ def test_a_service_process_imports_only_its_own_command_and_kind() -> None:
         "from u2sa_hw.registry import resolve_kind\n"
         "resolve_kind('mission_manager'); resolve_kind('compass_serial'); resolve_kind('imu_mpu9250')\n"
         "from u2sa_hw.safety.wiring import profile_wiring\n"
-        "from u2sa_hw.profile.vehicle import load_profile\n"
+        "from u2sa_hw.profile.loader import load_profile\n"
         "profile_wiring(load_profile('examples/ground_vehicle/vehicle.toml'))\n"
         "print(' '.join(m for m in ('numpy', 'mcap', 'psutil', 'tempfile', 'difflib') if m in sys.modules))\n"
     )
