@@ -29,7 +29,8 @@ from supervision_helpers import write_profile
 from test_launcher_watchdog import FakeClock
 
 from u2sa_hw.launcher import Launcher, RestartPolicy, SupervisedProcess
-from u2sa_hw.launcher.process import STOP_LIMIT_S, STOPPED, process_sample
+from u2sa_hw.launcher.policy import STOP_LIMIT_S, STOPPED
+from u2sa_hw.launcher.process import process_sample
 from u2sa_hw.launcher.watchdog import WatchdogSetting, WatchedClock
 from u2sa_hw.profile.loader import load_profile
 

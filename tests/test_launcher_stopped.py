@@ -17,7 +17,8 @@ from conftest import wait_until
 from test_launcher_watchdog import SLEEPER, FakeClock
 
 from u2sa_hw.launcher import RestartPolicy, SupervisedProcess
-from u2sa_hw.launcher.process import BACKOFF, process_stopped
+from u2sa_hw.launcher.policy import BACKOFF
+from u2sa_hw.launcher.process import process_stopped
 from u2sa_hw.launcher.watchdog import WatchdogSetting
 
 FREEZES = ("import os, signal\n"

@@ -13,7 +13,7 @@ from conftest import REPO, wait_until
 from supervision_helpers import launch, write_profile  # noqa: F401 - launch is a fixture
 
 from u2sa_hw.launcher import Launcher, RestartPolicy, SupervisedProcess
-from u2sa_hw.launcher.process import BACKOFF
+from u2sa_hw.launcher.policy import BACKOFF
 from u2sa_hw.launcher.watchdog import (STALL_STEP_S, WatchdogSetting, WatchedClock, parse_timespan, unit_watchdog,
                                        watchdog_for)
 from u2sa_hw.profile.loader import load_profile

@@ -8,7 +8,8 @@ from u2sa_hw.launcher.control import (SOCKET_ENV, LauncherBusy, LauncherClient, 
                                       default_socket_path)
 from u2sa_hw.launcher.launcher import Launcher, select_services, u2sa_command
 from u2sa_hw.launcher.output import PrefixedOutput
-from u2sa_hw.launcher.process import ProcessStatus, RestartPolicy, SupervisedProcess
+from u2sa_hw.launcher.policy import ProcessStatus, RestartPolicy
+from u2sa_hw.launcher.process import SupervisedProcess
 
 __all__ = [
     "Launcher", "LauncherBusy", "LauncherClient", "LauncherError", "PrefixedOutput", "ProcessStatus",

@@ -45,8 +45,9 @@ from u2sa_hw.launcher.child_setup import check_cgroup
 from u2sa_hw.launcher.control import SOCKET_ENV, ControlServer, LauncherError, default_socket_path
 from u2sa_hw.launcher.notify import NotifyListener
 from u2sa_hw.launcher.output import LineSink, LineSplitter, PrefixedOutput
-from u2sa_hw.launcher.process import (BACKOFF, EXITED, FAILED, RUNNING, STOP_LIMIT_S, STOPPED, ProcessStatus,
-                                     RestartPolicy, SupervisedProcess)
+from u2sa_hw.launcher.policy import (BACKOFF, EXITED, FAILED, RUNNING, STOP_LIMIT_S, STOPPED, ProcessStatus,
+                                     RestartPolicy)
+from u2sa_hw.launcher.process import SupervisedProcess
 from u2sa_hw.launcher.watchdog import WatchdogSetting, WatchedClock, watchdog_for
 from u2sa_hw.realtime import RealtimePlan, describe_plan
 from u2sa_hw.registry import RECORDER_KIND
