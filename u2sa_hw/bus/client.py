@@ -59,9 +59,7 @@ class BusClient:
 
     def publish(self, channel: str, msg: Any) -> bool:
         """Publish *msg* with a stamped root header (for types with ``header`` or ``base``)."""
-        from u2sa_hw.service.contract import _root_header
-
-        header = _root_header(msg)
+        header = root_header(msg)
         if header is not None:
             self._seq += 1
             header.system_id = header.system_id or self.system_id
@@ -200,3 +198,14 @@ def unknown_service_text(name: str, names: list[str]) -> str:
 
     hint = did_you_mean(name, names)
     return f"no service '{name}' on the bus" + (f"; {hint}" if hint else "") + f" (services: {known_text(names)})"
+
+
+def root_header(msg: Any) -> t.Header | None:
+    """The root ``Header`` of *msg*: its own ``header``, else its ``base``'s (and so on), or None."""
+    cur = msg
+    while cur is not None:
+        header = getattr(cur, "header", None)
+        if isinstance(header, t.Header):
+            return header
+        cur = getattr(cur, "base", None)
+    return None

@@ -31,14 +31,15 @@ from pathlib import Path
 from typing import Any, Callable, ClassVar
 
 from u2sa_hw import channels as ch
-from u2sa_hw import lcmtypes as t
-from u2sa_hw.config.configurator import ConfigError, ConfigField, Configurator, to_text
-from u2sa_hw.service.health import HOSTNAME, ProcessStats, build_health, name_native_thread
+from u2sa_hw.config.configurator import ConfigError, ConfigField, Configurator
+from u2sa_hw.service.health import ProcessStats, build_health, name_native_thread
 from u2sa_hw.messages import type_name
 from u2sa_hw.service.sdnotify import SystemdNotifier, watchdog_interval
 from u2sa_hw.service.bus_handlers import DUPLICATE_EXIT, DuplicateWatch, bus_text, listen_state, raises_text, rejected_text
 from u2sa_hw.service.base_config import BASE_CONFIG
+from u2sa_hw.service.contract_requests import ContractRequests
 from u2sa_hw.service.log import level_number, set_level
+from u2sa_hw.bus.client import root_header
 from u2sa_hw.bus.transport import Transport
 from u2sa_hw.profile.vehicle import VehicleProfile
 
@@ -53,7 +54,7 @@ def settle_memory() -> None:
     gc.freeze()
 
 
-class U2SAService:
+class U2SAService(ContractRequests):
     """Base of every service: the contract; subclasses write setup/run/callback."""
 
     SERVICE_TYPE: ClassVar[str] = "service"
@@ -148,7 +149,7 @@ class U2SAService:
         stamps when the bytes arrived, the pass-through estimator forwards its sensor's), not of
         sending. A zero timestamp, or any with ``restamp=True``, becomes now.
         """
-        header = _root_header(msg)
+        header = root_header(msg)
         if header is not None:
             seq = self._sequence.get(channel, 0) + 1
             self._sequence[channel] = seq
@@ -281,68 +282,6 @@ class U2SAService:
         self.last_error = text
         self.logger.error(text)
 
-    # -- contract messages over the bus -----------------------------------------------------
-    def _contract_subscriptions(self) -> None:
-        # Registered like any other channel, so discovery lists them from the first reply on.
-        self.register_subscriber(ch.DISCOVERY_REQUEST, t.DiscoveryRequest, self._on_discovery)
-        self.register_subscriber(ch.STOP, t.StopCommand, self._on_stop)
-        self.register_subscriber(ch.CONFIG_REQUEST, t.ConfigRequest, self._on_config_request)
-        self.register_subscriber(ch.CONFIG_CHANGE, t.ConfigChange, self._on_config_change)
-        self.register_publisher(ch.DISCOVERY_RESPONSE, t.DiscoveryResponse)
-        self.register_publisher(ch.CONFIG_RESPONSE, t.ConfigResponse)
-        self.register_publisher(ch.HEALTH, t.Health)
-
-    def _on_discovery(self, req: t.DiscoveryRequest) -> None:
-        if (req.name_filter and req.name_filter != self.name) or not self.running:
-            return   # not yet started (the duplicate probe pumps the transport before start()) or stopping
-        resp = t.DiscoveryResponse()
-        resp.request_id = req.request_id
-        resp.name, resp.service_type, resp.status = self.name, self.SERVICE_TYPE, self.status
-        resp.host, resp.pid = HOSTNAME, os.getpid()
-        # dict() copies in one step: other threads may register channels meanwhile.
-        resp.publishes = [_channel_info(c, ty) for c, ty in sorted(dict(self._publishers).items())]
-        resp.num_publishes = len(resp.publishes)
-        resp.subscribes = [_channel_info(c, ty) for c, ty in sorted(dict(self._subscribers).items())]
-        resp.num_subscribes = len(resp.subscribes)
-        self.publish(ch.DISCOVERY_RESPONSE, resp)
-
-    def _on_stop(self, cmd: t.StopCommand) -> None:
-        if cmd.all or cmd.name == self.name:
-            self.logger.info("stop requested over the bus by %s", cmd.header.source or "?")
-            self.stop()
-
-    def _config_response(self, request_id: str, ok: bool, error: str, names: list[str]) -> t.ConfigResponse:
-        resp = t.ConfigResponse()
-        resp.request_id, resp.name, resp.ok, resp.error = request_id, self.name, ok, error
-        fields = []
-        for name, tname, value in self.config.enumerate():
-            if name in names:
-                f = t.ConfigField()
-                f.name, f.type_name, f.value = name, tname, to_text(value)
-                fields.append(f)
-        resp.fields, resp.num_fields = fields, len(fields)
-        return resp
-
-    def _on_config_request(self, req: t.ConfigRequest) -> None:
-        if req.target != self.name:
-            return
-        names = [n for n, _, _ in self.config.enumerate()]
-        self.publish(ch.CONFIG_RESPONSE, self._config_response(req.request_id, True, "", names))
-
-    def _on_config_change(self, req: t.ConfigChange) -> None:
-        if req.target != self.name:
-            return
-        ok, reason = self.config.try_set(req.field, req.value)
-        self.publish(ch.CONFIG_RESPONSE, self._config_response(req.request_id, ok, reason, [req.field]))
-        if ok:
-            try:
-                if req.field == "log_level":
-                    set_level(self.log_level_name())
-                    self.logger.info("log level is now %s", self.log_level_name())
-                self.on_config_change(req.field, self.config.get(req.field))
-            except Exception as exc:  # noqa: BLE001 - a bad live change must not kill the service
-                self.error(f"applying config change {req.field} failed: {exc}")
-
     # -- health ----------------------------------------------------------------------------
     def _health_loop(self) -> None:
         while not self._stop_event.wait(max(0.05, float(self.config.get("health_interval_s")))):
@@ -446,19 +385,3 @@ class U2SAService:
             self._notifier.close()
             self.logger.info("%s stopped", self.name)
         return DUPLICATE_EXIT if self._duplicates.refusal is not None else code
-
-
-def _root_header(msg: Any) -> t.Header | None:
-    cur = msg
-    while cur is not None:
-        header = getattr(cur, "header", None)
-        if isinstance(header, t.Header):
-            return header
-        cur = getattr(cur, "base", None)
-    return None
-
-
-def _channel_info(channel: str, type_name_: str) -> t.ChannelInfo:
-    info = t.ChannelInfo()
-    info.channel, info.type_name = channel, type_name_
-    return info
