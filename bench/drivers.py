@@ -87,12 +87,15 @@ class Services:
         self.url = private_lcm_url()
         self.procs: list[subprocess.Popen] = []
         self.services: dict[str, Any] = {}
+        self.devices: dict[str, Any] = {}
 
-    def start(self, name: str, kind: str, settings: dict[str, Any]) -> subprocess.Popen:
+    def start(self, name: str, kind: str, settings: dict[str, Any], address: str) -> subprocess.Popen:
+        """``u2sa service NAME`` of *kind* with *settings*, its device (named after it) at *address*."""
         self.services[name] = {"kind": kind, "settings": {"health_interval_s": 0.2, **settings}}
+        self.devices[name] = {"address": address}
         profile = self.workdir / "vehicle.toml"
         profile.write_text(tomli_w.dumps({"vehicle": {"name": "bench", "config_dir": "config", "log_dir": "logs"},
-                                          "services": self.services}))
+                                          "services": self.services, "devices": self.devices}))
         env = dict(os.environ, U2SA_LCM_URL=self.url, PYTHONPATH=str(REPO))
         log = open(self.workdir / f"{name}.log", "wb")
         proc = subprocess.Popen([sys.executable, "-m", "u2sa_hw.cli", "service", name, "--vehicle", str(profile)],
@@ -165,7 +168,7 @@ def bench_gps(services: Services, bus: BusClient, epochs: int) -> None:
 
     bus.transport.subscribe(ch.STATE_INFO, t.StateInformation, on_state)
     health = health_watch(bus, "gps")
-    services.start("gps", "gps_nmea", {"port": str(link), "baudrate": 115200})
+    services.start("gps", "gps_nmea", {}, f"serial://{link}?baud=115200")
     wait_for(lambda: health.get("port") == "open", 20, "the GPS driver to open its port")
     start = time.monotonic()
     for chunk in chunks:
@@ -209,7 +212,7 @@ def bench_compass(services: Services, bus: BusClient, bursts: int) -> None:
 
     bus.transport.subscribe(ch.STATE_INFO, t.StateInformation, on_state)
     health = health_watch(bus, "compass")
-    services.start("compass", "compass_serial", {"port": str(link), "baudrate": 115200})
+    services.start("compass", "compass_serial", {}, f"serial://{link}?baud=115200")
     wait_for(lambda: health.get("port") == "open", 20, "the compass driver to open its port")
     start = time.monotonic()
     for chunk in chunks:
@@ -254,8 +257,8 @@ def bench_round_trip(services: Services, bus: BusClient, port: int, count: int) 
     """Percentage Command -> Set_Input_Vel -> ODrive status -> driver odometry, per command."""
     health = health_watch(bus, "motors")
     services.start("motors", "odrive_can", {
-        "interface": "udp_multicast", "channel": GROUP, "udp_port": port, "node_ids": [1, 2],
-        "max_turns_per_s": MAX_TURNS, "command_timeout_s": 0.0, "rc_gating": False, "track_width_m": TRACK})
+        "node_ids": [1, 2], "max_turns_per_s": MAX_TURNS, "command_timeout_s": 0.0, "rc_gating": False,
+        "track_width_m": TRACK}, f"can://udp_multicast/{GROUP}?port={port}")
     wait_for(lambda: health.get("left.phase") == "armed" and health.get("right.phase") == "armed", 30,
              "both ODrive axes armed")
     can_bus = can.Bus(interface="udp_multicast", channel=GROUP, port=port)

@@ -41,6 +41,7 @@ from u2sa_hw.drivers.gps_nmea.driver import GpsNmeaDriver  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
 from u2sa_hw.bus.key import use_run_key  # noqa: E402
 from u2sa_hw.bus.transport import Transport  # noqa: E402
+from u2sa_hw.profile.vehicle import VehicleProfile  # noqa: E402
 from u2sa_hw.bus.udp_ports import private_lcm_url  # noqa: E402
 
 
@@ -54,8 +55,9 @@ class CheckedGps(GpsNmeaDriver):
 
 
 def make_driver(workdir: Path, transport: Transport) -> CheckedGps:
-    return CheckedGps("gps", config_path=workdir / "gps.toml", transport=transport,
-                      settings={"port": "/dev/u2sa/gps", "position_frame": "GEODETIC", "altitude_datum": "ellipsoid"})
+    profile = VehicleProfile(path=None, devices={"gps": {"address": "serial:///dev/u2sa/gps?baud=9600"}})
+    return CheckedGps("gps", profile=profile, config_path=workdir / "gps.toml", transport=transport,
+                      settings={"position_frame": "GEODETIC", "altitude_datum": "ellipsoid"})
 
 
 def with_checksums(data: bytes) -> list[bytes]:

@@ -69,12 +69,13 @@ class Driver:
     def __init__(self, workdir: Path, url: str, kind: str, port: int) -> None:
         spec = KINDS[kind]
         key, ids = spec["ids"]
-        settings = {"health_interval_s": 0.2, "interface": "udp_multicast", "channel": GROUP, "udp_port": port,
-                    key: ids, "rc_gating": False, "command_timeout_s": 0.5, "odometry": False,
+        settings = {"health_interval_s": 0.2, key: ids, "rc_gating": False, "command_timeout_s": 0.5, "odometry": False,
                     "hw_watchdog": True, "hw_watchdog_timeout_s": TIMEOUT_S, **spec["settings"]}
         profile = workdir / "vehicle.toml"
         profile.write_text(tomli_w.dumps({"vehicle": {"name": "bench", "config_dir": "config", "log_dir": "logs"},
-                                          "services": {"motors": {"kind": spec["kind"], "settings": settings}}}))
+                                          "services": {"motors": {"kind": spec["kind"], "settings": settings}},
+                                          "devices": {"motors": {
+                                              "address": f"can://udp_multicast/{GROUP}?port={port}"}}}))
         env = dict(os.environ, U2SA_LCM_URL=url, PYTHONPATH=str(REPO))
         self.log = open(workdir / "motors.log", "ab")
         self.proc = subprocess.Popen([sys.executable, "-m", "u2sa_hw.cli", "service", "motors", "--vehicle",

@@ -1,9 +1,8 @@
 """The part every line-oriented serial sensor shares: the device link, counters, health.
 
 :class:`SerialLineSensor` holds a :class:`~u2sa_hw.ports.device_link.DeviceLink` for its
-device (``device`` setting, default the service name; its address is the profile's
-``[devices.NAME] address``, or for old profiles ``port`` + ``baudrate`` + framing), so an
-unplugged device is reported in health and reopened with backoff while the service keeps
+device (``device`` setting, default the service name; its address, with the baud rate and
+framing, is the profile's ``[devices.NAME] address``), so an unplugged device is reported in health and reopened with backoff while the service keeps
 running. It reads whole lines and hands each to :meth:`handle_line`; when the line stays
 quiet for ``epoch_gap_s`` it calls :meth:`handle_idle` (the end of a burst). With
 ``record_raw`` every chunk read is published as ``RawSerial`` on ``RAW.<device>``.
@@ -31,11 +30,9 @@ from u2sa_hw.config.configurator import ConfigError, field
 from u2sa_hw.ports import PortClosed, PortIOError, PortUnavailable
 from u2sa_hw.ports.declared import DeviceDeclarations
 from u2sa_hw.ports.device_link import DeviceLink, device_setting
-from u2sa_hw.ports.legacy import serial_address
-from u2sa_hw.ports.serial.grammar import BAUDRATES, BYTESIZES, PARITIES, STOPBITS   # the one framing table
 from u2sa_hw.ports.serial.port import SerialPort
 
-_PORT_FIELDS = ("device", "port", "baudrate", "bytesize", "parity", "stopbits", "device_name", "epoch_gap_s")
+_PORT_FIELDS = ("device", "device_name", "epoch_gap_s")
 
 
 class SerialLineSensor(DeviceDeclarations, ProprioceptiveSensor):
@@ -44,14 +41,6 @@ class SerialLineSensor(DeviceDeclarations, ProprioceptiveSensor):
     CONFIG = (
         field("device", "", "the device: its [devices.NAME] table (address) and RAW.<device> "
                             "(empty: the service name)"),
-        field("port", "", "old form of the address: device path (/dev/u2sa/NAME) or pyserial URL; "
-                          "[devices.NAME] address wins"),
-        field("baudrate", 9600, f"old form (with port): one of {', '.join(map(str, BAUDRATES))}",
-              choices=BAUDRATES),
-        field("bytesize", 8, "old form (with port): data bits: 5, 6, 7 or 8", choices=BYTESIZES),
-        field("parity", "N", "old form (with port): parity: N (none), E (even), O (odd), M (mark) or S (space)",
-              choices=PARITIES),
-        field("stopbits", 1.0, "old form (with port): stop bits: 1, 1.5 or 2", choices=STOPBITS),
         field("device_name", "", "old name of the device setting"),
         field("record_raw", False, "publish every chunk read as RawSerial on RAW.<device>"),
         field("stale_after_s", 2.0, "no valid sentence for this long -> degraded, data stale", gt=0, le=30.0),
@@ -63,7 +52,6 @@ class SerialLineSensor(DeviceDeclarations, ProprioceptiveSensor):
         super().__init__(name, **kwargs)
         self._link: DeviceLink[SerialPort] = DeviceLink(
             self, device=lambda: device_setting(self.config, self.name), raw_type=t.RawSerial,
-            legacy=lambda: self.legacy_address(self.config),
             options=lambda: {"timeout": self.config.get("epoch_gap_s")})
         self.check_config()
         self.lines = 0
@@ -82,17 +70,9 @@ class SerialLineSensor(DeviceDeclarations, ProprioceptiveSensor):
 
     # -- config ------------------------------------------------------------------------------
     @classmethod
-    def legacy_address(cls, config: Mapping[str, Any]) -> str | None:
-        """The address the old-form settings (``port``, ``baudrate``, framing) give, or None."""
-        stopbits = config.get("stopbits", 1.0)
-        return serial_address(str(config.get("port", "")), baudrate=config.get("baudrate", 9600),
-                              bytesize=config.get("bytesize", 8), parity=config.get("parity", "N"),
-                              stopbits=stopbits)
-
-    @classmethod
-    def used_devices(cls, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
-        """The one device this service reads (see DeviceLink)."""
-        return {device_setting(config, service): cls.legacy_address(config)}
+    def used_devices(cls, service: str, config: Mapping[str, Any]) -> tuple[str, ...]:
+        """The one device this service reads (``device``, else the service's name)."""
+        return (device_setting(config, service),)
 
     @classmethod
     def protocol(cls, config: Mapping[str, Any]) -> str:
@@ -121,17 +101,14 @@ class SerialLineSensor(DeviceDeclarations, ProprioceptiveSensor):
         link = getattr(self, "_link", None)
         problem = link.check() if link is not None else None
         if problem:
-            raise ConfigError(f"service '{self.name}': {problem} (e.g. \"serial://{self.EXAMPLE_PORT}?baud=9600\"; "
-                              "an old profile sets port = \"...\" in the service's settings)")
+            raise ConfigError(f"service '{self.name}': {problem} (e.g. \"serial://{self.EXAMPLE_PORT}?baud=9600\")")
 
     @property
     def framing(self) -> str:
-        """The framing as data bits, parity, stop bits (``8N1``, ``7E2``, ``8N1.5``) of the address."""
+        """The framing as data bits, parity, stop bits (``8N1``, ``7E2``, ``8N1.5``) of the address ("" before
+        the address is resolved)."""
         address = self._link.address
-        if address is not None:
-            return address.framing
-        stopbits = self.config.get("stopbits")
-        return f"{self.config.get('bytesize')}{self.config.get('parity')}{stopbits:g}"
+        return address.framing if address is not None else ""
 
     @property
     def device_name(self) -> str:
@@ -139,7 +116,7 @@ class SerialLineSensor(DeviceDeclarations, ProprioceptiveSensor):
         return device_setting(self.config, self.name)
 
     def on_config_change(self, name: str, value: Any) -> None:
-        """Check the new config; a device, address, framing or gap change reopens the port."""
+        """Check the new config; a device or gap change reopens the port (the address is re-read then)."""
         self.check_config()
         if name in _PORT_FIELDS:
             self._reopen = True
@@ -283,7 +260,7 @@ class SerialLineSensor(DeviceDeclarations, ProprioceptiveSensor):
         details: dict[str, Any] = {
             "degraded_reason": reason,
             **link.health(),
-            "baudrate": address.baud if address is not None else self.config.get("baudrate"),
+            "baudrate": address.baud if address is not None else "",
             "framing": open_port.framing if open_port is not None else self.framing,
             "data": "none yet" if age is None else ("stale" if stale else "ok"),
             "last_data_age_s": "" if age is None else f"{age:.2f}",

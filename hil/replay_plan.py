@@ -6,8 +6,8 @@ attachments, and every tapped device has a ``RAW.<device>`` channel. A service *
 device when its driver says it uses it (the driver's ``used_devices``: its ``device``
 setting, default the service's name; a PWM servo service one device per channel), or when
 the device has the service's own name. The device's recorded address is its ``[devices.NAME]
-address`` in the log's profile, else the one the driver derives from its old-form settings;
-the replay gives the device a ``mock+`` address of the same kind and changes nothing else.
+address`` in the log's profile; the replay gives the device a ``mock+`` address of the same
+kind and changes nothing else.
 
 Each device must be claimed by exactly one service of the profile; a device nobody claims
 is left out (and said so), two claimants are an error.
@@ -98,17 +98,16 @@ class ReplayPlan:
         return max(0.0, (self.end_ns - self.start_ns) / 1e9)
 
 
-def service_devices(service: str, kind: str | None, config: dict[str, Any]) -> dict[str, str | None]:
-    """The devices *service* of *kind* with *config* uses: name -> its old-form address (or None)."""
+def service_devices(service: str, kind: str | None, config: dict[str, Any]) -> tuple[str, ...]:
+    """The names of the devices *service* of *kind* with *config* uses (none for an unknown kind)."""
     from u2sa_hw.profile.devices import service_devices as declared
 
-    used: dict[str, str | None] = {}
     if kind:
         try:
-            used = declared(resolve_kind(kind), service, config)
+            return declared(resolve_kind(kind), service, config)
         except (LookupError, ImportError):
-            used = {}
-    return used
+            pass
+    return ()
 
 
 def claimed_devices(service: str, config: dict[str, Any], kind: str | None = None) -> set[str]:
@@ -125,12 +124,12 @@ def claimed_devices(service: str, config: dict[str, Any], kind: str | None = Non
     return names
 
 
-def recorded_address(profile: dict[str, Any], device: str, legacy: str | None) -> DeviceAddress | None:
-    """The device's address in the log's profile (``[devices.NAME] address``, else *legacy*), or None."""
+def recorded_address(profile: dict[str, Any], device: str) -> DeviceAddress | None:
+    """The device's address in the log's profile (``[devices.NAME] address``), or None."""
     table = (profile.get("devices") or {}).get(device)
     text = table.get("address") if isinstance(table, dict) else None
     try:
-        return parse_address(text or legacy, device=device) if (text or legacy) else None
+        return parse_address(text, device=device) if text else None
     except AddressError:
         return None
 
@@ -254,8 +253,7 @@ def build_plan(path: Path | str, *, extra_services: list[str] = (), overrides: l
             plan.notes.append(f"RAW.{dev.name}: no service of the profile names device '{dev.name}' "
                               "(as its name, its device setting or a channel's device); not replayed")
             continue
-        legacy = service_devices(owners[0], kinds.get(owners[0]), configs[owners[0]]).get(dev.name)
-        dev.address = recorded_address(profile, dev.name, legacy)
+        dev.address = recorded_address(profile, dev.name)
         if dev.kind not in REPLAYABLE:
             what = f"{dev.kind} devices cannot be replayed yet" if dev.kind else "unknown raw type"
             plan.notes.append(f"RAW.{dev.name}: {what}; service '{owners[0]}' is not replayed")

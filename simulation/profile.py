@@ -5,9 +5,8 @@ A vehicle profile names each device's real address (``[devices.gps] address =
 device with a mock gets its mock address (the mock launcher's ``addresses``, e.g.
 ``mock+serial:///run/sim/dev/gps?baud=9600``). Rather than edit the user's files,
 :func:`write_sim_profile` writes a complete copy under the run directory: ``vehicle.toml``
-with each device's address replaced (a ``[devices.NAME]`` table is added for a device an
-old-form profile gives in its service settings; the address there wins over them), and a
-copy of each service's config file (with any other setting *overrides*, e.g. ``record_raw``).
+with each device's address replaced (a ``[devices.NAME]`` table is added for a mocked device
+that has none), and a copy of each service's config file (with any other setting *overrides*, e.g. ``record_raw``).
 Paths the services read relative to the profile (mission and objects files) are made
 absolute, so the copy runs from anywhere, and what a ``u2sa param set`` changes during a
 simulation stays in the run directory.

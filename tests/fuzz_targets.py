@@ -29,6 +29,7 @@ from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.protocols import odrive_cansimple as cs
 from u2sa_hw.protocols import vesc_can as vc
 from u2sa_hw.bus.transport import Transport
+from u2sa_hw.profile.vehicle import VehicleProfile
 
 
 class FuzzViolation(AssertionError):
@@ -198,8 +199,9 @@ class CompassTarget(Target):
         self.corpus = COMPASS_CORPUS if fmt == "nmea" else OS5000_CORPUS
         self.nmea = True
         self.transport = Transport(lcm_url, name=self.name)
-        self.driver = RecordingCompass("compass", config_path=workdir / f"{self.name}.toml", transport=self.transport,
-                                       settings={"port": "/dev/u2sa/compass", "format": fmt})
+        profile = VehicleProfile(path=None, devices={"compass": {"address": "serial:///dev/u2sa/compass?baud=19200"}})
+        self.driver = RecordingCompass("compass", profile=profile, config_path=workdir / f"{self.name}.toml",
+                                       transport=self.transport, settings={"format": fmt})
         self.driver.sent = []
         self.now = 1000.0
 
@@ -260,16 +262,18 @@ class CanTarget(Target):
     def __init__(self, kind: str, *, workdir: Path, lcm_url: str) -> None:
         self.name = kind
         self.transport = Transport(lcm_url, name=kind)
-        common = {"interface": "virtual", "channel": f"fuzz-{kind}", "hw_watchdog": False}
+        common = {"hw_watchdog": False}
+        profile = VehicleProfile(path=None, devices={"motors": {"address": f"can://virtual/fuzz-{kind}"}})
         if kind == "odrive":
             self.corpus = odrive_corpus()
             self.svc: RecordingOdrive | RecordingVesc = RecordingOdrive(
-                "motors", config_path=workdir / "odrive.toml", transport=self.transport, settings=common)
+                "motors", profile=profile, config_path=workdir / "odrive.toml", transport=self.transport,
+                settings=common)
             self.frame: Callable[[bytes], can.Message] = self._odrive_frame
         else:
             self.corpus = vesc_corpus()
-            self.svc = RecordingVesc("motors", config_path=workdir / "vesc.toml", transport=self.transport,
-                                     settings={**common, "odometry_source": "velocity"})
+            self.svc = RecordingVesc("motors", profile=profile, config_path=workdir / "vesc.toml",
+                                     transport=self.transport, settings={**common, "odometry_source": "velocity"})
             self.frame = self._vesc_frame
         self.svc.sent = []
         self.stamp = 1000.0

@@ -19,7 +19,7 @@ from u2sa_hw.drivers.gps_nmea.driver import GpsNmeaDriver
 from u2sa_hw.drivers.nmea_fields import Epoch, parse_sentence
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.geo import ned_to_geodetic
-from u2sa_hw.profile.vehicle import Origin
+from u2sa_hw.profile.vehicle import Origin, VehicleProfile
 
 KNOT_MPS = 1852.0 / 3600.0
 GAP_S = 0.05
@@ -238,6 +238,12 @@ def recording_driver(base: type) -> type:
 
 
 RecordingGps = recording_driver(GpsNmeaDriver)
+
+
+def serial_profile(device: str = "gps", baud: int = 9600) -> VehicleProfile:
+    """A profile (no file) whose *device* is ``/dev/u2sa/DEVICE`` at *baud*: a driver built on it opens nothing
+    until its setup."""
+    return VehicleProfile(path=None, devices={device: {"address": f"serial:///dev/u2sa/{device}?baud={baud}"}})
 
 
 def epoch(*lines: bytes) -> Epoch:

@@ -47,8 +47,8 @@ def rig(tmp_path: Path, services: ServiceProcesses, bus) -> Iterator[tuple[Orien
     i2c.add(Ak8963Chip(parent=mpu, seed=5, hard_iron_ut=HARD_IRON_UT, soft_iron=SOFT_IRON))
     with i2c:
         probe = DriverProbe(bus, "imu")
-        profile = write_profile(tmp_path, name="imu", kind="imu_mpu9250",
-                                settings={"bus": i2c.address, "calibrate_samples": 20})
+        profile = write_profile(tmp_path, name="imu", kind="imu_mpu9250", settings={"calibrate_samples": 20},
+                                devices={"imu": f"mock+i2c://{i2c.socket_path}/0x68"})
         start_driver(services, profile, "imu")
         probe.wait_health(lambda d, s: s == "ok" and d.get("magnetometer", "").startswith("continuous"),
                           message="the IMU running with its magnetometer", timeout=20)
@@ -206,7 +206,8 @@ def test_os5000_raw_field_calibration_and_the_heading_from_the_corrected_field(
     dev.start()
     try:
         profile = write_profile(tmp_path, name="compass", kind="compass_serial",
-                                settings={"port": dev.address, "format": "os5000", "raw_field": True})
+                                settings={"format": "os5000", "raw_field": True},
+                                devices={"compass": f"serial://{dev.address}?baud=19200"})
         probe = DriverProbe(bus, "compass")
         start_driver(services, profile, "compass")
         probe.wait_health(lambda d, s: s == "ok" and d.get("mag_calibrated") == "no", message="the compass running")
@@ -238,8 +239,8 @@ def test_a_compass_without_raw_field_values_is_not_offered_calibration(
     dev = NmeaCompassDevice(OrientedVehicle(), link_path=tmp_path / "dev" / "compass", rate_hz=20.0)
     dev.start()
     try:
-        profile = write_profile(tmp_path, name="compass", kind="compass_serial", settings={"port": dev.address,
-                                                                                           "baudrate": 4800})
+        profile = write_profile(tmp_path, name="compass", kind="compass_serial", settings={},
+                                devices={"compass": f"serial://{dev.address}?baud=4800"})
         probe = DriverProbe(bus, "compass")
         start_driver(services, profile, "compass")
         probe.wait_health(lambda d, s: s == "ok", message="the compass running")

@@ -53,8 +53,8 @@ kind = "path_planer"
 
 [services.gps]
 kind = "compass_serial"
-prot = "/dev/ttyUSB0"
-settings = { port = "/dev/ttyUSB0", baudrate = "9600", health_interval_s = inf }
+devcie = "gnss"
+settings = { port = "/dev/ttyUSB0", heading_sigma_deg = "1", health_interval_s = inf }
 
 [services.gps.supervision]
 heartbeat_timout_s = 3.0
@@ -93,12 +93,13 @@ EXPECTED = [
     ("", "vehicle.log_level", "loud"),
     ("", "vehicle.origin.lat", "129"),
     ("", "services.planner.kind", "did you mean 'path_planner'"),
-    ("", "services.gps.prot", "did you mean 'port'"),
-    ("", "services.gps.settings.baudrate", "int"),
+    ("", "services.gps.devcie", "did you mean 'device'"),
+    ("", "services.gps.settings.port", "is the old form"),
+    ("", "services.gps.settings.heading_sigma_deg", "float"),
     ("", "services.gps.settings.health_interval_s", "inf"),
     ("", "services.gps.supervision.heartbeat_timout_s", "did you mean 'heartbeat_timeout_s'"),
     ("", "services.gps.supervision.data_channel", "did you mean 'STATE_INFO'"),
-    ("compass.toml", "baudrate", "fast"),
+    ("compass.toml", "declination_deg", "east"),
     ("compass.toml", "bogus", "bogus"),
     ("est.toml", "", "not UTF-8"),
     ("", "services.mission.settings.mission_file", "does not exist"),
@@ -119,7 +120,7 @@ def write(tmp: Path, profile: str, files: dict[str, bytes] | None = None) -> Pat
 
 
 def mistakes(tmp: Path) -> Path:
-    return write(tmp, MISTAKES, {"config/compass.toml": b'baudrate = "fast"\nbogus = 1\n',
+    return write(tmp, MISTAKES, {"config/compass.toml": b'declination_deg = "east"\nbogus = 1\n',
                                  "config/est.toml": b"\xff\xfe\x00binary",
                                  "objects.xml": b"<objects><object>"})
 
@@ -342,32 +343,48 @@ settings = { bus = 1 }
 """
 
 
-def test_an_old_form_bus_written_as_a_number_shows_the_new_form(tmp_path: Path) -> None:
-    """bus = 1 (the driver reads text, bus = "1"): the type error's fix is the new form, as the old-form warning of
-    bus = "1" is, not 'write a str like bus = ""'; and the device is read as meant (no "has no address" too)."""
-    path = write(tmp_path, OLD_IMU)
-    assert [str(p) for p in check_profile(path)] == [
-        f'error: {path} [services.imu.settings.bus]: expects str, got int 1; fix: write the device\'s address in the '
-        'profile in the new form: [devices.imu] address = "i2c://1/0x68" (in the old form: bus = "1")']
-    path = write(tmp_path, OLD_IMU.replace("bus = 1", 'bus = "1"'))
-    assert [str(p) for p in check_profile(path)] == [
-        f'warning: {path} [services.imu]: device \'imu\' is given in the old form (service settings); fix: write '
-        '[devices.imu] address = "i2c://1/0x68"']
+def test_an_old_form_setting_is_one_error_naming_the_new_form(tmp_path: Path) -> None:
+    """The old profile form (an address spread over driver settings) is retired: each old key is one error that
+    names it and the new form, as text or as a number, in the settings or the service's config file; nothing
+    also says the device has no address."""
+    new_form = ('name a device instead: [devices.imu] address = "i2c://1/0x68" and device = "imu" '
+                '(docs/ports.md)')
+    for written in ("bus = 1", 'bus = "1"'):
+        path = write(tmp_path, OLD_IMU.replace("bus = 1", written))
+        assert [str(p) for p in check_profile(path)] == [
+            f"error: {path} [services.imu.settings.bus]: 'bus' is the old form; fix: {new_form}"], written
     # In the service's config file: the line is on that file.
-    path = write(tmp_path, OLD_IMU.replace("settings = { bus = 1 }\n", ""), {"config/imu.toml": b"bus = 2\n"})
+    path = write(tmp_path, OLD_IMU.replace("settings = { bus = 1 }\n", ""), {"config/imu.toml": b'bus = "2"\n'})
     problems = check_profile(path)
-    assert [(p.file, p.key) for p in problems] == [(str(tmp_path / "config/imu.toml"), "bus")], problems
-    assert problems[0].fix.startswith('write the device\'s address in the profile in the new form: [devices.imu] '
-                                      'address = "i2c://2/0x68"'), problems[0]
+    assert [(p.severity, p.file, p.key, p.fix) for p in problems] == [
+        ("error", str(tmp_path / "config/imu.toml"), "bus", new_form)], problems
+    # The service names another device: the fix names that one.
+    path = write(tmp_path, CLEAN + '\n[services.gps]\nkind = "gps_nmea"\n'
+                 'settings = { device = "gnss", port = "/dev/ttyUSB0" }\n')
+    assert [str(p) for p in check_profile(path)] == [
+        f"error: {path} [services.gps.settings.port]: 'port' is the old form; fix: name a device instead: "
+        '[devices.gnss] address = "serial:///dev/ttyUSB0?baud=9600" and device = "gnss" (docs/ports.md)']
 
 
-def test_a_number_for_a_text_setting_that_makes_no_address_keeps_its_fix(tmp_path: Path) -> None:
-    path = write(tmp_path, CLEAN + '\n[services.imu]\nkind = "imu_mpu9250"\nsettings = { bus = 1, mounting = 5 }\n'
+def test_an_old_form_device_table_key_names_the_address_parameter(tmp_path: Path) -> None:
+    path = write(tmp_path, CLEAN + '\n[services.gps]\nkind = "gps_nmea"\n\n[devices.gps]\n'
+                 'address = "serial:///dev/u2sa/gps?baud=9600"\nusb = { vendor = "1546", product = "01a7" }\n')
+    usb = [p for p in errors_of(check_profile(path)) if p.key.startswith("devices.gps.")
+           and p.key != "devices.gps.address"]   # (the address's own: nothing creates /dev/u2sa/gps)
+    assert [(p.key, p.message) for p in usb] == [("devices.gps.usb", "'usb' is the old form")], usb
+    assert "usb=1546:01a7" in usb[0].fix and "docs/ports.md" in usb[0].fix
+
+
+def test_a_setting_of_another_kind_with_an_old_form_name_is_not_the_old_form(tmp_path: Path) -> None:
+    """Only a driver's (a kind with a device setting) unknown key is the old form: an IMU's chip is its own
+    setting, and a service that opens no device gets the usual unknown-key error."""
+    path = write(tmp_path, CLEAN + '\n[services.imu]\nkind = "imu_mpu9250"\nsettings = { chip = "mpu6500" }\n'
                  '\n[devices.imu]\naddress = "i2c://1/0x68"\n')
-    fixes = {p.key: p.fix for p in check_profile(path)}
-    assert fixes["services.imu.settings.mounting"] == 'write a str like mounting = "x,-y,-z"'
-    # The device's address is in [devices.imu]: bus is not what makes it, so no new form is offered for it.
-    assert fixes["services.imu.settings.bus"] == 'write a str like bus = ""'
+    assert errors_of(check_profile(path)) == []
+    path = write(tmp_path, CLEAN.replace("settings = { publish_rate_hz = 20.0 }", "settings = { port = 1 }"))
+    errors = errors_of(check_profile(path))
+    assert [p.key for p in errors] == ["services.estimator.settings.port"], errors
+    assert "is not a setting of this service" in errors[0].message
 
 
 def test_for_sim_a_device_without_a_mock_names_the_device_and_the_mock(tmp_path: Path) -> None:

@@ -96,16 +96,16 @@ def test_a_simulation_typo_is_one_line_with_the_did_you_mean(tmp_path: Path) -> 
 
 
 def test_a_service_setting_error_does_not_make_every_device_lack_a_mock(tmp_path: Path) -> None:
-    path = example(tmp_path, ('settings = { format = "nmea" }', 'settings = { format = "nmea", baudrate = "9600" }'))
+    path = example(tmp_path, ('settings = { format = "nmea" }', 'settings = { format = "nmea", heading_sigma_deg = "1" }'))
     errors = errors_of(check_profile(path, for_sim=True))
-    assert keys(errors) == ["services.compass.settings.baudrate"], "\n".join(map(str, errors))
+    assert keys(errors) == ["services.compass.settings.heading_sigma_deg"], "\n".join(map(str, errors))
 
 
 def test_with_a_service_setting_error_a_device_that_truly_has_no_mock_is_still_named(tmp_path: Path) -> None:
-    path = example(tmp_path, ('settings = { format = "nmea" }', 'settings = { format = "nmea", baudrate = "9600" }'),
+    path = example(tmp_path, ('settings = { format = "nmea" }', 'settings = { format = "nmea", heading_sigma_deg = "1" }'),
                    ('mock = "mpu9250"\n', ""))
     errors = errors_of(check_profile(path, for_sim=True))
-    assert keys(errors) == ["services.compass.settings.baudrate", "devices.imu"], "\n".join(map(str, errors))
+    assert keys(errors) == ["services.compass.settings.heading_sigma_deg", "devices.imu"], "\n".join(map(str, errors))
     assert "device 'imu' of service 'imu' (imu_mpu9250) has no mock" in errors[1].message
     assert 'mock = "mpu9250"' in errors[1].fix
 

@@ -23,6 +23,7 @@ from u2sa_hw.drivers.compass.driver import SerialCompassDriver, char_time_s
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus.transport import Transport
 from u2sa_hw.profile.loader import load_profile
+from u2sa_hw.profile.vehicle import VehicleProfile
 
 GAP_S = 0.05  # the driver's epoch_gap_s (its read timeout)
 
@@ -102,9 +103,11 @@ def transport(lcm_url: str) -> Iterator[Transport]:
 RecordingCompass = recording_driver(SerialCompassDriver)
 
 
-def make_driver(tmp_path: Path, transport: Transport, **settings: object) -> RecordingCompass:
-    return RecordingCompass("compass", config_path=tmp_path / "compass.toml", transport=transport,
-                            settings={"port": "/dev/u2sa/compass", "epoch_gap_s": GAP_S, **settings})
+def make_driver(tmp_path: Path, transport: Transport, *, baud: int = 19200, **settings: object) -> RecordingCompass:
+    """A compass driver (nothing opened) whose device ``compass`` is at *baud* 8N1."""
+    profile = VehicleProfile(path=None, devices={"compass": {"address": f"serial:///dev/u2sa/compass?baud={baud}"}})
+    return RecordingCompass("compass", profile=profile, config_path=tmp_path / "compass.toml", transport=transport,
+                            settings={"epoch_gap_s": GAP_S, **settings})
 
 
 def feed(driver: SerialCompassDriver, events: Iterator[tuple[float, bytes | None]]) -> int:
@@ -209,7 +212,7 @@ def test_an_evenly_spaced_stream_without_any_pause_publishes_each_sentence_alone
 def test_xdr_xdr_hdm_back_to_back_bursts_are_found_by_their_timing(tmp_path: Path, transport: Transport) -> None:
     """The same at 20 Hz, 38400 baud, each burst's lines back to back: about 30 ms of pause before each
     burst, no silence; the pitch XDR follows the longest pause and is learned as the first sentence."""
-    driver = make_driver(tmp_path, transport, baudrate=38400)
+    driver = make_driver(tmp_path, transport, baud=38400)
     feed(driver, compose(("XDRP", "XDRR", "HDM"), bursts=20 * 120, rate_hz=20.0, baud=38400, skip=2))
     assert mismatched(driver.sent) == []
     assert driver.bursts.first == "XDR:PITCH" and driver.bursts.first_from == "timing"
@@ -219,7 +222,7 @@ def test_xdr_xdr_hdm_back_to_back_bursts_are_found_by_their_timing(tmp_path: Pat
 def test_a_heading_first_device_without_silence_is_found_by_its_timing(tmp_path: Path, transport: Transport) -> None:
     """HDG then XDR at 20 Hz, 38400 baud: the pause between bursts (about 30 ms) is shorter than
     epoch_gap_s, so no silence; the HDG follows the longest pause and is learned as the first sentence."""
-    driver = make_driver(tmp_path, transport, baudrate=38400)
+    driver = make_driver(tmp_path, transport, baud=38400)
     bursts = 20 * 150
     feed(driver, compose(("HDG", "XDR"), bursts=bursts, rate_hz=20.0, baud=38400))
     assert mismatched(driver.sent) == []   # not even while learning: each sentence alone until then
@@ -231,7 +234,7 @@ def test_a_heading_first_device_without_silence_is_found_by_its_timing(tmp_path:
 
 def test_a_heading_first_device_with_silence_between_bursts_is_in_step_at_once(tmp_path: Path,
                                                                                transport: Transport) -> None:
-    driver = make_driver(tmp_path, transport, baudrate=4800)
+    driver = make_driver(tmp_path, transport, baud=4800)
     feed(driver, compose(("HDG", "XDR"), bursts=2 * 180, rate_hz=2.0, baud=4800, skip=1))
     assert mismatched(driver.sent) == []
     assert driver.bursts.first == "HDG" and driver.bursts.first_from == "silence"
@@ -246,7 +249,7 @@ def test_nmea_standard_4800_baud_bursts_keep_heading_pitch_and_roll_together(
     """At 4800 baud (NMEA 0183's rate) each line is some 50 ms on the wire, as long as epoch_gap_s: the time
     between line arrivals is not silence. Five minutes with a pause between bursts (at 2 Hz ~350 ms:
     silence; at 6 Hz ~17 ms: timing only), attitude-first and heading-first."""
-    driver = make_driver(tmp_path, transport, baudrate=4800)
+    driver = make_driver(tmp_path, transport, baud=4800)
     bursts = int(300 * rate_hz)
     feed(driver, compose(order, bursts=bursts, rate_hz=rate_hz, baud=4800))
     assert mismatched(driver.sent) == []
@@ -261,16 +264,16 @@ def test_the_wire_time_of_a_character_comes_from_the_device_address_baud_and_fra
         tmp_path: Path, transport: Transport) -> None:
     assert char_time_s(baud=4800) == pytest.approx(10 / 4800)                                  # 8N1
     assert char_time_s(baud=9600, bytesize=7, parity="E", stopbits=2.0) == pytest.approx(11 / 9600)
-    assert make_driver(tmp_path, transport, baudrate=4800).char_time_s() == pytest.approx(10 / 4800)  # old form
+    assert make_driver(tmp_path, transport, baud=4800).char_time_s() == pytest.approx(10 / 4800)  # before setup
     path = tmp_path / "vehicle.toml"
     path.write_text('[vehicle]\nname = "boat"\n[devices.compass]\n'
                     'address = "serial:///dev/u2sa/compass?baud=4800&parity=E"\n')
     driver = RecordingCompass("compass", profile=load_profile(path), config_path=tmp_path / "c.toml",
-                              transport=transport, settings={})   # baudrate stays at its 19200 default
+                              transport=transport, settings={})
     driver.setup()                                                 # resolves the address; opens nothing
     try:
         assert driver.char_time_s() == pytest.approx(11 / 4800)
-        # a 42-character XDR is 96 ms on this wire: at the 19200 of the baudrate setting it would look like silence
+        # a 42-character XDR is 96 ms on this wire: at the OS5000's factory 19200 it would look like silence
         feed(driver, compose(("HDG", "XDR"), bursts=60, rate_hz=2.0, baud=4800, bits=11))
         assert driver.bursts.char_time_s == pytest.approx(11 / 4800)
         assert len(driver.sent) == 61 and all(m.has("psi") and m.has("theta") for m in driver.sent[2:])

@@ -156,8 +156,8 @@ def test_compass_survives_garbage_bad_checksums_silence_and_a_disconnect(
     dev = make_compass(fmt, vehicle, tmp_path)
     try:
         profile = write_profile(tmp_path, name="compass", kind="compass_serial",
-                                settings={"port": dev.address, "format": fmt, "declination_deg": DECLINATION,
-                                          "stale_after_s": 0.5})
+                                settings={"format": fmt, "declination_deg": DECLINATION, "stale_after_s": 0.5},
+                                devices={"compass": f"serial://{dev.address}?baud=19200"})
         probe = DriverProbe(bus, "compass", on_state=vehicle.snapshot)
         proc = start_driver(services, profile, "compass")
         check_heading(probe, 5)
@@ -206,8 +206,8 @@ def test_os5000_compass_service_gives_true_heading_sigma_and_temperature(service
     dev = make_compass("os5000", vehicle, tmp_path)
     try:
         profile = write_profile(tmp_path, name="compass", kind="compass_serial",
-                                settings={"port": dev.address, "format": "os5000", "declination_deg": DECLINATION,
-                                          "heading_sigma_deg": 2.0})
+                                settings={"format": "os5000", "declination_deg": DECLINATION, "heading_sigma_deg": 2.0},
+                                devices={"compass": f"serial://{dev.address}?baud=19200"})
         probe = DriverProbe(bus, "compass", on_state=vehicle.snapshot)
         start_driver(services, profile, "compass")
         check_heading(probe, 10)
@@ -227,7 +227,8 @@ def test_nmea_compass_service_uses_hdg_variation_deviation_and_xdr(services: Ser
     try:
         # the configured declination is wrong on purpose: HDG's own variation field must win
         profile = write_profile(tmp_path, name="compass", kind="compass_serial",
-                                settings={"port": dev.address, "baudrate": 4800, "declination_deg": 20.0})
+                                settings={"declination_deg": 20.0},
+                                devices={"compass": f"serial://{dev.address}?baud=4800"})
         probe = DriverProbe(bus, "compass", on_state=vehicle.snapshot)
         start_driver(services, profile, "compass")
         check_heading(probe, 10)
@@ -248,7 +249,8 @@ def test_hdm_compass_service_applies_the_configured_declination(services: Servic
     dev.start()
     try:
         profile = write_profile(tmp_path, name="compass", kind="compass_serial",
-                                settings={"port": dev.address, "declination_deg": DECLINATION})
+                                settings={"declination_deg": DECLINATION},
+                                devices={"compass": f"serial://{dev.address}?baud=19200"})
         probe = DriverProbe(bus, "compass", on_state=vehicle.snapshot)
         start_driver(services, profile, "compass")
         check_heading(probe, 5, attitude=False)
@@ -266,7 +268,8 @@ def test_attitude_first_tnt_pashr_and_rot_compasses_as_a_service(services: Servi
     dev.start()
     try:
         profile = write_profile(tmp_path, name="compass", kind="compass_serial",
-                                settings={"port": dev.address, "declination_deg": DECLINATION})
+                                settings={"declination_deg": DECLINATION},
+                                devices={"compass": f"serial://{dev.address}?baud=19200"})
         probe = DriverProbe(bus, "compass", on_state=vehicle.snapshot)
         start_driver(services, profile, "compass")
         check_heading(probe, 10, rate=None)

@@ -62,8 +62,8 @@ class NotADriver:
     MOCK_KINDS: ClassVar[tuple[str, ...]] = ("nmea_gps",)
 
     @classmethod
-    def used_devices(cls, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
-        return {service: None}
+    def used_devices(cls, service: str, config: Mapping[str, Any]) -> tuple[str, ...]:
+        return (service,)
 
 
 class DeclaresNothing(DeviceDeclarations):
@@ -76,8 +76,8 @@ class WrongMock(DeviceDeclarations):
     MOCK_KINDS: ClassVar[tuple[str, ...]] = ("no_such_mock",)
 
     @classmethod
-    def used_devices(cls, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
-        return {service: None}
+    def used_devices(cls, service: str, config: Mapping[str, Any]) -> tuple[str, ...]:
+        return (service,)
 
     @classmethod
     def mock_wiring(cls, service: str, device: str, config: Mapping[str, Any]) -> dict[str, Any]:
@@ -109,7 +109,7 @@ def test_the_readers_ignore_attribute_conventions_on_a_class_without_the_base() 
     """The old getattr reading would have taken NotADriver's MOCK_KINDS and used_devices; the typed readers
     take only what the base declares, so a service that is not a driver declares nothing."""
     assert declared.mock_kinds(NotADriver) == ()
-    assert declared.used_devices(NotADriver, "gps", {}) == {}
+    assert declared.used_devices(NotADriver, "gps", {}) == ()
     assert declared.mock_wiring(NotADriver, "gps", "gps", {}) == {}
     assert declared.probe_expectation(NotADriver, {}) == {}
     assert declared.replay_options(NotADriver, "gps", {}) == {}
@@ -118,4 +118,4 @@ def test_the_readers_ignore_attribute_conventions_on_a_class_without_the_base() 
 def test_a_service_that_is_not_a_driver_declares_nothing() -> None:
     control = registry.resolve_kind("control")
     assert not declared.declares_devices(control)
-    assert declared.mock_kinds(control) == () and declared.used_devices(control, "control", {}) == {}
+    assert declared.mock_kinds(control) == () and declared.used_devices(control, "control", {}) == ()

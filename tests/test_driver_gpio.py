@@ -69,9 +69,12 @@ def chip() -> Iterator[MockGpioChip]:
     shutil.rmtree(path, ignore_errors=True)
 
 
-def start(services: ServiceProcesses, tmp_path: Path, *, name: str, kind: str, settings: dict[str, Any]
-          ) -> subprocess.Popen:
-    return start_driver(services, write_profile(tmp_path, name=name, kind=kind, settings=settings), name)
+def start(services: ServiceProcesses, tmp_path: Path, *, name: str, kind: str, settings: dict[str, Any],
+          socket: str) -> subprocess.Popen:
+    """The service *name*, its device (named after it) the mock chip served at *socket*."""
+    profile = write_profile(tmp_path, name=name, kind=kind, settings=settings,
+                            devices={name: f"mock+gpio://{socket}"})
+    return start_driver(services, profile, name)
 
 
 def command(bus: BusClient, actuator: str, percent: float) -> None:
@@ -94,7 +97,7 @@ def test_outputs_switch_at_50_percent_and_go_to_safe_levels(chip: MockGpioChip, 
                                                             services: ServiceProcesses, bus: BusClient) -> None:
     col = BusCollector(bus).listen(ch.HEALTH, t.Health).listen(raw_channel("io"), None)
     proc = start(services, tmp_path, name="io", kind="gpio_output",
-                 settings={"chip": chip.address, "outputs": "lamp=17,brake=18", "safe_levels": "brake=1",
+                 socket=chip.socket_path, settings={"outputs": "lamp=17,brake=18", "safe_levels": "brake=1",
                            "command_timeout_s": 0.5, "rc_gating": False, "record_raw": True})
     wait_until(lambda: chip.consumers().get(LAMP) == "u2sa:io", message="the lines requested", timeout=30)
     assert (chip.read_output(LAMP), chip.read_output(BRAKE)) == (0, 1), "started at the safe levels"
@@ -138,7 +141,7 @@ def test_a_lost_chip_is_reported_commands_are_counted_and_outputs_restart_safe(
         chip: MockGpioChip, tmp_path: Path, services: ServiceProcesses, bus: BusClient) -> None:
     col = BusCollector(bus).listen(ch.HEALTH, t.Health)
     proc = start(services, tmp_path, name="io", kind="gpio_output",
-                 settings={"chip": chip.address, "outputs": "lamp=17,brake=18", "safe_levels": "brake=1",
+                 socket=chip.socket_path, settings={"outputs": "lamp=17,brake=18", "safe_levels": "brake=1",
                            "command_timeout_s": 0.0, "rc_gating": False})
     wait_until(lambda: chip.consumers().get(LAMP) == "u2sa:io", message="the lines requested", timeout=30)
     command(bus, "lamp", 100.0)
@@ -176,10 +179,10 @@ def inputs_service(chip: MockGpioChip, tmp_path: Path, services: ServiceProcesse
                    bus: BusClient) -> Iterator[tuple[BusCollector, subprocess.Popen]]:
     col = BusCollector(bus).listen(ch.HEALTH, t.Health).listen(ch.FAILSAFE, t.Failsafe)
     col.listen(ch.OBJECTS, t.ObjectDescription)
-    settings = {"chip": chip.address, "inputs": "estop=4,bump=22,door=23", "bias": "pull-up",
+    settings = {"inputs": "estop=4,bump=22,door=23", "bias": "pull-up",
                 "active_low": "estop,bump", "failsafe_on": "estop", "positions": "bump=0.45:-0.1:0.2",
                 "failsafe_repeat_s": 0.3, "bumper_repeat_s": 0.3, "debounce_ms": 5.0}
-    proc = start(services, tmp_path, name="sw", kind="gpio_input", settings=settings)
+    proc = start(services, tmp_path, name="sw", kind="gpio_input", settings=settings, socket=chip.socket_path)
     col.health_of("sw", lambda d: d["port"] == "open", timeout=30, message="the inputs open")
     yield col, proc
 
@@ -223,6 +226,6 @@ def test_unreadable_estop_holds_the_failsafe_until_the_port_is_back(chip: MockGp
 
 def test_bad_input_config_stops_the_service_with_the_reason(tmp_path: Path, services: ServiceProcesses) -> None:
     proc = start(services, tmp_path, name="sw", kind="gpio_input",
-                 settings={"chip": "mock:/nonexistent.sock", "inputs": "estop=4", "positions": "bump=1:0:0"})
+                 settings={"inputs": "estop=4", "positions": "bump=1:0:0"}, socket="/nonexistent.sock")
     assert proc.wait(timeout=20) != 0
     assert "config 'positions' names 'bump', not a configured line" in (tmp_path / "sw.stderr").read_text()

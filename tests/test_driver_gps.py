@@ -24,7 +24,7 @@ from u2sa_hw.bus.client import BusClient
 from u2sa_hw.config.configurator import ConfigError
 from u2sa_hw.geo import geodetic_to_ned, ned_to_geodetic
 from u2sa_hw.bus.transport import Transport
-from u2sa_hw.profile.vehicle import Origin
+from u2sa_hw.profile.vehicle import Origin, VehicleProfile
 
 GEO = Origin(**ORIGIN)
 
@@ -333,10 +333,12 @@ def gps(vehicle: SimVehicle, tmp_path: Path) -> Iterator[NmeaGpsDevice]:
     dev.stop()
 
 
-def run_gps(services: ServiceProcesses, bus: BusClient, tmp_path: Path, address: str, vehicle: SimVehicle,
+def run_gps(services: ServiceProcesses, bus: BusClient, tmp_path: Path, address: str, vehicle: SimVehicle, *,
+            line: str = "baud=38400", devices: dict[str, str] | None = None,
             **settings: object) -> tuple[object, DriverProbe]:
-    profile = write_profile(tmp_path, name="gps", kind="gps_nmea",
-                            settings={"port": address, "baudrate": 38400, **settings})
+    """The gps service on device ``gps`` at the pty *address* with *line* (baud rate and framing)."""
+    profile = write_profile(tmp_path, name="gps", kind="gps_nmea", settings=settings,
+                            devices={"gps": f"serial://{address}?{line}", **(devices or {})})
     probe = DriverProbe(bus, "gps", on_state=vehicle.snapshot)
     proc = start_driver(services, profile, "gps")
     return proc, probe
@@ -491,44 +493,46 @@ def test_gps_reports_silence_and_recovers_from_a_disconnect(services: ServicePro
 
 
 def test_gps_refuses_an_unsupported_baud_rate_with_a_clear_error(services: ServiceProcesses, tmp_path: Path) -> None:
-    profile = write_profile(tmp_path, name="gps", kind="gps_nmea", settings={"port": "/dev/u2sa/gps", "baudrate": 1234})
+    profile = write_profile(tmp_path, name="gps", kind="gps_nmea", settings={},
+                            devices={"gps": "serial:///dev/u2sa/gps?baud=1234"})
     proc = start_driver(services, profile, "gps")
     assert proc.wait(timeout=20) != 0
     out = (tmp_path / "gps.stderr").read_text()
-    assert "field 'baudrate' must be one of 1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600; got 1234" in out
+    assert ("baud 1234 is not a serial rate; use one of 1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, "
+            "460800, 921600") in out
 
 
 def test_gps_opens_the_port_with_the_configured_framing_and_changes_it_live(
         services: ServiceProcesses, bus: BusClient, tmp_path: Path, vehicle: SimVehicle, gps: NmeaGpsDevice) -> None:
-    _, probe = run_gps(services, bus, tmp_path, gps.address, vehicle, baudrate=19200, bytesize=7, parity="E",
-                       stopbits=2)
+    _, probe = run_gps(services, bus, tmp_path, gps.address, vehicle, line="baud=19200&bytesize=7&parity=E&stopbits=2",
+                       devices={"gps_7e1": f"serial://{gps.address}?baud=19200&bytesize=7&parity=E"})
     probe.wait_states(2, timeout=20)
     details = probe.wait_health(lambda d, s: d["port"] == "open", message="the port open in health")
     assert details["framing"] == "7E2" and details["baudrate"] == "19200"   # as pyserial applied it
     # the kernel's view of the line (a pty forces 8 data bits and no parity, so baud and stop bits show)
     assert gps.link.line_settings() == LineSettings(baudrate=19200, stopbits=2)
 
-    reply = bus.set_config("gps", "parity", "X", timeout=10)
-    assert reply is not None and not reply.ok and 'field \'parity\' must be one of "N", "E", "O", "M", "S"' in reply.error
-    reply = bus.set_config("gps", "stopbits", "1", timeout=10)
+    reply = bus.set_config("gps", "device", "gps_8n1", timeout=10)   # no such device: refused, nothing changes
+    assert reply is not None and not reply.ok and "[devices.gps_8n1]" in reply.error, reply and reply.error
+    reply = bus.set_config("gps", "device", "gps_7e1", timeout=10)   # the same line, another framing
     assert reply is not None and reply.ok, reply and reply.error
     probe.wait_health(lambda d, s: d["framing"] == "7E1" and d["port"] == "open", message="the port reopened 7E1")
     wait_until(lambda: gps.link.line_settings().stopbits == 1, message="one stop bit on the line")
     probe.wait_states(2, since=probe.state_count(), message="fixes after the reopen")
 
 
-@pytest.mark.parametrize(("key", "value", "expected"), [
-    ("bytesize", 9, "field 'bytesize' must be one of 5, 6, 7, 8; got 9"),
-    ("parity", "X", 'field \'parity\' must be one of "N", "E", "O", "M", "S"; got "X"'),
-    ("stopbits", 3.0, "field 'stopbits' must be one of 1.0, 1.5, 2.0; got 3.0"),
+@pytest.mark.parametrize(("framing", "expected"), [
+    ("bytesize=9", "bytesize 9 must be 5, 6, 7 or 8"),
+    ("parity=X", "parity 'X' must be N, E, O, M or S"),
+    ("stopbits=3", "stopbits '3' must be 1, 1.5 or 2"),
 ])
-def test_bad_framing_is_refused_naming_the_field_and_the_allowed_values(tmp_path: Path, lcm_url: str, key: str,
-                                                                       value: object, expected: str) -> None:
+def test_bad_framing_is_refused_naming_the_field_and_the_allowed_values(tmp_path: Path, lcm_url: str, framing: str,
+                                                                       expected: str) -> None:
     transport = Transport(lcm_url, name="test")
+    profile = VehicleProfile(path=None, devices={"gps": {"address": f"serial:///dev/u2sa/gps?baud=9600&{framing}"}})
     try:
         with pytest.raises(ConfigError) as err:
-            GpsNmeaDriver("gps", config_path=tmp_path / "gps.toml", transport=transport,
-                          settings={"port": "/dev/u2sa/gps", key: value})
-        assert expected in str(err.value) and "'gps'" in str(err.value)   # names the service and the field
+            GpsNmeaDriver("gps", profile=profile, config_path=tmp_path / "gps.toml", transport=transport)
+        assert expected in str(err.value) and "'gps'" in str(err.value)   # names the service and the parameter
     finally:
         transport.stop()

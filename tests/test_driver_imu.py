@@ -51,6 +51,11 @@ def sim() -> Iterator[SimVehicle]:
     vehicle.stop()
 
 
+def on(i2c: MockI2cBus, device: str, chip: int = mpu.I2C_ADDRESS) -> dict[str, str]:
+    """The profile's device table: *device* is the chip at *chip* on the mock bus *i2c*."""
+    return {device: f"mock+i2c://{i2c.socket_path}/0x{chip:02x}"}
+
+
 def mean_of(states: list, name: str) -> float:
     return statistics.fmean(m.get(name) for m, _ in states)
 
@@ -64,7 +69,7 @@ def test_mpu9250_calibrates_at_rest_then_rates_and_accelerations_follow_the_vehi
     with i2c:
         probe = DriverProbe(bus, "imu")
         profile = write_profile(tmp_path, name="imu", kind="imu_mpu9250",
-                                settings={"bus": i2c.address, "calibrate_samples": 40, "gyro_range_dps": 500})
+                                settings={"calibrate_samples": 40, "gyro_range_dps": 500}, devices=on(i2c, "imu"))
         start_driver(services, profile, "imu")
         waiting = probe.wait_health(lambda d, s: d.get("calibration", "").startswith("waiting for rest"),
                                     message="the calibration to refuse a turning vehicle")
@@ -110,7 +115,7 @@ def test_mpu9250_says_it_is_calibrated_in_health_at_once(tmp_path: Path, service
     with i2c:
         probe = DriverProbe(bus, "imu")
         profile = write_profile(tmp_path, name="imu", kind="imu_mpu9250",
-                                settings={"bus": i2c.address, "calibrate_samples": 40, "health_interval_s": 60.0})
+                                settings={"calibrate_samples": 40, "health_interval_s": 60.0}, devices=on(i2c, "imu"))
         start_driver(services, profile, "imu")
 
         def said() -> list[str]:
@@ -133,8 +138,8 @@ def test_every_variant_and_full_scale_is_configured_and_scaled_through_the_drive
     with i2c:
         probe = DriverProbe(bus, "imu")
         profile = write_profile(tmp_path, name="imu", kind="imu_mpu9250", settings={
-            "bus": i2c.address, "chip": variant, "gyro_range_dps": gyro_dps, "accel_range_g": accel_g,
-            "dlpf_cfg": dlpf, "rate_hz": rate_hz, "calibrate_samples": 20})
+            "chip": variant, "gyro_range_dps": gyro_dps, "accel_range_g": accel_g,
+            "dlpf_cfg": dlpf, "rate_hz": rate_hz, "calibrate_samples": 20}, devices=on(i2c, "imu"))
         start_driver(services, profile, "imu")
         health = probe.wait_health(lambda d, s: d.get("calibration") == "calibrated", message="calibrated")
         assert (health["chip"], health["who_am_i"]) == (part, f"0x{mpu.VARIANTS[variant].who_am_i:02x}")
@@ -162,22 +167,22 @@ def test_every_variant_and_full_scale_is_configured_and_scaled_through_the_drive
         assert abs(mean_of(turning, "z_ddot")) < 0.06 and abs(mean_of(turning, "phi_dot")) < 0.005
 
 
-@pytest.mark.parametrize(("kind", "chip_spec", "settings", "expected"), [
-    ("imu_mpu9250", "mpu6500@0x68", {"chip": "mpu9250"},
+@pytest.mark.parametrize(("kind", "chip_spec", "chip", "settings", "expected"), [
+    ("imu_mpu9250", "mpu6500@0x68", 0x68, {"chip": "mpu9250"},
      ["WHO_AM_I 0x70 (MPU-6500)", 'chip = "mpu9250" expects 0x71', "0x68 on mock:", 'set chip = "mpu6500"']),
-    ("imu_mpu9250", "bno055@0x28", {"address": 0x28},
+    ("imu_mpu9250", "bno055@0x28", 0x28, {},
      ["WHO_AM_I 0x00, not an MPU-6050/6500/9250", "0x28 on mock:"]),
-    ("imu_bno055", "mpu9250@0x68", {"address": 0x68}, ["CHIP_ID 0x00, not a BNO055 (0xA0)", "0x68 on mock:"]),
+    ("imu_bno055", "mpu9250@0x68", 0x68, {}, ["CHIP_ID 0x00, not a BNO055 (0xA0)", "0x68 on mock:"]),
 ])
 def test_wrong_chip_identity_stops_the_service_with_a_clear_error(
-        tmp_path: Path, services: ServiceProcesses, socket_dir: Path, kind: str, chip_spec: str,
+        tmp_path: Path, services: ServiceProcesses, socket_dir: Path, kind: str, chip_spec: str, chip: int,
         settings: dict, expected: list[str]) -> None:
     from u2sa_hw.mocks.i2c_bus import build_chip
 
     i2c = MockI2cBus(socket_path=str(socket_dir / "bus.sock"))
     i2c.add(build_chip(chip_spec, seed=1))
     with i2c:
-        profile = write_profile(tmp_path, name="imu", kind=kind, settings={"bus": i2c.address, **settings})
+        profile = write_profile(tmp_path, name="imu", kind=kind, settings=settings, devices=on(i2c, "imu", chip))
         proc = start_driver(services, profile, "imu")
         assert proc.wait(timeout=20) != 0
     log = (tmp_path / "imu.stderr").read_text()
@@ -194,7 +199,7 @@ def test_mpu9250_counts_and_survives_eio_and_nack(tmp_path: Path, services: Serv
         raw_records: list[RawI2c] = []
         bus.transport.subscribe(raw_channel("imu"), RawI2c, lambda _c, m: raw_records.append(m))
         profile = write_profile(tmp_path, name="imu", kind="imu_mpu9250",
-                                settings={"bus": i2c.address, "calibrate_samples": 20, "record_raw": True})
+                                settings={"calibrate_samples": 20, "record_raw": True}, devices=on(i2c, "imu"))
         start_driver(services, profile, "imu")
         probe.wait_health(lambda d, s: s == "ok", message="a calibrated, running IMU")
 
@@ -240,8 +245,8 @@ def test_mpu9250_recovers_when_the_bus_server_is_killed_and_restarted(
     server = serve()
     try:
         probe = DriverProbe(bus, "imu")
-        profile = write_profile(tmp_path, name="imu", kind="imu_mpu9250",
-                                settings={"bus": f"mock:{sock}", "calibrate_samples": 20})
+        profile = write_profile(tmp_path, name="imu", kind="imu_mpu9250", settings={"calibrate_samples": 20},
+                                devices={"imu": f"mock+i2c://{sock}/0x68"})
         start_driver(services, profile, "imu")
         probe.wait_health(lambda d, s: s == "ok", message="a running IMU")
         server.kill()
@@ -264,7 +269,8 @@ def test_bno055_attitude_rates_linear_acceleration_and_calibration(
     chip = i2c.add(Bno055Chip(vehicle=sim, seed=5, calibrated_after_s=1.0))
     with i2c:
         probe = DriverProbe(bus, "ahrs")
-        profile = write_profile(tmp_path, name="ahrs", kind="imu_bno055", settings={"bus": i2c.address})
+        profile = write_profile(tmp_path, name="ahrs", kind="imu_bno055", settings={},
+                                devices=on(i2c, "ahrs", bno.I2C_ADDRESS))
         start_driver(services, profile, "ahrs")
         first = probe.wait_states(1)[0][0]
         assert not first.has("psi") and first.has("phi") and first.has("theta")  # SYS calibration 0: no heading
@@ -297,7 +303,8 @@ def test_bno055_is_set_up_again_after_it_resets_itself(tmp_path: Path, services:
     chip = i2c.add(Bno055Chip(seed=2, reset_time_s=0.3))
     with i2c:
         probe = DriverProbe(bus, "ahrs")
-        profile = write_profile(tmp_path, name="ahrs", kind="imu_bno055", settings={"bus": i2c.address})
+        profile = write_profile(tmp_path, name="ahrs", kind="imu_bno055", settings={},
+                                devices=on(i2c, "ahrs", bno.I2C_ADDRESS))
         start_driver(services, profile, "ahrs")
         probe.wait_states(10)
         i2c.transact(OP_WRITE, bno.I2C_ADDRESS, bno.SYS_TRIGGER, 1, bytes((bno.TRIGGER_RST_SYS,)))

@@ -18,6 +18,7 @@ from can_mock_harness import GROUP, Commander, MockCanProcess, stop_driver
 from conftest import REPO, ServiceProcesses, wait_until
 from serial_driver_harness import DriverProbe, start_driver, write_profile
 
+from u2sa_hw.profile.vehicle import VehicleProfile
 from u2sa_hw.drivers.can_motor.diff_drive_odometry import DiffDriveOdometry, WheelTravel, body_motion
 from u2sa_hw.drivers.can_motor.odrive.driver import OdriveCanMotor, error_names
 from u2sa_hw.mocks import can_adapter
@@ -42,6 +43,12 @@ def test_body_motion_is_frd_with_yaw_positive_to_the_right() -> None:
     speed, yaw_rate = body_motion(1.0, 0.5, 0.5)  # left wheel faster: turning right, psi grows
     assert (speed, yaw_rate) == (0.75, 1.0)
     assert body_motion(-0.5, 0.5, 0.5) == (0.0, -2.0)
+
+
+def bus_profile(address: str) -> VehicleProfile:
+    """A profile (no file) whose device ``motors`` is the CAN bus at *address*."""
+    return VehicleProfile(path=None, devices={"motors": {"address": address}})
+
 
 
 def test_wheel_travel_uses_deltas_over_the_window_and_restarts_on_a_jump() -> None:
@@ -143,8 +150,8 @@ class StubbornNode:
 def test_arming_that_does_not_take_is_retried_with_doubling_waits_and_reported(lcm_url: str) -> None:
     channel = f"odrive-arm-{random.randint(0, 1 << 30)}"
     node = StubbornNode(channel, 5)
-    svc = OdriveCanMotor("motors", settings={
-        "interface": "virtual", "channel": channel, "actuators": ["wheel"], "node_ids": [5], "directions": [1],
+    svc = OdriveCanMotor("motors", profile=bus_profile(f"can://virtual/{channel}"), settings={
+        "actuators": ["wheel"], "node_ids": [5], "directions": [1],
         "wheel_radius_m": [0.1], "odometry": False, "arm_retry_s": 0.2, "silent_after_s": 1.0})
     runner = threading.Thread(target=svc.run, daemon=True)
     try:
@@ -176,8 +183,8 @@ def test_losing_the_can_adapter_is_reported_counted_and_the_bus_reopened(lcm_url
     vehicle = SimVehicle(origin_lat=0.0, origin_lon=0.0)
     nodes = {side: OdriveCanNode(vehicle, side=side, node_id=node, interface="virtual", channel=channel,
                                  vel_limit=10.0) for side, node in zip(("left", "right"), NODES)}
-    svc = OdriveCanMotor("motors", settings={
-        "interface": interface, "channel": channel, "node_ids": list(NODES), "command_timeout_s": 0.0, "rc_gating": False,
+    svc = OdriveCanMotor("motors", profile=bus_profile(f"can://{interface}/{channel}"), settings={
+        "node_ids": list(NODES), "command_timeout_s": 0.0, "rc_gating": False,
         "silent_after_s": 0.5, "status_poll_s": 0.0, "odometry": False})
     runner = threading.Thread(target=svc.run, daemon=True)
 
@@ -260,9 +267,11 @@ def rig(tmp_path: Path, services: ServiceProcesses, bus: BusClient) -> Iterator[
         nodes = [{"side": "left", "node_id": NODES[0], "vel_limit": 10.0, **(node or {})},
                  {"side": "right", "node_id": NODES[1], "vel_limit": 10.0, **(node or {}), **(right or {})}]
         mock = MockCanProcess({"kind": "odrive", "port": port, "nodes": nodes}, repo=REPO, log=tmp_path / "mock.log")
-        config = {"interface": "udp_multicast", "channel": GROUP, "udp_port": port, "node_ids": list(NODES),
+        config = {"node_ids": list(NODES),
                   "silent_after_s": 0.5, "status_poll_s": 0.2, "rc_gating": False, **(settings or {})}
-        profile = write_profile(tmp_path, name="motors", kind="odrive_can", settings=config)
+        profile = write_profile(tmp_path, name="motors", kind="odrive_can", settings=config,
+                                devices={config.get("device_name") or "motors":
+                                         f"can://udp_multicast/{GROUP}?port={port}"})
         probe = DriverProbe(bus, "motors")
         driver = start_driver(services, profile, "motors")
         made.append(Rig(mock, probe, driver, Commander(bus), bus))
@@ -451,8 +460,8 @@ class InProcess:
         self.nodes = {side: OdriveCanNode(self.vehicle, side=side, node_id=node_id, interface="virtual",
                                           channel=self.channel, vel_limit=10.0, firmware=firmware, **(node or {}))
                       for side, node_id in zip(("left", "right"), NODES)}
-        self.svc = OdriveCanMotor("motors", settings={
-            "interface": "virtual", "channel": self.channel, "node_ids": list(NODES), "firmware": firmware,
+        self.svc = OdriveCanMotor("motors", profile=bus_profile(f"can://virtual/{self.channel}"), settings={
+            "node_ids": list(NODES), "firmware": firmware,
             "status_poll_s": 0.0, "odometry": False, "rc_gating": False, "command_timeout_s": 0.5, **settings})
         self.runner = threading.Thread(target=self.svc.run, daemon=True)
         self.killed = False
@@ -580,8 +589,8 @@ def test_a_node_that_does_not_answer_get_version_is_reported_and_armed_anyway(lc
     channel = f"odrive-wd-{random.randint(0, 1 << 30)}"
     node = StubbornNode(channel, 5)   # heartbeats only: no Get_Version, no TxSdo
     node.accept = True
-    svc = OdriveCanMotor("motors", settings={
-        "interface": "virtual", "channel": channel, "actuators": ["wheel"], "node_ids": [5], "directions": [1],
+    svc = OdriveCanMotor("motors", profile=bus_profile(f"can://virtual/{channel}"), settings={
+        "actuators": ["wheel"], "node_ids": [5], "directions": [1],
         "wheel_radius_m": [0.1], "odometry": False, "silent_after_s": 1.0, "rc_gating": False,
         "command_timeout_s": 0.5, **WATCHDOG_06})
     runner = threading.Thread(target=svc.run, daemon=True)

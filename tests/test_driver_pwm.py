@@ -52,13 +52,15 @@ def test_sysfs_channels_map_percent_and_go_neutral_on_start_timeout_failsafe_and
         tmp_path: Path, services: ServiceProcesses, bus: BusClient) -> None:
     chip = make_sysfs_pwm_tree(tmp_path / "pwmchip0", npwm=4)
     channels = [
-        {"name": "rudder", "address": str(chip), "channel": 0},
-        {"name": "throttle", "address": str(chip), "channel": 1, "min_us": 1100, "max_us": 1900, "reverse": True},
-        {"name": "esc", "address": str(chip), "channel": 2, "neutral_us": 1400.0},
+        {"name": "rudder"},
+        {"name": "throttle", "min_us": 1100, "max_us": 1900, "reverse": True},
+        {"name": "esc", "neutral_us": 1400.0},
     ]
     probe = DriverProbe(bus, "servos")
     profile = write_profile(tmp_path, name="servos", kind="pwm_servo",
-                            settings={"channels": channels, "command_timeout_s": 0.0, "rc_gating": False})
+                            settings={"channels": channels, "command_timeout_s": 0.0, "rc_gating": False},
+                            devices={"rudder": f"mock+pwm://{chip}/0", "throttle": f"mock+pwm://{chip}/1",
+                                     "esc": f"mock+pwm://{chip}/2"})
     proc = start_driver(services, profile, "servos")
     for channel, neutral in ((0, 1_500_000), (1, 1_500_000), (2, 1_400_000)):  # neutral on start
         wait_until(lambda: sysfs(chip, channel, "enable") == 1, message=f"pwm{channel} enabled")
@@ -134,15 +136,16 @@ class RawPwmProbe:
 def test_pca9685_channels_slew_limit_taps_reconnect_and_neutral_on_kill(
         tmp_path: Path, services: ServiceProcesses, bus: BusClient, pca_bus: MockI2cBus) -> None:
     pca: Any = pca_bus.chip(0x40)
-    address = f"pca9685:{pca_bus.address}:0x40"
+    address = f"mock+pca9685://{pca_bus.socket_path}/0x40"
     count_us = 20_000 / 4096 + 0.1  # one count at 50 Hz (the chip's frame is the nearest prescale step)
     channels = [
-        {"name": "pan", "address": address, "channel": 0},
-        {"name": "winch", "address": address, "channel": 3, "slew_percent_per_s": 100.0},
+        {"name": "pan"},
+        {"name": "winch", "slew_percent_per_s": 100.0},
     ]
     raw = RawPwmProbe(bus, "winch")
     profile = write_profile(tmp_path, name="gimbal", kind="pwm_servo",
-                            settings={"channels": channels, "command_timeout_s": 0.0, "rc_gating": False, "record_raw": True})
+                            settings={"channels": channels, "command_timeout_s": 0.0, "rc_gating": False, "record_raw": True},
+                            devices={"pan": f"{address}/0", "winch": f"{address}/3"})
     proc = start_driver(services, profile, "gimbal")
     wait_until(lambda: abs(pca.pulse_width_us(0) - 1500) < count_us and abs(pca.pulse_width_us(3) - 1500) < count_us,
                message="neutral on start")
@@ -197,14 +200,18 @@ def test_pca9685_channels_slew_limit_taps_reconnect_and_neutral_on_kill(
 
 @pytest.mark.parametrize(("channels", "expected"), [
     ([], "must list at least one channel"),
-    ([{"name": "rudder", "address": "/tmp/x", "channel": 0, "min_us": 1600}], "min_us <= neutral_us"),
-    ([{"name": "rudder", "address": "/tmp/x", "chanel": 0}], "unknown key(s) chanel"),
-    ([{"name": "a", "address": "/tmp/x", "channel": 0}, {"name": "b", "address": "/tmp/x", "channel": 0}],
-     "both use channel 0"),
+    ([{"name": "rudder", "min_us": 1600}], "min_us <= neutral_us"),
+    ([{"name": "rudder", "chanel": 0}], "unknown key(s) chanel"),
+    ([{"name": "a"}, {"name": "b"}], "channels 'a' and 'b' are one output"),
+    ([{"name": "rudder", "address": "/tmp/x", "channel": 0}],
+     "'address' is the old form: name a device instead: [devices.rudder] address = \"pca9685://1/0x40/0\" and "
+     "device = \"rudder\" in the channel's table (docs/ports.md)"),
 ])
 def test_bad_channel_config_stops_the_service_with_the_reason(
         tmp_path: Path, services: ServiceProcesses, channels: list, expected: str) -> None:
-    profile = write_profile(tmp_path, name="servos", kind="pwm_servo", settings={"channels": channels})
+    output = "mock+pwm:///tmp/x/0"   # a and b on one output
+    profile = write_profile(tmp_path, name="servos", kind="pwm_servo", settings={"channels": channels},
+                            devices={"rudder": output, "a": output, "b": output})
     proc = start_driver(services, profile, "servos")
     assert proc.wait(timeout=15) != 0
     assert expected in (tmp_path / "servos.stderr").read_text()
@@ -214,11 +221,11 @@ def test_a_vanished_sysfs_chip_is_reported_and_reopened_while_another_chip_keeps
         tmp_path: Path, services: ServiceProcesses, bus: BusClient) -> None:
     chip0 = make_sysfs_pwm_tree(tmp_path / "pwmchip0", npwm=2)
     chip1 = make_sysfs_pwm_tree(tmp_path / "pwmchip1", npwm=2)
-    channels = [{"name": "rudder", "address": str(chip0), "channel": 0},
-                {"name": "esc", "address": str(chip1), "channel": 1}]
+    channels = [{"name": "rudder"}, {"name": "esc"}]
     probe = DriverProbe(bus, "servos")
     profile = write_profile(tmp_path, name="servos", kind="pwm_servo",
-                            settings={"channels": channels, "command_timeout_s": 0.0, "rc_gating": False})
+                            settings={"channels": channels, "command_timeout_s": 0.0, "rc_gating": False},
+                            devices={"rudder": f"mock+pwm://{chip0}/0", "esc": f"mock+pwm://{chip1}/1"})
     proc = start_driver(services, profile, "servos")
     wait_until(lambda: sysfs(chip0, 0, "enable") == 1 and sysfs(chip1, 1, "enable") == 1, message="both enabled")
     command(bus, "rudder", 50)

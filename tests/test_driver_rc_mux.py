@@ -175,10 +175,11 @@ def rig(request: pytest.FixtureRequest, socket_dir: Path, tmp_path: Path, servic
     mux = MuxMock(chip, rc, enable_line=ENABLE, select_line=SELECT).start()
     collector = BusCollector(bus).listen(ch.RC_MODE, t.RcMode).listen(ch.HEALTH, t.Health)
     collector.listen(raw_channel("rc"), None)
-    settings = {"chip": chip.address, "channels": "throttle=5,steering=6,mode=13", "mode_channel": "mode",
+    settings = {"channels": "throttle=5,steering=6,mode=13", "mode_channel": "mode",
                 "enable_line": ENABLE, "select_line": SELECT, "debounce_frames": 3, "signal_timeout_ms": 400.0,
                 "select_mismatch_ms": 1500.0, "publish_hz": 20.0, **extra}
-    proc = start_driver(services, write_profile(tmp_path, name="rc", kind="rc_mux", settings=settings), "rc")
+    proc = start_driver(services, write_profile(tmp_path, name="rc", kind="rc_mux", settings=settings,
+                                                devices={"rc": f"mock+gpio://{chip.socket_path}"}), "rc")
     rig = RcRig(chip=chip, rc=rc, mux=mux, proc=proc, bus=bus, collector=collector)
     try:
         rig.mode(lambda m: m.mode == MODE_MANUAL, since=0, message="the pilot's manual mode", timeout=30.0)
@@ -318,8 +319,9 @@ def test_lost_gpio_port_drops_enable_and_is_reopened(rig: RcRig) -> None:
 
 
 def test_bad_config_stops_the_service_with_the_reason(tmp_path: Path, services: ServiceProcesses) -> None:
-    settings = {"chip": "mock:/nonexistent.sock", "channels": "throttle=5,steering=6", "mode_channel": "mode"}
-    proc = start_driver(services, write_profile(tmp_path, name="rc", kind="rc_mux", settings=settings), "rc")
+    settings = {"channels": "throttle=5,steering=6", "mode_channel": "mode"}
+    proc = start_driver(services, write_profile(tmp_path, name="rc", kind="rc_mux", settings=settings,
+                                                devices={"rc": "mock+gpio:///nonexistent.sock"}), "rc")
     assert proc.wait(timeout=20) != 0
     text = (tmp_path / "rc.stderr").read_text()
     assert "mode_channel 'mode' is not one of the channels" in text

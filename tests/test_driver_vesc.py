@@ -19,6 +19,7 @@ from can_mock_harness import GROUP, Commander, MockCanProcess, stop_driver
 from conftest import REPO, ServiceProcesses, wait_until
 from serial_driver_harness import DriverProbe, start_driver, write_profile
 
+from u2sa_hw.profile.vehicle import VehicleProfile
 from u2sa_hw.drivers.can_motor.vesc.driver import VescCanMotor
 from u2sa_hw.mocks.vehicle_sim import SimVehicle
 from u2sa_hw.mocks.vesc_node import VescCanNode
@@ -31,6 +32,12 @@ from u2sa_hw.bus.udp_ports import private_udp_port
 IDS = (10, 11)
 POLE_PAIRS = 7
 CIRCUMFERENCE = 2 * math.pi * 0.1
+
+
+def bus_profile(address: str) -> VehicleProfile:
+    """A profile (no file) whose device ``motors`` is the CAN bus at *address*."""
+    return VehicleProfile(path=None, devices={"motors": {"address": address}})
+
 
 
 def wheel_mps(erpm: float) -> float:
@@ -88,9 +95,11 @@ def rig(tmp_path: Path, services: ServiceProcesses, bus: BusClient) -> Iterator[
         nodes = [{"side": "left", "controller_id": IDS[0], "timeout_s": 0.3, **(node or {})},
                  {"side": "right", "controller_id": IDS[1], "timeout_s": 0.3, **(node or {}), **(right or {})}]
         mock = MockCanProcess({"kind": "vesc", "port": port, "nodes": nodes}, repo=REPO, log=tmp_path / "mock.log")
-        config = {"interface": "udp_multicast", "channel": GROUP, "udp_port": port, "controller_ids": list(IDS),
+        config = {"controller_ids": list(IDS),
                   "silent_after_s": 0.5, "max_duty": 0.1, "rc_gating": False, **(settings or {})}
-        profile = write_profile(tmp_path, name="motors", kind="vesc_can", settings=config)
+        profile = write_profile(tmp_path, name="motors", kind="vesc_can", settings=config,
+                                devices={config.get("device_name") or "motors":
+                                         f"can://udp_multicast/{GROUP}?port={port}"})
         probe = DriverProbe(bus, "motors")
         driver = start_driver(services, profile, "motors")
         made.append(Rig(mock, probe, driver, Commander(bus)))
@@ -270,8 +279,9 @@ def test_a_vesc_that_does_not_answer_configuration_reads_is_an_error_with_the_fi
     nodes = [VescCanNode(vehicle, side=side, controller_id=i, interface="virtual", channel=channel, timeout_s=0.3)
              for side, i in zip(("left", "right"), IDS)]
     nodes[1].answer_comm = False   # CAN mode not VESC: STATUS frames, but no COMM packets
-    svc = VescCanMotor("motors", settings={"interface": "virtual", "channel": channel, "controller_ids": list(IDS),
-                                           "odometry": False, "rc_gating": False, "command_timeout_s": 0.5})
+    svc = VescCanMotor("motors", profile=bus_profile(f"can://virtual/{channel}"),
+                       settings={"controller_ids": list(IDS), "odometry": False, "rc_gating": False,
+                                 "command_timeout_s": 0.5})
     runner = threading.Thread(target=svc.run, daemon=True)
     try:
         vehicle.start()

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Iterator
 
 import pytest
-from gps_stream_builder import START, RecordingGps, Solution, epoch, gga, gll, gns, gsa, nmea, rmc, vtg
+from gps_stream_builder import START, RecordingGps, serial_profile, Solution, epoch, gga, gll, gns, gsa, nmea, rmc, vtg
 
 from u2sa_hw.drivers.gps_nmea import fix as gf
 from u2sa_hw.drivers.gps_nmea.epochs import GpsEpochCollector
@@ -193,7 +193,7 @@ def transport(lcm_url: str) -> Iterator[Transport]:
 
 def make_driver(tmp_path: Path, transport: Transport) -> RecordingGps:
     return RecordingGps("gps", config_path=tmp_path / "gps.toml", transport=transport,
-                        settings={"port": "/dev/u2sa/gps", "position_frame": "GEODETIC"})
+                        profile=serial_profile(), settings={"position_frame": "GEODETIC"})
 
 
 def test_the_driver_publishes_one_3d_fix_after_a_leftover_gll_and_says_which_rule_gave_each_mode(

@@ -11,7 +11,7 @@ from typing import Iterator
 
 import pytest
 from conftest import wait_until
-from gps_stream_builder import RecordingGps, START, Solution, gga, gsa, hdt, rmc, vtg, zda
+from gps_stream_builder import RecordingGps, serial_profile, START, Solution, gga, gsa, hdt, rmc, vtg, zda
 
 from u2sa_hw.drivers.gps_nmea.epochs import MAX_EPOCH_SENTENCES, GpsEpochCollector
 from u2sa_hw.drivers.nmea_fields import Epoch, parse_sentence
@@ -89,7 +89,7 @@ def transport(lcm_url: str) -> Iterator[Transport]:
 
 def make_driver(tmp_path: Path, transport: Transport, **settings: object) -> RecordingGps:
     return RecordingGps("gps", config_path=tmp_path / "gps.toml", transport=transport,
-                        settings={"port": "/dev/u2sa/gps", "position_frame": "GEODETIC", **settings})
+                        profile=serial_profile(), settings={"position_frame": "GEODETIC", **settings})
 
 
 def test_a_late_rmc_publishes_its_velocity_once_and_never_the_position_again(

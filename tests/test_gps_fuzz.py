@@ -14,7 +14,7 @@ from typing import Iterator
 
 import pytest
 from gps_fuzzing import check_message, feed, fuzz_cases
-from gps_stream_builder import RecordingGps, nmea
+from gps_stream_builder import RecordingGps, nmea, serial_profile
 
 from u2sa_hw.drivers.gps_nmea.fix import fix_from_epoch
 from u2sa_hw.drivers.nmea_fields import Epoch, SentenceError, parse_sentence
@@ -34,7 +34,7 @@ def transport(lcm_url: str) -> Iterator[Transport]:
 
 def make_driver(tmp_path: Path, transport: Transport) -> RecordingGps:
     return RecordingGps("gps", config_path=tmp_path / "gps.toml", transport=transport,
-                        settings={"port": "/dev/u2sa/gps", "position_frame": "GEODETIC",
+                        profile=serial_profile(), settings={"position_frame": "GEODETIC",
                                   "altitude_datum": "ellipsoid"})
 
 

@@ -45,8 +45,8 @@ def test_a_two_minute_10_hz_stream_without_pauses_gives_every_epoch_once_with_it
     link.start()
     try:
         profile = write_profile(tmp_path, name="gps", kind="gps_nmea",
-                                settings={"port": link.address, "baudrate": 115200, "position_frame": "GEODETIC",
-                                          "stale_after_s": 30.0})
+                                settings={"position_frame": "GEODETIC", "stale_after_s": 30.0},
+                                devices={"gps": f"serial://{link.address}?baud=115200"})
         probe = DriverProbe(bus, "gps")
         proc = start_driver(services, profile, "gps")
         probe.wait_health(lambda d, s: d["port"] == "open", timeout=20, message="the port open")

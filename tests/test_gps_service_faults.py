@@ -43,8 +43,8 @@ def start(services: ServiceProcesses, bus: BusClient, tmp_path: Path, vehicle: S
                         horizontal_sigma_m=0.3, **options)  # type: ignore[arg-type]
     gps.start()
     profile = write_profile(tmp_path, name="gps", kind="gps_nmea",
-                            settings={"port": gps.address, "baudrate": 38400, "position_frame": "GEODETIC",
-                                      "altitude_datum": "ellipsoid"})
+                            settings={"position_frame": "GEODETIC", "altitude_datum": "ellipsoid"},
+                            devices={"gps": f"serial://{gps.address}?baud=38400"})
     probe = DriverProbe(bus, "gps", on_state=vehicle.snapshot)
     proc = start_driver(services, profile, "gps")
     return gps, proc, probe

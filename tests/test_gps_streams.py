@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 import pytest
-from gps_stream_builder import RecordingGps, GAP_S, Part, Receiver, Solution, printed, stream, trajectory
+from gps_stream_builder import RecordingGps, serial_profile, GAP_S, Part, Receiver, Solution, printed, stream, trajectory
 
 from u2sa_hw.drivers.gps_nmea.geoid import geoid_separation
 from u2sa_hw.drivers.gps_nmea.limits import SPEED_MPS
@@ -36,7 +36,7 @@ def transport(lcm_url: str) -> Iterator[Transport]:
 
 def make_driver(tmp_path: Path, transport: Transport, **settings: object) -> RecordingGps:
     return RecordingGps("gps", config_path=tmp_path / "gps.toml", transport=transport,
-                        settings={"port": "/dev/u2sa/gps", "epoch_gap_s": GAP_S, "position_frame": "GEODETIC",
+                        profile=serial_profile(), settings={"epoch_gap_s": GAP_S, "position_frame": "GEODETIC",
                                   **settings})
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Iterator
 
 import pytest
-from gps_stream_builder import START, Solution, gga, hdt, rmc, zda
+from gps_stream_builder import START, serial_profile, Solution, gga, hdt, rmc, zda
 
 from u2sa_hw.drivers.gps_nmea.driver import GpsNmeaDriver
 from u2sa_hw.bus.transport import Transport
@@ -22,7 +22,7 @@ NEXT = replace(BAD_HDOP, when=START + dt.timedelta(seconds=1), lat=29.19002)
 def driver(tmp_path: Path, lcm_url: str) -> Iterator[GpsNmeaDriver]:
     transport = Transport(lcm_url, name="gps-rejects")
     yield GpsNmeaDriver("gps", config_path=tmp_path / "gps.toml", transport=transport,
-                        settings={"port": "/dev/u2sa/gps", "position_frame": "GEODETIC"})
+                        profile=serial_profile(), settings={"position_frame": "GEODETIC"})
     transport.stop()
 
 

@@ -15,7 +15,7 @@ from u2sa_hw import channels as ch
 from u2sa_hw import messages as m
 from u2sa_hw.bus.client import BusClient
 from u2sa_hw.service.health import health_reason, join_reasons
-from u2sa_hw.launcher.launcher import u2sa_command
+from u2sa_hw.launcher.children import u2sa_command
 
 
 def u2sa(tmp: Path, *args: str) -> subprocess.CompletedProcess[str]:
@@ -38,7 +38,8 @@ def test_health_names_the_silent_sensor_and_the_missing_device_with_its_fix(
     missing = tmp_path / "dev" / "gps"
     vehicle = hsm_profile(tmp_path, lcm_url, (
         '[services.gps]\nkind = "gps_nmea"\n'
-        f'settings = {{ port = "{missing}", baudrate = 9600, health_interval_s = 0.2 }}\n'
+        'settings = { health_interval_s = 0.2 }\n'
+        f'[devices.gps]\naddress = "serial://{missing}?baud=9600"\n'
         # Data expected on STATE_INFO: a GPS that cannot open its port is restarted, then failed.
         '[services.gps.supervision]\ndata_channel = "STATE_INFO"\nstale_after_s = 1.0\nstartup_grace_s = 1.0\n\n'
         '[services.est]\nkind = "state_estimator"\nsettings = { health_interval_s = 0.2, sensor_timeout_s = 0.5 }\n'),

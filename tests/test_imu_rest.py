@@ -15,6 +15,7 @@ import pytest
 
 from u2sa_hw.drivers.imu.common import RestCalibration
 from u2sa_hw.drivers.imu.mpu9250 import Mpu9250ImuDriver
+from u2sa_hw.profile.vehicle import VehicleProfile
 from u2sa_hw.safety.prearm import PrearmChecks
 from u2sa_hw.profile.loader import load_profile
 
@@ -85,8 +86,9 @@ class Burst:
     """Feeds the driver's calibration one sample at a time, as read_sample does, with the stamps given."""
 
     def __init__(self, tmp_path: Path, **settings: float) -> None:
-        self.driver = Mpu9250ImuDriver("imu", settings={"bus": "mock:/tmp/none.sock", "calibrate_samples": 100,
-                                                        "rate_hz": 50.0, **settings})
+        profile = VehicleProfile(path=None, devices={"imu": {"address": "mock+i2c:///tmp/none.sock/0x68"}})
+        self.driver = Mpu9250ImuDriver("imu", profile=profile, settings={"calibrate_samples": 100, "rate_hz": 50.0,
+                                                                         **settings})
         self.driver.setup()   # the rest window from the settings; the chip is opened by the loop, never here
 
     def feed(self, sample_fn, rng: random.Random, times: Iterator[float]) -> None:

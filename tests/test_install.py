@@ -47,7 +47,7 @@ enabled = false
 
 [services.rudder]
 kind = "pwm_servo"
-settings = { channels = [{ name = "rudder", address = "/sys/class/pwm/pwmchip0", channel = 0 }] }
+settings = { channels = [{ name = "rudder" }] }
 
 [services.wheels]
 kind = "odrive_can"
@@ -382,7 +382,8 @@ def test_u2sa_key_rotate_import_and_show_on_a_staged_key(vehicle: Path, root: Pa
 
 
 RC_MUX = ('\n[services.mux]\nkind = "rc_mux"\n'
-          'settings = { chip = "/dev/gpiochip0", channels = "throttle=5,steering=6,mode=13", enable_line = 21 }\n')
+          'settings = { channels = "throttle=5,steering=6,mode=13", enable_line = 21 }\n'
+          '[devices.mux]\naddress = "gpio://gpiochip0/5,6,13,21"\n')
 
 
 def test_install_makes_the_pilot_pair_that_only_the_rc_muxs_unit_reads(vehicle: Path, root: Path) -> None:

@@ -39,7 +39,7 @@ kind = "state_estimator"
 [services.hsm]
 kind = "hsm"
 """
-BAUD = ('settings = { format = "nmea" }', 'settings = { format = "nmea", baudrate = "9600" }')
+WRONG = ('settings = { format = "nmea" }', 'settings = { format = "nmea", heading_sigma_deg = "1" }')
 
 
 @pytest.fixture()
@@ -62,41 +62,40 @@ def change(vehicle: Path, *changes: tuple[str, str]) -> Path:
 
 def test_a_wrong_setting_is_refused_with_the_checks_line_naming_file_service_and_fix(vehicle: Path,
                                                                                     tmp_path: Path) -> None:
-    change(vehicle, BAUD)
+    change(vehicle, WRONG)
     root = tmp_path / "root"
     with pytest.raises(InstallError) as err:
         install(vehicle=vehicle, root=root, venv="none")
     text = str(err.value)
     assert "\n" not in text, text
-    assert f"error: {vehicle} [services.compass.settings.baudrate]: expects int, got str '9600'" in text
-    # the check's fix for it (a type, or the baud rates the driver declares): whatever it is, it is on the line
-    assert "fix: write an int like baudrate = " in text or "fix: use one of 1200, 2400, 4800, 9600" in text
+    assert f"error: {vehicle} [services.compass.settings.heading_sigma_deg]: expects float, got str '1'" in text
+    assert "fix: write a float like heading_sigma_deg = " in text   # the check's fix for it, on the line
     assert "pass --force" in text
     assert not root.exists()
 
 
 def test_every_problem_is_listed_in_one_refusal(vehicle: Path, tmp_path: Path) -> None:
     """A wrong setting, a wrong address and a [safety] mistake: every one, though the loader stops at [safety]."""
-    change(vehicle, BAUD, ("baud=4800&usb=0403:6001", "bud=4800&usb=0403:6001"))
+    change(vehicle, WRONG, ("baud=4800&usb=0403:6001", "bud=4800&usb=0403:6001"))
     vehicle.write_text(vehicle.read_text() + '\n[safety]\non_check_lost = "stop"\n')
     root = tmp_path / "root"
     with pytest.raises(InstallError) as err:
         install(vehicle=vehicle, root=root, venv="none")
     lines = str(err.value).splitlines()
     assert "3 problem(s)" in lines[0], lines
-    assert any("[services.compass.settings.baudrate]" in line for line in lines)
+    assert any("[services.compass.settings.heading_sigma_deg]" in line for line in lines)
     assert any("[devices.compass]" in line and "did you mean 'baud'?" in line for line in lines)
     assert any("[safety]" in line and "'on_check_lost' = 'stop'" in line for line in lines)
     assert not root.exists()
 
 
 def test_force_installs_past_a_wrong_setting_and_says_it(vehicle: Path, tmp_path: Path) -> None:
-    change(vehicle, BAUD)
+    change(vehicle, WRONG)
     root = tmp_path / "root"
     done = subprocess.run([str(U2SA), "install", "--vehicle", str(vehicle), "--root", str(root), "--venv", "none",
                            "--force"], capture_output=True, text=True, timeout=180, env=dict(os.environ))
     assert done.returncode == 0, done.stdout + done.stderr
-    assert f"warning: {vehicle} [services.compass.settings.baudrate]" in done.stderr
+    assert f"warning: {vehicle} [services.compass.settings.heading_sigma_deg]" in done.stderr
     assert "warning: error:" not in done.stderr and "warning: warning:" not in done.stderr
     assert (root / "etc/u2sa/vehicle.toml").is_file()
     rules = (root / "etc/udev/rules.d/65-u2sa-vehicle.rules").read_text()
@@ -142,13 +141,13 @@ def test_a_missing_mission_is_refused_once_in_the_checks_line(vehicle: Path, tmp
         install(vehicle=vehicle, root=root, venv="none")
     assert str(err.value) == (f"refusing to install {vehicle}: error: {mission_line(vehicle)} (u2sa check --vehicle "
                               f"{vehicle}; pass --force to install anyway)")
-    change(vehicle, BAUD)
+    change(vehicle, WRONG)
     with pytest.raises(InstallError) as err:
         install(vehicle=vehicle, root=root, venv="none")
     lines = str(err.value).splitlines()
     assert lines[0] == (f"refusing to install {vehicle}: 2 problem(s); fix them (u2sa check --vehicle {vehicle}) or "
                         "pass --force to install anyway:")
-    assert len(lines) == 3 and lines[1].startswith(f"  error: {vehicle} [services.compass.settings.baudrate]: ")
+    assert len(lines) == 3 and lines[1].startswith(f"  error: {vehicle} [services.compass.settings.heading_sigma_deg]: ")
     assert lines[2] == f"  error: {mission_line(vehicle)}"
     assert not root.exists()
 
@@ -160,7 +159,7 @@ def test_force_says_each_problem_once_with_one_severity(vehicle: Path, tmp_path:
     from u2sa_hw.check import check_profile
     from u2sa_hw.install.preflight import unlabelled
 
-    change(vehicle, BAUD)
+    change(vehicle, WRONG)
     vehicle.write_text(vehicle.read_text() + MISSION + SPARE)
     root = tmp_path / "root"
     done = u2sa_install(vehicle, root, "--force")
@@ -168,9 +167,9 @@ def test_force_says_each_problem_once_with_one_severity(vehicle: Path, tmp_path:
     monkeypatch.setenv("U2SA_UDEV_RULES_DIRS", ":".join(str(root / d) for d in (
         "etc/udev/rules.d", "run/udev/rules.d", "lib/udev/rules.d", "usr/lib/udev/rules.d")))
     problems = check_profile(vehicle)   # as install's check saw it
-    baudrate = next(p for p in problems if p.key == "services.compass.settings.baudrate")
+    wrong = next(p for p in problems if p.key == "services.compass.settings.heading_sigma_deg")
     assert done.stderr.splitlines() == [
-        f"warning: {unlabelled(baudrate)}",
+        f"warning: {unlabelled(wrong)}",
         f"warning: {vehicle} [devices.spare]: address serial:///dev/u2sa/spare?baud=9600&usb=1a86:7523 is used by no "
         "enabled service; fix: set device = \"spare\" in the service that drives it, or remove the table (services "
         "with devices: gps (device 'gps'), compass (device 'compass'))",
@@ -180,26 +179,26 @@ def test_force_says_each_problem_once_with_one_severity(vehicle: Path, tmp_path:
     assert (root / "etc/u2sa/vehicle.toml").is_file()
 
 
-def test_an_old_form_device_is_said_once(vehicle: Path, tmp_path: Path) -> None:
-    """The check's old-form warning; install reads the same device and does not say it again."""
+def test_an_old_form_setting_is_refused_once_with_the_new_form(vehicle: Path, tmp_path: Path) -> None:
+    """The old form is retired: the check's one error names the key and the new form; install reads the
+    devices as the check does, so nothing also says the device has no address."""
     vehicle.write_text(PROFILE + '\n[services.imu]\nkind = "imu_mpu9250"\nsettings = { bus = "1" }\n')
-    done = u2sa_install(vehicle, tmp_path / "root")
-    assert done.returncode == 0, done.stdout + done.stderr
-    assert done.stderr.splitlines() == [
-        f"warning: {vehicle} [services.imu]: device 'imu' is given in the old form (service settings); fix: write "
-        '[devices.imu] address = "i2c://1/0x68"']
+    line = (f"error: {vehicle} [services.imu.settings.bus]: 'bus' is the old form; fix: name a device instead: "
+            '[devices.imu] address = "i2c://1/0x68" and device = "imu" (docs/ports.md)')
+    with pytest.raises(InstallError) as err:
+        install(vehicle=vehicle, root=tmp_path / "root", venv="none")
+    assert str(err.value).startswith(f"refusing to install {vehicle}: {line}"), err.value
+    assert "no address" not in str(err.value)
 
 
-def test_an_old_form_bus_written_as_a_number_is_one_warning_with_the_new_form_under_force(vehicle: Path,
-                                                                                        tmp_path: Path) -> None:
-    """bus = 1: the check's type error (fix: the new form) is the one line; install reads the device as the check
-    does, so the other devices' rules are still written and nothing says "no address"."""
+def test_an_old_form_setting_is_one_warning_with_the_new_form_under_force(vehicle: Path, tmp_path: Path) -> None:
+    """bus = 1 under --force: the check's error is the one line; the other devices' rules are still written."""
     vehicle.write_text(PROFILE + '\n[services.imu]\nkind = "imu_mpu9250"\nsettings = { bus = 1 }\n')
     root = tmp_path / "root"
     done = u2sa_install(vehicle, root, "--force")
     assert done.returncode == 0, done.stdout + done.stderr
     assert done.stderr.splitlines() == [
-        f"warning: {vehicle} [services.imu.settings.bus]: expects str, got int 1; fix: write the device\'s address in "
-        'the profile in the new form: [devices.imu] address = "i2c://1/0x68" (in the old form: bus = "1")']
+        f"warning: {vehicle} [services.imu.settings.bus]: 'bus' is the old form; fix: name a device instead: "
+        '[devices.imu] address = "i2c://1/0x68" and device = "imu" (docs/ports.md)']
     rules = (root / "etc/udev/rules.d/65-u2sa-vehicle.rules").read_text()
     assert 'SYMLINK+="u2sa/compass"' in rules and 'SYMLINK+="u2sa/gps"' in rules

@@ -203,7 +203,7 @@ def test_only_declared_file_settings_are_references_and_a_name_clash_goes_under_
     (tmp_path / "mission.xml").write_text(MISSION + "<!-- another -->\n")
     (src / "config/mission.toml").write_text('mission_file = "mission.xml"\nloop = "file"\n')
     (src / "config/world.toml").write_text(f'objects_file = "{tmp_path / "mission.xml"}"\n')
-    (src / "config/gps.toml").write_text('port = "file"\nnotes = "mission.xml"\n')
+    (src / "config/gps.toml").write_text('device = "file"\nnotes = "mission.xml"\n')
     (src / "vehicle.toml").write_text(PROFILE)
     refs, missing = find_references(load_profile(src / "vehicle.toml"), taken=set())
     assert missing == []
@@ -283,7 +283,7 @@ def test_a_staged_install_of_each_example_passes_u2sa_check_against_the_staged_t
 
     source = REPO / "examples" / example / "vehicle.toml"
     root = tmp_path / "root"
-    plan = plan_devices(profile_devices(load_profile(source), warn=lambda _: None), profile_path=source,
+    plan = plan_devices(profile_devices(load_profile(source)), profile_path=source,
                         made_elsewhere=links_made([]))
     if plan.unmade:
         (root / "etc/udev/rules.d").mkdir(parents=True)

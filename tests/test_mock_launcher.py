@@ -33,21 +33,22 @@ origin = { lat = 29.1895, lon = -81.0483, alt = 10.0 }
 
 [services.gps]
 kind = "gps_nmea"
-settings = { port = "/dev/u2sa/gps" }
 
 [services.imu]
 kind = "imu_mpu9250"
-settings = { bus = "1", address = 0x69, rate_hz = 20.0, calibrate_samples = 10 }
+settings = { rate_hz = 20.0, calibrate_samples = 10 }
 
 [simulation]
 start = { north = 5.0, east = -3.0, heading_deg = 90.0 }
 can_udp_port = 43000
 
 [devices.gps]
+address = "serial:///dev/u2sa/gps?baud=9600"
 mock = "nmea_gps"
 options = { horizontal_sigma_m = 0.1, rate_hz = 5 }
 
 [devices.imu]
+address = "i2c://1/0x69"
 mock = "mpu9250"
 """
 
@@ -102,7 +103,7 @@ def test_u2sa_mock_prints_the_addresses_and_cleans_up_on_ctrl_c(tmp_path: Path) 
         assert (run_dir / "dev" / "gps").is_symlink()
         sim_profile = load_profile(run_dir / "vehicle.toml")   # only the device's address changes
         assert sim_profile.devices["gps"]["address"] == f"mock+serial://{run_dir / 'dev' / 'gps'}?baud=9600"
-        assert sim_profile.services["gps"].settings["port"] == "/dev/u2sa/gps"
+        assert sim_profile.services["gps"].settings == {}   # the services' settings stay as they were
     finally:
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=15) == 0
@@ -112,7 +113,7 @@ def test_u2sa_mock_prints_the_addresses_and_cleans_up_on_ctrl_c(tmp_path: Path) 
 @pytest.mark.parametrize("change, error", [
     (('mock = "nmea_gps"', 'mock = "sextant"'), r"\[devices.gps\]: mock = 'sextant' is not a mock kind; known: .*nmea_gps"),
     (('[devices.gps]\n', '[devices.gps]\nservice = "gnss"\n'), r"service = 'gnss' is not a service of the profile"),
-    (('address = 0x69', 'address = 0x40'), None),
+    (('i2c://1/0x69', 'i2c://1/0x40'), None),
     (('options = { horizontal_sigma_m = 0.1, rate_hz = 5 }', 'options = { sigma = 1 }'),
      r"unknown option\(s\) sigma for NmeaGpsDevice; valid: .*horizontal_sigma_m"),
 ])
@@ -120,8 +121,8 @@ def test_bad_device_tables_name_the_table_and_the_fix(tmp_path: Path, change: tu
                                                       error: str | None) -> None:
     text = SENSORS.replace(*change)
     if error is None:   # a second chip on the IMU's address
-        text += '\n[services.pan]\nkind = "pwm_servo"\nsettings = { channels = [ { name = "pan", ' \
-                'address = "pca9685:1:0x40", channel = 0 } ] }\n[devices.pan]\nmock = "pca9685"\n'
+        text += '\n[services.pan]\nkind = "pwm_servo"\nsettings = { channels = [ { name = "pan" } ] }\n' \
+                '[devices.pan]\naddress = "pca9685://1/0x40/0"\nmock = "pca9685"\n'
         error = r"devices.pan: I2C address 0x40 on mock:.*i2c-1.sock is already taken by devices.imu"
     profile = load_profile(profile_file(tmp_path, text))
     with pytest.raises(DeviceError, match=error):
@@ -131,20 +132,21 @@ def test_bad_device_tables_name_the_table_and_the_fix(tmp_path: Path, change: tu
 def test_simulation_copy_points_config_files_at_the_mocks_and_keeps_the_originals(tmp_path: Path) -> None:
     config = tmp_path / "config"
     config.mkdir()
-    (config / "gps.toml").write_text('port = "/dev/ttyUSB3"\nuere_m = 4.0\n')   # an address in the config file
+    (config / "gps.toml").write_text('device = "usb3"\nuere_m = 4.0\n')   # the device named in the config file
     (config / "mission.toml").write_text('mission_file = "missions/loop.xml"\n')
-    text = SENSORS + '\n[services.mission]\nkind = "mission_manager"\n' \
+    text = SENSORS + '\n[devices.usb3]\naddress = "serial:///dev/ttyUSB3?baud=9600"\nmock = "nmea_gps"\n' \
+        '\n[services.mission]\nkind = "mission_manager"\n' \
         '\n[services.view]\nkind = "foxglove_bridge"\nsettings = { token_file = "keys/view.token" }\n'
     profile = load_profile(profile_file(tmp_path, text))
     mocks = MockLauncher(profile, device_dir=tmp_path / "dev", service_configs=effective_configs(profile))
     mock_gps = f"mock+serial://{tmp_path / 'dev' / 'ttyUSB3'}?baud=9600"   # named after the real device
-    assert mocks.addresses["gps"] == mock_gps
+    assert mocks.addresses["usb3"] == mock_gps
     sim = load_profile(write_sim_profile(profile, run_dir=tmp_path / "run", addresses=mocks.addresses,
                                          lcm_url="udpm://239.255.76.67:7001?ttl=0"))
     copied = effective_configs(sim)
-    assert sim.devices["gps"]["address"] == mock_gps and copied["gps"]["uere_m"] == 4.0
+    assert sim.devices["usb3"]["address"] == mock_gps and copied["gps"]["uere_m"] == 4.0
     assert copied["mission"]["mission_file"] == str(tmp_path / "missions" / "loop.xml")
     # every setting declared a file (field(file=...)) follows the profile, not only the mission's
     assert copied["view"]["token_file"] == str(tmp_path / "keys" / "view.token")
     assert sim.lcm_url == "udpm://239.255.76.67:7001?ttl=0" and sim.data_dir == tmp_path / "run" / "data"
-    assert (config / "gps.toml").read_text() == 'port = "/dev/ttyUSB3"\nuere_m = 4.0\n'   # the user's file untouched
+    assert (config / "gps.toml").read_text() == 'device = "usb3"\nuere_m = 4.0\n'   # the user's file untouched

@@ -28,15 +28,21 @@ origin = { lat = 29.1895, lon = -81.0483 }
 [services.servos]
 kind = "pwm_servo"
 settings = { command_timeout_s = 0.0, rc_gating = false, channels = [
-  { name = "rudder", address = "/sys/class/pwm/pwmchip0", channel = 0 },
-  { name = "esc", address = "/sys/class/pwm/pwmchip1", channel = 1, neutral_us = 1400.0 },
-  { name = "pan", address = "pca9685:1:0x40", channel = 0 },
+  { name = "rudder" },
+  { name = "esc", neutral_us = 1400.0 },
+  { name = "pan" },
 ] }
 
-[devices.servos]
+[devices.rudder]
+address = "pwm://pwmchip0/0"
+mock = "sysfs_pwm"
+
+[devices.esc]
+address = "pwm://pwmchip1/1"
 mock = "sysfs_pwm"
 
 [devices.pan]
+address = "pca9685://1/0x40/0"
 mock = "pca9685"
 service = "servos"
 """
@@ -78,11 +84,10 @@ def test_list_kinds_names_the_sysfs_pwm_mock() -> None:
 
 
 def test_a_service_with_no_sysfs_channel_is_refused_naming_the_table(tmp_path: Path) -> None:
-    text = SERVOS.replace('"/sys/class/pwm/pwmchip0"', '"pca9685:1:0x41"').replace('"/sys/class/pwm/pwmchip1"',
-                                                                                    '"pca9685:1:0x42"')
+    text = SERVOS.replace('"pwm://pwmchip0/0"', '"pca9685://1/0x41/0"')
     (tmp_path / "vehicle.toml").write_text(text)
     profile = load_profile(tmp_path / "vehicle.toml")
-    with pytest.raises(DeviceError, match=r"\[devices.servos\]: mock sysfs_pwm stands in for a pwm device, but the "
+    with pytest.raises(DeviceError, match=r"\[devices.rudder\]: mock sysfs_pwm stands in for a pwm device, but the "
                                           r"address is pca9685://1/0x41/0"):
         MockLauncher(profile, device_dir=tmp_path / "dev", service_configs=effective_configs(profile))
 

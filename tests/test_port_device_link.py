@@ -13,6 +13,7 @@ import pytest
 
 from conftest import REPO, wait_until
 from u2sa_hw import lcmtypes as t
+from u2sa_hw.config.configurator import ConfigError
 from u2sa_hw.profile.devices import profile_devices
 from u2sa_hw.ports import PortClosed, PortUnavailable
 from u2sa_hw.ports.address import AddressError
@@ -41,13 +42,12 @@ class Pty:
 class Owner:
     """What a DeviceLink needs of its driver: profile, config, publish, register_publisher."""
 
-    def __init__(self, profile: VehicleProfile, *, record_raw: bool = True, legacy: str | None = None) -> None:
+    def __init__(self, profile: VehicleProfile, *, record_raw: bool = True) -> None:
         self.name = "gps"
         self.profile = profile
         self.config: dict[str, Any] = {"record_raw": record_raw}
         self.published: list[tuple[str, Any]] = []
         self.registered: list[tuple[str, type]] = []
-        self.legacy = legacy
 
     def publish(self, channel: str, msg: Any) -> None:
         self.published.append((channel, msg))
@@ -61,7 +61,7 @@ def profile_with(tmp_path: Path, devices: dict[str, str]) -> VehicleProfile:
 
 
 def link_for(owner: Owner, device: str = "gps") -> DeviceLink:
-    return DeviceLink(owner, device=lambda: device, raw_type=t.RawSerial, legacy=lambda: owner.legacy,
+    return DeviceLink(owner, device=lambda: device, raw_type=t.RawSerial,
                       options=lambda: {"timeout": 0.2}, initial_backoff=0.05, max_backoff=0.2)
 
 
@@ -115,7 +115,7 @@ def test_unplug_and_replug_a_pty_under_the_link(tmp_path: Path) -> None:
 
 def test_an_address_change_reopens_on_the_new_device(tmp_path: Path) -> None:
     first, second = Pty(tmp_path / "a"), Pty(tmp_path / "b")
-    owner = Owner(VehicleProfile(path=None), legacy=f"serial://{tmp_path / 'a'}?baud=9600")
+    owner = Owner(profile_with(tmp_path, {"gps": f"serial://{tmp_path / 'a'}?baud=9600"}))
     link = link_for(owner)
     link.start()
     try:
@@ -123,13 +123,13 @@ def test_an_address_change_reopens_on_the_new_device(tmp_path: Path) -> None:
         os.write(first.master, b"from a\n")
         assert read_line(link) == b"from a\n"
         assert link.refresh() is False                             # nothing changed: the port stays
-        owner.legacy = f"serial://{tmp_path / 'b'}?baud=9600"      # e.g. `u2sa param set gps port ...`
+        owner.profile = profile_with(tmp_path, {"gps": f"serial://{tmp_path / 'b'}?baud=9600"})   # a new address
         assert link.refresh() is True and link.address.serial_path == str(tmp_path / "b")
         opened(link)
         os.write(second.master, b"from b\n")
         assert read_line(link) == b"from b\n"
         owner.profile = profile_with(tmp_path, {"gps": f"serial://{tmp_path / 'a'}?baud=9600"})
-        assert link.refresh() is True, "the profile's [devices.gps] address wins over old settings"
+        assert link.refresh() is True, "back to the first address"
         opened(link)
         os.write(first.master, b"a again\n")
         assert read_line(link) == b"a again\n"
@@ -167,64 +167,88 @@ def test_device_setting_order() -> None:
 
 
 # ---- profile_devices ----------------------------------------------------------------------------
-OLD = """
+NEW = """
 [vehicle]
-name = "old"
+name = "new"
 
 [services.gps]
 kind = "gps_nmea"
-settings = { port = "/dev/ttyUSB0", baudrate = 4800, device_name = "gnss" }
+settings = { device = "gnss" }
 
 [services.wheels]
 kind = "odrive_can"
-settings = { interface = "socketcan", channel = "can1", bitrate = 250000 }
 
 [services.imu]
 kind = "imu_mpu9250"
-settings = { bus = "3", address = 0x69 }
 
 [services.rc]
 kind = "rc_mux"
-settings = { chip = "/dev/gpiochip2", channels = "throttle=5,mode=13", mode_channel = "mode", enable_line = 21 }
+settings = { channels = "throttle=5,mode=13", mode_channel = "mode", enable_line = 21 }
 
 [services.drive]
 kind = "pwm_servo"
-settings = { channels = [ { name = "rudder", address = "pca9685:1:0x40", channel = 2 },
-                          { name = "esc", address = "/sys/class/pwm/pwmchip0", channel = 1 } ] }
+settings = { channels = [ { name = "rudder" }, { name = "throttle", device = "esc" } ] }
 
-[devices.drive]
+[devices.gnss]
+address = "serial:///dev/ttyUSB0?baud=4800"
+mock = "nmea_gps"
+
+[devices.wheels]
+address = "can://socketcan/can1?bitrate=250000"
+
+[devices.imu]
+address = "i2c://3/0x69"
+
+[devices.rc]
+address = "gpio://gpiochip2/5,13,21"
+
+[devices.rudder]
+address = "pca9685://1/0x40/2"
 mock = "pca9685"
 
-[devices.drive_sysfs]
+[devices.esc]
+address = "pwm://pwmchip0/1"
 mock = "sysfs_pwm"
-service = "drive"
 """
 
 
-def test_old_profiles_keep_loading_with_one_notice_per_device(tmp_path: Path) -> None:
-    (tmp_path / "vehicle.toml").write_text(OLD)
-    notices: list[str] = []
-    entries = profile_devices(load_profile(tmp_path / "vehicle.toml"), warn=notices.append)
-    assert {n: (e.address.url, e.service) for n, e in entries.items()} == {
-        "gnss": ("serial:///dev/ttyUSB0?baud=4800", "gps"),
-        "wheels": ("can://socketcan/can1?bitrate=250000", "wheels"),
-        "imu": ("i2c://3/0x69", "imu"),
-        "rc": ("gpio://gpiochip2/5,13,21", "rc"),
-        "rudder": ("pca9685://1/0x40/2", "drive"),
-        "esc": ("pwm://pwmchip0/1", "drive"),
+def test_each_device_is_its_own_table_named_by_its_service(tmp_path: Path) -> None:
+    (tmp_path / "vehicle.toml").write_text(NEW)
+    entries = profile_devices(load_profile(tmp_path / "vehicle.toml"))
+    assert {n: (e.address.url, e.service, e.mock) for n, e in entries.items()} == {
+        "gnss": ("serial:///dev/ttyUSB0?baud=4800", "gps", "nmea_gps"),
+        "wheels": ("can://socketcan/can1?bitrate=250000", "wheels", None),
+        "imu": ("i2c://3/0x69", "imu", None),
+        "rc": ("gpio://gpiochip2/5,13,21", "rc", None),
+        "rudder": ("pca9685://1/0x40/2", "drive", "pca9685"),
+        "esc": ("pwm://pwmchip0/1", "drive", "sysfs_pwm"),
     }
-    assert (entries["rudder"].mock, entries["esc"].mock) == ("pca9685", "sysfs_pwm")   # matched by address kind
-    assert all(e.legacy for e in entries.values()) and len(notices) == len(entries)
-    assert all("\n" not in n and "[devices." in n and "address = " in n for n in notices)
+    assert all(e.used and e.table == n for n, e in entries.items())
 
 
-def test_the_new_form_wins_and_needs_no_notice(tmp_path: Path) -> None:
-    (tmp_path / "vehicle.toml").write_text(OLD + '\n[devices.gnss]\naddress = "serial:///dev/u2sa/gps?baud=9600"\n'
-                                           'mock = "nmea_gps"\n')
-    notices: list[str] = []
-    entries = profile_devices(load_profile(tmp_path / "vehicle.toml"), warn=notices.append)
-    assert entries["gnss"].address.baud == 9600 and not entries["gnss"].legacy and entries["gnss"].mock == "nmea_gps"
-    assert not any("'gnss'" in n for n in notices)
+@pytest.mark.parametrize("service, setting", [
+    ("gps", 'port = "/dev/ttyUSB0", baudrate = 4800'), ("wheels", 'interface = "socketcan", channel = "can1"'),
+    ("imu", 'bus = "3", address = 0x69'), ("rc", 'chip = "/dev/gpiochip2"'),
+])
+def test_an_old_form_profile_is_refused_naming_the_new_form(tmp_path: Path, service: str, setting: str) -> None:
+    """Version 0.1 retires the old form: a setting that spread the address over the service is one error with
+    the new form, never an address derived from it."""
+    text = NEW.replace(f"[services.{service}]\n", f"[services.{service}]\nconfig = \"{service}.toml\"\n")
+    (tmp_path / "vehicle.toml").write_text(text)
+    (tmp_path / f"{service}.toml").write_text(setting.replace(", ", "\n") + "\n")
+    key = setting.split(" = ")[0]
+    with pytest.raises(ConfigError, match=rf"'{key}' is the old form: name a device instead: \[devices\.") as info:
+        profile_devices(load_profile(tmp_path / "vehicle.toml"))
+    assert "\n" not in str(info.value) and "(docs/ports.md)" in str(info.value)
+
+
+@pytest.mark.parametrize("key, value, param", [("usb", '{ vendor = "1546", product = "01a7" }', "usb=1546:01a7"),
+                                               ("can", "{ bitrate = 500000 }", "bitrate=500000")])
+def test_an_old_form_device_table_key_is_refused_naming_the_address_parameter(tmp_path: Path, key: str, value: str,
+                                                                              param: str) -> None:
+    (tmp_path / "vehicle.toml").write_text(NEW.replace('[devices.imu]\n', f'[devices.imu]\n{key} = {value}\n'))
+    with pytest.raises(ProfileError, match=rf"\[devices.imu\]: '{key}' is the old form: write it into .*{param}"):
+        profile_devices(load_profile(tmp_path / "vehicle.toml"))
 
 
 @pytest.mark.parametrize("table,error", [
@@ -234,9 +258,11 @@ def test_the_new_form_wins_and_needs_no_notice(tmp_path: Path) -> None:
     ('address = 5', r"\[devices.gnss\]: address must be a str, not int"),
 ])
 def test_a_bad_device_table_is_one_line_with_the_fix(tmp_path: Path, table: str, error: str) -> None:
-    (tmp_path / "vehicle.toml").write_text(OLD + f"\n[devices.gnss]\n{table}\n")
+    text = NEW.replace('[devices.gnss]\naddress = "serial:///dev/ttyUSB0?baud=4800"\nmock = "nmea_gps"\n',
+                       f"[devices.gnss]\n{table}\n")
+    (tmp_path / "vehicle.toml").write_text(text)
     with pytest.raises(ProfileError, match=error) as info:
-        profile_devices(load_profile(tmp_path / "vehicle.toml"), warn=lambda _t: None)
+        profile_devices(load_profile(tmp_path / "vehicle.toml"))
     assert "\n" not in str(info.value)
 
 

@@ -19,7 +19,7 @@ origin = { lat = 1.0, lon = 2.0, alt = 0.0 }
 
 [services.gps]
 kind = "gps_nmea"
-settings = { port = "/dev/u2sa/gps", baudrate = 9600 }
+settings = { device = "gnss", uere_m = 3.0 }
 
 [services.gps.supervision]
 data_channel = "STATE_INFO"
@@ -96,13 +96,13 @@ def test_the_simulation_keys_are_those_the_mock_launcher_reads() -> None:
 
 
 @pytest.mark.parametrize("settings, line", [
-    ({"prot": "/dev/x"}, "v.toml [services.gps] settings: unknown key 'prot'; did you mean 'port'?"),
-    ({"baudrate": "9600"}, "v.toml [services.gps] settings: field 'baudrate' expects int, got str '9600'; "
-                           "fix 'baudrate' (default 9600)"),
+    ({"uere": 3.0}, "v.toml [services.gps] settings: unknown key 'uere'; did you mean 'uere_m'?"),
+    ({"uere_m": "3"}, "v.toml [services.gps] settings: field 'uere_m' expects float, got str '3'; "
+                      "fix 'uere_m' (default 3.0)"),
     ({"stale_after_s": -1.0}, "v.toml [services.gps] settings: field 'stale_after_s' must be > 0 and <= 30; "
                               "got -1.0"),
     ({"health_interval_s": float("inf")}, "field 'health_interval_s' must be a finite number > 0 and <= 60; got inf"),
-    ({"bytesize": 9}, "field 'bytesize' must be one of 5, 6, 7, 8; got 9"),
+    ({"position_frame": "XYZ"}, 'field \'position_frame\' must be one of "NED", "GEODETIC" (any case); got "XYZ"'),
 ])
 def test_validate_settings_checks_each_setting_against_its_field(settings: dict, line: str) -> None:
     problems = validate_settings("gps_nmea", settings, where="v.toml [services.gps] settings")
@@ -110,7 +110,7 @@ def test_validate_settings_checks_each_setting_against_its_field(settings: dict,
 
 
 def test_validate_settings_of_good_settings_and_of_an_unknown_kind() -> None:
-    assert validate_settings("gps_nmea", {"port": "/dev/u2sa/gps", "baudrate": 4800}, where="w") == []
+    assert validate_settings("gps_nmea", {"device": "gnss", "uere_m": 4.0}, where="w") == []
     problems = validate_settings("path_planer", {}, where="v.toml [services.planner]")
     assert problems == [kind_problem("path_planer", where="v.toml [services.planner]")]
     assert "did you mean 'path_planner'?" in problems[0] and "u2sa service --list-kinds" in problems[0]

@@ -124,12 +124,13 @@ def _profile(tmp_path: Path, chip: MockGpioChip) -> Path:
         "vehicle": {"name": "timing", "system_id": 7, "config_dir": "config", "log_dir": "logs", "data_dir": "data"},
         "services": {
             "rc": {"kind": "rc_mux", "settings": {
-                "chip": chip.address, "channels": "throttle=5,steering=6,mode=13", "mode_channel": "mode",
+                "channels": "throttle=5,steering=6,mode=13", "mode_channel": "mode",
                 "enable_line": ENABLE, "select_line": SELECT, "publish_hz": 20.0, "manual_hz": 25.0,
                 "signal_timeout_ms": 100.0}},
             "gps": {"kind": "gps_nmea"},
             "wheels": {"kind": "odrive_can", "settings": {"actuators": ["left_wheel", "right_wheel"]}},
         },
+        "devices": {"rc": {"address": f"mock+gpio://{chip.socket_path}"}},
         "safety": {"manual_mixer": {"kind": "differential", "left": "left_wheel", "right": "right_wheel",
                                     "throttle_channel": "throttle", "steering_channel": "steering"},
                    "prearm": {"gps": {"max_sigma_m": 5.0}, "required_services": {"ignore": ["wheels"]}}},

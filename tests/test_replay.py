@@ -59,10 +59,11 @@ def record_driver_log(workdir: Path, *, gps_epochs: int = 12, compass_epochs: in
     profile_path.write_text(tomli_w.dumps({
         "vehicle": {"name": "testrover", "system_id": 7, "origin": ORIGIN, "lcm_url": url},
         "services": {
-            "gps": {"kind": "gps_nmea", "settings": {"port": str(dev / "gps"), "record_raw": True}},
-            "compass": {"kind": "compass_serial", "settings": {"port": str(dev / "compass"), "record_raw": True,
-                                                               "baudrate": 4800, "device_name": "hdg"}},
-            "state_estimator": {"kind": "state_estimator"}}}))
+            "gps": {"kind": "gps_nmea", "settings": {"record_raw": True}},
+            "compass": {"kind": "compass_serial", "settings": {"record_raw": True, "device_name": "hdg"}},
+            "state_estimator": {"kind": "state_estimator"}},
+        "devices": {"gps": {"address": f"serial://{dev / 'gps'}?baud=9600"},
+                    "hdg": {"address": f"serial://{dev / 'compass'}?baud=4800"}}}))
     profile = load_profile(profile_path)
     vehicle = SimVehicle(origin_lat=ORIGIN["lat"], origin_lon=ORIGIN["lon"], origin_alt=ORIGIN["alt"])
     vehicle.set_wheel_speed("left", 1.0)
@@ -114,7 +115,8 @@ def record_imu_log(workdir: Path, *, samples: int = 80) -> Path:
     profile_path.write_text(tomli_w.dumps({
         "vehicle": {"name": "testrover", "system_id": 7, "origin": ORIGIN, "lcm_url": url},
         "services": {"imu": {"kind": "imu_mpu9250", "settings": {
-            "bus": i2c.address, "record_raw": True, "rate_hz": 50.0, "calibrate_samples": 20}}}}))
+            "record_raw": True, "rate_hz": 50.0, "calibrate_samples": 20}}},
+        "devices": {"imu": {"address": f"mock+i2c://{i2c.socket_path}/0x68"}}}))
     transport = Transport(url, name="test-recorder")
     log_path = workdir / "imu.mcap"
     capture = BusCapture(transport, McapLogWriter(workdir, path=log_path,
@@ -149,8 +151,8 @@ def record_can_log(workdir: Path, *, outputs: int = 120) -> Path:
     profile_path.write_text(tomli_w.dumps({
         "vehicle": {"name": "testrover", "system_id": 7, "origin": ORIGIN, "lcm_url": url},
         "services": {"wheels": {"kind": "odrive_can", "settings": {
-            "interface": "udp_multicast", "channel": GROUP, "udp_port": port, "node_ids": [0, 1],
-            "record_raw": True, "command_timeout_s": 0.0, "rc_gating": False}}}}))
+            "node_ids": [0, 1], "record_raw": True, "command_timeout_s": 0.0, "rc_gating": False}}},
+        "devices": {"wheels": {"address": f"can://udp_multicast/{GROUP}?port={port}"}}}))
     transport = Transport(url, name="test-recorder")
     log_path = workdir / "can.mcap"
     capture = BusCapture(transport, McapLogWriter(workdir, path=log_path,
@@ -209,7 +211,7 @@ def test_devices_map_to_the_services_that_name_them(driver_log: Path) -> None:
     assert {d.name: d.service for d in plan.devices.values()} == {"gps": "gps", "hdg": "compass"}
     assert sorted(plan.services) == ["compass", "gps"]
     assert plan.devices["hdg"].kind == "serial" and plan.devices["hdg"].records > 0
-    assert claimed_devices("servo", {"channels": [{"name": "rudder", "address": "x"}]}) == {"servo", "rudder"}
+    assert claimed_devices("servo", {"channels": [{"name": "rudder"}]}) == {"servo", "rudder"}
     with_estimator = build_plan(driver_log, extra_services=["state_estimator"], overrides=["gps.heading_sigma_deg=2"])
     assert with_estimator.services["gps"].overrides == {"heading_sigma_deg": 2.0}
     assert "state_estimator" in with_estimator.services
@@ -399,11 +401,11 @@ def test_can_frames_replay_into_the_motor_driver_with_its_commands(can_log: Path
 
 def test_a_service_that_dies_ends_the_replay_with_its_reason(driver_log: Path, tmp_path: Path) -> None:
     # a value its field refuses never gets as far as a start: one line, exit 2, nothing replayed
-    res = replay_cli(str(driver_log), "--fast", "--set", "gps.baudrate=1234", "-o", str(tmp_path / "x.mcap"),
+    res = replay_cli(str(driver_log), "--fast", "--set", "gps.position_frame=XYZ", "-o", str(tmp_path / "x.mcap"),
                      cwd=tmp_path)
     assert res.returncode == 2 and res.stderr.strip().splitlines() == [
-        "u2sa: --set gps.baudrate=1234: field 'baudrate' must be one of 1200, 2400, 4800, 9600, 19200, 38400, 57600, "
-        "115200, 230400, 460800, 921600; got 1234"], res.stderr
+        "u2sa: --set gps.position_frame=XYZ: field 'position_frame' must be one of \"NED\", \"GEODETIC\" (any case); "
+        "got \"XYZ\""], res.stderr
     # values each field takes but the driver cannot start with (a singular soft-iron matrix)
     res = replay_cli(str(driver_log), "--fast", "--set", "compass.mag_matrix=[0,0,0,0,0,0,0,0,0]",
                      "-o", str(tmp_path / "x.mcap"), cwd=tmp_path)

@@ -42,14 +42,15 @@ MODE_MANUAL, MODE_AUTONOMOUS = 0, 1
 class Recording:
     """A private bus, a profile with one service, the recorder's capture and the driver as a process."""
 
-    def __init__(self, workdir: Path, *, name: str, kind: str, settings: dict) -> None:
+    def __init__(self, workdir: Path, *, name: str, kind: str, settings: dict, devices: dict[str, str]) -> None:
         self.url = private_lcm_url()
         self.workdir = workdir
         self.profile = workdir / "vehicle.toml"
         self.profile.write_text(tomli_w.dumps({
             "vehicle": {"name": "testrover", "system_id": 7, "lcm_url": self.url},
             "services": {name: {"kind": kind, "settings": {"health_interval_s": 0.2, "record_raw": True,
-                                                           **settings}}}}))
+                                                           **settings}}},
+            "devices": {device: {"address": address} for device, address in devices.items()}}))
         self.name = name
         self.log = workdir / f"{name}.mcap"
         self.transport = Transport(self.url, name="test-recorder")
@@ -81,9 +82,9 @@ def record_rc_log(workdir: Path) -> Path:
     rc = RcReceiverMock(chip, lines=RC_LINES, frame_hz=50).start()
     mux = MuxMock(chip, rc, enable_line=ENABLE, select_line=SELECT).start()
     rec = Recording(workdir, name="rc", kind="rc_mux", settings={
-        "chip": chip.address, "channels": "throttle=5,steering=6,mode=13", "mode_channel": "mode",
+        "channels": "throttle=5,steering=6,mode=13", "mode_channel": "mode",
         "enable_line": ENABLE, "select_line": SELECT, "debounce_frames": 3, "signal_timeout_ms": 400.0,
-        "publish_hz": 10.0})
+        "publish_hz": 10.0}, devices={"rc": f"mock+gpio://{chip.socket_path}"})
     col = BusCollector(rec.bus).listen(ch.RC_MODE, t.RcMode)
     try:
         rec.start()
@@ -127,8 +128,8 @@ def record_pwm_log(workdir: Path) -> Path:
     chip = make_sysfs_pwm_tree(workdir / "pwmchip0", npwm=4)
     rec = Recording(workdir, name="servos", kind="pwm_servo", settings={
         "command_timeout_s": 0.0, "rc_gating": False, "channels": [
-            {"name": "rudder", "address": str(chip), "channel": 0},
-            {"name": "throttle", "address": str(chip), "channel": 1, "min_us": 1100.0, "max_us": 1900.0}]})
+            {"name": "rudder"}, {"name": "throttle", "min_us": 1100.0, "max_us": 1900.0}]},
+        devices={"rudder": f"mock+pwm://{chip}/0", "throttle": f"mock+pwm://{chip}/1"})
     try:
         rec.start()
         wait_until(lambda: duty(chip, 1) == 1_500_000, timeout=30, message="the servos at neutral")
@@ -225,8 +226,7 @@ def test_recorded_commands_replay_into_the_pwm_servo_driver_with_no_difference(p
 
 
 def test_a_changed_pwm_setting_is_reported(pwm_log: Path, tmp_path: Path) -> None:
-    reversed_rudder = '[{name = "rudder", address = "/dev/null", channel = 0, reverse = true}, ' \
-                      '{name = "throttle", address = "/dev/null", channel = 1, min_us = 1100.0, max_us = 1900.0}]'
+    reversed_rudder = '[{name = "rudder", reverse = true}, {name = "throttle", min_us = 1100.0, max_us = 1900.0}]'
     res = replay_cli(str(pwm_log), "--fast", "--compare", "--set", f"servos.channels={reversed_rudder}",
                      "-o", str(tmp_path / "pwm2.mcap"), cwd=tmp_path)
     assert res.returncode == 1, res.stdout + res.stderr

@@ -128,10 +128,10 @@ address = "can://socketcan/can1?bitrate=500000"
 def test_a_can_device_without_an_address_is_an_error_not_can0(tmp_path: Path, lcm_url: str) -> None:
     path = write(tmp_path, WINCH)
     profile = load_profile(path)
-    assert OdriveCanMotor.used_devices("winch", effective_config(profile, "winch")) == {"winc": None}
+    assert OdriveCanMotor.used_devices("winch", effective_config(profile, "winch")) == ("winc",)
     with pytest.raises(ProfileError, match=r"device 'winc' of service 'winch' has no address; .*did you mean "
                                            r"device = \"winch\""):
-        profile_devices(profile, warn=lambda _t: None)
+        profile_devices(profile)
     assert [p for p in errors_of(check_profile(path)) if "'winc'" in p.message], check_profile(path)
     svc = OdriveCanMotor("winch", profile=profile, settings={"device": "winc", "actuators": ["winch"],
                                                               "node_ids": [0], "directions": [1],
@@ -145,12 +145,21 @@ def test_a_can_device_without_an_address_is_an_error_not_can0(tmp_path: Path, lc
         svc.transport.stop()
 
 
-def test_old_form_settings_still_give_the_address_and_only_when_present() -> None:
-    assert OdriveCanMotor.legacy_address({"interface": "", "channel": "", "bitrate": 500000}) is None
-    assert OdriveCanMotor.legacy_address({"interface": "", "channel": "can1"}) == "can://socketcan/can1"
-    assert OdriveCanMotor.legacy_address({"interface": "virtual", "channel": ""}) == "can://virtual/can0"
-    assert Mpu9250ImuDriver.used_devices("imu", {"bus": "", "address": 0x68}) == {"imu": None}
-    assert Mpu9250ImuDriver.used_devices("imu", {"bus": "3", "address": 0x69}) == {"imu": "i2c://3/0x69"}
+@pytest.mark.parametrize("cls, settings, key, address", [
+    (OdriveCanMotor, {"interface": "virtual", "channel": "can1"}, "interface", "can://socketcan/can0?bitrate=500000"),
+    (OdriveCanMotor, {"device": "winch", "bitrate": 500000}, "bitrate", "can://socketcan/can0?bitrate=500000"),
+    (Mpu9250ImuDriver, {"bus": "3"}, "bus", "i2c://1/0x68"),
+    (Mpu9250ImuDriver, {"address": 0x69}, "address", "i2c://1/0x68"),
+])
+def test_old_form_settings_are_refused_at_start_naming_the_new_form(cls: type, settings: dict[str, object], key: str,
+                                                                    address: str) -> None:
+    """The old form no longer gives an address (never a silent can0 or i2c-1): the service refuses to start
+    with one line naming the key and the device to write instead (the service's device: "device", else NAME)."""
+    device = str(settings.get("device", "NAME"))
+    with pytest.raises(ConfigError) as info:
+        cls("winch", settings=settings)
+    assert str(info.value) == (f"service 'winch' settings: '{key}' is the old form: name a device instead: "
+                               f"[devices.{device}] address = \"{address}\" and device = \"{device}\" (docs/ports.md)")
 
 
 def test_an_imu_naming_no_device_with_an_address_is_refused_at_start(tmp_path: Path, lcm_url: str) -> None:
@@ -287,8 +296,10 @@ def test_a_bus_change_sends_zero_and_idle_to_the_old_controllers_before_closing(
     old, new = (f"review-{name}-{random.randint(0, 1 << 30)}" for name in ("old", "new"))
     vehicle = SimVehicle(origin_lat=0.0, origin_lon=0.0)
     node = OdriveCanNode(vehicle, side="left", node_id=3, interface="virtual", channel=old, vel_limit=10.0)
-    svc = OdriveCanMotor("winch", config_path=tmp_path / "winch.toml", settings={
-        "interface": "virtual", "channel": old, "actuators": ["winch"], "node_ids": [3], "directions": [1],
+    profile = VehicleProfile(path=None, devices={"winch_old": {"address": f"can://virtual/{old}"},
+                                                 "winch_new": {"address": f"can://virtual/{new}"}})
+    svc = OdriveCanMotor("winch", profile=profile, config_path=tmp_path / "winch.toml", settings={
+        "device": "winch_old", "actuators": ["winch"], "node_ids": [3], "directions": [1],
         "wheel_radius_m": [0.1], "odometry": False, "status_poll_s": 0.0, "rc_gating": False,
         "hw_watchdog": False, "idle_on_stop": True, "command_timeout_s": 0.5})
     runner = threading.Thread(target=svc.run, daemon=True)
@@ -300,8 +311,8 @@ def test_a_bus_change_sends_zero_and_idle_to_the_old_controllers_before_closing(
         wait_until(lambda: svc.health_details().get("winch.phase") == "armed", timeout=20, message="axis armed")
         svc.on_percentage("winch", 50.0)
         wait_until(lambda: node.input_vel > 0.0, timeout=10, message="the winch turning")
-        assert svc.config.set("channel", new)
-        svc.on_config_change("channel", new)
+        assert svc.config.set("device", "winch_new")   # another device: the other bus
+        svc.on_config_change("device", "winch_new")
         wait_until(lambda: svc.health_details()["address"].endswith(new), timeout=10, message="the new bus")
         wait_until(lambda: node.input_vel == 0.0 and node.axis_state == AxisState.IDLE, timeout=10,
                    message="zero and IDLE on the old bus (its watchdog is off: nothing else would stop it)")

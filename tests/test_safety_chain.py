@@ -93,20 +93,22 @@ def test_failsafes_are_held_per_source_and_the_operator_clears_any() -> None:
 
 
 # ------------------------------------------------------------------ the [safety] table ------
-def write_vehicle(tmp_path: Path, *, safety: dict[str, Any], chip: str = "mock:/tmp/none.sock",
+def write_vehicle(tmp_path: Path, *, safety: dict[str, Any], socket: str = "/tmp/none.sock",
                   pwm: Path | None = None, settings: dict[str, Any] | None = None) -> Path:
+    """The cart: the RC mux on the mock GPIO chip at *socket*, two servos on the sysfs-shaped *pwm* chip."""
     pwm = pwm or tmp_path / "pwmchip0"
     profile = {
         "vehicle": {"name": "cart", "system_id": 3, "config_dir": "config", "log_dir": "logs", "data_dir": "data"},
         "services": {
-            "rc": {"kind": "rc_mux", "settings": {"chip": chip, "channels": "throttle=5,steering=6,mode=13",
+            "rc": {"kind": "rc_mux", "settings": {"channels": "throttle=5,steering=6,mode=13",
                                                   "enable_line": ENABLE, "debounce_frames": 2,
                                                   "health_interval_s": 0.2}},
             "drive": {"kind": "pwm_servo", "settings": {"health_interval_s": 0.2, **(settings or {}), "channels": [
-                {"name": "steer", "address": str(pwm), "channel": 0},
-                {"name": "esc", "address": str(pwm), "channel": 1}]}},
-            "lamp": {"kind": "gpio_output", "enabled": False, "settings": {"chip": chip, "outputs": "lamp=17"}},
+                {"name": "steer"}, {"name": "esc"}]}},
+            "lamp": {"kind": "gpio_output", "enabled": False, "settings": {"outputs": "lamp=17"}},
         },
+        "devices": {"rc": {"address": f"mock+gpio://{socket}"}, "lamp": {"address": f"mock+gpio://{socket}"},
+                    "steer": {"address": f"mock+pwm://{pwm}/0"}, "esc": {"address": f"mock+pwm://{pwm}/1"}},
         "safety": safety,
     }
     path = tmp_path / "vehicle.toml"
@@ -183,7 +185,7 @@ def chain(tmp_path: Path, services: ServiceProcesses, bus: BusClient) -> Iterato
     chip = MockGpioChip(socket_path=str(sockets / "gpio.sock")).start()
     rc = RcReceiverMock(chip, lines=RC_LINES, frame_hz=50).start()
     pwm = make_sysfs_pwm_tree(tmp_path / "pwmchip0", npwm=2)
-    profile = write_vehicle(tmp_path, safety={"manual_mixer": MIXER, "rc_mode_timeout_ms": 250}, chip=chip.address,
+    profile = write_vehicle(tmp_path, safety={"manual_mixer": MIXER, "rc_mode_timeout_ms": 250}, socket=chip.socket_path,
                             pwm=pwm)
     col = BusCollector(bus).listen(ch.RC_MODE, t.RcMode).listen(ch.HEALTH, t.Health)
     col.listen(ch.MANUAL_CMD, t.ActuatorCommand)

@@ -26,18 +26,18 @@ origin = { lat = 29.1895, lon = -81.0483 }
 
 [services.rc]
 kind = "rc_mux"
-settings = { chip = "/dev/gpiochip0", channels = "throttle=5,steering=6,mode=13", enable_line = 21 }
+settings = { channels = "throttle=5,steering=6,mode=13", enable_line = 21 }
 
 [services.drive]
 kind = "pwm_servo"
 settings = { channels = [
-  { name = "steering", address = "pca9685:1:0x40", channel = 0 },
-  { name = "throttle", address = "pca9685:1:0x40", channel = 1 },
-  { name = "pan", address = "/sys/class/pwm/pwmchip0", channel = 0 } ] }
+  { name = "steering" },
+  { name = "throttle" },
+  { name = "pan" } ] }
 
 [services.contactor]
 kind = "gpio_output"
-settings = { chip = "/dev/gpiochip1", outputs = "motor_power=4,lamp=5" }
+settings = { outputs = "motor_power=4,lamp=5" }
 
 [safety]
 hardware_mux = { steering = "steering", throttle = "throttle" }
@@ -46,16 +46,23 @@ hardware_mux = { steering = "steering", throttle = "throttle" }
 model = "ackermann"
 
 [devices.rc]
+address = "gpio://gpiochip0/5,6,13,21"
 mock = "rc_receiver"
 
-[devices.drive]
+[devices.steering]
+address = "pca9685://1/0x40/0"
 mock = "pca9685"
 
-[devices.drive_sysfs]
+[devices.throttle]
+address = "pca9685://1/0x40/1"
+mock = "pca9685"
+
+[devices.pan]
+address = "pwm://pwmchip0/0"
 mock = "sysfs_pwm"
-service = "drive"
 
 [devices.contactor]
+address = "gpio://gpiochip1/4,5"
 mock = "gpio_chip"
 drives = { motor_power = "enable" }
 """
@@ -110,7 +117,7 @@ def test_the_mux_switches_only_the_pwm_outputs_wired_through_it(tmp_path: Path) 
 
 def test_can_motors_are_never_gated_by_the_simulated_mux(tmp_path: Path) -> None:
     text = ACKERMANN[:ACKERMANN.index("[services.drive]")] + '[simulation]\nmodel = "differential"\n' \
-        '[devices.rc]\nmock = "rc_receiver"\n'
+        '[devices.rc]\naddress = "gpio://gpiochip0/5,6,13,21"\nmock = "rc_receiver"\n'
     path = tmp_path / "vehicle.toml"
     path.write_text(text)
     mocks = MockLauncher(load_profile(path), device_dir=tmp_path / "dev")
@@ -128,20 +135,25 @@ def test_can_motors_are_never_gated_by_the_simulated_mux(tmp_path: Path) -> None
 
 
 @pytest.mark.parametrize("change, error", [
-    (('  { name = "throttle", address = "pca9685:1:0x40", channel = 1 },\n', ""),
+    ((('  { name = "throttle" },\n', ""), ('[devices.throttle]\naddress = "pca9685://1/0x40/1"\nmock = "pca9685"\n', "")),
      r"vehicle.toml: \[simulation\] model = 'ackermann' moves by steering and throttle, but no device drives "
      r"throttle .*drives = \{ <channel> = \"throttle\" \}"),
-    (('hardware_mux = { steering = "steering", throttle = "throttle" }', 'hardware_mux = { motor_power = "throttle" }'),
+    ((('hardware_mux = { steering = "steering", throttle = "throttle" }', 'hardware_mux = { motor_power = "throttle" }'),),
      r"\[safety\] hardware_mux: 'motor_power' is not a PWM output"),
-    (('drives = { motor_power = "enable" }', 'drives = { motor_power = "throttle" }'),
+    ((('drives = { motor_power = "enable" }', 'drives = { motor_power = "throttle" }'),),
      r"drives.motor_power = 'throttle': a GPIO output can only drive \"enable\""),
-    (('drives = { motor_power = "enable" }', 'drives = { horn = "enable" }'),
+    ((('drives = { motor_power = "enable" }', 'drives = { horn = "enable" }'),),
      r"devices.contactor\]: drives names horn, which service 'contactor' does not have"),
 ])
-def test_a_profile_whose_outputs_cannot_move_the_vehicle_is_refused(tmp_path: Path, change: tuple[str, str],
+def test_a_profile_whose_outputs_cannot_move_the_vehicle_is_refused(tmp_path: Path,
+                                                                      change: tuple[tuple[str, str], ...],
                                                                       error: str) -> None:
+    text = ACKERMANN
+    for old, new in change:
+        assert old in text, old
+        text = text.replace(old, new)
     with pytest.raises(DeviceError, match=error):
-        profile(tmp_path, ACKERMANN.replace(*change))
+        profile(tmp_path, text)
 
 
 BOAT = """
@@ -151,15 +163,21 @@ origin = { lat = 29.1895, lon = -81.0483 }
 [services.thrusters]
 kind = "pwm_servo"
 settings = { channels = [
-  { name = "left_thruster", address = "/sys/class/pwm/pwmchip0", channel = 0 },
-  { name = "right_thruster", address = "/sys/class/pwm/pwmchip0", channel = 1, reverse = true } ] }
+  { name = "left_thruster" },
+  { name = "right_thruster", reverse = true } ] }
 
 [simulation]
 model = "twin_thruster"
 
-[devices.thrusters]
+[devices.left_thruster]
+address = "pwm://pwmchip0/0"
 mock = "sysfs_pwm"
-drives = { left_thruster = "left", right_thruster = "right" }
+drives = { left_thruster = "left" }
+
+[devices.right_thruster]
+address = "pwm://pwmchip0/1"
+mock = "sysfs_pwm"
+drives = { right_thruster = "right" }
 """
 
 

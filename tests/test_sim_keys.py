@@ -30,9 +30,10 @@ origin = { lat = 29.1895, lon = -81.0483 }
 
 [services.rc]
 kind = "rc_mux"
-settings = { chip = "/dev/gpiochip0", channels = "throttle=5,steering=6,mode=13", enable_line = 21 }
+settings = { channels = "throttle=5,steering=6,mode=13", enable_line = 21 }
 
 [devices.rc]
+address = "gpio://gpiochip0/5,6,13,21"
 mock = "rc_receiver"
 """
 

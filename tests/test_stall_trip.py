@@ -15,6 +15,7 @@ from typing import Any, Iterator
 import pytest
 from conftest import wait_until
 
+from u2sa_hw.profile.vehicle import VehicleProfile
 from u2sa_hw.drivers.can_motor.odrive.driver import OdriveCanMotor
 from u2sa_hw.drivers.can_motor.stall_trip import Stall, StallWatch, Trip, may_clear, trip_gap_s
 from u2sa_hw.mocks.odrive_node import ENABLE_WATCHDOG_ENDPOINT, MOCK_FW, WATCHDOG_TIMEOUT_ENDPOINT, OdriveCanNode
@@ -32,6 +33,12 @@ OVER_CURRENT = int(OdriveError.CURRENT_LIMIT_VIOLATION)
 NODES = (3, 4)
 WATCHDOG_06 = {"watchdog_timeout_endpoint": WATCHDOG_TIMEOUT_ENDPOINT,
                "enable_watchdog_endpoint": ENABLE_WATCHDOG_ENDPOINT, "endpoints_fw": MOCK_FW}
+
+
+def bus_profile(address: str) -> VehicleProfile:
+    """A profile (no file) whose device ``motors`` is the CAN bus at *address*."""
+    return VehicleProfile(path=None, devices={"motors": {"address": address}})
+
 
 
 def rc_mode(mode: int, *, armed: bool) -> t.RcMode:
@@ -115,8 +122,8 @@ class Rig:
         self.nodes = {side: OdriveCanNode(self.vehicle, side=side, node_id=node_id, interface="virtual",
                                           channel=self.channel, vel_limit=10.0)
                       for side, node_id in zip(("left", "right"), NODES)}
-        self.svc = OdriveCanMotor("motors", settings={
-            "interface": "virtual", "channel": self.channel, "node_ids": list(NODES), "status_poll_s": 0.0,
+        self.svc = OdriveCanMotor("motors", profile=bus_profile(f"can://virtual/{self.channel}"), settings={
+            "node_ids": list(NODES), "status_poll_s": 0.0,
             "odometry": False, "rc_gating": False, "command_timeout_s": 0.5, "silent_after_s": 0.5, **WATCHDOG_06})
         self.runner = threading.Thread(target=self.svc.run, daemon=True)
 

@@ -62,7 +62,8 @@ def write_profile(path: Path, port: int) -> Path:
         "[vehicle]", 'name = "pilot-key-test"', "system_id = 9", f'lcm_url = "udpm://239.255.76.67:{port}?ttl=0"', "",
         "[services.est]", 'kind = "state_estimator"', "",
         "[services.mux]", 'kind = "rc_mux"',
-        'settings = { chip = "/dev/gpiochip0", channels = "throttle=5,steering=6,mode=13", enable_line = 21 }', "",
+        'settings = { channels = "throttle=5,steering=6,mode=13", enable_line = 21 }', "",
+        "[devices.mux]", 'address = "gpio://gpiochip0/5,6,13,21"', "",
         "[services.hsm]", 'kind = "hsm"', ""]))
     return path
 

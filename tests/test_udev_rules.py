@@ -99,7 +99,7 @@ def our_rules(tmp_path: Path) -> dict[str, str]:
     """The static rules and the vehicle rules install generates from PROFILE's device addresses."""
     profile = tmp_path / "vehicle.toml"
     profile.write_text(PROFILE)
-    plan = plan_devices(profile_devices(load_profile(profile), warn=lambda _: None), profile_path=profile)
+    plan = plan_devices(profile_devices(load_profile(profile)), profile_path=profile)
     rules = {p.name: p.read_text() for p in sorted(UDEV_DIR.glob("*.rules"))}
     rules["65-u2sa-vehicle.rules"] = render_rules(plan, profile="/etc/u2sa/vehicle.toml").decode()
     return rules

@@ -37,7 +37,6 @@ from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence 
 from u2sa_hw.ports import PortClosed, PortError, PortIOError, PortUnavailable
 from u2sa_hw.ports.can.port import CanPort
 from u2sa_hw.ports.device_link import DeviceLink, device_setting
-from u2sa_hw.ports.legacy import can_address
 
 from u2sa_hw.drivers.can_motor.watchdog import WatchdogStep, check_hw_watchdog, watchdog_summary  # noqa: F401 - their old home
 from u2sa_hw.drivers.can_motor.declarations import CanMotorDeclarations
@@ -45,7 +44,7 @@ from u2sa_hw.drivers.can_motor.diff_drive_odometry import SOURCES, BodyMotion, D
 from u2sa_hw.drivers.can_motor.stall_trip import StallWatch, trip_gap_s
 
 TICK_S = 0.01
-_PORT_FIELDS = frozenset({"device", "interface", "channel", "bitrate", "udp_port", "device_name"})
+_PORT_FIELDS = frozenset({"device", "device_name"})
 _ODOMETRY_FIELDS = frozenset({"odometry", "odometry_left", "odometry_right", "track_width_m", "odometry_source",
                               "odometry_window_s", "wheel_radius_m", "directions"})
 
@@ -66,13 +65,6 @@ class CanMotorService(CanMotorDeclarations, Actuator):
     ID_FIELD: ClassVar[str] = "node_ids"
     CONFIG = (
         field("device", "", "the bus: its [devices.NAME] table (address) and RAW.<device> (empty: the service name)"),
-        field("interface", "", "old form of the address (without [devices.NAME] address): python-can "
-                               "interface: socketcan on a vehicle; virtual, udp_multicast in tests (empty: "
-                               "socketcan when channel is set; both empty: the address is [devices.NAME]'s only)"),
-        field("channel", "", "old form: python-can channel: can0, a virtual bus name, or a multicast group "
-                             "(empty: can0 when interface is set)"),
-        field("bitrate", 0, "bit/s given to python-can (0: leave the interface as configured, e.g. by udev)", ge=0, le=8000000),
-        field("udp_port", 0, "udp_multicast only: UDP port of the bus (0: python-can's default 43113)", ge=0, le=65535),
         field("device_name", "", "old name of the device setting"),
         field("record_raw", False, "publish every frame sent and received as RawCanFrame on RAW.<device>"),
         field("actuators", ["left", "right"], "actuator names, one per controller (Percentage Commands address them)", item_type=str),
@@ -100,7 +92,7 @@ class CanMotorService(CanMotorDeclarations, Actuator):
         self.odometry: DiffDriveOdometry | None = None
         self._link: DeviceLink[CanPort] = DeviceLink(
             self, device=lambda: device_setting(self.config, self.name), raw_type=t.RawCanFrame,
-            legacy=lambda: self.legacy_address(self.config), before_close=self._park_old_bus)
+            before_close=self._park_old_bus)
         self._current: CanPort | None = None
         self._reopen = False
         self.started_at = time.monotonic()  # since when a controller never heard counts as silent
@@ -161,22 +153,6 @@ class CanMotorService(CanMotorDeclarations, Actuator):
     def device_name(self) -> str:
         """The bus's name in port errors and taps (``device``, else the service name)."""
         return device_setting(self.config, self.name)
-
-    @classmethod
-    def legacy_address(cls, config: Mapping[str, Any]) -> str | None:
-        """The address the old-form settings (``interface``, ``channel``, ``bitrate``, ``udp_port``) give, or
-        None when neither ``interface`` nor ``channel`` is set: a device without a ``[devices.NAME]`` address
-        is then an error, never a silent ``can0`` (a winch's setpoints must not reach a wheel's node)."""
-        interface, channel = (str(config.get(k) or "").strip() for k in ("interface", "channel"))
-        if not interface and not channel:
-            return None
-        return can_address(interface or "socketcan", channel or "can0",
-                           bitrate=config.get("bitrate") or None, udp_port=config.get("udp_port") or None)
-
-    @classmethod
-    def used_devices(cls, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
-        """The one CAN bus this service drives (see DeviceLink)."""
-        return {device_setting(config, service): cls.legacy_address(config)}
 
     def actuator_names(self) -> set[str]:
         """The configured actuator names."""

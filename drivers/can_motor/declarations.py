@@ -13,6 +13,7 @@ from __future__ import annotations
 from typing import Any, ClassVar, Mapping
 
 from u2sa_hw.ports.declared import DeviceDeclarations
+from u2sa_hw.ports.device_link import device_setting
 
 
 class CanMotorDeclarations(DeviceDeclarations):
@@ -20,6 +21,13 @@ class CanMotorDeclarations(DeviceDeclarations):
 
     ID_FIELD: ClassVar[str]                # the setting holding the controllers' CAN ids (the driver's)
     PROTOCOL: ClassVar[str] = ""           # what the probe listens for: odrive or vesc
+
+    @classmethod
+    def used_devices(cls, service: str, config: Mapping[str, Any]) -> tuple[str, ...]:
+        """The one CAN bus the service drives (``device``, else the service's name): a device without a
+        ``[devices.NAME]`` address is an error, never a silent ``can0`` (a winch's setpoints must not reach a
+        wheel's node)."""
+        return (device_setting(config, service),)
 
     @classmethod
     def mock_wiring(cls, service: str, device: str, config: Mapping[str, Any]) -> dict[str, Any]:

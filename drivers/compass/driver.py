@@ -37,10 +37,14 @@ from u2sa_hw.drivers.compass.bursts import Burst, BurstGrouper, CompassReading, 
 from u2sa_hw.drivers.compass.sentences import AttitudeLimits, parse_compass_line
 from u2sa_hw.drivers.nmea_fields import BadChecksum, SentenceError, is_foreign
 from u2sa_hw.drivers.compass.os5000_format import OS5000_RANGES, Os5000BadChecksum, Os5000Error, is_os5000_line, parse_os5000
-from u2sa_hw.drivers.serial_sensor import BAUDRATES, SerialLineSensor
+from u2sa_hw.drivers.serial_sensor import SerialLineSensor
+from u2sa_hw.ports.address import AddressError
 from u2sa_hw.drivers.value_ranges import ValueDrops
 
 FORMATS = ("nmea", "os5000")
+
+
+FACTORY_BAUD = 19200   # the OS5000's factory rate: a character's time before the device has an address
 
 
 def char_time_s(*, baud: int, bytesize: int = 8, parity: str = "N", stopbits: float = 1.0) -> float:
@@ -77,8 +81,6 @@ class SerialCompassDriver(SerialLineSensor):
     EXAMPLE_PORT = "/dev/u2sa/compass"
     MOCK_KINDS = ("nmea_compass", "os5000_compass")
     CONFIG = (
-        field("baudrate", 19200, "one of 4800 .. 115200 (19200: the OS5000's factory rate; NMEA compasses often 4800)",
-              choices=BAUDRATES),
         field("format", "nmea", "nmea: HDG/HDM/HDT/THS, ROT, XDR, PASHR, PTNTHTM/HPR; os5000: OceanServer $C lines "
                                 "(any case)", choices=FORMATS, case_insensitive=True),
         field("declination_deg", 0.0, "magnetic declination, east positive: true = magnetic + declination", ge=-180, le=180),
@@ -115,15 +117,16 @@ class SerialCompassDriver(SerialLineSensor):
         return BurstGrouper(gap_s=self.config.get("epoch_gap_s"), char_time_s=self.char_time_s())
 
     def char_time_s(self) -> float:
-        """One character's time on the wire at the device address's baud rate and framing (before the
-        address is resolved, or without one: the old-form baudrate/bytesize/parity/stopbits settings)."""
+        """One character's time on the wire at the device address's baud rate and framing (without an
+        address, offline in ``u2sa check``: at the OS5000's factory 19200 8N1)."""
         address = self._link.address
-        if address is not None:
-            return char_time_s(baud=address.baud, bytesize=address.bytesize, parity=address.parity,
-                               stopbits=address.stopbits)
-        cfg = self.config
-        return char_time_s(baud=cfg.get("baudrate"), bytesize=cfg.get("bytesize"), parity=cfg.get("parity"),
-                           stopbits=cfg.get("stopbits"))
+        if address is None:
+            try:
+                address = self._link.resolve()
+            except AddressError:
+                return char_time_s(baud=FACTORY_BAUD)
+        return char_time_s(baud=address.baud, bytesize=address.bytesize, parity=address.parity,
+                           stopbits=address.stopbits)
 
     def check_config(self) -> None:
         """The serial checks, plus the calibration (mag_offset with mag_matrix); the fields' own rules are declared."""
@@ -139,7 +142,7 @@ class SerialCompassDriver(SerialLineSensor):
         """The serial fields reopen the port (which also starts burst learning afresh)."""
         super().on_config_change(name, value)
         self.field_heading.on_config_change(name, value)
-        if name in ("epoch_gap_s", "baudrate"):
+        if name in ("epoch_gap_s", "device"):   # a new device: its address's baud rate
             self.bursts = self._new_grouper()
 
     @property

@@ -26,8 +26,8 @@ from collections import Counter
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-from u2sa_hw.drivers.gpio.lines import (GpioLineSet, check_gpio_device, legacy_gpio_address, note_restart_needed,
-                                parse_levels, parse_line_map, parse_names, parse_positions)
+from u2sa_hw.drivers.gpio.lines import (GpioLineSet, check_gpio_device, note_restart_needed, parse_levels,
+                                        parse_line_map, parse_names, parse_positions)
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Actuator, ExteroceptiveSensor
@@ -40,20 +40,14 @@ from u2sa_hw.ports.gpio.port import GpioPort
 ON_THRESHOLD_PERCENT = 50.0
 BUMPER_LEVEL = 3  # ObjectDescription level: avoid at all costs (we are touching it)
 
-_CHIP = field("chip", "", 'old form of the address: "/dev/gpiochipN" (gpiodetect lists them) or "mock:/path/to.sock"')
 _DEVICE = (field("device", "", "the chip's lines: its [devices.NAME] table (address gpio://CHIP/LINES) and "
                                "RAW.<device> (empty: the service name)"),
            field("device_name", "", "old name of the device setting"))
 
 
-def _used_gpio(service: str, config: Mapping[str, Any], key: str) -> dict[str, str | None]:
-    """The one GPIO device of a gpio_output/gpio_input service; old form: ``chip`` and its *key* lines."""
-    try:
-        lines = list(parse_line_map(str(config.get(key, "")), service=service, key=key).values())
-    except ConfigError:
-        lines = []
-    legacy = legacy_gpio_address(config, lines) if str(config.get("chip", "")).strip() else None
-    return {device_setting(config, service): legacy}
+def _used_gpio(service: str, config: Mapping[str, Any]) -> tuple[str, ...]:
+    """The one GPIO device of a gpio_output/gpio_input service (``device``, else the service's name)."""
+    return (device_setting(config, service),)
 _RAW = field("record_raw", False, "publish every edge and write as RawGpioEdge/RawGpioWrite on RAW.<device>")
 
 
@@ -62,7 +56,6 @@ class GpioOutputDriver(DeviceDeclarations, Actuator):
 
     MOCK_KINDS = ("gpio_chip",)   # u2sa_hw/ports/declared.py
     CONFIG = (
-        _CHIP,
         field("outputs", "", "name=line,... each name is an actuator name"),
         field("safe_levels", "", "name=level,... the neutral level of each output (unlisted: 0)"),
         *_DEVICE, _RAW,
@@ -93,9 +86,9 @@ class GpioOutputDriver(DeviceDeclarations, Actuator):
         self.parse_config(self.config)
 
     @classmethod
-    def used_devices(cls, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
-        """The output lines' GPIO device (see DeviceLink)."""
-        return _used_gpio(service, config, "outputs")
+    def used_devices(cls, service: str, config: Mapping[str, Any]) -> tuple[str, ...]:
+        """The output lines' GPIO device."""
+        return _used_gpio(service, config)
 
     @classmethod
     def declared_actuators(cls, name: str, config: Mapping[str, Any]) -> set[str]:
@@ -201,7 +194,6 @@ class GpioInputDriver(DeviceDeclarations, ExteroceptiveSensor):
 
     MOCK_KINDS = ("gpio_chip",)   # u2sa_hw/ports/declared.py
     CONFIG = (
-        _CHIP,
         field("inputs", "", "name=line,... e.g. estop=4,bump_front=22"),
         field("active_low", "", "names of inputs that are active at level 0 (e.g. normally-closed e-stops)"),
         field("bias", "as-is", "as-is, pull-up, pull-down or disabled (every line)", choices=BIASES),
@@ -255,9 +247,9 @@ class GpioInputDriver(DeviceDeclarations, ExteroceptiveSensor):
         self.parse_config(self.config)
 
     @classmethod
-    def used_devices(cls, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
-        """The input lines' GPIO device (see DeviceLink)."""
-        return _used_gpio(service, config, "inputs")
+    def used_devices(cls, service: str, config: Mapping[str, Any]) -> tuple[str, ...]:
+        """The input lines' GPIO device."""
+        return _used_gpio(service, config)
 
     @classmethod
     def mock_wiring(cls, service: str, device: str, config: Mapping[str, Any]) -> dict[str, Any]:

@@ -9,8 +9,7 @@ Config strings (one TOML string each, so they can be changed over the bus like a
 
 :class:`GpioLineSet` owns the service's :class:`~u2sa_hw.ports.device_link.DeviceLink`
 (the ``device`` setting, default the service name; its address ``gpio://CHIP/LINES`` from the
-profile's ``[devices.NAME]``, or for old profiles the ``chip`` setting and the lines the
-driver uses): a lost chip is reported in health and re-requested with backoff while the
+profile's ``[devices.NAME]``): a lost chip is reported in health and re-requested with backoff while the
 service keeps running. Writes and reads from several threads (the run loop, a FAILSAFE
 callback, ``kill``) are serialised by one lock. With ``record_raw`` every edge and write is
 published as ``RawGpioEdge`` / ``RawGpioWrite`` on ``RAW.<device>``.
@@ -28,7 +27,6 @@ from u2sa_hw.ports.address import AddressError, make_address
 from u2sa_hw.ports.device_link import DeviceLink, device_setting
 from u2sa_hw.ports.gpio.wire import ClockTick, EdgeEvent
 from u2sa_hw.ports.gpio.port import GpioPort
-from u2sa_hw.ports.legacy import gpio_address
 from u2sa_hw.service.contract import U2SAService
 
 _PORT_FAULTS = (PortClosed, PortIOError, PortTimeout)
@@ -104,26 +102,17 @@ def parse_positions(text: str, *, known: Sequence[str], service: str,
     return positions
 
 
-def legacy_gpio_address(config: Mapping[str, Any], lines: Sequence[int]) -> str | None:
-    """The address the old-form ``chip`` setting and the driver's *lines* give, or None."""
-    try:
-        return gpio_address(str(config.get("chip", "")), lines)
-    except AddressError:
-        return None   # check_gpio_device names the bad chip
-
-
 def check_gpio_device(service: U2SAService, config: Mapping[str, Any], lines: Sequence[int]) -> None:
-    """ConfigError unless the service's GPIO device has an address (``[devices.NAME]`` or ``chip``) that
-    lists every one of *lines* (or lists none); the error names the missing lines and the address to write."""
+    """ConfigError unless the service's GPIO device has an address (``[devices.NAME]``) that lists every one
+    of *lines* (or lists none); the error names the missing lines and the address to write."""
     from u2sa_hw.profile.devices import device_address
 
     device = device_setting(config, service.name)
-    chip = str(config.get("chip", "")).strip()
     try:
-        address = device_address(service.profile, device, legacy_gpio_address(config, lines) if chip else None)
+        address = device_address(service.profile, device)
     except AddressError as exc:
         raise ConfigError(f"service '{service.name}': {exc} (e.g. \"gpio://gpiochip0/{','.join(map(str, lines))}\"; "
-                          "gpiodetect lists the chips; an old profile sets chip = \"/dev/gpiochip0\")") from None
+                          "gpiodetect lists the chips)") from None
     if address.kind != "gpio":
         raise ConfigError(f"service '{service.name}': device '{device}' has the {address.kind} address "
                           f"{address.url}; a GPIO driver needs a gpio:// address")
@@ -165,7 +154,7 @@ class GpioLineSet:
         check_gpio_device(service, config, lines)
         self.reconnecting: DeviceLink[GpioPort] = DeviceLink(
             service, device=lambda: device_setting(config, service.name), raw_type=(t.RawGpioEdge, t.RawGpioWrite),
-            legacy=lambda: legacy_gpio_address(config, lines), on_open=on_open, record=lambda: record_raw,
+            on_open=on_open, record=lambda: record_raw,
             options=lambda: {"inputs": self.inputs, "outputs": dict(self._initial_outputs()), "edge": self.edge,
                              "bias": self.bias})
         self.reconnecting.start()

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any, ClassVar, Mapping
+from typing import Any, Mapping
 
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.config.configurator import ConfigError, field
@@ -55,10 +55,8 @@ STATUS_NAMES = {0: "idle", 1: "system error", 2: "initialising peripherals", 3: 
 class Bno055ImuDriver(I2cImuDriver):
     """BNO055 over I2C: attitude, body rates and gravity-free acceleration in FRD."""
 
-    DEFAULT_ADDRESS: ClassVar[int] = bno.I2C_ADDRESS
     MOCK_KINDS = ("bno055",)
     CONFIG = (
-        field("address", bno.I2C_ADDRESS, "7-bit I2C address: 0x28 (COM3 low) or 0x29", ge=0x03, le=0x77),
         field("mode", "ndof", "fusion mode: ndof, ndof_fmc_off or imu (no magnetometer: no heading)", choices=MODES),
         field("axis_map_config", 0x24, "AXIS_MAP_CONFIG: remap so chip x = forward, y = left, z = up", ge=0, le=0xFF),
         field("axis_map_sign", 0x00, "AXIS_MAP_SIGN for the remap", ge=0, le=0xFF),

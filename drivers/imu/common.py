@@ -2,8 +2,7 @@
 
 :class:`I2cImuDriver` is a Proprioceptive Sensor that reaches one chip through a
 :class:`~u2sa_hw.ports.device_link.DeviceLink` (the ``device`` setting, default the service
-name; its address ``i2c://BUS/CHIP`` from the profile's ``[devices.NAME]``, or for old
-profiles the ``bus`` and ``address`` settings). A subclass writes ``init_chip`` (identify
+name; its address ``i2c://BUS/CHIP`` from the profile's ``[devices.NAME]``). A subclass writes ``init_chip`` (identify
 and configure the chip on every open) and ``read_sample`` (one burst read turned into a
 State Information); this class paces the loop at ``rate_hz``, retries failed transactions,
 counts every fault and reopens the chip after a loss:
@@ -33,16 +32,14 @@ from u2sa_hw.config.configurator import ConfigError, field
 from u2sa_hw.abstract import ProprioceptiveSensor
 from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence setters
 from u2sa_hw.ports.errors import PortClosed, PortError, PortIOError, PortTimeout, PortUnavailable
-from u2sa_hw.ports.address import AddressError
 from u2sa_hw.ports.declared import DeviceDeclarations
 from u2sa_hw.ports.device_link import DeviceLink, device_setting
 from u2sa_hw.ports.i2c.port import I2cPort
-from u2sa_hw.ports.legacy import i2c_address
 
 T = TypeVar("T")
 Vector = tuple[float, float, float]
 AXES = ("x", "y", "z")
-PORT_FIELDS = ("device", "bus", "address")   # where the chip is: a change reopens it there
+PORT_FIELDS = ("device",)   # where the chip is: a change reopens it there
 
 
 class ChipIdentityError(RuntimeError):
@@ -188,18 +185,14 @@ class RetryingI2c:
 class I2cImuDriver(DeviceDeclarations, ProprioceptiveSensor):
     """Base of the I2C IMU drivers (see the module docstring).
 
-    Subclasses declare an ``address`` config field, set ``DEFAULT_ADDRESS`` and write
-    ``init_chip`` and ``read_sample``; ``check_config``, ``chip_health`` and ``healthy``
+    Subclasses write ``init_chip`` and ``read_sample``; ``check_config``, ``chip_health`` and ``healthy``
     are optional.
     """
 
-    DEFAULT_ADDRESS: ClassVar[int] = 0x68
     MOCK_KINDS: ClassVar[tuple[str, ...]] = ("mpu9250", "mpu6500", "mpu6050")   # u2sa_hw/ports/declared.py
     CONFIG = (
         field("device", "", "the chip: its [devices.NAME] table (address i2c://BUS/CHIP) and RAW.<device> "
                             "(empty: the service name)"),
-        field("bus", "", 'old form of the address (with address): I2C adapter number ("1" = /dev/i2c-1) or '
-                         '"mock:/path/to/bus.sock" (empty: the address is [devices.NAME]\'s only)'),
         field("rate_hz", 100.0, "samples published per second", gt=0, le=1000),
         field("retries", 2, "immediate retries of a failed I2C transaction", ge=0, le=100),
         field("reinit_after_errors", 10, "failed samples in a row before the chip is reopened and set up again", ge=1, le=10000),
@@ -221,7 +214,7 @@ class I2cImuDriver(DeviceDeclarations, ProprioceptiveSensor):
         self.measured_rate_hz = 0.0
         self.port: DeviceLink[I2cPort] = DeviceLink(
             self, device=lambda: device_setting(self.config, self.name), raw_type=t.RawI2c,
-            legacy=lambda: self.legacy_address(self.config), on_open=self._on_open)
+            on_open=self._on_open)
         self._calibrated_said = False   # the ``calibrated`` detail as last published on a change
         self._reopen = False            # a device or address setting changed over the bus
         self._paced = False             # the bus paces the data reads (a replay's, paced=true): no timer
@@ -248,22 +241,9 @@ class I2cImuDriver(DeviceDeclarations, ProprioceptiveSensor):
 
     # -- the device ------------------------------------------------------------------------
     @classmethod
-    def legacy_address(cls, config: Mapping[str, Any]) -> str | None:
-        """The address the old-form settings (``bus``, ``address``) give (``i2c://1/0x68``), or None when
-        ``bus`` is not set: a device without a ``[devices.NAME]`` address is then an error, never a silent
-        ``i2c-1``."""
-        bus = str(config.get("bus") or "").strip()
-        if not bus:
-            return None
-        try:
-            return i2c_address(bus, int(config.get("address", cls.DEFAULT_ADDRESS)))
-        except (AddressError, ValueError, TypeError):
-            return None   # the driver's own check names the bad setting
-
-    @classmethod
-    def used_devices(cls, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
-        """The one chip this service reads (see DeviceLink)."""
-        return {device_setting(config, service): cls.legacy_address(config)}
+    def used_devices(cls, service: str, config: Mapping[str, Any]) -> tuple[str, ...]:
+        """The one chip this service reads (``device``, else the service's name)."""
+        return (device_setting(config, service),)
 
     @classmethod
     def mock_wiring(cls, service: str, device: str, config: Mapping[str, Any]) -> dict[str, Any]:
@@ -276,11 +256,6 @@ class I2cImuDriver(DeviceDeclarations, ProprioceptiveSensor):
         return {"chip": "mpu", "variant": str(config.get("chip", "auto"))}
 
     def _check_device(self) -> None:
-        c = self.config
-        bus = str(c["bus"]).strip()
-        if bus and not (bus.isdigit() or (bus.startswith("mock:") and len(bus) > len("mock:"))):
-            raise ConfigError(f"{self.name}: config 'bus': unknown I2C bus {c['bus']!r}; use an adapter number "
-                              '(1 for /dev/i2c-1) or "mock:/path/to/bus.sock"')
         problem = self.port.check()
         if problem:
             raise ConfigError(f"{self.name}: {problem}")
@@ -303,7 +278,7 @@ class I2cImuDriver(DeviceDeclarations, ProprioceptiveSensor):
         self.where = f"0x{self.i2c_address:02x} on {bus if isinstance(bus, str) else f'/dev/i2c-{bus}'}"
 
     def on_config_change(self, name: str, value: Any) -> None:
-        """A change of the device or its old-form address reopens the chip there at the next sample
+        """A change of the device reopens the chip at its address at the next sample
         (DeviceLink.refresh: the old port is closed first); ``record_raw`` starts the tap at once."""
         if name in PORT_FIELDS:
             self._reopen = True

@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any, ClassVar
+from typing import Any
 
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.config.configurator import MAX_TIMEOUT_S, ConfigError, field
@@ -88,9 +88,7 @@ def sample_rate_divider(rate_hz: float, dlpf_cfg: int) -> int:
 class Mpu9250ImuDriver(I2cImuDriver):
     """MPU-6050/6500/9250 accel/gyro over I2C: body rates and accelerations in FRD."""
 
-    DEFAULT_ADDRESS: ClassVar[int] = mpu.I2C_ADDRESS
     CONFIG = (
-        field("address", mpu.I2C_ADDRESS, "7-bit I2C address: 0x68 (AD0 low) or 0x69", ge=0x03, le=0x77),
         field("chip", "auto", "auto, mpu6050, mpu6500 or mpu9250 (checked against WHO_AM_I)"),
         field("gyro_range_dps", 500, "gyro full scale: 250, 500, 1000 or 2000 deg/s", choices=(250, 500, 1000, 2000)),
         field("accel_range_g", 4, "accelerometer full scale: 2, 4, 8 or 16 g", choices=(2, 4, 8, 16)),

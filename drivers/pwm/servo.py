@@ -20,8 +20,8 @@ with each channel's output a device of the profile (``device``, default the chan
 
 Keys: ``name`` (required), ``device``; ``min_us`` 1000, ``neutral_us`` 1500, ``max_us``
 2000, ``reverse`` false, ``frame_hz`` 50, ``slew_percent_per_s`` 0 (no limit) (optional).
-Old profiles give ``address`` (``pca9685:<bus>:<chip>`` or a sysfs chip directory) and
-``channel`` in the table instead; they keep working.
+The old profile form's ``address`` and ``channel`` keys are errors that name the device to
+write instead.
 
 -100..100 % maps piecewise linearly: 0 % is ``neutral_us``, +100 % ``max_us``, -100 %
 ``min_us`` (reversed with ``reverse``), so an ESC with an off-centre neutral still stops
@@ -49,25 +49,24 @@ from typing import Any
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Actuator
 from u2sa_hw.config.configurator import ConfigError, field
+from u2sa_hw.config.keys import old_form_fix
 from u2sa_hw.ports.address import AddressError, DeviceAddress
 from u2sa_hw.ports.declared import DeviceDeclarations
 from u2sa_hw.ports.device_link import DeviceLink
 from u2sa_hw.ports.errors import PortError, PortUnavailable
-from u2sa_hw.ports.legacy import pwm_address
 from u2sa_hw.ports.pwm.port import PwmChannel
 
 log = logging.getLogger(__name__)
+OLD_FORM_KEYS = ("address", "channel")     # a channel table's keys of the old profile form
+OLD_FORM_EXAMPLE = "pca9685://1/0x40/0"   # a channel's device address, for the old form's error
 
 
 @dataclass(frozen=True)
 class ServoChannelSpec:
-    """One output: its actuator name, its device (or old-form PWM address and channel), pulse limits (µs)
-    and behaviour."""
+    """One output: its actuator name, its device, pulse limits (µs) and behaviour."""
 
     name: str
     device: str = ""
-    address: str = ""
-    channel: int = 0
     min_us: float = 1000.0
     neutral_us: float = 1500.0
     max_us: float = 2000.0
@@ -79,14 +78,6 @@ class ServoChannelSpec:
     def device_name(self) -> str:
         """The output's device: ``device``, else the channel's name."""
         return self.device or self.name
-
-    @property
-    def legacy_address(self) -> str | None:
-        """The address the old-form ``address`` and ``channel`` give, or None."""
-        try:
-            return pwm_address(self.address, self.channel) if self.address else None
-        except (AddressError, ValueError):
-            return None
 
     @property
     def period_ns(self) -> int:
@@ -103,9 +94,13 @@ class ServoChannelSpec:
     def from_table(cls, table: Any, *, where: str) -> "ServoChannelSpec":
         """Build and check a spec from one config table; ConfigError names *where*, the key and the fix."""
         if not isinstance(table, dict):
-            raise ConfigError(f"{where}: must be a table like {{ name = \"rudder\", address = \"pca9685:1:0x40\", "
-                              f"channel = 0 }}, got {table!r}")
+            raise ConfigError(f"{where}: must be a table like {{ name = \"rudder\", device = \"rudder\" }}, "
+                              f"got {table!r}")
         known = typing.get_type_hints(cls)
+        for key in (k for k in OLD_FORM_KEYS if k in table):
+            device = str(table.get("device") or table.get("name") or "NAME")
+            raise ConfigError(f"{where}: '{key}' is the old form: " + str(old_form_fix(
+                key, device=device, example=OLD_FORM_EXAMPLE, name_it="in the channel's table")))
         unknown = sorted(set(table) - set(known))
         if unknown:
             raise ConfigError(f"{where}: unknown key(s) {', '.join(unknown)} (known: {', '.join(known)})")
@@ -127,12 +122,6 @@ class ServoChannelSpec:
     def _check(self, where: str) -> None:
         if not self.name:
             raise ConfigError(f"{where}: 'name' must not be empty")
-        if self.address and self.legacy_address is None:
-            raise ConfigError(f"{where}: 'address' {self.address!r} is neither \"pca9685:<bus>:<chip address>\" nor "
-                              "a PWM chip directory; better, name a device whose [devices.NAME] address is "
-                              "\"pca9685://1/0x40/0\" or \"pwm://pwmchip0/0\"")
-        if self.channel < 0:
-            raise ConfigError(f"{where}: 'channel' must be >= 0, got {self.channel}")
         if not 0 < self.frame_hz <= 2000:
             raise ConfigError(f"{where}: 'frame_hz' must be in (0, 2000], got {self.frame_hz} (servos: 50)")
         if not 0 <= self.min_us <= self.neutral_us <= self.max_us or self.min_us == self.max_us:
@@ -149,12 +138,10 @@ def parse_channels(tables: Any, *, service: str) -> list[ServoChannelSpec]:
     """Every channel of the ``channels`` config field, checked together (names, outputs, shared frames)."""
     if not isinstance(tables, list) or not tables:
         raise ConfigError(f"{service}: config 'channels' must list at least one channel, e.g. channels = "
-                          '[{ name = "rudder", address = "pca9685:1:0x40", channel = 0 }]')
+                          '[{ name = "rudder" }] with [devices.rudder] address = "pca9685://1/0x40/0"')
     specs = [ServoChannelSpec.from_table(tab, where=f"{service}: channels[{i}]") for i, tab in enumerate(tables)]
     names: set[str] = set()
     devices: dict[str, str] = {}
-    outputs: dict[tuple[str, int], str] = {}
-    frames: dict[str, ServoChannelSpec] = {}
     for s in specs:
         if s.name in names:
             raise ConfigError(f"{service}: two channels are called '{s.name}'; actuator names must be unique")
@@ -163,21 +150,11 @@ def parse_channels(tables: Any, *, service: str) -> list[ServoChannelSpec]:
         if other_device != s.name:
             raise ConfigError(f"{service}: channels '{other_device}' and '{s.name}' both use device '{s.device_name}'; "
                               "give each actuator its own device")
-        if not s.address:
-            continue
-        other_name = outputs.setdefault((s.address, s.channel), s.name)
-        if other_name != s.name:
-            raise ConfigError(f"{service}: channels '{other_name}' and '{s.name}' both use channel {s.channel} of "
-                              f"{s.address}; give each actuator its own output")
-        other = frames.setdefault(s.address, s)
-        if s.address.startswith("pca9685:") and other.period_ns != s.period_ns:
-            raise ConfigError(f"{service}: channels '{other.name}' and '{s.name}' are on one PCA9685 ({s.address}) "
-                              f"but ask {other.frame_hz} and {s.frame_hz} Hz; all its channels share one frame")
     return specs
 
 
 def resolve_outputs(specs: list[ServoChannelSpec], *, service: str, profile: Any) -> list[DeviceAddress]:
-    """Each channel's address (``[devices.NAME]`` or its old form), checked across every output of the
+    """Each channel's address (its device's ``[devices.NAME]``), checked across every output of the
     service: a PWM kind, no output (sysfs chip/channel, PCA9685 chip/channel) used twice, one frame rate per
     PCA9685. ConfigError names the channel, the address and the fix (sysfs has no exclusivity: two
     writers on one pin would fight over an ESC line)."""
@@ -189,7 +166,7 @@ def resolve_outputs(specs: list[ServoChannelSpec], *, service: str, profile: Any
     for spec in specs:
         where = f"{service}: channel '{spec.name}'"
         try:
-            address = device_address(profile, spec.device_name, spec.legacy_address)
+            address = device_address(profile, spec.device_name)
         except AddressError as exc:
             raise ConfigError(f"{where}: {exc} (e.g. \"pca9685://1/0x40/0\" or \"pwm://pwmchip0/0\")") from None
         if address.kind not in ("pwm", "pca9685"):
@@ -221,7 +198,7 @@ class ServoOutput:
         self.write_errors = 0
         self.last_error = ""  # the latest write or open failure, kept after recovery
         self.port: DeviceLink[PwmChannel] = DeviceLink(
-            service, device=lambda: spec.device_name, raw_type=t.RawPwmWrite, legacy=lambda: spec.legacy_address,
+            service, device=lambda: spec.device_name, raw_type=t.RawPwmWrite,
             options=lambda: {"period_ns": spec.period_ns}, on_open=self._on_open, record=lambda: record)
         problem = self.port.check()
         if problem:
@@ -279,7 +256,7 @@ class PwmServoDriver(DeviceDeclarations, Actuator):
 
     MOCK_KINDS = ("pca9685", "sysfs_pwm")   # u2sa_hw/ports/declared.py
     CONFIG = (
-        field("channels", [], "list of tables: name, address, channel, min_us, neutral_us, max_us, reverse, "
+        field("channels", [], "list of tables: name, device, min_us, neutral_us, max_us, reverse, "
                               "frame_hz, slew_percent_per_s (applied at the next start)"),
         field("update_hz", 50.0, "how often slewed outputs step and lost channels are retried", gt=0, le=1000),
         field("release_on_exit", False, "stop the pulses after the final neutral (default: hold neutral)"),
@@ -301,13 +278,13 @@ class PwmServoDriver(DeviceDeclarations, Actuator):
         return {spec.name for spec in parse_channels(config["channels"], service=name)}
 
     @classmethod
-    def used_devices(cls, service: str, config: typing.Mapping[str, Any]) -> dict[str, str | None]:
-        """One device per channel (``device``, else its name; old form: its ``address`` and ``channel``)."""
+    def used_devices(cls, service: str, config: typing.Mapping[str, Any]) -> tuple[str, ...]:
+        """One device per channel (``device``, else its name)."""
         try:
             specs = parse_channels(config.get("channels", []), service=service)
         except ConfigError:
-            return {}
-        return {spec.device_name: spec.legacy_address for spec in specs}
+            return ()
+        return tuple(spec.device_name for spec in specs)
 
     @classmethod
     def mock_wiring(cls, service: str, device: str, config: typing.Mapping[str, Any]) -> dict[str, Any]:

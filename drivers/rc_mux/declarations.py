@@ -13,12 +13,18 @@ from typing import Any, ClassVar, Mapping
 
 from u2sa_hw.drivers.gpio.lines import parse_line_map
 from u2sa_hw.ports.declared import DeviceDeclarations
+from u2sa_hw.ports.device_link import device_setting
 
 
 class RcMuxDeclarations(DeviceDeclarations):
     """An RC receiver's pulse trains on the service's lines, and the mux on its enable line."""
 
     MOCK_KINDS: ClassVar[tuple[str, ...]] = ("rc_receiver",)
+
+    @classmethod
+    def used_devices(cls, service: str, config: Mapping[str, Any]) -> tuple[str, ...]:
+        """The GPIO device of the receiver's and the mux's lines (``device``, else the service's name)."""
+        return (device_setting(config, service),)
 
     @classmethod
     def mock_wiring(cls, service: str, device: str, config: Mapping[str, Any]) -> dict[str, Any]:

@@ -37,8 +37,7 @@ import time
 from typing import Any, Callable, Mapping, NamedTuple
 
 from u2sa_hw.drivers.rc_mux.declarations import RcMuxDeclarations
-from u2sa_hw.drivers.gpio.lines import (GpioLineSet, check_gpio_device, legacy_gpio_address, note_restart_needed,
-                                parse_line_map)
+from u2sa_hw.drivers.gpio.lines import GpioLineSet, check_gpio_device, note_restart_needed, parse_line_map
 from u2sa_hw.drivers.rc_mux.health import health_details
 from u2sa_hw.drivers.rc_mux.manual import ManualSticks
 from u2sa_hw.drivers.rc_mux.outputs import ManualReport, ModeReport, Output
@@ -49,7 +48,6 @@ from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Sensor
 from u2sa_hw.config.configurator import MAX_RATE_HZ, ConfigError, field
 from u2sa_hw.messages import REGISTRY, MalformedMessage
-from u2sa_hw.ports.device_link import device_setting
 from u2sa_hw.ports.gpio.port import GpioPort
 from u2sa_hw.ports.gpio.wire import BusInput, ClockTick, EdgeEvent
 from u2sa_hw.safety.config import load_safety
@@ -80,7 +78,6 @@ class RcMuxDriver(RcMuxDeclarations, Sensor):
     CONFIG = (
         field("device", "", "the chip's lines: its [devices.NAME] table (address gpio://CHIP/LINES) and "
                             "RAW.<device> (empty: the service name)"),
-        field("chip", "", 'old form of the address: "/dev/gpiochipN" (gpiodetect lists them) or "mock:/path/to.sock"'),
         field("channels", "throttle=5,steering=6,mode=13",
               "name=line,... the receiver channels (RcMode.pulse_us order)"),
         field("mode_channel", "mode", "the channel of the pilot's manual/autonomous switch"),
@@ -164,17 +161,6 @@ class RcMuxDriver(RcMuxDeclarations, Sensor):
     def check_config(self) -> None:
         """Refuse a config the service cannot start with."""
         self.parse_config(self.config)
-
-    @classmethod
-    def used_devices(cls, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
-        """The GPIO lines of the receiver and the mux (see DeviceLink); old form: ``chip`` and the lines."""
-        try:
-            lines = [*parse_line_map(str(config.get("channels", "")), service=service, key="channels").values(),
-                     int(config.get("enable_line", -1)), int(config.get("select_line", -1))]
-        except (ConfigError, TypeError, ValueError):
-            lines = []
-        legacy = legacy_gpio_address(config, lines) if str(config.get("chip", "")).strip() else None
-        return {device_setting(config, service): legacy}
 
     def on_config_change(self, name: str, value: Any) -> None:
         """require_rearm and select_mismatch_ms apply at once; lines and thresholds at the next start."""

@@ -29,12 +29,12 @@ from __future__ import annotations
 
 import os
 import re
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
-from u2sa_hw.check.lenient import lenient_devices, old_form_numbers, readable_configs
-from u2sa_hw.check.problem import WARNING, Collector, did_you_mean, type_name
+from u2sa_hw.check.lenient import lenient_devices, readable_configs
+from u2sa_hw.check.problem import Collector, did_you_mean, type_name
 
 UDEV_RULES_DIRS = (Path("/etc/udev/rules.d"), Path("/run/udev/rules.d"), Path("/lib/udev/rules.d"),
                    Path("/usr/lib/udev/rules.d"))
@@ -49,9 +49,9 @@ def check_devices(path: Path, data: Mapping[str, Any], out: Collector, *, profil
     services = data.get("services", {}) if isinstance(data.get("services"), dict) else {}
     if not isinstance(devices, dict):
         return
-    from u2sa_hw.profile.devices import DEVICE_KEYS, LEGACY_DEVICE_KEYS
+    from u2sa_hw.config.keys import old_device_key_fix
+    from u2sa_hw.profile.devices import DEVICE_KEYS
 
-    known_keys = (*DEVICE_KEYS, *LEGACY_DEVICE_KEYS)
     catalog = _mock_catalog()
     for name, table in devices.items():
         key = f"devices.{name}"
@@ -59,7 +59,12 @@ def check_devices(path: Path, data: Mapping[str, Any], out: Collector, *, profil
             out.error(key, f"must be a table, got {type_name(table)}", f"write [devices.{name}] with address = \"...\"")
             continue
         for k in table:
-            if k not in known_keys:
+            if k in DEVICE_KEYS:
+                continue
+            old = old_device_key_fix(k)   # usb = {...}, can = {...}: the old form
+            if old is not None:
+                out.error(f"{key}.{k}", f"'{k}' is the old form", old)
+            else:
                 out.error(f"{key}.{k}", f"unknown key '{k}'{did_you_mean(k, DEVICE_KEYS)}",
                           f"a device table has {', '.join(DEVICE_KEYS)}")
         service = table.get("service")   # default: the service that names the device (profile_devices)
@@ -81,13 +86,8 @@ def check_devices(path: Path, data: Mapping[str, Any], out: Collector, *, profil
             _check_mocks(None, profile, devices, services, out)
         return
     configs = readable_configs(profile)
-    numbers = old_form_numbers(profile, configs)
-    for number in numbers:   # bus = 1 read as bus = "1": the device is known, and the type error shows the new form
-        configs[number.service] = {**configs[number.service], number.key: str(number.value)}
     readable, _ = lenient_devices(profile, configs)
-    entries = _check_addresses(readable, configs, out,
-                               shown={(n.service, device) for n in numbers for device in n.addresses})
-    _show_new_form(numbers, out)
+    entries = _check_addresses(readable, configs, out)
     if for_sim:
         _check_mocks(entries, profile, devices, services, out)
     elif entries is not None:
@@ -135,20 +135,16 @@ def _mock_catalog() -> Mapping[str, Any] | None:
     return None if support is None else support.catalog
 
 
-def _check_addresses(profile: Any, configs: Mapping[str, Any], out: Collector,
-                     shown: set[tuple[str, str]] = frozenset()) -> dict[str, Any] | None:  # type: ignore[assignment]
+def _check_addresses(profile: Any, configs: Mapping[str, Any], out: Collector) -> dict[str, Any] | None:
     """Every device of the profile (read past the mistakes reported above); None when even that stops.
 
-    The old form (an address in service settings) is a warning each, but for the (service, device)
-    pairs in *shown*, whose new form an error's fix already gives; the list's own errors (a service
-    with no address, two services on one device) are reported here.
+    The list's own errors (a service with no address, two services on one device) are reported here.
     """
     from u2sa_hw.profile.devices import profile_devices
     from u2sa_hw.profile.vehicle import ProfileError
 
-    notices: list[str] = []
     try:
-        entries = profile_devices(profile, configs=configs, warn=notices.append)
+        entries = profile_devices(profile, configs=configs)
     except ValueError as exc:   # ProfileError, or a service's ConfigError while reading its devices
         stopped_at = "devices." if isinstance(exc, ProfileError) else "services."
         missing = re.search(r"device '([^']+)' of service '[^']+' has no address", str(exc))
@@ -157,26 +153,9 @@ def _check_addresses(profile: Any, configs: Mapping[str, Any], out: Collector,
                    for p in out.problems):
             out.from_text(str(exc), key="devices", fix="write the address as docs/ports.md shows")
         return None
-    for text in notices:
-        if not any(f"[services.{service}]: device '{device}' " in text for service, device in shown):
-            out.from_text(text, key="services", fix="", severity=WARNING)
     _check_unused(entries, profile, out)
     _check_shared_outputs(entries, out)
     return entries
-
-
-def _show_new_form(numbers: Iterable[Any], out: Collector) -> None:
-    """The type error of an old-form address setting written as a number (``bus = 1``: "expects str") gets the
-    new form as its fix, as an old-form warning does, instead of "write a str like bus = \"\""."""
-    for number in numbers:
-        key = number.key if number.file else f"services.{number.service}.settings.{number.key}"
-        new = "; ".join(f'[devices.{device}] address = "{url}"' for device, url in number.addresses.items())
-        for i, problem in enumerate(out.problems):
-            in_file = Path(problem.file).resolve() == Path(number.file).resolve() if number.file \
-                else problem.file == out.profile_path
-            if problem.is_error and problem.key == key and in_file:
-                out.problems[i] = replace(problem, fix=f"write the device's address in the profile in the new form: "
-                                          f"{new} (in the old form: {number.key} = \"{number.value}\")")
 
 
 def _check_unused(entries: Mapping[str, Any], profile: Any, out: Collector) -> None:
@@ -271,7 +250,7 @@ def _check_can_bitrates(entries: Mapping[str, Any], profile: Any, out: Collector
         if address.kind != "can" or address.mock or address.can_interface != "socketcan" or address.bitrate \
                 or not entry.used or spec is None or not spec.enabled:
             continue
-        key = f"services.{entry.service}.settings" if entry.legacy else f"devices.{name}.address"
+        key = f"devices.{name}.address"
         out.warning(key, f"CAN interface {address.can_channel} has no bitrate: u2sa install cannot set it, so "
                     f"{address.can_channel} does not come up at boot (the service waits for it) unless something "
                     "else configures it",
@@ -286,7 +265,7 @@ def serial_devices(profile: Any, entries: Mapping[str, Any] | None = None) -> li
 
     if entries is None:
         try:
-            entries = profile_devices(profile, warn=lambda _text: None)
+            entries = profile_devices(profile)
         except ValueError:   # ProfileError or a service's ConfigError:
             return []   # reported by _check_addresses
     found = []
@@ -295,7 +274,7 @@ def serial_devices(profile: Any, entries: Mapping[str, Any] | None = None) -> li
         address = entry.address
         if spec is not None and spec.enabled and address.kind == "serial" and not address.mock \
                 and not address.is_serial_url:
-            key = f"services.{entry.service}.settings.port" if entry.legacy else f"devices.{name}.address"
+            key = f"devices.{name}.address"
             found.append((name, key, address))
     return found
 
@@ -404,7 +383,7 @@ def _check_usb_identities(entries: Mapping[str, Any], out: Collector) -> None:
                "adapter (one serial number is one adapter)")
         at = (bare or names)[-1]   # the line is on a device to change
         entry = entries[at]
-        key = f"services.{entry.service}.settings" if entry.legacy else f"devices.{at}.address"
+        key = f"devices.{at}.address"
         out.error(key, f"devices {listed} have USB identities that do not tell their adapters apart: the udev "
                   f"rules install writes for {links} {'both' if len(group) == 2 else 'all'} match one adapter, so "
                   f"{'either' if len(group) == 2 else 'any'} link may point at the wrong device",

@@ -15,11 +15,10 @@ mistakes left out:
 - :func:`readable_configs`: each service's config, a wrong setting or config-file value left
   at its default, so the devices of a service with a bad ``baudrate`` are still known.
 - :func:`lenient_devices`: the device tables without bad keys and without the devices whose
-  address does not parse (the services that use those are left out too).
-- :func:`old_form_numbers`: an old-form address setting written as a number where the driver
-  reads text (``bus = 1`` for ``bus = "1"``), read as that text when it gives a device the
-  address the user meant: the device check then reads the devices so, and its type error
-  shows the new form (``[devices.imu] address = "i2c://1/0x68"``) instead of ``bus = ""``.
+  address does not parse; the services that use those are left out too, and so are the
+  services still given an address setting of the old form (``port``, ``bus``...; the
+  services check names the new form), whose devices have no address to read.
+- :func:`without_old_form`: only the latter, for install's own reading of the devices.
 """
 
 from __future__ import annotations
@@ -27,7 +26,6 @@ from __future__ import annotations
 import dataclasses
 import tempfile
 import tomllib
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -113,14 +111,11 @@ def lenient_profile(path: Path, data: Mapping[str, Any]) -> Any:
 def clean_device_tables(tables: Any, *, services: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
     """Each ``[devices.NAME]`` table with only the keys a device table takes, of the right type, and a
     ``service`` that is one of *services* (the device check reports the rest)."""
-    from u2sa_hw.profile.devices import LEGACY_DEVICE_KEYS
-
     kept: dict[str, dict[str, Any]] = {}
     for name, table in (tables.items() if isinstance(tables, dict) else ()):
         if not isinstance(table, dict):
             continue
-        kept[name] = {k: v for k, v in table.items() if k in LEGACY_DEVICE_KEYS
-                      or k in DEVICE_KEY_TYPES and isinstance(v, DEVICE_KEY_TYPES[k])}
+        kept[name] = {k: v for k, v in table.items() if k in DEVICE_KEY_TYPES and isinstance(v, DEVICE_KEY_TYPES[k])}
         if kept[name].get("service") is not None and kept[name]["service"] not in services:
             del kept[name]["service"]
     return kept
@@ -144,17 +139,6 @@ def readable_configs(profile: Any) -> dict[str, dict[str, Any]]:
     return configs
 
 
-@dataclass(frozen=True)
-class OldFormNumber:
-    """An old-form address setting written as a number where the driver reads text (``bus = 1``)."""
-
-    service: str
-    key: str                    # the setting
-    file: Path | None           # the service's config file when the value is written there, else None (the profile)
-    value: int                  # as written
-    addresses: dict[str, str]   # device -> the address the setting gives it, read as text
-
-
 def _written_values(spec: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     """(the profile's settings, the config file's values) of *spec* as written (a file that does not read: {})."""
     file_values: dict[str, Any] = {}
@@ -165,51 +149,6 @@ def _written_values(spec: Any) -> tuple[dict[str, Any], dict[str, Any]]:
             read = {}
         file_values = read if isinstance(read, dict) else {}
     return dict(spec.settings), file_values
-
-
-def old_form_numbers(profile: Any, configs: Mapping[str, Mapping[str, Any]]) -> list[OldFormNumber]:
-    """Each setting of an enabled service written as a whole number where its field is text, that, read as
-    that text, gives a device without a ``[devices.NAME] address`` an address that parses: an old-form
-    address setting (``bus = 1`` -> ``i2c://1/0x68``). The driver declares which settings make an address
-    (``used_devices``); nothing here knows their names. *configs*: :func:`readable_configs`."""
-    from u2sa_hw.profile.devices import service_devices
-    from u2sa_hw.ports.address import AddressError, parse_address
-    from u2sa_hw.registry import resolve_kind
-    from u2sa_hw.service.base_config import BASE_CONFIG
-
-    found: list[OldFormNumber] = []
-    tables = profile.devices if isinstance(profile.devices, dict) else {}
-    for name, spec in profile.services.items():
-        if not spec.enabled or name not in configs:
-            continue
-        try:
-            cls = resolve_kind(spec.kind)
-            fields = {f.name: f for f in (*BASE_CONFIG, *cls.config_fields())}
-            before = service_devices(cls, name, configs[name])
-        except (LookupError, ImportError, AttributeError, ValueError):
-            continue
-        settings, file_values = _written_values(spec)
-        for key, value in {**settings, **file_values}.items():   # the file wins, as in the service
-            f = fields.get(key)
-            if f is None or f.type is not str or type(value) is not int:
-                continue
-            try:
-                after = service_devices(cls, name, {**configs[name], key: str(value)})
-            except (ValueError, TypeError):
-                continue
-            gained: dict[str, str] = {}
-            for device, text in after.items():
-                table = tables.get(device)
-                if not text or text == before.get(device) or (isinstance(table, dict) and "address" in table):
-                    continue
-                try:
-                    gained[device] = parse_address(text, device=device).url
-                except AddressError:
-                    continue
-            if gained:
-                found.append(OldFormNumber(name, key, spec.config_path if key in file_values else None, value,
-                                           gained))
-    return found
 
 
 def _config_past_mistakes(spec: Any) -> dict[str, Any] | None:
@@ -241,8 +180,9 @@ def _config_past_mistakes(spec: Any) -> dict[str, Any] | None:
 
 def lenient_devices(profile: Any, configs: Mapping[str, Mapping[str, Any]]) -> tuple[Any, set[str]]:
     """(*profile* with clean device tables and without the devices whose address does not parse, the names
-    of those devices). A service that uses such a device is disabled in the copy, so the other devices
-    are still read; *configs* are :func:`readable_configs`."""
+    of those devices). A service that uses such a device, or is still given an old-form address setting
+    (the services check's error), is disabled in the copy, so the other devices are still read; *configs*
+    are :func:`readable_configs`."""
     from u2sa_hw.profile.devices import service_devices
     from u2sa_hw.ports.address import AddressError, parse_address
     from u2sa_hw.registry import resolve_kind
@@ -255,17 +195,41 @@ def lenient_devices(profile: Any, configs: Mapping[str, Mapping[str, Any]]) -> t
                 parse_address(table["address"], device=name)
             except AddressError:
                 bad.add(name)
-    if not bad:
-        return dataclasses.replace(profile, devices=tables), bad
     services = dict(profile.services)
     for name, spec in profile.services.items():
         if not spec.enabled or name not in configs:
             continue
         try:
-            used = service_devices(resolve_kind(spec.kind), name, configs[name])
+            cls = resolve_kind(spec.kind)
+            used = service_devices(cls, name, configs[name])
         except (LookupError, ImportError, AttributeError, ValueError):
             continue
-        if bad & set(used) or any(tables[b].get("service") == name for b in bad):
+        if bad & set(used) or any(tables[b].get("service") == name for b in bad) or _old_form(spec, cls):
             services[name] = dataclasses.replace(spec, enabled=False)
     kept = {name: table for name, table in tables.items() if name not in bad}
     return dataclasses.replace(profile, devices=kept, services=services), bad
+
+
+def without_old_form(profile: Any) -> Any:
+    """*profile* with the services still given an old-form address setting disabled (the services check's
+    error names the new form; their devices have no address to read, so nothing says that too)."""
+    from u2sa_hw.registry import resolve_kind
+
+    services = dict(profile.services)
+    for name, spec in profile.services.items():
+        try:
+            old = spec.enabled and _old_form(spec, resolve_kind(spec.kind))
+        except (LookupError, ImportError, AttributeError):
+            continue
+        if old:
+            services[name] = dataclasses.replace(spec, enabled=False)
+    return dataclasses.replace(profile, services=services)
+
+
+def _old_form(spec: Any, cls: type) -> bool:
+    """True when service *spec* (of class *cls*) is still given an address setting of the old form."""
+    from u2sa_hw.config.keys import old_form_keys
+    from u2sa_hw.service.base_config import BASE_CONFIG
+
+    fields = [f.name for f in (*BASE_CONFIG, *cls.config_fields())]
+    return any(old_form_keys(values, fields) for values in _written_values(spec))

@@ -109,15 +109,28 @@ def _fields(cls: Any) -> dict[str, Any]:
     return {f.name: f for f in (*BASE_CONFIG, *cls.config_fields())}
 
 
+def _device_of(service: str, *tables: Mapping[str, Any]) -> str:
+    """The device a service names (``device`` in the last of *tables* that sets it), else its name."""
+    named = [t["device"] for t in tables if isinstance(t.get("device"), str) and t["device"].strip()]
+    return named[-1].strip() if named else service
+
+
 def _check_values(values: Mapping[str, Any], fields: Mapping[str, Any], out: Collector, *, key: str,
-                  file: Path | None, unknown_is_error: bool) -> bool:
-    """Names and types of *values*; True when every value can be used."""
+                  file: Path | None, unknown_is_error: bool, device: str) -> bool:
+    """Names and types of *values*; True when every value can be used. A driver's (a kind with a ``device``
+    setting) old-form address setting is an error naming *device* and the new form."""
     from u2sa_hw.config.configurator import ConfigError, coerce, to_text
+    from u2sa_hw.config.keys import old_form_fix, old_form_keys
 
     usable = True
+    old = old_form_keys(values, fields)
     for name, value in values.items():
         at = f"{key}.{name}" if key else name
         f = fields.get(name)
+        if name in old:
+            out.error(at, f"'{name}' is the old form", str(old_form_fix(name, device=device)), file=file)
+            usable = False
+            continue
         if f is None:
             text = f"'{name}' is not a setting of this service{did_you_mean(name, fields)}"
             fix = f"its settings: {', '.join(sorted(fields))}"
@@ -188,7 +201,8 @@ def _check_config(name: str, cls: Any, settings: Any, config_path: Path, *, expl
     fields = _fields(cls)
     usable = True
     if isinstance(settings, dict):
-        usable = _check_values(settings, fields, out, key=f"{key}.settings", file=None, unknown_is_error=True)
+        usable = _check_values(settings, fields, out, key=f"{key}.settings", file=None, unknown_is_error=True,
+                               device=_device_of(name, settings))
     else:
         settings, usable = {}, False
     file_values: dict[str, Any] = {}
@@ -198,7 +212,8 @@ def _check_config(name: str, cls: Any, settings: Any, config_path: Path, *, expl
             usable = False
         else:
             file_values = read
-            usable = _check_values(read, fields, out, key="", file=config_path, unknown_is_error=False) and usable
+            usable = _check_values(read, fields, out, key="", file=config_path, unknown_is_error=False,
+                                   device=_device_of(name, settings, read)) and usable
     elif explicit:
         out.warning(f"{key}.config", f"config file {config_path} does not exist: the service runs with its "
                     "defaults and the profile's settings", "correct the path, or create the file")

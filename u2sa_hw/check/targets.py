@@ -74,7 +74,7 @@ def profile_targets(profile: Any) -> list[Target]:
     """Every device of every enabled service of *profile*; one whose kind has no probe has ``port=""``."""
     from u2sa_hw.profile.devices import effective_config, profile_devices
 
-    entries = profile_devices(profile, warn=lambda _text: None)   # ProfileError: see u2sa check (offline)
+    entries = profile_devices(profile)   # ProfileError: see u2sa check (offline)
     targets, seen = [], set()
     for entry in entries.values():
         spec = profile.services.get(entry.service)

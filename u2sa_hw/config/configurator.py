@@ -21,7 +21,9 @@ before anything is written, so the file is untouched. Writes are atomic (temp fi
 same directory, fsync, rename), so a crash or a full disk never leaves a half-written file;
 an unwritable file makes ``set`` return False and logs why. An unknown key in the profile's
 settings is an error with a did-you-mean; in the file it is a warning and kept (a field of a
-newer version).
+newer version). An address setting of the old profile form (``port``, ``bus``, ``chip``...)
+given to a driver (a service with a ``device`` setting), in either, is an error naming the new
+form (:func:`u2sa_hw.config.keys.old_form_problem`).
 
 Text (what ``u2sa param set`` sends) is read as a TOML literal: ``42``, ``2.5``, ``true``,
 ``"text"``. For a string field a TOML string literal (``"passthrough"`` or ``'passthrough'``)
@@ -40,7 +42,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
 
-from u2sa_hw.config.keys import did_you_mean, known_text, unknown_key_problem
+from u2sa_hw.config.keys import did_you_mean, known_text, old_form_keys, old_form_problem, unknown_key_problem
 
 TYPE_NAMES = {int: "int", float: "float", bool: "bool", str: "str"}
 SECRET_FILE = "secret"   # field(file=SECRET_FILE): the field names a file holding a secret
@@ -310,6 +312,8 @@ class Configurator:
         self._trial = threading.local()      # a proposed value, seen only by the thread validating it
         self._trials = 0                     # trials open in any thread: get() skips the thread-local when 0
         self._trials_lock = threading.Lock()
+        device = (initial or {}).get("device")
+        self._device_hint = device.strip() if isinstance(device, str) and device.strip() else "NAME"
         for name, value in (initial or {}).items():
             if name not in self.passthrough:
                 self._load_value(name, value, source=initial_source, strict=True)
@@ -336,6 +340,8 @@ class Configurator:
     def _load_value(self, name: str, value: Any, *, source: str, strict: bool = False) -> None:
         f = self.fields.get(name)
         if f is None:
+            if old_form_keys({name: value}, self.fields):   # a driver's address setting of the old form
+                raise ConfigError(str(old_form_problem(name, where=source, device=self._device_hint)))
             if strict:   # the profile's settings: a typo there is an error (the profile is checked as a whole)
                 raise ConfigError(unknown_key_problem(name, self.fields, where=source))
             # Kept and written back unchanged: a field of a newer version, or a typo we report.

@@ -155,19 +155,14 @@ def preflight(profile: VehicleProfile, *, root: Path, taken: set[str], force: bo
     *checked*: :func:`offline_check` of the profile. *taken*: vehicle paths the install writes
     otherwise (a referenced file must not land on one).
     """
-    from u2sa_hw.check.lenient import old_form_numbers, readable_configs
+    from u2sa_hw.check.lenient import readable_configs, without_old_form
 
     assert profile.path is not None
     errors = checked.errors
-    notices: list[str] = []
     unreadable: list[str] = []
-    numbers: list[Any] = []
     try:   # a service's wrong setting (an error above) does not hide the devices of the others
         configs = readable_configs(profile)
-        numbers = old_form_numbers(profile, configs)
-        for number in numbers:   # bus = 1 read as the check reads it, bus = "1" (its type error gives the new form)
-            configs[number.service] = {**configs[number.service], number.key: str(number.value)}
-        devices = profile_devices(profile, configs=configs, warn=notices.append)
+        devices = profile_devices(without_old_form(profile), configs=configs)   # the check names the new form
         plan = plan_devices(devices, profile_path=profile.path, made_elsewhere=links_made(rules_dirs(root)))
     except (ValueError, InstallError) as exc:
         plan, unreadable = DevicePlan(), [f"no udev rules, CAN bring-up or PWM drop-ins from the devices: {exc}"]
@@ -189,10 +184,6 @@ def preflight(profile: VehicleProfile, *, root: Path, taken: set[str], force: bo
             cannot.append(unlabelled(problem))
     if (errors or own) and not force:
         raise refusal(profile.path, [*errors, *own])
-    # Said as warnings (the CLI prints "warning: " before each): the check's lines without their own severity,
-    # then the old-form notices of install's own device reading that the check did not already give.
+    # Said as warnings (the CLI prints "warning: " before each): the check's lines without their own severity.
     gone_past = [unlabelled(p) for p in checked.problems if p not in said]
-    notices = [n for n in notices if not any(n.startswith(f"{p.file} [{p.key}]: {p.message}")
-                                             for p in checked.problems)
-               and not any(f"[services.{k.service}]: device '{d}' " in n for k in numbers for d in k.addresses)]
-    return Preflight(plan=plan, references=references, warnings=[*gone_past, *notices], failures=cannot)
+    return Preflight(plan=plan, references=references, warnings=gone_past, failures=cannot)

@@ -9,7 +9,7 @@ and get values in their own vocabulary. Every hardware driver class derives from
     class GpsNmeaDriver(SerialLineSensor):           # SerialLineSensor derives from DeviceDeclarations
         MOCK_KINDS = ("nmea_gps",)                   # the mocks that stand in for its device, usual first
         @classmethod
-        def used_devices(cls, service, config) -> Mapping[str, str | None]: ...   # the devices it opens
+        def used_devices(cls, service, config) -> tuple[str, ...]: ...    # the devices it opens
         @classmethod
         def mock_wiring(cls, service, device, config) -> Mapping[str, Any]: ...
         @classmethod
@@ -42,10 +42,9 @@ class DeviceDeclarations:
     """The ``CATALOG`` mock kinds that stand in for the driver's device, the usual one first."""
 
     @classmethod
-    def used_devices(cls, service: str, config: Mapping[str, Any]) -> Mapping[str, str | None]:
-        """The devices service *service* opens (``[devices.NAME]`` tables), in order: name -> the address its
-        old-form settings give (None: new form only)."""
-        return {}
+    def used_devices(cls, service: str, config: Mapping[str, Any]) -> tuple[str, ...]:
+        """The names of the devices service *service* opens (their ``[devices.NAME]`` tables), in order."""
+        return ()
 
     @classmethod
     def mock_wiring(cls, service: str, device: str, config: Mapping[str, Any]) -> Mapping[str, Any]:
@@ -88,9 +87,9 @@ def with_defaults(cls: type, config: Mapping[str, Any]) -> dict[str, Any]:
     return {**defaults, **config}
 
 
-def used_devices(cls: type, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
+def used_devices(cls: type, service: str, config: Mapping[str, Any]) -> tuple[str, ...]:
     """The devices service *service* of class *cls* opens (*config* as given: the caller's is the effective one)."""
-    return dict(declarations(cls).used_devices(service, config))
+    return tuple(declarations(cls).used_devices(service, config))
 
 
 def mock_kinds(cls: type) -> tuple[str, ...]:

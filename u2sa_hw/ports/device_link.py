@@ -106,7 +106,7 @@ class DeviceLink(Generic[P]):
         from u2sa_hw.profile.devices import device_address
 
         device = self._device_of()
-        return device_address(self.owner.profile, device, self._legacy())
+        return device_address(self.owner.profile, device)
 
     def check(self) -> str | None:
         """Why the device cannot be opened as configured (a bad or missing address), or None."""

@@ -17,19 +17,17 @@ API (stable; ``u2sa check``, install, udev generation, the simulation and replay
 - :func:`profile_devices` ``(profile) -> dict[str, DeviceEntry]``: every device, with its
   parsed :class:`~u2sa_hw.ports.address.DeviceAddress`, the service that uses it, its mock.
 - :class:`DeviceEntry`: ``name``, ``address``, ``service``, ``mock``, ``options``, ``sides``,
-  ``drives``, ``legacy`` (True when the address came from old-form service settings), ``used``
-  (False for an address no enabled service opens: ``u2sa check`` warns about it).
+  ``drives``, ``used`` (False for an address no enabled service opens: ``u2sa check`` warns
+  about it).
 - :func:`service_devices` ``(kind_class, service, config)``: the devices one service uses.
 - :func:`effective_config` ``(profile, service)``: the config a service will run with.
+- :func:`device_address` ``(profile, device)``: the address a driver opens for a device.
 
-Which devices a service uses, and (for old-form profiles) their address, is declared by the
-driver: a service class with a ``used_devices(service, config) -> {device: legacy address
-or None}`` classmethod (:class:`u2sa_hw.ports.device_link.DeviceLink` documents it). Nothing
-here knows a driver's setting names. An old-form profile (the address in the service's
-``port``/``bus``/``interface``/``chip``/``channels`` settings) keeps loading: the address is
-derived from those and one warning per device shows the new form. A ``[devices.NAME]`` table
-of the old form that names a service using several devices (a ``pwm_servo`` with channels)
-lends its ``mock`` to each of them.
+Which devices a service uses is declared by the driver: its ``used_devices(service, config)``
+declaration (:class:`u2sa_hw.ports.declared.DeviceDeclarations`). Nothing here knows a driver's
+setting names. Every device a service uses needs its own table with an address; the old
+profile form (the address spread over the service's settings, ``usb``/``can`` tables beside
+it) is retired: its keys are errors naming the new form (:mod:`u2sa_hw.config.keys`).
 """
 
 from __future__ import annotations
@@ -37,17 +35,12 @@ from __future__ import annotations
 import difflib
 import logging
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Mapping
+from typing import Any, Mapping
 
 from u2sa_hw.ports.address import AddressError, DeviceAddress, parse_address
 from u2sa_hw.profile.vehicle import ProfileError, VehicleProfile
 
-log = logging.getLogger(__name__)
-
 DEVICE_KEYS = ("address", "mock", "service", "options", "sides", "drives")
-LEGACY_DEVICE_KEYS = ("usb", "can")   # udev identity and CAN bitrate of the old form (now address parameters)
-# old-form tables naming one of several devices of a service: which address kind a mock kind stands in for
-_GROUP_MOCK_KINDS = {"pca9685": "pca9685", "sysfs_pwm": "pwm"}
 
 
 @dataclass(frozen=True)
@@ -61,7 +54,6 @@ class DeviceEntry:
     options: dict[str, Any] = field(default_factory=dict)
     sides: tuple[str, ...] = ()            # CAN motor mocks: the side each controller drives
     drives: dict[str, str] = field(default_factory=dict)   # actuator -> vehicle model input
-    legacy: bool = False                   # the address came from old-form service settings
     table: str = ""                        # the [devices.X] table it was read from ("" when none)
     used: bool = True                      # an enabled service opens it (False: an address nothing opens)
 
@@ -85,10 +77,12 @@ def effective_config(profile: VehicleProfile, name: str) -> dict[str, Any]:
     return {field_name: value for field_name, _type, value in config.enumerate()}
 
 
-def service_devices(cls: type, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
-    """The devices service *service* of class *cls* uses: name -> old-form address text (or None)."""
-    used = getattr(cls, "used_devices", None)
-    return dict(used(service, config)) if used is not None else {}
+def service_devices(cls: type, service: str, config: Mapping[str, Any]) -> tuple[str, ...]:
+    """The names of the devices service *service* of class *cls* uses; a service that is not a driver uses
+    none (:mod:`u2sa_hw.ports.declared`)."""
+    from u2sa_hw.ports.declared import used_devices
+
+    return used_devices(cls, service, config)
 
 
 def _where(profile: VehicleProfile, table: str) -> str:
@@ -96,10 +90,16 @@ def _where(profile: VehicleProfile, table: str) -> str:
 
 
 def check_table(profile: VehicleProfile, name: str, table: Mapping[str, Any]) -> None:
-    """ProfileError for an unknown key (with a did-you-mean) or a wrong-typed value in ``[devices.NAME]``."""
+    """ProfileError for an unknown key (with a did-you-mean; an old-form key: the new form) or a wrong-typed
+    value in ``[devices.NAME]``."""
+    from u2sa_hw.config.keys import old_device_key_fix
+
     for key in table:
-        if key in DEVICE_KEYS or key in LEGACY_DEVICE_KEYS:
+        if key in DEVICE_KEYS:
             continue
+        old = old_device_key_fix(key)
+        if old is not None:
+            raise ProfileError(f"{_where(profile, name)}: '{key}' is the old form: {old}")
         close = difflib.get_close_matches(key, DEVICE_KEYS, n=1)
         hint = f"did you mean '{close[0]}'? " if close else ""
         raise ProfileError(f"{_where(profile, name)}: unknown key '{key}'; {hint}a device table takes "
@@ -111,28 +111,12 @@ def check_table(profile: VehicleProfile, name: str, table: Mapping[str, Any]) ->
                                f"not {type(table[key]).__name__} ({table[key]!r})")
 
 
-def _fold_legacy_keys(text: str, table: Mapping[str, Any], name: str) -> str:
-    """Old-form ``usb = {vendor, product, serial}`` / ``can = {bitrate}`` into address parameters."""
-    address = parse_address(text, device=name)
-    extra: dict[str, Any] = {}
-    usb = table.get("usb")
-    if isinstance(usb, dict) and address.kind == "serial":
-        if usb.get("vendor") and usb.get("product") and "usb" not in address.params:
-            extra["usb"] = f"{str(usb['vendor']).lower()}:{str(usb['product']).lower()}"
-        if usb.get("serial") and "serial" not in address.params:
-            extra["serial"] = str(usb["serial"])
-    can = table.get("can")
-    if isinstance(can, dict) and address.kind == "can" and can.get("bitrate") and "bitrate" not in address.params:
-        extra["bitrate"] = int(can["bitrate"])
-    return address.with_params(**extra).url if extra else text
-
-
-def _usage(profile: VehicleProfile, configs: Mapping[str, Mapping[str, Any]] | None
-           ) -> dict[str, tuple[str, str | None]]:
-    """device -> (service, old-form address) over the enabled services; two users are an error."""
+def _usage(profile: VehicleProfile, configs: Mapping[str, Mapping[str, Any]] | None) -> dict[str, str]:
+    """device -> the enabled service that uses it; two users are an error."""
+    from u2sa_hw.ports.declared import declares_devices
     from u2sa_hw.registry import resolve_kind
 
-    owners: dict[str, tuple[str, str | None]] = {}
+    owners: dict[str, str] = {}
     for service, spec in profile.services.items():
         if not spec.enabled:
             continue
@@ -140,25 +124,23 @@ def _usage(profile: VehicleProfile, configs: Mapping[str, Mapping[str, Any]] | N
             cls = resolve_kind(spec.kind)
         except (LookupError, ImportError):
             continue   # an unknown kind is the profile check's error, not a device's
-        if not hasattr(cls, "used_devices"):
+        if not declares_devices(cls):
             continue
         config = configs[service] if configs is not None and service in configs else effective_config(profile, service)
-        for device, legacy in service_devices(cls, service, config).items():
-            if device in owners and owners[device][0] != service:
+        for device in service_devices(cls, service, config):
+            if owners.get(device, service) != service:
                 raise ProfileError(f"{profile.path} [services.{service}]: device '{device}' is also used by service "
-                                   f"'{owners[device][0]}'; give each service its own device (device = \"...\")")
-            owners[device] = (service, legacy)
+                                   f"'{owners[device]}'; give each service its own device (device = \"...\")")
+            owners[device] = service
     return owners
 
 
-def profile_devices(profile: VehicleProfile, *, configs: Mapping[str, Mapping[str, Any]] | None = None,
-                    warn: Callable[[str], None] | None = None) -> dict[str, DeviceEntry]:
+def profile_devices(profile: VehicleProfile, *,
+                    configs: Mapping[str, Mapping[str, Any]] | None = None) -> dict[str, DeviceEntry]:
     """Every device of *profile* (see the module docstring); ProfileError names the table and the fix.
 
-    *configs* (service -> effective config) saves reading each service's config again;
-    *warn* receives the one-line notice for each device given in the old form (default: log).
+    *configs* (service -> effective config) saves reading each service's config again.
     """
-    warn = warn or log.warning
     tables = {name: table for name, table in profile.devices.items()}
     for name, table in tables.items():
         check_table(profile, name, table)
@@ -167,68 +149,34 @@ def profile_devices(profile: VehicleProfile, *, configs: Mapping[str, Mapping[st
             raise ProfileError(f"{_where(profile, name)}: service = '{service}' is not a service of the profile "
                                f"(services: {', '.join(profile.services) or 'none'})")
     owners = _usage(profile, configs)
-    groups = {name: table for name, table in tables.items() if name not in owners and "address" not in table
-              and table.get("service", name) in profile.services}
     entries: dict[str, DeviceEntry] = {}
-    for device, (service, legacy) in owners.items():
-        table = tables.get(device)
-        group_name = ""
-        if table is None:
-            table, group_name = _group_for(groups, service, legacy, device) or ({}, "")
-        text = table.get("address") if group_name == "" else None
-        from_legacy = not text
+    for device, service in owners.items():
+        table = tables.get(device) or {}
+        text = table.get("address")
         if not text:
-            text = legacy
-        where = _where(profile, group_name or device)
-        if not text:
-            raise ProfileError(f"{where}: device '{device}' of service '{service}' has no address; add "
-                               f"[devices.{device}] address = \"...\" (docs/ports.md lists the forms: serial://, "
+            raise ProfileError(f"{_where(profile, device)}: device '{device}' of service '{service}' has no address; "
+                               f"add [devices.{device}] address = \"...\" (docs/ports.md lists the forms: serial://, "
                                f"can://, i2c://, gpio://, pwm://, pca9685://){_did_you_mean(device, tables)}")
-        try:
-            if from_legacy:
-                text = _fold_legacy_keys(text, table, device)
-            address = parse_address(text, device=device)
-        except AddressError as exc:
-            raise ProfileError(f"{where}: {exc}") from None
-        if from_legacy:
-            named = ("" if device == service else
-                     f" and name it in the service (device = \"{device}\"; a pwm_servo: in its channel's table)")
-            warn(f"{profile.path} [services.{service}]: device '{device}' is given in the old form (service "
-                 f"settings); write [devices.{device}] address = \"{address.url}\"{named}")
-        entries[device] = _entry(device, address, service, table, from_legacy, group_name or
-                                 (device if device in tables else ""))
+        entries[device] = _entry(device, _parsed(profile, device, text), service, table)
     for name, table in tables.items():
-        if name in entries or name in groups and _serves(entries, groups[name].get("service", name)):
-            continue   # a device, or an old-form table lending its mock to the devices of its service
+        if name in entries:
+            continue
         if "address" not in table:
-            if "mock" not in table and any(k in table for k in LEGACY_DEVICE_KEYS):
-                continue   # an old-form udev/CAN table of a device no service names: nothing to open
             service = table.get("service", name)
             raise ProfileError(f"{_where(profile, name)}: no address, and service '{service}' uses no device "
                                f"of this name; add address = \"...\" (docs/ports.md) or set service = \"...\" "
                                "to the service that uses it")
-        try:
-            address = parse_address(table["address"], device=name)
-        except AddressError as exc:
-            raise ProfileError(f"{_where(profile, name)}: {exc}") from None
-        entries[name] = replace(_entry(name, address, str(table.get("service", "")), table, False, name), used=False)
+        entry = _entry(name, _parsed(profile, name, table["address"]), str(table.get("service", "")), table)
+        entries[name] = replace(entry, used=False)
     return entries
 
 
-def _group_for(groups: Mapping[str, Mapping[str, Any]], service: str, legacy: str | None,
-               device: str) -> tuple[Mapping[str, Any], str] | None:
-    """The old-form table that lends its mock to *device* of *service* (matched by address kind)."""
-    candidates = [(n, t) for n, t in groups.items() if t.get("service", n) == service]
-    if len(candidates) > 1 and legacy:
-        try:
-            kind = parse_address(legacy, device=device).kind
-        except AddressError:
-            kind = ""
-        candidates = [(n, t) for n, t in candidates if _GROUP_MOCK_KINDS.get(str(t.get("mock")), kind) == kind]
-    if not candidates:
-        return None
-    name, table = candidates[0]
-    return table, name
+def _parsed(profile: VehicleProfile, name: str, text: str) -> DeviceAddress:
+    """The address of ``[devices.NAME]``; ProfileError names the table and what is wrong."""
+    try:
+        return parse_address(text, device=name)
+    except AddressError as exc:
+        raise ProfileError(f"{_where(profile, name)}: {exc}") from None
 
 
 def _did_you_mean(device: str, tables: Mapping[str, Any]) -> str:
@@ -239,29 +187,21 @@ def _did_you_mean(device: str, tables: Mapping[str, Any]) -> str:
             "has an address)") if close else ""
 
 
-def _serves(entries: Mapping[str, DeviceEntry], service: str) -> bool:
-    return any(e.service == service for e in entries.values())
-
-
-def _entry(name: str, address: DeviceAddress, service: str, table: Mapping[str, Any], legacy: bool,
-           table_name: str) -> DeviceEntry:
+def _entry(name: str, address: DeviceAddress, service: str, table: Mapping[str, Any]) -> DeviceEntry:
     sides = table.get("sides") or ()
     return DeviceEntry(name=name, address=address, service=service, mock=table.get("mock"),
                        options=dict(table.get("options") or {}), sides=tuple(str(s) for s in sides),
-                       drives={str(k): str(v) for k, v in (table.get("drives") or {}).items()}, legacy=legacy,
-                       table=table_name)
+                       drives={str(k): str(v) for k, v in (table.get("drives") or {}).items()}, table=name)
 
 
-def device_address(profile: VehicleProfile, device: str, legacy: str | None) -> DeviceAddress:
-    """The address a driver opens for *device*: ``[devices.DEVICE] address``, else the old-form *legacy* one.
+def device_address(profile: VehicleProfile, device: str) -> DeviceAddress:
+    """The address a driver opens for *device*: ``[devices.DEVICE] address``.
 
-    Raises AddressError (a ValueError naming the device and the fix) when neither is given or
+    Raises AddressError (a ValueError naming the device and the fix) when it is not given or
     the text is wrong.
     """
     table = profile.devices.get(device) if profile.devices else None
     text = table.get("address") if isinstance(table, dict) else None
-    if not text:
-        text = legacy
     if not text:
         raise AddressError(device, "", f"no address: add [devices.{device}] address = \"...\" to the vehicle "
                            f"profile{_did_you_mean(device, profile.devices or {})}")
