@@ -15,7 +15,7 @@ from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus.client import BusClient
 from u2sa_hw.launcher import LauncherClient, LauncherError
-from u2sa_hw.launcher.launcher import u2sa_command
+from u2sa_hw.launcher.children import u2sa_command
 
 
 def write_profile(tmp: Path, url: str, services: dict[str, str], *, health_interval: float = 0.2,

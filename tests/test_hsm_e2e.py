@@ -18,7 +18,7 @@ from supervision_helpers import Watch, break_config, hsm_profile, launch  # noqa
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus.client import BusClient
-from u2sa_hw.launcher.launcher import u2sa_command
+from u2sa_hw.launcher.children import u2sa_command
 
 def u2sa(tmp: Path, *args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([*u2sa_command(), *args], cwd=tmp, capture_output=True, text=True, timeout=60,

@@ -25,7 +25,7 @@ from supervision_helpers import Watch, hsm_profile, launch  # noqa: F401 - launc
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus.client import BusClient
-from u2sa_hw.launcher.launcher import u2sa_command
+from u2sa_hw.launcher.children import u2sa_command
 from u2sa_hw.services.hsm.senders import ServiceSenders
 from u2sa_hw.bus.transport import Transport
 
@@ -35,7 +35,7 @@ from u2sa_hw import channels as ch, lcmtypes as t
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus.client import BusClient
-from u2sa_hw.launcher.launcher import u2sa_command
+from u2sa_hw.launcher.children import u2sa_command
 from u2sa_hw.services.hsm.senders import ServiceSenders
 from u2sa_hw.bus.transport import Transport
 

@@ -20,7 +20,7 @@ from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus.client import BusClient
 from u2sa_hw.launcher import Launcher, LauncherBusy, LauncherClient, LauncherError, RestartPolicy, SupervisedProcess
-from u2sa_hw.launcher.launcher import u2sa_command
+from u2sa_hw.launcher.children import u2sa_command
 from u2sa_hw.launcher.policy import REFUSED_EXIT
 from u2sa_hw.service.bus_handlers import DUPLICATE_EXIT, DUPLICATE_PROBE_S, PROBE_ENV
 from u2sa_hw.profile.loader import load_profile

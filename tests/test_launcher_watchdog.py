@@ -159,7 +159,7 @@ def test_u2sa_run_restarts_a_hung_hsm(tmp_path: Path, lcm_url: str, launch: Any)
 def test_run_help_documents_the_watchdog_and_refuses_a_negative_one(tmp_path: Path, lcm_url: str) -> None:
     import subprocess
 
-    from u2sa_hw.launcher.launcher import u2sa_command
+    from u2sa_hw.launcher.children import u2sa_command
 
     shown = subprocess.run([*u2sa_command(), "run", "--help"], capture_output=True, text=True, timeout=60)
     assert shown.returncode == 0 and "--watchdog S" in shown.stdout and "WatchdogSec" in shown.stdout

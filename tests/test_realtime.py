@@ -10,7 +10,7 @@ import pytest
 
 from u2sa_hw.install.units import COMMAND_SOURCE_KINDS, safety_dropins, unit_dropins
 from u2sa_hw.launcher import Launcher
-from u2sa_hw.launcher.launcher import u2sa_command
+from u2sa_hw.launcher.children import u2sa_command
 from u2sa_hw.realtime import (NORMAL, SAFETY_CHAIN_PRIORITIES, SIM_DEVICES_PRIORITY, SchedCalls, Schedule,
                              describe_plan, plan, priority_for)
 from u2sa_hw.profile.loader import load_profile

@@ -6,7 +6,8 @@ one over its control socket, ``RestartPolicy`` holds the backoff rules. See docs
 
 from u2sa_hw.launcher.control import (SOCKET_ENV, LauncherBusy, LauncherClient, LauncherError,
                                       default_socket_path)
-from u2sa_hw.launcher.launcher import Launcher, select_services, u2sa_command
+from u2sa_hw.launcher.children import select_services, u2sa_command
+from u2sa_hw.launcher.launcher import Launcher
 from u2sa_hw.launcher.output import PrefixedOutput
 from u2sa_hw.launcher.policy import ProcessStatus, RestartPolicy
 from u2sa_hw.launcher.process import SupervisedProcess

@@ -21,7 +21,10 @@ import json
 import os
 import socket
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
+
+if TYPE_CHECKING:
+    from u2sa_hw.launcher.launcher import Launcher
 
 SOCKET_NAME = "launcher.sock"
 SOCKET_ENV = "U2SA_LAUNCHER_SOCKET"
@@ -141,6 +144,24 @@ class ControlServer:
             self.drop(conn)
         self.sock.close()
         self.path.unlink(missing_ok=True)
+
+
+def answer(launcher: Launcher, request: dict[str, Any]) -> dict[str, Any]:
+    """The reply to one control request (op status, restart, stop or start) from *launcher*."""
+    op = request["op"]
+    if op == "status":
+        return {"ok": True, "services": [s.as_dict() for s in launcher.status()]}
+    name = request.get("service")
+    if not isinstance(name, str):
+        return {"ok": False, "error": f'"{op}" needs "service": NAME'}
+    if op == "restart":
+        reason = str(request.get("reason") or "requested over the control socket")
+        return {"ok": True, "service": launcher.restart(name, reason=reason).as_dict()}
+    if op == "stop":
+        return {"ok": True, "service": launcher.stop_service(name).as_dict()}
+    if op == "start":
+        return {"ok": True, "service": launcher.start_service(name).as_dict()}
+    return {"ok": False, "error": f"unknown op '{op}' (status, restart, stop, start)"}
 
 
 class LauncherClient:

@@ -34,21 +34,20 @@ from __future__ import annotations
 import os
 import selectors
 import signal
-import sys
 import threading
 import time
 from pathlib import Path
 from typing import Any, Callable, Collection
 
-from u2sa_hw.bus.clock import STATE_ENV
 from u2sa_hw.launcher.child_setup import check_cgroup
-from u2sa_hw.launcher.control import SOCKET_ENV, ControlServer, LauncherError, default_socket_path
+from u2sa_hw.launcher.children import child_environment, select_services, u2sa_command, watchdog_setting
+from u2sa_hw.launcher.control import ControlServer, LauncherError, answer, default_socket_path
 from u2sa_hw.launcher.notify import NotifyListener
-from u2sa_hw.launcher.output import LineSink, LineSplitter, PrefixedOutput
+from u2sa_hw.launcher.output import ChildOutputs, LineSink, PrefixedOutput
 from u2sa_hw.launcher.policy import (BACKOFF, EXITED, FAILED, RUNNING, STOP_LIMIT_S, STOPPED, ProcessStatus,
                                      RestartPolicy)
 from u2sa_hw.launcher.process import SupervisedProcess
-from u2sa_hw.launcher.watchdog import WatchdogSetting, WatchedClock, watchdog_for
+from u2sa_hw.launcher.watchdog import WatchedClock
 from u2sa_hw.realtime import RealtimePlan, describe_plan
 from u2sa_hw.registry import RECORDER_KIND
 from u2sa_hw.profile.vehicle import ServiceSpec, VehicleProfile
@@ -58,34 +57,6 @@ DeathCallback = Callable[[ProcessStatus, str], None]
 
 LAUNCHER_NAME = "launcher"
 _MAX_WAIT = 0.1   # loop wake-up at least this often to notice deaths and deadlines
-
-
-def u2sa_command() -> list[str]:
-    """The argv prefix that runs the ``u2sa`` command with this very interpreter."""
-    return [sys.executable, "-m", "u2sa_hw.cli"]
-
-
-def select_services(profile: VehicleProfile, only: list[str] | None = None) -> list[ServiceSpec]:
-    """The services to start: those named in *only* (even if disabled), else every enabled one."""
-    if only:
-        unknown = [n for n in only if n not in profile.services]
-        if unknown:
-            raise ValueError(f"{profile.path}: no service {', '.join(unknown)} "
-                             f"(services: {', '.join(profile.services) or 'none'})")
-        return [profile.services[n] for n in only]
-    specs = [s for s in profile.services.values() if s.enabled]
-    if not specs:
-        raise ValueError(f"{profile.path or 'the vehicle profile'}: no enabled services to run; "
-                         "add [services.NAME] tables with kind = \"...\"")
-    return specs
-
-
-def _watchdog(kind: str, override_s: float | None) -> WatchdogSetting:
-    """The unit file's watchdog for *kind*, its timeout replaced by *override_s* when given (0: off)."""
-    setting = watchdog_for(kind)
-    if override_s is None:
-        return setting
-    return WatchdogSetting(max(0.0, override_s), setting.abort_s, "override")
 
 
 class Launcher:
@@ -117,13 +88,8 @@ class Launcher:
         self.on_death = on_death
         self.socket_path = (socket_path or default_socket_path(profile.data_dir)) if control else None
         self.notify = NotifyListener()
-        # PYTHONFAULTHANDLER as in the units: a child killed by the watchdog's SIGABRT prints its stacks.
-        # STATE_DIRECTORY as systemd's StateDirectory= gives it: the bus clock is saved there (u2sa_hw.bus.clock).
-        child_env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONFAULTHANDLER": "1",
-                     STATE_ENV: str(Path(profile.data_dir).resolve()), **(env or {}),
-                     "NOTIFY_SOCKET": self.notify.address}
-        if self.socket_path is not None:
-            child_env[SOCKET_ENV] = str(self.socket_path)
+        child_env = child_environment(profile, notify_socket=self.notify.address, control_socket=self.socket_path,
+                                      env=env)
         vehicle = str(profile.path.resolve())
         self.cgroup = cgroup
         if cgroup is not None:
@@ -136,7 +102,7 @@ class Launcher:
         self.watch_clock = WatchedClock()   # read on the loop thread only
         self.processes: dict[str, SupervisedProcess] = {
             s.name: SupervisedProcess(s.name, build(s), policy=policy, env=child_env,
-                                      watchdog=_watchdog(s.kind, 0.0 if s.name in unwatched else watchdog_s),
+                                      watchdog=watchdog_setting(s.kind, 0.0 if s.name in unwatched else watchdog_s),
                                       cgroup=cgroup, schedule=schedules.get(s.name), watch_clock=self.watch_clock,
                                       stop_limit_s=self.stop_limit_s)
             for s in specs}
@@ -154,7 +120,7 @@ class Launcher:
         self._failed: list[str] = []
         self._thread: threading.Thread | None = None
         self._server: ControlServer | None = None
-        self._outputs: dict[int, tuple[Any, LineSplitter]] = {}
+        self._outputs = ChildOutputs(self.output)
         self.finished = threading.Event()
 
     # -- public API ----------------------------------------------------------------------
@@ -167,7 +133,7 @@ class Launcher:
             return
         if self.socket_path is not None:
             try:
-                self._server = ControlServer(self.socket_path, self._handle_request)
+                self._server = ControlServer(self.socket_path, lambda request: answer(self, request))
             except BaseException:
                 self.notify.close()   # the loop that would close it never runs
                 raise
@@ -231,6 +197,14 @@ class Launcher:
             self._wake()
             return proc.status()
 
+    def start_service(self, name: str) -> ProcessStatus:
+        """Start service *name* unless it runs (a stopped or failed one gets a fresh start)."""
+        with self._lock:
+            proc = self._process(name)
+            if proc.proc is None:
+                return self.restart(name, reason="start requested")
+            return proc.status()
+
     def say(self, text: str) -> None:
         """Write a line of the launcher's own."""
         self.output(LAUNCHER_NAME, text)
@@ -279,26 +253,6 @@ class Launcher:
         except (BlockingIOError, OSError):
             pass   # the pipe is full (a wake-up is pending anyway) or closed (finished)
 
-    def _handle_request(self, request: dict[str, Any]) -> dict[str, Any]:
-        op = request["op"]
-        if op == "status":
-            return {"ok": True, "services": [s.as_dict() for s in self.status()]}
-        name = request.get("service")
-        if not isinstance(name, str):
-            return {"ok": False, "error": f'"{op}" needs "service": NAME'}
-        if op == "restart":
-            reason = str(request.get("reason") or "requested over the control socket")
-            return {"ok": True, "service": self.restart(name, reason=reason).as_dict()}
-        if op == "stop":
-            return {"ok": True, "service": self.stop_service(name).as_dict()}
-        if op == "start":
-            with self._lock:
-                proc = self._process(name)
-                if proc.proc is None:
-                    return {"ok": True, "service": self.restart(name, reason="start requested").as_dict()}
-                return {"ok": True, "service": proc.status().as_dict()}
-        return {"ok": False, "error": f"unknown op '{op}' (status, restart, stop, start)"}
-
     def _loop(self) -> None:
         sel = selectors.DefaultSelector()
         sel.register(self._wake_r, selectors.EVENT_READ, "wake")
@@ -314,7 +268,7 @@ class Launcher:
                     timeout = self._next_timeout()
                 for key, _ in sel.select(timeout):
                     self._on_ready(sel, key)
-            self._drain(sel)
+            self._outputs.drain(sel)
         finally:
             if self._server is not None:
                 self._server.close()
@@ -340,7 +294,7 @@ class Launcher:
                 sel.unregister(kind[1])
                 self._server.drop(kind[1])
         elif kind[0] == "out":
-            self._read_output(sel, key.fd)
+            self._outputs.read(sel, key.fd)
 
     def _on_notifications(self) -> None:
         by_pid = {p.pid: p for p in self.processes.values() if p.pid is not None}
@@ -369,35 +323,6 @@ class Launcher:
             self.say(f"starting the others now that {', '.join(self.start_first)} "
                      f"{'is' if len(self.start_first) == 1 else 'are'} ready")
         return False
-
-    def _read_output(self, sel: selectors.BaseSelector, fd: int) -> None:
-        pipe, splitter = self._outputs[fd]
-        try:
-            chunk = os.read(fd, 65536)
-        except (BlockingIOError, InterruptedError):
-            return
-        except OSError:
-            chunk = b""
-        if chunk:
-            splitter.feed(chunk)
-            return
-        sel.unregister(fd)
-        del self._outputs[fd]
-        splitter.close()
-        pipe.close()
-
-    def _drain(self, sel: selectors.BaseSelector) -> None:
-        """Read what the dead children left in their pipes (bounded, in case a grandchild holds one)."""
-        deadline = time.monotonic() + 1.0
-        while self._outputs and time.monotonic() < deadline:
-            for key, _ in sel.select(0.1):
-                if isinstance(key.data, tuple) and key.data[0] == "out":
-                    self._read_output(sel, key.fd)
-        for fd, (pipe, splitter) in list(self._outputs.items()):
-            sel.unregister(fd)
-            splitter.close()
-            pipe.close()
-        self._outputs.clear()
 
     def _tick(self, sel: selectors.BaseSelector) -> None:
         if self._stop_reason and not self._stopping:
@@ -437,10 +362,7 @@ class Launcher:
             self._on_death(p, p.failed_to_spawn(f"{p.argv[0]}: {exc.strerror or exc}" if exc.errno
                                                 else str(exc.strerror)))
             return
-        assert child.stdout is not None
-        os.set_blocking(child.stdout.fileno(), False)
-        self._outputs[child.stdout.fileno()] = (child.stdout, LineSplitter(p.name, self.output))
-        sel.register(child.stdout.fileno(), selectors.EVENT_READ, ("out", p.name))
+        self._outputs.add(sel, child, p.name)
         self.say(f"{p.name} started, pid {child.pid}, run {p.run_id}")
         if p.setup_warning and p.name not in self._warned:
             self._warned.add(p.name)

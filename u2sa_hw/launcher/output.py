@@ -8,9 +8,12 @@ Children write bytes; partial lines are held until their newline (or the pipe's 
 from __future__ import annotations
 
 import os
+import selectors
+import subprocess
 import sys
 import threading
-from typing import Callable, TextIO
+import time
+from typing import IO, Callable, TextIO
 
 LineSink = Callable[[str, str], None]
 """``sink(name, line)``: where the launcher sends each output line (without newline)."""
@@ -76,3 +79,51 @@ class LineSplitter:
 
     def _emit(self, raw: bytes) -> None:
         self.sink(self.name, raw.rstrip(b"\r").decode("utf-8", "replace"))
+
+
+class ChildOutputs:
+    """The children's output pipes, read on the launcher's loop thread and split into lines for *sink*."""
+
+    def __init__(self, sink: LineSink) -> None:
+        self.sink = sink
+        self._pipes: dict[int, tuple[IO[bytes], LineSplitter]] = {}
+
+    def __bool__(self) -> bool:
+        return bool(self._pipes)
+
+    def add(self, sel: selectors.BaseSelector, child: subprocess.Popen, name: str) -> None:
+        """Read *child*'s stdout (non-blocking, through *sel*) as service *name*'s lines."""
+        assert child.stdout is not None
+        os.set_blocking(child.stdout.fileno(), False)
+        self._pipes[child.stdout.fileno()] = (child.stdout, LineSplitter(name, self.sink))
+        sel.register(child.stdout.fileno(), selectors.EVENT_READ, ("out", name))
+
+    def read(self, sel: selectors.BaseSelector, fd: int) -> None:
+        """Read what pipe *fd* holds; at its end, the last partial line goes out and the pipe is closed."""
+        pipe, splitter = self._pipes[fd]
+        try:
+            chunk = os.read(fd, 65536)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            chunk = b""
+        if chunk:
+            splitter.feed(chunk)
+            return
+        sel.unregister(fd)
+        del self._pipes[fd]
+        splitter.close()
+        pipe.close()
+
+    def drain(self, sel: selectors.BaseSelector) -> None:
+        """Read what the dead children left in their pipes (bounded, in case a grandchild holds one)."""
+        deadline = time.monotonic() + 1.0
+        while self._pipes and time.monotonic() < deadline:
+            for key, _ in sel.select(0.1):
+                if isinstance(key.data, tuple) and key.data[0] == "out":
+                    self.read(sel, key.fd)
+        for fd, (pipe, splitter) in list(self._pipes.items()):
+            sel.unregister(fd)
+            splitter.close()
+            pipe.close()
+        self._pipes.clear()
