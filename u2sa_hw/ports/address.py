@@ -32,7 +32,7 @@ API (stable; ``u2sa check``, install and udev generation build on it):
   properties per kind (``serial_path``, ``baud``..., ``can_interface``..., ``i2c_bus``,
   ``i2c_timeout``, ``i2c_paced``, ``chip_address``, ``gpio_chip``, ``lines``, ``pwm_chip``, ``pwm_channel``, ``output_id``,
   ``usb_id``...) and derived copies (``with_params``, ``with_chip_address``: another chip on the same bus).
-- :func:`make_address` builds one from parts (used by the legacy conversion and the mocks).
+- :func:`make_address` builds one from parts (used by the mocks and the install).
 
 A query parameter the kind does not take is an error with a did-you-mean (``bitrat=`` is
 not handed on). Each kind's parser and parameters are its grammar (``u2sa_hw/ports/<kind>/grammar.py``),

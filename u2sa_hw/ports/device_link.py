@@ -2,8 +2,8 @@
 
 A :class:`DeviceLink` owns what every driver family used to wire by itself:
 
-- **the address**: ``[devices.NAME] address`` of the vehicle profile, else the address the
-  driver derives from its old-form settings (:func:`u2sa_hw.profile.devices.device_address`);
+- **the address**: ``[devices.NAME] address`` of the vehicle profile
+  (:func:`u2sa_hw.profile.devices.device_address`);
 - **open** through :func:`~u2sa_hw.ports.opener.open_port`, then the driver's ``on_open``
   (chip init, reading the present levels); a PortError there counts as a failed open;
 - **reconnect with backoff** (:class:`~u2sa_hw.ports.reconnect.ReconnectingPort`): ``get()``
@@ -25,8 +25,8 @@ A :class:`DeviceLink` owns what every driver family used to wire by itself:
 A driver declares the devices it uses for the rest of the system with a classmethod::
 
     @classmethod
-    def used_devices(cls, service: str, config: Mapping[str, Any]) -> dict[str, str | None]:
-        # device name -> the address its old-form settings give (None: new form only)
+    def used_devices(cls, service: str, config: Mapping[str, Any]) -> tuple[str, ...]:
+        # the names of the profile devices the service uses (u2sa_hw.ports.declared)
 
 which :func:`u2sa_hw.profile.devices.profile_devices` calls; the driver's own setting names stay in
 the driver.
@@ -66,8 +66,7 @@ class DeviceLink(Generic[P]):
     """The open/reconnect/tap/health lifecycle of one device for the driver *owner*.
 
     *owner* is the service (``profile``, ``config``, ``publish``, ``register_publisher``);
-    *device* and *legacy* are called on each (re)resolve: the device's name, and the address
-    the driver's old-form settings give (or None). *options* returns ``open_port``'s keyword
+    *device* is called on each (re)resolve: the device's name. *options* returns ``open_port``'s keyword
     options (read timeout, GPIO lines, PWM period). *before_close* is called with the open port
     before ``refresh()`` closes it for a reopen (an actuator writes its neutral/idle there; its
     errors are logged, never stop the reopen). *raw_type* is the LCM type (or types) of
@@ -76,14 +75,12 @@ class DeviceLink(Generic[P]):
     """
 
     def __init__(self, owner: Any, *, device: Callable[[], str], raw_type: type | tuple[type, ...],
-                 legacy: Callable[[], str | None] | None = None,
                  options: Callable[[], Mapping[str, Any]] | None = None,
                  on_open: Callable[[P], None] | None = None, record: Callable[[], bool] | None = None,
                  before_close: Callable[[P], None] | None = None,
                  initial_backoff: float = 0.1, max_backoff: float = 5.0, healthy_after: float = 10.0) -> None:
         self.owner = owner
         self._device_of = device
-        self._legacy = legacy or (lambda: None)
         self._options = options or (lambda: {})
         self._on_open = on_open
         self._before_close = before_close

@@ -1,7 +1,7 @@
 """The serial address grammar: ``serial:///dev/PATH``, ``serial+X://...`` (a pyserial URL), ``mock+serial:///PTY``.
 
 The framing table here (:data:`BAUDRATES`, :data:`PARITIES`, :data:`BYTESIZES`, :data:`STOPBITS`) is the one
-the serial drivers' old-form settings offer too.
+table of serial framing: the drivers' and the probe's choices come from it.
 """
 
 from __future__ import annotations
