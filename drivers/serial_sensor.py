@@ -26,7 +26,7 @@ from typing import Any, ClassVar, Mapping
 
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import ProprioceptiveSensor
-from u2sa_hw.config.configurator import ConfigError, field
+from u2sa_hw.config.fields import ConfigError, field
 from u2sa_hw.ports import PortClosed, PortIOError, PortUnavailable
 from u2sa_hw.ports.declared import DeviceDeclarations
 from u2sa_hw.ports.device_link import DeviceLink, device_setting

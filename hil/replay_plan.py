@@ -23,7 +23,7 @@ from typing import Any, Iterator
 
 import tomli_w
 
-from u2sa_hw.config.configurator import ConfigError, parse_text
+from u2sa_hw.config.fields import ConfigError, parse_text
 from u2sa_hw.ports.address import AddressError, DeviceAddress, parse_address
 from u2sa_hw.recording.log_reader import LogFile, LogSummary
 from u2sa_hw.registry import resolve_kind

@@ -119,7 +119,7 @@ def test_sensors_publish_with_their_name(tmp_path: Path, lcm_url: str, bus: BusC
 
 
 def test_check_config_refuses_a_change_before_it_is_written(tmp_path: Path, lcm_url: str) -> None:
-    from u2sa_hw.config.configurator import ConfigError, field
+    from u2sa_hw.config.fields import ConfigError, field
     from u2sa_hw.service.contract import U2SAService
 
     class RateService(U2SAService):

@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 
 from u2sa_hw.check import ERROR, WARNING, Problem, check_profile
-from u2sa_hw.config.configurator import ConfigError, to_text
+from u2sa_hw.config.fields import ConfigError, to_text
 from u2sa_hw.registry import known_kinds, resolve_kind
 
 KINDS = sorted(known_kinds())

@@ -14,7 +14,8 @@ from pathlib import Path
 import pytest
 from conftest import unprivileged
 
-from u2sa_hw.config.configurator import ConfigError, Configurator, field
+from u2sa_hw.config.configurator import Configurator
+from u2sa_hw.config.fields import ConfigError, field
 
 FIELDS = (field("rate_hz", 50.0, le=1000), field("retries", 3, le=100), field("enabled", True), field("port", "/dev/ttyUSB0"))
 
@@ -106,7 +107,8 @@ def test_unknown_fields_in_the_file_are_kept_on_write(tmp_path: Path) -> None:
 def _try_set_unprivileged(path: Path, name: str, value: object) -> str:
     code = textwrap.dedent(f"""\
         import logging, sys
-        from u2sa_hw.config.configurator import Configurator, field
+        from u2sa_hw.config.configurator import Configurator
+        from u2sa_hw.config.fields import field
         logging.basicConfig(level=logging.WARNING, stream=sys.stdout, format="%(message)s")
         cfg = Configurator({str(path)!r}, (field("retries", 3, le=100),))
         ok, reason = cfg.try_set({name!r}, {value!r})

@@ -17,7 +17,8 @@ from typing import Any
 import pytest
 
 from conftest import REPO, U2SA
-from u2sa_hw.config.configurator import MAX_RATE_HZ, MAX_TIMEOUT_S, ConfigError, ConfigField, Configurator
+from u2sa_hw.config.configurator import Configurator
+from u2sa_hw.config.fields import MAX_RATE_HZ, MAX_TIMEOUT_S, ConfigError, ConfigField
 from u2sa_hw.profile.numbers import PROFILE_NUMBERS, SUPERVISION
 from u2sa_hw.registry import SERVICE_KINDS, resolve_kind
 from u2sa_hw.service.base_config import BASE_CONFIG

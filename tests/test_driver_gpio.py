@@ -20,7 +20,7 @@ from u2sa_hw.mocks.gpio_chip import MockGpioChip
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus.client import BusClient
-from u2sa_hw.config.configurator import ConfigError
+from u2sa_hw.config.fields import ConfigError
 from u2sa_hw.ports.tap import raw_channel
 
 MS = 1_000_000

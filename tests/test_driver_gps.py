@@ -21,7 +21,7 @@ from u2sa_hw.mocks.nmea_gps import NmeaGpsDevice
 from u2sa_hw.mocks.pty_serial import LineSettings
 from u2sa_hw.mocks.vehicle_sim import SimVehicle
 from u2sa_hw.bus.client import BusClient
-from u2sa_hw.config.configurator import ConfigError
+from u2sa_hw.config.fields import ConfigError
 from u2sa_hw.geo import geodetic_to_ned, ned_to_geodetic
 from u2sa_hw.bus.transport import Transport
 from u2sa_hw.profile.vehicle import Origin, VehicleProfile

@@ -26,7 +26,7 @@ from u2sa_hw.mocks.odrive_node import ENABLE_WATCHDOG_ENDPOINT, MOCK_FW, WATCHDO
 from u2sa_hw.mocks.vehicle_sim import SimVehicle
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus.client import BusClient
-from u2sa_hw.config.configurator import ConfigError
+from u2sa_hw.config.fields import ConfigError
 from u2sa_hw.ports.tap import RX, TX, raw_channel
 from u2sa_hw.protocols.odrive_cansimple import (AxisError05, AxisState, Cmd, Heartbeat, OdriveError, ProcedureResult,
                                                 arbitration_id, decode_set_axis_state, encode_heartbeat, make_frame)

@@ -24,7 +24,7 @@ from u2sa_hw.drivers.can_motor.vesc.driver import VescCanMotor
 from u2sa_hw.mocks.vehicle_sim import SimVehicle
 from u2sa_hw.mocks.vesc_node import VescCanNode
 from u2sa_hw.bus.client import BusClient
-from u2sa_hw.config.configurator import ConfigError
+from u2sa_hw.config.fields import ConfigError
 from u2sa_hw.protocols import vesc_can as vc
 from u2sa_hw.protocols.vesc_can import PacketId
 from u2sa_hw.bus.udp_ports import private_udp_port

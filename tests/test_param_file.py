@@ -14,7 +14,7 @@ import pytest
 from conftest import ServiceProcesses, wait_until
 
 from u2sa_hw.bus.client import BusClient
-from u2sa_hw.config.configurator import field
+from u2sa_hw.config.fields import field
 from u2sa_hw.config.param_file import LiveService, key_lines, plan_load
 
 EST, WORLD = "state_estimator", "world_modeler"

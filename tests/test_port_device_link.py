@@ -13,7 +13,7 @@ import pytest
 
 from conftest import REPO, wait_until
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config.configurator import ConfigError
+from u2sa_hw.config.fields import ConfigError
 from u2sa_hw.profile.devices import profile_devices
 from u2sa_hw.ports import PortClosed, PortUnavailable
 from u2sa_hw.ports.address import AddressError

@@ -30,7 +30,7 @@ from u2sa_hw.mocks.vehicle_sim import SimVehicle
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.check.offline import check_profile
 from u2sa_hw.check.problem import errors_of
-from u2sa_hw.config.configurator import ConfigError
+from u2sa_hw.config.fields import ConfigError
 from u2sa_hw.profile.devices import effective_config, profile_devices
 from u2sa_hw.ports import PortUnavailable
 from u2sa_hw.ports.device_link import DeviceLink

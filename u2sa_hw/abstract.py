@@ -17,7 +17,7 @@ from typing import Any, ClassVar, Mapping
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config.configurator import ConfigError, field
+from u2sa_hw.config.fields import ConfigError, field
 from u2sa_hw.messages import as_type
 from u2sa_hw.safety.config import load_safety
 from u2sa_hw.safety.gate import AUTONOMOUS, MANUAL, CommandGate

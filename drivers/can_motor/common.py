@@ -32,7 +32,7 @@ if TYPE_CHECKING:
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Actuator
-from u2sa_hw.config.configurator import MAX_TIMEOUT_S, ConfigError, field
+from u2sa_hw.config.fields import MAX_TIMEOUT_S, ConfigError, field
 from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence setters
 from u2sa_hw.ports import PortClosed, PortError, PortIOError, PortUnavailable
 from u2sa_hw.ports.can.port import CanPort

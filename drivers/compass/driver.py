@@ -28,7 +28,7 @@ import math
 from typing import Any, Mapping
 
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config.configurator import field
+from u2sa_hw.config.fields import field
 from u2sa_hw.geo import wrap_angle
 from u2sa_hw.ports.declared import SOURCES
 

@@ -20,7 +20,7 @@ from typing import Any
 
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.calibration.correction import IDENTITY9, MAX_MAG_OFFSET, MAX_MATRIX_ENTRY, ZERO3, Correction, heading_at_attitude
-from u2sa_hw.config.configurator import ConfigError, field
+from u2sa_hw.config.fields import ConfigError, field
 
 from u2sa_hw.drivers.compass.os5000_format import Os5000Reading
 

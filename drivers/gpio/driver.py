@@ -31,7 +31,7 @@ from u2sa_hw.drivers.gpio.lines import (GpioLineSet, check_gpio_device, note_res
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Actuator, ExteroceptiveSensor
-from u2sa_hw.config.configurator import MAX_TIMEOUT_S, ConfigError, field
+from u2sa_hw.config.fields import MAX_TIMEOUT_S, ConfigError, field
 from u2sa_hw.ports.declared import DeviceDeclarations
 from u2sa_hw.ports.device_link import device_setting
 from u2sa_hw.ports.gpio.wire import BIASES

@@ -21,7 +21,7 @@ import threading
 from typing import Any, Callable, Mapping, Sequence
 
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config.configurator import ConfigError
+from u2sa_hw.config.fields import ConfigError
 from u2sa_hw.ports import PortClosed, PortIOError, PortTimeout, PortUnavailable
 from u2sa_hw.ports.address import AddressError, make_address
 from u2sa_hw.ports.device_link import DeviceLink, device_setting

@@ -25,7 +25,7 @@ from typing import Any
 
 from pynmeagps.nmeatypes_get import NMEA_PAYLOADS_GET
 
-from u2sa_hw.config.configurator import field
+from u2sa_hw.config.fields import field
 
 from u2sa_hw.drivers.gps_nmea.epochs import GpsEpochCollector
 from u2sa_hw.drivers.gps_nmea.fix import (ALTITUDE_DATUMS, GGA_QUALITY, POSITION_FRAMES, GpsFix, StateSettings, fix_from_epoch,

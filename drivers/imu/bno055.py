@@ -31,7 +31,7 @@ import time
 from typing import Any, Mapping
 
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config.configurator import ConfigError, field
+from u2sa_hw.config.fields import ConfigError, field
 from u2sa_hw.geo import wrap_angle
 from u2sa_hw.ports.errors import PortClosed, PortIOError, PortUnavailable
 from u2sa_hw.protocols import bno055 as bno

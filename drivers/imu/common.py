@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, ClassVar, Mapping, Sequence, TypeVar
 
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config.configurator import ConfigError, field
+from u2sa_hw.config.fields import ConfigError, field
 from u2sa_hw.abstract import ProprioceptiveSensor
 from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence setters
 from u2sa_hw.ports.errors import PortClosed, PortError, PortIOError, PortTimeout, PortUnavailable

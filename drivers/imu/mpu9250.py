@@ -49,7 +49,7 @@ import time
 from typing import Any
 
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config.configurator import MAX_TIMEOUT_S, ConfigError, field
+from u2sa_hw.config.fields import MAX_TIMEOUT_S, ConfigError, field
 from u2sa_hw.ports.errors import PortIOError, PortUnavailable
 from u2sa_hw.calibration.correction import IDENTITY9, MAX_MAG_OFFSET, MAX_MATRIX_ENTRY, ZERO3, Correction, tilt_compensated_heading
 from u2sa_hw.geo import wrap_angle

@@ -48,7 +48,7 @@ from typing import Any
 
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Actuator
-from u2sa_hw.config.configurator import ConfigError, field
+from u2sa_hw.config.fields import ConfigError, field
 from u2sa_hw.config.keys import old_form_fix
 from u2sa_hw.ports.address import AddressError, DeviceAddress
 from u2sa_hw.ports.declared import DeviceDeclarations

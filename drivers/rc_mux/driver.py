@@ -46,7 +46,7 @@ from u2sa_hw.drivers.rc_mux.state import MuxState
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Sensor
-from u2sa_hw.config.configurator import MAX_RATE_HZ, ConfigError, field
+from u2sa_hw.config.fields import MAX_RATE_HZ, ConfigError, field
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.ports.gpio.port import GpioPort
 from u2sa_hw.ports.gpio.wire import BusInput, ClockTick, EdgeEvent

@@ -152,7 +152,7 @@ def _written_values(spec: Any) -> tuple[dict[str, Any], dict[str, Any]]:
 
 
 def _config_past_mistakes(spec: Any) -> dict[str, Any] | None:
-    from u2sa_hw.config.configurator import ConfigError, coerce
+    from u2sa_hw.config.fields import ConfigError, coerce
     from u2sa_hw.registry import resolve_kind
     from u2sa_hw.service.base_config import BASE_CONFIG
 

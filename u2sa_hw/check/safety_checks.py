@@ -75,7 +75,7 @@ def _parse_prearm(profile: Any, table: Mapping[str, Any]) -> None:
 
 def _report(check: Callable[[], Any], out: Collector, *, wiring: bool = False) -> bool:
     """Run *check*; add its error (each line of it) to *out* and return False when it fails."""
-    from u2sa_hw.config.configurator import ConfigError
+    from u2sa_hw.config.fields import ConfigError
     from u2sa_hw.profile.vehicle import ProfileError
 
     try:

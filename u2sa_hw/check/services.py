@@ -119,7 +119,7 @@ def _check_values(values: Mapping[str, Any], fields: Mapping[str, Any], out: Col
                   file: Path | None, unknown_is_error: bool, device: str) -> bool:
     """Names and types of *values*; True when every value can be used. A driver's (a kind with a ``device``
     setting) old-form address setting is an error naming *device* and the new form."""
-    from u2sa_hw.config.configurator import ConfigError, coerce, to_text
+    from u2sa_hw.config.fields import ConfigError, coerce, to_text
     from u2sa_hw.config.keys import old_form_fix, old_form_keys
 
     usable = True
@@ -163,7 +163,7 @@ def _reason(text: str, name: str) -> str:
 
 def _value_fix(f: Any, value: Any) -> str:
     """What to write instead of *value* for field *f*: its type, choices or range."""
-    from u2sa_hw.config.configurator import choices_text, to_text
+    from u2sa_hw.config.fields import choices_text, to_text
 
     if f.choices:
         return f"use one of {choices_text(f)}"
@@ -238,7 +238,8 @@ def _check_semantics(name: str, cls: Any, values: dict[str, Any], config_path: P
     addresses are checked with the devices). A hook that needs more than that cannot run here:
     that is a warning line naming the kind and why, never a silent pass.
     """
-    from u2sa_hw.config.configurator import ConfigError, Configurator
+    from u2sa_hw.config.configurator import Configurator
+    from u2sa_hw.config.fields import ConfigError
 
     key = f"services.{name}.settings"
     config = Configurator(None, fields.values(), logger=_quiet, initial=values)

@@ -46,7 +46,7 @@ def register(sub: Any) -> None:
 def cmd_foxglove(args: Any) -> int:
     """Build the bridge service from the options and run it until Ctrl-C."""
     from u2sa_hw.cli import CliError
-    from u2sa_hw.config.configurator import ConfigError
+    from u2sa_hw.config.fields import ConfigError
     from u2sa_hw.service.log import setup_service_logging
     from u2sa_hw.bus.transport import TransportError
 

@@ -53,7 +53,7 @@ def run(args: Any) -> int:
     """Resolve the service, build it and run it."""
     ignored = _drop_security_env() if args.unit else None   # first: before anything reads it
     from u2sa_hw.cli import CliError
-    from u2sa_hw.config.configurator import ConfigError
+    from u2sa_hw.config.fields import ConfigError
     from u2sa_hw.registry import known_kinds, resolve_kind
     from u2sa_hw.service.log import setup_service_logging
     from u2sa_hw.bus.transport import TransportError

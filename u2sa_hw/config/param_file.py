@@ -42,7 +42,7 @@ import tomllib
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Mapping
 
-from u2sa_hw.config.configurator import ConfigError, ConfigField, coerce, to_text
+from u2sa_hw.config.fields import ConfigError, ConfigField, coerce, to_text
 from u2sa_hw.config.keys import did_you_mean, known_text, unknown_key_problem
 
 PARAMS = "params"   # the sub-table of a service that holds its fields

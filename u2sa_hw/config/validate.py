@@ -21,7 +21,7 @@ import tomllib
 from pathlib import Path
 from typing import Any, Mapping
 
-from u2sa_hw.config.configurator import ConfigError, ConfigField, coerce, to_text
+from u2sa_hw.config.fields import ConfigError, ConfigField, coerce, to_text
 from u2sa_hw.config.keys import unknown_key_problem
 from u2sa_hw.registry import SERVICE_KINDS, known_kinds, resolve_kind
 from u2sa_hw.service.base_config import BASE_CONFIG

@@ -18,7 +18,7 @@ import threading
 import tomllib
 from typing import Any, Callable, Iterable
 
-from u2sa_hw.config.configurator import to_text
+from u2sa_hw.config.fields import to_text
 
 log = logging.getLogger("u2sa_hw.foxglove")
 DISCOVERY_TIMEOUT_S = 1.0

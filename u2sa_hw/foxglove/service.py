@@ -19,7 +19,7 @@ import ssl
 from pathlib import Path
 from typing import Any, ClassVar
 
-from u2sa_hw.config.configurator import ConfigError, field
+from u2sa_hw.config.fields import ConfigError, field
 from u2sa_hw.foxglove.gate import GateError, read_token
 from u2sa_hw.service.contract import U2SAService
 from u2sa_hw.profile.vehicle import Origin

@@ -1,11 +1,11 @@
 """Every number the vehicle profile holds outside a service's ``settings``, with its range.
 
-A service's settings are its declared config fields (:mod:`u2sa_hw.config.configurator`); the rest of
+A service's settings are its declared config fields (:mod:`u2sa_hw.config.fields`); the rest of
 ``vehicle.toml`` -- ``[vehicle]``, ``[safety]`` and its ``manual_mixer`` and ``prearm``
 tables, each service's ``supervision`` table, ``[simulation]`` -- is read by its own parser,
 and each parser checks its numbers against this one table, so every number of the profile has
-a finite range (a rate at most :data:`~u2sa_hw.config.configurator.MAX_RATE_HZ`, a timeout at most
-:data:`~u2sa_hw.config.configurator.MAX_TIMEOUT_S`) and a test walks the table and the parsers' dataclasses
+a finite range (a rate at most :data:`~u2sa_hw.config.fields.MAX_RATE_HZ`, a timeout at most
+:data:`~u2sa_hw.config.fields.MAX_TIMEOUT_S`) and a test walks the table and the parsers' dataclasses
 (tests/test_config_bounds.py). A key is its dotted place in the profile; ``*`` stands for any
 service's name.
 
@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from u2sa_hw.config.configurator import MAX_RATE_HZ, MAX_TIMEOUT_S, ConfigError, ConfigField, coerce, field, to_text
+from u2sa_hw.config.fields import MAX_RATE_HZ, MAX_TIMEOUT_S, ConfigError, ConfigField, coerce, field, to_text
 
 SUPERVISION = "services.*.supervision"
 MAX_DISTANCE_M = 1_000_000.0   # a simulated start this far from the origin is still on the map

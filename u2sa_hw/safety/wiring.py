@@ -47,7 +47,8 @@ def rc_channel_names(text: str) -> tuple[str, ...]:
 def profile_wiring(profile: VehicleProfile) -> Wiring:
     """Collect the actuators and RC channels of every enabled service of *profile*."""
     from u2sa_hw.abstract import Actuator
-    from u2sa_hw.config.configurator import ConfigError, Configurator
+    from u2sa_hw.config.configurator import Configurator
+    from u2sa_hw.config.fields import ConfigError
     from u2sa_hw.registry import NOT_ACTUATOR_KINDS, resolve_kind
     from u2sa_hw.service.base_config import BASE_CONFIG
 

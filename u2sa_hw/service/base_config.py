@@ -7,7 +7,7 @@ the service contract and its transport.
 
 from __future__ import annotations
 
-from u2sa_hw.config.configurator import ConfigField, field
+from u2sa_hw.config.fields import ConfigField, field
 from u2sa_hw.service.log import LEVEL_NAMES
 
 BASE_CONFIG: tuple[ConfigField, ...] = (

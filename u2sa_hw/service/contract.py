@@ -7,7 +7,7 @@ stop (all or by name), config enumeration and change over the bus, periodic heal
 systemd notification (READY, WATCHDOG from the service's own loop, STATUS, STOPPING)
 and clean exit on SIGTERM/SIGINT.
 
-Config: fields are declared with :func:`~u2sa_hw.config.configurator.field` (type, choices, bounds); the
+Config: fields are declared with :func:`~u2sa_hw.config.fields.field` (type, choices, bounds); the
 one validation hook is :meth:`U2SAService.check_config`, for what a single field cannot say.
 
 A run loop is written as ``while self.wait(period): ...``: ``wait`` returns False once
@@ -31,7 +31,8 @@ from pathlib import Path
 from typing import Any, Callable, ClassVar
 
 from u2sa_hw import channels as ch
-from u2sa_hw.config.configurator import ConfigError, ConfigField, Configurator
+from u2sa_hw.config.configurator import Configurator
+from u2sa_hw.config.fields import ConfigError, ConfigField
 from u2sa_hw.service.health import ProcessStats, build_health, name_native_thread
 from u2sa_hw.messages import type_name
 from u2sa_hw.service.sdnotify import SystemdNotifier, watchdog_interval
@@ -194,7 +195,7 @@ class U2SAService(ContractRequests):
         config, as ``self.config`` reads it, cannot work (override; call ``super().check_config()``).
 
         Each field's own rules -- type, ``choices``, bounds (``ge``/``gt``/``le``/``lt``), finite
-        numbers, ``remote`` -- are declared on :func:`~u2sa_hw.config.configurator.field` and checked before
+        numbers, ``remote`` -- are declared on :func:`~u2sa_hw.config.fields.field` and checked before
         this, for the file, the profile's settings and every change over the bus. This hook is for
         what one field cannot say: a combination (one wheel radius per actuator), a value a
         device must support (a baud rate), text to parse (a line map). The base calls it:

@@ -14,7 +14,7 @@ import os
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config.configurator import to_text
+from u2sa_hw.config.fields import to_text
 from u2sa_hw.service.health import HOSTNAME
 from u2sa_hw.service.log import set_level
 

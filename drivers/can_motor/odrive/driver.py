@@ -45,7 +45,7 @@ from typing import TYPE_CHECKING, Any, Callable
 if TYPE_CHECKING:
     import can   # python-can loads when the port opens (u2sa_hw/ports/can/port.py)
 
-from u2sa_hw.config.configurator import MAX_RATE_HZ, MAX_TIMEOUT_S, field
+from u2sa_hw.config.fields import MAX_RATE_HZ, MAX_TIMEOUT_S, field
 from u2sa_hw.protocols import odrive_cansimple as cs
 from u2sa_hw.protocols.odrive_cansimple import AxisState, Cmd, ControlMode, InputMode, ProcedureResult
 

@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING, Any, Callable
 if TYPE_CHECKING:
     import can   # python-can loads when the port opens (u2sa_hw/ports/can/port.py)
 
-from u2sa_hw.config.configurator import MAX_TIMEOUT_S, field
+from u2sa_hw.config.fields import MAX_TIMEOUT_S, field
 from u2sa_hw.protocols import vesc_can as vc
 from u2sa_hw.protocols.vesc_can import PacketId
 

@@ -24,7 +24,7 @@ from typing import Any, ClassVar
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config.configurator import MAX_RATE_HZ, MAX_TIMEOUT_S, ConfigError, field
+from u2sa_hw.config.fields import MAX_RATE_HZ, MAX_TIMEOUT_S, ConfigError, field
 from u2sa_hw.service.contract import U2SAService
 from u2sa_hw.services.control.controller import RC_NAMES, ControlSettings, VehicleController
 from u2sa_hw.services.control.mixers import MIXERS, Mixer, build_mixer

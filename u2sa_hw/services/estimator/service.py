@@ -30,7 +30,7 @@ from typing import Any, ClassVar
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config.configurator import MAX_RATE_HZ, MAX_TIMEOUT_S, ConfigError, field
+from u2sa_hw.config.fields import MAX_RATE_HZ, MAX_TIMEOUT_S, ConfigError, field
 from u2sa_hw.messages import STATE_FIELDS
 from u2sa_hw.service.contract import U2SAService
 from u2sa_hw.services.estimator.fusion import FusionSettings, StateFusion

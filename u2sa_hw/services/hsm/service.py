@@ -27,7 +27,7 @@ from typing import Any, ClassVar
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config.configurator import MAX_TIMEOUT_S, field
+from u2sa_hw.config.fields import MAX_TIMEOUT_S, field
 from u2sa_hw.failsafe import ALL_SOURCES, OPERATOR_SOURCE, FailsafeSources
 from u2sa_hw.services.hsm.monitor import (Cancelled, Failed, FailsafeChange, HealthMonitor, Recovered, Restart,
                                           Stalled)

@@ -31,7 +31,7 @@ from typing import Any, ClassVar
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config.configurator import MAX_TIMEOUT_S, field
+from u2sa_hw.config.fields import MAX_TIMEOUT_S, field
 from u2sa_hw.geo import geodetic_to_ned
 from u2sa_hw.messages import as_type
 from u2sa_hw.geofence_parse import profile_fence

@@ -23,7 +23,7 @@ from typing import Any, ClassVar
 
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.config.configurator import MAX_RATE_HZ, MAX_TIMEOUT_S, ConfigError, field
+from u2sa_hw.config.fields import MAX_RATE_HZ, MAX_TIMEOUT_S, ConfigError, field
 from u2sa_hw.geo import geodetic_to_ned
 from u2sa_hw.geofence_parse import profile_fence
 from u2sa_hw.service.contract import U2SAService

@@ -12,7 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, ClassVar
 
-from u2sa_hw.config.configurator import field
+from u2sa_hw.config.fields import field
 from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo
 from u2sa_hw.service.contract import U2SAService
 from u2sa_hw.services.recorder.capture import BusCapture
