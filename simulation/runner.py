@@ -35,9 +35,11 @@ from u2sa_hw.simulation.events import Scenario, load_scenario_file
 from u2sa_hw.simulation.profile import effective_configs, write_sim_profile
 from u2sa_hw.simulation.progress import (BusMonitor, BusSnapshot, ProgressLine, control_mode, mission_done,
                                 rc_state_name, status_text)
+from u2sa_hw.simulation.readiness import SimFailure, not_ready, where
 from u2sa_hw.simulation.scenario import load_scenario
 from u2sa_hw.simulation.script import ScriptRunner
-from u2sa_hw.simulation.summary import RunRecord, TrackSample, summarise, summary_text, write_summary, write_track_csv
+from u2sa_hw.simulation.summary import (RunRecord, run_title, summarise, summary_text, track_sample, write_summary,
+                                        write_track_csv)
 from u2sa_hw.launcher import Launcher, RestartPolicy
 from u2sa_hw.realtime import SIM_DEVICES_PRIORITY, ProcessPriority, plan
 from u2sa_hw.profile.loader import load_profile
@@ -56,20 +58,10 @@ def sim_realtime_allowed() -> bool:
 
 SAMPLE_HZ = 10.0
 TICK_S = 0.2
-DEGRADED_GRACE_S = 20.0   # the pilot waits this long for degraded services (other than IMUs) to be ok
 REARM_AFTER_S = 1.0       # the pilot re-arms when RC_MODE still says "not armed" this long after the switch
 REARM_TRIES = 5
-IMU_CALIBRATION_S = 45.0  # an IMU not calibrated at rest this long after start fails the run
 MAX_INTERRUPTIONS = 3   # autonomy lost and re-engaged by the pilot at most this often
 ERROR_MARKERS = (" ERROR ", " CRITICAL ", "Traceback (most recent call last)")
-
-
-class SimFailure(RuntimeError):
-    """The simulation cannot go on; ``result`` is "timeout" or "failed"."""
-
-    def __init__(self, reason: str, result: str = "failed") -> None:
-        super().__init__(reason)
-        self.result = result
 
 
 @dataclass
@@ -169,7 +161,8 @@ class SimRun:
         """Wait until the stack can drive: SimFailure (timeout or failed) otherwise."""
         while True:
             snap = self._check()
-            missing = self._not_ready(snap)
+            missing = not_ready(snap, names=list(self.launcher.processes), imus=self.imus, said=self._said,
+                                waited_s=time.monotonic() - self.record.t_start, say=self.progress.event)
             if not missing:
                 degraded = sorted(n for n, (status, _e, _t) in snap.health.items()
                                   if n in self.launcher.processes and status != "ok")
@@ -258,7 +251,7 @@ class SimRun:
                 return
             distance = snap.nav.distance_to_goal if snap.nav is not None and snap.nav.distance_to_goal >= 0 else None
             self._tick(status_text(snap, elapsed=time.monotonic() - self.record.t_engage, goal_total=total,
-                                   distance=distance), waiting_for=self._where(snap))
+                                   distance=distance), waiting_for=where(snap, len(self.scenario.goals)))
 
     def play(self) -> None:
         """Play the scenario's events from t0 (autonomy engaged, or ready when the scenario does not engage)."""
@@ -312,7 +305,7 @@ class SimRun:
 
             files.append(plot_run(self.out / "track.png", samples=self.record.samples, goals=self.scenario.goals,
                                   obstacles=self.scenario.obstacles, t_engage=self.record.t_engage,
-                                  title=self._title(), fence=self.scenario.fence))
+                                  title=run_title(self.record), fence=self.scenario.fence))
         except ImportError as exc:   # matplotlib is the "sim" extra
             self.progress.event(f"no plot: {exc} (pip install 'u2sa-hw[sim]')")
         summary = summarise(self.record)
@@ -397,66 +390,9 @@ class SimRun:
             raise SimFailure(f"timeout after {timeout:g} s waiting for {waiting_for}", "timeout")
         time.sleep(TICK_S)
 
-    def _say_errors(self, snap: BusSnapshot) -> None:
-        """Show each service's health error (a missing device and its fix) on the console once, as it changes."""
-        for name, (status, error, _t) in sorted(snap.health.items()):
-            if status != "ok" and error and self._said.get(name) != error and name in self.launcher.processes:
-                self._said[name] = error
-                self.progress.event(f"  ! {name} {status}: {error}")
-
-    def _not_ready(self, snap: BusSnapshot) -> list[str]:
-        missing = []
-        names = list(self.launcher.processes)
-        self._say_errors(snap)
-        up = [n for n in names if n in snap.health and snap.health[n][0] not in ("starting", "stopping")]
-        if len(up) < len(names):
-            waiting = [n + (f" ({snap.health[n][1]})" if n in snap.health and snap.health[n][1] else "")
-                       for n in names if n not in up]
-            missing.append(f"{len(up)}/{len(names)} services up (waiting: {', '.join(waiting)})")
-        waited = time.monotonic() - self.record.t_start
-        calibrating = [n for n in self.imus if n in up and snap.health[n][0] != "ok"]
-        if calibrating and waited >= IMU_CALIBRATION_S:
-            raise SimFailure(f"IMU {', '.join(calibrating)} did not calibrate at rest within {IMU_CALIBRATION_S:g} s "
-                             f"(health: {'; '.join(snap.health[n][1] or snap.health[n][0] for n in calibrating)}); "
-                             "the pilot does not hand over an uncalibrated IMU")
-        if calibrating:
-            missing.append("IMU calibrating at rest: " + ", ".join(
-                f"{n} ({snap.health[n][1] or snap.health[n][0]})" for n in calibrating))
-        degraded = [n for n in up if snap.health[n][0] != "ok" and n not in self.imus]
-        if degraded and waited < DEGRADED_GRACE_S:
-            missing.append("degraded: " + ", ".join(f"{n} ({snap.health[n][1] or snap.health[n][0]})"
-                                                    for n in degraded))
-        if snap.estimate is None or not math.isfinite(snap.estimate[3]):
-            missing.append("no pose estimate" if snap.estimate is None else "estimate has no heading")
-        if snap.status is None or snap.status.finished or snap.status.num_goals == 0:
-            missing.append("no mission")
-        if snap.rc is None:
-            missing.append("no RC_MODE (the control system drives only in autonomous mode)")
-        elif snap.rc.mode != 0:
-            missing.append(f"RC mode {snap.rc.mode_name or snap.rc.mode}, not manual")
-        return missing
-
-    def _where(self, snap: BusSnapshot) -> str:
-        st = snap.status
-        if st is None:
-            return "MISSION_STATUS"
-        distance = f", {snap.nav.distance_to_goal:.1f} m away" if snap.nav is not None else ""
-        return f"goal {st.current_index + 1} of {len(self.scenario.goals)} ({st.current_uid}{distance})"
-
     def _sample(self) -> None:
         while not self._stop_sampling.wait(1.0 / SAMPLE_HZ):
             truth = self.mocks.vehicle.snapshot()
             snap = self.monitor.snapshot()
-            est = snap.estimate
-            fresh = est is not None and time.monotonic() - est[0] < 0.5
-            st = snap.status
-            self.record.samples.append(TrackSample(
-                t=time.monotonic(), north=truth.north, east=truth.east, yaw=truth.yaw, speed=truth.speed,
-                est_north=est[1] if fresh else None, est_east=est[2] if fresh else None,
-                goal_index=st.current_index if st is not None and not st.finished else None))
+            self.record.samples.append(track_sample(truth, snap, time.monotonic()))
             self.record.changes = snap.changes
-
-    def _title(self) -> str:
-        r = self.record
-        took = f" in {r.t_end - r.t_engage:.1f} s" if r.t_engage is not None else ""
-        return f"{r.vehicle}: mission '{r.mission}' {r.result}{took}"

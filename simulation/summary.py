@@ -96,6 +96,23 @@ def _object_name(obj: Any) -> tuple[str, str]:
     return base.uid, base.object_type
 
 
+def track_sample(truth: Any, snap: Any, now: float) -> TrackSample:
+    """One sample of the track at *now*: the simulated vehicle's true pose (*truth*) and, from the bus snapshot
+    *snap*, the stack's estimate when at most 0.5 s old and the goal it drives to."""
+    est = snap.estimate
+    fresh = est is not None and now - est[0] < 0.5
+    st = snap.status
+    return TrackSample(t=now, north=truth.north, east=truth.east, yaw=truth.yaw, speed=truth.speed,
+                       est_north=est[1] if fresh else None, est_east=est[2] if fresh else None,
+                       goal_index=st.current_index if st is not None and not st.finished else None)
+
+
+def run_title(r: RunRecord) -> str:
+    """The run in one line, the plot's title: ``rover: mission 'loop' completed in 42.0 s``."""
+    took = f" in {r.t_end - r.t_engage:.1f} s" if r.t_engage is not None else ""
+    return f"{r.vehicle}: mission '{r.mission}' {r.result}{took}"
+
+
 def summarise(record: RunRecord) -> dict[str, Any]:
     """The summary as a JSON-ready dict."""
     live = [s for s in record.samples if record.t_engage is not None and s.t >= record.t_engage]

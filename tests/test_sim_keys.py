@@ -20,7 +20,7 @@ from conftest import U2SA
 from u2sa_hw.mocks.launcher import MockLauncher
 from u2sa_hw.simulation.keys import StickKeys
 from u2sa_hw.simulation.progress import BusSnapshot
-from u2sa_hw.simulation.runner import SimFailure, SimRun
+from u2sa_hw.simulation.readiness import SimFailure, not_ready
 from u2sa_hw.bus.udp_ports import private_udp_port
 from u2sa_hw.profile.loader import load_profile
 
@@ -94,15 +94,17 @@ def test_the_pilot_waits_for_the_imu_and_says_when_it_never_calibrates() -> None
     snap = BusSnapshot(estimate=(0.0, 0.0, 0.0, 0.1, 0.0), status=SimpleNamespace(finished=False, num_goals=2),
                        rc=SimpleNamespace(mode=0, mode_name="MANUAL"), health=health)
     said: list[str] = []
-    run = SimpleNamespace(launcher=SimpleNamespace(processes={"imu": 1, "gps": 2}), imus=["imu"],
-                          record=SimpleNamespace(t_start=time.monotonic()), _said={},
-                          progress=SimpleNamespace(event=said.append))
-    run._say_errors = lambda s: SimRun._say_errors(run, s)
-    missing = SimRun._not_ready(run, snap)
+    shown: dict[str, str] = {}
+
+    def check(waited_s: float) -> list[str]:
+        return not_ready(snap, names=["imu", "gps"], imus=["imu"], waited_s=waited_s, said=shown, say=said.append)
+
+    missing = check(0.0)
     assert missing == ["IMU calibrating at rest: imu (gyro bias: waiting for rest (moving))"]
     assert said == ["  ! imu degraded: gyro bias: waiting for rest (moving)"]   # said once on the console
-    run.record.t_start -= 60   # a minute later, still not calibrated
+    check(1.0)
+    assert len(said) == 1
     with pytest.raises(SimFailure, match=r"IMU imu did not calibrate at rest within 45 s \(health: gyro bias"):
-        SimRun._not_ready(run, snap)
+        check(60.0)   # a minute later, still not calibrated
     health["imu"] = ("ok", "", 0.0)
-    assert SimRun._not_ready(run, snap) == []
+    assert check(60.0) == []
