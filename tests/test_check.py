@@ -443,21 +443,18 @@ def test_sim_refuses_a_device_without_a_mock_at_start(tmp_path: Path) -> None:
 def test_sim_shows_a_service_device_error_on_the_console_once() -> None:
     """While the stack starts, each service's health error (a missing device and its fix) is printed, once."""
     import io
-    from types import SimpleNamespace
 
     from u2sa_hw.simulation.progress import BusSnapshot, ProgressLine
-    from u2sa_hw.simulation.runner import SimRun
+    from u2sa_hw.simulation.readiness import say_errors
 
     out = io.StringIO()
-    run = SimRun.__new__(SimRun)   # only the console half: no profile, no mocks, no bus
-    run.progress = ProgressLine(out, interactive=False)
-    run.launcher = SimpleNamespace(processes={"gps": None, "imu": None})
-    run._said = {}
+    progress = ProgressLine(out, interactive=False)   # only the console half: no profile, no mocks, no bus
+    said: dict[str, str] = {}
     error = "gps (serial:///dev/u2sa/gps?baud=9600): no such device; fix: plug it in or check the address"
     snap = BusSnapshot()
     snap.health.update({"gps": ("error", error, 0.0), "imu": ("ok", "", 0.0), "other": ("error", "x", 0.0)})
-    run._say_errors(snap)
-    run._say_errors(snap)
+    say_errors(snap, ["gps", "imu"], said, progress.event)
+    say_errors(snap, ["gps", "imu"], said, progress.event)
     assert out.getvalue().count("! gps error: " + error) == 1
     assert "imu" not in out.getvalue() and "other" not in out.getvalue()
 
