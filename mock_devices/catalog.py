@@ -30,6 +30,14 @@ driver's setting names. Every actuator output is logged and moves the
 vehicle through :mod:`u2sa_hw.mocks.actuation`: CAN motors by their side, PWM outputs named
 like a model input (``steering``, ``throttle``, ``left``, ``right``) or listed in ``drives``,
 GPIO outputs listed in ``drives`` (``enable``: a motor contactor).
+
+The mock kinds are one table, :data:`u2sa_hw.registry.MOCK_DEVICES` (kind -> ``"module:Class"``,
+the builder here that wires it, a description), imported only when a mock of the kind is built.
+The builders hold no per-family branch: a class says what it needs (a serial mock its
+``PROTOCOL``, a CAN node ``wiring_options(wiring, node_id=)``: its id keyword and the defaults
+its driver's wiring sets), so a new serial or CAN motor mock is its module and one table line
+(docs/adding-a-device.md). :data:`BUILDERS` says what each builder needs of a class, and
+:func:`entry_problems` checks an entry against it (``tests/test_mock_table.py``).
 """
 
 from __future__ import annotations
@@ -37,26 +45,16 @@ from __future__ import annotations
 import inspect
 import os
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, NamedTuple
 
 from u2sa_hw.mocks.actuation import GpioFeed, PwmFeed
-from u2sa_hw.mocks.bno055_chip import Bno055Chip
 from u2sa_hw.mocks.i2c_bus import MockI2cBus
-from u2sa_hw.mocks.mpu9250_chip import Ak8963Chip, Mpu9250Chip
-from u2sa_hw.mocks.nmea_gps import NmeaGpsDevice
-from u2sa_hw.mocks.odrive_node import OdriveCanNode
-from u2sa_hw.mocks.pca9685_chip import Pca9685Chip
-from u2sa_hw.mocks.rc_receiver import MuxMock, RcReceiverMock
-from u2sa_hw.mocks.serial_compass import NmeaCompassDevice, Os5000CompassDevice
+from u2sa_hw.mocks.mpu9250_chip import Ak8963Chip
+from u2sa_hw.mocks.rc_receiver import MuxMock
 from u2sa_hw.mocks.sim_context import CAN_GROUP, MODEL_INPUTS, DeviceError, MockContext
-from u2sa_hw.mocks.sysfs_pwm import SysfsPwmChip
-from u2sa_hw.mocks.vesc_node import VescCanNode
 from u2sa_hw.ports import declared
 from u2sa_hw.ports.address import DeviceAddress, make_address
-
-SERIAL_KINDS = {"nmea_gps": NmeaGpsDevice, "nmea_compass": NmeaCompassDevice, "os5000_compass": Os5000CompassDevice}
-COMPASS_PROTOCOLS = {"nmea_compass": "nmea", "os5000_compass": "os5000"}
-NODE_SPEED_MARGIN = 1.25   # an ODrive node's own vel_limit over the speed its driver limits commands to
+from u2sa_hw.registry import MOCK_DEVICES, resolve_mock
 
 
 @dataclass(frozen=True)
@@ -137,7 +135,8 @@ def build_serial(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     """A GPS or compass on a pty: ``<dir>/<basename of the real device path>``."""
     address = _need(spec, "serial")
     wiring = spec.wiring()
-    expected, speaks = COMPASS_PROTOCOLS.get(spec.mock), wiring.get("protocol")
+    cls = resolve_mock(spec.mock)
+    expected, speaks = getattr(cls, "PROTOCOL", None), wiring.get("protocol")
     if expected and speaks is not None and speaks != expected:
         raise spec.fail(f"mock {spec.mock} speaks '{expected}' but service '{spec.service}' has "
                         f"{declared.source_of(wiring, 'protocol')} = {speaks!r}; make them agree")
@@ -148,7 +147,7 @@ def build_serial(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
         base = os.path.basename(real.rstrip("/")) if not address.is_serial_url else ""
         link = ctx.path(base or spec.name)
     spec = _seeded(spec, ctx)
-    device = construct(spec, SERIAL_KINDS[spec.mock], ctx.vehicle, link_path=link, name=spec.name)
+    device = construct(spec, cls, ctx.vehicle, link_path=link, name=spec.name)
     params = {k: v for k, v in address.params.items() if k not in ("usb", "serial")}
     mock = make_address("serial", link, params=params, mock=True, device=spec.name)
     return MockDevice(spec.name, spec.mock, spec.service, mock.url, [device], f"pty for {real}")
@@ -164,21 +163,20 @@ def _need(spec: DeviceSpec, *kinds: str) -> DeviceAddress:
 
 # ---- I2C ------------------------------------------------------------------------------------
 def build_imu_chip(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
-    """An MPU-60x0/9250 (+ AK8963) or BNO055 on the mock bus standing in for the device's I2C bus."""
+    """A chip (an MPU-60x0/9250 (+ AK8963), a BNO055) on the mock bus standing in for the device's I2C bus; a
+    class that takes a ``variant`` gets the mock kind (``mpu6500``) unless the options give one."""
     real = _need(spec, "i2c")
     spec.wiring()   # the mock kind stands in for the service's chip
     bus: MockI2cBus = ctx.i2c_bus(str(real.i2c_bus))
     address = real.chip_address
     spec = _seeded(spec, ctx)
-    if spec.mock == "bno055":
-        chip = construct(spec, Bno055Chip, address=address, vehicle=ctx.vehicle)
-        parts = [chip]
-    else:
-        chip = construct(spec, Mpu9250Chip, address=address, vehicle=ctx.vehicle,
-                         variant=spec.options.get("variant", spec.mock))
-        parts = [chip]
-        if chip.variant.has_magnetometer:  # the MPU-9250's AK8963
-            parts.append(Ak8963Chip(parent=chip, seed=int(spec.options["seed"])))
+    cls = resolve_mock(spec.mock)
+    takes_variant = "variant" in inspect.signature(cls).parameters
+    variant = {"variant": spec.options.get("variant", spec.mock)} if takes_variant else {}
+    chip = construct(spec, cls, address=address, vehicle=ctx.vehicle, **variant)
+    parts = [chip]
+    if getattr(getattr(chip, "variant", None), "has_magnetometer", False):  # an MPU-9250's AK8963
+        parts.append(Ak8963Chip(parent=chip, seed=int(spec.options["seed"])))
     for part in parts:
         ctx.add_chip(bus, part, device=spec.name)
     mock = make_address("i2c", bus.socket_path, (address,), mock=True, device=spec.name)
@@ -203,7 +201,7 @@ def build_pca9685(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     parts: list[Any] = []
     chip = ctx.pca9685_chips.get(key)
     if chip is None:   # outputs of one chip share it
-        chip = ctx.pca9685_chips[key] = ctx.add_chip(bus, construct(spec, Pca9685Chip, address=real.chip_address),
+        chip = ctx.pca9685_chips[key] = ctx.add_chip(bus, construct(spec, resolve_mock(spec.mock), address=real.chip_address),
                                                      device=spec.name)
     ctx.pwm_chips.setdefault(spec.name, []).append(chip)
     channel = real.pwm_channel
@@ -225,7 +223,7 @@ def build_sysfs_pwm(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     if chip is None:   # as many channels as its outputs use (or options.npwm)
         npwm = max(int(spec.options.get("npwm") or 0), channel + 1)
         options = {k: v for k, v in spec.options.items() if k != "npwm"}
-        chip = ctx.sysfs_chips[path] = construct(replace(spec, options=options), SysfsPwmChip, path=path,
+        chip = ctx.sysfs_chips[path] = construct(replace(spec, options=options), resolve_mock(spec.mock), path=path,
                                                  npwm=npwm, name=f"{spec.name}:{os.path.basename(path)}")
         parts.append(chip)
     elif channel >= chip.npwm:   # built, not started yet: another output of the chip widens it
@@ -277,7 +275,7 @@ def build_rc_receiver(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     wiring = spec.wiring()
     chip = ctx.gpio_chip(real.gpio_chip)
     lines = {str(n): int(line) for n, line in dict(wiring.get("lines", {})).items()}
-    rc = construct(spec, RcReceiverMock, chip, lines=lines, mode_channel=str(wiring.get("mode_channel", "mode")))
+    rc = construct(spec, resolve_mock(spec.mock), chip, lines=lines, mode_channel=str(wiring.get("mode_channel", "mode")))
     parts: list[Any] = [rc]
     detail = ", ".join(f"{n}={line}" for n, line in lines.items())
     enable, select = wiring.get("enable_line"), wiring.get("select_line")
@@ -323,9 +321,12 @@ def _sides(spec: DeviceSpec, names: list[str]) -> list[str]:
 
 
 def build_can_motors(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
-    """One ODrive or VESC node per controller of the service, on the simulated bus of the device's CAN bus."""
+    """One node of the mock kind's class per controller of the service, on the simulated bus of the device's CAN
+    bus; the class turns the driver's declared wiring into its own keywords (``wiring_options``: an ODrive's
+    firmware and speed limit, a VESC's ERPM scale)."""
     real = _need(spec, "can")
     wiring = spec.wiring()
+    cls = resolve_mock(spec.mock)
     port = ctx.can_port(f"{real.can_interface}:{real.can_channel}")
     names = [str(n) for n in wiring["actuators"]]
     ids = list(wiring["ids"])
@@ -338,19 +339,8 @@ def build_can_motors(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
         raise spec.fail("drives is for PWM and GPIO outputs; a CAN motor drives the side sides = [...] gives it")
     for name, can_id, side, direction, radius in zip(names, ids, sides, directions, radii):
         ctx.feed(side, device=spec.name)
-        if spec.mock == "odrive":
-            # the driver limits its commands to its declared speed; the node's own limit sits above it
-            defaults = {"firmware": str(wiring.get("firmware", "0.6")),
-                        "vel_limit": float(wiring.get("command_limit_turns_per_s", 2.0)) * NODE_SPEED_MARGIN}
-            node = construct(spec, OdriveCanNode, ctx.motor_input(name), side=side, node_id=int(can_id),
-                             direction=int(direction),
-                             wheel_radius_m=float(radius), **bus, **defaults)
-        else:
-            defaults = {"max_erpm": float(wiring.get("max_erpm", 7000.0)),
-                        "pole_pairs": int(wiring.get("pole_pairs", 7)),
-                        "gear_ratio": float(wiring.get("gear_ratio", 1.0))}
-            node = construct(spec, VescCanNode, ctx.motor_input(name), side=side, controller_id=int(can_id),
-                             direction=int(direction), wheel_radius_m=float(radius), **bus, **defaults)
+        node = construct(spec, cls, ctx.motor_input(name), side=side, direction=int(direction),
+                         wheel_radius_m=float(radius), **bus, **cls.wiring_options(wiring, node_id=int(can_id)))
         nodes.append(node)
         ctx.can_nodes[name] = node
     mock = make_address("can", CAN_GROUP, params={"port": port}, mock=True, backend="udp_multicast", device=spec.name)
@@ -358,25 +348,49 @@ def build_can_motors(spec: DeviceSpec, ctx: MockContext) -> MockDevice:
     return MockDevice(spec.name, spec.mock, spec.service, mock.url, nodes, detail)
 
 
-CATALOG: dict[str, tuple[Builder, str]] = {
-    "nmea_gps": (build_serial, "NMEA 0183 GNSS receiver on a pty (serial:// address)"),
-    "nmea_compass": (build_serial, "NMEA HDG/HDM/HDT compass on a pty (serial:// address)"),
-    "os5000_compass": (build_serial, "OceanServer OS5000 compass on a pty (serial:// address)"),
-    "mpu9250": (build_imu_chip, "MPU-9250 + AK8963 on the mock I2C bus (i2c:// address)"),
-    "mpu6500": (build_imu_chip, "MPU-6500 on the mock I2C bus (i2c:// address)"),
-    "mpu6050": (build_imu_chip, "MPU-6050 on the mock I2C bus (i2c:// address)"),
-    "bno055": (build_imu_chip, "BNO055 on the mock I2C bus (i2c:// address)"),
-    "pca9685": (build_pca9685, "a PCA9685 output of a pwm_servo channel (pca9685:// address)"),
-    "sysfs_pwm": (build_sysfs_pwm, "a sysfs-shaped PWM chip directory standing in for /sys/class/pwm/pwmchipN, "
-                                   "for a pwm_servo channel (pwm:// address)"),
-    "rc_receiver": (build_rc_receiver, "RC receiver pulse trains and the RC mux on a mock GPIO chip "
-                                       "(gpio:// address; the rc_mux service's channel, enable and select lines)"),
-    "gpio_chip": (build_gpio_chip, "a mock GPIO chip (gpio:// address; a gpio_output service's outputs)"),
-    "odrive": (build_can_motors, "ODrive CANSimple nodes, one per controller (can:// address; the service's "
-                                 "actuators, node ids, directions, wheel radii, firmware)"),
-    "vesc": (build_can_motors, "VESC nodes, one per controller (can:// address; the service's actuators, "
-                               "controller ids, directions, ERPM scale)"),
+class MockBuilder(NamedTuple):
+    """How the catalog builds one family of mocks, and what a mock class must take to be built that way."""
+
+    build: Builder
+    needs: tuple[str, ...]   # keyword parameters (or class attributes) the class must have
+
+
+BUILDERS: dict[str, MockBuilder] = {
+    "serial": MockBuilder(build_serial, ("link_path", "name", "seed")),
+    "can_motor": MockBuilder(build_can_motors, ("side", "direction", "wheel_radius_m", "interface", "channel",
+                                                "bus_options", "wiring_options")),
+    "i2c_chip": MockBuilder(build_imu_chip, ("address", "vehicle", "seed")),
+    "pca9685": MockBuilder(build_pca9685, ("address",)),
+    "sysfs_pwm": MockBuilder(build_sysfs_pwm, ("path", "npwm", "name")),
+    "rc_receiver": MockBuilder(build_rc_receiver, ("lines", "mode_channel")),
+    "gpio_chip": MockBuilder(build_gpio_chip, ()),
 }
+"""Builder name (a :data:`u2sa_hw.registry.MOCK_DEVICES` entry's ``build``) -> the builder."""
+
+
+def _takes(cls: type, name: str) -> bool:
+    """True when *cls* takes keyword *name* or has it as an attribute."""
+    return name in inspect.signature(cls).parameters or hasattr(cls, name)
+
+
+def entry_problems(kind: str) -> list[str]:
+    """What is wrong with mock kind *kind*'s table entry: an unknown builder, a target that is not a class, a
+    class without what its builder needs, no description (empty when it is fine; an ImportError surfaces)."""
+    entry = MOCK_DEVICES[kind]
+    builder = BUILDERS.get(entry.build)
+    if builder is None:
+        return [f"{kind}: build {entry.build!r} is not a builder ({', '.join(BUILDERS)})"]
+    cls = resolve_mock(kind)
+    if not isinstance(cls, type):
+        return [f"{kind}: {entry.target} is not a class"]
+    problems = [f"{kind}: {cls.__name__} lacks {need!r}, which the {entry.build} builder needs"
+                for need in builder.needs if not _takes(cls, need)]
+    return problems + ([f"{kind}: no description"] if not entry.what.strip() else [])
+
+
+CATALOG: dict[str, tuple[Builder, str]] = {kind: (BUILDERS[entry.build].build, entry.what)
+                                           for kind, entry in MOCK_DEVICES.items()}
+"""Mock kind -> (builder, description), read off :data:`u2sa_hw.registry.MOCK_DEVICES`."""
 
 
 def build(spec: DeviceSpec, ctx: MockContext) -> MockDevice:

@@ -26,7 +26,7 @@ import math
 import os
 from dataclasses import dataclass
 from datetime import datetime, timezone
-from typing import Callable
+from typing import Callable, ClassVar
 
 from pynmeagps import NMEAMessage
 from pynmeagps.nmeahelpers import ddd2dmm, time2str
@@ -64,6 +64,9 @@ class GpsSolution:
 
 class NmeaGpsDevice(PeriodicSerialDevice):
     """A mock NMEA GNSS receiver at *link_path*, sampling *vehicle* at *rate_hz*."""
+
+    PROTOCOL: ClassVar[str] = "nmea"
+    """What it speaks: the mock catalog refuses it for a driver whose declared ``protocol`` differs."""
 
     def __init__(self, vehicle: SimVehicle, *, link_path: str | os.PathLike[str], rate_hz: float = 5.0,
                  talker: str = "GP", sentences: tuple[str, ...] = ("GGA", "RMC", "VTG", "GSA", "GST", "ZDA", "HDT"),

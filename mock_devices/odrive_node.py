@@ -48,6 +48,7 @@ from u2sa_hw.protocols import odrive_cansimple as cs
 from u2sa_hw.protocols.odrive_cansimple import AxisState, Cmd, ControlMode, InputMode, ProcedureResult
 
 SELF_STALL_S = 0.1   # the node's own thread went this long (real time) between ticks: it was starved
+NODE_SPEED_MARGIN = 1.25   # the node's own vel_limit over the speed its driver limits commands to
 CALIBRATION_STATES = frozenset({AxisState.STARTUP_SEQUENCE, AxisState.FULL_CALIBRATION_SEQUENCE,
                                 AxisState.MOTOR_CALIBRATION, AxisState.ENCODER_INDEX_SEARCH,
                                 AxisState.ENCODER_OFFSET_CALIBRATION, AxisState.LOCKIN_SPIN,
@@ -102,6 +103,14 @@ class OdriveCanNode(MockCanNode):
         self._setters: dict[int, Callable[[bytes, float], None]] = self._setter_table()
         self._getters: dict[int, Callable[[], bytes]] = self._getter_table()
         self._boot()
+
+    @classmethod
+    def wiring_options(cls, wiring: Mapping[str, Any], *, node_id: int) -> dict[str, Any]:
+        """The keywords one node of a service takes from its driver's declared wiring (the mock catalog's
+        CAN builder): the id, the firmware, and a ``vel_limit`` above the speed the driver limits its
+        commands to (``command_limit_turns_per_s``), so the driver's own limit is the one that acts."""
+        return {"node_id": int(node_id), "firmware": str(wiring.get("firmware", "0.6")),
+                "vel_limit": float(wiring.get("command_limit_turns_per_s", 2.0)) * NODE_SPEED_MARGIN}
 
     # ---- state -----------------------------------------------------------------------
     def _boot(self) -> None:

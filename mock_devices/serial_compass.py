@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 import os
+from typing import ClassVar
 
 from pynmeagps.nmeahelpers import calc_checksum
 
@@ -80,6 +81,9 @@ class _CompassBase(PeriodicSerialDevice):
 
 class NmeaCompassDevice(_CompassBase):
     """A mock NMEA 0183 heading sensor at *link_path* (HDG/HDM/HDT, optional XDR pitch/roll)."""
+
+    PROTOCOL: ClassVar[str] = "nmea"
+    """What it speaks: the mock catalog refuses it for a driver whose declared ``protocol`` differs."""
 
     def __init__(self, vehicle: SimVehicle, *, link_path: str | os.PathLike[str], rate_hz: float = 10.0,
                  talker: str = "HC", sentences: tuple[str, ...] = ("HDG",), declination_deg: float = 0.0,
@@ -149,6 +153,9 @@ def os5000_line(heading: float, pitch: float, roll: float, temperature: float,
 
 class Os5000CompassDevice(_CompassBase):
     """A mock OceanServer OS5000 tilt-compensated compass at *link_path* (its "$C" ASCII output)."""
+
+    PROTOCOL: ClassVar[str] = "os5000"
+    """What it speaks: the mock catalog refuses it for a driver whose declared ``protocol`` differs."""
 
     def __init__(self, vehicle: SimVehicle, *, link_path: str | os.PathLike[str], rate_hz: float = 10.0,
                  declination_deg: float = 0.0, heading_sigma_deg: float = 0.5, attitude_sigma_deg: float = 0.2,

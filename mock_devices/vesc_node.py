@@ -113,6 +113,13 @@ class VescCanNode(MockCanNode):
         self.answer_comm = True
         self._odometer = WheelOdometer(vehicle, side) if drive == "wheel" else None
 
+    @classmethod
+    def wiring_options(cls, wiring: Mapping[str, Any], *, node_id: int) -> dict[str, Any]:
+        """The keywords one node of a service takes from its driver's declared wiring (the mock catalog's
+        CAN builder): the controller id and the ERPM scale the driver converts speeds with."""
+        return {"controller_id": int(node_id), "max_erpm": float(wiring.get("max_erpm", 7000.0)),
+                "pole_pairs": int(wiring.get("pole_pairs", 7)), "gear_ratio": float(wiring.get("gear_ratio", 1.0))}
+
     # ---- faults ----------------------------------------------------------------------
     def set_fault(self, code: int) -> None:
         """Latch a firmware fault (mc_fault_code): the motor is released and commands are ignored
