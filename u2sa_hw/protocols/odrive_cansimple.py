@@ -84,6 +84,23 @@ def make_request(node_id: int, cmd: int, *, dlc: int = 0) -> can.Message:
                        is_extended_id=False)
 
 
+PROBE_SEEN = "ODrive heartbeats"   # what the frames probe_node recognises are called (u2sa check --probe)
+
+
+def probe_node(frame: can.Message) -> int | None:
+    """The node id of *frame* when it is a heartbeat (standard id, cmd 0x01: every live axis sends one
+    cyclically, whatever its state), else None; ``u2sa check --probe`` lists the nodes it heard."""
+    if frame.is_extended_id or frame.is_remote_frame or not 0 <= frame.arbitration_id <= 0x7FF:
+        return None
+    node, cmd = split_arbitration_id(frame.arbitration_id)
+    return node if cmd == Cmd.HEARTBEAT else None
+
+
+def probe_frame(node_id: int) -> can.Message:
+    """A frame :func:`probe_node` recognises as *node_id*'s: an idle axis's heartbeat (tests and tools)."""
+    return make_frame(node_id, Cmd.HEARTBEAT, encode_heartbeat(Heartbeat(axis_error=0, axis_state=AxisState.IDLE)))
+
+
 def _need(data: bytes, length: int, what: str) -> bytes:
     if len(data) < length:
         raise CanSimpleError(f"ODrive {what}: needs {length} data bytes, got {len(data)} ({bytes(data).hex()})")

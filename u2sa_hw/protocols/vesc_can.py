@@ -75,6 +75,24 @@ def make_frame(controller_id: int, packet_id: int, data: bytes) -> can.Message:
     return can.Message(arbitration_id=ext_id(packet_id, controller_id), data=data, is_extended_id=True)
 
 
+PROBE_SEEN = "VESC status frames"   # what the frames probe_node recognises are called (u2sa check --probe)
+_STATUS_IDS = frozenset(int(p) for p in STATUS_PACKETS)
+
+
+def probe_node(frame: can.Message) -> int | None:
+    """The controller id of *frame* when it is a STATUS frame (extended id, a STATUS packet: a VESC sends
+    them cyclically in VESC CAN mode), else None; ``u2sa check --probe`` lists the nodes it heard."""
+    if not frame.is_extended_id or frame.is_remote_frame or not 0 <= frame.arbitration_id <= 0xFFFF:
+        return None
+    packet, node = split_ext_id(frame.arbitration_id)
+    return node if packet in _STATUS_IDS else None
+
+
+def probe_frame(node_id: int) -> can.Message:
+    """A frame :func:`probe_node` recognises as *node_id*'s: a stopped motor's STATUS (tests and tools)."""
+    return make_frame(node_id, PacketId.STATUS, encode_status(Status1(erpm=0.0, current_a=0.0, duty=0.0)))
+
+
 def _need(data: bytes, length: int, what: str) -> bytes:
     if len(data) < length:
         raise VescCanError(f"VESC {what}: needs {length} data bytes, got {len(data)} ({bytes(data).hex()})")

@@ -3,6 +3,9 @@ node ids heard in the window.
 
 SocketCAN's state comes from ``/sys/class/net`` and ``ip -details -statistics link``; a
 python-can ``udp_multicast``/``virtual`` bus is said to be simulated. The probe only listens.
+Which frames name a node is the driver's protocol's to say: the protocol its driver declares
+(``probe_expectation``) names a module in :data:`u2sa_hw.registry.CAN_PROTOCOLS`, whose
+``probe_node(frame)`` and ``PROBE_SEEN`` are used here, so a new CAN motor family adds no branch.
 """
 
 from __future__ import annotations
@@ -62,21 +65,26 @@ def socketcan_state(interface: str, *, run: Callable[..., Any] | None = None) ->
 
 
 def heard_nodes(frames: list[Any], protocol: str) -> list[int]:
-    """The node ids in *frames*: ODrive heartbeats (id >> 5, cmd 0x01), VESC status frames (id & 0xFF)."""
-    from u2sa_hw.protocols import odrive_cansimple as od
-    from u2sa_hw.protocols import vesc_can as vesc
+    """The node ids in *frames* that *protocol*'s module recognises (its ``probe_node``: an ODrive's
+    heartbeats, a VESC's status frames); none for a protocol the table does not name."""
+    recognise = _recogniser(protocol)
+    if recognise is None:
+        return []
+    return sorted({node for node in map(recognise, frames) if node is not None})
 
-    nodes: set[int] = set()
-    for msg in frames:
-        if protocol == "odrive" and not msg.is_extended_id and msg.arbitration_id <= 0x7FF:
-            node, cmd = od.split_arbitration_id(msg.arbitration_id)
-            if cmd == 0x01:
-                nodes.add(node)
-        elif protocol == "vesc" and msg.is_extended_id and msg.arbitration_id <= 0xFFFF:
-            packet, node = vesc.split_ext_id(msg.arbitration_id)
-            if packet in {int(p) for p in vesc.STATUS_PACKETS}:
-                nodes.add(node)
-    return sorted(nodes)
+
+def seen_as(protocol: str) -> str:
+    """What the frames *protocol*'s probe recognises are called (``ODrive heartbeats``); ``frames`` else."""
+    from u2sa_hw.registry import CAN_PROTOCOLS, can_protocol
+
+    return str(can_protocol(protocol).PROBE_SEEN) if protocol in CAN_PROTOCOLS else "frames"
+
+
+def _recogniser(protocol: str) -> Callable[[Any], int | None] | None:
+    """*protocol*'s ``probe_node`` from the CAN protocol table (:data:`u2sa_hw.registry.CAN_PROTOCOLS`)."""
+    from u2sa_hw.registry import CAN_PROTOCOLS, can_protocol
+
+    return can_protocol(protocol).probe_node if protocol in CAN_PROTOCOLS else None
 
 
 def probe(target: Target, seconds: float) -> tuple[bool, str, dict[str, Any]]:
@@ -105,7 +113,7 @@ def probe(target: Target, seconds: float) -> tuple[bool, str, dict[str, Any]]:
     nodes = heard_nodes(frames, protocol)
     wanted = [int(n) for n in target.params.get("nodes", [])]
     missing = [n for n in wanted if n not in nodes]
-    what = {"odrive": "ODrive heartbeats", "vesc": "VESC status frames"}.get(protocol, "frames")
+    what = seen_as(protocol)
     text = (f"{state}; {len(frames)} frames in {seconds:g} s, {what} from node(s) "
             f"{', '.join(map(str, nodes)) or 'none'}")
     if missing:
