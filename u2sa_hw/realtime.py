@@ -25,15 +25,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Mapping
 
+from u2sa_hw.registry import ACTUATOR_KINDS
+
+ACTUATOR_PRIORITY = 25   # every actuator driver (u2sa_hw.registry.ACTUATOR_KINDS): dead-man timers, neutral on no signal
 SAFETY_CHAIN_PRIORITIES: Mapping[str, int] = {
+    **dict.fromkeys(sorted(ACTUATOR_KINDS), ACTUATOR_PRIORITY),
     "rc_mux": 30,       # the pilot's hand-over and the manual path: highest of ours
-    "odrive_can": 25,   # actuator drivers: their dead-man timers and neutral on no signal
-    "vesc_can": 25,
-    "pwm_servo": 25,    # sysfs PWM and PCA9685 boards alike
-    "gpio_output": 25,
     "hsm": 20,          # freshness judgements and the failsafe escalation
 }
-"""Service kind -> ``SCHED_FIFO`` priority (1-99). Kinds not listed run at normal priority."""
+"""Service kind -> ``SCHED_FIFO`` priority (1-99). Kinds not listed run at normal priority. The actuator
+drivers come from the registry, so a new one (a CAN motor family) is in the safety chain without a line here."""
 
 SIM_DEVICES_PRIORITY = 10
 """``u2sa sim``'s own process (the mock devices, the simulated RC receiver): below the safety chain."""

@@ -50,6 +50,14 @@ NOT_ACTUATOR_KINDS = frozenset({
 })
 
 
+ACTUATOR_KINDS = frozenset(SERVICE_KINDS) - NOT_ACTUATOR_KINDS
+"""Built-in kinds whose service moves actuators (the actuator drivers and the RC mux): the safety chain runs
+them real-time (:mod:`u2sa_hw.realtime`) and their units' watchdog kills (:mod:`u2sa_hw.install.units`), so a
+new actuator driver gets both from its one ``SERVICE_KINDS`` line."""
+
+COMMAND_SOURCE_KINDS = ACTUATOR_KINDS | {"control"}
+"""Kinds whose process publishes or executes actuator commands: their watchdog sends SIGKILL."""
+
 def known_kinds() -> dict[str, str]:
     """Every registered kind, built-in ones and those from entry points."""
     from importlib.metadata import entry_points   # scanning installed packages costs ~15 ms: only when needed

@@ -34,7 +34,7 @@ import tomli_w
 from u2sa_hw.bus.pilot import PILOT_GROUP
 from u2sa_hw.install.system import DEVICE_GROUPS, SERVICE_USER, UNIT_ONLY_GROUPS, InstallError
 from u2sa_hw.realtime import unit_directives
-from u2sa_hw.registry import RECORDER_KIND
+from u2sa_hw.registry import COMMAND_SOURCE_KINDS, RECORDER_KIND   # command sources: their watchdog kills
 from u2sa_hw.bus.transport import DEFAULT_RECV_BUF_SIZE
 from u2sa_hw.profile.vehicle import ServiceSpec, VehicleProfile
 
@@ -144,9 +144,6 @@ COMMAND_SOURCE_DROPIN = """\
 [Service]
 WatchdogSignal=SIGKILL
 """
-
-COMMAND_SOURCE_KINDS = frozenset({"rc_mux", "control", "odrive_can", "vesc_can", "pwm_servo", "gpio_output"})
-"""Kinds whose process publishes or executes actuator commands: their watchdog sends SIGKILL."""
 
 
 PILOT_KIND = "rc_mux"   # the one service that signs the pilot's channels (RC_MODE, MANUAL_CMD)
