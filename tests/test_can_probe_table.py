@@ -18,6 +18,7 @@ from u2sa_hw.registry import CAN_PROTOCOLS, SERVICE_KINDS, can_protocol, resolve
 
 PROTOCOLS = sorted(CAN_PROTOCOLS)
 NODE = 5
+NODES = (0, 1, 5, 31)   # a node id that puts cmd/packet bits where another family looks (1: 0x701 & 0x1F == 1)
 
 
 @pytest.mark.parametrize("protocol", PROTOCOLS)
@@ -32,15 +33,17 @@ def test_each_protocol_has_a_recogniser_a_frame_and_a_name(protocol: str) -> Non
 @pytest.mark.parametrize("protocol", PROTOCOLS)
 def test_each_protocol_recognises_its_own_frame(protocol: str) -> None:
     module = can_protocol(protocol)
-    assert module.probe_node(module.probe_frame(NODE)) == NODE
+    for node in NODES:
+        assert module.probe_node(module.probe_frame(node)) == node
     assert heard_nodes([module.probe_frame(NODE), module.probe_frame(2), module.probe_frame(NODE)], protocol) == [2, NODE]
 
 
 @pytest.mark.parametrize(("protocol", "other"), list(permutations(PROTOCOLS, 2)))
 def test_each_protocol_ignores_the_other_familys_frame(protocol: str, other: str) -> None:
-    frame = can_protocol(other).probe_frame(NODE)
-    assert can_protocol(protocol).probe_node(frame) is None, f"{protocol} took {other}'s frame for a node"
-    assert heard_nodes([frame], protocol) == []
+    frames = [can_protocol(other).probe_frame(node) for node in NODES]
+    for frame in frames:
+        assert can_protocol(protocol).probe_node(frame) is None, f"{protocol} took {other}'s frame {frame} for a node"
+    assert heard_nodes(frames, protocol) == []
 
 
 @pytest.mark.parametrize("protocol", PROTOCOLS)
@@ -60,6 +63,14 @@ def test_every_can_motor_drivers_protocol_is_in_the_table() -> None:
     for kind, cls in drivers.items():
         assert issubclass(cls, CanMotorDeclarations), kind
         assert cls.PROTOCOL in CAN_PROTOCOLS, f"{kind}: PROTOCOL {cls.PROTOCOL!r} is not in CAN_PROTOCOLS"
+
+
+def test_odrive_takes_no_canopen_heartbeat_for_a_node() -> None:
+    """A CANopen node 1's heartbeat (0x701, one byte) has ODrive's heartbeat cmd bits: only its length differs."""
+    import can
+
+    canopen = can.Message(arbitration_id=0x701, data=b"\x05", is_extended_id=False)
+    assert can_protocol("odrive").probe_node(canopen) is None
 
 
 def test_an_unknown_protocol_hears_nothing_and_says_frames() -> None:

@@ -88,9 +88,12 @@ PROBE_SEEN = "ODrive heartbeats"   # what the frames probe_node recognises are c
 
 
 def probe_node(frame: can.Message) -> int | None:
-    """The node id of *frame* when it is a heartbeat (standard id, cmd 0x01: every live axis sends one
-    cyclically, whatever its state), else None; ``u2sa check --probe`` lists the nodes it heard."""
+    """The node id of *frame* when it is a heartbeat (standard id, cmd 0x01, 8 bytes: every live axis sends
+    one cyclically, whatever its state), else None; ``u2sa check --probe`` lists the nodes it heard. The
+    length keeps a CANopen heartbeat (0x701, one byte) from passing for node 56's."""
     if frame.is_extended_id or frame.is_remote_frame or not 0 <= frame.arbitration_id <= 0x7FF:
+        return None
+    if len(frame.data) != FRAME_DLC:
         return None
     node, cmd = split_arbitration_id(frame.arbitration_id)
     return node if cmd == Cmd.HEARTBEAT else None
