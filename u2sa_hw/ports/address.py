@@ -342,7 +342,8 @@ def make_address(kind: str, location: str, numbers: tuple[int, ...] | list[int] 
 
     *location* is what the kind's ``location`` holds: a device path or pyserial URL, a CAN
     channel (with *backend* the interface), an I2C adapter number or mock socket path, a
-    GPIO chip path or mock socket path, a PWM chip directory.
+    GPIO chip path or mock socket path, a PWM chip directory. A kind not named below (a new
+    one in the kind table) is written ``KIND://LOCATION/N/...`` and parsed by its own grammar.
     """
     prefix = MOCK_PREFIX if mock else ""
     query = urlencode({k: str(v) for k, v in (params or {}).items()}, safe=":/")
@@ -371,6 +372,8 @@ def make_address(kind: str, location: str, numbers: tuple[int, ...] | list[int] 
     elif kind == "pwm":
         where = location[len(SYSFS_PWM) + 1:] if not mock and location.startswith(SYSFS_PWM + "/") else location
         url = f"{prefix}pwm://{where}/{nums[0]}"
+    elif kind in KINDS:   # any other kind: KIND://LOCATION/N/... (a new kind whose grammar reads that form)
+        url = f"{prefix}{kind}://{location}" + "".join(f"/{n}" for n in nums)
     else:
         raise AddressError(device, location, f"unknown kind {kind!r}")
     return parse_address(url + suffix, device=device)
