@@ -33,11 +33,10 @@ GPIO outputs listed in ``drives`` (``enable``: a motor contactor).
 
 The mock kinds are one table, :data:`u2sa_hw.registry.MOCK_DEVICES` (kind -> ``"module:Class"``,
 the builder here that wires it, a description), imported only when a mock of the kind is built.
-The builders hold no per-family branch: a class says what it needs (a serial mock its
-``PROTOCOL``, a CAN node ``wiring_options(wiring, node_id=)``: its id keyword and the defaults
-its driver's wiring sets), so a new serial or CAN motor mock is its module and one table line
-(docs/adding-a-device.md). :data:`BUILDERS` says what each builder needs of a class, and
-:func:`entry_problems` checks an entry against it (``tests/test_mock_table.py``).
+The builders hold no per-family branch: a class says what it needs (a serial mock its ``PROTOCOL``,
+a CAN node ``wiring_options(wiring, node_id=)``), so a new serial or CAN motor mock is its module
+and one table line (docs/adding-a-device.md); :func:`entry_problems` checks an entry against what
+its builder needs (:data:`BUILDERS`, ``tests/test_mock_table.py``).
 """
 
 from __future__ import annotations
