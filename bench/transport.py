@@ -46,7 +46,8 @@ from typing import Any
 
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus.key import use_run_key
-from u2sa_hw.bus.transport import DEFAULT_QUEUE_CAPACITY, Transport, with_receive_buffer
+from u2sa_hw.bus.transport import DEFAULT_QUEUE_CAPACITY, Transport
+from u2sa_hw.bus.lcm_url import with_receive_buffer
 from u2sa_hw.bus.udp_ports import private_lcm_url
 
 CHANNEL = "BENCH_STATE"

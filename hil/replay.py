@@ -30,7 +30,9 @@ from u2sa_hw.bus.key import KEY_ENV, fresh_key_file
 from u2sa_hw.launcher import Launcher, ProcessStatus, RestartPolicy
 from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo
 from u2sa_hw.services.recorder.capture import BusCapture
-from u2sa_hw.bus.transport import Transport, TransportError, check_multicast
+from u2sa_hw.bus.transport import Transport
+from u2sa_hw.bus.multicast_check import check_multicast
+from u2sa_hw.bus.lcm_open import TransportError
 from u2sa_hw.profile.loader import load_profile
 from u2sa_hw.bus.udp_ports import private_lcm_url
 

@@ -16,7 +16,8 @@ from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus.auth import (FORGED, MAX_COUNTER, OK, REPLAYED, TAG, TRAILER_LEN, UNSIGNED, WINDOW_US, BusAuth,
                               Keyring, strip_trailer)
 from u2sa_hw.bus.key import BusKeyError, key_path, new_key, parse_key, read_key, write_key
-from u2sa_hw.bus.transport import Transport, TransportError
+from u2sa_hw.bus.transport import Transport
+from u2sa_hw.bus.lcm_open import TransportError
 
 NOW_US = 1_764_000_000_000_000      # November 2025
 PAYLOAD = t.StateInformation().set(x=1.0).encode()

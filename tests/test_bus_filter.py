@@ -12,7 +12,8 @@ from conftest import wait_until
 
 from u2sa_hw.bus import filter as bus_filter
 from u2sa_hw.bus.filter import FilterTooLarge, lcm_packet, program
-from u2sa_hw.bus.transport import FILTER_ENV, Transport
+from u2sa_hw.bus.transport import Transport
+from u2sa_hw.bus.lcm_sockets import FILTER_ENV
 
 
 def _kernel_run(channels: list[str], packets: list[bytes]) -> list[bytes]:
@@ -87,7 +88,7 @@ def test_a_transport_hears_its_channels_and_the_kernel_drops_the_rest(lcm_url: s
         rx.subscribe("LARGE", None, lambda _c, d: large.append(d), raw=True)
         rx.start()
         assert rx.filtered
-        inodes = _inodes(rx._recv_fds)
+        inodes = _inodes(rx._sockets.recv_fds)
         before = _socket_drops(inodes)
         for i in range(200):
             tx.publish_bytes("UNWANTED", b"x" * 100)

@@ -16,7 +16,7 @@ from u2sa_hw.install.deploy import install as deploy_install
 from u2sa_hw.install.deploy import uninstall
 from u2sa_hw.install.manifest import MANIFEST_PATH, load_manifest
 from u2sa_hw.install.system import InstallError
-from u2sa_hw.bus.transport import DEFAULT_RECV_BUF_SIZE
+from u2sa_hw.bus.lcm_url import DEFAULT_RECV_BUF_SIZE
 
 U2SA = Path(sys.executable).with_name("u2sa")
 # These tests stage in seconds: a venv sharing this environment's packages, not one built with pip

@@ -18,8 +18,10 @@ from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw import message_codegen
 from u2sa_hw.service.contract import U2SAService
-from u2sa_hw.bus.transport import (DEFAULT_LCM_URL, DEFAULT_RECV_BUF_SIZE, Transport, TransportError, check_multicast,
-                               resolve_url, with_receive_buffer)
+from u2sa_hw.bus.transport import Transport, resolve_url
+from u2sa_hw.bus.lcm_url import DEFAULT_LCM_URL, DEFAULT_RECV_BUF_SIZE, with_receive_buffer
+from u2sa_hw.bus.multicast_check import check_multicast
+from u2sa_hw.bus.lcm_open import TransportError
 from u2sa_hw.bus.udp_ports import private_lcm_url
 from u2sa_hw.profile.vehicle import VehicleProfile
 

@@ -28,6 +28,10 @@ URL_HELP = ("check the URL: udpm://GROUP:PORT?ttl=N with a multicast group (224.
 _STDERR_LOCK = threading.Lock()   # fd 2 is the process's: one capture at a time
 
 
+class TransportError(RuntimeError):
+    """The LCM transport cannot start; the message says why and how to fix it."""
+
+
 @contextlib.contextmanager
 def captured_c_stderr() -> Iterator[list[str]]:
     """Redirect file descriptor 2 (where C code prints) to a temp file for the block.

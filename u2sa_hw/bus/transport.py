@@ -18,14 +18,15 @@ signed before this process started, the system id, a failsafe raise that fails s
 
 The LCM C library reports a failure to open (no multicast route, a bad URL, a port held by
 another program) with many lines on stderr; those are caught and folded into the one-line
-:class:`TransportError` (``u2sa_hw.bus.lcm_open``).
+``TransportError`` (``u2sa_hw.bus.lcm_open``). The sockets under the LCM instance (the bus's
+interface, the receive socket bound early, the kernel's channel filter) are ``u2sa_hw.bus.lcm_sockets``;
+``u2sa_hw.bus.multicast_check`` checks that multicast works at all.
 """
 
 from __future__ import annotations
 
 import functools
 import logging
-import os
 import re
 import threading
 import time
@@ -34,18 +35,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-import lcm
-
 from u2sa_hw.bus.auth import OK, OPEN, WINDOW_US, BusAuth, keyring_for, resolve_security
-from u2sa_hw.bus.guard import AcceptedRaise, ChannelCounters, ReceiveGuard  # noqa: F401 - AcceptedRaise re-exported
-from u2sa_hw.bus import filter as bus_filter
+from u2sa_hw.bus.guard import AcceptedRaise, ChannelCounters, ReceiveGuard
 from u2sa_hw.bus.clock import ClockStore, store_from_env
 from u2sa_hw.bus.key import BusKeyError, key_path
-from u2sa_hw.bus.listen import (bus_port, forced_default_problem, listen_interface, prepare_interface, receive_on,
-                                send_via, socket_fds)
-from u2sa_hw.bus.lcm_open import MULTICAST_FIX, URL_HELP, captured_c_stderr, open_error, reemit  # noqa: F401 - re-exported
-from u2sa_hw.bus.lcm_url import (DEFAULT_LCM_URL, DEFAULT_RECV_BUF_SIZE, LCM_URL_ENV,  # noqa: F401 - re-exported
-                              RMEM_MAX_FILE, resolve_url, with_receive_buffer)
+from u2sa_hw.bus.lcm_open import TransportError
+from u2sa_hw.bus.lcm_sockets import LcmSockets, is_regex
+from u2sa_hw.bus.lcm_url import resolve_url
 from u2sa_hw.service.health import name_native_thread
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 
@@ -55,13 +51,7 @@ from u2sa_hw.messages import REGISTRY, MalformedMessage
 DEFAULT_QUEUE_CAPACITY = 10_000
 
 Callback = Callable[[str, Any], None]
-FILTER_ENV = "U2SA_BUS_FILTER"   # "off": every transport hears the whole bus (u2sa_hw.bus.filter)
-_RECEIVER_OPENING = threading.Lock()   # one transport at a time finds its new receive socket among the process's
 log = logging.getLogger("u2sa_hw.bus.transport")
-
-
-class TransportError(RuntimeError):
-    """The LCM transport cannot start; the message says why and how to fix it."""
 
 
 @dataclass
@@ -98,11 +88,6 @@ class Transport:
                  system_id: int | None = None, clock_store: ClockStore | None = None, vehicle: bool = False) -> None:
         self.url = resolve_url(url)
         self.name = name
-        # ttl=0: loopback only; ttl>=1: the profile's bus_interface, if any (u2sa_hw.bus.listen).
-        self.interface = listen_interface(self.url, interface)
-        self.listen_problem = forced_default_problem(self.url)
-        self._if_index: int | None = None
-        sockets_before = socket_fds() if self.interface else set()
         try:
             self.security = resolve_security(security)
             self.auth = BusAuth(keyring_for(key_path(key_file), vehicle=vehicle)) if self.security != OPEN else None
@@ -118,31 +103,10 @@ class Transport:
         self.system_id = system_id
         self._pending_unsubscribe: deque[Any] = deque()
         self._sign_logged: set[str] = set()
-        with captured_c_stderr() as printed:
-            try:
-                self._lc = lcm.LCM(with_receive_buffer(self.url))
-                failure = None
-            except (RuntimeError, OSError) as exc:
-                failure = exc
-        if failure is not None:
-            raise TransportError(open_error(self.url, f"cannot open LCM at {self.url}", failure, printed[0]))
-        reemit(printed[0])
-        self._send_fds = socket_fds() - sockets_before if self.interface else set()
-        if self.interface:
-            try:
-                self._if_index, problem = prepare_interface(self.url, self.interface)
-                self.listen_problem = problem or self.listen_problem
-                if self._if_index is not None:
-                    send_via(self.url, self._send_fds, self._if_index)
-            except OSError as exc:
-                raise TransportError(f"cannot send on {self.interface} only: {exc}") from None
-        self._receiving = False   # set once _open_receiver had LCM bind its receive socket
-        self._receiver_lock = threading.Lock()
-        self._recv_fds: set[int] = set()   # LCM's receive socket (found as it opens), for the channel filter
-        # The exact channels subscribed, which the kernel filter passes; None: a regex subscription, hear everything.
-        self._filter_channels: set[str] | None = (set() if self.url.startswith("udpm://")
-                                                  and os.environ.get(FILTER_ENV, "").lower() != "off" else None)
-        self.filtered = False   # True while the kernel drops the channels this transport does not take
+        # ttl=0: loopback only; ttl>=1: the profile's bus_interface, if any (u2sa_hw.bus.listen).
+        self._sockets = LcmSockets(self.url, interface)
+        self._lc = self._sockets.open()
+        self.interface, self.listen_problem = self._sockets.interface, self._sockets.listen_problem
         self._publish_lock = threading.Lock()
         self._subs: list[_Subscription] = []
         self._subs_lock = threading.Lock()
@@ -210,12 +174,12 @@ class Transport:
         *queue_capacity* is how many messages LCM holds for this subscription before dropping.
         """
         sub = _Subscription(channel, base, callback, raw)
-        pattern = channel if _is_regex(channel) else re.escape(channel)
+        pattern = channel if is_regex(channel) else re.escape(channel)
         handler = functools.partial(self._dispatch, sub)   # no Python frame of its own per packet
         if self._lc is None:
             raise TransportError(f"cannot subscribe to {channel}: the transport on {self.url} is stopped")
-        self._open_receiver()
-        self._widen_filter(channel)   # before LCM takes the channel: nothing of it is dropped after subscribe
+        self._sockets.open_receiver(self._lc)
+        self._sockets.widen_filter(channel)   # before LCM takes the channel: nothing of it is dropped after subscribe
         sub.handle = self._lc.subscribe(pattern, handler)
         if sub.handle is None:
             raise TransportError(f"cannot subscribe to {channel} on LCM at {self.url}")
@@ -224,55 +188,10 @@ class Transport:
             self._subs.append(sub)
         return sub
 
-    def _open_receiver(self) -> None:
-        """Have LCM bind its receive socket now, before any handler thread, so a failure is one clear error.
-
-        LCM binds lazily (at the first subscribe or handle); a bind that fails there prints to
-        stderr and can leave a handling thread and a subscribing one blocked on each other.
-        """
-        if self._receiving:
-            return
-        with self._receiver_lock:   # two threads subscribing first at once: one opens, the other waits for it
-            if self._receiving:
-                return
-            if self._if_index is not None:
-                send_via(self.url, self._send_fds, 0)   # LCM's self test, as the receiver opens, sends on the route
-            with _RECEIVER_OPENING, captured_c_stderr() as printed:
-                sockets_before = socket_fds()
-                fd = self._lc.fileno()
-                recv_fds = socket_fds() - sockets_before
-            if fd < 0:
-                raise TransportError(open_error(self.url, f"cannot receive on LCM at {self.url}", None, printed[0]))
-            reemit(printed[0])
-            if self._if_index is not None:
-                try:
-                    receive_on(self.url, recv_fds, self._if_index)
-                    send_via(self.url, self._send_fds, self._if_index)
-                except OSError as exc:
-                    raise TransportError(f"cannot listen on {self.interface} only: {exc}") from None
-            self._recv_fds = recv_fds
-            self._receiving = True
-
-    def _widen_filter(self, channel: str) -> None:
-        """Let the kernel pass *channel* too (all channels once a subscription is a regex).
-
-        Filters only narrow what a process hears to what it subscribed to; an unsubscribed channel
-        stays in the filter (a few packets more, never one fewer).
-        """
-        with self._subs_lock:
-            wanted = self._filter_channels
-            if wanted is None or channel in wanted:
-                return
-            port = bus_port(self.url)
-            if _is_regex(channel):
-                self._filter_channels = None
-                bus_filter.apply(self._recv_fds, port, None)
-                self.filtered = False
-                return
-            wanted.add(channel)
-            self.filtered = bus_filter.apply(self._recv_fds, port, wanted)
-            if not self.filtered:
-                self._filter_channels = None   # not available here (apply removed any filter): stop trying
+    @property
+    def filtered(self) -> bool:
+        """True while the kernel drops the channels this transport does not take (u2sa_hw.bus.filter)."""
+        return self._sockets.filtered
 
     def unsubscribe(self, sub: _Subscription) -> None:
         """Stop delivering to *sub* (at once; LCM lets go of it between two packets)."""
@@ -342,8 +261,8 @@ class Transport:
         """
         if self._lc is None:
             raise TransportError(f"the transport on {self.url} is stopped")
-        self._open_receiver()
-        self._widen_filter(".*")   # what is subscribed on it directly must not meet the kernel filter
+        self._sockets.open_receiver(self._lc)
+        self._sockets.widen_filter(".*")   # what is subscribed on it directly must not meet the kernel filter
         return self._lc
 
     @property
@@ -406,7 +325,7 @@ class Transport:
         """Start the one handler thread (idempotent)."""
         if self._thread is not None:
             return
-        self._open_receiver()
+        self._sockets.open_receiver(self._lc)
         self._running = True
         self._thread = threading.Thread(target=self._loop, name=f"lcm-{self.name}", daemon=True)
         self._thread.start()
@@ -477,30 +396,3 @@ class Transport:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
-
-
-def _is_regex(channel: str) -> bool:
-    return any(ch in channel for ch in "*+?[]()|\\^$")
-
-
-def check_multicast(url: str | None = None, *, timeout: float = 1.0) -> None:
-    """Send one packet to ourselves; raise TransportError with the fix if it never arrives.
-
-    Only ``udpm://`` URLs are probed: other providers do not loop packets back the same way.
-    """
-    if not resolve_url(url).startswith("udpm://"):
-        return
-    probe = f"U2SA_PROBE_{os.getpid()}_{time.monotonic_ns()}"
-    t = Transport(url, name="probe", security=OPEN)   # it hears only itself: nothing to verify
-    got = threading.Event()
-    t.subscribe(probe, None, lambda ch, data: got.set(), raw=True)
-    try:
-        t.start()
-        deadline = time.monotonic() + timeout
-        while not got.is_set() and time.monotonic() < deadline:
-            t.publish_bytes(probe, b"probe")
-            got.wait(0.1)
-    finally:
-        t.stop()
-    if not got.is_set():
-        raise TransportError(f"no LCM packet came back on {t.url} within {timeout:.1f} s: {MULTICAST_FIX}")

@@ -6,7 +6,8 @@ import argparse
 import contextlib
 from typing import Any, Iterator
 
-from u2sa_hw.bus.transport import TransportError, check_multicast
+from u2sa_hw.bus.multicast_check import check_multicast
+from u2sa_hw.bus.lcm_open import TransportError
 from u2sa_hw.profile.vehicle import ProfileError, VehicleProfile
 from u2sa_hw.profile.loader import load_profile
 

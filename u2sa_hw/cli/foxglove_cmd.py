@@ -48,7 +48,7 @@ def cmd_foxglove(args: Any) -> int:
     from u2sa_hw.cli import CliError
     from u2sa_hw.config.fields import ConfigError
     from u2sa_hw.service.log import setup_service_logging
-    from u2sa_hw.bus.transport import TransportError
+    from u2sa_hw.bus.lcm_open import TransportError
 
     try:
         from u2sa_hw.foxglove.service import FoxgloveBridgeService

@@ -98,7 +98,8 @@ def cmd_record(args: Any) -> int:
     from u2sa_hw.recording.mcap_log import McapLogWriter
     from u2sa_hw.services.recorder.capture import BusCapture
     from u2sa_hw.services.recorder.service import run_info
-    from u2sa_hw.bus.transport import Transport, TransportError
+    from u2sa_hw.bus.transport import Transport
+    from u2sa_hw.bus.lcm_open import TransportError
 
     profile = profile_from(args)
     out = Path(args.output) if args.output else None

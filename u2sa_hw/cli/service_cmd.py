@@ -56,7 +56,7 @@ def run(args: Any) -> int:
     from u2sa_hw.config.fields import ConfigError
     from u2sa_hw.registry import known_kinds, resolve_kind
     from u2sa_hw.service.log import setup_service_logging
-    from u2sa_hw.bus.transport import TransportError
+    from u2sa_hw.bus.lcm_open import TransportError
 
     if args.list_kinds:
         for kind, target in sorted(known_kinds().items()):

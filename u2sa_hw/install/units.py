@@ -35,7 +35,7 @@ from u2sa_hw.bus.pilot import PILOT_GROUP
 from u2sa_hw.install.system import DEVICE_GROUPS, SERVICE_USER, UNIT_ONLY_GROUPS, InstallError
 from u2sa_hw.realtime import unit_directives
 from u2sa_hw.registry import COMMAND_SOURCE_KINDS, RECORDER_KIND   # command sources: their watchdog kills
-from u2sa_hw.bus.transport import DEFAULT_RECV_BUF_SIZE
+from u2sa_hw.bus.lcm_url import DEFAULT_RECV_BUF_SIZE
 from u2sa_hw.profile.vehicle import ServiceSpec, VehicleProfile
 
 UNIT_DIR = "/etc/systemd/system"

@@ -53,7 +53,8 @@ if TYPE_CHECKING:
     from collections.abc import Iterable
 
     from u2sa_hw.service.contract import U2SAService
-    from u2sa_hw.bus.transport import AcceptedRaise, Transport
+    from u2sa_hw.bus.transport import Transport
+    from u2sa_hw.bus.guard import AcceptedRaise
 
 # How long a starting service listens for another of its name, sending its discovery request again
 # every PROBE_RESEND_S (one may be lost or answered late). A live service answers in milliseconds;
