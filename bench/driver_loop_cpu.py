@@ -48,7 +48,7 @@ from u2sa_hw.mocks.mpu9250_chip import Ak8963Chip, Mpu9250Chip  # noqa: E402
 from u2sa_hw.mocks.rc_receiver import MuxMock, RcReceiverMock  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
 from u2sa_hw.service.health import set_details  # noqa: E402
-from u2sa_hw.bus.key import use_run_key  # noqa: E402
+from u2sa_hw.bus.run_keys import use_run_key  # noqa: E402
 from u2sa_hw.bus.transport import Transport  # noqa: E402
 from u2sa_hw.bus.udp_ports import private_lcm_url  # noqa: E402
 from u2sa_hw.profile.loader import load_profile  # noqa: E402

@@ -51,7 +51,7 @@ sys.path.insert(0, str(REPO))
 from u2sa_hw.mocks.nmea_gps import NmeaGpsDevice  # noqa: E402
 from u2sa_hw.mocks.serial_compass import NmeaCompassDevice  # noqa: E402
 from u2sa_hw.mocks.vehicle_sim import SimVehicle  # noqa: E402
-from u2sa_hw.bus.key import use_run_key  # noqa: E402
+from u2sa_hw.bus.run_keys import use_run_key  # noqa: E402
 from u2sa_hw import channels as ch  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
 from u2sa_hw.bus.client import BusClient  # noqa: E402

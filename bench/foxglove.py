@@ -41,7 +41,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from u2sa_hw import lcmtypes as t  # noqa: E402
-from u2sa_hw.bus.key import use_run_key  # noqa: E402
+from u2sa_hw.bus.run_keys import use_run_key  # noqa: E402
 from u2sa_hw.bus.udp_ports import private_lcm_url  # noqa: E402
 from example_mix import EXAMPLE_RATES  # noqa: E402  (bench/ is the script's directory)
 

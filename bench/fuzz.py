@@ -34,7 +34,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests"))
 
-from u2sa_hw.bus.key import use_run_key  # noqa: E402
+from u2sa_hw.bus.run_keys import use_run_key  # noqa: E402
 from u2sa_hw.bus.udp_ports import private_lcm_url  # noqa: E402
 
 GPS_SCRIPT = REPO / "bench" / "fuzz_gps.py"

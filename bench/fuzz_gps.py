@@ -39,7 +39,7 @@ from gps_fuzzing import check_message, feed, fuzz_cases, seed_line  # noqa: E402
 
 from u2sa_hw.drivers.gps_nmea.driver import GpsNmeaDriver  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
-from u2sa_hw.bus.key import use_run_key  # noqa: E402
+from u2sa_hw.bus.run_keys import use_run_key  # noqa: E402
 from u2sa_hw.bus.transport import Transport  # noqa: E402
 from u2sa_hw.profile.vehicle import VehicleProfile  # noqa: E402
 from u2sa_hw.bus.udp_ports import private_lcm_url  # noqa: E402

@@ -146,7 +146,8 @@ def main() -> None:
     args = parser.parse_args()
     keys = tempfile.TemporaryDirectory(prefix="u2sa-bench-key-")
     try:  # a signed bus: this run's own key, inherited by the driver processes
-        from u2sa_hw.bus.key import KEY_ENV, fresh_key_file
+        from u2sa_hw.bus.key import KEY_ENV
+        from u2sa_hw.bus.run_keys import fresh_key_file
         os.environ.setdefault(KEY_ENV, str(fresh_key_file(keys.name)))
     except ImportError:
         pass

@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from u2sa_hw import channels as ch  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
 from u2sa_hw.bus.auth import BusAuth, Keyring  # noqa: E402
-from u2sa_hw.bus.key import fresh_key_file  # noqa: E402
+from u2sa_hw.bus.run_keys import fresh_key_file  # noqa: E402
 
 RC_MODE_HZ, MANUAL_HZ = 20.0, 25.0
 # The example ground vehicle's receivers of the pilot's channels: (name, hears MANUAL_CMD too)

@@ -41,7 +41,7 @@ from typing import Any
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from u2sa_hw.bus.key import use_run_key  # noqa: E402
+from u2sa_hw.bus.run_keys import use_run_key  # noqa: E402
 from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo  # noqa: E402
 from u2sa_hw.services.recorder.capture import BusCapture  # noqa: E402
 from u2sa_hw.bus.transport import Transport  # noqa: E402

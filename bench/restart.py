@@ -43,7 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from staged_code import u2sa_command  # noqa: E402
 from systemd_ns import SystemdNamespace, cannot_boot_reason, stage_root, wait_until  # noqa: E402
 
-from u2sa_hw.bus.key import use_run_key  # noqa: E402
+from u2sa_hw.bus.run_keys import use_run_key  # noqa: E402
 from u2sa_hw import channels as ch  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
 from u2sa_hw.bus.client import BusClient  # noqa: E402

@@ -228,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
         for line in selftest(hierarchy, budgets):
             print("  " + line, flush=True)
         return 0
-    from u2sa_hw.bus.key import use_run_key
+    from u2sa_hw.bus.run_keys import use_run_key
 
     use_run_key()
     steps: list[Step] = []

@@ -55,7 +55,7 @@ import tomli_w
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from u2sa_hw.bus.key import use_run_key  # noqa: E402
+from u2sa_hw.bus.run_keys import use_run_key  # noqa: E402
 from u2sa_hw import channels as ch  # noqa: E402
 from u2sa_hw import lcmtypes as t  # noqa: E402
 from u2sa_hw.protocols import odrive_cansimple as cs  # noqa: E402

@@ -45,7 +45,7 @@ import time
 from typing import Any
 
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.bus.key import use_run_key
+from u2sa_hw.bus.run_keys import use_run_key
 from u2sa_hw.bus.transport import DEFAULT_QUEUE_CAPACITY, Transport
 from u2sa_hw.bus.lcm_url import with_receive_buffer
 from u2sa_hw.bus.udp_ports import private_lcm_url

@@ -26,7 +26,8 @@ from typing import Any, Callable
 
 import tomli_w
 
-from u2sa_hw.bus.key import KEY_ENV, fresh_key_file
+from u2sa_hw.bus.key import KEY_ENV
+from u2sa_hw.bus.run_keys import fresh_key_file
 from u2sa_hw.launcher import Launcher, ProcessStatus, RestartPolicy
 from u2sa_hw.recording.mcap_log import McapLogWriter, RunInfo
 from u2sa_hw.services.recorder.capture import BusCapture

@@ -14,7 +14,8 @@ from typing import Callable, Iterator
 import pytest
 
 import unprivileged_env
-from u2sa_hw.bus.key import KEY_ENV, fresh_key_file
+from u2sa_hw.bus.key import KEY_ENV
+from u2sa_hw.bus.run_keys import fresh_key_file
 from u2sa_hw.bus.udp_ports import private_lcm_url
 from u2sa_hw.service.bus_handlers import PROBE_ENV
 

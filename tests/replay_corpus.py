@@ -215,7 +215,7 @@ def build_corpus(corpus: Path, *, workers: int = 2, only: set[str] | None = None
     corpus.mkdir(parents=True, exist_ok=True)
     work = corpus.parent / f"{corpus.name}-work"
     if "U2SA_BUS_KEY_FILE" not in os.environ:   # outside the test session (the bench): a key of the corpus's own
-        from u2sa_hw.bus.key import fresh_key_file
+        from u2sa_hw.bus.run_keys import fresh_key_file
         (work / "key").mkdir(parents=True, exist_ok=True)
         os.environ["U2SA_BUS_KEY_FILE"] = str(fresh_key_file(str(work / "key")))
 

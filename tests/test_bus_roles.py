@@ -16,7 +16,8 @@ from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus.auth import (DENIED, FORGED, OK, PILOT_TAG, PILOT_TRAILER_LEN, TAG, TRAILER_LEN, UNSIGNED, BusAuth,
                               Keyring, strip_trailer)
-from u2sa_hw.bus.key import BusKeyError, fresh_key_file, new_key, write_key
+from u2sa_hw.bus.key import BusKeyError, new_key, write_key
+from u2sa_hw.bus.run_keys import fresh_key_file
 from u2sa_hw.bus.roles import OPERATOR_CHANNELS, PILOT_CHANNELS, may_publish, table
 
 NOW_US = 1_764_000_000_000_000

@@ -10,7 +10,6 @@ Every failure is a :class:`BusKeyError` of one line naming the file and the fix.
 
 from __future__ import annotations
 
-import atexit
 import contextlib
 import errno
 import grp
@@ -138,17 +137,6 @@ def ensure_key(path: Path, *, group: str | None = KEY_GROUP) -> bool:
     return True
 
 
-def fresh_key_file(directory: Path | str) -> Path:
-    """A new key in *directory*/bus.key (0600) and a new pilot pair beside it (u2sa_hw.bus.pilot):
-    a simulation's, a test session's or ``u2sa run``'s own keys."""
-    from u2sa_hw.bus.pilot import write_pilot_pair
-
-    path = Path(directory) / "bus.key"
-    write_key(path, new_key(), group=None)
-    write_pilot_pair(path)
-    return path
-
-
 def _group_id(name: str) -> int | None:
     try:
         return grp.getgrnam(name).gr_gid
@@ -160,18 +148,3 @@ def _write_error(path: Path, exc: OSError) -> str:
     if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
         return f"cannot write the bus key {path} ({exc.strerror}): run the command with sudo, or pass --file PATH"
     return f"cannot write the bus key {path}: {exc.strerror or exc}"
-
-
-
-def use_run_key() -> Path | None:
-    """For a tool run without a key (a bench script): a fresh key in $U2SA_BUS_KEY_FILE for this process and
-    its children, removed at exit; its path, or None when a key was already set or installed."""
-    if os.environ.get(KEY_ENV) or SYSTEM_KEY.exists():
-        return None
-    import shutil
-    import tempfile
-    directory = tempfile.mkdtemp(prefix="u2sa-run-key-")
-    atexit.register(shutil.rmtree, directory, ignore_errors=True)
-    path = fresh_key_file(directory)
-    os.environ[KEY_ENV] = str(path)
-    return path

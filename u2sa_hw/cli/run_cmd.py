@@ -169,7 +169,8 @@ def _run_key(profile: Any, output: Any) -> Iterator[None]:
     one would leave every other computer holding it unheard.
     """
     from u2sa_hw.bus.auth import OPEN, resolve_security
-    from u2sa_hw.bus.key import KEY_ENV, BusKeyError, fresh_key_file, key_path, read_key
+    from u2sa_hw.bus.key import KEY_ENV, BusKeyError, key_path, read_key
+    from u2sa_hw.bus.run_keys import fresh_key_file
     from u2sa_hw.cli import CliError
 
     try:

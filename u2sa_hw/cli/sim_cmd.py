@@ -154,7 +154,8 @@ def _private_bus(args: Any) -> tuple[str, int]:
     """
     import os
 
-    from u2sa_hw.bus.key import KEY_ENV, fresh_key_file
+    from u2sa_hw.bus.key import KEY_ENV
+    from u2sa_hw.bus.run_keys import fresh_key_file
     from u2sa_hw.bus.udp_ports import private_lcm_url, private_udp_port
 
     lcm_url = args.lcm_url or private_lcm_url()
