@@ -52,7 +52,8 @@ def test_a_folder_refuses_its_top_level_name(folder: str) -> None:
 
 
 def test_setup_lists_every_package_of_the_folders() -> None:
-    """Every folder with an __init__.py under the mapped folders is a package the wheel carries."""
+    """Every folder of modules under the mapped folders (with an __init__.py or not yet) is a package
+    the wheel carries, and no cache folder is."""
     done = subprocess.run([sys.executable, "-c", "import runpy, setuptools\n"
                            "setuptools.setup = lambda **kw: print(repr(kw))\n"
                            "runpy.run_path('setup.py')\n"], cwd=REPO, capture_output=True, text=True, timeout=60)
@@ -61,8 +62,9 @@ def test_setup_lists_every_package_of_the_folders() -> None:
     packages = set(kw["packages"])
     for folder, name in FOLDERS.items():
         assert kw["package_dir"][name] == folder
-        for init in (REPO / folder).rglob("__init__.py"):
-            if "__pycache__" in init.parts:
+        for module in (REPO / folder).rglob("*.py"):
+            if "__pycache__" in module.parts:
                 continue
-            sub = init.parent.relative_to(REPO / folder).parts
-            assert ".".join((name, *sub)) in packages, init
+            sub = module.parent.relative_to(REPO / folder).parts
+            assert ".".join((name, *sub)) in packages, module
+    assert not [p for p in packages if "__pycache__" in p]
