@@ -258,7 +258,7 @@ def test_a_device_whose_kind_has_no_probe_gets_a_line_saying_so() -> None:
     result = probe_target(Target("lidar", "lidar", "spi", "spi://0/0"), seconds=0.1)
     assert result.ok and not result.probed
     assert str(result) == ("probe skip lidar: spi spi://0/0: no probe for kind spi: not looked at (check it by hand; a "
-                           "probe for the kind goes in u2sa_hw/check/probe.py, see docs/ports.md, 'A new port kind')")
+                           "probe for the kind goes in u2sa_hw/ports/spi/probe.py, see docs/adding-a-device.md, 'A port kind')")
     assert result.to_dict()["probed"] is False
 
 
@@ -291,7 +291,7 @@ def test_check_probe_says_no_probe_for_a_kind_the_targets_do_not_know(tmp_path: 
     assert sorted(lines) == [
         f"probe ok   lamp: gpio mock+gpio://{tmp_path}/gpiochip0.sock/5: 8 lines; line(s) 5 exist and are free",
         f"probe skip pan: pwm mock+pwm://{pwm}/3: no probe for kind pwm: not looked at (check it by hand; a probe for "
-        "the kind goes in u2sa_hw/check/probe.py, see docs/ports.md, 'A new port kind')"]
+        "the kind goes in u2sa_hw/ports/pwm/probe.py, see docs/adding-a-device.md, 'A port kind')"]
 
 
 IP_SHOW = """\

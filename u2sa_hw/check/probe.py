@@ -77,7 +77,7 @@ def probe_target(target: Target, *, seconds: float) -> ProbeResult:
         kind = target.kind or target.port
         return ProbeResult(target.name, kind, target.address, True,
                            f"no probe for kind {kind}: not looked at (check it by hand; a probe for the kind goes in "
-                           "u2sa_hw/check/probe.py, see docs/ports.md, 'A new port kind')", probed=False)
+                           f"u2sa_hw/ports/{kind}/probe.py, see docs/adding-a-device.md, 'A port kind')", probed=False)
     try:
         ok, text, details = probe(target, seconds)
     except PortError as exc:
