@@ -125,7 +125,8 @@ def test_with_the_switch_at_manual_no_holder_of_the_bus_or_an_operator_key_moves
     profile = tmp_path / "vehicle.toml"
     profile.write_text(f'[vehicle]\nname = "rover"\nlcm_url = "{services.url}"\nlog_dir = "logs"\n'
                        '[services.drive]\nkind = "pwm_servo"\nsettings = { health_interval_s = 0.2, '
-                       f'channels = [{{ name = "esc", address = "{pwm}", channel = 0 }}] }}\n')
+                       'channels = [{ name = "esc" }] }\n'
+                       f'[devices.esc]\naddress = "mock+pwm://{pwm}/0"\n')
     col = BusCollector(bus).listen(ch.HEALTH, t.Health)
 
     def duty_us() -> float:

@@ -402,8 +402,8 @@ def test_an_actuator_moves_for_no_forged_command_and_keeps_its_failsafe_through_
     profile = tmp_path / "vehicle.toml"          # a bench: no RC gating, no dead-man, so a command would stick
     profile.write_text(f'[vehicle]\nname = "bench"\nlcm_url = "{services.url}"\nlog_dir = "logs"\n'
                        '[services.drive]\nkind = "pwm_servo"\nsettings = { health_interval_s = 0.2, '
-                       f'command_timeout_s = 0.0, rc_gating = false, channels = [{{ name = "esc", address = "{pwm}", '
-                       'channel = 0 }] }\n')
+                       'command_timeout_s = 0.0, rc_gating = false, channels = [{ name = "esc" }] }\n'
+                       f'[devices.esc]\naddress = "mock+pwm://{pwm}/0"\n')
     col = BusCollector(bus).listen(ch.HEALTH, t.Health)
 
     def duty_us() -> float:
