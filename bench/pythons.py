@@ -56,7 +56,7 @@ def check_gc_freeze() -> str:
 
 
 def check_thread_comm() -> str:
-    from u2sa_hw.service.health import name_native_thread
+    from u2sa_hw.bus.threads import name_native_thread
 
     release = threading.Event()
     thread = threading.Thread(target=release.wait, daemon=True)

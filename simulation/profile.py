@@ -21,7 +21,7 @@ from typing import Any, Mapping
 
 import tomli_w
 
-from u2sa_hw.config.validate import declared_fields
+from u2sa_hw.service.validate import declared_fields
 from u2sa_hw.profile.devices import effective_config
 from u2sa_hw.registry import RECORDER_KIND
 from u2sa_hw.profile.vehicle import ProfileError, VehicleProfile

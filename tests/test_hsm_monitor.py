@@ -9,7 +9,8 @@ import pytest
 
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.service.health import set_details
-from u2sa_hw.services.hsm.monitor import Failed, FailsafeChange, HealthMonitor, Recovered, Restart, truthy
+from u2sa_hw.service.health import truthy
+from u2sa_hw.services.hsm.monitor import Failed, FailsafeChange, HealthMonitor, Recovered, Restart
 from u2sa_hw.services.hsm.rules import MonitorPolicy, WatchRule, rules_from_profile
 from u2sa_hw.profile.vehicle import ProfileError
 from u2sa_hw.profile.loader import load_profile

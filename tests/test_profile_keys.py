@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from u2sa_hw.config.validate import kind_problem, validate_config_file, validate_settings
+from u2sa_hw.service.validate import kind_problem, validate_config_file, validate_settings
 from u2sa_hw.profile.vehicle import ProfileError
 from u2sa_hw.profile.loader import SIMULATION_KEYS, SIMULATION_START_KEYS, load_profile
 

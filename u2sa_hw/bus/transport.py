@@ -42,7 +42,7 @@ from u2sa_hw.bus.key import BusKeyError, key_path
 from u2sa_hw.bus.lcm_open import TransportError
 from u2sa_hw.bus.lcm_sockets import LcmSockets, is_regex
 from u2sa_hw.bus.lcm_url import resolve_url
-from u2sa_hw.service.health import name_native_thread
+from u2sa_hw.bus.threads import name_native_thread
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 
 # LCM queues at most 30 messages per subscription by default and drops the rest without a

@@ -1,1 +1,1 @@
-"""Configuration: a service's typed config fields, unknown-key checks, validation, parameter files."""
+"""Configuration: typed config fields and the configurator, unknown-key checks, parameter files."""

@@ -328,7 +328,7 @@ def declared_for(kind: str, live_fields: Iterable[str],
     if not kind:
         return None
     if lookup is None:
-        from u2sa_hw.config.validate import declared_fields as lookup
+        from u2sa_hw.service.validate import declared_fields as lookup
     try:
         fields = lookup(kind)
     except (LookupError, ImportError):

@@ -74,7 +74,7 @@ def file_fields(kind: str) -> dict[str, Any]:
     Read through the service registry (the kind's class is imported, nothing is started);
     LookupError for an unknown kind, ImportError or AttributeError for one that does not import.
     """
-    from u2sa_hw.config.validate import declared_fields
+    from u2sa_hw.service.validate import declared_fields
 
     return {name: f for name, f in declared_fields(kind).items() if f.names_file}
 

@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from u2sa_hw.config.keys import unknown_key_problems
-from u2sa_hw.config.validate import kind_problem
+from u2sa_hw.service.validate import kind_problem
 from u2sa_hw.geofence_parse import profile_fence
 from u2sa_hw.profile.numbers import checked
 from u2sa_hw.profile.vehicle import Origin, ProfileError, ServiceSpec, VehicleProfile

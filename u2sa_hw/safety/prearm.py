@@ -44,9 +44,8 @@ from dataclasses import dataclass
 from typing import Any, Callable, NamedTuple
 
 from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence getters on StateInformation
-from u2sa_hw.services.hsm.monitor import truthy
 from u2sa_hw.profile.vehicle import VehicleProfile
-
+from u2sa_hw.service.health import truthy
 from u2sa_hw.safety.prearm_geofence import Position, age_limit, geofence_problem, position_of
 from u2sa_hw.safety.prearm_table import PrearmTable, parse_prearm
 

@@ -1,7 +1,7 @@
 """The config fields every service has, before its kind's own (``U2SAService.CONFIG``).
 
 A module of its own below :mod:`u2sa_hw.service.contract`: the settings checks
-(:mod:`u2sa_hw.config.validate`, ``u2sa check``) read a kind's whole field list without importing
+(:mod:`u2sa_hw.service.validate`, ``u2sa check``) read a kind's whole field list without importing
 the service contract and its transport.
 """
 

@@ -33,7 +33,8 @@ from typing import Any, Callable, ClassVar
 from u2sa_hw import channels as ch
 from u2sa_hw.config.configurator import Configurator
 from u2sa_hw.config.fields import ConfigError, ConfigField
-from u2sa_hw.service.health import ProcessStats, build_health, name_native_thread
+from u2sa_hw.bus.threads import name_native_thread
+from u2sa_hw.service.health import ProcessStats, build_health
 from u2sa_hw.messages import type_name
 from u2sa_hw.service.sdnotify import SystemdNotifier, watchdog_interval
 from u2sa_hw.service.bus_handlers import DUPLICATE_EXIT, DuplicateWatch, bus_text, listen_state, raises_text, rejected_text

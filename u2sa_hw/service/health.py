@@ -28,20 +28,12 @@ def _rss_bytes() -> int:
         return 0
 
 
-def name_native_thread(thread: Any, label: str) -> None:
-    """Give *thread* (a started ``threading.Thread`` of this process) *label* as its kernel name.
+FALSE_WORDS = {"", "0", "0.0", "false", "no", "none", "off", "n/a"}   # health details read as false
 
-    ``top -H``, ``ps -L`` and bench/stack.py then tell a service's bus handler from its own
-    loop; the kernel keeps 15 bytes. Best effort: a thread that is gone, or no /proc, is skipped.
-    """
-    tid = getattr(thread, "native_id", None)
-    if tid is None:
-        return
-    try:
-        with open(f"/proc/self/task/{tid}/comm", "w", encoding="ascii", errors="replace") as f:
-            f.write(label[:15])
-    except OSError:
-        pass
+
+def truthy(value: str | None) -> bool:
+    """A health detail read as a boolean ("1", "true", "yes", a non-zero number are true)."""
+    return value is not None and value.strip().lower() not in FALSE_WORDS
 
 
 class ProcessStats:

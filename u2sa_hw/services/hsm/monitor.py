@@ -39,7 +39,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from u2sa_hw.service.health import health_reason, join_reasons
+from u2sa_hw.service.health import health_reason, join_reasons, truthy
 from u2sa_hw.services.hsm.rules import MonitorPolicy, WatchRule
 from u2sa_hw.services.hsm.senders import ServiceSenders
 from u2sa_hw.services.hsm.stamps import SenderClock
@@ -47,15 +47,9 @@ from u2sa_hw.services.hsm.verdicts import (Cancelled, Failed, FailsafeChange, Pr
                                            ServiceView, Stalled)
 
 __all__ = ["Cancelled", "Failed", "FailsafeChange", "HealthMonitor", "Problem", "Recovered", "Restart",
-           "ServiceView", "Stalled", "truthy"]
+           "ServiceView", "Stalled"]
 
-FALSE_WORDS = {"", "0", "0.0", "false", "no", "none", "off", "n/a"}
 UNWATCHED_FORGET_S = 60.0
-
-
-def truthy(value: str | None) -> bool:
-    """A health detail read as a boolean ("1", "true", "yes", a non-zero number are true)."""
-    return value is not None and value.strip().lower() not in FALSE_WORDS
 
 
 @dataclass
