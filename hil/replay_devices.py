@@ -3,7 +3,8 @@
 Each device stands at the address the replay writes into its driver's config and is fed
 the recorded ``RAW.<device>`` records by the player (hil/player.py):
 
-- :class:`ReplaySerialDevice`: a pty at a symlink (like ``u2sa_hw.mocks.pty_serial``);
+- :class:`ReplaySerialDevice`: a pty at a symlink (:class:`u2sa_hw.ports.serial.pty_link.PtyLink`, as the
+  mock serial devices);
   recorded RX bytes are written into it, with backpressure instead of drops; what the
   driver writes is kept and checked against the recorded TX bytes. Stamped (the replay's
   mode), each recorded chunk goes as a frame with its recorded read time, and each recorded
@@ -24,15 +25,9 @@ Every device has ``config_changes()`` (the config fields that point its driver a
 
 from __future__ import annotations
 
-import array
-import fcntl
 import os
 import re
-import select
-import termios
-import threading
 import time
-import tty
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator, Protocol
@@ -40,6 +35,7 @@ from typing import Any, Iterator, Protocol
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.ports.address import DeviceAddress, make_address
 from u2sa_hw.ports.serial.clock import encode_frame, encode_silence
+from u2sa_hw.ports.serial.pty_link import PtyLink
 from u2sa_hw.ports.tap import RX, TX
 from u2sa_hw.recording.log_reader import LogFile
 
@@ -139,11 +135,8 @@ class ReplaySerialDevice:
         self.burst_gap_s = burst_gap_s  # records closer than this are one burst (the driver's epoch_gap_s)
         self.link_path = Path(link_path)
         self.write_timeout_s = write_timeout_s
-        self._master = self._slave = -1
-        self.slave_name = ""
-        self._stop = threading.Event()
-        self._reader: threading.Thread | None = None
         self._written = bytearray()        # what the driver wrote
+        self._pty = PtyLink(link_path=self.link_path, name=f"replay-{name}", on_data=self._written.extend)
         self._expected_tx = bytearray()    # what the recorded driver wrote
         self.fed_bytes = 0
         self.fed_chunks = 0
@@ -207,38 +200,18 @@ class ReplaySerialDevice:
         for log_ns, stamp in self._ticks:
             yield log_ns, StampedChunks([(stamp, b"")])
 
+    @property
+    def slave_name(self) -> str:
+        """The pty's slave (``/dev/pts/N``) the symlink points at ("" before ``start()``)."""
+        return self._pty.slave_name
+
     def start(self) -> None:
         """Create the pty (raw mode, non-blocking master), the symlink and the reader of driver writes."""
-        self._master, self._slave = os.openpty()
-        tty.setraw(self._slave)
-        flags = fcntl.fcntl(self._master, fcntl.F_GETFL)
-        fcntl.fcntl(self._master, fcntl.F_SETFL, flags | os.O_NONBLOCK)
-        self.slave_name = os.ttyname(self._slave)
-        self.link_path.parent.mkdir(parents=True, exist_ok=True)
-        if self.link_path.is_symlink():
-            self.link_path.unlink()
-        os.symlink(self.slave_name, self.link_path)
-        self._reader = threading.Thread(target=self._read_loop, name=f"replay-{self.name}", daemon=True)
-        self._reader.start()
+        self._pty.open()
 
     def stop(self) -> None:
         """Stop the reader, remove the symlink, close the pty."""
-        self._stop.set()
-        if self._reader is not None:
-            self._reader.join(timeout=2.0)
-            self._reader = None
-        try:
-            if self.link_path.is_symlink():
-                self.link_path.unlink()
-        except OSError:
-            pass
-        for fd in (self._master, self._slave):
-            if fd >= 0:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
-        self._master = self._slave = -1
+        self._pty.close()
 
     def ready(self, pid: int | None, health: dict[str, str]) -> bool:
         """The driver has finished opening the pty: pyserial flushes the input while it opens, so
@@ -272,16 +245,14 @@ class ReplaySerialDevice:
         view = memoryview(data)
         deadline = time.monotonic() + self.write_timeout_s
         while view:
-            try:
-                n = os.write(self._master, view)
+            n = self._pty.write(view)
+            if n:
                 view = view[n:]
                 continue
-            except BlockingIOError:
-                pass
             if time.monotonic() > deadline:
                 raise ReplayStalled(f"{self.name}: the driver has not read its serial input for "
                                     f"{self.write_timeout_s:g} s ({self.address}); is the service still running?")
-            select.select([], [self._master], [], 0.05)
+            self._pty.wait_writable(0.05)
         self.fed_bytes += size
         self.fed_chunks += 1 if size else 0
 
@@ -309,25 +280,7 @@ class ReplaySerialDevice:
 
     def pending(self) -> int:
         """Bytes in the pty the driver has not read yet."""
-        if self._slave < 0:
-            return 0
-        buf = array.array("i", [0])
-        try:
-            fcntl.ioctl(self._slave, termios.FIONREAD, buf, True)
-        except OSError:
-            return 0
-        return buf[0]
-
-    def _read_loop(self) -> None:
-        while not self._stop.is_set():
-            try:
-                ready, _, _ = select.select([self._master], [], [], 0.1)
-                if ready:
-                    self._written += os.read(self._master, 4096)
-            except BlockingIOError:
-                continue
-            except (OSError, ValueError):
-                return
+        return self._pty.pending()
 
     def report(self) -> dict[str, Any]:
         """Bytes and chunks fed; the driver's writes against the recorded ones."""

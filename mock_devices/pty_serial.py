@@ -1,8 +1,9 @@
 """A serial device on a pseudo-terminal, reachable by a driver at a symlink like a USB adapter.
 
-``PtySerialDevice`` opens a pty pair, puts it in raw mode and points a symlink (say
-``/tmp/sim/gps``) at the slave (``/dev/pts/N``): a driver opens the symlink with pyserial
-exactly as it would open ``/dev/u2sa/gps``. The mock writes to the master side; a reader
+``PtySerialDevice`` holds a pty at a symlink (say ``/tmp/sim/gps``, pointing at the slave
+``/dev/pts/N``; the pty itself is :class:`u2sa_hw.ports.serial.pty_link.PtyLink`, which the
+replay's serial device uses too): a driver opens the symlink with pyserial exactly as it
+would open ``/dev/u2sa/gps``. The mock writes to the master side; a reader
 thread keeps what the driver writes, with timestamps.
 
 Faults, as the driver sees them through pyserial:
@@ -33,16 +34,12 @@ sent lines and ``bad_checksums(on)`` to the link's faults.
 
 from __future__ import annotations
 
-import errno
-import fcntl
 import logging
 import os
 import random
-import select
 import termios
 import threading
 import time
-import tty
 from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass
@@ -50,6 +47,7 @@ from pathlib import Path
 from typing import Callable
 
 from u2sa_hw.mocks.vehicle_sim import SimVehicle, VehicleTruth
+from u2sa_hw.ports.serial.pty_link import PtyLink
 
 log = logging.getLogger(__name__)
 
@@ -79,33 +77,6 @@ _SPEEDS = {getattr(termios, f"B{rate}"): rate for rate in (1200, 2400, 4800, 960
                                                              230400, 460800, 921600) if hasattr(termios, f"B{rate}")}
 
 
-class _PtyPair:
-    """One plugged-in lifetime of the device: the pty fds, a wake pipe and the reader thread."""
-
-    def __init__(self, owner: "PtySerialDevice") -> None:
-        self.master, self.slave = os.openpty()
-        tty.setraw(self.slave)
-        flags = fcntl.fcntl(self.master, fcntl.F_GETFL)
-        fcntl.fcntl(self.master, fcntl.F_SETFL, flags | os.O_NONBLOCK)
-        self.slave_name = os.ttyname(self.slave)
-        self.wake_r, self.wake_w = os.pipe()
-        self.closing = threading.Event()
-        self.thread = threading.Thread(target=owner._read_loop, args=(self,), daemon=True,
-                                       name=f"PtySerialDevice-{owner.name}")
-        self.thread.start()
-
-    def close(self) -> None:
-        self.closing.set()
-        os.write(self.wake_w, b"x")
-        if threading.current_thread() is not self.thread:  # on_receive may unplug the device
-            self.thread.join(timeout=5.0)
-        for fd in (self.master, self.slave, self.wake_r, self.wake_w):
-            try:
-                os.close(fd)
-            except OSError:
-                pass
-
-
 class PtySerialDevice:
     """A pty whose slave is reachable at *link_path*; write() sends bytes to the driver."""
 
@@ -118,7 +89,7 @@ class PtySerialDevice:
         self._history: deque[SerialRecord] = deque(maxlen=history_size)
         self._rng = random.Random(seed)
         self._lock = threading.Lock()  # guards _pair against write/disconnect races
-        self._pair: _PtyPair | None = None
+        self._pair: PtyLink | None = None
         self._silent = False
         self.dropped_bytes = 0
 
@@ -144,7 +115,7 @@ class PtySerialDevice:
         pair = self._pair
         if pair is None:
             raise RuntimeError(f"{self.name}: not connected; start() or reconnect() first")
-        attrs = termios.tcgetattr(pair.master)
+        attrs = pair.termios_attrs()
         return LineSettings(baudrate=_SPEEDS.get(attrs[4], 0), stopbits=2 if attrs[2] & termios.CSTOPB else 1)
 
     def start(self) -> None:
@@ -163,7 +134,6 @@ class PtySerialDevice:
             pair, self._pair = self._pair, None
         if pair is None:
             return
-        self._unlink_if_ours(pair.slave_name)
         pair.close()
         log.info("%s: disconnected %s (%s)", self.name, self.link_path, pair.slave_name)
 
@@ -173,27 +143,10 @@ class PtySerialDevice:
         self.start()
 
     def _plug(self) -> None:
-        pair = _PtyPair(self)
-        try:
-            self.link_path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = self.link_path.with_name(f".{self.link_path.name}.{os.getpid()}.{threading.get_ident()}")
-            if tmp.is_symlink():
-                tmp.unlink()
-            os.symlink(pair.slave_name, tmp)
-            os.replace(tmp, self.link_path)  # atomic: a driver never sees the path missing mid-replug
-        except OSError as exc:
-            pair.close()
-            raise OSError(exc.errno, f"{self.name}: cannot create the device link {self.link_path}: "
-                                     f"{exc.strerror}; choose a writable link_path") from exc
+        pair = PtyLink(link_path=self.link_path, name=self.name, on_data=self._received)
+        pair.open()
         self._pair = pair
         log.info("%s: %s -> %s", self.name, self.link_path, pair.slave_name)
-
-    def _unlink_if_ours(self, slave_name: str) -> None:
-        try:
-            if os.readlink(self.link_path) == slave_name:
-                self.link_path.unlink()
-        except OSError:
-            pass  # already gone or replaced by someone else: leave it
 
     # ---- writing ---------------------------------------------------------------------
     def write(self, data: bytes, *, note: str = "") -> int:
@@ -210,9 +163,7 @@ class PtySerialDevice:
             if pair is None:
                 return 0
             try:
-                n = os.write(pair.master, data)
-            except BlockingIOError:
-                n = 0
+                n = pair.write(data)
             except OSError as exc:  # EIO: the pty went away under us
                 log.warning("%s: write to %s failed: %s", self.name, pair.slave_name, exc)
                 n = 0
@@ -238,30 +189,13 @@ class PtySerialDevice:
         return self._silent
 
     # ---- reading ---------------------------------------------------------------------
-    def _read_loop(self, pair: _PtyPair) -> None:
-        while not pair.closing.is_set():
+    def _received(self, data: bytes) -> None:
+        self._history.append(SerialRecord(time.monotonic(), RX, data))
+        if self.on_receive is not None:
             try:
-                ready, _, _ = select.select([pair.master, pair.wake_r], [], [])
-            except (OSError, ValueError):
-                return
-            if pair.wake_r in ready or pair.master not in ready:
-                continue
-            try:
-                data = os.read(pair.master, 4096)
-            except BlockingIOError:
-                continue
-            except OSError as exc:
-                if exc.errno != errno.EIO:
-                    log.warning("%s: read from %s failed: %s", self.name, pair.slave_name, exc)
-                return
-            if not data:
-                return
-            self._history.append(SerialRecord(time.monotonic(), RX, data))
-            if self.on_receive is not None:
-                try:
-                    self.on_receive(data)
-                except Exception:  # a device model's bug must not kill the link
-                    log.exception("%s: on_receive handler failed on %r", self.name, data[:64])
+                self.on_receive(data)
+            except Exception:  # a device model's bug must not kill the link
+                log.exception("%s: on_receive handler failed on %r", self.name, data[:64])
 
     @property
     def history(self) -> list[SerialRecord]:
