@@ -98,7 +98,8 @@ class ReplayGpioDevice:
         self._min_log_lag_ns: int | None = None   # smallest (log time - kernel stamp) in the window
         self._driver_from_ns: int | None = None   # log time of the recorded driver's first message or record
         self._driver_until_ns: int | None = None  # ... and of its last output (not its contract messages)
-        self._step_logs: list[int] = []           # log times of the recorded driver's outputs while no edge came
+        # (log time, publish time or None) of the recorded driver's outputs while no edge came
+        self._step_logs: list[tuple[int, int | None]] = []
         self._offset_ns: int | None = None
         self._last_sent_ns: int | None = None     # the latest stamp sent to the driver
         self._lock = threading.Lock()
@@ -125,6 +126,7 @@ class ReplayGpioDevice:
         first_in_window: dict[int, int] = {}
         raw = f"RAW.{self.name}"
         last_edge_log: int | None = None    # log time of the window's latest edge so far
+        last_edge_tap: int | None = None    # ... and when the recorded driver tapped it (its header, wall clock)
         for m in LogFile(log_path).messages():
             if m.log_time_ns > end_ns:
                 break
@@ -134,7 +136,7 @@ class ReplayGpioDevice:
                         self._driver_from_ns = m.log_time_ns
                     if not m.channel.startswith("U2SA_"):
                         self._driver_until_ns = m.log_time_ns
-                        self._note_output(m.log_time_ns, last_edge_log)
+                        self._note_output(m.log_time_ns, _published_ns(m.data), last_edge_log, last_edge_tap)
                 continue
             try:
                 rec, _ = REGISTRY.decode(m.data)
@@ -147,9 +149,10 @@ class ReplayGpioDevice:
                 self._driver_from_ns = m.log_time_ns
             self._driver_until_ns = m.log_time_ns
             if kind == "RawGpioWrite":
-                self._note_output(m.log_time_ns, last_edge_log)
+                self._note_output(m.log_time_ns, int(rec.header.timestamp_us) * 1000 or None, last_edge_log,
+                                  last_edge_tap)
             elif m.log_time_ns >= start_ns:
-                last_edge_log = m.log_time_ns
+                last_edge_log, last_edge_tap = m.log_time_ns, int(rec.header.timestamp_us) * 1000 or None
             line = int(rec.line)
             self._num_lines = max(self._num_lines, line + 1)
             if kind != "RawGpioEdge":
@@ -171,10 +174,19 @@ class ReplayGpioDevice:
             self._levels.setdefault(line, 1 - first)   # an edge to *first* means the line was at the other level
         self._end_ns = end_ns
 
-    def _note_output(self, log_ns: int, last_edge_log: int | None) -> None:
-        """An output of the recorded driver at *log_ns*: a step when no edge was read for STEP_SILENCE_NS."""
-        if last_edge_log is not None and log_ns - last_edge_log > STEP_SILENCE_NS:
-            self._step_logs.append(log_ns)
+    def _note_output(self, log_ns: int, published_ns: int | None, last_edge_log: int | None,
+                     last_edge_tap: int | None) -> None:
+        """An output of the recorded driver logged at *log_ns* and published at *published_ns* (its header, the
+        driver's wall clock): a step when no edge was read for STEP_SILENCE_NS, judged on the driver's own clock
+        (the edge's tap and the output's header) when both say, else on the log's."""
+        if published_ns is not None and last_edge_tap is not None:
+            gap = published_ns - last_edge_tap
+        elif last_edge_log is not None:
+            gap = log_ns - last_edge_log
+        else:
+            return
+        if gap > STEP_SILENCE_NS:
+            self._step_logs.append((log_ns, published_ns))
 
     def clock_ticks(self) -> Iterator[tuple[int, ClockTickRecord]]:
         """``(log time, tick)`` in log order: through every recorded silence longer than TICK_NS, and a step
@@ -189,16 +201,25 @@ class ReplayGpioDevice:
         A step is the recorded driver's loop at work (it published: a timed message, a change) more than
         STEP_SILENCE_NS after the last edge it had read: on a live chip edges can arrive late (a stalled
         receiver delivered 280 ms of stamped edges at once), and the live loop judged its timeouts on its
-        clock meanwhile. The step carries that clock, the output's log time on the kernel clock (less the
-        smallest log - kernel lag of the window's edges); it may run ahead of the late edges' stamps.
+        clock meanwhile. The step carries that clock, taken from the driver's own stamps: the output's header
+        time (when it published) less the smallest tap - kernel lag of the window's edges (when it read them),
+        both the recording machine's wall clock: earlier than the live look by the quickest tap's delay, later
+        only by the publish's own (well under a millisecond). The recorder's log time is later by its receive latency, up to 90 ms on a loaded machine:
+        a step placed by it lay past a signal timeout the live mux never reached (issue 24). A log without
+        header times falls back on the log time. Whether an output is a step is judged on the same stamps (the
+        last edge's tap to the output's header). The step may run ahead of the late edges' stamps.
         """
         return heapq.merge(self._silence_ticks(), self._steps(), key=lambda item: item[0])
 
     def _steps(self) -> Iterator[tuple[int, ClockTickRecord]]:
         if self._min_log_lag_ns is None:
             return
-        for log_ns in self._step_logs:
-            yield log_ns, ClockTickRecord(log_ns - self._min_log_lag_ns, step=True)
+        for log_ns, published_ns in self._step_logs:
+            if published_ns is not None and self._min_lag_ns is not None:
+                kernel_ns = published_ns - self._min_lag_ns   # the driver's own clock: what its loop had looked at
+            else:
+                kernel_ns = log_ns - self._min_log_lag_ns     # the recorder's: later by its receive latency
+            yield log_ns, ClockTickRecord(kernel_ns, step=True)
 
     def _silence_ticks(self) -> Iterator[tuple[int, ClockTickRecord]]:
         times = self._edge_times
@@ -318,6 +339,15 @@ class ReplayGpioDevice:
             out["divergence"] = (f"{c['edges_on_outputs']} recorded edges fell on lines the replayed driver "
                                  "drives as outputs (changed line settings?)")
         return out
+
+
+def _published_ns(data: bytes) -> int | None:
+    """The header ``timestamp_us`` of an encoded u2sa message in ns (the publisher's wall clock when it
+    published; every type starts with its Header: fingerprint, system_id, timestamp_us), or None."""
+    if len(data) < 20:
+        return None
+    stamp_us = int.from_bytes(data[12:20], "big", signed=True)
+    return stamp_us * 1000 if stamp_us > 0 else None
 
 
 def _tap_lag_ns(record: Any) -> int | None:
