@@ -10,8 +10,9 @@ import pytest
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.service.health import set_details
 from u2sa_hw.service.health import truthy
-from u2sa_hw.services.hsm.monitor import Failed, FailsafeChange, HealthMonitor, Recovered, Restart
+from u2sa_hw.services.hsm.monitor import HealthMonitor
 from u2sa_hw.services.hsm.rules import MonitorPolicy, WatchRule, rules_from_profile
+from u2sa_hw.services.hsm.verdicts import Failed, FailsafeChange, Recovered, Restart
 from u2sa_hw.profile.vehicle import ProfileError
 from u2sa_hw.profile.loader import load_profile
 

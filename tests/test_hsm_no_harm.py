@@ -13,9 +13,10 @@ from typing import Any
 import pytest
 
 from u2sa_hw import lcmtypes as t
-from u2sa_hw.services.hsm.monitor import Cancelled, Failed, FailsafeChange, HealthMonitor, Restart, Stalled
+from u2sa_hw.services.hsm.monitor import HealthMonitor
 from u2sa_hw.services.hsm.rules import MonitorPolicy, WatchRule
 from u2sa_hw.services.hsm.stamps import SenderClock
+from u2sa_hw.services.hsm.verdicts import Cancelled, Failed, FailsafeChange, Restart, Stalled
 
 WALL = 1_700_000_000.0          # the services' CLOCK_REALTIME at HSM time 0
 POLICY = MonitorPolicy(max_restarts=3, restart_backoff_s=1.0, confirm_s=0.5, stall_s=1.0)

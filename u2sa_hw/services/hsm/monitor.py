@@ -36,50 +36,15 @@ Doing no harm:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from typing import Any
 
 from u2sa_hw.service.health import health_reason, join_reasons, truthy
 from u2sa_hw.services.hsm.rules import MonitorPolicy, WatchRule
-from u2sa_hw.services.hsm.senders import ServiceSenders
-from u2sa_hw.services.hsm.stamps import SenderClock
+from u2sa_hw.services.hsm.track import ServiceTrack
 from u2sa_hw.services.hsm.verdicts import (Cancelled, Failed, FailsafeChange, Problem, Recovered, Restart,
                                            ServiceView, Stalled)
 
-__all__ = ["Cancelled", "Failed", "FailsafeChange", "HealthMonitor", "Problem", "Recovered", "Restart",
-           "ServiceView", "Stalled"]
-
 UNWATCHED_FORGET_S = 60.0
-
-
-@dataclass
-class _Track:
-    rule: WatchRule | None
-    watch_since: float
-    last_heartbeat: float | None = None   # when the newest heartbeat was sent (our clock, from its stamp)
-    last_received: float | None = None    # when the HSM received anything from it (heartbeat or data)
-    clock: SenderClock = field(default_factory=SenderClock)
-    pending_since: float | None = None    # a problem first seen then, not acted on yet
-    confirmed: bool = False               # the current problem outlasted confirm_s
-    cancelled: str = ""                   # why a pending problem was dropped (reported once)
-    problem_evidence: str = ""            # what would disprove the current problem
-    pid: int | None = None
-    senders: ServiceSenders = field(default_factory=ServiceSenders)   # whose signed Health speaks for it
-    status: str = ""
-    health_error: str = ""
-    incarnation: float | None = None
-    last_data: float | None = None
-    details_bad_since: float | None = None
-    degraded_since: float | None = None
-    restarts: int = 0
-    attempts: int = 0
-    last_restart: float | None = None
-    healthy_since: float | None = None
-    failed: bool = False
-    state: str = "starting"
-    problem: str = ""
-    restart_error: str = ""
-    details: dict[str, str] = field(default_factory=dict)
 
 
 class HealthMonitor:
@@ -89,7 +54,7 @@ class HealthMonitor:
                  default_timeout_s: float = 3.0) -> None:
         self.policy = policy
         self.default_timeout_s = default_timeout_s
-        self._tracks: dict[str, _Track] = {r.name: _Track(rule=r, watch_since=now) for r in rules}
+        self._tracks: dict[str, ServiceTrack] = {r.name: ServiceTrack(rule=r, watch_since=now) for r in rules}
         self.failsafe_active = False
         self.failsafe_reason = ""
         self.failsafe_service = ""
@@ -124,7 +89,7 @@ class HealthMonitor:
         """
         tr = self._tracks.get(msg.name)
         if tr is None:
-            tr = self._tracks[msg.name] = _Track(rule=None, watch_since=now)
+            tr = self._tracks[msg.name] = ServiceTrack(rule=None, watch_since=now)
         if sender and not tr.senders.admit(sender, msg, now, self._timeout(tr)):
             return
         if tr.pid is not None and msg.pid != tr.pid:
@@ -162,7 +127,7 @@ class HealthMonitor:
             tr.last_received = now
             self._disproved(tr, "data")
 
-    def _disproved(self, tr: _Track, evidence: str) -> None:
+    def _disproved(self, tr: ServiceTrack, evidence: str) -> None:
         """*evidence* arrived from a service: it cancels a problem that it contradicts, not yet acted on."""
         if tr.pending_since is None and not tr.confirmed:
             return
@@ -185,23 +150,23 @@ class HealthMonitor:
             tr.restart_error = "" if ok else f"restart failed: {text}"
 
     # -- judgement ---------------------------------------------------------------------------
-    def _grace(self, tr: _Track) -> float:
+    def _grace(self, tr: ServiceTrack) -> float:
         return tr.rule.startup_grace_s if tr.rule is not None else self.default_timeout_s
 
-    def _timeout(self, tr: _Track) -> float:
+    def _timeout(self, tr: ServiceTrack) -> float:
         return tr.rule.heartbeat_timeout_s if tr.rule is not None else self.default_timeout_s
 
     def _watched(self, t: float) -> float:
         """*t*, or the end of the HSM's last stall if later: time the HSM could not watch does not count."""
         return t if self._rebased_at is None else max(t, self._rebased_at)
 
-    def _data_age(self, tr: _Track, now: float, *, judging: bool = False) -> float | None:
+    def _data_age(self, tr: ServiceTrack, now: float, *, judging: bool = False) -> float | None:
         if tr.rule is None or not tr.rule.data_channel or tr.incarnation is None:
             return None
         since = max(tr.last_data or tr.incarnation, tr.incarnation)
         return now - (self._watched(since) if judging else since)
 
-    def _problem(self, tr: _Track, now: float) -> Problem | None:
+    def _problem(self, tr: ServiceTrack, now: float) -> Problem | None:
         rule = tr.rule
         timeout = self._timeout(tr)
         # A stall rebases the judgement of what might have come meanwhile, but a service already given up
@@ -246,7 +211,7 @@ class HealthMonitor:
             tr.pending_since = None
         return Stalled(now - last)
 
-    def _blind(self, tr: _Track, now: float) -> bool:
+    def _blind(self, tr: ServiceTrack, now: float) -> bool:
         """True while a service is not judged after a stall: nothing from it since, and within its timeout."""
         if self._rebased_at is None or (tr.last_received is not None and tr.last_received >= self._rebased_at):
             return False
@@ -304,7 +269,7 @@ class HealthMonitor:
         actions.extend(self._failsafe(now))
         return actions
 
-    def _confirm(self, tr: _Track, now: float) -> bool:
+    def _confirm(self, tr: ServiceTrack, now: float) -> bool:
         """True once the problem has lasted ``confirm_s`` with nothing from the service disproving it."""
         if tr.confirmed:
             return True
@@ -315,7 +280,7 @@ class HealthMonitor:
         tr.pending_since, tr.confirmed = None, True
         return True
 
-    def _healthy(self, tr: _Track, now: float, actions: list[Any]) -> None:
+    def _healthy(self, tr: ServiceTrack, now: float, actions: list[Any]) -> None:
         assert tr.rule is not None
         was_bad = tr.failed or tr.state in ("missing", "stale", "restarting", "stopped")
         if tr.last_heartbeat is None:
@@ -333,7 +298,7 @@ class HealthMonitor:
             tr.restart_error = ""
             actions.append(Recovered(tr.rule.name))
 
-    def _causes(self) -> list[_Track]:
+    def _causes(self) -> list[ServiceTrack]:
         return [tr for tr in self._tracks.values() if tr.rule is not None and tr.rule.required
                 and (tr.failed or (tr.state == "stopped" and tr.confirmed))]
 

@@ -29,11 +29,11 @@ from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.config.fields import MAX_TIMEOUT_S, field
 from u2sa_hw.failsafe import ALL_SOURCES, OPERATOR_SOURCE, FailsafeSources
-from u2sa_hw.services.hsm.monitor import (Cancelled, Failed, FailsafeChange, HealthMonitor, Recovered, Restart,
-                                          Stalled)
+from u2sa_hw.services.hsm.monitor import HealthMonitor
 from u2sa_hw.services.hsm.restarters import (DEFAULT_UNIT_TEMPLATE, LauncherRestarter, Restarter, RestartError,
                                              choose_restarter)
 from u2sa_hw.services.hsm.rules import MonitorPolicy, rules_from_profile
+from u2sa_hw.services.hsm.verdicts import Cancelled, Failed, FailsafeChange, Recovered, Restart, Stalled
 from u2sa_hw.service.contract import U2SAService
 
 FAILSAFE_REPEAT_S = 1.0
