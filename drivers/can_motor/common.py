@@ -7,6 +7,8 @@ wheels form a differential pair it publishes body speed and yaw rate (FRD) as St
 Information. The bus is opened through :class:`~u2sa_hw.ports.ReconnectingPort`, so a lost
 adapter is reported in health and reopened with backoff; with ``record_raw`` every frame is
 published as ``RawCanFrame`` on ``RAW.<device>``.
+Its settings, their check and :class:`~u2sa_hw.drivers.can_motor.settings.MotorSpec` are in
+:mod:`u2sa_hw.drivers.can_motor.settings`.
 
 One thread runs the bus: it receives frames (handed to :meth:`handle_frame`) and calls
 :meth:`tick` every ``TICK_S`` for the controller's own work (re-sending setpoints, arming,
@@ -23,8 +25,7 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Callable, ClassVar, Mapping
+from typing import TYPE_CHECKING, Any, ClassVar, Mapping
 
 if TYPE_CHECKING:
     import can   # python-can loads when the port opens (u2sa_hw/ports/can/port.py)
@@ -32,56 +33,23 @@ if TYPE_CHECKING:
 from u2sa_hw import channels as ch
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.abstract import Actuator
-from u2sa_hw.config.fields import MAX_TIMEOUT_S, ConfigError, field
 from u2sa_hw.messages import STATE_FIELDS  # noqa: F401 - installs the presence setters
 from u2sa_hw.ports import PortClosed, PortError, PortIOError, PortUnavailable
 from u2sa_hw.ports.can.port import CanPort
 from u2sa_hw.ports.device_link import DeviceLink, device_setting
 
-from u2sa_hw.drivers.can_motor.watchdog import WatchdogStep, check_hw_watchdog, watchdog_summary  # noqa: F401 - their old home
 from u2sa_hw.drivers.can_motor.declarations import CanMotorDeclarations
-from u2sa_hw.drivers.can_motor.diff_drive_odometry import SOURCES, BodyMotion, DiffDriveOdometry
+from u2sa_hw.drivers.can_motor.diff_drive_odometry import BodyMotion, DiffDriveOdometry
+from u2sa_hw.drivers.can_motor.settings import ODOMETRY_FIELDS, PORT_FIELDS, CanMotorSettings, MotorSpec
 from u2sa_hw.drivers.can_motor.stall_trip import StallWatch, trip_gap_s
 
 TICK_S = 0.01
-_PORT_FIELDS = frozenset({"device", "device_name"})
-_ODOMETRY_FIELDS = frozenset({"odometry", "odometry_left", "odometry_right", "track_width_m", "odometry_source",
-                              "odometry_window_s", "wheel_radius_m", "directions"})
 
 
-@dataclass(frozen=True)
-class MotorSpec:
-    """One controller as configured: actuator name, CAN id, direction (+1/-1), wheel radius (m)."""
-
-    name: str
-    can_id: int
-    direction: int
-    radius_m: float
-
-
-class CanMotorService(CanMotorDeclarations, Actuator):
-    """Base of the CAN motor drivers (see the module docstring)."""
+class CanMotorService(CanMotorSettings, CanMotorDeclarations, Actuator):
+    """Base of the CAN motor drivers (see the module docstring); its settings: drivers/can_motor/settings.py."""
 
     ID_FIELD: ClassVar[str] = "node_ids"
-    CONFIG = (
-        field("device", "", "the bus: its [devices.NAME] table (address) and RAW.<device> (empty: the service name)"),
-        field("device_name", "", "old name of the device setting"),
-        field("record_raw", False, "publish every frame sent and received as RawCanFrame on RAW.<device>"),
-        field("actuators", ["left", "right"], "actuator names, one per controller (Percentage Commands address them)", item_type=str),
-        field("directions", [1, 1], "+1 or -1 per controller: -1 where forward means turning the motor backwards", item_type=int, ge=-1, le=1),
-        field("wheel_radius_m", [0.1, 0.1], "wheel radius per controller (m), for the odometry", item_type=float, gt=0, le=10.0),
-        field("command_period_s", 0.05, "setpoints are re-sent this often (keeps the controller's timeout fed)", gt=0, le=MAX_TIMEOUT_S),
-        field("silent_after_s", 0.5, "no frame from a controller for this long -> 'silent' and degraded", gt=0, le=MAX_TIMEOUT_S),
-        field("odometry", True, "publish body speed (x_dot, FRD) and yaw rate from the differential wheel pair"),
-        field("odometry_left", "left", "the actuator name of the left wheel"),
-        field("odometry_right", "right", "the actuator name of the right wheel"),
-        field("track_width_m", 0.5, "distance between the left and right wheels' contact lines (m)", gt=0, le=100.0),
-        field("odometry_source", "velocity", "velocity: the controller's speed estimate; position: travel deltas",
-              choices=SOURCES),
-        field("odometry_window_s", 0.1, "position source: travel deltas over this window (s)", gt=0, le=MAX_TIMEOUT_S),
-        field("speed_sigma_mps", 0.05, "sigma of the published x_dot and y_dot (m/s)", gt=0, le=100.0),
-        field("yaw_rate_sigma_rad_s", 0.05, "sigma of the published psi_dot (rad/s)", gt=0, le=10.0),
-    )
 
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
@@ -105,9 +73,6 @@ class CanMotorService(CanMotorDeclarations, Actuator):
         self._build()
 
     # -- config ------------------------------------------------------------------------------
-    def _fail(self, text: str) -> ConfigError:
-        return ConfigError(f"service '{self.name}': {text}")
-
     def check_config(self) -> None:
         """Refuse a config this driver cannot run with (the dead-man as every actuator). Offline (``u2sa check``
         builds the driver without its link, and checks the device addresses itself) the bus is not looked at."""
@@ -117,29 +82,6 @@ class CanMotorService(CanMotorDeclarations, Actuator):
         problem = link.check() if link is not None else None
         if problem:
             raise self._fail(f"{problem} (e.g. \"can://socketcan/can0?bitrate=500000\")")
-
-    def check_settings(self, get: Callable[[str], Any]) -> None:
-        """Raise ConfigError (naming the field and the fix) unless the values *get* returns can run together:
-        one id, direction and radius per actuator. Each field's own type, choices and bounds are declared."""
-        names, ids = get("actuators"), get(self.ID_FIELD)
-        dirs = get("directions")
-        if not names or not all(n.strip() for n in names) or len(set(names)) != len(names):
-            raise self._fail(f"actuators must be distinct non-empty names, got {names!r}; name each controller once")
-        for key in (self.ID_FIELD, "directions", "wheel_radius_m"):
-            if len(get(key)) != len(names):
-                raise self._fail(f"{key} needs one entry per actuator ({len(names)}: {', '.join(names)}), "
-                                 f"got {get(key)!r}")
-        if len(set(ids)) != len(ids):
-            raise self._fail(f"{self.ID_FIELD} must be distinct (one controller per CAN id), got {ids!r}; "
-                             "give each controller its own id")
-        if any(d not in (1, -1) for d in dirs):
-            raise self._fail(f"directions must be 1 or -1 per actuator, got {dirs!r}; write -1 where forward "
-                             "turns the motor backwards")
-        if get("odometry"):
-            for key in ("odometry_left", "odometry_right"):
-                if get(key) not in names:
-                    raise self._fail(f"{key} = {get(key)!r} is not one of the actuators ({', '.join(names)}); "
-                                     "name the wheel, or set odometry = false")
 
     def _build(self) -> None:
         cfg = self.config
@@ -166,9 +108,9 @@ class CanMotorService(CanMotorDeclarations, Actuator):
     def on_config_change(self, name: str, value: Any) -> None:
         """Bus fields reopen the port, odometry fields restart the odometry (checked by validate_config)."""
         with self.lock:
-            if name in _PORT_FIELDS:
+            if name in PORT_FIELDS:
                 self._reopen = True
-            if name in _ODOMETRY_FIELDS:
+            if name in ODOMETRY_FIELDS:
                 self._build()
             if name == "record_raw" and value:
                 self._link.record_changed()

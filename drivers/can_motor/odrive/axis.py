@@ -13,7 +13,7 @@ from typing import Any
 from u2sa_hw.protocols import odrive_cansimple as cs
 from u2sa_hw.protocols.odrive_cansimple import AxisState
 
-from u2sa_hw.drivers.can_motor.common import MotorSpec
+from u2sa_hw.drivers.can_motor.settings import MotorSpec
 from u2sa_hw.drivers.can_motor.watchdog import WatchdogStep
 from u2sa_hw.drivers.can_motor.stall_trip import Trip
 

@@ -40,7 +40,8 @@ from u2sa_hw.config.fields import MAX_TIMEOUT_S, field
 from u2sa_hw.protocols import vesc_can as vc
 from u2sa_hw.protocols.vesc_can import PacketId
 
-from u2sa_hw.drivers.can_motor.common import CanMotorService, MotorSpec
+from u2sa_hw.drivers.can_motor.common import CanMotorService
+from u2sa_hw.drivers.can_motor.settings import MotorSpec
 from u2sa_hw.drivers.can_motor.watchdog import WatchdogStep, check_hw_watchdog, watchdog_summary
 from u2sa_hw.drivers.can_motor.declarations import VescDeclarations
 from u2sa_hw.drivers.value_ranges import ValueDrops
