@@ -39,10 +39,10 @@ from u2sa_hw.bus.udp_ports import private_lcm_url
 
 from u2sa_hw.hil.player import ORDERED_CHANNELS, PlayStats, Player
 from u2sa_hw.hil.progress import ProgressBar
+from u2sa_hw.hil.replay_buses import make_device   # the replay device of each kind: PORT_KINDS' replay part
 from u2sa_hw.hil.replay_devices import ReplayDevice, ReplaySerialDevice, ReplayStalled
 from u2sa_hw.hil.replay_i2c import held_drivers, release_held_reads
-from u2sa_hw.hil.replay_plan import (DevicePlan, ReplayError, ReplayPlan, ServicePlan, build_plan,
-                                     write_run_profile)
+from u2sa_hw.hil.replay_plan import ReplayError, ReplayPlan, build_plan, write_run_profile
 from u2sa_hw.hil.replay_watch import ReplayWatch, discover, listeners
 
 
@@ -102,40 +102,6 @@ def private_url(plan: ReplayPlan) -> str:
     recorded = plan.summary.contents.metadata.get("u2sa", {}).get("lcm_url", "")
     ports = {int(p) for p in re.findall(r":(\d+)", recorded)}
     return private_lcm_url(avoid=ports)   # the transport adds the receive buffer --fast bursts need
-
-
-def make_device(dev: DevicePlan, run_dir: Path, service: ServicePlan, *, fast: bool,
-                rigs: dict[str, Any] | None = None) -> ReplayDevice:
-    """The replay device for *dev*, driven by *service* (ReplayError for a kind that cannot be replayed).
-
-    *rigs* holds what the devices of one service share (the PWM outputs of a servo service). What a
-    device needs of its driver's config (a serial device's burst gap) the driver declares
-    (``replay_options``, :mod:`u2sa_hw.ports.declared`).
-    """
-    if dev.kind == "serial":
-        options = _replay_options(dev, service)
-        gap = options.get("burst_gap_s")
-        return ReplaySerialDevice(name=dev.name, link_path=run_dir / "dev" / dev.name, stamped=True,
-                                  **({"burst_gap_s": float(gap)} if isinstance(gap, (int, float)) else {}))
-    if dev.kind in ("gpio", "pwm"):
-        from u2sa_hw.hil import replay_gpio
-
-        return replay_gpio.make_device(dev.kind, dev.name, run_dir, service=service.name,
-                                       rigs=rigs if rigs is not None else {})
-    from u2sa_hw.hil import replay_buses
-
-    return replay_buses.make_device(dev, run_dir, fast=fast, options=_replay_options(dev, service))
-
-
-def _replay_options(dev: DevicePlan, service: ServicePlan) -> dict[str, Any]:
-    """What the driver of *service* declares a replay of *dev* needs, from the recorded config and the overrides."""
-    from u2sa_hw.ports.declared import declared_class, replay_options
-
-    try:
-        cls = declared_class(service.kind)
-    except (LookupError, ImportError) as exc:   # reported, as typed_overrides does
-        raise ReplayError(f"service '{service.name}': cannot load kind '{service.kind}' ({exc})") from None
-    return replay_options(cls, dev.name, {**service.config, **service.overrides})
 
 
 class _Outputs:

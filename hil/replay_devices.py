@@ -296,3 +296,26 @@ class ReplaySerialDevice:
         else:
             out["divergences"] = 0
         return out
+
+
+def replay_options_of(dev: Any, service: Any) -> dict[str, Any]:
+    """What the driver of *service* (a ServicePlan) declares a replay of *dev* needs, from the recorded config
+    and the overrides (``replay_options``, :mod:`u2sa_hw.ports.declared`); ReplayError when its kind cannot
+    be loaded."""
+    from u2sa_hw.hil.replay_plan import ReplayError
+    from u2sa_hw.ports.declared import declared_class, replay_options
+
+    try:
+        cls = declared_class(service.kind)
+    except (LookupError, ImportError) as exc:   # reported, as typed_overrides does
+        raise ReplayError(f"service '{service.name}': cannot load kind '{service.kind}' ({exc})") from None
+    return replay_options(cls, dev.name, {**service.config, **service.overrides})
+
+
+def make_serial_device(dev: Any, run_dir: Path, *, service: Any, fast: bool,
+                       rigs: dict[str, Any]) -> ReplaySerialDevice:
+    """The serial kind's replay device (``PORT_KINDS["serial"].replay``): a stamped pty at
+    ``<run>/dev/<device>``, its bursts cut at the driver's declared ``burst_gap_s``."""
+    gap = replay_options_of(dev, service).get("burst_gap_s")
+    return ReplaySerialDevice(name=dev.name, link_path=run_dir / "dev" / dev.name, stamped=True,
+                              **({"burst_gap_s": float(gap)} if isinstance(gap, (int, float)) else {}))

@@ -25,13 +25,14 @@ import tomli_w
 
 from u2sa_hw.config.fields import ConfigError, parse_text
 from u2sa_hw.ports.address import AddressError, DeviceAddress, parse_address
+from u2sa_hw.ports.kinds import PORT_KINDS
 from u2sa_hw.recording.log_reader import LogFile, LogSummary
 from u2sa_hw.registry import resolve_kind
 
 RAW_KINDS = {"RawSerial": "serial", "RawCanFrame": "can", "RawI2c": "i2c", "RawGpioEdge": "gpio",
              "RawGpioWrite": "gpio", "RawPwmWrite": "pwm"}
-# device kinds with a replay device (hil/replay_devices.py, hil/replay_buses.py, hil/replay_gpio.py)
-REPLAYABLE = {"serial", "i2c", "can", "gpio", "pwm"}
+# device kinds with a replay device: the port kinds whose replay part names one (u2sa_hw.ports.kinds)
+REPLAYABLE = frozenset(name for name, kind in PORT_KINDS.items() if kind.replay)
 OUTPUT_TAPPED = {"gpio", "pwm"}   # kinds whose driver's outputs are its raw taps: record_raw stays on in a replay
 
 

@@ -178,14 +178,14 @@ def test_an_imu_is_replayed_with_its_own_settings_on_a_paced_bus() -> None:
     """A replayed IMU keeps its recorded sample rate (its configuration writes match the recording): the replay
     bus paces its data reads (paced=true), so it samples back to back at any replay rate."""
     from u2sa_hw.hil.replay_buses import ReplayI2cDevice, make_device
-    from u2sa_hw.hil.replay_plan import DevicePlan
+    from u2sa_hw.hil.replay_plan import DevicePlan, ServicePlan
     from u2sa_hw.ports.address import parse_address
     from u2sa_hw.ports.declared import declared_class, replay_options
 
     assert replay_options(declared_class("imu_mpu9250"), "imu", {}) == {}
     dev = DevicePlan(name="imu", kind="i2c", records=0)
     for fast in (True, False):
-        device = make_device(dev, Path("/nonexistent"), fast=fast, options={})
+        device = make_device(dev, Path("/nonexistent"), ServicePlan("imu", "imu_mpu9250", {}), fast=fast)
         assert isinstance(device, ReplayI2cDevice) and device.config_changes() == {}
         address = parse_address(device.mock_address(parse_address("i2c://1/0x68", device="imu")), device="imu")
         assert address.i2c_paced and address.i2c_timeout and address.chip_address == 0x68

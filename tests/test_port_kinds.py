@@ -2,7 +2,7 @@
 
 A walk over ``PORT_KINDS``: each kind implements the ``PortKind`` protocol, lives in its own
 ``u2sa_hw/ports/<kind>/`` package with its grammar, real backend, mock client, wire
-protocol and probe, parses its own examples, refuses a parameter it does not take, and opens a missing
+protocol, probe and replay device, parses its own examples, refuses a parameter it does not take, and opens a missing
 device (real and mock) as a ``PortUnavailable`` naming the device and the fix. A new kind that
 leaves a part out fails here, not on a vehicle.
 """
@@ -190,3 +190,38 @@ def test_what_install_makes_of_a_kind_is_in_its_package(name: str) -> None:
     if kind.install is not None:
         module = importlib.import_module(kind.install)
         assert module.__doc__ and module.plan_device.__doc__
+
+
+# the replay device each kind's ``replay`` part names: the class a replay of a RAW.<device> of the kind plays into
+REPLAY = {
+    "serial": "ReplaySerialDevice", "can": "ReplayCanDevice", "i2c": "ReplayI2cDevice",
+    "gpio": "ReplayGpioDevice", "pwm": "ReplayPwmDevice", "pca9685": "ReplayPwmDevice",
+}
+
+
+@pytest.mark.parametrize("name", sorted(PORT_KINDS))
+def test_every_kind_names_its_replay_device(name: str, tmp_path: Path) -> None:
+    """``u2sa replay`` finds each kind's replay device through the table: a ``module:factory`` string (``u2sa_hw``
+    never imports ``hil``), a documented factory that makes the kind's device from a device of the log."""
+    from u2sa_hw.hil.replay_buses import make_device
+    from u2sa_hw.hil.replay_plan import REPLAYABLE, DevicePlan, ServicePlan
+    from u2sa_hw.ports.port_kind import load_part
+
+    kind = PORT_KINDS[name]
+    assert isinstance(kind.replay, str) and kind.replay.startswith("u2sa_hw.")
+    factory = load_part(kind.replay)
+    assert callable(factory) and factory.__doc__
+    assert name in REPLAYABLE
+    service = ServicePlan("svc", "gps_nmea" if name == "serial" else "gpio_input", {})
+    device = factory(DevicePlan(name="dev", kind=name, records=0), tmp_path, service=service, fast=True, rigs={})
+    assert type(device).__name__ == REPLAY[name] and device.name == "dev"
+    raw_kind = "pwm" if name == "pca9685" else name   # a PCA9685's records are RawPwmWrite: a pwm device in a log
+    through = make_device(DevicePlan(name="dev2", kind=raw_kind, records=0), tmp_path, service, fast=True, rigs={})
+    assert type(through).__name__ == REPLAY[name]
+
+
+def test_a_kind_part_is_module_colon_name() -> None:
+    from u2sa_hw.ports.port_kind import load_part
+
+    with pytest.raises(ValueError, match="expected 'module:name'"):
+        load_part("u2sa_hw.hil.replay_buses.make_i2c_device")

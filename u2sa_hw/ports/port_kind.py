@@ -14,6 +14,7 @@ A kind's module imports neither its port library nor its backends: ``open_real``
 
 from __future__ import annotations
 
+import importlib
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 from u2sa_hw.ports.address_schemes import Fail, Parsed, UrlParts
@@ -25,7 +26,7 @@ if TYPE_CHECKING:
 
 @runtime_checkable
 class PortKind(Protocol):
-    """One port kind: its address grammar, its real backend, its mock client and its probe.
+    """One port kind: its address grammar, its real backend, its mock client, its probe and its replay device.
 
     ``name`` is the address kind (``DeviceAddress.kind``) and the real scheme; ``mock+`` + name
     the mock one. ``package`` is the ``u2sa_hw.ports`` package the kind lives in (the PCA9685 is
@@ -36,6 +37,9 @@ class PortKind(Protocol):
     ``target_params(address, expect)``; ``probe(target, seconds)``), None for a kind without one.
     ``install`` names the module whose ``plan_device`` says what ``u2sa install`` makes of a real
     address of the kind (a udev rule, an interface's bitrate, a unit drop-in), None for nothing.
+    ``replay`` names the kind's replay device factory as ``"module:callable"`` (:func:`load_part`;
+    a string, so ``u2sa_hw`` never imports ``hil``): ``factory(dev, run_dir, *, service, fast, rigs)``
+    makes the device that plays a log's ``RAW.<device>`` records back to the driver (docs/replay.md).
     """
 
     name: str
@@ -49,6 +53,7 @@ class PortKind(Protocol):
     preload: tuple[str, ...]
     probe: str | None
     install: str | None
+    replay: str
 
     def parse(self, parts: UrlParts, fail: Fail) -> Parsed:
         """``(backend, location, numbers)`` of an address split into *parts*, else raise ``fail(problem)``."""
@@ -68,3 +73,16 @@ def check_options(kind: PortKind, address: DeviceAddress, device: str, options: 
     if extra:
         raise TypeError(f"{device}: open_port({address.kind}) takes {', '.join(kind.options) or 'no options'}, "
                         f"not {', '.join(extra)}")
+
+
+def load_part(spec: str) -> Any:
+    """The object a kind's ``"module:name"`` part names (its ``replay`` factory), imported only now.
+
+    ValueError names the text and the form when it is not ``module:name``; ImportError and
+    AttributeError surface as they are (a wrong table entry is a bug, never hidden).
+    """
+    module, sep, name = spec.partition(":")
+    if not sep or not module or not name:
+        raise ValueError(f"port kind part {spec!r}: expected 'module:name', e.g. "
+                         "'u2sa_hw.hil.replay_devices:make_serial_device'")
+    return getattr(importlib.import_module(module), name)

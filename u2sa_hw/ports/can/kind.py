@@ -30,6 +30,7 @@ class CanKind:
     preload = ("u2sa_hw.ports.can.port", "can", "u2sa_hw.ports.can.clock")
     probe: str | None = "u2sa_hw.ports.can.probe"
     install: str | None = "u2sa_hw.ports.can.install"
+    replay = "u2sa_hw.hil.replay_buses:make_can_device"   # a private stamped udp_multicast bus
 
     def parse(self, parts: UrlParts, fail: Fail) -> Parsed:
         """See :func:`u2sa_hw.ports.can.grammar.parse_can`."""

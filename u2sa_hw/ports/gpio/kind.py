@@ -33,6 +33,7 @@ class GpioKind:
     preload = ("u2sa_hw.ports.gpio.port", "u2sa_hw.ports.gpio.mock_client", "u2sa_hw.ports.gpio.gpiod_backend")
     probe: str | None = "u2sa_hw.ports.gpio.probe"
     install: str | None = None   # udev/60-u2sa-permissions.rules covers every chip
+    replay = "u2sa_hw.hil.replay_buses:make_gpio_device"   # a mock chip driving the recorded edges
 
     def parse(self, parts: UrlParts, fail: Fail) -> Parsed:
         """See :func:`u2sa_hw.ports.gpio.grammar.parse_gpio`."""

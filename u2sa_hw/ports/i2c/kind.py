@@ -31,6 +31,7 @@ class I2cKind:
     preload = ("u2sa_hw.ports.i2c.port",)
     probe: str | None = "u2sa_hw.ports.i2c.probe"
     install: str | None = None   # udev/60-u2sa-permissions.rules covers every adapter
+    replay = "u2sa_hw.hil.replay_buses:make_i2c_device"   # a mock bus with the recorded reads
 
     def parse(self, parts: UrlParts, fail: Fail) -> Parsed:
         """See :func:`u2sa_hw.ports.i2c.grammar.parse_i2c`."""

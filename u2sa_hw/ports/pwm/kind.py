@@ -44,6 +44,7 @@ class PwmKind:
     preload = ("u2sa_hw.ports.pwm.port",)
     probe: str | None = "u2sa_hw.ports.pwm.probe"
     install: str | None = "u2sa_hw.ports.pwm.install"
+    replay = "u2sa_hw.hil.replay_buses:make_pwm_device"   # a sysfs-shaped directory per recorded chip
 
     def parse(self, parts: UrlParts, fail: Fail) -> Parsed:
         """See :func:`u2sa_hw.ports.pwm.grammar.parse_pwm`."""
@@ -79,6 +80,7 @@ class Pca9685Kind:
     preload = ("u2sa_hw.ports.pwm.port", "u2sa_hw.ports.pwm.pca9685")
     probe: str | None = "u2sa_hw.ports.i2c.probe"   # one identity read per chip
     install: str | None = None   # an I2C chip: udev/60-u2sa-permissions.rules covers its adapter
+    replay = "u2sa_hw.hil.replay_buses:make_pwm_device"   # a PCA9685 model on a mock I2C bus
 
     def parse(self, parts: UrlParts, fail: Fail) -> Parsed:
         """See :func:`u2sa_hw.ports.i2c.grammar.parse_i2c` (an I2C bus and chip, then the channel)."""

@@ -31,6 +31,7 @@ class SerialKind:
     preload = ("u2sa_hw.ports.serial.opener",)
     probe: str | None = "u2sa_hw.ports.serial.probe"
     install: str | None = "u2sa_hw.ports.serial.install"
+    replay = "u2sa_hw.hil.replay_devices:make_serial_device"   # a pty, the recorded reads on their stamps
 
     def parse(self, parts: UrlParts, fail: Fail) -> Parsed:
         """See :func:`u2sa_hw.ports.serial.grammar.parse_serial`."""
