@@ -33,8 +33,8 @@ import tomli_w
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from u2sa_hw.mocks.odrive_node import (ENABLE_WATCHDOG_ENDPOINT, MOCK_FW, WATCHDOG_TIMEOUT_ENDPOINT,  # noqa: E402
-                                      OdriveCanNode)
+from u2sa_hw.mocks.odrive_config import ENABLE_WATCHDOG_ENDPOINT, MOCK_FW, WATCHDOG_TIMEOUT_ENDPOINT  # noqa: E402
+from u2sa_hw.mocks.odrive_node import OdriveCanNode  # noqa: E402
 from u2sa_hw.mocks.vehicle_sim import SimVehicle  # noqa: E402
 from u2sa_hw.mocks.vesc_node import VescCanNode  # noqa: E402
 from u2sa_hw import channels as ch  # noqa: E402

@@ -22,7 +22,8 @@ from u2sa_hw.profile.vehicle import VehicleProfile
 from u2sa_hw.drivers.can_motor.diff_drive_odometry import DiffDriveOdometry, WheelTravel, body_motion
 from u2sa_hw.drivers.can_motor.odrive.driver import OdriveCanMotor, error_names
 from u2sa_hw.mocks import can_adapter
-from u2sa_hw.mocks.odrive_node import ENABLE_WATCHDOG_ENDPOINT, MOCK_FW, WATCHDOG_TIMEOUT_ENDPOINT, OdriveCanNode
+from u2sa_hw.mocks.odrive_config import ENABLE_WATCHDOG_ENDPOINT, MOCK_FW, WATCHDOG_TIMEOUT_ENDPOINT
+from u2sa_hw.mocks.odrive_node import OdriveCanNode
 from u2sa_hw.mocks.vehicle_sim import SimVehicle
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.bus.client import BusClient

@@ -266,7 +266,7 @@ def test_odrive_watchdog_is_fed_by_any_frame_and_disarms_when_starved(vehicle, c
 
 def test_odrive_watchdog_set_over_rxsdo_reads_back_and_trips_when_starved(vehicle, channel, client,
                                                                            start_node) -> None:
-    from u2sa_hw.mocks.odrive_node import ENABLE_WATCHDOG_ENDPOINT as ENABLE, WATCHDOG_TIMEOUT_ENDPOINT as TIMEOUT
+    from u2sa_hw.mocks.odrive_config import ENABLE_WATCHDOG_ENDPOINT as ENABLE, WATCHDOG_TIMEOUT_ENDPOINT as TIMEOUT
     node = start_node(odrive(vehicle, channel))   # boots with the watchdog off, as the factory config has it
 
     def read(endpoint: int, kind: str):

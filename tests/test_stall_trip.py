@@ -18,7 +18,8 @@ from conftest import wait_until
 from u2sa_hw.profile.vehicle import VehicleProfile
 from u2sa_hw.drivers.can_motor.odrive.driver import OdriveCanMotor
 from u2sa_hw.drivers.can_motor.stall_trip import Stall, StallWatch, Trip, may_clear, trip_gap_s
-from u2sa_hw.mocks.odrive_node import ENABLE_WATCHDOG_ENDPOINT, MOCK_FW, WATCHDOG_TIMEOUT_ENDPOINT, OdriveCanNode
+from u2sa_hw.mocks.odrive_config import ENABLE_WATCHDOG_ENDPOINT, MOCK_FW, WATCHDOG_TIMEOUT_ENDPOINT
+from u2sa_hw.mocks.odrive_node import OdriveCanNode
 from u2sa_hw.mocks.vehicle_sim import SimVehicle
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.protocols.odrive_cansimple import AxisState, Cmd, OdriveError
