@@ -19,33 +19,29 @@ lies on it, ``bus`` hands a recorded bus message to the clients that asked for i
 ``bus``), in order with the edges; ``backlog`` counts frames not yet sent, so a player can
 wait instead of overflowing a client that reads slowly. The wire protocol lives in
 ``u2sa_hw.ports.gpio.wire`` (driver and mock share it) and is documented in
-``docs/gpio-and-rc.md``.
+``docs/gpio-and-rc.md``; serving it on the socket (``start``, ``stop``, a reader and a writer thread
+per client) is mock_devices/gpio_chip_server.py.
 """
 
 from __future__ import annotations
 
-import json
 import logging
-import os
 import queue
-import socket
-import stat
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable
 
-from u2sa_hw.ports.gpio.wire import (BIASES, EDGE_FALLING, EDGE_RISING, EDGES, MOCK_EDGE, MOCK_EDGE_RECORD, MOCK_JSON,
-                                     MOCK_ORIGIN, MOCK_ORIGIN_RECORD, MOCK_STEP, MOCK_TICK, MOCK_TICK_RECORD,
-                                     MockFrameReader, MockProtocolError, encode_bus_input, encode_mock_frame,
-                                     encode_mock_json)
+from u2sa_hw.ports.gpio.wire import (BIASES, EDGE_FALLING, EDGE_RISING, EDGES, MOCK_EDGE, MOCK_EDGE_RECORD, MOCK_ORIGIN,
+                                     MOCK_ORIGIN_RECORD, MOCK_STEP, MOCK_TICK, MOCK_TICK_RECORD, MockProtocolError,
+                                     encode_bus_input, encode_mock_frame, encode_mock_json)
 from u2sa_hw.ports.gpio.port import MOCK_PREFIX
+from u2sa_hw.mocks.gpio_chip_server import ChipClient, GpioChipServer
 
 log = logging.getLogger("u2sa_hw.mocks.gpio_chip")
 
 OutputCallback = Callable[[int, int, int], None]
-WRITE_BATCH = 256   # frames a client's writer sends at once at most
 
 
 @dataclass(frozen=True)
@@ -58,18 +54,6 @@ class GpioChipRecord:
     kind: str
 
 
-@dataclass
-class _Client:
-    sock: socket.socket
-    consumer: str = ""
-    lines: dict[int, dict[str, Any]] = field(default_factory=dict)  # offset -> settings
-    outbox: queue.Queue = field(default_factory=lambda: queue.Queue(maxsize=4096))
-    global_seqno: int = 0
-    line_seqno: dict[int, int] = field(default_factory=dict)
-    bus_channels: frozenset = frozenset()     # recorded bus channels it asked for (a device-clock chip's client)
-    closed: bool = False
-
-
 class ChipRefusal(Exception):
     """A request refused with a kernel-like errno name."""
 
@@ -78,7 +62,7 @@ class ChipRefusal(Exception):
         self.reply = {"ok": False, "error": errno_name, "message": message, **extra}
 
 
-class MockGpioChip:
+class MockGpioChip(GpioChipServer):
     """A GPIO chip with *num_lines* lines served at *socket_path* (address ``mock:<path>``).
 
     *release_level* is the level an output falls to when its client releases it or goes
@@ -99,50 +83,17 @@ class MockGpioChip:
         self._lock = threading.RLock()
         self._levels = [0] * num_lines
         self._driven: dict[int, int] = {}  # input levels set by drive_input
-        self._owners: dict[int, _Client] = {}
-        self._clients: list[_Client] = []
+        self._owners: dict[int, ChipClient] = {}
+        self._clients: list[ChipClient] = []
         self._callbacks: list[OutputCallback] = []
         self._edges_stopped = False
         self._stop = threading.Event()
-        self._server: socket.socket | None = None
-        self._acceptor: threading.Thread | None = None
+        self._server = self._acceptor = None   # listening: GpioChipServer.start
 
     @property
     def address(self) -> str:
         """What a driver config names: ``mock:<socket path>``."""
         return MOCK_PREFIX + self.socket_path
-
-    def start(self) -> MockGpioChip:
-        """Listen on the socket (replacing a stale one) and serve clients on threads."""
-        if os.path.exists(self.socket_path) and stat.S_ISSOCK(os.stat(self.socket_path).st_mode):
-            os.unlink(self.socket_path)
-        server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        server.bind(self.socket_path)
-        server.listen(16)
-        server.settimeout(0.25)
-        self._server = server
-        self._stop.clear()
-        self._acceptor = threading.Thread(target=self._accept_loop, name=f"{self.label}-accept", daemon=True)
-        self._acceptor.start()
-        return self
-
-    def stop(self) -> None:
-        """Disconnect every client, stop listening and remove the socket file."""
-        self._stop.set()
-        if self._acceptor is not None:
-            self._acceptor.join(timeout=2.0)
-        self.disconnect()
-        if self._server is not None:
-            self._server.close()
-            self._server = None
-        if os.path.exists(self.socket_path):
-            os.unlink(self.socket_path)
-
-    def __enter__(self) -> MockGpioChip:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
     # ---- chip side -------------------------------------------------------------------
     def drive_input(self, line: int, value: int, timestamp_ns: int | None = None) -> bool:
@@ -201,7 +152,7 @@ class MockGpioChip:
                     sent += 1
         return sent
 
-    def _send(self, client: _Client, frame: bytes) -> None:
+    def _send(self, client: ChipClient, frame: bytes) -> None:
         try:
             client.outbox.put_nowait(frame)
         except queue.Full:
@@ -251,7 +202,7 @@ class MockGpioChip:
         owner = self._owners.get(line)
         return 1 if owner is not None and owner.lines[line].get("bias") == "pull-up" else 0
 
-    def _deliver_edge(self, client: _Client, line: int, value: int, stamp: int) -> None:
+    def _deliver_edge(self, client: ChipClient, line: int, value: int, stamp: int) -> None:
         edge = client.lines[line]["edge"]
         if edge == "none" or (edge == "rising" and not value) or (edge == "falling" and value):
             return
@@ -283,63 +234,7 @@ class MockGpioChip:
                 except Exception:  # noqa: BLE001 - a broken simulation hook must not kill the chip
                     log.exception("%s: on_output callback failed", self.label)
 
-    def _accept_loop(self) -> None:
-        while not self._stop.is_set():
-            try:
-                sock, _ = self._server.accept()  # type: ignore[union-attr]
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            sock.settimeout(None)
-            client = _Client(sock=sock)
-            with self._lock:
-                self._clients.append(client)
-            threading.Thread(target=self._client_reader, args=(client,), daemon=True,
-                             name=f"{self.label}-client").start()
-            threading.Thread(target=self._client_writer, args=(client,), daemon=True,
-                             name=f"{self.label}-writer").start()
-
-    def _client_writer(self, client: _Client) -> None:
-        # every frame already queued goes out in one send (a replay chip queues edges by the thousand:
-        # one syscall, and one wake-up of the client's reader, per frame was most of the cost); order kept
-        while True:
-            frames = [client.outbox.get()]
-            while frames[-1] is not None and len(frames) < WRITE_BATCH:
-                try:
-                    frames.append(client.outbox.get_nowait())
-                except queue.Empty:
-                    break
-            stop = frames[-1] is None
-            if stop:
-                frames.pop()
-            if frames:
-                try:
-                    client.sock.sendall(frames[0] if len(frames) == 1 else b"".join(frames))
-                except OSError:
-                    return
-            if stop:
-                return
-
-    def _client_reader(self, client: _Client) -> None:
-        frames = MockFrameReader()
-        try:
-            while True:
-                data = client.sock.recv(65536)
-                if not data:
-                    break
-                for kind, payload in frames.feed(data):
-                    if kind != MOCK_JSON:
-                        raise MockProtocolError(f"client sent frame kind {kind!r}")
-                    self._answer(client, json.loads(payload))
-        except OSError:
-            pass
-        except (MockProtocolError, ValueError, TypeError, AttributeError) as exc:
-            self.protocol_errors += 1
-            log.warning("%s: dropping client '%s' after a protocol error: %s", self.label, client.consumer, exc)
-        self._drop(client)
-
-    def _answer(self, client: _Client, request: Any) -> None:
+    def _answer(self, client: ChipClient, request: Any) -> None:
         if not isinstance(request, dict):
             raise MockProtocolError("request is not a JSON object")
         handler = {"request": self._op_request, "get": self._op_get, "set": self._op_set,
@@ -368,7 +263,7 @@ class MockGpioChip:
             raise ChipRefusal("EINVAL", f"line {line} out of range 0..{self.num_lines - 1}")
         return line
 
-    def _op_request(self, client: _Client, req: dict, fired: list) -> dict:
+    def _op_request(self, client: ChipClient, req: dict, fired: list) -> dict:
         lines: dict[int, dict[str, Any]] = {}
         for key, settings in dict(req.get("lines") or {}).items():
             line = self._offset(key)
@@ -398,7 +293,7 @@ class MockGpioChip:
                 self._levels[line] = self._input_level(line)
         return reply
 
-    def _op_bus(self, client: _Client, req: dict, fired: list) -> dict:
+    def _op_bus(self, client: ChipClient, req: dict, fired: list) -> dict:
         if not self.device_clock:
             raise ChipRefusal("EINVAL", "this chip has no recorded bus (only a replay chip with a device clock)")
         channels = req.get("channels") or []
@@ -407,7 +302,7 @@ class MockGpioChip:
         client.bus_channels = frozenset(channels)
         return {"channels": sorted(client.bus_channels)}
 
-    def _op_get(self, client: _Client, req: dict, fired: list) -> dict:
+    def _op_get(self, client: ChipClient, req: dict, fired: list) -> dict:
         values = []
         for key in req.get("lines") or []:
             line = self._offset(key)
@@ -416,7 +311,7 @@ class MockGpioChip:
             values.append(self._levels[line])
         return {"values": values}
 
-    def _op_set(self, client: _Client, req: dict, fired: list) -> dict:
+    def _op_set(self, client: ChipClient, req: dict, fired: list) -> dict:
         updates = {self._offset(k): v for k, v in dict(req.get("values") or {}).items()}
         for line, value in updates.items():
             if line not in client.lines:
@@ -429,42 +324,18 @@ class MockGpioChip:
             self._set_output(line, value, fired)
         return {}
 
-    def _op_release(self, client: _Client, req: dict, fired: list) -> dict:
+    def _op_release(self, client: ChipClient, req: dict, fired: list) -> dict:
         self._release_lines(client, fired)
         return {}
 
-    def _op_info(self, client: _Client, req: dict, fired: list) -> dict:
+    def _op_info(self, client: ChipClient, req: dict, fired: list) -> dict:
         used = {str(n): {"consumer": c.consumer, **c.lines[n]} for n, c in self._owners.items()}
         return {"label": self.label, "num_lines": self.num_lines, "lines": used}
 
-    def _release_lines(self, client: _Client, fired: list) -> None:
+    def _release_lines(self, client: ChipClient, fired: list) -> None:
         for line, settings in client.lines.items():
             self._owners.pop(line, None)
             if settings["direction"] == "output" and self.release_level is not None:
                 self._set_output(line, self.release_level, fired)
         client.lines.clear()
         client.line_seqno.clear()
-
-    def _drop(self, client: _Client) -> None:
-        fired: list[tuple[int, int, int]] = []
-        with self._lock:
-            if client.closed:
-                return
-            client.closed = True
-            self._release_lines(client, fired)
-            self._clients.remove(client)
-        try:
-            client.sock.shutdown(socket.SHUT_RDWR)
-        except OSError:
-            pass
-        client.sock.close()
-        while True:  # make room for the writer's stop sentinel
-            try:
-                client.outbox.put_nowait(None)
-                break
-            except queue.Full:
-                try:
-                    client.outbox.get_nowait()
-                except queue.Empty:
-                    pass
-        self._fire(fired)
