@@ -7,7 +7,8 @@ device when its driver says it uses it (the driver's ``used_devices``: its ``dev
 setting, default the service's name; a PWM servo service one device per channel), or when
 the device has the service's own name. The device's recorded address is its ``[devices.NAME]
 address`` in the log's profile; the replay gives the device a ``mock+`` address of the same
-kind and changes nothing else.
+kind and changes nothing else. Claims and addresses come from the one resolver of a profile's
+devices (:func:`u2sa_hw.profile.devices.resolve_devices`, reading the recorded profile's data).
 
 Each device must be claimed by exactly one service of the profile; a device nobody claims
 is left out (and said so), two claimants are an error.
@@ -24,9 +25,10 @@ from typing import Any, Iterator
 import tomli_w
 
 from u2sa_hw.config.fields import ConfigError, parse_text
-from u2sa_hw.ports.address import AddressError, DeviceAddress, parse_address
+from u2sa_hw.ports.address import DeviceAddress
 from u2sa_hw.ports.kinds import PORT_KINDS
 from u2sa_hw.recording.log_reader import LogFile, LogSummary
+from u2sa_hw.profile.devices import resolve_devices
 from u2sa_hw.registry import resolve_kind
 
 RAW_KINDS = {"RawSerial": "serial", "RawCanFrame": "can", "RawI2c": "i2c", "RawGpioEdge": "gpio",
@@ -97,42 +99,6 @@ class ReplayPlan:
     def duration_s(self) -> float:
         """Seconds of log time replayed."""
         return max(0.0, (self.end_ns - self.start_ns) / 1e9)
-
-
-def service_devices(service: str, kind: str | None, config: dict[str, Any]) -> tuple[str, ...]:
-    """The names of the devices *service* of *kind* with *config* uses (none for an unknown kind)."""
-    from u2sa_hw.profile.devices import service_devices as declared
-
-    if kind:
-        try:
-            return declared(resolve_kind(kind), service, config)
-        except (LookupError, ImportError):
-            pass
-    return ()
-
-
-def claimed_devices(service: str, config: dict[str, Any], kind: str | None = None) -> set[str]:
-    """The device names *service* (of *kind*) with *config* taps under (see the module docstring)."""
-    names = {service, *service_devices(service, kind, config)}
-    if kind is None:   # no kind to ask: the names the drivers' settings give
-        device = config.get("device") or config.get("device_name")
-        if isinstance(device, str) and device.strip():
-            names.add(device.strip())
-        for value in config.values():
-            if isinstance(value, list):
-                names.update(str(v.get("device") or v["name"]) for v in value
-                             if isinstance(v, dict) and isinstance(v.get("name"), str))
-    return names
-
-
-def recorded_address(profile: dict[str, Any], device: str) -> DeviceAddress | None:
-    """The device's address in the log's profile (``[devices.NAME] address``), or None."""
-    table = (profile.get("devices") or {}).get(device)
-    text = table.get("address") if isinstance(table, dict) else None
-    try:
-        return parse_address(text, device=device) if text else None
-    except AddressError:
-        return None
 
 
 def _toml(data: bytes, where: str) -> dict[str, Any]:
@@ -243,10 +209,11 @@ def build_plan(path: Path | str, *, extra_services: list[str] = (), overrides: l
             dev.kind = dev.kind or kind
         dev.types.add(ch.type_name)
     plan = ReplayPlan(Path(path), summary, dict(profile.get("vehicle") or {}), {}, devices)
-    kinds = {n: t["kind"] for n, t in services_table.items() if isinstance(t, dict) and isinstance(t.get("kind"), str)}
+    # the one resolver of a profile's devices, reading the recorded profile (claims, addresses) leniently
+    resolved = resolve_devices(profile, configs=configs, strict=False)
     blocked: set[str] = set()   # services that drive a device replay cannot stand in for
     for dev in devices.values():
-        owners = sorted(n for n, cfg in configs.items() if dev.name in claimed_devices(n, cfg, kinds.get(n)))
+        owners = list(resolved.users.get(dev.name, ()))
         if len(owners) > 1:
             raise ReplayError(f"{log.path}: device '{dev.name}' is claimed by services {', '.join(owners)}; "
                               "give each service its own device (device = \"...\")")
@@ -254,7 +221,8 @@ def build_plan(path: Path | str, *, extra_services: list[str] = (), overrides: l
             plan.notes.append(f"RAW.{dev.name}: no service of the profile names device '{dev.name}' "
                               "(as its name, its device setting or a channel's device); not replayed")
             continue
-        dev.address = recorded_address(profile, dev.name)
+        entry = resolved.entries.get(dev.name)   # None: no address, or one that does not parse
+        dev.address = entry.address if entry is not None else None
         if dev.kind not in REPLAYABLE:
             what = f"{dev.kind} devices cannot be replayed yet" if dev.kind else "unknown raw type"
             plan.notes.append(f"RAW.{dev.name}: {what}; service '{owners[0]}' is not replayed")

@@ -115,12 +115,13 @@ def file_service_config(profile: VehicleProfile, service: str) -> dict[str, Any]
 
 
 def device_specs(profile: VehicleProfile, configs: Mapping[str, Mapping[str, Any]] | None = None) -> list[DeviceSpec]:
-    """Every device of *profile* (``u2sa_hw.profile.devices.profile_devices``) that names a mock, checked."""
-    from u2sa_hw.profile.devices import profile_devices
+    """Every device of *profile* (the one resolver, ``u2sa_hw.profile.devices.resolve_devices``) that names a
+    mock, checked."""
+    from u2sa_hw.profile.devices import resolve_devices
     from u2sa_hw.profile.vehicle import ProfileError
 
     try:
-        entries = profile_devices(profile, configs=configs)
+        entries = resolve_devices(profile, configs=configs).entries
     except ProfileError as exc:
         raise DeviceError(str(exc)) from None
     specs = []

@@ -24,7 +24,8 @@ from u2sa_hw.hil.compare import load_streams
 from u2sa_hw.hil.compare_stream import align, compare_stream
 from u2sa_hw.hil.compare_values import Sample, values_equal
 from u2sa_hw.hil.progress import format_duration, progress_line
-from u2sa_hw.hil.replay_plan import ReplayError, build_plan, claimed_devices, parse_overrides
+from u2sa_hw.hil.replay_plan import ReplayError, build_plan, parse_overrides
+from u2sa_hw.profile.devices import resolve_devices
 from u2sa_hw.mocks.i2c_bus import MockI2cBus
 from u2sa_hw.mocks.mpu9250_chip import Mpu9250Chip
 from u2sa_hw.mocks.nmea_gps import NmeaGpsDevice
@@ -211,7 +212,10 @@ def test_devices_map_to_the_services_that_name_them(driver_log: Path) -> None:
     assert {d.name: d.service for d in plan.devices.values()} == {"gps": "gps", "hdg": "compass"}
     assert sorted(plan.services) == ["compass", "gps"]
     assert plan.devices["hdg"].kind == "serial" and plan.devices["hdg"].records > 0
-    assert claimed_devices("servo", {"channels": [{"name": "rudder"}]}) == {"servo", "rudder"}
+    # a recorded service without a kind claims its own name and the channel names its settings give
+    claims = resolve_devices({"services": {"servo": {}}}, configs={"servo": {"channels": [{"name": "rudder"}]}},
+                             strict=False).users
+    assert claims == {"servo": ("servo",), "rudder": ("servo",)}
     with_estimator = build_plan(driver_log, extra_services=["state_estimator"], overrides=["gps.heading_sigma_deg=2"])
     assert with_estimator.services["gps"].overrides == {"heading_sigma_deg": 2.0}
     assert "state_estimator" in with_estimator.services

@@ -16,8 +16,9 @@ import time); ``[simulation]``'s keys are checked either way.
 
 Every device table's address is parsed on its own, so each wrong one is its own line; the
 checks that need the whole device list (unused addresses, shared PWM outputs, mocks, device
-nodes, CAN bitrates) then read it past those mistakes (:func:`u2sa_hw.check.lenient.lenient_devices`,
-services with a wrong setting at their defaults), so one bad table or setting does not hide the rest.
+nodes, CAN bitrates) then read it past those mistakes (the one resolver,
+:func:`u2sa_hw.profile.devices.resolve_devices`, lenient, with the services' wrong settings at
+their defaults), so one bad table or setting does not hide the rest.
 """
 
 from __future__ import annotations
@@ -28,8 +29,9 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from u2sa_hw.check.device_nodes import check_device_nodes, check_usb_identities
-from u2sa_hw.check.lenient import lenient_devices, readable_configs
+from u2sa_hw.check.lenient import readable_configs
 from u2sa_hw.check.problem import Collector, did_you_mean, type_name
+from u2sa_hw.profile.devices import ResolvedDevices, resolve_devices
 
 DRIVER_PREFIX = "u2sa_hw.drivers."               # registry targets of hardware drivers: each has a device
 
@@ -76,9 +78,9 @@ def check_devices(path: Path, data: Mapping[str, Any], out: Collector, *, profil
         if for_sim:
             _check_mocks(None, profile, devices, services, out)
         return
-    configs = readable_configs(profile)
-    readable, _ = lenient_devices(profile, configs)
-    entries = _check_addresses(readable, configs, out)
+    resolved = resolve_devices(profile, configs=readable_configs(profile), strict=False)
+    readable = resolved.profile
+    entries = _check_addresses(resolved, out)
     if for_sim:
         _check_mocks(entries, profile, devices, services, out)
     elif entries is not None:
@@ -126,17 +128,15 @@ def _mock_catalog() -> Mapping[str, Any] | None:
     return None if support is None else support.catalog
 
 
-def _check_addresses(profile: Any, configs: Mapping[str, Any], out: Collector) -> dict[str, Any] | None:
-    """Every device of the profile (read past the mistakes reported above); None when even that stops.
+def _check_addresses(resolved: ResolvedDevices, out: Collector) -> dict[str, Any] | None:
+    """Every device of the profile (*resolved* past the mistakes reported above); None when even that stops.
 
     The list's own errors (a service with no address, two services on one device) are reported here.
     """
-    from u2sa_hw.profile.devices import profile_devices
     from u2sa_hw.profile.vehicle import ProfileError
 
-    try:
-        entries = profile_devices(profile, configs=configs)
-    except ValueError as exc:   # ProfileError, or a service's ConfigError while reading its devices
+    exc = resolved.error   # ProfileError, or a service's ConfigError while reading its devices
+    if exc is not None:
         stopped_at = "devices." if isinstance(exc, ProfileError) else "services."
         missing = re.search(r"device '([^']+)' of service '[^']+' has no address", str(exc))
         told = f"no address: add [devices.{missing.group(1)}]" if missing else None   # by the driver's own check
@@ -144,9 +144,9 @@ def _check_addresses(profile: Any, configs: Mapping[str, Any], out: Collector) -
                    for p in out.problems):
             out.from_text(str(exc), key="devices", fix="write the address as docs/ports.md shows")
         return None
-    _check_unused(entries, profile, out)
-    _check_shared_outputs(entries, out)
-    return entries
+    _check_unused(resolved.entries, resolved.profile, out)
+    _check_shared_outputs(resolved.entries, out)
+    return resolved.entries
 
 
 def _check_unused(entries: Mapping[str, Any], profile: Any, out: Collector) -> None:

@@ -14,11 +14,12 @@ mistakes left out:
   message names the real profile.
 - :func:`readable_configs`: each service's config, a wrong setting or config-file value left
   at its default, so the devices of a service with a bad ``baudrate`` are still known.
-- :func:`lenient_devices`: the device tables without bad keys and without the devices whose
-  address does not parse; the services that use those are left out too, and so are the
-  services still given an address setting of the old form (``port``, ``bus``...; the
-  services check names the new form), whose devices have no address to read.
-- :func:`without_old_form`: only the latter, for install's own reading of the devices.
+
+The devices themselves are read past their mistakes by the one resolver of a profile's
+devices, :func:`u2sa_hw.profile.devices.resolve_devices` with ``strict=False`` (given
+:func:`readable_configs`): the devices whose address does not parse are left out, the
+services that use them too, and so are the services still given an address setting of the
+old form (the services check names the new form).
 """
 
 from __future__ import annotations
@@ -31,12 +32,11 @@ from typing import Any, Mapping
 
 import tomli_w
 
+from u2sa_hw.profile.devices import clean_device_tables
 from u2sa_hw.profile.loader import VEHICLE_KEYS as VEHICLE_KEY_NAMES
 from u2sa_hw.profile.numbers import PROFILE_NUMBERS
 
 PATH_KEYS = ("config_dir", "log_dir", "data_dir", "bus_key")
-DEVICE_KEY_TYPES: dict[str, type] = {"address": str, "mock": str, "service": str, "options": dict, "sides": list,
-                                     "drives": dict}   # u2sa_hw.profile.devices.check_table's types
 VEHICLE_KEYS: dict[str, type] = {   # the loader's keys (u2sa_hw.profile.loader), with the type each takes
     name: {"system_id": int, "origin": dict}.get(name, str) for name in VEHICLE_KEY_NAMES}
 ORIGIN_RANGES = {key: (f.ge, f.le) for key in ("lat", "lon", "alt")   # u2sa_hw/profile/numbers.py, as the loader
@@ -108,19 +108,6 @@ def lenient_profile(path: Path, data: Mapping[str, Any]) -> Any:
     return dataclasses.replace(profile, path=path)
 
 
-def clean_device_tables(tables: Any, *, services: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
-    """Each ``[devices.NAME]`` table with only the keys a device table takes, of the right type, and a
-    ``service`` that is one of *services* (the device check reports the rest)."""
-    kept: dict[str, dict[str, Any]] = {}
-    for name, table in (tables.items() if isinstance(tables, dict) else ()):
-        if not isinstance(table, dict):
-            continue
-        kept[name] = {k: v for k, v in table.items() if k in DEVICE_KEY_TYPES and isinstance(v, DEVICE_KEY_TYPES[k])}
-        if kept[name].get("service") is not None and kept[name]["service"] not in services:
-            del kept[name]["service"]
-    return kept
-
-
 def readable_configs(profile: Any) -> dict[str, dict[str, Any]]:
     """service -> the config it runs with, for every enabled service of a known kind; a value that is
     wrong (in the settings or the config file) is left at its default, as if it were not written."""
@@ -137,18 +124,6 @@ def readable_configs(profile: Any) -> dict[str, dict[str, Any]]:
             if values is not None:
                 configs[name] = values
     return configs
-
-
-def _written_values(spec: Any) -> tuple[dict[str, Any], dict[str, Any]]:
-    """(the profile's settings, the config file's values) of *spec* as written (a file that does not read: {})."""
-    file_values: dict[str, Any] = {}
-    if spec.config_path.is_file():
-        try:
-            read = tomllib.loads(spec.config_path.read_bytes().decode("utf-8"))
-        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
-            read = {}
-        file_values = read if isinstance(read, dict) else {}
-    return dict(spec.settings), file_values
 
 
 def _config_past_mistakes(spec: Any) -> dict[str, Any] | None:
@@ -176,60 +151,3 @@ def _config_past_mistakes(spec: Any) -> dict[str, Any] | None:
                 except ConfigError:
                     continue
     return values
-
-
-def lenient_devices(profile: Any, configs: Mapping[str, Mapping[str, Any]]) -> tuple[Any, set[str]]:
-    """(*profile* with clean device tables and without the devices whose address does not parse, the names
-    of those devices). A service that uses such a device, or is still given an old-form address setting
-    (the services check's error), is disabled in the copy, so the other devices are still read; *configs*
-    are :func:`readable_configs`."""
-    from u2sa_hw.profile.devices import service_devices
-    from u2sa_hw.ports.address import AddressError, parse_address
-    from u2sa_hw.registry import resolve_kind
-
-    tables = clean_device_tables(profile.devices, services=profile.services)
-    bad: set[str] = set()
-    for name, table in tables.items():
-        if "address" in table:
-            try:
-                parse_address(table["address"], device=name)
-            except AddressError:
-                bad.add(name)
-    services = dict(profile.services)
-    for name, spec in profile.services.items():
-        if not spec.enabled or name not in configs:
-            continue
-        try:
-            cls = resolve_kind(spec.kind)
-            used = service_devices(cls, name, configs[name])
-        except (LookupError, ImportError, AttributeError, ValueError):
-            continue
-        if bad & set(used) or any(tables[b].get("service") == name for b in bad) or _old_form(spec, cls):
-            services[name] = dataclasses.replace(spec, enabled=False)
-    kept = {name: table for name, table in tables.items() if name not in bad}
-    return dataclasses.replace(profile, devices=kept, services=services), bad
-
-
-def without_old_form(profile: Any) -> Any:
-    """*profile* with the services still given an old-form address setting disabled (the services check's
-    error names the new form; their devices have no address to read, so nothing says that too)."""
-    from u2sa_hw.registry import resolve_kind
-
-    services = dict(profile.services)
-    for name, spec in profile.services.items():
-        try:
-            old = spec.enabled and _old_form(spec, resolve_kind(spec.kind))
-        except (LookupError, ImportError, AttributeError):
-            continue
-        if old:
-            services[name] = dataclasses.replace(spec, enabled=False)
-    return dataclasses.replace(profile, services=services)
-
-
-def _old_form(spec: Any, cls: type) -> bool:
-    """True when service *spec* (of class *cls*) is still given an address setting of the old form."""
-    from u2sa_hw.config.keys import old_form_keys
-    from u2sa_hw.service.base_config import BASE_CONFIG
-
-    fields = [f.name for f in (*BASE_CONFIG, *cls.config_fields())]
-    return any(old_form_keys(values, fields) for values in _written_values(spec))

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from u2sa_hw.profile.devices import profile_devices
+from u2sa_hw.profile.devices import resolve_devices
 from u2sa_hw.install.referenced import MissingFile, Reference, find_references
 from u2sa_hw.install.system import InstallError
 from u2sa_hw.install.udev import DevicePlan, links_made, plan_devices, unmade_text
@@ -155,14 +155,15 @@ def preflight(profile: VehicleProfile, *, root: Path, taken: set[str], force: bo
     *checked*: :func:`offline_check` of the profile. *taken*: vehicle paths the install writes
     otherwise (a referenced file must not land on one).
     """
-    from u2sa_hw.check.lenient import readable_configs, without_old_form
+    from u2sa_hw.check.lenient import readable_configs
 
     assert profile.path is not None
     errors = checked.errors
     unreadable: list[str] = []
     try:   # a service's wrong setting (an error above) does not hide the devices of the others
         configs = readable_configs(profile)
-        devices = profile_devices(without_old_form(profile), configs=configs)   # the check names the new form
+        # the old form's services are left out: the check names the new form
+        devices = resolve_devices(profile, configs=configs, skip_old_form=True).entries
         plan = plan_devices(devices, profile_path=profile.path, made_elsewhere=links_made(rules_dirs(root)))
     except (ValueError, InstallError) as exc:
         plan, unreadable = DevicePlan(), [f"no udev rules, CAN bring-up or PWM drop-ins from the devices: {exc}"]
