@@ -3,7 +3,7 @@
 python-can's ``udp_multicast`` bus stamps a received frame with its own receive time, so a
 replayed driver would pair wheel encoder frames and judge a silent node by when the replay
 happened to deliver them, which ``u2sa replay --fast`` and a busy machine change. The replay's
-CAN device (``hil/replay_buses.py``) sends each recorded frame with its recorded bus timestamp
+CAN device (``u2sa_hw/ports/can/replay.py``) sends each recorded frame with its recorded bus timestamp
 on a bus laid out as python-can's (group, port, loopback); :class:`StampedUdpMulticastBus` is
 the driver's end of it and keeps that stamp, and :class:`CanDeviceClock` turns the stamps into
 the driver's clock.

@@ -2,7 +2,7 @@
 
 A pty carries bytes, not times, so a replayed driver would measure silences on its own wall
 clock, which a busy machine or ``u2sa replay --fast`` changes. The replay's serial device
-(``hil/replay_devices.py``) therefore writes each recorded chunk as a *frame*: its recorded
+(``u2sa_hw/ports/serial/replay.py``) therefore writes each recorded chunk as a *frame*: its recorded
 read time, then its bytes::
 
     ESC 'T' <16 lower-case hex digits: the stamp in ns>  <data, each ESC doubled>

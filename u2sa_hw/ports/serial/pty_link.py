@@ -9,7 +9,7 @@ driver has the port open; bytes written then wait in the kernel buffer.
 
 Both device families use it: the mock sensors (``u2sa_hw.mocks.pty_serial.PtySerialDevice``:
 faults, unplug and replug, history) and the replay's serial device
-(``u2sa_hw.hil.replay_devices.ReplaySerialDevice``: recorded bytes with backpressure). The
+(``u2sa_hw.ports.serial.replay.ReplaySerialDevice``: recorded bytes with backpressure). The
 symlink is made atomically (a temporary link renamed over it), so a driver never sees the path
 missing while a device is replugged, and removed at close only while it still points at this
 link's slave.
