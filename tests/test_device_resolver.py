@@ -85,3 +85,17 @@ def test_a_recorded_profile_is_read_from_its_raw_data() -> None:
         resolve_devices(data, configs=configs)
     with pytest.raises(AddressError, match=r"no address: add \[devices.gps\] address"):
         device_address(data, "gps")
+
+
+def test_install_leaves_an_old_form_service_out_and_reads_the_rest(tmp_path: Path) -> None:
+    """A service still given the old form is the services check's error (naming the new form); install reads
+    the other devices past it (skip_old_form), and the strict read refuses it."""
+    from u2sa_hw.config.fields import ConfigError
+
+    text = PROFILE.replace('settings = { device = "gnss" }', 'settings = { device = "gnss" }\nconfig = "gps.toml"')
+    (tmp_path / "gps.toml").write_text('port = "/dev/ttyUSB0"\n')
+    profile = _load(tmp_path, text)
+    with pytest.raises(ConfigError, match="'port' is the old form"):
+        resolve_devices(profile)
+    resolved = resolve_devices(profile, skip_old_form=True)
+    assert resolved.entries["wheels"].service == "wheels" and not resolved.entries["gnss"].used
