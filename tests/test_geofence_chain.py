@@ -73,7 +73,7 @@ def fenced(request: Any, tmp_path: Path, services: ServiceProcesses,
     pwm = make_sysfs_pwm_tree(tmp_path / "pwmchip0", npwm=2)
     path = write_vehicle(tmp_path, safety={"manual_mixer": MIXER, "rc_mode_timeout_ms": 250,
                                            "on_check_lost": request.param,
-                                           "prearm": {"estimator": False}}, chip=chip.address, pwm=pwm)
+                                           "prearm": {"estimator": False}}, socket=chip.socket_path, pwm=pwm)
     profile = tomllib.loads(path.read_text())
     profile["services"]["estimator"] = {"kind": "state_estimator", "required": False}   # stood in for by the test
     profile["geofence"] = FENCE
