@@ -11,7 +11,7 @@ Timing:
   driver has taken the previous one (the pty is empty), each burst of a device (records closer
   than its driver's ``epoch_gap_s``) is written at once, and silences between bursts are not
   reproduced in wall time: a serial device carries each chunk's recorded read time and a tick
-  after each recorded silence in the pty (the serial device clock, hil/replay_devices.py), and
+  after each recorded silence in the pty (the serial device clock, u2sa_hw/ports/serial/replay.py), and
   a GPIO replay chip its edges' kernel stamps (hil/replay_gpio.py), so the drivers group and
   time by the recorded times at any speed (see docs/replay.md).
 
@@ -37,7 +37,8 @@ from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.recording.log_reader import LogFile
 from u2sa_hw.bus.transport import Transport
 
-from u2sa_hw.hil.replay_devices import ReplayDevice, ReplayStalled
+from u2sa_hw.hil.replay_devices import ReplayDevice
+from u2sa_hw.ports.serial.replay import ReplayStalled
 
 
 @dataclass

@@ -40,7 +40,8 @@ from u2sa_hw.bus.udp_ports import private_lcm_url
 from u2sa_hw.hil.player import ORDERED_CHANNELS, PlayStats, Player
 from u2sa_hw.hil.progress import ProgressBar
 from u2sa_hw.hil.replay_buses import make_device   # the replay device of each kind: PORT_KINDS' replay part
-from u2sa_hw.hil.replay_devices import ReplayDevice, ReplaySerialDevice, ReplayStalled
+from u2sa_hw.hil.replay_devices import ReplayDevice
+from u2sa_hw.ports.serial.replay import ReplaySerialDevice, ReplayStalled
 from u2sa_hw.hil.replay_i2c import held_drivers, release_held_reads
 from u2sa_hw.hil.replay_plan import ReplayError, ReplayPlan, build_plan, write_run_profile
 from u2sa_hw.hil.replay_watch import ReplayWatch, discover, listeners

@@ -21,11 +21,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from u2sa_hw.ports.address import DeviceAddress
-from u2sa_hw.ports.serial.replay import (ReplaySerialDevice, ReplayStalled, StampedChunks, fd_open_by,
-                                         record_stamp_ns)
-
-__all__ = ["ReplayDevice", "ReplaySerialDevice", "ReplayStalled", "StampedChunks", "fd_open_by",
-           "make_serial_device", "record_stamp_ns", "replay_options_of"]
+from u2sa_hw.ports.serial.replay import ReplaySerialDevice
 
 
 class ReplayDevice(Protocol):

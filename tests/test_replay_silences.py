@@ -22,7 +22,7 @@ from gps_stream_builder import START, Solution, gga, rmc, vtg
 from u2sa_hw.drivers.gps_nmea.epochs import GpsEpochCollector
 from u2sa_hw.drivers.nmea_fields import Epoch, parse_sentence
 from u2sa_hw.hil.player import Player
-from u2sa_hw.hil.replay_devices import ReplaySerialDevice
+from u2sa_hw.ports.serial.replay import ReplaySerialDevice
 from u2sa_hw.messages import RawSerial
 from u2sa_hw.ports.serial import clock as serial_clock
 from u2sa_hw.ports.opener import open_port

@@ -15,7 +15,7 @@ from typing import Iterator
 import pytest
 
 from conftest import wait_until
-from u2sa_hw.hil.replay_devices import ReplaySerialDevice, StampedChunks
+from u2sa_hw.ports.serial.replay import ReplaySerialDevice, StampedChunks
 from u2sa_hw.messages import RawSerial
 from u2sa_hw.ports.serial import clock as serial_clock
 from u2sa_hw.ports.address import AddressError, parse_address

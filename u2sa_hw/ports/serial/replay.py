@@ -30,7 +30,6 @@ from u2sa_hw.ports.address import DeviceAddress, make_address
 from u2sa_hw.ports.serial.clock import encode_frame, encode_silence
 from u2sa_hw.ports.serial.pty_link import PtyLink
 from u2sa_hw.ports.tap import RX, TX
-from u2sa_hw.recording.log_reader import LogFile
 
 
 class ReplayStalled(RuntimeError):
@@ -128,6 +127,10 @@ class ReplaySerialDevice:
         burst on the gap, at once and at any replay speed."""
         if not self.stamped:
             return
+        # The log reader is the recording layer's, above the ports (docs/architecture.md): imported when a
+        # replay runs, never by a driver that opens a serial port.
+        from u2sa_hw.recording.log_reader import LogFile
+
         gap = max(1, int(self.burst_gap_s * 1e9))
         ticks: list[tuple[int, int]] = []
         prev: tuple[int, int] | None = None   # (log time, stamp) of the previous RX chunk
