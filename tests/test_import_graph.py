@@ -50,22 +50,22 @@ def _is_type_checking(node: ast.If) -> bool:
         (isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
 
 
-def _module_level(body: list[ast.stmt]) -> list[ast.stmt]:
+def module_level(body: list[ast.stmt]) -> list[ast.stmt]:
     """The statements run at import: the top level and inside top-level if/try/with (not TYPE_CHECKING)."""
     out: list[ast.stmt] = []
     for node in body:
         out.append(node)
         if isinstance(node, ast.If):
             if not _is_type_checking(node):
-                out += _module_level(node.body)
-            out += _module_level(node.orelse)
+                out += module_level(node.body)
+            out += module_level(node.orelse)
         elif isinstance(node, ast.Try):
-            out += _module_level(node.body)
+            out += module_level(node.body)
             for handler in node.handlers:
-                out += _module_level(handler.body)
-            out += _module_level(node.orelse) + _module_level(node.finalbody)
+                out += module_level(handler.body)
+            out += module_level(node.orelse) + module_level(node.finalbody)
         elif isinstance(node, (ast.With, ast.For, ast.While)):
-            out += _module_level(node.body)
+            out += module_level(node.body)
     return out
 
 
@@ -85,7 +85,7 @@ def imports_of(name: str, path: Path, package: bool, modules: Mapping[str, objec
     tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
     here = name if package else name.rpartition(".")[0]
     targets: set[str] = set()
-    for node in _module_level(tree.body):
+    for node in module_level(tree.body):
         if isinstance(node, ast.Import):
             for alias in node.names:
                 targets.add(alias.name)

@@ -15,6 +15,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from test_import_graph import module_level
+
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = REPO / "u2sa_hw"
 OUTSIDE = ("u2sa_hw.mocks", "u2sa_hw.hil", "u2sa_hw.drivers", "u2sa_hw.simulation")
@@ -53,37 +55,12 @@ def _imported(node: ast.AST) -> list[str]:
     return []
 
 
-def _is_type_checking(node: ast.If) -> bool:
-    test = node.test
-    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or \
-        (isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
-
-
-def _module_level(body: list[ast.stmt]) -> list[ast.stmt]:
-    """The statements run at import: the top level, and inside top-level if/try/with (not TYPE_CHECKING)."""
-    out: list[ast.stmt] = []
-    for node in body:
-        out.append(node)
-        if isinstance(node, ast.If):
-            if not _is_type_checking(node):
-                out += _module_level(node.body)
-            out += _module_level(node.orelse)
-        elif isinstance(node, ast.Try):
-            out += _module_level(node.body)
-            for handler in node.handlers:
-                out += _module_level(handler.body)
-            out += _module_level(node.orelse) + _module_level(node.finalbody)
-        elif isinstance(node, (ast.With, ast.For, ast.While)):
-            out += _module_level(node.body)
-    return out
-
-
 def test_no_module_level_import_of_the_outside_packages() -> None:
     """Static: no u2sa_hw module imports drivers, hil, mock_devices or simulation at module level."""
     bad = []
     for name, path in _modules():
         tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
-        for node in _module_level(tree.body):
+        for node in module_level(tree.body):
             for target in _imported(node):
                 if _outside(target):
                     bad.append(f"{path.relative_to(REPO)}:{node.lineno}: import {target}")

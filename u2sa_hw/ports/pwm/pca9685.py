@@ -22,10 +22,10 @@ import threading
 import time
 from typing import Iterator
 
-from u2sa_hw.messages import RawPwmWrite
 from u2sa_hw.ports.errors import PortClosed, PortError, PortUnavailable
 from u2sa_hw.ports.i2c.port import MOCK_SCHEME, I2cPort, open_i2c_chip, parse_bus
-from u2sa_hw.ports.tap import Tap, call_tap, tapping
+from u2sa_hw.ports.pwm.port import tap_pwm_state
+from u2sa_hw.ports.tap import Tap
 from u2sa_hw.protocols import pca9685 as pca
 
 SCHEME = "pca9685:"
@@ -227,15 +227,8 @@ class Pca9685PwmChannel:
         self._tap_state()
 
     def _tap_state(self) -> None:
-        if not tapping(self._tap):
-            return
-        rec = RawPwmWrite()
-        rec.device = self.device
-        rec.channel = self.channel
-        rec.period_ns = self.period_ns
-        rec.duty_ns = self.duty_ns
-        rec.enabled = self.enabled
-        call_tap(self._tap, rec)
+        tap_pwm_state(self._tap, device=self.device, channel=self.channel, period_ns=self.period_ns,
+                      duty_ns=self.duty_ns, enabled=self.enabled)
 
     @contextlib.contextmanager
     def _errors_named(self) -> Iterator[None]:

@@ -61,6 +61,20 @@ class PwmChannel(Protocol):
         """Stop the output and release the channel."""
 
 
+def tap_pwm_state(tap: Tap | None, *, device: str, channel: int, period_ns: int, duty_ns: int,
+                  enabled: bool) -> None:
+    """Hand *tap* the output's state after a write, as one ``RawPwmWrite`` (built only while it taps)."""
+    if not tapping(tap):
+        return
+    record = RawPwmWrite()
+    record.device = device
+    record.channel = channel
+    record.period_ns = period_ns
+    record.duty_ns = duty_ns
+    record.enabled = enabled
+    call_tap(tap, record)
+
+
 def is_real_sysfs(path: str | os.PathLike[str]) -> bool:
     """True if *path* lies in the kernel's sysfs (so the kernel, not we, manages it)."""
     return os.path.realpath(path).startswith("/sys/")
@@ -148,15 +162,8 @@ class SysfsPwmChannel:
 
     # -- PwmChannel --------------------------------------------------------------------
     def _tap_state(self) -> None:
-        if not tapping(self._tap):
-            return
-        record = RawPwmWrite()
-        record.device = self.device
-        record.channel = self.channel
-        record.period_ns = self.period_ns
-        record.duty_ns = self.duty_ns
-        record.enabled = self.enabled
-        call_tap(self._tap, record)
+        tap_pwm_state(self._tap, device=self.device, channel=self.channel, period_ns=self.period_ns,
+                      duty_ns=self.duty_ns, enabled=self.enabled)
 
     def configure(self, *, period_ns: int, duty_ns: int) -> None:
         """Set period and duty together, in the order that keeps duty <= period throughout."""
