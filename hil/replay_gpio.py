@@ -53,7 +53,7 @@ from typing import Any, Iterator
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.ports.address import DeviceAddress, make_address
 from u2sa_hw.recording.log_reader import LogFile
-from u2sa_hw.recording.mcap_log import header_source
+from u2sa_hw.recording.mcap_log import header_source, header_timestamp_ns
 
 from u2sa_hw.hil.replay_plan import ReplayError
 from u2sa_hw.hil.replay_pwm import PwmReplayRig, ReplayPwmDevice
@@ -136,7 +136,7 @@ class ReplayGpioDevice:
                         self._driver_from_ns = m.log_time_ns
                     if not m.channel.startswith("U2SA_"):
                         self._driver_until_ns = m.log_time_ns
-                        self._note_output(m.log_time_ns, _published_ns(m.data), last_edge_log, last_edge_tap)
+                        self._note_output(m.log_time_ns, header_timestamp_ns(m.data), last_edge_log, last_edge_tap)
                 continue
             try:
                 rec, _ = REGISTRY.decode(m.data)
@@ -339,15 +339,6 @@ class ReplayGpioDevice:
             out["divergence"] = (f"{c['edges_on_outputs']} recorded edges fell on lines the replayed driver "
                                  "drives as outputs (changed line settings?)")
         return out
-
-
-def _published_ns(data: bytes) -> int | None:
-    """The header ``timestamp_us`` of an encoded u2sa message in ns (the publisher's wall clock when it
-    published; every type starts with its Header: fingerprint, system_id, timestamp_us), or None."""
-    if len(data) < 20:
-        return None
-    stamp_us = int.from_bytes(data[12:20], "big", signed=True)
-    return stamp_us * 1000 if stamp_us > 0 else None
 
 
 def _tap_lag_ns(record: Any) -> int | None:

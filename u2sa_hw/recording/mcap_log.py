@@ -78,6 +78,16 @@ class RunInfo:
                 "bus_key_id": self.bus_key_id, "pilot_key": self.pilot_key, "pilot_key_id": self.pilot_key_id}
 
 
+def header_timestamp_ns(data: bytes) -> int | None:
+    """The ``header.timestamp_us`` of an encoded u2sa message in ns (the publisher's wall clock when it
+    published), or None when it is not one or has no time: every type starts with its Header."""
+    at = 8 + 4   # fingerprint, system_id (int32)
+    if len(data) < at + 8:
+        return None
+    stamp_us = int.from_bytes(data[at:at + 8], "big", signed=True)
+    return stamp_us * 1000 if stamp_us > 0 else None
+
+
 def header_source(data: bytes) -> str:
     """The ``header.source`` of an encoded u2sa message ("" when it is not one): every type starts with its Header."""
     at = 8 + 12   # fingerprint, system_id (int32), timestamp_us (int64)
