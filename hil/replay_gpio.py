@@ -52,6 +52,7 @@ from typing import Any, Iterator
 
 from u2sa_hw.messages import REGISTRY, MalformedMessage
 from u2sa_hw.ports.address import DeviceAddress, make_address
+from u2sa_hw.ports.gpio.port import CLOCK_READ_AFTER_NS
 from u2sa_hw.recording.log_reader import LogFile
 from u2sa_hw.recording.mcap_log import header_source, header_timestamp_ns
 
@@ -62,7 +63,8 @@ GPIO_MIN_LINES = 64   # lines of the replay chip (more when the log names higher
 TICK_NS = 10_000_000  # the device clock's step through recorded silences (recorded time)
 GPIO_BACKLOG = 512    # --fast: frames queued for the driver before the player waits
 BUS_INPUTS = ("U2SA_HEALTH", "FAILSAFE", "STATE_ESTIMATE")   # recorded bus channels a GPIO driver may take
-STEP_SILENCE_NS = 30_000_000   # an output of the recorded driver this long after the last edge it read: a step
+# an output of the recorded driver this long after the last edge it read: a step (a log without its looks)
+STEP_SILENCE_NS = CLOCK_READ_AFTER_NS
 
 
 class ClockTickRecord:
@@ -100,6 +102,7 @@ class ReplayGpioDevice:
         self._driver_until_ns: int | None = None  # ... and of its last output (not its contract messages)
         # (log time, publish time or None) of the recorded driver's outputs while no edge came
         self._step_logs: list[tuple[int, int | None]] = []
+        self._clock_reads = 0                     # the recorded driver's looks at its clock in the window (tapped)
         self._offset_ns: int | None = None
         self._last_sent_ns: int | None = None     # the latest stamp sent to the driver
         self._lock = threading.Lock()
@@ -143,11 +146,14 @@ class ReplayGpioDevice:
             except MalformedMessage:
                 continue
             kind = type(rec).__name__
-            if kind not in ("RawGpioEdge", "RawGpioWrite"):
+            if kind not in ("RawGpioEdge", "RawGpioWrite", "RawGpioClockRead"):
                 continue
             if self._driver_from_ns is None:
                 self._driver_from_ns = m.log_time_ns
             self._driver_until_ns = m.log_time_ns
+            if kind == "RawGpioClockRead":
+                self._clock_reads += m.log_time_ns >= start_ns
+                continue
             if kind == "RawGpioWrite":
                 self._note_output(m.log_time_ns, int(rec.header.timestamp_us) * 1000 or None, last_edge_log,
                                   last_edge_tap)
@@ -212,8 +218,8 @@ class ReplayGpioDevice:
         return heapq.merge(self._silence_ticks(), self._steps(), key=lambda item: item[0])
 
     def _steps(self) -> Iterator[tuple[int, ClockTickRecord]]:
-        if self._min_log_lag_ns is None:
-            return
+        if self._min_log_lag_ns is None or self._clock_reads:
+            return   # a log with the driver's looks (RawGpioClockRead) has the steps themselves: feed() plays them
         for log_ns, published_ns in self._step_logs:
             if published_ns is not None and self._min_lag_ns is not None:
                 kernel_ns = published_ns - self._min_lag_ns   # the driver's own clock: what its loop had looked at
@@ -271,6 +277,12 @@ class ReplayGpioDevice:
             if self._offset_ns is not None:   # the clock starts with the first edge
                 self.chip.tick(self._stamp(record.kernel_timestamp_ns), step=record.step)
                 self.counts["steps" if record.step else "ticks"] += 1
+            return
+        if kind == "RawGpioClockRead":
+            # the recorded driver looked at its clock then, no edge read for a while: a step at that very time
+            if self._offset_ns is not None:
+                self.chip.tick(self._stamp(int(record.clock_ns)), step=True)
+                self.counts["steps"] += 1
             return
         if kind == "RecordedBusMessage":
             self._feed_bus(record)

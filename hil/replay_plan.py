@@ -32,7 +32,7 @@ from u2sa_hw.profile.devices import resolve_devices
 from u2sa_hw.registry import resolve_kind
 
 RAW_KINDS = {"RawSerial": "serial", "RawCanFrame": "can", "RawI2c": "i2c", "RawGpioEdge": "gpio",
-             "RawGpioWrite": "gpio", "RawPwmWrite": "pwm"}
+             "RawGpioWrite": "gpio", "RawGpioClockRead": "gpio", "RawPwmWrite": "pwm"}
 # device kinds with a replay device: the port kinds whose replay part names one (u2sa_hw.ports.kinds)
 REPLAYABLE = frozenset(name for name, kind in PORT_KINDS.items() if kind.replay)
 OUTPUT_TAPPED = {"gpio", "pwm"}   # kinds whose driver's outputs are its raw taps: record_raw stays on in a replay

@@ -169,6 +169,30 @@ def test_taps_see_every_edge_with_its_timestamp_and_every_write(chip) -> None:
     port.close()
 
 
+def test_a_look_at_the_clock_long_after_the_latest_edge_is_tapped_with_its_time(chip) -> None:
+    """look_ns is now_ns; it is tapped (RawGpioClockRead) only once no edge has been read for
+    CLOCK_READ_AFTER_NS, so a replay can judge where the live driver did (a lost or held-up signal)."""
+    from u2sa_hw.ports.gpio.port import CLOCK_READ_AFTER_NS
+
+    records: list = []
+    port = open_gpio(device="mux", chip=chip.address, inputs=[20], tap=records.append)
+    first = port.look_ns()   # no edge read yet: every look is worth its record
+    assert [(type(r).__name__, r.device, r.clock_ns) for r in records] == [("RawGpioClockRead", "mux", first)]
+    chip.drive(20, 1, time.monotonic_ns() - 10_000_000_000)   # an edge read long after it happened
+    read_until(port, 1)
+    records.clear()
+    looked = port.look_ns()
+    assert [(type(r).__name__, r.clock_ns) for r in records] == [("RawGpioClockRead", looked)]
+    records.clear()
+    fresh = time.monotonic_ns()
+    chip.drive(20, 0, fresh)
+    read_until(port, 1)
+    records.clear()
+    if port.look_ns() - fresh <= CLOCK_READ_AFTER_NS:   # (a machine that held this test up that long taps it)
+        assert records == [], "a look just after an edge is carried by the edge's own stamp"
+    port.close()
+
+
 def test_a_tap_that_is_not_recording_gets_no_record_built(chip, monkeypatch: pytest.MonkeyPatch) -> None:
     from u2sa_hw.ports.gpio import port as gpio_port
     from u2sa_hw.ports.tap import RecordingTap
@@ -178,12 +202,15 @@ def test_a_tap_that_is_not_recording_gets_no_record_built(chip, monkeypatch: pyt
 
     monkeypatch.setattr(gpio_port.m, "RawGpioEdge", unwanted)
     monkeypatch.setattr(gpio_port.m, "RawGpioWrite", unwanted)
+    monkeypatch.setattr(gpio_port.m, "RawGpioClockRead", unwanted)
     records: list = []
     port = open_gpio(device="mux", chip=chip.address, inputs=[20], outputs={21: 0},
                      tap=RecordingTap(records.append, active=lambda: False))
     port.set(21, 1)
     chip.drive(20, 1, 5_000)
     assert [e.timestamp_ns for e in read_until(port, 1)] == [5_000] and records == []
+    port.look_ns()   # long after that edge, yet no clock read is built either
+    assert records == []
     port.close()
 
 

@@ -124,3 +124,104 @@ def test_the_replayed_mux_keeps_the_signal_through_the_step(tmp_path: Path) -> N
     for tick in sorted((tick for _, tick in device.clock_ticks() if tick.step), key=lambda x: x.kernel_timestamp_ns):
         state.take_tick(tick.kernel_timestamp_ns, step=True, host_ns=0)
     assert state.filter.mode != MODE_NO_SIGNAL, "the step lay past the signal timeout the live mux never reached"
+
+
+# A log with the driver's own looks (RawGpioClockRead, tapped since 2026-12): the step is the look itself.
+QUICK_TAP_NS = 100_000          # each edge read 0.1 ms after it happened
+PUBLISH_NS = 400_000            # the look's RC_MODE published 0.4 ms after the look
+LOOK_AFTER_FALL_NS = 99_800_000  # the look: 99.8 ms after the last mode pulse, inside the 100 ms signal timeout
+
+
+def clock_read(clock_ns: int, tap_ns: int) -> bytes:
+    rec = t.RawGpioClockRead()
+    rec.header.source, rec.header.timestamp_us = "rc", (tap_ns + WALL) // 1000
+    rec.device, rec.clock_ns = "rc", clock_ns
+    return rec.encode()
+
+
+def record_borderline_log(path: Path, *, looks: bool) -> int:
+    """Ten frames whose edges were read at once, then a held-up receiver; the live loop looked 99.8 ms after the
+    last mode pulse (no timeout) and published 0.4 ms later. *looks*: the look itself is recorded. Returns it."""
+    log = McapLogWriter(path.parent, path=path)
+    for k in range(FRAMES):
+        for kernel_ns, line, rising in frame_edges(k):
+            log.write("RAW.rc", edge(line, rising, kernel_ns, kernel_ns + QUICK_TAP_NS),
+                      kernel_ns + QUICK_TAP_NS + WALL + RECORDER_NS)
+    looked = frame_edges(FRAMES - 1)[-1][0] + LOOK_AFTER_FALL_NS
+    if looks:
+        log.write("RAW.rc", clock_read(looked, looked), looked + WALL + RECORDER_NS)
+    log.write("RC_MODE", rc_mode(looked + PUBLISH_NS), looked + PUBLISH_NS + WALL + RECORDER_NS)
+    log.close()
+    return looked
+
+
+class TickingChip:
+    """What the replay device hands the chip: its origin, the edges and the ticks (with their stamps)."""
+
+    def __init__(self) -> None:
+        self.ticks: list[tuple[int, bool]] = []
+
+    def set_origin(self, offset_ns: int) -> None:
+        self.origin = offset_ns
+
+    def drive_input(self, line: int, level: int, stamp_ns: int | None = None) -> bool:
+        return True
+
+    def tick(self, stamp_ns: int, *, step: bool = False) -> None:
+        self.ticks.append((stamp_ns, step))
+
+
+def mux_after_frames() -> MuxState:
+    state = MuxState(channels=LINES, mode_channel="mode", meter=PulseMeter(lines=LINES.values()),
+                     filter=RcModeFilter(debounce_frames=3, signal_timeout_ns=100_000_000),
+                     prearm=PrearmChecks(PrearmTable(gps=None, estimator=None, imu=None, required_services=None)),
+                     drive_enable=lambda level: True)
+    state.port_open = True
+    state.port_opened(device_clock=True, select_level=None)
+    for k in range(FRAMES):
+        for kernel_ns, line, rising in frame_edges(k):
+            state.take_edge(line, rising, kernel_ns, host_ns=0)
+    assert state.filter.mode == MODE_AUTONOMOUS
+    return state
+
+
+def played_steps(path: Path, tmp_path: Path) -> tuple[ReplayGpioDevice, list[int]]:
+    """The replay device fed the log's RAW.rc records: the steps it sent the chip, in recorded kernel time."""
+    from u2sa_hw.messages import REGISTRY
+    from u2sa_hw.recording.log_reader import LogFile
+
+    device = ReplayGpioDevice(name="rc", socket_path=tmp_path / "gpio.sock", service="rc")
+    device.preload(path, start_ns=0, end_ns=2 ** 63 - 1)
+    device.chip = TickingChip()
+    for m in LogFile(path).messages():
+        if m.channel == "RAW.rc":
+            device.feed(REGISTRY.decode(m.data)[0])
+    return device, [stamp - device.chip.origin for stamp, step in device.chip.ticks if step]
+
+
+def test_a_recorded_look_is_the_step_to_the_nanosecond(tmp_path: Path) -> None:
+    path = tmp_path / "looks.mcap"
+    looked = record_borderline_log(path, looks=True)
+    device, steps = played_steps(path, tmp_path)
+    assert not [tick for _, tick in device.clock_ticks() if tick.step], "no step estimated from the outputs"
+    assert steps == [looked] and device.counts["steps"] == 1
+
+
+def test_the_replayed_mux_judges_a_borderline_look_as_the_live_one_did(tmp_path: Path) -> None:
+    """Live, the look 99.8 ms after the last mode pulse kept the signal. Estimated from the output's header (0.4 ms
+    after the look) less the quickest tap (0.1 ms) the step lands 100.1 ms after it, past the timeout: the replayed
+    mux lost a signal the live one kept (issue 24, the corpus under load). The recorded look keeps it."""
+    looked = record_borderline_log(tmp_path / "estimated.mcap", looks=False)
+    estimated = ReplayGpioDevice(name="rc", socket_path=tmp_path / "gpio.sock", service="rc")
+    estimated.preload(tmp_path / "estimated.mcap", start_ns=0, end_ns=2 ** 63 - 1)
+    [step] = [tick.kernel_timestamp_ns for _, tick in estimated.clock_ticks() if tick.step]
+    assert step == looked + PUBLISH_NS - QUICK_TAP_NS
+    lost = mux_after_frames()
+    lost.take_tick(step, step=True, host_ns=0)
+    assert lost.filter.mode == MODE_NO_SIGNAL, "the estimate lies past the timeout (why looks are recorded)"
+    record_borderline_log(tmp_path / "looks.mcap", looks=True)
+    _, steps = played_steps(tmp_path / "looks.mcap", tmp_path)
+    kept = mux_after_frames()
+    for stamp in steps:
+        kept.take_tick(stamp, step=True, host_ns=0)
+    assert steps and kept.filter.mode == MODE_AUTONOMOUS

@@ -48,7 +48,8 @@ _DEVICE = (field("device", "", "the chip's lines: its [devices.NAME] table (addr
 def _used_gpio(service: str, config: Mapping[str, Any]) -> tuple[str, ...]:
     """The one GPIO device of a gpio_output/gpio_input service (``device``, else the service's name)."""
     return (device_setting(config, service),)
-_RAW = field("record_raw", False, "publish every edge and write as RawGpioEdge/RawGpioWrite on RAW.<device>")
+_RAW = field("record_raw", False, "publish every edge, write and late clock look as RawGpioEdge/"
+             "RawGpioWrite/RawGpioClockRead on RAW.<device>")
 
 
 class GpioOutputDriver(DeviceDeclarations, Actuator):
@@ -300,7 +301,7 @@ class GpioInputDriver(DeviceDeclarations, ExteroceptiveSensor):
                     if name in self.inputs:
                         self.edge_counts[name] += 1
                         self.inputs[name].edge(event.rising, event.timestamp_ns)
-                self._step(port.now_ns() if port.is_open else time.monotonic_ns())
+                self._step(port.look_ns() if port.is_open else time.monotonic_ns())
             self.status = "ok" if self.gpio.is_open else "degraded"
 
     def _step(self, now_ns: int | None) -> None:

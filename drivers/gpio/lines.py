@@ -153,7 +153,7 @@ class GpioLineSet:
         lines = [*self.inputs, *initial_outputs()]
         check_gpio_device(service, config, lines)
         self.reconnecting: DeviceLink[GpioPort] = DeviceLink(
-            service, device=lambda: device_setting(config, service.name), raw_type=(t.RawGpioEdge, t.RawGpioWrite),
+            service, device=lambda: device_setting(config, service.name), raw_type=(t.RawGpioEdge, t.RawGpioWrite, t.RawGpioClockRead),
             on_open=on_open, record=lambda: record_raw,
             options=lambda: {"inputs": self.inputs, "outputs": dict(self._initial_outputs()), "edge": self.edge,
                              "bias": self.bias})

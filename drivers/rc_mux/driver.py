@@ -98,7 +98,8 @@ class RcMuxDriver(RcMuxDeclarations, Sensor):
                                   "when the newest is older than [safety] rc_mode_timeout_ms", gt=0, le=MAX_RATE_HZ),
         field("manual_hz", 25.0, "MANUAL_CMD commands per second in manual (with a [safety.manual_mixer])", gt=0, le=MAX_RATE_HZ),
         field("device_name", "", "old name of the device setting"),
-        field("record_raw", False, "publish every edge and write as RawGpioEdge/RawGpioWrite on RAW.<device>"),
+        field("record_raw", False, "publish every edge, write and late clock look as RawGpioEdge/RawGpioWrite/"
+              "RawGpioClockRead on RAW.<device>"),
     )
 
     def __init__(self, name: str, **kwargs: Any) -> None:
@@ -249,9 +250,10 @@ class RcMuxDriver(RcMuxDeclarations, Sensor):
             # the host clock: the actuators judge RC_MODE by it; not in a replay, whose load is not the vehicle's)
             if not self.state.device_clock:
                 self._judge(self.state.loop_looked, time.monotonic_ns())
-            # the device clock (CLOCK_MONOTONIC on a real chip; the port down: the host's)
+            # the device clock (CLOCK_MONOTONIC on a real chip; the port down: the host's); a look long after the
+            # last edge is tapped (RawGpioClockRead), so a replay judges at this very time
             if port is not None and port.is_open:
-                self._judge(self.state.step, port.now_ns(), host_ns=time.monotonic_ns())
+                self._judge(self.state.step, port.look_ns(), host_ns=time.monotonic_ns())
             elif not self.state.device_clock:
                 self._judge(self.state.step, time.monotonic_ns(), host_ns=time.monotonic_ns())
             else:

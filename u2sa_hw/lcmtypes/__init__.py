@@ -50,6 +50,7 @@ _TYPES = (
     'RawCanFrame',
     'RawI2c',
     'RawGpioEdge',
+    'RawGpioClockRead',
     'RawGpioWrite',
     'RawPwmWrite',
     'StateInformation',

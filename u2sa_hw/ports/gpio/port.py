@@ -22,6 +22,10 @@ time, the clock runs on with the wall clock from there (a signal timeout then ex
 :meth:`GpioPort.clock_origin_ns` is where the recorded clock's zero lies on the device clock
 (0 on a real chip: the device clock *is* CLOCK_MONOTONIC; a replay chip's offset), so a driver's
 timed messages fall on the same grid of the recorded clock live and replayed.
+:meth:`GpioPort.look_ns` is ``now_ns`` for a driver's look at its clock (what it judges its
+timeouts and timed messages at): a look more than ``CLOCK_READ_AFTER_NS`` after the latest edge
+read (a lost signal; edges held up on a loaded machine) is tapped as a ``RawGpioClockRead``, so a
+replay judges at the very times the live driver did (hil/replay_gpio.py).
 
 Recorded bus inputs. A replay chip can also hand its driver the recorded bus messages the
 driver asks for (:meth:`GpioPort.take_recorded_bus`: the RC mux's Health, FAILSAFE and
@@ -41,6 +45,9 @@ from u2sa_hw.ports.gpio.wire import BIASES, EDGES, EdgeEvent, GpioEvent
 from u2sa_hw.ports.tap import Tap, call_tap, tapping
 
 MOCK_PREFIX = "mock:"
+# A look at the clock this long after the latest edge read is tapped: closer to an edge, the edges and
+# the replay's silence ticks already carry the time (hil/replay_gpio.py STEP_SILENCE_NS is this)
+CLOCK_READ_AFTER_NS = 30_000_000
 
 
 class GpioPort:
@@ -54,6 +61,7 @@ class GpioPort:
         # edges are tapped (RawGpioEdge) but from a replay chip (a device clock): they are the log's own
         # input played back, and re-tapping them only doubled the replay's bus traffic (writes still are)
         self._tap_edges = True
+        self._last_edge_ns: int | None = None   # the latest edge stamp read (for look_ns's tap)
 
     is_open = property(lambda self: not self._closed, doc="False after close().")
 
@@ -80,6 +88,18 @@ class GpioPort:
         None while a chip with its own clock has sent nothing yet."""
         return time.monotonic_ns()
 
+    def look_ns(self) -> int | None:
+        """:meth:`now_ns`, for the driver's look at its clock (it judges its timeouts at it): tapped as a
+        ``RawGpioClockRead`` when no edge has been read for ``CLOCK_READ_AFTER_NS`` (never from a replay chip,
+        whose clock is the log's own)."""
+        now = self.now_ns()
+        if now is not None and self._tap_edges and tapping(self._tap) and (
+                self._last_edge_ns is None or now - self._last_edge_ns > CLOCK_READ_AFTER_NS):
+            record = m.RawGpioClockRead()
+            record.device, record.clock_ns = self.device, now
+            call_tap(self._tap, record)
+        return now
+
     def clock_origin_ns(self) -> int:
         """Where the recorded clock's zero lies on the device clock: 0 but on a replay chip."""
         return 0
@@ -94,6 +114,9 @@ class GpioPort:
         waits up to *timeout* s."""
         self._check_open()
         events = self._read_edges(timeout)
+        for event in events:
+            if isinstance(event, EdgeEvent) and (self._last_edge_ns is None or event.timestamp_ns > self._last_edge_ns):
+                self._last_edge_ns = event.timestamp_ns
         if self._tap_edges and tapping(self._tap):
             for event in events:
                 if not isinstance(event, EdgeEvent):
