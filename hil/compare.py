@@ -92,8 +92,11 @@ def load_streams(path: Path | str, *, sources: set[str], start_ns: int | None = 
         source = header_source(msg)
         if source not in sources:
             continue
-        fields = {k: v for k, v in enumerate_fields(msg) if not any(fnmatch.fnmatchcase(k, p) for p in patterns)}
-        streams.setdefault(f"{m.channel} [{source}]", []).append(Sample(m.log_time_ns, type(msg).__name__, fields))
+        every = dict(enumerate_fields(msg))
+        fields = {k: v for k, v in every.items() if not any(fnmatch.fnmatchcase(k, p) for p in patterns)}
+        stamp_us = next((v for k, v in every.items() if k.endswith("header.timestamp_us")), 0)
+        streams.setdefault(f"{m.channel} [{source}]", []).append(
+            Sample(m.log_time_ns, type(msg).__name__, fields, int(stamp_us) * 1000 if stamp_us else None))
     return streams
 
 
@@ -117,6 +120,7 @@ def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[st
     rec = load_streams(recorded, sources=services, start_ns=start_ns, end_ns=end_ns, ignore=ignore)
     rep = load_streams(replayed, sources=services, ignore=ignore)
     origin = start_ns if start_ns is not None else min((v[0].t_ns for v in rec.values() if v), default=0)
+    recording_end = max((v[-1].t_ns for v in rec.values() if v), default=None)
     windows = held or {}
     reports = []
     for key in sorted(set(rec) | set(rep)):
@@ -129,7 +133,7 @@ def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[st
             reports.append(compare_stream(key, a, b, tolerance=tol, edge=edge, rate=rate,
                                           time_tolerance_s=time_tolerance_s, replay_start_ns=replay_start_ns,
                                           origin_ns=origin, held=windows.get(key.rsplit(" [", 1)[1][:-1], ()),
-                                          started_before=begun_after_start(a)))
+                                          started_before=begun_after_start(a), recording_end_ns=recording_end))
     recorded_sources = {key.rsplit(" [", 1)[1] for key in rec}
     for r in reports:
         if not r.recorded and r.key.rsplit(" [", 1)[1] not in recorded_sources:

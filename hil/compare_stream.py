@@ -68,19 +68,23 @@ class StreamReport:
         return not self.problems
 
 
-def align(rec: list[Sample], rep: list[Sample], *, tolerance: ToleranceLike,
-          skip: tuple[str, ...] = ()) -> list[Pair]:
-    """Pair the two streams' messages in order (hil/stream_align.py): match, differ, deleted, inserted.
-
-    Fields in *skip* (the stream's ``SYSTEM_FIELDS``) do not steer the pairing: a difference there is a note.
-    """
-    tol = as_tolerances(tolerance)
-
+def content_keys(samples: list[Sample], tol: Tolerances, skip: tuple[str, ...] = ()) -> list[Any]:
+    """Each message's alignment key (hil/stream_align.py), leaving out the fields in *skip*."""
     def own(fields: dict[str, Any]) -> dict[str, Any]:
         return {n: v for n, v in fields.items() if n not in skip} if skip else fields
 
-    rec_keys = [content_key(s.type_name, own(s.fields), tol.of) for s in rec]
-    rep_keys = [content_key(s.type_name, own(s.fields), tol.of) for s in rep]
+    return [content_key(s.type_name, own(s.fields), tol.of) for s in samples]
+
+
+def align(rec: list[Sample], rep: list[Sample], *, tolerance: ToleranceLike,
+          skip: tuple[str, ...] = (), keys: tuple[list[Any], list[Any]] | None = None) -> list[Pair]:
+    """Pair the two streams' messages in order (hil/stream_align.py): match, differ, deleted, inserted.
+
+    Fields in *skip* (the stream's ``SYSTEM_FIELDS``) do not steer the pairing: a difference there is a note.
+    *keys*: the two sides' :func:`content_keys`, when the caller has them.
+    """
+    tol = as_tolerances(tolerance)
+    rec_keys, rep_keys = keys or (content_keys(rec, tol, skip), content_keys(rep, tol, skip))
 
     def pair_cost(i: int, j: int) -> float:
         a, b = rec[i], rep[j]
@@ -95,23 +99,29 @@ def align(rec: list[Sample], rep: list[Sample], *, tolerance: ToleranceLike,
 def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance: ToleranceLike, edge: int,
                    rate: float | None, time_tolerance_s: float, replay_start_ns: int | None = None,
                    origin_ns: int | None = None, held: Sequence[HeldWindow] = (),
-                   started_before: bool = False) -> StreamReport:
+                   started_before: bool = False, recording_end_ns: int | None = None) -> StreamReport:
     """Compare one stream (see the module docstring); *replay_start_ns*: when the playback began; *origin_ns*:
     the log time notes count seconds from (default the stream's first recorded message); *held*: where the
     recording machine held the stream's service up (hil/held_up.py): what differs there is a note;
     *started_before*: the recording began after the stream's driver started (:func:`begun_after_start`),
-    so the replayed start-up writes before the first recorded one are a note."""
+    so the replayed start-up writes before the first recorded one are a note; *recording_end_ns*: the recorded
+    side's last message (log time): a replayed message at the stream's end made of input the live driver read in
+    the recording's last TAIL_CUT_NS and after its stream's last recorded message is a note (:func:`after_cut`)."""
     r = StreamReport(key, len(rec), len(rep))
     if not rec or not rep:
         r.problems.append("only in the replay" if rep else "not reproduced by the replay")
         return r
     tol = as_tolerances(tolerance)
     system = SYSTEM_FIELDS.get(key.split(" [", 1)[0], ())
-    pairs = align(rec, rep, tolerance=tol, skip=system)
+    keys = content_keys(rec, tol, system), content_keys(rep, tol, system)
+    pairs = align(rec, rep, tolerance=tol, skip=system, keys=keys)
     paired = [(p.rec, p.rep) for p in pairs if p.rec is not None and p.rep is not None]
+    runs = equal_runs(rec, keys[0]), equal_runs(rep, keys[1])
+    rec_of_rep = {j: i for i, j in paired}
     at_edges: list[str] = []
     held_seen: dict[HeldWindow, int] = {}   # differences inside a held-up window, per window
     system_changes = 0   # unpaired messages published for a change of a system-decided field
+    changes_used: dict[tuple[int, int], int] = {}   # (side, run's first index) -> its verdict changes taken
     rec_edge, rep_edge = edge_positions(rec, edge), edge_positions(rep, edge)
     # the partial pairs at the edges (a cut epoch): (recorded, replayed) indexes
     cut_pairs = {(i, j) for i, j in paired
@@ -120,6 +130,8 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
                  and partial(rec[i], rep[j], names)}
     last_rec_t = rec[0].t_ns
     startup = 0   # replayed start-up writes the recording began after (started_before)
+    tail_cut = 0   # replayed messages made of input whose live output the recording ended before
+    last_pair = max((k for k, p in enumerate(pairs) if p.kind in ("match", "differ")), default=-1)
     paired_yet = False
     for k, p in enumerate(pairs):
         if p.rec is not None:
@@ -132,6 +144,9 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
             continue
         own, index = (rec, p.rec) if p.kind == "deleted" else (rep, p.rep)
         assert index is not None
+        if p.kind == "inserted" and k > last_pair and after_cut(rep[index], rec[-1], recording_end_ns):
+            tail_cut += 1
+            continue
         if index in (rec_edge if p.kind == "deleted" else rep_edge):
             at_edges.append(p.kind)
             continue
@@ -139,9 +154,17 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
             # the other part of an epoch the cut split in two (its partial pair is beside it)
             at_edges.append(p.kind)
             continue
-        if _in_held(held, last_rec_t, held_seen):
+        # of a run of equal messages the alignment leaves out one of them, not necessarily the one it names (it
+        # puts the gap at the run's end): the message may be any of the run's, so the run's times and verdict
+        # changes count
+        run = runs[0 if p.kind == "deleted" else 1][index]
+        if p.kind == "deleted":
+            times = [rec[k].t_ns for k in run]
+        else:
+            times = [last_rec_t, *(rec[rec_of_rep[k]].t_ns for k in run if k in rec_of_rep)]
+        if _in_held(held, times, held_seen):
             continue
-        if system and _at_system_change(own, index, system):
+        if system and _system_change_left(own, run, system, changes_used):
             # published because a pre-arm verdict changed, which the rest of the system decides: where the
             # replay's verdict changes is a note like the verdicts themselves (a timed or device-driven
             # message away from a verdict change still counts)
@@ -169,7 +192,7 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
         if names and at_edge and partial(a, b, names):
             cut.append(_cut_note(a, b, i, start=i < edge or j < edge, origin_ns=origin_ns or rec[0].t_ns))
             continue
-        if names and _in_held(held, a.t_ns, held_seen):
+        if names and _in_held(held, [a.t_ns], held_seen):
             continue
         if names:
             r.differing += 1
@@ -209,6 +232,10 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
         r.notes.append(f"{len(at_edges)} message(s) without a counterpart among the first or last {edge} of a "
                        "stream (the recording cuts the input there)")
     r.notes.extend(cut)
+    if tail_cut:
+        r.notes.append(f"{tail_cut} replayed message(s) at the end made of input the live driver read after its "
+                       f"last recorded message and in the recording's last {TAIL_CUT_NS / 1e9:g} s: the recording "
+                       "ended before their live counterparts were published (the cut at the end)")
     if startup:
         r.notes.append(f"{startup} replayed start-up write(s) before the first recorded one: the recording began "
                        "after the live driver had started (its first recorded write already drives the output)")
@@ -219,6 +246,22 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
     return r
 
 
+# How long before the recording's end input may have been read whose live output the recording does not hold
+# (a serial driver publishes an epoch at its last sentence or at the silence after it: well under this)
+TAIL_CUT_NS = 1_000_000_000
+
+
+def after_cut(replayed: Sample, last_recorded: Sample, recording_end_ns: int | None) -> bool:
+    """True for a replayed message made of input the live driver read after its stream's last recorded message
+    and within TAIL_CUT_NS of the recording's end: its header time is that input's recorded time (a driver on a
+    replay's device clock stamps its messages with it) and falls between the two. A replayed message stamped on
+    the replaying machine's clock is later than the recording's end, so this never holds for it."""
+    if recording_end_ns is None or replayed.stamp_ns is None or last_recorded.stamp_ns is None:
+        return False
+    return (last_recorded.stamp_ns < replayed.stamp_ns <= recording_end_ns
+            and replayed.stamp_ns >= recording_end_ns - TAIL_CUT_NS)
+
+
 def begun_after_start(rec: list[Sample]) -> bool:
     """True for a PWM output stream whose first recorded write already has the output enabled: a driver
     starts its outputs disabled (duty 0, then neutral) before it enables them, so the recording began
@@ -226,13 +269,31 @@ def begun_after_start(rec: list[Sample]) -> bool:
     return bool(rec) and rec[0].type_name == "RawPwmWrite" and bool(rec[0].fields.get("enabled"))
 
 
-def _in_held(held: Sequence[HeldWindow], t_ns: int, seen: dict[HeldWindow, int]) -> bool:
-    """Whether log time *t_ns* is in a held-up window (counted in *seen*)."""
+def _in_held(held: Sequence[HeldWindow], times_ns: Sequence[int], seen: dict[HeldWindow, int]) -> bool:
+    """Whether one of the log times *times_ns* is in a held-up window (counted once in *seen*)."""
     for w in held:
-        if w.holds(t_ns):
+        if any(w.holds(t) for t in times_ns):
             seen[w] = seen.get(w, 0) + 1
             return True
     return False
+
+
+def equal_runs(samples: list[Sample], keys: list[Any]) -> list[list[int]]:
+    """For each message, the indexes of its run: the messages next to it in its sequence (the stream's, or its
+    actuator's in a command stream, PER_ACTUATOR) with the same alignment key, itself included."""
+    runs: list[list[int]] = [[] for _ in samples]
+    groups: dict[Any, list[int]] = {}
+    for k, sample in enumerate(samples):
+        groups.setdefault(sample.fields.get(PER_ACTUATOR), []).append(k)
+    for ks in groups.values():
+        start = 0
+        for n in range(1, len(ks) + 1):
+            if n == len(ks) or keys[ks[n]] != keys[ks[start]]:
+                run = ks[start:n]
+                for k in run:
+                    runs[k] = run
+                start = n
+    return runs
 
 
 # A command stream holds one sequence per actuator, published together (the RC mux's MANUAL_CMD: one message
@@ -295,10 +356,18 @@ def _cut_note(a: Sample, b: Sample, index: int, *, start: bool, origin_ns: int) 
             f"field both hold is equal), {where}: a note, not a difference")
 
 
-def _at_system_change(stream: list[Sample], index: int, system: tuple[str, ...]) -> bool:
-    """True when a system-decided field changes between message *index* and the one before or after it
-    (of two messages published for one verdict change, the alignment may leave either unpaired)."""
-    here = stream[index].fields
-    return any(0 <= k < len(stream) and any(not values_equal(here.get(n), stream[k].fields.get(n), 0.0)
-                                            for n in system)
-               for k in (index - 1, index + 1))
+def _system_change_left(stream: list[Sample], run: list[int], system: tuple[str, ...],
+                        used: dict[tuple[int, int], int]) -> bool:
+    """True (and taken) when the run of equal messages *run* of *stream* holds a verdict change not yet taken
+    by another unpaired message of it: each change is published at once, one message per change at most."""
+    changes = sum(1 for k in range(max(0, run[0] - 1), min(len(stream) - 1, run[-1] + 1))
+                  if _differs(stream[k], stream[k + 1], system))
+    key = (id(stream), run[0] if run else -1)
+    if used.get(key, 0) >= changes:
+        return False
+    used[key] = used.get(key, 0) + 1
+    return True
+
+
+def _differs(a: Sample, b: Sample, names: tuple[str, ...]) -> bool:
+    return any(not values_equal(a.fields.get(n), b.fields.get(n), 0.0) for n in names)

@@ -26,11 +26,13 @@ OUTPUT_RAW_TYPES = ("RawGpioWrite", "RawPwmWrite")  # raw records of what a driv
 
 @dataclass(frozen=True)
 class Sample:
-    """One message of a stream: log time, type and its comparable fields."""
+    """One message of a stream: log time, type and its comparable fields; *stamp_ns*: its header time (when the
+    service published it, or for a driver on a replay's device clock the recorded time of its input)."""
 
     t_ns: int
     type_name: str
     fields: dict[str, Any]
+    stamp_ns: int | None = None
 
 
 class Tolerances:

@@ -11,6 +11,10 @@ A window runs from the health message before a counter grew to the one where it 
 are read once a second), widened by HELD_MARGIN_S on each side for the effects that outlast the stall (a
 frame's pulses aged out, the next timed message).
 
+A servo driver (``LOOP_AGE_BY_KIND``) says so by its loop's age in its health: one sent while the loop was
+more than the limit behind (not the first of a run: its loop may not have turned yet) makes a window from
+when that loop last turned to HELD_MARGIN_S after the health.
+
 So is where a GPIO driver read its edges late: each recorded edge carries its kernel stamp and the time it
 was tapped, and an edge tapped more than LATE_EDGE_NS after the quickest tap of the log was read that much
 late by the live driver (its loop was held up); the RC mux's timed messages wait at most that long for the
@@ -29,6 +33,11 @@ from u2sa_hw.recording.log_reader import LogFile
 # service kind -> the health details that count the recording machine holding the service up
 # (``checks_lost``: a service's health came too late for a pre-arm check, on the recording machine's clock)
 HELD_UP_BY_KIND: dict[str, tuple[str, ...]] = {"rc_mux": ("stalls", "timed_skipped", "checks_lost")}
+# service kind -> the loop age (s, the contract health's ``loop_age_s``) past which its loop was held up when the
+# health was sent: a servo driver writes what the bus commands, in the order it takes its messages; held up, it
+# took a backlog of commands late and in another order against the RC mux's (issue 24, an Ackermann recording
+# under load wrote stale throttle commands for 90 ms), which no replay reproduces
+LOOP_AGE_BY_KIND: dict[str, float] = {"pwm_servo": 0.1}
 LATE_EDGE_NS = 50_000_000   # = u2sa_hw.drivers.rc_mux.clock.TIMED_HOLD_NS (not imported: hil reads logs, not drivers)
 HELD_MARGIN_S = 0.5
 
@@ -51,7 +60,8 @@ def plan_windows(log: Path | str, *, kinds: Mapping[str, str], devices: Mapping[
                  end_ns: int) -> dict[str, list[HeldWindow]]:
     """Every held-up window of a replay's services (*kinds*: service -> kind; *devices*: GPIO device -> its
     service), from one pass over the log."""
-    return _scan(log, held_up_counters(kinds), devices, start_ns=start_ns, end_ns=end_ns)
+    gauges = {name: LOOP_AGE_BY_KIND[kind] for name, kind in kinds.items() if kind in LOOP_AGE_BY_KIND}
+    return _scan(log, held_up_counters(kinds), devices, start_ns=start_ns, end_ns=end_ns, loop_ages=gauges)
 
 
 def held_up_counters(kinds: Mapping[str, str]) -> dict[str, tuple[str, ...]]:
@@ -60,9 +70,10 @@ def held_up_counters(kinds: Mapping[str, str]) -> dict[str, tuple[str, ...]]:
 
 
 def held_windows(log: Path | str, counters: Mapping[str, tuple[str, ...]], *, start_ns: int | None = None,
-                 end_ns: int | None = None) -> dict[str, list[HeldWindow]]:
-    """service -> the windows of *log* where its health counters (*counters*) grew; services with none left out."""
-    return _scan(log, counters, {}, start_ns=start_ns, end_ns=end_ns)
+                 end_ns: int | None = None, loop_ages: Mapping[str, float] | None = None) -> dict[str, list[HeldWindow]]:
+    """service -> the windows of *log* where its health counters (*counters*) grew, or its health said its loop
+    was more than *loop_ages* [service] s behind; services with none left out."""
+    return _scan(log, counters, {}, start_ns=start_ns, end_ns=end_ns, loop_ages=loop_ages)
 
 
 def late_edge_windows(log: Path | str, devices: Mapping[str, str], *, start_ns: int,
@@ -74,18 +85,22 @@ def late_edge_windows(log: Path | str, devices: Mapping[str, str], *, start_ns: 
 
 
 def _scan(log: Path | str, counters: Mapping[str, tuple[str, ...]], devices: Mapping[str, str], *,
-          start_ns: int | None, end_ns: int | None) -> dict[str, list[HeldWindow]]:
-    """The counter windows of *counters*' services and the late-edge windows of *devices* in one read."""
+          start_ns: int | None, end_ns: int | None,
+          loop_ages: Mapping[str, float] | None = None) -> dict[str, list[HeldWindow]]:
+    """The counter and loop-age windows of *counters*' and *loop_ages*' services and the late-edge windows of
+    *devices* in one read."""
     from u2sa_hw import lcmtypes as t
     from u2sa_hw.messages import REGISTRY, MalformedMessage
 
-    wanted = (["U2SA_HEALTH"] if counters else []) + [rf"RAW\.{re.escape(d)}" for d in devices]
+    loop_ages = loop_ages or {}
+    wanted = (["U2SA_HEALTH"] if counters or loop_ages else []) + [rf"RAW\.{re.escape(d)}" for d in devices]
     if not wanted:
         return {}
     margin = int(HELD_MARGIN_S * 1e9)
     first = start_ns
     last: dict[str, tuple[int, dict[str, int]]] = {}   # service -> (log time, counters) of its latest health
     lags: list[tuple[str, int, int]] = []               # (service, log time, tap time - kernel stamp)
+    runs: dict[str, str | None] = {}                    # service -> the start (started_us) of its latest health
     out: dict[str, list[HeldWindow]] = {}
     for m in LogFile(log).messages("|".join(wanted)):
         if end_ns is not None and m.log_time_ns > end_ns + margin:
@@ -106,9 +121,18 @@ def _scan(log: Path | str, counters: Mapping[str, tuple[str, ...]], devices: Map
         except Exception:  # noqa: BLE001 - a malformed health message says nothing about load
             continue
         names = counters.get(health.name)
-        if not names:
+        if not names and health.name not in loop_ages:
             continue
         details = {kv.key: kv.value for kv in health.details}
+        age = _seconds(details.get("loop_age_s"))
+        run, runs[health.name] = runs.get(health.name), details.get("started_us")
+        # a service's first health of a run can come before its loop first turned: its age is the start-up's
+        if health.name in loop_ages and age > loop_ages[health.name] and run == details.get("started_us"):
+            why = f"its loop {age:.2f} s behind"
+            out.setdefault(health.name, []).append(
+                HeldWindow(health.name, m.log_time_ns - int(age * 1e9) - margin, m.log_time_ns + margin, why))
+        if not names:
+            continue
         now = {n: _count(details.get(n)) for n in names}
         before_t, before = last.get(health.name, (first, dict.fromkeys(names, 0)))
         grown = {n: now[n] - before.get(n, 0) for n in names if now[n] > before.get(n, 0)}
@@ -120,6 +144,13 @@ def _scan(log: Path | str, counters: Mapping[str, tuple[str, ...]], devices: Map
     for service, windows in _late_edges(lags, margin).items():
         out.setdefault(service, []).extend(windows)
     return out
+
+
+def _seconds(text: str | None) -> float:
+    try:
+        return float(text or 0.0)
+    except ValueError:
+        return 0.0
 
 
 def _count(text: str | None) -> int:

@@ -112,3 +112,36 @@ def test_a_pwm_stream_recorded_after_its_driver_started_notes_the_replayed_start
     assert r.inserted == 2 and not r.ok
     # the mark is read off the recorded stream: its first write already enabled
     assert begun_after_start(commands) and not begun_after_start(STARTUP + commands)
+
+
+def stamped(k: int, *, published_after_ns: int = 1_000_000) -> Sample:
+    """Compass heading k: read at input time T_k, published 1 ms later (the recorded header) -- a replay on the
+    device clock stamps it with T_k, the recorded input time."""
+    read_ns = 1_000_000_000 + k * 100_000_000
+    return Sample(read_ns + published_after_ns + 500_000, "StateInformation", {"yaw": float(k)},
+                  read_ns + published_after_ns)
+
+
+def test_replayed_messages_of_input_read_after_the_last_recorded_output_are_the_cut_at_the_end() -> None:
+    """The recorder stopped after tapping the compass's last chunk (two sentences read at once on a loaded
+    machine) but before the live driver published their headings: the replay publishes both, stamped with that
+    chunk's recorded read time, inside the recording's last second and after its last recorded heading."""
+    rec = [stamped(k) for k in range(10)]
+    chunk_read = stamped(10, published_after_ns=0).stamp_ns
+    rep = [stamped(k, published_after_ns=0) for k in range(10)] + [
+        Sample(0, "StateInformation", {"yaw": yaw}, chunk_read) for yaw in (10.0, 11.0)]
+    end = chunk_read + 300_000   # the recorder logged the chunk's tap, then stopped
+    r = compare_stream("STATE_INFO [compass]", rec, rep, tolerance=1e-6, edge=0, rate=None, time_tolerance_s=0.5,
+                       recording_end_ns=end)
+    assert r.ok and r.inserted == 0, (r.problems, r.notes)
+    assert any("the cut at the end" in n for n in r.notes)
+    # the recording went on for 2 s after that input with nothing from the stream: the live driver did not
+    # publish them, the replay does: a difference
+    r = compare_stream("STATE_INFO [compass]", rec, rep, tolerance=1e-6, edge=0, rate=None, time_tolerance_s=0.5,
+                       recording_end_ns=chunk_read + 2_000_000_000)
+    assert r.inserted == 2 and not r.ok
+    # a replayed message stamped on the replaying machine's clock (the RC mux's) is never taken for the cut
+    late = [Sample(0, "StateInformation", {"yaw": 10.0}, end + 3600 * 1_000_000_000)]
+    r = compare_stream("STATE_INFO [compass]", rec, rep[:10] + late, tolerance=1e-6, edge=0, rate=None,
+                       time_tolerance_s=0.5, recording_end_ns=end)
+    assert r.inserted == 1 and not r.ok

@@ -60,6 +60,36 @@ def test_an_unpaired_message_inside_a_held_up_window_is_a_note() -> None:
     assert r.ok and r.inserted == 0, (r.problems, r.notes)
 
 
+def test_a_message_missing_from_a_run_of_equal_ones_is_judged_anywhere_in_the_run() -> None:
+    """Sticks held still: every frame the same. Live, the mux held up in a window early in the log sent one frame
+    more; the alignment leaves out the run's *last* message (it cannot tell which is missing), far from the
+    window. The run reaches into the window, so it is a note; a run that does not, counts."""
+    rec = frames(60)
+    rep = frames(59)
+    window = HeldWindow("rc", rec[10].t_ns, rec[14].t_ns, "stalls +1")
+    r = compare_stream("MANUAL_CMD [rc]", rec, rep, tolerance=1e-6, edge=0, rate=None, time_tolerance_s=0.5,
+                       held=[window])
+    assert r.ok and r.deleted == 0, (r.problems, r.notes)
+    assert any("held rc up" in n for n in r.notes)
+    moving = [Sample(c.t_ns, c.type_name, {**c.fields, "percentage": float(k // 2)}) for k, c in enumerate(rec)]
+    r = compare_stream("MANUAL_CMD [rc]", moving, moving[:-2], tolerance=1e-6, edge=0, rate=None,
+                       time_tolerance_s=0.5, held=[window])
+    assert r.deleted == 2 and not r.ok   # the sticks moved: the missing frame is the last one, outside the window
+
+
+def test_verdict_changes_excuse_at_most_one_unpaired_message_each() -> None:
+    """Two verdict changes in a run of equal RC_MODEs (a disarm and the re-arm; `armed` does not steer the
+    alignment) on the recorded side only: both are notes. Two more timed messages than that still count."""
+    steady = [mode(k, pulse=1500) for k in range(40)]
+    rec = steady[:20] + [mode(20, armed=0, pulse=1500), mode(21, pulse=1500)] + steady[20:]
+    r = compare_stream("RC_MODE [rc]", rec, steady, tolerance=1e-6, edge=0, rate=None, time_tolerance_s=0.5)
+    assert r.ok and r.deleted == 0, (r.problems, r.notes)
+    assert any("published for a change of such a verdict" in n for n in r.notes)
+    extra = steady[:10] + [mode(10, pulse=1500), mode(11, pulse=1500)] + rec[10:]
+    r = compare_stream("RC_MODE [rc]", extra, steady, tolerance=1e-6, edge=0, rate=None, time_tolerance_s=0.5)
+    assert r.deleted == 2 and not r.ok, (r.problems, r.notes)
+
+
 def test_a_frame_cut_at_the_end_of_a_command_stream_is_within_the_edge() -> None:
     rec, rep = frames(20), frames(21)   # the replay published one frame more: a message for each actuator
     r = compare_stream("MANUAL_CMD [rc]", rec, rep, tolerance=1e-6, edge=1, rate=None, time_tolerance_s=0.5)
@@ -83,6 +113,25 @@ def test_windows_are_where_the_muxs_health_counters_grew(tmp_path: Path) -> None
     assert [(w.from_ns, w.to_ns, w.why) for w in windows["rc"]] == [
         (2 * S - margin, 3 * S + margin, "stalls +2, timed_skipped +1"), (4 * S - margin, 5 * S + margin, "stalls +1")]
     assert set(windows) == {"rc"}
+
+
+def test_a_servo_drivers_loop_behind_in_its_health_makes_a_window(tmp_path: Path) -> None:
+    """A servo driver whose health says its loop was 0.17 s behind (a loaded machine held it up: it took a backlog
+    of commands late) gets a window from when the loop last turned to HELD_MARGIN_S after; a loop that turns on
+    time does not, nor does another kind's slow loop."""
+    from u2sa_hw.hil.held_up import plan_windows
+
+    log = McapLogWriter(tmp_path, path=tmp_path / "run.mcap")
+    for k, age in enumerate(["0.30", "0.02", "0.17", "0.01"]):   # the first: before the loop first turned
+        log.write("U2SA_HEALTH", mux_health("drive", loop_age_s=age, started_us=5).encode(), (k + 1) * S)
+        log.write("U2SA_HEALTH", mux_health("gps", loop_age_s="0.90").encode(), (k + 1) * S)
+    log.close()
+    windows = plan_windows(tmp_path / "run.mcap", kinds={"drive": "pwm_servo", "gps": "nmea_gps"}, devices={},
+                           start_ns=S, end_ns=10 * S)
+    margin = int(HELD_MARGIN_S * S)
+    assert [(w.from_ns, w.to_ns, w.why) for w in windows["drive"]] == [
+        (3 * S - 170_000_000 - margin, 3 * S + margin, "its loop 0.17 s behind")]
+    assert set(windows) == {"drive"}
 
 
 def edge(k: int, *, late_ns: int = 0) -> bytes:
