@@ -228,10 +228,11 @@ def build_plan(path: Path | str, *, extra_services: list[str] = (), overrides: l
             plan.notes.append(f"RAW.{dev.name}: {what}; service '{owners[0]}' is not replayed")
             blocked.add(owners[0])
             continue
-        if dev.kind == "i2c" and not i2c_setup_recorded(log, dev.name):
-            plan.notes.append(f"RAW.{dev.name}: the recording began after '{owners[0]}' set its chip up (the log "
-                              "holds its data reads only: no identification, no configuration, no calibration "
-                              f"samples), so what it published depends on what came before the cut; service "
+        if dev.kind == "i2c" and not i2c_setup_recorded(log, dev.name,
+                                                        identity_register=_identity_register(services_table, owners[0])):
+            plan.notes.append(f"RAW.{dev.name}: the recording began after '{owners[0]}' set its chip up, or inside "
+                              "that set-up (the log lacks its identification, and so its configuration and "
+                              f"calibration samples), so what it published depends on what came before the cut; service "
                               f"'{owners[0]}' is not replayed and its messages are not compared")
             blocked.add(owners[0])
             continue
@@ -289,17 +290,21 @@ def raw_records(log: LogFile, device: str, type_name: str) -> Iterator[tuple[int
             yield m.log_time_ns, rec
 
 
-def i2c_setup_recorded(log: LogFile, device: str) -> bool:
-    """True when RAW.*device* holds its driver's chip set-up from its start: the device's first record is a
-    read (every supported chip driver reads the chip's identity first) and a write follows (it configures
-    the chip; sampling only reads) before any register is read SETUP_SCAN_READS times. A recording started
-    while the stack ran (``u2sa record``, a recorder restarted, a log recovered after a cut) begins with data
-    reads, or inside the set-up after the identity read: a replay could not identify the chip, and its
-    calibration is not in the log. Reads the log only up to that point."""
+def i2c_setup_recorded(log: LogFile, device: str, *, identity_register: int | None = None) -> bool:
+    """True when RAW.*device* holds its driver's chip set-up from its start. With the driver's
+    *identity_register* (``DeviceDeclarations.IDENTITY_REGISTER``): the device's first record is a read of
+    it. Without: the first record is a read (every supported chip driver reads the chip's identity first)
+    and a write follows (it configures the chip; sampling only reads) before any register is read
+    SETUP_SCAN_READS times. A recording started while the stack ran (``u2sa record``, a recorder restarted, a
+    log recovered after a cut) begins with data reads, or inside the set-up after the identity read (a
+    configuration read, then writes: the second rule took that for a set-up): a replay could not identify
+    the chip, and its calibration is not in the log. Reads the log only up to that point."""
     from u2sa_hw.ports.i2c.wire import OP_READ, OP_WRITE
 
     reads: dict[tuple[int, int], int] = {}
     for _t, rec in raw_records(log, device, "RawI2c"):
+        if identity_register is not None:
+            return rec.op == OP_READ and int(rec.register_address) == identity_register
         if rec.op == OP_WRITE:
             return bool(reads)   # a write first: the recording began inside the set-up, after the identity read
         if rec.op == OP_READ:
@@ -308,6 +313,18 @@ def i2c_setup_recorded(log: LogFile, device: str) -> bool:
             if reads[key] >= SETUP_SCAN_READS:
                 return False
     return True   # too few reads to tell: replay it (a short log of set-up reads replays as before)
+
+
+def _identity_register(services: dict[str, Any], service: str) -> int | None:
+    """The chip identity register *service*'s driver declares (None: none, or its kind cannot be loaded)."""
+    from u2sa_hw.ports.declared import declarations
+
+    table = services.get(service)
+    kind = table.get("kind") if isinstance(table, dict) else None
+    try:
+        return declarations(resolve_kind(kind)).IDENTITY_REGISTER if isinstance(kind, str) else None
+    except (LookupError, ImportError):
+        return None
 
 
 def _add_service(plan: ReplayPlan, name: str, table: dict[str, Any], configs: dict[str, dict[str, Any]]) -> ServicePlan:

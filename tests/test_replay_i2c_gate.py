@@ -165,3 +165,19 @@ def test_a_log_begun_after_the_chip_set_up_is_told_from_one_that_holds_it(socket
     assert not i2c_setup_recorded(write_log(sockets / "inside.mcap", RECORDS[1:]), "imu")
     # too few reads to tell: replayed as before
     assert i2c_setup_recorded(write_log(sockets / "short.mcap", mid_run[:2]), "imu")
+
+
+def test_with_the_drivers_identity_register_only_a_log_that_reads_it_first_holds_the_set_up(sockets: Path) -> None:
+    """Begun inside the MPU-9250's set-up after WHO_AM_I: a configuration read, then the writes (issue 24, a
+    corpus `mid-run` log built beside two busy processes: the rule without the register took it for a set-up
+    and the replayed driver never opened, 'not ready after 30 s: imu'). The driver declares its identity
+    register, and the log must begin with a read of it."""
+    from u2sa_hw.drivers.imu.bno055 import Bno055ImuDriver
+    from u2sa_hw.drivers.imu.mpu9250 import Mpu9250ImuDriver
+
+    assert Mpu9250ImuDriver.IDENTITY_REGISTER == WHO_AM_I and Bno055ImuDriver.IDENTITY_REGISTER == 0x00
+    inside = [raw(0x19, b"\x13\x03\x08\x08"), raw(0x6B, b"\x01"), raw(0x37, b"\x02", op=OP_WRITE), *RECORDS[1:]]
+    log = write_log(sockets / "inside-after-a-read.mcap", inside)
+    assert i2c_setup_recorded(log, "imu"), "the rule without the register cannot tell (why drivers declare it)"
+    assert not i2c_setup_recorded(log, "imu", identity_register=WHO_AM_I)
+    assert i2c_setup_recorded(write_log(sockets / "whole.mcap", RECORDS), "imu", identity_register=WHO_AM_I)

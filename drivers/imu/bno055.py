@@ -56,6 +56,7 @@ class Bno055ImuDriver(I2cImuDriver):
     """BNO055 over I2C: attitude, body rates and gravity-free acceleration in FRD."""
 
     MOCK_KINDS = ("bno055",)
+    IDENTITY_REGISTER = bno.CHIP_ID
     CONFIG = (
         field("mode", "ndof", "fusion mode: ndof, ndof_fmc_off or imu (no magnetometer: no heading)", choices=MODES),
         field("axis_map_config", 0x24, "AXIS_MAP_CONFIG: remap so chip x = forward, y = left, z = up", ge=0, le=0xFF),

@@ -88,6 +88,8 @@ def sample_rate_divider(rate_hz: float, dlpf_cfg: int) -> int:
 class Mpu9250ImuDriver(I2cImuDriver):
     """MPU-6050/6500/9250 accel/gyro over I2C: body rates and accelerations in FRD."""
 
+    IDENTITY_REGISTER = mpu.WHO_AM_I
+
     CONFIG = (
         field("chip", "auto", "auto, mpu6050, mpu6500 or mpu9250 (checked against WHO_AM_I)"),
         field("gyro_range_dps", 500, "gyro full scale: 250, 500, 1000 or 2000 deg/s", choices=(250, 500, 1000, 2000)),

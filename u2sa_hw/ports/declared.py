@@ -41,6 +41,10 @@ class DeviceDeclarations:
     MOCK_KINDS: ClassVar[tuple[str, ...]] = ()
     """The ``CATALOG`` mock kinds that stand in for the driver's device, the usual one first."""
 
+    IDENTITY_REGISTER: ClassVar[int | None] = None
+    """An I2C driver's chip identity register, the first register it reads when it sets its chip up: a log
+    holds that set-up (and a replay can identify the chip) only when its device's first record reads it."""
+
     @classmethod
     def used_devices(cls, service: str, config: Mapping[str, Any]) -> tuple[str, ...]:
         """The names of the devices service *service* opens (their ``[devices.NAME]`` tables), in order."""
