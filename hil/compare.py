@@ -19,6 +19,12 @@ carries uptime and CPU) or raw device I/O (``RAW.*``). For each stream:
   the sentences recorded; or it ends before the burst's last ones): a note naming the stream,
   the message and the cut, never counted as matched or different. A value that differs, at an
   edge or anywhere, and a partial message away from the edges, are differences.
+  At the end, a replayed message after the last pair whose header time (a driver on the replay's
+  device clock stamps it with its input's recorded time) lies after the stream's last recorded
+  message and in the recording's last second was made of input whose live output the recording
+  ended before: a note too (``after_cut``). An unpaired message of a run of equal messages (sticks
+  held still) may be any of the run's - the alignment names the run's last - so the held-up
+  windows and verdict changes below are judged over its whole run.
 - fields: every field from ``enumerate_fields`` except the header's ``timestamp_us`` and
   ``sequence`` (and ``ignore`` patterns), floats equal within their field's tolerance
   (:class:`Tolerances`: a default and per-field globs, from ``--tolerances FILE``; absolute, or

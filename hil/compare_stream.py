@@ -121,7 +121,7 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
     at_edges: list[str] = []
     held_seen: dict[HeldWindow, int] = {}   # differences inside a held-up window, per window
     system_changes = 0   # unpaired messages published for a change of a system-decided field
-    changes_used: dict[tuple[int, int], int] = {}   # (side, run's first index) -> its verdict changes taken
+    changes_used: dict[tuple[int, int], int] = {}   # (id of a side, its run's first index) -> changes taken
     rec_edge, rep_edge = edge_positions(rec, edge), edge_positions(rep, edge)
     # the partial pairs at the edges (a cut epoch): (recorded, replayed) indexes
     cut_pairs = {(i, j) for i, j in paired
@@ -159,9 +159,9 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
         # changes count
         run = runs[0 if p.kind == "deleted" else 1][index]
         if p.kind == "deleted":
-            times = [rec[k].t_ns for k in run]
+            times = [rec[m].t_ns for m in run]
         else:
-            times = [last_rec_t, *(rec[rec_of_rep[k]].t_ns for k in run if k in rec_of_rep)]
+            times = [last_rec_t, *(rec[rec_of_rep[m]].t_ns for m in run if m in rec_of_rep)]
         if _in_held(held, times, held_seen):
             continue
         if system and _system_change_left(own, run, system, changes_used):

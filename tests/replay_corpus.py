@@ -1,7 +1,7 @@
 """A corpus of recordings of varied runs (issue 24), built by the tests once per session: both example
 vehicles (and the boat), the sticks scenario, an RC loss, a GPS fix loss, a manual switch, a driver killed and
 restarted mid-recording, recordings started while the stack runs (one ended by --duration, one cut by SIGKILL and
-recovered with ``u2sa log recover``), and ``u2sa record`` of a ``u2sa mock`` + ``u2sa run`` stack. Each run drives for a few seconds only; the runs go three at a time.
+recovered with ``u2sa log recover``), and ``u2sa record`` of a ``u2sa mock`` + ``u2sa run`` stack. Each run drives for a few seconds only; the runs go two at a time.
 
 ``build_corpus(dir)`` writes ``<dir>/<name>.mcap`` for each and returns ``{name: path}``; the tests
 (tests/test_replay_corpus.py) and ``bench/replay_corpus.py`` (``replay-check`` over it under
@@ -202,16 +202,9 @@ JOBS: dict[str, Callable[[Path], dict[str, Path]]] = {
 }
 
 
-def job_of(log_name: str) -> str:
-    """The job that records the log *log_name* (the mid-run job records three)."""
-    aliases = {"ground-sim": "mid-run", "killed-recovered": "mid-run", "ackermann-sim": "ackermann", "boat-sim": "boat"}
-    return aliases.get(log_name, log_name)
-
-
-def build_corpus(corpus: Path, *, workers: int = 2, only: set[str] | None = None) -> dict[str, Path]:
-    """Build every recording into *corpus* (``<name>.mcap``), or those of the jobs *only*; returns
-    ``{name: path}``. Two runs at a time on 2 cores: three loaded the machine so that the live RC mux was
-    held up in ways its log cannot show (docs/replay.md, the corpus)."""
+def build_corpus(corpus: Path, *, workers: int = 2) -> dict[str, Path]:
+    """Build every recording into *corpus* (``<name>.mcap``); returns ``{name: path}``. Two runs at a time on
+    2 cores (*workers*): the corpus is about varied runs, not about load (bench/replay_corpus.py)."""
     corpus.mkdir(parents=True, exist_ok=True)
     work = corpus.parent / f"{corpus.name}-work"
     if "U2SA_BUS_KEY_FILE" not in os.environ:   # outside the test session (the bench): a key of the corpus's own
@@ -230,13 +223,13 @@ def build_corpus(corpus: Path, *, workers: int = 2, only: set[str] | None = None
     def job(name: str) -> dict[str, Path]:
         where = work / name
         if where.exists():
-            shutil.rmtree(where)   # a rebuild starts clean
+            shutil.rmtree(where)   # a build into a used directory starts clean
         where.mkdir(parents=True)
         return JOBS[name](where)
 
     logs: dict[str, Path] = {}
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        for made in pool.map(job, [name for name in JOBS if only is None or name in only]):
+        for made in pool.map(job, list(JOBS)):
             for name, path in made.items():
                 dst = corpus / f"{name}.mcap"
                 shutil.copyfile(path, dst)
