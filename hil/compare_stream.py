@@ -18,7 +18,7 @@ from u2sa_hw.messages import ABSENT
 
 from u2sa_hw.hil.compare_values import (SYSTEM_FIELDS, Sample, ToleranceLike, Tolerances, as_tolerances,
                                         differing_fields, values_equal)
-from u2sa_hw.hil.held_up import HeldWindow
+from u2sa_hw.hil.held_up import STOP_WINDOW_END, HeldWindow
 from u2sa_hw.hil.stream_align import Pair, align_streams, content_key
 
 SHOWN_FIELDS = 8
@@ -160,8 +160,9 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
         run = runs[0 if p.kind == "deleted" else 1][index]
         if p.kind == "deleted":
             times = [rec[m].t_ns for m in run]
-        else:
-            times = [last_rec_t, *(rec[rec_of_rep[m]].t_ns for m in run if m in rec_of_rep)]
+        else:   # between the recorded messages before and after it, or any paired with its run
+            after = next((rec[q.rec].t_ns for q in pairs[k + 1:] if q.rec is not None), rec[-1].t_ns)
+            times = [last_rec_t, after, *(rec[rec_of_rep[m]].t_ns for m in run if m in rec_of_rep)]
         if _in_held(held, times, held_seen):
             continue
         if system and _system_change_left(own, run, system, changes_used):
@@ -241,6 +242,10 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
                        "after the live driver had started (its first recorded write already drives the output)")
     origin = origin_ns or rec[0].t_ns
     for w, n in held_seen.items():
+        if w.to_ns == STOP_WINDOW_END:
+            r.notes.append(f"{n} difference(s) after t={(w.from_ns - origin) / 1e9:.2f} s, where {w.service} {w.why}; "
+                           "shown, not counted")
+            continue
         r.notes.append(f"{n} difference(s) between t={(w.from_ns - origin) / 1e9:.2f} and {(w.to_ns - origin) / 1e9:.2f} s, "
                        f"where the recording machine held {w.service} up ({w.why} in its health); shown, not counted")
     return r

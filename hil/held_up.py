@@ -15,6 +15,10 @@ A servo driver (``LOOP_AGE_BY_KIND``) says so by its loop's age in its health: o
 more than the limit behind (not the first of a run: its loop may not have turned yet) makes a window from
 when that loop last turned to HELD_MARGIN_S after the health.
 
+And from a service's first health saying it stops (``stopping``, ``stopped``) to the end: the live service
+took no more input then, the replayed one, stopped only after the playback, takes what was recorded after it
+(an Ackermann log's servo driver, stopping with the stack, left the last commands unwritten).
+
 So is where a GPIO driver read its edges late: each recorded edge carries its kernel stamp and the time it
 was tapped, and an edge tapped more than LATE_EDGE_NS after the quickest tap of the log was read that much
 late by the live driver (its loop was held up); the RC mux's timed messages wait at most that long for the
@@ -40,6 +44,12 @@ HELD_UP_BY_KIND: dict[str, tuple[str, ...]] = {"rc_mux": ("stalls", "timed_skipp
 LOOP_AGE_BY_KIND: dict[str, float] = {"pwm_servo": 0.1}
 LATE_EDGE_NS = 50_000_000   # = u2sa_hw.drivers.rc_mux.clock.TIMED_HOLD_NS (not imported: hil reads logs, not drivers)
 HELD_MARGIN_S = 0.5
+# A service's health saying it stops: from then on the live service takes no more input (its bus handling has
+# ended) but the replay, still running, takes the recorded messages republished after it
+STOPPING = ("stopping", "stopped")
+STOP_WINDOW_END = 2 ** 63 - 1
+STOP_WHY = ("was stopping (its health said so: the live service took no more input, the replayed one, "
+            "stopped after the playback, took what was recorded after it)")
 
 
 @dataclass(frozen=True)
@@ -61,7 +71,8 @@ def plan_windows(log: Path | str, *, kinds: Mapping[str, str], devices: Mapping[
     """Every held-up window of a replay's services (*kinds*: service -> kind; *devices*: GPIO device -> its
     service), from one pass over the log."""
     gauges = {name: LOOP_AGE_BY_KIND[kind] for name, kind in kinds.items() if kind in LOOP_AGE_BY_KIND}
-    return _scan(log, held_up_counters(kinds), devices, start_ns=start_ns, end_ns=end_ns, loop_ages=gauges)
+    return _scan(log, held_up_counters(kinds), devices, start_ns=start_ns, end_ns=end_ns, loop_ages=gauges,
+                 stopping=set(kinds))
 
 
 def held_up_counters(kinds: Mapping[str, str]) -> dict[str, tuple[str, ...]]:
@@ -86,14 +97,14 @@ def late_edge_windows(log: Path | str, devices: Mapping[str, str], *, start_ns: 
 
 def _scan(log: Path | str, counters: Mapping[str, tuple[str, ...]], devices: Mapping[str, str], *,
           start_ns: int | None, end_ns: int | None,
-          loop_ages: Mapping[str, float] | None = None) -> dict[str, list[HeldWindow]]:
-    """The counter and loop-age windows of *counters*' and *loop_ages*' services and the late-edge windows of
-    *devices* in one read."""
+          loop_ages: Mapping[str, float] | None = None, stopping: set[str] | None = None) -> dict[str, list[HeldWindow]]:
+    """The counter and loop-age windows of *counters*' and *loop_ages*' services, the stop windows of
+    *stopping*'s and the late-edge windows of *devices* in one read."""
     from u2sa_hw import lcmtypes as t
     from u2sa_hw.messages import REGISTRY, MalformedMessage
 
-    loop_ages = loop_ages or {}
-    wanted = (["U2SA_HEALTH"] if counters or loop_ages else []) + [rf"RAW\.{re.escape(d)}" for d in devices]
+    loop_ages, stopping = loop_ages or {}, stopping or set()
+    wanted = (["U2SA_HEALTH"] if counters or loop_ages or stopping else []) + [rf"RAW\.{re.escape(d)}" for d in devices]
     if not wanted:
         return {}
     margin = int(HELD_MARGIN_S * 1e9)
@@ -120,6 +131,9 @@ def _scan(log: Path | str, counters: Mapping[str, tuple[str, ...]], devices: Map
             health = t.Health.decode(m.data)
         except Exception:  # noqa: BLE001 - a malformed health message says nothing about load
             continue
+        if health.name in stopping and health.status in STOPPING and m.log_time_ns >= (start_ns or 0):
+            stopping.discard(health.name)   # its first such health only
+            out.setdefault(health.name, []).append(HeldWindow(health.name, m.log_time_ns, STOP_WINDOW_END, STOP_WHY))
         names = counters.get(health.name)
         if not names and health.name not in loop_ages:
             continue

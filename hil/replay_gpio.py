@@ -202,7 +202,11 @@ class ReplayGpioDevice:
         next edge's stamp, so the clock never runs ahead of an edge still to come; its log time is the
         previous edge's plus the same steps (before the next edge's), which places it in the play order.
         After the last edge the ticks run to the recorded driver's last output (when the log says, else the
-        window's end): a driver that had stopped is not timed out in its place.
+        window's end): a driver that had stopped is not timed out in its place. In a log that holds the
+        driver's looks (``RawGpioClockRead``: every look more than CLOCK_READ_AFTER_NS after the latest edge)
+        the ticks stop at that limit: later, the replayed driver looks where the live one did and nowhere
+        else (a live loop that stopped looking as the service stopped is not timed out in its place; issue
+        24: an Ackermann log's replayed mux lost the signal 150 ms after the live one's last look).
 
         A step is the recorded driver's loop at work (it published: a timed message, a change) more than
         STEP_SILENCE_NS after the last edge it had read: on a live chip edges can arrive late (a stalled
@@ -239,6 +243,8 @@ class ReplayGpioDevice:
                 next_log = end + 1
                 mapped = end + 1 - self._min_log_lag_ns if self._min_log_lag_ns is not None else kernel_ns
                 next_kernel = max(kernel_ns + (end + 1 - log_ns), mapped)
+            if self._clock_reads:   # the live looks past CLOCK_READ_AFTER_NS are in the log: ticks only up to it
+                next_kernel = min(next_kernel, kernel_ns + CLOCK_READ_AFTER_NS + 1)
             step = TICK_NS
             while kernel_ns + step < next_kernel:
                 yield min(log_ns + step, next_log - 1), ClockTickRecord(kernel_ns + step)

@@ -236,6 +236,15 @@ def build_plan(path: Path | str, *, extra_services: list[str] = (), overrides: l
                               f"'{owners[0]}' is not replayed and its messages are not compared")
             blocked.add(owners[0])
             continue
+        if dev.kind == "gpio" and _service_kind(services_table, owners[0]) == "rc_mux" and autonomy_armed_at_start(
+                log, owners[0], start_ns=summary.start_ns + int(max(0.0, start_s) * 1e9)):
+            plan.notes.append(f"RAW.{dev.name}: the recording began with '{owners[0]}' armed in autonomous mode (the "
+                              "pilot armed it through manual, and it judged the services' health, before the cut): "
+                              "a replayed mux never saw that and could not grant autonomy, so what follows from it "
+                              f"(its enable line, every actuator's output) would differ; service '{owners[0]}' is not "
+                              "replayed and its messages are not compared; the actuators get its recorded RC_MODE")
+            blocked.add(owners[0])
+            continue
         dev.service = owners[0]
     for dev in devices.values():
         if dev.service in blocked:
@@ -315,12 +324,37 @@ def i2c_setup_recorded(log: LogFile, device: str, *, identity_register: int | No
     return True   # too few reads to tell: replay it (a short log of set-up reads replays as before)
 
 
+def autonomy_armed_at_start(log: LogFile, service: str, *, start_ns: int) -> bool:
+    """True when *service*'s (an RC mux's) first RC_MODE at or after *start_ns* says it was armed in autonomous
+    mode: the pilot armed it through manual before then, which a replay of the window cannot reproduce (a mux
+    coming out of "no signal" with the switch at autonomous stays disarmed until the pilot goes through manual).
+    Reads the log only up to that message."""
+    from u2sa_hw.drivers.rc_mux.pulse import MODE_AUTONOMOUS
+    from u2sa_hw.lcmtypes import RcMode
+
+    for m in log.messages(r"RC_MODE"):
+        if m.log_time_ns < start_ns:
+            continue
+        try:
+            msg = RcMode.decode(m.data)
+        except Exception:  # noqa: BLE001 - a malformed message says nothing about the mux
+            continue
+        if msg.header.source == service:
+            return bool(msg.armed) and msg.mode == MODE_AUTONOMOUS
+    return False
+
+
+def _service_kind(services: dict[str, Any], service: str) -> str | None:
+    table = services.get(service)
+    kind = table.get("kind") if isinstance(table, dict) else None
+    return kind if isinstance(kind, str) else None
+
+
 def _identity_register(services: dict[str, Any], service: str) -> int | None:
     """The chip identity register *service*'s driver declares (None: none, or its kind cannot be loaded)."""
     from u2sa_hw.ports.declared import declarations
 
-    table = services.get(service)
-    kind = table.get("kind") if isinstance(table, dict) else None
+    kind = _service_kind(services, service)
     try:
         return declarations(resolve_kind(kind)).IDENTITY_REGISTER if isinstance(kind, str) else None
     except (LookupError, ImportError):

@@ -1,7 +1,7 @@
 """A corpus of recordings of varied runs (issue 24), built by the tests once per session: both example
 vehicles (and the boat), the sticks scenario, an RC loss, a GPS fix loss, a manual switch, a driver killed and
 restarted mid-recording, recordings started while the stack runs (one ended by --duration, one cut by SIGKILL and
-recovered with ``u2sa log recover``), and ``u2sa record`` of a ``u2sa mock`` + ``u2sa run`` stack. Each run drives for a few seconds only; the runs go two at a time.
+recovered with ``u2sa log recover``, one started while it drives under autonomy), and ``u2sa record`` of a ``u2sa mock`` + ``u2sa run`` stack. Each run drives for a few seconds only; the runs go two at a time.
 
 ``build_corpus(dir)`` writes ``<dir>/<name>.mcap`` for each and returns ``{name: path}``; the tests
 (tests/test_replay_corpus.py) and ``bench/replay_corpus.py`` (``replay-check`` over it under
@@ -93,9 +93,39 @@ def _wait(predicate: Callable[[], bool], timeout: float, what: str) -> None:
         time.sleep(0.2)   # polling a condition, not timing
 
 
+def _autonomy_engaged(env: dict[str, str], cwd: Path, timeout: float) -> None:
+    """Return once the RC mux says autonomy is enabled (``u2sa echo RC_MODE --json``), or raise after *timeout*."""
+    import json
+    import threading
+
+    echo = subprocess.Popen([*U2SA, "echo", "RC_MODE", "--json", "--wait", "--vehicle", str(GROUND)], cwd=cwd,
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    engaged = threading.Event()
+
+    def read() -> None:
+        for line in echo.stdout:   # type: ignore[union-attr]
+            try:
+                if json.loads(line).get("autonomy_enabled") is True:
+                    engaged.set()
+                    return
+            except (ValueError, AttributeError):
+                continue
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    try:
+        if not engaged.wait(timeout):
+            raise RuntimeError(f"the simulation did not engage autonomy within {timeout:g} s")
+    finally:
+        echo.kill()
+        echo.wait()
+
+
 def _mid_run(work: Path) -> dict[str, Path]:
-    """The ground vehicle's simulation with two ``u2sa record`` started while it drives: one ends by
-    --duration, the other is killed with SIGKILL and recovered; and the simulation's own recording."""
+    """The ground vehicle's simulation with three ``u2sa record`` started while it runs: one ends by
+    --duration, one is killed with SIGKILL and recovered (both started as the stack comes up), and one started
+    once autonomy is engaged (``mid-drive``: the RC mux armed and granted autonomy before its cut); and the
+    simulation's own recording."""
     from u2sa_hw.bus.udp_ports import private_lcm_url, private_udp_port
 
     url = private_lcm_url()
@@ -115,7 +145,12 @@ def _mid_run(work: Path) -> dict[str, Path]:
         for path, extra in ((timed, ["--duration", "4"]), (killed, [])):
             recorders.append(subprocess.Popen([*U2SA, "record", "-o", str(path), "--vehicle", str(GROUND), *extra],
                                               cwd=work, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        _autonomy_engaged(env, work, 90)
+        drive = work / "mid-drive.mcap"
+        recorders.append(subprocess.Popen([*U2SA, "record", "-o", str(drive), "--vehicle", str(GROUND), "--duration",
+                                           "3"], cwd=work, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
         recorders[0].wait(timeout=60)
+        recorders[2].wait(timeout=60)
         recorders[1].send_signal(signal.SIGKILL)
         recorders[1].wait(timeout=10)
         sim.wait(timeout=90)
@@ -130,7 +165,7 @@ def _mid_run(work: Path) -> dict[str, Path]:
     if done.returncode != 0 or "truncated" not in done.stdout:
         raise RuntimeError(f"u2sa log recover: {done.stdout}{done.stderr}")
     return {"ground-sim": sorted((out / "recording").glob("*.mcap"))[0], "mid-run": timed,
-            "killed-recovered": recovered}
+            "killed-recovered": recovered, "mid-drive": drive}
 
 
 def _raw_recording_profile(sim_profile: Path, out: Path, url: str) -> bool:

@@ -134,6 +134,31 @@ def test_a_servo_drivers_loop_behind_in_its_health_makes_a_window(tmp_path: Path
     assert set(windows) == {"drive"}
 
 
+def test_from_a_services_first_stopping_health_to_the_end_is_a_window(tmp_path: Path) -> None:
+    """The live service took no more input once it was stopping; the replayed one takes the commands recorded
+    after that: a servo's writes for them, between its last recorded write and its stop write, are notes."""
+    from u2sa_hw.hil.held_up import STOP_WINDOW_END, plan_windows
+
+    log = McapLogWriter(tmp_path, path=tmp_path / "run.mcap")
+    for k, status in enumerate(["ok", "ok", "stopping", "stopped"]):
+        health = mux_health("drive")
+        health.status = status
+        log.write("U2SA_HEALTH", health.encode(), (k + 1) * S)
+    log.close()
+    windows = plan_windows(tmp_path / "run.mcap", kinds={"drive": "pwm_servo"}, devices={}, start_ns=S, end_ns=10 * S)
+    assert [(w.from_ns, w.to_ns) for w in windows["drive"]] == [(3 * S, STOP_WINDOW_END)]
+    writes = [Sample(S + k * 40_000_000, "RawPwmWrite", {"duty_ns": 1_500_000 + 1000 * k}) for k in range(60)]
+    stop = Sample(4 * S, "RawPwmWrite", {"duty_ns": 1_500_000})
+    rec = writes[:50] + [stop]                     # the live driver wrote nothing more once it was stopping
+    rep = writes + [stop]                          # the replayed one wrote the later commands too
+    r = compare_stream("RAW.throttle [drive]", rec, rep, tolerance=1e-6, edge=0, rate=None, time_tolerance_s=0.5,
+                       held=windows["drive"])
+    assert r.ok and r.inserted == 0, (r.problems, r.notes)
+    assert any("was stopping" in n and "after t=" in n for n in r.notes)
+    r = compare_stream("RAW.throttle [drive]", rec, rep, tolerance=1e-6, edge=0, rate=None, time_tolerance_s=0.5)
+    assert r.inserted == 10 and not r.ok   # without the window: differences
+
+
 def edge(k: int, *, late_ns: int = 0) -> bytes:
     rec = t.RawGpioEdge()
     rec.device, rec.line, rec.edge = "rc", 5, k % 2

@@ -1,12 +1,13 @@
 """Issue 24's gate on unchanged logs: a corpus of recordings of varied runs, built here by the project's own
 commands (tests/replay_corpus.py: both example vehicles and the boat, the sticks scenario, an RC loss, a GPS
 fix loss, a manual switch, a driver killed and restarted mid-recording, recordings started while the stack
-drives, one cut by SIGKILL and recovered, and ``u2sa record`` of a ``u2sa mock`` + ``u2sa run`` stack), every
+runs (one as it comes up, one cut by SIGKILL and recovered, one under autonomy), and ``u2sa record`` of a ``u2sa mock`` + ``u2sa run`` stack), every
 one replayed by ``u2sa replay-check`` with its defaults: each is "same", first and last messages included.
 
 A recording begun after a driver set its I2C chip up cannot reproduce what that driver did (its
-identification and calibration are before the cut): the replay leaves it out and says so in a note, which
-is checked here too. ``bench/replay_corpus.py`` runs the same check under ``bench/cpu_hog.py``."""
+identification and calibration are before the cut), nor one begun with the RC mux armed in autonomous mode
+(the pilot armed it before the cut): the replay leaves that service out and says so in a note, which is
+checked here too (the one started under autonomy is such a log). ``bench/replay_corpus.py`` runs the same check under ``bench/cpu_hog.py``."""
 
 from __future__ import annotations
 
@@ -22,13 +23,13 @@ from replay_corpus import build_corpus
 
 from u2sa_hw.drivers.imu.bno055 import Bno055ImuDriver
 from u2sa_hw.drivers.imu.mpu9250 import Mpu9250ImuDriver
-from u2sa_hw.hil.replay_plan import i2c_setup_recorded
+from u2sa_hw.hil.replay_plan import autonomy_armed_at_start, i2c_setup_recorded
 from u2sa_hw.recording.log_reader import LogFile
 
 U2SA = [sys.executable, "-m", "u2sa_hw.cli"]
 KINDS = {"ground-sim", "ackermann-sim", "boat-sim", "sticks", "rc-loss", "gps-fix-loss", "manual-switch",
-         "restart", "mid-run", "killed-recovered", "mock-run"}
-MID_RUN = {"mid-run", "killed-recovered"}   # recordings started while the stack drove
+         "restart", "mid-run", "killed-recovered", "mid-drive", "mock-run"}
+MID_RUN = {"mid-run", "killed-recovered", "mid-drive"}   # recordings started while the stack ran
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +43,7 @@ def replay_check(directory: Path, cwd: Path) -> tuple[subprocess.CompletedProces
     return done, {Path(r["log"]).stem: r for r in json.loads(done.stdout)}
 
 
-@pytest.mark.timeout(1200)   # the corpus fixture builds eleven runs first (about a minute on 2 quiet cores)
+@pytest.mark.timeout(1200)   # the corpus fixture builds twelve recordings first (about a minute on 2 quiet cores)
 def test_every_recording_of_the_corpus_replays_same(corpus: dict[str, Path], tmp_path: Path) -> None:
     assert set(corpus) == KINDS and len(corpus) >= 10
     logs = next(iter(corpus.values())).parent
@@ -61,6 +62,11 @@ def test_every_recording_of_the_corpus_replays_same(corpus: dict[str, Path], tmp
         driver = Bno055ImuDriver if name == "boat-sim" else Mpu9250ImuDriver   # the boat's IMU is a BNO055
         whole = i2c_setup_recorded(LogFile(corpus[name]), "imu", identity_register=driver.IDENTITY_REGISTER)
         assert (name in noted) == (not whole), (name, r["notes"])
+        # a log begun with the RC mux armed in autonomous mode leaves the mux out, and says so (the actuators get
+        # its recorded RC_MODE); the one started under autonomy is such a log
+        armed = autonomy_armed_at_start(LogFile(corpus[name]), "rc", start_ns=0)
+        assert any("armed in autonomous mode" in n for n in r["notes"]) == armed, (name, r["notes"])
+        assert armed == (name == "mid-drive"), name
     # only the recorders started while the stack drove can begin after the IMU's set-up (on a loaded machine
     # they may start before it: then nothing is left out, and the rule above says so)
     assert noted <= MID_RUN, noted

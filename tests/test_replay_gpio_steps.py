@@ -225,3 +225,20 @@ def test_the_replayed_mux_judges_a_borderline_look_as_the_live_one_did(tmp_path:
     for stamp in steps:
         kept.take_tick(stamp, step=True, host_ns=0)
     assert steps and kept.filter.mode == MODE_AUTONOMOUS
+
+
+def test_in_a_log_with_looks_the_silence_ticks_stop_where_the_looks_take_over(tmp_path: Path) -> None:
+    """After the last edge the live loop's looks past CLOCK_READ_AFTER_NS are in the log; a live loop that stopped
+    looking (its service stopping) must not be timed out in its place by ticks running on to its last output."""
+    path = tmp_path / "looks.mcap"
+    looked = record_borderline_log(path, looks=True)
+    device = ReplayGpioDevice(name="rc", socket_path=tmp_path / "gpio.sock", service="rc")
+    device.preload(path, start_ns=0, end_ns=2 ** 63 - 1)
+    last_edge = frame_edges(FRAMES - 1)[-1][0]
+    ticks = [tick.kernel_timestamp_ns for _, tick in device.clock_ticks()]
+    assert ticks and max(ticks) - last_edge <= STEP_SILENCE_NS < looked - last_edge
+    # a log without looks keeps its ticks to the driver's last output
+    record_borderline_log(tmp_path / "old.mcap", looks=False)
+    old = ReplayGpioDevice(name="rc", socket_path=tmp_path / "gpio2.sock", service="rc")
+    old.preload(tmp_path / "old.mcap", start_ns=0, end_ns=2 ** 63 - 1)
+    assert max(tick.kernel_timestamp_ns for _, tick in old.clock_ticks() if not tick.step) - last_edge > STEP_SILENCE_NS
