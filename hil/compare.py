@@ -24,7 +24,10 @@ carries uptime and CPU) or raw device I/O (``RAW.*``). For each stream:
   message and in the recording's last second was made of input whose live output the recording
   ended before: a note too (``after_cut``). An unpaired message of a run of equal messages (sticks
   held still) may be any of the run's - the alignment names the run's last - so the held-up
-  windows and verdict changes below are judged over its whole run.
+  windows and verdict changes below are judged over its whole run. A stream already flowing as the
+  recording began (``flowing_at_start``) settles at its first match: what differs before it, within
+  a second, was made partly of input before the cut (a note). An RC mux whose first recorded RC_MODE
+  is decided (``mux_decided_before``): its replayed start-up before it decides is a note.
 - fields: every field from ``enumerate_fields`` except the header's ``timestamp_us`` and
   ``sequence`` (and ``ignore`` patterns), floats equal within their field's tolerance
   (:class:`Tolerances`: a default and per-field globs, from ``--tolerances FILE``; absolute, or
@@ -73,7 +76,7 @@ from u2sa_hw.recording.log_reader import LogFile
 
 from u2sa_hw.hil.compare_report import CompareReport
 from u2sa_hw.hil.compare_states import compare_states
-from u2sa_hw.hil.compare_stream import begun_after_start, compare_stream
+from u2sa_hw.hil.compare_stream import begun_after_start, compare_stream, flowing_at_start, mux_decided_before
 from u2sa_hw.hil.compare_values import OUTPUT_RAW_TYPES, STATE_CHANNELS, Sample, ToleranceLike, as_tolerances
 from u2sa_hw.hil.held_up import HeldWindow
 from u2sa_hw.hil.player import header_source
@@ -106,6 +109,11 @@ def load_streams(path: Path | str, *, sources: set[str], start_ns: int | None = 
     return streams
 
 
+def source(key: str) -> str:
+    """The source service of a stream key (``"STATE_INFO [gps]"`` -> ``gps``)."""
+    return key.rsplit(" [", 1)[1][:-1]
+
+
 def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[str], start_ns: int | None = None,
                  end_ns: int | None = None, rate: float | None = 1.0, tolerance: ToleranceLike = 1e-6, edge: int = 1,
                  time_tolerance_s: float = 0.5, ignore: tuple[str, ...] = (),
@@ -128,6 +136,8 @@ def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[st
     origin = start_ns if start_ns is not None else min((v[0].t_ns for v in rec.values() if v), default=0)
     recording_end = max((v[-1].t_ns for v in rec.values() if v), default=None)
     windows = held or {}
+    # the RC muxes whose recording began after they had decided their mode (their first RC_MODE says so)
+    decided = {source(key) for key, samples in rec.items() if key.startswith("RC_MODE [") and mux_decided_before(samples)}
     reports = []
     for key in sorted(set(rec) | set(rep)):
         a, b = rec.get(key, []), rep.get(key, [])
@@ -138,11 +148,13 @@ def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[st
         else:
             reports.append(compare_stream(key, a, b, tolerance=tol, edge=edge, rate=rate,
                                           time_tolerance_s=time_tolerance_s, replay_start_ns=replay_start_ns,
-                                          origin_ns=origin, held=windows.get(key.rsplit(" [", 1)[1][:-1], ()),
-                                          started_before=begun_after_start(a), recording_end_ns=recording_end))
-    recorded_sources = {key.rsplit(" [", 1)[1] for key in rec}
+                                          origin_ns=origin, held=windows.get(source(key), ()),
+                                          started_before=begun_after_start(a), recording_end_ns=recording_end,
+                                          decided_before=source(key) in decided,
+                                          flowing=flowing_at_start(a, start_ns if start_ns is not None else origin)))
+    recorded_sources = {source(key) for key in rec}
     for r in reports:
-        if not r.recorded and r.key.rsplit(" [", 1)[1] not in recorded_sources:
+        if not r.recorded and source(r.key) not in recorded_sources:
             # a service that was not running (or not recorded) in the log: nothing to compare with
             r.problems.clear()
             r.notes.append("the recording has nothing from this service to compare with")

@@ -16,8 +16,8 @@ from typing import Any, Sequence
 
 from u2sa_hw.messages import ABSENT
 
-from u2sa_hw.hil.compare_values import (SYSTEM_FIELDS, Sample, ToleranceLike, Tolerances, as_tolerances,
-                                        differing_fields, values_equal)
+from u2sa_hw.hil.compare_values import (KEPT_BY_VERDICT, SYSTEM_FIELDS, Sample, ToleranceLike, Tolerances,
+                                        as_tolerances, differing_fields, values_equal)
 from u2sa_hw.hil.held_up import STOP_WINDOW_END, HeldWindow
 from u2sa_hw.hil.stream_align import Pair, align_streams, content_key
 
@@ -99,20 +99,33 @@ def align(rec: list[Sample], rep: list[Sample], *, tolerance: ToleranceLike,
 def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance: ToleranceLike, edge: int,
                    rate: float | None, time_tolerance_s: float, replay_start_ns: int | None = None,
                    origin_ns: int | None = None, held: Sequence[HeldWindow] = (),
-                   started_before: bool = False, recording_end_ns: int | None = None) -> StreamReport:
+                   started_before: bool = False, recording_end_ns: int | None = None,
+                   decided_before: bool = False, flowing: bool = False) -> StreamReport:
     """Compare one stream (see the module docstring); *replay_start_ns*: when the playback began; *origin_ns*:
     the log time notes count seconds from (default the stream's first recorded message); *held*: where the
     recording machine held the stream's service up (hil/held_up.py): what differs there is a note;
     *started_before*: the recording began after the stream's driver started (:func:`begun_after_start`),
     so the replayed start-up writes before the first recorded one are a note; *recording_end_ns*: the recorded
     side's last message (log time): a replayed message at the stream's end made of input the live driver read in
-    the recording's last TAIL_CUT_NS and after its stream's last recorded message is a note (:func:`after_cut`)."""
+    the recording's last TAIL_CUT_NS and after its stream's last recorded message is a note (:func:`after_cut`);
+    *decided_before*: a stream of an RC mux that had decided its mode before the recording began
+    (:func:`mux_decided_before`): the replayed mux comes out of "no signal" and needs its debounce frames to decide,
+    so what is unpaired before the first pair (or in a run of equal messages that begins the stream), and its
+    start-up enable write when the recording has none, is a note; *flowing*: the stream was flowing when the
+    recording began (:func:`flowing_at_start`): what differs or is unpaired before its first matched pair, within
+    START_CUT_NS of its first message, was made partly of input the live driver read before the cut (a wheel
+    sample pending in the odometry's pairing) and is a note."""
     r = StreamReport(key, len(rec), len(rep))
+    if decided_before and rep and not rec:
+        r.notes.append(f"{len(rep)} replayed message(s), none recorded: the replayed mux's start-up (its enable line "
+                       "requested low), which the live one had done before the recording began")
+        return r
     if not rec or not rep:
         r.problems.append("only in the replay" if rep else "not reproduced by the replay")
         return r
     tol = as_tolerances(tolerance)
-    system = SYSTEM_FIELDS.get(key.split(" [", 1)[0], ())
+    channel = key.split(" [", 1)[0]
+    system = SYSTEM_FIELDS.get(channel, ())
     keys = content_keys(rec, tol, system), content_keys(rep, tol, system)
     pairs = align(rec, rep, tolerance=tol, skip=system, keys=keys)
     paired = [(p.rec, p.rep) for p in pairs if p.rec is not None and p.rep is not None]
@@ -130,10 +143,20 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
                  and partial(rec[i], rep[j], names)}
     last_rec_t = rec[0].t_ns
     startup = 0   # replayed start-up writes the recording began after (started_before)
+    deciding = 0   # unpaired while the replayed mux decided what the live one had before the cut (decided_before)
+    first_decided = next((j for j, b in enumerate(rep) if mux_decided_before([b])), 0) if decided_before else 0
     tail_cut = 0   # replayed messages made of input whose live output the recording ended before
     last_pair = max((k for k, p in enumerate(pairs) if p.kind in ("match", "differ")), default=-1)
     paired_yet = False
+    # flowing: the pairs before the first match, while within START_CUT_NS of the stream's start, are the cut's
+    settled = next((k for k, p in enumerate(pairs) if p.kind == "match"), len(pairs)) if flowing else 0
+    before_match = {k for k in range(settled) if _recorded_time(pairs, k, rec) - rec[0].t_ns <= START_CUT_NS}
+    cut_differ = {(pairs[k].rec, pairs[k].rep) for k in before_match if pairs[k].kind == "differ"}
+    at_start = len(cut_differ)
     for k, p in enumerate(pairs):
+        if k in before_match and p.kind in ("deleted", "inserted"):
+            at_start += 1
+            continue
         if p.rec is not None:
             last_rec_t = rec[p.rec].t_ns
         if p.kind in ("match", "differ"):
@@ -144,6 +167,9 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
             continue
         own, index = (rec, p.rec) if p.kind == "deleted" else (rep, p.rep)
         assert index is not None
+        if decided_before and (not paired_yet or 0 in runs[0 if p.kind == "deleted" else 1][index]):
+            deciding += 1
+            continue
         if p.kind == "inserted" and k > last_pair and after_cut(rep[index], rec[-1], recording_end_ns):
             tail_cut += 1
             continue
@@ -165,7 +191,7 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
             times = [last_rec_t, after, *(rec[rec_of_rep[m]].t_ns for m in run if m in rec_of_rep)]
         if _in_held(held, times, held_seen):
             continue
-        if system and _system_change_left(own, run, system, changes_used):
+        if system and _system_change_left(own, run, system, changes_used, kept=KEPT_BY_VERDICT.get(channel, ())):
             # published because a pre-arm verdict changed, which the rest of the system decides: where the
             # replay's verdict changes is a note like the verdicts themselves (a timed or device-driven
             # message away from a verdict change still counts)
@@ -190,6 +216,11 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
                 system_diffs[name] = system_diffs.get(name, 0) + 1
             names = [n for n in names if n not in system]
         at_edge = i in rec_edge or j in rep_edge
+        if names and (i, j) in cut_differ:
+            continue   # counted in at_start
+        if names and decided_before and j < first_decided:
+            deciding += 1   # the replayed mux still at "no signal" beside the live one's decided mode
+            continue
         if names and at_edge and partial(a, b, names):
             cut.append(_cut_note(a, b, i, start=i < edge or j < edge, origin_ns=origin_ns or rec[0].t_ns))
             continue
@@ -237,6 +268,14 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
         r.notes.append(f"{tail_cut} replayed message(s) at the end made of input the live driver read after its "
                        f"last recorded message and in the recording's last {TAIL_CUT_NS / 1e9:g} s: the recording "
                        "ended before their live counterparts were published (the cut at the end)")
+    if at_start:
+        r.notes.append(f"{at_start} message(s) different or on one side only before the stream's first match, within "
+                       f"{START_CUT_NS / 1e9:g} s of its start: the recording began while it flowed, and the live "
+                       "driver's first messages were made partly of input it had read before the cut")
+    if deciding:
+        r.notes.append(f"{deciding} message(s) on one side only or different while the replayed mux decided its mode: "
+                       "the recording began after the live mux had decided (its first RC_MODE is not 'no signal'), and "
+                       "a mux coming out of 'no signal' needs its debounce frames")
     if startup:
         r.notes.append(f"{startup} replayed start-up write(s) before the first recorded one: the recording began "
                        "after the live driver had started (its first recorded write already drives the output)")
@@ -249,6 +288,26 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
         r.notes.append(f"{n} difference(s) between t={(w.from_ns - origin) / 1e9:.2f} and {(w.to_ns - origin) / 1e9:.2f} s, "
                        f"where the recording machine held {w.service} up ({w.why} in its health); shown, not counted")
     return r
+
+
+START_CUT_NS = 1_000_000_000   # how long after a flowing stream's start the live driver's state at the cut may show
+
+
+def flowing_at_start(rec: list[Sample], recording_start_ns: int | None) -> bool:
+    """True when *rec* was already flowing as the recording began: its first message came within two of its own
+    periods (the median of its first intervals) of the recording's start, not after a driver's start-up."""
+    if recording_start_ns is None or len(rec) < 3:
+        return False
+    gaps = sorted(b.t_ns - a.t_ns for a, b in zip(rec[:9], rec[1:10]))
+    return rec[0].t_ns - recording_start_ns <= 2 * gaps[len(gaps) // 2]
+
+
+def _recorded_time(pairs: list[Pair], k: int, rec: list[Sample]) -> int:
+    """The log time of the recorded message of ``pairs[k]``, or of the recorded one before it (an insertion)."""
+    for q in reversed(pairs[:k + 1]):
+        if q.rec is not None:
+            return rec[q.rec].t_ns
+    return rec[0].t_ns
 
 
 # How long before the recording's end input may have been read whose live output the recording does not hold
@@ -265,6 +324,14 @@ def after_cut(replayed: Sample, last_recorded: Sample, recording_end_ns: int | N
         return False
     return (last_recorded.stamp_ns < replayed.stamp_ns <= recording_end_ns
             and replayed.stamp_ns >= recording_end_ns - TAIL_CUT_NS)
+
+
+def mux_decided_before(rec_mode: list[Sample]) -> bool:
+    """True when an RC mux's recorded RC_MODE stream (*rec_mode*) begins with a decided mode: the recording began
+    after the live mux had come out of "no signal"."""
+    from u2sa_hw.drivers.rc_mux.pulse import MODE_NO_SIGNAL
+
+    return bool(rec_mode) and rec_mode[0].fields.get("mode") not in (None, MODE_NO_SIGNAL)
 
 
 def begun_after_start(rec: list[Sample]) -> bool:
@@ -362,11 +429,12 @@ def _cut_note(a: Sample, b: Sample, index: int, *, start: bool, origin_ns: int) 
 
 
 def _system_change_left(stream: list[Sample], run: list[int], system: tuple[str, ...],
-                        used: dict[tuple[int, int], int]) -> bool:
+                        used: dict[tuple[int, int], int], *, kept: tuple[str, ...] = ()) -> bool:
     """True (and taken) when the run of equal messages *run* of *stream* holds a verdict change not yet taken
-    by another unpaired message of it: each change is published at once, one message per change at most."""
+    by another unpaired message of it: each change is published at once, one message per change at most. A
+    change counts where two messages differ in a *system* field and in none of *kept* (KEPT_BY_VERDICT)."""
     changes = sum(1 for k in range(max(0, run[0] - 1), min(len(stream) - 1, run[-1] + 1))
-                  if _differs(stream[k], stream[k + 1], system))
+                  if _differs(stream[k], stream[k + 1], system) and not _differs(stream[k], stream[k + 1], kept))
     key = (id(stream), run[0] if run else -1)
     if used.get(key, 0) >= changes:
         return False

@@ -21,6 +21,9 @@ STATE_CHANNELS = ("RC_MODE", "MANUAL_CMD")         # published on a timer and on
 SYSTEM_FIELDS: dict[str, tuple[str, ...]] = {
     "RC_MODE": ("autonomy_enabled", "armed", "hold", "blocked_by", "select_mismatch"),
 }
+# Fields a verdict change never changes: a message published for a verdict change has them as its neighbour does
+# (an unpaired RC_MODE whose mode differs from both neighbours, a spurious "no signal", was published for the mode)
+KEPT_BY_VERDICT: dict[str, tuple[str, ...]] = {"RC_MODE": ("mode",)}
 OUTPUT_RAW_TYPES = ("RawGpioWrite", "RawPwmWrite")  # raw records of what a driver drives (compared)
 
 

@@ -145,3 +145,25 @@ def test_replayed_messages_of_input_read_after_the_last_recorded_output_are_the_
     r = compare_stream("STATE_INFO [compass]", rec, rep[:10] + late, tolerance=1e-6, edge=0, rate=None,
                        time_tolerance_s=0.5, recording_end_ns=end)
     assert r.inserted == 1 and not r.ok
+
+
+def odometry(k: int, speed: float) -> Sample:
+    return Sample(1_000_000_000 + k * 20_000_000, "StateInformation", {"x_dot": speed, "psi_dot": 0.0})
+
+
+def test_a_stream_flowing_as_the_recording_began_settles_at_its_first_match() -> None:
+    """A recording begun while the wheels turned: the live odometry's first pair held a wheel sample read before
+    the cut, the replay pairs that wheel's next one. What differs before the first match, within a second of the
+    start, is the cut; the same difference later, or in a stream that began after the recording did, counts."""
+    from u2sa_hw.hil.compare_stream import flowing_at_start
+
+    rec = [odometry(k, 2.0 + k / 100) for k in range(50)]
+    rep = [odometry(0, 2.09), odometry(1, 1.97)] + rec[2:]
+    assert flowing_at_start(rec, rec[0].t_ns - 10_000_000) and not flowing_at_start(rec, rec[0].t_ns - 1_000_000_000)
+    kwargs = dict(tolerance=1e-6, edge=0, rate=None, time_tolerance_s=0.5)
+    r = compare_stream("STATE_INFO [wheels]", rec, rep, flowing=True, **kwargs)
+    assert r.ok and r.matched == 48, (r.problems, r.notes)
+    assert any("before the stream's first match" in n for n in r.notes)
+    assert not compare_stream("STATE_INFO [wheels]", rec, rep, **kwargs).ok
+    later = rec[:10] + [odometry(10, 9.0)] + rec[11:]   # after the first match: a difference
+    assert compare_stream("STATE_INFO [wheels]", rec, later, flowing=True, **kwargs).differing == 1

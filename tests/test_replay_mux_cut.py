@@ -49,3 +49,33 @@ def test_only_a_first_rc_mode_armed_in_autonomous_mode_is_a_mux_armed_before_the
     assert not autonomy_armed_at_start(later, "rc", start_ns=0)
     assert autonomy_armed_at_start(later, "rc", start_ns=3 * S)
     assert not autonomy_armed_at_start(later, "other", start_ns=0)   # no message of that service at all
+
+
+def mode_sample(k: int, mode: int, steering: int) -> "Sample":
+    from u2sa_hw.hil.compare_values import Sample
+
+    return Sample(S + k * 40_000_000, "RcMode", {"mode": mode, "armed": mode == MODE_MANUAL,
+                                                 "pulse_us": (1500, steering, 1000)})
+
+
+def test_a_recording_begun_after_the_mux_decided_notes_the_replayed_muxs_decision_start_up() -> None:
+    """Begun while the pilot drove in manual: the replayed mux comes out of "no signal" and needs its debounce
+    frames (its first RC_MODE say "no signal"), and requests its enable line low once, which the recording holds
+    none of. Those are notes; the same replayed stream against a recording that begins at "no signal" differs."""
+    from u2sa_hw.hil.compare_stream import compare_stream, mux_decided_before
+
+    rec = [mode_sample(k, MODE_MANUAL, 1500 + 10 * k) for k in range(20)]
+    rep = [mode_sample(k, MODE_NO_SIGNAL, 0) for k in range(3)] + rec
+    assert mux_decided_before(rec) and not mux_decided_before(rep)
+    kwargs = dict(tolerance=1e-6, edge=0, rate=None, time_tolerance_s=0.5)
+    r = compare_stream("RC_MODE [rc]", rec, rep, decided_before=True, **kwargs)
+    assert r.ok and r.matched == 20, (r.problems, r.notes)
+    assert any("while the replayed mux decided its mode" in n for n in r.notes)
+    assert not compare_stream("RC_MODE [rc]", rec, rep, **kwargs).ok
+    # the same replayed mux's start later in the stream (a signal loss the live one did not have) still counts
+    late = rec[:10] + [mode_sample(10, MODE_NO_SIGNAL, 0)] + rec[10:]
+    assert not compare_stream("RC_MODE [rc]", rec, late, decided_before=True, **kwargs).ok
+    write = mode_sample(0, MODE_MANUAL, 0)
+    r = compare_stream("RAW.rc [rc]", [], [write], decided_before=True, **kwargs)
+    assert r.ok and "start-up" in r.notes[0]
+    assert not compare_stream("RAW.rc [rc]", [], [write], **kwargs).ok
