@@ -76,7 +76,8 @@ from u2sa_hw.recording.log_reader import LogFile
 
 from u2sa_hw.hil.compare_report import CompareReport
 from u2sa_hw.hil.compare_states import compare_states
-from u2sa_hw.hil.compare_stream import begun_after_start, compare_stream, flowing_at_start, mux_decided_before
+from u2sa_hw.hil.compare_cuts import begun_after_start, flowing_at_start, mux_decided_before
+from u2sa_hw.hil.compare_stream import compare_stream
 from u2sa_hw.hil.compare_values import OUTPUT_RAW_TYPES, STATE_CHANNELS, Sample, ToleranceLike, as_tolerances
 from u2sa_hw.hil.held_up import HeldWindow
 from u2sa_hw.hil.player import header_source

@@ -14,15 +14,12 @@ import statistics
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
-from u2sa_hw.messages import ABSENT
-
 from u2sa_hw.hil.compare_values import (KEPT_BY_VERDICT, SYSTEM_FIELDS, Sample, ToleranceLike, Tolerances,
                                         as_tolerances, differing_fields, values_equal)
+from u2sa_hw.hil.compare_cuts import (START_CUT_NS, TAIL_CUT_NS, after_cut, cut_note, mux_decided_before, partial,
+                                      recorded_time, rest_of_cut)
 from u2sa_hw.hil.held_up import STOP_WINDOW_END, HeldWindow
 from u2sa_hw.hil.stream_align import Pair, align_streams, content_key
-
-SHOWN_FIELDS = 8
-
 
 @dataclass
 class FieldDiff:
@@ -150,7 +147,7 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
     paired_yet = False
     # flowing: the pairs before the first match, while within START_CUT_NS of the stream's start, are the cut's
     settled = next((k for k, p in enumerate(pairs) if p.kind == "match"), len(pairs)) if flowing else 0
-    before_match = {k for k in range(settled) if _recorded_time(pairs, k, rec) - rec[0].t_ns <= START_CUT_NS}
+    before_match = {k for k in range(settled) if recorded_time(pairs, k, rec) - rec[0].t_ns <= START_CUT_NS}
     cut_differ = {(pairs[k].rec, pairs[k].rep) for k in before_match if pairs[k].kind == "differ"}
     at_start = len(cut_differ)
     for k, p in enumerate(pairs):
@@ -176,7 +173,7 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
         if index in (rec_edge if p.kind == "deleted" else rep_edge):
             at_edges.append(p.kind)
             continue
-        if _rest_of_cut(pairs, k, cut_pairs, rec, rep, tol):
+        if rest_of_cut(pairs, k, cut_pairs, rec, rep, tol):
             # the other part of an epoch the cut split in two (its partial pair is beside it)
             at_edges.append(p.kind)
             continue
@@ -222,7 +219,7 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
             deciding += 1   # the replayed mux still at "no signal" beside the live one's decided mode
             continue
         if names and at_edge and partial(a, b, names):
-            cut.append(_cut_note(a, b, i, start=i < edge or j < edge, origin_ns=origin_ns or rec[0].t_ns))
+            cut.append(cut_note(a, b, i, start=i < edge or j < edge, origin_ns=origin_ns or rec[0].t_ns))
             continue
         if names and _in_held(held, [a.t_ns], held_seen):
             continue
@@ -290,57 +287,6 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
     return r
 
 
-START_CUT_NS = 1_000_000_000   # how long after a flowing stream's start the live driver's state at the cut may show
-
-
-def flowing_at_start(rec: list[Sample], recording_start_ns: int | None) -> bool:
-    """True when *rec* was already flowing as the recording began: its first message came within two of its own
-    periods (the median of its first intervals) of the recording's start, not after a driver's start-up."""
-    if recording_start_ns is None or len(rec) < 3:
-        return False
-    gaps = sorted(b.t_ns - a.t_ns for a, b in zip(rec[:9], rec[1:10]))
-    return rec[0].t_ns - recording_start_ns <= 2 * gaps[len(gaps) // 2]
-
-
-def _recorded_time(pairs: list[Pair], k: int, rec: list[Sample]) -> int:
-    """The log time of the recorded message of ``pairs[k]``, or of the recorded one before it (an insertion)."""
-    for q in reversed(pairs[:k + 1]):
-        if q.rec is not None:
-            return rec[q.rec].t_ns
-    return rec[0].t_ns
-
-
-# How long before the recording's end input may have been read whose live output the recording does not hold
-# (a serial driver publishes an epoch at its last sentence or at the silence after it: well under this)
-TAIL_CUT_NS = 1_000_000_000
-
-
-def after_cut(replayed: Sample, last_recorded: Sample, recording_end_ns: int | None) -> bool:
-    """True for a replayed message made of input the live driver read after its stream's last recorded message
-    and within TAIL_CUT_NS of the recording's end: its header time is that input's recorded time (a driver on a
-    replay's device clock stamps its messages with it) and falls between the two. A replayed message stamped on
-    the replaying machine's clock is later than the recording's end, so this never holds for it."""
-    if recording_end_ns is None or replayed.stamp_ns is None or last_recorded.stamp_ns is None:
-        return False
-    return (last_recorded.stamp_ns < replayed.stamp_ns <= recording_end_ns
-            and replayed.stamp_ns >= recording_end_ns - TAIL_CUT_NS)
-
-
-def mux_decided_before(rec_mode: list[Sample]) -> bool:
-    """True when an RC mux's recorded RC_MODE stream (*rec_mode*) begins with a decided mode: the recording began
-    after the live mux had come out of "no signal"."""
-    from u2sa_hw.drivers.rc_mux.pulse import MODE_NO_SIGNAL
-
-    return bool(rec_mode) and rec_mode[0].fields.get("mode") not in (None, MODE_NO_SIGNAL)
-
-
-def begun_after_start(rec: list[Sample]) -> bool:
-    """True for a PWM output stream whose first recorded write already has the output enabled: a driver
-    starts its outputs disabled (duty 0, then neutral) before it enables them, so the recording began
-    after the live driver's start-up, which the replayed driver does again."""
-    return bool(rec) and rec[0].type_name == "RawPwmWrite" and bool(rec[0].fields.get("enabled"))
-
-
 def _in_held(held: Sequence[HeldWindow], times_ns: Sequence[int], seen: dict[HeldWindow, int]) -> bool:
     """Whether one of the log times *times_ns* is in a held-up window (counted once in *seen*)."""
     for w in held:
@@ -380,52 +326,6 @@ def edge_positions(samples: list[Sample], edge: int) -> set[int]:
     for k, sample in enumerate(samples):
         groups.setdefault(sample.fields.get(PER_ACTUATOR), []).append(k)
     return {k for ks in groups.values() for k in (ks[:edge] + ks[-edge:] if edge else [])}
-
-
-def partial(a: Sample, b: Sample, names: list[str]) -> bool:
-    """True when *a* and *b* differ only in which fields they hold (*names*: the differing fields): each
-    is ``presence_vector`` or a field one of them leaves out, and at least one is such a field. Every
-    field both hold is then equal: one message holds part of the other's epoch."""
-    if a.type_name != b.type_name:
-        return False
-    held = [n for n in names if n != "presence_vector"]
-    return bool(held) and all(a.fields.get(n) is ABSENT or b.fields.get(n) is ABSENT for n in held)
-
-
-def _rest_of_cut(pairs: list[Pair], k: int, cut_pairs: set[tuple[int, int]], rec: list[Sample],
-                 rep: list[Sample], tol: Tolerances) -> bool:
-    """True when the unpaired message ``pairs[k]`` is beside a partial pair at a cut and holds part of the
-    same epoch: every field it holds is held, equal, by that pair's message on the other side."""
-    p = pairs[k]
-    for q in (pairs[k - 1] if k else None, pairs[k + 1] if k + 1 < len(pairs) else None):
-        if q is None or q.rec is None or q.rep is None or (q.rec, q.rep) not in cut_pairs:
-            continue
-        mine, other = (rec[p.rec], rep[q.rep]) if p.kind == "deleted" else (rep[p.rep], rec[q.rec])  # type: ignore[index]
-        if mine.type_name == other.type_name and all(
-                other.fields.get(n) is not ABSENT and values_equal(v, other.fields.get(n), tol.of(n))
-                for n, v in mine.fields.items() if v is not ABSENT and n != "presence_vector"):
-            return True
-    return False
-
-
-def _cut_note(a: Sample, b: Sample, index: int, *, start: bool, origin_ns: int) -> str:
-    """The note for a partial message at a cut: which side holds which fields, and where the cut is."""
-    only_rec = [n for n, v in a.fields.items() if v is not ABSENT and b.fields.get(n) is ABSENT]
-    only_rep = [n for n, v in b.fields.items() if v is not ABSENT and a.fields.get(n) is ABSENT]
-
-    def names(fields: list[str]) -> str:
-        return ", ".join(fields[:SHOWN_FIELDS]) + (f" (+{len(fields) - SHOWN_FIELDS})" if len(fields) > SHOWN_FIELDS
-                                                   else "")
-
-    held = "; ".join(part for part in (f"only the recorded one holds {names(only_rec)}" if only_rec else "",
-                                       f"only the replayed one holds {names(only_rep)}" if only_rep else "") if part)
-    where = ("at the start of the stream: the recording begins inside the epoch or burst of input this message "
-             "was made of (the live driver had read its first part before), or the live driver, held up as it "
-             "started, read it in two parts with a gap the log cannot tell from a silence" if start else
-             "at the end of the stream: the recording ends inside the epoch or burst of input this message was "
-             "made of")
-    return (f"cut: recorded #{index} at t={(a.t_ns - origin_ns) / 1e9:.3f} s and its replay hold part of one epoch each ({held}; every "
-            f"field both hold is equal), {where}: a note, not a difference")
 
 
 def _system_change_left(stream: list[Sample], run: list[int], system: tuple[str, ...],

@@ -6,7 +6,8 @@ value) is still a difference, and so is a partial message away from the edges.""
 
 from __future__ import annotations
 
-from u2sa_hw.hil.compare_stream import begun_after_start, compare_stream
+from u2sa_hw.hil.compare_cuts import begun_after_start
+from u2sa_hw.hil.compare_stream import compare_stream
 from u2sa_hw.hil.compare_values import Sample
 from u2sa_hw.lcmtypes import StateInformation
 from u2sa_hw.messages import enumerate_fields
@@ -155,7 +156,7 @@ def test_a_stream_flowing_as_the_recording_began_settles_at_its_first_match() ->
     """A recording begun while the wheels turned: the live odometry's first pair held a wheel sample read before
     the cut, the replay pairs that wheel's next one. What differs before the first match, within a second of the
     start, is the cut; the same difference later, or in a stream that began after the recording did, counts."""
-    from u2sa_hw.hil.compare_stream import flowing_at_start
+    from u2sa_hw.hil.compare_cuts import flowing_at_start
 
     rec = [odometry(k, 2.0 + k / 100) for k in range(50)]
     rep = [odometry(0, 2.09), odometry(1, 1.97)] + rec[2:]

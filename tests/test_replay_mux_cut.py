@@ -10,6 +10,7 @@ from pathlib import Path
 
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.drivers.rc_mux.pulse import MODE_AUTONOMOUS, MODE_MANUAL, MODE_NO_SIGNAL
+from u2sa_hw.hil.compare_values import Sample
 from u2sa_hw.hil.replay_plan import autonomy_armed_at_start
 from u2sa_hw.recording.log_reader import LogFile
 from u2sa_hw.recording.mcap_log import McapLogWriter
@@ -51,9 +52,7 @@ def test_only_a_first_rc_mode_armed_in_autonomous_mode_is_a_mux_armed_before_the
     assert not autonomy_armed_at_start(later, "other", start_ns=0)   # no message of that service at all
 
 
-def mode_sample(k: int, mode: int, steering: int) -> "Sample":
-    from u2sa_hw.hil.compare_values import Sample
-
+def mode_sample(k: int, mode: int, steering: int) -> Sample:
     return Sample(S + k * 40_000_000, "RcMode", {"mode": mode, "armed": mode == MODE_MANUAL,
                                                  "pulse_us": (1500, steering, 1000)})
 
@@ -62,7 +61,8 @@ def test_a_recording_begun_after_the_mux_decided_notes_the_replayed_muxs_decisio
     """Begun while the pilot drove in manual: the replayed mux comes out of "no signal" and needs its debounce
     frames (its first RC_MODE say "no signal"), and requests its enable line low once, which the recording holds
     none of. Those are notes; the same replayed stream against a recording that begins at "no signal" differs."""
-    from u2sa_hw.hil.compare_stream import compare_stream, mux_decided_before
+    from u2sa_hw.hil.compare_cuts import mux_decided_before
+    from u2sa_hw.hil.compare_stream import compare_stream
 
     rec = [mode_sample(k, MODE_MANUAL, 1500 + 10 * k) for k in range(20)]
     rep = [mode_sample(k, MODE_NO_SIGNAL, 0) for k in range(3)] + rec
