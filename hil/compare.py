@@ -25,8 +25,8 @@ carries uptime and CPU) or raw device I/O (``RAW.*``). For each stream:
   ended before: a note too (``after_cut``). An unpaired message of a run of equal messages (sticks
   held still) may be any of the run's - the alignment names the run's last - so the held-up
   windows and verdict changes below are judged over its whole run. A stream already flowing as the
-  recording began (``flowing_at_start``) settles at its first match: what differs before it, within
-  a second, was made partly of input before the cut (a note). An RC mux whose first recorded RC_MODE
+  recording began (``flowing_at_start``) may show the live driver's state at the cut for a second:
+  what differs within it is a note. An RC mux whose first recorded RC_MODE
   is decided (``mux_decided_before``): its replayed start-up before it decides is a note.
 - fields: every field from ``enumerate_fields`` except the header's ``timestamp_us`` and
   ``sequence`` (and ``ignore`` patterns), floats equal within their field's tolerance

@@ -145,9 +145,9 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
     tail_cut = 0   # replayed messages made of input whose live output the recording ended before
     last_pair = max((k for k, p in enumerate(pairs) if p.kind in ("match", "differ")), default=-1)
     paired_yet = False
-    # flowing: the pairs before the first match, while within START_CUT_NS of the stream's start, are the cut's
-    settled = next((k for k, p in enumerate(pairs) if p.kind == "match"), len(pairs)) if flowing else 0
-    before_match = {k for k in range(settled) if recorded_time(pairs, k, rec) - rec[0].t_ns <= START_CUT_NS}
+    # flowing: the pairs within START_CUT_NS of the stream's start are the cut's (the live driver's state then)
+    before_match = {k for k in range(len(pairs)) if recorded_time(pairs, k, rec) - rec[0].t_ns <= START_CUT_NS} \
+        if flowing else set()
     cut_differ = {(pairs[k].rec, pairs[k].rep) for k in before_match if pairs[k].kind == "differ"}
     at_start = len(cut_differ)
     for k, p in enumerate(pairs):
@@ -266,9 +266,9 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
                        f"last recorded message and in the recording's last {TAIL_CUT_NS / 1e9:g} s: the recording "
                        "ended before their live counterparts were published (the cut at the end)")
     if at_start:
-        r.notes.append(f"{at_start} message(s) different or on one side only before the stream's first match, within "
-                       f"{START_CUT_NS / 1e9:g} s of its start: the recording began while it flowed, and the live "
-                       "driver's first messages were made partly of input it had read before the cut")
+        r.notes.append(f"{at_start} message(s) different or on one side only within {START_CUT_NS / 1e9:g} s of the "
+                       "stream's start: the recording began while it flowed, and what the live driver had read before "
+                       "the cut (a wheel sample waiting for its pair) shaped its first messages")
     if deciding:
         r.notes.append(f"{deciding} message(s) on one side only or different while the replayed mux decided its mode: "
                        "the recording began after the live mux had decided (its first RC_MODE is not 'no signal'), and "

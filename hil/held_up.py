@@ -36,7 +36,10 @@ from u2sa_hw.recording.log_reader import LogFile
 
 # service kind -> the health details that count the recording machine holding the service up
 # (``checks_lost``: a service's health came too late for a pre-arm check, on the recording machine's clock)
-HELD_UP_BY_KIND: dict[str, tuple[str, ...]] = {"rc_mux": ("stalls", "timed_skipped", "checks_lost")}
+# (a servo driver's ``rc_mode_stale``: its newest RC_MODE aged past the limit on its own clock - with the RC mux
+# running, its bus handling was held up, and it then took its backlog of commands and RC_MODEs late)
+HELD_UP_BY_KIND: dict[str, tuple[str, ...]] = {"rc_mux": ("stalls", "timed_skipped", "checks_lost"),
+                                               "pwm_servo": ("rc_mode_stale",)}
 # service kind -> the loop age (s, the contract health's ``loop_age_s``) past which its loop was held up when the
 # health was sent: a servo driver writes what the bus commands, in the order it takes its messages; held up, it
 # took a backlog of commands late and in another order against the RC mux's (issue 24, an Ackermann recording

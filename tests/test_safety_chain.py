@@ -75,6 +75,10 @@ def test_the_gate_reports_each_change_of_authority_once() -> None:
     gate.on_rc_mode(rc_mode(0), 0.3)
     assert gate.changed(0.3) is None
     assert gate.changed(0.6).source is None, "stale"
+    assert gate.stale_rc_modes == 1, "each change to a stale RC_MODE is counted (a replay's held-up window)"
+    assert gate.changed(0.7) is None and gate.stale_rc_modes == 1
+    gate.on_rc_mode(rc_mode(2), 0.8)   # no signal: neutral too, but not stale
+    assert gate.changed(0.8) is None and gate.stale_rc_modes == 1
     assert CommandGate(rc_mode_timeout_s=0.25, rc_gating=False).authority(0.0).source == AUTONOMOUS
 
 

@@ -263,7 +263,8 @@ class Actuator(U2SAService):
                 "dropped": self.gate.drops_text(), "authority": auth.source or "none",
                 "neutral_because": auth.why, "failsafe": self.failsafe_active,
                 "failsafe_sources": ",".join(sorted(self.failsafe_sources)),
-                "command_timed_out": self._timed_out, "rc_gating": self.gate.rc_gating}
+                "command_timed_out": self._timed_out, "rc_gating": self.gate.rc_gating,
+                "rc_mode_stale": self.gate.stale_rc_modes}
 
     def kill(self) -> None:
         """Neutral, then release; no command is obeyed after this neutral."""

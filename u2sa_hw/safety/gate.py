@@ -24,7 +24,10 @@ refreshes the dead-man. When the authority changes, the actuator goes neutral at
 setpoint of the old authority never outlives the switch. :attr:`CommandGate.rearms` counts
 the pilot's re-arms as heard: each RC_MODE that says manual and armed after one that did not
 (the switch moved through manual, or the RC mux armed there); a driver clears a watchdog trip
-its own stall caused only on a re-arm heard after the trip (drivers/can_motor/stall_trip.py). With ``rc_gating`` off (a bench
+its own stall caused only on a re-arm heard after the trip (drivers/can_motor/stall_trip.py).
+:attr:`CommandGate.stale_rc_modes` counts the changes to "RC_MODE stale": the RC service died or hung, or this
+service's own bus handling was held up (a loaded machine) - then it takes its backlog late, in order, and a
+replay of the log cannot reproduce that (hil/held_up.py reads the count). With ``rc_gating`` off (a bench
 without an RC receiver) only the failsafe gates autonomous commands; the actuator logs that
 at start, and a vehicle should never run that way.
 """
@@ -40,6 +43,7 @@ from u2sa_hw.failsafe import FailsafeSources
 MANUAL = "manual"
 AUTONOMOUS = "autonomous"
 RC_MODE_MANUAL, RC_MODE_AUTONOMOUS = 0, 1
+STALE = "RC_MODE stale"   # the reason an authority gives when the newest RC_MODE is too old
 
 
 @dataclass(frozen=True)
@@ -63,6 +67,7 @@ class CommandGate:
         self._lock = threading.Lock()
         self._current = Authority("start")  # so the first evaluation always counts as a change (-> neutral)
         self.rearms = 0
+        self.stale_rc_modes = 0   # changes of the authority to "RC_MODE stale"
 
     @staticmethod
     def _pilot_armed(msg: Any) -> bool:
@@ -88,7 +93,7 @@ class CommandGate:
             return Authority(None, "no RC_MODE yet")
         age = now - at
         if age > self.rc_mode_timeout_s:
-            return Authority(None, f"RC_MODE stale ({age * 1000:.0f} ms old): the RC service died or hung")
+            return Authority(None, f"{STALE} ({age * 1000:.0f} ms old): the RC service died or hung")
         if rc.mode == RC_MODE_MANUAL:
             return Authority(MANUAL)
         if rc.mode != RC_MODE_AUTONOMOUS:
@@ -109,6 +114,8 @@ class CommandGate:
                 self._current = new  # keep the newest reason without calling it a change
                 return None
             self._current = new
+            if new.source is None and new.why.startswith(STALE):
+                self.stale_rc_modes += 1
         return new
 
     @property
