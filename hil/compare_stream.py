@@ -184,7 +184,8 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
         if p.kind == "deleted":
             times = [rec[m].t_ns for m in run]
         else:   # between the recorded messages before and after it, or any paired with its run
-            after = next((rec[q.rec].t_ns for q in pairs[k + 1:] if q.rec is not None), rec[-1].t_ns)
+            after = next((rec[q.rec].t_ns for q in pairs[k + 1:] if q.rec is not None),
+                         max(rec[-1].t_ns, recording_end_ns or 0))   # none after it: up to the recording's end
             times = [last_rec_t, after, *(rec[rec_of_rep[m]].t_ns for m in run if m in rec_of_rep)]
         if _in_held(held, times, held_seen):
             continue

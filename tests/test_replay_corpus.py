@@ -60,10 +60,10 @@ def test_every_recording_of_the_corpus_replays_same(corpus: dict[str, Path], tmp
     assert set(results) == KINDS, done.stderr
     unclean = {name: (r["status"], r["summary"]) for name, r in results.items() if r["status"] != "same"}
     if unclean and servo_only(unclean, results):
-        # Recorded once more, and only this: a live servo driver held up at the end of a run wrote stale
-        # autonomous commands after it had gone neutral on the RC loss there (a live anomaly, seen in about 1 of
-        # 6 Ackermann builds, quiet or loaded; docs/replay.md "What may differ"), which the replay, obeying the
-        # mux, does not reproduce. Any other difference fails at once; the first verdict is in the message.
+        # Recorded once more, and only this: a live servo driver held up on its bus at the end of a run took its
+        # backlog of commands late (docs/replay.md "What may differ"), which the replay, taking them on time, does
+        # not reproduce; its health's rc_mode_stale makes that a note, but a stall between two health messages
+        # may not show. Any other difference fails at once; the first verdict is in the failure message.
         first = dict(unclean)
         build_corpus(logs, only={"ackermann"})
         done, results = replay_check(logs, tmp_path)
