@@ -109,9 +109,9 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
     (:func:`mux_decided_before`): the replayed mux comes out of "no signal" and needs its debounce frames to decide,
     so what is unpaired before the first pair (or in a run of equal messages that begins the stream), and its
     start-up enable write when the recording has none, is a note; *flowing*: the stream was flowing when the
-    recording began (:func:`flowing_at_start`): what differs or is unpaired before its first matched pair, within
-    START_CUT_NS of its first message, was made partly of input the live driver read before the cut (a wheel
-    sample pending in the odometry's pairing) and is a note."""
+    recording began (:func:`flowing_at_start`): what differs or is unpaired within START_CUT_NS of its first
+    message was shaped by what the live driver had read before the cut (a wheel sample waiting for its pair in
+    the odometry: the pairs then alternate for a while) and is a note."""
     r = StreamReport(key, len(rec), len(rep))
     if decided_before and rep and not rec:
         r.notes.append(f"{len(rep)} replayed message(s), none recorded: the replayed mux's start-up (its enable line "
@@ -146,12 +146,12 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
     last_pair = max((k for k, p in enumerate(pairs) if p.kind in ("match", "differ")), default=-1)
     paired_yet = False
     # flowing: the pairs within START_CUT_NS of the stream's start are the cut's (the live driver's state then)
-    before_match = {k for k in range(len(pairs)) if recorded_time(pairs, k, rec) - rec[0].t_ns <= START_CUT_NS} \
+    settling = {k for k in range(len(pairs)) if recorded_time(pairs, k, rec) - rec[0].t_ns <= START_CUT_NS} \
         if flowing else set()
-    cut_differ = {(pairs[k].rec, pairs[k].rep) for k in before_match if pairs[k].kind == "differ"}
+    cut_differ = {(pairs[k].rec, pairs[k].rep) for k in settling if pairs[k].kind == "differ"}
     at_start = len(cut_differ)
     for k, p in enumerate(pairs):
-        if k in before_match and p.kind in ("deleted", "inserted"):
+        if k in settling and p.kind in ("deleted", "inserted"):
             at_start += 1
             continue
         if p.rec is not None:
