@@ -15,8 +15,8 @@ A servo driver (``LOOP_AGE_BY_KIND``) says so by its loop's age in its health: o
 more than the limit behind (not the first of a run: its loop may not have turned yet) makes a window from
 when that loop last turned to HELD_MARGIN_S after the health.
 
-And from a service's first health saying it stops (``stopping``, ``stopped``) to the end: the live service
-took no more input then, the replayed one, stopped only after the playback, takes what was recorded after it
+And from HELD_MARGIN_S before a service's first health saying it stops (``stopping``, ``stopped``; it says so
+once it has begun to stop, later on a loaded machine) to the end: the live service took no more input then, the replayed one, stopped only after the playback, takes what was recorded after it
 (an Ackermann log's servo driver, stopping with the stack, left the last commands unwritten).
 
 So is where a GPIO driver read its edges late: each recorded edge carries its kernel stamp and the time it
@@ -136,7 +136,7 @@ def _scan(log: Path | str, counters: Mapping[str, tuple[str, ...]], devices: Map
             continue
         if health.name in stopping and health.status in STOPPING and m.log_time_ns >= (start_ns or 0):
             stopping.discard(health.name)   # its first such health only
-            out.setdefault(health.name, []).append(HeldWindow(health.name, m.log_time_ns, STOP_WINDOW_END, STOP_WHY))
+            out.setdefault(health.name, []).append(HeldWindow(health.name, m.log_time_ns - margin, STOP_WINDOW_END, STOP_WHY))
         names = counters.get(health.name)
         if not names and health.name not in loop_ages:
             continue

@@ -146,7 +146,7 @@ def test_from_a_services_first_stopping_health_to_the_end_is_a_window(tmp_path: 
         log.write("U2SA_HEALTH", health.encode(), (k + 1) * S)
     log.close()
     windows = plan_windows(tmp_path / "run.mcap", kinds={"drive": "pwm_servo"}, devices={}, start_ns=S, end_ns=10 * S)
-    assert [(w.from_ns, w.to_ns) for w in windows["drive"]] == [(3 * S, STOP_WINDOW_END)]
+    assert [(w.from_ns, w.to_ns) for w in windows["drive"]] == [(3 * S - int(HELD_MARGIN_S * S), STOP_WINDOW_END)]
     writes = [Sample(S + k * 40_000_000, "RawPwmWrite", {"duty_ns": 1_500_000 + 1000 * k}) for k in range(60)]
     stop = Sample(4 * S, "RawPwmWrite", {"duty_ns": 1_500_000})
     rec = writes[:50] + [stop]                     # the live driver wrote nothing more once it was stopping
