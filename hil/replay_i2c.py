@@ -39,7 +39,8 @@ from u2sa_hw.ports.address import DeviceAddress, make_address
 from u2sa_hw.ports.i2c.wire import OP_READ, OP_WRITE, STATUS_EIO, STATUS_NACK, STATUS_OK
 from u2sa_hw.recording.log_reader import LogFile
 
-from u2sa_hw.hil.replay_plan import ReplayError, raw_records
+from u2sa_hw.hil.replay_cut import raw_records
+from u2sa_hw.hil.replay_plan import ReplayError
 
 I2C_BACKLOG_READS = 8       # --fast: data reads released ahead of the driver, so it samples beside the player
 # The replay bus's client timeout (timeout= in its mock+i2c address). The driver's first data read is held

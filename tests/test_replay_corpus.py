@@ -23,7 +23,7 @@ from replay_corpus import build_corpus
 
 from u2sa_hw.drivers.imu.bno055 import Bno055ImuDriver
 from u2sa_hw.drivers.imu.mpu9250 import Mpu9250ImuDriver
-from u2sa_hw.hil.replay_plan import autonomy_armed_at_start, i2c_setup_recorded
+from u2sa_hw.hil.replay_cut import autonomy_armed_at_start, i2c_setup_recorded
 from u2sa_hw.recording.log_reader import LogFile
 
 U2SA = [sys.executable, "-m", "u2sa_hw.cli"]

@@ -16,7 +16,7 @@ import pytest
 from conftest import wait_until
 
 from u2sa_hw.hil.replay_buses import I2C_CLIENT_TIMEOUT_S, ReplayI2cDevice
-from u2sa_hw.hil.replay_plan import i2c_setup_recorded
+from u2sa_hw.hil.replay_cut import i2c_setup_recorded
 from u2sa_hw.messages import RawI2c
 from u2sa_hw.ports.address import parse_address
 from u2sa_hw.ports.errors import PortClosed, PortError, PortIOError

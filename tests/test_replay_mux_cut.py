@@ -1,7 +1,7 @@
 """A recording (or a ``--start`` window) that begins with the RC mux armed in autonomous mode: the pilot armed it
 through manual before the cut, which no replay of the log can reproduce (a mux coming out of "no signal" with the
 switch at autonomous stays disarmed until the pilot goes through manual). The plan leaves the mux out with a note
-and the actuators get its recorded RC_MODE (hil/replay_plan.py, ``autonomy_armed_at_start``; issue 24: a
+and the actuators get its recorded RC_MODE (hil/replay_cut.py, ``autonomy_armed_at_start``; issue 24: a
 ``u2sa record`` started while the vehicle drove under autonomy replayed ``RAW.rc [rc] only in the replay``)."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 from u2sa_hw import lcmtypes as t
 from u2sa_hw.drivers.rc_mux.pulse import MODE_AUTONOMOUS, MODE_MANUAL, MODE_NO_SIGNAL
 from u2sa_hw.hil.compare_values import Sample
-from u2sa_hw.hil.replay_plan import autonomy_armed_at_start
+from u2sa_hw.hil.replay_cut import autonomy_armed_at_start
 from u2sa_hw.recording.log_reader import LogFile
 from u2sa_hw.recording.mcap_log import McapLogWriter
 
