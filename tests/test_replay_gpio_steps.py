@@ -111,16 +111,7 @@ def test_the_replayed_mux_keeps_the_signal_through_the_step(tmp_path: Path) -> N
     last_fall, _ = record_held_up_log(tmp_path / "held.mcap")
     device = ReplayGpioDevice(name="rc", socket_path=tmp_path / "gpio.sock", service="rc")
     device.preload(tmp_path / "held.mcap", start_ns=0, end_ns=2 ** 63 - 1)
-    state = MuxState(channels=LINES, mode_channel="mode", meter=PulseMeter(lines=LINES.values()),
-                     filter=RcModeFilter(debounce_frames=3, signal_timeout_ns=100_000_000),
-                     prearm=PrearmChecks(PrearmTable(gps=None, estimator=None, imu=None, required_services=None)),
-                     drive_enable=lambda level: True)
-    state.port_open = True
-    state.port_opened(device_clock=True, select_level=None)
-    for k in range(FRAMES):
-        for kernel_ns, line, rising in frame_edges(k):
-            state.take_edge(line, rising, kernel_ns, host_ns=0)
-    assert state.filter.mode == MODE_AUTONOMOUS
+    state = mux_after_frames()
     for tick in sorted((tick for _, tick in device.clock_ticks() if tick.step), key=lambda x: x.kernel_timestamp_ns):
         state.take_tick(tick.kernel_timestamp_ns, step=True, host_ns=0)
     assert state.filter.mode != MODE_NO_SIGNAL, "the step lay past the signal timeout the live mux never reached"
