@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import dataclasses
 import tempfile
-import tomllib
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -137,13 +136,7 @@ def _config_past_mistakes(spec: Any) -> dict[str, Any] | None:
         return None
     fields = {f.name: f for f in (*BASE_CONFIG, *cls.config_fields())}
     values = {name: f.default for name, f in fields.items()}
-    file_values: dict[str, Any] = {}
-    if spec.config_path.is_file():
-        try:
-            file_values = tomllib.loads(spec.config_path.read_bytes().decode("utf-8"))
-        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
-            file_values = {}
-    for source in (spec.settings, file_values):   # the file wins, as in the service
+    for source in (spec.settings, spec.file_settings()):   # the file wins, as in the service
         for key, value in source.items():
             if key in fields:
                 try:

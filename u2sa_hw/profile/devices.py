@@ -335,20 +335,11 @@ def _without_old_form(profile: VehicleProfile) -> VehicleProfile:
 def _old_form(spec: Any, cls: type) -> bool:
     """True when service *spec* (of class *cls*) is still given an address setting of the old form, in its
     profile settings or its config file (a file that does not read gives none)."""
-    import tomllib
-
     from u2sa_hw.config.keys import old_form_keys
     from u2sa_hw.service.base_config import BASE_CONFIG
 
     fields = [f.name for f in (*BASE_CONFIG, *cls.config_fields())]
-    file_values: dict[str, Any] = {}
-    if spec.config_path.is_file():
-        try:
-            read = tomllib.loads(spec.config_path.read_bytes().decode("utf-8"))
-        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
-            read = {}
-        file_values = read if isinstance(read, dict) else {}
-    return any(old_form_keys(values, fields) for values in (dict(spec.settings), file_values))
+    return any(old_form_keys(values, fields) for values in (dict(spec.settings), spec.file_settings()))
 
 
 def _parsed(profile: VehicleProfile, name: str, text: str) -> DeviceAddress:

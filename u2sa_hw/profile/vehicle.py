@@ -8,6 +8,7 @@ the loader imports the parsers; the file format is documented in :mod:`u2sa_hw.p
 
 from __future__ import annotations
 
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -27,6 +28,15 @@ class ServiceSpec:
     settings: dict[str, Any] = field(default_factory=dict)
     enabled: bool = True
     required: bool = True
+
+    def file_settings(self) -> dict[str, Any]:
+        """The service's config file as a table, leniently: empty when it is missing, unreadable or not TOML
+        (``u2sa check`` and the old-form scan judge what they can; the service itself refuses such a file)."""
+        try:
+            read = tomllib.loads(self.config_path.read_bytes().decode("utf-8"))
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+            return {}
+        return read if isinstance(read, dict) else {}
 
 
 @dataclass(frozen=True)
