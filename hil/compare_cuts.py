@@ -26,12 +26,22 @@ def flowing_at_start(rec: list[Sample], recording_start_ns: int | None) -> bool:
     return rec[0].t_ns - recording_start_ns <= 2 * gaps[len(gaps) // 2]
 
 
-def recorded_time(pairs: list[Pair], k: int, rec: list[Sample]) -> int:
-    """The log time of the recorded message of ``pairs[k]``, or of the recorded one before it (an insertion)."""
-    for q in reversed(pairs[:k + 1]):
+def recorded_times(pairs: list[Pair], rec: list[Sample], end_ns: int) -> tuple[list[int], list[int]]:
+    """For each step of *pairs*, the log time of its recorded message or of the recorded one before it (an
+    insertion; the stream's first before any), and of the first recorded message after it (*end_ns* after the
+    last): where an unpaired replayed message lies on the recording's clock. One pass each way."""
+    before, after = [0] * len(pairs), [0] * len(pairs)
+    t = rec[0].t_ns
+    for k, q in enumerate(pairs):
         if q.rec is not None:
-            return rec[q.rec].t_ns
-    return rec[0].t_ns
+            t = rec[q.rec].t_ns
+        before[k] = t
+    t = end_ns
+    for k in range(len(pairs) - 1, -1, -1):
+        after[k] = t
+        if pairs[k].rec is not None:
+            t = rec[pairs[k].rec].t_ns
+    return before, after
 
 
 # How long before the recording's end input may have been read whose live output the recording does not hold

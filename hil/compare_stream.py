@@ -17,7 +17,7 @@ from typing import Any, Sequence
 from u2sa_hw.hil.compare_values import (KEPT_BY_VERDICT, SYSTEM_FIELDS, Sample, ToleranceLike, Tolerances,
                                         as_tolerances, differing_fields, values_equal)
 from u2sa_hw.hil.compare_cuts import (START_CUT_NS, TAIL_CUT_NS, after_cut, cut_note, mux_decided_before, partial,
-                                      recorded_time, rest_of_cut)
+                                      recorded_times, rest_of_cut)
 from u2sa_hw.hil.held_up import STOP_WINDOW_END, HeldWindow
 from u2sa_hw.hil.stream_align import Pair, align_streams, content_key
 
@@ -131,14 +131,13 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
     at_edges: list[str] = []
     held_seen: dict[HeldWindow, int] = {}   # differences inside a held-up window, per window
     system_changes = 0   # unpaired messages published for a change of a system-decided field
-    changes_used: dict[tuple[int, int], int] = {}   # (id of a side, its run's first index) -> changes taken
+    changes_used: dict[tuple[int, int], list[int]] = {}   # (id of a side, its run's first index) -> budget
     rec_edge, rep_edge = edge_positions(rec, edge), edge_positions(rep, edge)
     # the partial pairs at the edges (a cut epoch): (recorded, replayed) indexes
     cut_pairs = {(i, j) for i, j in paired
                  if (i in rec_edge or j in rep_edge)
                  and (names := [n for n in differing_fields(rec[i], rep[j], tol) if n not in system])
                  and partial(rec[i], rep[j], names)}
-    last_rec_t = rec[0].t_ns
     startup = 0   # replayed start-up writes the recording began after (started_before)
     deciding = 0   # unpaired while the replayed mux decided what the live one had before the cut (decided_before)
     first_decided = next((j for j, b in enumerate(rep) if mux_decided_before([b])), 0) if decided_before else 0
@@ -146,16 +145,14 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
     last_pair = max((k for k, p in enumerate(pairs) if p.kind in ("match", "differ")), default=-1)
     paired_yet = False
     # flowing: the pairs within START_CUT_NS of the stream's start are the cut's (the live driver's state then)
-    settling = {k for k in range(len(pairs)) if recorded_time(pairs, k, rec) - rec[0].t_ns <= START_CUT_NS} \
-        if flowing else set()
+    rec_before, rec_after = recorded_times(pairs, rec, max(rec[-1].t_ns, recording_end_ns or 0))
+    settling = {k for k in range(len(pairs)) if rec_before[k] - rec[0].t_ns <= START_CUT_NS} if flowing else set()
     cut_differ = {(pairs[k].rec, pairs[k].rep) for k in settling if pairs[k].kind == "differ"}
     at_start = len(cut_differ)
     for k, p in enumerate(pairs):
         if k in settling and p.kind in ("deleted", "inserted"):
             at_start += 1
             continue
-        if p.rec is not None:
-            last_rec_t = rec[p.rec].t_ns
         if p.kind in ("match", "differ"):
             paired_yet = True
             continue
@@ -184,9 +181,8 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
         if p.kind == "deleted":
             times = [rec[m].t_ns for m in run]
         else:   # between the recorded messages before and after it, or any paired with its run
-            after = next((rec[q.rec].t_ns for q in pairs[k + 1:] if q.rec is not None),
-                         max(rec[-1].t_ns, recording_end_ns or 0))   # none after it: up to the recording's end
-            times = [last_rec_t, after, *(rec[rec_of_rep[m]].t_ns for m in run if m in rec_of_rep)]
+            # (none after it: up to the recording's end)
+            times = [rec_before[k], rec_after[k], *(rec[rec_of_rep[m]].t_ns for m in run if m in rec_of_rep)]
         if _in_held(held, times, held_seen):
             continue
         if system and _system_change_left(own, run, system, changes_used, kept=KEPT_BY_VERDICT.get(channel, ())):
@@ -199,7 +195,7 @@ def compare_stream(key: str, rec: list[Sample], rep: list[Sample], *, tolerance:
             r.deleted += 1
         else:
             r.inserted += 1
-        r.events.append(Event(p.kind, index, last_rec_t))
+        r.events.append(Event(p.kind, index, rec_before[k]))
     offsets: list[float] = []
     k0 = 0   # the timing reference: the first pair whose replayed message came after the playback began
     if replay_start_ns is not None:
@@ -330,16 +326,20 @@ def edge_positions(samples: list[Sample], edge: int) -> set[int]:
 
 
 def _system_change_left(stream: list[Sample], run: list[int], system: tuple[str, ...],
-                        used: dict[tuple[int, int], int], *, kept: tuple[str, ...] = ()) -> bool:
+                        used: dict[tuple[int, int], list[int]], *, kept: tuple[str, ...] = ()) -> bool:
     """True (and taken) when the run of equal messages *run* of *stream* holds a verdict change not yet taken
     by another unpaired message of it: each change is published at once, one message per change at most. A
-    change counts where two messages differ in a *system* field and in none of *kept* (KEPT_BY_VERDICT)."""
-    changes = sum(1 for k in range(max(0, run[0] - 1), min(len(stream) - 1, run[-1] + 1))
-                  if _differs(stream[k], stream[k + 1], system) and not _differs(stream[k], stream[k + 1], kept))
+    change counts where two messages differ in a *system* field and in none of *kept* (KEPT_BY_VERDICT).
+    *used*: per run, [its changes, those taken] (counted once per run)."""
     key = (id(stream), run[0] if run else -1)
-    if used.get(key, 0) >= changes:
+    budget = used.get(key)
+    if budget is None:
+        changes = sum(1 for k in range(max(0, run[0] - 1), min(len(stream) - 1, run[-1] + 1))
+                      if _differs(stream[k], stream[k + 1], system) and not _differs(stream[k], stream[k + 1], kept))
+        budget = used[key] = [changes, 0]
+    if budget[1] >= budget[0]:
         return False
-    used[key] = used.get(key, 0) + 1
+    budget[1] += 1
     return True
 
 
