@@ -103,6 +103,7 @@ class OdriveCanMotor(OdriveTripLatch, OdriveDeclarations, CanMotorService):
         super().__init__(name, **kwargs)
         self.firmware = self.config.get("firmware")
         self._estopped = False
+        self._to_clear = ""   # what clears the latched errors, as judged at the last tick (with the reason)
         self.axes: dict[str, OdriveAxis] = {}
         self._by_node: dict[int, OdriveAxis] = {}
         self.out_of_range = ValueDrops(self.logger, device=self.device_name, what="impossible")
@@ -235,6 +236,9 @@ class OdriveCanMotor(OdriveTripLatch, OdriveDeclarations, CanMotorService):
             if not axis.armed:
                 self._maybe_arm(axis, now)
             self._poll(axis, now)
+        # judged here, with the degraded reason, not when health is read: a trip heard since the last tick is
+        # attributed to a stall only at the next one, and health must not name the deliberate clear meanwhile
+        self._to_clear = self.to_clear()
 
     def _clear_all(self) -> None:
         """Clear_Errors to every axis that is heard now; each re-arms at its next heartbeat."""
@@ -366,7 +370,7 @@ class OdriveCanMotor(OdriveTripLatch, OdriveDeclarations, CanMotorService):
         ``to_clear``: what clears a latched error."""
         now = self.now()
         details: dict[str, Any] = {"firmware": self.firmware, "estopped": self._estopped,
-                                   "to_clear": self.to_clear(),
+                                   "to_clear": self._to_clear,
                                    **self.out_of_range.details("out_of_range"),
                                    "odometry_rejected": self.odometry.rejected if self.odometry else 0,
                                    "hw_watchdog": watchdog_summary({n: a.wd.text for n, a in self.axes.items()})}
