@@ -38,8 +38,12 @@ from u2sa_hw.recording.log_reader import LogFile
 # (``checks_lost``: a service's health came too late for a pre-arm check, on the recording machine's clock)
 # (a servo driver's ``rc_mode_stale``: its newest RC_MODE aged past the limit on its own clock - with the RC mux
 # running, its bus handling was held up, and it then took its backlog of commands and RC_MODEs late)
+# (an actuator's ``taken_late``: commands or RC_MODEs it took over 0.1 s later than its quickest lately, by their
+# header stamps - its bus handling was held up, even for less than an RC_MODE takes to go stale;
+# u2sa_hw/safety/late_take.py)
 HELD_UP_BY_KIND: dict[str, tuple[str, ...]] = {"rc_mux": ("stalls", "timed_skipped", "checks_lost"),
-                                               "pwm_servo": ("rc_mode_stale",)}
+                                               "pwm_servo": ("rc_mode_stale", "taken_late"),
+                                               "odrive_can": ("taken_late",), "vesc_can": ("taken_late",)}
 # service kind -> the loop age (s, the contract health's ``loop_age_s``) past which its loop was held up when the
 # health was sent: a servo driver writes what the bus commands, in the order it takes its messages; held up, it
 # took a backlog of commands late and in another order against the RC mux's (issue 24, an Ackermann recording

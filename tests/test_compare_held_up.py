@@ -104,15 +104,21 @@ def test_windows_are_where_the_muxs_health_counters_grew(tmp_path: Path) -> None
     counts = [(0, 0), (0, 0), (2, 1), (2, 1), (3, 1)]   # (stalls, timed_skipped) at 1 s intervals
     for k, (stalls, skipped) in enumerate(counts):
         log.write("U2SA_HEALTH", mux_health("rc", stalls=stalls, timed_skipped=skipped).encode(), (k + 1) * S)
-        log.write("U2SA_HEALTH", mux_health("wheels", stalls=k).encode(), (k + 1) * S)   # a motor's stall: not the machine's
+        # a motor driver's stall counter is its own (not the machine's); its taken_late is the machine's
+        log.write("U2SA_HEALTH", mux_health("wheels", stalls=k, taken_late=int(k >= 3)).encode(), (k + 1) * S)
+        log.write("U2SA_HEALTH", mux_health("drive", rc_mode_stale=0, taken_late=2 * int(k >= 1)).encode(), (k + 1) * S)
     log.close()
-    counters = held_up_counters({"rc": "rc_mux", "wheels": "odrive_can"})
-    assert counters == {"rc": ("stalls", "timed_skipped", "checks_lost")}
+    counters = held_up_counters({"rc": "rc_mux", "wheels": "odrive_can", "drive": "pwm_servo", "gps": "gps_nmea"})
+    assert counters == {"rc": ("stalls", "timed_skipped", "checks_lost"), "wheels": ("taken_late",),
+                        "drive": ("rc_mode_stale", "taken_late")}
     windows = held_windows(tmp_path / "run.mcap", counters, start_ns=S)
     margin = int(HELD_MARGIN_S * S)
     assert [(w.from_ns, w.to_ns, w.why) for w in windows["rc"]] == [
         (2 * S - margin, 3 * S + margin, "stalls +2, timed_skipped +1"), (4 * S - margin, 5 * S + margin, "stalls +1")]
-    assert set(windows) == {"rc"}
+    # a backlog taken late between two health messages (no stale RC_MODE, the loop on time when health went out)
+    assert [(w.from_ns, w.to_ns, w.why) for w in windows["drive"]] == [(S - margin, 2 * S + margin, "taken_late +2")]
+    assert [(w.from_ns, w.to_ns, w.why) for w in windows["wheels"]] == [(3 * S - margin, 4 * S + margin, "taken_late +1")]
+    assert set(windows) == {"rc", "drive", "wheels"}
 
 
 def test_a_servo_drivers_loop_behind_in_its_health_makes_a_window(tmp_path: Path) -> None:

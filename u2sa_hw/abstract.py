@@ -5,7 +5,8 @@ fields it measures (the presence vector says which). An exteroceptive sensor pub
 Object Descriptions. An actuator acts only on commands addressed to its name, maps
 -100..100 % to its hardware, obeys the pilot's RC switch (the software mux), and goes
 neutral on stop, on kill, on a failsafe, on a stale RC mode and when commands stop
-arriving for ``command_timeout_s`` (docs/safety.md).
+arriving for ``command_timeout_s`` (docs/safety.md). Its health counts the commands and RC_MODEs it
+took late (``taken_late``: its bus handling was held up; u2sa_hw/safety/late_take.py).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from u2sa_hw.config.fields import ConfigError, field
 from u2sa_hw.messages import as_type
 from u2sa_hw.safety.config import load_safety
 from u2sa_hw.safety.gate import AUTONOMOUS, MANUAL, CommandGate
+from u2sa_hw.safety.late_take import LateTakeWatch
 from u2sa_hw.service.contract import U2SAService
 
 MAX_COMMAND_TIMEOUT_S = 0.5   # the dead-man's longest: the field's bound and check_config's
@@ -102,6 +104,7 @@ class Actuator(U2SAService):
         self.gate = CommandGate(rc_mode_timeout_s=self.safety.rc_mode_timeout_s,
                                 rc_gating=bool(self.config["rc_gating"]))
         self.commands_received = 0
+        self.late_takes = LateTakeWatch()   # commands and RC_MODEs taken late: bus handling held up (observed only)
         # One command is admitted and applied, or the authority changes and the outputs go neutral,
         # never interleaved: a command admitted just before a failsafe cannot land after its neutral.
         # Order: this lock, then the driver's own (drivers call check_command_timeout outside theirs).
@@ -188,6 +191,7 @@ class Actuator(U2SAService):
         with self._authority_lock:
             if self._stopping:
                 return   # kill() sent the final neutral: nothing may follow it
+            self.late_takes.took(int(base.header.timestamp_us))   # here: a wait on this lock is a hold-up too
             now = time.monotonic()
             self._follow_authority(now)
             if self.gate.admit(source, now):
@@ -211,6 +215,7 @@ class Actuator(U2SAService):
             self.on_command(msg)
 
     def _on_rc_mode(self, msg: t.RcMode) -> None:
+        self.late_takes.took(int(msg.header.timestamp_us))
         now = time.monotonic()
         self.gate.on_rc_mode(msg, now)
         self._follow_authority(now)
@@ -264,7 +269,7 @@ class Actuator(U2SAService):
                 "neutral_because": auth.why, "failsafe": self.failsafe_active,
                 "failsafe_sources": ",".join(sorted(self.failsafe_sources)),
                 "command_timed_out": self._timed_out, "rc_gating": self.gate.rc_gating,
-                "rc_mode_stale": self.gate.stale_rc_modes}
+                "rc_mode_stale": self.gate.stale_rc_modes, **self.late_takes.details()}
 
     def kill(self) -> None:
         """Neutral, then release; no command is obeyed after this neutral."""
