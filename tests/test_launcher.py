@@ -284,6 +284,16 @@ def test_a_recorder_starts_first_and_the_others_once_it_is_ready(tmp_path: Path,
         assert all(s.status_text for s in launcher.status())   # STATUS= arrives too
     finally:
         assert launcher.stop(timeout=30) == 0
+    # and it stops last, once the others have exited: its log holds their stop
+    said = [line for name, line in lines if name == "launcher"]
+    stopped = {n: next(i for i, line in enumerate(said) if line.startswith(f"{n} ") and line.endswith("(stopped)"))
+               for n in ("rec", "est", "world")}
+    assert stopped["rec"] > max(stopped["est"], stopped["world"]), said
+    assert any("rec once the others have exited" in line for line in said), said
+    rec_told = [i for i, (name, line) in enumerate(lines) if name == "rec" and "stopped" in line.lower()]
+    others_gone = max(i for i, (name, line) in enumerate(lines) if name == "launcher" and line.endswith("(stopped)")
+                      and not line.startswith("rec "))
+    assert rec_told and min(rec_told) > others_gone, lines
 
 
 def test_a_first_service_that_never_gets_ready_holds_the_others_only_for_first_wait_s(tmp_path: Path,

@@ -128,8 +128,12 @@ def test_the_ackermann_car_is_taken_over_through_the_hardware_mux(tmp_path: Path
     throttle = ("throttle",)
     # the PWM outputs move the simulated car: it drove before the takeover
     assert summary["distance_m"] > 3
-    # manual: the mux passes the pilot's centred sticks at once; then the sticks themselves
-    assert stopped(manual, throttle) and moved(sticks, ("throttle", "steering"))
+    # manual: the mux passes the pilot's centred sticks at once; then the sticks themselves. A throttle already
+    # neutral at the switch (on a loaded machine the car may not be moving 3 s after engaging: its dead-man or a
+    # lost autonomy) must stay so: what is asserted is that nothing moves it after the pilot takes over
+    assert stopped(manual, throttle) or still(manual, throttle), (manual["outputs"]["throttle"], manual["rc_modes"],
+                                                                  summary["autonomy_interruptions"])
+    assert moved(sticks, ("throttle", "steering"))
     assert sticks["outputs"]["steering"]["at_end"]["value"] < 0 < sticks["outputs"]["throttle"]["at_end"]["value"]
     assert stopped(centre, ("throttle", "steering")) and moved(auto, throttle)
     # RC lost: the mux selects the pilot, whose receiver puts out nothing: the ESC has no pulse

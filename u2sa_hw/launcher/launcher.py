@@ -20,7 +20,9 @@ found stopped (SIGSTOP) gets SIGKILL at once and is never resumed, on a watchdog
 stop: resumed, a frozen command source would publish commands before it died.
 Services of kind ``recorder`` start first and the others once they are ready (or after
 ``first_wait_s``): a recording then holds every service's start-up I/O (an IMU's
-identification reads, a motor controller's arming), which replay needs.
+identification reads, a motor controller's arming), which replay needs. They stop last, once
+the others have exited (as systemd stops units ordered after them first): the recording holds
+every service's stop too (its ``stopping`` health, its last writes).
 
 A child that exits 3 refused to start (another of its name already answers on the bus, or
 its bus cannot be kept on this board): it is not restarted, as ``RestartPreventExitStatus=3``
@@ -117,6 +119,7 @@ class Launcher:
         self._stop_reason: str | None = None
         self._force = False
         self._stopping = False
+        self._stop_last: list[str] = []   # the start_first services still to stop once the others have exited
         self._failed: list[str] = []
         self._thread: threading.Thread | None = None
         self._server: ControlServer | None = None
@@ -327,11 +330,20 @@ class Launcher:
     def _tick(self, sel: selectors.BaseSelector) -> None:
         if self._stop_reason and not self._stopping:
             self._stopping = True
+            self._stop_last = [n for n in self.start_first if len(self.start_first) < len(self.processes)]
+            last = f"; {', '.join(self._stop_last)} once the others have exited" if self._stop_last else ""
             self.say(f"{self._stop_reason}: stopping {len(self.processes)} services (SIGTERM; SIGKILL to one "
                      f"that does not acknowledge within {self.grace_s:g} s or then hangs, or is still "
-                     f"alive after {self.stop_limit_s:g} s)")
+                     f"alive after {self.stop_limit_s:g} s{last})")
             for p in self.processes.values():
-                p.stop(self.grace_s)
+                if p.name not in self._stop_last:
+                    p.stop(self.grace_s)
+        if self._stop_last and all(p.proc is None for p in self.processes.values() if p.name not in self._stop_last):
+            # the recorder stops last, as it started first: its log holds every service's stop (its stopping health,
+            # its last writes), which replay needs; the others' stop is bounded by stop_limit_s (SIGKILL)
+            for name in self._stop_last:
+                self.processes[name].stop(self.grace_s)
+            self._stop_last = []
         if self._force:
             self._force = False
             self.say("stopping now: SIGKILL")
