@@ -237,10 +237,9 @@ JOBS: dict[str, Callable[[Path], dict[str, Path]]] = {
 }
 
 
-def build_corpus(corpus: Path, *, workers: int = 2, only: set[str] | None = None) -> dict[str, Path]:
-    """Build every recording into *corpus* (``<name>.mcap``), or those of the jobs *only*; returns
-    ``{name: path}``. Two runs at a time on 2 cores (*workers*): the corpus is about varied runs, not about
-    load (bench/replay_corpus.py)."""
+def build_corpus(corpus: Path, *, workers: int = 2) -> dict[str, Path]:
+    """Build every recording into *corpus* (``<name>.mcap``); returns ``{name: path}``. Two runs at a time on
+    2 cores (*workers*): the corpus is about varied runs, not about load (bench/replay_corpus.py)."""
     corpus.mkdir(parents=True, exist_ok=True)
     work = corpus.parent / f"{corpus.name}-work"
     if "U2SA_BUS_KEY_FILE" not in os.environ:   # outside the test session (the bench): a key of the corpus's own
@@ -265,7 +264,7 @@ def build_corpus(corpus: Path, *, workers: int = 2, only: set[str] | None = None
 
     logs: dict[str, Path] = {}
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        for made in pool.map(job, [name for name in JOBS if only is None or name in only]):
+        for made in pool.map(job, list(JOBS)):
             for name, path in made.items():
                 dst = corpus / f"{name}.mcap"
                 shutil.copyfile(path, dst)
