@@ -88,9 +88,17 @@ HEADER_FIELDS = ("*header.timestamp_us", "*header.sequence")
 def load_streams(path: Path | str, *, sources: set[str], start_ns: int | None = None, end_ns: int | None = None,
                  ignore: tuple[str, ...] = ()) -> dict[str, list[Sample]]:
     """``"CHANNEL [source]"`` -> samples, for messages from *sources* within the window."""
+    return _load_streams(path, sources=sources, start_ns=start_ns, end_ns=end_ns, ignore=ignore)[0]
+
+
+def _load_streams(path: Path | str, *, sources: set[str], start_ns: int | None, end_ns: int | None,
+                  ignore: tuple[str, ...]) -> tuple[dict[str, list[Sample]], int | None]:
+    """:func:`load_streams` and the log's first log time, of any message (None for an empty log)."""
     patterns = (*HEADER_FIELDS, *ignore)
     streams: dict[str, list[Sample]] = {}
+    first: int | None = None
     for m in LogFile(path).messages():
+        first = m.log_time_ns if first is None else min(first, m.log_time_ns)
         if m.channel.startswith("U2SA_") or (m.channel.startswith("RAW.") and m.type_name not in OUTPUT_RAW_TYPES):
             continue
         if (start_ns is not None and m.log_time_ns < start_ns) or (end_ns is not None and m.log_time_ns > end_ns):
@@ -107,7 +115,7 @@ def load_streams(path: Path | str, *, sources: set[str], start_ns: int | None = 
         stamp_us = next((v for k, v in every.items() if k.endswith("header.timestamp_us")), 0)
         streams.setdefault(f"{m.channel} [{source}]", []).append(
             Sample(m.log_time_ns, type(msg).__name__, fields, int(stamp_us) * 1000 if stamp_us else None))
-    return streams
+    return streams, first
 
 
 def source(key: str) -> str:
@@ -132,9 +140,13 @@ def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[st
     """
     tol = as_tolerances(tolerance)
     ignore = (*ignore, *tol.ignore)
-    rec = load_streams(recorded, sources=services, start_ns=start_ns, end_ns=end_ns, ignore=ignore)
+    rec, log_start = _load_streams(recorded, sources=services, start_ns=start_ns, end_ns=end_ns, ignore=ignore)
     rep = load_streams(replayed, sources=services, ignore=ignore)
     origin = start_ns if start_ns is not None else min((v[0].t_ns for v in rec.values() if v), default=0)
+    # where the recording began, for flowing_at_start: the window's start, or the log's first message of any
+    # channel (as a replay's plan takes it) - not the first compared message, which would make that stream
+    # "flowing" whatever came before it
+    began = start_ns if start_ns is not None else log_start
     recording_end = max((v[-1].t_ns for v in rec.values() if v), default=None)
     windows = held or {}
     # the RC muxes whose recording began after they had decided their mode (their first RC_MODE says so)
@@ -152,7 +164,7 @@ def compare_logs(recorded: Path | str, replayed: Path | str, *, services: set[st
                                           origin_ns=origin, held=windows.get(source(key), ()),
                                           started_before=begun_after_start(a), recording_end_ns=recording_end,
                                           decided_before=source(key) in decided,
-                                          flowing=flowing_at_start(a, start_ns if start_ns is not None else origin)))
+                                          flowing=flowing_at_start(a, began)))
     recorded_sources = {source(key) for key in rec}
     for r in reports:
         if not r.recorded and source(r.key) not in recorded_sources:

@@ -324,7 +324,8 @@ class SimRun:
         """Stop the services (SIGTERM, SIGKILL after the grace), the sampler, the monitor, the mocks."""
         self._stopping = True
         if self.launcher is not None:
-            self.launcher.stop(timeout=self.launcher.stop_limit_s + 5.0)
+            # the recorder stops after the others: each stop may take up to stop_limit_s (then SIGKILL)
+            self.launcher.stop(timeout=2 * self.launcher.stop_limit_s + 5.0)
             self.record.services = {s.name: {"state": s.state, "restarts": s.restarts, "last_exit": s.last_exit}
                                     for s in self.launcher.status()}
         self._stop_sampling.set()

@@ -175,3 +175,32 @@ def test_a_stream_flowing_as_the_recording_began_settles_within_a_second() -> No
     longer = [odometry(k, 2.0 + k / 100) for k in range(100)]
     late = longer[:70] + [odometry(70, 9.0)] + longer[71:]   # 1.4 s in: a difference
     assert compare_stream("STATE_INFO [wheels]", longer, late, flowing=True, **kwargs).differing == 1
+
+
+def test_a_stream_that_begins_after_the_recording_is_not_flowing_for_compare_logs(tmp_path) -> None:
+    """Without a window, the recording began at the log's first message of any channel (as a replay's plan takes
+    it), not at the first compared one: a GPS stream that begins 2 s after the log's first health is no stream
+    caught flowing, and a fix missing 0.4 s into it is a deletion (it was a settling note, as if flowing)."""
+    from u2sa_hw import lcmtypes as t
+    from u2sa_hw.hil.compare import compare_logs
+    from u2sa_hw.recording.mcap_log import McapLogWriter
+
+    def log(path, skip: int | None):
+        writer = McapLogWriter(tmp_path, path=path)
+        health = t.Health()
+        health.name, health.status = "gps", "ok"
+        writer.write("U2SA_HEALTH", health.encode(), 1_000_000_000)
+        for k in range(10):
+            if k == skip:
+                continue
+            msg = StateInformation()
+            msg.header.source, msg.sensor_name = "gps", "gps"
+            msg.set(x=float(k), y=2.0 * k)
+            writer.write("STATE_INFO", msg.encode(), 3_000_000_000 + k * 200_000_000)
+        writer.close()
+        return path
+
+    recorded, replayed = log(tmp_path / "rec.mcap", None), log(tmp_path / "rep.mcap", 2)
+    report = compare_logs(recorded, replayed, services={"gps"}, rate=None).to_dict()
+    [gps] = report["streams"]
+    assert (gps["deleted"], gps["matched"], gps["ok"]) == (1, 9, False), gps
