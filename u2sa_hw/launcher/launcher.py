@@ -19,10 +19,8 @@ be waiting on), the stall is not counted against the children. A child
 found stopped (SIGSTOP) gets SIGKILL at once and is never resumed, on a watchdog timeout or a
 stop: resumed, a frozen command source would publish commands before it died.
 Services of kind ``recorder`` start first and the others once they are ready (or after
-``first_wait_s``): a recording then holds every service's start-up I/O (an IMU's
-identification reads, a motor controller's arming), which replay needs. They stop last, once
-the others have exited (as systemd stops units ordered after them first): the recording holds
-every service's stop too (its ``stopping`` health, its last writes).
+``first_wait_s``), and stop last, once the others have exited: the recording holds every
+service's start-up and stop, which replay needs (:mod:`.first`).
 
 A child that exits 3 refused to start (another of its name already answers on the bus, or
 its bus cannot be kept on this board): it is not restarted, as ``RestartPreventExitStatus=3``
@@ -44,10 +42,10 @@ from typing import Any, Callable, Collection
 from u2sa_hw.launcher.child_setup import check_cgroup
 from u2sa_hw.launcher.children import child_environment, select_services, u2sa_command, watchdog_setting
 from u2sa_hw.launcher.control import ControlServer, LauncherError, answer, default_socket_path
+from u2sa_hw.launcher.first import FirstServices
 from u2sa_hw.launcher.notify import NotifyListener
 from u2sa_hw.launcher.output import ChildOutputs, LineSink, PrefixedOutput
-from u2sa_hw.launcher.policy import (BACKOFF, EXITED, FAILED, RUNNING, STOP_LIMIT_S, STOPPED, ProcessStatus,
-                                     RestartPolicy)
+from u2sa_hw.launcher.policy import BACKOFF, FAILED, RUNNING, STOP_LIMIT_S, ProcessStatus, RestartPolicy
 from u2sa_hw.launcher.process import SupervisedProcess
 from u2sa_hw.launcher.watchdog import WatchedClock
 from u2sa_hw.realtime import RealtimePlan, describe_plan
@@ -110,16 +108,13 @@ class Launcher:
             for s in specs}
         names = [s.name for s in specs]
         first = start_first if start_first is not None else [s.name for s in specs if s.kind == RECORDER_KIND]
-        self.start_first = [n for n in first if n in names]
-        self.first_wait_s = first_wait_s
-        self._holding = bool(self.start_first) and len(self.start_first) < len(names)
-        self._hold_since: float | None = None
+        self.first = FirstServices([n for n in first if n in names], total=len(names), wait_s=first_wait_s,
+                                   say=self.say)
         self._lock = threading.RLock()
         self._wake_r, self._wake_w = os.pipe2(os.O_CLOEXEC | os.O_NONBLOCK)
         self._stop_reason: str | None = None
         self._force = False
         self._stopping = False
-        self._stop_last: list[str] = []   # the start_first services still to stop once the others have exited
         self._failed: list[str] = []
         self._thread: threading.Thread | None = None
         self._server: ControlServer | None = None
@@ -168,6 +163,11 @@ class Launcher:
     def exit_code(self) -> int:
         """1 when some service was given up, else 0."""
         return 1 if self._failed else 0
+
+    @property
+    def start_first(self) -> list[str]:
+        """The services started first and stopped last (the recorders, unless the caller named others)."""
+        return self.first.names
 
     @property
     def failed(self) -> list[str]:
@@ -305,45 +305,21 @@ class Launcher:
             p = by_pid.get(note.pid)
             if p is None:
                 continue   # a grandchild, or a child already reaped (systemd's NotifyAccess=main)
-            if p.on_notify(note.fields) and p.name in self.start_first:
+            if p.on_notify(note.fields) and p.name in self.first.names:
                 self.say(f"{p.name} ready after {p.clock() - p.started_at:.1f} s")
-
-    def _still_holding(self) -> bool:
-        """True while the start_first services are neither ready nor done and first_wait_s has not passed."""
-        if not self._holding:
-            return False
-        now = time.monotonic()
-        if self._hold_since is None:
-            self._hold_since = now
-        waiting = [n for n in self.start_first
-                   if not self.processes[n].ready and self.processes[n].state not in (FAILED, EXITED, STOPPED)]
-        if waiting and now - self._hold_since < self.first_wait_s:
-            return True
-        self._holding = False
-        if waiting:
-            self.say(f"{', '.join(waiting)} not ready after {self.first_wait_s:g} s: starting the others anyway")
-        else:
-            self.say(f"starting the others now that {', '.join(self.start_first)} "
-                     f"{'is' if len(self.start_first) == 1 else 'are'} ready")
-        return False
 
     def _tick(self, sel: selectors.BaseSelector) -> None:
         if self._stop_reason and not self._stopping:
             self._stopping = True
-            self._stop_last = [n for n in self.start_first if len(self.start_first) < len(self.processes)]
-            last = f"; {', '.join(self._stop_last)} once the others have exited" if self._stop_last else ""
+            last = self.first.begin_stop()
             self.say(f"{self._stop_reason}: stopping {len(self.processes)} services (SIGTERM; SIGKILL to one "
                      f"that does not acknowledge within {self.grace_s:g} s or then hangs, or is still "
                      f"alive after {self.stop_limit_s:g} s{last})")
             for p in self.processes.values():
-                if p.name not in self._stop_last:
+                if not self.first.kept_for_last(p.name):
                     p.stop(self.grace_s)
-        if self._stop_last and all(p.proc is None for p in self.processes.values() if p.name not in self._stop_last):
-            # the recorder stops last, as it started first: its log holds every service's stop (its stopping health,
-            # its last writes), which replay needs; the others' stop is bounded by stop_limit_s (SIGKILL)
-            for name in self._stop_last:
-                self.processes[name].stop(self.grace_s)
-            self._stop_last = []
+        for name in self.first.due_to_stop(self.processes):
+            self.processes[name].stop(self.grace_s)
         if self._force:
             self._force = False
             self.say("stopping now: SIGKILL")
@@ -362,9 +338,9 @@ class Launcher:
                 self.say(f"{p.name} {verdict}")
         if self._stopping:
             return
-        holding = self._still_holding()
+        self.first.still_holding(self.processes)
         for p in self.processes.values():
-            if p.due() and not (holding and p.name not in self.start_first):
+            if p.due() and not self.first.holds_back(p.name):
                 self._spawn(sel, p)
 
     def _spawn(self, sel: selectors.BaseSelector, p: SupervisedProcess) -> None:
@@ -401,12 +377,12 @@ class Launcher:
 
     def _next_timeout(self) -> float:
         now = time.monotonic()
-        held = self._holding and not self._stopping
-        # A held service is due but waits for the start_first ones: its deadline is the end of the hold.
+        # A held service is due but waits for the first ones: its deadline is the end of the hold.
         deadlines = [p.next_start for p in self.processes.values() if p.state == BACKOFF and p.desired == RUNNING
-                     and not (held and p.name not in self.start_first)]
-        if held and self._hold_since is not None:
-            deadlines.append(self._hold_since + self.first_wait_s)
+                     and not self.first.holds_back(p.name)]
+        hold_end = self.first.hold_deadline()
+        if hold_end is not None:
+            deadlines.append(hold_end)
         deadlines += [p.kill_at for p in self.processes.values() if p.kill_at is not None]
         soonest = min(deadlines, default=now + _MAX_WAIT)
         return max(0.0, min(_MAX_WAIT, soonest - now))
